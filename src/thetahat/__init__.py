@@ -1,0 +1,1 @@
+"""thetahat: modular state, perturbation and parameter estimation (Grip, Saberi & Johansen)."""

@@ -1,0 +1,121 @@
+"""Private helpers that coerce arrays and check shape and finiteness at the public boundary.
+
+Every public function validates its input here, once, and gets back float64 arrays. Messages
+name the argument, the expected shape and the actual shape.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from .errors import DimensionError, NonFiniteError
+
+FloatArray = NDArray[np.float64]
+
+
+def _shape_str(shape: tuple[int | None, ...]) -> str:
+    return "(" + ", ".join("?" if s is None else str(s) for s in shape) + ")"
+
+
+def check_finite(name: str, arr: NDArray[Any]) -> None:
+    """Raise :class:`NonFiniteError` if ``arr`` holds NaN or inf."""
+    if not np.all(np.isfinite(arr)):
+        bad = np.argwhere(~np.isfinite(arr))
+        where = tuple(int(i) for i in bad[0]) if bad.size else ()
+        raise NonFiniteError(
+            f"{name} contains NaN or inf (first at index {where}, {len(bad)} entries in all); "
+            f"clean or interpolate the data before passing it."
+        )
+
+
+def as_matrix(name: str, M: Any, shape: tuple[int | None, int | None] = (None, None),
+              *, finite: bool = True, allow_empty: bool = True) -> FloatArray:
+    """Return ``M`` as a 2-D float64 array, checking its shape (``None`` = any size).
+
+    Scalars and 1-D input are *not* silently reshaped except a scalar for a (1, 1) matrix:
+    a 1-D array is ambiguous (row or column), so the message says which one was expected.
+    """
+    arr = np.asarray(M)
+    if np.iscomplexobj(arr):
+        raise DimensionError(f"{name} must be real; got a complex array.")
+    try:
+        arr = arr.astype(np.float64, copy=False)
+    except (TypeError, ValueError) as exc:
+        raise DimensionError(f"{name} must be a numeric matrix; got {type(M).__name__}.") from exc
+    if arr.ndim == 0 and shape in ((1, 1), (None, None), (1, None), (None, 1)):
+        arr = arr.reshape(1, 1)
+    if arr.ndim != 2:
+        raise DimensionError(
+            f"{name} must be a 2-D matrix of shape {_shape_str(shape)}; got an array with "
+            f"ndim={arr.ndim} and shape {arr.shape}. Use a column (e.g. np.reshape(v, (-1, 1))) "
+            f"or a row (np.reshape(v, (1, -1))) explicitly."
+        )
+    for axis, (want, got) in enumerate(zip(shape, arr.shape)):
+        if want is not None and want != got:
+            raise DimensionError(
+                f"{name} must have shape {_shape_str(shape)}; got {arr.shape} "
+                f"(axis {axis}: expected {want}, found {got})."
+            )
+    if not allow_empty and arr.size == 0:
+        raise DimensionError(f"{name} must not be empty; got shape {arr.shape}.")
+    if finite:
+        check_finite(name, arr)
+    return arr
+
+
+def as_vector(name: str, v: Any, size: int | None = None, *, finite: bool = True) -> FloatArray:
+    """Return ``v`` as a 1-D float64 array of length ``size`` (scalars become length 1)."""
+    arr = np.asarray(v, dtype=np.float64)
+    if arr.ndim == 0:
+        arr = arr.reshape(1)
+    if arr.ndim != 1:
+        raise DimensionError(f"{name} must be a 1-D vector of length {size if size is not None else '?'}; "
+                             f"got shape {arr.shape}.")
+    if size is not None and arr.shape[0] != size:
+        raise DimensionError(f"{name} must have length {size}; got {arr.shape[0]}.")
+    if finite:
+        check_finite(name, arr)
+    return arr
+
+
+def as_square(name: str, M: Any, n: int | None = None) -> FloatArray:
+    """A square float64 matrix, of size ``n`` when given."""
+    arr = as_matrix(name, M, (n, n))
+    if arr.shape[0] != arr.shape[1]:
+        raise DimensionError(f"{name} must be square; got shape {arr.shape}.")
+    return arr
+
+
+def as_triple(A: Any, B: Any, C: Any, *, names: tuple[str, str, str] = ("A", "B", "C")
+              ) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """Validate a state-space triple: A (n, n), B (n, m), C (r, n)."""
+    An, Bn, Cn = names
+    A_ = as_square(An, A)
+    n = A_.shape[0]
+    B_ = np.asarray(B, dtype=np.float64)
+    if B_.ndim == 1 and B_.shape[0] == n:
+        raise DimensionError(f"{Bn} must be 2-D of shape ({n}, ?); got a 1-D array of length {n}. "
+                             f"For a single input use np.reshape({Bn}, ({n}, 1)).")
+    B_ = as_matrix(Bn, B_, (n, None))
+    C_ = np.asarray(C, dtype=np.float64)
+    if C_.ndim == 1 and C_.shape[0] == n:
+        raise DimensionError(f"{Cn} must be 2-D of shape (?, {n}); got a 1-D array of length {n}. "
+                             f"For a single output use np.reshape({Cn}, (1, {n})).")
+    C_ = as_matrix(Cn, C_, (None, n))
+    return A_, B_, C_
+
+
+def positive_scalar(name: str, value: Any) -> float:
+    """A finite float > 0."""
+    try:
+        x = float(value)
+    except (TypeError, ValueError) as exc:
+        raise DimensionError(f"{name} must be a real number; got {value!r}.") from exc
+    if not np.isfinite(x):
+        raise NonFiniteError(f"{name} must be finite; got {x}.")
+    if x <= 0:
+        raise DimensionError(f"{name} must be > 0; got {x}.")
+    return x

@@ -1,0 +1,104 @@
+"""Every exception and warning that thetahat raises.
+
+Each exception also inherits the builtin it refines, so ``except ValueError`` keeps working for
+callers that do not know this library. Messages name the object, what was expected, what was
+found, and what to do.
+"""
+
+from __future__ import annotations
+
+from typing import Sequence
+
+import numpy as np
+
+__all__ = [
+    "ThetahatError",
+    "DimensionError",
+    "NonFiniteError",
+    "NotLeftInvertibleError",
+    "NotMinimumPhaseError",
+    "ParameterSetError",
+    "DesignError",
+    "UpdateLawError",
+    "ModelFileError",
+    "ThetahatWarning",
+    "ConvergenceWarning",
+    "IllConditionedWarning",
+]
+
+
+class ThetahatError(Exception):
+    """Base class of every error raised by thetahat."""
+
+
+class DimensionError(ThetahatError, ValueError):
+    """An array has the wrong shape; the message names it and the expected shape."""
+
+
+class NonFiniteError(ThetahatError, ValueError):
+    """NaN or inf found where finite numbers are required (data, matrices, parameters)."""
+
+
+class NotLeftInvertibleError(ThetahatError, ValueError):
+    """The triple (C, A, B) is not left-invertible (Assumption 1 fails).
+
+    Attributes
+    ----------
+    rank_B : int
+        Numerical rank of the input matrix.
+    normal_rank : int
+        Normal rank of the Rosenbrock system matrix (n + k is required).
+    dim_intersection : int
+        dim(V* ∩ im B); must be 0.
+    """
+
+    def __init__(self, message: str, *, rank_B: int = -1, normal_rank: int = -1,
+                 dim_intersection: int = -1) -> None:
+        super().__init__(message)
+        self.rank_B = rank_B
+        self.normal_rank = normal_rank
+        self.dim_intersection = dim_intersection
+
+
+class NotMinimumPhaseError(ThetahatError, ValueError):
+    """An invariant zero lies in the closed right half-plane (Assumption 1 fails).
+
+    Attributes
+    ----------
+    zeros : ndarray of complex
+        The offending zeros (real part >= -tolerance).
+    """
+
+    def __init__(self, message: str, *, zeros: Sequence[complex] = ()) -> None:
+        super().__init__(message)
+        self.zeros = np.asarray(zeros, dtype=complex)
+
+
+class ParameterSetError(ThetahatError, ValueError):
+    """A parameter set Θ is malformed, or a parameter lies outside Θ where it must not."""
+
+
+class DesignError(ThetahatError, ValueError):
+    """Gain-design input is impossible: ε <= 0, poles not in the open left half-plane,
+    wrong number of poles, or a structure the design cannot handle."""
+
+
+class UpdateLawError(ThetahatError, ValueError):
+    """An update law is misconfigured (Γ not symmetric positive definite, θ* returning
+    non-finite values where the law needs it, ...)."""
+
+
+class ModelFileError(ThetahatError, ValueError):
+    """A model or data file given to the command line cannot be parsed or is inconsistent."""
+
+
+class ThetahatWarning(UserWarning):
+    """Base class of thetahat warnings: legal but suspicious input."""
+
+
+class ConvergenceWarning(ThetahatWarning):
+    """An iteration or a simulation did not converge as expected."""
+
+
+class IllConditionedWarning(ThetahatWarning):
+    """A computed transform or design is ill-conditioned (for example a large cond Γs)."""

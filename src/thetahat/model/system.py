@@ -1,0 +1,129 @@
+"""The model of the paper, (1): ẋ = A x + B u + E φ, y = C x, φ = g(v, x, θ), θ ∈ Θ."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from .._validate import as_matrix, as_triple
+from ..errors import DimensionError
+from .paramset import ParameterSet
+from .perturbation import Perturbation
+
+FloatArray = NDArray[np.float64]
+
+
+def _frozen(a: FloatArray) -> FloatArray:
+    a = np.array(a, dtype=np.float64, copy=True)
+    a.setflags(write=False)
+    return a
+
+
+@dataclass(frozen=True, slots=True)
+class PerturbedLinearSystem:
+    """A linear system with a nonlinearly parameterized perturbation, eq. (1).
+
+    Parameters
+    ----------
+    A : array_like, shape (n, n)
+    B : array_like, shape (n, m)
+        Input matrix (``m = 0`` allowed: pass ``np.zeros((n, 0))``).
+    C : array_like, shape (r, n)
+    E : array_like, shape (n, k)
+        Where the perturbation φ enters.
+    perturbation : Perturbation, optional
+        φ = g(v, x, θ) with v = col(u, y). Its dims must agree with (n, m, r, k).
+    parameter_set : ParameterSet, optional
+        Θ, the compact convex set known to contain θ; its dimension must equal p.
+
+    Raises
+    ------
+    DimensionError
+        A matrix has the wrong shape, or the perturbation / Θ disagree with the matrices.
+    NonFiniteError
+        A matrix holds NaN or inf.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from thetahat import PerturbedLinearSystem
+    >>> sys = PerturbedLinearSystem(A=[[0, 1], [0, 0]], B=[[0], [1]], C=[[1, 0]], E=[[0], [1]])
+    >>> sys.n, sys.m, sys.r, sys.k
+    (2, 1, 1, 1)
+    """
+
+    A: FloatArray
+    B: FloatArray
+    C: FloatArray
+    E: FloatArray
+    perturbation: Perturbation | None = None
+    parameter_set: ParameterSet | None = None
+
+    def __init__(self, *, A: Any, B: Any, C: Any, E: Any,
+                 perturbation: Perturbation | None = None,
+                 parameter_set: ParameterSet | None = None) -> None:
+        A_, B_, C_ = as_triple(A, B, C)
+        n = A_.shape[0]
+        E_ = as_matrix("E", E, (n, None))
+        if E_.shape[1] == 0:
+            raise DimensionError("E must have at least one column (k >= 1); got shape "
+                                 f"{E_.shape}. Without a perturbation use an ordinary observer.")
+        k = E_.shape[1]
+        m, r = B_.shape[1], C_.shape[0]
+        if perturbation is not None:
+            if not isinstance(perturbation, Perturbation):
+                raise DimensionError("perturbation must be a thetahat Perturbation (e.g. "
+                                     "SymbolicPerturbation or CallablePerturbation); got "
+                                     f"{type(perturbation).__name__}.")
+            pn, pm, pr, pp, pk = perturbation.dims
+            if (pn, pm, pr, pk) != (n, m, r, k):
+                raise DimensionError(
+                    f"perturbation dims (n={pn}, m={pm}, r={pr}, k={pk}) disagree with the "
+                    f"matrices (n={n}, m={m}, r={r}, k={k}); g must map v = col(u, y) of "
+                    f"length m + r = {m + r} and x of length {n} to φ of length {k}.")
+            if parameter_set is not None and parameter_set.dim != pp:
+                raise DimensionError(f"parameter_set has dimension {parameter_set.dim} but the "
+                                     f"perturbation has p = {pp} parameters.")
+        if parameter_set is not None and not isinstance(parameter_set, ParameterSet):
+            raise DimensionError("parameter_set must be a thetahat ParameterSet (Box, Ball, "
+                                 f"Ellipsoid, ...); got {type(parameter_set).__name__}.")
+        object.__setattr__(self, "A", _frozen(A_))
+        object.__setattr__(self, "B", _frozen(B_))
+        object.__setattr__(self, "C", _frozen(C_))
+        object.__setattr__(self, "E", _frozen(E_))
+        object.__setattr__(self, "perturbation", perturbation)
+        object.__setattr__(self, "parameter_set", parameter_set)
+
+    @property
+    def n(self) -> int:
+        """Number of states."""
+        return self.A.shape[0]
+
+    @property
+    def m(self) -> int:
+        """Number of inputs u."""
+        return self.B.shape[1]
+
+    @property
+    def r(self) -> int:
+        """Number of outputs y."""
+        return self.C.shape[0]
+
+    @property
+    def k(self) -> int:
+        """Size of the perturbation φ."""
+        return self.E.shape[1]
+
+    @property
+    def p(self) -> int:
+        """Number of unknown parameters θ (0 without a perturbation)."""
+        return 0 if self.perturbation is None else self.perturbation.dims[3]
+
+    def __repr__(self) -> str:
+        g = type(self.perturbation).__name__ if self.perturbation is not None else "None"
+        th = repr(self.parameter_set) if self.parameter_set is not None else "None"
+        return (f"PerturbedLinearSystem(n={self.n}, m={self.m}, r={self.r}, k={self.k}, "
+                f"p={self.p}, perturbation={g}, parameter_set={th})")
