@@ -1,1 +1,29 @@
-"""thetahat: modular state, perturbation and parameter estimation (Grip, Saberi & Johansen)."""
+"""thetahat: state, perturbation and parameter estimation for linear systems with nonlinearly
+parameterized perturbations — the modular observer of Grip, Saberi & Johansen.
+
+The curated public API; everything else lives in the submodules.
+"""
+
+from .design.design_system import DesignSystemReport, apply_design
+from .design.gains import GainDesign, extended_system, high_gain, modified_high_gain
+from .errors import (ConvergenceWarning, DesignError, DimensionError, IllConditionedWarning,
+                     ModelFileError, NonFiniteError, NotLeftInvertibleError,
+                     NotMinimumPhaseError, ParameterSetError, ThetahatError, ThetahatWarning,
+                     UpdateLawError)
+from .model.system import PerturbedLinearSystem
+from .structure.assumptions import AssumptionReport, check_assumption_1
+from .structure.scb import SCBResult, scb
+from .structure.zeros import (invariant_zeros, is_left_invertible, is_minimum_phase,
+                              normal_rank, unstable_zeros)
+
+__version__ = "0.1.0"
+
+__all__ = [
+    "AssumptionReport", "ConvergenceWarning", "DesignError", "DesignSystemReport",
+    "DimensionError", "GainDesign", "IllConditionedWarning", "ModelFileError",
+    "NonFiniteError", "NotLeftInvertibleError", "NotMinimumPhaseError", "ParameterSetError",
+    "PerturbedLinearSystem", "SCBResult", "ThetahatError", "ThetahatWarning", "UpdateLawError",
+    "apply_design", "check_assumption_1", "extended_system", "high_gain", "invariant_zeros",
+    "is_left_invertible", "is_minimum_phase", "modified_high_gain", "normal_rank", "scb",
+    "unstable_zeros", "__version__",
+]

@@ -1,0 +1,69 @@
+"""Shared fixtures: a seeded Generator, the paper's DC motor, random left-invertible systems."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import pytest
+
+from thetahat.testing import random_scb_system
+
+
+@pytest.fixture
+def rng() -> np.random.Generator:
+    return np.random.default_rng(20260101)
+
+
+@dataclass(frozen=True)
+class DCMotor:
+    """Sec. VIII: J ω̇ = u − F, LuGre friction; x = (ω, η), y = ω."""
+
+    J: float = 0.0023
+    sigma0: float = 260.0
+    sigma1: float = 0.6
+    alpha0: float = 0.28
+    alpha1: float = 0.05
+    alpha2: float = 0.176
+    omega0: float = 0.01
+
+    def linear(self, sigma1: float | None = None):
+        s1 = self.sigma1 if sigma1 is None else sigma1
+        A = np.array([[-(self.alpha2 + s1) / self.J, -self.sigma0 / self.J], [1.0, 0.0]])
+        B = np.array([[1.0 / self.J], [0.0]])
+        E = np.array([[s1 / self.J], [-1.0]])
+        C = np.array([[1.0, 0.0]])
+        return A, B, E, C
+
+    def extended(self, sigma1: float | None = None):
+        """The error system (4) with K = 0: (A_e, E_e, C_e) written out as in Sec. VIII-A."""
+        s1 = self.sigma1 if sigma1 is None else sigma1
+        J, s0, a2 = self.J, self.sigma0, self.alpha2
+        A_e = np.array([[-(a2 + s1) / J, -s0 / J, s1 / J], [1.0, 0.0, -1.0], [0.0, 0.0, 0.0]])
+        return A_e, np.array([[0.0], [0.0], [1.0]]), np.array([[1.0, 0.0, 0.0]])
+
+
+@pytest.fixture(scope="session")
+def dc_motor() -> DCMotor:
+    return DCMotor()
+
+
+#: Structures exercised by the parametrised structure/design tests:
+#: (chain_lengths, n_a, n_b, r_b) — SISO, square MIMO uniform / non-uniform, non-square with χ_b.
+STRUCTURES = {
+    "siso_rd1_zeros": ((1,), 2, 0, 0),
+    "siso_rd3": ((3,), 0, 0, 0),
+    "siso_rd2_zero": ((2,), 1, 0, 0),
+    "mimo_uniform": ((2, 2), 1, 0, 0),
+    "mimo_nonuniform_1_3": ((1, 3), 2, 0, 0),
+    "nonsquare_b_block": ((2,), 1, 2, 1),
+    "nonsquare_mixed": ((1, 3), 1, 3, 2),
+}
+
+
+@pytest.fixture(params=sorted(STRUCTURES))
+def known_system(request):
+    lengths, n_a, n_b, r_b = STRUCTURES[request.param]
+    seed = sorted(STRUCTURES).index(request.param)
+    return random_scb_system(np.random.default_rng(seed), chain_lengths=lengths, n_a=n_a,
+                             n_b=n_b, r_b=r_b)
