@@ -13,6 +13,7 @@ from .errors import (ConvergenceWarning, DesignError, DimensionError, IllConditi
 from .model.system import PerturbedLinearSystem
 from .structure.assumptions import AssumptionReport, check_assumption_1
 from .structure.scb import SCBResult, scb
+from .structure.scb_symbolic import SymbolicSCBResult, scb_symbolic
 from .structure.zeros import (invariant_zeros, is_left_invertible, is_minimum_phase,
                               normal_rank, unstable_zeros)
 
@@ -22,8 +23,8 @@ __all__ = [
     "AssumptionReport", "ConvergenceWarning", "DesignError", "DesignSystemReport",
     "DimensionError", "GainDesign", "IllConditionedWarning", "ModelFileError",
     "NonFiniteError", "NotLeftInvertibleError", "NotMinimumPhaseError", "ParameterSetError",
-    "PerturbedLinearSystem", "SCBResult", "ThetahatError", "ThetahatWarning", "UpdateLawError",
+    "PerturbedLinearSystem", "SCBResult", "SymbolicSCBResult", "ThetahatError", "ThetahatWarning", "UpdateLawError",
     "apply_design", "check_assumption_1", "extended_system", "high_gain", "invariant_zeros",
-    "is_left_invertible", "is_minimum_phase", "modified_high_gain", "normal_rank", "scb",
+    "is_left_invertible", "is_minimum_phase", "modified_high_gain", "normal_rank", "scb", "scb_symbolic",
     "unstable_zeros", "__version__",
 ]

@@ -329,7 +329,7 @@ def scb(A, B, C, *, tol: float | None = None) -> SCBResult:
     last = np.cumsum(lengths) - 1                               # last row of each chain in Tq
 
     Tb = sub.complement(sub.orth(np.hstack([QV, QS]), tol), tol=tol).T      # ann(V* + S*)
-    Ta0 = sub.complement(Tb.T, within=sub.complement(QS, tol=tol), tol=tol).T
+    Ta0 = sub.complement(np.hstack([QS, Tb.T])).T       # completes ann(S*); Tb ⊥ S* already
     if Ta0.shape[0] != n_a or Tb.shape[0] != n_b:  # pragma: no cover
         raise DimensionError("SCB: inconsistent subspace dimensions; try another tol.")
 

@@ -1,7 +1,7 @@
 """Geometric subspaces of a triple (C, A, B) with orthonormal bases (SVD).
 
-V* — the largest output-nulling controlled-invariant subspace (V_0 = ker C,
-V_{i+1} = ker C ∩ A⁻¹(V_i + im B)); S_i — the nested input-containing conditioned-invariant
+V* — the largest output-nulling controlled-invariant subspace (computed as the orthogonal
+complement of the dual S*); S_i — the nested input-containing conditioned-invariant
 subspaces (S_1 = im B, S_{i+1} = A(S_i ∩ ker C) + im B) whose limit is S*. For a
 left-invertible triple, dim V* = n_a (the zero dynamics), dim S* = n_q (the integrator
 chains of the SCB), and dim S_i − dim S_{i−1} counts the chains of length ≥ i.
@@ -39,12 +39,21 @@ def null(M: FloatArray, tol: float) -> FloatArray:
 
 
 def complement(Q: FloatArray, within: FloatArray | None = None, tol: float = 1e-10) -> FloatArray:
-    """Orthonormal basis of the orthogonal complement of span(Q) (inside span(within))."""
+    """Orthonormal basis of the orthogonal complement of span(Q) (inside span(within)).
+
+    Q must have orthonormal columns; then a complete QR factorisation gives the complement
+    exactly and cheaply (no rank decision is needed). With ``within``, the complement of
+    span(Q) inside span(within) is found by an SVD null space.
+    """
     n = Q.shape[0]
-    W = np.eye(n) if within is None else within
+    if within is not None:
+        if Q.shape[1] == 0:
+            return within.copy()
+        return within @ null(Q.T @ within, tol)
     if Q.shape[1] == 0:
-        return W.copy()
-    return W @ null(Q.T @ W, tol)
+        return np.eye(n)
+    Qf, _ = np.linalg.qr(Q, mode="complete")
+    return Qf[:, Q.shape[1]:].copy()
 
 
 def rank(M: FloatArray, tol: float) -> int:
@@ -56,16 +65,15 @@ def rank(M: FloatArray, tol: float) -> int:
 
 def largest_output_nulling(A: FloatArray, B: FloatArray, C: FloatArray,
                            tol: float) -> FloatArray:
-    """Orthonormal basis of V*, the largest subspace V ⊂ ker C with A V ⊂ V + im B."""
-    n = A.shape[0]
-    V = null(C, tol)
-    for _ in range(n + 1):
-        N = complement(orth(np.hstack([V, B]), tol), tol=tol)   # (V + im B)^⊥
-        V_next = null(np.vstack([C, N.T @ A]), tol)             # ker C ∩ A⁻¹(V + im B)
-        if V_next.shape[1] == V.shape[1]:
-            return V_next
-        V = V_next
-    return V  # pragma: no cover - the dimension strictly decreases at most n times
+    """Orthonormal basis of V*, the largest subspace V ⊂ ker C with A V ⊂ V + im B.
+
+    Computed by duality, V*(C, A, B) = S*(Bᵀ, Aᵀ, Cᵀ)^⊥: the dual iteration grows from im Cᵀ
+    and works on subspaces of dimension n − n_a, which is much cheaper than shrinking ker C
+    when the zero dynamics are large. (The direct iteration V_0 = ker C,
+    V_{i+1} = ker C ∩ A⁻¹(V_i + im B) gives the same subspace.)
+    """
+    S_dual = input_containing_sequence(A.T, C.T, B.T, tol)[-1]
+    return complement(S_dual)
 
 
 def input_containing_sequence(A: FloatArray, B: FloatArray, C: FloatArray,
