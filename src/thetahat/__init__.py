@@ -10,6 +10,10 @@ from .errors import (ConvergenceWarning, DesignError, DimensionError, IllConditi
                      ModelFileError, NonFiniteError, NotLeftInvertibleError,
                      NotMinimumPhaseError, ParameterSetError, ThetahatError, ThetahatWarning,
                      UpdateLawError)
+from .model.interop import from_state_space, to_state_space
+from .model.parse import parse_perturbation
+from .model.perturbation import (CallablePerturbation, JacobianCheck, Perturbation,
+                                 SymbolicPerturbation, check_jacobians)
 from .model.system import PerturbedLinearSystem
 from .structure.assumptions import AssumptionReport, check_assumption_1
 from .structure.scb import SCBResult, scb
@@ -20,7 +24,9 @@ from .structure.zeros import (invariant_zeros, is_left_invertible, is_minimum_ph
 __version__ = "0.1.0"
 
 __all__ = [
-    "AssumptionReport", "ConvergenceWarning", "DesignError", "DesignSystemReport",
+    "AssumptionReport", "CallablePerturbation", "JacobianCheck", "Perturbation",
+    "SymbolicPerturbation", "check_jacobians", "from_state_space", "parse_perturbation",
+    "to_state_space", "ConvergenceWarning", "DesignError", "DesignSystemReport",
     "DimensionError", "GainDesign", "IllConditionedWarning", "ModelFileError",
     "NonFiniteError", "NotLeftInvertibleError", "NotMinimumPhaseError", "ParameterSetError",
     "PerturbedLinearSystem", "SCBResult", "SymbolicSCBResult", "ThetahatError", "ThetahatWarning", "UpdateLawError",

@@ -73,6 +73,9 @@ class PerturbedLinearSystem:
                                  f"{E_.shape}. Without a perturbation use an ordinary observer.")
         k = E_.shape[1]
         m, r = B_.shape[1], C_.shape[0]
+        if parameter_set is not None and not isinstance(parameter_set, ParameterSet):
+            raise DimensionError("parameter_set must be a thetahat ParameterSet (Box, Ball, "
+                                 f"Ellipsoid, ...); got {type(parameter_set).__name__}.")
         if perturbation is not None:
             if not isinstance(perturbation, Perturbation):
                 raise DimensionError("perturbation must be a thetahat Perturbation (e.g. "
@@ -87,9 +90,6 @@ class PerturbedLinearSystem:
             if parameter_set is not None and parameter_set.dim != pp:
                 raise DimensionError(f"parameter_set has dimension {parameter_set.dim} but the "
                                      f"perturbation has p = {pp} parameters.")
-        if parameter_set is not None and not isinstance(parameter_set, ParameterSet):
-            raise DimensionError("parameter_set must be a thetahat ParameterSet (Box, Ball, "
-                                 f"Ellipsoid, ...); got {type(parameter_set).__name__}.")
         object.__setattr__(self, "A", _frozen(A_))
         object.__setattr__(self, "B", _frozen(B_))
         object.__setattr__(self, "C", _frozen(C_))

@@ -1,0 +1,227 @@
+"""Parse a perturbation given as text (model files, the command line) without eval.
+
+The text is parsed with Python's :mod:`ast` and only a whitelist of node types (numbers,
+declared names, whitelisted functions, + − * / ** and unary minus) is turned into SymPy
+expressions by hand, so no code from the file is ever executed.
+"""
+
+from __future__ import annotations
+
+import ast
+import keyword
+from collections.abc import Callable, Iterable, Mapping, Sequence
+from types import MappingProxyType
+from typing import Any
+
+import numpy as np
+import sympy as sp
+
+from ..errors import DimensionError, ModelFileError, NonFiniteError
+from .perturbation import SymbolicPerturbation
+
+__all__ = ["parse_perturbation", "MAX_EXPRESSION_CHARS"]
+
+
+#: Functions allowed in :func:`parse_perturbation`, with their number of arguments
+#: (None: two or more).
+_FUNCTIONS: Mapping[str, tuple[Callable[..., sp.Expr], int | None]] = MappingProxyType({
+    "exp": (sp.exp, 1), "log": (sp.log, 1), "sqrt": (sp.sqrt, 1),
+    "sin": (sp.sin, 1), "cos": (sp.cos, 1), "tan": (sp.tan, 1),
+    "sinh": (sp.sinh, 1), "cosh": (sp.cosh, 1), "tanh": (sp.tanh, 1),
+    "asinh": (sp.asinh, 1), "atanh": (sp.atanh, 1), "atan": (sp.atan, 1),
+    "Abs": (sp.Abs, 1), "abs": (sp.Abs, 1), "sign": (sp.sign, 1),
+    "Min": (sp.Min, None), "Max": (sp.Max, None),
+})
+
+#: Named constants always available in :func:`parse_perturbation`.
+_BUILTIN_CONSTANTS: Mapping[str, sp.Expr] = MappingProxyType({"pi": sp.pi})
+
+_BINARY_OPS: Mapping[type, Callable[[sp.Expr, sp.Expr], sp.Expr]] = MappingProxyType({
+    ast.Add: lambda a, b: a + b, ast.Sub: lambda a, b: a - b,
+    ast.Mult: lambda a, b: a * b, ast.Div: lambda a, b: a / b,
+})
+
+#: Longest accepted component, in characters: model files hold short formulas, and the
+#: bound keeps pathological input (deep nesting, huge literals) away from the parser.
+MAX_EXPRESSION_CHARS: int = 10_000
+
+_ALLOWED = ("numbers, the declared names, the functions " + ", ".join(_FUNCTIONS)
+            + ", the operators + - * / ** and unary minus, and parentheses")
+
+
+class _ExpressionBuilder:
+    """Builds a SymPy expression from a Python AST, refusing anything not whitelisted."""
+
+    def __init__(self, text: str, component: int, names: Mapping[str, sp.Expr]) -> None:
+        self.text = text
+        self.component = component
+        self.names = names
+
+    def fail(self, node: ast.AST, what: str) -> ModelFileError:
+        segment = ast.get_source_segment(self.text, node) or type(node).__name__
+        column = getattr(node, "col_offset", 0) + 1
+        return ModelFileError(
+            f"perturbation component {self.component}: {what} {segment!r} at column "
+            f"{column} is not allowed. Allowed: {_ALLOWED}. Declared names: "
+            f"{', '.join(self.names) or '(none)'}.")
+
+    def build(self, node: ast.AST) -> sp.Expr:
+        if isinstance(node, ast.Constant):
+            value = node.value
+            if isinstance(value, bool) or not isinstance(value, (int, float)):
+                raise self.fail(node, "the literal")
+            return sp.Integer(value) if isinstance(value, int) else sp.Float(value)
+        if isinstance(node, ast.Name):
+            if node.id not in self.names:
+                what = "the function name without a call" if node.id in _FUNCTIONS \
+                    else "the unknown name"
+                raise self.fail(node, what)
+            return self.names[node.id]
+        if isinstance(node, ast.UnaryOp) and isinstance(node.op, (ast.USub, ast.UAdd)):
+            operand = self.build(node.operand)
+            return -operand if isinstance(node.op, ast.USub) else operand
+        if isinstance(node, ast.BinOp):
+            return self._binary(node)
+        if isinstance(node, ast.Call):
+            return self._call(node)
+        raise self.fail(node, f"the {type(node).__name__.lower()} construct")
+
+    def _binary(self, node: ast.BinOp) -> sp.Expr:
+        if isinstance(node.op, ast.Pow):
+            base, exponent = self.build(node.left), self.build(node.right)
+            if base.is_Number and exponent.is_Number:
+                # Evaluate numeric powers in floating point: 9**9**9 must not build a
+                # gigantic exact integer.
+                return sp.Float(base) ** exponent
+            return base ** exponent
+        op = _BINARY_OPS.get(type(node.op))
+        if op is None:
+            hint = " (use ** for powers)" if isinstance(node.op, ast.BitXor) else ""
+            raise self.fail(node, f"the operator{hint} in")
+        return op(self.build(node.left), self.build(node.right))
+
+    def _call(self, node: ast.Call) -> sp.Expr:
+        if not isinstance(node.func, ast.Name) or node.func.id not in _FUNCTIONS:
+            raise self.fail(node.func, "the function")
+        if node.keywords or any(isinstance(a, ast.Starred) for a in node.args):
+            raise self.fail(node, "keyword or starred arguments in")
+        func, arity = _FUNCTIONS[node.func.id]
+        if (arity is None and len(node.args) < 2) or (arity is not None
+                                                      and len(node.args) != arity):
+            want = "two or more arguments" if arity is None else f"{arity} argument"
+            raise self.fail(node, f"{node.func.id} takes {want};")
+        return func(*(self.build(a) for a in node.args))
+
+
+def _parse_names(group: str, names: Any) -> tuple[sp.Symbol, ...]:
+    if isinstance(names, (str, sp.Symbol)):
+        names = [names]
+    if not isinstance(names, Iterable):
+        raise ModelFileError(f"{group} must be a sequence of names; got {names!r}.")
+    out = []
+    for name in names:
+        if isinstance(name, sp.Symbol):
+            out.append(name)
+            continue
+        if not isinstance(name, str) or not name.isidentifier() or keyword.iskeyword(name):
+            raise ModelFileError(f"{group}: {name!r} is not a valid name (letters, digits and "
+                                 f"underscores, not starting with a digit).")
+        out.append(sp.Symbol(name, real=True))
+    return tuple(out)
+
+
+def _parse_constants(constants: Mapping[str, float] | None) -> dict[str, sp.Expr]:
+    out: dict[str, sp.Expr] = {}
+    for name, value in (constants or {}).items():
+        if not isinstance(name, str) or not name.isidentifier() or keyword.iskeyword(name):
+            raise ModelFileError(f"constant name {name!r} is not a valid name.")
+        if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, float,
+                                                                      np.integer, np.floating)):
+            raise ModelFileError(f"constant {name} must be a real number; got {value!r}.")
+        if not np.isfinite(value):
+            raise ModelFileError(f"constant {name} must be finite; got {value}.")
+        out[name] = sp.Integer(int(value)) if isinstance(value, (int, np.integer)) \
+            else sp.Float(float(value))
+    return out
+
+
+def parse_perturbation(text: str | Sequence[str], *, u: Sequence[str | sp.Symbol],
+                       y: Sequence[str | sp.Symbol], x: Sequence[str | sp.Symbol],
+                       theta: Sequence[str | sp.Symbol],
+                       constants: Mapping[str, float] | None = None) -> SymbolicPerturbation:
+    """Read g from text, without evaluating it as code.
+
+    The text is parsed with :mod:`ast` and the SymPy expression is built node by node from
+    a whitelist: numbers, the declared names, ``pi``, the functions exp, log, sqrt, sin,
+    cos, tan, sinh, cosh, tanh, asinh, atanh, atan, Abs (or abs), sign, Min and Max, the
+    operators ``+ - * / **``, unary minus and parentheses. Everything else (attribute
+    access, subscripts, lambdas, other calls, unknown names) is refused.
+
+    Parameters
+    ----------
+    text : str or sequence of str
+        One string per component of φ (k strings), at most MAX_EXPRESSION_CHARS each.
+    u, y, x, theta : sequence of str or sympy.Symbol
+        Names of the inputs (may be empty), outputs, states and parameters. Strings become
+        real SymPy symbols.
+    constants : mapping of str to float, optional
+        Known constants, substituted as numbers.
+
+    Returns
+    -------
+    SymbolicPerturbation
+
+    Raises
+    ------
+    ModelFileError
+        The text does not parse, uses something outside the whitelist, a name is invalid
+        or declared twice, or the resulting g is invalid (the message says why).
+
+    Examples
+    --------
+    >>> from thetahat.model.parse import parse_perturbation
+    >>> g = parse_perturbation(
+    ...     "sigma0*eta*Abs(y)/(alpha0 + alpha1*exp(-(omega/omega0)**2))",
+    ...     u=["u"], y=["y"], x=["omega", "eta"], theta=["alpha0"],
+    ...     constants={"sigma0": 260.0, "alpha1": 0.05, "omega0": 0.01})
+    >>> g.dims
+    (2, 1, 1, 1, 1)
+    >>> round(float(g.g([0.0, 1.0], [1.0, 1e-3], [0.28])[0]), 12)  # 260 * 1e-3 * 1 / 0.28
+    0.928571428571
+    """
+    components = [text] if isinstance(text, str) else list(text) \
+        if isinstance(text, Iterable) else None
+    if not components or not all(isinstance(c, str) for c in components):
+        raise ModelFileError(f"text must be a string or a non-empty list of strings, one per "
+                             f"component of phi; got {text!r}.")
+    groups = {g: _parse_names(g, s) for g, s in (("u", u), ("y", y), ("x", x),
+                                                  ("theta", theta))}
+    names: dict[str, sp.Expr] = {}
+    for group, symbols in groups.items():
+        for s in symbols:
+            if s.name in names or s.name in _FUNCTIONS or s.name in _BUILTIN_CONSTANTS:
+                raise ModelFileError(f"the name {s.name!r} in {group} is declared twice or "
+                                     f"clashes with a function or constant name.")
+            names[s.name] = s
+    for name, value in _parse_constants(constants).items():
+        if name in names or name in _FUNCTIONS or name in _BUILTIN_CONSTANTS:
+            raise ModelFileError(f"the constant {name!r} clashes with a declared symbol, a "
+                                 f"function or a built-in constant.")
+        names[name] = value
+    names.update(_BUILTIN_CONSTANTS)
+    exprs = []
+    for i, component in enumerate(components):
+        if len(component) > MAX_EXPRESSION_CHARS:
+            raise ModelFileError(f"perturbation component {i} has {len(component)} characters;"
+                                 f" at most {MAX_EXPRESSION_CHARS} are accepted.")
+        try:
+            tree = ast.parse(component.strip(), mode="eval")
+        except (SyntaxError, ValueError, RecursionError, MemoryError) as exc:
+            raise ModelFileError(f"perturbation component {i} is not a valid expression: "
+                                 f"{component!r} ({exc}).") from exc
+        builder = _ExpressionBuilder(component.strip(), i, names)
+        exprs.append(builder.build(tree.body))
+    try:
+        return SymbolicPerturbation.from_sympy(exprs, **groups)
+    except (DimensionError, NonFiniteError) as exc:
+        raise ModelFileError(f"the parsed perturbation is invalid: {exc}") from exc
