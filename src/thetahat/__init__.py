@@ -7,7 +7,7 @@ The curated public API; everything else lives in the submodules.
 from .design.design_system import DesignSystemReport, apply_design
 from .design.gains import GainDesign, extended_system, high_gain, modified_high_gain
 from .errors import (ConvergenceWarning, DesignError, DimensionError, IllConditionedWarning,
-                     ModelFileError, NonFiniteError, NotLeftInvertibleError,
+                     ModelFileError, NonFiniteError, SimulationError, NotLeftInvertibleError,
                      NotMinimumPhaseError, ParameterSetError, ThetahatError, ThetahatWarning,
                      UpdateLawError)
 from .model.interop import from_state_space, to_state_space
@@ -15,6 +15,10 @@ from .model.parse import parse_perturbation
 from .model.perturbation import (CallablePerturbation, JacobianCheck, Perturbation,
                                  SymbolicPerturbation, check_jacobians)
 from .model.system import PerturbedLinearSystem
+from .simulation.batch import BatchResult, monte_carlo
+from .simulation.noise import ColoredNoise, WhiteNoise
+from .simulation.signals import FromArray, Multisine, Steps
+from .simulation.simulate import PlantTrajectory, convergence_check, simulate_plant
 from .structure.assumptions import AssumptionReport, check_assumption_1
 from .structure.scb import SCBResult, scb
 from .structure.scb_symbolic import SymbolicSCBResult, scb_symbolic
@@ -24,10 +28,12 @@ from .structure.zeros import (invariant_zeros, is_left_invertible, is_minimum_ph
 __version__ = "0.1.0"
 
 __all__ = [
-    "AssumptionReport", "CallablePerturbation", "JacobianCheck", "Perturbation",
+    "AssumptionReport", "BatchResult", "ColoredNoise", "FromArray", "Multisine",
+    "PlantTrajectory", "Steps", "WhiteNoise", "convergence_check", "monte_carlo",
+    "simulate_plant", "CallablePerturbation", "JacobianCheck", "Perturbation",
     "SymbolicPerturbation", "check_jacobians", "from_state_space", "parse_perturbation",
     "to_state_space", "ConvergenceWarning", "DesignError", "DesignSystemReport",
-    "DimensionError", "GainDesign", "IllConditionedWarning", "ModelFileError",
+    "DimensionError", "GainDesign", "IllConditionedWarning", "ModelFileError", "SimulationError",
     "NonFiniteError", "NotLeftInvertibleError", "NotMinimumPhaseError", "ParameterSetError",
     "PerturbedLinearSystem", "SCBResult", "SymbolicSCBResult", "ThetahatError", "ThetahatWarning", "UpdateLawError",
     "apply_design", "check_assumption_1", "extended_system", "high_gain", "invariant_zeros",

@@ -21,6 +21,7 @@ __all__ = [
     "DesignError",
     "UpdateLawError",
     "ModelFileError",
+    "SimulationError",
     "ThetahatWarning",
     "ConvergenceWarning",
     "IllConditionedWarning",
@@ -90,6 +91,10 @@ class UpdateLawError(ThetahatError, ValueError):
 
 class ModelFileError(ThetahatError, ValueError):
     """A model or data file given to the command line cannot be parsed or is inconsistent."""
+
+
+class SimulationError(ThetahatError, RuntimeError):
+    """A numerical integration failed (the solver's message is included) or produced NaN/inf."""
 
 
 class ThetahatWarning(UserWarning):

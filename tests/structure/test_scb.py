@@ -145,9 +145,9 @@ def test_random_systems_recover_structure():
                                        atol=ZERO_ATOL)
         ratios.append(res.condition / ks.condition)
     ratios = np.array(ratios)
-    # cond Γs stays near the construction's (cond 10): measured median ≈ 3, worst ≈ 2e3
-    assert np.median(ratios) < 10
-    assert ratios.max() < 1e4
+    # cond Γs stays near the construction's (cond 10): measured median ≈ 1.5, worst ≈ 35
+    assert np.median(ratios) < 5
+    assert ratios.max() < 200
 
 
 def test_zeros_invariant_under_similarity(known_system, rng):

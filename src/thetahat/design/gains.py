@@ -27,7 +27,7 @@ import numpy as np
 import scipy.linalg as sla
 from numpy.typing import NDArray
 
-from .._validate import as_matrix, as_triple
+from .._validate import as_triple
 from ..errors import DesignError, NonFiniteError, ThetahatWarning
 from ..structure.scb import SCBResult, scb
 
