@@ -6,19 +6,29 @@ The curated public API; everything else lives in the submodules.
 
 from .design.design_system import DesignSystemReport, apply_design
 from .design.gains import GainDesign, extended_system, high_gain, modified_high_gain
+from .estimation.checks import (ExcitationReport, MonotonicityReport, check_monotonicity,
+                                excitation_report)
+from .estimation.observer import ModifiedHighGainObserver, ObserverEstimate, ObserverResult
+from .estimation.projection import Projection, Saturation, saturate
+from .estimation.redesign import SecondObserver
+from .estimation.update_laws import (AlgebraicInversion, ConstantLaw, GradientInversion,
+                                     IntermittentInversion, UpdateLaw, smooth_ramp)
 from .errors import (ConvergenceWarning, DesignError, DimensionError, IllConditionedWarning,
                      ModelFileError, NonFiniteError, SimulationError, NotLeftInvertibleError,
                      NotMinimumPhaseError, ParameterSetError, ThetahatError, ThetahatWarning,
                      UpdateLawError)
 from .model.interop import from_state_space, to_state_space
+from .model.paramset import Ball, Box, ConvexSet, Ellipsoid, ParameterSet
 from .model.parse import parse_perturbation
 from .model.perturbation import (CallablePerturbation, JacobianCheck, Perturbation,
                                  SymbolicPerturbation, check_jacobians)
 from .model.system import PerturbedLinearSystem
 from .simulation.batch import BatchResult, monte_carlo
 from .simulation.noise import ColoredNoise, WhiteNoise
+from .simulation.metrics import rmse, time_to_within
 from .simulation.signals import FromArray, Multisine, Steps
 from .simulation.simulate import PlantTrajectory, convergence_check, simulate_plant
+from .simulation.sweep import SweepResult, eps_sweep
 from .structure.assumptions import AssumptionReport, check_assumption_1
 from .structure.scb import SCBResult, scb
 from .structure.scb_symbolic import SymbolicSCBResult, scb_symbolic
@@ -28,6 +38,11 @@ from .structure.zeros import (invariant_zeros, is_left_invertible, is_minimum_ph
 __version__ = "0.1.0"
 
 __all__ = [
+    "AlgebraicInversion", "Ball", "Box", "ConstantLaw", "ConvexSet", "Ellipsoid",
+    "ExcitationReport", "GradientInversion", "IntermittentInversion", "ModifiedHighGainObserver",
+    "MonotonicityReport", "ObserverEstimate", "ObserverResult", "ParameterSet", "Projection",
+    "Saturation", "SecondObserver", "SweepResult", "UpdateLaw", "check_monotonicity",
+    "eps_sweep", "excitation_report", "rmse", "saturate", "smooth_ramp", "time_to_within",
     "AssumptionReport", "BatchResult", "ColoredNoise", "FromArray", "Multisine",
     "PlantTrajectory", "Steps", "WhiteNoise", "convergence_check", "monte_carlo",
     "simulate_plant", "CallablePerturbation", "JacobianCheck", "Perturbation",

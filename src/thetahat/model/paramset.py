@@ -20,8 +20,9 @@ from __future__ import annotations
 
 import warnings
 from abc import ABC, abstractmethod
+from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Any, Callable, final
+from typing import Any, final
 
 import numpy as np
 import scipy.linalg
@@ -46,12 +47,16 @@ SECULAR_MAX_ITER = 200
 #: Stopping tolerance of the Newton iteration that projects onto a :class:`ConvexSet` (relative
 #: size of the last step); Newton converges quadratically, so this costs one extra iteration.
 CONVEX_RTOL = 1e-12
+#: ... or stop when the scaled KKT residual is this small (the equations are O(1) after scaling).
+KKT_RTOL = 1e-13
 #: Iteration cap of that Newton iteration: 3 to 10 iterations are typical; far points of very
 #: elongated sets (axis ratio 100, distance 1000) were seen to need up to about 200.
 CONVEX_MAX_ITER = 400
-#: Bisection steps along a segment from the interior point to the boundary: 2**-60 of the
-#: segment length is below double precision.
+#: Bisection steps along a segment from the interior point to the boundary, once the boundary
+#: is bracketed within a factor 2: 2**-60 relative is below double precision.
 BISECTION_STEPS = 60
+#: 2**-1100 rounds to 0 in double precision, so the log-bisection starts from the interior point.
+SMALLEST_EXPONENT = 1100
 #: Relative step of the central finite differences that check a user's grad_P on construction;
 #: eps**(1/3) balances truncation and rounding error.
 FD_STEP = np.finfo(float).eps ** (1 / 3)
@@ -60,6 +65,11 @@ FD_RTOL = 1e-4
 #: Radius (in multiples of the interior point's scale, at least 1) beyond which a ConvexSet that
 #: still has P <= 0 along a ray is declared unbounded.
 UNBOUNDED_RADIUS = 1e8
+
+
+#: Box projections in a non-diagonal metric pull points farther than this many box widths in
+#: along the ray from the centre: least squares would square their coordinates and overflow.
+FAR_PULL = 1e100
 
 
 def _as_theta(name: str, theta: ArrayLike, p: int) -> FloatArray:
@@ -118,30 +128,46 @@ def _metric_factor(metric: ArrayLike, p: int) -> FloatArray | None:
 
 def _shrink_inside(pts: FloatArray, centre: FloatArray,
                    P: Callable[[FloatArray], FloatArray]) -> FloatArray:
-    """Pull points with P > 0 (rounding excess only) towards ``centre`` until P <= 0."""
+    """Pull points with P > 0 (rounding excess only) towards ``centre`` until P <= 0.
+
+    The pull doubles from one ulp up to 2**-12 of the distance; a point still outside after
+    that (never seen: the callers' points are off by rounding) is replaced by the centre.
+    """
     out = pts
-    for k in range(60):
-        bad = P(out) > 0
-        if not np.any(bad):
-            return out
-        out = np.where(bad[..., None], centre + (out - centre) * (1 - 2.0 ** (k - 52)), out)
-    return out
+    with np.errstate(over="ignore", invalid="ignore"):
+        for k in range(41):
+            bad = ~(P(out) <= 0)
+            if not np.any(bad):
+                return out
+            out = np.where(bad[..., None], centre + (out - centre) * (1 - 2.0 ** (k - 52)), out)
+        return np.where((~(P(out) <= 0))[..., None], centre, out)
 
 
 def _retract(w: FloatArray, c: FloatArray,
              P: Callable[[FloatArray], FloatArray]) -> FloatArray:
-    """The last point of Θ on each segment [c, w] (c interior); w itself when P(w) <= 0."""
-    lo = np.zeros(w.shape[:-1])
-    hi = np.ones(w.shape[:-1])
-    inside = P(w) <= 0
-    lo[inside] = 1.0
+    """The last point of Θ on each segment [c, w] (c interior); w itself when P(w) <= 0.
+
+    The fraction s of the segment is bracketed within a factor 2 by bisection on log2(s)
+    (points as far as 1e300 have their boundary at s ~ 1e-300), then refined by plain
+    bisection; the feasible end of the bracket is returned.
+    """
     d = w - c
-    for _ in range(BISECTION_STEPS):
-        mid = 0.5 * (lo + hi)
-        ok = P(c + mid[..., None] * d) <= 0
-        lo = np.where(ok, mid, lo)
-        hi = np.where(ok, hi, mid)
-    return c + lo[..., None] * d
+    with np.errstate(over="ignore", invalid="ignore", under="ignore"):
+        inside = P(w) <= 0
+        lo_e = np.full(w.shape[:-1], -float(SMALLEST_EXPONENT))  # s = 2**lo_e rounds to 0
+        hi_e = np.zeros(w.shape[:-1])
+        while np.any(hi_e - lo_e > 1):
+            mid = np.floor(0.5 * (lo_e + hi_e))
+            ok = P(c + np.exp2(mid)[..., None] * d) <= 0
+            lo_e = np.where(ok, mid, lo_e)
+            hi_e = np.where(ok, hi_e, mid)
+        lo, hi = np.exp2(lo_e), np.exp2(hi_e)
+        for _ in range(BISECTION_STEPS):
+            mid = 0.5 * (lo + hi)
+            ok = P(c + mid[..., None] * d) <= 0
+            lo = np.where(ok, mid, lo)
+            hi = np.where(ok, hi, mid)
+    return np.where(inside[..., None], w, c + lo[..., None] * d)
 
 
 def _secular(u: FloatArray, lam: FloatArray) -> FloatArray:
@@ -198,7 +224,11 @@ def _project_ellipsoid(z: FloatArray, c: FloatArray, Q: FloatArray,
         T = Li.T @ V  # θ - c = T x
         x = _secular((flat - c) @ L @ V, lam)
         res = c + x @ T.T
-    res = _shrink_inside(res, c, lambda t: np.einsum("...i,ij,...j->...", t - c, Q, t - c) - 1)
+    P = lambda t: np.einsum("...i,ij,...j->...", t - c, Q, t - c) - 1  # noqa: E731
+    res = _shrink_inside(res, c, P)
+    with np.errstate(over="ignore", invalid="ignore"):
+        inside = P(flat) <= 0
+    res = np.where(inside[:, None], flat, res)  # bit-for-bit identity inside Θ
     return res.reshape(z.shape)
 
 
@@ -348,6 +378,11 @@ class Box(ParameterSet):
             return clipped
         flat = th.reshape(-1, self.dim)
         out = clipped.reshape(-1, self.dim).copy()
+        # pull far points in along the ray from the centre (squares of 1e300 overflow); for a
+        # box the active set, hence the projection, is the same beyond a finite distance
+        m, h = self.interior_point, float(np.max(self.upper - self.lower))
+        dist = np.max(np.abs(flat - m), axis=-1, keepdims=True)
+        flat = np.where(dist > FAR_PULL * h, m + (flat - m) * (FAR_PULL * h / dist), flat)
         LT = L.T
         for i in np.flatnonzero(np.any(flat != out, axis=-1)):
             res = scipy.optimize.lsq_linear(LT, LT @ flat[i], bounds=(self.lower, self.upper),
@@ -441,16 +476,18 @@ class Ball(ParameterSet):
         """Projection onto the ball (radial when Euclidean); shape (..., p)."""
         th = _finite_theta("theta", theta, self.dim)
         L = None if metric is None else _metric_factor(metric, self.dim)
+        inside_ball = lambda t: _safe_norm(t - self.center) - self.radius  # noqa: E731
         if L is not None:
             Q = np.eye(self.dim) / self.radius**2
-            return _project_ellipsoid(th, self.center, Q, L)
+            res = _project_ellipsoid(th, self.center, Q, L)
+            return _shrink_inside(res, self.center, inside_ball)  # contains() uses the norm
         d = th - self.center
         r = _safe_norm(d)
         with np.errstate(divide="ignore", invalid="ignore"):
             scale = np.where(r > self.radius, self.radius / r, 1.0)
         res = self.center + d * scale[..., None]
-        return _shrink_inside(res, self.center,
-                              lambda t: _safe_norm(t - self.center) - self.radius)
+        res = _shrink_inside(res, self.center, inside_ball)
+        return np.where((r <= self.radius)[..., None], th, res)  # identity inside Θ
 
     def constraint(self, theta: ArrayLike) -> FloatArray:
         """P(θ) = ‖θ - c‖²/R² - 1; shape (..., 1)."""
@@ -716,7 +753,8 @@ class ConvexSet(ParameterSet):
         W = np.eye(p) if metric is None else np.asarray(metric, dtype=np.float64)
         if metric is not None:
             _metric_factor(W, p)  # validates shape and definiteness
-        out[outside] = self._nearest_kkt(flat[outside], 0.5 * (W + W.T))
+        W = 0.5 * (W + W.T) / np.max(np.diag(W))  # the projection ignores the metric's scale
+        out[outside] = self._nearest_kkt(flat[outside], W)
         return out.reshape(th.shape)
 
     def _hessian(self, y: FloatArray) -> FloatArray:
@@ -775,6 +813,9 @@ class ConvexSet(ParameterSet):
                 y = np.where(done[:, None], y, y_try)
                 mu = np.where(done, mu, mu_try)
                 done |= dy <= CONVEX_RTOL * (1.0 + _safe_norm(y))
+                # or the KKT residual (scaled to O(1) by s) is at rounding level: at flat
+                # boundary points (zero curvature) Newton converges only linearly
+                done |= merit(*residual(y, mu)) <= KKT_RTOL
                 if np.all(done):
                     break
         if not np.all(done) or not np.all(np.isfinite(y)):

@@ -525,7 +525,84 @@ def simulate(seed: Seed = 0, *, scenario: Scenario | None = None,
 
 
 # ---------------------------------------------------------------------------------------------
-# Observer factory: the lead adds ``observer(eps=1.0, **options)`` here once
-# ``thetahat.estimation.observer`` exists (modified high-gain observer (3) designed on
-# ``design_system``, with Proposition 2's update law using ``theta_star`` and Γ = 1).
+# The paper's observer (Sec. VIII-A)
 # ---------------------------------------------------------------------------------------------
+
+#: Default excitation ramp of |φ̂| (N m): l = 0 below 0.75, 1 above 1.0 — the paper's hard
+#: switch |φ̂| ≥ 1 made Lipschitz (Remark 5), so Assumption 4 holds.
+EXCITATION = (0.75, 1.0)
+
+
+def observer(eps: float = 1.0, *, Gamma: float = 1.0, eps2: float = 1.0,
+             params: LuGreParameters = LuGreParameters(),
+             excitation: tuple[float, float] = EXCITATION, second: bool = True,
+             chain_poles: Any = None, second_poles: Any = None) -> Any:
+    """The paper's estimator for the DC motor (Sec. VIII-A), ready to ``run(t, u, y)``.
+
+    A modified high-gain observer (3) whose gains are designed on the σ1 = 0 design system
+    with chain poles −1, −2, −3 (ε = 1 gives K ≈ [6, 0, 6]ᵀ), Proposition 2's update law with
+    the algebraic inverse θ* and a smooth excitation weight l(|φ̂|), and the second observer of
+    Sec. VI (poles −1, −2; ε2 = 1 gives K ≈ [3, 0]ᵀ) with g evaluated on its own estimates.
+    The observer uses the known parameters and the data only, never the true α0.
+
+    Parameters
+    ----------
+    eps : float
+        ε of the first observer (0 < ε ≤ 1).
+    Gamma : float
+        Γ of the update law (the paper: 1).
+    eps2 : float
+        ε of the second observer.
+    params : LuGreParameters
+        Known parameters (α0 is only used for Θ's bounds, not as a value).
+    excitation : (float, float)
+        |φ̂| thresholds of the smooth excitation ramp (see ``EXCITATION``).
+    second : bool
+        Attach the second observer (fills ``x_hat_refined``).
+    chain_poles, second_poles : list of pole lists, optional
+        Chain poles of the two designs (defaults −1, −2, −3 and −1, −2).
+
+    Returns
+    -------
+    ModifiedHighGainObserver
+        With ``run(t, u, y)``, ``init``/``step`` and ``rhs``; the designs are ``design`` and
+        ``second.design`` attributes are not kept: use :func:`designs`.
+
+    Examples
+    --------
+    >>> from thetahat.models import lugre
+    >>> data = lugre.simulate(seed=0, t_end=1.0)
+    >>> res = lugre.observer().run(data.t, data.u, data.y)
+    >>> res.theta_hat.shape
+    (1001, 1)
+    """
+    from ..estimation.observer import ModifiedHighGainObserver
+    from ..estimation.redesign import SecondObserver
+    from ..estimation.update_laws import IntermittentInversion, smooth_ramp
+
+    sys = system(params)
+    d1, d2 = designs(eps, eps2=eps2, params=params, chain_poles=chain_poles,
+                     second_poles=second_poles)
+    law = IntermittentInversion(theta_star(params), smooth_ramp(*excitation), Gamma,
+                                sys.parameter_set, on_invalid="freeze")
+    obs2 = SecondObserver(system=sys, K_x=d2.K, g_on_estimates=True) if second else None
+    return ModifiedHighGainObserver.from_design(sys, d1, law, second=obs2)
+
+
+def designs(eps: float = 1.0, *, eps2: float = 1.0, params: LuGreParameters = LuGreParameters(),
+            chain_poles: Any = None, second_poles: Any = None) -> tuple[Any, Any]:
+    """The two gain designs of Sec. VIII on the σ1 = 0 design system: (first, second).
+
+    Examples
+    --------
+    >>> from thetahat.models import lugre
+    >>> d1, d2 = lugre.designs()
+    >>> [round(float(v), 4) for v in d1.K.ravel()], [round(float(v), 4) for v in d2.K.ravel()]
+    ([6.0, -0.0042, 6.0075], [3.0, -0.002])
+    """
+    from ..design.gains import high_gain, modified_high_gain
+
+    ds = design_system(params)
+    d1 = modified_high_gain(ds.A, ds.E, ds.C, eps, chain_poles or [[-1.0, -2.0, -3.0]])
+    d2 = high_gain(ds.A, ds.E, ds.C, eps2, second_poles or [[-1.0, -2.0]])
+    return d1, d2

@@ -1,0 +1,289 @@
+"""Sampled checks of the conditions of Propositions 2–4 (Sec. IV).
+
+* :func:`check_monotonicity` samples the matrix inequality (13)/(14),
+  M(v, x, θ₁) ∂g/∂θ(v, x, θ₂) + (…)ᵀ >= 2P (or 2S(v, x)), over boxes of (v, x) and pairs
+  θ₁, θ₂ ∈ Θ.
+* :func:`excitation_report` measures persistency of excitation on a trajectory: the minimum
+  over windows of length T of ∫ l dt (Proposition 2) and of λ_min(∫ S dt) (Proposition 4).
+
+Sampling can find a violation but never prove the condition; the reports say where the worst
+case was found so that it can be inspected.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any, final
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from .._validate import as_vector, check_finite, positive_scalar
+from ..errors import DimensionError
+from ..model.paramset import Box, ParameterSet
+from ..model.perturbation import Perturbation
+
+FloatArray = NDArray[np.float64]
+
+__all__ = ["MonotonicityReport", "ExcitationReport", "check_monotonicity", "excitation_report"]
+
+#: Eigenvalues of the sampled symmetric matrices above -EIG_ATOL count as >= 0 in the (14) check:
+#: eigvalsh of an exactly PSD matrix returns about -1e-16 times its norm; 1e-12 leaves room for
+#: moderately scaled g.
+EIG_ATOL = 1e-12
+#: A window that ends at the last sample up to rounding (relative to the time span) counts.
+WINDOW_RTOL = 1e-12
+#: Integration is done in chunks of this many samples to bound memory for long trajectories.
+CHUNK = 4096
+
+
+@final
+@dataclass(frozen=True, slots=True, eq=False)
+class MonotonicityReport:
+    """Result of :func:`check_monotonicity`.
+
+    Attributes
+    ----------
+    worst_eigenvalue : float
+        Smallest eigenvalue found of M(v, x, θ₁)∂g/∂θ(v, x, θ₂) + (…)ᵀ (minus 2S(v, x) when S
+        was given).
+    v, x, theta1, theta2 : ndarray
+        Where it was found.
+    n_samples : int
+    with_S : bool
+        Whether S was subtracted, i.e. whether (14) rather than (13) was checked.
+    """
+
+    worst_eigenvalue: float
+    v: FloatArray
+    x: FloatArray
+    theta1: FloatArray
+    theta2: FloatArray
+    n_samples: int
+    with_S: bool
+
+    @property
+    def holds(self) -> bool:
+        """(13): worst > 0 (P = worst/2 · I works on the samples); (14): worst >= -EIG_ATOL."""
+        if self.with_S:
+            return self.worst_eigenvalue >= -EIG_ATOL
+        return self.worst_eigenvalue > 0
+
+    @property
+    def P_bound(self) -> float:
+        """λ_min(P) of the largest P = cI consistent with (13) on the samples (worst/2)."""
+        return 0.5 * self.worst_eigenvalue
+
+    def __repr__(self) -> str:
+        cond = "(14)" if self.with_S else "(13)"
+        verdict = "holds" if self.holds else "VIOLATED"
+        return (f"MonotonicityReport({cond} {verdict} on {self.n_samples} samples: worst "
+                f"eigenvalue {self.worst_eigenvalue:.4g} at v={np.round(self.v, 4).tolist()}, "
+                f"x={np.round(self.x, 4).tolist()}, theta1={np.round(self.theta1, 4).tolist()}, "
+                f"theta2={np.round(self.theta2, 4).tolist()})")
+
+
+def check_monotonicity(perturbation: Perturbation,
+                       M: Callable[[FloatArray, FloatArray, FloatArray], Any] | None = None, *,
+                       v_box: Box, x_box: Box, parameter_set: ParameterSet,
+                       n_samples: int = 2000, seed: int = 0,
+                       S: Callable[[FloatArray, FloatArray], Any] | None = None
+                       ) -> MonotonicityReport:
+    """Sampled check of condition (13) (Proposition 3) or (14) (Proposition 4).
+
+    Parameters
+    ----------
+    perturbation : Perturbation
+        g and ∂g/∂θ.
+    M : callable, optional
+        ``M(v, x, theta)``, shape (..., p, k); default (∂g/∂θ)ᵀ, as in
+        :class:`~thetahat.estimation.update_laws.GradientInversion`.
+    v_box : Box
+        Box of v = col(u, y) values (dimension m + r), standing in for V.
+    x_box : Box
+        Box of states (dimension n), standing in for X.
+    parameter_set : ParameterSet
+        Θ; θ₁ and θ₂ are drawn independently from ``parameter_set.sample``.
+    n_samples : int, optional
+        Number of random (v, x, θ₁, θ₂).
+    seed : int, optional
+        Seed of the random generator (the check is reproducible).
+    S : callable, optional
+        ``S(v, x)``, shape (..., p, p): check (14), i.e. the matrix minus 2S(v, x), instead of
+        (13).
+
+    Returns
+    -------
+    MonotonicityReport
+        The smallest eigenvalue found and where; ``.holds`` gives the verdict.
+
+    Examples
+    --------
+    g = θ + θ³/3 has ∂g/∂θ = 1 + θ² >= 1, so with M = 1 the matrix is 2(1 + θ₂²) >= 2:
+
+    >>> import numpy as np
+    >>> from thetahat.model.paramset import Box
+    >>> from thetahat.model.perturbation import Perturbation
+    >>> from thetahat.estimation.checks import check_monotonicity
+    >>> class Cubic(Perturbation):
+    ...     dims = (1, 0, 1, 1, 1)
+    ...     def g(self, v, x, th): return th + th**3 / 3
+    ...     def dg_dv(self, v, x, th): raise NotImplementedError
+    ...     def dg_dx(self, v, x, th): raise NotImplementedError
+    ...     def dg_dtheta(self, v, x, th): return (1 + th**2)[..., None]
+    >>> rep = check_monotonicity(Cubic(), lambda v, x, th: np.ones(th.shape[:-1] + (1, 1)),
+    ...                          v_box=Box([-1.0], [1.0]), x_box=Box([-1.0], [1.0]),
+    ...                          parameter_set=Box([-2.0], [2.0]), n_samples=500)
+    >>> rep.holds, rep.worst_eigenvalue >= 2.0
+    (True, True)
+    """
+    if not isinstance(perturbation, Perturbation):
+        raise DimensionError(f"perturbation must be a thetahat Perturbation; got "
+                             f"{type(perturbation).__name__}.")
+    n, m, r, p, k = perturbation.dims
+    for name, box, size in (("v_box", v_box, m + r), ("x_box", x_box, n)):
+        if not isinstance(box, Box) or box.dim != size:
+            raise DimensionError(f"{name} must be a Box of dimension {size}; got {box!r}.")
+    if not isinstance(parameter_set, ParameterSet) or parameter_set.dim != p:
+        raise DimensionError(f"parameter_set must be a ParameterSet of dimension {p}; got "
+                             f"{parameter_set!r}.")
+    N = int(positive_scalar("n_samples", n_samples))
+    rng = np.random.default_rng(seed)
+    v = v_box.sample(rng, N)
+    x = x_box.sample(rng, N)
+    th1 = parameter_set.sample(rng, N)
+    th2 = parameter_set.sample(rng, N)
+    J2 = np.broadcast_to(np.asarray(perturbation.dg_dtheta(v, x, th2), dtype=np.float64),
+                         (N, k, p))
+    if M is None:
+        M1 = np.swapaxes(np.broadcast_to(perturbation.dg_dtheta(v, x, th1), (N, k, p)), -1, -2)
+    else:
+        M1 = np.broadcast_to(np.asarray(M(v, x, th1), dtype=np.float64), (N, p, k))
+    G = M1 @ J2
+    sym = G + np.swapaxes(G, -1, -2)
+    if S is not None:
+        sym = sym - 2.0 * np.broadcast_to(np.asarray(S(v, x), dtype=np.float64), (N, p, p))
+    check_finite("M ∂g/∂θ on the samples", sym)
+    eig = np.linalg.eigvalsh(0.5 * (sym + np.swapaxes(sym, -1, -2)))[:, 0]
+    i = int(np.argmin(eig))
+    return MonotonicityReport(float(eig[i]), v[i].copy(), x[i].copy(), th1[i].copy(),
+                              th2[i].copy(), N, S is not None)
+
+
+@final
+@dataclass(frozen=True, slots=True, eq=False)
+class ExcitationReport:
+    """Result of :func:`excitation_report`.
+
+    Attributes
+    ----------
+    window : float
+        T, the window length.
+    n_windows : int
+        Number of windows [t_i, t_i + T] inside the data (one per sample time t_i).
+    sigma_l, t_l : float or None
+        min over windows of ∫ l dt (Proposition 2's σ) and the window start where it occurs.
+    sigma_S, t_S : float or None
+        min over windows of λ_min(∫ S dt) (Proposition 4's σ) and where it occurs.
+    """
+
+    window: float
+    n_windows: int
+    sigma_l: float | None
+    t_l: float | None
+    sigma_S: float | None
+    t_S: float | None
+
+    @property
+    def is_exciting(self) -> bool:
+        """Whether every σ that was computed is > 0 on this trajectory."""
+        sig = [s for s in (self.sigma_l, self.sigma_S) if s is not None]
+        return all(s > 0 for s in sig)
+
+    def __repr__(self) -> str:
+        parts = [f"window={self.window:g}", f"n_windows={self.n_windows}"]
+        if self.sigma_l is not None:
+            parts.append(f"sigma_l={self.sigma_l:.4g} (at t={self.t_l:g})")
+        if self.sigma_S is not None:
+            parts.append(f"sigma_S={self.sigma_S:.4g} (at t={self.t_S:g})")
+        return "ExcitationReport(" + ", ".join(parts) + ")"
+
+
+def _window_integrals(t: FloatArray, f: FloatArray, window: float) -> tuple[FloatArray,
+                                                                             FloatArray]:
+    """∫_{t_i}^{t_i + T} f dt (trapezoid) for every t_i with t_i + T <= t_end; (starts, vals)."""
+    flat = f.reshape(len(t), -1)
+    cum = np.zeros_like(flat)
+    cum[1:] = np.cumsum(0.5 * (flat[1:] + flat[:-1]) * np.diff(t)[:, None], axis=0)
+    starts = t[t + window <= t[-1] + WINDOW_RTOL * (t[-1] - t[0])]
+    end = starts + window
+    vals = np.stack([np.interp(end, t, cum[:, j]) for j in range(flat.shape[1])], axis=-1)
+    vals -= cum[: len(starts)]
+    return starts, vals.reshape((len(starts),) + f.shape[1:])
+
+
+def excitation_report(t: ArrayLike, l: ArrayLike | None = None,  # noqa: E741
+                      S: ArrayLike | None = None, *, window: float) -> ExcitationReport:
+    """Persistency of excitation of l (Proposition 2) and S (Proposition 4) on a trajectory.
+
+    Parameters
+    ----------
+    t : array_like, shape (N,)
+        Strictly increasing sample times.
+    l : array_like, shape (N,), optional
+        The excitation weight l(v(t), x(t), φ(t)) along the trajectory.
+    S : array_like, shape (N, p, p), optional
+        S(v(t), x(t)) along the trajectory (symmetric positive semidefinite).
+    window : float
+        T > 0, the window length; the trajectory must span at least T.
+
+    Returns
+    -------
+    ExcitationReport
+        min over windows [t_i, t_i + T] of ∫ l dt and of λ_min(∫ S dt), integrated with the
+        trapezoid rule (the window end is interpolated in the cumulative integral).
+
+    Raises
+    ------
+    DimensionError
+        Shapes disagree, t is not strictly increasing, or the trajectory is shorter than T.
+    NonFiniteError
+        NaN or inf in the data.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from thetahat.estimation.checks import excitation_report
+    >>> t = np.linspace(0.0, 20.0, 2001)
+    >>> rep = excitation_report(t, l=(np.sin(t) > 0).astype(float), window=2 * np.pi)
+    >>> round(rep.sigma_l, 1)  # half of every period
+    3.1
+    """
+    t_ = as_vector("t", t)
+    T = positive_scalar("window", window)
+    if t_.size < 2 or np.any(np.diff(t_) <= 0):
+        raise DimensionError("t must hold at least two strictly increasing sample times.")
+    if t_[-1] - t_[0] < T:
+        raise DimensionError(f"the trajectory spans {t_[-1] - t_[0]:g}, shorter than the "
+                             f"window T = {T:g}; simulate longer or use a shorter window.")
+    if l is None and S is None:
+        raise DimensionError("give l (Proposition 2), S (Proposition 4), or both.")
+    sigma_l = t_l = sigma_S = t_S = None
+    n_windows = 0
+    if l is not None:
+        l_ = as_vector("l", l, t_.size)
+        starts, vals = _window_integrals(t_, l_, T)
+        i = int(np.argmin(vals))
+        sigma_l, t_l, n_windows = float(vals[i]), float(starts[i]), len(starts)
+    if S is not None:
+        S_ = np.asarray(S, dtype=np.float64)
+        if S_.ndim != 3 or S_.shape[0] != t_.size or S_.shape[1] != S_.shape[2]:
+            raise DimensionError(f"S must have shape ({t_.size}, p, p); got {S_.shape}.")
+        check_finite("S", S_)
+        starts, vals = _window_integrals(t_, S_, T)
+        lam = np.concatenate([np.linalg.eigvalsh(0.5 * (c + np.swapaxes(c, -1, -2)))[:, 0]
+                              for c in np.array_split(vals, max(1, len(vals) // CHUNK))])
+        i = int(np.argmin(lam))
+        sigma_S, t_S, n_windows = float(lam[i]), float(starts[i]), len(starts)
+    return ExcitationReport(T, n_windows, sigma_l, t_l, sigma_S, t_S)

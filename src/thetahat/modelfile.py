@@ -1,0 +1,841 @@
+"""Model files: a :class:`~thetahat.model.system.PerturbedLinearSystem` and its estimator as text.
+
+A model file (TOML, read with :mod:`tomllib`, or JSON with the same structure) holds:
+
+``name`` (optional)
+    A title.
+``[system]``
+    ``A`` (n × n), ``B`` (n × m; ``[]`` when m = 0), ``C`` (r × n), ``E`` (n × k) as nested
+    lists of rows of numbers, eq. (1).
+``[perturbation]``
+    ``g``: φ = g(v, x, θ) as a string (k = 1) or a list of k strings, in the safe syntax of
+    :func:`~thetahat.model.parse.parse_perturbation` (never evaluated as code); ``u``, ``y``,
+    ``x``, ``theta``: the symbol names (lists of m, r, n and p names; a single name may be
+    given as a string); ``constants`` (optional table): named numbers used in the formulas.
+``[parameter_set]``
+    Θ as a box: ``lower`` and ``upper`` (p numbers each).
+``[estimator]``
+    ``law`` (required): ``"gradient"`` (:class:`~thetahat.estimation.update_laws.
+    GradientInversion` with the default M = (∂g/∂θ)ᵀ, Propositions 3–4), ``"algebraic"``
+    (:class:`~thetahat.estimation.update_laws.AlgebraicInversion`, Proposition 1) or
+    ``"intermittent"`` (:class:`~thetahat.estimation.update_laws.IntermittentInversion`,
+    Proposition 2, with the excitation weight ``smooth_ramp(*excitation)`` of ‖φ̂‖).
+    Optional: ``eps`` (default 1, Sec. VII), ``chain_poles`` (one list per chain; default
+    −1, −2, …), ``b_poles``, ``Gamma`` (number or p × p; default 1), ``theta_hat0``
+    (default: the centre of Θ), ``x_hat0`` (default 0), ``theta_star`` (algebraic and
+    intermittent laws: θ*(v, x, φ) as a string or list of p strings, in the names of u, y, x
+    and ``phi`` (k = 1) or ``phi1``, …, ``phik``; default: solved from g with SymPy),
+    ``excitation`` (intermittent law, required: ``[low, high]`` thresholds on ‖φ̂‖),
+    ``on_invalid`` (``"raise"`` or ``"freeze"``, default ``"raise"``), and ``A_design``,
+    ``E_design``: the matrices of a simplified design system on which the gains are designed
+    (Sec. VII–VIII; default: the true A and E).
+``[estimator.second]`` (optional)
+    The second observer of Sec. VI: ``eps2`` (default 1), ``chain_poles``, ``b_poles``,
+    ``g_on_estimates`` (default false; true evaluates g on C x̂₂ instead of the noisy y, as in
+    Sec. VIII).
+
+Unknown keys are errors (they are usually typos). Every problem is reported as a
+:class:`~thetahat.errors.ModelFileError` naming the file, the section and the key.
+
+Data files for :func:`thetahat.datafile.read_data` are CSV with a header row: a column ``t`` (strictly
+increasing), one column per input, named as in ``[perturbation] u`` or ``u1``, ``u2``, …
+(``u`` also works when m = 1), and one per output, named as in ``[perturbation] y`` or
+``y1``, … (``y`` when r = 1). Column order is free and other columns are ignored.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import tomllib
+import warnings
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from .design.design_system import DesignSystemReport, apply_design
+from .design.gains import GainDesign, extended_system, high_gain, modified_high_gain
+from .errors import ModelFileError, ThetahatError
+from .estimation.observer import ModifiedHighGainObserver, ObserverResult
+from .estimation.projection import as_gain
+from .estimation.redesign import SecondObserver
+from .estimation.update_laws import (
+    AlgebraicInversion,
+    GradientInversion,
+    IntermittentInversion,
+    UpdateLaw,
+    smooth_ramp,
+)
+from .model.paramset import Box
+from .model.parse import parse_perturbation
+from .model.perturbation import SymbolicPerturbation
+from .model.system import PerturbedLinearSystem
+from .structure.assumptions import AssumptionReport, check_assumption_1
+from .structure.scb import SCBResult, scb
+
+__all__ = ["EXAMPLE_MODEL", "EstimatorOptions", "ModelAnalysis", "ModelSpec",
+           "SecondObserverOptions", "analyze_model", "build_observer", "load_model",
+           "loads_model", "run_estimator"]
+
+FloatArray = NDArray[np.float64]
+
+LAWS = ("gradient", "algebraic", "intermittent")
+_TOP_KEYS = ("name", "system", "perturbation", "parameter_set", "estimator")
+_SYSTEM_KEYS = ("A", "B", "C", "E")
+_PERTURBATION_KEYS = ("g", "u", "y", "x", "theta", "constants")
+_BOX_KEYS = ("lower", "upper")
+_ESTIMATOR_KEYS = ("law", "eps", "chain_poles", "b_poles", "Gamma", "theta_hat0", "x_hat0",
+                   "theta_star", "excitation", "on_invalid", "A_design", "E_design", "second")
+_SECOND_KEYS = ("eps2", "chain_poles", "b_poles", "g_on_estimates")
+
+
+# ---------------------------------------------------------------------------------------------
+# Reading and checking values
+# ---------------------------------------------------------------------------------------------
+
+def _show(value: Any) -> str:
+    text = repr(value)
+    return text if len(text) <= 60 else text[:57] + "..."
+
+
+def _is_number(v: Any) -> bool:
+    return isinstance(v, (int, float)) and not isinstance(v, bool)
+
+
+class _Section:
+    """One table of the file, with messages that name the file, the table and the key."""
+
+    def __init__(self, source: str, name: str, table: Any) -> None:
+        if not isinstance(table, Mapping):
+            raise ModelFileError(f"model file {source}: [{name}] must be a table; got "
+                                 f"{_show(table)}.")
+        self.source, self.name, self.table = source, name, table
+
+    def fail(self, key: str | None, message: str) -> ModelFileError:
+        where = f"[{self.name}]" + (f" {key}" if key else "")
+        return ModelFileError(f"model file {self.source}: {where}: {message}")
+
+    def check_keys(self, allowed: Sequence[str]) -> None:
+        unknown = [k for k in self.table if k not in allowed]
+        if unknown:
+            raise self.fail(None, f"unknown key(s) {unknown}; expected only "
+                                  f"{list(allowed)}.")
+
+    def has(self, key: str) -> bool:
+        return key in self.table
+
+    def require(self, key: str, what: str) -> Any:
+        if key not in self.table:
+            raise self.fail(key, f"missing; expected {what}.")
+        return self.table[key]
+
+    def number(self, key: str, default: float | None = None, *, positive: bool = False) -> float:
+        if key not in self.table and default is not None:
+            return default
+        v = self.require(key, "a number")
+        if not _is_number(v) or not math.isfinite(v) or (positive and v <= 0):
+            raise self.fail(key, f"expected a finite {'positive ' if positive else ''}number; "
+                                 f"got {_show(v)}.")
+        return float(v)
+
+    def vector(self, key: str, size: int, what: str) -> FloatArray:
+        v = self.require(key, f"{size} number(s) ({what})")
+        if _is_number(v):
+            v = [v]
+        if not isinstance(v, list) or not all(_is_number(e) for e in v):
+            raise self.fail(key, f"expected a list of {size} number(s) ({what}); got "
+                                 f"{_show(v)}.")
+        if len(v) != size:
+            raise self.fail(key, f"expected {size} number(s) ({what}); got {len(v)}.")
+        arr = np.array(v, dtype=np.float64)
+        if not np.all(np.isfinite(arr)):
+            raise self.fail(key, f"entries must be finite; got {v}.")
+        return arr
+
+    def names(self, key: str, what: str, *, allow_empty: bool) -> tuple[str, ...]:
+        v = self.require(key, f"a list of names ({what})")
+        if isinstance(v, str):
+            v = [v]
+        if not isinstance(v, list) or not all(isinstance(e, str) for e in v):
+            raise self.fail(key, f"expected a list of names ({what}); got {_show(v)}.")
+        if not v and not allow_empty:
+            raise self.fail(key, f"expected at least one name ({what}); got [].")
+        return tuple(v)
+
+    def matrix(self, key: str, rows: int, cols: int | None, what: str) -> FloatArray:
+        v = self.require(key, f"a {what} matrix as a nested list of rows of numbers")
+        if v == [] and rows > 0 and cols == 0:
+            return np.zeros((rows, 0))
+        if not isinstance(v, list) or not v or not all(isinstance(row, list) for row in v):
+            raise self.fail(key, f"expected a {what} matrix as a nested list of rows, e.g. "
+                                 f"[[1.0, 0.0], [0.0, 1.0]]; got {_show(v)}.")
+        lengths = [len(row) for row in v]
+        if len(set(lengths)) != 1:
+            raise self.fail(key, f"rows have different lengths {lengths}; a matrix needs "
+                                 f"equal rows.")
+        for i, row in enumerate(v):
+            for j, e in enumerate(row):
+                if not _is_number(e) or not math.isfinite(e):
+                    raise self.fail(key, f"entry [{i}][{j}] = {_show(e)} is not a finite "
+                                         f"number.")
+        arr = np.array(v, dtype=np.float64)
+        want = (rows, lengths[0] if cols is None else cols)
+        if arr.shape != want:
+            raise self.fail(key, f"expected shape {want} ({what}); got {arr.shape}.")
+        return arr
+
+    def poles(self, key: str, *, nested: bool) -> Any:
+        if key not in self.table:
+            return None
+        v = self.table[key]
+        lists = v if nested else [v]
+        ok = isinstance(v, list) and all(isinstance(p, list) and p and
+                                         all(_is_number(e) and math.isfinite(e) for e in p)
+                                         for p in lists)
+        if not ok:
+            example = "[[-1.0, -2.0, -3.0]] (one list per chain)" if nested else "[-1.0, -2.0]"
+            raise self.fail(key, f"expected real poles as {example}; got {_show(v)}.")
+        return tuple(tuple(float(e) for e in p) for p in v) if nested else \
+            tuple(float(e) for e in v)
+
+
+def _parse_text(text: str, syntax: str, source: str) -> dict[str, Any]:
+    if syntax not in ("toml", "json"):
+        raise ModelFileError(f"model file {source}: unknown syntax {syntax!r}; use a .toml or "
+                             f".json file (syntax 'toml' or 'json').")
+    try:
+        doc = tomllib.loads(text) if syntax == "toml" else json.loads(text)
+    except tomllib.TOMLDecodeError as exc:
+        raise ModelFileError(f"model file {source} is not valid TOML: {exc}") from exc
+    except json.JSONDecodeError as exc:
+        raise ModelFileError(f"model file {source} is not valid JSON: {exc.msg} at line "
+                             f"{exc.lineno}, column {exc.colno}.") from exc
+    if not isinstance(doc, dict):
+        raise ModelFileError(f"model file {source}: the top level must be a table (object).")
+    return doc
+
+
+# ---------------------------------------------------------------------------------------------
+# The specification
+# ---------------------------------------------------------------------------------------------
+
+@dataclass(frozen=True, slots=True)
+class SecondObserverOptions:
+    """Settings of the second observer of Sec. VI (``[estimator.second]``).
+
+    Attributes
+    ----------
+    eps2 : float
+        ε of its high-gain design.
+    chain_poles : tuple of tuple of float, or None
+        Poles of each H_j (default −1, −2, …).
+    b_poles : tuple of float, or None
+        Poles of A_b − K_bb C_b.
+    g_on_estimates : bool
+        Evaluate g on C x̂₂ instead of the measured y (Sec. VIII).
+    """
+
+    eps2: float
+    chain_poles: tuple[tuple[float, ...], ...] | None
+    b_poles: tuple[float, ...] | None
+    g_on_estimates: bool
+
+
+@dataclass(frozen=True, slots=True, repr=False)
+class EstimatorOptions:
+    """The ``[estimator]`` table: gain design, update law (built) and initial values.
+
+    Attributes
+    ----------
+    law : {"gradient", "algebraic", "intermittent"}
+    update_law : UpdateLaw
+        The law, built and validated.
+    eps : float
+        ε > 0 of the modified high-gain design (the design warns when ε > 1).
+    chain_poles, b_poles : tuple or None
+        Poles of the design (None: the defaults of :func:`~thetahat.design.gains.high_gain`).
+    theta_hat0 : ndarray, shape (p,)
+        Initial parameter estimate, in Θ.
+    x_hat0 : ndarray, shape (n,)
+        Initial state estimate.
+    A_design, E_design : ndarray or None
+        The design system (Sec. VII–VIII), None when the gains are designed on A and E.
+    second : SecondObserverOptions or None
+    """
+
+    law: str
+    update_law: UpdateLaw
+    eps: float
+    chain_poles: tuple[tuple[float, ...], ...] | None
+    b_poles: tuple[float, ...] | None
+    theta_hat0: FloatArray
+    x_hat0: FloatArray
+    A_design: FloatArray | None
+    E_design: FloatArray | None
+    second: SecondObserverOptions | None
+
+    def __repr__(self) -> str:
+        return (f"EstimatorOptions(law={self.law!r}, eps={self.eps:g}, "
+                f"theta_hat0={self.theta_hat0.tolist()}, "
+                f"design_system={self.A_design is not None or self.E_design is not None}, "
+                f"second={self.second is not None})")
+
+
+@dataclass(frozen=True, slots=True, repr=False)
+class ModelSpec:
+    """A model file, read and validated: the system, its names and the estimator options.
+
+    Attributes
+    ----------
+    source : str
+        The file it was read from.
+    name : str
+    system : PerturbedLinearSystem
+        With perturbation g and Θ.
+    input_names, output_names, state_names, parameter_names : tuple of str
+        The symbol names of u, y, x and θ.
+    estimator : EstimatorOptions
+    """
+
+    source: str
+    name: str
+    system: PerturbedLinearSystem
+    input_names: tuple[str, ...]
+    output_names: tuple[str, ...]
+    state_names: tuple[str, ...]
+    parameter_names: tuple[str, ...]
+    estimator: EstimatorOptions
+
+    def __repr__(self) -> str:
+        s = self.system
+        return (f"ModelSpec(name={self.name!r}, n={s.n}, m={s.m}, r={s.r}, k={s.k}, p={s.p}, "
+                f"estimator={self.estimator!r})")
+
+
+@dataclass(frozen=True, slots=True)
+class _ThetaStarExpression:
+    """θ*(v, x, φ) read from the file: a parsed expression in u, y, x and φ."""
+
+    expr: SymbolicPerturbation
+
+    def __call__(self, v: ArrayLike, x_hat: ArrayLike, phi_hat: ArrayLike) -> FloatArray:
+        """θ*; shape (..., p)."""
+        return self.expr.g(v, x_hat, phi_hat)
+
+
+def _phi_names(k: int) -> list[str]:
+    return ["phi"] if k == 1 else [f"phi{i + 1}" for i in range(k)]
+
+
+def _read_perturbation(sec: _Section) -> tuple[SymbolicPerturbation, dict[str, Any]]:
+    sec.check_keys(_PERTURBATION_KEYS)
+    g = sec.require("g", "a formula string, or a list of strings (one per component of φ)")
+    names = {"u": sec.names("u", "input names", allow_empty=True),
+             "y": sec.names("y", "output names", allow_empty=False),
+             "x": sec.names("x", "state names", allow_empty=False),
+             "theta": sec.names("theta", "parameter names", allow_empty=False)}
+    constants = sec.table.get("constants", {})
+    if not isinstance(constants, Mapping):
+        raise sec.fail("constants", f"expected a table of named numbers; got "
+                                    f"{_show(constants)}.")
+    try:
+        pert = parse_perturbation(g, constants=constants, **names)
+    except ModelFileError as exc:
+        raise sec.fail("g", str(exc)) from exc
+    return pert, {"names": names, "constants": dict(constants)}
+
+
+def _read_gamma(sec: _Section, p: int) -> FloatArray:
+    G = sec.table.get("Gamma", 1.0)
+    rows = G if isinstance(G, list) else None
+    numeric = _is_number(G) or (rows is not None and all(
+        isinstance(r, list) and all(_is_number(e) for e in r) for r in rows))
+    if not numeric:
+        raise sec.fail("Gamma", f"expected a positive number or a {p} × {p} symmetric "
+                                f"positive-definite matrix; got {_show(G)}.")
+    try:
+        return as_gain("Gamma", G, p)
+    except (ThetahatError, ValueError) as exc:
+        raise sec.fail("Gamma", str(exc)) from exc
+
+
+def _read_theta_star(sec: _Section, pert: SymbolicPerturbation,
+                     parsed: dict[str, Any]) -> _ThetaStarExpression:
+    p, k = pert.dims[3], pert.dims[4]
+    names = parsed["names"]
+    try:
+        expr = parse_perturbation(sec.table["theta_star"], u=names["u"], y=names["y"],
+                                  x=names["x"], theta=_phi_names(k),
+                                  constants=parsed["constants"])
+    except ModelFileError as exc:
+        raise sec.fail("theta_star", f"{exc} (θ* may use the names of u, y, x and "
+                                     f"{', '.join(_phi_names(k))}).") from exc
+    if expr.dims[4] != p:
+        raise sec.fail("theta_star", f"expected {p} component(s), one per parameter; got "
+                                     f"{expr.dims[4]}.")
+    return _ThetaStarExpression(expr)
+
+
+def _read_law(sec: _Section, pert: SymbolicPerturbation, theta_set: Box,
+              parsed: dict[str, Any]) -> tuple[str, UpdateLaw]:
+    law = sec.require("law", f"one of {list(LAWS)}")
+    if law not in LAWS:
+        raise sec.fail("law", f"unknown law {_show(law)}; expected one of {list(LAWS)} "
+                              f"(Propositions 1–4).")
+    for key in ("theta_star", "excitation", "on_invalid"):
+        unused = law == "gradient" or (key == "excitation" and law != "intermittent")
+        if sec.has(key) and unused:
+            raise sec.fail(key, f"not used by the {law!r} law; remove it.")
+    Gamma = _read_gamma(sec, theta_set.dim)
+    if law == "gradient":
+        return law, GradientInversion(pert, Gamma, theta_set)
+    on_invalid = sec.table.get("on_invalid", "raise")
+    if on_invalid not in ("raise", "freeze"):
+        raise sec.fail("on_invalid", f"expected 'raise' or 'freeze'; got {_show(on_invalid)}.")
+    theta_star = _read_theta_star(sec, pert, parsed) if sec.has("theta_star") else None
+    ramp = None
+    if law == "intermittent":
+        lo_hi = sec.require("excitation", "[low, high], the thresholds on ‖φ̂‖ of the smooth "
+                                          "excitation weight of the intermittent law")
+        if not (isinstance(lo_hi, list) and len(lo_hi) == 2
+                and all(_is_number(e) for e in lo_hi)):
+            raise sec.fail("excitation", f"expected [low, high]; got {_show(lo_hi)}.")
+        try:
+            ramp = smooth_ramp(*lo_hi)
+        except ThetahatError as exc:
+            raise sec.fail("excitation", str(exc)) from exc
+    try:
+        if theta_star is None:
+            opts = {"Gamma": Gamma, "parameter_set": theta_set, "on_invalid": on_invalid}
+            built = (AlgebraicInversion.from_perturbation(pert, **opts) if law == "algebraic"
+                     else IntermittentInversion.from_perturbation(pert, ramp, **opts))
+        elif law == "algebraic":
+            built = AlgebraicInversion(theta_star, Gamma, theta_set, on_invalid=on_invalid)
+        else:
+            built = IntermittentInversion(theta_star, ramp, Gamma, theta_set,
+                                          on_invalid=on_invalid)
+    except ThetahatError as exc:
+        if theta_star is None:
+            raise sec.fail("theta_star", f"not given, and it cannot be derived from g: {exc}"
+                           ) from exc
+        raise sec.fail("law", str(exc)) from exc
+    return law, built
+
+
+def _read_estimator(sec: _Section, system: PerturbedLinearSystem, pert: SymbolicPerturbation,
+                    parsed: dict[str, Any]) -> EstimatorOptions:
+    sec.check_keys(_ESTIMATOR_KEYS)
+    n, k, p = system.n, system.k, system.p
+    law, update_law = _read_law(sec, pert, system.parameter_set, parsed)
+    eps = sec.number("eps", 1.0, positive=True)
+    theta_hat0 = (sec.vector("theta_hat0", p, f"θ̂(0), p = {p}") if sec.has("theta_hat0")
+                  else None)
+    try:
+        theta_hat0 = update_law.init(theta_hat0)
+    except ThetahatError as exc:
+        raise sec.fail("theta_hat0", str(exc)) from exc
+    x_hat0 = sec.vector("x_hat0", n, f"x̂(0), n = {n}") if sec.has("x_hat0") else np.zeros(n)
+    A_d = sec.matrix("A_design", n, n, "n × n") if sec.has("A_design") else None
+    E_d = sec.matrix("E_design", n, k, "n × k") if sec.has("E_design") else None
+    second = None
+    if sec.has("second"):
+        s2 = _Section(sec.source, "estimator.second", sec.table["second"])
+        s2.check_keys(_SECOND_KEYS)
+        on_est = s2.table.get("g_on_estimates", False)
+        if not isinstance(on_est, bool):
+            raise s2.fail("g_on_estimates", f"expected true or false; got {_show(on_est)}.")
+        eps2 = s2.number("eps2", 1.0, positive=True)
+        second = SecondObserverOptions(eps2=eps2,
+                                       chain_poles=s2.poles("chain_poles", nested=True),
+                                       b_poles=s2.poles("b_poles", nested=False),
+                                       g_on_estimates=on_est)
+    for arr in (theta_hat0, x_hat0, A_d, E_d):
+        if arr is not None:
+            arr.setflags(write=False)
+    return EstimatorOptions(law=law, update_law=update_law, eps=eps,
+                            chain_poles=sec.poles("chain_poles", nested=True),
+                            b_poles=sec.poles("b_poles", nested=False),
+                            theta_hat0=theta_hat0, x_hat0=x_hat0, A_design=A_d, E_design=E_d,
+                            second=second)
+
+
+#: A minimal model file (the Proposition 3 example of ``examples/prop3.toml`` without its
+#: comments), used by the examples in the docstrings.
+EXAMPLE_MODEL = """
+name = "Oscillator with a monotone perturbation (Proposition 3)"
+[system]
+A = [[0.0, 1.0], [-1.0, -0.5]]
+B = [[0.0], [1.0]]
+C = [[1.0, 0.0]]
+E = [[0.0], [1.0]]
+[perturbation]
+g = "(2 + sin(y))*(theta + theta**3/3)"
+u = ["u"]
+y = ["y"]
+x = ["x1", "x2"]
+theta = ["theta"]
+[parameter_set]
+lower = [-2.0]
+upper = [2.0]
+[estimator]
+law = "gradient"
+Gamma = 2.0
+theta_hat0 = [0.0]
+eps = 0.5
+[estimator.second]
+eps2 = 1.0
+"""
+
+
+def load_model(path: str | Path) -> ModelSpec:
+    """Read a model file (TOML or JSON, by suffix; see the module docstring).
+
+    Parameters
+    ----------
+    path : str or Path
+        A ``.toml`` or ``.json`` file.
+
+    Returns
+    -------
+    ModelSpec
+
+    Raises
+    ------
+    ModelFileError
+        The file cannot be read or parsed, a table or key is missing or unknown, a matrix
+        has the wrong shape, a formula is not allowed (e.g. ``__import__``), the law is
+        unknown, θ̂(0) lies outside Θ, ...; the message names the section and key.
+
+    Notes
+    -----
+    The gains are designed by :func:`build_observer` and :func:`analyze_model` (a design
+    failure, e.g. a wrong number of chain poles, is reported there).
+
+    Examples
+    --------
+    >>> import tempfile, pathlib
+    >>> from thetahat.modelfile import EXAMPLE_MODEL, load_model
+    >>> path = pathlib.Path(tempfile.mkdtemp()) / "prop3.toml"
+    >>> _ = path.write_text(EXAMPLE_MODEL)
+    >>> spec = load_model(path)
+    >>> spec.system.n, spec.system.p, spec.estimator.law, spec.state_names
+    (2, 1, 'gradient', ('x1', 'x2'))
+    """
+    path = Path(path)
+    syntax = path.suffix.lower().lstrip(".")
+    if syntax not in ("toml", "json"):
+        raise ModelFileError(f"model file {path}: unknown type {path.suffix or '(no suffix)'!r}"
+                             f"; use a .toml or .json file.")
+    try:
+        text = path.read_text(encoding="utf-8")
+    except (OSError, UnicodeDecodeError) as exc:
+        raise ModelFileError(f"cannot read model file {path}: {exc}") from exc
+    return loads_model(text, syntax=syntax, source=str(path))
+
+
+def loads_model(text: str, *, syntax: str = "toml", source: str = "<string>") -> ModelSpec:
+    """Read a model from text in model-file syntax (see the module docstring).
+
+    Parameters
+    ----------
+    text : str
+        The content of a model file.
+    syntax : {"toml", "json"}
+    source : str
+        Name used in messages and stored in ``ModelSpec.source``.
+
+    Returns
+    -------
+    ModelSpec
+
+    Raises
+    ------
+    ModelFileError
+        As for :func:`load_model`.
+
+    Examples
+    --------
+    >>> from thetahat.modelfile import EXAMPLE_MODEL, loads_model
+    >>> spec = loads_model(EXAMPLE_MODEL)
+    >>> spec.estimator
+    EstimatorOptions(law='gradient', eps=0.5, theta_hat0=[0.0], design_system=False, second=True)
+    >>> loads_model(EXAMPLE_MODEL.replace('"gradient"', '"newton"'))
+    Traceback (most recent call last):
+    ...
+    thetahat.errors.ModelFileError: model file <string>: [estimator] law: unknown law 'newton'; expected one of ['gradient', 'algebraic', 'intermittent'] (Propositions 1–4).
+    """
+    doc = _parse_text(text, syntax, source)
+    top = _Section(source, "top level", doc)
+    top.check_keys(_TOP_KEYS)
+    name = doc.get("name", Path(source).stem)
+    if not isinstance(name, str):
+        raise top.fail("name", f"expected a string; got {_show(name)}.")
+    sections = {}
+    for key in ("system", "perturbation", "parameter_set", "estimator"):
+        if key not in doc:
+            raise ModelFileError(f"model file {source}: missing table [{key}].")
+        sections[key] = _Section(source, key, doc[key])
+    pert, parsed = _read_perturbation(sections["perturbation"])
+    n, m, r, p, k = pert.dims
+    sys_sec = sections["system"]
+    sys_sec.check_keys(_SYSTEM_KEYS)
+    A = sys_sec.matrix("A", n, n, f"n × n with n = {n} states from [perturbation] x")
+    B = sys_sec.matrix("B", n, m, f"n × m with m = {m} inputs from [perturbation] u")
+    C = sys_sec.matrix("C", r, n, f"r × n with r = {r} outputs from [perturbation] y")
+    E = sys_sec.matrix("E", n, k, f"n × k with k = {k} components of [perturbation] g")
+    box = sections["parameter_set"]
+    box.check_keys(_BOX_KEYS)
+    lower = box.vector("lower", p, f"one per parameter in [perturbation] theta, p = {p}")
+    upper = box.vector("upper", p, f"one per parameter in [perturbation] theta, p = {p}")
+    try:
+        theta_set = Box(lower, upper)
+        system = PerturbedLinearSystem(A=A, B=B, C=C, E=E, perturbation=pert,
+                                       parameter_set=theta_set)
+    except ThetahatError as exc:
+        raise ModelFileError(f"model file {source}: [parameter_set]: {exc}") from exc
+    estimator = _read_estimator(sections["estimator"], system, pert, parsed)
+    names = parsed["names"]
+    return ModelSpec(source=source, name=name, system=system, input_names=names["u"],
+                     output_names=names["y"], state_names=names["x"],
+                     parameter_names=names["theta"], estimator=estimator)
+
+
+# ---------------------------------------------------------------------------------------------
+# Design, observer, analysis
+# ---------------------------------------------------------------------------------------------
+
+def _design_matrices(spec: ModelSpec) -> tuple[FloatArray, FloatArray, FloatArray]:
+    s, est = spec.system, spec.estimator
+    return (s.A if est.A_design is None else est.A_design,
+            s.E if est.E_design is None else est.E_design, s.C)
+
+
+def _designs(spec: ModelSpec, eps: float | None) -> tuple[GainDesign, GainDesign | None]:
+    est = spec.estimator
+    A_d, E_d, C = _design_matrices(spec)
+    where = "the design system (A_design, E_design)" if (
+        est.A_design is not None or est.E_design is not None) else "(A, E, C)"
+    try:
+        d1 = modified_high_gain(A_d, E_d, C, est.eps if eps is None else eps,
+                                est.chain_poles, est.b_poles)
+    except ThetahatError as exc:
+        raise ModelFileError(f"model file {spec.source}: [estimator] eps/chain_poles/b_poles: "
+                             f"the modified high-gain design on {where} failed: {exc}") from exc
+    d2 = None
+    if est.second is not None:
+        try:
+            d2 = high_gain(A_d, E_d, C, est.second.eps2, est.second.chain_poles,
+                           est.second.b_poles)
+        except ThetahatError as exc:
+            raise ModelFileError(f"model file {spec.source}: [estimator.second]: the "
+                                 f"high-gain design on {where} failed: {exc}") from exc
+    return d1, d2
+
+
+def build_observer(spec: ModelSpec, *, eps: float | None = None) -> ModifiedHighGainObserver:
+    """The estimator of a model file: observer (3) with the file's update law (8).
+
+    The gains K(ε) = [K_x; K_φ] are designed by
+    :func:`~thetahat.design.gains.modified_high_gain` on the design system (or the true one),
+    and the second observer, if any, by :func:`~thetahat.design.gains.high_gain`.
+
+    Parameters
+    ----------
+    spec : ModelSpec
+        From :func:`load_model`.
+    eps : float, optional
+        Overrides ``spec.estimator.eps`` (for ε sweeps).
+
+    Returns
+    -------
+    ModifiedHighGainObserver
+        Start it with ``init(x_hat0=spec.estimator.x_hat0,
+        theta_hat0=spec.estimator.theta_hat0)``, or use :func:`run_estimator`.
+
+    Raises
+    ------
+    ModelFileError
+        The gains cannot be designed (e.g. a wrong number of chain poles, Assumption 1
+        fails on the design system); the message names the keys.
+
+    Examples
+    --------
+    >>> from thetahat.modelfile import EXAMPLE_MODEL, build_observer, loads_model
+    >>> obs = build_observer(loads_model(EXAMPLE_MODEL))
+    >>> obs.K_x.shape, obs.K_phi.shape
+    ((2, 1), (1, 1))
+    """
+    d1, d2 = _designs(spec, eps)
+    second = None
+    if d2 is not None:
+        second = SecondObserver(system=spec.system, K_x=d2.K,
+                                g_on_estimates=spec.estimator.second.g_on_estimates)
+    return ModifiedHighGainObserver.from_design(spec.system, d1, spec.estimator.update_law,
+                                                second=second)
+
+
+def run_estimator(spec: ModelSpec, t: ArrayLike, u: ArrayLike | None, y: ArrayLike, *,
+                  hold: str = "zoh") -> ObserverResult:
+    """Run the file's estimator on sampled data, from the file's initial values.
+
+    Parameters
+    ----------
+    spec : ModelSpec
+    t : array_like, shape (N,)
+        Strictly increasing sampling instants.
+    u : array_like, shape (N, m), or None when m = 0
+    y : array_like, shape (N, r)
+    hold : {"zoh", "foh"}
+        Sample hold (see :meth:`~thetahat.estimation.observer.ModifiedHighGainObserver.run`).
+
+    Returns
+    -------
+    ObserverResult
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from thetahat.modelfile import EXAMPLE_MODEL, loads_model, run_estimator
+    >>> spec = loads_model(EXAMPLE_MODEL)
+    >>> t = np.arange(0.0, 1.0, 0.01)
+    >>> res = run_estimator(spec, t, np.sin(t)[:, None], np.zeros((t.size, 1)))
+    >>> res.theta_hat.shape
+    (100, 1)
+    """
+    obs = build_observer(spec)
+    state0 = obs.init(x_hat0=spec.estimator.x_hat0, theta_hat0=spec.estimator.theta_hat0)
+    return obs.run(t, u, y, hold=hold, state0=state0)
+
+
+@dataclass(frozen=True, slots=True, repr=False)
+class ModelAnalysis:
+    """Structural report of a model file (``thetahat analyze``).
+
+    Attributes
+    ----------
+    spec : ModelSpec
+    assumption : AssumptionReport
+        Assumption 1 for the true (C, A, E).
+    scb : SCBResult
+        SCB of the extended error system (4) with K = 0 (true matrices).
+    scb_design : SCBResult or None
+        The same for the design system, when the file gives one.
+    design : GainDesign or None
+        K(ε) = [K_x; K_φ] (None when the design failed: see ``design_error``).
+    spectra : DesignSystemReport or None
+        eig of (4) with K(ε) on the design system and on the true system.
+    design2 : GainDesign or None
+        Gain of the second observer.
+    spectra2 : DesignSystemReport or None
+        Its closed-loop spectra on the design and true systems.
+    design_error : str or None
+        Why the gains could not be designed.
+    warnings : tuple of str
+        Warnings raised during the analysis (e.g. an ill-conditioned SCB).
+    """
+
+    spec: ModelSpec
+    assumption: AssumptionReport
+    scb: SCBResult
+    scb_design: SCBResult | None
+    design: GainDesign | None
+    spectra: DesignSystemReport | None
+    design2: GainDesign | None
+    spectra2: DesignSystemReport | None
+    design_error: str | None
+    warnings: tuple[str, ...]
+
+    def __repr__(self) -> str:
+        return (f"ModelAnalysis(name={self.spec.name!r}, assumption_1={self.assumption.holds}, "
+                f"stable={None if self.spectra is None else self.spectra.stable})")
+
+    def __str__(self) -> str:
+        def eig(z: Any) -> str:
+            return "[" + ", ".join(_complex(v) for v in z) + "]"
+
+        def vec(K: FloatArray) -> str:
+            if K.shape[1] == 1:
+                return "[" + ", ".join(f"{v:.6g}" for v in K.ravel()) + "]"
+            return "[" + "; ".join(", ".join(f"{v:.6g}" for v in row) for row in K) + "]"
+
+        est = self.spec.estimator
+        s = self.spec.system
+        lines = [f"model: {self.spec.name} ({self.spec.source})",
+                 f"  n = {s.n}, m = {s.m}, r = {s.r}, k = {s.k}, p = {s.p}; law = {est.law}",
+                 str(self.assumption),
+                 f"SCB of the error system (4), true matrices: {self.scb!r}"]
+        if self.scb_design is not None:
+            lines.append(f"SCB of the error system (4), design system: {self.scb_design!r}")
+        if self.design_error is not None:
+            lines.append(f"gain design FAILED: {self.design_error}")
+        if self.design is not None:
+            n = self.spec.system.n
+            lines += [f"K(eps = {self.design.eps:g}) = [K_x; K_phi] = {vec(self.design.K)}",
+                      f"  K_x = {vec(self.design.K[:n])}, K_phi = {vec(self.design.K[n:])}",
+                      f"  eig on the design system: {eig(self.spectra.eig_design)}",
+                      f"  eig on the true system:   {eig(self.spectra.eig_true)}",
+                      f"  stable on the true system: {self.spectra.stable}"]
+        if self.design2 is not None:
+            lines += [f"second observer: K(eps2 = {self.design2.eps:g}) = {vec(self.design2.K)}",
+                      f"  eig on the design system: {eig(self.spectra2.eig_design)}",
+                      f"  eig on the true system:   {eig(self.spectra2.eig_true)}",
+                      f"  stable on the true system: {self.spectra2.stable}"]
+        lines += [f"warning: {w}" for w in self.warnings]
+        return "\n".join(lines)
+
+
+def _complex(v: complex) -> str:
+    v = complex(v)
+    if abs(v.imag) <= 1e-12 * max(1.0, abs(v.real)):
+        return f"{v.real:.6g}"
+    return f"{v.real:.6g}{v.imag:+.6g}j"
+
+
+def analyze_model(spec: ModelSpec) -> ModelAnalysis:
+    """Assumption 1, the SCB of (4), K(ε) and the closed-loop spectra of a model file.
+
+    Parameters
+    ----------
+    spec : ModelSpec
+        From :func:`load_model`.
+
+    Returns
+    -------
+    ModelAnalysis
+        ``str(result)`` is the report ``thetahat analyze`` prints.
+
+    Examples
+    --------
+    >>> from thetahat.modelfile import EXAMPLE_MODEL, analyze_model, loads_model
+    >>> report = analyze_model(loads_model(EXAMPLE_MODEL))
+    >>> report.assumption.holds, report.spectra.stable
+    (True, True)
+    """
+    s = spec.system
+    caught: list[str] = []
+    with warnings.catch_warnings(record=True) as record:
+        warnings.simplefilter("always")
+        assumption = check_assumption_1(s.A, s.E, s.C)
+        sc = scb(*extended_system(s.A, s.E, s.C))
+        A_d, E_d, C = _design_matrices(spec)
+        sc_d = None
+        if spec.estimator.A_design is not None or spec.estimator.E_design is not None:
+            sc_d = scb(*extended_system(A_d, E_d, C))
+        design = design2 = spectra = spectra2 = None
+        error = None
+        try:
+            design, design2 = _designs(spec, None)
+        except ModelFileError as exc:
+            error = str(exc)
+        if design is not None:
+            spectra = apply_design(design, s.A, s.E, s.C)
+        if design2 is not None:
+            spectra2 = apply_design(design2, s.A, s.E, s.C)
+    caught = [f"{w.category.__name__}: {w.message}" for w in record]
+    return ModelAnalysis(spec=spec, assumption=assumption, scb=sc, scb_design=sc_d,
+                         design=design, spectra=spectra, design2=design2, spectra2=spectra2,
+                         design_error=error, warnings=tuple(dict.fromkeys(caught)))

@@ -1,0 +1,69 @@
+"""Proposition 3 example: φ = (2 + sin y)(θ + θ³/3), a monotone perturbation.
+
+Plant: the damped oscillator ẋ₁ = x₂, ẋ₂ = -x₁ - 0.5 x₂ + u + φ, y = x₁, with
+θ ∈ Θ = [-2, 2] (true value 1.2).
+
+Why Proposition 3 applies: ∂g/∂θ = (2 + sin y)(1 + θ²) >= 1 for all (v, x, θ), so with the
+constant M = 1 condition (13) holds with P = 1:
+M ∂g/∂θ(θ₂) + ∂g/∂θ(θ₂)ᵀ Mᵀ = 2(2 + sin y)(1 + θ₂²) >= 2. The gradient-type law
+θ̂̇ = Proj(Γ(φ̂ - g(v, x̂, θ̂))) then gives V̇ <= -‖θ̃‖² for V = ½θ̃ᵀΓ⁻¹θ̃, i.e. ‖θ̃‖ decays at
+least like e^(-Γ t) with perfect x̂ and φ̂, without solving the cubic for θ. (The cubic can
+be inverted too — ``AlgebraicInversion.from_perturbation`` finds its real Cardano branch —
+but the gradient law needs no inverse at all, which is the point of Proposition 3.) Check
+(13) with :func:`~thetahat.estimation.checks.check_monotonicity`.
+
+Examples
+--------
+>>> import numpy as np
+>>> from thetahat.models import prop3_monotone
+>>> law = prop3_monotone.update_law(Gamma=1.0)
+>>> v, x = np.array([0.0, 0.0]), np.zeros(2)
+>>> phi = prop3_monotone.system().perturbation.g(v, x, prop3_monotone.THETA)
+>>> bool(law.rate(v, x, phi, np.array([0.0]))[0] > 0)    # θ̂ = 0 < θ: pushed up
+True
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import sympy as sp
+from numpy.typing import ArrayLike, NDArray
+
+from ..estimation.update_laws import GradientInversion
+from ..model.paramset import Box
+from ..model.system import PerturbedLinearSystem
+from ._oscillator import oscillator, y
+
+FloatArray = NDArray[np.float64]
+
+__all__ = ["THETA", "PARAMETER_SET", "system", "input_signal", "M", "update_law"]
+
+#: The true parameter used by the examples and tests.
+THETA = np.array([1.2])
+#: Θ, a little larger than the assumed parameter range.
+PARAMETER_SET = Box([-2.0], [2.0])
+
+_theta = sp.Symbol("theta", real=True)
+
+
+def system() -> PerturbedLinearSystem:
+    """The oscillator with φ = g(v, x, θ) = (2 + sin y)(θ + θ³/3) and Θ = [-2, 2]."""
+    return oscillator((2 + sp.sin(y)) * (_theta + _theta**3 / 3), [_theta], PARAMETER_SET)
+
+
+def input_signal(t: ArrayLike) -> FloatArray:
+    """u(t) = sin 0.8t, shape (..., 1)."""
+    t_ = np.asarray(t, dtype=np.float64)
+    return np.sin(0.8 * t_)[..., None]
+
+
+def M(v: ArrayLike, x: ArrayLike, theta: ArrayLike) -> FloatArray:
+    """The constant M = 1, shape (..., 1, 1)."""
+    th = np.asarray(theta, dtype=np.float64)
+    return np.ones(th.shape[:-1] + (1, 1))
+
+
+def update_law(Gamma: ArrayLike = 2.0) -> GradientInversion:
+    """The Proposition 3 law θ̂̇ = Proj(Γ M (φ̂ - g(v, x̂, θ̂))) with M = 1."""
+    sys = system()
+    return GradientInversion(sys.perturbation, Gamma, PARAMETER_SET, M=M)

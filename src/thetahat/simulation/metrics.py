@@ -1,0 +1,78 @@
+"""Accuracy metrics of an estimate against the truth: settling times, RMSE, divergence."""
+
+from __future__ import annotations
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from .._validate import as_vector
+from ..errors import DimensionError
+
+FloatArray = NDArray[np.float64]
+
+#: An estimate counts as diverged when it is non-finite or this many times the truth's range.
+DIVERGENCE_FACTOR = 1e3
+
+
+def time_to_within(t: ArrayLike, estimate: ArrayLike, truth: ArrayLike, rel: float) -> float:
+    """First time after which ``|estimate − truth| ≤ rel·|truth|`` holds for good.
+
+    Parameters
+    ----------
+    t : array_like, shape (N,)
+    estimate : array_like, shape (N,) or (N, p)
+    truth : array_like, shape (p,) or scalar (a constant parameter)
+    rel : float
+        Relative band, e.g. 0.01 for 1 %. For p > 1, every component must be within.
+
+    Returns
+    -------
+    float
+        The settling time, or ``inf`` if the estimate is outside the band at the last sample.
+
+    Examples
+    --------
+    >>> from thetahat.simulation.metrics import time_to_within
+    >>> time_to_within([0, 1, 2, 3], [2.0, 1.2, 1.005, 1.0], 1.0, 0.01)
+    2.0
+    """
+    t = as_vector("t", t)
+    est = np.asarray(estimate, dtype=float)
+    if est.shape[0] != t.size:
+        raise DimensionError(f"estimate has {est.shape[0]} samples but t has {t.size}.")
+    est = est.reshape(t.size, -1)
+    tru = np.broadcast_to(np.asarray(truth, dtype=float).ravel(), (est.shape[1],))
+    inside = np.all(np.abs(est - tru) <= rel * np.abs(tru), axis=1)
+    if not inside[-1]:
+        return float("inf")
+    outside = np.flatnonzero(~inside)
+    return float(t[0] if outside.size == 0 else t[outside[-1] + 1])
+
+
+def rmse(estimate: ArrayLike, truth: ArrayLike, *, start: int = 0) -> FloatArray:
+    """Root-mean-square error per component over samples ``start:``; shape (p,).
+
+    Parameters
+    ----------
+    estimate : array_like, shape (N,) or (N, p)
+    truth : array_like, shape (N,) or (N, p)
+    start : int
+        First sample included (e.g. ``N // 2`` for the second half).
+
+    Examples
+    --------
+    >>> from thetahat.simulation.metrics import rmse
+    >>> rmse([[1.0], [3.0]], [[0.0], [0.0]]).tolist()
+    [2.23606797749979]
+    """
+    e = np.asarray(estimate, dtype=float)
+    tr = np.asarray(truth, dtype=float)
+    e = e.reshape(e.shape[0], -1)
+    tr = np.broadcast_to(tr.reshape(tr.shape[0], -1) if tr.ndim else tr, e.shape)
+    return np.sqrt(np.mean((e[start:] - tr[start:]) ** 2, axis=0))
+
+
+def diverged(estimate: ArrayLike, scale: float) -> bool:
+    """True when the estimate is non-finite or exceeds ``DIVERGENCE_FACTOR·scale`` anywhere."""
+    e = np.asarray(estimate, dtype=float)
+    return bool(not np.all(np.isfinite(e)) or np.max(np.abs(e)) > DIVERGENCE_FACTOR * scale)

@@ -1,0 +1,134 @@
+"""The ``thetahat`` command: wiring to the public API, exit codes and error messages."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from thetahat.cli import main
+from thetahat.datafile import estimate_columns
+from thetahat.modelfile import build_observer, load_model
+from thetahat.models import lugre
+
+EXAMPLES = Path(__file__).resolve().parents[1] / "examples"
+LUGRE = EXAMPLES / "lugre.toml"
+
+
+def test_python_dash_m_help():
+    proc = subprocess.run([sys.executable, "-m", "thetahat", "--help"], capture_output=True,
+                          text=True, timeout=120, check=False)
+    assert proc.returncode == 0
+    for command in ("demo", "sweep", "analyze", "estimate"):
+        assert command in proc.stdout
+
+
+def test_analyze_prints_the_lugre_zero_and_gain(capsys):
+    assert main(["analyze", str(LUGRE)]) == 0
+    out = capsys.readouterr().out
+    assert "Assumption 1 (Grip, Saberi & Johansen): holds" in out
+    assert "-433.333" in out                                   # −σ0/σ1, Sec. VIII-A
+    assert "K(eps = 1) = [K_x; K_phi] = [6, -0.00415885, 6.0075]" in out
+    assert "second observer: K(eps2 = 1) = [3, -0.00204846]" in out
+    assert "stable on the true system: True" in out
+
+
+@pytest.fixture(scope="module")
+def lugre_csv(tmp_path_factory) -> tuple[Path, lugre.PlantTrajectory]:
+    data = lugre.simulate(seed=2, t_end=1.0)
+    path = tmp_path_factory.mktemp("data") / "motor.csv"
+    table = np.column_stack([data.t, data.u, data.y])
+    np.savetxt(path, table, delimiter=",", header="t,u,y", comments="", fmt="%.17g")
+    return path, data
+
+
+@pytest.mark.parametrize("hold", ["zoh", "foh"])
+def test_estimate_round_trips_with_the_api(tmp_path, lugre_csv, hold, capsys):
+    csv_path, data = lugre_csv
+    out = tmp_path / "est.csv"
+    assert main(["estimate", str(LUGRE), str(csv_path), "-o", str(out), "--hold", hold]) == 0
+    assert f"wrote {out} ({data.t.size} rows)" in capsys.readouterr().out
+    header = out.read_text().splitlines()[0].split(",")
+    spec = load_model(LUGRE)
+    assert tuple(header) == estimate_columns(spec, refined=True)
+    table = np.loadtxt(out, delimiter=",", skiprows=1)
+    # the same arrays through the API (the CSV holds 17 significant digits: exact floats)
+    t, u, y = (np.loadtxt(csv_path, delimiter=",", skiprows=1)[:, i] for i in range(3))
+    np.testing.assert_array_equal(t, data.t)
+    obs = build_observer(spec)
+    res = obs.run(t, u, y, hold=hold, state0=obs.init(theta_hat0=spec.estimator.theta_hat0))
+    expected = np.column_stack([res.t, res.x_hat, res.phi_hat, res.theta_hat,
+                                res.x_hat_refined])
+    np.testing.assert_array_equal(table, expected)
+
+
+def _error(capsys) -> str:
+    err = capsys.readouterr().err
+    assert "Traceback" not in err
+    return err
+
+
+def test_bad_model_file_exits_2_with_the_message(tmp_path, capsys):
+    bad = tmp_path / "bad.toml"
+    bad.write_text(LUGRE.read_text().replace('law = "intermittent"', 'law = "kalman"'))
+    assert main(["analyze", str(bad)]) == 2
+    err = _error(capsys)
+    assert err.startswith("thetahat: error: model file")
+    assert "[estimator] law: unknown law 'kalman'" in err
+
+
+def test_code_in_the_perturbation_is_refused(tmp_path, capsys):
+    bad = tmp_path / "evil.toml"
+    text = LUGRE.read_text()
+    start = text.index('g = "')
+    end = text.index("\n", start)
+    bad.write_text(text[:start] + 'g = "__import__(\'os\').system(\'true\')"' + text[end:])
+    assert main(["estimate", str(bad), "whatever.csv"]) == 2
+    err = _error(capsys)
+    assert "[perturbation] g" in err and "__import__" in err and "not allowed" in err
+
+
+def test_bad_data_file_exits_2_with_the_line(tmp_path, capsys):
+    data = tmp_path / "data.csv"
+    data.write_text("t,u,y\n0,0,0\n0.001,0,oops\n")
+    assert main(["estimate", str(LUGRE), str(data), "-o", str(tmp_path / "e.csv")]) == 2
+    err = _error(capsys)
+    assert "line 3, column 'y': 'oops' is not a number" in err
+    assert not (tmp_path / "e.csv").exists()
+
+
+def test_missing_data_column_exits_2(tmp_path, capsys):
+    data = tmp_path / "data.csv"
+    data.write_text("t,y\n0,0\n")
+    assert main(["estimate", str(LUGRE), str(data)]) == 2
+    assert "missing column 'u' or 'u1'" in _error(capsys)
+
+
+def test_usage_errors_exit_2(capsys):
+    assert main(["estimate", str(LUGRE)]) == 2                 # DATA missing (argparse)
+    assert "the following arguments are required: data" in capsys.readouterr().err
+    assert main(["sweep", "--eps", "0.5", "0.3"]) == 2         # Sec. VII: start at 1
+    assert "start at 1 and decrease" in _error(capsys)
+
+
+def test_sweep_writes_table_json_and_figure(tmp_path, capsys):
+    out = tmp_path / "out"
+    assert main(["sweep", "--eps", "1", "0.5", "--seeds", "1", "--t-end", "1",
+                 "--out", str(out)]) == 0
+    printed = capsys.readouterr().out
+    assert "omega RMSE" in printed and "1/1" in printed
+    summary = json.loads((out / "sweep.json").read_text())
+    assert summary["eps"] == [1.0, 0.5] and summary["first_unstable"] is None
+    assert (out / "sweep.png").stat().st_size > 0
+
+
+def test_demo_calls_the_lugre_report(monkeypatch, capsys):
+    calls = []
+    monkeypatch.setattr("thetahat.models.lugre_report.report",
+                        lambda **kw: calls.append(kw) or {})
+    assert main(["demo", "lugre", "--out", "somewhere", "--eps", "0.5", "--seed", "3"]) == 0
+    assert calls == [{"out": "somewhere", "eps": 0.5, "seed": 3, "show": False}]
