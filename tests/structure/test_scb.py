@@ -128,8 +128,8 @@ def test_random_systems_recover_structure():
         r_b = int(rng.integers(0, 3))
         n_b = r_b + int(rng.integers(0, 3)) if r_b else 0
         n_a = int(rng.integers(0, 6)) if trial % 10 else 10
-        if trial % 25 == 0:
-            lengths, n_b, r_b = (3, 4, 4), 5, 2
+        if trial % 25 == 0:                    # the largest case: n = 11 + 5 + 14 = 30
+            lengths, n_b, r_b, n_a = (3, 4, 4), 5, 2, 14
         ks = random_scb_system(rng, chain_lengths=lengths, n_a=n_a, n_b=n_b, r_b=r_b)
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", IllConditionedWarning)

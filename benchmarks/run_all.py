@@ -1,0 +1,75 @@
+"""Run every benchmark and write out/bench.json.
+
+Run:  .venv/bin/python benchmarks/run_all.py [--quick] [--out out/bench.json]
+
+* bench_lugre.py runs in this process (its estimators are timed side by side in one process);
+  its results are the top level of out/bench.json: one entry per estimator (``thetahat_paper``,
+  ``thetahat_best``, ``ekf``, ``ukf``; null while unavailable) with the keys ``t_5pct``,
+  ``t_1pct``, ``theta_rmse``, ``theta_bias``, ``omega_rmse``, ``eta_rmse``, ``rmse_over_crlb``,
+  ``per_step_us``, ``diverged``, plus ``crlb`` and ``throughput``
+  (``thetahat_steps_per_s``, ``solve_ivp_steps_per_s``). Non-finite values (a settling time
+  that never happened) are written as null.
+* bench_scb.py runs as a subprocess (n = 10, 50 with ``--quick``; its defaults otherwise); its
+  rows go under ``scb``.
+
+Tunings, grid scores and the per-case robustness results go to out/bench_details.json.
+``--quick`` is meant to finish in under two minutes.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import bench_lugre
+
+HERE = Path(__file__).resolve().parent
+QUICK_BUDGET_S = 120.0
+QUICK_SCB_SIZES = ("10", "50")
+
+
+def run_scb(quick: bool) -> list:
+    with tempfile.TemporaryDirectory() as tmp:
+        path = Path(tmp) / "scb.json"
+        cmd = [sys.executable, str(HERE / "bench_scb.py"), "--json", str(path)]
+        if quick:
+            cmd += ["--sizes", *QUICK_SCB_SIZES]
+        proc = subprocess.run(cmd, capture_output=True, text=True)
+        print(proc.stdout, end="")
+        if proc.returncode != 0:
+            print(f"bench_scb.py failed (exit {proc.returncode}):\n{proc.stderr}")
+            return []
+        return json.loads(path.read_text())
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--quick", action="store_true")
+    ap.add_argument("--out", type=Path, default=Path("out/bench.json"))
+    args = ap.parse_args()
+    t0 = time.perf_counter()
+    print("=== bench_lugre.py" + (" --quick" if args.quick else ""))
+    lugre = bench_lugre.main(["--quick"] if args.quick else [])
+    print("\n=== bench_scb.py" + (f" --sizes {' '.join(QUICK_SCB_SIZES)}" if args.quick else ""))
+    scb = run_scb(args.quick)
+    payload = dict(lugre["payload"])
+    payload["scb"] = scb
+    details = dict(lugre["details"])
+    wall = time.perf_counter() - t0
+    details["run_all_wall_s"] = wall
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    args.out.write_text(json.dumps(bench_lugre.jsonable(payload), indent=2))
+    args.out.with_name(args.out.stem + "_details.json").write_text(
+        json.dumps(bench_lugre.jsonable(details), indent=2))
+    print(f"\nwrote {args.out} and {args.out.stem}_details.json; total {wall:.0f} s")
+    if args.quick and wall > QUICK_BUDGET_S:
+        print(f"warning: --quick took {wall:.0f} s, over its {QUICK_BUDGET_S:.0f} s budget")
+
+
+if __name__ == "__main__":
+    main()
