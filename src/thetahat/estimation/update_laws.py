@@ -263,6 +263,8 @@ class _SympyThetaStar:
     solution: tuple[sp.Expr, ...]
     m: int
     fn: Callable[..., Any] = field(repr=False)
+    #: The real dummies the solution is written in, in call order: col(u, y), x, then φ.
+    arguments: tuple[sp.Symbol, ...] = field(default=(), repr=False)
 
     def __call__(self, v: ArrayLike, x: ArrayLike, phi: ArrayLike) -> FloatArray:
         v_, x_, ph = (np.asarray(a, dtype=np.float64) for a in (v, x, phi))
@@ -300,7 +302,7 @@ def _solve_theta_star(perturbation: Perturbation, parameter_set: ParameterSet,
         raise UpdateLawError(f"SymPy cannot solve φ = g(v, x, θ) for θ ({exc}); pass "
                              f"theta_star explicitly.") from exc
     args = [reps[s] for s in (*u, *y, *x)] + phi
-    cands, underdetermined = [], False
+    branches, underdetermined = [], False
     for sol in sols:
         if not set(unknowns) <= set(sol) or any(sol[t].free_symbols & set(unknowns)
                                                 for t in unknowns):
@@ -309,27 +311,37 @@ def _solve_theta_star(perturbation: Perturbation, parameter_set: ParameterSet,
         exprs = tuple(sol[t] for t in unknowns)
         if any(e.has(sp.zoo, sp.nan) for e in exprs):
             continue
-        try:
-            fn = sp.lambdify(args, list(exprs), "numpy")
-        except Exception:  # noqa: BLE001 - SymPy raises many types for unprintable branches
-            continue
-        cands.append(_SympyThetaStar(exprs, m, fn))
+        # SymPy's raw form can overflow where θ* is harmless (LuGre: it multiplies by
+        # exp(ω²/ω0²) and divides by it again, inf·0 = NaN for |ω| > 0.27); the expanded form
+        # cancels such factors. Both forms are checked below and the better one is kept.
+        forms = []
+        for form in dict.fromkeys((exprs, tuple(sp.expand(e) for e in exprs))):
+            try:
+                fn = sp.lambdify(args, list(form), "numpy")
+            except Exception:  # noqa: BLE001 - SymPy raises many types for unprintable forms
+                continue
+            forms.append(_SympyThetaStar(form, m, fn, tuple(args)))
+        branches.append(forms)
     rng = np.random.default_rng(seed)
     theta_s = parameter_set.sample(rng, SOLVE_SAMPLES)
     v_s = rng.standard_normal((SOLVE_SAMPLES, m + r))
     x_s = rng.standard_normal((SOLVE_SAMPLES, n))
     phi_s = np.asarray(perturbation.g(v_s, x_s, theta_s), dtype=np.float64)
     good = []
-    for cand in cands:
-        try:
-            est = cand(v_s, x_s, phi_s)
-        except Exception:  # noqa: BLE001 - a branch that numpy cannot evaluate is no inverse
-            continue
-        ok = np.all(np.isfinite(est), axis=-1)
-        err = np.max(np.abs(est - theta_s), axis=-1)
-        if (np.sum(ok) >= SOLVE_SAMPLES // 2
-                and np.all(err[ok] <= SOLVE_RTOL * (1 + np.max(np.abs(theta_s[ok]), axis=-1)))):
-            good.append(cand)
+    for forms in branches:
+        best, best_ok = None, SOLVE_SAMPLES // 2 - 1
+        for cand in forms:
+            try:
+                est = cand(v_s, x_s, phi_s)
+            except Exception:  # noqa: BLE001 - a form that numpy cannot evaluate is no inverse
+                continue
+            ok = np.all(np.isfinite(est), axis=-1)
+            err = np.max(np.abs(est - theta_s), axis=-1)
+            if (np.sum(ok) > best_ok and np.all(
+                    err[ok] <= SOLVE_RTOL * (1 + np.max(np.abs(theta_s[ok]), axis=-1)))):
+                best, best_ok = cand, int(np.sum(ok))
+        if best is not None:
+            good.append(best)
     if not good and underdetermined:
         raise UpdateLawError("SymPy's solution of φ = g(v, x, θ) leaves some parameters free: "
                              "one value of φ does not determine θ (e.g. p > k). Use "
