@@ -18,15 +18,8 @@ from thetahat.estimation.observer import ModifiedHighGainObserver
 from thetahat.estimation.redesign import SecondObserver
 from thetahat.estimation.update_laws import ConstantLaw, UpdateLaw
 from thetahat.model.paramset import Box
-from thetahat.model.perturbation import Perturbation
 from thetahat.model.system import PerturbedLinearSystem
-
-J, SIGMA0, SIGMA1, ALPHA0, ALPHA1, ALPHA2, OMEGA0 = 0.0023, 260.0, 0.6, 0.28, 0.05, 0.176, 0.01
-A_MOTOR = np.array([[-(ALPHA2 + SIGMA1) / J, -SIGMA0 / J], [1.0, 0.0]])
-B_MOTOR = np.array([[1.0 / J], [0.0]])
-E_MOTOR = np.array([[SIGMA1 / J], [-1.0]])
-C_MOTOR = np.array([[1.0, 0.0]])
-THETA_SET = Box([0.05], [1.0])
+from motor_model import (ALPHA0, ALPHA2, A_MOTOR, B_MOTOR, C_MOTOR, E_MOTOR, J, SIGMA0, THETA_SET, LuGreG, ZeroG)
 
 #: Exact-discretisation comparisons: rounding amplified by ‖e^{hM}‖ over a few hundred steps.
 EXACT_RTOL = 1e-9
@@ -38,64 +31,6 @@ REFINED_OMEGA_BOUND = 2e-2
 #: Standalone step (ZOH, dt = 1e-4) vs. Radau of rhs driven by smooth signals: the O(dt) hold
 #: error of a y that moves 2 rad/s at 1.5 Hz; measured ≈ 1e-3 rad/s.
 STEP_VS_IVP_OMEGA = 3e-3
-
-
-class LuGreG(Perturbation):
-    """g(v, x, θ) = σ0 η |y| / (θ + α1 exp(−(ω/ω0)²)), v = (u, y), x = (ω, η)."""
-
-    dims = (2, 1, 1, 1, 1)
-
-    @staticmethod
-    def _zeta(x, th):
-        bump = ALPHA1 * np.exp(-(x[..., 0] / OMEGA0) ** 2)
-        return th[..., 0] + bump, bump * (-2.0 * x[..., 0] / OMEGA0**2)
-
-    @staticmethod
-    def _shape(v, x, th, tail):
-        return np.broadcast_shapes(v.shape[:-1], x.shape[:-1], th.shape[:-1]) + tail
-
-    def g(self, v, x, th):
-        return (SIGMA0 * x[..., 1] * np.abs(v[..., 1]) / self._zeta(x, th)[0])[..., None]
-
-    def dg_dv(self, v, x, th):
-        out = np.zeros(self._shape(v, x, th, (1, 2)))
-        out[..., 0, 1] = SIGMA0 * x[..., 1] * np.sign(v[..., 1]) / self._zeta(x, th)[0]
-        return out
-
-    def dg_dx(self, v, x, th):
-        zeta, dzeta = self._zeta(x, th)
-        out = np.zeros(self._shape(v, x, th, (1, 2)))
-        out[..., 0, 0] = -SIGMA0 * x[..., 1] * np.abs(v[..., 1]) * dzeta / zeta**2
-        out[..., 0, 1] = SIGMA0 * np.abs(v[..., 1]) / zeta
-        return out
-
-    def dg_dtheta(self, v, x, th):
-        zeta, _ = self._zeta(x, th)
-        return (-SIGMA0 * x[..., 1] * np.abs(v[..., 1]) / zeta**2)[..., None, None]
-
-
-class ZeroG(Perturbation):
-    def __init__(self, dims):
-        self._dims = dims
-
-    @property
-    def dims(self):
-        return self._dims
-
-    def _z(self, v, x, th, tail):
-        return np.zeros(np.broadcast_shapes(v.shape[:-1], x.shape[:-1], th.shape[:-1]) + tail)
-
-    def g(self, v, x, th):
-        return self._z(v, x, th, (self._dims[4],))
-
-    def dg_dv(self, v, x, th):
-        return self._z(v, x, th, (self._dims[4], self._dims[1] + self._dims[2]))
-
-    def dg_dx(self, v, x, th):
-        return self._z(v, x, th, (self._dims[4], self._dims[0]))
-
-    def dg_dtheta(self, v, x, th):
-        return self._z(v, x, th, (self._dims[4], self._dims[3]))
 
 
 class DriftLaw(UpdateLaw):
