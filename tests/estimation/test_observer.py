@@ -25,7 +25,8 @@ from thetahat.estimation.update_laws import ConstantLaw, UpdateLaw
 from thetahat.model.paramset import Box
 from thetahat.model.perturbation import Perturbation
 from thetahat.model.system import PerturbedLinearSystem
-from motor_model import (ALPHA0, ALPHA2, A_MOTOR, B_MOTOR, C_MOTOR, E_MOTOR, J, SIGMA0, THETA_SET, LuGreG, ZeroG)
+from motor_model import (ALPHA0, ALPHA2, A_MOTOR, B_MOTOR, C_MOTOR, E_MOTOR, J, SIGMA0,
+                         THETA_SET, LuGreG, ZeroG)
 
 # --------------------------------------------------------------------------- the DC motor
 

@@ -19,7 +19,8 @@ from thetahat.estimation.redesign import SecondObserver
 from thetahat.estimation.update_laws import ConstantLaw, UpdateLaw
 from thetahat.model.paramset import Box
 from thetahat.model.system import PerturbedLinearSystem
-from motor_model import (ALPHA0, ALPHA2, A_MOTOR, B_MOTOR, C_MOTOR, E_MOTOR, J, SIGMA0, THETA_SET, LuGreG, ZeroG)
+from motor_model import (ALPHA0, ALPHA2, A_MOTOR, B_MOTOR, C_MOTOR, E_MOTOR, J, SIGMA0,
+                         THETA_SET, LuGreG, ZeroG)
 
 #: Exact-discretisation comparisons: rounding amplified by ‖e^{hM}‖ over a few hundred steps.
 EXACT_RTOL = 1e-9

@@ -606,3 +606,41 @@ def designs(eps: float = 1.0, *, eps2: float = 1.0, params: LuGreParameters = Lu
     d1 = modified_high_gain(ds.A, ds.E, ds.C, eps, chain_poles or [[-1.0, -2.0, -3.0]])
     d2 = high_gain(ds.A, ds.E, ds.C, eps2, second_poles or [[-1.0, -2.0]])
     return d1, d2
+
+
+def theta_star_expr(params: LuGreParameters = LuGreParameters()) -> sp.Expr:
+    """θ*(v, x̂, φ̂) of :class:`LuGreThetaStar` as a SymPy expression (Sec. VIII A).
+
+    σ0 η |y| / φ − α1 exp(−(ω/ω0)²) in the symbols of :func:`perturbation` (``y``, ``omega``,
+    ``eta``) and ``phi = sympy.Symbol("phi", real=True)``: the form that
+    :func:`~thetahat.estimation.compiled.compile_observer` needs to compile :func:`observer`.
+
+    Parameters
+    ----------
+    params : LuGreParameters, optional
+        Physical parameters; default: the paper's.
+
+    Returns
+    -------
+    sympy.Expr
+
+    Examples
+    --------
+    >>> import sympy as sp
+    >>> from thetahat.models.lugre import theta_star_expr, perturbation
+    >>> ts = theta_star_expr()
+    >>> sorted(str(s) for s in ts.free_symbols)
+    ['eta', 'omega', 'phi', 'y']
+    >>> g = perturbation()
+    >>> y, (omega, eta) = g.y[0], g.x
+    >>> vals = {y: 2.0, omega: 2.0, eta: 1e-3}
+    >>> phi = g.expr[0].subs({**vals, g.theta[0]: 0.28})
+    >>> round(float(ts.subs({**vals, sp.Symbol("phi", real=True): phi})), 12)
+    0.28
+    """
+    g = perturbation(params)
+    (y,) = g.y
+    omega, eta = g.x
+    phi = sp.Symbol("phi", real=True)
+    return (sp.Float(params.sigma0) * eta * sp.Abs(y) / phi
+            - sp.Float(params.alpha1) * sp.exp(-(omega / sp.Float(params.omega0)) ** 2))
