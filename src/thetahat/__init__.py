@@ -6,8 +6,10 @@ The curated public API; everything else lives in the submodules.
 
 from .design.design_system import DesignSystemReport, apply_design
 from .design.gains import GainDesign, extended_system, high_gain, modified_high_gain
+from .estimation.batch_run import BatchObserverResult, run_batch
 from .estimation.checks import (ExcitationReport, MonotonicityReport, check_monotonicity,
                                 excitation_report)
+from .estimation.compiled import CompiledObserver, compile_observer
 from .estimation.observer import ModifiedHighGainObserver, ObserverEstimate, ObserverResult
 from .estimation.projection import Projection, Saturation, saturate
 from .estimation.redesign import SecondObserver
@@ -38,6 +40,7 @@ from .structure.zeros import (invariant_zeros, is_left_invertible, is_minimum_ph
 __version__ = "0.1.0"
 
 __all__ = [
+    "BatchObserverResult", "CompiledObserver", "compile_observer", "run_batch",
     "AlgebraicInversion", "Ball", "Box", "ConstantLaw", "ConvexSet", "Ellipsoid",
     "ExcitationReport", "GradientInversion", "IntermittentInversion", "ModifiedHighGainObserver",
     "MonotonicityReport", "ObserverEstimate", "ObserverResult", "ParameterSet", "Projection",

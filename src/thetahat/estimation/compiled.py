@@ -1,0 +1,1074 @@
+"""A compiled fast path for the observer: one numba kernel per symbolic model (optional extra).
+
+:func:`compile_observer` turns a :class:`~thetahat.estimation.observer.ModifiedHighGainObserver`
+whose parts are all symbolic or structured into a :class:`CompiledObserver` whose ``step`` and
+``run`` execute the observer's step (eqs. (3), (8) and the second observer of Sec. VI) as
+machine code. Supported:
+
+* g: a :class:`~thetahat.model.perturbation.SymbolicPerturbation` (g, ∂g/∂x, ∂g/∂θ and ∂g/∂v
+  are printed to scalar Python code with SymPy's common-subexpression elimination);
+* Θ: a :class:`~thetahat.model.paramset.Box`, with a diagonal Γ (the Γ⁻¹-weighted projection
+  onto a box is then a clip);
+* update laws: :class:`~thetahat.estimation.update_laws.ConstantLaw`,
+  :class:`~thetahat.estimation.update_laws.AlgebraicInversion` and
+  :class:`~thetahat.estimation.update_laws.IntermittentInversion` (with the weight of
+  :func:`~thetahat.estimation.update_laws.smooth_ramp`) whose θ* is symbolic — derived by
+  ``from_perturbation``, or a SymPy expression passed as ``theta_star`` —, and
+  :class:`~thetahat.estimation.update_laws.GradientInversion` with the default M = (∂g/∂θ)ᵀ;
+  none of them with a ``saturation``;
+* an attached :class:`~thetahat.estimation.redesign.SecondObserver`;
+* a fixed step dt and the zero-order hold (Φ₁ is computed once).
+
+Everything else raises :class:`NotImplementedError` naming the part; use the Python observer.
+
+The generated source is written to a cache directory (``$THETAHAT_CACHE_DIR``, default
+``~/.cache/thetahat``, else a temporary directory) under a name that hashes its content, and
+compiled with ``numba.njit(cache=True)``: the first compilation of a model costs a few
+seconds, later processes load the machine code from disk. The gains, ε, Γ, Θ, the ramp and dt
+are data, not code: observers that differ only in them share one kernel.
+
+numba is the optional extra ``speed``; without it this module imports, and
+:func:`compile_observer` raises :class:`ImportError`.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import importlib.util
+import math
+import os
+import re
+import sys
+import tempfile
+import warnings
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from types import ModuleType
+from typing import Any, NoReturn
+
+import numpy as np
+import sympy as sp
+from numpy.typing import NDArray
+from sympy.printing.pycode import PythonCodePrinter
+
+from .._validate import as_vector, check_finite, positive_scalar
+from ..errors import DimensionError, NonFiniteError, ThetahatWarning, UpdateLawError
+from ..model.paramset import Box
+from ..model.perturbation import SymbolicPerturbation, _numpy_ready
+from .discretize import IMPLICITNESS
+from .observer import ModifiedHighGainObserver, ObserverResult
+from .update_laws import (FAR, AlgebraicInversion, ConstantLaw, GradientInversion,
+                          IntermittentInversion, _SmoothRamp, _SympyThetaStar)
+
+__all__ = ["CompiledObserver", "compile_observer"]
+
+FloatArray = NDArray[np.float64]
+
+#: θ* given as an expression must agree with the law's own θ* to this relative accuracy at
+#: the check points (both are formulas for the same function; this only absorbs rounding).
+THETA_STAR_RTOL = 1e-8
+#: Number of random points at which a user's θ* expression is compared with the law's θ*.
+THETA_STAR_SAMPLES = 64
+#: The samples given to ``CompiledObserver.run`` must be spaced by dt to this relative accuracy.
+#: A uniform grid ``np.arange(N) * dt`` has spacings off by up to ~1e-12 relative (rounding);
+#: the kernel uses Φ₁(dt) for every step, and each step's own spacing in the update law and
+#: the ∂g/∂θ term, as the Python ``run`` does. 1e-9 changes Φ₁ by far less than the 1e-9
+#: agreement promised between the two paths.
+DT_RTOL = 1e-9
+
+_LAW_CODES = {ConstantLaw: 0, AlgebraicInversion: 1, IntermittentInversion: 2,
+              GradientInversion: 3}
+_SUPPORTED = ("supported: a SymbolicPerturbation g, a Box Θ with diagonal Γ, ConstantLaw, "
+              "AlgebraicInversion / IntermittentInversion (smooth_ramp weight) with a symbolic "
+              "θ*, GradientInversion with the default M, no saturation, an optional "
+              "SecondObserver, fixed dt and zero-order hold")
+_modules: dict[str, ModuleType] = {}
+
+
+def _require_numba() -> Any:
+    try:
+        import numba
+    except ImportError as exc:  # pragma: no cover - exercised only without numba
+        raise ImportError("compile_observer needs numba, the optional extra 'speed': "
+                          "pip install 'thetahat[speed]'. Without it, use the observer's own "
+                          "run/step, or thetahat.estimation.batch_run.run_batch for many "
+                          "runs.") from exc
+    return numba
+
+
+# --------------------------------------------------------------------------- code generation
+class _Printer(PythonCodePrinter):
+    """Python printer for numba: ``math`` functions, and no partially printed code."""
+
+    def __init__(self) -> None:
+        super().__init__({"fully_qualified_modules": True, "strict": True})
+
+
+def _scalar_function(name: str, params: str, inputs: Sequence[tuple[str, Sequence[sp.Symbol]]],
+                     outputs: Sequence[tuple[str, sp.Matrix]]) -> str:
+    """Source of ``def name(params)`` computing the entries of ``outputs`` from ``inputs``.
+
+    ``inputs`` pairs an element template such as ``"w[o_v + {}]"`` with the symbols stored
+    at its positions 0, 1, …; ``outputs`` pairs a template with a matrix whose entries are
+    written at the row-major positions. Common subexpressions are computed once.
+    """
+    subs: dict[sp.Symbol, sp.Symbol] = {}
+    lines = ["@njit(cache=True, error_model='numpy')", f"def {name}({params}):"]
+    for template, symbols in inputs:
+        for i, s in enumerate(symbols):
+            local = sp.Symbol(f"_s{len(subs)}")
+            subs[s] = local
+            lines.append(f"    {local} = {template.format(i)}")
+    flat, targets = [], []
+    for template, M in outputs:
+        for i in range(M.rows):
+            for j in range(M.cols):
+                flat.append(_numpy_ready(sp.sympify(M[i, j])).xreplace(subs))
+                targets.append(template.format(i * M.cols + j))
+    replacements, reduced = sp.cse(flat, symbols=sp.numbered_symbols("_c"))
+    printer = _Printer()
+    try:
+        for sym, e in replacements:
+            lines.append(f"    {sym} = {printer.doprint(e)}")
+        for target, e in zip(targets, reduced):
+            lines.append(f"    {target} = {printer.doprint(e)}")
+    except Exception as exc:  # SymPy's printer raises several types
+        raise NotImplementedError(f"compile_observer cannot print {name[1:]} as numba code "
+                                  f"({exc}); rewrite it with elementary functions or use the "
+                                  "Python observer.") from exc
+    lines.append("    return 0")
+    return "\n".join(lines) + "\n"
+
+
+def _model_source(pert: SymbolicPerturbation, theta_star: tuple[sp.Expr, ...] | None,
+                  ts_args: tuple[sp.Symbol, ...] | None) -> str:
+    """The model functions: g, (g, ∂g/∂x), ∂g/∂θ, ∂g/∂v and θ* as scalar code.
+
+    Each reads v from the work vector w at ``o_v``, x and θ from row ``i`` of a state array S
+    at ``o_x`` and ``o_t``, and writes its outputs into w at the given offsets.
+    """
+    n, m, r, _, _ = pert.dims
+    params = "w, S, i, o_v, o_x, o_t"
+    ins = [("w[o_v + {}]", (*pert.u, *pert.y)), ("S[i, o_x + {}]", pert.x),
+           ("S[i, o_t + {}]", pert.theta)]
+    g = sp.Matrix(pert.expr)
+    parts = [
+        _scalar_function("_g", params + ", o_g", ins, [("w[o_g + {}]", g)]),
+        _scalar_function("_g_dx", params + ", o_g, o_gx", ins,
+                         [("w[o_g + {}]", g), ("w[o_gx + {}]", pert.jacobian("x"))]),
+        _scalar_function("_dg_dtheta", params + ", o_gt", ins,
+                         [("w[o_gt + {}]", pert.jacobian("theta"))]),
+        _scalar_function("_dg_dv", params + ", o_gv", ins,
+                         [("w[o_gv + {}]", pert.jacobian("v"))]),
+    ]
+    ts_params = "w, S, i, o_v, o_x, o_phi, o_out"
+    if theta_star is None:
+        parts.append("@njit(cache=True, error_model='numpy')\n"
+                     f"def _theta_star({ts_params}):\n"
+                     "    for j in range(NP):\n        w[o_out + j] = math.nan\n"
+                     "    return 0\n")
+    else:
+        ts_args = ts_args or ()
+        ins = [("w[o_v + {}]", ts_args[:m + r]), ("S[i, o_x + {}]", ts_args[m + r:m + r + n]),
+               ("w[o_phi + {}]", ts_args[m + r + n:])]
+        parts.append(_scalar_function("_theta_star", ts_params, ins,
+                                      [("w[o_out + {}]", sp.Matrix(theta_star))]))
+    return "\n\n".join(parts)
+
+
+Layout = dict[str, tuple[int, tuple[int, ...]]]
+
+
+def _layout(blocks: Sequence[tuple[str, tuple[int, ...]]]) -> tuple[Layout, int]:
+    """Offsets of named blocks packed one after the other into a flat vector."""
+    out: Layout = {}
+    offset = 0
+    for name, shape in blocks:
+        out[name] = (offset, shape)
+        offset += int(np.prod(shape, dtype=np.int64))
+    return out, offset
+
+
+def _layouts(n: int, m: int, r: int, k: int, p: int) -> tuple[Layout, int, Layout, int]:
+    """Layouts of the constants vector P and of the work vector w."""
+    nz, nv = n + k, m + r
+    consts, P_size = _layout([
+        ("L", (nz, nz)), ("Bv", (nz, nv)), ("KxC", (n, n)), ("Kx", (n, r)), ("C", (r, n)),
+        ("E", (n, k)), ("Phi1", (nz, nz)), ("A", (n, n)), ("Bm", (n, m)), ("K2", (n, r)),
+        ("Phi12", (n, n)), ("lower", (p,)), ("upper", (p,)), ("Gam", (p, p)), ("ramp", (2,)),
+        ("flags", (4,))])
+    work, W_size = _layout([
+        ("v", (nv,)), ("g", (k,)), ("Gx", (k, n)), ("Gth", (k, p)), ("Gv", (k, nv)),
+        ("F", (nz,)), ("Nm", (nz, nz)), ("M", (nz, nz)), ("rhs", (nz,)), ("phi", (k,)),
+        ("thn", (p,)), ("dth", (p,)), ("innov", (r,)), ("kin", (n,)), ("ts", (p,)),
+        ("resid", (k,)), ("GM", (p, k)), ("fvec", (p,)), ("Kmat", (p, p)),
+        ("Zm", (p + 1, p + 1)), ("Ex", (p + 1, p + 1)), ("T1", (p + 1, p + 1)),
+        ("T2", (p + 1, p + 1)), ("v2", (nv,)), ("yhat", (r,)), ("g2", (k,)),
+        ("Gx2", (k, n)), ("Gv2", (k, nv)), ("F2", (n,)), ("N2", (n, n)), ("M2", (n, n)),
+        ("rhs2", (n,)), ("inn2", (r,))])
+    return consts, P_size, work, W_size
+
+
+def _expand(template: str, layouts: Sequence[tuple[str, str, Layout]],
+            state: dict[str, str]) -> str:
+    """Rewrite ``Name[i]`` / ``Name[i, j]`` of the named blocks into flat indexing.
+
+    A block of the constants (``"P"``) or work (``"w"``) vector becomes
+    ``P[P_Name + (i) * cols + (j)]``; a part of the state (``state`` maps its name to an offset
+    expression) becomes ``Sin[iin, offset + (i)]``. Numba then indexes one flat array instead
+    of creating array views, which cost reference counting on every sample.
+    """
+    rules: dict[str, Any] = {}
+    for array, prefix, layout in layouts:
+        for name, (_, shape) in layout.items():
+            rules[name] = (array, f"{prefix}_{name}", shape)
+    names = sorted({*rules, *state}, key=len, reverse=True)
+    pattern = re.compile(r"(?<![\w.])(" + "|".join(map(re.escape, names)) + r")\[")
+    out, pos = [], 0
+    for match in pattern.finditer(template):
+        if match.start() < pos:
+            continue
+        depth, end = 1, match.end()
+        while depth:
+            depth += {"[": 1, "]": -1}.get(template[end], 0)
+            end += 1
+        index = [part.strip() for part in _split_index(template[match.end():end - 1])]
+        name = match.group(1)
+        if name in state:
+            text = f"Sin[iin, {state[name]} + ({index[0]})]"
+        else:
+            array, offset, shape = rules[name]
+            flat = (f"({index[0]})" if len(shape) == 1
+                    else f"({index[0]}) * {shape[1]} + ({index[1]})")
+            text = f"{array}[{offset} + {flat}]"
+        out.append(template[pos:match.start()] + text)
+        pos = end
+    out.append(template[pos:])
+    return "".join(out)
+
+
+def _split_index(text: str) -> list[str]:
+    """Split an index expression at its top-level commas."""
+    parts, depth, start = [], 0, 0
+    for i, ch in enumerate(text):
+        depth += {"[": 1, "(": 1, "]": -1, ")": -1}.get(ch, 0)
+        if ch == "," and depth == 0:
+            parts.append(text[start:i])
+            start = i + 1
+    parts.append(text[start:])
+    return parts
+
+
+#: The dimension-generic part of every kernel, in a notation that :func:`_expand` rewrites:
+#: ``L[i, j]``, ``g[a]``, … name blocks of the constants vector P and the work vector w
+#: (see :func:`_layouts`), and ``x[j]``, ``z[a]``, ``th[i]``, ``x2[j]`` the parts of the state
+#: in row ``iin`` of ``Sin``. The upper-case names are module constants written above it
+#: (dimensions and offsets); ``flags`` holds the law code (0 ConstantLaw, 1 AlgebraicInversion,
+#: 2 IntermittentInversion, 3 GradientInversion), on_invalid == 'freeze', whether a second
+#: observer is attached and its g_on_estimates — data, so that one kernel serves them all;
+#: ``_g``, ``_g_dx``, ``_dg_dtheta``, ``_dg_dv`` and ``_theta_star`` are the generated model
+#: functions.
+_CORE = '''
+
+@njit(cache=True, error_model='numpy')
+def _solve(q, w, o_M, o_b):
+    # Gaussian elimination with partial pivoting of the q×q matrix stored row-major at
+    # w[o_M:]; the right-hand side at w[o_b:] is overwritten by the solution
+    for c in range(q):
+        piv = c
+        best = abs(w[o_M + c * q + c])
+        for i in range(c + 1, q):
+            if abs(w[o_M + i * q + c]) > best:
+                best = abs(w[o_M + i * q + c])
+                piv = i
+        if piv != c:
+            for j in range(q):
+                tmp = w[o_M + c * q + j]
+                w[o_M + c * q + j] = w[o_M + piv * q + j]
+                w[o_M + piv * q + j] = tmp
+            tmp = w[o_b + c]
+            w[o_b + c] = w[o_b + piv]
+            w[o_b + piv] = tmp
+        for i in range(c + 1, q):
+            f = w[o_M + i * q + c] / w[o_M + c * q + c]
+            for j in range(c + 1, q):
+                w[o_M + i * q + j] -= f * w[o_M + c * q + j]
+            w[o_b + i] -= f * w[o_b + c]
+    for c in range(q - 1, -1, -1):
+        acc = w[o_b + c]
+        for j in range(c + 1, q):
+            acc -= w[o_M + c * q + j] * w[o_b + j]
+        w[o_b + c] = acc / w[o_M + c * q + c]
+
+
+@njit(cache=True, error_model='numpy')
+def _implicit_step(q, P, o_Phi, w, o_F, o_N, o_M, o_r, Sin, iin, Sout, iout, o_s):
+    # discretize.linearly_implicit_exponential_step on the q states at o_s:
+    # s+ = s + (I - IMPLICITNESS Phi N)^-1 Phi F
+    for i in range(q):
+        acc = 0.0
+        for j in range(q):
+            acc += P[o_Phi + i * q + j] * w[o_F + j]
+        w[o_r + i] = acc
+        for j in range(q):
+            acc = 0.0
+            for l in range(q):
+                acc += P[o_Phi + i * q + l] * w[o_N + l * q + j]
+            w[o_M + i * q + j] = acc * -IMPLICITNESS
+        w[o_M + i * q + i] += 1.0
+    _solve(q, w, o_M, o_r)
+    for i in range(q):
+        Sout[iout, o_s + i] = Sin[iin, o_s + i] + w[o_r + i]
+
+
+@njit(cache=True, error_model='numpy')
+def _expm(q, w, o_Z, o_E, o_T, o_U):
+    # exp(Z) into E: Taylor series of degree 20 after scaling ||Z||_1 below 1/2, then squaring
+    nrm = 0.0
+    for j in range(q):
+        acc = 0.0
+        for i in range(q):
+            acc += abs(w[o_Z + i * q + j])
+        nrm = max(nrm, acc)
+    squarings = 0
+    scale = 1.0
+    while nrm * scale > 0.5 and squarings < 1100:
+        scale *= 0.5
+        squarings += 1
+    for i in range(q):
+        for j in range(q):
+            w[o_T + i * q + j] = 1.0 if i == j else 0.0
+            w[o_E + i * q + j] = w[o_T + i * q + j]
+    for deg in range(1, 21):
+        for i in range(q):
+            for j in range(q):
+                acc = 0.0
+                for l in range(q):
+                    acc += w[o_T + i * q + l] * w[o_Z + l * q + j]
+                w[o_U + i * q + j] = acc * scale / deg
+        for i in range(q * q):
+            w[o_T + i] = w[o_U + i]
+            w[o_E + i] += w[o_U + i]
+    for _ in range(squarings):
+        for i in range(q):
+            for j in range(q):
+                acc = 0.0
+                for l in range(q):
+                    acc += w[o_E + i * q + l] * w[o_E + l * q + j]
+                w[o_U + i * q + j] = acc
+        for i in range(q * q):
+            w[o_E + i] = w[o_U + i]
+
+
+@njit(cache=True, error_model='numpy')
+def _into_box(c, fallback, lo, hi):
+    # update_laws._finite_candidate followed by the projection onto the box (a clip)
+    if c != c:
+        c = fallback
+    c = min(max(c, -FAR), FAR)
+    return min(max(c, lo), hi)
+
+
+@njit(cache=True, error_model='numpy')
+def _law_step(Sin, iin, dt, P, w):
+    # θ̂ after the step into thn; reads v, φ̂, g (and ∂g/∂θ for law 3) written by _advance
+    law = int(flags[0])
+    if law == 0:
+        for i in range(NP):
+            thn[i] = min(max(th[i], lower[i]), upper[i])
+        return 0
+    if law == 3:
+        for a in range(NK):
+            resid[a] = phi[a] - g[a]
+        for a in range(NP):
+            for b in range(NK):
+                acc = 0.0
+                for c in range(NP):
+                    acc += Gam[a, c] * Gth[b, c]
+                GM[a, b] = acc
+        for a in range(NP):
+            acc = 0.0
+            for b in range(NK):
+                acc += GM[a, b] * resid[b]
+            fvec[a] = acc
+            for c in range(NP):
+                acc = 0.0
+                for b in range(NK):
+                    acc += GM[a, b] * Gth[b, c]
+                Kmat[a, c] = acc
+        ok = True
+        for a in range(NP + 1):
+            for c in range(NP + 1):
+                Zm[a, c] = 0.0
+        for a in range(NP):
+            for c in range(NP):
+                Zm[a, c] = -dt * Kmat[a, c]
+                ok = ok and math.isfinite(Zm[a, c])
+            Zm[a, NP] = dt * fvec[a]
+            ok = ok and math.isfinite(Zm[a, NP])
+        if not ok:
+            for a in range(NP + 1):
+                for c in range(NP + 1):
+                    Zm[a, c] = 0.0
+        _expm(NP + 1, w, W_Zm, W_Ex, W_T1, W_T2)
+        for a in range(NP):
+            ok = ok and math.isfinite(Ex[a, NP])
+        for a in range(NP):
+            if ok:
+                delta = Ex[a, NP]
+            elif math.isfinite(fvec[a]):
+                delta = dt * fvec[a]
+            elif fvec[a] > 0:
+                delta = FAR
+            elif fvec[a] < 0:
+                delta = -FAR
+            else:
+                delta = 0.0
+            thn[a] = _into_box(th[a] + delta, th[a], lower[a], upper[a])
+        return 0
+    lw = 1.0
+    if law == 2:
+        big = 0.0
+        for a in range(NK):
+            big = max(big, abs(phi[a]))
+        safe = big if big > 0 else 1.0
+        acc = 0.0
+        for a in range(NK):
+            acc += (phi[a] / safe) ** 2
+        tt = (big * math.sqrt(acc) - ramp[0]) / (ramp[1] - ramp[0])
+        tt = min(max(tt, 0.0), 1.0)
+        lw = min(max(tt * tt * (3.0 - 2.0 * tt), 0.0), 1.0)
+    _theta_star(w, Sin, iin, W_v, 0, W_phi, W_ts)
+    if lw > 0:
+        for i in range(NP):
+            if not math.isfinite(ts[i]):
+                if flags[1] == 0.0:
+                    return 2
+                lw = 0.0
+    for i in range(NP):
+        target = ts[i] if lw > 0 else th[i]
+        decay = math.exp(-lw * dt * Gam[i, i])
+        thn[i] = _into_box(target - decay * (target - th[i]), th[i], lower[i], upper[i])
+    return 0
+
+
+@njit(cache=True, error_model='numpy')
+def _advance(Sin, iin, U, Y, iu, dt, P, w, Sout, iout):
+    # one step of observer (3), law (8) and the second observer from row iin of Sin with the
+    # samples in row iu of U and Y, into row iout of Sout; returns 0 or an error code
+    law = int(flags[0])
+    on_est = flags[3] != 0.0
+    for i in range(NU):
+        v[i] = U[iu, i]
+    for i in range(NY):
+        v[NU + i] = Y[iu, i]
+    _g_dx(w, Sin, iin, W_v, 0, NZ, W_g, W_Gx)
+    for i in range(NZ):
+        a1 = 0.0
+        for j in range(NZ):
+            a1 += L[i, j] * Sin[iin, j]
+        a2 = 0.0
+        for j in range(NV):
+            a2 += Bv[i, j] * v[j]
+        F[i] = a1 + a2
+    for i in range(NX):
+        acc = 0.0
+        for j in range(NK):
+            acc += E[i, j] * g[j]
+        F[i] += acc
+    for i in range(NY):
+        acc = 0.0
+        for j in range(NX):
+            acc += C[i, j] * x[j]
+        innov[i] = v[NU + i] - acc
+    for i in range(NX):
+        acc = 0.0
+        for j in range(NY):
+            acc += Kx[i, j] * innov[j]
+        kin[i] = acc
+    for a in range(NK):
+        acc = 0.0
+        for j in range(NX):
+            acc += Gx[a, j] * kin[j]
+        F[NX + a] -= acc
+        phi[a] = g[a] + z[a]
+    if law == 3:
+        _dg_dtheta(w, Sin, iin, W_v, 0, NZ, W_Gth)
+    status = _law_step(Sin, iin, dt, P, w)
+    if status != 0:
+        return status
+    moving = False
+    for i in range(NP):
+        dth[i] = thn[i] - th[i]
+        if dth[i] != 0.0:
+            moving = True
+    if moving:
+        if law != 3:
+            _dg_dtheta(w, Sin, iin, W_v, 0, NZ, W_Gth)
+        for a in range(NK):
+            acc = 0.0
+            for j in range(NP):
+                acc += Gth[a, j] * dth[j]
+            F[NX + a] += -acc / dt
+    for i in range(NZ):
+        for j in range(NZ):
+            Nm[i, j] = 0.0
+    for i in range(NX):
+        for j in range(NX):
+            acc = 0.0
+            for a in range(NK):
+                acc += E[i, a] * Gx[a, j]
+            Nm[i, j] = acc
+    for a in range(NK):
+        for j in range(NX):
+            acc = 0.0
+            for l in range(NX):
+                acc += Gx[a, l] * KxC[l, j]
+            Nm[NX + a, j] = acc
+    if flags[2] != 0.0:
+        # the second observer first: it reads θ̂ at the start of the step, and Sout may be Sin
+        for i in range(NY):
+            acc = 0.0
+            for j in range(NX):
+                acc += C[i, j] * x2[j]
+            yhat[i] = acc
+            inn2[i] = v[NU + i] - acc
+        for i in range(NU):
+            v2[i] = v[i]
+        for i in range(NY):
+            v2[NU + i] = yhat[i] if on_est else v[NU + i]
+        _g_dx(w, Sin, iin, W_v2, NZ + NP, NZ, W_g2, W_Gx2)
+        if on_est:
+            _dg_dv(w, Sin, iin, W_v2, NZ + NP, NZ, W_Gv2)
+            for a in range(NK):
+                for j in range(NX):
+                    acc = 0.0
+                    for i in range(NY):
+                        acc += Gv2[a, NU + i] * C[i, j]
+                    Gx2[a, j] += acc
+        for i in range(NX):
+            a1 = 0.0
+            for j in range(NX):
+                a1 += A[i, j] * x2[j]
+            a2 = 0.0
+            for j in range(NU):
+                a2 += Bm[i, j] * v[j]
+            a3 = 0.0
+            for j in range(NK):
+                a3 += E[i, j] * g2[j]
+            a4 = 0.0
+            for j in range(NY):
+                a4 += K2[i, j] * inn2[j]
+            F2[i] = ((a1 + a2) + a3) + a4
+            for j in range(NX):
+                acc = 0.0
+                for a in range(NK):
+                    acc += E[i, a] * Gx2[a, j]
+                N2[i, j] = acc
+        _implicit_step(NX, P, P_Phi12, w, W_F2, W_N2, W_M2, W_rhs2, Sin, iin, Sout, iout,
+                       NZ + NP)
+    _implicit_step(NZ, P, P_Phi1, w, W_F, W_Nm, W_M, W_rhs, Sin, iin, Sout, iout, 0)
+    for i in range(NP):
+        Sout[iout, NZ + i] = thn[i]
+    return 0
+
+
+@njit(cache=True, error_model='numpy')
+def step(s, u, y, dt, P, out):
+    w = np.zeros(W_SIZE)
+    size = s.shape[0]
+    return _advance(s.reshape((1, size)), 0, u.reshape((1, NU)), y.reshape((1, NY)), 0, dt,
+                    P, w, out.reshape((1, size)), 0)
+
+
+@njit(cache=True, error_model='numpy')
+def run(s0, U, Y, dts, P, S, PHI):
+    w = np.zeros(W_SIZE)
+    N, size = S.shape
+    for j in range(size):
+        S[0, j] = s0[j]
+    for i in range(N - 1):
+        status = _advance(S, i, U, Y, i, dts[i], P, w, S, i + 1)
+        for a in range(NK):
+            PHI[i, a] = phi[a]
+        if status != 0:
+            return status, i
+        for j in range(size):
+            if not math.isfinite(S[i + 1, j]):
+                return 1, i + 1
+    for j in range(NU):
+        v[j] = U[N - 1, j]
+    for j in range(NY):
+        v[NU + j] = Y[N - 1, j]
+    _g(w, S, N - 1, W_v, 0, NZ, W_g)
+    for a in range(NK):
+        PHI[N - 1, a] = g[a] + S[N - 1, NX + a]
+    return 0, 0
+'''
+
+
+def _kernel_source(pert: SymbolicPerturbation, theta_star: tuple[sp.Expr, ...] | None,
+                   ts_args: tuple[sp.Symbol, ...] | None) -> str:
+    """The complete source of the kernel module of one model and configuration."""
+    n, m, r, p, k = pert.dims
+    consts, P_size, work, W_size = _layouts(n, m, r, k, p)
+    header = [
+        '"""Generated by thetahat.estimation.compiled; do not edit (content-addressed)."""',
+        "import math", "import numpy as np", "from numba import njit", "",
+        f"NX, NU, NY, NK, NP = {n}, {m}, {r}, {k}, {p}",
+        "NZ, NV = NX + NK, NU + NY",
+        f"IMPLICITNESS = {IMPLICITNESS!r}", f"FAR = {FAR!r}",
+        f"P_SIZE = {P_size}", f"W_SIZE = {W_size}"]
+    header += [f"P_{name} = {off}" for name, (off, _) in consts.items()]
+    header += [f"W_{name} = {off}" for name, (off, _) in work.items()]
+    core = _expand(_CORE, [("P", "P", consts), ("w", "W", work)],
+                   {"x": "0", "z": "NX", "th": "NZ", "x2": "NZ + NP"})
+    return "\n".join(header) + "\n\n\n" + _model_source(pert, theta_star, ts_args) + core
+
+
+def _cache_dir() -> Path:
+    env = os.environ.get("THETAHAT_CACHE_DIR")
+    if env:
+        candidates = [Path(env)]
+    else:
+        xdg = os.environ.get("XDG_CACHE_HOME")
+        candidates = [Path(xdg) / "thetahat" if xdg else Path.home() / ".cache" / "thetahat"]
+    candidates.append(Path(tempfile.gettempdir()) / f"thetahat-{os.getuid()}"
+                      if hasattr(os, "getuid") else Path(tempfile.gettempdir()) / "thetahat")
+    for d in candidates:
+        try:
+            d.mkdir(parents=True, exist_ok=True)
+            if os.access(d, os.W_OK):
+                return d
+        except OSError:
+            continue
+    raise OSError("compile_observer found no writable cache directory; set THETAHAT_CACHE_DIR.")
+
+
+def _load(source: str) -> ModuleType:
+    """Import the generated module (written once under its content hash, then cached)."""
+    numba = _require_numba()
+    digest = hashlib.sha256(f"{numba.__version__}\n{source}".encode()).hexdigest()[:24]
+    name = f"thetahat_kernel_{digest}"
+    mod = _modules.get(name)
+    if mod is not None:
+        return mod
+    path = _cache_dir() / f"{name}.py"
+    if not path.exists() or path.read_text(encoding="utf-8") != source:
+        tmp = path.with_suffix(f".{os.getpid()}.tmp")
+        tmp.write_text(source, encoding="utf-8")
+        os.replace(tmp, path)
+    spec = importlib.util.spec_from_file_location(name, path)
+    assert spec is not None and spec.loader is not None
+    mod = importlib.util.module_from_spec(spec)
+    sys.modules[name] = mod
+    spec.loader.exec_module(mod)
+    _modules[name] = mod
+    return mod
+
+
+# --------------------------------------------------------------------------- support checks
+def _unsupported(what: str) -> NotImplementedError:
+    return NotImplementedError(f"compile_observer: {what} is not supported by the compiled path "
+                               f"({_SUPPORTED}); use the Python observer (run/step) or "
+                               "run_batch.")
+
+
+def _user_theta_star(expr: Any, phi: Any, pert: SymbolicPerturbation
+                     ) -> tuple[tuple[sp.Expr, ...], tuple[sp.Symbol, ...]]:
+    _, _, _, p, k = pert.dims
+    entries = list(expr) if isinstance(expr, (list, tuple, sp.MatrixBase)) else [expr]
+    try:
+        exprs = tuple(sp.sympify(e, strict=True) for e in entries)
+    except sp.SympifyError as exc:
+        raise UpdateLawError(f"theta_star must be SymPy expressions; got {expr!r}.") from exc
+    if len(exprs) != p:
+        raise DimensionError(f"theta_star must have p = {p} entries; got {len(exprs)}.")
+    known = (*pert.u, *pert.y, *pert.x)
+    free = set().union(*(e.free_symbols for e in exprs))
+    if free & set(pert.theta):
+        raise UpdateLawError("theta_star must not depend on θ (it is the solution θ*(v, x, φ) "
+                             "of φ = g(v, x, θ)).")
+    extra = free - set(known)
+    if phi is None:
+        if len(extra) > 1 or (k > 1 and extra):
+            raise UpdateLawError(f"theta_star uses the symbols {sorted(map(str, extra))} "
+                                 f"besides g's u, y, x; pass phi=[...] (k = {k} symbols, in "
+                                 "the order of φ).")
+        phis = tuple(extra) if extra else tuple(sp.Dummy(f"phi{i}") for i in range(k))
+    else:
+        phis = (phi,) if isinstance(phi, sp.Symbol) else tuple(phi)
+        if len(phis) != k or not all(isinstance(s, sp.Symbol) for s in phis):
+            raise DimensionError(f"phi must be {k} SymPy symbol(s); got {phi!r}.")
+        if extra - set(phis):
+            raise UpdateLawError(f"theta_star uses unknown symbols "
+                                 f"{sorted(map(str, extra - set(phis)))}; it may use g's u, "
+                                 "y, x and the φ symbols only.")
+    return exprs, (*known, *phis)
+
+
+def _check_theta_star(law: Any, exprs: tuple[sp.Expr, ...], args: tuple[sp.Symbol, ...],
+                      pert: SymbolicPerturbation) -> None:
+    """The user's θ* expression must agree with the law's θ* callable at random points."""
+    n, m, r, p, _ = pert.dims
+    fn = sp.lambdify(args, [_numpy_ready(e) for e in exprs], "numpy")
+    rng = np.random.default_rng(0)
+    th = law.parameter_set.sample(rng, THETA_STAR_SAMPLES)
+    v = rng.standard_normal((THETA_STAR_SAMPLES, m + r))
+    x = rng.standard_normal((THETA_STAR_SAMPLES, n))
+    with np.errstate(all="ignore"):
+        phi = np.asarray(pert.g(v, x, th), dtype=np.float64)
+        ref = np.asarray(law.theta_star(v, x, phi), dtype=np.float64).reshape(-1, p)
+        cols = [*v.T, *x.T, *phi.T]
+        mine = np.stack([np.broadcast_to(np.asarray(c, dtype=np.float64), (len(th),))
+                         for c in fn(*cols)], axis=-1)
+    both = np.all(np.isfinite(ref) & np.isfinite(mine), axis=-1)
+    if not both.any():
+        warnings.warn("compile_observer could not compare theta_star with the update law's "
+                      "θ* (no finite values at the check points); make sure they agree.",
+                      ThetahatWarning, stacklevel=3)
+        return
+    err = np.abs(ref[both] - mine[both]) / (1.0 + np.abs(ref[both]))
+    if np.max(err) > THETA_STAR_RTOL:
+        raise UpdateLawError(f"theta_star disagrees with the update law's θ* (relative error "
+                             f"{np.max(err):.2e} at random points); pass the expression of the "
+                             "same θ*(v, x̂, φ̂) the law uses.")
+
+
+def _diagonal_gain(law: Any) -> FloatArray:
+    G = np.asarray(law.Gamma, dtype=np.float64)
+    if not np.array_equal(G, np.diag(np.diag(G))):
+        raise _unsupported("a non-diagonal Γ (its Γ⁻¹-weighted projection onto a box is a "
+                           "least-squares problem)")
+    return G
+
+
+def _configure(observer: ModifiedHighGainObserver, theta_star: Any, phi: Any
+               ) -> tuple[int, tuple[sp.Expr, ...] | None, tuple[sp.Symbol, ...] | None]:
+    """Check the observer's parts; return (law code, θ* expressions, θ* argument symbols)."""
+    pert = observer.system.perturbation
+    if not isinstance(pert, SymbolicPerturbation):
+        raise _unsupported(f"a {type(pert).__name__} g (it must be a SymbolicPerturbation)")
+    law = observer.update_law
+    code = _LAW_CODES.get(type(law))
+    if code is None:
+        raise _unsupported(f"the update law {type(law).__name__}")
+    if not isinstance(law.parameter_set, Box):
+        raise _unsupported(f"Θ = {type(law.parameter_set).__name__} (it must be a Box)")
+    if getattr(law, "saturation", None) is not None:
+        raise _unsupported("an update law with saturation")
+    if code != 0:
+        _diagonal_gain(law)
+    if code == 2 and not isinstance(law.l, _SmoothRamp):
+        raise _unsupported("an excitation weight l other than smooth_ramp(low, high)")
+    if code == 3 and law.M is not None:
+        raise _unsupported("GradientInversion with a user M")
+    if code == 3 and not (law.perturbation is pert or law.perturbation == pert):
+        raise _unsupported("GradientInversion with a g other than the observer's")
+    if code in (0, 3):
+        if theta_star is not None:
+            raise UpdateLawError(f"theta_star was given but {type(law).__name__} uses no θ*.")
+        return code, None, None
+    if theta_star is not None:
+        exprs, args = _user_theta_star(theta_star, phi, pert)
+        if not (isinstance(law.theta_star, _SympyThetaStar) and law.theta_star.solution == exprs):
+            _check_theta_star(law, exprs, args, pert)
+        return code, exprs, args
+    ts = law.theta_star
+    if isinstance(ts, _SympyThetaStar) and ts.arguments:
+        return code, ts.solution, ts.arguments
+    raise NotImplementedError(
+        f"compile_observer: the θ* of {type(law).__name__} is a Python callable "
+        f"({type(ts).__name__}), which cannot be compiled; pass its SymPy form, "
+        "compile_observer(observer, dt=..., theta_star=expr) with θ*(v, x̂, φ̂) in g's symbols "
+        "and a φ symbol (for the DC motor: thetahat.models.lugre.theta_star_expr(params)).")
+
+
+# --------------------------------------------------------------------------- public API
+def _as_input(name: str, a: Any, size: int) -> FloatArray:
+    """A writable, contiguous float64 vector of length ``size`` (no copy if ``a`` is one).
+
+    numba compiles one specialisation per array type, and read-only or strided arrays are
+    other types: normalising them keeps the kernel at one compilation.
+    """
+    if (type(a) is np.ndarray and a.dtype == np.float64 and a.shape == (size,)
+            and a.flags.c_contiguous and a.flags.writeable):
+        return a
+    return np.array(as_vector(name, a, size, finite=False), dtype=np.float64, order="C")
+
+
+def _kernel_array(a: FloatArray) -> FloatArray:
+    """``a`` as a writable C-contiguous array (see :func:`_as_input`)."""
+    if a.flags.c_contiguous and a.flags.writeable:
+        return a
+    return np.array(a, dtype=np.float64, order="C")
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class CompiledObserver:
+    """A :class:`ModifiedHighGainObserver` compiled for one step length (zero-order hold).
+
+    ``step`` and ``run`` compute what the observer's own ``step`` and ``run(hold="zoh")``
+    compute, in machine code. Build it with :func:`compile_observer`, which documents the
+    parameters ``observer``, ``dt``, ``theta_star`` and ``phi``.
+
+    Attributes
+    ----------
+    observer : ModifiedHighGainObserver
+        The observer it was compiled from (gains, law, second observer).
+    dt : float
+        The fixed step length (s).
+    theta_star : tuple of sympy.Expr, or None
+        The θ* compiled into the kernel (None for laws without θ*).
+    """
+
+    observer: ModifiedHighGainObserver
+    dt: float
+    theta_star: tuple[sp.Expr, ...] | None
+    _kernel: ModuleType
+    _P: FloatArray
+
+    def __init__(self, observer: ModifiedHighGainObserver, *, dt: float,
+                 theta_star: Any = None, phi: Any = None) -> None:
+        _require_numba()
+        if not isinstance(observer, ModifiedHighGainObserver):
+            raise _unsupported(f"a {type(observer).__name__} (it must be a "
+                               "ModifiedHighGainObserver)")
+        h = positive_scalar("dt", dt)
+        code, exprs, args = _configure(observer, theta_star, phi)
+        source = _kernel_source(observer.system.perturbation, exprs, args)
+        for name, value in (("observer", observer), ("dt", h), ("theta_star", exprs),
+                            ("_kernel", _load(source)), ("_P", _constants(observer, h, code))):
+            object.__setattr__(self, name, value)
+
+    @property
+    def state_size(self) -> int:
+        """Length of the state vector (as :attr:`ModifiedHighGainObserver.state_size`)."""
+        return self.observer.state_size
+
+    def init(self, x_hat0: Any = None, theta_hat0: Any = None, z0: Any = None, *,
+             x_hat_refined0: Any = None) -> FloatArray:
+        """Initial state; see :meth:`ModifiedHighGainObserver.init` (same parameters).
+
+        Parameters
+        ----------
+        x_hat0, theta_hat0, z0, x_hat_refined0
+            As for :meth:`ModifiedHighGainObserver.init`.
+
+        Returns
+        -------
+        ndarray, shape (state_size,)
+        """
+        return self.observer.init(x_hat0, theta_hat0, z0, x_hat_refined0=x_hat_refined0)
+
+    def _raise(self, status: int, where: str) -> NoReturn:
+        if status == 2:
+            law = type(self.observer.update_law).__name__
+            raise UpdateLawError(f"{law}: theta_star is NaN or inf {where} where the weight is "
+                                 "positive; make l vanish where the inversion is undefined, or "
+                                 "pass on_invalid='freeze'.")
+        raise NonFiniteError(f"the observer state became non-finite {where}; check the gains, "
+                             "the update law and the data scaling.")
+
+    def step(self, state: Any, u: Any, y: Any) -> FloatArray:
+        """Advance the state by ``dt`` holding the samples (as the observer's ``step``).
+
+        Parameters
+        ----------
+        state : array_like, shape (state_size,)
+        u : array_like, shape (m,)
+            Current input sample (``None`` when m = 0).
+        y : array_like, shape (r,)
+            Current output sample (finite: the compiled path does not skip missing samples).
+
+        Returns
+        -------
+        ndarray, shape (state_size,)
+
+        Raises
+        ------
+        DimensionError
+            Wrong shapes.
+        NonFiniteError
+            NaN or inf in the state, u or y, or the step diverged.
+        UpdateLawError
+            θ* invalid where l > 0 and ``on_invalid='raise'``.
+        """
+        obs = self.observer
+        _, m, r, _, _, size = obs._sizes
+        s = _as_input("state", state, size)
+        out = np.empty(size)
+        status = self._kernel.step(s, _as_input("u", np.empty(0) if u is None else u, m),
+                                   _as_input("y", y, r), self.dt, self._P, out)
+        if status == 0 and math.isfinite(float(out @ out)):
+            return out
+        # something is not finite: find out what, with the observer's own messages
+        obs._state(state)
+        if not obs._samples(u, y)[2]:
+            raise NonFiniteError("y contains NaN; the compiled observer does not predict over "
+                                 "missing samples: use the Python observer's step with "
+                                 "nan_policy='skip'.")
+        if status == 0 and np.all(np.isfinite(out)):
+            return out
+        self._raise(int(status) or 1, "in this step")
+
+    def run(self, t: Any, u: Any, y: Any, *, state0: Any = None) -> ObserverResult:
+        """Run over sampled records spaced by ``dt`` (the loop runs in machine code).
+
+        Parameters
+        ----------
+        t : array_like, shape (N,)
+            Sampling instants spaced by ``dt`` (to a relative ``DT_RTOL`` = 1e-9).
+        u : array_like, shape (N, m) or (N,) when m = 1
+            Input samples (``None`` when m = 0).
+        y : array_like, shape (N, r) or (N,) when r = 1
+            Output samples, finite.
+        state0 : array_like, shape (state_size,), optional
+            Initial state; default ``init()``.
+
+        Returns
+        -------
+        ObserverResult
+            As :meth:`ModifiedHighGainObserver.run` with ``hold="zoh"`` (agreement to rounding;
+            see :func:`compile_observer`).
+
+        Raises
+        ------
+        DimensionError
+            Wrong shapes, or t not spaced by dt.
+        NonFiniteError
+            NaN or inf in t, u or y, or the state diverged.
+        UpdateLawError
+            θ* invalid where l > 0 and ``on_invalid='raise'``.
+        """
+        obs = self.observer
+        n, m, r, k, p, size = obs._sizes
+        t_ = as_vector("t", t)
+        N = t_.shape[0]
+        if N == 0:
+            raise DimensionError("t must hold at least one sampling instant; got none.")
+        dts = _kernel_array(np.diff(t_))
+        if N > 1 and not np.all(np.abs(dts - self.dt) <= DT_RTOL * self.dt):
+            raise DimensionError(f"the compiled observer steps dt = {self.dt!r}; t has spacings "
+                                 f"in [{float(dts.min())!r}, {float(dts.max())!r}]. Resample, "
+                                 "or compile again with compile_observer(observer, dt=...).")
+        U = _kernel_array(obs._record("u", np.zeros((N, 0)) if u is None else u, N, m))
+        Y = _kernel_array(obs._record("y", y, N, r))
+        check_finite("u", U)
+        if not np.all(np.isfinite(Y)):
+            raise NonFiniteError("y contains NaN or inf; the compiled observer needs finite "
+                                 "samples (the Python observer's run skips NaN samples with "
+                                 "nan_policy='skip').")
+        s0 = _kernel_array(obs.init() if state0 is None else obs._state(state0))
+        S = np.empty((N, size))
+        PHI = np.empty((N, k))
+        status, index = self._kernel.run(s0, U, Y, dts, self._P, S, PHI)
+        if status:
+            self._raise(int(status), f"at t[{int(index)}] = {t_[int(index)]!r}")
+        arrays = {"t": t_, "x_hat": S[:, :n], "phi_hat": PHI, "theta_hat": S[:, n + k:n + k + p],
+                  "x_hat_refined": S[:, n + k + p:] if obs.second is not None else None}
+        for key, val in arrays.items():
+            if val is not None:
+                val = np.array(val, copy=True)
+                val.setflags(write=False)
+                arrays[key] = val
+        skipped = np.zeros(N, dtype=bool)
+        skipped.setflags(write=False)
+        return ObserverResult(skipped=skipped, **arrays)
+
+    def __repr__(self) -> str:
+        return (f"CompiledObserver(dt={self.dt!r}, observer={self.observer!r}, "
+                f"kernel={self._kernel.__name__})")
+
+
+def _constants(observer: ModifiedHighGainObserver, dt: float, code: int) -> FloatArray:
+    """The constants vector P: matrices, φ-matrices for dt, Θ, Γ, ramp and the flags."""
+    n, m, r, k, p, _ = observer._sizes
+    consts, P_size, _, _ = _layouts(n, m, r, k, p)
+    sysm, law, second = observer.system, observer.update_law, observer.second
+    values = {"L": observer._L, "Bv": observer._Bv, "KxC": observer._KxC, "Kx": observer.K_x,
+              "C": sysm.C, "E": sysm.E, "Phi1": observer._cache.get(dt).Phi1, "A": sysm.A,
+              "Bm": sysm.B, "lower": law.parameter_set.lower, "upper": law.parameter_set.upper,
+              "Gam": getattr(law, "Gamma", np.eye(p))}
+    if second is not None:
+        values["K2"] = second.K_x
+        values["Phi12"] = second._cache.get(dt).Phi1
+    if isinstance(law, IntermittentInversion):
+        values["ramp"] = np.array([law.l.low, law.l.high])
+    values["flags"] = np.array([code, getattr(law, "on_invalid", "raise") == "freeze",
+                                second is not None,
+                                second is not None and second.g_on_estimates], dtype=np.float64)
+    P = np.zeros(P_size)
+    for name, (off, shape) in consts.items():
+        if name in values:
+            P[off:off + int(np.prod(shape, dtype=np.int64))] = np.asarray(
+                values[name], dtype=np.float64).reshape(shape).ravel()
+    P.setflags(write=False)
+    return P
+
+
+def compile_observer(observer: ModifiedHighGainObserver, *, dt: float, theta_star: Any = None,
+                     phi: Any = None) -> CompiledObserver:
+    """Compile an observer's step for a fixed ``dt`` with numba (the optional extra ``speed``).
+
+    Parameters
+    ----------
+    observer : ModifiedHighGainObserver
+        Observer (3) with update law (8) and optionally a second observer (Sec. VI); its parts
+        must be of the supported kinds (see the module docstring).
+    dt : float
+        The step length (s) > 0; ``run`` checks that its t is spaced by it.
+    theta_star : sympy.Expr or sequence of p of them, optional
+        θ*(v, x̂, φ̂) for :class:`AlgebraicInversion` / :class:`IntermittentInversion` whose θ*
+        is a Python callable, written in g's symbols (u, y, x) and k symbols for φ. It is
+        checked against the law's θ* at random points. Not needed when the law's θ* comes
+        from ``from_perturbation``.
+    phi : sympy.Symbol or sequence of k of them, optional
+        The φ symbols of ``theta_star``, in order; inferred when θ* has a single symbol
+        besides g's u, y, x.
+
+    Returns
+    -------
+    CompiledObserver
+
+    Raises
+    ------
+    ImportError
+        numba is missing: ``pip install 'thetahat[speed]'``.
+    NotImplementedError
+        A part of the observer is not supported by the compiled path (the message names it).
+    UpdateLawError
+        ``theta_star`` disagrees with the law's θ*, uses unknown symbols, or is given for a
+        law without θ*.
+    DimensionError
+        ``theta_star`` or ``phi`` has the wrong number of entries.
+
+    Notes
+    -----
+    The kernel performs the observer's step (see :class:`ModifiedHighGainObserver`, Notes)
+    with the same operations in the same order, except for the summation order of the small
+    matrix products, a hand-written pivoted LU in place of LAPACK's, and scalar code for g,
+    its Jacobians and θ*. On the DC motor of Sec. VIII (20 s at 1 kHz, second observer
+    attached) ``run`` agrees with the Python ``run`` to 3e-13 relative. Measured on a shared
+    2-core machine: 0.3 µs per sample inside ``run`` (600× the Python step), 4 µs per call of
+    ``step`` from Python (validation and dispatch dominate), against 200 µs per Python step.
+    The first compilation of a model takes a few seconds; later ones load from the cache.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from thetahat.models import lugre
+    >>> from thetahat.estimation.compiled import compile_observer
+    >>> data = lugre.simulate(seed=0, t_end=0.5)
+    >>> obs = lugre.observer()
+    >>> try:
+    ...     fast = compile_observer(obs, dt=1e-3, theta_star=lugre.theta_star_expr())
+    ... except ImportError:                  # numba missing: pip install 'thetahat[speed]'
+    ...     fast = None
+    >>> res = obs.run(data.t, data.u, data.y)
+    >>> res_fast = res if fast is None else fast.run(data.t, data.u, data.y)
+    >>> bool(np.allclose(res_fast.theta_hat, res.theta_hat, rtol=1e-9, atol=0))
+    True
+    """
+    return CompiledObserver(observer, dt=dt, theta_star=theta_star, phi=phi)
