@@ -29,9 +29,11 @@ unbiased estimator), ``per_step_us`` (median wall time per sample of the estimat
 θ̂(0) at both ends of Θ, x̂(0) = ±(3 rad/s, η_max), plant σ1, J, α2 off by ±20 % while the
 estimators keep the nominal values, input amplitudes halved).
 thetahat's ω̂, η̂ are those of its second observer (Sec. VI, ``x_hat_refined``) when it has
-one. Top level: ``crlb`` (crlb.py) and ``throughput`` (thetahat's ``run`` against one
-``scipy.integrate.solve_ivp`` (RK45) call per run on the observer's ``rhs``; steps are
-samples). The printed table ends with ratios ours ÷ peer. Rows of the thetahat estimators stay
+one. Top level: ``crlb`` (crlb.py) and ``throughput``: observer-steps per second of
+thetahat's batch path (``run_batch`` over BATCH_SIZE seeds, ``thetahat_steps_per_s``), of one
+``run``, of the numba-compiled kernel (``compiled_per_step_us``), and of one
+``scipy.integrate.solve_ivp`` (RK45) call per run on the observer's ``rhs``
+(``solve_ivp_steps_per_s``); steps are samples. The printed table ends with ratios ours ÷ peer. Rows of the thetahat estimators stay
 empty until ``thetahat.models.lugre.observer`` exists.
 """
 
@@ -313,7 +315,50 @@ def throughput(t_end: float, log) -> dict:
         f"step loop (zoh) {N / wall_step:,.0f} steps/s, solve_ivp({IVP_METHOD}, rtol "
         f"{IVP_RTOL:g}) on rhs {N / wall_ivp:,.0f} steps/s; ratio {wall_ivp / wall_run:.0f}x; "
         f"|θ̂(T) run − solve_ivp| = {gap:.1e}")
-    return {"thetahat_steps_per_s": N / wall_run, "solve_ivp_steps_per_s": N / wall_ivp}
+    out = {"thetahat_steps_per_s": N / wall_run, "solve_ivp_steps_per_s": N / wall_ivp,
+           "thetahat_run_steps_per_s": N / wall_run, "batch_size": None,
+           "thetahat_compiled_steps_per_s": None, "compiled_per_step_us": None,
+           "python_step_us": 1e6 * wall_step / (N - 1)}
+    out.update(_fast_paths(obs, traj, s0, N, wall_ivp, log))
+    return out
+
+
+#: Monte-Carlo batch of the throughput comparison (seeds run side by side by run_batch).
+BATCH_SIZE = 20
+
+
+def _fast_paths(obs, traj, s0, N: int, wall_ivp: float, log) -> dict:
+    """The batch path (``run_batch`` over BATCH_SIZE seeds, same hold) and the compiled kernel."""
+    from thetahat.estimation.batch_run import run_batch
+    out: dict = {}
+    trajs = [traj] + [_simulate(seed, t_end=float(traj.t[-1])) for seed in range(1, BATCH_SIZE)]
+    U = np.stack([tr.u for tr in trajs])
+    Y = np.stack([tr.y for tr in trajs])
+    t0 = time.perf_counter()
+    run_batch(obs, traj.t, U, Y, hold=THETAHAT_HOLD, state0=s0)
+    wall_b = time.perf_counter() - t0
+    steps_b = BATCH_SIZE * N / wall_b
+    ivp_rate = N / wall_ivp
+    out.update(thetahat_steps_per_s=steps_b, batch_size=BATCH_SIZE)
+    log(f"  batch path: run_batch over {BATCH_SIZE} seeds {steps_b:,.0f} observer-steps/s = "
+        f"{steps_b / ivp_rate:,.0f}x the solve_ivp loop")
+    try:
+        from thetahat.estimation.compiled import compile_observer
+    except ImportError:  # pragma: no cover - numba missing
+        log("  compiled path: numba not installed (pip install 'thetahat[speed]')")
+        return out
+    dt = float(traj.t[1] - traj.t[0])
+    fast = compile_observer(obs, dt=dt, theta_star=lugre.theta_star_expr(lugre.LuGreParameters()))
+    fast.run(traj.t[:50], traj.u[:50], traj.y[:50], state0=s0)           # JIT warm-up
+    best = np.inf
+    for _ in range(3):
+        t0 = time.perf_counter()
+        fast.run(traj.t, traj.u, traj.y, state0=s0)
+        best = min(best, time.perf_counter() - t0)
+    out.update(thetahat_compiled_steps_per_s=N / best, compiled_per_step_us=1e6 * best / N)
+    log(f"  compiled path (zoh, loop in numba): {1e6 * best / N:.2f} µs/step = "
+        f"{(N / best) / ivp_rate:,.0f}x the solve_ivp loop")
+    return out
 
 
 # ------------------------------------------------------------------------------ report
@@ -454,6 +499,14 @@ def main(argv: list[str] | None = None, log: Callable[[str], None] = print) -> d
     log(f"√CRLB(θ) = {crlb_res.std:.3e} N m over {NOMINAL.t_end:g} s; RMSE/√CRLB divides by "
         f"the time-window bound CRLB(t) averaged over the last half, √· = "
         f"{crlb_last_half(crlb_res):.3e} N m.")
+    if tp.get("thetahat_steps_per_s") and tp.get("solve_ivp_steps_per_s"):
+        ekf_us = (results.get("ekf") or {}).get("per_step_us")
+        comp = tp.get("compiled_per_step_us")
+        log(f"throughput: batch {tp['thetahat_steps_per_s']:,.0f} steps/s ÷ solve_ivp loop "
+            f"{tp['solve_ivp_steps_per_s']:,.0f} = "
+            f"{tp['thetahat_steps_per_s'] / tp['solve_ivp_steps_per_s']:,.0f}x"
+            + (f"; compiled {comp:.2f} µs/step, EKF ÷ compiled = {ekf_us / comp:,.0f}x"
+               if comp and ekf_us else ""))
     log(f"bench_lugre wall time: {wall:.0f} s")
     details = {"mode": "quick" if quick else "full", "n_seeds": n_seeds, "wall_s": wall,
                "numba": peers.HAVE_NUMBA,
