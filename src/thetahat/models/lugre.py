@@ -565,8 +565,8 @@ def observer(eps: float = 1.0, *, Gamma: float = 1.0, eps2: float = 1.0,
     Returns
     -------
     ModifiedHighGainObserver
-        With ``run(t, u, y)``, ``init``/``step`` and ``rhs``; the designs are ``design`` and
-        ``second.design`` attributes are not kept: use :func:`designs`.
+        With ``run(t, u, y)``, ``init``/``step`` and ``rhs``. The two gain designs (SCB,
+        spectra) are returned by :func:`designs` with the same arguments.
 
     Examples
     --------
