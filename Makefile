@@ -11,7 +11,7 @@ $(BIN)/python:
 	$(BIN)/python -m pip install -q --upgrade pip
 
 $(STAMP): pyproject.toml | $(BIN)/python
-	$(BIN)/python -m pip install -q -e ".[plot,interop,progress,speed,test]"
+	$(BIN)/python -m pip install -q -e ".[plot,interop,progress,speed,bench,test]"
 	-$(BIN)/python -m pip install -q slycot
 	touch $(STAMP)
 

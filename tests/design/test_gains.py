@@ -11,6 +11,8 @@ from thetahat import (DesignError, ThetahatWarning, apply_design, extended_syste
 from thetahat.design.gains import _scb_gain, place_observer
 from thetahat.testing import random_scb_system
 
+from conftest import STRUCTURES
+
 #: The paper's numbers against our own closed-form derivation: pure floating point.
 PAPER_RTOL = 1e-6
 #: Zeros and b-poles must appear in eig(A − KC) "exactly": they are eigenvalues of blocks of a
@@ -121,12 +123,13 @@ def test_chain_pole_specifications(rng):
     np.testing.assert_allclose(d2.K_bar[1], [4.0, 4.0])
 
 
-def test_repeated_b_poles(known_system):
+@pytest.mark.parametrize("name", [k for k, v in STRUCTURES.items() if v[2] > 0])
+def test_repeated_b_poles(name):
     """Repeated b-poles: det(sI − (A_b − K_bb C_b)) = (s + 2)^n_b (checked on coefficients,
     which, unlike a multiple eigenvalue, are well-conditioned)."""
-    ks = known_system
-    if ks.n_b == 0:
-        pytest.skip("no χ_b block")
+    lengths, n_a, n_b, r_b = STRUCTURES[name]
+    ks = random_scb_system(np.random.default_rng(5), chain_lengths=lengths, n_a=n_a, n_b=n_b,
+                           r_b=r_b)
     d = high_gain(ks.A, ks.B, ks.C, 0.1, b_poles=[-2.0] * ks.n_b)
     F = d.scb.A_b - d.K_bb @ d.scb.C_b
     np.testing.assert_allclose(np.poly(F), np.poly([-2.0] * ks.n_b), rtol=1e-6, atol=1e-6)
