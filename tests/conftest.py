@@ -7,7 +7,7 @@ from dataclasses import dataclass
 import numpy as np
 import pytest
 
-from thetahat.testing import random_scb_system
+from thetahat.testing import STRUCTURES, random_scb_system
 
 
 @pytest.fixture
@@ -48,17 +48,6 @@ def dc_motor() -> DCMotor:
     return DCMotor()
 
 
-#: Structures exercised by the parametrised structure/design tests:
-#: (chain_lengths, n_a, n_b, r_b) — SISO, square MIMO uniform / non-uniform, non-square with χ_b.
-STRUCTURES = {
-    "siso_rd1_zeros": ((1,), 2, 0, 0),
-    "siso_rd3": ((3,), 0, 0, 0),
-    "siso_rd2_zero": ((2,), 1, 0, 0),
-    "mimo_uniform": ((2, 2), 1, 0, 0),
-    "mimo_nonuniform_1_3": ((1, 3), 2, 0, 0),
-    "nonsquare_b_block": ((2,), 1, 2, 1),
-    "nonsquare_mixed": ((1, 3), 1, 3, 2),
-}
 
 
 @pytest.fixture(params=sorted(STRUCTURES))

@@ -119,3 +119,13 @@ def positive_scalar(name: str, value: Any) -> float:
     if x <= 0:
         raise DimensionError(f"{name} must be > 0; got {x}.")
     return x
+
+
+def readonly(a: Any, dtype: Any = np.float64) -> NDArray[Any]:
+    """A read-only copy of ``a`` (as ``dtype``; ``None`` keeps the input's dtype).
+
+    Frozen dataclasses store their arrays this way, so that frozen means frozen.
+    """
+    arr = np.array(a, dtype=dtype, copy=True)
+    arr.setflags(write=False)
+    return arr

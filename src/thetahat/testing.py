@@ -16,6 +16,18 @@ from numpy.typing import NDArray
 
 FloatArray = NDArray[np.float64]
 
+#: Structures the tests exercise (SISO, square MIMO uniform / non-uniform, non-square with χ_b):
+#: name → (chain_lengths, n_a, n_b, r_b).
+STRUCTURES = {
+    "siso_rd1_zeros": ((1,), 2, 0, 0),
+    "siso_rd3": ((3,), 0, 0, 0),
+    "siso_rd2_zero": ((2,), 1, 0, 0),
+    "mimo_uniform": ((2, 2), 1, 0, 0),
+    "mimo_nonuniform_1_3": ((1, 3), 2, 0, 0),
+    "nonsquare_b_block": ((2,), 1, 2, 1),
+    "nonsquare_mixed": ((1, 3), 1, 3, 2),
+}
+
 
 @dataclass(frozen=True, slots=True)
 class KnownStructure:

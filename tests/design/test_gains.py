@@ -9,9 +9,7 @@ import pytest
 from thetahat import (DesignError, ThetahatWarning, apply_design, extended_system, high_gain,
                       modified_high_gain)
 from thetahat.design.gains import _scb_gain, place_observer
-from thetahat.testing import random_scb_system
-
-from conftest import STRUCTURES
+from thetahat.testing import STRUCTURES, random_scb_system
 
 #: The paper's numbers against our own closed-form derivation: pure floating point.
 PAPER_RTOL = 1e-6

@@ -22,7 +22,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from .._validate import as_vector, check_finite
+from .._validate import as_vector, check_finite, readonly
 from ..errors import DimensionError, NonFiniteError
 from ..model.paramset import Box
 from .discretize import DT_KEY_DIGITS, IMPLICITNESS
@@ -38,10 +38,6 @@ FloatArray = NDArray[np.float64]
 _GAIN_FIELDS = frozenset({"Gamma", "_proj"})
 
 
-def _readonly(a: NDArray[Any]) -> NDArray[Any]:
-    a = np.array(a, copy=True)
-    a.setflags(write=False)
-    return a
 
 
 @dataclass(frozen=True, slots=True, eq=False)
@@ -541,7 +537,7 @@ def run_batch(observers: ModifiedHighGainObserver | Sequence[ModifiedHighGainObs
     Yv = np.where(ok[..., None], Yb, X @ ref.system.C.T)
     V = np.concatenate((Ub, Yv), axis=2)
     PHI = np.asarray(ref.system.perturbation.g(V, X, TH), dtype=np.float64) + Z
-    X2 = _readonly(S[..., n + k + p:]) if ref.second is not None else None
-    return BatchObserverResult(t=_readonly(t_), x_hat=_readonly(X), phi_hat=_readonly(PHI),
-                               theta_hat=_readonly(TH), x_hat_refined=X2,
-                               skipped=_readonly(~ok))
+    X2 = readonly(S[..., n + k + p:]) if ref.second is not None else None
+    return BatchObserverResult(t=readonly(t_), x_hat=readonly(X), phi_hat=readonly(PHI),
+                               theta_hat=readonly(TH), x_hat_refined=X2,
+                               skipped=readonly(~ok, dtype=None))

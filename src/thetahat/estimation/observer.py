@@ -20,7 +20,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from .._validate import as_matrix, as_vector, check_finite, positive_scalar
+from .._validate import as_matrix, as_vector, check_finite, positive_scalar, readonly
 from ..errors import DimensionError, NonFiniteError
 from ..model.system import PerturbedLinearSystem
 from .discretize import PlanCache, linearly_implicit_exponential_step
@@ -47,10 +47,6 @@ def _vec(name: str, a: Any, size: int, *, finite: bool = True) -> FloatArray:
     return arr
 
 
-def _readonly(a: FloatArray) -> FloatArray:
-    a = np.array(a, dtype=np.float64, copy=True)
-    a.setflags(write=False)
-    return a
 
 
 @dataclass(frozen=True, slots=True, eq=False)
@@ -244,8 +240,8 @@ class ModifiedHighGainObserver:
             raise DimensionError("ModifiedHighGainObserver needs system.perturbation (g of "
                                  "(3)); build the system with perturbation=... .")
         n, m, r, k, p = system.n, system.m, system.r, system.k, system.p
-        Kx = _readonly(as_matrix("K_x", K_x, (n, r)))
-        Kphi = _readonly(as_matrix("K_phi", K_phi, (k, r)))
+        Kx = readonly(as_matrix("K_x", K_x, (n, r)))
+        Kphi = readonly(as_matrix("K_phi", K_phi, (k, r)))
         if not isinstance(update_law, UpdateLaw):
             raise DimensionError("update_law must be a thetahat UpdateLaw; got "
                                  f"{type(update_law).__name__}.")
@@ -264,7 +260,7 @@ class ModifiedHighGainObserver:
                     f"{(s2.n, s2.m, s2.r, s2.k, s2.p)}; the observer's has {(n, m, r, k, p)}.")
         if nan_policy not in NAN_POLICIES:
             raise ValueError(f"nan_policy must be one of {NAN_POLICIES}; got {nan_policy!r}.")
-        KxC = _readonly(Kx @ system.C)
+        KxC = readonly(Kx @ system.C)
         L = np.zeros((n + k, n + k))
         L[:n, :n] = system.A - KxC
         L[:n, n:] = system.E
@@ -279,10 +275,10 @@ class ModifiedHighGainObserver:
         size = n + k + p + (n if second is not None else 0)
         for name, val in (("system", system), ("K_x", Kx), ("K_phi", Kphi),
                           ("update_law", update_law), ("second", second),
-                          ("nan_policy", nan_policy), ("_L", _readonly(L)),
+                          ("nan_policy", nan_policy), ("_L", readonly(L)),
                           ("_cache", PlanCache(L)), ("_cache_open", PlanCache(L_open)),
                           ("_KxC", KxC),
-                          ("_Bv", _readonly(Bv)),
+                          ("_Bv", readonly(Bv)),
                           ("_sizes", (n, m, r, k, p, size))):
             object.__setattr__(self, name, val)
 
@@ -647,11 +643,11 @@ class ModifiedHighGainObserver:
         Yv = np.where(ok[:, None], Y, X @ self.system.C.T)
         V = np.concatenate((U, Yv), axis=1)
         PHI = np.asarray(self.system.perturbation.g(V, X, TH), dtype=np.float64) + Z
-        X2 = _readonly(S[:, n + k + p:]) if self.second is not None else None
+        X2 = readonly(S[:, n + k + p:]) if self.second is not None else None
         skipped = ~ok
         skipped.setflags(write=False)
-        return ObserverResult(t=_readonly(t_), x_hat=_readonly(X), phi_hat=_readonly(PHI),
-                              theta_hat=_readonly(TH), x_hat_refined=X2, skipped=skipped)
+        return ObserverResult(t=readonly(t_), x_hat=readonly(X), phi_hat=readonly(PHI),
+                              theta_hat=readonly(TH), x_hat_refined=X2, skipped=skipped)
 
     @staticmethod
     def _record(name: str, a: Any, N: int, width: int) -> FloatArray:

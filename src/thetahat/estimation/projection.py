@@ -20,6 +20,7 @@ import numpy as np
 import scipy.optimize
 from numpy.typing import ArrayLike, NDArray
 
+from .._validate import readonly
 from ..errors import DimensionError, NonFiniteError, UpdateLawError
 from ..model.paramset import Box, ParameterSet
 
@@ -65,10 +66,6 @@ def as_gain(name: str, Gamma: Any, p: int) -> FloatArray:
     return G
 
 
-def _frozen(a: FloatArray) -> FloatArray:
-    a = np.array(a, dtype=np.float64, copy=True)
-    a.setflags(write=False)
-    return a
 
 
 @final
@@ -149,9 +146,9 @@ class Projection:
                                  f"{delta}.")
         iso = np.allclose(G, G[0, 0] * np.eye(p), rtol=0, atol=GAIN_SYMMETRY_RTOL * G[0, 0])
         object.__setattr__(self, "parameter_set", parameter_set)
-        object.__setattr__(self, "Gamma", _frozen(G))
+        object.__setattr__(self, "Gamma", readonly(G))
         object.__setattr__(self, "layer", delta)
-        object.__setattr__(self, "_metric", None if iso else _frozen(np.linalg.inv(G)))
+        object.__setattr__(self, "_metric", None if iso else readonly(np.linalg.inv(G)))
 
     def proj(self, tau: ArrayLike, theta_hat: ArrayLike) -> FloatArray:
         """Proj(τ) at θ̂ (continuous time); τ and θ̂ broadcast, result shape (..., p).

@@ -29,6 +29,7 @@ import scipy.linalg
 import scipy.optimize
 from numpy.typing import ArrayLike, NDArray
 
+from .._validate import readonly
 from ..errors import ConvergenceWarning, DimensionError, NonFiniteError, ParameterSetError
 
 FloatArray = NDArray[np.float64]
@@ -95,10 +96,6 @@ def _safe_norm(z: FloatArray) -> FloatArray:
     return s * np.sqrt(np.sum((z / safe[..., None]) ** 2, axis=-1))
 
 
-def _frozen(a: FloatArray) -> FloatArray:
-    a = np.array(a, dtype=np.float64, copy=True)
-    a.setflags(write=False)
-    return a
 
 
 def _vector(owner: str, name: str, value: ArrayLike) -> FloatArray:
@@ -347,8 +344,8 @@ class Box(ParameterSet):
             raise ParameterSetError(f"Box: lower < upper is required in every coordinate; "
                                     f"coordinate {i} has lower={lo[i]} >= upper={hi[i]}. Swap "
                                     f"or widen the bounds.")
-        object.__setattr__(self, "lower", _frozen(lo))
-        object.__setattr__(self, "upper", _frozen(hi))
+        object.__setattr__(self, "lower", readonly(lo))
+        object.__setattr__(self, "upper", readonly(hi))
 
     @property
     def dim(self) -> int:
@@ -452,7 +449,7 @@ class Ball(ParameterSet):
         if not (np.isfinite(R) and R > 0):
             raise ParameterSetError(f"Ball: radius must be finite and > 0; got {R}. Use a "
                                     f"positive radius slightly larger than the parameter range.")
-        object.__setattr__(self, "center", _frozen(c))
+        object.__setattr__(self, "center", readonly(c))
         object.__setattr__(self, "radius", R)
 
     @property
@@ -570,9 +567,9 @@ class Ellipsoid(ParameterSet):
             raise ParameterSetError(f"Ellipsoid: shape must be positive definite (a bounded "
                                     f"Θ); its smallest eigenvalue is {lam[0]:.3g}. Each "
                                     f"eigenvalue is 1/a² for a semi-axis a.")
-        object.__setattr__(self, "center", _frozen(c))
-        object.__setattr__(self, "shape", _frozen(Q))
-        object.__setattr__(self, "_eig", (_frozen(lam), _frozen(V)))
+        object.__setattr__(self, "center", readonly(c))
+        object.__setattr__(self, "shape", readonly(Q))
+        object.__setattr__(self, "_eig", (readonly(lam), readonly(V)))
 
     @property
     def dim(self) -> int:
@@ -676,7 +673,7 @@ class ConvexSet(ParameterSet):
         p = c.shape[0]
         object.__setattr__(self, "P", P)
         object.__setattr__(self, "grad_P", grad_P)
-        object.__setattr__(self, "interior_point", _frozen(c))
+        object.__setattr__(self, "interior_point", readonly(c))
         Pc = self._P(c)
         if Pc.shape != () or not (np.isfinite(Pc) and Pc < 0):
             raise ParameterSetError(f"ConvexSet: P(interior_point) must be a finite scalar < 0; "

@@ -8,7 +8,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from .._validate import as_matrix, as_triple
+from .._validate import as_matrix, as_triple, readonly
 from ..errors import DimensionError
 from .paramset import ParameterSet
 from .perturbation import Perturbation
@@ -16,10 +16,6 @@ from .perturbation import Perturbation
 FloatArray = NDArray[np.float64]
 
 
-def _frozen(a: FloatArray) -> FloatArray:
-    a = np.array(a, dtype=np.float64, copy=True)
-    a.setflags(write=False)
-    return a
 
 
 @dataclass(frozen=True, slots=True)
@@ -90,10 +86,10 @@ class PerturbedLinearSystem:
             if parameter_set is not None and parameter_set.dim != pp:
                 raise DimensionError(f"parameter_set has dimension {parameter_set.dim} but the "
                                      f"perturbation has p = {pp} parameters.")
-        object.__setattr__(self, "A", _frozen(A_))
-        object.__setattr__(self, "B", _frozen(B_))
-        object.__setattr__(self, "C", _frozen(C_))
-        object.__setattr__(self, "E", _frozen(E_))
+        object.__setattr__(self, "A", readonly(A_))
+        object.__setattr__(self, "B", readonly(B_))
+        object.__setattr__(self, "C", readonly(C_))
+        object.__setattr__(self, "E", readonly(E_))
         object.__setattr__(self, "perturbation", perturbation)
         object.__setattr__(self, "parameter_set", parameter_set)
 

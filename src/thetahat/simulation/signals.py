@@ -18,7 +18,7 @@ from typing import Literal
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from .._validate import as_vector, check_finite, positive_scalar
+from .._validate import as_vector, check_finite, positive_scalar, readonly
 from ..errors import DimensionError, NonFiniteError
 
 __all__ = ["FromArray", "Multisine", "Signal", "Steps", "time_grid"]
@@ -30,10 +30,6 @@ FloatArray = NDArray[np.float64]
 GRID_SLACK = 1e-9
 
 
-def _readonly(a: ArrayLike) -> FloatArray:
-    arr = np.array(a, dtype=np.float64, copy=True)
-    arr.setflags(write=False)
-    return arr
 
 
 def _as_times(t: ArrayLike) -> FloatArray:
@@ -203,10 +199,10 @@ class Multisine(Signal):
         if np.any(f < 0):
             raise DimensionError(f"frequencies must be >= 0 Hz; got {f.min()}. Use the phase "
                                  f"to flip the sign of a component.")
-        object.__setattr__(self, "amplitudes", _readonly(a2))
-        object.__setattr__(self, "frequencies", _readonly(f))
-        object.__setattr__(self, "phases", _readonly(ph))
-        object.__setattr__(self, "offset", _readonly(off))
+        object.__setattr__(self, "amplitudes", readonly(a2))
+        object.__setattr__(self, "frequencies", readonly(f))
+        object.__setattr__(self, "phases", readonly(ph))
+        object.__setattr__(self, "offset", readonly(off))
 
     @property
     def dim(self) -> int:
@@ -286,9 +282,9 @@ class Steps(Signal):
             raise DimensionError(f"initial must be a scalar or have shape ({v.shape[1]},); "
                                  f"got shape {np.shape(initial)}.") from exc
         check_finite("initial", init)
-        object.__setattr__(self, "times", _readonly(t))
-        object.__setattr__(self, "values", _readonly(v))
-        object.__setattr__(self, "initial", _readonly(init))
+        object.__setattr__(self, "times", readonly(t))
+        object.__setattr__(self, "values", readonly(v))
+        object.__setattr__(self, "initial", readonly(init))
 
     @property
     def dim(self) -> int:
@@ -365,8 +361,8 @@ class FromArray(Signal):
         check_finite("values", v)
         if hold not in ("zoh", "foh"):
             raise DimensionError(f"hold must be 'zoh' or 'foh'; got {hold!r}.")
-        object.__setattr__(self, "t", _readonly(t_))
-        object.__setattr__(self, "values", _readonly(v))
+        object.__setattr__(self, "t", readonly(t_))
+        object.__setattr__(self, "values", readonly(v))
         object.__setattr__(self, "hold", hold)
 
     @property
