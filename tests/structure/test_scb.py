@@ -205,6 +205,7 @@ def test_not_left_invertible_rank_B():
     with pytest.raises(NotLeftInvertibleError, match="B has rank 1") as info:
         scb(A, B, np.eye(3))
     assert info.value.rank_B == 1
+    assert info.value.normal_rank == 4          # n + rank B = 3 + 1 < n + k = 5
 
 
 def test_not_left_invertible_intersection():
@@ -215,7 +216,7 @@ def test_not_left_invertible_intersection():
     with pytest.raises(NotLeftInvertibleError, match=r"V\* ∩ im B\) = 1") as info:
         scb(A, B, C)
     assert info.value.dim_intersection == 1
-    assert info.value.normal_rank < 5
+    assert info.value.normal_rank == 4          # n + k − 1: one input is invisible
 
 
 def test_more_inputs_than_outputs_is_not_left_invertible():

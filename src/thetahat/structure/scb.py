@@ -33,7 +33,7 @@ from numpy.typing import NDArray
 from .._validate import as_triple
 from ..errors import DimensionError, IllConditionedWarning, NotLeftInvertibleError
 from . import subspaces as sub
-from .zeros import unstable_zeros
+from .zeros import normal_rank, unstable_zeros
 
 FloatArray = NDArray[np.float64]
 
@@ -152,7 +152,7 @@ def _check_left_invertible(As, Bs, Cs, QV, QS, tol) -> None:
         if dim_int > 0:
             why.append(f"dim(V* ∩ im B) = {dim_int} > 0 (an input direction can act "
                        "without ever reaching the output)")
-        nrank = n + k - max(k - rB, 0) - dim_int
+        nrank = normal_rank(As, Bs, Cs)
         raise NotLeftInvertibleError(
             "the triple (C, A, B) is not left-invertible: " + "; ".join(why) +
             f". Normal rank of the Rosenbrock matrix ≈ {nrank} < n + k = {n + k}. "
