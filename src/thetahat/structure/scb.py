@@ -155,7 +155,7 @@ def _check_left_invertible(As, Bs, Cs, QV, QS, tol) -> None:
         nrank = normal_rank(As, Bs, Cs)
         raise NotLeftInvertibleError(
             "the triple (C, A, B) is not left-invertible: " + "; ".join(why) +
-            f". Normal rank of the Rosenbrock matrix ≈ {nrank} < n + k = {n + k}. "
+            f". Normal rank of the Rosenbrock matrix {nrank} < n + k = {n + k}. "
             "Assumption 1 requires a left-invertible (C, A, E): add outputs that see the "
             "perturbation, or reduce the perturbation to the directions the outputs see.",
             rank_B=rB, normal_rank=nrank, dim_intersection=dim_int)
