@@ -31,6 +31,7 @@ from .simulation.metrics import rmse, time_to_within
 from .simulation.signals import FromArray, Multisine, Steps
 from .simulation.simulate import PlantTrajectory, convergence_check, simulate_plant
 from .simulation.sweep import SweepResult, eps_sweep
+from .simulation.tune import TuneResult, tune_eps_gamma
 from .structure.assumptions import AssumptionReport, check_assumption_1
 from .structure.scb import SCBResult, scb
 from .structure.scb_symbolic import SymbolicSCBResult, scb_symbolic
@@ -40,7 +41,7 @@ from .structure.zeros import (invariant_zeros, is_left_invertible, is_minimum_ph
 __version__ = "0.1.0"
 
 __all__ = [
-    "BatchObserverResult", "CompiledObserver", "compile_observer", "run_batch",
+    "BatchObserverResult", "TuneResult", "tune_eps_gamma", "CompiledObserver", "compile_observer", "run_batch",
     "AlgebraicInversion", "Ball", "Box", "ConstantLaw", "ConvexSet", "Ellipsoid",
     "ExcitationReport", "GradientInversion", "IntermittentInversion", "ModifiedHighGainObserver",
     "MonotonicityReport", "ObserverEstimate", "ObserverResult", "ParameterSet", "Projection",

@@ -4,6 +4,8 @@ Subcommands::
 
     thetahat demo lugre [--out out] [--eps 1] [--seed 0] [--show]
     thetahat sweep [--eps 1 0.7 0.5 0.3 0.2 0.1] [--seeds 5] [--t-end 20] [--out out]
+    thetahat tune [--eps 1 0.7 0.5 0.3] [--gamma 1 3 10 30] [--seeds 1000 1001] [--t-end 20]
+                  [--out out]
     thetahat analyze MODEL
     thetahat estimate MODEL DATA.csv [-o estimates.csv] [--hold zoh|foh]
 
@@ -55,6 +57,25 @@ def _sweep(args: argparse.Namespace) -> int:
     except ImportError as exc:
         print(f"thetahat: note: {exc}; sweep.png not written", file=sys.stderr)
     print("wrote " + " and ".join(str(p) for p in written))
+    return EXIT_OK
+
+
+def _tune(args: argparse.Namespace) -> int:
+    from .models import lugre
+    from .simulation.tune import tune_eps_gamma
+
+    simulate = functools.partial(lugre.simulate, t_end=args.t_end)
+    result = tune_eps_gamma(lugre.observer, simulate, eps_values=args.eps, gammas=args.gamma,
+                            seeds=args.seeds, theta_hat0=[lugre.Scenario().theta_hat0],
+                            criterion=args.criterion)
+    print(result.table(_LUGRE_STATES))
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "tune.json").write_text(json.dumps(result.to_dict(), indent=2))
+    print(f"wrote {out / 'tune.json'}")
+    if result.best_eps is None:
+        print(f"thetahat: error: {result.verdict()}", file=sys.stderr)
+        return EXIT_INPUT
     return EXIT_OK
 
 
@@ -112,6 +133,25 @@ def _parser() -> argparse.ArgumentParser:
                        help="worker processes (default: 1; -1: all cores)")
     sweep.add_argument("--out", default="out", help="output folder (default: out)")
     sweep.set_defaults(run=_sweep)
+
+    tune = sub.add_parser("tune", help="pick ε and Γ for the LuGre example (Sec. VII)",
+                          description="Grid search over (ε, Γ) on tuning seeds, ε decreasing "
+                                      "from 1 (Sec. VII): reject pairs that diverge, pick the "
+                                      "smallest worst-case score; print the table and write "
+                                      "out/tune.json.")
+    tune.add_argument("--eps", type=float, nargs="+", default=[1, 0.7, 0.5, 0.3],
+                      help="ε values, starting at 1 and decreasing (default: 1 0.7 0.5 0.3)")
+    tune.add_argument("--gamma", type=float, nargs="+", default=[1, 3, 10, 30],
+                      help="Γ values of the update law, > 0 and increasing (default: 1 3 10 "
+                           "30)")
+    tune.add_argument("--seeds", type=int, nargs="+", default=[1000, 1001],
+                      help="tuning noise seeds (default: 1000 1001)")
+    tune.add_argument("--criterion", choices=["theta_rmse", "t_1pct"], default="theta_rmse",
+                      help="score to minimise, worst over the seeds (default: theta_rmse)")
+    tune.add_argument("--t-end", type=float, default=20.0, help="simulated time in s "
+                                                               "(default: 20)")
+    tune.add_argument("--out", default="out", help="output folder (default: out)")
+    tune.set_defaults(run=_tune)
 
     analyze = sub.add_parser("analyze", help="structural report of a model file",
                              description="Assumption 1, the SCB of the error system (4) (and "
