@@ -129,3 +129,20 @@ def readonly(a: Any, dtype: Any = np.float64) -> NDArray[Any]:
     arr = np.array(a, dtype=dtype, copy=True)
     arr.setflags(write=False)
     return arr
+
+
+def as_time_grid(t: Any) -> tuple[FloatArray, FloatArray]:
+    """Sampling instants ``t`` (finite, at least one, strictly increasing) and ``diff(t)``.
+
+    Raises :class:`DimensionError` naming the first offending pair of samples.
+    """
+    t_ = as_vector("t", t)
+    if t_.shape[0] == 0:
+        raise DimensionError("t must hold at least one sampling instant; got none.")
+    dts = np.diff(t_)
+    if t_.shape[0] > 1 and not (dts > 0).all():
+        i = int(np.argmax(dts <= 0))
+        raise DimensionError(f"t must be strictly increasing; t[{i + 1}] = {t_[i + 1]!r} <= "
+                             f"t[{i}] = {t_[i]!r}. Sort the record and drop duplicate time "
+                             "stamps.")
+    return t_, dts

@@ -22,7 +22,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from .._validate import as_vector, check_finite, readonly
+from .._validate import as_time_grid, check_finite, readonly
 from ..errors import DimensionError, NonFiniteError
 from ..model.paramset import Box
 from .discretize import DT_KEY_DIGITS, IMPLICITNESS
@@ -483,16 +483,8 @@ def run_batch(observers: ModifiedHighGainObserver | Sequence[ModifiedHighGainObs
     _check_compatible(obs)
     ref = obs[0]
     n, m, r, k, p, size = ref._sizes
-    t_ = as_vector("t", t)
+    t_, dts = as_time_grid(t)
     N = t_.shape[0]
-    if N == 0:
-        raise DimensionError("t must hold at least one sampling instant; got none.")
-    dts = np.diff(t_)
-    if N > 1 and not (dts > 0).all():
-        i = int(np.argmax(dts <= 0))
-        raise DimensionError(f"t must be strictly increasing; t[{i + 1}] = {t_[i + 1]!r} <= "
-                             f"t[{i}] = {t_[i]!r}. Sort the records and drop duplicate time "
-                             "stamps.")
     B0 = len(obs) if len(obs) > 1 else None
     Yb = _records("Y", Y, B0, N, r)
     B = Yb.shape[0]

@@ -20,7 +20,8 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from .._validate import as_matrix, as_vector, check_finite, positive_scalar, readonly
+from .._validate import (as_matrix, as_time_grid, as_vector, check_finite, positive_scalar,
+                         readonly)
 from ..errors import DimensionError, NonFiniteError
 from ..model.system import PerturbedLinearSystem
 from .discretize import PlanCache, linearly_implicit_exponential_step
@@ -603,16 +604,8 @@ class ModifiedHighGainObserver:
         if hold not in HOLDS:
             raise ValueError(f"hold must be one of {HOLDS}; got {hold!r}.")
         n, m, r, k, p, size = self._sizes
-        t_ = as_vector("t", t)
+        t_, dts = as_time_grid(t)
         N = t_.shape[0]
-        if N == 0:
-            raise DimensionError("t must hold at least one sampling instant; got none.")
-        dts = np.diff(t_)
-        if N > 1 and not (dts > 0).all():
-            i = int(np.argmax(dts <= 0))
-            raise DimensionError(f"t must be strictly increasing; t[{i + 1}] = {t_[i + 1]!r} "
-                                 f"<= t[{i}] = {t_[i]!r}. Sort the record and drop duplicate "
-                                 "time stamps.")
         U = self._record("u", np.zeros((N, 0)) if u is None else u, N, m)
         Y = self._record("y", y, N, r)
         check_finite("u", U)
