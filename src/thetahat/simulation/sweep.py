@@ -29,7 +29,7 @@ from ..errors import (
     SimulationError,
     UpdateLawError,
 )
-from .batch import monte_carlo
+from .batch import _check_seeds, monte_carlo
 from .metrics import diverged, rmse, time_to_within
 
 __all__ = ["SweepResult", "SweepRow", "eps_sweep"]
@@ -333,17 +333,6 @@ def _check_eps(eps_values: Iterable[float]) -> tuple[float, ...]:
             or any(b >= a for a, b in itertools.pairwise(eps)):
         raise DesignError(f"{rule}; got {list(eps)}. E.g. eps_values=[1, 0.7, 0.5, 0.3].")
     return eps
-
-
-def _check_seeds(seeds: Iterable[int]) -> tuple[int, ...]:
-    out = []
-    for s in seeds:
-        if isinstance(s, bool) or not isinstance(s, numbers.Integral) or int(s) < 0:
-            raise DimensionError(f"seeds must be non-negative integers; got {s!r}.")
-        out.append(int(s))
-    if not out:
-        raise DimensionError("seeds must hold at least one seed; e.g. seeds=range(5).")
-    return tuple(out)
 
 
 def _scale(truth: FloatArray) -> float:

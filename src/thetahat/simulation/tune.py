@@ -30,7 +30,8 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from ..errors import DesignError, DimensionError
-from .sweep import _DIVERGENCE_ERRORS, _check_eps, _check_seeds, _metrics, _num, _Run
+from .batch import _check_seeds
+from .sweep import _DIVERGENCE_ERRORS, _check_eps, _metrics, _num, _Run
 
 __all__ = ["CRITERIA", "TuneResult", "tune_eps_gamma"]
 

@@ -371,8 +371,6 @@ def scb(A, B, C, *, tol: float | None = None) -> SCBResult:
     _check_left_invertible(As, Bs, Cs, QV, QS, tol)
     n_a, n_q = QV.shape[1], QS.shape[1]
     n_b = n - n_a - n_q
-    if r < k:  # pragma: no cover - caught by left-invertibility
-        raise NotLeftInvertibleError(f"r = {r} outputs < k = {k} inputs.")
 
     tops, U2 = _chain_tops(Cs, seq, tol)
     lengths = tuple(L for L, _ in tops)
