@@ -1,4 +1,4 @@
-"""Model files: a :class:`~thetahat.model.system.PerturbedLinearSystem` and its estimator as text.
+"""Model-file schema: reading and validating a model file into a :class:`ModelSpec`.
 
 A model file (TOML, read with :mod:`tomllib`, or JSON with the same structure) holds:
 
@@ -48,7 +48,6 @@ from __future__ import annotations
 import json
 import math
 import tomllib
-import warnings
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -57,29 +56,22 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from .design.design_system import DesignSystemReport, apply_design
-from .design.gains import GainDesign, extended_system, high_gain, modified_high_gain
-from .errors import ModelFileError, ThetahatError
-from .estimation.observer import ModifiedHighGainObserver, ObserverResult
-from .estimation.projection import as_gain
-from .estimation.redesign import SecondObserver
-from .estimation.update_laws import (
+from ..errors import ModelFileError, ThetahatError
+from ..estimation.projection import as_gain
+from ..estimation.update_laws import (
     AlgebraicInversion,
     GradientInversion,
     IntermittentInversion,
     UpdateLaw,
     smooth_ramp,
 )
-from .model.paramset import Box
-from .model.parse import parse_perturbation
-from .model.perturbation import SymbolicPerturbation
-from .model.system import PerturbedLinearSystem
-from .structure.assumptions import AssumptionReport, check_assumption_1
-from .structure.scb import SCBResult, scb
+from ..model.paramset import Box
+from ..model.parse import parse_perturbation
+from ..model.perturbation import SymbolicPerturbation
+from ..model.system import PerturbedLinearSystem
 
-__all__ = ["EXAMPLE_MODEL", "EstimatorOptions", "ModelAnalysis", "ModelSpec",
-           "SecondObserverOptions", "analyze_model", "build_observer", "load_model",
-           "loads_model", "run_estimator"]
+__all__ = ["EXAMPLE_MODEL", "EstimatorOptions", "LAWS", "ModelSpec", "SecondObserverOptions",
+           "load_model", "loads_model"]
 
 FloatArray = NDArray[np.float64]
 
@@ -602,240 +594,3 @@ def loads_model(text: str, *, syntax: str = "toml", source: str = "<string>") ->
     return ModelSpec(source=source, name=name, system=system, input_names=names["u"],
                      output_names=names["y"], state_names=names["x"],
                      parameter_names=names["theta"], estimator=estimator)
-
-
-# ---------------------------------------------------------------------------------------------
-# Design, observer, analysis
-# ---------------------------------------------------------------------------------------------
-
-def _design_matrices(spec: ModelSpec) -> tuple[FloatArray, FloatArray, FloatArray]:
-    s, est = spec.system, spec.estimator
-    return (s.A if est.A_design is None else est.A_design,
-            s.E if est.E_design is None else est.E_design, s.C)
-
-
-def _designs(spec: ModelSpec, eps: float | None) -> tuple[GainDesign, GainDesign | None]:
-    est = spec.estimator
-    A_d, E_d, C = _design_matrices(spec)
-    where = "the design system (A_design, E_design)" if (
-        est.A_design is not None or est.E_design is not None) else "(A, E, C)"
-    try:
-        d1 = modified_high_gain(A_d, E_d, C, est.eps if eps is None else eps,
-                                est.chain_poles, est.b_poles)
-    except ThetahatError as exc:
-        raise ModelFileError(f"model file {spec.source}: [estimator] eps/chain_poles/b_poles: "
-                             f"the modified high-gain design on {where} failed: {exc}") from exc
-    d2 = None
-    if est.second is not None:
-        try:
-            d2 = high_gain(A_d, E_d, C, est.second.eps2, est.second.chain_poles,
-                           est.second.b_poles)
-        except ThetahatError as exc:
-            raise ModelFileError(f"model file {spec.source}: [estimator.second]: the "
-                                 f"high-gain design on {where} failed: {exc}") from exc
-    return d1, d2
-
-
-def build_observer(spec: ModelSpec, *, eps: float | None = None) -> ModifiedHighGainObserver:
-    """The estimator of a model file: observer (3) with the file's update law (8).
-
-    The gains K(ε) = [K_x; K_φ] are designed by
-    :func:`~thetahat.design.gains.modified_high_gain` on the design system (or the true one),
-    and the second observer, if any, by :func:`~thetahat.design.gains.high_gain`.
-
-    Parameters
-    ----------
-    spec : ModelSpec
-        From :func:`load_model`.
-    eps : float, optional
-        Overrides ``spec.estimator.eps`` (for ε sweeps).
-
-    Returns
-    -------
-    ModifiedHighGainObserver
-        Start it with ``init(x_hat0=spec.estimator.x_hat0,
-        theta_hat0=spec.estimator.theta_hat0)``, or use :func:`run_estimator`.
-
-    Raises
-    ------
-    ModelFileError
-        The gains cannot be designed (e.g. a wrong number of chain poles, Assumption 1
-        fails on the design system); the message names the keys.
-
-    Examples
-    --------
-    >>> from thetahat.modelfile import EXAMPLE_MODEL, build_observer, loads_model
-    >>> obs = build_observer(loads_model(EXAMPLE_MODEL))
-    >>> obs.K_x.shape, obs.K_phi.shape
-    ((2, 1), (1, 1))
-    """
-    d1, d2 = _designs(spec, eps)
-    second = None
-    if d2 is not None:
-        second = SecondObserver(system=spec.system, K_x=d2.K,
-                                g_on_estimates=spec.estimator.second.g_on_estimates)
-    return ModifiedHighGainObserver.from_design(spec.system, d1, spec.estimator.update_law,
-                                                second=second)
-
-
-def run_estimator(spec: ModelSpec, t: ArrayLike, u: ArrayLike | None, y: ArrayLike, *,
-                  hold: str = "zoh") -> ObserverResult:
-    """Run the file's estimator on sampled data, from the file's initial values.
-
-    Parameters
-    ----------
-    spec : ModelSpec
-    t : array_like, shape (N,)
-        Strictly increasing sampling instants.
-    u : array_like, shape (N, m), or None when m = 0
-    y : array_like, shape (N, r)
-    hold : {"zoh", "foh"}
-        Sample hold (see :meth:`~thetahat.estimation.observer.ModifiedHighGainObserver.run`).
-
-    Returns
-    -------
-    ObserverResult
-
-    Examples
-    --------
-    >>> import numpy as np
-    >>> from thetahat.modelfile import EXAMPLE_MODEL, loads_model, run_estimator
-    >>> spec = loads_model(EXAMPLE_MODEL)
-    >>> t = np.arange(0.0, 1.0, 0.01)
-    >>> res = run_estimator(spec, t, np.sin(t)[:, None], np.zeros((t.size, 1)))
-    >>> res.theta_hat.shape
-    (100, 1)
-    """
-    obs = build_observer(spec)
-    state0 = obs.init(x_hat0=spec.estimator.x_hat0, theta_hat0=spec.estimator.theta_hat0)
-    return obs.run(t, u, y, hold=hold, state0=state0)
-
-
-@dataclass(frozen=True, slots=True, repr=False)
-class ModelAnalysis:
-    """Structural report of a model file (``thetahat analyze``).
-
-    Attributes
-    ----------
-    spec : ModelSpec
-    assumption : AssumptionReport
-        Assumption 1 for the true (C, A, E).
-    scb : SCBResult
-        SCB of the extended error system (4) with K = 0 (true matrices).
-    scb_design : SCBResult or None
-        The same for the design system, when the file gives one.
-    design : GainDesign or None
-        K(ε) = [K_x; K_φ] (None when the design failed: see ``design_error``).
-    spectra : DesignSystemReport or None
-        eig of (4) with K(ε) on the design system and on the true system.
-    design2 : GainDesign or None
-        Gain of the second observer.
-    spectra2 : DesignSystemReport or None
-        Its closed-loop spectra on the design and true systems.
-    design_error : str or None
-        Why the gains could not be designed.
-    warnings : tuple of str
-        Warnings raised during the analysis (e.g. an ill-conditioned SCB).
-    """
-
-    spec: ModelSpec
-    assumption: AssumptionReport
-    scb: SCBResult
-    scb_design: SCBResult | None
-    design: GainDesign | None
-    spectra: DesignSystemReport | None
-    design2: GainDesign | None
-    spectra2: DesignSystemReport | None
-    design_error: str | None
-    warnings: tuple[str, ...]
-
-    def __repr__(self) -> str:
-        return (f"ModelAnalysis(name={self.spec.name!r}, assumption_1={self.assumption.holds}, "
-                f"stable={None if self.spectra is None else self.spectra.stable})")
-
-    def __str__(self) -> str:
-        def eig(z: Any) -> str:
-            return "[" + ", ".join(_complex(v) for v in z) + "]"
-
-        def vec(K: FloatArray) -> str:
-            if K.shape[1] == 1:
-                return "[" + ", ".join(f"{v:.6g}" for v in K.ravel()) + "]"
-            return "[" + "; ".join(", ".join(f"{v:.6g}" for v in row) for row in K) + "]"
-
-        est = self.spec.estimator
-        s = self.spec.system
-        lines = [f"model: {self.spec.name} ({self.spec.source})",
-                 f"  n = {s.n}, m = {s.m}, r = {s.r}, k = {s.k}, p = {s.p}; law = {est.law}",
-                 str(self.assumption),
-                 f"SCB of the error system (4), true matrices: {self.scb!r}"]
-        if self.scb_design is not None:
-            lines.append(f"SCB of the error system (4), design system: {self.scb_design!r}")
-        if self.design_error is not None:
-            lines.append(f"gain design FAILED: {self.design_error}")
-        if self.design is not None:
-            n = self.spec.system.n
-            lines += [f"K(eps = {self.design.eps:g}) = [K_x; K_phi] = {vec(self.design.K)}",
-                      f"  K_x = {vec(self.design.K[:n])}, K_phi = {vec(self.design.K[n:])}",
-                      f"  eig on the design system: {eig(self.spectra.eig_design)}",
-                      f"  eig on the true system:   {eig(self.spectra.eig_true)}",
-                      f"  stable on the true system: {self.spectra.stable}"]
-        if self.design2 is not None:
-            lines += [f"second observer: K(eps2 = {self.design2.eps:g}) = {vec(self.design2.K)}",
-                      f"  eig on the design system: {eig(self.spectra2.eig_design)}",
-                      f"  eig on the true system:   {eig(self.spectra2.eig_true)}",
-                      f"  stable on the true system: {self.spectra2.stable}"]
-        lines += [f"warning: {w}" for w in self.warnings]
-        return "\n".join(lines)
-
-
-def _complex(v: complex) -> str:
-    v = complex(v)
-    if abs(v.imag) <= 1e-12 * max(1.0, abs(v.real)):
-        return f"{v.real:.6g}"
-    return f"{v.real:.6g}{v.imag:+.6g}j"
-
-
-def analyze_model(spec: ModelSpec) -> ModelAnalysis:
-    """Assumption 1, the SCB of (4), K(ε) and the closed-loop spectra of a model file.
-
-    Parameters
-    ----------
-    spec : ModelSpec
-        From :func:`load_model`.
-
-    Returns
-    -------
-    ModelAnalysis
-        ``str(result)`` is the report ``thetahat analyze`` prints.
-
-    Examples
-    --------
-    >>> from thetahat.modelfile import EXAMPLE_MODEL, analyze_model, loads_model
-    >>> report = analyze_model(loads_model(EXAMPLE_MODEL))
-    >>> report.assumption.holds, report.spectra.stable
-    (True, True)
-    """
-    s = spec.system
-    caught: list[str] = []
-    with warnings.catch_warnings(record=True) as record:
-        warnings.simplefilter("always")
-        assumption = check_assumption_1(s.A, s.E, s.C)
-        sc = scb(*extended_system(s.A, s.E, s.C))
-        A_d, E_d, C = _design_matrices(spec)
-        sc_d = None
-        if spec.estimator.A_design is not None or spec.estimator.E_design is not None:
-            sc_d = scb(*extended_system(A_d, E_d, C))
-        design = design2 = spectra = spectra2 = None
-        error = None
-        try:
-            design, design2 = _designs(spec, None)
-        except ModelFileError as exc:
-            error = str(exc)
-        if design is not None:
-            spectra = apply_design(design, s.A, s.E, s.C)
-        if design2 is not None:
-            spectra2 = apply_design(design2, s.A, s.E, s.C)
-    caught = [f"{w.category.__name__}: {w.message}" for w in record]
-    return ModelAnalysis(spec=spec, assumption=assumption, scb=sc, scb_design=sc_d,
-                         design=design, spectra=spectra, design2=design2, spectra2=spectra2,
-                         design_error=error, warnings=tuple(dict.fromkeys(caught)))

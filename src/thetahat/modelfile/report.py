@@ -1,0 +1,151 @@
+"""Model-file report: Assumption 1, the SCB, K(ε) and the spectra (``thetahat analyze``)."""
+
+from __future__ import annotations
+
+import warnings
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from ..design.design_system import DesignSystemReport, apply_design
+from ..design.gains import GainDesign, extended_system
+from ..errors import ModelFileError
+from ..structure.assumptions import AssumptionReport, check_assumption_1
+from ..structure.scb import SCBResult, scb
+from .assembly import design_gains, design_matrices
+from .schema import ModelSpec
+
+__all__ = ["ModelAnalysis", "analyze_model"]
+
+FloatArray = NDArray[np.float64]
+
+@dataclass(frozen=True, slots=True, repr=False)
+class ModelAnalysis:
+    """Structural report of a model file (``thetahat analyze``).
+
+    Attributes
+    ----------
+    spec : ModelSpec
+    assumption : AssumptionReport
+        Assumption 1 for the true (C, A, E).
+    scb : SCBResult
+        SCB of the extended error system (4) with K = 0 (true matrices).
+    scb_design : SCBResult or None
+        The same for the design system, when the file gives one.
+    design : GainDesign or None
+        K(ε) = [K_x; K_φ] (None when the design failed: see ``design_error``).
+    spectra : DesignSystemReport or None
+        eig of (4) with K(ε) on the design system and on the true system.
+    design2 : GainDesign or None
+        Gain of the second observer.
+    spectra2 : DesignSystemReport or None
+        Its closed-loop spectra on the design and true systems.
+    design_error : str or None
+        Why the gains could not be designed.
+    warnings : tuple of str
+        Warnings raised during the analysis (e.g. an ill-conditioned SCB).
+    """
+
+    spec: ModelSpec
+    assumption: AssumptionReport
+    scb: SCBResult
+    scb_design: SCBResult | None
+    design: GainDesign | None
+    spectra: DesignSystemReport | None
+    design2: GainDesign | None
+    spectra2: DesignSystemReport | None
+    design_error: str | None
+    warnings: tuple[str, ...]
+
+    def __repr__(self) -> str:
+        return (f"ModelAnalysis(name={self.spec.name!r}, assumption_1={self.assumption.holds}, "
+                f"stable={None if self.spectra is None else self.spectra.stable})")
+
+    def __str__(self) -> str:
+        def eig(z: Any) -> str:
+            return "[" + ", ".join(_complex(v) for v in z) + "]"
+
+        def vec(K: FloatArray) -> str:
+            if K.shape[1] == 1:
+                return "[" + ", ".join(f"{v:.6g}" for v in K.ravel()) + "]"
+            return "[" + "; ".join(", ".join(f"{v:.6g}" for v in row) for row in K) + "]"
+
+        est = self.spec.estimator
+        s = self.spec.system
+        lines = [f"model: {self.spec.name} ({self.spec.source})",
+                 f"  n = {s.n}, m = {s.m}, r = {s.r}, k = {s.k}, p = {s.p}; law = {est.law}",
+                 str(self.assumption),
+                 f"SCB of the error system (4), true matrices: {self.scb!r}"]
+        if self.scb_design is not None:
+            lines.append(f"SCB of the error system (4), design system: {self.scb_design!r}")
+        if self.design_error is not None:
+            lines.append(f"gain design FAILED: {self.design_error}")
+        if self.design is not None:
+            n = self.spec.system.n
+            lines += [f"K(eps = {self.design.eps:g}) = [K_x; K_phi] = {vec(self.design.K)}",
+                      f"  K_x = {vec(self.design.K[:n])}, K_phi = {vec(self.design.K[n:])}",
+                      f"  eig on the design system: {eig(self.spectra.eig_design)}",
+                      f"  eig on the true system:   {eig(self.spectra.eig_true)}",
+                      f"  stable on the true system: {self.spectra.stable}"]
+        if self.design2 is not None:
+            lines += [f"second observer: K(eps2 = {self.design2.eps:g}) = {vec(self.design2.K)}",
+                      f"  eig on the design system: {eig(self.spectra2.eig_design)}",
+                      f"  eig on the true system:   {eig(self.spectra2.eig_true)}",
+                      f"  stable on the true system: {self.spectra2.stable}"]
+        lines += [f"warning: {w}" for w in self.warnings]
+        return "\n".join(lines)
+
+
+def _complex(v: complex) -> str:
+    v = complex(v)
+    if abs(v.imag) <= 1e-12 * max(1.0, abs(v.real)):
+        return f"{v.real:.6g}"
+    return f"{v.real:.6g}{v.imag:+.6g}j"
+
+
+def analyze_model(spec: ModelSpec) -> ModelAnalysis:
+    """Assumption 1, the SCB of (4), K(ε) and the closed-loop spectra of a model file.
+
+    Parameters
+    ----------
+    spec : ModelSpec
+        From :func:`load_model`.
+
+    Returns
+    -------
+    ModelAnalysis
+        ``str(result)`` is the report ``thetahat analyze`` prints.
+
+    Examples
+    --------
+    >>> from thetahat.modelfile import EXAMPLE_MODEL, analyze_model, loads_model
+    >>> report = analyze_model(loads_model(EXAMPLE_MODEL))
+    >>> report.assumption.holds, report.spectra.stable
+    (True, True)
+    """
+    s = spec.system
+    caught: list[str] = []
+    with warnings.catch_warnings(record=True) as record:
+        warnings.simplefilter("always")
+        assumption = check_assumption_1(s.A, s.E, s.C)
+        sc = scb(*extended_system(s.A, s.E, s.C))
+        A_d, E_d, C = design_matrices(spec)
+        sc_d = None
+        if spec.estimator.A_design is not None or spec.estimator.E_design is not None:
+            sc_d = scb(*extended_system(A_d, E_d, C))
+        design = design2 = spectra = spectra2 = None
+        error = None
+        try:
+            design, design2 = design_gains(spec, None)
+        except ModelFileError as exc:
+            error = str(exc)
+        if design is not None:
+            spectra = apply_design(design, s.A, s.E, s.C)
+        if design2 is not None:
+            spectra2 = apply_design(design2, s.A, s.E, s.C)
+    caught = [f"{w.category.__name__}: {w.message}" for w in record]
+    return ModelAnalysis(spec=spec, assumption=assumption, scb=sc, scb_design=sc_d,
+                         design=design, spectra=spectra, design2=design2, spectra2=spectra2,
+                         design_error=error, warnings=tuple(dict.fromkeys(caught)))
