@@ -14,7 +14,7 @@ from .errors import ModelFileError
 from .estimation.observer import ObserverResult
 from .modelfile import ModelSpec
 
-__all__ = ["DataRecord", "read_data", "estimate_columns", "write_estimates"]
+__all__ = ["DataRecord", "column_candidates", "read_data", "estimate_columns", "write_estimates"]
 
 FloatArray = NDArray[np.float64]
 
@@ -50,6 +50,22 @@ def _aliases(names: tuple[str, ...], letter: str) -> list[list[str]]:
         alts = [name, f"{letter}{i + 1}"] + ([letter] if len(names) == 1 else [])
         out.append(list(dict.fromkeys(alts)))
     return out
+
+
+def column_candidates(spec: ModelSpec) -> list[list[str]]:
+    """The accepted names of each data column: ``[["t"], [u names...]..., [y names...]...]``.
+
+    Each input may be named as in the model, ``u1``, ``u2``, … or ``u`` when m = 1; each output
+    likewise with ``y``. The first name found in a header is used.
+
+    Examples
+    --------
+    >>> from thetahat.modelfile import EXAMPLE_MODEL, loads_model
+    >>> from thetahat.datafile import column_candidates
+    >>> column_candidates(loads_model(EXAMPLE_MODEL))
+    [['t'], ['u', 'u1'], ['y', 'y1']]
+    """
+    return [["t"]] + _aliases(spec.input_names, "u") + _aliases(spec.output_names, "y")
 
 
 def read_data(path: str | Path, spec: ModelSpec) -> DataRecord:
@@ -98,7 +114,7 @@ def read_data(path: str | Path, spec: ModelSpec) -> DataRecord:
                              f"t,{','.join(spec.input_names + spec.output_names)}.")
     header_line, header = rows[0]
     header = [h.strip() for h in header]
-    wanted = [["t"]] + _aliases(spec.input_names, "u") + _aliases(spec.output_names, "y")
+    wanted = column_candidates(spec)
     index = []
     for alts in wanted:
         found = [h for h in alts if h in header]
