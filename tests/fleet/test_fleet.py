@@ -18,11 +18,6 @@ from fleet_data import CORRUPT, MODEL, N_FILES, true_theta, write_fleet
 THETA_ATOL = 0.06
 
 
-@pytest.fixture(scope="module")
-def fleet(fleet_dir):
-    return estimate_many(MODEL, fleet_dir, chunk_size=8, progress=False)
-
-
 def test_one_row_per_file_and_the_corrupt_one_reported(fleet, fleet_dir):
     assert [r["file"] for r in fleet.rows] == [str(p) for p in fleet_files(fleet_dir)]
     assert len(fleet.rows) == N_FILES and fleet.n_ok == N_FILES - 1
