@@ -24,9 +24,17 @@ zero at 0: not minimum-phase. Hence the twist measurement.)
 M = (∂g/∂θ)ᵀ condition (14) holds with S(v, x) = D², positive semidefinite and singular when
 a shaft end is at rest; a drive that keeps turning both ways makes ∫S dτ ≥ σI (persistent
 excitation). ‖g(θ) − g(θ̂)‖ = ‖Dθ̃‖ = (θ̃ᵀSθ̃)^(1/2) gives L_g = 1. The gradient law
-θ̂̇ = Proj(ΓD(φ̂ − g(v, x̂, θ̂))) therefore satisfies Assumption 3; g uses the measured y₁ for
+θ̂̇ = Proj(ΓM(φ̂ − g(v, x̂, θ̂))) therefore satisfies Assumption 3; g uses the measured y₁ for
 the motor side (Remark 4) and x̂ for the load side, and tanh is globally Lipschitz
 (Assumptions 2 and 4).
+
+The load speed ω̂_l is not measured: it comes out of the length-3 chain (the twist's
+derivative), and while the load creeps through zero speed its error is of the order of v_s,
+where tanh is steepest. With M = D alone, F̂_l then dips by up to a third in every reversal.
+:class:`LoadSpeedWeight` uses M = diag(D₁, w(|ω̂_l|) D₂) instead, with w a C¹ ramp from 0
+at |ω̂_l| = 0.2 rad/s to 1 at 0.5: (14) still holds with S = diag(D₁², w D₂²) ⪰ 0, and the
+drive's reversals pass through |ω_l| > 0.5 often enough for persistent excitation. The dips
+fall to under 1 % (measured over the last 3 s of the default scenario).
 
 Examples
 --------
@@ -59,7 +67,8 @@ from ..simulation.signals import Multisine, Signal
 from ..simulation.simulate import PlantTrajectory, simulate_plant
 from ..structure.assumptions import AssumptionReport, check_assumption_1
 
-__all__ = ["DriveParameters", "Scenario", "THETA", "PARAMETER_SET", "EPS", "GAMMA",
+__all__ = ["DriveParameters", "LoadSpeedWeight", "LOAD_SPEED_RAMP", "Scenario", "THETA",
+           "PARAMETER_SET", "EPS", "GAMMA", "TruePhi",
            "assumption_report", "design", "observer", "perturbation", "simulate", "system"]
 
 FloatArray = NDArray[np.float64]
@@ -148,10 +157,46 @@ def design(eps: float = EPS, *, params: DriveParameters = DriveParameters(),
     return modified_high_gain(m["A"], m["E"], m["C"], eps, scaling=scaling)
 
 
+#: Load-speed thresholds (rad/s) of the weight w(|ω̂_l|) in :class:`LoadSpeedWeight`.
+LOAD_SPEED_RAMP = (0.2, 0.5)
+
+
+@dataclass(frozen=True, slots=True)
+class LoadSpeedWeight:
+    """M(v, x̂, θ̂) = diag(tanh(y₁/v_s), w(|ω̂_l|) tanh(ω̂_l/v_s)) of the Proposition 4 law.
+
+    w is :func:`~thetahat.estimation.update_laws.smooth_ramp` over :data:`LOAD_SPEED_RAMP`.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from thetahat.models.two_inertia import LoadSpeedWeight
+    >>> M = LoadSpeedWeight(v_s=0.05)
+    >>> np.round(M(np.array([0.0, 1.0, 0.0]), np.array([1.0, 0.0, 0.1]), np.zeros(2)), 3)
+    array([[1., 0.],
+           [0., 0.]])
+    """
+
+    v_s: float
+    ramp: tuple[float, float] = LOAD_SPEED_RAMP
+
+    def __call__(self, v: ArrayLike, x: ArrayLike, theta: ArrayLike) -> FloatArray:
+        from ..estimation.update_laws import smooth_ramp
+
+        v_, x_ = np.asarray(v, dtype=np.float64), np.asarray(x, dtype=np.float64)
+        w = smooth_ramp(*self.ramp).weight(np.abs(x_[..., 2]))
+        out = np.zeros(np.broadcast_shapes(v_.shape[:-1], x_.shape[:-1],
+                                           np.shape(theta)[:-1]) + (2, 2))
+        out[..., 0, 0] = np.tanh(v_[..., 1] / self.v_s)
+        out[..., 1, 1] = w * np.tanh(x_[..., 2] / self.v_s)
+        return out
+
+
 def observer(eps: float = EPS, *, Gamma: float = GAMMA,
              params: DriveParameters = DriveParameters(),
              scaling: str = "corrigendum") -> ModifiedHighGainObserver:
-    """The estimator: observer (3) with K(ε) and the Proposition 4 gradient law (Γ).
+    """The estimator: observer (3) with K(ε) and the Proposition 4 gradient law (Γ) with
+    M = :class:`LoadSpeedWeight`.
 
     Examples
     --------
@@ -161,7 +206,8 @@ def observer(eps: float = EPS, *, Gamma: float = GAMMA,
     ((3, 2), (2, 2))
     """
     sys_ = system(params)
-    law = GradientInversion(sys_.perturbation, Gamma, sys_.parameter_set)
+    law = GradientInversion(sys_.perturbation, Gamma, sys_.parameter_set,
+                            M=LoadSpeedWeight(params.v_s))
     return ModifiedHighGainObserver.from_design(sys_, design(eps, params=params,
                                                              scaling=scaling), law)
 
