@@ -8,7 +8,7 @@ BIN     := $(VENV)/bin
 STAMP   := $(VENV)/.installed
 LOCK    := requirements/lock.txt
 LOWEST  := requirements/lowest.txt
-EXTRAS  := plot,interop,progress,speed,bench,test
+EXTRAS  := plot,interop,progress,speed,dist,data,bench,test
 
 .PHONY: demo test test-all test-lowest bench bench-quick lock clean
 

@@ -107,7 +107,7 @@ def _estimate(args: argparse.Namespace) -> int:
     print(f"wrote {output} ({data.t.size} rows)")
     if args.plot:
         from .plotting import plot_result
-        plot_result(result, spec, args.plot)
+        plot_result(result, spec, args.plot, y=data.y)
         print(f"wrote {args.plot}")
     return EXIT_OK
 

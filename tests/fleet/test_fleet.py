@@ -70,3 +70,11 @@ def test_cli_fleet_mode(fleet_dir, tmp_path, capsys):
 def test_no_files_is_a_clear_error(tmp_path):
     with pytest.raises(ModelFileError, match="no data files"):
         estimate_many(MODEL, tmp_path)
+
+
+def test_cli_single_record_plot(fleet_dir, tmp_path):
+    pytest.importorskip("matplotlib")
+    fig = tmp_path / "fig.png"
+    assert main(["estimate", str(MODEL), str(fleet_dir / "m00.csv"), "-o",
+                 str(tmp_path / "e.csv"), "--plot", str(fig)]) == 0
+    assert fig.stat().st_size > 10_000
