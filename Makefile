@@ -10,7 +10,7 @@ LOCK    := requirements/lock.txt
 LOWEST  := requirements/lowest.txt
 EXTRAS  := plot,interop,progress,speed,dist,data,bench,test
 
-.PHONY: demo test test-all test-lowest bench bench-quick lock clean
+.PHONY: demo test test-all test-lowest bench bench-quick lock clean docs
 
 $(BIN)/python:
 	$(PY) -m venv $(VENV)
@@ -37,6 +37,18 @@ test-lowest:
 	.venv-lowest/bin/python -m pip install -q -c $(LOWEST) -e ".[test]"
 	.venv-lowest/bin/python -m pytest -q -p no:cacheprovider
 
+# The HTML site (build/site) from docs/ and the docstrings; the examples draw its figures into
+# docs/figures first. mkdocs.yml sets strict: every warning is an error.
+DOCS_STAMP := $(VENV)/.installed-docs
+$(DOCS_STAMP): $(STAMP)
+	$(BIN)/python -m pip install -q -c $(LOCK) -e ".[docs]"
+	touch $(DOCS_STAMP)
+
+docs: $(DOCS_STAMP)
+	$(BIN)/python examples/two_inertia_demo.py --no-show --out docs/figures
+	$(BIN)/python examples/lugre_demo.py --no-show --out docs/figures
+	$(BIN)/python -m mkdocs build --strict --clean
+
 bench: $(STAMP)
 	$(BIN)/python benchmarks/run_all.py
 
@@ -56,4 +68,4 @@ lock:
 	rm -rf .venv-lock
 
 clean:
-	rm -rf $(VENV) .venv-lowest .venv-lock out build src/*.egg-info .pytest_cache
+	rm -rf $(VENV) .venv-lowest .venv-lock out build docs/figures src/*.egg-info .pytest_cache
