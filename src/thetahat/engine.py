@@ -34,6 +34,8 @@ __all__ = ["CHUNK_TARGET", "DEFAULT_RETRIES", "EngineError", "chunks", "run_keye
 #: to keep a few workers busy and to lose little when one dies, few enough that a task of a
 #: typical study (records of seconds at 1 kHz) runs for seconds, not milliseconds.
 CHUNK_TARGET = 16
+#: How long to wait for a scheduler address to answer (s).
+CONNECT_TIMEOUT_S = 10.0
 #: Times the scheduler re-runs a task whose worker died before giving up.
 DEFAULT_RETRIES = 3
 
@@ -98,7 +100,7 @@ def _client(scheduler: Any) -> tuple[Any, bool]:
         raise EngineError(f"scheduler must be an address such as 'tcp://127.0.0.1:8786', a "
                           f"dask.distributed.Client, or None; got {scheduler!r}.")
     try:
-        return Client(scheduler, timeout="10s"), True
+        return Client(scheduler, timeout=f"{CONNECT_TIMEOUT_S}s"), True
     except (OSError, TimeoutError) as exc:
         raise EngineError(f"cannot reach the Dask scheduler at {scheduler}: {exc}. Start one "
                           f"(dask scheduler / dask worker) or drop --scheduler.") from exc

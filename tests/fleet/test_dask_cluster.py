@@ -130,3 +130,27 @@ def test_fleet_with_a_worker_killed(cluster, fleet_dir):
     np.testing.assert_array_equal(there.theta_hat(), here.theta_hat())
     assert there.failed == here.failed
     client.wait_for_workers(2, timeout=60)
+
+
+def _p3_observer(eps):
+    from thetahat import ModifiedHighGainObserver, modified_high_gain
+
+    sys_ = p3.system()
+    d = modified_high_gain(sys_.A, sys_.E, sys_.C, eps)
+    return ModifiedHighGainObserver.from_design(sys_, d, p3.update_law())
+
+
+def _p3_simulate(seed):
+    return p3.simulate(seed=seed, t_end=6.0, fs=20.0)
+
+
+def test_eps_sweep_same_table_on_the_cluster(cluster):
+    from thetahat.simulation.sweep import eps_sweep
+
+    _, client = cluster
+    args = (_p3_observer, _p3_simulate, [1.0, 0.5], range(3))
+    here = eps_sweep(*args, theta_hat0=[0.0], progress=False)
+    there = eps_sweep(*args, theta_hat0=[0.0], progress=False, scheduler=client)
+    a, b = here.to_dict(), there.to_dict()
+    a.pop("wall_time_s"), b.pop("wall_time_s")
+    assert b == a
