@@ -25,7 +25,7 @@ import numbers
 from collections.abc import Callable, Hashable, Sequence
 from typing import Any
 
-from .errors import DimensionError, ThetahatError
+from .errors import DimensionError, MissingExtraError, ThetahatError
 
 __all__ = ["CHUNK_TARGET", "DEFAULT_RETRIES", "EngineError", "chunks", "run_keyed", "seed_task"]
 
@@ -92,7 +92,7 @@ def _client(scheduler: Any) -> tuple[Any, bool]:
     try:
         from dask.distributed import Client
     except ImportError as exc:
-        raise EngineError("a scheduler needs Dask's distributed scheduler: pip install "
+        raise MissingExtraError("a scheduler needs Dask's distributed scheduler: pip install "
                           "'thetahat[dist]' (or leave scheduler=None to run here).") from exc
     if isinstance(scheduler, Client):
         return scheduler, False
@@ -153,8 +153,10 @@ def run_keyed(task: Callable[[list[Any]], list[tuple[Hashable, Any]]], items: Se
     ------
     DimensionError
         Keys are not unique or do not match the items; bad ``chunk_size``.
+    MissingExtraError
+        A scheduler is given but Dask's distributed scheduler is not installed.
     EngineError
-        No Dask for a scheduler, the scheduler cannot be reached, or a key is missing.
+        The scheduler cannot be reached, or a key is missing.
     Exception
         Whatever ``task`` raises (tasks should catch per-item failures themselves).
 

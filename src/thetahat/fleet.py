@@ -40,7 +40,7 @@ from numpy.typing import NDArray
 
 from .datafile import DataRecord, column_candidates, read_data
 from .engine import run_keyed
-from .errors import ModelFileError, ThetahatError
+from .errors import MissingExtraError, ModelFileError
 from .estimation.batch_run import run_batch
 from .modelfile import ModelSpec, build_observer, load_model, loads_model
 from .simulation.metrics import time_to_within
@@ -99,7 +99,7 @@ class FleetResult:
         try:
             import pandas as pd
         except ImportError as exc:
-            raise ImportError("FleetResult.to_dataframe needs pandas: pip install "
+            raise MissingExtraError("FleetResult.to_dataframe needs pandas: pip install "
                               "'thetahat[data]'") from exc
         return pd.DataFrame(list(self.rows), columns=list(self.columns))
 
@@ -146,7 +146,7 @@ def _write_parquet(path: Path, result: FleetResult) -> None:
         import pyarrow as pa
         import pyarrow.parquet as pq
     except ImportError as exc:
-        raise ModelFileError("writing Parquet needs pyarrow: pip install 'thetahat[data]', "
+        raise MissingExtraError("writing Parquet needs pyarrow: pip install 'thetahat[data]', "
                              "or write .csv") from exc
     table = pa.table({c: [r[c] for r in result.rows] for c in result.columns})
     pq.write_table(table, path)

@@ -13,6 +13,8 @@ from typing import Any
 
 import numpy as np
 
+from .errors import MissingExtraError
+
 __all__ = ["result_columns", "result_to_dataframe", "result_to_xarray"]
 
 
@@ -53,13 +55,13 @@ def result_to_dataframe(result: Any, *, state_names: Sequence[str] | None = None
 
     Raises
     ------
-    ImportError
+    MissingExtraError
         pandas is not installed (``pip install 'thetahat[data]'``).
     """
     try:
         import pandas as pd
     except ImportError as exc:
-        raise ImportError("to_dataframe needs pandas: pip install 'thetahat[data]'") from exc
+        raise MissingExtraError("to_dataframe needs pandas: pip install 'thetahat[data]'") from exc
     cols = result_columns(result, state_names=state_names, parameter_names=parameter_names)
     return pd.DataFrame(cols, index=pd.Index(np.asarray(result.t), name="t"))
 
@@ -72,13 +74,13 @@ def result_to_xarray(result: Any, *, state_names: Sequence[str] | None = None,
 
     Raises
     ------
-    ImportError
+    MissingExtraError
         xarray is not installed (``pip install 'thetahat[data]'``).
     """
     try:
         import xarray as xr
     except ImportError as exc:
-        raise ImportError("to_xarray needs xarray: pip install 'thetahat[data]'") from exc
+        raise MissingExtraError("to_xarray needs xarray: pip install 'thetahat[data]'") from exc
     n, k, p = result.x_hat.shape[1], result.phi_hat.shape[1], result.theta_hat.shape[1]
     data = {"x_hat": (("t", "state"), np.asarray(result.x_hat)),
             "phi_hat": (("t", "channel"), np.asarray(result.phi_hat)),
