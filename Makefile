@@ -51,9 +51,10 @@ $(DOCS_STAMP): $(STAMP)
 	$(BIN)/python -m pip install -q -c $(LOCK) -e ".[docs]"
 	touch $(DOCS_STAMP)
 
+# One BLAS thread: the examples step tiny matrices, where OpenBLAS's threads only contend.
 docs: $(DOCS_STAMP)
-	$(BIN)/python examples/two_inertia_demo.py --no-show --out docs/figures
-	$(BIN)/python examples/lugre_demo.py --no-show --out docs/figures
+	OPENBLAS_NUM_THREADS=1 $(BIN)/python examples/two_inertia_demo.py --no-show --out docs/figures
+	OPENBLAS_NUM_THREADS=1 $(BIN)/python examples/lugre_demo.py --no-show --out docs/figures
 	$(BIN)/python -m mkdocs build --strict --clean
 
 bench: $(STAMP)
