@@ -239,6 +239,8 @@ def _advance(Sin, iin, U, Y, iu, dt, P, w, Sout, iout):
             acc += Gx[a, j] * kin[j]
         F[NX + a] -= acc
         phi[a] = g[a] + z[a]
+        if not math.isfinite(phi[a]):
+            return 1
     if law == 3:
         _dg_dtheta(w, Sin, iin, W_v, 0, NZ, W_Gth)
     status = _law_step(Sin, iin, dt, P, w)
@@ -340,9 +342,11 @@ def run(s0, U, Y, dts, P, S, PHI):
             PHI[i, a] = phi[a]
         if status != 0:
             return status, i
+        sq = 0.0
         for j in range(size):
-            if not math.isfinite(S[i + 1, j]):
-                return 1, i + 1
+            sq += S[i + 1, j] * S[i + 1, j]
+        if not sq <= BOUND_SQ:
+            return 1, i
     for j in range(NU):
         v[j] = U[N - 1, j]
     for j in range(NY):
