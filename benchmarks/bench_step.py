@@ -10,6 +10,9 @@ Paths (all with the second observer, ZOH, 1 kHz, ε = 1, Γ = 1):
 * ``batch``: ``run_batch`` over BATCH_SIZE seeds (µs per observer-step, i.e. per sample per run);
 * ``compiled``: ``CompiledObserver.run`` (µs per sample, loop in numba; skipped without numba).
 
+Times are CPU times of the process (``time.process_time``, best of a few repetitions), which a
+shared machine disturbs less than wall time; run with ``OPENBLAS_NUM_THREADS=1`` there (BLAS
+threads fighting over busy cores made a 15×15 ``expm`` 1000× slower in our measurements).
 With ``--against``, each round measures this tree and the other one in two fresh processes
 (alternating, so both see the same machine load) and prints the ratio ours ÷ other of the best
 time per path: < 1 means this tree is faster.
@@ -39,10 +42,10 @@ s0 = obs.init(theta_hat0=[0.5])
 N = tr.t.size
 dt = float(tr.t[1] - tr.t[0])
 out = {}
-def best(fn, reps=2):
+def best(fn, reps=3):
     b = float("inf")
     for _ in range(reps):
-        t0 = time.perf_counter(); fn(); b = min(b, time.perf_counter() - t0)
+        t0 = time.process_time(); fn(); b = min(b, time.process_time() - t0)
     return b
 def loop():
     s = s0

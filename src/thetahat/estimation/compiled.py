@@ -355,13 +355,13 @@ def _configure(observer: ModifiedHighGainObserver) -> tuple[int, ThetaStar | Non
     if not isinstance(pert, SymbolicPerturbation):
         raise _unsupported(f"a {type(pert).__name__} g (it must be a SymbolicPerturbation)")
     law = observer.update_law
+    if law.state_size:
+        raise _unsupported("an update law with a state")
     code = _law_code(law)
     if not isinstance(law.parameter_set, Box):
         raise _unsupported(f"Θ = {type(law.parameter_set).__name__} (it must be a Box)")
     if getattr(law, "saturation", None) is not None:
         raise _unsupported("an update law with saturation")
-    if law.state_size:
-        raise _unsupported("an update law with a state")
     if code != 0:
         _diagonal_gain(law)
     if code == 3 and law.M is not None:

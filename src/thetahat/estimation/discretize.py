@@ -180,9 +180,9 @@ def batched_step(s: FloatArray, F: FloatArray, N: FloatArray, Phi1: FloatArray,
 
     Parameters
     ----------
-    s, F : ndarray, shape (B, q)
-        States and right-hand sides.
-    N : ndarray, shape (B, q, q)
+    s, F : ndarray, shape (B, q) or (q,)
+        States and right-hand sides (one row without the batch axis).
+    N : ndarray, shape (B, q, q) or (q, q)
         State-dependent Jacobian parts.
     Phi1, Phi2 : ndarray, shape (B|1, q, q)
         φ-matrices per row, or one pair shared by all rows.
@@ -202,21 +202,28 @@ def batched_step(s: FloatArray, F: FloatArray, N: FloatArray, Phi1: FloatArray,
     >>> bool(np.allclose(s1, np.exp(-0.1)))
     True
     """
-    shared = Phi1.shape[0] == 1
-    rhs = F @ Phi1[0].T if shared else np.matmul(Phi1, F[..., None])[..., 0]
+    q = s.shape[-1]
+    if s.ndim == 1 or s.shape[0] == 1:   # one row: 2-D products and LAPACK's gesv directly
+        one = s.ndim == 1
+        P1 = Phi1[0]
+        rhs1 = P1 @ (F if one else F[0])
+        if F_dot is not None and Phi2 is not None:
+            rhs1 = rhs1 + Phi2[0] @ (F_dot if one else F_dot[0])
+        M1 = P1 @ (N if one else N[0])
+        M1 *= -IMPLICITNESS
+        M1.flat[::q + 1] += 1.0
+        # np.linalg.solve's wrapper costs ~4 µs more per call on 3×3.
+        _, _, delta, info = _gesv(M1, rhs1)
+        if info != 0:
+            delta = np.linalg.solve(M1, rhs1)   # raises LinAlgError with numpy's message
+        return s + (delta if one else delta[None])
+    rhs = F @ Phi1[0].T if Phi1.shape[0] == 1 else np.matmul(Phi1, F[..., None])[..., 0]
     if F_dot is not None and Phi2 is not None:
         rhs = rhs + (F_dot @ Phi2[0].T if Phi2.shape[0] == 1
                      else np.matmul(Phi2, F_dot[..., None])[..., 0])
     M = np.matmul(Phi1, N)
     M *= -IMPLICITNESS
-    q = M.shape[-1]
     M[..., np.arange(q), np.arange(q)] += 1.0
-    if M.shape[0] == 1:
-        # LAPACK gesv directly: np.linalg.solve's wrapper costs ~4 µs more per call on 3×3.
-        _, _, delta, info = _gesv(M[0], rhs[0])
-        if info != 0:
-            delta = np.linalg.solve(M[0], rhs[0])   # raises LinAlgError with numpy's message
-        return s + delta[None]
     return s + np.linalg.solve(M, rhs[..., None])[..., 0]
 
 
@@ -253,5 +260,4 @@ def linearly_implicit_exponential_step(s: FloatArray, F: FloatArray, N: FloatArr
     >>> bool(np.isclose(s1[0], np.exp(-0.1)))
     True
     """
-    return batched_step(s[None], F[None], N[None], plan.Phi1[None], plan.Phi2[None],
-                        None if F_dot is None else F_dot[None])[0]
+    return batched_step(s, F, N, plan.Phi1[None], plan.Phi2[None], F_dot)

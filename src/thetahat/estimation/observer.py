@@ -362,6 +362,9 @@ class ModifiedHighGainObserver:
         >>> obs.plan(1e-3) is obs.plan(1e-3 * (1 + 1e-15))
         True
         """
+        plan = self._plans.get(dt)        # fast path: this very step length was seen
+        if plan is not None:
+            return plan
         key = dt_key(dt)
         plan = self._plans.get(key)
         if plan is None:
@@ -373,8 +376,9 @@ class ModifiedHighGainObserver:
                 second=None if self.second is None else self.second.plan(key, predict=predict),
                 Gamma=self.update_law.gain, law_size=self.layout.law_size, predict=predict)
             self._plans[key] = plan
-            if len(self._plans) > PLAN_CACHE_SIZE:
-                self._plans.popitem(last=False)
+        self._plans[float(dt)] = plan
+        while len(self._plans) > PLAN_CACHE_SIZE:
+            self._plans.popitem(last=False)
         return plan
 
     def _split(self, s: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray,
@@ -541,8 +545,7 @@ class ModifiedHighGainObserver:
         x, _, th, x2 = self._split(s)
         pert = self.system.perturbation
         plan = self.plan(RHS_PLAN_DT)
-        F, phi, _, vv = (a[0] for a in observer_forcing(plan, pert, s[None, :lay.n + lay.k],
-                                                        th[None], u[None], y[None], correct))
+        F, phi, _, vv = observer_forcing(plan, pert, s[:lay.n + lay.k], th, u, y, correct)
         parts = [F]
         if correct:
             th_dot = np.asarray(self.update_law.rate(vv, x, phi, th),
@@ -552,9 +555,9 @@ class ModifiedHighGainObserver:
             th_dot = np.zeros_like(th)
         parts.append(th_dot)
         if x2 is not None and self.second is not None:
-            F2, _ = second_forcing(self.second.plan(RHS_PLAN_DT), pert, x2[None], u[None],
-                                   y[None], th[None], correct, want_N=False)
-            parts.append(F2[0])
+            F2, _ = second_forcing(self.second.plan(RHS_PLAN_DT), pert, x2, u, y, th, correct,
+                                   want_N=False)
+            parts.append(F2)
         return np.concatenate(parts)
 
     def init(self, x_hat0: Any = None, theta_hat0: Any = None, z0: Any = None, *,
@@ -628,11 +631,11 @@ class ModifiedHighGainObserver:
         s = self.check_state(state)
         h = positive_scalar("dt", dt)
         with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
-            nxt = advance(self.plan(h), self.system.perturbation, self.update_law, s[None],
-                          u_[None], y_[None], h, correct)
-        if diverged(nxt)[0]:
+            nxt = advance(self.plan(h), self.system.perturbation, self.update_law, s, u_, y_, h,
+                          correct)
+        if diverged(nxt):
             raise divergence_error("in this step")
-        return nxt[0]
+        return nxt
 
     def estimate(self, state: Any, u: Any, y: Any) -> ObserverEstimate:
         """Read x̂, φ̂ = g(v, x̂, θ̂) + z (3c), θ̂ (and x̂₂) from a state and the current samples.

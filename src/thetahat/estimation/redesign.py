@@ -188,9 +188,9 @@ class SecondObserver:
         u, y = self._check_samples(v_[:sysm.m], v_[sysm.m:])
         x2 = as_vector("x_hat2", x_hat2, sysm.n)
         th = as_vector("theta_hat", theta_hat, sysm.p)
-        F, _ = second_forcing(self.plan(1.0), sysm.perturbation, x2[None], u[None], y[None],
-                              th[None], True, want_N=False)
-        return F[0]
+        F, _ = second_forcing(self.plan(1.0), sysm.perturbation, x2, u, y, th, True,
+                              want_N=False)
+        return F
 
     def step(self, x_hat2: Any, u: Any, y: Any, theta_hat: Any, dt: float) -> FloatArray:
         """Advance x̂₂ by ``dt`` holding the current samples (zero-order hold).
@@ -218,8 +218,7 @@ class SecondObserver:
         x2 = as_vector("x_hat2", x_hat2, sysm.n)
         th = as_vector("theta_hat", theta_hat, sysm.p)
         h = positive_scalar("dt", dt)
-        return second_advance(self.plan(h), sysm.perturbation, x2[None], u_[None], y_[None],
-                              th[None], h, True)[0]
+        return second_advance(self.plan(h), sysm.perturbation, x2, u_, y_, th, h, True)
 
     def __repr__(self) -> str:
         return (f"SecondObserver(n={self.system.n}, r={self.system.r}, "

@@ -47,10 +47,22 @@ DIVERGENCE_BOUND = 1e100
 
 
 def _mv(M: FloatArray, x: FloatArray) -> FloatArray:
-    """Batched matrix-vector product: M (B|1, a, b), x (B, b) -> (B, a)."""
+    """Plan matrix times vectors: M (B|1, a, b), x (b,) or (B, b) -> (a,) or (B, a)."""
     if M.shape[0] == 1:
         return x @ M[0].T
     return np.matmul(M, x[..., None])[..., 0]
+
+
+def _gmv(G: FloatArray, w: FloatArray) -> FloatArray:
+    """Jacobian times vectors: G (k, n) or (B, k, n), w (n,) or (B, n)."""
+    if w.ndim == 1:
+        return G @ w
+    return np.matmul(G, w[..., None])[..., 0]
+
+
+def _shared(M: FloatArray) -> FloatArray:
+    """A plan matrix without its batch axis when the rows share it."""
+    return M[0] if M.shape[0] == 1 else M
 
 
 def observer_forcing(plan: StepPlan, pert: Perturbation, xz: FloatArray, th: FloatArray,
@@ -81,20 +93,20 @@ def observer_forcing(plan: StepPlan, pert: Perturbation, xz: FloatArray, th: Flo
     v : ndarray, shape (B, m + r)
     """
     n = plan.layout.n
-    x, z = xz[:, :n], xz[:, n:]
+    x, z = xz[..., :n], xz[..., n:]
     if correct:
-        v = np.concatenate((u, y), axis=1)
+        v = np.concatenate((u, y), axis=-1)
     else:
-        v = np.concatenate((u, x @ plan.C.T), axis=1)
+        v = np.concatenate((u, x @ plan.C.T), axis=-1)
     g = np.asarray(pert.g(v, x, th), dtype=np.float64)
     Gx = np.asarray(pert.dg_dx(v, x, th), dtype=np.float64)
     if correct:
         F = _mv(plan.L, xz) + _mv(plan.Bv, v)
-        F[:, :n] += g @ plan.E.T
-        F[:, n:] -= np.matmul(Gx, _mv(plan.K_x, y - x @ plan.C.T)[..., None])[..., 0]
+        F[..., :n] += g @ plan.E.T
+        F[..., n:] -= _gmv(Gx, _mv(plan.K_x, y - x @ plan.C.T))
     else:
         F = np.zeros(xz.shape)
-        F[:, :n] = x @ plan.A.T + u @ plan.B.T + (g + z) @ plan.E.T
+        F[..., :n] = x @ plan.A.T + u @ plan.B.T + (g + z) @ plan.E.T
     return F, g + z, Gx, v
 
 
@@ -121,13 +133,13 @@ def observer_jacobian(plan: StepPlan, pert: Perturbation, Gx: FloatArray, v: Flo
     """
     lay = plan.layout
     n, q = lay.n, lay.n + lay.k
-    N = np.zeros((x.shape[0], q, q))
+    N = np.zeros(x.shape[:-1] + (q, q))
     if correct:
-        N[:, :n, :n] = plan.E @ Gx
-        N[:, n:, :n] = Gx @ plan.KxC
+        N[..., :n, :n] = plan.E @ Gx
+        N[..., n:, :n] = Gx @ _shared(plan.KxC)
     else:
         Gv = np.asarray(pert.dg_dv(v, x, th), dtype=np.float64)
-        N[:, :n, :n] = plan.E @ (Gx + Gv[:, :, lay.m:] @ plan.C)
+        N[..., :n, :n] = plan.E @ (Gx + Gv[..., lay.m:] @ plan.C)
     return N
 
 
@@ -160,7 +172,7 @@ def second_forcing(plan: SecondPlan, pert: Perturbation, x2: FloatArray, u: Floa
     m = plan.B.shape[1]
     y_hat = x2 @ plan.C.T
     on_est = plan.g_on_estimates or not correct
-    v = np.concatenate((u, y_hat if on_est else y), axis=1)
+    v = np.concatenate((u, y_hat if on_est else y), axis=-1)
     g = np.asarray(pert.g(v, x2, th), dtype=np.float64)
     F = x2 @ plan.A.T + u @ plan.B.T + g @ plan.E.T
     if correct:
@@ -169,7 +181,7 @@ def second_forcing(plan: SecondPlan, pert: Perturbation, x2: FloatArray, u: Floa
         return F, None
     Jg = np.asarray(pert.dg_dx(v, x2, th), dtype=np.float64)
     if on_est:
-        Jg = Jg + np.asarray(pert.dg_dv(v, x2, th), dtype=np.float64)[:, :, m:] @ plan.C
+        Jg = Jg + np.asarray(pert.dg_dv(v, x2, th), dtype=np.float64)[..., m:] @ plan.C
     return F, plan.E @ Jg
 
 
@@ -238,43 +250,47 @@ def advance(plan: StepPlan, pert: Perturbation, law: UpdateLaw, s: FloatArray, u
     lay = plan.layout
     n, k = lay.n, lay.k
     q = n + k
-    xz, x, th = s[:, :q], s[:, :n], s[:, lay.theta]
+    xz, x, th = s[..., :q], s[..., :n], s[..., lay.theta]
     F, phi, Gx, v = observer_forcing(plan, pert, xz, th, u0, y0, correct)
-    bad = ~np.isfinite(phi).all(axis=1)
-    if bad.any():                     # g overflowed at a finite state: report the divergence
-        out = np.array(s, dtype=np.float64, copy=True)
-        out[bad] = np.nan
-        if (~bad).any():
-            good = np.flatnonzero(~bad)
-            out[good] = advance(plan.rows(good), pert, law, s[good], u0[good], y0[good], dt,
-                                correct, None if u1 is None else u1[good],
-                                None if y1 is None else y1[good])
+    finite = np.isfinite(phi).all(axis=-1)
+    if not finite.all():              # g overflowed at a finite state: report the divergence
+        if s.ndim == 1:
+            return np.full_like(s, np.nan)
+        out = np.full_like(s, np.nan)
+        good = np.flatnonzero(finite)
+        out[good] = advance(plan.rows(good), pert, law, s[good], u0[good], y0[good], dt,
+                            correct, None if u1 is None else u1[good],
+                            None if y1 is None else y1[good])
         return out
-    th_next, ls_next = th, s[:, lay.law]
+    th_next, ls_next = th, s[..., lay.law]
     z_theta = None
     if correct:
-        if s.shape[0] == 1:           # batch of one: the law sees one sample, shape (size,)
-            th1, ls1 = law.advance(v[0], x[0], phi[0], th[0], ls_next[0], dt)
-            th_next = np.asarray(th1, dtype=np.float64).reshape(1, lay.p)
-            ls_next = np.asarray(ls1, dtype=np.float64).reshape(1, lay.law_size)
+        if s.ndim == 1:
+            th1, ls1 = law.advance(v, x, phi, th, ls_next, dt)
+            th_next = np.asarray(th1, dtype=np.float64).reshape(lay.p)
+            ls_next = np.asarray(ls1, dtype=np.float64).reshape(lay.law_size)
+            d_th = th_next - th
+            if d_th.any():            # skip ∂g/∂θ while θ̂ rests (held, l = 0, ...)
+                z_theta = -(np.asarray(pert.dg_dtheta(v, x, th), dtype=np.float64) @ d_th) / dt
+                F[n:] += z_theta
         else:
             G = plan.Gamma if plan.Gamma is not None and plan.Gamma.shape[0] > 1 else None
             th_next, ls_next = law.advance(v, x, phi, th, ls_next, dt, Gamma=G)
-        d_th = th_next - th
-        moving = np.flatnonzero(np.any(d_th != 0, axis=1))
-        if moving.size:               # skip ∂g/∂θ for the rows whose θ̂ rests
-            z_theta = np.zeros((s.shape[0], k))
-            Gth = np.asarray(pert.dg_dtheta(v[moving], x[moving], th[moving]),
-                             dtype=np.float64)
-            z_theta[moving] = -np.matmul(Gth, d_th[moving][..., None])[..., 0] / dt
-            F[:, n:] += z_theta
+            d_th = th_next - th
+            moving = np.flatnonzero(np.any(d_th != 0, axis=1))
+            if moving.size:           # skip ∂g/∂θ for the rows whose θ̂ rests
+                z_theta = np.zeros((s.shape[0], k))
+                Gth = np.asarray(pert.dg_dtheta(v[moving], x[moving], th[moving]),
+                                 dtype=np.float64)
+                z_theta[moving] = -_gmv(Gth, d_th[moving]) / dt
+                F[:, n:] += z_theta
     N = observer_jacobian(plan, pert, Gx, v, x, th, correct)
     F_dot = None
     if u1 is not None:
         F1 = observer_forcing(plan, pert, xz, th, u1, y1 if (correct and y1 is not None)
                               else y0, correct)[0]
         if z_theta is not None:
-            F1[:, n:] += z_theta
+            F1[..., n:] += z_theta
         F_dot = (F1 - F) / dt
     if correct:
         xz_next = batched_step(xz, F, N, plan.Phi1, plan.Phi2, F_dot)
@@ -282,11 +298,11 @@ def advance(plan: StepPlan, pert: Perturbation, law: UpdateLaw, s: FloatArray, u
         xz_next = batched_step(xz, F, N, plan.Phi1_open, plan.Phi2_open, F_dot)
     parts = [xz_next, th_next]
     if plan.second is not None:
-        parts.append(second_advance(plan.second, pert, s[:, lay.x2], u0, y0, th, dt, correct,
-                                    u1, y1 if correct else None))
+        parts.append(second_advance(plan.second, pert, s[..., lay.x2], u0, y0, th, dt,
+                                    correct, u1, y1 if correct else None))
     if lay.law_size:
         parts.append(ls_next)
-    return np.concatenate(parts, axis=1)
+    return np.concatenate(parts, axis=-1)
 
 
 def diverged(s: FloatArray) -> NDArray[np.bool_]:
@@ -294,11 +310,11 @@ def diverged(s: FloatArray) -> NDArray[np.bool_]:
 
     Parameters
     ----------
-    s : ndarray, shape (B, size)
+    s : ndarray, shape (B, size) or (size,)
 
     Returns
     -------
-    ndarray of bool, shape (B,)
+    ndarray of bool, shape (B,) or ()
 
     Examples
     --------
@@ -307,6 +323,8 @@ def diverged(s: FloatArray) -> NDArray[np.bool_]:
     [False, True, True]
     """
     with np.errstate(over="ignore", invalid="ignore"):
+        if s.ndim == 1:
+            return np.bool_(not float(s @ s) <= DIVERGENCE_BOUND ** 2)
         sq = np.einsum("ij,ij->i", s, s)
     return ~(sq <= DIVERGENCE_BOUND ** 2)
 
@@ -363,10 +381,16 @@ def integrate(plan_for: Callable[[float], StepPlan], pert: Perturbation, law: Up
     S = np.empty((B, N, s0.shape[1]))
     S[:, 0] = s = s0
     every = ok.all(axis=0)
+    plans: dict[float, StepPlan] = {}
+    if B == 1:                        # the batch of one runs on (size,) vectors
+        _integrate_one(plan_for, plans, pert, law, S[0], t, dts, U[0], Y[0], ok[0], foh)
+        return S
     with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
         for i in range(N - 1):
             dt = float(dts[i])
-            plan = plan_for(dt)
+            plan = plans.get(dt)
+            if plan is None:
+                plan = plans[dt] = plan_for(dt)
             u1 = U[:, i + 1] if foh else None
             y1 = (Y[:, i + 1] if every[i + 1] else np.where(ok[:, i + 1, None], Y[:, i + 1],
                                                              Y[:, i])) if foh else None
@@ -384,10 +408,32 @@ def integrate(plan_for: Callable[[float], StepPlan], pert: Perturbation, law: Up
                 s = nxt
             bad = diverged(s)
             if bad.any():
-                row = f" of run {int(np.argmax(bad))}" if B > 1 else ""
-                raise divergence_error(f"{row} in the step from t[{i}] = {t[i]!r}".lstrip())
+                raise divergence_error(f"of run {int(np.argmax(bad))} in the step from "
+                                       f"t[{i}] = {t[i]!r}")
             S[:, i + 1] = s
     return S
+
+
+def _integrate_one(plan_for: Callable[[float], StepPlan], plans: dict[float, StepPlan],
+                   pert: Perturbation, law: UpdateLaw, S: FloatArray, t: FloatArray,
+                   dts: FloatArray, U: FloatArray, Y: FloatArray, ok: NDArray[np.bool_],
+                   foh: bool) -> None:
+    """:func:`integrate` for one row, into S (N, size) whose row 0 holds the initial state."""
+    s = S[0]
+    with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
+        for i in range(S.shape[0] - 1):
+            dt = float(dts[i])
+            plan = plans.get(dt)
+            if plan is None:
+                plan = plans[dt] = plan_for(dt)
+            if foh:
+                s = advance(plan, pert, law, s, U[i], Y[i], dt, bool(ok[i]), U[i + 1],
+                            Y[i + 1] if ok[i + 1] else Y[i])
+            else:
+                s = advance(plan, pert, law, s, U[i], Y[i], dt, bool(ok[i]))
+            if diverged(s):
+                raise divergence_error(f"in the step from t[{i}] = {t[i]!r}")
+            S[i + 1] = s
 
 
 def readout(pert: Perturbation, C: FloatArray, S: FloatArray, U: FloatArray, Y: FloatArray,

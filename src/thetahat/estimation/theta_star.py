@@ -236,16 +236,19 @@ class ThetaStar:
         ndarray, shape (..., p)
         """
         v_, x_, ph = (np.asarray(a, dtype=np.float64) for a in (v, x, phi))
-        args = [*np.moveaxis(v_, -1, 0), *np.moveaxis(x_, -1, 0), *np.moveaxis(ph, -1, 0)]
+        args = ([v_[..., i] for i in range(v_.shape[-1])] + [x_[..., i] for i in range(x_.shape[-1])]
+                + [ph[..., i] for i in range(ph.shape[-1])])
+        shape = np.broadcast_shapes(v_.shape[:-1], x_.shape[:-1], ph.shape[:-1])
         with np.errstate(all="ignore"):
-            vals = [np.asarray(e) for e in self.fn(*args)]
-        vals = np.broadcast_arrays(*vals, *args)[:len(vals)]
-        out = np.stack(vals, axis=-1)
+            vals = self.fn(*args)
+        out = np.empty(shape + (len(vals),), dtype=np.result_type(*vals, np.float64))
+        for j, val in enumerate(vals):
+            out[..., j] = val
         if np.iscomplexobj(out):
             real = np.abs(out.imag) <= SOLVE_RTOL * (1.0 + np.abs(out.real))
-            out = np.where(real, out.real, np.nan)
-        out = out.astype(np.float64)
-        out[~np.isfinite(out)] = np.nan
+            out = np.where(real, out.real, np.nan).astype(np.float64)
+        if not np.isfinite(out).all():
+            out[~np.isfinite(out)] = np.nan
         return out
 
     def __eq__(self, other: object) -> bool:
