@@ -66,7 +66,7 @@ else:
     try:                      # θ* carries its SymPy form
         fast = compile_observer(obs, dt=dt)
     except NotImplementedError:   # thetahat 0.1: θ* given separately
-        fast = compile_observer(obs, dt=dt, theta_star=lugre.theta_star_expr())
+        fast = compile_observer(obs, dt=dt, theta_star=lugre.theta_star_expr())  # 0.1 API
     fast.run(tr.t[:50], tr.u[:50], tr.y[:50], state0=s0)
     out["compiled"] = 1e6 * best(lambda: fast.run(tr.t, tr.u, tr.y, state0=s0), 5) / N
 print("RESULT " + json.dumps(out))

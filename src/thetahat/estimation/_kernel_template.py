@@ -1,9 +1,13 @@
 """Source template of the numba kernel (see ``compiled.py``): pure-Python code, as text.
 
 The text is expanded (named offsets into the flat work and constants vectors) and compiled
-by ``compiled.py``; it implements one observer step exactly as ``observer.py`` does: the cached
-exponential of the linear part, the linearly-implicit correction for g, the update law's step
-with the box projection, and the second observer.
+by ``compiled.py``; it is a scalar, allocation-free transcription of the step defined in
+``step.py`` (the φ-matrices of the plan, the linearly-implicit correction for g, the update
+law's step with the box projection, the second observer, the divergence rule of
+``step.DIVERGENCE_BOUND``); ``tests/estimation/test_conformance.py`` holds it to that
+definition. Its data (matrices, gains, φ-matrices, Γ, Θ) come from the observer's StepPlan and
+its g, Jacobians and θ* are printed from the same SymPy expressions the Python path
+lambdifies.
 """
 
 #: The dimension-generic part of every kernel, in a notation that :func:`_expand` rewrites:

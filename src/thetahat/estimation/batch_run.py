@@ -233,11 +233,13 @@ def run_batch(observers: ModifiedHighGainObserver | Sequence[ModifiedHighGainObs
 
     Notes
     -----
-    The step is that of :class:`ModifiedHighGainObserver` (see its Notes), eqs. (3a)–(3c)
-    and (8). Different Γ in one batch cost one call of the update law per distinct Γ, except
-    for Propositions 1–2 (:class:`AlgebraicInversion`, :class:`IntermittentInversion`) on a
-    box with diagonal Γ, whose exact step is evaluated for all rows at once. Runs whose
-    sample is missing (``nan_policy="skip"``) are advanced separately for that step.
+    The step is :func:`thetahat.estimation.step.advance` — the same function
+    :class:`ModifiedHighGainObserver` runs as the batch of one — over the observers'
+    :class:`~thetahat.estimation.plan.StepPlan` stacked along the batch axis, eqs. (3a)–(3c)
+    and (8). Γ per row reaches the update law through its public ``advance(..., Gamma=)``.
+    Runs whose sample is missing (``nan_policy="skip"``) are advanced separately for that
+    step. A run that diverges (:func:`~thetahat.estimation.step.diverged`) raises the same
+    error, at the same sample, as its ``run``.
 
     **Throughput** (DC motor of Sec. VIII with the second observer, 1 kHz, shared 2-core
     machine): about 4·10³ observer steps per second for B = 1 (a loop of ``run``: 5.5·10³),
@@ -245,6 +247,7 @@ def run_batch(observers: ModifiedHighGainObserver | Sequence[ModifiedHighGainObs
     ``scipy.integrate.solve_ivp(observer.rhs, method="LSODA")`` with a piecewise-constant
     input (80 steps per second). The compiled kernel of
     :mod:`thetahat.estimation.compiled` runs one observer at about 3·10⁶ steps per second.
+    ``benchmarks/bench_step.py`` measures the per-step cost of every path.
 
     Examples
     --------

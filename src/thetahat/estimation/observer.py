@@ -1,6 +1,7 @@
 """The modified high-gain observer (3) of Sec. III, with the parameter estimator (8) in the loop.
 
-State ``s = col(x̂, z, θ̂)`` (plus ``x̂₂`` when a :class:`SecondObserver` is attached), and
+State ``s = col(x̂, z, θ̂)`` (plus ``x̂₂`` when a :class:`SecondObserver` is attached, and the
+update law's own state when it has one), and
 
     x̂̇ = A x̂ + B u + E φ̂ + K_x (y − C x̂),                                  (3a)
     ż  = −∂g/∂θ(v, x̂, θ̂) θ̂̇ − ∂g/∂x(v, x̂, θ̂) K_x (y − C x̂) + K_φ (y − C x̂),  (3b)
@@ -8,7 +9,9 @@ State ``s = col(x̂, z, θ̂)`` (plus ``x̂₂`` when a :class:`SecondObserver` 
     θ̂̇ = u_θ(v, x̂, φ̂, θ̂).                                                  (8)
 
 One implementation serves three uses: ``rhs`` for ODE integrators, ``init``/``step`` for
-streaming, and ``run`` for logged sample arrays. The state is always passed explicitly.
+streaming, and ``run`` for logged sample arrays; the discrete step is that of
+:mod:`thetahat.estimation.step` over the observer's :meth:`~ModifiedHighGainObserver.plan`.
+The state is always passed explicitly.
 """
 
 from __future__ import annotations
@@ -161,6 +164,11 @@ class ModifiedHighGainObserver:
         constant. NaN is never propagated into the state. NaN in u, and inf anywhere, always
         raise.
 
+    Attributes
+    ----------
+    layout : StateLayout
+        Dimensions and the offsets of x̂, z, θ̂, x̂₂ and the law's state in the state vector.
+
     Raises
     ------
     DimensionError
@@ -173,6 +181,14 @@ class ModifiedHighGainObserver:
 
     Notes
     -----
+    **One step, several back ends.** ``step`` and ``run`` are the batch of one of
+    :func:`thetahat.estimation.step.advance`, which
+    :func:`~thetahat.estimation.batch_run.run_batch` runs for B rows; the matrices, gains and
+    φ-matrices come from the frozen :meth:`plan` (one per step length). The state is
+    ``col(x̂, z, θ̂[, x̂₂][, law state])`` (:attr:`layout`). A step whose state norm exceeds
+    :data:`~thetahat.estimation.step.DIVERGENCE_BOUND` (or is NaN/inf) raises
+    :class:`~thetahat.errors.NonFiniteError` naming the step, in every back end.
+
     **Discretisation.** ``step`` and ``run`` use the exponential, linearly implicit step of
     :mod:`thetahat.estimation.discretize` on ``(x̂, z)`` with the constant part
 
@@ -185,7 +201,7 @@ class ModifiedHighGainObserver:
     Luenberger observer of the extended system (2), the 1/ε scaling of the gains never limits
     the step length, and a stiff g is handled stably (LuGre: ∂g/∂η = σ0|y|/ζ ≈ 3.5·10³ s⁻¹
     at 3.8 rad/s, so holding g over a 1 ms sample, an explicit exponential Euler step,
-    diverges). θ̂ is advanced by ``update_law.step`` (so it stays in Θ) and z receives
+    diverges). θ̂ is advanced by ``update_law.advance`` (so it stays in Θ) and z receives
     ``−∂g/∂θ Δθ̂``, the discrete form of the first term of (3b). The step is second order
     in dt while ỹ and θ̂̇ are small and first order otherwise.
 
