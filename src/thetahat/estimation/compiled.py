@@ -53,7 +53,7 @@ from numpy.typing import NDArray
 from sympy.printing.pycode import PythonCodePrinter
 
 from .._validate import as_vector, positive_scalar
-from ..errors import DimensionError, NonFiniteError, UpdateLawError
+from ..errors import DimensionError, MissingExtraError, NonFiniteError, UpdateLawError
 from ..model.paramset import Box
 from ..model.perturbation import SymbolicPerturbation, numpy_ready
 from ._kernel_template import CORE
@@ -87,7 +87,7 @@ def _require_numba() -> Any:
     try:
         import numba
     except ImportError as exc:  # pragma: no cover - exercised only without numba
-        raise ImportError("compile_observer needs numba, the optional extra 'speed': "
+        raise MissingExtraError("compile_observer needs numba, the optional extra 'speed': "
                           "pip install 'thetahat[speed]'. Without it, use the observer's own "
                           "run/step, or thetahat.estimation.batch_run.run_batch for many "
                           "runs.") from exc

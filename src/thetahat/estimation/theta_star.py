@@ -19,7 +19,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from ..errors import DimensionError, UpdateLawError
 from ..model.paramset import ParameterSet
-from ..model.perturbation import Perturbation, SymbolicPerturbation, numpy_ready
+from ..model.perturbation import Perturbation, SymbolicPerturbation, lambdify_numpy
 
 __all__ = ["ThetaStar", "SOLVE_RTOL", "SOLVE_SAMPLES"]
 
@@ -93,7 +93,7 @@ class ThetaStar:
             raise UpdateLawError(f"ThetaStar: the expression uses unknown symbols "
                                  f"{sorted(map(str, free - set(args)))}; it may use g's u, y, x "
                                  "and the φ symbols only.")
-        fn = sp.lambdify(args, [numpy_ready(e) for e in exprs], "numpy", cse=True)
+        fn = lambdify_numpy(args, exprs)
         object.__setattr__(self, "expr", exprs)
         object.__setattr__(self, "arguments", args)
         object.__setattr__(self, "sizes", tuple(int(s) for s in sizes))

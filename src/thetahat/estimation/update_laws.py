@@ -348,7 +348,8 @@ def invalid_theta_star_error(owner: str, count: int) -> UpdateLawError:
                           f"undefined, or pass on_invalid='freeze'.")
 
 
-def _inversion_target(theta_star: ThetaStar | ThetaStarFn, weight: Weight | None, on_invalid: OnInvalid,
+def _inversion_target(theta_star: ThetaStar | ThetaStarFn, weight: Weight | None,
+                      on_invalid: OnInvalid,
                       owner: str, v: FloatArray, x: FloatArray, phi: FloatArray,
                       th: FloatArray, batch: tuple[int, ...]) -> tuple[FloatArray, FloatArray]:
     """(θ*, l) broadcast to the batch; θ* replaced by θ̂ where l = 0 (so that NaN is harmless)."""
