@@ -56,11 +56,6 @@ def _vec(name: str, a: Any, size: int, *, finite: bool = True) -> FloatArray:
 
 
 
-#: ``rhs`` reads the observer's matrices from the plan of this step length (its φ-matrices are
-#: not used there; one plan is computed and cached).
-RHS_PLAN_DT = 1.0
-
-
 def _record(name: str, a: Any, N: int, width: int) -> FloatArray:
     arr = np.asarray(a, dtype=np.float64)
     if arr.ndim == 1 and width == 1:
@@ -272,7 +267,7 @@ class ModifiedHighGainObserver:
     second: SecondObserver | None
     nan_policy: str
     layout: StateLayout
-    _plans: OrderedDict[float, StepPlan]
+    _plans: OrderedDict[float | None, StepPlan]
 
     def __init__(self, *, system: PerturbedLinearSystem, K_x: Any, K_phi: Any,
                  update_law: UpdateLaw, second: SecondObserver | None = None,
@@ -378,9 +373,10 @@ class ModifiedHighGainObserver:
         >>> obs.plan(1e-3) is obs.plan(1e-3 * (1 + 1e-15))
         True
         """
-        plan = self._plans.get(dt)        # fast path: this very step length was seen
-        if plan is not None:
-            return plan
+        if type(dt) is float:             # fast path: this very step length was seen
+            plan = self._plans.get(dt)
+            if plan is not None:
+                return plan
         key = dt_key(dt)
         plan = self._plans.get(key)
         if plan is None:
@@ -392,9 +388,22 @@ class ModifiedHighGainObserver:
                 second=None if self.second is None else self.second.plan(key, predict=predict),
                 Gamma=self.update_law.gain, law_size=self.layout.law_size, predict=predict)
             self._plans[key] = plan
-        self._plans[float(dt)] = plan
+        if type(dt) is float:
+            self._plans[dt] = plan
         while len(self._plans) > PLAN_CACHE_SIZE:
             self._plans.popitem(last=False)
+        return plan
+
+    def _continuous_plan(self) -> StepPlan:
+        """The plan without φ-matrices (``dt=None``) that ``rhs`` reads; cached."""
+        plan = self._plans.get(None)
+        if plan is None:
+            sysm = self.system
+            plan = StepPlan.build(
+                A=sysm.A, B=sysm.B, C=sysm.C, E=sysm.E, K_x=self.K_x, K_phi=self.K_phi, dt=None,
+                p=self.layout.p, second=None if self.second is None else self.second.plan(None),
+                Gamma=self.update_law.gain, law_size=self.layout.law_size, predict=False)
+            self._plans[None] = plan
         return plan
 
     def _split(self, s: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray,
@@ -560,7 +569,7 @@ class ModifiedHighGainObserver:
                                       "that is defined by its discrete step only; use step/run.")
         x, _, th, x2 = self._split(s)
         pert = self.system.perturbation
-        plan = self.plan(RHS_PLAN_DT)
+        plan = self._continuous_plan()
         F, phi, _, vv = observer_forcing(plan, pert, s[:lay.n + lay.k], th, u, y, correct)
         parts = [F]
         if correct:
@@ -571,7 +580,7 @@ class ModifiedHighGainObserver:
             th_dot = np.zeros_like(th)
         parts.append(th_dot)
         if x2 is not None and self.second is not None:
-            F2, _ = second_forcing(self.second.plan(RHS_PLAN_DT), pert, x2, u, y, th, correct,
+            F2, _ = second_forcing(self.second.plan(None), pert, x2, u, y, th, correct,
                                    want_N=False)
             parts.append(F2)
         return np.concatenate(parts)

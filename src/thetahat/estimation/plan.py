@@ -16,6 +16,7 @@ is ``col(x̂, z, θ̂[, x̂₂][, law state])`` with the offsets given by :attr:
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
@@ -24,11 +25,19 @@ import numpy as np
 from numpy.typing import NDArray
 
 from .._validate import positive_scalar, readonly
-from .discretize import DT_KEY_DIGITS, phi_plan
+from .discretize import DT_KEY_DIGITS, PhiPlan, phi_plan
 
 __all__ = ["SecondPlan", "StateLayout", "StepPlan", "dt_key", "linear_part", "stack_plans"]
 
 FloatArray = NDArray[np.float64]
+
+
+def _phi_or_nan(L: FloatArray, dt: float | None) -> Any:
+    """φ-matrices of L for dt (its key), or NaN-filled ones for the continuous-time plan."""
+    if dt is not None:
+        return phi_plan(L, dt_key(dt))
+    nan = np.full(L.shape, np.nan)
+    return PhiPlan(dt=math.nan, Phi1=nan, Phi2=nan)
 
 
 def dt_key(dt: float) -> float:
@@ -183,7 +192,7 @@ class SecondPlan:
     Phi2_open: FloatArray | None
 
     @classmethod
-    def build(cls, *, A: Any, B: Any, C: Any, E: Any, K_x: Any, dt: float,
+    def build(cls, *, A: Any, B: Any, C: Any, E: Any, K_x: Any, dt: float | None,
               g_on_estimates: bool = False, predict: bool = True) -> SecondPlan:
         """Compute the plan of one second observer (batch axis of length 1).
 
@@ -193,8 +202,9 @@ class SecondPlan:
             System matrices of (1).
         K_x : array_like, shape (n, r)
             Gain of the second observer.
-        dt : float
-            Step length.
+        dt : float or None
+            Step length; None builds the continuous-time plan (no φ-matrices: NaN-filled),
+            which ``rhs`` reads.
         g_on_estimates : bool
             As for :class:`~thetahat.estimation.redesign.SecondObserver`.
         predict : bool
@@ -205,10 +215,10 @@ class SecondPlan:
         SecondPlan
         """
         A_, B_, C_, E_ = (np.asarray(M, dtype=np.float64) for M in (A, B, C, E))
-        h = dt_key(dt)
+        h = math.nan if dt is None else dt_key(dt)
         K = np.asarray(K_x, dtype=np.float64)[None]
-        pl = phi_plan(A_ - K[0] @ C_, h)
-        po = phi_plan(A_, h) if predict else None
+        pl = _phi_or_nan(A_ - K[0] @ C_, dt)
+        po = _phi_or_nan(A_, dt) if predict else None
         arrays = {"A": A_, "B": B_, "C": C_, "E": E_, "K_x": K, "Phi1": pl.Phi1[None],
                   "Phi2": pl.Phi2[None], "Phi1_open": None if po is None else po.Phi1[None],
                   "Phi2_open": None if po is None else po.Phi2[None]}
@@ -290,7 +300,7 @@ class StepPlan:
     Gamma: FloatArray | None
 
     @classmethod
-    def build(cls, *, A: Any, B: Any, C: Any, E: Any, K_x: Any, K_phi: Any, dt: float,
+    def build(cls, *, A: Any, B: Any, C: Any, E: Any, K_x: Any, K_phi: Any, dt: float | None,
               p: int, second: SecondPlan | None = None, Gamma: Any = None,
               law_size: int = 0, predict: bool = True) -> StepPlan:
         """Compute the plan of one observer (batch axis of length 1).
@@ -301,8 +311,9 @@ class StepPlan:
             System matrices of (1).
         K_x, K_phi : array_like, shapes (n, r), (k, r)
             Gains of (3).
-        dt : float
-            Step length.
+        dt : float or None
+            Step length; None builds the continuous-time plan (φ-matrices NaN-filled), which
+            ``rhs`` reads.
         p : int
             Number of parameters.
         second : SecondPlan, optional
@@ -321,7 +332,7 @@ class StepPlan:
         A_, B_, C_, E_ = (np.asarray(M, dtype=np.float64) for M in (A, B, C, E))
         n, m = B_.shape
         r, k = C_.shape[0], E_.shape[1]
-        h = dt_key(dt)
+        h = math.nan if dt is None else dt_key(dt)
         Kx = np.asarray(K_x, dtype=np.float64)[None]
         Kphi = np.asarray(K_phi, dtype=np.float64)[None]
         L = linear_part(A_, C_, E_, Kx, Kphi)
@@ -330,8 +341,8 @@ class StepPlan:
         Bv[0, :n, :m] = B_
         Bv[0, :n, m:] = Kx[0]
         Bv[0, n:, m:] = Kphi[0]
-        pl = phi_plan(L[0], h)
-        po = phi_plan(L_open[0], h) if predict else None
+        pl = _phi_or_nan(L[0], dt)
+        po = _phi_or_nan(L_open[0], dt) if predict else None
         arrays = {"A": A_, "B": B_, "C": C_, "E": E_, "K_x": Kx, "K_phi": Kphi,
                   "KxC": Kx @ C_, "L": L, "Bv": Bv, "Phi1": pl.Phi1[None],
                   "Phi2": pl.Phi2[None], "Phi1_open": None if po is None else po.Phi1[None],

@@ -82,7 +82,7 @@ class SecondObserver:
     system: PerturbedLinearSystem
     K_x: FloatArray
     g_on_estimates: bool
-    _plans: OrderedDict[tuple[float, bool], SecondPlan]
+    _plans: OrderedDict[tuple[float | None, bool], SecondPlan]
 
     def __init__(self, *, system: PerturbedLinearSystem, K_x: Any,
                  g_on_estimates: bool = False) -> None:
@@ -129,13 +129,13 @@ class SecondObserver:
         """
         return cls(system=system, K_x=design.K, g_on_estimates=g_on_estimates)
 
-    def plan(self, dt: float, *, predict: bool = False) -> SecondPlan:
+    def plan(self, dt: float | None, *, predict: bool = False) -> SecondPlan:
         """The :class:`~thetahat.estimation.plan.SecondPlan` for step length dt (cached).
 
         Parameters
         ----------
-        dt : float
-            Step length > 0.
+        dt : float or None
+            Step length > 0; None: the continuous-time plan (no φ-matrices) that ``rhs`` reads.
         predict : bool
             Include the φ-matrices of the prediction over missing samples.
 
@@ -143,7 +143,7 @@ class SecondObserver:
         -------
         SecondPlan
         """
-        key = dt_key(dt)
+        key = None if dt is None else dt_key(dt)
         plan = self._plans.get((key, predict))
         if plan is None:
             sysm = self.system
@@ -188,7 +188,7 @@ class SecondObserver:
         u, y = self._check_samples(v_[:sysm.m], v_[sysm.m:])
         x2 = as_vector("x_hat2", x_hat2, sysm.n)
         th = as_vector("theta_hat", theta_hat, sysm.p)
-        F, _ = second_forcing(self.plan(1.0), sysm.perturbation, x2, u, y, th, True,
+        F, _ = second_forcing(self.plan(None), sysm.perturbation, x2, u, y, th, True,
                               want_N=False)
         return F
 
