@@ -631,16 +631,11 @@ def AlgebraicInversion(theta_star: ThetaStar | ThetaStarFn, Gamma: ArrayLike,  #
                                  layer=layer, on_invalid=on_invalid)
 
 
-def _algebraic_from_perturbation(perturbation: Perturbation, *, Gamma: ArrayLike,
-                                 parameter_set: ParameterSet,
-                                 saturation: Saturation | None = None, layer: float = 0.0,
-                                 on_invalid: OnInvalid = "raise",
-                                 seed: int = 0) -> IntermittentInversion:
-    """Proposition 1 with θ* derived by ``sympy.solve`` (see
-    :meth:`IntermittentInversion.from_perturbation`, here with l ≡ 1)."""
-    return IntermittentInversion.from_perturbation(
-        perturbation, None, Gamma=Gamma, parameter_set=parameter_set, saturation=saturation,
-        layer=layer, on_invalid=on_invalid, seed=seed)
+def _algebraic_from_perturbation(perturbation: Perturbation, **options: Any
+                                 ) -> IntermittentInversion:
+    """Proposition 1 with θ* by ``sympy.solve``: :meth:`IntermittentInversion.from_perturbation`
+    with l ≡ 1 (same keywords)."""
+    return IntermittentInversion.from_perturbation(perturbation, None, **options)
 
 
 AlgebraicInversion.from_perturbation = _algebraic_from_perturbation  # type: ignore[attr-defined]
