@@ -20,6 +20,7 @@ Every function here works on B rows at once (a leading batch axis): the streamin
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 from typing import Any
 
@@ -252,8 +253,8 @@ def advance(plan: StepPlan, pert: Perturbation, law: UpdateLaw, s: FloatArray, u
     q = n + k
     xz, x, th = s[..., :q], s[..., :n], s[..., lay.theta]
     F, phi, Gx, v = observer_forcing(plan, pert, xz, th, u0, y0, correct)
-    finite = np.isfinite(phi).all(axis=-1)
-    if not finite.all():              # g overflowed at a finite state: report the divergence
+    finite = True if math.isfinite(float(phi.sum())) else np.isfinite(phi).all(axis=-1)
+    if not np.all(finite):            # g overflowed at a finite state: report the divergence
         if s.ndim == 1:
             return np.full_like(s, np.nan)
         out = np.full_like(s, np.nan)
@@ -323,8 +324,11 @@ def diverged(s: FloatArray) -> NDArray[np.bool_]:
     [False, True, True]
     """
     with np.errstate(over="ignore", invalid="ignore"):
+        total = float(np.vdot(s, s))
         if s.ndim == 1:
-            return np.bool_(not float(s @ s) <= DIVERGENCE_BOUND ** 2)
+            return np.bool_(not total <= DIVERGENCE_BOUND ** 2)
+        if total <= DIVERGENCE_BOUND ** 2:     # every row is fine (one dot product decides)
+            return np.zeros(s.shape[0], dtype=bool)
         sq = np.einsum("ij,ij->i", s, s)
     return ~(sq <= DIVERGENCE_BOUND ** 2)
 

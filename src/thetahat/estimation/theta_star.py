@@ -235,18 +235,23 @@ class ThetaStar:
         -------
         ndarray, shape (..., p)
         """
-        v_, x_, ph = (np.asarray(a, dtype=np.float64) for a in (v, x, phi))
-        args = ([v_[..., i] for i in range(v_.shape[-1])] + [x_[..., i] for i in range(x_.shape[-1])]
-                + [ph[..., i] for i in range(ph.shape[-1])])
-        shape = np.broadcast_shapes(v_.shape[:-1], x_.shape[:-1], ph.shape[:-1])
+        v_ = np.asarray(v, dtype=np.float64)
+        x_ = np.asarray(x, dtype=np.float64)
+        ph = np.asarray(phi, dtype=np.float64)
+        args = [*v_.T, *x_.T, *ph.T]      # one array per symbol (.T: the last axis first)
         with np.errstate(all="ignore"):
             vals = self.fn(*args)
-        out = np.empty(shape + (len(vals),), dtype=np.result_type(*vals, np.float64))
-        for j, val in enumerate(vals):
-            out[..., j] = val
-        if np.iscomplexobj(out):
-            real = np.abs(out.imag) <= SOLVE_RTOL * (1.0 + np.abs(out.real))
-            out = np.where(real, out.real, np.nan).astype(np.float64)
+        batch = v_.shape[:-1]
+        out = None
+        if batch == x_.shape[:-1] == ph.shape[:-1]:     # fast paths: no broadcasting needed
+            if not batch:
+                out = np.array(vals)
+            elif all(type(val) is np.ndarray and val.shape == batch[::-1] for val in vals):
+                out = np.stack(vals).T
+            if out is not None and out.dtype != np.float64:
+                out = None
+        if out is None:
+            out = _assemble(vals, np.broadcast_shapes(batch, x_.shape[:-1], ph.shape[:-1]))
         if not np.isfinite(out).all():
             out[~np.isfinite(out)] = np.nan
         return out
@@ -264,6 +269,18 @@ class ThetaStar:
     def __repr__(self) -> str:
         body = ", ".join(str(e) for e in self.expr)
         return f"ThetaStar({body})"
+
+
+def _assemble(vals: Sequence[Any], shape: tuple[int, ...]) -> FloatArray:
+    """Stack the values of θ*'s entries to (*shape, p); complex values with a non-negligible
+    imaginary part (a branch that is not real there) become NaN."""
+    out = np.empty(shape + (len(vals),), dtype=np.result_type(*vals, np.float64))
+    for j, val in enumerate(vals):
+        out[..., j] = val
+    if np.iscomplexobj(out):
+        real = np.abs(out.imag) <= SOLVE_RTOL * (1.0 + np.abs(out.real))
+        out = np.where(real, out.real, np.nan)
+    return np.asarray(out, dtype=np.float64)
 
 
 def _branches_that_invert(perturbation: Perturbation, parameter_set: ParameterSet, seed: int,
