@@ -23,7 +23,8 @@ from numpy.typing import ArrayLike, NDArray
 from .._validate import check_finite, positive_scalar
 from ..errors import DimensionError, ParameterSetError, UpdateLawError
 from ..model.paramset import ParameterSet, _safe_norm
-from ..model.perturbation import Perturbation
+from .. import limits
+from ..model.perturbation import Perturbation, require_theta_dependence
 from .projection import Projection, Saturation, as_gain
 
 FloatArray = NDArray[np.float64]
@@ -279,6 +280,11 @@ class _SympyThetaStar:
         return out.astype(np.float64)
 
 
+def _sympy_solve(eqs: list[sp.Eq], unknowns: list[sp.Symbol]) -> list[dict[Any, Any]]:
+    """sp.solve, module-level so that it can run in a time-budgeted worker process."""
+    return sp.solve(eqs, unknowns, dict=True, check=False, simplify=False)
+
+
 def _solve_theta_star(perturbation: Perturbation, parameter_set: ParameterSet,
                       seed: int) -> _SympyThetaStar:
     """θ* from SymPy's solve of φ = g(v, x, θ), keeping the one branch that inverts g on Θ."""
@@ -290,6 +296,7 @@ def _solve_theta_star(perturbation: Perturbation, parameter_set: ParameterSet,
     if parameter_set.dim != p:
         raise DimensionError(f"parameter_set has dimension {parameter_set.dim} but the "
                              f"perturbation has p = {p} parameters.")
+    require_theta_dependence(perturbation, parameter_set, owner="from_perturbation")
     u, y, x, th = (tuple(getattr(perturbation, a)) for a in ("u", "y", "x", "theta"))
     reps = {s: sp.Dummy(s.name, real=True) for s in (*u, *y, *x, *th)}
     phi = [sp.Dummy(f"phi{i}", real=True) for i in range(k)]
@@ -297,7 +304,8 @@ def _solve_theta_star(perturbation: Perturbation, parameter_set: ParameterSet,
     eqs = [sp.Eq(expr[i].xreplace(reps), phi[i]) for i in range(k)]
     unknowns = [reps[t] for t in th]
     try:
-        sols = sp.solve(eqs, unknowns, dict=True, check=False, simplify=False)
+        sols = limits.run_with_time_budget(_sympy_solve, eqs, unknowns,
+                                           what="SymPy's solve of φ = g(v, x, θ) for θ*")
     except (NotImplementedError, ValueError, TypeError) as exc:
         raise UpdateLawError(f"SymPy cannot solve φ = g(v, x, θ) for θ ({exc}); pass "
                              f"theta_star explicitly.") from exc
@@ -719,6 +727,7 @@ class GradientInversion(UpdateLaw):
         if perturbation.dims[3] != parameter_set.dim:
             raise DimensionError(f"parameter_set has dimension {parameter_set.dim} but the "
                                  f"perturbation has p = {perturbation.dims[3]} parameters.")
+        require_theta_dependence(perturbation, parameter_set, owner="GradientInversion")
         if M is not None and not callable(M):
             raise UpdateLawError("GradientInversion: M must be a callable M(v, x, theta) -> "
                                  "(..., p, k), or None for (∂g/∂θ)ᵀ.")

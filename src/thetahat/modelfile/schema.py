@@ -56,7 +56,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from ..errors import ModelFileError, ThetahatError
+from ..errors import InputLimitError, ModelFileError, ThetahatError
 from ..estimation.projection import as_gain
 from ..estimation.update_laws import (
     AlgebraicInversion,
@@ -336,7 +336,7 @@ def _read_perturbation(sec: _Section) -> tuple[SymbolicPerturbation, dict[str, A
                                     f"{_show(constants)}.")
     try:
         pert = parse_perturbation(g, constants=constants, **names)
-    except ModelFileError as exc:
+    except (ModelFileError, InputLimitError) as exc:
         raise sec.fail("g", str(exc)) from exc
     return pert, {"names": names, "constants": dict(constants)}
 
@@ -363,7 +363,7 @@ def _read_theta_star(sec: _Section, pert: SymbolicPerturbation,
         expr = parse_perturbation(sec.table["theta_star"], u=names["u"], y=names["y"],
                                   x=names["x"], theta=_phi_names(k),
                                   constants=parsed["constants"])
-    except ModelFileError as exc:
+    except (ModelFileError, InputLimitError) as exc:
         raise sec.fail("theta_star", f"{exc} (θ* may use the names of u, y, x and "
                                      f"{', '.join(_phi_names(k))}).") from exc
     if expr.dims[4] != p:
