@@ -19,7 +19,7 @@ from typing import Any, final
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from .._validate import as_vector, check_finite, positive_scalar
+from .._validate import as_matrix, as_vector, check_finite, positive_scalar
 from ..errors import DimensionError, UpdateLawError
 from ..model.paramset import Box, ParameterSet
 from ..model.perturbation import Perturbation
@@ -299,6 +299,14 @@ THETA_STAR_POINTS = 3
 THETA_STAR_SHOW = 5
 
 
+def _record(name: str, a: Any, N: int, width: int) -> FloatArray:
+    """A sampled record (N, width), (N,) allowed for width 1; NaN allowed (dropouts)."""
+    arr = np.asarray(a)
+    if arr.ndim == 1 and width == 1:
+        arr = arr.reshape(-1, 1)
+    return as_matrix(name, arr, (N, width), finite=False)
+
+
 def _times(t: FloatArray, idx: Any) -> str:
     idx = np.asarray(idx, dtype=int)
     shown = ", ".join(f"{float(t[i]):.6g}" for i in idx[:THETA_STAR_SHOW])
@@ -356,11 +364,10 @@ def check_theta_star(theta_star: Callable[..., Any], perturbation: Perturbation,
     thetahat.errors.UpdateLawError: theta_star is singular on the data: its denominator ... at t = [0.39], ...
     """
     n, m, r, p, k = perturbation.dims
-    C_ = np.asarray(C, dtype=np.float64).reshape(r, n)
     t_ = as_vector("t", t)
-    Y = np.asarray(y, dtype=np.float64).reshape(t_.size, r)
-    U = np.zeros((t_.size, 0)) if u is None else np.asarray(u, dtype=np.float64).reshape(
-        t_.size, m)
+    C_ = as_matrix("C", C, (r, n))
+    Y = _record("y", y, t_.size, r)
+    U = np.zeros((t_.size, 0)) if u is None else _record("u", u, t_.size, m)
     keep = np.isfinite(Y).all(axis=1) & np.isfinite(U).all(axis=1)
     t_, U, Y = t_[keep], U[keep], Y[keep]
     if t_.size == 0:

@@ -53,7 +53,8 @@ from numpy.typing import NDArray
 from sympy.printing.pycode import PythonCodePrinter
 
 from .._validate import as_vector, check_finite, positive_scalar
-from ..errors import DimensionError, NonFiniteError, ThetahatWarning, UpdateLawError
+from ..errors import (DimensionError, NonFiniteError, ThetahatWarning, UnsupportedError,
+                      UpdateLawError)
 from ..model.paramset import Box
 from ..model.perturbation import SymbolicPerturbation, _numpy_ready
 from .discretize import IMPLICITNESS
@@ -135,7 +136,7 @@ def _scalar_function(name: str, params: str, inputs: Sequence[tuple[str, Sequenc
         for target, e in zip(targets, reduced):
             lines.append(f"    {target} = {printer.doprint(e)}")
     except Exception as exc:  # SymPy's printer raises several types
-        raise NotImplementedError(f"compile_observer cannot print {name[1:]} as numba code "
+        raise UnsupportedError(f"compile_observer cannot print {name[1:]} as numba code "
                                   f"({exc}); rewrite it with elementary functions or use the "
                                   "Python observer.") from exc
     lines.append("    return 0")
@@ -432,7 +433,7 @@ def _configure(observer: ModifiedHighGainObserver, theta_star: Any, phi: Any
     ts = law.theta_star
     if isinstance(ts, _SympyThetaStar) and ts.arguments:
         return code, ts.solution, ts.arguments
-    raise NotImplementedError(
+    raise UnsupportedError(
         f"compile_observer: the θ* of {type(law).__name__} is a Python callable "
         f"({type(ts).__name__}), which cannot be compiled; pass its SymPy form, "
         "compile_observer(observer, dt=..., theta_star=expr) with θ*(v, x̂, φ̂) in g's symbols "

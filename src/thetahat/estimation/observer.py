@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
@@ -22,7 +23,7 @@ from numpy.typing import NDArray
 
 from .._validate import (as_matrix, as_time_grid, as_vector, check_finite, positive_scalar,
                          readonly)
-from ..errors import DimensionError, NonFiniteError
+from ..errors import DimensionError, NonFiniteError, OptionError
 from ..model.system import PerturbedLinearSystem
 from .discretize import PlanCache, linearly_implicit_exponential_step
 from .redesign import SecondObserver
@@ -34,6 +35,8 @@ FloatArray = NDArray[np.float64]
 
 NAN_POLICIES = ("raise", "skip")
 HOLDS = ("zoh", "foh")
+#: Samples between two calls of ``run``'s progress callback.
+PROGRESS_EVERY = 10_000
 
 
 def _vec(name: str, a: Any, size: int, *, finite: bool = True) -> FloatArray:
@@ -137,7 +140,7 @@ class ModifiedHighGainObserver:
         law has the wrong dimension.
     NonFiniteError
         A gain holds NaN or inf.
-    ValueError
+    OptionError
         Unknown ``nan_policy``.
 
     Notes
@@ -260,7 +263,7 @@ class ModifiedHighGainObserver:
                     f"second observer's system has (n, m, r, k, p) = "
                     f"{(s2.n, s2.m, s2.r, s2.k, s2.p)}; the observer's has {(n, m, r, k, p)}.")
         if nan_policy not in NAN_POLICIES:
-            raise ValueError(f"nan_policy must be one of {NAN_POLICIES}; got {nan_policy!r}.")
+            raise OptionError(f"nan_policy must be one of {NAN_POLICIES}; got {nan_policy!r}.")
         KxC = readonly(Kx @ system.C)
         L = np.zeros((n + k, n + k))
         L[:n, :n] = system.A - KxC
@@ -570,7 +573,8 @@ class ModifiedHighGainObserver:
                                 x_hat_refined=None if x2 is None else x2.copy())
 
     def run(self, t: Any, u: Any, y: Any, *, hold: str = "zoh",
-            state0: Any = None) -> ObserverResult:
+            state0: Any = None,
+            progress: Callable[[int, int], None] | None = None) -> ObserverResult:
         """Run the observer over sampled records (logged data).
 
         Parameters
@@ -587,6 +591,9 @@ class ModifiedHighGainObserver:
             evaluation of g per step, smaller error when the signals are smooth).
         state0 : array_like, shape (state_size,), optional
             Initial state at ``t[0]``; default ``init()``.
+        progress : callable, optional
+            ``progress(done, total)``, called every ``PROGRESS_EVERY`` samples and at the end
+            (e.g. :func:`thetahat.progress.reporter`).
 
         Returns
         -------
@@ -598,11 +605,11 @@ class ModifiedHighGainObserver:
             Wrong shapes, or ``t`` not strictly increasing.
         NonFiniteError
             NaN or inf in t or u; inf in y; NaN in y under ``nan_policy="raise"``.
-        ValueError
+        OptionError
             Unknown ``hold``.
         """
         if hold not in HOLDS:
-            raise ValueError(f"hold must be one of {HOLDS}; got {hold!r}.")
+            raise OptionError(f"hold must be one of {HOLDS}; got {hold!r}.")
         n, m, r, k, p, size = self._sizes
         t_, dts = as_time_grid(t)
         N = t_.shape[0]
@@ -622,12 +629,16 @@ class ModifiedHighGainObserver:
         S[0] = s
         foh = hold == "foh"
         for i in range(N - 1):
+            if progress is not None and i % PROGRESS_EVERY == 0:
+                progress(i, N - 1)
             if foh:
                 s = self._advance(s, U[i], Y[i], float(dts[i]), bool(ok[i]), U[i + 1],
                                   Y[i + 1] if ok[i + 1] else None)
             else:
                 s = self._advance(s, U[i], Y[i], float(dts[i]), bool(ok[i]))
             S[i + 1] = s
+        if progress is not None:
+            progress(N - 1, N - 1)
         if not np.isfinite(S).all():
             i = int(np.argmin(np.isfinite(S).all(axis=1)))
             raise NonFiniteError(f"the observer state became non-finite at t[{i}] = {t_[i]!r}; "
@@ -644,6 +655,9 @@ class ModifiedHighGainObserver:
 
     @staticmethod
     def _record(name: str, a: Any, N: int, width: int) -> FloatArray:
+        if np.iscomplexobj(a):
+            raise DimensionError(f"{name} must be real; got complex samples. Pass the real "
+                                 "part explicitly if that is what was measured.")
         arr = np.asarray(a, dtype=np.float64)
         if arr.ndim == 1 and width == 1:
             arr = arr.reshape(-1, 1)
