@@ -319,9 +319,10 @@ def check_theta_star(theta_star: Callable[..., Any], perturbation: Perturbation,
                      u: ArrayLike | None, y: ArrayLike, *, seed: int = 0) -> None:
     """Check θ*(v, x, φ) where it will be used, on a data record, before estimation starts.
 
-    Along the data, with x the least-norm state consistent with y (x = C⁺ y) and θ at
-    ``THETA_STAR_POINTS`` points of Θ, φ = g(v, x, θ) must give back θ* = θ (Proposition 1
-    needs θ* to invert g on the range the estimator visits). Refused: points where θ* is NaN
+    Along the data, with x a state consistent with y (x = C⁺ y plus one fixed random offset
+    in ker C) and θ at ``THETA_STAR_POINTS`` points of Θ, φ = g(v, x, θ) must give back
+    θ* = θ wherever ∂g/∂θ ≠ 0 (Proposition 1 needs θ* to invert g on the range the estimator
+    visits). Refused: points where θ* is NaN
     or inf (a singularity or a branch cut on the data), points where θ* returns another θ
     (a branch that misses Θ), and, for a θ* derived by SymPy, a denominator of θ* that
     changes sign between two samples (a pole crossed by the data, e.g. θ* = log(φ + 1)/y
@@ -373,8 +374,12 @@ def check_theta_star(theta_star: Callable[..., Any], perturbation: Perturbation,
     if t_.size == 0:
         return
     V = np.concatenate((U, Y), axis=1)
-    X = Y @ np.linalg.pinv(C_).T
     rng = np.random.default_rng(seed)
+    # x consistent with y: the least-norm part C⁺y plus one fixed offset in ker C (the part
+    # of x the data do not show; fixed, so that θ*'s denominators vary with the data only)
+    _, sv, Vh = np.linalg.svd(C_)
+    null = Vh[int(np.sum(sv > 1e-12 * max(1.0, float(sv[0]) if sv.size else 1.0))):]
+    X = Y @ np.linalg.pinv(C_).T + rng.standard_normal(null.shape[0]) @ null
     thetas = np.vstack([np.asarray(parameter_set.interior_point, dtype=np.float64)[None, :],
                         parameter_set.sample(rng, THETA_STAR_POINTS - 1)])
     fix = ("Give theta_star explicitly with a form valid on the data, restrict Θ, or use the "
@@ -384,7 +389,11 @@ def check_theta_star(theta_star: Callable[..., Any], perturbation: Perturbation,
             phi = np.asarray(perturbation.g(V, X, np.broadcast_to(th, (t_.size, p))),
                              dtype=np.float64)
             est = np.asarray(theta_star(V, X, phi), dtype=np.float64).reshape(t_.size, p)
-        usable = np.isfinite(phi).all(axis=1)
+        with np.errstate(all="ignore"):
+            J = np.asarray(perturbation.dg_dtheta(V, X, np.broadcast_to(th, (t_.size, p))),
+                           dtype=np.float64).reshape(t_.size, -1)
+        # only where φ determines θ (∂g/∂θ ≠ 0): elsewhere no θ* can recover θ
+        usable = np.isfinite(phi).all(axis=1) & (np.abs(J) > 0).any(axis=1)
         bad = usable & ~np.isfinite(est).all(axis=1)
         if bad.any():
             raise UpdateLawError(
@@ -422,8 +431,8 @@ def _check_poles(theta_star: Any, V: FloatArray, X: FloatArray, perturbation: Pe
         fn = sp.lambdify(list(arguments), den, "numpy")
         with np.errstate(all="ignore"):
             d = np.broadcast_to(np.asarray(fn(*cols), dtype=np.float64), t.shape)
-        cross = np.flatnonzero((np.sign(d[:-1]) * np.sign(d[1:]) <= 0)
-                               & np.isfinite(d[:-1]) & np.isfinite(d[1:]))
+        nz = np.flatnonzero(np.isfinite(d) & (d != 0))     # a sign change between these
+        cross = nz[:-1][np.sign(d[nz[:-1]]) != np.sign(d[nz[1:]])]
         if cross.size:
             raise UpdateLawError(
                 f"theta_star is singular on the data: its denominator {den} (θ* = {expr}) "
