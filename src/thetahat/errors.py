@@ -31,6 +31,8 @@ __all__ = [
     "IllConditionedError",
     "UnstableDesignError",
     "IndexOutOfRangeError",
+    "MissingDependencyError",
+    "FileAccessError",
     "ThetahatWarning",
     "ConvergenceWarning",
     "IllConditionedWarning",
@@ -120,6 +122,14 @@ class UnsupportedError(ThetahatError, NotImplementedError):
 
 class IndexOutOfRangeError(ThetahatError, IndexError):
     """An index is outside the valid range (the message gives the range)."""
+
+
+class MissingDependencyError(ThetahatError, ImportError):
+    """An optional extra is needed but not installed; the message names the pip command."""
+
+
+class FileAccessError(ThetahatError, OSError):
+    """A file or folder thetahat needs cannot be created or written."""
 
 
 class InputLimitError(ThetahatError, ValueError):

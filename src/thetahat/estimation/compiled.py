@@ -53,8 +53,8 @@ from numpy.typing import NDArray
 from sympy.printing.pycode import PythonCodePrinter
 
 from .._validate import as_vector, check_finite, positive_scalar
-from ..errors import (DimensionError, NonFiniteError, ThetahatWarning, UnsupportedError,
-                      UpdateLawError)
+from ..errors import (DimensionError, FileAccessError, MissingDependencyError, NonFiniteError,
+                      ThetahatWarning, UnsupportedError, UpdateLawError)
 from ..model.paramset import Box
 from ..model.perturbation import SymbolicPerturbation, _numpy_ready
 from .discretize import IMPLICITNESS
@@ -92,7 +92,7 @@ def _require_numba() -> Any:
     try:
         import numba
     except ImportError as exc:  # pragma: no cover - exercised only without numba
-        raise ImportError("compile_observer needs numba, the optional extra 'speed': "
+        raise MissingDependencyError("compile_observer needs numba, the optional extra 'speed': "
                           "pip install 'thetahat[speed]'. Without it, use the observer's own "
                           "run/step, or thetahat.estimation.batch_run.run_batch for many "
                           "runs.") from exc
@@ -298,7 +298,7 @@ def _cache_dir() -> Path:
                 return d
         except OSError:
             continue
-    raise OSError("compile_observer found no writable cache directory; set THETAHAT_CACHE_DIR.")
+    raise FileAccessError("compile_observer found no writable cache directory; set THETAHAT_CACHE_DIR.")
 
 
 def _load(source: str) -> ModuleType:
