@@ -433,7 +433,10 @@ def _read_law(sec: _Section, pert: SymbolicPerturbation, theta_set: Box,
             raise sec.fail(key, f"not used by the {law!r} law; remove it.")
     Gamma = _read_gamma(sec, theta_set.dim)
     if law == "gradient":
-        return law, GradientInversion(pert, Gamma, theta_set)
+        try:
+            return law, GradientInversion(pert, Gamma, theta_set)
+        except ThetahatError as exc:
+            raise sec.fail("law", str(exc)) from exc
     on_invalid = sec.table.get("on_invalid", "raise")
     if on_invalid not in ("raise", "freeze"):
         raise sec.fail("on_invalid", f"expected 'raise' or 'freeze'; got {_show(on_invalid)}.")
