@@ -36,7 +36,7 @@ FloatArray = NDArray[np.float64]
 NAN_POLICIES = ("raise", "skip")
 HOLDS = ("zoh", "foh")
 #: Samples between two calls of ``run``'s progress callback.
-PROGRESS_EVERY = 10_000
+PROGRESS_EVERY = 1_000
 
 
 def _vec(name: str, a: Any, size: int, *, finite: bool = True) -> FloatArray:
