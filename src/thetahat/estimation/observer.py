@@ -25,6 +25,7 @@ from .._validate import (as_matrix, as_time_grid, as_vector, check_finite, posit
                          readonly)
 from ..errors import DimensionError, NonFiniteError, OptionError
 from ..model.system import PerturbedLinearSystem
+from ..structure.assumptions import check_assumption_1
 from .discretize import PlanCache, linearly_implicit_exponential_step
 from .redesign import SecondObserver
 from .update_laws import UpdateLaw
@@ -125,6 +126,9 @@ class ModifiedHighGainObserver:
     second : SecondObserver, optional
         The second observer of Sec. VI; its state x̂₂ is appended to the observer state and
         ``run`` reports it as ``x_hat_refined``.
+    allow_nonminimum_phase : bool, default False
+        Build the observer even when (C, A, E) violates Assumption 1 (the estimation error
+        then diverges; only for studying the failure).
     nan_policy : {"raise", "skip"}, default "raise"
         What a NaN in y means. ``"raise"``: :class:`~thetahat.errors.NonFiniteError`
         (before anything is integrated, in ``run``). ``"skip"``: the sample is missing and the
@@ -138,6 +142,9 @@ class ModifiedHighGainObserver:
     DimensionError
         Shapes disagree with the system, the system has no perturbation, or Θ of the update
         law has the wrong dimension.
+    NotMinimumPhaseError, NotLeftInvertibleError
+        (C, A, E) violates Assumption 1 (unless ``allow_nonminimum_phase``); the message
+        names the zeros.
     NonFiniteError
         A gain holds NaN or inf.
     OptionError
@@ -236,13 +243,15 @@ class ModifiedHighGainObserver:
 
     def __init__(self, *, system: PerturbedLinearSystem, K_x: Any, K_phi: Any,
                  update_law: UpdateLaw, second: SecondObserver | None = None,
-                 nan_policy: str = "raise") -> None:
+                 nan_policy: str = "raise", allow_nonminimum_phase: bool = False) -> None:
         if not isinstance(system, PerturbedLinearSystem):
             raise DimensionError("system must be a PerturbedLinearSystem; got "
                                  f"{type(system).__name__}.")
         if system.perturbation is None:
             raise DimensionError("ModifiedHighGainObserver needs system.perturbation (g of "
                                  "(3)); build the system with perturbation=... .")
+        if not allow_nonminimum_phase:           # Assumption 1, or the error cannot converge
+            check_assumption_1(system.A, system.E, system.C, strict=True)
         n, m, r, k, p = system.n, system.m, system.r, system.k, system.p
         Kx = readonly(as_matrix("K_x", K_x, (n, r)))
         Kphi = readonly(as_matrix("K_phi", K_phi, (k, r)))
@@ -288,14 +297,14 @@ class ModifiedHighGainObserver:
 
     @classmethod
     def from_design(cls, system: PerturbedLinearSystem, design: Any, update_law: UpdateLaw,
-                    *, second: SecondObserver | None = None,
-                    nan_policy: str = "raise") -> ModifiedHighGainObserver:
+                    *, second: SecondObserver | None = None, nan_policy: str = "raise",
+                    allow_nonminimum_phase: bool = False) -> ModifiedHighGainObserver:
         """Build from a gain design on the extended system (reads ``design.K_x``,
         ``design.K_phi``).
 
         Parameters
         ----------
-        system, update_law, second, nan_policy
+        system, update_law, second, nan_policy, allow_nonminimum_phase
             As for the constructor.
         design : GainDesign
             Any object with attributes ``K_x`` (n, r) and ``K_phi`` (k, r).
@@ -320,7 +329,8 @@ class ModifiedHighGainObserver:
         array([[2.]])
         """
         return cls(system=system, K_x=design.K_x, K_phi=design.K_phi, update_law=update_law,
-                   second=second, nan_policy=nan_policy)
+                   second=second, nan_policy=nan_policy,
+                   allow_nonminimum_phase=allow_nonminimum_phase)
 
     # ------------------------------------------------------------------ layout
     @property

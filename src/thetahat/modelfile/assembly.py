@@ -149,7 +149,8 @@ def build_observer(spec: ModelSpec, *, eps: float | None = None) -> ModifiedHigh
         second = SecondObserver(system=spec.system, K_x=d2.K,
                                 g_on_estimates=spec.estimator.second.g_on_estimates)
     return ModifiedHighGainObserver.from_design(spec.system, d1, spec.estimator.update_law,
-                                                second=second)
+                                                second=second,
+                                                allow_nonminimum_phase=est.allow_nonminimum_phase)
 
 
 def run_estimator(spec: ModelSpec, t: ArrayLike, u: ArrayLike | None, y: ArrayLike, *,
@@ -197,9 +198,10 @@ def run_estimator(spec: ModelSpec, t: ArrayLike, u: ArrayLike | None, y: ArrayLi
     """
     obs = build_observer(spec)
     if nan_policy != "raise":
-        obs = ModifiedHighGainObserver(system=obs.system, K_x=obs.K_x, K_phi=obs.K_phi,
-                                       update_law=obs.update_law, second=obs.second,
-                                       nan_policy=nan_policy)
+        obs = ModifiedHighGainObserver(
+            system=obs.system, K_x=obs.K_x, K_phi=obs.K_phi, update_law=obs.update_law,
+            second=obs.second, nan_policy=nan_policy,
+            allow_nonminimum_phase=spec.estimator.allow_nonminimum_phase)
     s = spec.system
     theta_star = getattr(spec.estimator.update_law, "theta_star", None)
     if theta_star is not None:
