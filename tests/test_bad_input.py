@@ -478,6 +478,8 @@ CLI_CASES = [
                 str(_write(p, "d.csv", "t,u,y\n0,0,0\n0.01,0,\n")), "-o", str(p / "o.csv")],
      2, "--nan-policy skip"),
     (lambda p: ["sweep", "--t-end", "1e9"], 2, "memory"),
+    (lambda p: ["sweep", "--out", str(_write(p, "f", "x") / "sub")], 2, "not a writable folder"),
+    (lambda p: ["tune", "--out", str(_write(p, "f", "x"))], 2, "not a writable folder"),
 ]
 
 

@@ -49,15 +49,21 @@ _LUGRE_STATES = ("omega", "eta")
 
 
 def _demo(args: argparse.Namespace) -> int:
+    from .datafile import check_writable
     from .models.lugre_report import report
+
+    check_writable(Path(args.out) / "lugre.json")          # before any work
 
     report(out=args.out, eps=args.eps, seed=args.seed, show=args.show)
     return EXIT_OK
 
 
 def _sweep(args: argparse.Namespace) -> int:
+    from .datafile import check_writable
     from .models import lugre
     from .simulation.sweep import eps_sweep
+
+    check_writable(Path(args.out) / "sweep.json")          # before any work
 
     simulate = functools.partial(lugre.simulate, t_end=args.t_end)
     result = eps_sweep(lugre.observer, simulate, args.eps, range(args.seeds),
@@ -78,8 +84,11 @@ def _sweep(args: argparse.Namespace) -> int:
 
 
 def _tune(args: argparse.Namespace) -> int:
+    from .datafile import check_writable
     from .models import lugre
     from .simulation.tune import tune_eps_gamma
+
+    check_writable(Path(args.out) / "tune.json")           # before any work
 
     simulate = functools.partial(lugre.simulate, t_end=args.t_end)
     result = tune_eps_gamma(lugre.observer, simulate, eps_values=args.eps, gammas=args.gamma,

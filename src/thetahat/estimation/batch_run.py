@@ -378,6 +378,8 @@ def _as_observers(observers: Any) -> list[ModifiedHighGainObserver]:
 
 
 def _records(name: str, a: Any, B: int | None, N: int, width: int) -> FloatArray:
+    if np.iscomplexobj(a):
+        raise DimensionError(f"run_batch: {name} must be real; got complex samples.")
     arr = np.asarray(a, dtype=np.float64)
     if arr.ndim == 2 and width == 1:
         arr = arr[..., None]
