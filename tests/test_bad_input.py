@@ -501,3 +501,12 @@ def test_cli_help_documents_the_exit_codes(capsys):
     assert main(["analyze", "--help"]) == 0
     out = capsys.readouterr().out
     assert "0 when Assumption 1 holds" in out and "1 when not" in out and "2 for bad" in out
+
+
+def test_run_batch_refuses_complex_y():
+    from thetahat.estimation.batch_run import run_batch
+
+    obs = _observer()
+    t = np.arange(5) * 0.01
+    with pytest.raises(E.DimensionError, match="Y must be real"):
+        run_batch(obs, t, np.zeros((2, 5)), np.zeros((2, 5)) + 1j)
