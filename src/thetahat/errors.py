@@ -31,8 +31,8 @@ __all__ = [
     "IllConditionedError",
     "UnstableDesignError",
     "IndexOutOfRangeError",
-    "MissingDependencyError",
     "FileAccessError",
+    "MissingExtraError",
     "ThetahatWarning",
     "ConvergenceWarning",
     "IllConditionedWarning",
@@ -124,10 +124,6 @@ class IndexOutOfRangeError(ThetahatError, IndexError):
     """An index is outside the valid range (the message gives the range)."""
 
 
-class MissingDependencyError(ThetahatError, ImportError):
-    """An optional extra is needed but not installed; the message names the pip command."""
-
-
 class FileAccessError(ThetahatError, OSError):
     """A file or folder thetahat needs cannot be created or written."""
 
@@ -204,6 +200,9 @@ class UnstableDesignError(DesignError):
     def __init__(self, message: str, *, eigenvalues: Sequence[complex] = ()) -> None:
         super().__init__(message)
         self.eigenvalues = np.asarray(eigenvalues, dtype=complex)
+class MissingExtraError(ThetahatError, ImportError):
+    """A call needs an optional extra (numba, matplotlib, python-control, …) that is not
+    installed; the message names the ``pip install 'thetahat[extra]'`` that provides it."""
 
 
 class ThetahatWarning(UserWarning):
