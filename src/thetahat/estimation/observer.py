@@ -24,6 +24,7 @@ from numpy.typing import NDArray
 from .._validate import (as_matrix, as_time_grid, as_vector, check_finite, positive_scalar,
                          readonly)
 from ..errors import DimensionError, NonFiniteError, OptionError
+from ..limits import check_allocation
 from ..model.system import PerturbedLinearSystem
 from ..structure.assumptions import check_assumption_1
 from .discretize import PlanCache, linearly_implicit_exponential_step
@@ -635,6 +636,8 @@ class ModifiedHighGainObserver:
                                  f"{i}) and nan_policy='raise'; pass nan_policy='skip' to "
                                  "predict over missing samples, or clean the data.")
         s = self.init() if state0 is None else self._state(state0)
+        check_allocation(8.0 * N * (size + 2 * n + k + p), f"the estimates of {N} samples",
+                         fix="run the record in pieces (pass the last state as state0)")
         S = np.empty((N, size))
         S[0] = s
         foh = hold == "foh"
