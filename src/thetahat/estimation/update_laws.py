@@ -280,9 +280,16 @@ class _SympyThetaStar:
         return out.astype(np.float64)
 
 
-def _sympy_solve(eqs: list[sp.Eq], unknowns: list[sp.Symbol]) -> list[dict[Any, Any]]:
-    """sp.solve, module-level so that it can run in a time-budgeted worker process."""
-    return sp.solve(eqs, unknowns, dict=True, check=False, simplify=False)
+def _sympy_solve(eqs: list[sp.Eq], unknowns: list[sp.Symbol]
+                 ) -> list[tuple[dict[Any, Any], tuple[sp.Expr, ...] | None]]:
+    """sp.solve and the expanded form of each complete solution (None for the others):
+    module-level, so that all of the symbolic work runs in one time-budgeted worker."""
+    out = []
+    for sol in sp.solve(eqs, unknowns, dict=True, check=False, simplify=False):
+        complete = set(unknowns) <= set(sol) and not any(
+            sol[t].free_symbols & set(unknowns) for t in unknowns)
+        out.append((sol, tuple(sp.expand(sol[t]) for t in unknowns) if complete else None))
+    return out
 
 
 def _solve_theta_star(perturbation: Perturbation, parameter_set: ParameterSet,
@@ -311,9 +318,8 @@ def _solve_theta_star(perturbation: Perturbation, parameter_set: ParameterSet,
                              f"theta_star explicitly.") from exc
     args = [reps[s] for s in (*u, *y, *x)] + phi
     branches, underdetermined = [], False
-    for sol in sols:
-        if not set(unknowns) <= set(sol) or any(sol[t].free_symbols & set(unknowns)
-                                                for t in unknowns):
+    for sol, expanded in sols:
+        if expanded is None:
             underdetermined = True
             continue
         exprs = tuple(sol[t] for t in unknowns)
@@ -323,7 +329,7 @@ def _solve_theta_star(perturbation: Perturbation, parameter_set: ParameterSet,
         # exp(ω²/ω0²) and divides by it again, inf·0 = NaN for |ω| > 0.27); the expanded form
         # cancels such factors. Both forms are checked below and the better one is kept.
         forms = []
-        for form in dict.fromkeys((exprs, tuple(sp.expand(e) for e in exprs))):
+        for form in dict.fromkeys((exprs, expanded)):
             try:
                 fn = lambdify_numpy(args, form)
             except Exception:  # noqa: BLE001 - SymPy raises many types for unprintable forms
