@@ -11,8 +11,10 @@ from .estimation.checks import (ExcitationReport, MonotonicityReport, check_mono
                                 excitation_report)
 from .estimation.compiled import CompiledObserver, compile_observer
 from .estimation.observer import ModifiedHighGainObserver, ObserverEstimate, ObserverResult
+from .estimation.plan import StepPlan
 from .estimation.projection import Projection, Saturation, saturate
 from .estimation.redesign import SecondObserver
+from .estimation.theta_star import ThetaStar
 from .estimation.update_laws import (AlgebraicInversion, ConstantLaw, GradientInversion,
                                      IntermittentInversion, UpdateLaw, smooth_ramp)
 from .errors import (ConvergenceWarning, DesignError, DimensionError, IllConditionedWarning,
@@ -62,4 +64,5 @@ __all__ = [
     "unstable_zeros", "__version__",
     "IllConditionedError", "InputLimitError", "ResourceLimitError", "SymbolicTimeoutError",
     "UnstableDesignError",
+    "StepPlan", "ThetaStar",
 ]

@@ -23,6 +23,7 @@ from .._validate import as_matrix, as_vector, check_finite, positive_scalar
 from ..errors import DimensionError, UpdateLawError
 from ..model.paramset import Box, ParameterSet
 from ..model.perturbation import Perturbation
+from .theta_star import ThetaStar
 
 FloatArray = NDArray[np.float64]
 
@@ -324,9 +325,10 @@ def check_theta_star(theta_star: Callable[..., Any], perturbation: Perturbation,
     θ* = θ wherever ∂g/∂θ ≠ 0 (Proposition 1 needs θ* to invert g on the range the estimator
     visits). Refused: points where θ* is NaN
     or inf (a singularity or a branch cut on the data), points where θ* returns another θ
-    (a branch that misses Θ), and, for a θ* derived by SymPy, a denominator of θ* that
+    (a branch that misses Θ), and a denominator of θ* that
     changes sign between two samples (a pole crossed by the data, e.g. θ* = log(φ + 1)/y
-    for g = exp(θ y) − 1 when y crosses 0).
+    for g = exp(θ y) − 1 when y crosses 0); the last check needs θ* as a
+    :class:`~thetahat.estimation.theta_star.ThetaStar` (derived by SymPy or read from a file).
 
     Parameters
     ----------
@@ -413,11 +415,10 @@ def check_theta_star(theta_star: Callable[..., Any], perturbation: Perturbation,
 
 def _check_poles(theta_star: Any, V: FloatArray, X: FloatArray, perturbation: Perturbation,
                  th: FloatArray, t: FloatArray, fix: str) -> None:
-    """Sign changes of the denominators of a SymPy-derived θ* between consecutive samples."""
-    solution = getattr(theta_star, "solution", None)
-    arguments = getattr(theta_star, "arguments", None)
-    if not solution or not arguments or t.size < 2:
+    """Sign changes of the denominators of a symbolic θ* between consecutive samples."""
+    if not isinstance(theta_star, ThetaStar) or t.size < 2:
         return
+    solution, arguments = theta_star.expr, theta_star.arguments
     import sympy as sp
 
     with np.errstate(all="ignore"):
