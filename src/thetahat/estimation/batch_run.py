@@ -23,7 +23,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from .._validate import check_finite, readonly
-from ..errors import DimensionError
+from ..errors import DimensionError, IndexOutOfRangeError, OptionError
 from .observer import HOLDS, ModifiedHighGainObserver, ObserverResult
 from .plan import StepPlan, dt_key, stack_plans
 from .step import integrate, readout
