@@ -40,7 +40,7 @@ def _demo(args: argparse.Namespace) -> int:
 
 def _sweep(args: argparse.Namespace) -> int:
     from .models import lugre
-    from .simulation.sweep import eps_sweep
+    from .studies.sweep import eps_sweep
 
     simulate = functools.partial(lugre.simulate, t_end=args.t_end)
     result = eps_sweep(lugre.observer, simulate, args.eps, range(args.seeds),
@@ -62,7 +62,7 @@ def _sweep(args: argparse.Namespace) -> int:
 
 def _tune(args: argparse.Namespace) -> int:
     from .models import lugre
-    from .simulation.tune import tune_eps_gamma
+    from .studies.tune import tune_eps_gamma
 
     simulate = functools.partial(lugre.simulate, t_end=args.t_end)
     result = tune_eps_gamma(lugre.observer, simulate, eps_values=args.eps, gammas=args.gamma,

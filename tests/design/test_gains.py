@@ -8,7 +8,7 @@ import pytest
 
 from thetahat import (DesignError, ThetahatWarning, apply_design, extended_system, high_gain,
                       modified_high_gain)
-from thetahat.design.gains import _scb_gain, place_observer
+from thetahat.design.gains import scb_gain, place_observer
 from thetahat.testing import STRUCTURES, random_scb_system
 
 #: The paper's numbers against our own closed-form derivation: pure floating point.
@@ -102,7 +102,7 @@ def test_uncorrected_exponents_fail_on_chains_1_and_3():
     for eps in EPS_SWEEP:
         d = high_gain(ks.A, ks.B, ks.C, eps)
         sc = d.scb
-        K_bad = sc.state_transform @ _scb_gain(sc, d.K_bar, d.K_bb, eps, corrected=False) \
+        K_bad = sc.state_transform @ scb_gain(sc, d.K_bar, d.K_bb, eps, corrected=False) \
             @ np.linalg.inv(sc.output_transform)
         for K, out in ((d.K, errors_ok), (K_bad, errors_bad)):
             eig = np.linalg.eigvals(ks.A - K @ ks.C)

@@ -19,6 +19,7 @@ Remark 2: eig(A − K(ε)C) = eig(A_a) ∪ eig(A_b − K_bb C_b) ∪ {n_q poles 
 
 from __future__ import annotations
 
+import dataclasses
 import warnings
 from dataclasses import dataclass
 from typing import Callable, Sequence
@@ -67,6 +68,14 @@ class GainDesign:
         For a design on the extended system (4) (``modified_high_gain``): the split
         K = [K_x; K_φ] with K_x (n_x, r) and K_φ (k, r). For a plain ``high_gain`` design,
         K_x = K and K_phi is None.
+    A, C : ndarray, shapes (n, n) and (r, n)
+        The system the gain was designed on (for ``modified_high_gain``: A_e and C_e of (4)).
+
+    Notes
+    -----
+    Only the chain injection K'_qj = col(K̄_qj1/ε, …, K̄_qjn/ε^n) of (7) depends on ε (by
+    the corrigendum); the SCB, K̄_qj and K_bb do not. :meth:`at` therefore gives K(ε) for
+    another ε from this design without a new SCB (ε sweeps, tuning).
     """
 
     K: FloatArray
@@ -80,6 +89,49 @@ class GainDesign:
     eigenvalues: NDArray[np.complex128]
     K_x: FloatArray | None
     K_phi: FloatArray | None
+    A: FloatArray
+    C: FloatArray
+
+    def at(self, eps: float) -> GainDesign:
+        """The same design at another ε, reusing the SCB, K̄_qj and K_bb (corrigendum).
+
+        Parameters
+        ----------
+        eps : float
+            0 < ε ≤ 1; larger ε warns, ε ≤ 0 raises (as in :func:`high_gain`).
+
+        Returns
+        -------
+        GainDesign
+            Equal to a fresh :func:`high_gain` (or :func:`modified_high_gain`) design at
+            ``eps`` with the same poles; ``self`` when ``eps`` is this design's ε.
+
+        Raises
+        ------
+        DesignError
+            ε ≤ 0 or not a number.
+        NonFiniteError
+            ε is NaN or inf.
+
+        Examples
+        --------
+        >>> import numpy as np
+        >>> from thetahat import modified_high_gain
+        >>> J, s0, a2 = 0.0023, 260.0, 0.176
+        >>> A, E, C = [[-a2 / J, -s0 / J], [1, 0]], [[0], [-1]], [[1, 0]]
+        >>> d05 = modified_high_gain(A, E, C, eps=1.0).at(0.5)
+        >>> [round(float(v), 4) for v in d05.K.ravel()]
+        [12.0, -0.0085, 12.0302]
+        >>> bool(np.allclose(d05.K, modified_high_gain(A, E, C, eps=0.5).K, rtol=1e-12))
+        True
+        """
+        e = check_eps(eps)
+        if e == self.eps:
+            return self
+        Kt = scb_gain(self.scb, self.K_bar, self.K_bb, e)
+        n_x = None if self.K_phi is None else self.K_phi.shape[0]
+        return _assemble(self.scb, Kt, e, self.chain_poles, self.b_poles, self.K_bar,
+                         self.K_bb, self.A, self.C, n_phi=n_x)
 
     def __repr__(self) -> str:
         K = np.array2string(self.K.ravel() if self.K.shape[1] == 1 else self.K, precision=6)
@@ -107,9 +159,38 @@ def extended_system(A, E, C) -> tuple[FloatArray, FloatArray, FloatArray]:
     return A_e, E_e, C_e
 
 
-def _check_eps(eps) -> float:
+def check_eps(eps: object) -> float:
+    """ε as a float, checked: a finite number > 0; ε > 1 warns (Sec. VII starts at ε = 1).
+
+    Parameters
+    ----------
+    eps : float
+        The high-gain parameter ε.
+
+    Returns
+    -------
+    float
+
+    Raises
+    ------
+    DesignError
+        ε ≤ 0 or not a number.
+    NonFiniteError
+        ε is NaN or inf.
+
+    Warns
+    -----
+    ThetahatWarning
+        ε > 1.
+
+    Examples
+    --------
+    >>> from thetahat.design.gains import check_eps
+    >>> check_eps("0.5")
+    0.5
+    """
     try:
-        e = float(eps)
+        e = float(eps)  # type: ignore[arg-type]
     except (TypeError, ValueError) as exc:
         raise DesignError(f"eps must be a number in (0, 1]; got {eps!r}.") from exc
     if not np.isfinite(e):
@@ -281,7 +362,7 @@ def high_gain(A, E, C, eps: float, chain_poles: PoleSpec = None,
     [3.0, -0.00205]
     """
     A, E, C = as_triple(A, E, C, names=("A", "E", "C"))
-    eps = _check_eps(eps)
+    eps = check_eps(eps)
     sc = scb(A, E, C, tol=tol)
     lengths = sc.chain_lengths
     cpoles = _resolve_chain_poles(chain_poles, lengths)
@@ -291,18 +372,61 @@ def high_gain(A, E, C, eps: float, chain_poles: PoleSpec = None,
         bp = _check_poles("b_poles", b_poles, sc.n_b)
     K_bb = place_observer(sc.A_b, sc.C_b, bp) if sc.n_b else np.zeros((0, sc.r_b))
     K_bars = tuple(chain_coefficients(p) for p in cpoles)
-    Kt = _scb_gain(sc, K_bars, K_bb, eps)
+    Kt = scb_gain(sc, K_bars, K_bb, eps)
+    return _assemble(sc, Kt, eps, cpoles, bp, K_bars, K_bb, A, C, n_phi=None)
+
+
+def _assemble(sc: SCBResult, Kt: FloatArray, eps: float,
+              cpoles: tuple[tuple[complex, ...], ...], bp: tuple[complex, ...],
+              K_bars: tuple[FloatArray, ...], K_bb: FloatArray, A: FloatArray, C: FloatArray,
+              *, n_phi: int | None) -> GainDesign:
+    """K = Γs K̃ Γo⁻¹ (7), the closed-loop spectrum, and the [K_x; K_φ] split when n_phi."""
     K = sc.state_transform @ Kt @ np.linalg.solve(sc.output_transform, np.eye(C.shape[0]))
     eig = np.sort_complex(np.linalg.eigvals(A - K @ C))
+    if n_phi is None:
+        K_x, K_phi = K, None
+    else:
+        n = K.shape[0] - n_phi
+        K_x, K_phi = K[:n].copy(), K[n:].copy()
     return GainDesign(K=K, eps=eps, chain_poles=cpoles, b_poles=bp, K_bar=K_bars, K_bb=K_bb,
-                      K_tilde=Kt, scb=sc, eigenvalues=eig, K_x=K, K_phi=None)
+                      K_tilde=Kt, scb=sc, eigenvalues=eig, K_x=K_x, K_phi=K_phi, A=A, C=C)
 
 
-def _scb_gain(sc: SCBResult, K_bars, K_bb, eps: float, *, corrected: bool = True) -> FloatArray:
-    """The gain in SCB coordinates, rows (χ_a, χ_b, χ_q), columns (γ_q, γ_b).
+def scb_gain(sc: SCBResult, K_bars: Sequence[FloatArray], K_bb: FloatArray, eps: float, *,
+             corrected: bool = True) -> FloatArray:
+    """The gain K̃ of (7) in SCB coordinates, rows (χ_a, χ_b, χ_q), columns (γ_q, γ_b).
 
-    ``corrected=False`` uses the uncorrected exponents of the original paper
-    (ε^(n̄_q − n_qj + i)); kept private, to show in tests why the corrigendum matters.
+    Only the chain injection K'_qj = col(K̄_qj1/ε, …, K̄_qjn/ε^n) depends on ε.
+
+    Parameters
+    ----------
+    sc : SCBResult
+        The SCB (6) of the triple the gain is designed for.
+    K_bars : sequence of ndarray
+        K̄_qj for each chain (:func:`chain_coefficients`), in the SCB's chain order.
+    K_bb : ndarray, shape (n_b, r_b)
+        Gain placing eig(A_b − K_bb C_b).
+    eps : float
+        ε > 0.
+    corrected : bool, optional
+        True (default): the corrigendum's exponents ε^i. False: the uncorrected exponents of
+        the original paper (ε^(n̄_q − n_qj + i)), to show in tests why the corrigendum matters.
+
+    Returns
+    -------
+    ndarray, shape (n, r)
+        K̃ with K = Γs K̃ Γo⁻¹.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from thetahat.design.gains import chain_coefficients, scb_gain
+    >>> from thetahat.structure.scb import scb
+    >>> sc = scb(np.array([[0.0, 1.0], [0.0, 0.0]]), np.array([[0.0], [1.0]]),
+    ...          np.array([[1.0, 0.0]]))
+    >>> K_bar = chain_coefficients([-1.0, -2.0])
+    >>> scb_gain(sc, [K_bar], np.zeros((0, 0)), 0.5).ravel().tolist()
+    [6.0, 8.0]
     """
     n_a, n_b, k = sc.n_a, sc.n_b, sc.k
     n, r = sc.A_tilde.shape[0], sc.C_tilde.shape[0]
@@ -356,6 +480,4 @@ def modified_high_gain(A, E, C, eps: float, chain_poles: PoleSpec = None,
     A_, E_, C_ = as_triple(A, E, C, names=("A", "E", "C"))
     n = A_.shape[0]
     d = high_gain(*extended_system(A_, E_, C_), eps, chain_poles, b_poles, tol=tol)
-    return GainDesign(K=d.K, eps=d.eps, chain_poles=d.chain_poles, b_poles=d.b_poles,
-                      K_bar=d.K_bar, K_bb=d.K_bb, K_tilde=d.K_tilde, scb=d.scb,
-                      eigenvalues=d.eigenvalues, K_x=d.K[:n].copy(), K_phi=d.K[n:].copy())
+    return dataclasses.replace(d, K_x=d.K[:n].copy(), K_phi=d.K[n:].copy())

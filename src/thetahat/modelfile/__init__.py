@@ -5,11 +5,12 @@ format is documented there), :mod:`.assembly` builds and runs the estimator it d
 :mod:`.report` analyses it (``thetahat analyze``).
 """
 
-from .assembly import build_observer, design_gains, design_matrices, run_estimator
+from .assembly import (build_observer, design_gains, design_matrices, estimator_spec,
+                       run_estimator)
 from .report import ModelAnalysis, analyze_model
 from .schema import (EXAMPLE_MODEL, LAWS, EstimatorOptions, ModelSpec, SecondObserverOptions,
                      load_model, loads_model)
 
 __all__ = ["EXAMPLE_MODEL", "LAWS", "EstimatorOptions", "ModelAnalysis", "ModelSpec",
            "SecondObserverOptions", "analyze_model", "build_observer", "design_gains",
-           "design_matrices", "load_model", "loads_model", "run_estimator"]
+           "design_matrices", "estimator_spec", "load_model", "loads_model", "run_estimator"]

@@ -29,13 +29,16 @@ import sympy as sp
 from numpy.typing import ArrayLike, NDArray
 
 from .._validate import as_vector, positive_scalar
+from ..design.gains import GainDesign
 from ..errors import DimensionError, ParameterSetError, ThetahatWarning
+from ..estimation.observer import ModifiedHighGainObserver
 from ..model.paramset import Box
 from ..model.perturbation import SymbolicPerturbation
 from ..model.system import PerturbedLinearSystem
 from ..simulation.noise import Seed, WhiteNoise
 from ..simulation.signals import Multisine, Signal
 from ..simulation.simulate import PlantTrajectory, simulate_plant
+from ..spec import EstimatorSpec, SecondObserverSpec
 
 __all__ = [
     "LUGRE_ATOL",
@@ -46,7 +49,10 @@ __all__ = [
     "LuGreThetaStar",
     "Scenario",
     "design_system",
+    "designs",
+    "estimator_spec",
     "linear_part",
+    "observer",
     "perturbation",
     "simulate",
     "system",
@@ -533,17 +539,17 @@ def simulate(seed: Seed = 0, *, scenario: Scenario | None = None,
 EXCITATION = (0.75, 1.0)
 
 
-def observer(eps: float = 1.0, *, Gamma: float = 1.0, eps2: float = 1.0,
-             params: LuGreParameters = LuGreParameters(),
-             excitation: tuple[float, float] = EXCITATION, second: bool = True,
-             chain_poles: Any = None, second_poles: Any = None) -> Any:
-    """The paper's estimator for the DC motor (Sec. VIII-A), ready to ``run(t, u, y)``.
+def estimator_spec(eps: float = 1.0, *, Gamma: float = 1.0, eps2: float = 1.0,
+                   params: LuGreParameters = LuGreParameters(),
+                   excitation: tuple[float, float] = EXCITATION, second: bool = True,
+                   chain_poles: Any = None, second_poles: Any = None) -> EstimatorSpec:
+    """The paper's estimator for the DC motor (Sec. VIII-A) as an :class:`EstimatorSpec`.
 
     A modified high-gain observer (3) whose gains are designed on the σ1 = 0 design system
     with chain poles −1, −2, −3 (ε = 1 gives K ≈ [6, 0, 6]ᵀ), Proposition 2's update law with
     the algebraic inverse θ* and a smooth excitation weight l(|φ̂|), and the second observer of
     Sec. VI (poles −1, −2; ε2 = 1 gives K ≈ [3, 0]ᵀ) with g evaluated on its own estimates.
-    The observer uses the known parameters and the data only, never the true α0.
+    The estimator uses the known parameters and the data only, never the true α0.
 
     Parameters
     ----------
@@ -564,9 +570,47 @@ def observer(eps: float = 1.0, *, Gamma: float = 1.0, eps2: float = 1.0,
 
     Returns
     -------
+    EstimatorSpec
+        ``build(eps=…, Gamma=…)`` gives the observer for any ε and Γ from one SCB.
+
+    Examples
+    --------
+    >>> from thetahat.models import lugre
+    >>> spec = lugre.estimator_spec()
+    >>> [round(float(v), 4) for v in spec.design.K.ravel()]
+    [6.0, -0.0042, 6.0075]
+    """
+    from ..estimation.update_laws import IntermittentInversion, smooth_ramp
+
+    sys = system(params)
+    law = IntermittentInversion(theta_star(params), smooth_ramp(*excitation), Gamma,
+                                sys.parameter_set, on_invalid="freeze")
+    obs2 = None
+    if second:
+        obs2 = SecondObserverSpec(eps2=eps2, chain_poles=second_poles or [[-1.0, -2.0]],
+                                  g_on_estimates=True)
+    return EstimatorSpec(system=sys, law=law, eps=eps,
+                         chain_poles=chain_poles or [[-1.0, -2.0, -3.0]],
+                         design_system=design_system(params), second=obs2)
+
+
+def observer(eps: float = 1.0, *, Gamma: float = 1.0, eps2: float = 1.0,
+             params: LuGreParameters = LuGreParameters(),
+             excitation: tuple[float, float] = EXCITATION, second: bool = True,
+             chain_poles: Any = None, second_poles: Any = None) -> ModifiedHighGainObserver:
+    """The paper's estimator for the DC motor, ready to ``run(t, u, y)``: the observer that
+    ``estimator_spec(...).build()`` makes (Sec. VIII-A).
+
+    Parameters
+    ----------
+    eps, Gamma, eps2, params, excitation, second, chain_poles, second_poles
+        As in :func:`estimator_spec`.
+
+    Returns
+    -------
     ModifiedHighGainObserver
-        With ``run(t, u, y)``, ``init``/``step`` and ``rhs``. The two gain designs (SCB,
-        spectra) are returned by :func:`designs` with the same arguments.
+        With ``run(t, u, y)``, ``init``/``step`` and ``rhs``. For many ε or Γ, build from one
+        :func:`estimator_spec` instead (one SCB for all).
 
     Examples
     --------
@@ -576,22 +620,27 @@ def observer(eps: float = 1.0, *, Gamma: float = 1.0, eps2: float = 1.0,
     >>> res.theta_hat.shape
     (1001, 1)
     """
-    from ..estimation.observer import ModifiedHighGainObserver
-    from ..estimation.redesign import SecondObserver
-    from ..estimation.update_laws import IntermittentInversion, smooth_ramp
-
-    sys = system(params)
-    d1, d2 = designs(eps, eps2=eps2, params=params, chain_poles=chain_poles,
-                     second_poles=second_poles)
-    law = IntermittentInversion(theta_star(params), smooth_ramp(*excitation), Gamma,
-                                sys.parameter_set, on_invalid="freeze")
-    obs2 = SecondObserver(system=sys, K_x=d2.K, g_on_estimates=True) if second else None
-    return ModifiedHighGainObserver.from_design(sys, d1, law, second=obs2)
+    return estimator_spec(eps, Gamma=Gamma, eps2=eps2, params=params, excitation=excitation,
+                          second=second, chain_poles=chain_poles,
+                          second_poles=second_poles).build()
 
 
 def designs(eps: float = 1.0, *, eps2: float = 1.0, params: LuGreParameters = LuGreParameters(),
-            chain_poles: Any = None, second_poles: Any = None) -> tuple[Any, Any]:
+            chain_poles: Any = None, second_poles: Any = None
+            ) -> tuple[GainDesign, GainDesign | None]:
     """The two gain designs of Sec. VIII on the σ1 = 0 design system: (first, second).
+
+    Parameters
+    ----------
+    eps, eps2, params, chain_poles, second_poles
+        As in :func:`estimator_spec`.
+
+    Returns
+    -------
+    design : GainDesign
+        K(ε) = [K_x; K_φ] of the first observer.
+    design2 : GainDesign
+        The second observer's gain.
 
     Examples
     --------
@@ -600,12 +649,8 @@ def designs(eps: float = 1.0, *, eps2: float = 1.0, params: LuGreParameters = Lu
     >>> [round(float(v), 4) for v in d1.K.ravel()], [round(float(v), 4) for v in d2.K.ravel()]
     ([6.0, -0.0042, 6.0075], [3.0, -0.002])
     """
-    from ..design.gains import high_gain, modified_high_gain
-
-    ds = design_system(params)
-    d1 = modified_high_gain(ds.A, ds.E, ds.C, eps, chain_poles or [[-1.0, -2.0, -3.0]])
-    d2 = high_gain(ds.A, ds.E, ds.C, eps2, second_poles or [[-1.0, -2.0]])
-    return d1, d2
+    return estimator_spec(eps, eps2=eps2, params=params, chain_poles=chain_poles,
+                          second_poles=second_poles).designs()
 
 
 def theta_star_expr(params: LuGreParameters = LuGreParameters()) -> sp.Expr:

@@ -20,7 +20,7 @@ import numpy as np
 
 import thetahat as th
 from thetahat.models import lugre
-from thetahat.simulation.metrics import rmse, time_to_within
+from thetahat.studies.metrics import rmse, time_to_within
 
 
 def structure_report(params: lugre.LuGreParameters) -> None:
