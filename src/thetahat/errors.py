@@ -7,9 +7,8 @@ found, and what to do.
 
 from __future__ import annotations
 
-from typing import Sequence
-
 import numpy as np
+from numpy.typing import ArrayLike
 
 __all__ = [
     "ThetahatError",
@@ -70,7 +69,7 @@ class NotMinimumPhaseError(ThetahatError, ValueError):
         The offending zeros (real part >= -tolerance).
     """
 
-    def __init__(self, message: str, *, zeros: Sequence[complex] = ()) -> None:
+    def __init__(self, message: str, *, zeros: ArrayLike = ()) -> None:
         super().__init__(message)
         self.zeros = np.asarray(zeros, dtype=complex)
 

@@ -234,8 +234,9 @@ class EstimatorSpec:
         >>> lugre.estimator_spec().with_gamma(3.0).Gamma.tolist()
         [[3.0]]
         """
-        names = {f.name for f in dataclasses.fields(self.law)} if dataclasses.is_dataclass(
-            self.law) else set()
+        names: set[str] = set()
+        if dataclasses.is_dataclass(self.law):
+            names = {f.name for f in dataclasses.fields(self.law)}
         if "Gamma" not in names:
             raise UpdateLawError(f"the update law {type(self.law).__name__} has no adaptation "
                                  f"gain Γ; leave Gamma unset.")

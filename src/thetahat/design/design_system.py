@@ -68,6 +68,6 @@ def apply_design(design: GainDesign, A, E, C) -> DesignSystemReport:
     if design.K.shape != (A_.shape[0], C_.shape[0]):
         raise DimensionError(f"design.K has shape {design.K.shape} but the true system needs "
                              f"({A_.shape[0]}, {C_.shape[0]}).")
-    eig_true = np.sort_complex(np.linalg.eigvals(A_ - design.K @ C_))
+    eig_true = np.sort_complex(np.linalg.eigvals(A_ - design.K @ C_)).astype(np.complex128)
     return DesignSystemReport(design=design, eig_design=design.eigenvalues, eig_true=eig_true,
                               stable=bool(np.all(eig_true.real < 0)))

@@ -310,6 +310,9 @@ def place_observer(A: FloatArray, C: FloatArray, poles: Sequence[complex], *,
             best, best_cond = (X, Y), c
         if c < 1e6:
             break
+    if best is None:
+        raise DesignError("pole placement failed: the Sylvester equation has no solution; "
+                          "try other b_poles.")
     X, Y = best
     if not np.isfinite(best_cond) or best_cond > 1e12:
         raise DesignError("pole placement failed: (C_b, A_b) looks unobservable, or the "
@@ -382,7 +385,7 @@ def _assemble(sc: SCBResult, Kt: FloatArray, eps: float,
               *, n_phi: int | None) -> GainDesign:
     """K = Γs K̃ Γo⁻¹ (7), the closed-loop spectrum, and the [K_x; K_φ] split when n_phi."""
     K = sc.state_transform @ Kt @ np.linalg.solve(sc.output_transform, np.eye(C.shape[0]))
-    eig = np.sort_complex(np.linalg.eigvals(A - K @ C))
+    eig = np.sort_complex(np.linalg.eigvals(A - K @ C)).astype(np.complex128)
     if n_phi is None:
         K_x, K_phi = K, None
     else:

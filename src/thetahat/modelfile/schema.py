@@ -61,7 +61,7 @@ import tomllib
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -374,7 +374,8 @@ class _ThetaStarExpression:
 
     def __call__(self, v: ArrayLike, x_hat: ArrayLike, phi_hat: ArrayLike) -> FloatArray:
         """θ*; shape (..., p)."""
-        return self.expr.g(v, x_hat, phi_hat)
+        return self.expr.g(np.asarray(v, dtype=np.float64), np.asarray(x_hat, dtype=np.float64),
+                           np.asarray(phi_hat, dtype=np.float64))
 
 
 def _phi_names(k: int) -> list[str]:
@@ -462,11 +463,11 @@ def _read_law(sec: _Section, pert: SymbolicPerturbation, theta_set: Box,
         if theta_star is None:
             opts = {"Gamma": Gamma, "parameter_set": theta_set, "on_invalid": on_invalid}
             built = (AlgebraicInversion.from_perturbation(pert, **opts) if law == "algebraic"
-                     else IntermittentInversion.from_perturbation(pert, ramp, **opts))
+                     else IntermittentInversion.from_perturbation(pert, ramp, **opts))  # type: ignore[arg-type]
         elif law == "algebraic":
             built = AlgebraicInversion(theta_star, Gamma, theta_set, on_invalid=on_invalid)
         else:
-            built = IntermittentInversion(theta_star, ramp, Gamma, theta_set,
+            built = IntermittentInversion(theta_star, ramp, Gamma, theta_set,  # type: ignore[arg-type]
                                           on_invalid=on_invalid)
     except ThetahatError as exc:
         if theta_star is None:
@@ -480,7 +481,7 @@ def _read_estimator(sec: _Section, system: PerturbedLinearSystem, pert: Symbolic
                     parsed: dict[str, Any]) -> EstimatorOptions:
     sec.check_keys(_ESTIMATOR_KEYS)
     n, k, p = system.n, system.k, system.p
-    law, update_law = _read_law(sec, pert, system.parameter_set, parsed)
+    law, update_law = _read_law(sec, pert, cast(Box, system.parameter_set), parsed)
     eps = sec.number("eps", 1.0, positive=True)
     theta_hat0 = (sec.vector("theta_hat0", p, f"θ̂(0), p = {p}") if sec.has("theta_hat0")
                   else None)

@@ -12,7 +12,7 @@ from __future__ import annotations
 import functools
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -115,7 +115,7 @@ def simulate_model(spec: ModelSpec, seed: Seed = 0, *, t_end: float | None = Non
     ((101, 2), [1.0])
     """
     sc, s = spec.scenario, spec.system
-    phi = ModelPhi(perturbation=s.perturbation, C=s.C)
+    phi = ModelPhi(perturbation=cast(Perturbation, s.perturbation), C=s.C)
     u = Multisine(sc.u_amplitudes, sc.u_frequencies) if s.m else None
     noise = WhiteNoise(sc.noise_std) if sc.noise_std > 0 else None
     return simulate_plant(s, phi=phi, dphi_dx=phi.dphi_dx, u=u,

@@ -22,7 +22,7 @@ import dataclasses
 import functools
 import warnings
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 import sympy as sp
@@ -584,7 +584,8 @@ def estimator_spec(eps: float = 1.0, *, Gamma: float = 1.0, eps2: float = 1.0,
 
     sys = system(params)
     law = IntermittentInversion(theta_star(params), smooth_ramp(*excitation), Gamma,
-                                sys.parameter_set, on_invalid="freeze")
+                                Box([params.theta_lower], [params.theta_upper]),
+                                on_invalid="freeze")
     obs2 = None
     if second:
         obs2 = SecondObserverSpec(eps2=eps2, chain_poles=second_poles or [[-1.0, -2.0]],
@@ -627,7 +628,7 @@ def observer(eps: float = 1.0, *, Gamma: float = 1.0, eps2: float = 1.0,
 
 def designs(eps: float = 1.0, *, eps2: float = 1.0, params: LuGreParameters = LuGreParameters(),
             chain_poles: Any = None, second_poles: Any = None
-            ) -> tuple[GainDesign, GainDesign | None]:
+            ) -> tuple[GainDesign, GainDesign]:
     """The two gain designs of Sec. VIII on the σ1 = 0 design system: (first, second).
 
     Parameters
@@ -649,8 +650,9 @@ def designs(eps: float = 1.0, *, eps2: float = 1.0, params: LuGreParameters = Lu
     >>> [round(float(v), 4) for v in d1.K.ravel()], [round(float(v), 4) for v in d2.K.ravel()]
     ([6.0, -0.0042, 6.0075], [3.0, -0.002])
     """
-    return estimator_spec(eps, eps2=eps2, params=params, chain_poles=chain_poles,
-                          second_poles=second_poles).designs()
+    spec = estimator_spec(eps, eps2=eps2, params=params, chain_poles=chain_poles,
+                          second_poles=second_poles)
+    return spec.design, cast(GainDesign, spec.design2)       # second=True: always designed
 
 
 def theta_star_expr(params: LuGreParameters = LuGreParameters()) -> sp.Expr:

@@ -25,12 +25,15 @@ True
 
 from __future__ import annotations
 
+from typing import cast
+
 import numpy as np
 import sympy as sp
 from numpy.typing import ArrayLike, NDArray
 
 from ..estimation.update_laws import GradientInversion
 from ..model.paramset import Box
+from ..model.perturbation import Perturbation
 from ..model.system import PerturbedLinearSystem
 from ._oscillator import oscillator, y
 
@@ -66,4 +69,4 @@ def M(v: ArrayLike, x: ArrayLike, theta: ArrayLike) -> FloatArray:
 def update_law(Gamma: ArrayLike = 2.0) -> GradientInversion:
     """The Proposition 3 law θ̂̇ = Proj(Γ M (φ̂ - g(v, x̂, θ̂))) with M = 1."""
     sys = system()
-    return GradientInversion(sys.perturbation, Gamma, PARAMETER_SET, M=M)
+    return GradientInversion(cast(Perturbation, sys.perturbation), Gamma, PARAMETER_SET, M=M)

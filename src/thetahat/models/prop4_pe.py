@@ -24,12 +24,15 @@ True
 
 from __future__ import annotations
 
+from typing import cast
+
 import numpy as np
 import sympy as sp
 from numpy.typing import ArrayLike, NDArray
 
 from ..estimation.update_laws import GradientInversion
 from ..model.paramset import Box
+from ..model.perturbation import Perturbation
 from ..model.system import PerturbedLinearSystem
 from ._oscillator import oscillator, u, y
 
@@ -67,4 +70,4 @@ def S(v: ArrayLike, x: ArrayLike) -> FloatArray:
 
 def update_law(Gamma: ArrayLike = 4.0) -> GradientInversion:
     """The Proposition 4 law θ̂̇ = Proj(Γ(∂g/∂θ)ᵀ(φ̂ - g(v, x̂, θ̂))) on Θ."""
-    return GradientInversion(system().perturbation, Gamma, PARAMETER_SET)
+    return GradientInversion(cast(Perturbation, system().perturbation), Gamma, PARAMETER_SET)

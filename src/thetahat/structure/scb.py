@@ -414,9 +414,9 @@ def _pattern(n_a: int, n_b: int, lengths: tuple[int, ...], r: int):
     ia, ib = slice(0, n_a), slice(n_a, n_a + n_b)
     free[ia, ia] = True
     free[ia, ib] = True      # only as L_ab C_b: checked separately
-    free[np.ix_(range(n_a), tops)] = True
+    free[np.ix_(np.arange(n_a), tops)] = True
     free[ib, ib] = True
-    free[np.ix_(range(n_a, n_a + n_b), tops)] = True
+    free[np.ix_(np.arange(n_a, n_a + n_b), tops)] = True
     shift = np.zeros((n, n))
     for j, (s, L) in enumerate(zip(starts, lengths)):
         others = [t for jj, t in enumerate(tops) if jj != j]   # never its own top (see rows)

@@ -127,7 +127,7 @@ def check_seeds(seeds: Iterable[int]) -> tuple[int, ...]:
     >>> check_seeds(range(3))
     (0, 1, 2)
     """
-    out = []
+    out: list[int] = []
     for s in seeds:
         if isinstance(s, bool) or not isinstance(s, numbers.Integral) or int(s) < 0:
             raise DimensionError(f"seeds must be non-negative integers; got {s!r}.")

@@ -302,7 +302,7 @@ class SweepResult:
                      f"{fmt(row.theta_rmse_median, '.2e'):>12}"]
             for i in range(n):
                 cell = fmt(row.x_rmse_median[i], ".2e")
-                if second:
+                if row.x_rmse_refined_median is not None:
                     cell += "/" + fmt(row.x_rmse_refined_median[i], ".2e")
                 cells.append(f"{cell:>19}")
             lines.append(" ".join(cells))

@@ -94,7 +94,7 @@ class TuneResult:
     @property
     def rejected(self) -> NDArray[np.bool_]:
         """Pairs with at least one diverged seed; shape (n_eps, n_Gamma)."""
-        return self.diverged.any(axis=2)
+        return np.asarray(self.diverged.any(axis=2), dtype=np.bool_)
 
     def verdict(self) -> str:
         """One sentence: the chosen pair and its score, or that every pair diverged."""
