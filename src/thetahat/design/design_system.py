@@ -10,7 +10,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from numpy.typing import NDArray
+from numpy.typing import ArrayLike, NDArray
 
 from .._validate import as_triple
 from ..errors import DimensionError
@@ -44,11 +44,31 @@ class DesignSystemReport:
                 f"  true:   {fmt(self.eig_true)})")
 
 
-def apply_design(design: GainDesign, A, E, C) -> DesignSystemReport:
+def apply_design(design: GainDesign, A: ArrayLike, E: ArrayLike, C: ArrayLike
+                 ) -> DesignSystemReport:
     """Apply a gain designed on a simplified system to the true linear part (A, E, C).
 
     For a modified high-gain design (``design.K_phi`` set) the spectrum is that of the
     extended error system (4); otherwise of ż = (A − K C) z.
+
+    Parameters
+    ----------
+    design : GainDesign
+        A gain designed on the design system (Sec. VII–VIII).
+    A : array_like, shape (n, n)
+    E : array_like, shape (n, k)
+    C : array_like, shape (r, n)
+        The true linear part of (1).
+
+    Returns
+    -------
+    DesignSystemReport
+        The spectra on the design and the true system, and whether the latter is stable.
+
+    Raises
+    ------
+    DimensionError
+        The gain does not fit the true system.
 
     Examples
     --------

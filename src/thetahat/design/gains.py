@@ -26,7 +26,7 @@ from typing import Callable, Sequence
 
 import numpy as np
 import scipy.linalg as sla
-from numpy.typing import NDArray
+from numpy.typing import ArrayLike, NDArray
 
 from .._validate import as_triple
 from ..errors import DesignError, NonFiniteError, ThetahatWarning
@@ -139,10 +139,25 @@ class GainDesign:
                 f" n_b={self.scb.n_b}, K={K}, max Re eig={np.max(self.eigenvalues.real):.4g})")
 
 
-def extended_system(A, E, C) -> tuple[FloatArray, FloatArray, FloatArray]:
+def extended_system(A: ArrayLike, E: ArrayLike, C: ArrayLike
+                    ) -> tuple[FloatArray, FloatArray, FloatArray]:
     """The error system (4) with K = 0: state col(x̃, φ̃), input d̃, output ỹ.
 
-    Returns ``(A_e, E_e, C_e)`` with A_e = [[A, E], [0, 0]], E_e = [0; I_k], C_e = [C, 0].
+    Parameters
+    ----------
+    A : array_like, shape (n, n)
+    E : array_like, shape (n, k)
+    C : array_like, shape (r, n)
+        The linear part of (1).
+
+    Returns
+    -------
+    A_e : ndarray, shape (n + k, n + k)
+        [[A, E], [0, 0]].
+    E_e : ndarray, shape (n + k, k)
+        [0; I_k].
+    C_e : ndarray, shape (r, n + k)
+        [C, 0].
 
     Examples
     --------

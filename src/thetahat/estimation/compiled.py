@@ -467,6 +467,11 @@ class CompiledObserver:
     compute, in machine code. Build it with :func:`compile_observer`, which documents the
     parameters ``observer``, ``dt``, ``theta_star`` and ``phi``.
 
+    Parameters
+    ----------
+    observer, dt, theta_star, phi
+        As in :func:`compile_observer`.
+
     Attributes
     ----------
     observer : ModifiedHighGainObserver

@@ -348,6 +348,9 @@ class ModelSpec:
     input_names, output_names, state_names, parameter_names : tuple of str
         The symbol names of u, y, x and θ.
     estimator : EstimatorOptions
+        The ``[estimator]`` table.
+    scenario : ScenarioOptions
+        The simulated experiment (``[scenario]``, defaults where the file has none).
     """
 
     source: str

@@ -80,6 +80,11 @@ def rmse(estimate: ArrayLike, truth: ArrayLike, *, start: int = 0) -> FloatArray
     start : int
         First sample included (e.g. ``N // 2`` for the second half).
 
+    Returns
+    -------
+    ndarray, shape (p,)
+        The RMSE of each component.
+
     Examples
     --------
     >>> from thetahat.studies.metrics import rmse
@@ -94,7 +99,19 @@ def rmse(estimate: ArrayLike, truth: ArrayLike, *, start: int = 0) -> FloatArray
 
 
 def diverged(estimate: ArrayLike, scale: float) -> bool:
-    """True when the estimate is non-finite or exceeds ``DIVERGENCE_FACTOR·scale`` anywhere."""
+    """True when the estimate is non-finite or exceeds ``DIVERGENCE_FACTOR·scale`` anywhere.
+
+    Parameters
+    ----------
+    estimate : array_like
+        The estimate, any shape.
+    scale : float
+        The range of the truth.
+
+    Returns
+    -------
+    bool
+    """
     e = np.asarray(estimate, dtype=float)
     return bool(not np.all(np.isfinite(e)) or np.max(np.abs(e)) > DIVERGENCE_FACTOR * scale)
 
