@@ -336,7 +336,7 @@ def place_observer(A: FloatArray, C: FloatArray, poles: Sequence[complex], *,
     return H.T
 
 
-def high_gain(A, E, C, eps: float, chain_poles: PoleSpec = None,
+def high_gain(A: ArrayLike, E: ArrayLike, C: ArrayLike, eps: float, chain_poles: PoleSpec = None,
               b_poles: Sequence[complex] | None = None, *, tol: float | None = None) -> GainDesign:
     """Gain family K(ε) for ż = A z + E δ − K C z (Sec. III-A.2 / III-B.2 with the corrigendum).
 
@@ -464,7 +464,7 @@ def scb_gain(sc: SCBResult, K_bars: Sequence[FloatArray], K_bb: FloatArray, eps:
     return Kt
 
 
-def modified_high_gain(A, E, C, eps: float, chain_poles: PoleSpec = None,
+def modified_high_gain(A: ArrayLike, E: ArrayLike, C: ArrayLike, eps: float, chain_poles: PoleSpec = None,
                        b_poles: Sequence[complex] | None = None, *,
                        tol: float | None = None) -> GainDesign:
     """Gains K(ε) = [K_x; K_φ] of the modified high-gain observer (3), designed on (4).

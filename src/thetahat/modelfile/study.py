@@ -57,19 +57,21 @@ class ModelPhi:
     perturbation: Perturbation
     C: FloatArray
 
-    def _v(self, x: FloatArray, u: Any) -> FloatArray:
+    def _v(self, x: FloatArray, u: ArrayLike | None) -> FloatArray:
         y = x @ self.C.T
         u_ = np.zeros(y.shape[:-1] + (0,)) if u is None else np.asarray(u, dtype=np.float64)
         return np.concatenate([np.broadcast_to(u_, y.shape[:-1] + u_.shape[-1:]), y], axis=-1)
 
-    def __call__(self, t: Any, x: ArrayLike, u: Any, theta: ArrayLike) -> FloatArray:
+    def __call__(self, t: ArrayLike, x: ArrayLike, u: ArrayLike | None, theta: ArrayLike
+                 ) -> FloatArray:
         """φ(x, u, θ); shape (..., k)."""
         x_ = np.asarray(x, dtype=np.float64)
         th = np.broadcast_to(np.asarray(theta, dtype=np.float64),
                              x_.shape[:-1] + np.shape(theta)[-1:])
         return np.asarray(self.perturbation.g(self._v(x_, u), x_, th), dtype=np.float64)
 
-    def dphi_dx(self, t: Any, x: ArrayLike, u: Any, theta: ArrayLike) -> FloatArray:
+    def dphi_dx(self, t: ArrayLike, x: ArrayLike, u: ArrayLike | None, theta: ArrayLike
+                ) -> FloatArray:
         """∂φ/∂x = ∂g/∂x + ∂g/∂y C; shape (..., k, n)."""
         x_ = np.asarray(x, dtype=np.float64)
         th = np.broadcast_to(np.asarray(theta, dtype=np.float64),

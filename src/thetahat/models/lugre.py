@@ -29,7 +29,7 @@ import sympy as sp
 from numpy.typing import ArrayLike, NDArray
 
 from .._validate import as_vector, positive_scalar
-from ..design.gains import GainDesign
+from ..design.gains import GainDesign, PoleSpec
 from ..errors import DimensionError, ParameterSetError, ThetahatWarning
 from ..estimation.observer import ModifiedHighGainObserver
 from ..model.paramset import Box
@@ -295,7 +295,8 @@ class LuGrePhi:
 
     params: LuGreParameters
 
-    def __call__(self, t: Any, x: ArrayLike, u: Any, theta: ArrayLike) -> FloatArray:
+    def __call__(self, t: ArrayLike, x: ArrayLike, u: ArrayLike | None, theta: ArrayLike
+                 ) -> FloatArray:
         """φ(x, θ); shape (..., 1)."""
         x_ = np.asarray(x, dtype=np.float64)
         omega, eta = x_[..., 0], x_[..., 1]
@@ -304,7 +305,8 @@ class LuGrePhi:
         zeta = th + p.alpha1 * np.exp(-(omega / p.omega0) ** 2)
         return (p.sigma0 * eta * np.abs(omega) / zeta)[..., None]
 
-    def dphi_dx(self, t: Any, x: ArrayLike, u: Any, theta: ArrayLike) -> FloatArray:
+    def dphi_dx(self, t: ArrayLike, x: ArrayLike, u: ArrayLike | None, theta: ArrayLike
+                ) -> FloatArray:
         """∂φ/∂x = [∂φ/∂ω, ∂φ/∂η]; shape (..., 1, 2) (sign(0) = 0 at ω = 0)."""
         x_ = np.asarray(x, dtype=np.float64)
         omega, eta = x_[..., 0], x_[..., 1]
@@ -542,7 +544,7 @@ EXCITATION = (0.75, 1.0)
 def estimator_spec(eps: float = 1.0, *, Gamma: float = 1.0, eps2: float = 1.0,
                    params: LuGreParameters = LuGreParameters(),
                    excitation: tuple[float, float] = EXCITATION, second: bool = True,
-                   chain_poles: Any = None, second_poles: Any = None) -> EstimatorSpec:
+                   chain_poles: PoleSpec = None, second_poles: PoleSpec = None) -> EstimatorSpec:
     """The paper's estimator for the DC motor (Sec. VIII-A) as an :class:`EstimatorSpec`.
 
     A modified high-gain observer (3) whose gains are designed on the σ1 = 0 design system
@@ -598,7 +600,7 @@ def estimator_spec(eps: float = 1.0, *, Gamma: float = 1.0, eps2: float = 1.0,
 def observer(eps: float = 1.0, *, Gamma: float = 1.0, eps2: float = 1.0,
              params: LuGreParameters = LuGreParameters(),
              excitation: tuple[float, float] = EXCITATION, second: bool = True,
-             chain_poles: Any = None, second_poles: Any = None) -> ModifiedHighGainObserver:
+             chain_poles: PoleSpec = None, second_poles: PoleSpec = None) -> ModifiedHighGainObserver:
     """The paper's estimator for the DC motor, ready to ``run(t, u, y)``: the observer that
     ``estimator_spec(...).build()`` makes (Sec. VIII-A).
 
@@ -627,7 +629,7 @@ def observer(eps: float = 1.0, *, Gamma: float = 1.0, eps2: float = 1.0,
 
 
 def designs(eps: float = 1.0, *, eps2: float = 1.0, params: LuGreParameters = LuGreParameters(),
-            chain_poles: Any = None, second_poles: Any = None
+            chain_poles: PoleSpec = None, second_poles: PoleSpec = None
             ) -> tuple[GainDesign, GainDesign]:
     """The two gain designs of Sec. VIII on the σ1 = 0 design system: (first, second).
 

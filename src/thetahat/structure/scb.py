@@ -28,7 +28,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 import scipy.linalg as sla
-from numpy.typing import NDArray
+from numpy.typing import ArrayLike, NDArray
 
 from .._validate import as_triple
 from ..errors import DimensionError, IllConditionedWarning, NotLeftInvertibleError
@@ -313,7 +313,7 @@ def _equilibrate(Ta, Tb, Tq, Wq, lengths):
     return rows_to(Ta), rows_to(Tb), Tq, Wq
 
 
-def scb(A, B, C, *, tol: float | None = None) -> SCBResult:
+def scb(A: ArrayLike, B: ArrayLike, C: ArrayLike, *, tol: float | None = None) -> SCBResult:
     """Special coordinate basis of a strictly proper, left-invertible triple (Sec. III).
 
     Parameters
@@ -390,7 +390,7 @@ def scb(A, B, C, *, tol: float | None = None) -> SCBResult:
     coef_a = np.linalg.lstsq(basis.T, (Ta0 @ A).T, rcond=None)[0].T
     P, Q = coef_a[:, :n_a], coef_a[:, n_a:n_a + n_b]
     C_b0 = (U2.T @ C) @ Tb.T
-    M = _decouple_ab(P, Q, A_b0, C_b0)
+    M = _decouple_ab(*(np.asarray(a, dtype=np.float64) for a in (P, Q, A_b0, C_b0)))
     Ta = Ta0 + M @ Tb
 
     Ta, Tb, Tq, Wq = _equilibrate(Ta, Tb, Tq, Wq, lengths)
