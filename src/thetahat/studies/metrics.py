@@ -17,7 +17,8 @@ from .._validate import as_vector
 from ..errors import DimensionError, NonFiniteError, SimulationError, UpdateLawError
 
 __all__ = ["DIVERGENCE_ERRORS", "DIVERGENCE_FACTOR", "SETTLING_BAND", "RunMetrics", "diverged",
-           "failed_run", "format_number", "rmse", "run_metrics", "time_to_within"]
+           "divergence_reason", "failed_run", "format_number", "rmse", "run_metrics",
+           "time_to_within"]
 
 FloatArray = NDArray[np.float64]
 
@@ -116,6 +117,43 @@ def diverged(estimate: ArrayLike, scale: float) -> bool:
     return bool(not np.all(np.isfinite(e)) or np.max(np.abs(e)) > DIVERGENCE_FACTOR * scale)
 
 
+def divergence_reason(name: str, estimate: ArrayLike, scale: float) -> str | None:
+    """Why an estimate counts as diverged (non-finite, or beyond ``DIVERGENCE_FACTOR·scale``).
+
+    Parameters
+    ----------
+    name : str
+        The estimate's name, used in the reason.
+    estimate : array_like
+        The estimate, first axis time.
+    scale : float
+        The magnitude of the truth it estimates.
+
+    Returns
+    -------
+    str or None
+        None when it did not diverge.
+
+    Examples
+    --------
+    >>> from thetahat.studies.metrics import divergence_reason
+    >>> divergence_reason("theta_hat", [0.3, float("nan")], 1.0)
+    'theta_hat is not finite (first at sample 1)'
+    >>> divergence_reason("theta_hat", [0.3, 0.2], 1.0) is None
+    True
+    """
+    if not diverged(estimate, scale):
+        return None
+    e = np.asarray(estimate, dtype=float).reshape(np.shape(estimate)[0] if np.ndim(estimate)
+                                                  else 1, -1)
+    finite = np.isfinite(e).all(axis=1)
+    if not finite.all():
+        return f"{name} is not finite (first at sample {int(np.argmin(finite))})"
+    peak = float(np.max(np.abs(e)))
+    return (f"{name} reached {peak:.3g}, beyond {DIVERGENCE_FACTOR:g} × the truth's scale "
+            f"{scale:.3g}")
+
+
 @dataclass(frozen=True, slots=True)
 class RunMetrics:
     """Metrics of one study run (one ε, Γ and seed); NaN where a failed run has no value.
@@ -136,7 +174,8 @@ class RunMetrics:
     x_rmse_refined : ndarray, shape (n,), or None
         The same for the second observer's x̂₂.
     error : str or None
-        The divergence error that stopped the run.
+        How the run diverged: the error that stopped it, or the estimate that became
+        non-finite or left its scale (:func:`divergence_reason`); None when it did not.
     """
 
     diverged: bool
@@ -217,22 +256,25 @@ def run_metrics(data: Any, res: Any) -> RunMetrics:
     th_hat = np.asarray(res.theta_hat, dtype=float).reshape(t.size, -1)
     x_hat = np.asarray(res.x_hat, dtype=float)
     x2 = None if res.x_hat_refined is None else np.asarray(res.x_hat_refined, dtype=float)
-    checks = [(th_hat, theta)] + [(x_hat[:, i], x[:, i]) for i in range(x.shape[1])]
+    checks = [("theta_hat", th_hat, theta)] + [
+        (f"x_hat[{i}]", x_hat[:, i], x[:, i]) for i in range(x.shape[1])]
     if x2 is not None:
-        checks += [(x2[:, i], x[:, i]) for i in range(x.shape[1])]
+        checks += [(f"x_hat_refined[{i}]", x2[:, i], x[:, i]) for i in range(x.shape[1])]
     phi = getattr(data, "phi", None)
     if phi is not None and getattr(res, "phi_hat", None) is not None:
-        checks.append((np.asarray(res.phi_hat, dtype=float), np.asarray(phi, dtype=float)))
-    bad = any(diverged(est, _scale(tru)) for est, tru in checks)
+        checks.append(("phi_hat", np.asarray(res.phi_hat, dtype=float),
+                       np.asarray(phi, dtype=float)))
+    reasons = [divergence_reason(name, est, _scale(tru)) for name, est, tru in checks]
+    reason = "; ".join(r for r in reasons if r is not None) or None
     with np.errstate(over="ignore", invalid="ignore"):
         err = th_hat[half:] - theta
-        return RunMetrics(diverged=bad,
+        return RunMetrics(diverged=reason is not None,
                           t_1pct=time_to_within(t, th_hat, theta, SETTLING_BAND),
                           theta_max_error=float(np.max(np.abs(err))),
                           theta_rmse=float(np.sqrt(np.mean(np.sum(err ** 2, axis=1)))),
                           x_rmse=rmse(x_hat, x, start=half),
                           x_rmse_refined=None if x2 is None else rmse(x2, x, start=half),
-                          error=None)
+                          error=reason)
 
 
 def format_number(v: float | None, fmt: str) -> str:

@@ -192,7 +192,8 @@ class SweepResult:
     x_rmse_refined : ndarray, shape (n_eps, n_seeds, n), or None
         The same for the second observer's x̂₂; None when the observers have none.
     errors : tuple of tuple of (str or None)
-        For each run, the divergence error that stopped it, if any.
+        For each run, how it diverged (the error that stopped it, or the estimate that became
+        non-finite or left its scale), None for a run that did not.
     wall_time : float
         Seconds for the whole sweep.
 
