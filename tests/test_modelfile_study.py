@@ -102,3 +102,28 @@ def test_sweep_of_a_file_without_scenario_notes_the_defaults(tmp_path, capsys):
     assert main(["sweep", str(model), "--eps", "1", "--seeds", "1", "--t-end", "1",
                  "--out", str(tmp_path / "out")]) == 0
     assert "[scenario] defaults used for theta" in capsys.readouterr().err
+
+
+#: The file's estimator and lugre.estimator_spec() share gains (same design matrices to 16
+#: digits in the file) and θ* (the same formula, parsed vs numpy); on records that agree to
+#: ~1e-8 their sweeps agree far inside 1e-4 relative.
+SWEEP_RTOL = 1e-4
+
+
+def test_lugre_file_is_the_lugre_estimator():
+    """examples/lugre.toml and thetahat.models.lugre describe one estimator: same K(ε) for every
+    ε and the same sweep on the same seeds."""
+    from thetahat.modelfile import estimator_spec
+    from thetahat.studies.sweep import eps_sweep
+
+    spec = load_model(EXAMPLES / "lugre.toml")
+    from_file, built_in = estimator_spec(spec), lugre.estimator_spec()
+    for eps in (1.0, 0.2):
+        a, b = from_file.designs(eps), built_in.designs(eps)
+        np.testing.assert_allclose(a[0].K, b[0].K, rtol=1e-9)
+        np.testing.assert_allclose(a[1].K, b[1].K, rtol=1e-9)
+    kw = dict(eps_values=[1.0, 0.5], seeds=[0], theta_hat0=[0.5], progress=False)
+    ra = eps_sweep(from_file, lambda s: simulate_model(spec, s, t_end=0.5), **kw)
+    rb = eps_sweep(built_in, lambda s: lugre.simulate(seed=s, t_end=0.5), **kw)
+    np.testing.assert_allclose(ra.theta_rmse, rb.theta_rmse, rtol=SWEEP_RTOL)
+    np.testing.assert_allclose(ra.x_rmse, rb.x_rmse, rtol=SWEEP_RTOL)

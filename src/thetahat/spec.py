@@ -209,7 +209,7 @@ class EstimatorSpec:
         """
         return self.design.at(self.eps if eps is None else eps), self.design2
 
-    def with_gamma(self, Gamma: ArrayLike) -> UpdateLaw:
+    def law_with_gamma(self, Gamma: ArrayLike) -> UpdateLaw:
         """The spec's update law with another adaptation gain Γ.
 
         Parameters
@@ -231,7 +231,7 @@ class EstimatorSpec:
         Examples
         --------
         >>> from thetahat.models import lugre
-        >>> lugre.estimator_spec().with_gamma(3.0).Gamma.tolist()
+        >>> lugre.estimator_spec().law_with_gamma(3.0).Gamma.tolist()
         [[3.0]]
         """
         names: set[str] = set()
@@ -273,7 +273,7 @@ class EstimatorSpec:
         ([[12.0302]], [[3.0]])
         """
         d1, d2 = self.designs(eps)
-        law = self.law if Gamma is None else self.with_gamma(Gamma)
+        law = self.law if Gamma is None else self.law_with_gamma(Gamma)
         second = None
         if d2 is not None and self.second is not None:
             second = SecondObserver(system=self.system, K_x=d2.K,
