@@ -101,7 +101,7 @@ def test_sweep_of_a_file_without_scenario_notes_the_defaults(tmp_path, capsys):
     model.write_text(EXAMPLE_MODEL)
     assert main(["sweep", str(model), "--eps", "1", "--seeds", "1", "--t-end", "1",
                  "--out", str(tmp_path / "out")]) == 0
-    assert "[scenario] defaults used for theta" in capsys.readouterr().err
+    assert "[scenario] gives no theta, u_amplitudes" in capsys.readouterr().err
 
 
 #: The file's estimator and lugre.estimator_spec() share gains (same design matrices to 16

@@ -30,6 +30,8 @@ EXIT_OK = 0
 EXIT_INPUT = 2
 
 _LUGRE_STATES = ("omega", "eta")
+#: [scenario] keys that define the experiment (integrator settings are not announced).
+_SCENARIO_CHOICES = ("theta", "u_amplitudes", "u_frequencies", "noise_std", "t_end", "fs")
 
 
 def _demo(args: argparse.Namespace) -> int:
@@ -51,9 +53,10 @@ def _study(args: argparse.Namespace) -> tuple[Any, Any, Any, tuple[str, ...]]:
     from .modelfile.study import study_simulator
 
     spec = load_model(args.model)
-    if spec.scenario.defaults:
-        print(f"thetahat: note: {args.model} [scenario] defaults used for "
-              f"{', '.join(spec.scenario.defaults)}: {spec.scenario!r}", file=sys.stderr)
+    chosen = [k for k in _SCENARIO_CHOICES if k in spec.scenario.defaults]
+    if chosen:                  # the experiment itself was not given: say what was assumed
+        print(f"thetahat: note: {args.model} [scenario] gives no {', '.join(chosen)}; "
+              f"using {spec.scenario!r}", file=sys.stderr)
     return (estimator_spec(spec), study_simulator(spec, t_end=args.t_end),
             spec.estimator.theta_hat0, spec.state_names)
 
