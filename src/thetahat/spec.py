@@ -164,6 +164,10 @@ class EstimatorSpec:
         if self.second is not None and not isinstance(self.second, SecondObserverSpec):
             raise DimensionError(f"EstimatorSpec.second must be a SecondObserverSpec or None; "
                                  f"got {type(self.second).__name__}.")
+        if self.design_system is not None and not isinstance(self.design_system,
+                                                             PerturbedLinearSystem):
+            raise DimensionError(f"EstimatorSpec.design_system must be a PerturbedLinearSystem "
+                                 f"or None; got {type(self.design_system).__name__}.")
         ds = self.system if self.design_system is None else self.design_system
         if (ds.n, ds.r, ds.k) != (self.system.n, self.system.r, self.system.k):
             raise DimensionError(f"the design system has (n, r, k) = {(ds.n, ds.r, ds.k)} but "
