@@ -1,7 +1,7 @@
 """Studies of an estimator on simulated data: Monte-Carlo batches, ε sweeps, (ε, Γ) tuning.
 
 :mod:`.batch` runs one function per seed (sequentially or in worker processes),
-:mod:`.metrics` measures a run against the truth, :mod:`.sweep` runs the ε sweep of Sec. VII
+:mod:`.metrics` measures an estimate against the truth, :mod:`.runs` one study run, :mod:`.sweep` runs the ε sweep of Sec. VII
 and :mod:`.tune` the (ε, Γ) search. A study takes an :class:`~thetahat.spec.EstimatorSpec`
 (one SCB for every ε and Γ) or a callable that builds observers.
 """

@@ -24,7 +24,7 @@ from numpy.typing import ArrayLike, NDArray
 from ..errors import DesignError, DimensionError
 from ..spec import EstimatorSpec
 from .batch import check_seeds, monte_carlo
-from .metrics import DIVERGENCE_ERRORS, RunMetrics, failed_run, format_number, run_metrics
+from .runs import DIVERGENCE_ERRORS, RunMetrics, failed_run, format_number, run_metrics
 
 __all__ = ["Estimator", "SweepResult", "SweepRow", "check_eps_values", "eps_sweep",
            "observer_for", "run_observer"]
@@ -87,7 +87,7 @@ def run_observer(estimator: Estimator, obs: Any, data: Any, theta_hat0: FloatArr
     -------
     RunMetrics
         Diverged with NaN values when ``run`` raised one of
-        :data:`~thetahat.studies.metrics.DIVERGENCE_ERRORS`.
+        :data:`~thetahat.studies.runs.DIVERGENCE_ERRORS`.
 
     Examples
     --------

@@ -32,7 +32,7 @@ from numpy.typing import ArrayLike, NDArray
 from ..errors import DesignError, DimensionError
 from ..spec import EstimatorSpec
 from .batch import check_seeds
-from .metrics import DIVERGENCE_ERRORS, RunMetrics, format_number, run_metrics
+from .runs import DIVERGENCE_ERRORS, RunMetrics, format_number, run_metrics
 from .sweep import Estimator, check_eps_values, observer_for, run_observer
 
 __all__ = ["CRITERIA", "TuneResult", "tune_eps_gamma"]
