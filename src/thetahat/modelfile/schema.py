@@ -465,12 +465,13 @@ def _read_law(sec: _Section, pert: SymbolicPerturbation, theta_set: Box,
     try:
         if theta_star is None:
             opts = {"Gamma": Gamma, "parameter_set": theta_set, "on_invalid": on_invalid}
-            built = (AlgebraicInversion.from_perturbation(pert, **opts) if law == "algebraic"
-                     else IntermittentInversion.from_perturbation(pert, ramp, **opts))  # type: ignore[arg-type]
+            built = (AlgebraicInversion.from_perturbation(  # type: ignore[attr-defined]
+                pert, **opts) if law == "algebraic"
+                else IntermittentInversion.from_perturbation(pert, ramp, **opts))
         elif law == "algebraic":
             built = AlgebraicInversion(theta_star, Gamma, theta_set, on_invalid=on_invalid)
         else:
-            built = IntermittentInversion(theta_star, ramp, Gamma, theta_set,  # type: ignore[arg-type]
+            built = IntermittentInversion(theta_star, ramp, Gamma, theta_set,
                                           on_invalid=on_invalid)
     except ThetahatError as exc:
         if theta_star is None:
