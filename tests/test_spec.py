@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import functools
 import pickle
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -19,6 +20,7 @@ from thetahat.studies.tune import tune_eps_gamma
 #: K from the spec and from a direct design: the same arithmetic on the same SCB, so they
 #: agree to rounding amplified by ‖K‖ ~ ε^−3; 1e-9 of ‖K‖ is far above that.
 K_RTOL = 1e-9
+EXAMPLES = Path(__file__).resolve().parents[1] / "examples"
 EPS_10 = (1.0, 0.8, 0.6, 0.5, 0.4, 0.3, 0.2, 0.15, 0.1, 0.05)
 
 
@@ -114,10 +116,18 @@ def test_spec_runs_with_its_hold():
 
 
 def test_spec_pickles_for_worker_processes():
+    """eps_sweep(n_jobs > 1) sends the spec and simulate(seed) to worker processes."""
+    from thetahat.modelfile import load_model, study_simulator
     spec = lugre.estimator_spec()
     back = pickle.loads(pickle.dumps(spec))
     np.testing.assert_array_equal(back.design.K, spec.design.K)
     assert repr(back) == repr(spec)
+    v, x, phi = np.array([0.0, 2.0]), np.array([2.0, 1e-3]), np.array([1.0])
+    np.testing.assert_array_equal(back.law.theta_star(v, x, phi), spec.law.theta_star(v, x, phi))
+    model = load_model(EXAMPLES / "prop3.toml")
+    pickle.loads(pickle.dumps(estimator_spec(model)))
+    sim = pickle.loads(pickle.dumps(study_simulator(model, t_end=0.1)))
+    assert sim(0).y.shape == (11, 1)
 
 
 def test_bad_specs_are_refused():
