@@ -8,9 +8,9 @@ BIN     := $(VENV)/bin
 STAMP   := $(VENV)/.installed
 LOCK    := requirements/lock.txt
 LOWEST  := requirements/lowest.txt
-EXTRAS  := plot,interop,progress,speed,dist,data,bench,test
+EXTRAS  := plot,interop,progress,speed,dist,data,bench,test,typecheck
 
-.PHONY: demo test test-all test-lowest test-core bench bench-quick lock clean docs
+.PHONY: demo test test-all test-lowest test-core typecheck bench bench-quick lock clean docs
 
 $(BIN)/python:
 	$(PY) -m venv $(VENV)
@@ -25,6 +25,10 @@ demo: $(STAMP)
 
 test: $(STAMP)
 	$(BIN)/python -m pytest -q
+
+# Static types of the package (settings in pyproject.toml [tool.mypy]); CI runs it after the tests.
+typecheck: $(STAMP)
+	$(BIN)/python -m mypy
 
 test-all: $(STAMP)
 	$(BIN)/python -m pytest -q -m ""
@@ -76,4 +80,5 @@ lock:
 	rm -rf .venv-lock
 
 clean:
-	rm -rf $(VENV) .venv-lowest .venv-core .venv-lock out build docs/figures src/*.egg-info .pytest_cache
+	rm -rf $(VENV) .venv-lowest .venv-core .venv-lock out build docs/figures src/*.egg-info \
+	       .pytest_cache .mypy_cache

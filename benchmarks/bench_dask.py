@@ -26,7 +26,7 @@ import numpy as np  # noqa: E402
 from thetahat.fleet import estimate_many  # noqa: E402
 from thetahat.models import prop3_monotone as p3  # noqa: E402
 from thetahat.models import two_inertia as ti  # noqa: E402
-from thetahat.simulation.batch import monte_carlo  # noqa: E402
+from thetahat.studies.batch import monte_carlo  # noqa: E402
 
 MODEL = Path(__file__).resolve().parents[1] / "examples" / "prop3.toml"
 

@@ -9,7 +9,7 @@ import thetahat.engine
 from thetahat.cli import main
 from thetahat.engine import EngineError, chunks, run_keyed, seed_task
 from thetahat.errors import DimensionError, ThetahatError
-from thetahat.simulation.batch import monte_carlo
+from thetahat.studies.batch import monte_carlo
 
 
 def _square_chunk(items, *, calls):

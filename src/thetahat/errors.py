@@ -7,9 +7,10 @@ found, and what to do.
 
 from __future__ import annotations
 
-from typing import Sequence
+from collections.abc import Sequence
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 __all__ = [
     "ThetahatError",
@@ -81,7 +82,7 @@ class NotMinimumPhaseError(ThetahatError, ValueError):
         The offending zeros (real part >= -tolerance).
     """
 
-    def __init__(self, message: str, *, zeros: Sequence[complex] = ()) -> None:
+    def __init__(self, message: str, *, zeros: ArrayLike = ()) -> None:
         super().__init__(message)
         self.zeros = np.asarray(zeros, dtype=complex)
 
@@ -200,6 +201,8 @@ class UnstableDesignError(DesignError):
     def __init__(self, message: str, *, eigenvalues: Sequence[complex] = ()) -> None:
         super().__init__(message)
         self.eigenvalues = np.asarray(eigenvalues, dtype=complex)
+
+
 class MissingExtraError(ThetahatError, ImportError):
     """A call needs an optional extra (numba, matplotlib, python-control, …) that is not
     installed; the message names the ``pip install 'thetahat[extra]'`` that provides it."""

@@ -43,7 +43,7 @@ from .engine import run_keyed
 from .errors import MissingExtraError, ModelFileError
 from .estimation.batch_run import run_batch
 from .modelfile import ModelSpec, build_observer, load_model, loads_model
-from .simulation.metrics import time_to_within
+from .studies.metrics import time_to_within
 
 __all__ = ["DATA_SUFFIXES", "FleetResult", "SETTLE_BAND", "estimate_many", "fleet_files",
            "read_parquet"]

@@ -97,7 +97,7 @@ def plot_sweep(result: Any, path: str | Path | None = None, show: bool = False, 
     Parameters
     ----------
     result : SweepResult
-        From :func:`thetahat.simulation.sweep.eps_sweep`.
+        From :func:`thetahat.studies.sweep.eps_sweep`.
     path : str or Path, optional
         Where to save (PNG by suffix); the parent folder is created.
     show : bool

@@ -20,7 +20,7 @@ from fleet_data import CORRUPT, MODEL, N_FILES  # noqa: E402
 from thetahat.engine import run_keyed  # noqa: E402
 from thetahat.fleet import estimate_many  # noqa: E402
 from thetahat.models import prop3_monotone as p3  # noqa: E402
-from thetahat.simulation.batch import monte_carlo  # noqa: E402
+from thetahat.studies.batch import monte_carlo  # noqa: E402
 
 # The chunks are the same in both runs, and each chunk is the same computation: the numbers
 # are bitwise equal (no tolerance).
@@ -145,7 +145,7 @@ def _p3_simulate(seed):
 
 
 def test_eps_sweep_same_table_on_the_cluster(cluster):
-    from thetahat.simulation.sweep import eps_sweep
+    from thetahat.studies.sweep import eps_sweep
 
     _, client = cluster
     args = (_p3_observer, _p3_simulate, [1.0, 0.5], range(3))

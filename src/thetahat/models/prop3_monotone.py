@@ -25,7 +25,7 @@ True
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, cast
 
 import numpy as np
 import sympy as sp
@@ -33,6 +33,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from ..estimation.update_laws import GradientInversion
 from ..model.paramset import Box
+from ..model.perturbation import Perturbation
 from ..model.system import PerturbedLinearSystem
 from ._oscillator import oscillator, y
 
@@ -52,26 +53,68 @@ _theta = sp.Symbol("theta", real=True)
 
 
 def system() -> PerturbedLinearSystem:
-    """The oscillator with φ = g(v, x, θ) = (2 + sin y)(θ + θ³/3) and Θ = [-2, 2]."""
+    """The oscillator with φ = g(v, x, θ) = (2 + sin y)(θ + θ³/3) and Θ = [-2, 2].
+
+    Returns
+    -------
+    PerturbedLinearSystem
+        With its perturbation g and Θ.
+    """
     return oscillator((2 + sp.sin(y)) * (_theta + _theta**3 / 3), [_theta], PARAMETER_SET)
 
 
 def input_signal(t: ArrayLike) -> FloatArray:
-    """u(t) = sin 0.8t, shape (..., 1)."""
+    """u(t) = sin 0.8t, shape (..., 1).
+
+    Parameters
+    ----------
+    t : array_like, shape (...)
+        Times (s).
+
+    Returns
+    -------
+    ndarray, shape (..., 1)
+        The input.
+    """
     t_ = np.asarray(t, dtype=np.float64)
     return np.sin(0.8 * t_)[..., None]
 
 
 def M(v: ArrayLike, x: ArrayLike, theta: ArrayLike) -> FloatArray:
-    """The constant M = 1, shape (..., 1, 1)."""
+    """The constant M = 1, shape (..., 1, 1).
+
+    Parameters
+    ----------
+    v : array_like, shape (..., m + r)
+        col(u, y).
+    x : array_like, shape (..., n)
+        The state (estimate).
+    theta : array_like, shape (..., p)
+        The parameter (estimate).
+
+    Returns
+    -------
+    ndarray, shape (..., 1, 1)
+        M = 1.
+    """
     th = np.asarray(theta, dtype=np.float64)
     return np.ones(th.shape[:-1] + (1, 1))
 
 
 def update_law(Gamma: ArrayLike = 2.0) -> GradientInversion:
-    """The Proposition 3 law θ̂̇ = Proj(Γ M (φ̂ - g(v, x̂, θ̂))) with M = 1."""
+    """The Proposition 3 law θ̂̇ = Proj(Γ M (φ̂ - g(v, x̂, θ̂))) with M = 1.
+
+    Parameters
+    ----------
+    Gamma : float or array_like, shape (p, p), optional
+        Adaptation gain Γ (default 2).
+
+    Returns
+    -------
+    GradientInversion
+    """
     sys = system()
-    return GradientInversion(sys.perturbation, Gamma, PARAMETER_SET, M=M)
+    return GradientInversion(cast(Perturbation, sys.perturbation), Gamma, PARAMETER_SET, M=M)
 
 
 def simulate(seed: int = 0, *, theta: ArrayLike = THETA, t_end: float = 20.0, fs: float = 50.0,

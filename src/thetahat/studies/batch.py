@@ -23,7 +23,7 @@ from numpy.typing import NDArray
 
 from ..errors import ArgumentTypeError, DimensionError, ThetahatWarning
 
-__all__ = ["BatchResult", "monte_carlo"]
+__all__ = ["BatchResult", "check_seeds", "monte_carlo"]
 
 #: A progress bar appears only when the batch has run this long (s): short batches, such as
 #: those in tests, stay silent, and long studies show progress.
@@ -99,8 +99,35 @@ def _short(seeds: Sequence[int]) -> str:
     return f"[{seeds[0]}, {seeds[1]}, {seeds[2]}, ..., {seeds[-1]}]"
 
 
-def _check_seeds(seeds: Iterable[int]) -> tuple[int, ...]:
-    out = []
+def check_seeds(seeds: Iterable[int]) -> tuple[int, ...]:
+    """The seeds as a tuple of non-negative ints, checked.
+
+    Parameters
+    ----------
+    seeds : iterable of int
+        Non-negative seeds, at least one.
+
+    Returns
+    -------
+    tuple of int
+
+    Raises
+    ------
+    DimensionError
+        No seed, or a seed that is not a non-negative integer.
+
+    Warns
+    -----
+    ThetahatWarning
+        The seeds contain duplicates.
+
+    Examples
+    --------
+    >>> from thetahat.studies.batch import check_seeds
+    >>> check_seeds(range(3))
+    (0, 1, 2)
+    """
+    out: list[int] = []
     for s in seeds:
         if isinstance(s, bool) or not isinstance(s, numbers.Integral) or int(s) < 0:
             raise DimensionError(f"seeds must be non-negative integers; got {s!r}.")
@@ -182,14 +209,14 @@ def monte_carlo(fn: Callable[[int], Any], seeds: Iterable[int], *, progress: boo
     Examples
     --------
     >>> import numpy as np
-    >>> from thetahat.simulation.batch import monte_carlo
+    >>> from thetahat.studies.batch import monte_carlo
     >>> res = monte_carlo(lambda s: np.random.default_rng(s).normal(), seeds=[3, 1, 2])
     >>> res.seeds, res.stack().shape
     ((3, 1, 2), (3,))
     """
     if not callable(fn):
         raise ArgumentTypeError(f"fn must be callable as fn(seed); got {type(fn).__name__}.")
-    seeds_ = _check_seeds(seeds)
+    seeds_ = check_seeds(seeds)
     if scheduler is not None:
         from ..engine import run_keyed, seed_task
         start = time.perf_counter()
