@@ -1,0 +1,291 @@
+"""The two-stage guarded estimator: the paper's guarantee with an EKF's efficiency.
+
+* **Stage 1** — the paper's observer (3) with its update law, unchanged (any object with the
+  observer's public ``init``/``step``/``run``): Theorem 1's convergence from anywhere in Θ.
+* **Stage 2** — :class:`~thetahat.estimation.ekf.JointEKF`'s kernels on col(x, θ), re-anchored
+  at the times of a :class:`~thetahat.estimation.mle.FitSchedule` by the MAP fit of
+  (x(t₀), θ) (the EKF then takes θ and P_θθ from the fit, cross-covariances zeroed).
+* **The guard** of :mod:`~thetahat.estimation.guard`: the output keeps
+  |θ̂ − θ| ≤ |θ̂_G − θ| + δ(t) and θ̂ ∈ Θ, with δ(t) built on evidence.
+
+The noise level is estimated from the first :data:`SIGMA_SAMPLES` samples (the EKF starts its
+updates there) and refreshed by every fit from its window, unless given. :meth:`run` applies
+each fit at the sample after its window (deterministic); in streaming use (:meth:`step`) fits
+run on a worker thread (the numba kernels release the GIL) and are applied at the first
+``step`` after they finish — a ``step`` never waits for a fit.
+"""
+
+from __future__ import annotations
+
+import concurrent.futures
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from .._validate import as_vector
+from ..errors import DimensionError, NonFiniteError
+from ..model.system import PerturbedLinearSystem
+from .ekf import EKFKernels, JointEKF, as_record, ekf_kernels, resolve_noise_std, theta_box
+from .guard import (GUARD_C, GUARD_KAPPA, GUARD_RHO_MAX, make_guarded_loop, progress_init)
+from .mle import FitResult, FitSchedule
+from .model_kernel import H_RHO, jit
+
+__all__ = ["GuardedEstimator", "GuardedResult", "SIGMA_SAMPLES", "DWELL_SECONDS"]
+
+FloatArray = NDArray[np.float64]
+
+#: Samples from which σ̂ is estimated before the EKF's first update (when σ is not given).
+SIGMA_SAMPLES = 32
+#: Time stage 2 may stay clipped by a settled stage 1 before it is reset from stage 1 (s).
+DWELL_SECONDS = 0.5
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class GuardedResult:
+    """Estimates and diagnostics of :meth:`GuardedEstimator.run`.
+
+    Attributes
+    ----------
+    t : ndarray (N,)
+    theta_hat : ndarray (N, p)
+        The guarded output.
+    x_hat : ndarray (N, n)
+        Stage 2's x̂.
+    theta_stage1, theta_stage2 : ndarray (N, p)
+        θ̂_G and θ̂₂.
+    theta_sd : ndarray (N, p)
+        Stage 2's √P_θθ.
+    band : ndarray (N, p)
+        δ(t): |θ̂ − θ̂_G| ≤ δ at every sample.
+    clipped, reset : ndarray of bool (N,)
+        Samples where the guard clipped stage 2 / reset it from stage 1.
+    nis : ndarray (N,)
+        Windowed normalised innovation squared of stage 2 (≈ 1 when consistent).
+    fits : tuple of FitResult
+        The MAP fits, in order.
+    fit_samples : ndarray of int
+        The sample index after which each fit was applied.
+    noise_std : ndarray (r,)
+        The last σ used.
+    """
+
+    t: FloatArray
+    theta_hat: FloatArray
+    x_hat: FloatArray
+    theta_stage1: FloatArray
+    theta_stage2: FloatArray
+    theta_sd: FloatArray
+    band: FloatArray
+    clipped: NDArray[np.bool_]
+    reset: NDArray[np.bool_]
+    nis: FloatArray
+    fits: tuple[FitResult, ...]
+    fit_samples: NDArray[np.int64]
+    noise_std: FloatArray
+
+    @property
+    def disagreement(self) -> FloatArray:
+        """θ̂₂ − θ̂_G over time, (N, p): a model-error alarm when it persists."""
+        return self.theta_stage2 - self.theta_stage1
+
+    @property
+    def resets(self) -> int:
+        return int(self.reset.sum())
+
+    @property
+    def clipped_fraction(self) -> float:
+        return float(self.clipped.mean())
+
+    @property
+    def fit_cost(self) -> FloatArray:
+        """Each fit's cost per measurement (≈ 1 when the model and σ are right)."""
+        return np.array([f.cost for f in self.fits])
+
+    @property
+    def fit_se(self) -> FloatArray:
+        """Each fit's standard error of θ, (n_fits, p)."""
+        return np.array([f.theta_se for f in self.fits]).reshape(len(self.fits), -1)
+
+    def __repr__(self) -> str:
+        return (f"GuardedResult(N={self.t.shape[0]}, theta_hat[-1]={self.theta_hat[-1]}, "
+                f"resets={self.resets}, clipped={self.clipped_fraction:.3f}, "
+                f"fits={len(self.fits)})")
+
+
+def _stage1_estimates(stage1: Any, res: Any) -> tuple[FloatArray, FloatArray]:
+    x = res.x_hat_refined if getattr(res, "x_hat_refined", None) is not None else res.x_hat
+    return np.asarray(res.theta_hat, dtype=np.float64), np.asarray(x, dtype=np.float64)
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class GuardedEstimator:
+    """Stage 1 (the paper) + stage 2 (EKF + MAP re-anchoring) + the evidence-based guard.
+
+    Parameters
+    ----------
+    stage1 : ModifiedHighGainObserver or CompiledObserver
+        The paper's estimator; its ``system`` is stage 2's model unless ``system`` is given.
+    system : PerturbedLinearSystem, optional
+        Stage 2's model (symbolic g, Box Θ).
+    noise_std : optional
+        σ of the output noise; default estimated from the data.
+    schedule : FitSchedule or None, optional
+        The re-anchoring fits (default :class:`FitSchedule` at 0.1·2ʲ s); ``None`` disables
+        them (stage 2 = the EKF alone).
+    x_sd : float
+        Prior standard deviation of x(0) for stage 2.
+    kappa, c, rho_max, dwell : float
+        The guard's constants (see :mod:`~thetahat.estimation.guard`); ``dwell`` in seconds.
+    compiled : bool, optional
+        numba kernels (default: when installed).
+
+    Examples
+    --------
+    >>> from thetahat.models import lugre
+    >>> est = lugre.estimator("guarded", compiled=False)
+    >>> data = lugre.simulate(seed=0, t_end=0.3)
+    >>> res = est.run(data.t, data.u, data.y, state0=est.init(theta_hat0=[0.5]))
+    >>> res.theta_hat.shape, bool(abs(res.theta_hat[-1, 0] - 0.28) < 0.01)
+    ((301, 1), True)
+    """
+
+    stage1: Any
+    system: PerturbedLinearSystem | None = None
+    noise_std: Any = None
+    schedule: FitSchedule | None = field(default=None)
+    use_fits: bool = True
+    x_sd: float = 10.0
+    kappa: float = GUARD_KAPPA
+    c: float = GUARD_C
+    rho_max: float = GUARD_RHO_MAX
+    dwell: float = DWELL_SECONDS
+    q_x: float = 0.0
+    h_rho: float = H_RHO
+    compiled: bool | None = None
+
+    # ------------------------------------------------------------------ parts
+    @property
+    def model(self) -> PerturbedLinearSystem:
+        """Stage 2's model."""
+        return self.system if self.system is not None else self.stage1.system
+
+    @property
+    def kernels(self) -> EKFKernels:
+        return ekf_kernels(self.model, compiled=self.compiled)
+
+    @property
+    def fit_schedule(self) -> FitSchedule | None:
+        if not self.use_fits:
+            return None
+        if self.schedule is not None:
+            return self.schedule
+        return FitSchedule(system=self.model, x_sd=self.x_sd, noise_std=self.noise_std,
+                           compiled=self.compiled)
+
+    def _loop(self) -> Any:
+        k = self.kernels
+        compiled = k.model.compiled
+        return _LOOPS.setdefault(k, make_guarded_loop(k.predict, k.update,
+                                                      lambda fn: jit(fn, compiled)))
+
+    def _ekf(self) -> JointEKF:
+        return JointEKF(system=self.model, noise_std=self.noise_std, x_sd=self.x_sd,
+                        compiled=self.compiled)
+
+    def init(self, x_hat0: Any = None, theta_hat0: Any = None) -> dict[str, Any]:
+        """Initial state of both stages: a dict with ``stage1`` (the observer's state),
+        ``x_hat0`` and ``theta_hat0`` (θ̂₀ must lie in Θ)."""
+        sys_ = self.model
+        lo, hi = theta_box(sys_)
+        th0 = 0.5 * (lo + hi) if theta_hat0 is None else as_vector("theta_hat0", theta_hat0,
+                                                                   sys_.p)
+        x0 = np.zeros(sys_.n) if x_hat0 is None else as_vector("x_hat0", x_hat0, sys_.n)
+        s1 = self.stage1.init(x_hat0=x0, theta_hat0=th0)
+        return {"stage1": s1, "x_hat0": x0, "theta_hat0": th0}
+
+    # ------------------------------------------------------------------ offline
+    def run(self, t: Any, u: Any, y: Any, *, state0: dict[str, Any] | None = None
+            ) -> GuardedResult:
+        """Run both stages and the guard over a record.
+
+        Parameters
+        ----------
+        t : array_like (N,)
+        u : array_like (N, m) or (N,)
+        y : array_like (N, r) or (N,)
+        state0 : dict, optional
+            From :meth:`init` (default ``init()``).
+
+        Returns
+        -------
+        GuardedResult
+        """
+        sys_ = self.model
+        n, m, r, p = sys_.n, sys_.m, sys_.r, sys_.p
+        t_, U, Y = as_record(t, u, y, m, r)
+        U, Y = np.ascontiguousarray(U), np.ascontiguousarray(Y)
+        st0 = self.init() if state0 is None else state0
+        res1 = self.stage1.run(t_, U, Y, state0=st0["stage1"])
+        thG, xG = _stage1_estimates(self.stage1, res1)
+        thG, xG = np.ascontiguousarray(thG), np.ascontiguousarray(xG)
+        N = t_.shape[0]
+        k_first = SIGMA_SAMPLES if self.noise_std is None else 0
+        sigma = resolve_noise_std(self.noise_std, Y[:max(k_first, SIGMA_SAMPLES)])
+        R = np.diag(sigma ** 2)
+        s, P0 = self._ekf().prior(st0["x_hat0"], st0["theta_hat0"])
+        P = P0.copy()
+        lo, hi = theta_box(sys_)
+        out = {name: np.empty((N, w)) for name, w in
+               (("TH", p), ("TH2", p), ("X2", n), ("SD2", p), ("BAND", p))}
+        CLIP, RESET, NIS = np.zeros(N, bool), np.zeros(N, bool), np.full(N, np.nan)
+        pst = progress_init(thG[0])
+        gst = np.array([0.0, 1.0, float(k_first)])
+        cfg = np.concatenate([[self.kappa, self.c, self.rho_max,
+                               self.dwell / float(np.median(np.diff(t_)))],
+                              np.sqrt(np.diag(P0)[n:])])
+        loop = self._loop()
+        sched = self.fit_schedule
+        fits: list[FitResult] = []
+        fit_at: list[int] = []
+        prior0 = (sched.initial_prior(st0["x_hat0"], st0["theta_hat0"]) if sched else None)
+        k = 0
+        j = 0
+        while k < N:
+            k_next = N
+            if sched is not None:
+                while sched.times(j) <= t_[k] - t_[0]:
+                    j += 1
+                k_fit = int(np.searchsorted(t_ - t_[0], sched.times(j), side="right"))
+                k_next = min(k_fit, N)
+            loop(s, P, P0, U, Y, t_, k, k_next, R, lo, hi, self.h_rho, self.q_x, thG, xG,
+                 pst, gst, cfg, out["TH"], out["TH2"], out["X2"], out["SD2"], out["BAND"],
+                 CLIP, RESET, NIS)
+            if sched is not None and k_next < N:
+                fit = sched.fit(t_, U, Y, k_next, fits[-1] if fits else None, prior0)
+                fits.append(fit)
+                fit_at.append(k_next - 1)
+                if np.all(np.isfinite(fit.theta)) and np.all(np.isfinite(fit.cov)):
+                    s[n:] = fit.theta
+                    P[n:, :] = 0.0
+                    P[:, n:] = 0.0
+                    P[n:, n:] = fit.cov[n:, n:]
+                    sigma = fit.noise_std
+                    R = np.diag(sigma ** 2)
+                j += 1
+            k = k_next
+        if not np.all(np.isfinite(out["TH"])):
+            raise NonFiniteError("the guarded output became non-finite: stage 1 diverged "
+                                 "(check its gains and the data scaling).")
+        return GuardedResult(t=t_, theta_hat=out["TH"], x_hat=out["X2"], theta_stage1=thG,
+                             theta_stage2=out["TH2"], theta_sd=out["SD2"], band=out["BAND"],
+                             clipped=CLIP, reset=RESET, nis=NIS, fits=tuple(fits),
+                             fit_samples=np.array(fit_at, dtype=np.int64), noise_std=sigma)
+
+    def __repr__(self) -> str:
+        return (f"GuardedEstimator(stage1={type(self.stage1).__name__}, n={self.model.n}, "
+                f"p={self.model.p}, fits={'on' if self.use_fits else 'off'})")
+
+
+_LOOPS: dict[Any, Any] = {}
