@@ -89,9 +89,10 @@ def make_guarded_loop(predict: Callable[..., None], update: Callable[..., float]
     """The per-sample loop of the guarded estimator over EKF kernels (compiled with them)."""
     prog = jit(progress_step)
 
-    def loop(s, P, P0, U, Y, tt, k0, k1, R, lo, hi, h_rho, q_x, thG, xG, pst, gst, cfg,
+    def loop(s, P, P0, U, Y, tt, k0, k1, off, R, lo, hi, h_rho, q_x, thG, xG, pst, gst, cfg,
              TH, TH2, X2, SD2, BAND, CLIP, RESET, NIS):
-        """Samples k0 … k1−1. ``gst`` = (dwell count, NIS average, first update index);
+        """Samples k0 … k1−1 (absolute index k + off). ``gst`` = (dwell count, NIS average,
+        first update index);
         ``cfg`` = (κ, c, ρ_max, dwell, σ₂ cap per component…); returns the reset count."""
         n = X2.shape[1]
         p = TH.shape[1]
@@ -101,9 +102,9 @@ def make_guarded_loop(predict: Callable[..., None], update: Callable[..., float]
         dG = np.empty(p)
         resets = 0
         for k in range(k0, k1):
-            if k > 0:
+            if k + off > 0:
                 predict(s, P, U[k - 1], U[k], tt[k] - tt[k - 1], h_rho, q_x, Phi, Gam)
-                prog(pst, k, thG[k], width, cfg[1], cfg[2], dG)
+                prog(pst, k + off, thG[k], width, cfg[1], cfg[2], dG)
             else:
                 for i in range(p):
                     dG[i] = width[i]
@@ -112,7 +113,7 @@ def make_guarded_loop(predict: Callable[..., None], update: Callable[..., float]
             for j in range(Y.shape[1]):
                 if not math.isfinite(Y[k, j]):
                     finite_y = False
-            if finite_y and k >= gst[2]:
+            if finite_y and k + off >= gst[2]:
                 nis = update(s, P, Y[k], R, lo, hi)
             bad = False
             for i in range(s.shape[0]):

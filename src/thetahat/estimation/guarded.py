@@ -18,6 +18,7 @@ run on a worker thread (the numba kernels release the GIL) and are applied at th
 from __future__ import annotations
 
 import concurrent.futures
+import dataclasses
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -259,7 +260,7 @@ class GuardedEstimator:
                     j += 1
                 k_fit = int(np.searchsorted(t_ - t_[0], sched.times(j), side="right"))
                 k_next = min(k_fit, N)
-            loop(s, P, P0, U, Y, t_, k, k_next, R, lo, hi, self.h_rho, self.q_x, thG, xG,
+            loop(s, P, P0, U, Y, t_, k, k_next, 0, R, lo, hi, self.h_rho, self.q_x, thG, xG,
                  pst, gst, cfg, out["TH"], out["TH2"], out["X2"], out["SD2"], out["BAND"],
                  CLIP, RESET, NIS)
             if sched is not None and k_next < N:
@@ -283,9 +284,187 @@ class GuardedEstimator:
                              clipped=CLIP, reset=RESET, nis=NIS, fits=tuple(fits),
                              fit_samples=np.array(fit_at, dtype=np.int64), noise_std=sigma)
 
+    # ------------------------------------------------------------------ streaming
+    def step(self, state: dict[str, Any], u: Any, y: Any, dt: float) -> dict[str, Any]:
+        """Process the current samples (u, y) and advance stage 1 by ``dt``; never waits.
+
+        Parameters
+        ----------
+        state : dict
+            From :meth:`init` or the previous ``step``. States of one stream share its data
+            log and fit worker: step each state once, in order.
+        u : array_like (m,)
+        y : array_like (r,); NaN: no measurement update.
+        dt : float
+            Time to the next sample, > 0.
+
+        Returns
+        -------
+        dict
+            The next state, with the estimates at the current sample: ``theta_hat`` (p,),
+            ``x_hat`` (n,), ``theta_stage1``, ``theta_stage2``, ``band``, ``clipped``,
+            ``reset``, ``fits`` (the number applied so far).
+        """
+        sys_ = self.model
+        n, m, r, p = sys_.n, sys_.m, sys_.r, sys_.p
+        u_ = np.zeros(0) if u is None else np.asarray(u, dtype=np.float64).reshape(m)
+        y_ = np.asarray(y, dtype=np.float64).reshape(r)
+        h = float(dt)
+        if not h > 0 or not np.isfinite(h):
+            raise DimensionError(f"dt must be finite and > 0; got {dt!r}.")
+        if not np.all(np.isfinite(u_)):
+            raise NonFiniteError("u contains NaN or inf; clean the input sample.")
+        sh = state.get("shared") or _Stream.start(self, state)
+        k = sh.k
+        est1 = self.stage1.estimate(state["stage1"], u_, y_) if hasattr(
+            self.stage1, "estimate") else None
+        if est1 is None:                       # a CompiledObserver: read θ̂ from its state
+            est1 = self.stage1.observer.estimate(state["stage1"], u_, y_)
+        thG = np.asarray(est1.theta_hat, dtype=np.float64).reshape(1, p)
+        xs = est1.x_hat_refined if est1.x_hat_refined is not None else est1.x_hat
+        xG = np.asarray(xs, dtype=np.float64).reshape(1, n)
+        if k == 0:
+            sh.configure(self, h)
+        sh.record(k, u_, y_, h)
+        sh.poll_fit()
+        k0 = 0 if k == 0 else 1
+        U2 = np.vstack([sh.u_prev, u_]) if k else u_.reshape(1, m)
+        Y2 = np.vstack([np.full(r, np.nan), y_]) if k else y_.reshape(1, r)
+        tt = np.array([0.0, sh.dt_prev]) if k else np.zeros(1)
+        TH2 = np.broadcast_to(thG, (2, p)).copy() if k else thG.copy()
+        XG2 = np.broadcast_to(xG, (2, n)).copy() if k else xG.copy()
+        rows = k0 + 1
+        o = {name: np.zeros((rows, w)) for name, w in
+             (("TH", p), ("TH2", p), ("X2", n), ("SD2", p), ("BAND", p))}
+        clip, rst, nis = np.zeros(rows, bool), np.zeros(rows, bool), np.zeros(rows)
+        if k == 0:
+            sh.pst = progress_init(thG[0])
+        self._loop()(sh.s, sh.P, sh.P0, U2, Y2, tt, k0, k0 + 1, k - k0, sh.R, sh.lo, sh.hi,
+                     self.h_rho, self.q_x, TH2, XG2, sh.pst, sh.gst, sh.cfg, o["TH"],
+                     o["TH2"], o["X2"], o["SD2"], o["BAND"], clip, rst, nis)
+        step1 = self.stage1.step
+        s1 = (step1(state["stage1"], u_, y_, h) if not hasattr(self.stage1, "dt")
+              else step1(state["stage1"], u_, y_))
+        sh.u_prev, sh.dt_prev, sh.k = u_, h, k + 1
+        sh.maybe_submit(self)
+        return {"stage1": s1, "shared": sh, "x_hat0": state["x_hat0"],
+                "theta_hat0": state["theta_hat0"], "theta_hat": o["TH"][k0].copy(),
+                "x_hat": o["X2"][k0].copy(), "theta_stage1": thG[0].copy(),
+                "theta_stage2": o["TH2"][k0].copy(), "band": o["BAND"][k0].copy(),
+                "clipped": bool(clip[k0]), "reset": bool(rst[k0]), "fits": len(sh.fits)}
+
     def __repr__(self) -> str:
         return (f"GuardedEstimator(stage1={type(self.stage1).__name__}, n={self.model.n}, "
                 f"p={self.model.p}, fits={'on' if self.use_fits else 'off'})")
 
 
 _LOOPS: dict[Any, Any] = {}
+
+#: The single worker thread that runs streaming fits (shared by all streams).
+_EXECUTOR: concurrent.futures.ThreadPoolExecutor | None = None
+
+
+def _executor() -> concurrent.futures.ThreadPoolExecutor:
+    global _EXECUTOR
+    if _EXECUTOR is None:
+        _EXECUTOR = concurrent.futures.ThreadPoolExecutor(max_workers=1,
+                                                          thread_name_prefix="thetahat-fit")
+    return _EXECUTOR
+
+
+class _Stream:
+    """The data log, stage 2's (s, P) and the pending fit of one streaming run."""
+
+    def __init__(self, est: GuardedEstimator, state: dict[str, Any]) -> None:
+        sys_ = est.model
+        n = sys_.n
+        self.k = 0
+        self.s, self.P0 = est._ekf().prior(state["x_hat0"], state["theta_hat0"])
+        self.P = self.P0.copy()
+        self.lo, self.hi = theta_box(sys_)
+        given = est.noise_std is not None
+        self.R = (np.diag(resolve_noise_std(est.noise_std, np.zeros((1, sys_.r))) ** 2)
+                  if given else np.eye(sys_.r))
+        self.gst = np.array([0.0, 1.0, 0.0 if given else float(SIGMA_SAMPLES)])
+        self.cfg = np.array([])
+        self.pst = np.zeros((sys_.p, 6))
+        self.u_prev = np.zeros(sys_.m)
+        self.dt_prev = 0.0
+        self.t: list[float] = []
+        self.u: list[FloatArray] = []
+        self.y: list[FloatArray] = []
+        self.base = 0                            # absolute index of the log's first sample
+        self.fits: list[FitResult] = []
+        self.future: concurrent.futures.Future[FitResult] | None = None
+        self.j = 0
+        self.sched = est.fit_schedule
+        self.prior0 = (self.sched.initial_prior(state["x_hat0"], state["theta_hat0"])
+                       if self.sched else None)
+        self._n = n
+
+    @classmethod
+    def start(cls, est: GuardedEstimator, state: dict[str, Any]) -> _Stream:
+        sh = cls(est, state)
+        return sh
+
+    def record(self, k: int, u: FloatArray, y: FloatArray, dt: float) -> None:
+        t = 0.0 if k == 0 else self.t[-1] + self.dt_prev
+        self.t.append(t)
+        self.u.append(u.copy())
+        self.y.append(y.copy())
+        if k + 1 == SIGMA_SAMPLES and self.gst[2] > 0:
+            self.R = np.diag(resolve_noise_std(None, np.array(self.y)) ** 2)
+
+    def configure(self, est: GuardedEstimator, dt: float) -> None:
+        n = self._n
+        self.cfg = np.concatenate([[est.kappa, est.c, est.rho_max, est.dwell / dt],
+                                   np.sqrt(np.diag(self.P0)[n:])])
+
+    def poll_fit(self) -> None:
+        f = self.future
+        if f is None or not f.done():
+            return
+        self.future = None
+        fit = f.result()
+        n = self._n
+        self.fits.append(fit)
+        if np.all(np.isfinite(fit.theta)) and np.all(np.isfinite(fit.cov)):
+            self.s[n:] = fit.theta
+            self.P[n:, :] = 0.0
+            self.P[:, n:] = 0.0
+            self.P[n:, n:] = fit.cov[n:, n:]
+            self.R = np.diag(fit.noise_std ** 2)
+        if fit.k0 > 0 or (self.sched is not None and self.t[fit.k1 - 1 - self.base]
+                          > self.sched.full_window):
+            self._trim(fit.k1 - 1)
+
+    def _trim(self, new_base: int) -> None:
+        cut = new_base - self.base
+        if cut > 0:
+            del self.t[:cut], self.u[:cut], self.y[:cut]
+            self.base = new_base
+
+    def maybe_submit(self, est: GuardedEstimator) -> None:
+        sched = self.sched
+        if sched is None or self.future is not None:
+            return
+        if self.t[-1] < sched.times(self.j) - 1e-12 or self.k < 3:
+            return
+        while sched.times(self.j) <= self.t[-1] + 1e-12:
+            self.j += 1
+        b = self.base
+        t = np.array(self.t)
+        U = np.array(self.u).reshape(len(self.u), -1)
+        Y = np.array(self.y).reshape(len(self.y), -1)
+        prev = self.fits[-1] if self.fits else None
+        if prev is not None:
+            prev = dataclasses.replace(prev, k0=max(prev.k0 - b, 0), k1=prev.k1 - b)
+        elapsed = float(t[-1])
+        k1 = t.shape[0]
+        prior0 = self.prior0
+
+        def job() -> FitResult:
+            fit = sched.fit(t, U, Y, k1, prev, prior0, elapsed=elapsed)
+            return dataclasses.replace(fit, k0=fit.k0 + b, k1=fit.k1 + b)
+
+        self.future = _executor().submit(job)

@@ -329,10 +329,16 @@ class FitSchedule:
         return np.concatenate([x_hat0, theta_hat0]), np.diag(1.0 / sd ** 2)
 
     def fit(self, t: FloatArray, U: FloatArray, Y: FloatArray, k1: int,
-            previous: FitResult | None, prior0: tuple[FloatArray, FloatArray]) -> FitResult:
-        """The fit due when sample k1 − 1 has arrived, warm-started from ``previous``."""
+            previous: FitResult | None, prior0: tuple[FloatArray, FloatArray],
+            elapsed: float | None = None) -> FitResult:
+        """The fit due when sample k1 − 1 has arrived, warm-started from ``previous``.
+
+        ``elapsed`` is the time since the start of the experiment (default t[k1−1] − t[0];
+        a streaming caller that trimmed old samples from ``t`` passes it).
+        """
         n = self.system.n
-        full = previous is None or t[k1 - 1] - t[0] <= self.full_window + 1e-12
+        el = float(t[k1 - 1] - t[0]) if elapsed is None else float(elapsed)
+        full = previous is None or el <= self.full_window + 1e-12
         if full:
             k0 = 0
             q_prior, info = prior0

@@ -57,11 +57,11 @@ def have_numba() -> bool:
 
 
 def jit(fn: Callable[..., Any], compiled: bool) -> Callable[..., Any]:
-    """``numba.njit(fn)`` when ``compiled``, else ``fn`` unchanged (the numpy fallback)."""
+    """``numba.njit(fn, nogil=True)`` when ``compiled``, else ``fn`` unchanged (the fallback)."""
     if not compiled:
         return fn
     import numba
-    return numba.njit(fn)
+    return numba.njit(fn, nogil=True)     # a fit on a worker thread does not hold the GIL
 
 
 def _plant_expressions(system: PerturbedLinearSystem) -> tuple[list[sp.Symbol], list[sp.Symbol],
