@@ -258,7 +258,7 @@ class GuardedEstimator:
             if sched is not None:
                 while sched.times(j) <= t_[k] - t_[0]:
                     j += 1
-                k_fit = int(np.searchsorted(t_ - t_[0], sched.times(j), side="right"))
+                k_fit = int(np.searchsorted(t_ - t_[0], sched.times(j) + 1e-12, side="right"))
                 k_next = min(k_fit, N)
             loop(s, P, P0, U, Y, t_, k, k_next, 0, R, lo, hi, self.h_rho, self.q_x, thG, xG,
                  pst, gst, cfg, out["TH"], out["TH2"], out["X2"], out["SD2"], out["BAND"],

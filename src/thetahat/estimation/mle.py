@@ -33,6 +33,7 @@ from numpy.typing import NDArray
 
 from ..model.system import PerturbedLinearSystem
 from .ekf import resolve_noise_std, theta_box, theta_prior_sd
+from .noise_level import MIN_SAMPLES
 from .model_kernel import H_RHO, ModelKernel, jit, model_kernel
 
 __all__ = ["FitResult", "fit_map", "FitSchedule", "doubling_schedule", "dense_schedule",
@@ -355,7 +356,7 @@ class FitSchedule:
             info[:n, :n] = np.eye(n) / float(self.x_sd) ** 2
             info[n:, n:] = info_th
             q_start = q_prior.copy()
-        sigma = resolve_noise_std(self.noise_std, Y[k0:k1])
+        sigma = resolve_noise_std(self.noise_std, Y[:k1] if full else Y[k0:k1])
         return fit_map(self.system, t, U, Y, k0=k0, k1=k1, q_start=q_start, q_prior=q_prior,
                        prior_info=info, noise_std=sigma, skip_first=not full,
                        max_iter=self.first_max_iter if previous is None else self.max_iter,
@@ -382,6 +383,9 @@ class MapResult:
         The latest fit's θ at each sample (θ̂(0) before the first fit).
     theta_sd : ndarray (N, p)
         Its standard error (the prior's before the first fit).
+    x_hat : ndarray (N, n)
+        The model's prediction from the latest fit's end state and θ (causal; from x̂(0),
+        θ̂(0) before the first fit).
     fits : tuple of FitResult
     fit_samples : ndarray of int
         The sample at which each fit's window ends.
@@ -390,6 +394,7 @@ class MapResult:
     t: FloatArray
     theta_hat: FloatArray
     theta_sd: FloatArray
+    x_hat: FloatArray
     fits: tuple[FitResult, ...]
     fit_samples: NDArray[np.int64]
 
@@ -468,15 +473,35 @@ class MapEstimator:
         ends: list[int] = []
         j = 0
         while True:
-            k1 = int(np.searchsorted(t_ - t_[0], sched.times(j), side="right"))
-            if k1 > N:
+            if sched.times(j) > t_[-1] - t_[0] + 1e-12:
                 break
-            if k1 >= 3:
+            k1 = int(np.searchsorted(t_ - t_[0], sched.times(j) + 1e-12, side="right"))
+            if k1 >= (3 if self.noise_std is not None else MIN_SAMPLES):
                 fit = sched.fit(t_, U, Y, k1, fits[-1] if fits else None, prior0)
                 fits.append(fit)
                 ends.append(k1 - 1)
                 TH[k1 - 1:] = fit.theta
                 SD[k1 - 1:] = fit.theta_se
             j += 1
-        return MapResult(t=t_, theta_hat=TH, theta_sd=SD, fits=tuple(fits),
+        X = self._predictions(t_, U, Y, st0, fits, ends)
+        return MapResult(t=t_, theta_hat=TH, theta_sd=SD, x_hat=X, fits=tuple(fits),
                          fit_samples=np.array(ends, dtype=np.int64))
+
+    def _predictions(self, t: FloatArray, U: FloatArray, Y: FloatArray, st0: dict[str, Any],
+                     fits: list[FitResult], ends: list[int]) -> FloatArray:
+        """x̂ between fits: the model run from each fit's end state with its θ."""
+        sys_ = self.system
+        n, p, N = sys_.n, sys_.p, t.shape[0]
+        sweep = _sweep_for(model_kernel(sys_, compiled=self.compiled))
+        X = np.empty((N, n))
+        starts = [0] + ends
+        anchors = [(st0["x_hat0"], st0["theta_hat0"])] + [(f.x_end, f.theta) for f in fits]
+        A, b, T = np.empty((n + p, n + p)), np.empty(n + p), np.empty((n, n + p))
+        Rinv = np.ones(sys_.r)
+        for i, (k0, (x0, th)) in enumerate(zip(starts, anchors)):
+            k1 = starts[i + 1] + 1 if i + 1 < len(starts) else N
+            seg = np.empty((k1 - k0, n))
+            sweep(np.array(x0, dtype=np.float64), np.array(th, dtype=np.float64), U, Y, t, k0,
+                  k1, False, Rinv, self._schedule().h_rho, False, A, b, T, seg)
+            X[k0:k1] = seg
+        return X
