@@ -7,7 +7,7 @@ Subcommands::
     thetahat tune [--eps 1 0.7 0.5 0.3] [--gamma 1 3 10 30] [--seeds 1000 1001] [--t-end 20]
                   [--out out]
     thetahat analyze MODEL
-    thetahat estimate MODEL DATA.csv [-o estimates.csv] [--hold zoh|foh]
+    thetahat estimate MODEL DATA.csv [-o estimates.csv] [--hold zoh|foh] [--method M]
 
 Exit codes: 0 success, 2 usage or input error (the message is printed as
 ``thetahat: error: ...``, without a traceback).
@@ -92,7 +92,7 @@ def _estimate(args: argparse.Namespace) -> int:
 
     spec = load_model(args.model)
     data = read_data(args.data, spec)
-    result = run_estimator(spec, data.t, data.u, data.y, hold=args.hold)
+    result = run_estimator(spec, data.t, data.u, data.y, hold=args.hold, method=args.method)
     write_estimates(args.output, result, spec)
     print(f"wrote {args.output} ({data.t.size} rows)")
     return EXIT_OK
@@ -173,6 +173,10 @@ def _parser() -> argparse.ArgumentParser:
                           help="output CSV (default: estimates.csv)")
     estimate.add_argument("--hold", choices=["zoh", "foh"], default="zoh",
                           help="sample hold between samples (default: zoh)")
+    estimate.add_argument("--method", choices=["paper", "guarded", "mle"], default=None,
+                          help="estimator: the paper's observer, the guarded two-stage "
+                               "estimator or offline MAP fits (default: the model file's "
+                               "[estimator] method, else paper)")
     estimate.set_defaults(run=_estimate)
     return parser
 

@@ -8,8 +8,9 @@
 * **The guard** of :mod:`~thetahat.estimation.guard`: the output keeps
   |θ̂ − θ| ≤ |θ̂_G − θ| + δ(t) and θ̂ ∈ Θ, with δ(t) built on evidence.
 
-The noise level is estimated from the first :data:`SIGMA_SAMPLES` samples (the EKF starts its
-updates there) and refreshed by every fit from its window, unless given. :meth:`run` applies
+Unless given, the noise level is estimated from the first
+:data:`~thetahat.estimation.noise_level.MIN_SAMPLES` samples (the EKF starts its updates
+there), refined at :data:`SIGMA_SAMPLES` samples and refreshed by every fit from its window. :meth:`run` applies
 each fit at the sample after its window (deterministic); in streaming use (:meth:`step`) fits
 run on a worker thread (the numba kernels release the GIL) and are applied at the first
 ``step`` after they finish — a ``step`` never waits for a fit.
@@ -32,12 +33,13 @@ from .ekf import EKFKernels, JointEKF, as_record, ekf_kernels, resolve_noise_std
 from .guard import (GUARD_C, GUARD_KAPPA, GUARD_RHO_MAX, make_guarded_loop, progress_init)
 from .mle import FitResult, FitSchedule
 from .model_kernel import H_RHO, jit
+from .noise_level import MIN_SAMPLES
 
 __all__ = ["GuardedEstimator", "GuardedResult", "SIGMA_SAMPLES", "DWELL_SECONDS"]
 
 FloatArray = NDArray[np.float64]
 
-#: Samples from which σ̂ is estimated before the EKF's first update (when σ is not given).
+#: Samples after which σ̂ is re-estimated once before the first fit (when σ is not given).
 SIGMA_SAMPLES = 32
 #: Time stage 2 may stay clipped by a settled stage 1 before it is reset from stage 1 (s).
 DWELL_SECONDS = 0.5
@@ -232,8 +234,9 @@ class GuardedEstimator:
         thG, xG = _stage1_estimates(self.stage1, res1)
         thG, xG = np.ascontiguousarray(thG), np.ascontiguousarray(xG)
         N = t_.shape[0]
-        k_first = SIGMA_SAMPLES if self.noise_std is None else 0
-        sigma = resolve_noise_std(self.noise_std, Y[:max(k_first, SIGMA_SAMPLES)])
+        estimate_sigma = self.noise_std is None
+        k_first = MIN_SAMPLES if estimate_sigma else 0
+        sigma = resolve_noise_std(self.noise_std, Y[:max(k_first, MIN_SAMPLES)])
         R = np.diag(sigma ** 2)
         s, P0 = self._ekf().prior(st0["x_hat0"], st0["theta_hat0"])
         P = P0.copy()
@@ -255,15 +258,22 @@ class GuardedEstimator:
         j = 0
         while k < N:
             k_next = N
+            if estimate_sigma:                  # σ̂ from MIN_SAMPLES, refined at 32
+                if k in (MIN_SAMPLES, SIGMA_SAMPLES):
+                    sigma = resolve_noise_std(None, Y[:k])
+                    R = np.diag(sigma ** 2)
+                if k < SIGMA_SAMPLES:
+                    k_next = MIN_SAMPLES if k < MIN_SAMPLES else SIGMA_SAMPLES
             if sched is not None:
                 while sched.times(j) <= t_[k] - t_[0]:
                     j += 1
                 k_fit = int(np.searchsorted(t_ - t_[0], sched.times(j) + 1e-12, side="right"))
-                k_next = min(k_fit, N)
+                k_next = min(k_fit, N, k_next)
             loop(s, P, P0, U, Y, t_, k, k_next, 0, R, lo, hi, self.h_rho, self.q_x, thG, xG,
                  pst, gst, cfg, out["TH"], out["TH2"], out["X2"], out["SD2"], out["BAND"],
                  CLIP, RESET, NIS)
-            if sched is not None and k_next < N:
+            due = sched is not None and k_next == k_fit
+            if due and MIN_SAMPLES <= k_next < N:
                 fit = sched.fit(t_, U, Y, k_next, fits[-1] if fits else None, prior0)
                 fits.append(fit)
                 fit_at.append(k_next - 1)
@@ -274,6 +284,7 @@ class GuardedEstimator:
                     P[n:, n:] = fit.cov[n:, n:]
                     sigma = fit.noise_std
                     R = np.diag(sigma ** 2)
+            if due:
                 j += 1
             k = k_next
         if not np.all(np.isfinite(out["TH"])):
@@ -345,6 +356,7 @@ class GuardedEstimator:
         step1 = self.stage1.step
         s1 = (step1(state["stage1"], u_, y_, h) if not hasattr(self.stage1, "dt")
               else step1(state["stage1"], u_, y_))
+        sh.refresh_sigma(k)
         sh.u_prev, sh.dt_prev, sh.k = u_, h, k + 1
         sh.maybe_submit(self)
         return {"stage1": s1, "shared": sh, "x_hat0": state["x_hat0"],
@@ -385,7 +397,7 @@ class _Stream:
         given = est.noise_std is not None
         self.R = (np.diag(resolve_noise_std(est.noise_std, np.zeros((1, sys_.r))) ** 2)
                   if given else np.eye(sys_.r))
-        self.gst = np.array([0.0, 1.0, 0.0 if given else float(SIGMA_SAMPLES)])
+        self.gst = np.array([0.0, 1.0, 0.0 if given else float(MIN_SAMPLES)])
         self.cfg = np.array([])
         self.pst = np.zeros((sys_.p, 6))
         self.u_prev = np.zeros(sys_.m)
@@ -412,7 +424,11 @@ class _Stream:
         self.t.append(t)
         self.u.append(u.copy())
         self.y.append(y.copy())
-        if k + 1 == SIGMA_SAMPLES and self.gst[2] > 0:
+
+    def refresh_sigma(self, k: int) -> None:
+        """σ̂ from the samples so far, after sample k = MIN_SAMPLES − 1 and SIGMA_SAMPLES − 1
+        (as :meth:`GuardedEstimator.run` does), when σ is estimated."""
+        if k + 1 in (MIN_SAMPLES, SIGMA_SAMPLES) and self.gst[2] > 0:
             self.R = np.diag(resolve_noise_std(None, np.array(self.y)) ** 2)
 
     def configure(self, est: GuardedEstimator, dt: float) -> None:
@@ -448,7 +464,7 @@ class _Stream:
         sched = self.sched
         if sched is None or self.future is not None:
             return
-        if self.t[-1] < sched.times(self.j) - 1e-12 or self.k < 3:
+        if self.t[-1] < sched.times(self.j) - 1e-12 or self.k < MIN_SAMPLES:
             return
         while sched.times(self.j) <= self.t[-1] + 1e-12:
             self.j += 1

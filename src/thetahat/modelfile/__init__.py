@@ -7,9 +7,9 @@ format is documented there), :mod:`.assembly` builds and runs the estimator it d
 
 from .assembly import build_observer, design_gains, design_matrices, run_estimator
 from .report import ModelAnalysis, analyze_model
-from .schema import (EXAMPLE_MODEL, LAWS, EstimatorOptions, ModelSpec, SecondObserverOptions,
+from .schema import (ESTIMATION_METHODS, EXAMPLE_MODEL, LAWS, EstimatorOptions, ModelSpec, SecondObserverOptions,
                      load_model, loads_model)
 
-__all__ = ["EXAMPLE_MODEL", "LAWS", "EstimatorOptions", "ModelAnalysis", "ModelSpec",
+__all__ = ["ESTIMATION_METHODS", "EXAMPLE_MODEL", "LAWS", "EstimatorOptions", "ModelAnalysis", "ModelSpec",
            "SecondObserverOptions", "analyze_model", "build_observer", "design_gains",
            "design_matrices", "load_model", "loads_model", "run_estimator"]

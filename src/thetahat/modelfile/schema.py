@@ -26,7 +26,10 @@ A model file (TOML, read with :mod:`tomllib`, or JSON with the same structure) h
     intermittent laws: θ*(v, x, φ) as a string or list of p strings, in the names of u, y, x
     and ``phi`` (k = 1) or ``phi1``, …, ``phik``; default: solved from g with SymPy),
     ``excitation`` (intermittent law, required: ``[low, high]`` thresholds on ‖φ̂‖),
-    ``on_invalid`` (``"raise"`` or ``"freeze"``, default ``"raise"``), and ``A_design``,
+    ``on_invalid`` (``"raise"`` or ``"freeze"``, default ``"raise"``), ``method``
+    (``"paper"``, default: the observer and law above; ``"guarded"``: that observer as stage 1
+    of :class:`~thetahat.estimation.guarded.GuardedEstimator`; ``"mle"``:
+    :class:`~thetahat.estimation.mle.MapEstimator`, offline), and ``A_design``,
     ``E_design``: the matrices of a simplified design system on which the gains are designed
     (Sec. VII–VIII; default: the true A and E).
 ``[estimator.second]`` (optional)
@@ -70,8 +73,8 @@ from ..model.parse import parse_perturbation
 from ..model.perturbation import SymbolicPerturbation
 from ..model.system import PerturbedLinearSystem
 
-__all__ = ["EXAMPLE_MODEL", "EstimatorOptions", "LAWS", "ModelSpec", "SecondObserverOptions",
-           "load_model", "loads_model"]
+__all__ = ["ESTIMATION_METHODS", "EXAMPLE_MODEL", "EstimatorOptions", "LAWS", "ModelSpec",
+           "SecondObserverOptions", "load_model", "loads_model"]
 
 FloatArray = NDArray[np.float64]
 
@@ -80,8 +83,11 @@ _TOP_KEYS = ("name", "system", "perturbation", "parameter_set", "estimator")
 _SYSTEM_KEYS = ("A", "B", "C", "E")
 _PERTURBATION_KEYS = ("g", "u", "y", "x", "theta", "constants")
 _BOX_KEYS = ("lower", "upper")
-_ESTIMATOR_KEYS = ("law", "eps", "chain_poles", "b_poles", "Gamma", "theta_hat0", "x_hat0",
+_ESTIMATOR_KEYS = ("method", "law", "eps", "chain_poles", "b_poles", "Gamma", "theta_hat0", "x_hat0",
                    "theta_star", "excitation", "on_invalid", "A_design", "E_design", "second")
+#: The values of ``[estimator] method``: the paper's estimator, the two-stage guarded one, the
+#: offline MAP fits.
+ESTIMATION_METHODS = ("paper", "guarded", "mle")
 _SECOND_KEYS = ("eps2", "chain_poles", "b_poles", "g_on_estimates")
 
 
@@ -244,6 +250,8 @@ class EstimatorOptions:
     Attributes
     ----------
     law : {"gradient", "algebraic", "intermittent"}
+    method : {"paper", "guarded", "mle"}
+        How :func:`~thetahat.modelfile.run_estimator` estimates (default "paper").
     update_law : UpdateLaw
         The law, built and validated.
     eps : float
@@ -269,9 +277,10 @@ class EstimatorOptions:
     A_design: FloatArray | None
     E_design: FloatArray | None
     second: SecondObserverOptions | None
+    method: str = "paper"
 
     def __repr__(self) -> str:
-        return (f"EstimatorOptions(law={self.law!r}, eps={self.eps:g}, "
+        return (f"EstimatorOptions(law={self.law!r}, method={self.method!r}, eps={self.eps:g}, "
                 f"theta_hat0={self.theta_hat0.tolist()}, "
                 f"design_system={self.A_design is not None or self.E_design is not None}, "
                 f"second={self.second is not None})")
@@ -423,6 +432,10 @@ def _read_estimator(sec: _Section, system: PerturbedLinearSystem, pert: Symbolic
     sec.check_keys(_ESTIMATOR_KEYS)
     n, k, p = system.n, system.k, system.p
     law, update_law = _read_law(sec, pert, system.parameter_set, parsed)
+    method = sec.table.get("method", "paper")
+    if method not in ESTIMATION_METHODS:
+        raise sec.fail("method", f"unknown method {_show(method)}; expected one of "
+                                 f"{list(ESTIMATION_METHODS)}.")
     eps = sec.number("eps", 1.0, positive=True)
     theta_hat0 = (sec.vector("theta_hat0", p, f"θ̂(0), p = {p}") if sec.has("theta_hat0")
                   else None)
@@ -452,7 +465,7 @@ def _read_estimator(sec: _Section, system: PerturbedLinearSystem, pert: Symbolic
                             chain_poles=sec.poles("chain_poles", nested=True),
                             b_poles=sec.poles("b_poles", nested=False),
                             theta_hat0=theta_hat0, x_hat0=x_hat0, A_design=A_d, E_design=E_d,
-                            second=second)
+                            second=second, method=method)
 
 
 #: A minimal model file (the Proposition 3 example of ``examples/prop3.toml`` without its
