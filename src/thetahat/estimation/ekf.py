@@ -378,13 +378,15 @@ class JointEKF:
 
 def as_record(t: Any, u: Any, y: Any, m: int, r: int) -> tuple[FloatArray, FloatArray, FloatArray]:
     """(t (N,), U (N, m), Y (N, r)) validated: t finite and increasing, u finite, y not inf."""
-    t_ = np.asarray(t, dtype=np.float64).reshape(-1)
+    # writable C-contiguous copies: the compiled kernels then see one array type whatever the
+    # caller passes (numba compiles read-only arrays separately)
+    t_ = np.array(t, dtype=np.float64).reshape(-1)
     N = t_.shape[0]
     if N < 2 or not np.all(np.isfinite(t_)) or np.any(np.diff(t_) <= 0):
         raise DimensionError("t must hold at least 2 finite, strictly increasing sampling "
                              "instants.")
-    U = np.zeros((N, 0)) if u is None else np.asarray(u, dtype=np.float64).reshape(N, -1)
-    Y = np.asarray(y, dtype=np.float64).reshape(N, -1)
+    U = np.zeros((N, 0)) if u is None else np.array(u, dtype=np.float64).reshape(N, -1)
+    Y = np.array(y, dtype=np.float64).reshape(N, -1)
     if U.shape != (N, m) or Y.shape != (N, r):
         raise DimensionError(f"u and y must have shapes ({N}, {m}) and ({N}, {r}) to match t; "
                              f"got {U.shape} and {Y.shape}.")

@@ -189,9 +189,12 @@ class GuardedEstimator:
 
     def _loop(self) -> Any:
         k = self.kernels
-        compiled = k.model.compiled
-        return _LOOPS.setdefault(k, make_guarded_loop(k.predict, k.update,
-                                                      lambda fn: jit(fn, compiled)))
+        loop = _LOOPS.get(k)
+        if loop is None:
+            compiled = k.model.compiled
+            loop = _LOOPS[k] = make_guarded_loop(k.predict, k.update,
+                                                 lambda fn: jit(fn, compiled))
+        return loop
 
     def _ekf(self) -> JointEKF:
         return JointEKF(system=self.model, noise_std=self.noise_std, x_sd=self.x_sd,
@@ -232,7 +235,7 @@ class GuardedEstimator:
         st0 = self.init() if state0 is None else state0
         res1 = self.stage1.run(t_, U, Y, state0=st0["stage1"])
         thG, xG = _stage1_estimates(self.stage1, res1)
-        thG, xG = np.ascontiguousarray(thG), np.ascontiguousarray(xG)
+        thG, xG = np.array(thG, order="C"), np.array(xG, order="C")     # writable copies
         N = t_.shape[0]
         estimate_sigma = self.noise_std is None
         k_first = MIN_SAMPLES if estimate_sigma else 0
