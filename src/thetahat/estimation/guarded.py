@@ -134,13 +134,18 @@ class GuardedEstimator:
         Stage 2's model (symbolic g, Box Θ).
     noise_std : optional
         σ of the output noise; default estimated from the data.
-    schedule : FitSchedule or None, optional
-        The re-anchoring fits (default :class:`FitSchedule` at 0.1·2ʲ s); ``None`` disables
-        them (stage 2 = the EKF alone).
+    schedule : FitSchedule, optional
+        The re-anchoring fits (default :class:`FitSchedule` at 0.1·2ʲ s).
+    use_fits : bool
+        False: no re-anchoring (stage 2 = the EKF alone).
     x_sd : float
         Prior standard deviation of x(0) for stage 2.
     kappa, c, rho_max, dwell : float
         The guard's constants (see :mod:`~thetahat.estimation.guard`); ``dwell`` in seconds.
+    q_x : float
+        Stage 2's process-noise variance per sample on x (default 0: the model is exact).
+    h_rho : float
+        RK4 sub-step bound (see :mod:`~thetahat.estimation.model_kernel`).
     compiled : bool, optional
         numba kernels (default: when installed).
 

@@ -280,7 +280,8 @@ class EstimatorOptions:
     method: str = "paper"
 
     def __repr__(self) -> str:
-        return (f"EstimatorOptions(law={self.law!r}, method={self.method!r}, eps={self.eps:g}, "
+        method = "" if self.method == "paper" else f"method={self.method!r}, "
+        return (f"EstimatorOptions(law={self.law!r}, {method}eps={self.eps:g}, "
                 f"theta_hat0={self.theta_hat0.tolist()}, "
                 f"design_system={self.A_design is not None or self.E_design is not None}, "
                 f"second={self.second is not None})")
