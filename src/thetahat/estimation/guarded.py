@@ -135,7 +135,7 @@ class GuardedEstimator:
     noise_std : optional
         σ of the output noise; default estimated from the data.
     schedule : FitSchedule, optional
-        The re-anchoring fits (default :class:`FitSchedule` at 0.1·2ʲ s).
+        The re-anchoring fits (default :class:`FitSchedule` at 0.08·2ʲ s).
     use_fits : bool
         False: no re-anchoring (stage 2 = the EKF alone).
     x_sd : float
@@ -285,11 +285,10 @@ class GuardedEstimator:
                 fit = sched.fit(t_, U, Y, k_next, fits[-1] if fits else None, prior0)
                 fits.append(fit)
                 fit_at.append(k_next - 1)
-                if np.all(np.isfinite(fit.theta)) and np.all(np.isfinite(fit.cov)):
-                    s[n:] = fit.theta
-                    P[n:, :] = 0.0
-                    P[:, n:] = 0.0
-                    P[n:, n:] = fit.cov[n:, n:]
+                if fit.consistent:
+                    # the fit ends at this very sample: take (x, θ) and their joint covariance
+                    s[:n], s[n:] = fit.x_end, fit.theta
+                    P[:, :] = fit.cov_end
                     sigma = fit.noise_std
                     R = np.diag(sigma ** 2)
             if due:
@@ -452,7 +451,7 @@ class _Stream:
         fit = f.result()
         n = self._n
         self.fits.append(fit)
-        if np.all(np.isfinite(fit.theta)) and np.all(np.isfinite(fit.cov)):
+        if fit.consistent:                      # θ only: x has moved on since the fit
             self.s[n:] = fit.theta
             self.P[n:, :] = 0.0
             self.P[:, n:] = 0.0

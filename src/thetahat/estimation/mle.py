@@ -11,7 +11,7 @@ eigendecomposition (directions the data and the prior do not determine are left 
 step is halved until J decreases; θ is clipped to Θ; the iteration stops when |Δθ| falls
 below :data:`STEP_TOL` standard errors or after ``max_iter`` iterations.
 
-:class:`FitSchedule` runs fits at scheduled times (t = 0.1·2ʲ s by default). While the fit
+:class:`FitSchedule` runs fits at scheduled times (t = 0.08·2ʲ s by default). While the fit
 time is at most ``full_window`` it refits all data from t = 0 (warm-started; prior q̄ =
 (x̂(0), θ̂(0)), Π from Θ and a wide x(0)); later fits use the block since the previous fit
 with the previous fit's θ and its marginal covariance as the prior on θ — the arrival cost,
@@ -68,6 +68,8 @@ class FitResult:
         J at the optimum ÷ the number of scalar measurements (≈ 1 for a correct model).
     iterations : int
     noise_std : ndarray (r,)
+    n_meas : int
+        Scalar measurements in the window.
     """
 
     k0: int
@@ -80,6 +82,14 @@ class FitResult:
     cost: float
     iterations: int
     noise_std: FloatArray
+    n_meas: int = 1
+
+    @property
+    def consistent(self) -> bool:
+        """The cost per measurement is within 6 standard deviations of its χ² mean (1):
+        otherwise the fit is stuck or the model is wrong, and stage 2 does not take it."""
+        return bool(np.isfinite(self.cost) and self.cost <= 1.0 + 6.0 * math.sqrt(2.0 / max(
+            self.n_meas, 1)) and np.all(np.isfinite(self.cov_end)))
 
     @property
     def theta_se(self) -> FloatArray:
@@ -277,10 +287,11 @@ def fit_map(system: PerturbedLinearSystem, t: FloatArray, U: FloatArray, Y: Floa
     n_meas = max(int(np.isfinite(Y[k0:k1]).sum()), 1)
     return FitResult(k0=k0, k1=k1, x_start=q[:n].copy(), x_end=x_end, theta=q[n:].copy(),
                      cov=Minv, cov_end=0.5 * (cov_end + cov_end.T),
-                     cost=float(J) / n_meas, iterations=iterations, noise_std=noise_std)
+                     cost=float(J) / n_meas, iterations=iterations, noise_std=noise_std,
+                     n_meas=n_meas)
 
 
-def doubling_schedule(first: float = 0.1, cap: float = 12.8) -> Callable[[int], float]:
+def doubling_schedule(first: float = 0.08, cap: float = 12.8) -> Callable[[int], float]:
     """Fit times first·2ʲ until ``cap``, then every ``cap`` seconds: j ↦ t_j."""
     def at(j: int) -> float:
         t = first * 2.0 ** j
@@ -299,7 +310,7 @@ class FitSchedule:
     ----------
     system : PerturbedLinearSystem
     times : callable j ↦ t_j
-        The fit times (increasing); default :func:`doubling_schedule` (0.1·2ʲ s).
+        The fit times (increasing); default :func:`doubling_schedule` (0.08·2ʲ s).
     full_window : float
         Fits at t ≤ ``full_window`` refit all data; later ones use blocks with arrival cost.
     x_sd : float
