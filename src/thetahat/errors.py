@@ -22,6 +22,7 @@ __all__ = [
     "UpdateLawError",
     "ModelFileError",
     "SimulationError",
+    "MissingExtraError",
     "ThetahatWarning",
     "ConvergenceWarning",
     "IllConditionedWarning",
@@ -95,6 +96,11 @@ class ModelFileError(ThetahatError, ValueError):
 
 class SimulationError(ThetahatError, RuntimeError):
     """A numerical integration failed (the solver's message is included) or produced NaN/inf."""
+
+
+class MissingExtraError(ThetahatError, ImportError):
+    """A call needs an optional extra (numba, matplotlib, python-control, …) that is not
+    installed; the message names the ``pip install 'thetahat[extra]'`` that provides it."""
 
 
 class ThetahatWarning(UserWarning):
