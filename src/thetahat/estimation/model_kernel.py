@@ -33,7 +33,7 @@ import sympy as sp
 from numpy.typing import NDArray
 from sympy.printing.pycode import PythonCodePrinter
 
-from ..errors import DimensionError
+from ..errors import DimensionError, MissingExtraError
 from ..model.perturbation import SymbolicPerturbation
 from ..model.system import PerturbedLinearSystem
 
@@ -312,7 +312,7 @@ def model_kernel(system: PerturbedLinearSystem, *, compiled: bool | None = None)
     ------
     DimensionError
         The perturbation is not symbolic, or the system has no perturbation.
-    ImportError
+    MissingExtraError
         ``compiled=True`` without numba.
 
     Examples
@@ -329,7 +329,8 @@ def model_kernel(system: PerturbedLinearSystem, *, compiled: bool | None = None)
         raise DimensionError("the system has no perturbation g; stage 2 needs the full model.")
     use = have_numba() if compiled is None else bool(compiled)
     if use and not have_numba():
-        raise ImportError("compiled=True needs numba: pip install 'thetahat[speed]'.")
+        raise MissingExtraError("compiled=True needs numba: pip install 'thetahat[speed]' "
+                                "(or pass compiled=False for the numpy fallback).")
     known = _SOURCES.get(id(system))
     if known is not None and known[0] is system:
         source = known[1]
