@@ -189,7 +189,7 @@ def cost(log) -> dict:
     fit_t0 = time.perf_counter()
     sched = est.fit_schedule
     prior0 = sched.initial_prior(np.zeros(2), np.array([0.5]))
-    sched.fit(traj.t, np.asarray(traj.u), np.asarray(traj.y), 1601, None, prior0)
+    sched.fit(np.array(traj.t), np.array(traj.u), np.array(traj.y), 1601, None, prior0)
     fit_s = time.perf_counter() - fit_t0
     out = {"ekf_compiled_us": 1e6 * best_e / N, "guarded_us": 1e6 * best_g / N,
            "ratio": best_g / best_e, "stream_step_us": stream_us,
@@ -216,6 +216,7 @@ def figure(curves: dict, path: Path, log) -> None:
     ax.loglog(t[1:], curves["sqrt_crlb"][1:], "k--", label="√CRLB(t)")
     for n in ESTIMATORS:
         ax.loglog(t[1:], np.maximum(curves[n][1:], 1e-7), label=f"|θ̂ − θ| {n} (median)")
+    ax.set_ylim(1e-6, 1.0)
     ax.set_xlabel("t [s]")
     ax.set_ylabel("N m")
     ax.set_title("LuGre, nominal: estimation error against the Cramér–Rao bound")
