@@ -80,8 +80,7 @@ def _run(name: str, sc: Scenario, traj, est_cache: dict) -> tuple[np.ndarray, np
     if key not in est_cache:
         if name == "paper":
             from thetahat.estimation.compiled import compile_observer
-            est_cache[key] = compile_observer(lugre.observer(), dt=dt,
-                                              theta_star=lugre.theta_star_expr())
+            est_cache[key] = compile_observer(lugre.observer(), dt=dt)
         else:
             est_cache[key] = lugre.estimator(name, dt=dt)
     est = est_cache[key]

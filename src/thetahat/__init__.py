@@ -15,8 +15,10 @@ from .estimation.ekf import JointEKF
 from .estimation.guarded import GuardedEstimator, GuardedResult
 from .estimation.mle import MapEstimator
 from .estimation.observer import ModifiedHighGainObserver, ObserverEstimate, ObserverResult
+from .estimation.plan import StepPlan
 from .estimation.projection import Projection, Saturation, saturate
 from .estimation.redesign import SecondObserver
+from .estimation.theta_star import ThetaStar
 from .estimation.update_laws import (AlgebraicInversion, ConstantLaw, GradientInversion,
                                      IntermittentInversion, UpdateLaw, smooth_ramp)
 from .errors import (ConvergenceWarning, DesignError, DimensionError, IllConditionedWarning,
@@ -63,4 +65,5 @@ __all__ = [
     "apply_design", "check_assumption_1", "extended_system", "high_gain", "invariant_zeros",
     "is_left_invertible", "is_minimum_phase", "modified_high_gain", "normal_rank", "scb", "scb_symbolic",
     "unstable_zeros", "__version__",
+    "StepPlan", "ThetaStar",
 ]

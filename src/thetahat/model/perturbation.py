@@ -30,7 +30,7 @@ from ..errors import DimensionError, NonFiniteError
 
 __all__ = ["lambdify_numpy", "Perturbation", "SymbolicPerturbation", "CallablePerturbation", "JacobianCheck",
            "JacobianComparison", "check_jacobians", "FD_REL_STEP",
-           "CHECK_RTOL", "CHECK_ATOL"]
+           "CHECK_RTOL", "CHECK_ATOL", "numpy_ready"]
 
 FloatArray = NDArray[np.float64]
 
@@ -218,8 +218,24 @@ def _a_e_derivative(M: sp.ImmutableMatrix) -> sp.ImmutableMatrix:
     return sp.ImmutableMatrix(M.replace(sp.DiracDelta, lambda *args: sp.S.Zero))
 
 
-def _numpy_ready(entry: sp.Expr) -> sp.Expr:
-    """Rewrite Heaviside(z) as (1 + sign(z))/2 so that NaN propagates in the numpy code."""
+def numpy_ready(entry: sp.Expr) -> sp.Expr:
+    """Rewrite Heaviside(z) as (1 + sign(z))/2 so that NaN propagates in the printed code.
+
+    Parameters
+    ----------
+    entry : sympy.Expr
+
+    Returns
+    -------
+    sympy.Expr
+
+    Examples
+    --------
+    >>> import sympy as sp
+    >>> z = sp.Symbol("z")
+    >>> numpy_ready(sp.Heaviside(z))
+    sign(z)/2 + 1/2
+    """
     def _heaviside(z: sp.Expr, h0: sp.Expr = sp.S.Half) -> sp.Expr:
         if h0 == sp.S.Half:
             return (1 + sp.sign(z)) / 2
@@ -275,7 +291,7 @@ def lambdify_numpy(args: Sequence[sp.Symbol], exprs: Sequence[sp.Expr]) -> Calla
     >>> f(np.array([-1.0, 2.0, np.nan]), 3.0)[0]
     array([ 0.,  6., nan])
     """
-    entries = [_numpy_ready(sp.sympify(e)) for e in exprs]
+    entries = [numpy_ready(sp.sympify(e)) for e in exprs]
     if not entries:
         return lambda *cols: []
     return sp.lambdify(list(args), entries, modules="numpy", printer=_ElementwisePrinter,
