@@ -4,11 +4,15 @@ Run:  .venv/bin/python benchmarks/run_all.py [--quick] [--out out/bench.json]
 
 * bench_lugre.py runs in this process (its estimators are timed side by side in one process);
   its results are the top level of out/bench.json: one entry per estimator (``thetahat_paper``,
-  ``thetahat_best``, ``ekf``, ``ukf``; null while unavailable) with the keys ``t_5pct``,
+  ``thetahat_best``, ``thetahat_guarded``, ``thetahat_mle``, ``ekf``, ``ukf``; null while
+  unavailable) with the keys ``t_5pct``,
   ``t_1pct``, ``theta_rmse``, ``theta_bias``, ``omega_rmse``, ``eta_rmse``, ``rmse_over_crlb``,
   ``per_step_us``, ``diverged``, plus ``crlb`` and ``throughput``
   (``thetahat_steps_per_s``, ``solve_ivp_steps_per_s``). Non-finite values (a settling time
   that never happened) are written as null.
+* bench_guarded.py (full run only; 8 seeds per scenario) runs in this process: the scenario
+  table of the two-stage estimators against the EKF and the CRLB goes under
+  ``guarded_scenarios``, with the cost comparison, and the figure to out/guarded_crlb.png.
 * bench_scb.py runs as a subprocess (n = 10, 50 with ``--quick``; its defaults otherwise); its
   rows go under ``scb``.
 
@@ -59,6 +63,11 @@ def main() -> None:
     scb = run_scb(args.quick)
     payload = dict(lugre["payload"])
     payload["scb"] = scb
+    if not args.quick:
+        import bench_guarded
+        print("\n=== bench_guarded.py")
+        payload["guarded_scenarios"] = bench_guarded.main(
+            ["--figure", str(args.out.with_name("guarded_crlb.png"))])
     details = dict(lugre["details"])
     wall = time.perf_counter() - t0
     details["run_all_wall_s"] = wall

@@ -137,3 +137,22 @@ def test_demo_calls_the_lugre_report(monkeypatch, capsys):
                         lambda **kw: calls.append(kw) or {})
     assert main(["demo", "lugre", "--out", "somewhere", "--eps", "0.5", "--seed", "3"]) == 0
     assert calls == [{"out": "somewhere", "eps": 0.5, "seed": 3, "show": False}]
+
+
+def test_estimate_method_guarded_writes_the_guarded_theta(tmp_path, lugre_csv, capsys,
+                                                          monkeypatch):
+    # numpy kernels (no numba compilation in the default suite); same numbers as compiled
+    import thetahat.estimation.model_kernel as mk
+    monkeypatch.setattr(mk, "have_numba", lambda: False)
+    csv_path, data = lugre_csv
+    out = tmp_path / "est.csv"
+    assert main(["estimate", str(LUGRE), str(csv_path), "-o", str(out),
+                 "--method", "guarded"]) == 0
+    spec = load_model(LUGRE)
+    header = out.read_text().splitlines()[0].split(",")
+    assert tuple(header) == estimate_columns(spec, refined=False)
+    theta = np.loadtxt(out, delimiter=",", skiprows=1)[:, header.index("theta_hat_theta")]
+    assert np.all((theta >= 0.05) & (theta <= 1.0))
+    assert abs(theta[-1] - 0.28) < 0.01 * 0.28          # the paper's stage 1 alone: ~0.45
+    assert main(["estimate", str(LUGRE), str(csv_path), "--method", "ukf"]) == 2
+    assert "invalid choice: 'ukf'" in capsys.readouterr().err

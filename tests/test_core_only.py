@@ -54,6 +54,14 @@ SCRIPT = textwrap.dedent("""
     out = run_estimator(spec, t, np.sin(t)[:, None], np.zeros((t.size, 1)))
     assert out.theta_hat.shape == (100, 1)
 
+    # the two-stage estimator and the bound fall back to numpy kernels without numba
+    short = lugre.simulate(seed=0, t_end=0.2)
+    est = lugre.estimator("guarded")
+    g = est.run(short.t, short.u, short.y, state0=est.init(theta_hat0=[1.0]))
+    assert np.all((g.theta_hat >= 0.05) & (g.theta_hat <= 1)) and abs(g.theta_hat[-1, 0] - 0.28) < 0.01
+    b = th.crlb(lugre.system(), short.t, short.u, theta=[0.28], noise_std=0.02)
+    assert np.isfinite(b.std[-1, 0])
+
     try:
         th.compile_observer(obs, dt=1e-3)
     except th.ThetahatError as exc:

@@ -258,3 +258,31 @@ def test_algebraic_law_inverts_g(theta_star):
     theta = np.array([[1.3], [-0.4]])
     phi = spec.system.perturbation.g(v, x, theta)
     np.testing.assert_allclose(law.theta_star(v, x, phi), theta, rtol=INVERSE_RTOL)
+
+
+@pytest.mark.parametrize("method", ["guarded", "mle"])
+def test_prop3_file_with_the_two_stage_methods(method):
+    # A model with p = 1, a gradient stage 1 and a different Θ: the two-stage methods are
+    # built from the file alone (stage 2's model, priors from Θ, σ estimated from the data).
+    spec = loads_model(EXAMPLE_MODEL.replace('law = "gradient"',
+                                             f'method = "{method}"\nlaw = "gradient"'))
+    assert spec.estimator.method == method
+
+    def phi(t, x, u, th):
+        x, th = np.asarray(x), np.asarray(th)[..., 0]
+        return ((2 + np.sin(x[..., 0])) * (th + th ** 3 / 3))[..., None]
+
+    from thetahat import WhiteNoise
+    data = simulate_plant(spec.system, phi=phi, u=lambda t: [np.sin(0.8 * t)], t_end=3.0,
+                          fs=100.0, x0=[0.0, 0.0], theta=[1.2], noise=WhiteNoise(0.01), seed=1)
+    res = run_estimator(spec, data.t, data.u, data.y, compiled=False)
+    assert np.all((res.theta_hat >= -2.0) & (res.theta_hat <= 2.0))
+    # 1 % of θ: the data identify θ to ~1e-3 (the fits' standard error) within 3 s
+    assert abs(res.theta_hat[-1, 0] - 1.2) < 0.01 * 1.2
+    with pytest.raises(ModelFileError, match="method must be one of"):
+        run_estimator(spec, data.t, data.u, data.y, method="newton")
+
+
+def test_unknown_method_in_a_model_file():
+    with pytest.raises(ModelFileError, match=r"\[estimator\] method: unknown method"):
+        loads_model(EXAMPLE_MODEL.replace('law = "gradient"', 'method = "ukf"\nlaw = "gradient"'))

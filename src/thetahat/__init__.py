@@ -10,6 +10,10 @@ from .estimation.batch_run import BatchObserverResult, run_batch
 from .estimation.checks import (ExcitationReport, MonotonicityReport, check_monotonicity,
                                 excitation_report)
 from .estimation.compiled import CompiledObserver, compile_observer
+from .estimation.crlb import CRLBResult, crlb
+from .estimation.ekf import JointEKF
+from .estimation.guarded import GuardedEstimator, GuardedResult
+from .estimation.mle import MapEstimator
 from .estimation.observer import ModifiedHighGainObserver, ObserverEstimate, ObserverResult
 from .estimation.plan import StepPlan
 from .estimation.projection import Projection, Saturation, saturate
@@ -47,6 +51,7 @@ from .structure.zeros import (invariant_zeros, is_left_invertible, is_minimum_ph
 __version__ = "0.1.0"
 
 __all__ = [
+    "CRLBResult", "crlb", "JointEKF", "GuardedEstimator", "GuardedResult", "MapEstimator",
     "BatchObserverResult", "FleetResult", "estimate_many", "TuneResult", "tune_eps_gamma", "CompiledObserver", "compile_observer", "run_batch",
     "EstimatorSpec", "SecondObserverSpec",
     "AlgebraicInversion", "Ball", "Box", "ConstantLaw", "ConvexSet", "Ellipsoid",

@@ -8,7 +8,7 @@ Subcommands::
                   [--t-end T] [--out out]
     thetahat analyze MODEL
     thetahat estimate MODEL DATA.csv [-o estimates.csv] [--hold zoh|foh] [--nan-policy raise|skip]
-                      [--no-progress] [--plot fig.png]
+                      [--no-progress] [--method M] [--plot fig.png]
     thetahat estimate MODEL logs/ [-o results.csv|.parquet] [--scheduler tcp://HOST:PORT]
 
 Exit codes (see ``EXIT_CODES``): 0 success; 1 the model fails the theory's checks (Assumption 1
@@ -159,7 +159,8 @@ def _estimate(args: argparse.Namespace) -> int:
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         result = run_estimator(spec, data.t, data.u, data.y, hold=args.hold,
-                               nan_policy=args.nan_policy, progress=progress)
+                               nan_policy=args.nan_policy, progress=progress,
+                               method=args.method)
     write_estimates(args.output, result, spec)
     print(f"wrote {args.output} ({data.t.size} rows)")
     notes = [f"{w.category.__name__}: {w.message}" for w in caught]
@@ -296,6 +297,10 @@ def _parser() -> argparse.ArgumentParser:
                           help="fleet: run on this Dask cluster (default: in this process)")
     estimate.add_argument("--chunk-size", type=int, default=None,
                           help="fleet: records per task (default: about 16 tasks)")
+    estimate.add_argument("--method", choices=["paper", "guarded", "mle"], default=None,
+                          help="estimator: the paper's observer, the guarded two-stage "
+                               "estimator or offline MAP fits (default: the model file's "
+                               "[estimator] method, else paper)")
     estimate.set_defaults(run=_estimate)
     return parser
 

@@ -20,7 +20,7 @@ from ..estimation.checks import check_theta_star
 from ..estimation.observer import ModifiedHighGainObserver, ObserverResult
 from ..model.system import PerturbedLinearSystem
 from ..spec import SECOND_DESIGN_NOTE, EstimatorSpec, Hold, SecondObserverSpec
-from .schema import ModelSpec
+from .schema import ESTIMATION_METHODS, ModelSpec
 
 __all__ = ["build_observer", "design_gains", "design_matrices", "estimator_spec",
            "run_estimator"]
@@ -206,8 +206,14 @@ def _build(est: EstimatorSpec, spec: ModelSpec, eps: float | None) -> ModifiedHi
 
 def run_estimator(spec: ModelSpec, t: ArrayLike, u: ArrayLike | None, y: ArrayLike, *,
                   hold: Hold = "zoh", nan_policy: str = "raise",
-                  progress: Callable[[int, int], None] | None = None) -> ObserverResult:
+                  progress: Callable[[int, int], None] | None = None,
+                  method: str | None = None, compiled: bool | None = None) -> ObserverResult:
     """Run the file's estimator on sampled data, from the file's initial values.
+
+    ``method`` (default: the file's ``[estimator] method``, else ``"paper"``) chooses the
+    paper's observer, the guarded two-stage estimator (that observer as stage 1) or the
+    offline MAP fits; for the last two the result carries their θ̂ and x̂ with
+    φ̂ = g(v, x̂, θ̂), no refined x̂, and ``hold`` applies to stage 1 only.
 
     Parameters
     ----------
@@ -225,6 +231,11 @@ def run_estimator(spec: ModelSpec, t: ArrayLike, u: ArrayLike | None, y: ArrayLi
         What the observer does with a NaN sample (a dropout).
     progress : callable, optional
         ``progress(done, total)`` called as samples are processed.
+    method : {"paper", "guarded", "mle"}, optional
+        The estimator: the paper's observer (default: the file's ``[estimator] method``),
+        the two-stage guarded estimator, or the offline MAP fit.
+    compiled : bool, optional
+        numba kernels for the two-stage methods (default: when installed).
 
     Returns
     -------
@@ -235,6 +246,10 @@ def run_estimator(spec: ModelSpec, t: ArrayLike, u: ArrayLike | None, y: ArrayLi
     UpdateLawError
         The law's θ* is singular, or misses Θ, on this record (checked before estimation;
         the message names the instants).
+    NotMinimumPhaseError, UnstableDesignError
+        As for :func:`build_observer`.
+    ModelFileError
+        Unknown ``method``.
 
     Examples
     --------
@@ -246,11 +261,54 @@ def run_estimator(spec: ModelSpec, t: ArrayLike, u: ArrayLike | None, y: ArrayLi
     >>> res.theta_hat.shape
     (100, 1)
     """
+    how = spec.estimator.method if method is None else method
+    if how not in ESTIMATION_METHODS:
+        raise ModelFileError(f"method must be one of {list(ESTIMATION_METHODS)}; got {how!r}.")
+    x0, th0 = spec.estimator.x_hat0, spec.estimator.theta_hat0
+    if how == "mle":
+        from ..estimation.mle import MapEstimator
+        est_mle = MapEstimator(system=spec.system, compiled=compiled)
+        res = est_mle.run(t, u, y, state0=est_mle.init(x_hat0=x0, theta_hat0=th0))
+        return _as_observer_result(spec, res.t, u, y, res.x_hat, res.theta_hat)
     est = estimator_spec(spec, hold=hold, nan_policy=nan_policy)
     obs = _build(est, spec, None)
     s = spec.system
     theta_star = getattr(spec.estimator.update_law, "theta_star", None)
     if theta_star is not None:
         check_theta_star(theta_star, s.perturbation, s.parameter_set, s.C, t, u, y)
-    state0 = obs.init(x_hat0=spec.estimator.x_hat0, theta_hat0=spec.estimator.theta_hat0)
-    return obs.run(t, u, y, hold=hold, state0=state0, progress=progress)
+    state0 = obs.init(x_hat0=x0, theta_hat0=th0)
+    if how == "paper":
+        return obs.run(t, u, y, hold=hold, state0=state0, progress=progress)
+    from ..estimation.guarded import GuardedEstimator
+    stage1 = _HeldObserver(obs, hold)
+    guarded = GuardedEstimator(stage1=stage1, system=spec.system, compiled=compiled)
+    res2 = guarded.run(t, u, y, state0=guarded.init(x_hat0=x0, theta_hat0=th0))
+    return _as_observer_result(spec, res2.t, u, y, res2.x_hat, res2.theta_hat)
+
+
+class _HeldObserver:
+    """The observer with its ``run`` bound to a sample hold (stage 1 of the guarded run)."""
+
+    def __init__(self, obs: ModifiedHighGainObserver, hold: str) -> None:
+        self.obs, self.hold, self.system = obs, hold, obs.system
+
+    def init(self, **kwargs: object) -> FloatArray:
+        return self.obs.init(**kwargs)
+
+    def run(self, t: ArrayLike, u: ArrayLike | None, y: ArrayLike, *,
+            state0: object = None) -> ObserverResult:
+        return self.obs.run(t, u, y, hold=self.hold, state0=state0)
+
+
+def _as_observer_result(spec: ModelSpec, t: FloatArray, u: ArrayLike | None, y: ArrayLike,
+                        X: FloatArray, TH: FloatArray) -> ObserverResult:
+    N = t.shape[0]
+    U = np.zeros((N, 0)) if u is None else np.asarray(u, dtype=np.float64).reshape(N, -1)
+    Y = np.asarray(y, dtype=np.float64).reshape(N, -1)
+    PHI = np.asarray(spec.system.perturbation.g(np.concatenate([U, Y], axis=1), X, TH),
+                     dtype=np.float64)
+    skipped = ~np.isfinite(Y).all(axis=1)
+    for a in (X, TH, PHI, skipped):
+        a.setflags(write=False)
+    return ObserverResult(t=t, x_hat=X, phi_hat=PHI, theta_hat=TH, x_hat_refined=None,
+                          skipped=skipped)

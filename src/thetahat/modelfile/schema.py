@@ -26,7 +26,10 @@ A model file (TOML, read with :mod:`tomllib`, or JSON with the same structure) h
     intermittent laws: θ*(v, x, φ) as a string or list of p strings, in the names of u, y, x
     and ``phi`` (k = 1) or ``phi1``, …, ``phik``; default: solved from g with SymPy),
     ``excitation`` (intermittent law, required: ``[low, high]`` thresholds on ‖φ̂‖),
-    ``on_invalid`` (``"raise"`` or ``"freeze"``, default ``"raise"``), and ``A_design``,
+    ``on_invalid`` (``"raise"`` or ``"freeze"``, default ``"raise"``), ``method``
+    (``"paper"``, default: the observer and law above; ``"guarded"``: that observer as stage 1
+    of :class:`~thetahat.estimation.guarded.GuardedEstimator`; ``"mle"``:
+    :class:`~thetahat.estimation.mle.MapEstimator`, offline), and ``A_design``,
     ``E_design``: the matrices of a simplified design system on which the gains are designed
     (Sec. VII–VIII; default: the true A and E); ``allow_nonminimum_phase`` (default false:
     a model that violates Assumption 1 is refused; true designs anyway, to study the failure).
@@ -82,8 +85,9 @@ from ..model.parse import parse_perturbation
 from ..model.perturbation import SymbolicPerturbation
 from ..model.system import PerturbedLinearSystem
 
-__all__ = ["EXAMPLE_MODEL", "EstimatorOptions", "LAWS", "ModelSpec", "SCENARIO_METHODS",
-           "ScenarioOptions", "SecondObserverOptions", "load_model", "loads_model"]
+__all__ = ["ESTIMATION_METHODS", "EXAMPLE_MODEL", "EstimatorOptions", "LAWS", "ModelSpec",
+           "SCENARIO_METHODS", "ScenarioOptions", "SecondObserverOptions", "load_model",
+           "loads_model"]
 
 FloatArray = NDArray[np.float64]
 
@@ -92,9 +96,12 @@ _TOP_KEYS = ("name", "system", "perturbation", "parameter_set", "estimator", "sc
 _SYSTEM_KEYS = ("A", "B", "C", "E")
 _PERTURBATION_KEYS = ("g", "u", "y", "x", "theta", "constants")
 _BOX_KEYS = ("lower", "upper")
-_ESTIMATOR_KEYS = ("law", "eps", "chain_poles", "b_poles", "Gamma", "theta_hat0", "x_hat0",
-                   "theta_star", "excitation", "on_invalid", "A_design", "E_design", "second",
-                   "allow_nonminimum_phase")
+_ESTIMATOR_KEYS = ("method", "law", "eps", "chain_poles", "b_poles", "Gamma", "theta_hat0",
+                   "x_hat0", "theta_star", "excitation", "on_invalid", "A_design", "E_design",
+                   "second", "allow_nonminimum_phase")
+#: The values of ``[estimator] method``: the paper's estimator, the two-stage guarded one, the
+#: offline MAP fits.
+ESTIMATION_METHODS = ("paper", "guarded", "mle")
 _SECOND_KEYS = ("eps2", "chain_poles", "b_poles", "g_on_estimates")
 _SCENARIO_KEYS = ("theta", "x0", "t_end", "fs", "noise_std", "u_amplitudes", "u_frequencies",
                   "method", "rtol", "atol")
@@ -304,6 +311,8 @@ class EstimatorOptions:
     Attributes
     ----------
     law : {"gradient", "algebraic", "intermittent"}
+    method : {"paper", "guarded", "mle"}
+        How :func:`~thetahat.modelfile.run_estimator` estimates (default "paper").
     update_law : UpdateLaw
         The law, built and validated.
     eps : float
@@ -332,9 +341,11 @@ class EstimatorOptions:
     E_design: FloatArray | None
     second: SecondObserverOptions | None
     allow_nonminimum_phase: bool = False
+    method: str = "paper"
 
     def __repr__(self) -> str:
-        return (f"EstimatorOptions(law={self.law!r}, eps={self.eps:g}, "
+        method = "" if self.method == "paper" else f"method={self.method!r}, "
+        return (f"EstimatorOptions(law={self.law!r}, {method}eps={self.eps:g}, "
                 f"theta_hat0={self.theta_hat0.tolist()}, "
                 f"design_system={self.A_design is not None or self.E_design is not None}, "
                 f"second={self.second is not None})")
@@ -538,6 +549,10 @@ def _read_estimator(sec: _Section, system: PerturbedLinearSystem, pert: Symbolic
     sec.check_keys(_ESTIMATOR_KEYS)
     n, k, p = system.n, system.k, system.p
     law, update_law = _read_law(sec, pert, cast(Box, system.parameter_set), parsed)
+    method = sec.table.get("method", "paper")
+    if method not in ESTIMATION_METHODS:
+        raise sec.fail("method", f"unknown method {_show(method)}; expected one of "
+                                 f"{list(ESTIMATION_METHODS)}.")
     eps = sec.number("eps", 1.0, positive=True)
     theta_hat0 = (sec.vector("theta_hat0", p, f"θ̂(0), p = {p}") if sec.has("theta_hat0")
                   else None)
@@ -571,7 +586,8 @@ def _read_estimator(sec: _Section, system: PerturbedLinearSystem, pert: Symbolic
                             chain_poles=sec.poles("chain_poles", nested=True),
                             b_poles=sec.poles("b_poles", nested=False),
                             theta_hat0=theta_hat0, x_hat0=x_hat0, A_design=A_d, E_design=E_d,
-                            second=second, allow_nonminimum_phase=allow_nmp)
+                            second=second, allow_nonminimum_phase=allow_nmp,
+                            method=method)
 
 
 def _scenario_input(sec: _Section, m: int) -> tuple[FloatArray, FloatArray]:

@@ -47,6 +47,8 @@ __all__ = [
     "LUGRE_RTOL",
     "LuGreParameters",
     "LuGrePhi",
+    "METHODS",
+    "estimator",
     "Scenario",
     "design_system",
     "designs",
@@ -638,3 +640,69 @@ def designs(eps: float = 1.0, *, eps2: float = 1.0, params: LuGreParameters = Lu
     spec = estimator_spec(eps, eps2=eps2, params=params, chain_poles=chain_poles,
                           second_poles=second_poles)
     return spec.design, cast(GainDesign, spec.design2)       # second=True: always designed
+
+
+#: The estimation methods of :func:`estimator`.
+METHODS = ("paper", "guarded", "mle")
+
+
+def estimator(method: str = "guarded", *, eps: float = 1.0, Gamma: float = 1.0,
+              noise_std: float | None = None, params: LuGreParameters = LuGreParameters(),
+              compiled: bool | None = None, dt: float = 1e-3) -> Any:
+    """The LuGre estimator by method: ``"paper"``, ``"guarded"`` or ``"mle"``.
+
+    * ``"paper"``: :func:`observer` (stage 1 as printed, Sec. VIII-A), with ``eps``, ``Gamma``;
+    * ``"guarded"``: :class:`~thetahat.estimation.guarded.GuardedEstimator` — that observer
+      (compiled for step ``dt`` when numba is available) guarding an EKF on col(ω, η, θ)
+      re-anchored by MAP fits; streaming-capable;
+    * ``"mle"``: :class:`~thetahat.estimation.mle.MapEstimator` — MAP fits of (x(0), θ) on a
+      dense schedule (offline).
+
+    Each returns an object with ``init(x_hat0=…, theta_hat0=…)`` and ``run(t, u, y,
+    state0=…)`` whose result has ``theta_hat`` of shape (N, 1).
+
+    Parameters
+    ----------
+    method : {"paper", "guarded", "mle"}
+    eps, Gamma : float
+        Stage 1's tuning (the paper's: 1, 1).
+    noise_std : float, optional
+        σ of the speed measurement; default estimated from the data.
+    params : LuGreParameters
+    compiled : bool, optional
+        numba kernels (default: when installed).
+    dt : float
+        Sampling period for the compiled stage 1 (the records must be sampled at it).
+
+    Raises
+    ------
+    DimensionError
+        Unknown method.
+
+    Examples
+    --------
+    >>> from thetahat.models import lugre
+    >>> est = lugre.estimator("mle", compiled=False)
+    >>> data = lugre.simulate(seed=0, t_end=0.2)
+    >>> res = est.run(data.t, data.u, data.y, state0=est.init(theta_hat0=[1.0]))
+    >>> res.theta_hat.shape
+    (201, 1)
+    """
+    from ..estimation.guarded import GuardedEstimator
+    from ..estimation.mle import MapEstimator
+    from ..estimation.model_kernel import have_numba
+
+    if method not in METHODS:
+        raise DimensionError(f"method must be one of {METHODS}; got {method!r}.")
+    if method == "mle":
+        return MapEstimator(system=system(params), noise_std=noise_std, compiled=compiled)
+    obs = observer(eps, Gamma=Gamma, params=params)
+    if method == "paper":
+        return obs
+    use = have_numba() if compiled is None else compiled
+    stage1: Any = obs
+    if use:
+        from ..estimation.compiled import compile_observer
+        stage1 = compile_observer(obs, dt=dt)
+    return GuardedEstimator(stage1=stage1, system=system(params), noise_std=noise_std,
+                            compiled=compiled)

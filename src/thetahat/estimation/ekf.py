@@ -1,0 +1,413 @@
+"""Stage 2's filter: an extended Kalman filter on col(x, θ) built from any thetahat model.
+
+The augmented state s = col(x, θ) with θ constant (no random walk) follows the sampled-data
+map of :mod:`~thetahat.estimation.model_kernel` (RK4 sub-steps, first-order hold on u):
+
+    x_{k+1} = F(x_k, θ, u_k, u_{k+1}),   θ_{k+1} = θ_k,   y_k = C x_k + e_k,  e_k ~ N(0, R),
+
+so the transition matrix is [[Φ, Γ], [0, I]] with the exact Jacobians Φ = ∂F/∂x, Γ = ∂F/∂θ.
+Prediction P ← T P Tᵀ + Q (Q = diag(q_x, 0)); update with H = [C 0] in Joseph form
+P ← (I − K H) P (I − K H)ᵀ + K R Kᵀ, which keeps P symmetric positive semi-definite in
+floating point; then θ is projected onto Θ (a box: a clip). R = σ² I with σ given or
+estimated from the data (:func:`~thetahat.estimation.noise_level.estimate_noise_std`); the
+prior on θ comes from Θ (centre ± |Θ|/4 per component unless told), on x(0) it is wide.
+
+The per-sample kernels (:class:`EKFKernels`) are shared by :class:`JointEKF` (the filter
+alone) and the guarded estimator, and are numba-compiled when numba is installed.
+"""
+
+from __future__ import annotations
+
+import functools
+import math
+from dataclasses import dataclass
+from typing import Any, Callable
+
+import numpy as np
+from numpy.typing import NDArray
+
+from .._validate import as_vector
+from ..errors import DimensionError, NonFiniteError, ParameterSetError
+from ..model.paramset import Box
+from ..model.system import PerturbedLinearSystem
+from .model_kernel import H_RHO, ModelKernel, jit, model_kernel
+from .noise_level import MIN_SAMPLES, estimate_noise_std
+
+__all__ = ["EKFKernels", "ekf_kernels", "JointEKF", "EKFResult", "theta_box", "theta_prior_sd",
+           "PRIOR_FRACTION"]
+
+FloatArray = NDArray[np.float64]
+
+#: Prior standard deviation of θ as a fraction of Θ's width per component: θ's prior
+#: N(centre of Θ, (|Θ|/4)²) puts Θ's ends at 2 standard deviations.
+PRIOR_FRACTION = 0.25
+
+
+def theta_box(system: PerturbedLinearSystem) -> tuple[FloatArray, FloatArray]:
+    """(lower, upper) of Θ, which stage 2 needs as a :class:`~thetahat.model.paramset.Box`."""
+    theta_set = system.parameter_set
+    if not isinstance(theta_set, Box):
+        raise ParameterSetError("stage 2 (EKF, maximum-likelihood fit) projects θ onto Θ by a "
+                                f"clip and needs Θ as a Box; got {type(theta_set).__name__}. "
+                                "Use the paper's observer alone for other parameter sets.")
+    return (np.asarray(theta_set.lower, dtype=np.float64),
+            np.asarray(theta_set.upper, dtype=np.float64))
+
+
+def theta_prior_sd(system: PerturbedLinearSystem) -> FloatArray:
+    """Prior standard deviation of θ from Θ: :data:`PRIOR_FRACTION` × its width."""
+    lo, hi = theta_box(system)
+    return PRIOR_FRACTION * (hi - lo)
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class EKFKernels:
+    """The EKF's per-sample operations on (s, P) in place (compiled with the model kernel).
+
+    ``predict(s, P, u0, u1, h, h_rho, q_x, Phi, Gam)`` and
+    ``update(s, P, y, R, lo, hi) -> NIS`` (normalised innovation squared ÷ r, after which θ
+    is clipped to [lo, hi]); ``loop(s, P, U, Y, t, k0, k1, R, lo, hi, h_rho, q_x, X, TH, SD,
+    NIS) -> status`` runs samples k0 … k1−1 and returns −1, or the index where s became
+    non-finite.
+    """
+
+    model: ModelKernel
+    predict: Callable[..., None]
+    update: Callable[..., float]
+    loop: Callable[..., int]
+
+
+def _make(model: ModelKernel) -> EKFKernels:
+    prop = model.propagate
+    C = model.C
+    compiled = model.compiled
+
+    def predict(s, P, u0, u1, h, h_rho, q_x, Phi, Gam):
+        n = Phi.shape[0]
+        p = Gam.shape[1]
+        N = n + p
+        x = s[:n].copy()
+        th = s[n:].copy()
+        xn = prop(x, th, u0, u1, h, h_rho, True, Phi, Gam)
+        T = np.eye(N)
+        T[:n, :n] = Phi
+        T[:n, n:] = Gam
+        TP = np.zeros((N, N))
+        for i in range(N):
+            for j in range(N):
+                acc = 0.0
+                for k in range(N):
+                    acc += T[i, k] * P[k, j]
+                TP[i, j] = acc
+        for i in range(N):
+            for j in range(i, N):
+                acc = 0.0
+                for k in range(N):
+                    acc += TP[i, k] * T[j, k]
+                P[i, j] = acc
+                P[j, i] = acc
+        for i in range(n):
+            P[i, i] += q_x
+            s[i] = xn[i]
+
+    def update(s, P, y, R, lo, hi):
+        N = P.shape[0]
+        r = C.shape[0]
+        n = C.shape[1]
+        PHt = np.zeros((N, r))
+        for i in range(N):
+            for j in range(r):
+                acc = 0.0
+                for k in range(n):
+                    acc += P[i, k] * C[j, k]
+                PHt[i, j] = acc
+        S = R.copy()
+        nu = y.copy()
+        for i in range(r):
+            for k in range(n):
+                nu[i] -= C[i, k] * s[k]
+            for j in range(r):
+                acc = 0.0
+                for k in range(n):
+                    acc += C[i, k] * PHt[k, j]
+                S[i, j] += acc
+        # Cholesky S = L Lᵀ (S is SPD: R > 0)
+        L = np.zeros((r, r))
+        for i in range(r):
+            for j in range(i + 1):
+                acc = S[i, j]
+                for k in range(j):
+                    acc -= L[i, k] * L[j, k]
+                if i == j:
+                    L[i, i] = math.sqrt(max(acc, 1e-300))
+                else:
+                    L[i, j] = acc / L[j, j]
+        # K = PHt S⁻¹ (row-wise solves), w = S⁻¹ ν
+        K = np.zeros((N, r))
+        for row in range(N):
+            z = PHt[row].copy()
+            for i in range(r):
+                for k in range(i):
+                    z[i] -= L[i, k] * z[k]
+                z[i] /= L[i, i]
+            for i in range(r - 1, -1, -1):
+                for k in range(i + 1, r):
+                    z[i] -= L[k, i] * z[k]
+                z[i] /= L[i, i]
+            K[row] = z
+        w = nu.copy()
+        for i in range(r):
+            for k in range(i):
+                w[i] -= L[i, k] * w[k]
+            w[i] /= L[i, i]
+        nis = 0.0
+        for i in range(r):
+            nis += w[i] * w[i]
+        for i in range(N):
+            for j in range(r):
+                s[i] += K[i, j] * nu[j]
+        # Joseph form: P = (I − K H) P (I − K H)ᵀ + K R Kᵀ, H = [C 0]
+        IKH = np.eye(N)
+        for i in range(N):
+            for j in range(n):
+                acc = 0.0
+                for k in range(r):
+                    acc += K[i, k] * C[k, j]
+                IKH[i, j] -= acc
+        A = np.zeros((N, N))
+        for i in range(N):
+            for j in range(N):
+                acc = 0.0
+                for k in range(N):
+                    acc += IKH[i, k] * P[k, j]
+                A[i, j] = acc
+        for i in range(N):
+            for j in range(i, N):
+                acc = 0.0
+                for k in range(N):
+                    acc += A[i, k] * IKH[j, k]
+                for a in range(r):
+                    for b in range(r):
+                        acc += K[i, a] * R[a, b] * K[j, b]
+                P[i, j] = acc
+                P[j, i] = acc
+        for i in range(lo.shape[0]):
+            s[n + i] = min(max(s[n + i], lo[i]), hi[i])
+        return nis / r
+
+    predict_j, update_j = jit(predict, compiled), jit(update, compiled)
+
+    def loop(s, P, U, Y, tt, k0, k1, R, lo, hi, h_rho, q_x, X, TH, SD, NIS):
+        """Samples k0 … k1−1 (predict from k−1 when k > 0, then update); -1 or the bad index."""
+        n = X.shape[1]
+        p = TH.shape[1]
+        Phi = np.empty((n, n))
+        Gam = np.empty((n, p))
+        for k in range(k0, k1):
+            if k > 0:
+                predict_j(s, P, U[k - 1], U[k], tt[k] - tt[k - 1], h_rho, q_x, Phi, Gam)
+            finite_y = True
+            for j in range(Y.shape[1]):
+                if not math.isfinite(Y[k, j]):
+                    finite_y = False
+            NIS[k] = update_j(s, P, Y[k], R, lo, hi) if finite_y else np.nan
+            for i in range(n + p):
+                if not math.isfinite(s[i]):
+                    return k
+            X[k] = s[:n]
+            for i in range(p):
+                TH[k, i] = s[n + i]
+                SD[k, i] = math.sqrt(max(P[n + i, n + i], 0.0))
+        return -1
+
+    return EKFKernels(model=model, predict=predict_j, update=update_j, loop=jit(loop, compiled))
+
+
+@functools.lru_cache(maxsize=16)
+def _cached(model: ModelKernel) -> EKFKernels:
+    return _make(model)
+
+
+def ekf_kernels(system: PerturbedLinearSystem, *, compiled: bool | None = None) -> EKFKernels:
+    """The EKF kernels of a model (built once per model kernel).
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from thetahat.models import lugre
+    >>> from thetahat.estimation.ekf import ekf_kernels
+    >>> k = ekf_kernels(lugre.system(), compiled=False)
+    >>> s, P = np.array([0.0, 0.0, 0.5]), np.diag([1.0, 1e-6, 0.05])
+    >>> nis = k.update(s, P, np.array([0.1]), np.array([[4e-4]]), np.array([0.05]),
+    ...                np.array([1.0]))
+    >>> bool(P[0, 0] < 4e-4)           # the measurement of ω shrank its variance below R
+    True
+    """
+    return _cached(model_kernel(system, compiled=compiled))
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class EKFResult:
+    """Estimates of :meth:`JointEKF.run`.
+
+    Attributes
+    ----------
+    t : ndarray, shape (N,)
+    x_hat : ndarray, shape (N, n)
+    theta_hat : ndarray, shape (N, p)
+    theta_sd : ndarray, shape (N, p)
+        √diag P_θθ after each update.
+    nis : ndarray, shape (N,)
+        Normalised innovation squared ÷ r (≈ 1 on average for a consistent filter; NaN where
+        no update was made).
+    noise_std : ndarray, shape (r,)
+        σ used for R.
+    """
+
+    t: FloatArray
+    x_hat: FloatArray
+    theta_hat: FloatArray
+    theta_sd: FloatArray
+    nis: FloatArray
+    noise_std: FloatArray
+
+    def __repr__(self) -> str:
+        return (f"EKFResult(N={self.t.shape[0]}, theta_hat[-1]={self.theta_hat[-1]}, "
+                f"noise_std={self.noise_std})")
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class JointEKF:
+    """Extended Kalman filter on col(x, θ) for a thetahat model (stage 2 alone).
+
+    Parameters
+    ----------
+    system : PerturbedLinearSystem
+        With a symbolic g and a Box Θ.
+    noise_std : float or array_like (r,), optional
+        σ of the output noise; default: estimated from the record (:meth:`run`) or from the
+        first samples (:meth:`step` delays its updates until :data:`MIN_SAMPLES` samples).
+    theta_sd : array_like (p,), optional
+        Prior standard deviation of θ; default |Θ|/4.
+    x_sd : float or array_like (n,), optional
+        Prior standard deviation of x(0); default 10 (wide: the data determine x quickly).
+    q_x : float
+        Process-noise variance per sample on x (default 0: the model is taken as exact).
+    h_rho : float
+        RK4 sub-step bound (see :mod:`~thetahat.estimation.model_kernel`).
+    compiled : bool, optional
+        numba kernels (default: when installed).
+
+    Examples
+    --------
+    >>> from thetahat.models import lugre
+    >>> from thetahat.estimation.ekf import JointEKF
+    >>> data = lugre.simulate(seed=0, t_end=0.3)
+    >>> res = JointEKF(system=lugre.system(), compiled=False).run(data.t, data.u, data.y,
+    ...                                                           theta_hat0=[0.5])
+    >>> bool(abs(res.theta_hat[-1, 0] - 0.28) < 0.01)
+    True
+    """
+
+    system: PerturbedLinearSystem
+    noise_std: Any = None
+    theta_sd: Any = None
+    x_sd: Any = 10.0
+    q_x: float = 0.0
+    h_rho: float = H_RHO
+    compiled: bool | None = None
+
+    @property
+    def kernels(self) -> EKFKernels:
+        return ekf_kernels(self.system, compiled=self.compiled)
+
+    def prior(self, x_hat0: Any = None, theta_hat0: Any = None) -> tuple[FloatArray, FloatArray]:
+        """(s0, P0): x̂(0), θ̂(0) (default: zeros, centre of Θ) and the prior covariance."""
+        sys_ = self.system
+        n, p = sys_.n, sys_.p
+        lo, hi = theta_box(sys_)
+        x0 = np.zeros(n) if x_hat0 is None else as_vector("x_hat0", x_hat0, n)
+        th0 = 0.5 * (lo + hi) if theta_hat0 is None else as_vector("theta_hat0", theta_hat0, p)
+        if np.any(th0 < lo) or np.any(th0 > hi):
+            raise ParameterSetError(f"theta_hat0 = {th0} lies outside Θ = [{lo}, {hi}]; start "
+                                    "the estimate inside Θ.")
+        th_sd = (theta_prior_sd(sys_) if self.theta_sd is None
+                 else as_vector("theta_sd", self.theta_sd, p))
+        x_sd = np.broadcast_to(np.asarray(self.x_sd, dtype=np.float64), (n,))
+        return np.concatenate([x0, th0]), np.diag(np.concatenate([x_sd, th_sd]) ** 2)
+
+    def run(self, t: Any, u: Any, y: Any, *, x_hat0: Any = None, theta_hat0: Any = None,
+            P0: Any = None) -> EKFResult:
+        """Filter a record: sample 0 is an update at the prior, later samples predict then update.
+
+        Parameters
+        ----------
+        t : array_like (N,)
+        u : array_like (N, m) or (N,)
+        y : array_like (N, r) or (N,); NaN samples are predicted over.
+        x_hat0, theta_hat0 : array_like, optional
+        P0 : array_like (n + p, n + p), optional
+            Overrides the prior covariance.
+
+        Returns
+        -------
+        EKFResult
+        """
+        sys_ = self.system
+        n, m, r, p = sys_.n, sys_.m, sys_.r, sys_.p
+        t_, U, Y = as_record(t, u, y, m, r)
+        sigma = resolve_noise_std(self.noise_std, Y)
+        R = np.diag(sigma ** 2)
+        s, P = self.prior(x_hat0, theta_hat0)
+        if P0 is not None:
+            P = np.array(P0, dtype=np.float64).reshape(n + p, n + p)
+        lo, hi = theta_box(sys_)
+        k = self.kernels
+        N = t_.shape[0]
+        X, TH, SD, NIS = (np.empty((N, n)), np.empty((N, p)), np.empty((N, p)),
+                          np.full(N, np.nan))
+        bad = k.loop(s, P, U, Y, t_, 0, N, R, lo, hi, self.h_rho, self.q_x, X, TH, SD, NIS)
+        if bad >= 0:
+            raise NonFiniteError(f"the EKF diverged at t[{bad}] = {t_[bad]!r}; check the model "
+                                 "and noise_std.")
+        return EKFResult(t=t_, x_hat=X, theta_hat=TH, theta_sd=SD, nis=NIS, noise_std=sigma)
+
+    def __repr__(self) -> str:
+        return f"JointEKF(n={self.system.n}, p={self.system.p}, compiled={self.kernels.model.compiled})"
+
+
+def as_record(t: Any, u: Any, y: Any, m: int, r: int) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """(t (N,), U (N, m), Y (N, r)) validated: t finite and increasing, u finite, y not inf."""
+    # writable C-contiguous copies: the compiled kernels then see one array type whatever the
+    # caller passes (numba compiles read-only arrays separately)
+    t_ = np.array(t, dtype=np.float64).reshape(-1)
+    N = t_.shape[0]
+    if N < 2 or not np.all(np.isfinite(t_)) or np.any(np.diff(t_) <= 0):
+        raise DimensionError("t must hold at least 2 finite, strictly increasing sampling "
+                             "instants.")
+    U = np.zeros((N, 0)) if u is None else np.array(u, dtype=np.float64).reshape(N, -1)
+    Y = np.array(y, dtype=np.float64).reshape(N, -1)
+    if U.shape != (N, m) or Y.shape != (N, r):
+        raise DimensionError(f"u and y must have shapes ({N}, {m}) and ({N}, {r}) to match t; "
+                             f"got {U.shape} and {Y.shape}.")
+    if not np.all(np.isfinite(U)):
+        raise NonFiniteError("u contains NaN or inf; clean or interpolate the input record.")
+    if np.isinf(Y).any():
+        raise NonFiniteError("y contains inf; only NaN marks a missing sample.")
+    return t_, U, Y
+
+
+def resolve_noise_std(noise_std: Any, Y: FloatArray) -> FloatArray:
+    """σ per output: as given (> 0), else estimated from the record's second differences."""
+    r = Y.shape[1]
+    if noise_std is None:
+        if Y.shape[0] < MIN_SAMPLES:
+            raise DimensionError(f"noise_std cannot be estimated from {Y.shape[0]} samples "
+                                 f"(need {MIN_SAMPLES}); pass noise_std.")
+        sigma = estimate_noise_std(Y)
+    else:
+        sigma = np.broadcast_to(np.asarray(noise_std, dtype=np.float64), (r,)).copy()
+    if not np.all(np.isfinite(sigma)) or np.any(sigma <= 0):
+        raise DimensionError(f"the noise level must be finite and > 0; got σ = {sigma} (noise-"
+                             "free data: pass a small noise_std, e.g. 1e-6 of the signal).")
+    return sigma

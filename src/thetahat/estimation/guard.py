@@ -1,0 +1,163 @@
+"""The guard between the two stages: evidence-based, so it never biases a correct stage 2.
+
+The output θ̂ follows stage 2 (θ̂₂, EKF + MAP re-anchoring) only inside a band around stage 1
+(θ̂_G, the paper's observer and update law, Theorem 1):
+
+    θ̂ = Π_Θ( θ̂_G + clip(θ̂₂ − θ̂_G, −δ, δ) ),    δ(t) = max(δ_G(t), κ σ₂(t)),
+
+so that, whatever stage 2 does, |θ̂ − θ| ≤ |θ̂_G − θ| + δ(t) and θ̂ ∈ Θ (Θ a box containing
+θ̂_G). The band's width is built on evidence only:
+
+* δ_G(t), stage 1's measured progress. With the samples split dyadically, *late* is the range
+  of θ̂_G over [2^{J−1}, k] (k ∈ [2^J, 2^{J+1})) and *early* its range before 2^{J−1}; their
+  ratio ρ = late/early measures stage 1's contraction. If stage 1 converges geometrically,
+  late/(1 − ρ) bounds the movement still to come from 2^{J−1} on, hence its error; δ_G =
+  c·late/(1 − ρ). Without evidence of contraction (ρ ≥ ρ_max, or stage 1 has not moved, as
+  under weak excitation where Theorem 1 gives no rate) δ_G = |Θ|: stage 2 is not held back.
+  No rate is assumed: a slow stage 1 keeps a wide band until its own data show it settling,
+  which is the failure of a band shrinking at a fixed rate (design note, "the guard's pitfall").
+* σ₂(t), stage 2's own standard deviation √P_θθ (capped at the prior's |Θ|/4), so that its
+  noise is never clipped.
+
+Stage 2 is reset from stage 1 (x̂, θ̂_G and the prior covariance) when it is non-finite, or
+after it has been clipped for ``dwell`` consecutive samples while stage 1 shows evidence
+(δ_G < |Θ|): then stage 2 disagrees with a settled stage 1 beyond both stages' uncertainty.
+The windowed normalised innovation squared (NIS ≈ 1 for a consistent filter) is reported as
+a consistency diagnostic.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any, Callable
+
+import numpy as np
+
+__all__ = ["progress_init", "progress_step", "make_guarded_loop", "GUARD_C", "GUARD_RHO_MAX",
+           "GUARD_KAPPA", "NIS_WINDOW"]
+
+#: Safety factor of δ_G on the extrapolated remaining movement of stage 1.
+GUARD_C = 2.0
+#: Largest contraction ratio late/early taken as evidence that stage 1 converges.
+GUARD_RHO_MAX = 0.5
+#: Stage 2's standard deviations kept inside the band.
+GUARD_KAPPA = 4.0
+#: Samples of the exponentially weighted NIS average.
+NIS_WINDOW = 200.0
+
+
+def progress_init(theta0: np.ndarray) -> np.ndarray:
+    """State of :func:`progress_step` after sample 0: per component (prefix min, max, block
+    min, max, current min, max); shape (p, 6)."""
+    p = theta0.shape[0]
+    st = np.empty((p, 6))
+    for i in range(p):
+        st[i, 0] = theta0[i]
+        st[i, 1] = theta0[i]
+        st[i, 2] = np.inf
+        st[i, 3] = -np.inf
+        st[i, 4] = np.inf
+        st[i, 5] = -np.inf
+    return st
+
+
+def progress_step(st: np.ndarray, k: int, theta: np.ndarray, width: np.ndarray, c: float,
+                  rho_max: float, delta: np.ndarray) -> None:
+    """Add stage 1's θ̂_G at sample k ≥ 1 to ``st`` and write δ_G into ``delta`` (p,)."""
+    p = theta.shape[0]
+    if k & (k - 1) == 0:                           # k = 2^J: shift the dyadic blocks
+        for i in range(p):
+            st[i, 0] = min(st[i, 0], st[i, 2])
+            st[i, 1] = max(st[i, 1], st[i, 3])
+            st[i, 2] = st[i, 4]
+            st[i, 3] = st[i, 5]
+            st[i, 4] = np.inf
+            st[i, 5] = -np.inf
+    for i in range(p):
+        st[i, 4] = min(st[i, 4], theta[i])
+        st[i, 5] = max(st[i, 5], theta[i])
+        early = st[i, 1] - st[i, 0]
+        late = max(st[i, 3], st[i, 5]) - min(st[i, 2], st[i, 4])
+        if not (early > 0.0) or not math.isfinite(late) or late >= rho_max * early:
+            delta[i] = width[i]
+        else:
+            delta[i] = min(width[i], c * late / (1.0 - late / early))
+
+
+def make_guarded_loop(predict: Callable[..., None], update: Callable[..., float],
+                      jit: Callable[..., Any]) -> Callable[..., int]:
+    """The per-sample loop of the guarded estimator over EKF kernels (compiled with them)."""
+    prog = jit(progress_step)
+
+    def loop(s, P, P0, U, Y, tt, k0, k1, off, R, lo, hi, h_rho, q_x, thG, xG, pst, gst, cfg,
+             TH, TH2, X2, SD2, BAND, CLIP, RESET, NIS):
+        """Samples k0 … k1−1 (absolute index k + off). ``gst`` = (dwell count, NIS average,
+        first update index);
+        ``cfg`` = (κ, c, ρ_max, dwell, σ₂ cap per component…); returns the reset count."""
+        n = X2.shape[1]
+        p = TH.shape[1]
+        width = hi - lo
+        Phi = np.empty((n, n))
+        Gam = np.empty((n, p))
+        dG = np.empty(p)
+        resets = 0
+        for k in range(k0, k1):
+            if k + off > 0:
+                predict(s, P, U[k - 1], U[k], tt[k] - tt[k - 1], h_rho, q_x, Phi, Gam)
+                prog(pst, k + off, thG[k], width, cfg[1], cfg[2], dG)
+            else:
+                for i in range(p):
+                    dG[i] = width[i]
+            nis = np.nan
+            finite_y = True
+            for j in range(Y.shape[1]):
+                if not math.isfinite(Y[k, j]):
+                    finite_y = False
+            if finite_y and k + off >= gst[2]:
+                nis = update(s, P, Y[k], R, lo, hi)
+            bad = False
+            for i in range(s.shape[0]):
+                if not math.isfinite(s[i]) or not math.isfinite(P[i, i]):
+                    bad = True
+            clipped = False
+            for i in range(p):
+                d = s[n + i] - thG[k, i]
+                sd = math.sqrt(max(P[n + i, n + i], 0.0)) if not bad else 0.0
+                band = max(dG[i], cfg[0] * min(sd, cfg[4 + i]))
+                if bad:
+                    d = 0.0
+                if d > band:
+                    d = band
+                    clipped = True
+                elif d < -band:
+                    d = -band
+                    clipped = True
+                TH[k, i] = min(max(thG[k, i] + d, lo[i]), hi[i])
+                BAND[k, i] = band
+            gst[0] = gst[0] + 1.0 if clipped else 0.0
+            settled = True
+            for i in range(p):
+                if dG[i] >= width[i]:
+                    settled = False
+            reset = bad or (gst[0] > cfg[3] and settled)
+            if reset:
+                for i in range(n):
+                    s[i] = xG[k, i]
+                for i in range(p):
+                    s[n + i] = thG[k, i]
+                P[:, :] = P0
+                gst[0] = 0.0
+                resets += 1
+            if math.isfinite(nis):
+                gst[1] += (nis - gst[1]) / NIS_WINDOW
+            for i in range(n):
+                X2[k, i] = s[i]
+            for i in range(p):
+                TH2[k, i] = s[n + i]
+                SD2[k, i] = math.sqrt(max(P[n + i, n + i], 0.0))
+            CLIP[k] = clipped
+            RESET[k] = reset
+            NIS[k] = gst[1]
+        return resets
+
+    return jit(loop)

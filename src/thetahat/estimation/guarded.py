@@ -1,0 +1,493 @@
+"""The two-stage guarded estimator: the paper's guarantee with an EKF's efficiency.
+
+* **Stage 1** — the paper's observer (3) with its update law, unchanged (any object with the
+  observer's public ``init``/``step``/``run``): Theorem 1's convergence from anywhere in Θ.
+* **Stage 2** — :class:`~thetahat.estimation.ekf.JointEKF`'s kernels on col(x, θ), re-anchored
+  at the times of a :class:`~thetahat.estimation.mle.FitSchedule` by the MAP fit of
+  (x(t₀), θ) (the EKF then takes θ and P_θθ from the fit, cross-covariances zeroed).
+* **The guard** of :mod:`~thetahat.estimation.guard`: the output keeps
+  |θ̂ − θ| ≤ |θ̂_G − θ| + δ(t) and θ̂ ∈ Θ, with δ(t) built on evidence.
+
+Unless given, the noise level is estimated from the first
+:data:`~thetahat.estimation.noise_level.MIN_SAMPLES` samples (the EKF starts its updates
+there), refined at :data:`SIGMA_SAMPLES` samples and refreshed by every fit from its window. :meth:`run` applies
+each fit at the sample after its window (deterministic); in streaming use (:meth:`step`) fits
+run on a worker thread (the numba kernels release the GIL) and are applied at the first
+``step`` after they finish — a ``step`` never waits for a fit.
+"""
+
+from __future__ import annotations
+
+import concurrent.futures
+import dataclasses
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from .._validate import as_vector
+from ..errors import DimensionError, NonFiniteError
+from ..model.system import PerturbedLinearSystem
+from .ekf import EKFKernels, JointEKF, as_record, ekf_kernels, resolve_noise_std, theta_box
+from .guard import (GUARD_C, GUARD_KAPPA, GUARD_RHO_MAX, make_guarded_loop, progress_init)
+from .mle import FitResult, FitSchedule
+from .model_kernel import H_RHO, jit
+from .noise_level import MIN_SAMPLES
+
+__all__ = ["GuardedEstimator", "GuardedResult", "SIGMA_SAMPLES", "DWELL_SECONDS"]
+
+FloatArray = NDArray[np.float64]
+
+#: Samples after which σ̂ is re-estimated once before the first fit (when σ is not given).
+SIGMA_SAMPLES = 32
+#: Time stage 2 may stay clipped by a settled stage 1 before it is reset from stage 1 (s).
+DWELL_SECONDS = 0.5
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class GuardedResult:
+    """Estimates and diagnostics of :meth:`GuardedEstimator.run`.
+
+    Attributes
+    ----------
+    t : ndarray (N,)
+    theta_hat : ndarray (N, p)
+        The guarded output.
+    x_hat : ndarray (N, n)
+        Stage 2's x̂.
+    theta_stage1, theta_stage2 : ndarray (N, p)
+        θ̂_G and θ̂₂.
+    theta_sd : ndarray (N, p)
+        Stage 2's √P_θθ.
+    band : ndarray (N, p)
+        δ(t): |θ̂ − θ̂_G| ≤ δ at every sample.
+    clipped, reset : ndarray of bool (N,)
+        Samples where the guard clipped stage 2 / reset it from stage 1.
+    nis : ndarray (N,)
+        Windowed normalised innovation squared of stage 2 (≈ 1 when consistent).
+    fits : tuple of FitResult
+        The MAP fits, in order.
+    fit_samples : ndarray of int
+        The sample index after which each fit was applied.
+    noise_std : ndarray (r,)
+        The last σ used.
+    """
+
+    t: FloatArray
+    theta_hat: FloatArray
+    x_hat: FloatArray
+    theta_stage1: FloatArray
+    theta_stage2: FloatArray
+    theta_sd: FloatArray
+    band: FloatArray
+    clipped: NDArray[np.bool_]
+    reset: NDArray[np.bool_]
+    nis: FloatArray
+    fits: tuple[FitResult, ...]
+    fit_samples: NDArray[np.int64]
+    noise_std: FloatArray
+
+    @property
+    def disagreement(self) -> FloatArray:
+        """θ̂₂ − θ̂_G over time, (N, p): a model-error alarm when it persists."""
+        return self.theta_stage2 - self.theta_stage1
+
+    @property
+    def resets(self) -> int:
+        return int(self.reset.sum())
+
+    @property
+    def clipped_fraction(self) -> float:
+        return float(self.clipped.mean())
+
+    @property
+    def fit_cost(self) -> FloatArray:
+        """Each fit's cost per measurement (≈ 1 when the model and σ are right)."""
+        return np.array([f.cost for f in self.fits])
+
+    @property
+    def fit_se(self) -> FloatArray:
+        """Each fit's standard error of θ, (n_fits, p)."""
+        return np.array([f.theta_se for f in self.fits]).reshape(len(self.fits), -1)
+
+    def __repr__(self) -> str:
+        return (f"GuardedResult(N={self.t.shape[0]}, theta_hat[-1]={self.theta_hat[-1]}, "
+                f"resets={self.resets}, clipped={self.clipped_fraction:.3f}, "
+                f"fits={len(self.fits)})")
+
+
+def _stage1_estimates(stage1: Any, res: Any) -> tuple[FloatArray, FloatArray]:
+    x = res.x_hat_refined if getattr(res, "x_hat_refined", None) is not None else res.x_hat
+    return np.asarray(res.theta_hat, dtype=np.float64), np.asarray(x, dtype=np.float64)
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class GuardedEstimator:
+    """Stage 1 (the paper) + stage 2 (EKF + MAP re-anchoring) + the evidence-based guard.
+
+    Parameters
+    ----------
+    stage1 : ModifiedHighGainObserver or CompiledObserver
+        The paper's estimator; its ``system`` is stage 2's model unless ``system`` is given.
+    system : PerturbedLinearSystem, optional
+        Stage 2's model (symbolic g, Box Θ).
+    noise_std : optional
+        σ of the output noise; default estimated from the data.
+    schedule : FitSchedule, optional
+        The re-anchoring fits (default :class:`FitSchedule` at 0.08·2ʲ s).
+    use_fits : bool
+        False: no re-anchoring (stage 2 = the EKF alone).
+    x_sd : float
+        Prior standard deviation of x(0) for stage 2.
+    kappa, c, rho_max, dwell : float
+        The guard's constants (see :mod:`~thetahat.estimation.guard`); ``dwell`` in seconds.
+    q_x : float
+        Stage 2's process-noise variance per sample on x (default 0: the model is exact).
+    h_rho : float
+        RK4 sub-step bound (see :mod:`~thetahat.estimation.model_kernel`).
+    compiled : bool, optional
+        numba kernels (default: when installed).
+
+    Examples
+    --------
+    >>> from thetahat.models import lugre
+    >>> est = lugre.estimator("guarded", compiled=False)
+    >>> data = lugre.simulate(seed=0, t_end=0.3)
+    >>> res = est.run(data.t, data.u, data.y, state0=est.init(theta_hat0=[0.5]))
+    >>> res.theta_hat.shape, bool(abs(res.theta_hat[-1, 0] - 0.28) < 0.01)
+    ((301, 1), True)
+    """
+
+    stage1: Any
+    system: PerturbedLinearSystem | None = None
+    noise_std: Any = None
+    schedule: FitSchedule | None = field(default=None)
+    use_fits: bool = True
+    x_sd: float = 10.0
+    kappa: float = GUARD_KAPPA
+    c: float = GUARD_C
+    rho_max: float = GUARD_RHO_MAX
+    dwell: float = DWELL_SECONDS
+    q_x: float = 0.0
+    h_rho: float = H_RHO
+    compiled: bool | None = None
+
+    # ------------------------------------------------------------------ parts
+    @property
+    def model(self) -> PerturbedLinearSystem:
+        """Stage 2's model."""
+        return self.system if self.system is not None else self.stage1.system
+
+    @property
+    def kernels(self) -> EKFKernels:
+        return ekf_kernels(self.model, compiled=self.compiled)
+
+    @property
+    def fit_schedule(self) -> FitSchedule | None:
+        if not self.use_fits:
+            return None
+        if self.schedule is not None:
+            return self.schedule
+        return FitSchedule(system=self.model, x_sd=self.x_sd, noise_std=self.noise_std,
+                           compiled=self.compiled)
+
+    def _loop(self) -> Any:
+        k = self.kernels
+        loop = _LOOPS.get(k)
+        if loop is None:
+            compiled = k.model.compiled
+            loop = _LOOPS[k] = make_guarded_loop(k.predict, k.update,
+                                                 lambda fn: jit(fn, compiled))
+        return loop
+
+    def _ekf(self) -> JointEKF:
+        return JointEKF(system=self.model, noise_std=self.noise_std, x_sd=self.x_sd,
+                        compiled=self.compiled)
+
+    def init(self, x_hat0: Any = None, theta_hat0: Any = None) -> dict[str, Any]:
+        """Initial state of both stages: a dict with ``stage1`` (the observer's state),
+        ``x_hat0`` and ``theta_hat0`` (θ̂₀ must lie in Θ)."""
+        sys_ = self.model
+        lo, hi = theta_box(sys_)
+        th0 = 0.5 * (lo + hi) if theta_hat0 is None else as_vector("theta_hat0", theta_hat0,
+                                                                   sys_.p)
+        x0 = np.zeros(sys_.n) if x_hat0 is None else as_vector("x_hat0", x_hat0, sys_.n)
+        s1 = self.stage1.init(x_hat0=x0, theta_hat0=th0)
+        return {"stage1": s1, "x_hat0": x0, "theta_hat0": th0}
+
+    # ------------------------------------------------------------------ offline
+    def run(self, t: Any, u: Any, y: Any, *, state0: dict[str, Any] | None = None
+            ) -> GuardedResult:
+        """Run both stages and the guard over a record.
+
+        Parameters
+        ----------
+        t : array_like (N,)
+        u : array_like (N, m) or (N,)
+        y : array_like (N, r) or (N,)
+        state0 : dict, optional
+            From :meth:`init` (default ``init()``).
+
+        Returns
+        -------
+        GuardedResult
+        """
+        sys_ = self.model
+        n, m, r, p = sys_.n, sys_.m, sys_.r, sys_.p
+        t_, U, Y = as_record(t, u, y, m, r)
+        U, Y = np.ascontiguousarray(U), np.ascontiguousarray(Y)
+        st0 = self.init() if state0 is None else state0
+        res1 = self.stage1.run(t_, U, Y, state0=st0["stage1"])
+        thG, xG = _stage1_estimates(self.stage1, res1)
+        thG, xG = np.array(thG, order="C"), np.array(xG, order="C")     # writable copies
+        N = t_.shape[0]
+        estimate_sigma = self.noise_std is None
+        k_first = MIN_SAMPLES if estimate_sigma else 0
+        sigma = resolve_noise_std(self.noise_std, Y[:max(k_first, MIN_SAMPLES)])
+        R = np.diag(sigma ** 2)
+        s, P0 = self._ekf().prior(st0["x_hat0"], st0["theta_hat0"])
+        P = P0.copy()
+        lo, hi = theta_box(sys_)
+        out = {name: np.empty((N, w)) for name, w in
+               (("TH", p), ("TH2", p), ("X2", n), ("SD2", p), ("BAND", p))}
+        CLIP, RESET, NIS = np.zeros(N, bool), np.zeros(N, bool), np.full(N, np.nan)
+        pst = progress_init(thG[0])
+        gst = np.array([0.0, 1.0, float(k_first)])
+        cfg = np.concatenate([[self.kappa, self.c, self.rho_max,
+                               self.dwell / float(np.median(np.diff(t_)))],
+                              np.sqrt(np.diag(P0)[n:])])
+        loop = self._loop()
+        sched = self.fit_schedule
+        fits: list[FitResult] = []
+        fit_at: list[int] = []
+        prior0 = (sched.initial_prior(st0["x_hat0"], st0["theta_hat0"]) if sched else None)
+        k = 0
+        j = 0
+        while k < N:
+            k_next = N
+            if estimate_sigma:                  # σ̂ from MIN_SAMPLES, refined at 32
+                if k in (MIN_SAMPLES, SIGMA_SAMPLES):
+                    sigma = resolve_noise_std(None, Y[:k])
+                    R = np.diag(sigma ** 2)
+                if k < SIGMA_SAMPLES:
+                    k_next = MIN_SAMPLES if k < MIN_SAMPLES else SIGMA_SAMPLES
+            if sched is not None:
+                while sched.times(j) <= t_[k] - t_[0]:
+                    j += 1
+                k_fit = int(np.searchsorted(t_ - t_[0], sched.times(j) + 1e-12, side="right"))
+                k_next = min(k_fit, N, k_next)
+            loop(s, P, P0, U, Y, t_, k, k_next, 0, R, lo, hi, self.h_rho, self.q_x, thG, xG,
+                 pst, gst, cfg, out["TH"], out["TH2"], out["X2"], out["SD2"], out["BAND"],
+                 CLIP, RESET, NIS)
+            due = sched is not None and k_next == k_fit
+            if due and MIN_SAMPLES <= k_next < N:
+                fit = sched.fit(t_, U, Y, k_next, fits[-1] if fits else None, prior0)
+                fits.append(fit)
+                fit_at.append(k_next - 1)
+                if fit.consistent:
+                    # the fit ends at this very sample: take (x, θ) and their joint covariance
+                    s[:n], s[n:] = fit.x_end, fit.theta
+                    P[:, :] = fit.cov_end
+                    sigma = fit.noise_std
+                    R = np.diag(sigma ** 2)
+            if due:
+                j += 1
+            k = k_next
+        if not np.all(np.isfinite(out["TH"])):
+            raise NonFiniteError("the guarded output became non-finite: stage 1 diverged "
+                                 "(check its gains and the data scaling).")
+        return GuardedResult(t=t_, theta_hat=out["TH"], x_hat=out["X2"], theta_stage1=thG,
+                             theta_stage2=out["TH2"], theta_sd=out["SD2"], band=out["BAND"],
+                             clipped=CLIP, reset=RESET, nis=NIS, fits=tuple(fits),
+                             fit_samples=np.array(fit_at, dtype=np.int64), noise_std=sigma)
+
+    # ------------------------------------------------------------------ streaming
+    def step(self, state: dict[str, Any], u: Any, y: Any, dt: float) -> dict[str, Any]:
+        """Process the current samples (u, y) and advance stage 1 by ``dt``; never waits.
+
+        Parameters
+        ----------
+        state : dict
+            From :meth:`init` or the previous ``step``. States of one stream share its data
+            log and fit worker: step each state once, in order.
+        u : array_like (m,)
+        y : array_like (r,); NaN: no measurement update.
+        dt : float
+            Time to the next sample, > 0.
+
+        Returns
+        -------
+        dict
+            The next state, with the estimates at the current sample: ``theta_hat`` (p,),
+            ``x_hat`` (n,), ``theta_stage1``, ``theta_stage2``, ``band``, ``clipped``,
+            ``reset``, ``fits`` (the number applied so far).
+        """
+        sys_ = self.model
+        n, m, r, p = sys_.n, sys_.m, sys_.r, sys_.p
+        u_ = np.zeros(0) if u is None else np.asarray(u, dtype=np.float64).reshape(m)
+        y_ = np.asarray(y, dtype=np.float64).reshape(r)
+        h = float(dt)
+        if not h > 0 or not np.isfinite(h):
+            raise DimensionError(f"dt must be finite and > 0; got {dt!r}.")
+        if not np.all(np.isfinite(u_)):
+            raise NonFiniteError("u contains NaN or inf; clean the input sample.")
+        sh = state.get("shared") or _Stream.start(self, state)
+        k = sh.k
+        est1 = self.stage1.estimate(state["stage1"], u_, y_) if hasattr(
+            self.stage1, "estimate") else None
+        if est1 is None:                       # a CompiledObserver: read θ̂ from its state
+            est1 = self.stage1.observer.estimate(state["stage1"], u_, y_)
+        thG = np.asarray(est1.theta_hat, dtype=np.float64).reshape(1, p)
+        xs = est1.x_hat_refined if est1.x_hat_refined is not None else est1.x_hat
+        xG = np.asarray(xs, dtype=np.float64).reshape(1, n)
+        if k == 0:
+            sh.configure(self, h)
+        sh.record(k, u_, y_, h)
+        sh.poll_fit()
+        k0 = 0 if k == 0 else 1
+        U2 = np.vstack([sh.u_prev, u_]) if k else u_.reshape(1, m)
+        Y2 = np.vstack([np.full(r, np.nan), y_]) if k else y_.reshape(1, r)
+        tt = np.array([0.0, sh.dt_prev]) if k else np.zeros(1)
+        TH2 = np.broadcast_to(thG, (2, p)).copy() if k else thG.copy()
+        XG2 = np.broadcast_to(xG, (2, n)).copy() if k else xG.copy()
+        rows = k0 + 1
+        o = {name: np.zeros((rows, w)) for name, w in
+             (("TH", p), ("TH2", p), ("X2", n), ("SD2", p), ("BAND", p))}
+        clip, rst, nis = np.zeros(rows, bool), np.zeros(rows, bool), np.zeros(rows)
+        if k == 0:
+            sh.pst = progress_init(thG[0])
+        self._loop()(sh.s, sh.P, sh.P0, U2, Y2, tt, k0, k0 + 1, k - k0, sh.R, sh.lo, sh.hi,
+                     self.h_rho, self.q_x, TH2, XG2, sh.pst, sh.gst, sh.cfg, o["TH"],
+                     o["TH2"], o["X2"], o["SD2"], o["BAND"], clip, rst, nis)
+        step1 = self.stage1.step
+        s1 = (step1(state["stage1"], u_, y_, h) if not hasattr(self.stage1, "dt")
+              else step1(state["stage1"], u_, y_))
+        sh.refresh_sigma(k)
+        sh.u_prev, sh.dt_prev, sh.k = u_, h, k + 1
+        sh.maybe_submit(self)
+        return {"stage1": s1, "shared": sh, "x_hat0": state["x_hat0"],
+                "theta_hat0": state["theta_hat0"], "theta_hat": o["TH"][k0].copy(),
+                "x_hat": o["X2"][k0].copy(), "theta_stage1": thG[0].copy(),
+                "theta_stage2": o["TH2"][k0].copy(), "band": o["BAND"][k0].copy(),
+                "clipped": bool(clip[k0]), "reset": bool(rst[k0]), "fits": len(sh.fits)}
+
+    def __repr__(self) -> str:
+        return (f"GuardedEstimator(stage1={type(self.stage1).__name__}, n={self.model.n}, "
+                f"p={self.model.p}, fits={'on' if self.use_fits else 'off'})")
+
+
+_LOOPS: dict[Any, Any] = {}
+
+#: The single worker thread that runs streaming fits (shared by all streams).
+_EXECUTOR: concurrent.futures.ThreadPoolExecutor | None = None
+
+
+def _executor() -> concurrent.futures.ThreadPoolExecutor:
+    global _EXECUTOR
+    if _EXECUTOR is None:
+        _EXECUTOR = concurrent.futures.ThreadPoolExecutor(max_workers=1,
+                                                          thread_name_prefix="thetahat-fit")
+    return _EXECUTOR
+
+
+class _Stream:
+    """The data log, stage 2's (s, P) and the pending fit of one streaming run."""
+
+    def __init__(self, est: GuardedEstimator, state: dict[str, Any]) -> None:
+        sys_ = est.model
+        n = sys_.n
+        self.k = 0
+        self.s, self.P0 = est._ekf().prior(state["x_hat0"], state["theta_hat0"])
+        self.P = self.P0.copy()
+        self.lo, self.hi = theta_box(sys_)
+        given = est.noise_std is not None
+        self.R = (np.diag(resolve_noise_std(est.noise_std, np.zeros((1, sys_.r))) ** 2)
+                  if given else np.eye(sys_.r))
+        self.gst = np.array([0.0, 1.0, 0.0 if given else float(MIN_SAMPLES)])
+        self.cfg = np.array([])
+        self.pst = np.zeros((sys_.p, 6))
+        self.u_prev = np.zeros(sys_.m)
+        self.dt_prev = 0.0
+        self.t: list[float] = []
+        self.u: list[FloatArray] = []
+        self.y: list[FloatArray] = []
+        self.base = 0                            # absolute index of the log's first sample
+        self.fits: list[FitResult] = []
+        self.future: concurrent.futures.Future[FitResult] | None = None
+        self.j = 0
+        self.sched = est.fit_schedule
+        self.prior0 = (self.sched.initial_prior(state["x_hat0"], state["theta_hat0"])
+                       if self.sched else None)
+        self._n = n
+
+    @classmethod
+    def start(cls, est: GuardedEstimator, state: dict[str, Any]) -> _Stream:
+        sh = cls(est, state)
+        return sh
+
+    def record(self, k: int, u: FloatArray, y: FloatArray, dt: float) -> None:
+        t = 0.0 if k == 0 else self.t[-1] + self.dt_prev
+        self.t.append(t)
+        self.u.append(u.copy())
+        self.y.append(y.copy())
+
+    def refresh_sigma(self, k: int) -> None:
+        """σ̂ from the samples so far, after sample k = MIN_SAMPLES − 1 and SIGMA_SAMPLES − 1
+        (as :meth:`GuardedEstimator.run` does), when σ is estimated."""
+        if k + 1 in (MIN_SAMPLES, SIGMA_SAMPLES) and self.gst[2] > 0:
+            self.R = np.diag(resolve_noise_std(None, np.array(self.y)) ** 2)
+
+    def configure(self, est: GuardedEstimator, dt: float) -> None:
+        n = self._n
+        self.cfg = np.concatenate([[est.kappa, est.c, est.rho_max, est.dwell / dt],
+                                   np.sqrt(np.diag(self.P0)[n:])])
+
+    def poll_fit(self) -> None:
+        f = self.future
+        if f is None or not f.done():
+            return
+        self.future = None
+        fit = f.result()
+        n = self._n
+        self.fits.append(fit)
+        if fit.consistent:                      # θ only: x has moved on since the fit
+            self.s[n:] = fit.theta
+            self.P[n:, :] = 0.0
+            self.P[:, n:] = 0.0
+            self.P[n:, n:] = fit.cov[n:, n:]
+            self.R = np.diag(fit.noise_std ** 2)
+        if fit.k0 > 0 or (self.sched is not None and self.t[fit.k1 - 1 - self.base]
+                          > self.sched.full_window):
+            self._trim(fit.k1 - 1)
+
+    def _trim(self, new_base: int) -> None:
+        cut = new_base - self.base
+        if cut > 0:
+            del self.t[:cut], self.u[:cut], self.y[:cut]
+            self.base = new_base
+
+    def maybe_submit(self, est: GuardedEstimator) -> None:
+        sched = self.sched
+        if sched is None or self.future is not None:
+            return
+        if self.t[-1] < sched.times(self.j) - 1e-12 or self.k < MIN_SAMPLES:
+            return
+        while sched.times(self.j) <= self.t[-1] + 1e-12:
+            self.j += 1
+        b = self.base
+        t = np.array(self.t)
+        U = np.array(self.u).reshape(len(self.u), -1)
+        Y = np.array(self.y).reshape(len(self.y), -1)
+        prev = self.fits[-1] if self.fits else None
+        if prev is not None:
+            prev = dataclasses.replace(prev, k0=max(prev.k0 - b, 0), k1=prev.k1 - b)
+        elapsed = float(t[-1])
+        k1 = t.shape[0]
+        prior0 = self.prior0
+
+        def job() -> FitResult:
+            fit = sched.fit(t, U, Y, k1, prev, prior0, elapsed=elapsed)
+            return dataclasses.replace(fit, k0=fit.k0 + b, k1=fit.k1 + b)
+
+        self.future = _executor().submit(job)

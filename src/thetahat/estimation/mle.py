@@ -1,0 +1,518 @@
+"""Stage 2's re-anchoring: the MAP / maximum-likelihood fit of (x(t₀), θ) by Gauss–Newton.
+
+On a window of samples k₀ … k₁ the fit minimises over q = col(x(t_{k₀}), θ)
+
+    J(q) = Σ_k ‖y_k − C x_k(q)‖²_{R⁻¹} + (q − q̄)ᵀ Π⁻¹ (q − q̄),
+
+x_k(q) from the sampled-data map of :mod:`~thetahat.estimation.model_kernel`, with the
+sensitivities ψ_k = C ∂x_k/∂q chained through the same map's exact Jacobians (Φ, Γ):
+(Σ ψᵀR⁻¹ψ + Π⁻¹) Δ = Σ ψᵀR⁻¹ r − Π⁻¹(q − q̄), solved after Jacobi scaling by a symmetric
+eigendecomposition (directions the data and the prior do not determine are left alone); the
+step is halved until J decreases; θ is clipped to Θ; the iteration stops when |Δθ| falls
+below :data:`STEP_TOL` standard errors or after ``max_iter`` iterations.
+
+:class:`FitSchedule` runs fits at scheduled times (t = 0.08·2ʲ s by default). While the fit
+time is at most ``full_window`` it refits all data from t = 0 (warm-started; prior q̄ =
+(x̂(0), θ̂(0)), Π from Θ and a wide x(0)); later fits use the block since the previous fit
+with the previous fit's θ and its marginal covariance as the prior on θ — the arrival cost,
+which summarises the older data — and a wide prior on x at the block's start centred at the
+previous fit's end state, so the cost per sample stays bounded on long records. (Dropping the
+older data's information on x is conservative; for models that forget x(t₀) quickly, such as
+LuGre within milliseconds, it is negligible.)
+"""
+
+from __future__ import annotations
+
+import functools
+import math
+from dataclasses import dataclass
+from typing import Any, Callable
+
+import numpy as np
+from numpy.typing import NDArray
+
+from ..model.system import PerturbedLinearSystem
+from .ekf import resolve_noise_std, theta_box, theta_prior_sd
+from .noise_level import MIN_SAMPLES
+from .model_kernel import H_RHO, ModelKernel, jit, model_kernel
+
+__all__ = ["FitResult", "fit_map", "FitSchedule", "doubling_schedule", "dense_schedule",
+           "MapEstimator", "MapResult", "STEP_TOL", "X_PRIOR_SD"]
+
+FloatArray = NDArray[np.float64]
+
+#: The iteration stops once the θ step is below this many standard errors of θ.
+STEP_TOL = 0.02
+#: Default prior standard deviation of x(0) (wide: the data determine x(0)).
+X_PRIOR_SD = 10.0
+#: Halvings of the Gauss–Newton step before the fit gives up improving.
+MAX_HALVINGS = 10
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class FitResult:
+    """One MAP fit on samples k0 … k1 − 1.
+
+    Attributes
+    ----------
+    k0, k1 : int
+        The window (sample indices, k1 exclusive).
+    x_start, x_end : ndarray (n,)
+        Fitted x at the first and the last sample of the window.
+    theta : ndarray (p,)
+    cov : ndarray (n + p, n + p)
+        Inverse of the Gauss–Newton information of (x_start, θ) (the Laplace covariance).
+    cov_end : ndarray (n + p, n + p)
+        The same mapped to (x_end, θ).
+    cost : float
+        J at the optimum ÷ the number of scalar measurements (≈ 1 for a correct model).
+    iterations : int
+    noise_std : ndarray (r,)
+    n_meas : int
+        Scalar measurements in the window.
+    """
+
+    k0: int
+    k1: int
+    x_start: FloatArray
+    x_end: FloatArray
+    theta: FloatArray
+    cov: FloatArray
+    cov_end: FloatArray
+    cost: float
+    iterations: int
+    noise_std: FloatArray
+    n_meas: int = 1
+
+    @property
+    def consistent(self) -> bool:
+        """The cost per measurement is within 6 standard deviations of its χ² mean (1):
+        otherwise the fit is stuck or the model is wrong, and stage 2 does not take it."""
+        return bool(np.isfinite(self.cost) and self.cost <= 1.0 + 6.0 * math.sqrt(2.0 / max(
+            self.n_meas, 1)) and np.all(np.isfinite(self.cov_end)))
+
+    @property
+    def theta_se(self) -> FloatArray:
+        """Standard errors of θ, √diag of its covariance block."""
+        n = self.x_start.shape[0]
+        return np.sqrt(np.maximum(np.diag(self.cov)[n:], 0.0))
+
+    def __repr__(self) -> str:
+        return (f"FitResult(samples {self.k0}…{self.k1 - 1}, theta={self.theta}, "
+                f"se={self.theta_se}, cost={self.cost:.3g}, iterations={self.iterations})")
+
+
+def _make_sweep(model: ModelKernel) -> Callable[..., float]:
+    prop = model.propagate
+    C = model.C
+
+    def sweep(x0, th, U, Y, tt, k0, k1, skip0, Rinv, h_rho, want, A, b, T, X):
+        """Data cost over k0…k1−1 (k0 itself not if skip0) from x(k0) = x0; with want: A = Σψᵀ R⁻¹ψ, b = Σψᵀ R⁻¹ r,
+        T = ∂x_{k1−1}/∂q; X receives the trajectory."""
+        n = x0.shape[0]
+        p = th.shape[0]
+        r = C.shape[0]
+        nq = n + p
+        x = x0.copy()
+        S = np.zeros((n, nq))
+        for i in range(n):
+            S[i, i] = 1.0
+        Phi = np.empty((n, n))
+        Gam = np.empty((n, p))
+        Sn = np.empty((n, nq))
+        psi = np.empty((r, nq))
+        res = np.empty(r)
+        if want:
+            A[:, :] = 0.0
+            b[:] = 0.0
+        J = 0.0
+        for k in range(k0, k1):
+            if k > k0:
+                x = prop(x, th, U[k - 1], U[k], tt[k] - tt[k - 1], h_rho, want, Phi, Gam)
+                if want:
+                    for i in range(n):
+                        for j in range(nq):
+                            acc = Gam[i, j - n] if j >= n else 0.0
+                            for a in range(n):
+                                acc += Phi[i, a] * S[a, j]
+                            Sn[i, j] = acc
+                    S[:, :] = Sn
+            X[k - k0] = x
+            ok = True
+            for i in range(r):
+                acc = Y[k, i]
+                for a in range(n):
+                    acc -= C[i, a] * x[a]
+                res[i] = acc
+                if not math.isfinite(acc):
+                    ok = False
+            if not ok or (skip0 and k == k0):
+                continue
+            for i in range(r):
+                J += res[i] * res[i] * Rinv[i]
+            if want:
+                for i in range(r):
+                    for j in range(nq):
+                        acc = 0.0
+                        for a in range(n):
+                            acc += C[i, a] * S[a, j]
+                        psi[i, j] = acc
+                for j in range(nq):
+                    for i in range(r):
+                        b[j] += psi[i, j] * Rinv[i] * res[i]
+                    for l in range(j, nq):
+                        acc = 0.0
+                        for i in range(r):
+                            acc += psi[i, j] * Rinv[i] * psi[i, l]
+                        A[j, l] += acc
+        if want:
+            for j in range(nq):
+                for l in range(j):
+                    A[j, l] = A[l, j]
+            T[:, :] = S
+        return J
+
+    return jit(sweep, model.compiled)
+
+
+@functools.lru_cache(maxsize=16)
+def _sweep_for(model: ModelKernel) -> Callable[..., float]:
+    return _make_sweep(model)
+
+
+def _solve_scaled(M: FloatArray, g: FloatArray) -> tuple[FloatArray, FloatArray]:
+    """(M⁺ g, M⁺) for a symmetric PSD M, by Jacobi scaling and a symmetric eigendecomposition."""
+    d = np.sqrt(np.maximum(np.diag(M), 1e-300))
+    Ms = M / np.outer(d, d)
+    lam, V = np.linalg.eigh(Ms)
+    keep = lam > 1e-12 * max(lam[-1], 1e-300)
+    inv = (V[:, keep] / lam[keep]) @ V[:, keep].T
+    Minv = inv / np.outer(d, d)
+    return Minv @ g, Minv
+
+
+def fit_map(system: PerturbedLinearSystem, t: FloatArray, U: FloatArray, Y: FloatArray, *,
+            k0: int, k1: int, q_start: FloatArray, q_prior: FloatArray,
+            prior_info: FloatArray, noise_std: FloatArray, max_iter: int = 6,
+            skip_first: bool = False,
+            h_rho: float = H_RHO, compiled: bool | None = None) -> FitResult:
+    """One Gauss–Newton MAP fit of q = col(x(t_{k0}), θ) on samples k0 … k1 − 1.
+
+    Parameters
+    ----------
+    system : PerturbedLinearSystem
+    t, U, Y : ndarray, shapes (N,), (N, m), (N, r)
+        The record (validated by the caller); NaN in Y marks missing samples.
+    k0, k1 : int
+        The window.
+    q_start : ndarray (n + p,)
+        Starting point (warm start).
+    q_prior, prior_info : ndarray (n + p,), (n + p, n + p)
+        The prior mean q̄ and information Π⁻¹ (the arrival cost).
+    noise_std : ndarray (r,)
+    max_iter : int
+    skip_first : bool
+        Leave y_{k0} out (it is already summarised by the arrival cost).
+    h_rho : float
+    compiled : bool, optional
+
+    Returns
+    -------
+    FitResult
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from thetahat.models import lugre
+    >>> from thetahat.estimation.mle import fit_map
+    >>> sys_ = lugre.system()
+    >>> d = lugre.simulate(seed=0, t_end=0.3)
+    >>> U, Y = np.array(d.u), np.array(d.y)
+    >>> fit = fit_map(sys_, d.t, U, Y, k0=0, k1=301, q_start=np.array([0.0, 0.0, 0.5]),
+    ...               q_prior=np.array([0.0, 0.0, 0.5]),
+    ...               prior_info=np.diag([1e-2, 1e-2, 1 / 0.2375 ** 2]),
+    ...               noise_std=np.array([0.02]), max_iter=20, compiled=False)
+    >>> bool(abs(fit.theta[0] - 0.28) < 3 * fit.theta_se[0] + 1e-3)
+    True
+    """
+    model = model_kernel(system, compiled=compiled)
+    sweep = _sweep_for(model)
+    n, p = system.n, system.p
+    nq = n + p
+    lo, hi = theta_box(system)
+    Rinv = 1.0 / noise_std ** 2
+    A, b, T = np.empty((nq, nq)), np.empty(nq), np.empty((n, nq))
+    X = np.empty((k1 - k0, n))
+    tt = np.ascontiguousarray(t, dtype=np.float64)
+
+    def total(q: FloatArray, want: bool) -> float:
+        d = q - q_prior
+        Jd = sweep(q[:n].copy(), q[n:].copy(), U, Y, tt, k0, k1, skip_first, Rinv, h_rho, want, A, b, T, X)
+        return Jd + float(d @ prior_info @ d)
+
+    q = q_start.copy()
+    q[n:] = np.clip(q[n:], lo, hi)
+    iterations = 0
+    J = total(q, True)
+    Minv = np.zeros((nq, nq))
+    for it in range(max_iter):
+        iterations = it + 1
+        M = A + prior_info
+        g = b - prior_info @ (q - q_prior)
+        delta, Minv = _solve_scaled(M, g)
+        se = np.sqrt(np.maximum(np.diag(Minv)[n:], 1e-300))
+        step, accepted = 1.0, False
+        for _ in range(MAX_HALVINGS):
+            q_new = q + step * delta
+            q_new[n:] = np.clip(q_new[n:], lo, hi)
+            J_new = total(q_new, False)
+            if math.isfinite(J_new) and J_new <= J:
+                accepted = True
+                break
+            step *= 0.5
+        if not accepted:
+            break
+        moved = np.abs(q_new[n:] - q[n:])
+        q = q_new
+        J = total(q, True)                      # A, b, T, X at the new point
+        if np.all(moved < STEP_TOL * se):
+            break
+    M = A + prior_info
+    _, Minv = _solve_scaled(M, b)
+    x_end = X[-1].copy()
+    Tq = np.zeros((nq, nq))
+    Tq[:n] = T
+    Tq[n:, n:] = np.eye(p)
+    cov_end = Tq @ Minv @ Tq.T
+    n_meas = max(int(np.isfinite(Y[k0:k1]).sum()), 1)
+    return FitResult(k0=k0, k1=k1, x_start=q[:n].copy(), x_end=x_end, theta=q[n:].copy(),
+                     cov=Minv, cov_end=0.5 * (cov_end + cov_end.T),
+                     cost=float(J) / n_meas, iterations=iterations, noise_std=noise_std,
+                     n_meas=n_meas)
+
+
+def doubling_schedule(first: float = 0.08, cap: float = 12.8) -> Callable[[int], float]:
+    """Fit times first·2ʲ until ``cap``, then every ``cap`` seconds: j ↦ t_j."""
+    def at(j: int) -> float:
+        t = first * 2.0 ** j
+        if t <= cap:
+            return t
+        jc = int(math.floor(math.log2(cap / first) + 1e-9))
+        return first * 2.0 ** jc + (j - jc) * cap
+    return at
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class FitSchedule:
+    """When and on which window the MAP fits run (see the module docstring).
+
+    Parameters
+    ----------
+    system : PerturbedLinearSystem
+    times : callable j ↦ t_j
+        The fit times (increasing); default :func:`doubling_schedule` (0.08·2ʲ s).
+    full_window : float
+        Fits at t ≤ ``full_window`` refit all data; later ones use blocks with arrival cost.
+    x_sd : float
+        Prior standard deviation of x(0).
+    noise_std : optional
+        σ; default estimated from the window's data.
+    max_iter, first_max_iter : int
+        Gauss–Newton iterations (the first fit starts cold and may need more).
+    h_rho : float
+    compiled : bool, optional
+    """
+
+    system: PerturbedLinearSystem
+    times: Callable[[int], float] = doubling_schedule()
+    full_window: float = 1.6
+    x_sd: float = X_PRIOR_SD
+    noise_std: Any = None
+    max_iter: int = 6
+    first_max_iter: int = 25
+    h_rho: float = H_RHO
+    compiled: bool | None = None
+
+    def initial_prior(self, x_hat0: FloatArray, theta_hat0: FloatArray
+                      ) -> tuple[FloatArray, FloatArray]:
+        """(q̄, Π⁻¹) at t = 0: (x̂(0), θ̂(0)) with sd (x_sd, |Θ|/4)."""
+        n = self.system.n
+        sd = np.concatenate([np.full(n, float(self.x_sd)), theta_prior_sd(self.system)])
+        return np.concatenate([x_hat0, theta_hat0]), np.diag(1.0 / sd ** 2)
+
+    def fit(self, t: FloatArray, U: FloatArray, Y: FloatArray, k1: int,
+            previous: FitResult | None, prior0: tuple[FloatArray, FloatArray],
+            elapsed: float | None = None) -> FitResult:
+        """The fit due when sample k1 − 1 has arrived, warm-started from ``previous``.
+
+        ``elapsed`` is the time since the start of the experiment (default t[k1−1] − t[0];
+        a streaming caller that trimmed old samples from ``t`` passes it).
+        """
+        n = self.system.n
+        el = float(t[k1 - 1] - t[0]) if elapsed is None else float(elapsed)
+        full = previous is None or el <= self.full_window + 1e-12
+        if full:
+            k0 = 0
+            q_prior, info = prior0
+            q_start = (q_prior.copy() if previous is None
+                       else np.concatenate([previous.x_start, previous.theta]))
+        else:
+            k0 = previous.k1 - 1                 # the block starts where the last one ended
+            q_prior = np.concatenate([previous.x_end, previous.theta])
+            # arrival cost: θ's marginal from the older data; x at the block start stays wide
+            # (its covariance given θ is nearly singular for a model without process noise,
+            # and the data of the block determine it)
+            _, info_th = _solve_scaled(previous.cov[n:, n:], np.zeros(self.system.p))
+            info = np.zeros((n + self.system.p, n + self.system.p))
+            info[:n, :n] = np.eye(n) / float(self.x_sd) ** 2
+            info[n:, n:] = info_th
+            q_start = q_prior.copy()
+        sigma = resolve_noise_std(self.noise_std, Y[:k1] if full else Y[k0:k1])
+        return fit_map(self.system, t, U, Y, k0=k0, k1=k1, q_start=q_start, q_prior=q_prior,
+                       prior_info=info, noise_std=sigma, skip_first=not full,
+                       max_iter=self.first_max_iter if previous is None else self.max_iter,
+                       h_rho=self.h_rho, compiled=self.compiled)
+
+
+def dense_schedule(j: int) -> float:
+    """The offline schedule: every 10 ms to 0.1 s, every 0.1 s to 1 s, then every second."""
+    if j < 10:
+        return 0.01 * (j + 1)
+    if j < 19:
+        return 0.1 * (j - 8)
+    return 1.0 + (j - 18)
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class MapResult:
+    """Estimates of :class:`MapEstimator` (method "mle").
+
+    Attributes
+    ----------
+    t : ndarray (N,)
+    theta_hat : ndarray (N, p)
+        The latest fit's θ at each sample (θ̂(0) before the first fit).
+    theta_sd : ndarray (N, p)
+        Its standard error (the prior's before the first fit).
+    x_hat : ndarray (N, n)
+        The model's prediction from the latest fit's end state and θ (causal; from x̂(0),
+        θ̂(0) before the first fit).
+    fits : tuple of FitResult
+    fit_samples : ndarray of int
+        The sample at which each fit's window ends.
+    """
+
+    t: FloatArray
+    theta_hat: FloatArray
+    theta_sd: FloatArray
+    x_hat: FloatArray
+    fits: tuple[FitResult, ...]
+    fit_samples: NDArray[np.int64]
+
+    @property
+    def fit_cost(self) -> FloatArray:
+        return np.array([f.cost for f in self.fits])
+
+    def __repr__(self) -> str:
+        return (f"MapResult(N={self.t.shape[0]}, theta_hat[-1]={self.theta_hat[-1]}, "
+                f"fits={len(self.fits)})")
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class MapEstimator:
+    """Offline estimation by MAP fits alone on a schedule (method ``"mle"``).
+
+    Parameters
+    ----------
+    system : PerturbedLinearSystem
+    schedule : FitSchedule, optional
+        Default: :func:`dense_schedule` with refits of all data up to 1 s.
+    noise_std : optional
+    compiled : bool, optional
+
+    Examples
+    --------
+    >>> from thetahat.models import lugre
+    >>> from thetahat.estimation.mle import MapEstimator
+    >>> data = lugre.simulate(seed=0, t_end=0.2)
+    >>> est = MapEstimator(system=lugre.system(), compiled=False)
+    >>> res = est.run(data.t, data.u, data.y, state0=est.init(theta_hat0=[0.5]))
+    >>> bool(abs(res.theta_hat[-1, 0] - 0.28) < 0.01)
+    True
+    """
+
+    system: PerturbedLinearSystem
+    schedule: FitSchedule | None = None
+    noise_std: Any = None
+    compiled: bool | None = None
+
+    def _schedule(self) -> FitSchedule:
+        if self.schedule is not None:
+            return self.schedule
+        return FitSchedule(system=self.system, times=dense_schedule, full_window=1.0,
+                           noise_std=self.noise_std, compiled=self.compiled)
+
+    def init(self, x_hat0: Any = None, theta_hat0: Any = None) -> dict[str, Any]:
+        """{"x_hat0", "theta_hat0"} (θ̂₀ in Θ, default the centre of Θ)."""
+        from .._validate import as_vector
+        lo, hi = theta_box(self.system)
+        th0 = 0.5 * (lo + hi) if theta_hat0 is None else as_vector("theta_hat0", theta_hat0,
+                                                                   self.system.p)
+        if np.any(th0 < lo) or np.any(th0 > hi):
+            from ..errors import ParameterSetError
+            raise ParameterSetError(f"theta_hat0 = {th0} lies outside Θ = [{lo}, {hi}].")
+        x0 = (np.zeros(self.system.n) if x_hat0 is None
+              else as_vector("x_hat0", x_hat0, self.system.n))
+        return {"x_hat0": x0, "theta_hat0": th0}
+
+    def run(self, t: Any, u: Any, y: Any, *, state0: dict[str, Any] | None = None
+            ) -> MapResult:
+        """Fit on the schedule over a record; θ̂ between fits is the latest fit's."""
+        from .ekf import as_record
+        sys_ = self.system
+        t_, U, Y = as_record(t, u, y, sys_.m, sys_.r)
+        U, Y = np.ascontiguousarray(U), np.ascontiguousarray(Y)
+        st0 = self.init() if state0 is None else state0
+        sched = self._schedule()
+        prior0 = sched.initial_prior(st0["x_hat0"], st0["theta_hat0"])
+        N, p = t_.shape[0], sys_.p
+        TH = np.empty((N, p))
+        SD = np.empty((N, p))
+        TH[:] = st0["theta_hat0"]
+        SD[:] = theta_prior_sd(sys_)
+        fits: list[FitResult] = []
+        ends: list[int] = []
+        j = 0
+        while True:
+            if sched.times(j) > t_[-1] - t_[0] + 1e-12:
+                break
+            k1 = int(np.searchsorted(t_ - t_[0], sched.times(j) + 1e-12, side="right"))
+            if k1 >= (3 if self.noise_std is not None else MIN_SAMPLES):
+                fit = sched.fit(t_, U, Y, k1, fits[-1] if fits else None, prior0)
+                fits.append(fit)
+                ends.append(k1 - 1)
+                TH[k1 - 1:] = fit.theta
+                SD[k1 - 1:] = fit.theta_se
+            j += 1
+        X = self._predictions(t_, U, Y, st0, fits, ends)
+        return MapResult(t=t_, theta_hat=TH, theta_sd=SD, x_hat=X, fits=tuple(fits),
+                         fit_samples=np.array(ends, dtype=np.int64))
+
+    def _predictions(self, t: FloatArray, U: FloatArray, Y: FloatArray, st0: dict[str, Any],
+                     fits: list[FitResult], ends: list[int]) -> FloatArray:
+        """x̂ between fits: the model run from each fit's end state with its θ."""
+        sys_ = self.system
+        n, p, N = sys_.n, sys_.p, t.shape[0]
+        sweep = _sweep_for(model_kernel(sys_, compiled=self.compiled))
+        X = np.empty((N, n))
+        starts = [0] + ends
+        anchors = [(st0["x_hat0"], st0["theta_hat0"])] + [(f.x_end, f.theta) for f in fits]
+        A, b, T = np.empty((n + p, n + p)), np.empty(n + p), np.empty((n, n + p))
+        Rinv = np.ones(sys_.r)
+        for i, (k0, (x0, th)) in enumerate(zip(starts, anchors)):
+            k1 = starts[i + 1] + 1 if i + 1 < len(starts) else N
+            seg = np.empty((k1 - k0, n))
+            sweep(np.array(x0, dtype=np.float64), np.array(th, dtype=np.float64), U, Y, t, k0,
+                  k1, False, Rinv, self._schedule().h_rho, False, A, b, T, seg)
+            X[k0:k1] = seg
+        return X

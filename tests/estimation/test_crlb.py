@@ -1,0 +1,74 @@
+"""thetahat.crlb: sensitivities against finite differences, and the bound against an EKF."""
+
+from __future__ import annotations
+
+import dataclasses
+import numpy as np
+import pytest
+
+from thetahat import DimensionError, crlb
+from thetahat.estimation.ekf import JointEKF
+from thetahat.models import lugre
+
+P = lugre.LuGreParameters()
+#: Relative agreement of ∂ω/∂θ with central differences of the independent plant simulation
+#: (lugre.simulate: analytic input, true |ω|): the bound sees u linear between 1 kHz samples
+#: (relative effect ~3e-4 measured) and the differences have O(δθ²) truncation error
+#: (~1e-4 at δθ = 1e-4 θ); 2e-3 leaves a margin of ~4.
+SENSITIVITY_RTOL = 2e-3
+#: √(P_θθ of an EKF with the exact model, x(0) known, θ at its true value) ÷ √CRLB: the EKF
+#: propagates the inverse information of the linearised problem; its RK4 map and the noisy
+#: linearisation points differ from the bound's noise-free trajectory by ~0.3 % at 1 s.
+EKF_RATIO_TOL = 0.02
+
+
+@pytest.fixture(scope="module")
+def record():
+    return lugre.simulate(seed=0, t_end=1.0)
+
+
+@pytest.fixture(scope="module")
+def bound(record):
+    return crlb(lugre.system(), record.t, record.u, theta=[P.alpha0], noise_std=0.02)
+
+
+def test_sensitivity_matches_central_differences_of_the_plant(record, bound):
+    d = 1e-4 * P.alpha0
+
+    def omega(theta):
+        p = dataclasses.replace(P, alpha0=theta)
+        return lugre.simulate(0, t_end=1.0, noise_std=0.0, params=p).y_clean[:, 0]
+
+    s_fd = (omega(P.alpha0 + d) - omega(P.alpha0 - d)) / (2 * d)
+    s = bound.sensitivity[:, 0, 0]
+    assert np.max(np.abs(s - s_fd)) < SENSITIVITY_RTOL * np.max(np.abs(s_fd))
+
+
+def test_bound_shrinks_and_unknown_x0_costs_information(record, bound):
+    sd = bound.std[:, 0]
+    finite = np.isfinite(sd)
+    assert finite[-1] and np.all(np.diff(sd[finite]) <= 1e-15)
+    unknown = crlb(lugre.system(), record.t, record.u, theta=[P.alpha0], noise_std=0.02,
+                   x0_known=False)
+    assert np.all(unknown.std[finite, 0] >= sd[finite] * (1 - 1e-9))
+    assert not unknown.x0_known and unknown.sensitivity.shape == (record.t.size, 1, 3)
+
+
+def test_bound_scales_with_the_noise_level(record, bound):
+    half = crlb(lugre.system(), record.t, record.u, theta=[P.alpha0], noise_std=0.01)
+    assert half.std[-1, 0] == pytest.approx(0.5 * bound.std[-1, 0], rel=1e-9)
+
+
+def test_bound_equals_the_covariance_of_an_exact_ekf(record, bound):
+    ekf = JointEKF(system=lugre.system(), noise_std=0.02, compiled=False)
+    s0, P0 = ekf.prior(x_hat0=[0.0, 0.0], theta_hat0=[P.alpha0])
+    P0[0, 0] = P0[1, 1] = 1e-18
+    res = ekf.run(record.t, record.u, record.y, x_hat0=[0.0, 0.0], theta_hat0=[P.alpha0],
+                  P0=P0)
+    assert res.theta_sd[-1, 0] / bound.std[-1, 0] == pytest.approx(1.0, abs=EKF_RATIO_TOL)
+    assert bound.time_to(0.01, [P.alpha0]) < 1.0
+
+
+def test_bad_noise_level_is_refused(record):
+    with pytest.raises(DimensionError, match="noise_std"):
+        crlb(lugre.system(), record.t, record.u, theta=[P.alpha0], noise_std=0.0)

@@ -1,0 +1,77 @@
+"""Stage 2's model kernels: f against the system's parts, the RK4 map's Jacobians against
+finite differences, the sub-step rule's spectral-radius bound, and the compiled path."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from thetahat.estimation.ekf import JointEKF
+from thetahat.estimation.model_kernel import model_kernel, spectral_radius_bound
+from thetahat.models import lugre
+
+#: Central differences with step 1e-6 (relative) of a smooth map: truncation ~1e-12 and
+#: rounding ~1e-16/1e-6 = 1e-10 relative; 1e-6 leaves a wide margin.
+FD_RTOL = 1e-6
+
+
+@pytest.fixture(scope="module")
+def kern():
+    return model_kernel(lugre.system(), compiled=False)
+
+
+def test_f_is_the_system_with_y_equal_to_C_x(kern):
+    sys_ = lugre.system()
+    rng = np.random.default_rng(0)
+    for _ in range(5):
+        x = rng.normal(size=2) * [2.0, 1e-3]
+        u, th = rng.normal(size=1), [0.3]
+        v = np.concatenate([u, sys_.C @ x])
+        want = sys_.A @ x + sys_.B @ u + sys_.E @ sys_.perturbation.g(v, x, th)
+        np.testing.assert_allclose(kern.f(x, u, th), want, rtol=1e-12, atol=1e-9)
+
+
+@pytest.mark.parametrize("x", [[1.5, 1e-3], [-0.4, -5e-4], [0.003, 2e-4]])
+def test_rk4_map_jacobians_match_central_differences(kern, x):
+    x = np.array(x)
+    th, u0, u1 = np.array([0.28]), np.array([0.2]), np.array([0.25])
+    Phi, Gam = np.empty((2, 2)), np.empty((2, 1))
+    kern.propagate(x, th, u0, u1, 1e-3, 2.0, True, Phi, Gam)
+    scratch = (np.empty((2, 2)), np.empty((2, 1)))
+
+    def F(xx, tt):
+        return kern.propagate(np.array(xx), np.array(tt), u0, u1, 1e-3, 2.0, False, *scratch)
+
+    for j, h in enumerate(1e-6 * np.maximum(np.abs(x), [1e-3, 1e-6])):
+        e = np.zeros(2)
+        e[j] = h
+        fd = (F(x + e, th) - F(x - e, th)) / (2 * h)
+        np.testing.assert_allclose(Phi[:, j], fd, rtol=FD_RTOL, atol=FD_RTOL * np.abs(Phi).max())
+    d = 1e-6 * th[0]
+    fd = (F(x, th + d) - F(x, th - d)) / (2 * d)
+    np.testing.assert_allclose(Gam[:, 0], fd, rtol=FD_RTOL, atol=FD_RTOL * np.abs(Gam).max())
+
+
+def test_spectral_radius_bound_is_an_upper_bound_and_tight_on_triangular_lugre():
+    rng = np.random.default_rng(1)
+    for _ in range(50):
+        F = rng.normal(size=(4, 4)) * 10.0 ** rng.uniform(-3, 3, size=(4, 4))
+        rho = np.max(np.abs(np.linalg.eigvals(F)))
+        assert spectral_radius_bound(F) >= rho * (1 - 1e-12)
+    F = np.array([[-76.5, 8.06e5], [0.0, -3523.0]])   # LuGre at high speed (measured)
+    assert spectral_radius_bound(F) < 1.01 * 3523.0
+
+
+@pytest.mark.slow
+def test_compiled_kernels_agree_with_the_numpy_fallback():
+    pytest.importorskip("numba")
+    data = lugre.simulate(seed=2, t_end=0.5)
+    runs = [JointEKF(system=lugre.system(), compiled=c).run(data.t, data.u, data.y,
+                                                            theta_hat0=[1.0])
+            for c in (False, True)]
+    np.testing.assert_allclose(runs[1].theta_hat, runs[0].theta_hat, rtol=0, atol=1e-10)
+    est = [lugre.estimator("guarded", compiled=c) for c in (False, True)]
+    res = [e.run(data.t, data.u, data.y, state0=e.init(theta_hat0=[1.0])) for e in est]
+    # stage 1 differs by rounding (compiled vs Python observer), stage 2 and the fits by
+    # rounding; 1e-8 N m is 4e-8 of θ
+    np.testing.assert_allclose(res[1].theta_hat, res[0].theta_hat, rtol=0, atol=1e-8)
