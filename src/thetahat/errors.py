@@ -22,6 +22,8 @@ __all__ = [
     "UpdateLawError",
     "ModelFileError",
     "SimulationError",
+    "CodegenError",
+    "CCompilerError",
     "ThetahatWarning",
     "ConvergenceWarning",
     "IllConditionedWarning",
@@ -95,6 +97,14 @@ class ModelFileError(ThetahatError, ValueError):
 
 class SimulationError(ThetahatError, RuntimeError):
     """A numerical integration failed (the solver's message is included) or produced NaN/inf."""
+
+
+class CodegenError(ThetahatError, NotImplementedError):
+    """A part of the observer cannot be generated as C (the message names it and the fix)."""
+
+
+class CCompilerError(ThetahatError, RuntimeError):
+    """The C compiler is missing or rejected generated code (the message holds its output)."""
 
 
 class ThetahatWarning(UserWarning):

@@ -55,7 +55,7 @@ from sympy.printing.pycode import PythonCodePrinter
 from .._validate import as_vector, check_finite, positive_scalar
 from ..errors import DimensionError, NonFiniteError, ThetahatWarning, UpdateLawError
 from ..model.paramset import Box
-from ..model.perturbation import SymbolicPerturbation, _numpy_ready
+from ..model.perturbation import SymbolicPerturbation, heaviside_as_sign
 from .discretize import IMPLICITNESS
 from ._kernel_template import CORE
 from .observer import ModifiedHighGainObserver, ObserverResult
@@ -125,7 +125,7 @@ def _scalar_function(name: str, params: str, inputs: Sequence[tuple[str, Sequenc
     for template, M in outputs:
         for i in range(M.rows):
             for j in range(M.cols):
-                flat.append(_numpy_ready(sp.sympify(M[i, j])).xreplace(subs))
+                flat.append(heaviside_as_sign(sp.sympify(M[i, j])).xreplace(subs))
                 targets.append(template.format(i * M.cols + j))
     replacements, reduced = sp.cse(flat, symbols=sp.numbered_symbols("_c"))
     printer = _Printer()
@@ -366,7 +366,7 @@ def _check_theta_star(law: Any, exprs: tuple[sp.Expr, ...], args: tuple[sp.Symbo
                       pert: SymbolicPerturbation) -> None:
     """The user's θ* expression must agree with the law's θ* callable at random points."""
     n, m, r, p, _ = pert.dims
-    fn = sp.lambdify(args, [_numpy_ready(e) for e in exprs], "numpy")
+    fn = sp.lambdify(args, [heaviside_as_sign(e) for e in exprs], "numpy")
     rng = np.random.default_rng(0)
     th = law.parameter_set.sample(rng, THETA_STAR_SAMPLES)
     v = rng.standard_normal((THETA_STAR_SAMPLES, m + r))

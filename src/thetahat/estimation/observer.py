@@ -24,7 +24,7 @@ from .._validate import (as_matrix, as_time_grid, as_vector, check_finite, posit
                          readonly)
 from ..errors import DimensionError, NonFiniteError
 from ..model.system import PerturbedLinearSystem
-from .discretize import PlanCache, linearly_implicit_exponential_step
+from .discretize import PhiPlan, PlanCache, linearly_implicit_exponential_step
 from .redesign import SecondObserver
 from .update_laws import UpdateLaw
 
@@ -330,6 +330,30 @@ class ModifiedHighGainObserver:
         n, _, _, k, p, _ = self._sizes
         x2 = s[n + k + p:] if self.second is not None else None
         return s[:n], s[n:n + k], s[n + k:n + k + p], x2
+
+    def plan(self, dt: float, *, correct: bool = True) -> PhiPlan:
+        """The φ-matrices of the step's constant part for step length ``dt`` (cached).
+
+        Parameters
+        ----------
+        dt : float
+            Step length > 0.
+        correct : bool, default True
+            ``True``: of L = [[A − K_x C, E], [−K_φ C, 0]] (samples with y); ``False``: of
+            the prediction over a missing sample, L = [[A, E], [0, 0]] (see ``nan_policy``).
+
+        Returns
+        -------
+        PhiPlan
+            The plan ``step`` and ``run`` use (code generators read Φ₁ from it).
+
+        Examples
+        --------
+        >>> from thetahat.modelfile import EXAMPLE_MODEL, build_observer, loads_model
+        >>> build_observer(loads_model(EXAMPLE_MODEL)).plan(1e-3).Phi1.shape
+        (3, 3)
+        """
+        return (self._cache if correct else self._cache_open).get(positive_scalar("dt", dt))
 
     # ------------------------------------------------------------------ core
     def _forcing(self, s_xz: FloatArray, x: FloatArray, z: FloatArray, th: FloatArray,

@@ -20,7 +20,7 @@ from numpy.typing import NDArray
 from .._validate import as_matrix, as_vector, positive_scalar
 from ..errors import DimensionError
 from ..model.system import PerturbedLinearSystem
-from .discretize import PlanCache, linearly_implicit_exponential_step
+from .discretize import PhiPlan, PlanCache, linearly_implicit_exponential_step
 
 __all__ = ["SecondObserver"]
 
@@ -129,6 +129,33 @@ class SecondObserver:
         array([[2.]])
         """
         return cls(system=system, K_x=design.K, g_on_estimates=g_on_estimates)
+
+    def plan(self, dt: float, *, correct: bool = True) -> PhiPlan:
+        """The φ-matrices of L = A − K_x C (``correct=False``: of A) for step length ``dt``.
+
+        Parameters
+        ----------
+        dt : float
+            Step length > 0.
+        correct : bool, default True
+            ``False`` gives the plan of the prediction over a missing sample.
+
+        Returns
+        -------
+        PhiPlan
+
+        Examples
+        --------
+        >>> from types import SimpleNamespace
+        >>> from thetahat.model.system import PerturbedLinearSystem
+        >>> from thetahat.model.perturbation import CallablePerturbation
+        >>> zero = CallablePerturbation(g=lambda v, x, th: 0 * x, n=1, m=1, r=1, p=1, k=1)
+        >>> plant = PerturbedLinearSystem(A=[[-1]], B=[[1]], C=[[1]], E=[[1]],
+        ...                               perturbation=zero)
+        >>> SecondObserver(system=plant, K_x=[[2.0]]).plan(0.1).Phi1.shape
+        (1, 1)
+        """
+        return (self._cache if correct else self._cache_open).get(positive_scalar("dt", dt))
 
     # ------------------------------------------------------------------ internals
     def _g_terms(self, x2: FloatArray, u: FloatArray, y: FloatArray, theta: FloatArray,

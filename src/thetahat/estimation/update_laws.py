@@ -278,6 +278,11 @@ class _SympyThetaStar:
             out = np.where(real, out.real, np.nan)
         return out.astype(np.float64)
 
+    @property
+    def sympy_form(self) -> tuple[tuple[sp.Expr, ...], tuple[sp.Symbol, ...]]:
+        """(θ* entries, their arguments col(u, y), x, φ in call order), for code printers."""
+        return self.solution, self.arguments
+
 
 def _solve_theta_star(perturbation: Perturbation, parameter_set: ParameterSet,
                       seed: int) -> _SympyThetaStar:

@@ -28,7 +28,7 @@ from .._validate import check_finite, positive_scalar
 from ..errors import DimensionError, NonFiniteError
 
 __all__ = ["Perturbation", "SymbolicPerturbation", "CallablePerturbation", "JacobianCheck",
-           "JacobianComparison", "check_jacobians", "FD_REL_STEP",
+           "JacobianComparison", "check_jacobians", "heaviside_as_sign", "FD_REL_STEP",
            "CHECK_RTOL", "CHECK_ATOL"]
 
 FloatArray = NDArray[np.float64]
@@ -217,8 +217,26 @@ def _a_e_derivative(M: sp.ImmutableMatrix) -> sp.ImmutableMatrix:
     return sp.ImmutableMatrix(M.replace(sp.DiracDelta, lambda *args: sp.S.Zero))
 
 
-def _numpy_ready(entry: sp.Expr) -> sp.Expr:
-    """Rewrite Heaviside(z) as (1 + sign(z))/2 so that NaN propagates in the numpy code."""
+def heaviside_as_sign(entry: sp.Expr) -> sp.Expr:
+    """Rewrite Heaviside(z) as (1 + sign(z))/2 so that NaN propagates in generated code.
+
+    Every numeric form of g (numpy, numba, C) is printed from this rewrite of the expression.
+
+    Parameters
+    ----------
+    entry : sympy.Expr
+
+    Returns
+    -------
+    sympy.Expr
+
+    Examples
+    --------
+    >>> import sympy as sp
+    >>> z = sp.Symbol("z", real=True)
+    >>> heaviside_as_sign(sp.Heaviside(z))
+    sign(z)/2 + 1/2
+    """
     def _heaviside(z: sp.Expr, h0: sp.Expr = sp.S.Half) -> sp.Expr:
         if h0 == sp.S.Half:
             return (1 + sp.sign(z)) / 2
@@ -227,7 +245,7 @@ def _numpy_ready(entry: sp.Expr) -> sp.Expr:
 
 
 def _lambdify(args: list[sp.Symbol], M: sp.ImmutableMatrix) -> Callable[..., list[Any]]:
-    entries = [_numpy_ready(e) for e in M]
+    entries = [heaviside_as_sign(e) for e in M]
     if not entries:
         return lambda *cols: []
     return sp.lambdify(args, entries, modules="numpy", cse=True)
