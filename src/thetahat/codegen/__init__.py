@@ -7,6 +7,6 @@ same from a model file. :mod:`thetahat.codegen.loader` compiles the result with 
 compiler and loads it with ctypes (for tests and benchmarks).
 """
 
-from .generate import CCode, generate_c, model_hash
+from .generate import CCode, generate_c, generate_c_from_model, model_hash
 
-__all__ = ["CCode", "generate_c", "model_hash"]
+__all__ = ["CCode", "generate_c", "generate_c_from_model", "model_hash"]

@@ -34,7 +34,7 @@ from .c_step import StepOptions, step_source
 from .harness import harness_source, makefile_source
 from .printing import REALS, c_function
 
-__all__ = ["CCode", "HOLDS", "generate_c"]
+__all__ = ["CCode", "HOLDS", "generate_c", "generate_c_from_model", "model_hash"]
 
 FloatArray = NDArray[np.float64]
 
@@ -496,3 +496,52 @@ typedef {P}_real_t real_t;
 /* ---- constants: matrices row-major, the discretisation for the fixed dt */
 {consts}
 {model}{step_source(opts)}""")
+
+
+def generate_c_from_model(path: str | Path, *, dt: float, eps: float | None = None,
+                          real: str = "double", name: str | None = None) -> CCode:
+    """:func:`generate_c` for the estimator of a model file (``thetahat codegen``).
+
+    Parameters
+    ----------
+    path : str or Path
+        Model file (.toml or .json).
+    dt : float
+        The fixed step length (s).
+    eps : float, optional
+        Overrides ``[estimator] eps``.
+    real : {"double", "float"}
+    name : str, optional
+        File stem and C prefix; default the model file's stem.
+
+    Returns
+    -------
+    CCode
+        With the file's θ̂(0) and x̂(0) as defaults and the SHA-256 of the file's bytes in the
+        header.
+
+    Raises
+    ------
+    ModelFileError
+        The file cannot be read or is invalid.
+    CodegenError
+        A part of the estimator has no C form.
+
+    Examples
+    --------
+    >>> import tempfile, pathlib
+    >>> from thetahat.modelfile import EXAMPLE_MODEL
+    >>> path = pathlib.Path(tempfile.mkdtemp()) / "prop3.toml"
+    >>> _ = path.write_text(EXAMPLE_MODEL)
+    >>> generate_c_from_model(path, dt=0.01).name
+    'prop3'
+    """
+    from ..modelfile import build_observer, load_model
+
+    spec = load_model(path)
+    digest = hashlib.sha256(Path(path).read_bytes()).hexdigest()
+    observer = build_observer(spec, eps=eps)
+    return generate_c(observer, dt=dt, name=name or Path(path).stem, real=real,
+                      theta_hat0=spec.estimator.theta_hat0, x_hat0=spec.estimator.x_hat0,
+                      eps=spec.estimator.eps if eps is None else eps, model_sha256=digest,
+                      title=spec.name)

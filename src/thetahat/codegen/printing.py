@@ -9,6 +9,7 @@ written in row-major order. The float variant prints single-precision functions 
 
 from __future__ import annotations
 
+import re
 from collections.abc import Sequence
 
 import sympy as sp
@@ -103,5 +104,5 @@ def c_function(name: str, inputs: Sequence[tuple[str, Sequence[sp.Symbol]]],
                            "with elementary functions.")
     used = "\n".join(body)
     params = [f"const real_t {a}[]" for a, _ in inputs] + [f"real_t {a}[]" for a, _ in outputs]
-    unused = [f"    (void){a};" for a, _ in inputs if f"{a}[" not in used]
+    unused = [f"    (void){a};" for a, _ in inputs if not re.search(rf"\b{a}\[", used)]
     return "\n".join([f"static void {name}({', '.join(params)})", "{", *unused, *body, "}"])
