@@ -4,6 +4,7 @@ parameterized perturbations — the modular observer of Grip, Saberi & Johansen.
 The curated public API; everything else lives in the submodules.
 """
 
+from .codegen import CCode, generate_c
 from .design.design_system import DesignSystemReport, apply_design
 from .design.gains import GainDesign, extended_system, high_gain, modified_high_gain
 from .estimation.batch_run import BatchObserverResult, run_batch
@@ -15,7 +16,7 @@ from .estimation.projection import Projection, Saturation, saturate
 from .estimation.redesign import SecondObserver
 from .estimation.update_laws import (AlgebraicInversion, ConstantLaw, GradientInversion,
                                      IntermittentInversion, UpdateLaw, smooth_ramp)
-from .errors import (ConvergenceWarning, DesignError, DimensionError, IllConditionedWarning,
+from .errors import (CCompilerError, CodegenError, ConvergenceWarning, DesignError, DimensionError, IllConditionedWarning,
                      ModelFileError, NonFiniteError, SimulationError, NotLeftInvertibleError,
                      NotMinimumPhaseError, ParameterSetError, ThetahatError, ThetahatWarning,
                      UpdateLawError)
@@ -57,5 +58,5 @@ __all__ = [
     "PerturbedLinearSystem", "SCBResult", "SymbolicSCBResult", "ThetahatError", "ThetahatWarning", "UpdateLawError",
     "apply_design", "check_assumption_1", "extended_system", "high_gain", "invariant_zeros",
     "is_left_invertible", "is_minimum_phase", "modified_high_gain", "normal_rank", "scb", "scb_symbolic",
-    "unstable_zeros", "__version__",
+    "unstable_zeros", "__version__", "CCode", "generate_c", "CodegenError", "CCompilerError",
 ]

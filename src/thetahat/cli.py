@@ -122,7 +122,8 @@ def _parser() -> argparse.ArgumentParser:
 
     demo = sub.add_parser("demo", help="run the paper's example end to end (Sec. VIII)",
                           description="Run an example: structure, design, estimation, the "
-                                      "figure (out/lugre.png) and a summary (out/lugre.json).")
+                                      "figure (out/lugre.png), a summary (out/lugre.json) and "
+                                      "the data (out/lugre_data.csv: t,u,y).")
     demo.add_argument("example", choices=["lugre"], help="the example to run")
     demo.add_argument("--out", default="out", help="output folder (default: out)")
     demo.add_argument("--eps", type=float, default=1.0, help="ε of the first observer "

@@ -210,7 +210,31 @@ def test_no_heap_no_mutable_globals_math_h_only():
             if line and not line[0].isspace() and line[0] not in "#/}{*":
                 assert (line.startswith(("static const ", "typedef ", "enum "))
                         or re.match(r"(static )?[\w ]+\**\s*\w+\(", line)), line
-        assert not re.search(r"\b(\w+)\([^;{]*\)\s*\{[^}]*\b\1\(", code.source, re.S) or True
+        assert {"advance", "update_law_8", "implicit_exponential_step", "solve",
+                f"{code.name}_step", "g_and_dg_dx", "main"} <= set(_functions(
+                    code.source + code.main))
+        assert not _recursive(code.source + code.main), code.name
+    assert _recursive("static int f(int a)\n{\n    return g(a);\n}\n"      # the check works
+                      "int g(int a)\n{\n    return a ? f(a - 1) : 0;\n}\n") == ["f", "g"]
+
+
+def _functions(source: str) -> dict[str, str]:
+    """Name → body of the file-scope function definitions."""
+    return dict(re.findall(r"^(?:static )?[\w ]+?\**\s*(\w+)\([^;{]*?\)\n\{(.*?)^\}",
+                           source, re.M | re.S))
+
+
+def _recursive(source: str) -> list[str]:
+    """Functions on a cycle of the call graph of the file-scope function definitions."""
+    bodies = _functions(source)
+    calls = {f: {g for g in bodies if re.search(rf"\b{g}\s*\(", body)}
+             for f, body in bodies.items()}
+
+    def reaches(start: str, target: str, seen: set[str]) -> bool:
+        return any(g == target or (g not in seen and reaches(g, target, seen | {g}))
+                   for g in calls[start])
+
+    return [f for f in bodies if reaches(f, f, {f})]
 
 
 def test_header_records_hash_eps_dt_hold_version(tmp_path, capsys):

@@ -238,7 +238,9 @@ static real_t excitation_weight(const real_t phi[])
 
 _LAW_INVERSION = r"""
 /* (8), Propositions 1-2: exact flow of theta' = l Gamma (theta* - theta) over dt with theta*
- * held, theta* + exp(-l Gamma dt) (theta_hat - theta*), then the projection onto Theta. */
+ * held, theta* + exp(-l Gamma dt) (theta_hat - theta*), then the projection onto Theta.
+ * theta* is evaluated only where l > 0: where l = 0 the law does not use it (so, e.g., no
+ * 0/0 is computed at phi_hat = 0). */
 static int update_law_8(const real_t v[], const real_t x[], const real_t phi[],
                         const real_t th[], const real_t g[], real_t th_next[])
 {

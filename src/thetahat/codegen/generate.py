@@ -133,7 +133,7 @@ def _c_name(name: str) -> str:
 def _literal(value: float, real_type: str) -> str:
     if real_type == "double":
         return repr(float(value)) if value == value else "0"
-    return f"{float(np.float32(value))!r}F"
+    return f"{np.float32(value)}F"           # the shortest text that rounds to this float
 
 
 def _array(name: str, values: ArrayLike, real_type: str, comment: str) -> tuple[str, int]:
@@ -272,7 +272,7 @@ def _constants(observer: ModifiedHighGainObserver, law: Any, opts: StepOptions, 
 
 
 def model_hash(observer: ModifiedHighGainObserver) -> str:
-    """SHA-256 of what defines the observer: g (srepr), the matrices, gains, law and Θ.
+    """SHA-256 of what defines the observer: g and θ* (srepr), the matrices, gains, law and Θ.
 
     Examples
     --------
@@ -288,7 +288,11 @@ def model_hash(observer: ModifiedHighGainObserver) -> str:
                 np.asarray(getattr(law, "Gamma", 0.0))):
         h.update(np.ascontiguousarray(arr, dtype=np.float64).tobytes())
     h.update(repr((type(law).__name__, getattr(law, "on_invalid", None), observer.nan_policy,
-                   getattr(law, "l", None))).encode())
+                   getattr(law, "l", None) if hasattr(getattr(law, "l", None), "low") else None
+                   )).encode())
+    form = getattr(getattr(law, "theta_star", None), "sympy_form", None)
+    if form is not None:
+        h.update(sp.srepr(form).encode())
     if observer.second is not None:
         h.update(np.ascontiguousarray(observer.second.K_x).tobytes())
         h.update(repr(observer.second.g_on_estimates).encode())
