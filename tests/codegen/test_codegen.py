@@ -383,3 +383,52 @@ def test_unsupported_parts_raise_codegen_error():
     with pytest.raises(CodegenError, match="Box"):
         generate_c(ModifiedHighGainObserver(system=ball_sys, K_x=obs.K_x, K_phi=obs.K_phi,
                                             update_law=ball_law), dt=1e-3)
+
+
+# --------------------------------------------------------------------------- MIMO, m = 0, laws
+def _toy(with_input: bool):
+    """k = p = r = 2 toy (as in tests/estimation/test_compiled.py), optionally without inputs."""
+    import sympy as sp
+
+    from thetahat.model.paramset import Box
+    from thetahat.model.perturbation import SymbolicPerturbation
+
+    U_, Y1, Y2, X1, X2, T1, T2 = sp.symbols("u y1 y2 x1 x2 theta1 theta2", real=True)
+    g = SymbolicPerturbation.from_sympy(
+        [T1 * sp.tanh(X1) + (U_ / 10 if with_input else 0), T2 * X2 / (1 + X2**2)
+         + Y1 * Y2 / 20], u=[U_] if with_input else [], y=[Y1, Y2], x=[X1, X2],
+        theta=[T1, T2])
+    box = Box([0.2, 0.1], [2.0, 3.0])
+    system = PerturbedLinearSystem(A=[[0.0, 1.0], [-1.0, -0.5]],
+                                   B=[[0.0], [1.0]] if with_input else np.zeros((2, 0)),
+                                   C=np.eye(2), E=np.eye(2), perturbation=g, parameter_set=box)
+    return g, box, system
+
+
+@pytest.mark.parametrize("law_name", ["constant", "gradient", "algebraic_sympy", "no_input"])
+def test_mimo_laws_match_python(tmp_path, law_name):
+    from thetahat.estimation.redesign import SecondObserver
+    from thetahat.estimation.update_laws import (AlgebraicInversion, ConstantLaw,
+                                                 GradientInversion)
+
+    g, box, system = _toy(law_name != "no_input")
+    law = {"constant": lambda: ConstantLaw([1.0, 2.0], box),
+           "gradient": lambda: GradientInversion(g, np.diag([0.5, 2.0]), box),
+           "algebraic_sympy": lambda: AlgebraicInversion.from_perturbation(
+               g, Gamma=np.diag([1.0, 3.0]), parameter_set=box, on_invalid="freeze"),
+           "no_input": lambda: GradientInversion(g, 1.0, box)}[law_name]()
+    second = SecondObserver(system=system, K_x=3 * np.eye(2),
+                            g_on_estimates=law_name == "constant")
+    obs = ModifiedHighGainObserver(system=system, K_x=4 * np.eye(2), K_phi=4 * np.eye(2),
+                                   update_law=law, second=second)
+    rng = np.random.default_rng(7)
+    N, dt = 600, 1e-3
+    t = np.arange(N) * dt
+    y = np.c_[np.sin(2 * t), 1.5 * np.cos(t)] + 0.01 * rng.standard_normal((N, 2))
+    u = np.sin(3 * t)[:, None] if system.m else None
+    res = load_c(generate_c(obs, dt=dt, name=f"toy_{law_name}"), tmp_path).run(u, y)
+    assert res.status == 0
+    ref = obs.run(t, u, y)
+    assert_agree(res, ref, DOUBLE_RTOL)
+    if law_name != "constant":
+        assert np.all(np.ptp(ref.theta_hat, axis=0) > 1e-3)

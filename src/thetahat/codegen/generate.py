@@ -248,9 +248,10 @@ def _constants(observer: ModifiedHighGainObserver, law: Any, opts: StepOptions, 
     box = law.parameter_set
     gamma = np.diag(np.asarray(getattr(law, "Gamma", np.eye(box.dim))))
     arrays += [("THETA_LOWER", box.lower, "Theta = box [lower, upper]"),
-               ("THETA_UPPER", box.upper, "Theta = box [lower, upper]"),
-               ("GAMMA", gamma, "diagonal of Gamma"),
-               ("THETA_HAT0", theta_hat0, "default theta_hat(0)"),
+               ("THETA_UPPER", box.upper, "Theta = box [lower, upper]")]
+    if opts.law != "constant":
+        arrays.append(("GAMMA", gamma, "diagonal of Gamma"))
+    arrays += [("THETA_HAT0", theta_hat0, "default theta_hat(0)"),
                ("X_HAT0", x_hat0, "default x_hat(0)")]
     text, count = [], 0
     for name, values, comment in arrays:
