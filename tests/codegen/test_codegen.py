@@ -431,4 +431,4 @@ def test_mimo_laws_match_python(tmp_path, law_name):
     ref = obs.run(t, u, y)
     assert_agree(res, ref, DOUBLE_RTOL)
     if law_name != "constant":
-        assert np.all(np.ptp(ref.theta_hat, axis=0) > 1e-3)
+        assert np.all(np.ptp(ref.theta_hat, axis=0) > 1e-4)     # the law moves θ̂
