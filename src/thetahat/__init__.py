@@ -17,7 +17,7 @@ from .estimation.redesign import SecondObserver
 from .estimation.update_laws import (AlgebraicInversion, ConstantLaw, GradientInversion,
                                      IntermittentInversion, UpdateLaw, smooth_ramp)
 from .errors import (CCompilerError, CodegenError, ConvergenceWarning, DesignError, DimensionError, IllConditionedWarning,
-                     ModelFileError, NonFiniteError, SimulationError, NotLeftInvertibleError,
+                     MissingExtraError, ModelFileError, NonFiniteError, SimulationError, NotLeftInvertibleError,
                      NotMinimumPhaseError, ParameterSetError, ThetahatError, ThetahatWarning,
                      UpdateLawError)
 from .model.interop import from_state_space, to_state_space
@@ -53,7 +53,7 @@ __all__ = [
     "simulate_plant", "CallablePerturbation", "JacobianCheck", "Perturbation",
     "SymbolicPerturbation", "check_jacobians", "from_state_space", "parse_perturbation",
     "to_state_space", "ConvergenceWarning", "DesignError", "DesignSystemReport",
-    "DimensionError", "GainDesign", "IllConditionedWarning", "ModelFileError", "SimulationError",
+    "DimensionError", "GainDesign", "MissingExtraError", "IllConditionedWarning", "ModelFileError", "SimulationError",
     "NonFiniteError", "NotLeftInvertibleError", "NotMinimumPhaseError", "ParameterSetError",
     "PerturbedLinearSystem", "SCBResult", "SymbolicSCBResult", "ThetahatError", "ThetahatWarning", "UpdateLawError",
     "apply_design", "check_assumption_1", "extended_system", "high_gain", "invariant_zeros",

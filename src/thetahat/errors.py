@@ -24,6 +24,7 @@ __all__ = [
     "SimulationError",
     "CodegenError",
     "CCompilerError",
+    "MissingExtraError",
     "ThetahatWarning",
     "ConvergenceWarning",
     "IllConditionedWarning",
@@ -105,6 +106,11 @@ class CodegenError(ThetahatError, NotImplementedError):
 
 class CCompilerError(ThetahatError, RuntimeError):
     """The C compiler is missing or rejected generated code (the message holds its output)."""
+
+
+class MissingExtraError(ThetahatError, ImportError):
+    """A call needs an optional extra (numba, matplotlib, python-control, …) that is not
+    installed; the message names the ``pip install 'thetahat[extra]'`` that provides it."""
 
 
 class ThetahatWarning(UserWarning):

@@ -8,12 +8,14 @@ from typing import Any, Sequence
 import numpy as np
 from numpy.typing import ArrayLike
 
+from .errors import MissingExtraError
+
 
 def _pyplot(show: bool) -> Any:
     try:
         import matplotlib
     except ImportError as exc:  # pragma: no cover - optional extra
-        raise ImportError("plotting needs matplotlib: pip install 'thetahat[plot]'") from exc
+        raise MissingExtraError("plotting needs matplotlib: pip install 'thetahat[plot]'") from exc
     if not show:
         matplotlib.use("Agg")
     import matplotlib.pyplot as plt

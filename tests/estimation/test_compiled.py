@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 import sympy as sp
 
-from thetahat.errors import DimensionError, NonFiniteError, UpdateLawError
+from thetahat.errors import DimensionError, MissingExtraError, NonFiniteError, UpdateLawError
 from thetahat.estimation.compiled import CompiledObserver, compile_observer
 from thetahat.estimation.observer import ModifiedHighGainObserver
 from thetahat.estimation.redesign import SecondObserver
@@ -226,7 +226,7 @@ def test_theta_star_expression_is_checked():
 
 def test_missing_numba_names_the_extra(monkeypatch):
     monkeypatch.setitem(sys.modules, "numba", None)       # `import numba` now fails
-    with pytest.raises(ImportError, match=r"pip install 'thetahat\[speed\]'"):
+    with pytest.raises(MissingExtraError, match=r"pip install 'thetahat\[speed\]'"):
         compile_observer(lugre.observer(), dt=DT, theta_star=lugre.theta_star_expr())
 
 

@@ -61,7 +61,9 @@ def test_divergence_is_recorded_per_run_and_summarised():
     np.testing.assert_allclose(res.fraction_stable, [1.0, 0.5, 0.0])
     assert res.stable_down_to == 1.0
     assert res.first_unstable == 0.5
-    assert res.errors[2][0].startswith("NonFiniteError") and res.errors[1][1] is None
+    assert res.errors[2][0].startswith("NonFiniteError") and res.errors[1][0] is None
+    # a divergence that raised nothing is reported too, naming the estimate that left its scale
+    assert res.errors[1][1].startswith("x_hat[0] reached 1e+09"), res.errors[1][1]
     # perfect runs: settled at t[0], zero errors; failed runs: NaN
     assert res.t_1pct[0, 0] == 0.0 and res.x_rmse[0, 0].tolist() == [0.0, 0.0]
     assert np.all(np.isnan(res.x_rmse[2]))

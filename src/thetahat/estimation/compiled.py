@@ -53,9 +53,10 @@ from numpy.typing import NDArray
 from sympy.printing.pycode import PythonCodePrinter
 
 from .._validate import as_vector, check_finite, positive_scalar
-from ..errors import DimensionError, NonFiniteError, ThetahatWarning, UpdateLawError
+from ..errors import (DimensionError, MissingExtraError, NonFiniteError, ThetahatWarning,
+                      UpdateLawError)
 from ..model.paramset import Box
-from ..model.perturbation import SymbolicPerturbation, heaviside_as_sign
+from ..model.perturbation import SymbolicPerturbation, heaviside_as_sign, lambdify_numpy
 from .discretize import IMPLICITNESS
 from ._kernel_template import CORE
 from .observer import ModifiedHighGainObserver, ObserverResult
@@ -91,7 +92,7 @@ def _require_numba() -> Any:
     try:
         import numba
     except ImportError as exc:  # pragma: no cover - exercised only without numba
-        raise ImportError("compile_observer needs numba, the optional extra 'speed': "
+        raise MissingExtraError("compile_observer needs numba, the optional extra 'speed': "
                           "pip install 'thetahat[speed]'. Without it, use the observer's own "
                           "run/step, or thetahat.estimation.batch_run.run_batch for many "
                           "runs.") from exc
@@ -366,7 +367,7 @@ def _check_theta_star(law: Any, exprs: tuple[sp.Expr, ...], args: tuple[sp.Symbo
                       pert: SymbolicPerturbation) -> None:
     """The user's θ* expression must agree with the law's θ* callable at random points."""
     n, m, r, p, _ = pert.dims
-    fn = sp.lambdify(args, [heaviside_as_sign(e) for e in exprs], "numpy")
+    fn = lambdify_numpy(args, exprs)
     rng = np.random.default_rng(0)
     th = law.parameter_set.sample(rng, THETA_STAR_SAMPLES)
     v = rng.standard_normal((THETA_STAR_SAMPLES, m + r))

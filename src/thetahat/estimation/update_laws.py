@@ -23,7 +23,7 @@ from numpy.typing import ArrayLike, NDArray
 from .._validate import check_finite, positive_scalar
 from ..errors import DimensionError, ParameterSetError, UpdateLawError
 from ..model.paramset import ParameterSet, _safe_norm
-from ..model.perturbation import Perturbation
+from ..model.perturbation import Perturbation, lambdify_numpy
 from .projection import Projection, Saturation, as_gain
 
 FloatArray = NDArray[np.float64]
@@ -322,7 +322,7 @@ def _solve_theta_star(perturbation: Perturbation, parameter_set: ParameterSet,
         forms = []
         for form in dict.fromkeys((exprs, tuple(sp.expand(e) for e in exprs))):
             try:
-                fn = sp.lambdify(args, list(form), "numpy")
+                fn = lambdify_numpy(args, form)
             except Exception:  # noqa: BLE001 - SymPy raises many types for unprintable forms
                 continue
             forms.append(_SympyThetaStar(form, m, fn, tuple(args)))

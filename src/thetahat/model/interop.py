@@ -10,7 +10,7 @@ from typing import Any, Literal
 
 import numpy as np
 
-from ..errors import DimensionError
+from ..errors import DimensionError, MissingExtraError
 from .paramset import ParameterSet
 from .perturbation import Perturbation
 from .system import PerturbedLinearSystem
@@ -157,7 +157,7 @@ def to_state_space(system: PerturbedLinearSystem, *,
         try:
             import control
         except ImportError as exc:
-            raise ImportError("to_state_space(..., library='control') needs python-control: "
+            raise MissingExtraError("to_state_space(..., library='control') needs python-control: "
                               "pip install thetahat[interop].") from exc
         inputs = [f"u[{i}]" for i in range(system.m)] + [f"phi[{j}]" for j in range(system.k)]
         return control.ss(system.A.copy(), B_full, system.C.copy(), D, inputs=inputs,

@@ -23,11 +23,12 @@ import numpy as np
 import sympy as sp
 from numpy.typing import NDArray
 from sympy.core.function import AppliedUndef
+from sympy.printing.numpy import NumPyPrinter
 
 from .._validate import check_finite, positive_scalar
 from ..errors import DimensionError, NonFiniteError
 
-__all__ = ["Perturbation", "SymbolicPerturbation", "CallablePerturbation", "JacobianCheck",
+__all__ = ["lambdify_numpy", "Perturbation", "SymbolicPerturbation", "CallablePerturbation", "JacobianCheck",
            "JacobianComparison", "check_jacobians", "heaviside_as_sign", "FD_REL_STEP",
            "CHECK_RTOL", "CHECK_ATOL"]
 
@@ -244,11 +245,63 @@ def heaviside_as_sign(entry: sp.Expr) -> sp.Expr:
     return entry.replace(sp.Heaviside, _heaviside)
 
 
-def _lambdify(args: list[sp.Symbol], M: sp.ImmutableMatrix) -> Callable[..., list[Any]]:
-    entries = [heaviside_as_sign(e) for e in M]
+class _ElementwisePrinter(NumPyPrinter):
+    """NumPy printer whose Max/Min are element-wise on arrays and propagate NaN.
+
+    SymPy's own NumPy printing of ``Max`` changed across versions (``amax`` of a tuple, which
+    fails on arrays mixed with scalars in SymPy 1.12); nested ``numpy.maximum`` is right in all.
+    """
+
+    def _print_Max(self, expr: sp.Expr) -> str:
+        return self._nested("numpy.maximum", expr)
+
+    def _print_Min(self, expr: sp.Expr) -> str:
+        return self._nested("numpy.minimum", expr)
+
+    def _nested(self, name: str, expr: sp.Expr) -> str:
+        func = self._module_format(name)
+        args = [self._print(a) for a in expr.args]
+        out = args[0]
+        for a in args[1:]:
+            out = f"{func}({out}, {a})"
+        return out
+
+
+def lambdify_numpy(args: Sequence[sp.Symbol], exprs: Sequence[sp.Expr]) -> Callable[..., list[Any]]:
+    """Element-wise NumPy function of SymPy expressions: the one lambdify of the package.
+
+    Heaviside is rewritten so that NaN propagates, Max/Min are element-wise, and common
+    subexpressions are evaluated once.
+
+    Parameters
+    ----------
+    args : sequence of sympy.Symbol
+        The positional arguments of the function, in order.
+    exprs : sequence of sympy.Expr
+        The expressions; the function returns a list with one value per expression.
+
+    Returns
+    -------
+    callable
+        ``f(*arrays) -> list``; the arrays broadcast against each other.
+
+    Examples
+    --------
+    >>> import numpy as np, sympy as sp
+    >>> x, y = sp.symbols("x y")
+    >>> f = lambdify_numpy([x, y], [sp.Max(x, 0) * y])
+    >>> f(np.array([-1.0, 2.0, np.nan]), 3.0)[0]
+    array([ 0.,  6., nan])
+    """
+    entries = [heaviside_as_sign(sp.sympify(e)) for e in exprs]
     if not entries:
         return lambda *cols: []
-    return sp.lambdify(args, entries, modules="numpy", cse=True)
+    return sp.lambdify(list(args), entries, modules="numpy", printer=_ElementwisePrinter,
+                       cse=True)
+
+
+def _lambdify(args: list[sp.Symbol], M: sp.ImmutableMatrix) -> Callable[..., list[Any]]:
+    return lambdify_numpy(args, list(M))
 
 
 @final

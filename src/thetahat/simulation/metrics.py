@@ -76,3 +76,38 @@ def diverged(estimate: ArrayLike, scale: float) -> bool:
     """True when the estimate is non-finite or exceeds ``DIVERGENCE_FACTOR·scale`` anywhere."""
     e = np.asarray(estimate, dtype=float)
     return bool(not np.all(np.isfinite(e)) or np.max(np.abs(e)) > DIVERGENCE_FACTOR * scale)
+
+
+def divergence_reason(name: str, estimate: ArrayLike, scale: float) -> str | None:
+    """Why an estimate counts as diverged (non-finite, or beyond ``DIVERGENCE_FACTOR·scale``).
+
+    Parameters
+    ----------
+    name : str
+        The estimate's name, used in the reason.
+    estimate : array_like
+    scale : float
+        The magnitude of the truth it estimates.
+
+    Returns
+    -------
+    str or None
+        None when it did not diverge.
+
+    Examples
+    --------
+    >>> divergence_reason("theta_hat", [0.3, float("nan")], 1.0)
+    'theta_hat is not finite (first at sample 1)'
+    >>> divergence_reason("theta_hat", [0.3, 0.2], 1.0) is None
+    True
+    """
+    if not diverged(estimate, scale):
+        return None
+    e = np.asarray(estimate, dtype=float).reshape(np.shape(estimate)[0] if np.ndim(estimate)
+                                                  else 1, -1)
+    finite = np.isfinite(e).all(axis=1)
+    if not finite.all():
+        return f"{name} is not finite (first at sample {int(np.argmin(finite))})"
+    peak = float(np.max(np.abs(e)))
+    return (f"{name} reached {peak:.3g}, beyond {DIVERGENCE_FACTOR:g} × the truth's scale "
+            f"{scale:.3g}")

@@ -29,7 +29,7 @@ from ..errors import (
     UpdateLawError,
 )
 from .batch import _check_seeds, monte_carlo
-from .metrics import diverged, rmse, time_to_within
+from .metrics import divergence_reason, rmse, time_to_within
 
 __all__ = ["SweepResult", "SweepRow", "eps_sweep"]
 
@@ -143,7 +143,8 @@ class SweepResult:
     x_rmse_refined : ndarray, shape (n_eps, n_seeds, n), or None
         The same for the second observer's x̂₂; None when the observers have none.
     errors : tuple of tuple of (str or None)
-        For each run, the divergence error that stopped it, if any.
+        For each run, how it diverged (the error that stopped it, or the estimate that became
+        non-finite or left its scale), None for a run that did not.
     wall_time : float
         Seconds for the whole sweep.
 
@@ -348,22 +349,26 @@ def _metrics(data: Any, res: Any) -> _Run:
     th_hat = np.asarray(res.theta_hat, dtype=float).reshape(t.size, -1)
     x_hat = np.asarray(res.x_hat, dtype=float)
     x2 = None if res.x_hat_refined is None else np.asarray(res.x_hat_refined, dtype=float)
-    checks = [(th_hat, theta)] + [(x_hat[:, i], x[:, i]) for i in range(x.shape[1])]
+    checks = [("theta_hat", th_hat, theta)] + [
+        (f"x_hat[{i}]", x_hat[:, i], x[:, i]) for i in range(x.shape[1])]
     if x2 is not None:
-        checks += [(x2[:, i], x[:, i]) for i in range(x.shape[1])]
+        checks += [(f"x_hat_refined[{i}]", x2[:, i], x[:, i]) for i in range(x.shape[1])]
     phi = getattr(data, "phi", None)
     if phi is not None and getattr(res, "phi_hat", None) is not None:
-        checks.append((np.asarray(res.phi_hat, dtype=float), np.asarray(phi, dtype=float)))
-    bad = any(diverged(est, _scale(np.asarray(tru))) for est, tru in checks)
+        checks.append(("phi_hat", np.asarray(res.phi_hat, dtype=float),
+                       np.asarray(phi, dtype=float)))
+    reasons = [divergence_reason(name, est, _scale(np.asarray(tru))) for name, est, tru in checks]
+    reason = "; ".join(r for r in reasons if r is not None) or None
     with np.errstate(over="ignore", invalid="ignore"):
         err = th_hat[half:] - theta
-        return _Run(diverged=bad,
+        return _Run(diverged=reason is not None,
                     t_1pct=time_to_within(t, th_hat, theta, SETTLING_BAND),
                     theta_max_error=float(np.max(np.abs(err))),
                     theta_rmse=float(np.sqrt(np.mean(np.sum(err ** 2, axis=1)))),
                     x_rmse=rmse(x_hat, x, start=half),
                     x_rmse_refined=None if x2 is None else rmse(x2, x, start=half),
-                    error=None)
+                    error=reason)
+
 
 
 def _one_run(make_observer: Callable[[float], Any], simulate: Callable[[int], Any],

@@ -70,7 +70,9 @@ class TuneResult:
         The chosen pair: among scores within ``rel_tol`` of the smallest, the larger ε, then
         the smaller Γ; None when every pair diverged.
     errors : tuple of str
-        The distinct divergence errors that stopped runs.
+        Every diverged run, with its ε, Γ and seed, and how it diverged: the error that
+        stopped it, or the estimate that became non-finite or left ``DIVERGENCE_FACTOR``
+        times the truth's scale.
     wall_time : float
         Seconds for the whole search.
     """
@@ -336,7 +338,9 @@ def tune_eps_gamma(make_observer: Callable[..., Any], simulate: Callable[[int], 
             flat = int(np.flatnonzero(~rejected.ravel())[0])
         i, j = np.unravel_index(flat, score.shape)
         best_eps, best_gam = eps[i], gam[j]
-    errors = tuple(dict.fromkeys(r.error for r in runs if r.error is not None))
+    labels = itertools.product(eps, gam, seeds_)
+    errors = tuple(f"eps={e:g}, Gamma={g:g}, seed={s}: {r.error}"
+                   for (e, g, s), r in zip(labels, runs) if r.error is not None)
     return TuneResult(eps=eps, Gamma=gam, seeds=seeds_, criterion=criterion, diverged=div,
                       theta_rmse=metrics["theta_rmse"], t_1pct=metrics["t_1pct"],
                       x_rmse=np.array([r.x_rmse for r in runs]).reshape(shape + (n,)),
