@@ -422,7 +422,7 @@ def test_mimo_laws_match_python(tmp_path, law_name):
     obs = ModifiedHighGainObserver(system=system, K_x=4 * np.eye(2), K_phi=4 * np.eye(2),
                                    update_law=law, second=second)
     rng = np.random.default_rng(7)
-    N, dt = 600, 1e-3
+    N, dt = 300, 1e-3          # 0.3 s: the Python gradient law costs ~20 ms a step
     t = np.arange(N) * dt
     y = np.c_[np.sin(2 * t), 1.5 * np.cos(t)] + 0.01 * rng.standard_normal((N, 2))
     u = np.sin(3 * t)[:, None] if system.m else None
@@ -431,4 +431,4 @@ def test_mimo_laws_match_python(tmp_path, law_name):
     ref = obs.run(t, u, y)
     assert_agree(res, ref, DOUBLE_RTOL)
     if law_name != "constant":
-        assert np.all(np.ptp(ref.theta_hat, axis=0) > 1e-4)     # the law moves θ̂
+        assert np.all(np.ptp(ref.theta_hat, axis=0) > 1e-5)     # the law moves θ̂
