@@ -432,3 +432,17 @@ def test_mimo_laws_match_python(tmp_path, law_name):
     assert_agree(res, ref, DOUBLE_RTOL)
     if law_name != "constant":
         assert np.all(np.ptp(ref.theta_hat, axis=0) > 1e-5)     # the law moves θ̂
+
+
+def test_command_line_errors_exit_2_with_a_message(tmp_path, capsys):
+    from thetahat.cli import main
+
+    text = (EXAMPLES / "prop4.toml").read_text().replace(
+        "Gamma = 4.0", "Gamma = [[4.0, 1.0], [1.0, 4.0]]")
+    model = tmp_path / "full_gamma.toml"
+    model.write_text(text)
+    assert main(["codegen", str(model), "--dt", "0.01", "-o", str(tmp_path / "c")]) == 2
+    assert "Γ must be diagonal" in capsys.readouterr().err
+    assert main(["codegen", str(LUGRE), "--dt", "-1", "-o", str(tmp_path / "c")]) == 2
+    assert "dt" in capsys.readouterr().err
+    assert not (tmp_path / "c").exists()
