@@ -34,7 +34,8 @@ from .c_step import StepOptions, step_source
 from .harness import harness_source, makefile_source
 from .printing import REALS, c_function
 
-__all__ = ["CCode", "HOLDS", "generate_c", "generate_c_from_model", "model_hash"]
+__all__ = ["CCode", "HOLDS", "discretisation", "generate_c", "generate_c_from_model",
+           "model_hash"]
 
 FloatArray = NDArray[np.float64]
 
@@ -223,27 +224,61 @@ def _model_functions(pert: SymbolicPerturbation, ts: Any, opts: StepOptions,
             + "\n\n".join(funcs) + "\n")
 
 
+def discretisation(observer: ModifiedHighGainObserver, dt: float, *, predict: bool
+                   ) -> dict[str, FloatArray]:
+    """The φ-matrices the step uses, read from the observers' public plans (the one seam).
+
+    Parameters
+    ----------
+    observer : ModifiedHighGainObserver
+    dt : float
+        The fixed step length.
+    predict : bool
+        Also the plans of the prediction over a missing sample (``nan_policy="skip"``).
+
+    Returns
+    -------
+    dict
+        ``PHI1`` (and ``PHI1_OPEN``) of (3a)–(3b), ``PHI12`` (and ``PHI12_OPEN``) of the second
+        observer when one is attached: Φ₁ = dt φ₁(dt L), shape (q, q).
+
+    Examples
+    --------
+    >>> from thetahat.modelfile import EXAMPLE_MODEL, build_observer, loads_model
+    >>> sorted(discretisation(build_observer(loads_model(EXAMPLE_MODEL)), 0.01, predict=False))
+    ['PHI1', 'PHI12']
+    """
+    out = {"PHI1": observer.plan(dt).Phi1}
+    if predict:
+        out["PHI1_OPEN"] = observer.plan(dt, correct=False).Phi1
+    if observer.second is not None:
+        out["PHI12"] = observer.second.plan(dt).Phi1
+        if predict:
+            out["PHI12_OPEN"] = observer.second.plan(dt, correct=False).Phi1
+    return out
+
+
 def _constants(observer: ModifiedHighGainObserver, law: Any, opts: StepOptions, dt: float,
                theta_hat0: FloatArray, x_hat0: FloatArray, real: str) -> tuple[str, int]:
     sysm = observer.system
     m = sysm.m
     B = sysm.B if m else np.zeros((sysm.n, 1))
+    phi = discretisation(observer, dt, predict=opts.skip)
     arrays = [("A", sysm.A, "A of (1), n x n"), ("B", B, "B of (1), n x m"),
               ("C", sysm.C, "C of (1), r x n"), ("E", sysm.E, "E of (1), n x k"),
               ("KX", observer.K_x, "K_x(eps) of (3a), n x r"),
               ("KPHI", observer.K_phi, "K_phi(eps) of (3b), k x r"),
               ("KXC", observer.K_x @ sysm.C, "K_x C, n x n"),
-              ("PHI1", observer.plan(dt).Phi1,
+              ("PHI1", phi["PHI1"],
                "Phi1 = dt phi1(dt L), L = [[A - K_x C, E], [-K_phi C, 0]] (discretize)")]
     if opts.skip:
-        arrays.append(("PHI1_OPEN", observer.plan(dt, correct=False).Phi1,
+        arrays.append(("PHI1_OPEN", phi["PHI1_OPEN"],
                        "Phi1 of L = [[A, E], [0, 0]] (prediction over a missing sample)"))
     if opts.second:
-        second = observer.second
-        arrays += [("K2", second.K_x, "K_x of the second observer (Sec. VI), n x r"),
-                   ("PHI12", second.plan(dt).Phi1, "Phi1 of A - K_x2 C (second observer)")]
+        arrays += [("K2", observer.second.K_x, "K_x of the second observer (Sec. VI), n x r"),
+                   ("PHI12", phi["PHI12"], "Phi1 of A - K_x2 C (second observer)")]
         if opts.skip:
-            arrays.append(("PHI12_OPEN", second.plan(dt, correct=False).Phi1,
+            arrays.append(("PHI12_OPEN", phi["PHI12_OPEN"],
                            "Phi1 of A (second observer, missing sample)"))
     box = law.parameter_set
     gamma = np.diag(np.asarray(getattr(law, "Gamma", np.eye(box.dim))))
