@@ -446,3 +446,17 @@ def test_command_line_errors_exit_2_with_a_message(tmp_path, capsys):
     assert main(["codegen", str(LUGRE), "--dt", "-1", "-o", str(tmp_path / "c")]) == 2
     assert "dt" in capsys.readouterr().err
     assert not (tmp_path / "c").exists()
+
+
+def test_float_box_is_rounded_into_theta(tmp_path):
+    """float(0.7) < 0.7: the float Θ is rounded inwards, so θ̂ never leaves the double Θ."""
+    text = (EXAMPLES / "prop4.toml").read_text().replace("lower = [-2.0, -2.0]",
+                                                         "lower = [0.7, -0.7]").replace(
+        "theta_hat0 = [0.0, 0.0]", "theta_hat0 = [1.0, 0.0]")
+    spec_path = tmp_path / "box.toml"
+    spec_path.write_text(text)
+    src = generate_c_from_model(spec_path, dt=0.01, real="float").source
+    lower = [float(v.rstrip("F")) for v in re.search(
+        r"THETA_LOWER\[2\] = \{(.*?)\}", src).group(1).split(", ")]
+    assert float(np.float32(0.7)) < 0.7 and lower[0] >= 0.7 and lower[1] >= -0.7
+    assert lower[0] - 0.7 < 1e-7 and lower[1] + 0.7 < 1e-7

@@ -224,6 +224,14 @@ def _model_functions(pert: SymbolicPerturbation, ts: Any, opts: StepOptions,
             + "\n\n".join(funcs) + "\n")
 
 
+def _inwards(lower: FloatArray, upper: FloatArray) -> tuple[FloatArray, FloatArray]:
+    """The float32 box closest to [lower, upper] that lies inside it."""
+    lo, hi = np.asarray(lower, np.float32), np.asarray(upper, np.float32)
+    lo = np.where(lo < lower, np.nextafter(lo, np.float32(np.inf)), lo)
+    hi = np.where(hi > upper, np.nextafter(hi, np.float32(-np.inf)), hi)
+    return lo.astype(np.float64), hi.astype(np.float64)
+
+
 def discretisation(observer: ModifiedHighGainObserver, dt: float, *, predict: bool
                    ) -> dict[str, FloatArray]:
     """The φ-matrices the step uses, read from the observers' public plans (the one seam).
@@ -282,8 +290,11 @@ def _constants(observer: ModifiedHighGainObserver, law: Any, opts: StepOptions, 
                            "Phi1 of A (second observer, missing sample)"))
     box = law.parameter_set
     gamma = np.diag(np.asarray(getattr(law, "Gamma", np.eye(box.dim))))
-    arrays += [("THETA_LOWER", box.lower, "Theta = box [lower, upper]"),
-               ("THETA_UPPER", box.upper, "Theta = box [lower, upper]")]
+    lower, upper = box.lower, box.upper
+    if real == "float":             # rounded inwards: θ̂ stays in Θ in float too
+        lower, upper = _inwards(lower, upper)
+    arrays += [("THETA_LOWER", lower, "Theta = box [lower, upper]"),
+               ("THETA_UPPER", upper, "Theta = box [lower, upper]")]
     if opts.law != "constant":
         arrays.append(("GAMMA", gamma, "diagonal of Gamma"))
     arrays += [("THETA_HAT0", theta_hat0, "default theta_hat(0)"),
