@@ -211,7 +211,7 @@ def test_no_heap_no_mutable_globals_math_h_only():
                 assert (line.startswith(("static const ", "typedef ", "enum "))
                         or re.match(r"(static )?[\w ]+\**\s*\w+\(", line)), line
         assert {"advance", "update_law_8", "implicit_exponential_step", "solve",
-                f"{code.name}_step", "g_and_dg_dx", "main"} <= set(_functions(
+                f"{code.name}_step", "g_and_jacobians", "main"} <= set(_functions(
                     code.source + code.main))
         assert not _recursive(code.source + code.main), code.name
     assert _recursive("static int f(int a)\n{\n    return g(a);\n}\n"      # the check works

@@ -202,13 +202,15 @@ static void expm_small(const real_t Z[], real_t E[])
 _LAW_CONSTANT = r"""
 /* (8), ConstantLaw: theta_hat is held (projected onto Theta should it lie outside). */
 static int update_law_8(const real_t v[], const real_t x[], const real_t phi[],
-                        const real_t th[], const real_t g[], real_t th_next[])
+                        const real_t th[], const real_t g[], const real_t Gth[],
+                        real_t th_next[])
 {
     int i;
     (void)v;
     (void)x;
     (void)phi;
     (void)g;
+    (void)Gth;
     for (i = 0; i < NP; ++i) {
         th_next[i] = into_box(th[i], th[i], THETA_LOWER[i], THETA_UPPER[i]);
     }
@@ -242,11 +244,13 @@ _LAW_INVERSION = r"""
  * theta* is evaluated only where l > 0: where l = 0 the law does not use it (so, e.g., no
  * 0/0 is computed at phi_hat = 0). */
 static int update_law_8(const real_t v[], const real_t x[], const real_t phi[],
-                        const real_t th[], const real_t g[], real_t th_next[])
+                        const real_t th[], const real_t g[], const real_t Gth[],
+                        real_t th_next[])
 {
     real_t lw, ts[NP], target, decay;
     int i;
     (void)g;
+    (void)Gth;
     for (i = 0; i < NP; ++i) {
         ts[i] = th[i];
     }
@@ -274,12 +278,14 @@ _LAW_GRADIENT = r"""
  * theta' = f - K (theta - theta_hat), f = Gamma M (phi_hat - g), K = Gamma M dg/dtheta, then
  * the projection onto Theta (GradientInversion.step). */
 static int update_law_8(const real_t v[], const real_t x[], const real_t phi[],
-                        const real_t th[], const real_t g[], real_t th_next[])
+                        const real_t th[], const real_t g[], const real_t Gth[],
+                        real_t th_next[])
 {
     enum { Q = NP + 1 };
-    real_t Gth[NK * NP], GM[NP * NK], f[NP], Z[Q * Q], Ex[Q * Q], acc, delta;
+    real_t GM[NP * NK], f[NP], Z[Q * Q], Ex[Q * Q], acc, delta;
     int a, b, c, ok = 1;
-    dg_dtheta(v, x, th, Gth);
+    (void)v;
+    (void)x;
     for (a = 0; a < NP; ++a) {
         for (b = 0; b < NK; ++b) {
             GM[a * NK + b] = GAMMA[a] * Gth[b * NP + a];
@@ -380,10 +386,10 @@ static void forcing_3ab(const real_t x[], const real_t u[], const real_t y[],
 }
 
 /* The first term of (3b): z receives -dg/dtheta (theta_hat+ - theta_hat) / dt. */
-static void theta_term_3b(const real_t v[], const real_t x[], const real_t th[],
-                          const real_t th_next[], real_t F[])
+static void theta_term_3b(const real_t Gth[], const real_t th[], const real_t th_next[],
+                          real_t F[])
 {
-    real_t Gth[NK * NP], acc;
+    real_t acc;
     int a, j, moving = 0;
     for (j = 0; j < NP; ++j) {
         moving = moving || th_next[j] != th[j];
@@ -391,7 +397,6 @@ static void theta_term_3b(const real_t v[], const real_t x[], const real_t th[],
     if (!moving) {
         return;
     }
-    dg_dtheta(v, x, th, Gth);
     for (a = 0; a < NK; ++a) {
         acc = 0;
         for (j = 0; j < NP; ++j) {
@@ -436,9 +441,9 @@ _PREDICT = r"""
 static void forcing_predict(const real_t v[], const real_t x[], const real_t th[],
                             const real_t phi[], const real_t Gx[], real_t F[], real_t N[])
 {
-    real_t Gv[NK * NV], J[NK * NX], acc;
+    real_t g_[NK], Gx_[NK * NX], Gv[NK * NV], J[NK * NX], acc;
     int i, j, a, l;
-    dg_dv(v, x, th, Gv);
+    g_dx_dv(v, x, th, g_, Gx_, Gv);
     for (a = 0; a < NK; ++a) {
         for (j = 0; j < NX; ++j) {
             acc = 0;
@@ -500,7 +505,7 @@ static int second_observer_vi(const real_t x2[], const real_t u[], const real_t 
     for (i = 0; i < NY; ++i) {
         v2[NU + i] = on_est ? yhat[i] : y[i];
     }
-    g_and_dg_dx(v2, x2, th, g2, Gx2);
+    $G2_CALL
     $GV_TERM
     for (i = 0; i < NX; ++i) {
         acc = 0;
@@ -535,7 +540,6 @@ static int second_observer_vi(const real_t x2[], const real_t u[], const real_t 
 
 _GV_DECL = "real_t Gv2[NK * NV];"
 _GV_TERM = r"""if (on_est) {
-        dg_dv(v2, x2, th, Gv2);
         for (a = 0; a < NK; ++a) {
             for (j = 0; j < NX; ++j) {
                 acc = 0;
@@ -554,7 +558,8 @@ static int advance(const ${P}_state *s, const real_t u[], const real_t y[], int 
                    ${P}_state *out)
 {
     const real_t *x = s->x_hat, *z = s->z, *th = s->theta_hat;
-    real_t v[NV], g[NK], Gx[NK * NX], phi[NK], F[NZ], N[NZ * NZ], xz[NZ], xz_next[NZ], acc;
+    real_t v[NV], g[NK], Gx[NK * NX], Gth[NK * NP], phi[NK], F[NZ], N[NZ * NZ], xz[NZ],
+        xz_next[NZ], acc;
     int i, j, a, status;
     for (i = 0; i < NU; ++i) {
         v[i] = u[i];
@@ -566,17 +571,17 @@ static int advance(const ${P}_state *s, const real_t u[], const real_t y[], int 
         }
         v[NU + i] = correct ? y[i] : acc;
     }
-    g_and_dg_dx(v, x, th, g, Gx);
+    g_and_jacobians(v, x, th, g, Gx, Gth);
     for (a = 0; a < NK; ++a) {
         phi[a] = g[a] + z[a];
     }
     if (correct) {
         forcing_3ab(x, u, y, phi, Gx, F);
-        status = update_law_8(v, x, phi, th, g, out->theta_hat);
+        status = update_law_8(v, x, phi, th, g, Gth, out->theta_hat);
         if (status != ${PU}_OK) {
             return status;
         }
-        theta_term_3b(v, x, th, out->theta_hat, F);
+        theta_term_3b(Gth, th, out->theta_hat, F);
         jacobian_part(Gx, N);
     } else {
         $PREDICT_CALL
@@ -784,6 +789,8 @@ def step_source(opts: StepOptions) -> str:
             ON_ESTIMATES="1" if opts.on_estimates else "0",
             GV_DECL=_GV_DECL if opts.needs_dg_dv else "",
             GV_TERM=_GV_TERM if opts.needs_dg_dv else "",
+            G2_CALL=("g_dx_dv(v2, x2, th, g2, Gx2, Gv2);" if opts.needs_dg_dv
+                     else "g_and_dg_dx(v2, x2, th, g2, Gx2);"),
             PHI12_CHOICE="correct ? PHI12 : PHI12_OPEN" if opts.skip else "PHI12"))
     predict = ("for (j = 0; j < NP; ++j) {\n            out->theta_hat[j] = th[j];\n        }\n"
                "        forcing_predict(v, x, th, phi, Gx, F, N);") if opts.skip else \

@@ -208,11 +208,15 @@ def _model_functions(pert: SymbolicPerturbation, ts: Any, opts: StepOptions,
     g = sp.Matrix(pert.expr)
     funcs = [
         c_function("g_only", ins, [("g", g)], real),
-        c_function("g_and_dg_dx", ins, [("g", g), ("Gx", pert.jacobian("x"))], real),
-        c_function("dg_dtheta", ins, [("Gth", pert.jacobian("theta"))], real),
+        c_function("g_and_jacobians", ins, [("g", g), ("Gx", pert.jacobian("x")),
+                                            ("Gth", pert.jacobian("theta"))], real),
     ]
     if opts.needs_dg_dv:
-        funcs.append(c_function("dg_dv", ins, [("Gv", pert.jacobian("v"))], real))
+        funcs.append(c_function("g_dx_dv", ins, [("g", g), ("Gx", pert.jacobian("x")),
+                                                 ("Gv", pert.jacobian("v"))], real))
+    elif opts.second:
+        funcs.append(c_function("g_and_dg_dx", ins, [("g", g), ("Gx", pert.jacobian("x"))],
+                                real))
     if ts is not None:
         exprs, args = ts
         n, m, r, _, _ = pert.dims
