@@ -437,10 +437,23 @@ def test_mimo_laws_match_python(tmp_path, law_name):
     t = np.arange(N) * dt
     y = np.c_[np.sin(2 * t), 1.5 * np.cos(t)] + 0.01 * rng.standard_normal((N, 2))
     u = np.sin(3 * t)[:, None] if system.m else None
-    res = load_c(generate_c(obs, dt=dt, name=f"toy_{law_name}"), tmp_path).run(u, y)
+    code = generate_c(obs, dt=dt, name=f"toy_{law_name}")
+    res = load_c(code, tmp_path).run(u, y)
     assert res.status == 0
     ref = obs.run(t, u, y)
     assert_agree(res, ref, DOUBLE_RTOL)
+    # the harness: r = 2 outputs (and no input column when m = 0), columns in another order
+    exe = build_harness(code, tmp_path / "harness")
+    cols = np.c_[y[:, 1], t, y[:, 0]] if u is None else np.c_[y[:, 1], t, u, y[:, 0]]
+    header = "y2,t,y1" if u is None else "y2,t,u,y1"
+    csv = tmp_path / "mimo.csv"
+    np.savetxt(csv, cols, delimiter=",", header=header, comments="", fmt="%.17g")
+    rc, table, head, err = run_harness(exe, csv)
+    assert rc == 0, err
+    assert head == "t,x_hat_x1,x_hat_x2,phi_hat_1,phi_hat_2,theta_hat_theta1,theta_hat_theta2," \
+                   "x_hat_refined_x1,x_hat_refined_x2"
+    expected = np.c_[t, ref.x_hat, ref.phi_hat, ref.theta_hat, ref.x_hat_refined]
+    assert rel_err(table, expected) <= DOUBLE_RTOL
     if law_name != "constant":
         assert np.all(np.ptp(ref.theta_hat, axis=0) > 1e-5)     # the law moves θ̂
 

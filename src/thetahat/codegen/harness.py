@@ -71,7 +71,9 @@ _MAIN = r"""/* @P@_main.c -- CSV harness of the generated observer @P@ (thetahat
 
 typedef @P@_real_t real_t;
 
+#if @PU@_NU > 0
 static const char *const IN_ALIASES[][3] = {@IN_ALIASES@};
+#endif
 static const char *const OUT_ALIASES[][3] = {@OUT_ALIASES@};
 static const char *const COLUMNS[] = {@COLUMNS@};
 static const double DT = @DT@;
@@ -158,7 +160,10 @@ int main(int argc, char **argv)
 {
     const char *path = NULL;
     real_t theta0[@PU@_NP], u[@PU@_NU > 0 ? @PU@_NU : 1], y[@PU@_NY], phi[@PU@_NK];
-    int col_t, col_u[@PU@_NU > 0 ? @PU@_NU : 1], col_y[@PU@_NY], have_theta0 = 0;
+    int col_t, col_y[@PU@_NY], have_theta0 = 0;
+#if @PU@_NU > 0
+    int col_u[@PU@_NU];
+#endif
     int i, nfields, nheader = -1, status, rows = 0;
     long lineno = 0;
     double t = 0, t_prev = 0, value;
@@ -201,9 +206,12 @@ int main(int argc, char **argv)
         return 2;
     }
     col_t = -1;
+#if @PU@_NU > 0
     for (i = 0; i < @PU@_NU; ++i) {
         col_u[i] = 0;
     }
+#endif
+    u[0] = 0;
     for (i = 0; i < @PU@_NY; ++i) {
         col_y[i] = 0;
     }
@@ -222,12 +230,14 @@ int main(int argc, char **argv)
         if (nheader < 0) {
             nheader = nfields;
             col_t = find(nfields, (const char *const[3]){"t", NULL, NULL});
+#if @PU@_NU > 0
             for (i = 0; i < @PU@_NU; ++i) {
                 col_u[i] = find(nfields, IN_ALIASES[i]);
                 if (col_u[i] < 0) {
                     return fail(path, lineno, "missing input column (@INPUTS@)");
                 }
             }
+#endif
             for (i = 0; i < @PU@_NY; ++i) {
                 col_y[i] = find(nfields, OUT_ALIASES[i]);
                 if (col_y[i] < 0) {
@@ -253,12 +263,14 @@ int main(int argc, char **argv)
             return fail(path, lineno, "t is not spaced by the generated dt; resample the data "
                                       "or generate again with thetahat codegen --dt");
         }
+#if @PU@_NU > 0
         for (i = 0; i < @PU@_NU; ++i) {
             if (!parse_real(fields[col_u[i]], &value)) {
                 return fail(path, lineno, "an input is not a number");
             }
             u[i] = (real_t)value;
         }
+#endif
         for (i = 0; i < @PU@_NY; ++i) {
             if (!parse_real(fields[col_y[i]], &value)) {
                 return fail(path, lineno, "an output is not a number (NaN marks a missing one)");
@@ -310,7 +322,7 @@ def harness_source(prefix: str, names: dict[str, list[str]], k: int, real: str, 
                     "        printf(\",%.@DIGITS@g\", (double)@P@_x_hat_refined(s)[i]);\n"
                     "    }\n" if second else "")
     text = _MAIN.replace("@PRINT_SECOND@", print_second)
-    for key, value in (("@IN_ALIASES@", aliases("u", "u") if names["u"] else "{NULL, NULL, NULL}"),
+    for key, value in (("@IN_ALIASES@", aliases("u", "u")),
                        ("@OUT_ALIASES@", aliases("y", "y")),
                        ("@COLUMNS@", _c_strings(cols)),
                        ("@INPUTS@", ", ".join(names["u"]) or "none"),
