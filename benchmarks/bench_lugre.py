@@ -348,7 +348,7 @@ def _fast_paths(obs, traj, s0, N: int, wall_ivp: float, log) -> dict:
         log("  compiled path: numba not installed (pip install 'thetahat[speed]')")
         return out
     dt = float(traj.t[1] - traj.t[0])
-    fast = compile_observer(obs, dt=dt, theta_star=lugre.theta_star_expr(lugre.LuGreParameters()))
+    fast = compile_observer(obs, dt=dt)
     fast.run(traj.t[:50], traj.u[:50], traj.y[:50], state0=s0)           # JIT warm-up
     best = np.inf
     for _ in range(3):

@@ -12,8 +12,10 @@ from .estimation.checks import (ExcitationReport, MonotonicityReport, check_mono
                                 excitation_report)
 from .estimation.compiled import CompiledObserver, compile_observer
 from .estimation.observer import ModifiedHighGainObserver, ObserverEstimate, ObserverResult
+from .estimation.plan import StepPlan
 from .estimation.projection import Projection, Saturation, saturate
 from .estimation.redesign import SecondObserver
+from .estimation.theta_star import ThetaStar
 from .estimation.update_laws import (AlgebraicInversion, ConstantLaw, GradientInversion,
                                      IntermittentInversion, UpdateLaw, smooth_ramp)
 from .errors import (CCompilerError, CodegenError, ConvergenceWarning, DesignError, DimensionError, IllConditionedWarning,
@@ -58,5 +60,6 @@ __all__ = [
     "PerturbedLinearSystem", "SCBResult", "SymbolicSCBResult", "ThetahatError", "ThetahatWarning", "UpdateLawError",
     "apply_design", "check_assumption_1", "extended_system", "high_gain", "invariant_zeros",
     "is_left_invertible", "is_minimum_phase", "modified_high_gain", "normal_rank", "scb", "scb_symbolic",
-    "unstable_zeros", "__version__", "CCode", "generate_c", "CodegenError", "CCompilerError",
+    "unstable_zeros", "__version__",
+    "StepPlan", "ThetaStar", "CCode", "generate_c", "CodegenError", "CCompilerError",
 ]

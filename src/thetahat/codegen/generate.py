@@ -26,8 +26,9 @@ from numpy.typing import ArrayLike, NDArray
 from ..errors import CodegenError, ModelFileError
 from ..estimation.discretize import IMPLICITNESS
 from ..estimation.observer import ModifiedHighGainObserver
-from ..estimation.update_laws import (FAR, INIT_RTOL, AlgebraicInversion, ConstantLaw,
-                                      GradientInversion, IntermittentInversion, smooth_ramp)
+from ..estimation.theta_star import ThetaStar
+from ..estimation.update_laws import (FAR, INIT_RTOL, ConstantLaw, GradientInversion,
+                                      IntermittentInversion, SmoothRamp)
 from ..model.paramset import Box
 from ..model.perturbation import SymbolicPerturbation
 from .c_step import StepOptions, step_source
@@ -46,8 +47,8 @@ HOLDS = ("zoh",)
 #: that the constant converts without overflow).
 FAR_FLOAT = 1e30
 
-_LAWS = {ConstantLaw: "constant", AlgebraicInversion: "algebraic",
-         IntermittentInversion: "intermittent", GradientInversion: "gradient"}
+_LAWS = {ConstantLaw: "constant", IntermittentInversion: "intermittent",
+         GradientInversion: "gradient"}
 
 
 @dataclass(frozen=True, slots=True, repr=False)
@@ -148,7 +149,9 @@ def _array(name: str, values: ArrayLike, real_type: str, comment: str) -> tuple[
 
 def _theta_star(law: Any, pert: SymbolicPerturbation
                 ) -> tuple[tuple[sp.Expr, ...], tuple[sp.Symbol, ...]]:
-    form = getattr(law.theta_star, "sympy_form", None)
+    ts = law.theta_star
+    form = (ts.expr, ts.arguments) if isinstance(ts, ThetaStar) else getattr(ts, "sympy_form",
+                                                                              None)
     if form is None:
         raise CodegenError(
             f"the θ* of the {type(law).__name__} is a Python callable "
@@ -177,10 +180,15 @@ def _check(observer: Any, hold: str, real: str) -> tuple[str, Any]:
                            f"form); got {type(pert).__name__}.")
     law = observer.update_law
     kind = _LAWS.get(type(law))
+    if kind == "intermittent" and law.l is None:        # AlgebraicInversion: l ≡ 1
+        kind = "algebraic"
     if kind is None:
         raise CodegenError(f"the update law {type(law).__name__} has no C form; supported: "
                            "ConstantLaw, AlgebraicInversion, IntermittentInversion, "
                            "GradientInversion.")
+    if observer.layout.law_size:
+        raise CodegenError(f"the update law {type(law).__name__} has a state of its own; the C "
+                           "step supports memoryless laws only.")
     if not isinstance(law.parameter_set, Box):
         raise CodegenError(f"Θ must be a Box (its projection is a clip); got "
                            f"{type(law.parameter_set).__name__}.")
@@ -193,7 +201,7 @@ def _check(observer: Any, hold: str, real: str) -> tuple[str, Any]:
     if not np.array_equal(G, np.diag(np.diag(G))):
         raise CodegenError("Γ must be diagonal: the Γ⁻¹-weighted projection onto a box is then "
                            "a clip (a full Γ needs a least-squares solve).")
-    if kind == "intermittent" and not isinstance(law.l, type(smooth_ramp(0.0, 1.0))):
+    if kind == "intermittent" and not isinstance(law.l, SmoothRamp):
         raise CodegenError("the excitation weight must be smooth_ramp(low, high) of ‖φ̂‖; "
                            f"got {law.l!r}.")
     if kind == "gradient" and (law.M is not None or law.perturbation != pert):
@@ -260,13 +268,14 @@ def discretisation(observer: ModifiedHighGainObserver, dt: float, *, predict: bo
     >>> sorted(discretisation(build_observer(loads_model(EXAMPLE_MODEL)), 0.01, predict=False))
     ['PHI1', 'PHI12']
     """
-    out = {"PHI1": observer.plan(dt).Phi1}
+    plan = observer.plan(dt)          # StepPlan: batch axis of length 1
+    out = {"PHI1": plan.Phi1[0]}
     if predict:
-        out["PHI1_OPEN"] = observer.plan(dt, correct=False).Phi1
-    if observer.second is not None:
-        out["PHI12"] = observer.second.plan(dt).Phi1
+        out["PHI1_OPEN"] = plan.Phi1_open[0]
+    if plan.second is not None:
+        out["PHI12"] = plan.second.Phi1[0]
         if predict:
-            out["PHI12_OPEN"] = observer.second.plan(dt, correct=False).Phi1
+            out["PHI12_OPEN"] = plan.second.Phi1_open[0]
     return out
 
 
@@ -341,7 +350,9 @@ def model_hash(observer: ModifiedHighGainObserver) -> str:
     h.update(repr((type(law).__name__, getattr(law, "on_invalid", None), observer.nan_policy,
                    getattr(law, "l", None) if hasattr(getattr(law, "l", None), "low") else None
                    )).encode())
-    form = getattr(getattr(law, "theta_star", None), "sympy_form", None)
+    ts = getattr(law, "theta_star", None)
+    form = (ts.expr, ts.arguments) if isinstance(ts, ThetaStar) else getattr(ts, "sympy_form",
+                                                                              None)
     if form is not None:
         h.update(sp.srepr(form).encode())
     if observer.second is not None:

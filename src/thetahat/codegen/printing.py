@@ -17,7 +17,7 @@ from sympy.codegen.ast import float32, real
 from sympy.printing.c import C99CodePrinter
 
 from ..errors import CodegenError
-from ..model.perturbation import heaviside_as_sign
+from ..model.perturbation import numpy_ready
 
 __all__ = ["REALS", "c_function", "c_printer"]
 
@@ -87,7 +87,7 @@ def c_function(name: str, inputs: Sequence[tuple[str, Sequence[sp.Symbol]]],
         M = sp.Matrix(M)
         for i in range(M.rows):
             for j in range(M.cols):
-                entry = heaviside_as_sign(sp.sympify(M[i, j])).xreplace(subs)
+                entry = numpy_ready(sp.sympify(M[i, j])).xreplace(subs)
                 if entry.has(sp.I) or entry.has(sp.zoo, sp.nan, sp.oo):
                     raise CodegenError(f"{name}: entry {M[i, j]} is complex or infinite; the C "
                                        "observer needs a real formula (write θ* or g with "

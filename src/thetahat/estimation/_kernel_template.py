@@ -1,9 +1,13 @@
 """Source template of the numba kernel (see ``compiled.py``): pure-Python code, as text.
 
 The text is expanded (named offsets into the flat work and constants vectors) and compiled
-by ``compiled.py``; it implements one observer step exactly as ``observer.py`` does: the cached
-exponential of the linear part, the linearly-implicit correction for g, the update law's step
-with the box projection, and the second observer.
+by ``compiled.py``; it is a scalar, allocation-free transcription of the step defined in
+``step.py`` (the φ-matrices of the plan, the linearly-implicit correction for g, the update
+law's step with the box projection, the second observer, the divergence rule of
+``step.DIVERGENCE_BOUND``); ``tests/estimation/test_conformance.py`` holds it to that
+definition. Its data (matrices, gains, φ-matrices, Γ, Θ) come from the observer's StepPlan and
+its g, Jacobians and θ* are printed from the same SymPy expressions the Python path
+lambdifies.
 """
 
 #: The dimension-generic part of every kernel, in a notation that :func:`_expand` rewrites:
@@ -239,6 +243,8 @@ def _advance(Sin, iin, U, Y, iu, dt, P, w, Sout, iout):
             acc += Gx[a, j] * kin[j]
         F[NX + a] -= acc
         phi[a] = g[a] + z[a]
+        if not math.isfinite(phi[a]):
+            return 1
     if law == 3:
         _dg_dtheta(w, Sin, iin, W_v, 0, NZ, W_Gth)
     status = _law_step(Sin, iin, dt, P, w)
@@ -340,9 +346,11 @@ def run(s0, U, Y, dts, P, S, PHI):
             PHI[i, a] = phi[a]
         if status != 0:
             return status, i
+        sq = 0.0
         for j in range(size):
-            if not math.isfinite(S[i + 1, j]):
-                return 1, i + 1
+            sq += S[i + 1, j] * S[i + 1, j]
+        if not sq <= BOUND_SQ:
+            return 1, i
     for j in range(NU):
         v[j] = U[N - 1, j]
     for j in range(NY):

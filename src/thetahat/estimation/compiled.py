@@ -10,10 +10,11 @@ machine code. Supported:
 * Θ: a :class:`~thetahat.model.paramset.Box`, with a diagonal Γ (the Γ⁻¹-weighted projection
   onto a box is then a clip);
 * update laws: :class:`~thetahat.estimation.update_laws.ConstantLaw`,
-  :class:`~thetahat.estimation.update_laws.AlgebraicInversion` and
-  :class:`~thetahat.estimation.update_laws.IntermittentInversion` (with the weight of
-  :func:`~thetahat.estimation.update_laws.smooth_ramp`) whose θ* is symbolic — derived by
-  ``from_perturbation``, or a SymPy expression passed as ``theta_star`` —, and
+  :class:`~thetahat.estimation.update_laws.IntermittentInversion` (l ≡ 1, as built by
+  :func:`~thetahat.estimation.update_laws.AlgebraicInversion`, or the weight of
+  :func:`~thetahat.estimation.update_laws.smooth_ramp`) whose θ* is a
+  :class:`~thetahat.estimation.theta_star.ThetaStar` (from ``from_perturbation`` or
+  ``ThetaStar.from_expr``), and
   :class:`~thetahat.estimation.update_laws.GradientInversion` with the default M = (∂g/∂θ)ᵀ;
   none of them with a ``saturation``;
 * an attached :class:`~thetahat.estimation.redesign.SecondObserver`;
@@ -40,7 +41,6 @@ import os
 import re
 import sys
 import tempfile
-import warnings
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -52,26 +52,23 @@ import sympy as sp
 from numpy.typing import NDArray
 from sympy.printing.pycode import PythonCodePrinter
 
-from .._validate import as_vector, check_finite, positive_scalar
-from ..errors import (DimensionError, MissingExtraError, NonFiniteError, ThetahatWarning,
-                      UpdateLawError)
+from .._validate import as_vector, positive_scalar
+from ..errors import DimensionError, MissingExtraError, NonFiniteError, UpdateLawError
 from ..model.paramset import Box
-from ..model.perturbation import SymbolicPerturbation, heaviside_as_sign, lambdify_numpy
-from .discretize import IMPLICITNESS
+from ..model.perturbation import SymbolicPerturbation, numpy_ready
 from ._kernel_template import CORE
+from .discretize import IMPLICITNESS
 from .observer import ModifiedHighGainObserver, ObserverResult
-from .update_laws import (FAR, AlgebraicInversion, ConstantLaw, GradientInversion,
-                          IntermittentInversion, _SmoothRamp, _SympyThetaStar)
+from .plan import StepPlan
+from .step import DIVERGENCE_BOUND, divergence_error
+from .theta_star import ThetaStar
+from .update_laws import (FAR, ConstantLaw, GradientInversion, IntermittentInversion, SmoothRamp,
+                          invalid_theta_star_error)
 
 __all__ = ["CompiledObserver", "compile_observer"]
 
 FloatArray = NDArray[np.float64]
 
-#: θ* given as an expression must agree with the law's own θ* to this relative accuracy at
-#: the check points (both are formulas for the same function; this only absorbs rounding).
-THETA_STAR_RTOL = 1e-8
-#: Number of random points at which a user's θ* expression is compared with the law's θ*.
-THETA_STAR_SAMPLES = 64
 #: The samples given to ``CompiledObserver.run`` must be spaced by dt to this relative accuracy.
 #: A uniform grid ``np.arange(N) * dt`` has spacings off by up to ~1e-12 relative (rounding);
 #: the kernel uses Φ₁(dt) for every step, and each step's own spacing in the update law and
@@ -79,12 +76,10 @@ THETA_STAR_SAMPLES = 64
 #: agreement promised between the two paths.
 DT_RTOL = 1e-9
 
-_LAW_CODES = {ConstantLaw: 0, AlgebraicInversion: 1, IntermittentInversion: 2,
-              GradientInversion: 3}
 _SUPPORTED = ("supported: a SymbolicPerturbation g, a Box Θ with diagonal Γ, ConstantLaw, "
-              "AlgebraicInversion / IntermittentInversion (smooth_ramp weight) with a symbolic "
-              "θ*, GradientInversion with the default M, no saturation, an optional "
-              "SecondObserver, fixed dt and zero-order hold")
+              "IntermittentInversion (l ≡ 1, i.e. AlgebraicInversion, or a smooth_ramp weight) "
+              "with a ThetaStar θ*, GradientInversion with the default M, no saturation, no law "
+              "state, an optional SecondObserver, fixed dt and zero-order hold")
 _modules: dict[str, ModuleType] = {}
 
 
@@ -126,7 +121,7 @@ def _scalar_function(name: str, params: str, inputs: Sequence[tuple[str, Sequenc
     for template, M in outputs:
         for i in range(M.rows):
             for j in range(M.cols):
-                flat.append(heaviside_as_sign(sp.sympify(M[i, j])).xreplace(subs))
+                flat.append(numpy_ready(sp.sympify(M[i, j])).xreplace(subs))
                 targets.append(template.format(i * M.cols + j))
     replacements, reduced = sp.cse(flat, symbols=sp.numbered_symbols("_c"))
     printer = _Printer()
@@ -274,6 +269,7 @@ def _kernel_source(pert: SymbolicPerturbation, theta_star: tuple[sp.Expr, ...] |
         f"NX, NU, NY, NK, NP = {n}, {m}, {r}, {k}, {p}",
         "NZ, NV = NX + NK, NU + NY",
         f"IMPLICITNESS = {IMPLICITNESS!r}", f"FAR = {FAR!r}",
+        f"BOUND_SQ = {DIVERGENCE_BOUND ** 2!r}",
         f"P_SIZE = {P_size}", f"W_SIZE = {W_size}"]
     header += [f"P_{name} = {off}" for name, (off, _) in consts.items()]
     header += [f"W_{name} = {off}" for name, (off, _) in work.items()]
@@ -330,67 +326,6 @@ def _unsupported(what: str) -> NotImplementedError:
                                "run_batch.")
 
 
-def _user_theta_star(expr: Any, phi: Any, pert: SymbolicPerturbation
-                     ) -> tuple[tuple[sp.Expr, ...], tuple[sp.Symbol, ...]]:
-    _, _, _, p, k = pert.dims
-    entries = list(expr) if isinstance(expr, (list, tuple, sp.MatrixBase)) else [expr]
-    try:
-        exprs = tuple(sp.sympify(e, strict=True) for e in entries)
-    except sp.SympifyError as exc:
-        raise UpdateLawError(f"theta_star must be SymPy expressions; got {expr!r}.") from exc
-    if len(exprs) != p:
-        raise DimensionError(f"theta_star must have p = {p} entries; got {len(exprs)}.")
-    known = (*pert.u, *pert.y, *pert.x)
-    free = set().union(*(e.free_symbols for e in exprs))
-    if free & set(pert.theta):
-        raise UpdateLawError("theta_star must not depend on θ (it is the solution θ*(v, x, φ) "
-                             "of φ = g(v, x, θ)).")
-    extra = free - set(known)
-    if phi is None:
-        if len(extra) > 1 or (k > 1 and extra):
-            raise UpdateLawError(f"theta_star uses the symbols {sorted(map(str, extra))} "
-                                 f"besides g's u, y, x; pass phi=[...] (k = {k} symbols, in "
-                                 "the order of φ).")
-        phis = tuple(extra) if extra else tuple(sp.Dummy(f"phi{i}") for i in range(k))
-    else:
-        phis = (phi,) if isinstance(phi, sp.Symbol) else tuple(phi)
-        if len(phis) != k or not all(isinstance(s, sp.Symbol) for s in phis):
-            raise DimensionError(f"phi must be {k} SymPy symbol(s); got {phi!r}.")
-        if extra - set(phis):
-            raise UpdateLawError(f"theta_star uses unknown symbols "
-                                 f"{sorted(map(str, extra - set(phis)))}; it may use g's u, "
-                                 "y, x and the φ symbols only.")
-    return exprs, (*known, *phis)
-
-
-def _check_theta_star(law: Any, exprs: tuple[sp.Expr, ...], args: tuple[sp.Symbol, ...],
-                      pert: SymbolicPerturbation) -> None:
-    """The user's θ* expression must agree with the law's θ* callable at random points."""
-    n, m, r, p, _ = pert.dims
-    fn = lambdify_numpy(args, exprs)
-    rng = np.random.default_rng(0)
-    th = law.parameter_set.sample(rng, THETA_STAR_SAMPLES)
-    v = rng.standard_normal((THETA_STAR_SAMPLES, m + r))
-    x = rng.standard_normal((THETA_STAR_SAMPLES, n))
-    with np.errstate(all="ignore"):
-        phi = np.asarray(pert.g(v, x, th), dtype=np.float64)
-        ref = np.asarray(law.theta_star(v, x, phi), dtype=np.float64).reshape(-1, p)
-        cols = [*v.T, *x.T, *phi.T]
-        mine = np.stack([np.broadcast_to(np.asarray(c, dtype=np.float64), (len(th),))
-                         for c in fn(*cols)], axis=-1)
-    both = np.all(np.isfinite(ref) & np.isfinite(mine), axis=-1)
-    if not both.any():
-        warnings.warn("compile_observer could not compare theta_star with the update law's "
-                      "θ* (no finite values at the check points); make sure they agree.",
-                      ThetahatWarning, stacklevel=3)
-        return
-    err = np.abs(ref[both] - mine[both]) / (1.0 + np.abs(ref[both]))
-    if np.max(err) > THETA_STAR_RTOL:
-        raise UpdateLawError(f"theta_star disagrees with the update law's θ* (relative error "
-                             f"{np.max(err):.2e} at random points); pass the expression of the "
-                             "same θ*(v, x̂, φ̂) the law uses.")
-
-
 def _diagonal_gain(law: Any) -> FloatArray:
     G = np.asarray(law.Gamma, dtype=np.float64)
     if not np.array_equal(G, np.diag(np.diag(G))):
@@ -399,45 +334,50 @@ def _diagonal_gain(law: Any) -> FloatArray:
     return G
 
 
-def _configure(observer: ModifiedHighGainObserver, theta_star: Any, phi: Any
-               ) -> tuple[int, tuple[sp.Expr, ...] | None, tuple[sp.Symbol, ...] | None]:
-    """Check the observer's parts; return (law code, θ* expressions, θ* argument symbols)."""
+def _law_code(law: Any) -> int:
+    """0 ConstantLaw, 1 IntermittentInversion with l ≡ 1, 2 with a smooth ramp, 3 gradient."""
+    if isinstance(law, ConstantLaw):
+        return 0
+    if isinstance(law, IntermittentInversion):
+        if law.l is None:
+            return 1
+        if isinstance(law.l, SmoothRamp):
+            return 2
+        raise _unsupported("an excitation weight l other than smooth_ramp(low, high)")
+    if isinstance(law, GradientInversion):
+        return 3
+    raise _unsupported(f"the update law {type(law).__name__}")
+
+
+def _configure(observer: ModifiedHighGainObserver) -> tuple[int, ThetaStar | None]:
+    """Check the observer's parts; return (law code, θ*)."""
     pert = observer.system.perturbation
     if not isinstance(pert, SymbolicPerturbation):
         raise _unsupported(f"a {type(pert).__name__} g (it must be a SymbolicPerturbation)")
     law = observer.update_law
-    code = _LAW_CODES.get(type(law))
-    if code is None:
-        raise _unsupported(f"the update law {type(law).__name__}")
+    if law.state_size:
+        raise _unsupported("an update law with a state")
+    code = _law_code(law)
     if not isinstance(law.parameter_set, Box):
         raise _unsupported(f"Θ = {type(law.parameter_set).__name__} (it must be a Box)")
     if getattr(law, "saturation", None) is not None:
         raise _unsupported("an update law with saturation")
     if code != 0:
         _diagonal_gain(law)
-    if code == 2 and not isinstance(law.l, _SmoothRamp):
-        raise _unsupported("an excitation weight l other than smooth_ramp(low, high)")
     if code == 3 and law.M is not None:
         raise _unsupported("GradientInversion with a user M")
     if code == 3 and not (law.perturbation is pert or law.perturbation == pert):
         raise _unsupported("GradientInversion with a g other than the observer's")
     if code in (0, 3):
-        if theta_star is not None:
-            raise UpdateLawError(f"theta_star was given but {type(law).__name__} uses no θ*.")
-        return code, None, None
-    if theta_star is not None:
-        exprs, args = _user_theta_star(theta_star, phi, pert)
-        if not (isinstance(law.theta_star, _SympyThetaStar) and law.theta_star.solution == exprs):
-            _check_theta_star(law, exprs, args, pert)
-        return code, exprs, args
+        return code, None
     ts = law.theta_star
-    if isinstance(ts, _SympyThetaStar) and ts.arguments:
-        return code, ts.solution, ts.arguments
+    if isinstance(ts, ThetaStar):
+        return code, ts
     raise NotImplementedError(
         f"compile_observer: the θ* of {type(law).__name__} is a Python callable "
-        f"({type(ts).__name__}), which cannot be compiled; pass its SymPy form, "
-        "compile_observer(observer, dt=..., theta_star=expr) with θ*(v, x̂, φ̂) in g's symbols "
-        "and a φ symbol (for the DC motor: thetahat.models.lugre.theta_star_expr(params)).")
+        f"({type(ts).__name__}), which cannot be compiled; build the law with a ThetaStar "
+        "(thetahat.estimation.theta_star.ThetaStar.from_expr(expr, perturbation=g, phi=[...]) "
+        "or from_perturbation), which carries θ*'s SymPy form.")
 
 
 # --------------------------------------------------------------------------- public API
@@ -466,7 +406,7 @@ class CompiledObserver:
 
     ``step`` and ``run`` compute what the observer's own ``step`` and ``run(hold="zoh")``
     compute, in machine code. Build it with :func:`compile_observer`, which documents the
-    parameters ``observer``, ``dt``, ``theta_star`` and ``phi``.
+    parameters ``observer`` and ``dt``.
 
     Attributes
     ----------
@@ -474,27 +414,33 @@ class CompiledObserver:
         The observer it was compiled from (gains, law, second observer).
     dt : float
         The fixed step length (s).
-    theta_star : tuple of sympy.Expr, or None
-        The θ* compiled into the kernel (None for laws without θ*).
+    theta_star : ThetaStar or None
+        The θ* compiled into the kernel, the update law's own (None for laws without θ*).
+    plan : StepPlan
+        The observer's plan for ``dt``, whose matrices the kernel reads.
     """
 
     observer: ModifiedHighGainObserver
     dt: float
-    theta_star: tuple[sp.Expr, ...] | None
+    theta_star: ThetaStar | None
+    plan: StepPlan
     _kernel: ModuleType
     _P: FloatArray
 
-    def __init__(self, observer: ModifiedHighGainObserver, *, dt: float,
-                 theta_star: Any = None, phi: Any = None) -> None:
+    def __init__(self, observer: ModifiedHighGainObserver, *, dt: float) -> None:
         _require_numba()
         if not isinstance(observer, ModifiedHighGainObserver):
             raise _unsupported(f"a {type(observer).__name__} (it must be a "
                                "ModifiedHighGainObserver)")
         h = positive_scalar("dt", dt)
-        code, exprs, args = _configure(observer, theta_star, phi)
-        source = _kernel_source(observer.system.perturbation, exprs, args)
-        for name, value in (("observer", observer), ("dt", h), ("theta_star", exprs),
-                            ("_kernel", _load(source)), ("_P", _constants(observer, h, code))):
+        code, ts = _configure(observer)
+        plan = observer.plan(h)
+        source = _kernel_source(observer.system.perturbation,
+                                None if ts is None else ts.expr,
+                                None if ts is None else ts.arguments)
+        for name, value in (("observer", observer), ("dt", h), ("theta_star", ts),
+                            ("plan", plan), ("_kernel", _load(source)),
+                            ("_P", _constants(observer, plan, code))):
             object.__setattr__(self, name, value)
 
     @property
@@ -519,12 +465,8 @@ class CompiledObserver:
 
     def _raise(self, status: int, where: str) -> NoReturn:
         if status == 2:
-            law = type(self.observer.update_law).__name__
-            raise UpdateLawError(f"{law}: theta_star is NaN or inf {where} where the weight is "
-                                 "positive; make l vanish where the inversion is undefined, or "
-                                 "pass on_invalid='freeze'.")
-        raise NonFiniteError(f"the observer state became non-finite {where}; check the gains, "
-                             "the update law and the data scaling.")
+            raise invalid_theta_star_error(type(self.observer.update_law).__name__, 1)
+        raise divergence_error(where)
 
     def step(self, state: Any, u: Any, y: Any) -> FloatArray:
         """Advance the state by ``dt`` holding the samples (as the observer's ``step``).
@@ -551,21 +493,17 @@ class CompiledObserver:
             θ* invalid where l > 0 and ``on_invalid='raise'``.
         """
         obs = self.observer
-        _, m, r, _, _, size = obs._sizes
-        s = _as_input("state", state, size)
-        out = np.empty(size)
-        status = self._kernel.step(s, _as_input("u", np.empty(0) if u is None else u, m),
-                                   _as_input("y", y, r), self.dt, self._P, out)
-        if status == 0 and math.isfinite(float(out @ out)):
+        lay = obs.layout
+        s = _as_input("state", state, lay.size)
+        out = np.empty(lay.size)
+        status = self._kernel.step(s, _as_input("u", np.empty(0) if u is None else u, lay.m),
+                                   _as_input("y", y, lay.r), self.dt, self._P, out)
+        if status == 0 and float(out @ out) <= DIVERGENCE_BOUND ** 2:
             return out
-        # something is not finite: find out what, with the observer's own messages
-        obs._state(state)
-        if not obs._samples(u, y)[2]:
-            raise NonFiniteError("y contains NaN; the compiled observer does not predict over "
-                                 "missing samples: use the Python observer's step with "
-                                 "nan_policy='skip'.")
-        if status == 0 and np.all(np.isfinite(out)):
-            return out
+        # something is wrong: find out what, with the observer's own checks and messages
+        obs.check_state(state)
+        if not obs.check_samples(u, y)[2]:
+            raise _no_prediction()
         self._raise(int(status) or 1, "in this step")
 
     def run(self, t: Any, u: Any, y: Any, *, state0: Any = None) -> ObserverResult:
@@ -598,31 +536,25 @@ class CompiledObserver:
             θ* invalid where l > 0 and ``on_invalid='raise'``.
         """
         obs = self.observer
-        n, m, r, k, p, size = obs._sizes
-        t_ = as_vector("t", t)
+        lay = obs.layout
+        t_, dts, U3, Y3, ok = obs.check_records(t, u, y)
         N = t_.shape[0]
-        if N == 0:
-            raise DimensionError("t must hold at least one sampling instant; got none.")
-        dts = _kernel_array(np.diff(t_))
         if N > 1 and not np.all(np.abs(dts - self.dt) <= DT_RTOL * self.dt):
             raise DimensionError(f"the compiled observer steps dt = {self.dt!r}; t has spacings "
                                  f"in [{float(dts.min())!r}, {float(dts.max())!r}]. Resample, "
                                  "or compile again with compile_observer(observer, dt=...).")
-        U = _kernel_array(obs._record("u", np.zeros((N, 0)) if u is None else u, N, m))
-        Y = _kernel_array(obs._record("y", y, N, r))
-        check_finite("u", U)
-        if not np.all(np.isfinite(Y)):
-            raise NonFiniteError("y contains NaN or inf; the compiled observer needs finite "
-                                 "samples (the Python observer's run skips NaN samples with "
-                                 "nan_policy='skip').")
-        s0 = _kernel_array(obs.init() if state0 is None else obs._state(state0))
-        S = np.empty((N, size))
-        PHI = np.empty((N, k))
+        if not ok.all():
+            raise _no_prediction()
+        U, Y, dts = (_kernel_array(a) for a in (U3[0], Y3[0], dts))
+        s0 = _kernel_array(obs.init() if state0 is None else obs.check_state(state0))
+        S = np.empty((N, lay.size))
+        PHI = np.empty((N, lay.k))
         status, index = self._kernel.run(s0, U, Y, dts, self._P, S, PHI)
         if status:
-            self._raise(int(status), f"at t[{int(index)}] = {t_[int(index)]!r}")
-        arrays = {"t": t_, "x_hat": S[:, :n], "phi_hat": PHI, "theta_hat": S[:, n + k:n + k + p],
-                  "x_hat_refined": S[:, n + k + p:] if obs.second is not None else None}
+            i = int(index)
+            self._raise(int(status), f"in the step from t[{i}] = {t_[i]!r}")
+        arrays = {"t": t_, "x_hat": S[:, lay.x], "phi_hat": PHI, "theta_hat": S[:, lay.theta],
+                  "x_hat_refined": S[:, lay.x2] if lay.second else None}
         for key, val in arrays.items():
             if val is not None:
                 val = np.array(val, copy=True)
@@ -637,19 +569,25 @@ class CompiledObserver:
                 f"kernel={self._kernel.__name__})")
 
 
-def _constants(observer: ModifiedHighGainObserver, dt: float, code: int) -> FloatArray:
-    """The constants vector P: matrices, φ-matrices for dt, Θ, Γ, ramp and the flags."""
-    n, m, r, k, p, _ = observer._sizes
-    consts, P_size, _, _ = _layouts(n, m, r, k, p)
-    sysm, law, second = observer.system, observer.update_law, observer.second
-    values = {"L": observer._L, "Bv": observer._Bv, "KxC": observer._KxC, "Kx": observer.K_x,
-              "C": sysm.C, "E": sysm.E, "Phi1": observer._cache.get(dt).Phi1, "A": sysm.A,
-              "Bm": sysm.B, "lower": law.parameter_set.lower, "upper": law.parameter_set.upper,
-              "Gam": getattr(law, "Gamma", np.eye(p))}
+def _no_prediction() -> NotImplementedError:
+    return NotImplementedError("y contains NaN (nan_policy='skip'); the compiled observer does "
+                               "not predict over missing samples: use the observer's own "
+                               "step/run or run_batch.")
+
+
+def _constants(observer: ModifiedHighGainObserver, plan: StepPlan, code: int) -> FloatArray:
+    """The constants vector P from the plan: matrices, φ-matrices, Θ, Γ, ramp and the flags."""
+    lay = plan.layout
+    consts, P_size, _, _ = _layouts(lay.n, lay.m, lay.r, lay.k, lay.p)
+    law, second = observer.update_law, plan.second
+    values = {"L": plan.L[0], "Bv": plan.Bv[0], "KxC": plan.KxC[0], "Kx": plan.K_x[0],
+              "C": plan.C, "E": plan.E, "Phi1": plan.Phi1[0], "A": plan.A,
+              "Bm": plan.B, "lower": law.parameter_set.lower, "upper": law.parameter_set.upper,
+              "Gam": np.eye(lay.p) if plan.Gamma is None else plan.Gamma[0]}
     if second is not None:
-        values["K2"] = second.K_x
-        values["Phi12"] = second._cache.get(dt).Phi1
-    if isinstance(law, IntermittentInversion):
+        values["K2"] = second.K_x[0]
+        values["Phi12"] = second.Phi1[0]
+    if code == 2:
         values["ramp"] = np.array([law.l.low, law.l.high])
     values["flags"] = np.array([code, getattr(law, "on_invalid", "raise") == "freeze",
                                 second is not None,
@@ -663,25 +601,17 @@ def _constants(observer: ModifiedHighGainObserver, dt: float, code: int) -> Floa
     return P
 
 
-def compile_observer(observer: ModifiedHighGainObserver, *, dt: float, theta_star: Any = None,
-                     phi: Any = None) -> CompiledObserver:
+def compile_observer(observer: ModifiedHighGainObserver, *, dt: float) -> CompiledObserver:
     """Compile an observer's step for a fixed ``dt`` with numba (the optional extra ``speed``).
 
     Parameters
     ----------
     observer : ModifiedHighGainObserver
         Observer (3) with update law (8) and optionally a second observer (Sec. VI); its parts
-        must be of the supported kinds (see the module docstring).
+        must be of the supported kinds (see the module docstring). A law with a θ* needs a
+        :class:`~thetahat.estimation.theta_star.ThetaStar` (it carries the SymPy form).
     dt : float
         The step length (s) > 0; ``run`` checks that its t is spaced by it.
-    theta_star : sympy.Expr or sequence of p of them, optional
-        θ*(v, x̂, φ̂) for :class:`AlgebraicInversion` / :class:`IntermittentInversion` whose θ*
-        is a Python callable, written in g's symbols (u, y, x) and k symbols for φ. It is
-        checked against the law's θ* at random points. Not needed when the law's θ* comes
-        from ``from_perturbation``.
-    phi : sympy.Symbol or sequence of k of them, optional
-        The φ symbols of ``theta_star``, in order; inferred when θ* has a single symbol
-        besides g's u, y, x.
 
     Returns
     -------
@@ -693,22 +623,18 @@ def compile_observer(observer: ModifiedHighGainObserver, *, dt: float, theta_sta
         numba is missing: ``pip install 'thetahat[speed]'``.
     NotImplementedError
         A part of the observer is not supported by the compiled path (the message names it).
-    UpdateLawError
-        ``theta_star`` disagrees with the law's θ*, uses unknown symbols, or is given for a
-        law without θ*.
-    DimensionError
-        ``theta_star`` or ``phi`` has the wrong number of entries.
 
     Notes
     -----
-    The kernel performs the observer's step (see :class:`ModifiedHighGainObserver`, Notes)
-    with the same operations in the same order, except for the summation order of the small
-    matrix products, a hand-written pivoted LU in place of LAPACK's, and scalar code for g,
-    its Jacobians and θ*. On the DC motor of Sec. VIII (20 s at 1 kHz, second observer
-    attached) ``run`` agrees with the Python ``run`` to 3e-13 relative. Measured on a shared
-    2-core machine: 0.3 µs per sample inside ``run`` (600× the Python step), 4 µs per call of
-    ``step`` from Python (validation and dispatch dominate), against 200 µs per Python step.
-    The first compilation of a model takes a few seconds; later ones load from the cache.
+    The kernel reads the observer's :class:`~thetahat.estimation.plan.StepPlan` for ``dt`` and
+    performs the step of :mod:`thetahat.estimation.step` with the same operations in the same
+    order, except for the summation order of the small matrix products, a hand-written pivoted
+    LU in place of LAPACK's, and scalar code for g, its Jacobians and θ* (printed from the same
+    SymPy expressions the Python path lambdifies). It applies the same divergence rule
+    (:data:`~thetahat.estimation.step.DIVERGENCE_BOUND`) and raises the same errors. Measured
+    on a shared 2-core machine: 0.25 µs per sample inside ``run``, a few µs per call of
+    ``step`` from Python (validation and dispatch dominate). The first compilation of a model
+    takes a few seconds; later ones load from the cache.
 
     Examples
     --------
@@ -718,7 +644,7 @@ def compile_observer(observer: ModifiedHighGainObserver, *, dt: float, theta_sta
     >>> data = lugre.simulate(seed=0, t_end=0.5)
     >>> obs = lugre.observer()
     >>> try:
-    ...     fast = compile_observer(obs, dt=1e-3, theta_star=lugre.theta_star_expr())
+    ...     fast = compile_observer(obs, dt=1e-3)
     ... except ImportError:                  # numba missing: pip install 'thetahat[speed]'
     ...     fast = None
     >>> res = obs.run(data.t, data.u, data.y)
@@ -726,4 +652,4 @@ def compile_observer(observer: ModifiedHighGainObserver, *, dt: float, theta_sta
     >>> bool(np.allclose(res_fast.theta_hat, res.theta_hat, rtol=1e-9, atol=0))
     True
     """
-    return CompiledObserver(observer, dt=dt, theta_star=theta_star, phi=phi)
+    return CompiledObserver(observer, dt=dt)

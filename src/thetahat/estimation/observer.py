@@ -1,6 +1,7 @@
 """The modified high-gain observer (3) of Sec. III, with the parameter estimator (8) in the loop.
 
-State ``s = col(x̂, z, θ̂)`` (plus ``x̂₂`` when a :class:`SecondObserver` is attached), and
+State ``s = col(x̂, z, θ̂)`` (plus ``x̂₂`` when a :class:`SecondObserver` is attached, and the
+update law's own state when it has one), and
 
     x̂̇ = A x̂ + B u + E φ̂ + K_x (y − C x̂),                                  (3a)
     ż  = −∂g/∂θ(v, x̂, θ̂) θ̂̇ − ∂g/∂x(v, x̂, θ̂) K_x (y − C x̂) + K_φ (y − C x̂),  (3b)
@@ -8,12 +9,15 @@ State ``s = col(x̂, z, θ̂)`` (plus ``x̂₂`` when a :class:`SecondObserver` 
     θ̂̇ = u_θ(v, x̂, φ̂, θ̂).                                                  (8)
 
 One implementation serves three uses: ``rhs`` for ODE integrators, ``init``/``step`` for
-streaming, and ``run`` for logged sample arrays. The state is always passed explicitly.
+streaming, and ``run`` for logged sample arrays; the discrete step is that of
+:mod:`thetahat.estimation.step` over the observer's :meth:`~ModifiedHighGainObserver.plan`.
+The state is always passed explicitly.
 """
 
 from __future__ import annotations
 
 import math
+from collections import OrderedDict
 from dataclasses import dataclass
 from typing import Any
 
@@ -24,8 +28,11 @@ from .._validate import (as_matrix, as_time_grid, as_vector, check_finite, posit
                          readonly)
 from ..errors import DimensionError, NonFiniteError
 from ..model.system import PerturbedLinearSystem
-from .discretize import PhiPlan, PlanCache, linearly_implicit_exponential_step
+from .discretize import PLAN_CACHE_SIZE
+from .plan import StateLayout, StepPlan, dt_key
 from .redesign import SecondObserver
+from .step import (advance, diverged, divergence_error, integrate, observer_forcing, readout,
+                   second_forcing)
 from .update_laws import UpdateLaw
 
 __all__ = ["ModifiedHighGainObserver", "ObserverEstimate", "ObserverResult"]
@@ -48,6 +55,28 @@ def _vec(name: str, a: Any, size: int, *, finite: bool = True) -> FloatArray:
     return arr
 
 
+
+def _record(name: str, a: Any, N: int, width: int) -> FloatArray:
+    arr = np.asarray(a, dtype=np.float64)
+    if arr.ndim == 1 and width == 1:
+        arr = arr.reshape(-1, 1)
+    if arr.ndim != 2 or arr.shape != (N, width):
+        raise DimensionError(f"{name} must have shape ({N}, {width})"
+                             f"{' or (N,)' if width == 1 else ''} to match t; got "
+                             f"{arr.shape}.")
+    return np.ascontiguousarray(arr)
+
+
+def _records(name: str, a: Any, B: int | None, N: int, width: int) -> FloatArray:
+    arr = np.asarray(a, dtype=np.float64)
+    if arr.ndim == 2 and width == 1:
+        arr = arr[..., None]
+    if arr.ndim != 3 or arr.shape[1:] != (N, width) or (B is not None and arr.shape[0] != B):
+        b = "B" if B is None else str(B)
+        raise DimensionError(f"run_batch: {name} must have shape ({b}, {N}, {width})"
+                             f"{f' or ({b}, {N})' if width == 1 else ''}: one record per run "
+                             f"on the shared time grid t; got {arr.shape}.")
+    return np.ascontiguousarray(arr)
 
 
 @dataclass(frozen=True, slots=True, eq=False)
@@ -130,6 +159,11 @@ class ModifiedHighGainObserver:
         constant. NaN is never propagated into the state. NaN in u, and inf anywhere, always
         raise.
 
+    Attributes
+    ----------
+    layout : StateLayout
+        Dimensions and the offsets of x̂, z, θ̂, x̂₂ and the law's state in the state vector.
+
     Raises
     ------
     DimensionError
@@ -142,6 +176,14 @@ class ModifiedHighGainObserver:
 
     Notes
     -----
+    **One step, several back ends.** ``step`` and ``run`` are the batch of one of
+    :func:`thetahat.estimation.step.advance`, which
+    :func:`~thetahat.estimation.batch_run.run_batch` runs for B rows; the matrices, gains and
+    φ-matrices come from the frozen :meth:`plan` (one per step length). The state is
+    ``col(x̂, z, θ̂[, x̂₂][, law state])`` (:attr:`layout`). A step whose state norm exceeds
+    :data:`~thetahat.estimation.step.DIVERGENCE_BOUND` (or is NaN/inf) raises
+    :class:`~thetahat.errors.NonFiniteError` naming the step, in every back end.
+
     **Discretisation.** ``step`` and ``run`` use the exponential, linearly implicit step of
     :mod:`thetahat.estimation.discretize` on ``(x̂, z)`` with the constant part
 
@@ -154,7 +196,7 @@ class ModifiedHighGainObserver:
     Luenberger observer of the extended system (2), the 1/ε scaling of the gains never limits
     the step length, and a stiff g is handled stably (LuGre: ∂g/∂η = σ0|y|/ζ ≈ 3.5·10³ s⁻¹
     at 3.8 rad/s, so holding g over a 1 ms sample, an explicit exponential Euler step,
-    diverges). θ̂ is advanced by ``update_law.step`` (so it stays in Θ) and z receives
+    diverges). θ̂ is advanced by ``update_law.advance`` (so it stays in Θ) and z receives
     ``−∂g/∂θ Δθ̂``, the discrete form of the first term of (3b). The step is second order
     in dt while ỹ and θ̂̇ are small and first order otherwise.
 
@@ -224,12 +266,8 @@ class ModifiedHighGainObserver:
     update_law: UpdateLaw
     second: SecondObserver | None
     nan_policy: str
-    _L: FloatArray
-    _cache: PlanCache
-    _cache_open: PlanCache
-    _KxC: FloatArray
-    _Bv: FloatArray
-    _sizes: tuple[int, int, int, int, int, int]
+    layout: StateLayout
+    _plans: OrderedDict[float | None, StepPlan]
 
     def __init__(self, *, system: PerturbedLinearSystem, K_x: Any, K_phi: Any,
                  update_law: UpdateLaw, second: SecondObserver | None = None,
@@ -261,26 +299,12 @@ class ModifiedHighGainObserver:
                     f"{(s2.n, s2.m, s2.r, s2.k, s2.p)}; the observer's has {(n, m, r, k, p)}.")
         if nan_policy not in NAN_POLICIES:
             raise ValueError(f"nan_policy must be one of {NAN_POLICIES}; got {nan_policy!r}.")
-        KxC = readonly(Kx @ system.C)
-        L = np.zeros((n + k, n + k))
-        L[:n, :n] = system.A - KxC
-        L[:n, n:] = system.E
-        L[n:, :n] = -(Kphi @ system.C)
-        L_open = np.zeros((n + k, n + k))          # prediction over a skipped sample: K = 0
-        L_open[:n, :n] = system.A
-        L_open[:n, n:] = system.E
-        Bv = np.zeros((n + k, m + r))
-        Bv[:n, :m] = system.B
-        Bv[:n, m:] = Kx
-        Bv[n:, m:] = Kphi
-        size = n + k + p + (n if second is not None else 0)
+        layout = StateLayout(n=n, m=m, r=r, k=k, p=p, second=second is not None,
+                             law_size=int(update_law.state_size))
         for name, val in (("system", system), ("K_x", Kx), ("K_phi", Kphi),
                           ("update_law", update_law), ("second", second),
-                          ("nan_policy", nan_policy), ("_L", readonly(L)),
-                          ("_cache", PlanCache(L)), ("_cache_open", PlanCache(L_open)),
-                          ("_KxC", KxC),
-                          ("_Bv", readonly(Bv)),
-                          ("_sizes", (n, m, r, k, p, size))):
+                          ("nan_policy", nan_policy), ("layout", layout),
+                          ("_plans", OrderedDict())):
             object.__setattr__(self, name, val)
 
     @classmethod
@@ -322,112 +346,98 @@ class ModifiedHighGainObserver:
     # ------------------------------------------------------------------ layout
     @property
     def state_size(self) -> int:
-        """Length of the state vector: n + k + p (+ n with a second observer)."""
-        return self._sizes[5]
+        """Length of the state vector: n + k + p (+ n with a second observer, + the law's)."""
+        return self.layout.size
 
-    def _split(self, s: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray,
-                                             FloatArray | None]:
-        n, _, _, k, p, _ = self._sizes
-        x2 = s[n + k + p:] if self.second is not None else None
-        return s[:n], s[n:n + k], s[n + k:n + k + p], x2
+    def plan(self, dt: float) -> StepPlan:
+        """The :class:`~thetahat.estimation.plan.StepPlan` of this observer for step length dt.
 
-    def plan(self, dt: float, *, correct: bool = True) -> PhiPlan:
-        """The φ-matrices of the step's constant part for step length ``dt`` (cached).
+        Computed once per step length (to 12 significant digits) and cached (with the
+        prediction's φ-matrices only under ``nan_policy="skip"``); every back end
+        (``step``/``run``, :func:`~thetahat.estimation.batch_run.run_batch`, the compiled
+        kernel) reads the observer's matrices, gains and φ-matrices from it.
 
         Parameters
         ----------
         dt : float
             Step length > 0.
-        correct : bool, default True
-            ``True``: of L = [[A − K_x C, E], [−K_φ C, 0]] (samples with y); ``False``: of
-            the prediction over a missing sample, L = [[A, E], [0, 0]] (see ``nan_policy``).
 
         Returns
         -------
-        PhiPlan
-            The plan ``step`` and ``run`` use (code generators read Φ₁ from it).
+        StepPlan
 
         Examples
         --------
-        >>> from thetahat.modelfile import EXAMPLE_MODEL, build_observer, loads_model
-        >>> build_observer(loads_model(EXAMPLE_MODEL)).plan(1e-3).Phi1.shape
-        (3, 3)
+        >>> from thetahat.models import lugre
+        >>> obs = lugre.observer()
+        >>> obs.plan(1e-3) is obs.plan(1e-3 * (1 + 1e-15))
+        True
         """
-        return (self._cache if correct else self._cache_open).get(positive_scalar("dt", dt))
+        if type(dt) is float:             # fast path: this very step length was seen
+            plan = self._plans.get(dt)
+            if plan is not None:
+                return plan
+        key = dt_key(dt)
+        plan = self._plans.get(key)
+        if plan is None:
+            sysm = self.system
+            predict = self.nan_policy == "skip"
+            plan = StepPlan.build(
+                A=sysm.A, B=sysm.B, C=sysm.C, E=sysm.E, K_x=self.K_x, K_phi=self.K_phi, dt=key,
+                p=self.layout.p,
+                second=None if self.second is None else self.second.plan(key, predict=predict),
+                Gamma=self.update_law.gain, law_size=self.layout.law_size, predict=predict)
+            self._plans[key] = plan
+        if type(dt) is float:
+            self._plans[dt] = plan
+        while len(self._plans) > PLAN_CACHE_SIZE:
+            self._plans.popitem(last=False)
+        return plan
 
-    # ------------------------------------------------------------------ core
-    def _forcing(self, s_xz: FloatArray, x: FloatArray, z: FloatArray, th: FloatArray,
-                 u: FloatArray, y: FloatArray, correct: bool, z_theta: FloatArray | None
-                 ) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
-        """F = right-hand side of (3a)–(3b) on (x̂, z) with θ̂-term ``z_theta``.
+    def _continuous_plan(self) -> StepPlan:
+        """The plan without φ-matrices (``dt=None``) that ``rhs`` reads; cached."""
+        plan = self._plans.get(None)
+        if plan is None:
+            sysm = self.system
+            plan = StepPlan.build(
+                A=sysm.A, B=sysm.B, C=sysm.C, E=sysm.E, K_x=self.K_x, K_phi=self.K_phi, dt=None,
+                p=self.layout.p, second=None if self.second is None else self.second.plan(None),
+                Gamma=self.update_law.gain, law_size=self.layout.law_size, predict=False)
+            self._plans[None] = plan
+        return plan
 
-        Returns F, φ̂, ∂g/∂x and the v actually used (y replaced by C x̂ when not correcting).
-        F = L col(x̂, z) + [[B, K_x], [0, K_φ]] v + col(E g, −∂g/∂x K_x ỹ + z_theta), and without
-        correction F = col(A x̂ + B u + E φ̂, 0).
+    def _split(self, s: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray,
+                                             FloatArray | None]:
+        lay = self.layout
+        return s[lay.x], s[lay.z], s[lay.theta], (s[lay.x2] if lay.second else None)
+
+    def check_samples(self, u: Any, y: Any) -> tuple[FloatArray, FloatArray, bool]:
+        """Validate one pair of samples against the NaN policy.
+
+        Parameters
+        ----------
+        u : array_like, shape (m,)
+            Input sample (``None`` when m = 0); must be finite.
+        y : array_like, shape (r,)
+            Output sample; NaN marks a missing sample under ``nan_policy="skip"``.
+
+        Returns
+        -------
+        u : ndarray, shape (m,)
+        y : ndarray, shape (r,)
+        correct : bool
+            False when y is missing (the step predicts).
+
+        Raises
+        ------
+        DimensionError
+            Wrong shapes.
+        NonFiniteError
+            NaN or inf in u; inf in y; NaN in y under ``nan_policy="raise"``.
         """
-        sysm = self.system
-        pert = sysm.perturbation
-        n = x.shape[0]
-        if correct:
-            v = np.concatenate((u, y))
-            g = pert.g(v, x, th)
-            Gx = pert.dg_dx(v, x, th)
-            F = self._L @ s_xz + self._Bv @ v
-            F[:n] += sysm.E @ g
-            F[n:] -= Gx @ (self.K_x @ (y - sysm.C @ x))
-            if z_theta is not None:
-                F[n:] += z_theta
-        else:
-            v = np.concatenate((u, sysm.C @ x))
-            g = pert.g(v, x, th)
-            Gx = pert.dg_dx(v, x, th)
-            F = np.zeros(s_xz.shape[0])
-            F[:n] = sysm.A @ x + sysm.B @ u + sysm.E @ (g + z)
-        return F, g + z, Gx, v
-
-    def _advance(self, s: FloatArray, u0: FloatArray, y0: FloatArray, dt: float,
-                 correct: bool, u1: FloatArray | None = None,
-                 y1: FloatArray | None = None) -> FloatArray:
-        """One step of length dt from the samples (u0, y0); FOH to (u1, y1) when given."""
-        n, m, _, k, _, _ = self._sizes
-        sysm = self.system
-        pert = sysm.perturbation
-        x, z, th, x2 = self._split(s)
-        s_xz = s[:n + k]
-        F, phi, Gx, v = self._forcing(s_xz, x, z, th, u0, y0, correct, None)
-        z_theta = None
-        th_next = th
-        if correct:
-            th_next = np.asarray(self.update_law.step(v, x, phi, th, dt),
-                                 dtype=np.float64).reshape(th.shape)
-            d_th = th_next - th
-            if d_th.any():                      # skip ∂g/∂θ while θ̂ rests (held, l = 0, ...)
-                z_theta = -(pert.dg_dtheta(v, x, th) @ d_th) / dt
-                F[n:] += z_theta
-        N = np.zeros((n + k, n + k))
-        if correct:
-            N[:n, :n] = sysm.E @ Gx
-            N[n:, :n] = Gx @ self._KxC
-        else:
-            N[:n, :n] = sysm.E @ (Gx + pert.dg_dv(v, x, th)[:, m:] @ sysm.C)
-        F_dot = None
-        if u1 is not None:
-            y1_ = y1 if (y1 is not None and correct) else y0
-            F1 = self._forcing(s_xz, x, z, th, u1, y1_, correct, z_theta)[0]
-            F_dot = (F1 - F) / dt
-        plan = (self._cache if correct else self._cache_open).get(dt)
-        xz = linearly_implicit_exponential_step(s_xz, F, N, plan, F_dot)
-        if x2 is None:
-            return np.concatenate((xz, th_next))
-        x2_next = self.second._advance(x2, u0, y0, th, dt, correct, u1,
-                                       y1 if (y1 is not None and correct) else None)
-        return np.concatenate((xz, th_next, x2_next))
-
-    def _samples(self, u: Any, y: Any) -> tuple[FloatArray, FloatArray, bool]:
-        """Validate one pair of samples; returns (u, y, correct)."""
-        _, m, r, _, _, _ = self._sizes
-        u_ = _vec("u", np.zeros(0) if u is None else u, m)
-        y_ = _vec("y", y, r, finite=False)
+        lay = self.layout
+        u_ = _vec("u", np.zeros(0) if u is None else u, lay.m)
+        y_ = _vec("y", y, lay.r, finite=False)
         if math.isfinite(float(y_ @ y_)) or np.isfinite(y_).all():
             return u_, y_, True
         if np.isinf(y_).any():
@@ -439,12 +449,83 @@ class ModifiedHighGainObserver:
                                  "samples, or clean the data.")
         return u_, y_, False
 
-    def _state(self, state: Any) -> FloatArray:
+    def check_state(self, state: Any) -> FloatArray:
+        """Validate an observer state (shape (state_size,), finite).
+
+        Parameters
+        ----------
+        state : array_like, shape (state_size,)
+
+        Returns
+        -------
+        ndarray, shape (state_size,)
+
+        Raises
+        ------
+        DimensionError, NonFiniteError
+            Wrong shape, or NaN or inf (a diverged or badly initialised state).
+        """
         s = _vec("state", state, self.state_size, finite=False)
         if not np.all(np.isfinite(s)):
             raise NonFiniteError("the observer state holds NaN or inf: it has diverged or was "
                                  "initialised badly; restart from init().")
         return s
+
+    def check_records(self, t: Any, u: Any, y: Any, batch: int | None = None
+                      ) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray,
+                                 NDArray[np.bool_]]:
+        """Validate sampled records against the NaN policy (before anything is integrated).
+
+        Parameters
+        ----------
+        t : array_like, shape (N,)
+            Strictly increasing sampling instants.
+        u : array_like, shape ([B,] N, m), or ([B,] N) when m = 1
+            ``None`` when m = 0.
+        y : array_like, shape ([B,] N, r), or ([B,] N) when r = 1
+        batch : int, optional
+            None: one record (no leading axis); else the records carry a leading axis of
+            length B (-1: any B).
+
+        Returns
+        -------
+        t, dts : ndarray, shapes (N,), (N - 1,)
+        U, Y : ndarray, shapes (B, N, m), (B, N, r)
+            B = 1 for a single record.
+        ok : ndarray of bool, shape (B, N)
+            Samples whose y is present.
+
+        Raises
+        ------
+        DimensionError
+            Wrong shapes, or ``t`` not strictly increasing.
+        NonFiniteError
+            NaN or inf in t or u; inf in y; NaN in y under ``nan_policy="raise"``.
+        """
+        lay = self.layout
+        t_, dts = as_time_grid(t)
+        N = t_.shape[0]
+        if batch is None:
+            Y = _record("y", y, N, lay.r)[None]
+            U = _record("u", np.zeros((N, 0)) if u is None else u, N, lay.m)[None]
+            names = ("u", "y")
+        else:
+            Y = _records("Y", y, None if batch < 0 else batch, N, lay.r)
+            B = Y.shape[0]
+            U = _records("U", np.zeros((B, N, 0)) if u is None else u, B, N, lay.m)
+            names = ("U", "Y")
+        check_finite(names[0], U)
+        if np.isinf(Y).any():
+            raise NonFiniteError(f"{names[1]} contains inf; only NaN marks a missing sample.")
+        ok = np.isfinite(Y).all(axis=2)
+        if not ok.all() and self.nan_policy == "raise":
+            b, i = (int(a[0]) for a in np.nonzero(~ok))
+            run = f" in run {b}" if batch is not None else ""
+            raise NonFiniteError(f"{names[1]} contains NaN ({int((~ok).sum())} samples, first"
+                                 f"{run} at index {i}) and nan_policy='raise'; pass "
+                                 "nan_policy='skip' to the observer to predict over missing "
+                                 "samples, or clean the data.")
+        return t_, dts, U, Y, ok
 
     # ------------------------------------------------------------------ public API
     def rhs(self, t: float, state: Any, v: Any, v_dot: Any = None) -> FloatArray:
@@ -479,23 +560,29 @@ class ModifiedHighGainObserver:
         ``solve_ivp(lambda t, s: obs.rhs(t, s, v_of(t)), (t0, t1), s0, method="Radau")``
         (the class example integrates it).
         """
-        _, m, r, _, _, _ = self._sizes
-        v_ = _vec("v", v, m + r, finite=False)
-        u, y, correct = self._samples(v_[:m], v_[m:])
-        s = self._state(state)
-        x, z, th, x2 = self._split(s)
-        n, _, _, k, _, _ = self._sizes
-        F, phi, _, vv = self._forcing(s[:n + k], x, z, th, u, y, correct, None)
+        lay = self.layout
+        v_ = _vec("v", v, lay.m + lay.r, finite=False)
+        u, y, correct = self.check_samples(v_[:lay.m], v_[lay.m:])
+        s = self.check_state(state)
+        if lay.law_size:
+            raise NotImplementedError(f"rhs: {type(self.update_law).__name__} carries a state "
+                                      "that is defined by its discrete step only; use step/run.")
+        x, _, th, x2 = self._split(s)
+        pert = self.system.perturbation
+        plan = self._continuous_plan()
+        F, phi, _, vv = observer_forcing(plan, pert, s[:lay.n + lay.k], th, u, y, correct)
         parts = [F]
         if correct:
             th_dot = np.asarray(self.update_law.rate(vv, x, phi, th),
                                 dtype=np.float64).reshape(th.shape)
-            F[x.shape[0]:] -= self.system.perturbation.dg_dtheta(vv, x, th) @ th_dot
+            F[lay.n:] -= pert.dg_dtheta(vv, x, th) @ th_dot
         else:
             th_dot = np.zeros_like(th)
         parts.append(th_dot)
-        if x2 is not None:
-            parts.append(self.second._derivative(x2, u, y, th, correct))
+        if x2 is not None and self.second is not None:
+            F2, _ = second_forcing(self.second.plan(None), pert, x2, u, y, th, correct,
+                                   want_N=False)
+            parts.append(F2)
         return np.concatenate(parts)
 
     def init(self, x_hat0: Any = None, theta_hat0: Any = None, z0: Any = None, *,
@@ -525,7 +612,8 @@ class ModifiedHighGainObserver:
         DimensionError, NonFiniteError
             Wrong shape or non-finite entries.
         """
-        n, _, _, k, p, _ = self._sizes
+        lay = self.layout
+        n, k, p = lay.n, lay.k, lay.p
         x0 = np.zeros(n) if x_hat0 is None else as_vector("x_hat0", x_hat0, n)
         zz = np.zeros(k) if z0 is None else as_vector("z0", z0, k)
         th0 = np.asarray(self.update_law.init(theta_hat0), dtype=np.float64).reshape(p)
@@ -535,6 +623,9 @@ class ModifiedHighGainObserver:
                          else as_vector("x_hat_refined0", x_hat_refined0, n))
         elif x_hat_refined0 is not None:
             raise DimensionError("x_hat_refined0 given but no second observer is attached.")
+        if lay.law_size:
+            parts.append(np.asarray(self.update_law.init_state(th0),
+                                    dtype=np.float64).reshape(lay.law_size))
         return np.concatenate(parts)
 
     def step(self, state: Any, u: Any, y: Any, dt: float) -> FloatArray:
@@ -561,14 +652,14 @@ class ModifiedHighGainObserver:
         DimensionError, NonFiniteError
             As for :meth:`rhs`; also dt <= 0.
         """
-        u_, y_, correct = self._samples(u, y)
-        s = self._state(state)
+        u_, y_, correct = self.check_samples(u, y)
+        s = self.check_state(state)
         h = positive_scalar("dt", dt)
-        nxt = self._advance(s, u_, y_, h, correct)
-        if not np.all(np.isfinite(nxt)):
-            raise NonFiniteError("the observer state diverged (NaN or inf after this step): "
-                                 "the gains are too high for this dt (decrease dt or increase "
-                                 "ε), or the update law / data scaling is off.")
+        with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
+            nxt = advance(self.plan(h), self.system.perturbation, self.update_law, s, u_, y_, h,
+                          correct)
+        if diverged(nxt):
+            raise divergence_error("in this step")
         return nxt
 
     def estimate(self, state: Any, u: Any, y: Any) -> ObserverEstimate:
@@ -585,8 +676,8 @@ class ModifiedHighGainObserver:
         -------
         ObserverEstimate
         """
-        u_, y_, correct = self._samples(u, y)
-        x, z, th, x2 = self._split(self._state(state))
+        u_, y_, correct = self.check_samples(u, y)
+        x, z, th, x2 = self._split(self.check_state(state))
         v = np.concatenate((u_, y_ if correct else self.system.C @ x))
         phi = self.system.perturbation.g(v, x, th) + z
         return ObserverEstimate(x_hat=x.copy(), phi_hat=np.asarray(phi, dtype=np.float64),
@@ -627,59 +718,23 @@ class ModifiedHighGainObserver:
         """
         if hold not in HOLDS:
             raise ValueError(f"hold must be one of {HOLDS}; got {hold!r}.")
-        n, m, r, k, p, size = self._sizes
-        t_, dts = as_time_grid(t)
-        N = t_.shape[0]
-        U = self._record("u", np.zeros((N, 0)) if u is None else u, N, m)
-        Y = self._record("y", y, N, r)
-        check_finite("u", U)
-        if np.isinf(Y).any():
-            raise NonFiniteError("y contains inf; only NaN marks a missing sample.")
-        ok = np.isfinite(Y).all(axis=1)
-        if not ok.all() and self.nan_policy == "raise":
-            i = int(np.argmin(ok))
-            raise NonFiniteError(f"y contains NaN ({int((~ok).sum())} samples, first at index "
-                                 f"{i}) and nan_policy='raise'; pass nan_policy='skip' to "
-                                 "predict over missing samples, or clean the data.")
-        s = self.init() if state0 is None else self._state(state0)
-        S = np.empty((N, size))
-        S[0] = s
-        foh = hold == "foh"
-        for i in range(N - 1):
-            if foh:
-                s = self._advance(s, U[i], Y[i], float(dts[i]), bool(ok[i]), U[i + 1],
-                                  Y[i + 1] if ok[i + 1] else None)
-            else:
-                s = self._advance(s, U[i], Y[i], float(dts[i]), bool(ok[i]))
-            S[i + 1] = s
-        if not np.isfinite(S).all():
-            i = int(np.argmin(np.isfinite(S).all(axis=1)))
-            raise NonFiniteError(f"the observer state became non-finite at t[{i}] = {t_[i]!r}; "
-                                 "check the gains, the update law and the data scaling.")
-        X, Z, TH = S[:, :n], S[:, n:n + k], S[:, n + k:n + k + p]
-        Yv = np.where(ok[:, None], Y, X @ self.system.C.T)
-        V = np.concatenate((U, Yv), axis=1)
-        PHI = np.asarray(self.system.perturbation.g(V, X, TH), dtype=np.float64) + Z
-        X2 = readonly(S[:, n + k + p:]) if self.second is not None else None
-        skipped = ~ok
+        t_, dts, U, Y, ok = self.check_records(t, u, y)
+        s0 = self.init() if state0 is None else self.check_state(state0)
+        S = integrate(self.plan, self.system.perturbation, self.update_law, s0[None], t_, dts,
+                      U, Y, ok, hold == "foh")[0]
+        X, PHI, TH, X2 = readout(self.system.perturbation, self.system.C, S, U[0], Y[0], ok[0],
+                                 self.layout)
+        skipped = ~ok[0]
         skipped.setflags(write=False)
         return ObserverResult(t=readonly(t_), x_hat=readonly(X), phi_hat=readonly(PHI),
-                              theta_hat=readonly(TH), x_hat_refined=X2, skipped=skipped)
-
-    @staticmethod
-    def _record(name: str, a: Any, N: int, width: int) -> FloatArray:
-        arr = np.asarray(a, dtype=np.float64)
-        if arr.ndim == 1 and width == 1:
-            arr = arr.reshape(-1, 1)
-        if arr.ndim != 2 or arr.shape != (N, width):
-            raise DimensionError(f"{name} must have shape ({N}, {width})"
-                                 f"{' or (N,)' if width == 1 else ''} to match t; got "
-                                 f"{arr.shape}.")
-        return arr
+                              theta_hat=readonly(TH),
+                              x_hat_refined=None if X2 is None else readonly(X2),
+                              skipped=skipped)
 
     def __repr__(self) -> str:
-        n, m, r, k, p, _ = self._sizes
-        return (f"ModifiedHighGainObserver(n={n}, m={m}, r={r}, k={k}, p={p}, "
+        lay = self.layout
+        return (f"ModifiedHighGainObserver(n={lay.n}, m={lay.m}, r={lay.r}, k={lay.k}, "
+                f"p={lay.p}, "
                 f"update_law={type(self.update_law).__name__}, "
                 f"second={'None' if self.second is None else 'SecondObserver'}, "
                 f"nan_policy={self.nan_policy!r})")

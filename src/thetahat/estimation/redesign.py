@@ -11,6 +11,7 @@ output y"). Only a Lipschitz-like condition on g (not on d) is needed for this o
 
 from __future__ import annotations
 
+from collections import OrderedDict
 from dataclasses import dataclass
 from typing import Any
 
@@ -20,7 +21,9 @@ from numpy.typing import NDArray
 from .._validate import as_matrix, as_vector, positive_scalar
 from ..errors import DimensionError
 from ..model.system import PerturbedLinearSystem
-from .discretize import PhiPlan, PlanCache, linearly_implicit_exponential_step
+from .discretize import PLAN_CACHE_SIZE
+from .plan import SecondPlan, dt_key
+from .step import second_advance, second_forcing
 
 __all__ = ["SecondObserver"]
 
@@ -79,9 +82,7 @@ class SecondObserver:
     system: PerturbedLinearSystem
     K_x: FloatArray
     g_on_estimates: bool
-    _L: FloatArray
-    _cache: PlanCache
-    _cache_open: PlanCache
+    _plans: OrderedDict[tuple[float | None, bool], SecondPlan]
 
     def __init__(self, *, system: PerturbedLinearSystem, K_x: Any,
                  g_on_estimates: bool = False) -> None:
@@ -93,10 +94,8 @@ class SecondObserver:
                                  "build the system with perturbation=... .")
         K = np.array(as_matrix("K_x", K_x, (system.n, system.r)), copy=True)
         K.setflags(write=False)
-        L = system.A - K @ system.C
         for name, val in (("system", system), ("K_x", K),
-                          ("g_on_estimates", bool(g_on_estimates)), ("_L", L),
-                          ("_cache", PlanCache(L)), ("_cache_open", PlanCache(system.A))):
+                          ("g_on_estimates", bool(g_on_estimates)), ("_plans", OrderedDict())):
             object.__setattr__(self, name, val)
 
     @classmethod
@@ -130,68 +129,31 @@ class SecondObserver:
         """
         return cls(system=system, K_x=design.K, g_on_estimates=g_on_estimates)
 
-    def plan(self, dt: float, *, correct: bool = True) -> PhiPlan:
-        """The φ-matrices of L = A − K_x C (``correct=False``: of A) for step length ``dt``.
+    def plan(self, dt: float | None, *, predict: bool = False) -> SecondPlan:
+        """The :class:`~thetahat.estimation.plan.SecondPlan` for step length dt (cached).
 
         Parameters
         ----------
-        dt : float
-            Step length > 0.
-        correct : bool, default True
-            ``False`` gives the plan of the prediction over a missing sample.
+        dt : float or None
+            Step length > 0; None: the continuous-time plan (no φ-matrices) that ``rhs`` reads.
+        predict : bool
+            Include the φ-matrices of the prediction over missing samples.
 
         Returns
         -------
-        PhiPlan
-
-        Examples
-        --------
-        >>> from types import SimpleNamespace
-        >>> from thetahat.model.system import PerturbedLinearSystem
-        >>> from thetahat.model.perturbation import CallablePerturbation
-        >>> zero = CallablePerturbation(g=lambda v, x, th: 0 * x, n=1, m=1, r=1, p=1, k=1)
-        >>> plant = PerturbedLinearSystem(A=[[-1]], B=[[1]], C=[[1]], E=[[1]],
-        ...                               perturbation=zero)
-        >>> SecondObserver(system=plant, K_x=[[2.0]]).plan(0.1).Phi1.shape
-        (1, 1)
+        SecondPlan
         """
-        return (self._cache if correct else self._cache_open).get(positive_scalar("dt", dt))
-
-    # ------------------------------------------------------------------ internals
-    def _g_terms(self, x2: FloatArray, u: FloatArray, y: FloatArray, theta: FloatArray,
-                 correct: bool, want_N: bool) -> tuple[FloatArray, FloatArray | None]:
-        """Right-hand side F and (optionally) the state-dependent Jacobian part N."""
-        sysm = self.system
-        pert = sysm.perturbation
-        y_hat = sysm.C @ x2
-        on_est = self.g_on_estimates or not correct
-        v = np.concatenate((u, y_hat if on_est else y))
-        g = pert.g(v, x2, theta)
-        F = sysm.A @ x2 + sysm.B @ u + sysm.E @ g
-        if correct:
-            F = F + self.K_x @ (y - y_hat)
-        if not want_N:
-            return F, None
-        Jg = pert.dg_dx(v, x2, theta)
-        if on_est:
-            Jg = Jg + pert.dg_dv(v, x2, theta)[:, sysm.m:] @ sysm.C
-        return F, sysm.E @ Jg
-
-    def _derivative(self, x2: FloatArray, u: FloatArray, y: FloatArray, theta: FloatArray,
-                    correct: bool) -> FloatArray:
-        return self._g_terms(x2, u, y, theta, correct, want_N=False)[0]
-
-    def _advance(self, x2: FloatArray, u0: FloatArray, y0: FloatArray, theta: FloatArray,
-                 dt: float, correct: bool, u1: FloatArray | None = None,
-                 y1: FloatArray | None = None) -> FloatArray:
-        """One step; ``u1``/``y1`` given means first-order hold to the next samples."""
-        F, N = self._g_terms(x2, u0, y0, theta, correct, want_N=True)
-        F_dot = None
-        if u1 is not None:
-            F1 = self._derivative(x2, u1, y1 if y1 is not None else y0, theta, correct)
-            F_dot = (F1 - F) / dt
-        plan = (self._cache if correct else self._cache_open).get(dt)
-        return linearly_implicit_exponential_step(x2, F, N, plan, F_dot)
+        key = None if dt is None else dt_key(dt)
+        plan = self._plans.get((key, predict))
+        if plan is None:
+            sysm = self.system
+            plan = SecondPlan.build(A=sysm.A, B=sysm.B, C=sysm.C, E=sysm.E, K_x=self.K_x,
+                                    dt=key, g_on_estimates=self.g_on_estimates,
+                                    predict=predict)
+            self._plans[(key, predict)] = plan
+            if len(self._plans) > PLAN_CACHE_SIZE:
+                self._plans.popitem(last=False)
+        return plan
 
     def _check_samples(self, u: Any, y: Any) -> tuple[FloatArray, FloatArray]:
         sysm = self.system
@@ -226,7 +188,9 @@ class SecondObserver:
         u, y = self._check_samples(v_[:sysm.m], v_[sysm.m:])
         x2 = as_vector("x_hat2", x_hat2, sysm.n)
         th = as_vector("theta_hat", theta_hat, sysm.p)
-        return self._derivative(x2, u, y, th, True)
+        F, _ = second_forcing(self.plan(None), sysm.perturbation, x2, u, y, th, True,
+                              want_N=False)
+        return F
 
     def step(self, x_hat2: Any, u: Any, y: Any, theta_hat: Any, dt: float) -> FloatArray:
         """Advance x̂₂ by ``dt`` holding the current samples (zero-order hold).
@@ -253,7 +217,8 @@ class SecondObserver:
         u_, y_ = self._check_samples(u, y)
         x2 = as_vector("x_hat2", x_hat2, sysm.n)
         th = as_vector("theta_hat", theta_hat, sysm.p)
-        return self._advance(x2, u_, y_, th, positive_scalar("dt", dt), True)
+        h = positive_scalar("dt", dt)
+        return second_advance(self.plan(h), sysm.perturbation, x2, u_, y_, th, h, True)
 
     def __repr__(self) -> str:
         return (f"SecondObserver(n={self.system.n}, r={self.system.r}, "

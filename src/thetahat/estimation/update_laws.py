@@ -17,22 +17,22 @@ from typing import Any, Literal, final
 
 import numpy as np
 import scipy.linalg
-import sympy as sp
 from numpy.typing import ArrayLike, NDArray
 
-from .._validate import check_finite, positive_scalar
+from .._validate import check_finite, positive_scalar, readonly
 from ..errors import DimensionError, ParameterSetError, UpdateLawError
-from ..model.paramset import ParameterSet, _safe_norm
-from ..model.perturbation import Perturbation, lambdify_numpy
+from ..model.paramset import Box, ParameterSet, safe_norm
+from ..model.perturbation import Perturbation
 from .projection import Projection, Saturation, as_gain
+from .theta_star import ThetaStar
 
 FloatArray = NDArray[np.float64]
-ThetaStar = Callable[[FloatArray, FloatArray, FloatArray], Any]
+ThetaStarFn = Callable[[FloatArray, FloatArray, FloatArray], Any]
 Weight = Callable[[FloatArray, FloatArray, FloatArray], Any]
 OnInvalid = Literal["raise", "freeze"]
 
 __all__ = ["UpdateLaw", "ConstantLaw", "AlgebraicInversion", "IntermittentInversion",
-           "GradientInversion", "smooth_ramp"]
+           "GradientInversion", "SmoothRamp", "invalid_theta_star_error", "smooth_ramp"]
 
 #: θ̂₀ may lie this far outside Θ, relative to max(1, ‖θ̂₀‖), and still be accepted (and snapped
 #: onto Θ): a boundary point written with 15 significant digits is off by rounding only.
@@ -44,11 +44,6 @@ WEIGHT_TOL = 1e-12
 #: the same face as an overflowing value, small enough that differences with points of Θ stay
 #: finite.
 FAR = 1e300
-#: Relative accuracy with which a θ* derived by SymPy must recover θ from φ = g(v, x, θ) at the
-#: random check points (the expressions are exact, so this only absorbs rounding).
-SOLVE_RTOL = 1e-6
-#: Number of random points used to tell the right branch of a SymPy solution from the others.
-SOLVE_SAMPLES = 32
 
 
 def _as_batch(v: ArrayLike, x_hat: ArrayLike, phi_hat: ArrayLike, theta_hat: ArrayLike,
@@ -101,13 +96,89 @@ class UpdateLaw(ABC):
         """θ̂̇ = u_θ(v, x̂, φ̂, θ̂) (8); shape (..., p)."""
 
     def step(self, v: FloatArray, x_hat: FloatArray, phi_hat: FloatArray,
-             theta_hat: FloatArray, dt: float) -> FloatArray:
-        """θ̂ after a step of length dt, guaranteed in Θ (default: Euler, then ``nearest``)."""
+             theta_hat: FloatArray, dt: float, *, Gamma: ArrayLike | None = None
+             ) -> FloatArray:
+        """θ̂ after a step of length dt, guaranteed in Θ (default: Euler, then ``nearest``).
+
+        ``Gamma`` (shape (..., p, p), one Γ per batch row) replaces the law's own Γ; laws
+        without a Γ refuse it.
+        """
         dt = _check_dt(dt)
+        if Gamma is not None:
+            raise UpdateLawError(f"{type(self).__name__} has no gain Γ; pass Gamma=None.")
         th = np.asarray(theta_hat, dtype=np.float64)
         with np.errstate(over="ignore", invalid="ignore"):
             nxt = th + dt * self.rate(v, x_hat, phi_hat, theta_hat)
         return self.parameter_set.nearest(_finite_candidate(nxt, th))
+
+    # ------------------------------------------------------------------ batched contract
+    @property
+    def gain(self) -> FloatArray | None:
+        """The per-row parameter of the law, Γ (p, p), or None for a law without one.
+
+        A batch of observers passes one Γ per row to :meth:`advance` (``Gamma=``, shape
+        (B, p, p)); everything else about the law is shared by the rows.
+        """
+        G = getattr(self, "Gamma", None)
+        return None if G is None else np.asarray(G, dtype=np.float64)
+
+    @property
+    def state_size(self) -> int:
+        """Length of the law's own state (a gain matrix, filtered regressors, ...); 0 here.
+
+        The state lives in the observer state after θ̂ (and x̂₂) and is advanced by
+        :meth:`advance` in the same step.
+        """
+        return 0
+
+    def init_state(self, theta_hat0: FloatArray) -> FloatArray:
+        """Initial law state for the validated θ̂₀ (shape (..., p)); shape (..., state_size).
+
+        Parameters
+        ----------
+        theta_hat0 : ndarray, shape (..., p)
+
+        Returns
+        -------
+        ndarray, shape (..., state_size)
+        """
+        th = np.asarray(theta_hat0, dtype=np.float64)
+        return np.zeros(th.shape[:-1] + (self.state_size,))
+
+    def advance(self, v: FloatArray, x_hat: FloatArray, phi_hat: FloatArray,
+                theta_hat: FloatArray, state: FloatArray, dt: float, *,
+                Gamma: ArrayLike | None = None) -> tuple[FloatArray, FloatArray]:
+        """One step of θ̂ and of the law's state: the entry point of the observer's step.
+
+        Parameters
+        ----------
+        v : ndarray, shape (B, m + r)
+        x_hat : ndarray, shape (B, n)
+        phi_hat : ndarray, shape (B, k)
+        theta_hat : ndarray, shape (B, p)
+        state : ndarray, shape (B, state_size)
+            The law's state at the start of the step.
+        dt : float
+            Step length > 0.
+        Gamma : ndarray, shape (B|1, p, p), optional
+            Γ per row (default: the law's own).
+
+        Returns
+        -------
+        theta_hat : ndarray, shape (B, p)
+            In Θ.
+        state : ndarray, shape (B, state_size)
+
+        Notes
+        -----
+        The default (memoryless laws) is ``step`` with the state passed through; a law with a
+        state overrides it and propagates both in one go.
+        """
+        if Gamma is None:
+            th = self.step(v, x_hat, phi_hat, theta_hat, dt)
+        else:
+            th = self.step(v, x_hat, phi_hat, theta_hat, dt, Gamma=Gamma)
+        return np.asarray(th, dtype=np.float64), state
 
     def init(self, theta_hat0: ArrayLike | None = None) -> FloatArray:
         """Validated initial estimate θ̂(t₀) ∈ Θ, shape (..., p).
@@ -185,8 +256,11 @@ class ConstantLaw(UpdateLaw):
         return np.zeros(batch + (self.parameter_set.dim,))
 
     def step(self, v: ArrayLike, x_hat: ArrayLike, phi_hat: ArrayLike, theta_hat: ArrayLike,
-             dt: float) -> FloatArray:
-        """θ̂ unchanged (projected onto Θ should it lie outside); shape (..., p)."""
+             dt: float, *, Gamma: ArrayLike | None = None) -> FloatArray:
+        """θ̂ unchanged (projected onto Θ should it lie outside); shape (..., p).
+
+        ``Gamma`` is accepted for the batched contract and has no effect (θ̂̇ = 0).
+        """
         _check_dt(dt)
         *_, th, batch = _as_batch(v, x_hat, phi_hat, theta_hat, self.parameter_set.dim)
         return self.parameter_set.nearest(np.broadcast_to(th, batch + th.shape[-1:]))
@@ -198,7 +272,7 @@ class ConstantLaw(UpdateLaw):
 
 @final
 @dataclass(frozen=True, slots=True, eq=False)
-class _SmoothRamp:
+class SmoothRamp:
     low: float
     high: float
 
@@ -209,13 +283,13 @@ class _SmoothRamp:
 
     def __call__(self, v: ArrayLike, x_hat: ArrayLike, phi_hat: ArrayLike) -> FloatArray:
         """l(v, x̂, φ̂) = weight(‖φ̂‖); shape (...)."""
-        return self.weight(_safe_norm(np.asarray(phi_hat, dtype=np.float64)))
+        return self.weight(safe_norm(np.asarray(phi_hat, dtype=np.float64)))
 
     def __repr__(self) -> str:
         return f"smooth_ramp(low={self.low}, high={self.high})"
 
 
-def smooth_ramp(low: float, high: float) -> _SmoothRamp:
+def smooth_ramp(low: float, high: float) -> SmoothRamp:
     """Lipschitz excitation weight l(v, x̂, φ̂) of ‖φ̂‖ for :class:`IntermittentInversion`.
 
     Parameters
@@ -252,115 +326,30 @@ def smooth_ramp(low: float, high: float) -> _SmoothRamp:
     if not (np.isfinite(lo) and np.isfinite(hi) and 0 <= lo < hi):
         raise UpdateLawError(f"smooth_ramp needs 0 <= low < high (finite); got low={lo}, "
                              f"high={hi}.")
-    return _SmoothRamp(lo, hi)
+    return SmoothRamp(lo, hi)
 
 
-@final
-@dataclass(frozen=True, slots=True, eq=False)
-class _SympyThetaStar:
-    """θ*(v, x, φ) lambdified from a SymPy solution of φ = g(v, x, θ)."""
+def invalid_theta_star_error(owner: str, count: int) -> UpdateLawError:
+    """The error every back end raises when θ* is NaN or inf where l > 0 (on_invalid='raise').
 
-    solution: tuple[sp.Expr, ...]
-    m: int
-    fn: Callable[..., Any] = field(repr=False)
-    #: The real dummies the solution is written in, in call order: col(u, y), x, then φ.
-    arguments: tuple[sp.Symbol, ...] = field(default=(), repr=False)
+    Parameters
+    ----------
+    owner : str
+        The law's name.
+    count : int
+        Number of points (batch rows) affected.
 
-    def __call__(self, v: ArrayLike, x: ArrayLike, phi: ArrayLike) -> FloatArray:
-        v_, x_, ph = (np.asarray(a, dtype=np.float64) for a in (v, x, phi))
-        args = [*np.moveaxis(v_, -1, 0), *np.moveaxis(x_, -1, 0), *np.moveaxis(ph, -1, 0)]
-        with np.errstate(all="ignore"):
-            vals = [np.asarray(e) for e in self.fn(*args)]
-        vals = np.broadcast_arrays(*vals, *(a for a in args))[:len(vals)]
-        out = np.stack(vals, axis=-1)
-        if np.iscomplexobj(out):
-            real = np.abs(out.imag) <= SOLVE_RTOL * (1.0 + np.abs(out.real))
-            out = np.where(real, out.real, np.nan)
-        return out.astype(np.float64)
-
-    @property
-    def sympy_form(self) -> tuple[tuple[sp.Expr, ...], tuple[sp.Symbol, ...]]:
-        """(θ* entries, their arguments col(u, y), x, φ in call order), for code printers."""
-        return self.solution, self.arguments
+    Returns
+    -------
+    UpdateLawError
+    """
+    return UpdateLawError(f"{owner}: theta_star is NaN or inf at {count} point(s) where the "
+                          f"weight is positive; make l vanish where the inversion is "
+                          f"undefined, or pass on_invalid='freeze'.")
 
 
-def _solve_theta_star(perturbation: Perturbation, parameter_set: ParameterSet,
-                      seed: int) -> _SympyThetaStar:
-    """θ* from SymPy's solve of φ = g(v, x, θ), keeping the one branch that inverts g on Θ."""
-    for attr in ("expr", "u", "y", "x", "theta"):
-        if not hasattr(perturbation, attr):
-            raise UpdateLawError("from_perturbation needs a SymbolicPerturbation (with expr, u, "
-                                 "y, x, theta); for other perturbations pass theta_star.")
-    n, m, r, p, k = perturbation.dims
-    if parameter_set.dim != p:
-        raise DimensionError(f"parameter_set has dimension {parameter_set.dim} but the "
-                             f"perturbation has p = {p} parameters.")
-    u, y, x, th = (tuple(getattr(perturbation, a)) for a in ("u", "y", "x", "theta"))
-    reps = {s: sp.Dummy(s.name, real=True) for s in (*u, *y, *x, *th)}
-    phi = [sp.Dummy(f"phi{i}", real=True) for i in range(k)]
-    expr = sp.Matrix(perturbation.expr)
-    eqs = [sp.Eq(expr[i].xreplace(reps), phi[i]) for i in range(k)]
-    unknowns = [reps[t] for t in th]
-    try:
-        sols = sp.solve(eqs, unknowns, dict=True, check=False, simplify=False)
-    except (NotImplementedError, ValueError, TypeError) as exc:
-        raise UpdateLawError(f"SymPy cannot solve φ = g(v, x, θ) for θ ({exc}); pass "
-                             f"theta_star explicitly.") from exc
-    args = [reps[s] for s in (*u, *y, *x)] + phi
-    branches, underdetermined = [], False
-    for sol in sols:
-        if not set(unknowns) <= set(sol) or any(sol[t].free_symbols & set(unknowns)
-                                                for t in unknowns):
-            underdetermined = True
-            continue
-        exprs = tuple(sol[t] for t in unknowns)
-        if any(e.has(sp.zoo, sp.nan) for e in exprs):
-            continue
-        # SymPy's raw form can overflow where θ* is harmless (LuGre: it multiplies by
-        # exp(ω²/ω0²) and divides by it again, inf·0 = NaN for |ω| > 0.27); the expanded form
-        # cancels such factors. Both forms are checked below and the better one is kept.
-        forms = []
-        for form in dict.fromkeys((exprs, tuple(sp.expand(e) for e in exprs))):
-            try:
-                fn = lambdify_numpy(args, form)
-            except Exception:  # noqa: BLE001 - SymPy raises many types for unprintable forms
-                continue
-            forms.append(_SympyThetaStar(form, m, fn, tuple(args)))
-        branches.append(forms)
-    rng = np.random.default_rng(seed)
-    theta_s = parameter_set.sample(rng, SOLVE_SAMPLES)
-    v_s = rng.standard_normal((SOLVE_SAMPLES, m + r))
-    x_s = rng.standard_normal((SOLVE_SAMPLES, n))
-    phi_s = np.asarray(perturbation.g(v_s, x_s, theta_s), dtype=np.float64)
-    good = []
-    for forms in branches:
-        best, best_ok = None, SOLVE_SAMPLES // 2 - 1
-        for cand in forms:
-            try:
-                est = cand(v_s, x_s, phi_s)
-            except Exception:  # noqa: BLE001 - a form that numpy cannot evaluate is no inverse
-                continue
-            ok = np.all(np.isfinite(est), axis=-1)
-            err = np.max(np.abs(est - theta_s), axis=-1)
-            if (np.sum(ok) > best_ok and np.all(
-                    err[ok] <= SOLVE_RTOL * (1 + np.max(np.abs(theta_s[ok]), axis=-1)))):
-                best, best_ok = cand, int(np.sum(ok))
-        if best is not None:
-            good.append(best)
-    if not good and underdetermined:
-        raise UpdateLawError("SymPy's solution of φ = g(v, x, θ) leaves some parameters free: "
-                             "one value of φ does not determine θ (e.g. p > k). Use "
-                             "GradientInversion with persistent excitation (Proposition 4).")
-    if len(good) != 1:
-        found = "no" if not good else f"{len(good)}"
-        raise UpdateLawError(f"SymPy found {len(sols)} solution(s) of φ = g(v, x, θ) but {found} "
-                             f"branch(es) recover θ ∈ Θ at random points; the inverse is not "
-                             f"unique (or not available) — pass theta_star explicitly, or use "
-                             f"GradientInversion (Propositions 3–4).")
-    return good[0]
-
-
-def _inversion_target(theta_star: ThetaStar, weight: Weight | None, on_invalid: OnInvalid,
+def _inversion_target(theta_star: ThetaStar | ThetaStarFn, weight: Weight | None,
+                      on_invalid: OnInvalid,
                       owner: str, v: FloatArray, x: FloatArray, phi: FloatArray,
                       th: FloatArray, batch: tuple[int, ...]) -> tuple[FloatArray, FloatArray]:
     """(θ*, l) broadcast to the batch; θ* replaced by θ̂ where l = 0 (so that NaN is harmless)."""
@@ -383,25 +372,59 @@ def _inversion_target(theta_star: ThetaStar, weight: Weight | None, on_invalid: 
     bad = (lw > 0) & ~np.all(np.isfinite(ts), axis=-1)
     if np.any(bad):
         if on_invalid == "raise":
-            raise UpdateLawError(f"{owner}: theta_star is NaN or inf at {int(np.sum(bad))} "
-                                 f"point(s) where the weight is positive; make l vanish where "
-                                 f"the inversion is undefined, or pass on_invalid='freeze'.")
+            raise invalid_theta_star_error(owner, int(np.sum(bad)))
         lw = np.where(bad, 0.0, lw)
     th_b = np.broadcast_to(th, batch + (p,))
     target = np.where((lw > 0)[..., None], ts, th_b)
     return target, lw
 
 
-def _inversion_step(proj: Projection, target: FloatArray, lw: FloatArray, th: FloatArray,
-                    dt: float) -> FloatArray:
-    """Exact flow of θ̇ = lΓ(θ* - θ) over dt with θ* held, then the Γ⁻¹-weighted projection."""
-    lam, V = np.linalg.eigh(proj.Gamma)
+def _inversion_step(proj: Projection, eig: tuple[FloatArray, FloatArray], target: FloatArray,
+                    lw: FloatArray, th: FloatArray, dt: float,
+                    Gamma: ArrayLike | None) -> FloatArray:
+    """Exact flow of θ̇ = lΓ(θ* - θ) over dt with θ* held, then the Γ⁻¹-weighted projection.
+
+    ``eig`` is the eigen-decomposition of the law's Γ; ``Gamma`` (B|1, p, p) replaces it per row.
+    """
     th_b = np.broadcast_to(th, target.shape)
+    G = None if Gamma is None else np.asarray(Gamma, dtype=np.float64)
     with np.errstate(over="ignore", invalid="ignore"):
-        err = (target - th_b) @ V
-        decay = np.exp(-lw[..., None] * dt * lam)
-        cand = target - (decay * err) @ V.T
-    return proj.project(_finite_candidate(cand, th_b))
+        if G is None:
+            lam, V = eig
+            err = (target - th_b) @ V
+            cand = target - (np.exp(-lw[..., None] * dt * lam) * err) @ V.T
+        elif _is_diagonal(G):
+            lam = np.diagonal(G, axis1=-2, axis2=-1)
+            cand = target - np.exp(-lw[..., None] * dt * lam) * (target - th_b)
+        else:
+            lam, V = np.linalg.eigh(G)
+            err = np.einsum("...i,...ij->...j", target - th_b, V)
+            cand = target - np.einsum("...j,...ij->...i",
+                                      np.exp(-lw[..., None] * dt * lam) * err, V)
+    return _project_rows(proj, _finite_candidate(cand, th_b), G)
+
+
+def _is_diagonal(G: FloatArray) -> bool:
+    d = np.diagonal(G, axis1=-2, axis2=-1)
+    return bool(np.array_equal(G, d[..., None] * np.eye(G.shape[-1])))
+
+
+def _project_rows(proj: Projection, cand: FloatArray, G: FloatArray | None) -> FloatArray:
+    """The Γ⁻¹-weighted projection onto Θ with the law's Γ, or one Γ per row of ``G``."""
+    if G is None:
+        return proj.project(cand)
+    ps = proj.parameter_set
+    if isinstance(ps, Box) and _is_diagonal(G):
+        return ps.nearest(cand)          # a clip, whatever the diagonal metric
+    p = cand.shape[-1]
+    flat = cand.reshape(-1, p)
+    Gs = np.broadcast_to(G, flat.shape[:1] + (p, p))
+    out = np.empty_like(flat)
+    distinct, which = np.unique(Gs.reshape(len(flat), -1), axis=0, return_inverse=True)
+    for j, Gj in enumerate(distinct):
+        rows = np.flatnonzero(which.reshape(-1) == j)
+        out[rows] = Projection(ps, Gj.reshape(p, p), layer=proj.layer).project(flat[rows])
+    return out.reshape(cand.shape)
 
 
 def _check_common(owner: str, parameter_set: ParameterSet, on_invalid: str,
@@ -423,128 +446,20 @@ def _apply_saturation(sat: Saturation | None, x: FloatArray,
 
 @final
 @dataclass(frozen=True, slots=True, eq=False)
-class AlgebraicInversion(UpdateLaw):
-    """Proposition 1: θ̂̇ = Proj(Γ(θ*(v, x̂, φ̂) - θ̂)).
-
-    Parameters
-    ----------
-    theta_star : callable
-        ``theta_star(v, x_hat, phi_hat)`` returning the unique solution θ of φ = g(v, x, θ),
-        shape (..., p). See :meth:`from_perturbation` to derive it with SymPy.
-    Gamma : float or array_like, shape (p, p)
-        Symmetric positive-definite gain Γ.
-    parameter_set : ParameterSet
-        Θ.
-    saturation : Saturation, optional
-        Saturation of x̂ and φ̂ before use (Remark 3).
-    layer : float, optional
-        Boundary layer of the projection (0 = hard projection, the default).
-    on_invalid : {'raise', 'freeze'}, optional
-        What to do where θ* is NaN or inf: raise :class:`~thetahat.errors.UpdateLawError`
-        (default) or freeze the update (θ̂̇ = 0) there.
-
-    Raises
-    ------
-    UpdateLawError
-        Γ not symmetric positive definite; a bad option.
-
-    Notes
-    -----
-    With x̂ = x and φ̂ = φ, θ* = θ and V = ½θ̃ᵀΓ⁻¹θ̃ gives V̇ <= -‖θ̃‖², so
-    ‖θ̃(t)‖_Γ⁻¹ <= e^(-λ_min(Γ) t)‖θ̃(0)‖_Γ⁻¹. ``step`` integrates θ̇ = Γ(θ* - θ) exactly over
-    dt with θ* held (θ* + e^(-Γ dt)(θ̂ - θ*)), which contracts for every dt, and then applies
-    the Γ⁻¹-weighted projection onto Θ.
-
-    Examples
-    --------
-    >>> import numpy as np
-    >>> from thetahat.model.paramset import Box
-    >>> from thetahat.estimation.update_laws import AlgebraicInversion
-    >>> law = AlgebraicInversion(lambda v, x, phi: np.arcsinh(phi), 2.0, Box([-2.0], [2.0]))
-    >>> law.rate([0.0, 0.0], [0.0, 0.0], [np.sinh(0.5)], [0.0]).round(12).tolist()
-    [1.0]
-    """
-
-    theta_star: ThetaStar
-    Gamma: FloatArray
-    parameter_set: ParameterSet
-    saturation: Saturation | None = None
-    layer: float = 0.0
-    on_invalid: OnInvalid = "raise"
-    _proj: Projection = field(init=False, repr=False)
-
-    def __init__(self, theta_star: ThetaStar, Gamma: ArrayLike, parameter_set: ParameterSet,
-                 *, saturation: Saturation | None = None, layer: float = 0.0,
-                 on_invalid: OnInvalid = "raise") -> None:
-        _check_common("AlgebraicInversion", parameter_set, on_invalid, saturation)
-        if not callable(theta_star):
-            raise UpdateLawError("AlgebraicInversion: theta_star must be a callable "
-                                 "theta_star(v, x_hat, phi_hat) -> (..., p).")
-        proj = Projection(parameter_set, as_gain("Gamma", Gamma, parameter_set.dim),
-                          layer=layer)
-        object.__setattr__(self, "theta_star", theta_star)
-        object.__setattr__(self, "Gamma", proj.Gamma)
-        object.__setattr__(self, "parameter_set", parameter_set)
-        object.__setattr__(self, "saturation", saturation)
-        object.__setattr__(self, "layer", proj.layer)
-        object.__setattr__(self, "on_invalid", on_invalid)
-        object.__setattr__(self, "_proj", proj)
-
-    @classmethod
-    def from_perturbation(cls, perturbation: Perturbation, *, Gamma: ArrayLike,
-                          parameter_set: ParameterSet, saturation: Saturation | None = None,
-                          layer: float = 0.0, on_invalid: OnInvalid = "raise",
-                          seed: int = 0) -> AlgebraicInversion:
-        """Derive θ* by ``sympy.solve`` from a SymbolicPerturbation.
-
-        Among SymPy's solutions, the one branch that recovers θ from φ = g(v, x, θ) at
-        random points (θ ∈ Θ drawn with ``seed``, v and x standard normal) is kept.
-
-        Raises
-        ------
-        UpdateLawError
-            SymPy cannot solve, or not exactly one branch inverts g (the solution is not
-            unique): pass ``theta_star`` yourself or use :class:`GradientInversion`.
-        """
-        ts = _solve_theta_star(perturbation, parameter_set, seed)
-        return cls(ts, Gamma, parameter_set, saturation=saturation, layer=layer,
-                   on_invalid=on_invalid)
-
-    def rate(self, v: ArrayLike, x_hat: ArrayLike, phi_hat: ArrayLike,
-             theta_hat: ArrayLike) -> FloatArray:
-        """θ̂̇ = Proj(Γ(θ* - θ̂)); shape (..., p)."""
-        v_, x, phi, th, batch = _as_batch(v, x_hat, phi_hat, theta_hat, self.parameter_set.dim)
-        x, phi = _apply_saturation(self.saturation, x, phi)
-        target, lw = _inversion_target(self.theta_star, None, self.on_invalid,
-                                       "AlgebraicInversion", v_, x, phi, th, batch)
-        th_b = np.broadcast_to(th, target.shape)
-        tau = lw[..., None] * ((target - th_b) @ self.Gamma)
-        return self._proj.proj(tau, th_b)
-
-    def step(self, v: ArrayLike, x_hat: ArrayLike, phi_hat: ArrayLike, theta_hat: ArrayLike,
-             dt: float) -> FloatArray:
-        """Exact step θ* + e^(-Γ dt)(θ̂ - θ*), then the Γ⁻¹-weighted projection; in Θ."""
-        dt = _check_dt(dt)
-        v_, x, phi, th, batch = _as_batch(v, x_hat, phi_hat, theta_hat, self.parameter_set.dim)
-        x, phi = _apply_saturation(self.saturation, x, phi)
-        target, lw = _inversion_target(self.theta_star, None, self.on_invalid,
-                                       "AlgebraicInversion", v_, x, phi, th, batch)
-        return _inversion_step(self._proj, target, lw, th, dt)
-
-
-@final
-@dataclass(frozen=True, slots=True, eq=False)
 class IntermittentInversion(UpdateLaw):
-    """Proposition 2: θ̂̇ = Proj(l(v, x̂, φ̂) Γ(θ*(v, x̂, φ̂) - θ̂)).
+    """Propositions 1 and 2: θ̂̇ = Proj(l(v, x̂, φ̂) Γ(θ*(v, x̂, φ̂) - θ̂)).
 
     Parameters
     ----------
-    theta_star : callable
+    theta_star : ThetaStar or callable
         ``theta_star(v, x_hat, phi_hat)``, shape (..., p): the unique solution of
-        φ = g(v, x, θ) wherever l > 0 (anything, NaN included, where l = 0).
-    l : callable
+        φ = g(v, x, θ) wherever l > 0 (anything, NaN included, where l = 0). A
+        :class:`~thetahat.estimation.theta_star.ThetaStar` carries its SymPy form too, which
+        the compiled path needs.
+    l : callable or None
         ``l(v, x_hat, phi_hat)`` with values in [0, 1], shape (...). :func:`smooth_ramp`
-        builds a Lipschitz one.
+        builds a Lipschitz one. ``None`` means l ≡ 1: Proposition 1 (see
+        :func:`AlgebraicInversion`).
     Gamma : float or array_like, shape (p, p)
         Symmetric positive-definite gain Γ.
     parameter_set : ParameterSet
@@ -567,8 +482,10 @@ class IntermittentInversion(UpdateLaw):
     Notes
     -----
     With x̂ = x and φ̂ = φ, θ̃̇ = -Proj(lΓθ̃); the proof uses the persistency of excitation
-    ∫_t^(t+T) l dτ >= σ. ``step`` integrates θ̇ = lΓ(θ* - θ) exactly over dt with l and θ*
-    held, then projects (Γ⁻¹-weighted), so for p = 1 and no projection θ̃(t) = e^(-γ∫l)θ̃(0).
+    ∫_t^(t+T) l dτ >= σ (with l ≡ 1, Proposition 1: V = ½θ̃ᵀΓ⁻¹θ̃ gives V̇ <= -‖θ̃‖²).
+    ``step`` integrates θ̇ = lΓ(θ* - θ) exactly over dt with l and θ* held, then projects
+    (Γ⁻¹-weighted), so for p = 1 and no projection θ̃(t) = e^(-γ∫l)θ̃(0); it contracts for
+    every dt.
 
     Examples
     --------
@@ -581,41 +498,65 @@ class IntermittentInversion(UpdateLaw):
     [[0.0], [-0.5]]
     """
 
-    theta_star: ThetaStar
-    l: Weight
+    theta_star: ThetaStar | ThetaStarFn
+    l: Weight | None
     Gamma: FloatArray
     parameter_set: ParameterSet
     saturation: Saturation | None = None
     layer: float = 0.0
     on_invalid: OnInvalid = "raise"
     _proj: Projection = field(init=False, repr=False)
+    _eig: tuple[FloatArray, FloatArray] = field(init=False, repr=False)
 
-    def __init__(self, theta_star: ThetaStar, l: Weight, Gamma: ArrayLike,  # noqa: E741
-                 parameter_set: ParameterSet, *, saturation: Saturation | None = None,
-                 layer: float = 0.0, on_invalid: OnInvalid = "raise") -> None:
+    def __init__(self, theta_star: ThetaStar | ThetaStarFn,
+                 l: Weight | None,  # noqa: E741
+                 Gamma: ArrayLike, parameter_set: ParameterSet, *,
+                 saturation: Saturation | None = None, layer: float = 0.0,
+                 on_invalid: OnInvalid = "raise") -> None:
         _check_common("IntermittentInversion", parameter_set, on_invalid, saturation)
-        if not (callable(theta_star) and callable(l)):
-            raise UpdateLawError("IntermittentInversion: theta_star and l must be callables of "
-                                 "(v, x_hat, phi_hat).")
+        if not (callable(theta_star) and (l is None or callable(l))):
+            raise UpdateLawError("IntermittentInversion: theta_star must be a callable of "
+                                 "(v, x_hat, phi_hat), and l one too (or None for l ≡ 1).")
         proj = Projection(parameter_set, as_gain("Gamma", Gamma, parameter_set.dim),
                           layer=layer)
-        object.__setattr__(self, "theta_star", theta_star)
-        object.__setattr__(self, "l", l)
-        object.__setattr__(self, "Gamma", proj.Gamma)
-        object.__setattr__(self, "parameter_set", parameter_set)
-        object.__setattr__(self, "saturation", saturation)
-        object.__setattr__(self, "layer", proj.layer)
-        object.__setattr__(self, "on_invalid", on_invalid)
-        object.__setattr__(self, "_proj", proj)
+        lam, V = np.linalg.eigh(proj.Gamma)
+        for name, val in (("theta_star", theta_star), ("l", l), ("Gamma", proj.Gamma),
+                          ("parameter_set", parameter_set), ("saturation", saturation),
+                          ("layer", proj.layer), ("on_invalid", on_invalid), ("_proj", proj),
+                          ("_eig", (readonly(lam), readonly(V)))):
+            object.__setattr__(self, name, val)
 
     @classmethod
-    def from_perturbation(cls, perturbation: Perturbation, l: Weight,  # noqa: E741
+    def from_perturbation(cls, perturbation: Perturbation,
+                          l: Weight | None = None,  # noqa: E741
                           *, Gamma: ArrayLike, parameter_set: ParameterSet,
                           saturation: Saturation | None = None, layer: float = 0.0,
                           on_invalid: OnInvalid = "raise",
                           seed: int = 0) -> IntermittentInversion:
-        """Derive θ* by ``sympy.solve`` (see :meth:`AlgebraicInversion.from_perturbation`)."""
-        ts = _solve_theta_star(perturbation, parameter_set, seed)
+        """Derive θ* by ``sympy.solve`` (:meth:`ThetaStar.solve
+        <thetahat.estimation.theta_star.ThetaStar.solve>`); ``l=None`` is Proposition 1.
+
+        Parameters
+        ----------
+        perturbation : SymbolicPerturbation
+        l : callable or None
+            As for the constructor.
+        Gamma, parameter_set, saturation, layer, on_invalid
+            As for the constructor.
+        seed : int
+            Seed of the random points that pick the branch of the solution that inverts g.
+
+        Returns
+        -------
+        IntermittentInversion
+
+        Raises
+        ------
+        UpdateLawError
+            SymPy cannot solve, or not exactly one branch inverts g (the solution is not
+            unique): pass ``theta_star`` yourself or use :class:`GradientInversion`.
+        """
+        ts = ThetaStar.solve(perturbation, parameter_set, seed=seed)
         return cls(ts, l, Gamma, parameter_set, saturation=saturation, layer=layer,
                    on_invalid=on_invalid)
 
@@ -636,11 +577,68 @@ class IntermittentInversion(UpdateLaw):
         return self._proj.proj(tau, th_b)
 
     def step(self, v: ArrayLike, x_hat: ArrayLike, phi_hat: ArrayLike, theta_hat: ArrayLike,
-             dt: float) -> FloatArray:
-        """Exact step θ* + e^(-lΓ dt)(θ̂ - θ*), then the Γ⁻¹-weighted projection; in Θ."""
+             dt: float, *, Gamma: ArrayLike | None = None) -> FloatArray:
+        """Exact step θ* + e^(-lΓ dt)(θ̂ - θ*), then the Γ⁻¹-weighted projection; in Θ.
+
+        ``Gamma`` (shape (..., p, p)) gives one Γ per batch row in place of the law's own.
+        """
         dt = _check_dt(dt)
         target, lw, th = self._target(v, x_hat, phi_hat, theta_hat)
-        return _inversion_step(self._proj, target, lw, th, dt)
+        return _inversion_step(self._proj, self._eig, target, lw, th, dt, Gamma)
+
+
+def AlgebraicInversion(theta_star: ThetaStar | ThetaStarFn, Gamma: ArrayLike,  # noqa: N802
+                       parameter_set: ParameterSet, *, saturation: Saturation | None = None,
+                       layer: float = 0.0,
+                       on_invalid: OnInvalid = "raise") -> IntermittentInversion:
+    """Proposition 1, θ̂̇ = Proj(Γ(θ*(v, x̂, φ̂) - θ̂)): :class:`IntermittentInversion` with l ≡ 1.
+
+    A named constructor: the law it returns is an ``IntermittentInversion`` whose ``l`` is
+    None. ``AlgebraicInversion.from_perturbation(...)`` derives θ* with SymPy.
+
+    Parameters
+    ----------
+    theta_star : ThetaStar or callable
+        ``theta_star(v, x_hat, phi_hat)`` returning the unique solution θ of φ = g(v, x, θ),
+        shape (..., p).
+    Gamma : float or array_like, shape (p, p)
+        Symmetric positive-definite gain Γ.
+    parameter_set : ParameterSet
+        Θ.
+    saturation, layer, on_invalid
+        As for :class:`IntermittentInversion` (``on_invalid`` acts wherever θ* is NaN or inf).
+
+    Returns
+    -------
+    IntermittentInversion
+
+    Notes
+    -----
+    With x̂ = x and φ̂ = φ, θ* = θ and ‖θ̃(t)‖_Γ⁻¹ <= e^(-λ_min(Γ) t)‖θ̃(0)‖_Γ⁻¹.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from thetahat.model.paramset import Box
+    >>> from thetahat.estimation.update_laws import AlgebraicInversion
+    >>> law = AlgebraicInversion(lambda v, x, phi: np.arcsinh(phi), 2.0, Box([-2.0], [2.0]))
+    >>> law.rate([0.0, 0.0], [0.0, 0.0], [np.sinh(0.5)], [0.0]).round(12).tolist()
+    [1.0]
+    >>> law.l is None
+    True
+    """
+    return IntermittentInversion(theta_star, None, Gamma, parameter_set, saturation=saturation,
+                                 layer=layer, on_invalid=on_invalid)
+
+
+def _algebraic_from_perturbation(perturbation: Perturbation, **options: Any
+                                 ) -> IntermittentInversion:
+    """Proposition 1 with θ* by ``sympy.solve``: :meth:`IntermittentInversion.from_perturbation`
+    with l ≡ 1 (same keywords)."""
+    return IntermittentInversion.from_perturbation(perturbation, None, **options)
+
+
+AlgebraicInversion.from_perturbation = _algebraic_from_perturbation  # type: ignore[attr-defined]
 
 
 @final
@@ -738,7 +736,8 @@ class GradientInversion(UpdateLaw):
         object.__setattr__(self, "_proj", proj)
 
     def _terms(self, v: ArrayLike, x_hat: ArrayLike, phi_hat: ArrayLike, theta_hat: ArrayLike,
-               jacobian: bool) -> tuple[FloatArray, FloatArray, FloatArray | None, FloatArray]:
+               jacobian: bool, Gamma: FloatArray | None = None
+               ) -> tuple[FloatArray, FloatArray, FloatArray | None, FloatArray]:
         """(f = ΓM(φ̂ - g), ΓM, ∂g/∂θ or None, θ̂) broadcast to the batch."""
         n, m, r, p, k = self.perturbation.dims
         v_, x, phi, th, batch = _as_batch(v, x_hat, phi_hat, theta_hat, p)
@@ -758,7 +757,8 @@ class GradientInversion(UpdateLaw):
                 if Mm.shape[-2:] != (p, k):
                     raise UpdateLawError(f"GradientInversion: M must return shape (..., {p}, "
                                          f"{k}); got {Mm.shape}.")
-            GM = np.broadcast_to(self.Gamma @ Mm, batch + (p, k))
+            G = self.Gamma if Gamma is None else Gamma
+            GM = np.broadcast_to(G @ Mm, batch + (p, k))
             f = np.einsum("...pk,...k->...p", GM, np.broadcast_to(resid, batch + (k,)))
         return f, GM, J, np.broadcast_to(th, batch + (p,))
 
@@ -772,10 +772,14 @@ class GradientInversion(UpdateLaw):
         return self._proj.proj(f, th)
 
     def step(self, v: ArrayLike, x_hat: ArrayLike, phi_hat: ArrayLike, theta_hat: ArrayLike,
-             dt: float) -> FloatArray:
-        """Exponential-Euler step of the linearised law, then the Γ⁻¹ projection; in Θ."""
+             dt: float, *, Gamma: ArrayLike | None = None) -> FloatArray:
+        """Exponential-Euler step of the linearised law, then the Γ⁻¹ projection; in Θ.
+
+        ``Gamma`` (shape (..., p, p)) gives one Γ per batch row in place of the law's own.
+        """
         dt = _check_dt(dt)
-        f, GM, J, th = self._terms(v, x_hat, phi_hat, theta_hat, jacobian=True)
+        G = None if Gamma is None else np.asarray(Gamma, dtype=np.float64)
+        f, GM, J, th = self._terms(v, x_hat, phi_hat, theta_hat, jacobian=True, Gamma=G)
         p = th.shape[-1]
         with np.errstate(over="ignore", invalid="ignore"):
             K = GM @ J
@@ -789,4 +793,4 @@ class GradientInversion(UpdateLaw):
             delta = np.where((ok[..., None] & np.all(np.isfinite(delta), axis=-1, keepdims=True)),
                              delta, euler)
             cand = th + delta
-        return self._proj.project(_finite_candidate(cand, th))
+        return _project_rows(self._proj, _finite_candidate(cand, th), G)

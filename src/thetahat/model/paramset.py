@@ -34,7 +34,7 @@ from ..errors import ConvergenceWarning, DimensionError, NonFiniteError, Paramet
 
 FloatArray = NDArray[np.float64]
 
-__all__ = ["ParameterSet", "Box", "Ball", "Ellipsoid", "ConvexSet"]
+__all__ = ["ParameterSet", "Box", "Ball", "Ellipsoid", "ConvexSet", "safe_norm"]
 
 #: Relative tolerance for the symmetry of an ellipsoid's shape matrix Q: a matrix assembled from
 #: floating-point products is symmetric only to a few ulps of its norm.
@@ -89,8 +89,22 @@ def _finite_theta(name: str, theta: ArrayLike, p: int) -> FloatArray:
     return arr
 
 
-def _safe_norm(z: FloatArray) -> FloatArray:
-    """Euclidean norm over the last axis without overflow for entries near 1e308."""
+def safe_norm(z: FloatArray) -> FloatArray:
+    """Euclidean norm over the last axis without overflow for entries near 1e308.
+
+    Parameters
+    ----------
+    z : ndarray, shape (..., p)
+
+    Returns
+    -------
+    ndarray, shape (...)
+
+    Examples
+    --------
+    >>> float(safe_norm(np.array([3e300, 4e300])))
+    5e+300
+    """
     s = np.max(np.abs(z), axis=-1)
     safe = np.where(s > 0, s, 1.0)
     return s * np.sqrt(np.sum((z / safe[..., None]) ** 2, axis=-1))
@@ -295,7 +309,7 @@ class ParameterSet(ABC):
             if np.any(cand):
                 pts = theta[cand]
                 inside = inside.copy()
-                inside[cand] = _safe_norm(pts - self.nearest(pts)) <= tol
+                inside[cand] = safe_norm(pts - self.nearest(pts)) <= tol
         return bool(inside) if inside.ndim == 0 else inside
 
 
@@ -466,20 +480,20 @@ class Ball(ParameterSet):
         """θ ∈ Θ (dist(θ, Θ) <= tol when tol > 0); shape (...)."""
         th = _as_theta("theta", theta, self.dim)
         with np.errstate(invalid="ignore"):
-            inside = np.asarray(_safe_norm(th - self.center) <= self.radius + tol)
+            inside = np.asarray(safe_norm(th - self.center) <= self.radius + tol)
         return bool(inside) if inside.ndim == 0 else inside
 
     def nearest(self, theta: ArrayLike, *, metric: ArrayLike | None = None) -> FloatArray:
         """Projection onto the ball (radial when Euclidean); shape (..., p)."""
         th = _finite_theta("theta", theta, self.dim)
         L = None if metric is None else _metric_factor(metric, self.dim)
-        inside_ball = lambda t: _safe_norm(t - self.center) - self.radius  # noqa: E731
+        inside_ball = lambda t: safe_norm(t - self.center) - self.radius  # noqa: E731
         if L is not None:
             Q = np.eye(self.dim) / self.radius**2
             res = _project_ellipsoid(th, self.center, Q, L)
             return _shrink_inside(res, self.center, inside_ball)  # contains() uses the norm
         d = th - self.center
-        r = _safe_norm(d)
+        r = safe_norm(d)
         with np.errstate(divide="ignore", invalid="ignore"):
             scale = np.where(r > self.radius, self.radius / r, 1.0)
         res = self.center + d * scale[..., None]
@@ -769,11 +783,11 @@ class ConvexSet(ParameterSet):
         c = self.interior_point
         N, p = z.shape
         y = _retract(z, c, self._P)
-        s = np.maximum(1.0, _safe_norm(z - y))[:, None]  # residual scale; multiplier μ = λ/s
+        s = np.maximum(1.0, safe_norm(z - y))[:, None]  # residual scale; multiplier μ = λ/s
         zs = z / s
         g = self._grad(y)
         # multiplier as if ∇P were aligned with W(z - y): small values make the first steps huge
-        mu = _safe_norm((W @ (z - y).T).T / s) / _safe_norm(g)
+        mu = safe_norm((W @ (z - y).T).T / s) / safe_norm(g)
 
         def residual(y: FloatArray, mu: FloatArray) -> tuple[FloatArray, FloatArray]:
             gy = self._grad(y)
@@ -781,7 +795,7 @@ class ConvexSet(ParameterSet):
             return r1, self._P(y)
 
         def merit(r1: FloatArray, r2: FloatArray) -> FloatArray:
-            return _safe_norm(r1) + np.abs(r2)
+            return safe_norm(r1) + np.abs(r2)
 
         done = np.zeros(N, dtype=bool)
         with np.errstate(all="ignore"):
@@ -806,10 +820,10 @@ class ConvexSet(ParameterSet):
                     if not np.any(worse):
                         break
                     alpha = np.where(worse, 0.5 * alpha, alpha)
-                dy = _safe_norm(step[:, :p])  # the full Newton step: small only near KKT
+                dy = safe_norm(step[:, :p])  # the full Newton step: small only near KKT
                 y = np.where(done[:, None], y, y_try)
                 mu = np.where(done, mu, mu_try)
-                done |= dy <= CONVEX_RTOL * (1.0 + _safe_norm(y))
+                done |= dy <= CONVEX_RTOL * (1.0 + safe_norm(y))
                 # or the KKT residual (scaled to O(1) by s) is at rounding level: at flat
                 # boundary points (zero curvature) Newton converges only linearly
                 done |= merit(*residual(y, mu)) <= KKT_RTOL

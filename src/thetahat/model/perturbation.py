@@ -29,8 +29,8 @@ from .._validate import check_finite, positive_scalar
 from ..errors import DimensionError, NonFiniteError
 
 __all__ = ["lambdify_numpy", "Perturbation", "SymbolicPerturbation", "CallablePerturbation", "JacobianCheck",
-           "JacobianComparison", "check_jacobians", "heaviside_as_sign", "FD_REL_STEP",
-           "CHECK_RTOL", "CHECK_ATOL"]
+           "JacobianComparison", "check_jacobians", "FD_REL_STEP",
+           "CHECK_RTOL", "CHECK_ATOL", "numpy_ready"]
 
 FloatArray = NDArray[np.float64]
 
@@ -218,10 +218,8 @@ def _a_e_derivative(M: sp.ImmutableMatrix) -> sp.ImmutableMatrix:
     return sp.ImmutableMatrix(M.replace(sp.DiracDelta, lambda *args: sp.S.Zero))
 
 
-def heaviside_as_sign(entry: sp.Expr) -> sp.Expr:
-    """Rewrite Heaviside(z) as (1 + sign(z))/2 so that NaN propagates in generated code.
-
-    Every numeric form of g (numpy, numba, C) is printed from this rewrite of the expression.
+def numpy_ready(entry: sp.Expr) -> sp.Expr:
+    """Rewrite Heaviside(z) as (1 + sign(z))/2 so that NaN propagates in the printed code.
 
     Parameters
     ----------
@@ -234,8 +232,8 @@ def heaviside_as_sign(entry: sp.Expr) -> sp.Expr:
     Examples
     --------
     >>> import sympy as sp
-    >>> z = sp.Symbol("z", real=True)
-    >>> heaviside_as_sign(sp.Heaviside(z))
+    >>> z = sp.Symbol("z")
+    >>> numpy_ready(sp.Heaviside(z))
     sign(z)/2 + 1/2
     """
     def _heaviside(z: sp.Expr, h0: sp.Expr = sp.S.Half) -> sp.Expr:
@@ -293,7 +291,7 @@ def lambdify_numpy(args: Sequence[sp.Symbol], exprs: Sequence[sp.Expr]) -> Calla
     >>> f(np.array([-1.0, 2.0, np.nan]), 3.0)[0]
     array([ 0.,  6., nan])
     """
-    entries = [heaviside_as_sign(sp.sympify(e)) for e in exprs]
+    entries = [numpy_ready(sp.sympify(e)) for e in exprs]
     if not entries:
         return lambda *cols: []
     return sp.lambdify(list(args), entries, modules="numpy", printer=_ElementwisePrinter,

@@ -30,6 +30,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from .._validate import as_vector, positive_scalar
 from ..errors import DimensionError, ParameterSetError, ThetahatWarning
+from ..estimation.theta_star import ThetaStar
 from ..model.paramset import Box
 from ..model.perturbation import SymbolicPerturbation
 from ..model.system import PerturbedLinearSystem
@@ -43,7 +44,6 @@ __all__ = [
     "LUGRE_RTOL",
     "LuGreParameters",
     "LuGrePhi",
-    "LuGreThetaStar",
     "Scenario",
     "design_system",
     "linear_part",
@@ -330,20 +330,23 @@ def true_phi(params: LuGreParameters = LuGreParameters()) -> LuGrePhi:
     return LuGrePhi(params)
 
 
-@dataclass(frozen=True, slots=True)
-class LuGreThetaStar:
-    """The algebraic inverse θ*(v, x̂, φ̂) = σ0 η̂ |y| / φ̂ - α1 exp(-(ω̂/ω0)²) (Sec. VIII A).
+def theta_star(params: LuGreParameters = LuGreParameters()) -> ThetaStar:
+    """The paper's algebraic inverse θ*(v, x̂, φ̂) = σ0 η̂ |y| / φ̂ − α1 exp(−(ω̂/ω0)²) (Sec. VIII A).
 
-    It solves φ̂ = g(v, x̂, θ) for θ; it is defined where φ̂ ≠ 0, and the paper uses it only
-    where the excitation indicator l(v, x̂, φ̂) = 1, i.e. |φ̂| ≥ 1. Where φ̂ = 0 the value is
-    NaN: an update law must mask it with its excitation indicator.
-
-    Call signature ``theta_star(v, x_hat, phi_hat)`` with ``v (..., 2) = (u, y)``,
-    ``x_hat (..., 2) = (ω̂, η̂)``, ``phi_hat (..., 1)``; returns ``(..., 1)``.
+    It solves φ̂ = g(v, x̂, θ) for θ; it is defined where φ̂ ≠ 0 (NaN where φ̂ = 0), and the
+    paper uses it only where the excitation indicator l(v, x̂, φ̂) = 1, i.e. |φ̂| ≥ 1. The
+    :class:`~thetahat.estimation.theta_star.ThetaStar` carries the SymPy expression (in the
+    symbols of :func:`perturbation` and ``phi``) and its numpy function, so the Python and the
+    compiled paths evaluate the same formula.
 
     Parameters
     ----------
-    params : LuGreParameters
+    params : LuGreParameters, optional
+        Physical parameters; default: the paper's.
+
+    Returns
+    -------
+    ThetaStar
 
     Examples
     --------
@@ -355,37 +358,16 @@ class LuGreThetaStar:
     >>> phi = p.sigma0 * x[1] * abs(x[0]) / p.zeta(x[0], 0.28)
     >>> round(float(theta_star(p)([0.0, 2.0], x, [phi])[0]), 12)
     0.28
+    >>> sorted(str(s) for s in theta_star(p).expr[0].free_symbols)
+    ['eta', 'omega', 'phi', 'y']
     """
-
-    params: LuGreParameters
-
-    def __call__(self, v: ArrayLike, x_hat: ArrayLike, phi_hat: ArrayLike) -> FloatArray:
-        """θ*(v, x̂, φ̂); shape (..., 1)."""
-        p = self.params
-        y = np.asarray(v, dtype=np.float64)[..., 1]
-        xh = np.asarray(x_hat, dtype=np.float64)
-        ph = np.asarray(phi_hat, dtype=np.float64)[..., 0]
-        num = p.sigma0 * xh[..., 1] * np.abs(y)
-        ratio = np.divide(num, ph, out=np.full(np.broadcast(num, ph).shape, np.nan),
-                          where=ph != 0.0)
-        return (ratio - p.alpha1 * np.exp(-(xh[..., 0] / p.omega0) ** 2))[..., None]
-
-
-def theta_star(params: LuGreParameters = LuGreParameters()) -> LuGreThetaStar:
-    """The paper's algebraic inverse θ*(v, x̂, φ̂) for Proposition 2 (Sec. VIII A).
-
-    See :class:`LuGreThetaStar`.
-
-    Parameters
-    ----------
-    params : LuGreParameters, optional
-        Physical parameters; default: the paper's.
-
-    Returns
-    -------
-    LuGreThetaStar
-    """
-    return LuGreThetaStar(params)
+    g = perturbation(params)
+    (y,) = g.y
+    omega, eta = g.x
+    phi = sp.Symbol("phi", real=True)
+    expr = (sp.Float(params.sigma0) * eta * sp.Abs(y) / phi
+            - sp.Float(params.alpha1) * sp.exp(-(omega / sp.Float(params.omega0)) ** 2))
+    return ThetaStar.from_expr(expr, perturbation=g, phi=[phi])
 
 
 def _default_input() -> Signal:
@@ -606,41 +588,3 @@ def designs(eps: float = 1.0, *, eps2: float = 1.0, params: LuGreParameters = Lu
     d1 = modified_high_gain(ds.A, ds.E, ds.C, eps, chain_poles or [[-1.0, -2.0, -3.0]])
     d2 = high_gain(ds.A, ds.E, ds.C, eps2, second_poles or [[-1.0, -2.0]])
     return d1, d2
-
-
-def theta_star_expr(params: LuGreParameters = LuGreParameters()) -> sp.Expr:
-    """θ*(v, x̂, φ̂) of :class:`LuGreThetaStar` as a SymPy expression (Sec. VIII A).
-
-    σ0 η |y| / φ − α1 exp(−(ω/ω0)²) in the symbols of :func:`perturbation` (``y``, ``omega``,
-    ``eta``) and ``phi = sympy.Symbol("phi", real=True)``: the form that
-    :func:`~thetahat.estimation.compiled.compile_observer` needs to compile :func:`observer`.
-
-    Parameters
-    ----------
-    params : LuGreParameters, optional
-        Physical parameters; default: the paper's.
-
-    Returns
-    -------
-    sympy.Expr
-
-    Examples
-    --------
-    >>> import sympy as sp
-    >>> from thetahat.models.lugre import theta_star_expr, perturbation
-    >>> ts = theta_star_expr()
-    >>> sorted(str(s) for s in ts.free_symbols)
-    ['eta', 'omega', 'phi', 'y']
-    >>> g = perturbation()
-    >>> y, (omega, eta) = g.y[0], g.x
-    >>> vals = {y: 2.0, omega: 2.0, eta: 1e-3}
-    >>> phi = g.expr[0].subs({**vals, g.theta[0]: 0.28})
-    >>> round(float(ts.subs({**vals, sp.Symbol("phi", real=True): phi})), 12)
-    0.28
-    """
-    g = perturbation(params)
-    (y,) = g.y
-    omega, eta = g.x
-    phi = sp.Symbol("phi", real=True)
-    return (sp.Float(params.sigma0) * eta * sp.Abs(y) / phi
-            - sp.Float(params.alpha1) * sp.exp(-(omega / sp.Float(params.omega0)) ** 2))

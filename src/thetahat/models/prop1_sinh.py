@@ -30,7 +30,7 @@ import numpy as np
 import sympy as sp
 from numpy.typing import ArrayLike, NDArray
 
-from ..estimation.update_laws import AlgebraicInversion
+from ..estimation.update_laws import AlgebraicInversion, IntermittentInversion
 from ..model.paramset import Box
 from ..model.system import PerturbedLinearSystem
 from ._oscillator import oscillator, y
@@ -65,6 +65,6 @@ def theta_star(v: ArrayLike, x_hat: ArrayLike, phi_hat: ArrayLike) -> FloatArray
     return np.arcsinh(phi[..., :1] / (1.0 + v_[..., 1:2] ** 2))
 
 
-def update_law(Gamma: ArrayLike = 2.0) -> AlgebraicInversion:
+def update_law(Gamma: ArrayLike = 2.0) -> IntermittentInversion:
     """The Proposition 1 law θ̂̇ = Proj(Γ(θ* - θ̂)) on Θ."""
     return AlgebraicInversion(theta_star, Gamma, PARAMETER_SET)
