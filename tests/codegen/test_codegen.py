@@ -382,8 +382,13 @@ def test_unsupported_parts_raise_codegen_error():
     obs = build_observer(spec)
     with pytest.raises(CodegenError, match="causal"):
         generate_c(obs, dt=1e-3, hold="foh")
+    from thetahat.models import prop1_sinh
+    prop1 = build_observer(load_model(EXAMPLES / "prop1.toml"))
+    callable_law = ModifiedHighGainObserver(system=prop1.system, K_x=prop1.K_x,
+                                            K_phi=prop1.K_phi,
+                                            update_law=prop1_sinh.update_law())
     with pytest.raises(CodegenError, match="Python callable"):
-        generate_c(lugre.observer(), dt=1e-3)
+        generate_c(callable_law, dt=1e-2)
     with pytest.raises(CodegenError, match="real"):
         generate_c(obs, dt=1e-3, real="long double")
     law = obs.update_law
@@ -484,3 +489,15 @@ def test_float_box_is_rounded_into_theta(tmp_path):
         r"THETA_LOWER\[2\] = \{(.*?)\}", src).group(1).split(", ")]
     assert float(np.float32(0.7)) < 0.7 and lower[0] >= 0.7 and lower[1] >= -0.7
     assert lower[0] - 0.7 < 1e-7 and lower[1] + 0.7 < 1e-7
+
+
+def test_python_built_lugre_observer_generates_the_same_estimates(tmp_path, lugre_data):
+    """From a built estimator in Python: lugre.observer() (its θ* is a ThetaStar)."""
+    obs = lugre.observer()
+    N = 1500
+    d = lugre_data
+    c = load_c(generate_c(obs, dt=1e-3, name="motor", theta_hat0=[0.5]), tmp_path)
+    res = c.run(d.u[:N], d.y[:N])
+    assert res.status == 0
+    ref = obs.run(d.t[:N], d.u[:N], d.y[:N], state0=obs.init(theta_hat0=[0.5]))
+    assert_agree(res, ref, DOUBLE_RTOL)
