@@ -2,10 +2,10 @@
 
 Run:  .venv/bin/python benchmarks/bench_codegen.py [--t-end 20] [--json out/bench_codegen.json]
 
-One process, one record: the paper's DC motor (examples/lugre.toml, ε = 1, second observer,
+One process, one record: the paper's DC motor (``lugre.observer()``, ε = 1, second observer,
 1 kHz, ``lugre.simulate(seed=0)``), the same observer object for every back end:
 
-* ``c_double`` / ``c_float``: ``thetahat codegen`` output compiled with ``cc -O2`` (the flags of
+* ``c_double`` / ``c_float``: ``generate_c`` output compiled with ``cc -O2`` (the flags of
   the acceptance) and called once through ctypes for the whole record; ``steps`` loops
   ``lugre_step`` only, ``record`` also stores the state and φ̂ per sample (what ``run`` does);
 * ``numba``: ``compile_observer(...).run`` (the kernel's loop, which records state and φ̂);
@@ -32,9 +32,8 @@ from pathlib import Path
 
 import numpy as np
 
-from thetahat.codegen import generate_c_from_model
+from thetahat.codegen import generate_c, generate_c_from_model
 from thetahat.codegen.loader import find_compiler, load_c
-from thetahat.modelfile import build_observer, load_model
 from thetahat.models import lugre
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -108,24 +107,23 @@ def main(argv: list[str] | None = None) -> dict:
     data = lugre.simulate(seed=0, t_end=args.t_end)
     U, Y = data.u, data.y
     N = Y.shape[0]
-    spec = load_model(MODEL)
-    obs = build_observer(spec)
+    obs = lugre.observer()
+    theta_hat0 = [lugre.Scenario().theta_hat0]
     timers: dict[str, object] = {}
     results = {}
     with tempfile.TemporaryDirectory() as tmp_:
         tmp = Path(tmp_)
         for real in ("double", "float"):
-            code = generate_c_from_model(MODEL, dt=1e-3, real=real, name=f"lugre_{real}")
+            code = generate_c(obs, dt=1e-3, real=real, name=f"lugre_{real}",
+                              theta_hat0=theta_hat0)
             fns, results[real] = c_timers(code, tmp, U, Y)
             timers[f"c_{real}_steps"], timers[f"c_{real}_record"] = fns["steps"], fns["record"]
         arm = arm_sizes(tmp)
         ref = None
         try:
             from thetahat.estimation.compiled import compile_observer
-            exprs, args_ = obs.update_law.theta_star.sympy_form
-            fast = compile_observer(obs, dt=1e-3, theta_star=list(exprs),
-                                    phi=list(args_[-spec.system.k:]))
-            state0 = obs.init(theta_hat0=spec.estimator.theta_hat0)
+            fast = compile_observer(obs, dt=1e-3)
+            state0 = obs.init(theta_hat0=theta_hat0)
             fast.run(data.t[:10], U[:10], Y[:10], state0=state0)       # JIT outside timing
             timers["numba_record"] = lambda: fast.run(data.t, U, Y, state0=state0)
             ref = fast.run(data.t, U, Y, state0=state0)
@@ -133,7 +131,7 @@ def main(argv: list[str] | None = None) -> dict:
             pass
         rows = {name: t / N * 1e9 for name, t in interleaved(timers, REPEATS).items()}
     c = {real: {"result": res} for real, res in results.items()}
-    s = obs.init(theta_hat0=spec.estimator.theta_hat0)
+    s = obs.init(theta_hat0=theta_hat0)
 
     def python_steps() -> None:
         st = s
@@ -141,7 +139,7 @@ def main(argv: list[str] | None = None) -> dict:
             st = obs.step(st, U[i], Y[i], 1e-3)
 
     rows["python_step"] = best(python_steps, 2) / PYTHON_STEPS * 1e9
-    print(f"LuGre observer (examples/lugre.toml), {N} samples at 1 kHz; ns per step, best of "
+    print(f"LuGre observer (lugre.observer()), {N} samples at 1 kHz; ns per step, best of "
           f"{REPEATS}:")
     for name, value in rows.items():
         print(f"  {name:<16} {value:12.1f}")

@@ -293,16 +293,19 @@ def test_nan_in_y_raises_and_inf_is_refused_state_unchanged(lugre_c):
         obs.step(obs.init(theta_hat0=[0.5]), [0.1], [np.nan], 1e-3)
 
 
-def test_overflow_is_refused_like_python(lugre_c):
-    """g = σ0 η |y| / ζ overflows at η = 1e300: Python raises NonFiniteError, C refuses."""
+@pytest.mark.parametrize("x0, y", [([0.0, 1e300], 1e10), ([0.0, 1e101], 1.0)])
+def test_overflow_and_divergence_are_refused_like_python(lugre_c, x0, y):
+    """g = σ0 η |y| / ζ overflows at η = 1e300; at η = 1e101 the state stays finite but its
+    norm passes step.DIVERGENCE_BOUND = 1e100: Python raises NonFiniteError, C refuses."""
     _, obs, c = lugre_c
-    x0 = [0.0, 1e300]
     with np.errstate(all="ignore"), pytest.raises(NonFiniteError):
-        obs.step(obs.init(x_hat0=x0, theta_hat0=[0.5]), [0.0], [1e10], 1e-3)
+        obs.step(obs.init(x_hat0=x0, theta_hat0=[0.5]), [0.0], [y], 1e-3)
     s = c.init([0.5], x0)
     before = s.copy()
-    assert c.step(s, [0.0], [1e10]) == STATUS["diverged"]
+    assert c.step(s, [0.0], [y]) == STATUS["diverged"]
     np.testing.assert_array_equal(s, before)
+    s_ok = c.init([0.5], [0.0, 1e-3])
+    assert c.step(s_ok, [0.0], [1.0]) == STATUS["ok"]                # a sane state steps
 
 
 def test_skip_policy_predicts_as_python(tmp_path, lugre_data):

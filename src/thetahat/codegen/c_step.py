@@ -498,6 +498,16 @@ static int all_finite(const real_t a[], int size)
     return 1;
 }
 
+/* Sum of squares of a[0..size) added to acc (NaN and inf propagate). */
+static real_t add_squares(real_t acc, const real_t a[], int size)
+{
+    int i;
+    for (i = 0; i < size; ++i) {
+        acc += a[i] * a[i];
+    }
+    return acc;
+}
+
 int ${P}_init(${P}_state *s, const real_t theta_hat0[], const real_t x_hat0[])
 {
     const real_t *th = theta_hat0 != 0 ? theta_hat0 : THETA_HAT0;
@@ -533,6 +543,7 @@ int ${P}_init(${P}_state *s, const real_t theta_hat0[], const real_t x_hat0[])
 int ${P}_step(${P}_state *s, const real_t u[], const real_t y[])
 {
     ${P}_state next;
+    real_t norm2;
     int correct, status;
     status = samples(u, y, &correct);
     if (status != ${PU}_OK) {
@@ -542,8 +553,11 @@ int ${P}_step(${P}_state *s, const real_t u[], const real_t y[])
     if (status != ${PU}_OK) {
         return status;
     }
-    if (!all_finite(next.x_hat, NX) || !all_finite(next.z, NK)
-        || !all_finite(next.theta_hat, NP)$FINITE_SECOND) {
+    /* step.diverged: the new state's norm exceeds DIVERGENCE_BOUND, or is NaN or inf */
+    norm2 = add_squares(add_squares(add_squares(0, next.x_hat, NX), next.z, NK),
+                        next.theta_hat, NP);
+    $NORM_SECOND
+    if (!(norm2 <= DIVERGENCE_BOUND * DIVERGENCE_BOUND)) {
         return ${PU}_ERR_DIVERGED;
     }
     *s = next;
@@ -665,7 +679,8 @@ def step_source(opts: StepOptions) -> str:
         SKIP="1" if opts.skip else "0",
         INIT_SECOND=("for (i = 0; i < NX; ++i) {\n        s->x_hat_refined[i] = x0[i];\n    }"
                      if opts.second else ""),
-        FINITE_SECOND=" || !all_finite(next.x_hat_refined, NX)" if opts.second else "",
+        NORM_SECOND=("norm2 = add_squares(norm2, next.x_hat_refined, NX);" if opts.second
+                     else ""),
         ACCESS_SECOND=access))
     text = "".join(parts)
     return Template(text).safe_substitute(P=opts.prefix, PU=opts.prefix.upper())

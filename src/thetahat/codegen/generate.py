@@ -26,6 +26,7 @@ from numpy.typing import ArrayLike, NDArray
 from ..errors import CodegenError, ModelFileError
 from ..estimation.discretize import IMPLICITNESS
 from ..estimation.observer import ModifiedHighGainObserver
+from ..estimation.step import DIVERGENCE_BOUND
 from ..estimation.theta_star import ThetaStar
 from ..estimation.update_laws import (FAR, INIT_RTOL, ConstantLaw, GradientInversion,
                                       IntermittentInversion, SmoothRamp)
@@ -46,6 +47,9 @@ HOLDS = ("zoh",)
 #: |θ̂| clip before the projection (update_laws.FAR in double; in float 1e30, below FLT_MAX, so
 #: that the constant converts without overflow).
 FAR_FLOAT = 1e30
+#: The divergence rule's bound in float: step.DIVERGENCE_BOUND (1e100) is beyond FLT_MAX; 1e18
+#: keeps its square (1e36) finite in float, far above any sensibly scaled observer quantity.
+BOUND_FLOAT = 1e18
 
 _LAWS = {ConstantLaw: "constant", IntermittentInversion: "intermittent",
          GradientInversion: "gradient"}
@@ -321,7 +325,9 @@ def _constants(observer: ModifiedHighGainObserver, law: Any, opts: StepOptions, 
                ("IMPLICITNESS", IMPLICITNESS, "gamma of the linearly implicit step"),
                ("THETAHAT_FAR", FAR if real == "double" else FAR_FLOAT,
                 "candidates are clipped to +-FAR before the projection"),
-               ("INIT_RTOL", INIT_RTOL, "theta_hat0 may lie this far outside Theta")]
+               ("INIT_RTOL", INIT_RTOL, "theta_hat0 may lie this far outside Theta"),
+               ("DIVERGENCE_BOUND", DIVERGENCE_BOUND if real == "double" else BOUND_FLOAT,
+                "the state has diverged when its norm exceeds this (step.DIVERGENCE_BOUND)")]
     if opts.law == "intermittent":
         scalars += [("RAMP_LOW", law.l.low, "excitation ramp: l = 0 below"),
                     ("RAMP_HIGH", law.l.high, "excitation ramp: l = 1 above")]
@@ -407,8 +413,9 @@ def generate_c(observer: ModifiedHighGainObserver, *, dt: float, name: str = "ob
     The C step computes, in the same stages, what ``observer.step(state, u, y, dt)`` computes:
     the forcing of (3a)–(3b) with φ̂ = g + z (3c), the law's step and the projection onto Θ,
     the θ-term of (3b), the Jacobian part N, the second observer, then the linearly implicit
-    exponential step with Φ₁ = ``observer.plan(dt).Phi1``. The state is committed only when
-    every entry is finite; otherwise the step returns an error code and leaves it unchanged —
+    exponential step with Φ₁ of ``observer.plan(dt)``. The state is committed only when it
+    has not diverged (the rule of ``thetahat.estimation.step``: its norm is finite and at most
+    ``DIVERGENCE_BOUND``, 1e18 in float); otherwise the step returns an error code and leaves it unchanged —
     the C form of the NonFiniteError / UpdateLawError the Python step raises. NaN in y follows
     ``nan_policy``, an invalid θ* ``on_invalid``. IEEE 754 arithmetic (C99 Annex F) is
     assumed, as on every target with an FPU; ``-ffast-math`` is refused.
@@ -506,7 +513,7 @@ enum {{
     {PU}_ERR_INPUT = 1,      /* u not finite, or y inf */
     {PU}_ERR_MISSING = 2,    /* y NaN under nan_policy 'raise' */
     {PU}_ERR_THETA_STAR = 3, /* theta* invalid where l > 0 under on_invalid 'raise' */
-    {PU}_ERR_DIVERGED = 4,   /* the new state would not be finite */
+    {PU}_ERR_DIVERGED = 4,   /* the new state would diverge (norm > bound, NaN or inf) */
     {PU}_ERR_INIT = 5        /* theta_hat0 outside Theta, or not finite */
 }};
 
