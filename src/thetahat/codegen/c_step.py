@@ -613,8 +613,9 @@ const char *${P}_error_message(int status)
         return "theta* is NaN or inf where the excitation weight is positive and "
                "on_invalid='raise'; make l vanish there or use on_invalid='freeze'";
     case ${PU}_ERR_DIVERGED:
-        return "the observer state would become non-finite: the gains are too high for this dt "
-               "(decrease dt or increase eps), or the data scaling is off; the state is unchanged";
+        return "the observer state would diverge (norm above the bound, NaN or inf): the gains "
+               "are too high for this dt (decrease dt or increase eps), or the data scaling is "
+               "off; the state is unchanged";
     case ${PU}_ERR_INIT:
         return "theta_hat0 lies outside Theta, or theta_hat0 / x_hat0 is not finite";
     default:
