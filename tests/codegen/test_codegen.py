@@ -1,4 +1,4 @@
-"""Generated C (``thetahat.codegen``), compiled by the system C compiler and checked against Python.
+"""Generated C (``thetahat.codegen``), compiled by the system C compiler, checked against Python.
 
 Every comparison runs the Python observer (``run_estimator`` / ``observer.run``) and the
 generated C on the same samples. Tests skip only when no C compiler is present.

@@ -1,4 +1,4 @@
-"""The C text of one observer step, stage by stage as in ``ModifiedHighGainObserver._advance``.
+"""One observer step as C text, stage by stage as in :func:`thetahat.estimation.step.advance`.
 
 :func:`step_source` assembles the ``.c`` body from the stages below; each is named after the
 paper's equation it computes and mirrors one stage of the Python step:
@@ -411,7 +411,7 @@ _GV_TERM = r"""if (on_est) {
 
 _ADVANCE = r"""
 /* One step of observer (3), law (8) [and the second observer] from *s with the samples
- * (u, y) held over dt, into *out (ModifiedHighGainObserver._advance with zero-order hold). */
+ * (u, y) held over dt, into *out (thetahat.estimation.step.advance, zero-order hold). */
 static int advance(const ${P}_state *s, const real_t u[], const real_t y[], int correct,
                    ${P}_state *out)
 {

@@ -415,8 +415,8 @@ def generate_c(observer: ModifiedHighGainObserver, *, dt: float, name: str = "ob
     the θ-term of (3b), the Jacobian part N, the second observer, then the linearly implicit
     exponential step with Φ₁ of ``observer.plan(dt)``. The state is committed only when it
     has not diverged (the rule of ``thetahat.estimation.step``: its norm is finite and at most
-    ``DIVERGENCE_BOUND``, 1e18 in float); otherwise the step returns an error code and leaves it unchanged —
-    the C form of the NonFiniteError / UpdateLawError the Python step raises. NaN in y follows
+    ``DIVERGENCE_BOUND``, 1e18 in float); otherwise the step returns an error code and leaves
+    it unchanged — the C form of the NonFiniteError / UpdateLawError the Python step raises. NaN in y follows
     ``nan_policy``, an invalid θ* ``on_invalid``. IEEE 754 arithmetic (C99 Annex F) is
     assumed, as on every target with an FPU; ``-ffast-math`` is refused.
 
