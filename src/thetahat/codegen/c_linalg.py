@@ -2,9 +2,9 @@
 
 ``LINALG``: Gaussian elimination with partial pivoting (never divides by zero), the linearly
 implicit exponential step of :mod:`thetahat.estimation.discretize` for a zero-order hold, and
-the projection of a candidate onto the box Θ (NaN → θ̂, a clip to ±FAR, then to the box). ``EXPM``: exp of the small (p + 1) × (p + 1)
-matrix of the gradient law's exponential Euler step (Taylor series of degree 20 with scaling
-and squaring, as the numba kernel).
+the projection of a candidate onto the box Θ (NaN → θ̂, a clip to ±FAR, then to the box).
+``EXPM``: exp of the small (p + 1) × (p + 1) matrix of the gradient law's exponential Euler
+step (Taylor series of degree 20 with scaling and squaring, as the numba kernel).
 """
 
 from __future__ import annotations
