@@ -18,10 +18,12 @@ from .estimation.redesign import SecondObserver
 from .estimation.theta_star import ThetaStar
 from .estimation.update_laws import (AlgebraicInversion, ConstantLaw, GradientInversion,
                                      IntermittentInversion, UpdateLaw, smooth_ramp)
-from .errors import (CCompilerError, CodegenError, ConvergenceWarning, DesignError, DimensionError, IllConditionedWarning,
+from .errors import (CCompilerError, ConvergenceWarning, DesignError, DimensionError, IllConditionedWarning,
                      MissingExtraError, ModelFileError, NonFiniteError, SimulationError, NotLeftInvertibleError,
                      NotMinimumPhaseError, ParameterSetError, ThetahatError, ThetahatWarning,
                      UpdateLawError)
+from .errors import (IllConditionedError, InputLimitError, ResourceLimitError,
+                     SymbolicTimeoutError, UnstableDesignError)
 from .model.interop import from_state_space, to_state_space
 from .model.paramset import Ball, Box, ConvexSet, Ellipsoid, ParameterSet
 from .model.parse import parse_perturbation
@@ -61,5 +63,8 @@ __all__ = [
     "apply_design", "check_assumption_1", "extended_system", "high_gain", "invariant_zeros",
     "is_left_invertible", "is_minimum_phase", "modified_high_gain", "normal_rank", "scb", "scb_symbolic",
     "unstable_zeros", "__version__",
-    "StepPlan", "ThetaStar", "CCode", "generate_c", "CodegenError", "CCompilerError",
+    "IllConditionedError", "InputLimitError", "ResourceLimitError", "SymbolicTimeoutError",
+    "UnstableDesignError",
+    "StepPlan", "ThetaStar",
+    "CCode", "generate_c", "CCompilerError",
 ]

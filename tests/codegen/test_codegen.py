@@ -18,7 +18,7 @@ from thetahat.codegen import generate_c, generate_c_from_model
 from thetahat.codegen.harness import C_FLAGS, estimate_columns
 from thetahat.codegen.loader import STATUS, build_harness, find_compiler, load_c
 from thetahat.datafile import estimate_columns as datafile_columns
-from thetahat.errors import CodegenError, NonFiniteError, UpdateLawError
+from thetahat.errors import UnsupportedError, NonFiniteError, UpdateLawError
 from thetahat.estimation.observer import ModifiedHighGainObserver
 from thetahat.estimation.update_laws import IntermittentInversion
 from thetahat.model.paramset import Ball
@@ -383,23 +383,23 @@ def test_harness_theta0_aliases_and_bad_input(tmp_path, lugre_data):
 def test_unsupported_parts_raise_codegen_error():
     spec = load_model(LUGRE)
     obs = build_observer(spec)
-    with pytest.raises(CodegenError, match="causal"):
+    with pytest.raises(UnsupportedError, match="causal"):
         generate_c(obs, dt=1e-3, hold="foh")
     from thetahat.models import prop1_sinh
     prop1 = build_observer(load_model(EXAMPLES / "prop1.toml"))
     callable_law = ModifiedHighGainObserver(system=prop1.system, K_x=prop1.K_x,
                                             K_phi=prop1.K_phi,
                                             update_law=prop1_sinh.update_law())
-    with pytest.raises(CodegenError, match="Python callable"):
+    with pytest.raises(UnsupportedError, match="Python callable"):
         generate_c(callable_law, dt=1e-2)
-    with pytest.raises(CodegenError, match="real"):
+    with pytest.raises(UnsupportedError, match="real"):
         generate_c(obs, dt=1e-3, real="long double")
     law = obs.update_law
     ball_law = IntermittentInversion(law.theta_star, law.l, 1.0, Ball([0.5], 0.4))
     sysm = obs.system
     ball_sys = PerturbedLinearSystem(A=sysm.A, B=sysm.B, C=sysm.C, E=sysm.E,
                                      perturbation=sysm.perturbation)
-    with pytest.raises(CodegenError, match="Box"):
+    with pytest.raises(UnsupportedError, match="Box"):
         generate_c(ModifiedHighGainObserver(system=ball_sys, K_x=obs.K_x, K_phi=obs.K_phi,
                                             update_law=ball_law), dt=1e-3)
 

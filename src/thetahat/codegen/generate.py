@@ -23,7 +23,7 @@ import numpy as np
 import sympy as sp
 from numpy.typing import ArrayLike, NDArray
 
-from ..errors import CodegenError, ModelFileError
+from ..errors import UnsupportedError, ModelFileError
 from ..estimation.discretize import IMPLICITNESS
 from ..estimation.observer import ModifiedHighGainObserver
 from ..estimation.step import DIVERGENCE_BOUND
@@ -157,59 +157,59 @@ def _theta_star(law: Any, pert: SymbolicPerturbation
     form = (ts.expr, ts.arguments) if isinstance(ts, ThetaStar) else getattr(ts, "sympy_form",
                                                                               None)
     if form is None:
-        raise CodegenError(
+        raise UnsupportedError(
             f"the θ* of the {type(law).__name__} is a Python callable "
             f"({type(law.theta_star).__name__}); C needs its SymPy form: give θ* in the model "
             "file ([estimator] theta_star), or build the law with from_perturbation.")
     exprs, args = form
     n, m, r, p, k = pert.dims
     if len(exprs) != p or len(args) != m + r + n + k:
-        raise CodegenError(f"θ* has {len(exprs)} entries in {len(args)} arguments; expected "
+        raise UnsupportedError(f"θ* has {len(exprs)} entries in {len(args)} arguments; expected "
                            f"p = {p} entries of col(u, y), x, φ ({m + r + n + k} arguments).")
     return tuple(exprs), tuple(args)
 
 
 def _check(observer: Any, hold: str, real: str) -> tuple[str, Any]:
     if not isinstance(observer, ModifiedHighGainObserver):
-        raise CodegenError(f"generate_c needs a ModifiedHighGainObserver; got "
+        raise UnsupportedError(f"generate_c needs a ModifiedHighGainObserver; got "
                            f"{type(observer).__name__}.")
     if hold not in HOLDS:
-        raise CodegenError(f"hold {hold!r} is not available in C: the generated step is causal "
+        raise UnsupportedError(f"hold {hold!r} is not available in C: the generated step is causal "
                            "(it sees the current samples only); use hold='zoh'.")
     if real not in REALS:
-        raise CodegenError(f"real must be one of {REALS}; got {real!r}.")
+        raise UnsupportedError(f"real must be one of {REALS}; got {real!r}.")
     pert = observer.system.perturbation
     if not isinstance(pert, SymbolicPerturbation):
-        raise CodegenError(f"g must be a SymbolicPerturbation (C is printed from its SymPy "
+        raise UnsupportedError(f"g must be a SymbolicPerturbation (C is printed from its SymPy "
                            f"form); got {type(pert).__name__}.")
     law = observer.update_law
     kind = _LAWS.get(type(law))
     if kind == "intermittent" and law.l is None:        # AlgebraicInversion: l ≡ 1
         kind = "algebraic"
     if kind is None:
-        raise CodegenError(f"the update law {type(law).__name__} has no C form; supported: "
+        raise UnsupportedError(f"the update law {type(law).__name__} has no C form; supported: "
                            "ConstantLaw, AlgebraicInversion, IntermittentInversion, "
                            "GradientInversion.")
     if observer.layout.law_size:
-        raise CodegenError(f"the update law {type(law).__name__} has a state of its own; the C "
+        raise UnsupportedError(f"the update law {type(law).__name__} has a state of its own; the C "
                            "step supports memoryless laws only.")
     if not isinstance(law.parameter_set, Box):
-        raise CodegenError(f"Θ must be a Box (its projection is a clip); got "
+        raise UnsupportedError(f"Θ must be a Box (its projection is a clip); got "
                            f"{type(law.parameter_set).__name__}.")
     if getattr(law, "saturation", None) is not None:
-        raise CodegenError("update laws with a saturation (Remark 3) have no C form yet; build "
+        raise UnsupportedError("update laws with a saturation (Remark 3) have no C form yet; build "
                            "the law without saturation=.")
     if getattr(law, "layer", 0.0) != 0.0:
-        raise CodegenError("only the hard projection (layer=0) has a C form.")
+        raise UnsupportedError("only the hard projection (layer=0) has a C form.")
     G = np.asarray(getattr(law, "Gamma", np.eye(law.parameter_set.dim)))
     if not np.array_equal(G, np.diag(np.diag(G))):
-        raise CodegenError("Γ must be diagonal: the Γ⁻¹-weighted projection onto a box is then "
+        raise UnsupportedError("Γ must be diagonal: the Γ⁻¹-weighted projection onto a box is then "
                            "a clip (a full Γ needs a least-squares solve).")
     if kind == "intermittent" and not isinstance(law.l, SmoothRamp):
-        raise CodegenError("the excitation weight must be smooth_ramp(low, high) of ‖φ̂‖; "
+        raise UnsupportedError("the excitation weight must be smooth_ramp(low, high) of ‖φ̂‖; "
                            f"got {law.l!r}.")
     if kind == "gradient" and (law.M is not None or law.perturbation != pert):
-        raise CodegenError("GradientInversion needs the default M = (∂g/∂θ)ᵀ and the "
+        raise UnsupportedError("GradientInversion needs the default M = (∂g/∂θ)ᵀ and the "
                            "observer's own g.")
     return kind, law
 
@@ -405,7 +405,7 @@ def generate_c(observer: ModifiedHighGainObserver, *, dt: float, name: str = "ob
 
     Raises
     ------
-    CodegenError
+    UnsupportedError
         A part of the observer has no C form (the message names it).
 
     Notes
@@ -434,7 +434,7 @@ def generate_c(observer: ModifiedHighGainObserver, *, dt: float, name: str = "ob
     kind, law = _check(observer, hold, real)
     h = float(dt)
     if not (np.isfinite(h) and h > 0):
-        raise CodegenError(f"dt must be a finite step length > 0; got {dt!r}.")
+        raise UnsupportedError(f"dt must be a finite step length > 0; got {dt!r}.")
     prefix = _c_name(name)
     sysm = observer.system
     pert = sysm.perturbation
@@ -597,7 +597,7 @@ def generate_c_from_model(path: str | Path, *, dt: float, eps: float | None = No
     ------
     ModelFileError
         The file cannot be read or is invalid.
-    CodegenError
+    UnsupportedError
         A part of the estimator has no C form.
 
     Examples

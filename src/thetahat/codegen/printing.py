@@ -16,7 +16,7 @@ import sympy as sp
 from sympy.codegen.ast import float32, real
 from sympy.printing.c import C99CodePrinter
 
-from ..errors import CodegenError
+from ..errors import UnsupportedError
 from ..model.perturbation import numpy_ready
 
 __all__ = ["REALS", "c_function", "c_printer"]
@@ -37,7 +37,7 @@ def c_printer(real_type: str) -> C99CodePrinter:
     '(1.0F/2.0F)*expf(x)'
     """
     if real_type not in REALS:
-        raise CodegenError(f"real must be one of {REALS}; got {real_type!r}.")
+        raise UnsupportedError(f"real must be one of {REALS}; got {real_type!r}.")
     settings: dict[str, object] = {"math_macros": {}}
     if real_type == "float":
         settings["type_aliases"] = {real: float32}
@@ -64,7 +64,7 @@ def c_function(name: str, inputs: Sequence[tuple[str, Sequence[sp.Symbol]]],
 
     Raises
     ------
-    CodegenError
+    UnsupportedError
         An entry is complex or uses a function C99 does not have.
 
     Examples
@@ -89,7 +89,7 @@ def c_function(name: str, inputs: Sequence[tuple[str, Sequence[sp.Symbol]]],
             for j in range(M.cols):
                 entry = numpy_ready(sp.sympify(M[i, j])).xreplace(subs)
                 if entry.has(sp.I) or entry.has(sp.zoo, sp.nan, sp.oo):
-                    raise CodegenError(f"{name}: entry {M[i, j]} is complex or infinite; the C "
+                    raise UnsupportedError(f"{name}: entry {M[i, j]} is complex or infinite; the C "
                                        "observer needs a real formula (write θ* or g with "
                                        "real functions only).")
                 flat.append(entry)
@@ -100,7 +100,7 @@ def c_function(name: str, inputs: Sequence[tuple[str, Sequence[sp.Symbol]]],
     body += [f"    {t} = {printer.doprint(e)};" for t, e in zip(targets, reduced)]
     if printer._not_supported:
         bad = ", ".join(sorted(map(str, printer._not_supported)))
-        raise CodegenError(f"{name}: SymPy's C99 printer cannot print {bad}; rewrite the model "
+        raise UnsupportedError(f"{name}: SymPy's C99 printer cannot print {bad}; rewrite the model "
                            "with elementary functions.")
     used = "\n".join(body)
     params = [f"const real_t {a}[]" for a, _ in inputs] + [f"real_t {a}[]" for a, _ in outputs]
