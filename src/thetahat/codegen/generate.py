@@ -23,7 +23,7 @@ import numpy as np
 import sympy as sp
 from numpy.typing import ArrayLike, NDArray
 
-from ..errors import UnsupportedError, ModelFileError
+from ..errors import FileAccessError, UnsupportedError
 from ..estimation.discretize import IMPLICITNESS
 from ..estimation.observer import ModifiedHighGainObserver
 from ..estimation.step import DIVERGENCE_BOUND
@@ -99,7 +99,7 @@ class CCode:
 
         Raises
         ------
-        ModelFileError
+        FileAccessError
             The directory or a file cannot be written.
         """
         out = Path(directory)
@@ -111,7 +111,8 @@ class CCode:
                 path.write_text(text, encoding="utf-8")
                 paths.append(path)
         except OSError as exc:
-            raise ModelFileError(f"cannot write the generated C into {out}: {exc}") from exc
+            raise FileAccessError(f"cannot write the generated C into {out}: {exc}; choose a "
+                                  "writable folder with -o.") from exc
         return tuple(paths)
 
     def summary(self) -> str:
