@@ -25,7 +25,7 @@ from thetahat.model.paramset import Box
 from thetahat.model.parse import parse_expression, parse_perturbation
 from thetahat.model.perturbation import SymbolicPerturbation
 from thetahat.modelfile import EXAMPLE_MODEL, build_observer, loads_model
-from thetahat.simulation.metrics import rmse, time_to_within
+from thetahat.studies.metrics import rmse, time_to_within
 from thetahat.simulation.signals import time_grid
 from thetahat.structure.scb import scb
 from thetahat.structure.scb_symbolic import scb_symbolic

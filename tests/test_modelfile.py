@@ -22,7 +22,7 @@ from thetahat.modelfile import (
     run_estimator,
 )
 from thetahat.models import lugre
-from thetahat.simulation.metrics import time_to_within
+from thetahat.studies.metrics import time_to_within
 
 EXAMPLES = Path(__file__).resolve().parents[1] / "examples"
 LUGRE = EXAMPLES / "lugre.toml"

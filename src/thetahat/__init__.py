@@ -30,13 +30,15 @@ from .model.parse import parse_perturbation
 from .model.perturbation import (CallablePerturbation, JacobianCheck, Perturbation,
                                  SymbolicPerturbation, check_jacobians)
 from .model.system import PerturbedLinearSystem
-from .simulation.batch import BatchResult, monte_carlo
+from .fleet import FleetResult, estimate_many
 from .simulation.noise import ColoredNoise, WhiteNoise
-from .simulation.metrics import rmse, time_to_within
 from .simulation.signals import FromArray, Multisine, Steps
 from .simulation.simulate import PlantTrajectory, convergence_check, simulate_plant
-from .simulation.sweep import SweepResult, eps_sweep
-from .simulation.tune import TuneResult, tune_eps_gamma
+from .spec import EstimatorSpec, SecondObserverSpec
+from .studies.batch import BatchResult, monte_carlo
+from .studies.metrics import rmse, time_to_within
+from .studies.sweep import SweepResult, eps_sweep
+from .studies.tune import TuneResult, tune_eps_gamma
 from .structure.assumptions import AssumptionReport, check_assumption_1
 from .structure.scb import SCBResult, scb
 from .structure.scb_symbolic import SymbolicSCBResult, scb_symbolic
@@ -46,7 +48,8 @@ from .structure.zeros import (invariant_zeros, is_left_invertible, is_minimum_ph
 __version__ = "0.1.0"
 
 __all__ = [
-    "BatchObserverResult", "TuneResult", "tune_eps_gamma", "CompiledObserver", "compile_observer", "run_batch",
+    "BatchObserverResult", "FleetResult", "estimate_many", "TuneResult", "tune_eps_gamma", "CompiledObserver", "compile_observer", "run_batch",
+    "EstimatorSpec", "SecondObserverSpec",
     "AlgebraicInversion", "Ball", "Box", "ConstantLaw", "ConvexSet", "Ellipsoid",
     "ExcitationReport", "GradientInversion", "IntermittentInversion", "ModifiedHighGainObserver",
     "MonotonicityReport", "ObserverEstimate", "ObserverResult", "ParameterSet", "Projection",

@@ -3,12 +3,13 @@
 Subcommands::
 
     thetahat demo lugre [--out out] [--eps 1] [--seed 0] [--show]
-    thetahat sweep [--eps 1 0.7 0.5 0.3 0.2 0.1] [--seeds 5] [--t-end 20] [--out out]
-    thetahat tune [--eps 1 0.7 0.5 0.3] [--gamma 1 3 10 30] [--seeds 1000 1001] [--t-end 20]
-                  [--out out]
+    thetahat sweep [MODEL] [--eps 1 0.7 0.5 0.3 0.2 0.1] [--seeds 5] [--t-end T] [--out out]
+    thetahat tune [MODEL] [--eps 1 0.7 0.5 0.3] [--gamma 1 3 10 30] [--seeds 1000 1001]
+                  [--t-end T] [--out out]
     thetahat analyze MODEL
     thetahat estimate MODEL DATA.csv [-o estimates.csv] [--hold zoh|foh] [--nan-policy raise|skip]
-                      [--no-progress]
+                      [--no-progress] [--plot fig.png]
+    thetahat estimate MODEL logs/ [-o results.csv|.parquet] [--scheduler tcp://HOST:PORT]
     thetahat codegen MODEL --dt 1e-3 [--eps 1] [--real double|float] [--name NAME] -o DIR
 
 Exit codes (see ``EXIT_CODES``): 0 success; 1 the model fails the theory's checks (Assumption 1
@@ -25,6 +26,7 @@ import json
 import sys
 from collections.abc import Sequence
 from pathlib import Path
+from typing import Any
 
 from . import __version__
 from .errors import (NotLeftInvertibleError, NotMinimumPhaseError, ThetahatError,
@@ -47,6 +49,8 @@ EXIT_CODES = ("Exit codes: 0 success (analyze: Assumption 1 holds and the design
 _CHECK_ERRORS = (NotMinimumPhaseError, NotLeftInvertibleError, UnstableDesignError)
 
 _LUGRE_STATES = ("omega", "eta")
+#: [scenario] keys that define the experiment (integrator settings are not announced).
+_SCENARIO_CHOICES = ("theta", "u_amplitudes", "u_frequencies", "noise_std", "t_end", "fs")
 
 
 def _demo(args: argparse.Namespace) -> int:
@@ -59,24 +63,42 @@ def _demo(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
+def _study(args: argparse.Namespace) -> tuple[Any, Any, Any, tuple[str, ...]]:
+    """(estimator spec, simulate(seed), θ̂(0), state labels) of MODEL, or of the LuGre example."""
+    if args.model is None:
+        from .models import lugre
+
+        t_end = 20.0 if args.t_end is None else args.t_end
+        return (lugre.estimator_spec(), functools.partial(lugre.simulate, t_end=t_end),
+                [lugre.Scenario().theta_hat0], _LUGRE_STATES)
+    from .modelfile import estimator_spec, load_model
+    from .modelfile.study import study_simulator
+
+    spec = load_model(args.model)
+    chosen = [k for k in _SCENARIO_CHOICES if k in spec.scenario.defaults]
+    if chosen:                  # the experiment itself was not given: say what was assumed
+        print(f"thetahat: note: {args.model} [scenario] gives no {', '.join(chosen)}; "
+              f"using {spec.scenario!r}", file=sys.stderr)
+    return (estimator_spec(spec), study_simulator(spec, t_end=args.t_end),
+            spec.estimator.theta_hat0, spec.state_names)
+
+
 def _sweep(args: argparse.Namespace) -> int:
     from .datafile import check_writable
-    from .models import lugre
-    from .simulation.sweep import eps_sweep
+    from .studies.sweep import eps_sweep
 
     check_writable(Path(args.out) / "sweep.json")          # before any work
-
-    simulate = functools.partial(lugre.simulate, t_end=args.t_end)
-    result = eps_sweep(lugre.observer, simulate, args.eps, range(args.seeds),
-                       theta_hat0=[lugre.Scenario().theta_hat0], n_jobs=args.jobs)
-    print(result.table(_LUGRE_STATES))
+    estimator, simulate, theta_hat0, labels = _study(args)
+    result = eps_sweep(estimator, simulate, args.eps, range(args.seeds),
+                       theta_hat0=theta_hat0, n_jobs=args.jobs)
+    print(result.table(labels))
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     (out / "sweep.json").write_text(json.dumps(result.to_dict(), indent=2))
     written = [out / "sweep.json"]
     try:
         from .plotting import plot_sweep
-        plot_sweep(result, out / "sweep.png", state_labels=_LUGRE_STATES)
+        plot_sweep(result, out / "sweep.png", state_labels=labels)
         written.append(out / "sweep.png")
     except ImportError as exc:
         print(f"thetahat: note: {exc}; sweep.png not written", file=sys.stderr)
@@ -86,16 +108,13 @@ def _sweep(args: argparse.Namespace) -> int:
 
 def _tune(args: argparse.Namespace) -> int:
     from .datafile import check_writable
-    from .models import lugre
-    from .simulation.tune import tune_eps_gamma
+    from .studies.tune import tune_eps_gamma
 
     check_writable(Path(args.out) / "tune.json")           # before any work
-
-    simulate = functools.partial(lugre.simulate, t_end=args.t_end)
-    result = tune_eps_gamma(lugre.observer, simulate, eps_values=args.eps, gammas=args.gamma,
-                            seeds=args.seeds, theta_hat0=[lugre.Scenario().theta_hat0],
-                            criterion=args.criterion)
-    print(result.table(_LUGRE_STATES))
+    estimator, simulate, theta_hat0, labels = _study(args)
+    result = tune_eps_gamma(estimator, simulate, eps_values=args.eps, gammas=args.gamma,
+                            seeds=args.seeds, theta_hat0=theta_hat0, criterion=args.criterion)
+    print(result.table(labels))
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     (out / "tune.json").write_text(json.dumps(result.to_dict(), indent=2))
@@ -117,14 +136,23 @@ def _analyze(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
+def _is_fleet(data: str) -> bool:
+    import glob
+
+    return Path(data).is_dir() or glob.has_magic(data)
+
+
 def _estimate(args: argparse.Namespace) -> int:
+    if _is_fleet(args.data):
+        return _estimate_fleet(args)
     import warnings
 
     from .datafile import check_writable, read_data, write_estimates
     from .modelfile import load_model, run_estimator
     from .progress import reporter
-    from .simulation.metrics import estimate_summary
+    from .studies.metrics import estimate_summary
 
+    args.output = args.output or "estimates.csv"
     check_writable(args.output)
     spec = load_model(args.model)
     data = read_data(args.data, spec, nan_policy=args.nan_policy)
@@ -137,6 +165,27 @@ def _estimate(args: argparse.Namespace) -> int:
     print(f"wrote {args.output} ({data.t.size} rows)")
     notes = [f"{w.category.__name__}: {w.message}" for w in caught]
     print(estimate_summary(result, spec.parameter_names, warnings=notes))
+    if args.plot:
+        from .plotting import plot_result
+        plot_result(result, spec, args.plot, y=data.y)
+        print(f"wrote {args.plot}")
+    return EXIT_OK
+
+
+def _estimate_fleet(args: argparse.Namespace) -> int:
+    from .datafile import check_writable
+    from .fleet import estimate_many
+
+    output = args.output or "results.csv"
+    check_writable(output)
+    result = estimate_many(args.model, args.data, scheduler=args.scheduler,
+                           chunk_size=args.chunk_size, hold=args.hold,
+                           progress=not args.no_progress)
+    result.write(output)
+    print(f"wrote {output} ({len(result.rows)} files: {result.n_ok} ok, "
+          f"{len(result.rows) - result.n_ok} failed)")
+    for file, reason in result.failed.items():
+        print(f"thetahat: {file}: {reason}", file=sys.stderr)
     return EXIT_OK
 
 
@@ -175,27 +224,37 @@ def _parser() -> argparse.ArgumentParser:
     demo.add_argument("--show", action="store_true", help="open the figure window")
     demo.set_defaults(run=_demo)
 
-    sweep = sub.add_parser("sweep", help="ε sweep of the LuGre example (Sec. VII)",
-                           description="Run the LuGre observer for decreasing ε over several "
-                                       "noise seeds; print the table and where it stops being "
-                                       "stable; write out/sweep.json and out/sweep.png.")
+    sweep = sub.add_parser("sweep", help="ε sweep of a model file or the LuGre example "
+                                         "(Sec. VII)",
+                           description="Run the estimator of MODEL (default: the LuGre "
+                                       "example) for decreasing ε over several noise seeds, on "
+                                       "records simulated from the file's [scenario]; print "
+                                       "the table and where it stops being stable; write "
+                                       "out/sweep.json and out/sweep.png.")
+    sweep.add_argument("model", nargs="?", default=None,
+                       help="model file (.toml or .json); default: the LuGre example")
     sweep.add_argument("--eps", type=float, nargs="+", default=[1, 0.7, 0.5, 0.3, 0.2, 0.1],
                        help="ε values, starting at 1 and decreasing (default: 1 0.7 0.5 0.3 "
                             "0.2 0.1)")
     sweep.add_argument("--seeds", type=int, default=5,
                        help="number of noise seeds 0, 1, ... (default: 5)")
-    sweep.add_argument("--t-end", type=float, default=20.0, help="simulated time in s "
-                                                                "(default: 20)")
+    sweep.add_argument("--t-end", type=float, default=None,
+                       help="simulated time in s (default: the scenario's; LuGre: 20)")
     sweep.add_argument("--jobs", type=int, default=1,
                        help="worker processes (default: 1; -1: all cores)")
     sweep.add_argument("--out", default="out", help="output folder (default: out)")
     sweep.set_defaults(run=_sweep)
 
-    tune = sub.add_parser("tune", help="pick ε and Γ for the LuGre example (Sec. VII)",
+    tune = sub.add_parser("tune", help="pick ε and Γ for a model file or the LuGre example "
+                                       "(Sec. VII)",
                           description="Grid search over (ε, Γ) on tuning seeds, ε decreasing "
-                                      "from 1 (Sec. VII): reject pairs that diverge, pick the "
+                                      "from 1 (Sec. VII), for the estimator of MODEL (default: "
+                                      "the LuGre example) on records simulated from its "
+                                      "[scenario]: reject pairs that diverge, pick the "
                                       "smallest worst-case score; print the table and write "
                                       "out/tune.json.")
+    tune.add_argument("model", nargs="?", default=None,
+                      help="model file (.toml or .json); default: the LuGre example")
     tune.add_argument("--eps", type=float, nargs="+", default=[1, 0.7, 0.5, 0.3],
                       help="ε values, starting at 1 and decreasing (default: 1 0.7 0.5 0.3)")
     tune.add_argument("--gamma", type=float, nargs="+", default=[1, 3, 10, 30],
@@ -205,8 +264,8 @@ def _parser() -> argparse.ArgumentParser:
                       help="tuning noise seeds (default: 1000 1001)")
     tune.add_argument("--criterion", choices=["theta_rmse", "t_1pct"], default="theta_rmse",
                       help="score to minimise, worst over the seeds (default: theta_rmse)")
-    tune.add_argument("--t-end", type=float, default=20.0, help="simulated time in s "
-                                                               "(default: 20)")
+    tune.add_argument("--t-end", type=float, default=None,
+                      help="simulated time in s (default: the scenario's; LuGre: 20)")
     tune.add_argument("--out", default="out", help="output folder (default: out)")
     tune.set_defaults(run=_tune)
 
@@ -221,16 +280,21 @@ def _parser() -> argparse.ArgumentParser:
     analyze.set_defaults(run=_analyze)
 
     estimate = sub.add_parser(
-        "estimate", help="run a model file's estimator on a CSV record",
+        "estimate", help="run a model file's estimator on a record or a fleet of records",
         description="Run the estimator of MODEL on DATA (CSV with a header: a column t, one "
                     "column per input named as in the model or u1, u2, ... (u when there is "
                     "one), one per output named as in the model or y1, ... (y when there is "
                     "one)). Writes t, x_hat_*, phi_hat_*, theta_hat_* and x_hat_refined_* "
-                    "as CSV.")
+                    "as CSV. With a directory or glob of CSV/Parquet files (a fleet): one row "
+                    "per file with its status, the final theta_hat_*, their standard error, "
+                    "settling time and warnings; a bad file is reported and never stops the "
+                    "others.")
     estimate.add_argument("model", help="model file (.toml or .json)")
-    estimate.add_argument("data", help="CSV data file, e.g. with columns t,u,y")
-    estimate.add_argument("-o", "--output", default="estimates.csv",
-                          help="output CSV (default: estimates.csv)")
+    estimate.add_argument("data", help="CSV data file, e.g. with columns t,u,y; or a fleet: a "
+                                       "directory or glob of CSV/Parquet files (quote it)")
+    estimate.add_argument("-o", "--output", default=None,
+                          help="output (default: estimates.csv; for a fleet results.csv, or "
+                               ".parquet: one row per file)")
     estimate.add_argument("--hold", choices=["zoh", "foh"], default="zoh",
                           help="sample hold between samples (default: zoh)")
     estimate.add_argument("--nan-policy", choices=["raise", "skip"], default="raise",
@@ -239,6 +303,13 @@ def _parser() -> argparse.ArgumentParser:
                                "(skip)")
     estimate.add_argument("--no-progress", action="store_true",
                           help="do not report progress on stderr")
+    estimate.add_argument("--plot", metavar="FIG.png", default=None,
+                          help="also write a figure of the estimates (one record; needs "
+                               "matplotlib)")
+    estimate.add_argument("--scheduler", metavar="tcp://HOST:PORT", default=None,
+                          help="fleet: run on this Dask cluster (default: in this process)")
+    estimate.add_argument("--chunk-size", type=int, default=None,
+                          help="fleet: records per task (default: about 16 tasks)")
     estimate.set_defaults(run=_estimate)
 
     codegen = sub.add_parser(

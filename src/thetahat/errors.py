@@ -7,9 +7,10 @@ found, and what to do.
 
 from __future__ import annotations
 
-from typing import Sequence
+from collections.abc import Sequence
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 __all__ = [
     "ThetahatError",
@@ -82,7 +83,7 @@ class NotMinimumPhaseError(ThetahatError, ValueError):
         The offending zeros (real part >= -tolerance).
     """
 
-    def __init__(self, message: str, *, zeros: Sequence[complex] = ()) -> None:
+    def __init__(self, message: str, *, zeros: ArrayLike = ()) -> None:
         super().__init__(message)
         self.zeros = np.asarray(zeros, dtype=complex)
 

@@ -136,23 +136,21 @@ def random_scb_system(rng: np.random.Generator, *, chain_lengths: Sequence[int],
         raise DimensionError("an n_b > 0 block needs r_b > 0 outputs to be observable")
     k, n_q = len(lengths), sum(lengths)
     n, r = n_a + n_b + n_q, k + r_b
-    if zeros is None:
-        zeros = -rng.uniform(0.5, 3.0, n_a)
-    zeros = np.asarray(zeros, dtype=complex)
-    if zeros.size != n_a:
+    zs = np.asarray(-rng.uniform(0.5, 3.0, n_a) if zeros is None else zeros, dtype=np.complex128)
+    if zs.size != n_a:
         raise DimensionError(f"zeros must have length n_a = {n_a}")
     c = coupling
     At = np.zeros((n, n))
     ia, ib = slice(0, n_a), slice(n_a, n_a + n_b)
     starts = n_a + n_b + np.concatenate([[0], np.cumsum(lengths)[:-1]]).astype(int)
     tops, lasts = starts, starts + np.array(lengths) - 1
-    At[ia, ia] = _stable_block(rng, zeros)
+    At[ia, ia] = _stable_block(rng, list(zs))
     A_b = rng.standard_normal((n_b, n_b))
     C_b = rng.standard_normal((r_b, n_b))
     At[ib, ib] = A_b
     At[ia, ib] = c * rng.standard_normal((n_a, r_b)) @ C_b
-    At[np.ix_(range(n_a), tops)] = c * rng.standard_normal((n_a, k))
-    At[np.ix_(range(n_a, n_a + n_b), tops)] = c * rng.standard_normal((n_b, k))
+    At[np.ix_(np.arange(n_a), tops)] = c * rng.standard_normal((n_a, k))
+    At[np.ix_(np.arange(n_a, n_a + n_b), tops)] = c * rng.standard_normal((n_b, k))
     for s, L in zip(starts, lengths):
         for i in range(L - 1):
             At[s + i, s + i + 1] = 1.0
@@ -172,4 +170,4 @@ def random_scb_system(rng: np.random.Generator, *, chain_lengths: Sequence[int],
     C = Go @ Ct @ Gs_inv
     return KnownStructure(A=A, B=B, C=C, n_a=n_a, n_b=n_b,
                           chain_lengths=tuple(sorted(lengths)),
-                          zeros=np.sort_complex(zeros), condition=float(np.linalg.cond(Gs)))
+                          zeros=np.sort_complex(zs), condition=float(np.linalg.cond(Gs)))

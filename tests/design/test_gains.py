@@ -9,7 +9,7 @@ import scipy.linalg
 
 from thetahat import (DesignError, ThetahatWarning, apply_design, extended_system, high_gain,
                       modified_high_gain)
-from thetahat.design.gains import _scb_gain, place_observer
+from thetahat.design.gains import place_observer
 from thetahat.testing import STRUCTURES, random_scb_system
 
 #: The paper's numbers against our own closed-form derivation: pure floating point.
@@ -119,9 +119,7 @@ def test_uncorrected_exponents_fail_on_chains_1_and_3():
     errors_ok, errors_bad = [], []
     for eps in EPS_SWEEP:
         d = high_gain(ks.A, ks.B, ks.C, eps)
-        sc = d.scb
-        K_bad = sc.state_transform @ _scb_gain(sc, d.K_bar, d.K_bb, eps, corrected=False) \
-            @ np.linalg.inv(sc.output_transform)
+        K_bad = high_gain(ks.A, ks.B, ks.C, eps, scaling="original").K
         for K, out in ((d.K, errors_ok), (K_bad, errors_bad)):
             eig = np.linalg.eigvals(ks.A - K @ ks.C)
             rest = [lam for lam in eig if min(abs(lam - z) for z in ks.zeros) > 1e-6]
@@ -183,3 +181,38 @@ def test_wrong_number_of_b_poles():
     ks = random_scb_system(np.random.default_rng(3), chain_lengths=(2,), n_b=2, r_b=1)
     with pytest.raises(DesignError, match="b_poles needs 2 poles"):
         high_gain(ks.A, ks.B, ks.C, 0.5, b_poles=[-1.0])
+
+
+#: K(ε) from ``at`` and from a fresh design follow the same arithmetic on the same SCB and
+#: pole placement; they may differ only by rounding in the last transform, amplified by
+#: ‖K‖ ~ ε^−n_q: 1e-9 relative to ‖K‖ leaves orders of magnitude of margin.
+AT_RTOL = 1e-9
+
+
+@pytest.mark.parametrize("eps", [0.7, 0.2, 0.03])
+def test_at_eps_equals_a_fresh_design(known_system, eps):
+    """GainDesign.at(ε) reuses the SCB (corrigendum: only K'_qj depends on ε) and gives the
+    design a fresh high_gain(ε) computes: K, the spectrum, the K_x/K_φ split."""
+    ks = known_system
+    b_poles = [-2.0 - 0.5 * i for i in range(ks.n_b)]
+    base = high_gain(ks.A, ks.B, ks.C, 1.0, b_poles=b_poles)
+    fresh = high_gain(ks.A, ks.B, ks.C, eps, b_poles=b_poles)
+    moved = base.at(eps)
+    assert moved.scb is base.scb and moved.eps == eps
+    scale = np.linalg.norm(fresh.K)
+    np.testing.assert_allclose(moved.K, fresh.K, rtol=0, atol=AT_RTOL * scale)
+    np.testing.assert_allclose(moved.K_tilde, fresh.K_tilde, rtol=0, atol=AT_RTOL * scale)
+    np.testing.assert_allclose(np.sort_complex(moved.eigenvalues), fresh.eigenvalues,
+                               rtol=1e-6)
+    assert base.at(1.0) is base
+
+
+def test_at_eps_keeps_the_modified_split(dc_motor):
+    A, _, E, C = dc_motor.linear(sigma1=0.0)
+    d = modified_high_gain(A, E, C, eps=1.0, chain_poles=[[-1, -2, -3]]).at(0.25)
+    fresh = modified_high_gain(A, E, C, eps=0.25, chain_poles=[[-1, -2, -3]])
+    np.testing.assert_allclose(d.K_x, fresh.K_x, rtol=0, atol=AT_RTOL * np.linalg.norm(d.K))
+    np.testing.assert_allclose(d.K_phi, fresh.K_phi, rtol=0,
+                               atol=AT_RTOL * np.linalg.norm(d.K))
+    with pytest.raises(DesignError, match="eps must be > 0"):
+        d.at(0.0)

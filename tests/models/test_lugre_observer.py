@@ -7,7 +7,7 @@ import pytest
 from scipy.integrate import solve_ivp
 
 from thetahat.models import lugre
-from thetahat.simulation.metrics import rmse, time_to_within
+from thetahat.studies.metrics import rmse, time_to_within
 
 ALPHA0 = 0.28
 #: θ̂ must end within 1 % of α0 on the default scenario (issue acceptance).

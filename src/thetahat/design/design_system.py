@@ -10,7 +10,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from numpy.typing import NDArray
+from numpy.typing import ArrayLike, NDArray
 
 from .._validate import as_triple
 from ..errors import DimensionError, UnstableDesignError
@@ -44,8 +44,8 @@ class DesignSystemReport:
                 f"  true:   {fmt(self.eig_true)})")
 
 
-def apply_design(design: GainDesign, A, E, C, *, allow_unstable: bool = False
-                 ) -> DesignSystemReport:
+def apply_design(design: GainDesign, A: ArrayLike, E: ArrayLike, C: ArrayLike, *,
+                 allow_unstable: bool = False) -> DesignSystemReport:
     """Apply a gain designed on a simplified system to the true linear part (A, E, C).
 
     For a modified high-gain design (``design.K_phi`` set) the spectrum is that of the
@@ -54,17 +54,23 @@ def apply_design(design: GainDesign, A, E, C, *, allow_unstable: bool = False
     Parameters
     ----------
     design : GainDesign
-    A, E, C : array_like
-        The true linear part, shapes (n, n), (n, k), (r, n).
+        A gain designed on the design system (Sec. VII–VIII).
+    A : array_like, shape (n, n)
+    E : array_like, shape (n, k)
+    C : array_like, shape (r, n)
+        The true linear part of (1).
     allow_unstable : bool, default False
         Return the report even when the true spectrum is unstable (for analysis reports).
 
     Returns
     -------
     DesignSystemReport
+        The spectra on the design and the true system, and whether the latter is stable.
 
     Raises
     ------
+    DimensionError
+        The gain does not fit the true system.
     UnstableDesignError
         The gain leaves the true error system unstable (unless ``allow_unstable``); the
         message and ``.eigenvalues`` name the unstable eigenvalues.
@@ -87,7 +93,7 @@ def apply_design(design: GainDesign, A, E, C, *, allow_unstable: bool = False
     if design.K.shape != (A_.shape[0], C_.shape[0]):
         raise DimensionError(f"design.K has shape {design.K.shape} but the true system needs "
                              f"({A_.shape[0]}, {C_.shape[0]}).")
-    eig_true = np.sort_complex(np.linalg.eigvals(A_ - design.K @ C_))
+    eig_true = np.sort_complex(np.linalg.eigvals(A_ - design.K @ C_)).astype(np.complex128)
     stable = bool(np.all(eig_true.real < 0))
     if not stable and not allow_unstable:
         bad = eig_true[eig_true.real >= 0]

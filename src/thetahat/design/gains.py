@@ -19,13 +19,14 @@ Remark 2: eig(A − K(ε)C) = eig(A_a) ∪ eig(A_b − K_bb C_b) ∪ {n_q poles 
 
 from __future__ import annotations
 
+import dataclasses
 import warnings
 from dataclasses import dataclass
 from typing import Callable, Sequence
 
 import numpy as np
 import scipy.linalg as sla
-from numpy.typing import NDArray
+from numpy.typing import ArrayLike, NDArray
 
 from .._validate import as_triple
 from ..errors import DesignError, NonFiniteError, NotMinimumPhaseError, ThetahatWarning
@@ -42,6 +43,9 @@ CONJ_RTOL = 1e-9
 EPS_POWER_MIN = 1e-100
 #: Attempts (different seeded right-hand sides) of the Sylvester pole placement.
 PLACE_TRIES = 8
+#: ε-scalings of the chain gains: the corrigendum's K̄_qji/ε^i (the default), or the original
+#: paper's K̄_qji/ε^(n̄_q − n_qj + i), kept to show what the corrigendum fixes.
+SCALINGS = ("corrigendum", "original")
 
 
 @dataclass(frozen=True, slots=True, repr=False)
@@ -71,6 +75,16 @@ class GainDesign:
         For a design on the extended system (4) (``modified_high_gain``): the split
         K = [K_x; K_φ] with K_x (n_x, r) and K_φ (k, r). For a plain ``high_gain`` design,
         K_x = K and K_phi is None.
+    A, C : ndarray, shapes (n, n) and (r, n)
+        The system the gain was designed on (for ``modified_high_gain``: A_e and C_e of (4)).
+    scaling : {"corrigendum", "original"}
+        The ε-exponents of the chain gains (see :func:`high_gain`).
+
+    Notes
+    -----
+    Only the chain injection K'_qj = col(K̄_qj1/ε, …, K̄_qjn/ε^n) of (7) depends on ε (by
+    the corrigendum); the SCB, K̄_qj and K_bb do not. :meth:`at` therefore gives K(ε) for
+    another ε from this design without a new SCB (ε sweeps, tuning).
     """
 
     K: FloatArray
@@ -84,6 +98,52 @@ class GainDesign:
     eigenvalues: NDArray[np.complex128]
     K_x: FloatArray | None
     K_phi: FloatArray | None
+    A: FloatArray
+    C: FloatArray
+    scaling: str = "corrigendum"
+
+    def at(self, eps: float) -> GainDesign:
+        """The same design at another ε, reusing the SCB, K̄_qj and K_bb (corrigendum).
+
+        Parameters
+        ----------
+        eps : float
+            0 < ε ≤ 1; larger ε warns, ε ≤ 0 raises (as in :func:`high_gain`).
+
+        Returns
+        -------
+        GainDesign
+            Equal to a fresh :func:`high_gain` (or :func:`modified_high_gain`) design at
+            ``eps`` with the same poles; ``self`` when ``eps`` is this design's ε.
+
+        Raises
+        ------
+        DesignError
+            ε ≤ 0 or not a number.
+        NonFiniteError
+            ε is NaN or inf.
+
+        Examples
+        --------
+        >>> import numpy as np
+        >>> from thetahat import modified_high_gain
+        >>> J, s0, a2 = 0.0023, 260.0, 0.176
+        >>> A, E, C = [[-a2 / J, -s0 / J], [1, 0]], [[0], [-1]], [[1, 0]]
+        >>> d05 = modified_high_gain(A, E, C, eps=1.0).at(0.5)
+        >>> [round(float(v), 4) for v in d05.K.ravel()]
+        [12.0, -0.0085, 12.0302]
+        >>> bool(np.allclose(d05.K, modified_high_gain(A, E, C, eps=0.5).K, rtol=1e-12))
+        True
+        """
+        e = check_eps(eps)
+        if e == self.eps:
+            return self
+        _check_eps_power(e, self.scb.chain_lengths)
+        Kt = scb_gain(self.scb, self.K_bar, self.K_bb, e,
+                      corrected=self.scaling == "corrigendum")
+        n_x = None if self.K_phi is None else self.K_phi.shape[0]
+        return _assemble(self.scb, Kt, e, self.chain_poles, self.b_poles, self.K_bar,
+                         self.K_bb, self.A, self.C, n_phi=n_x, scaling=self.scaling)
 
     def __repr__(self) -> str:
         K = np.array2string(self.K.ravel() if self.K.shape[1] == 1 else self.K, precision=6)
@@ -91,10 +151,25 @@ class GainDesign:
                 f" n_b={self.scb.n_b}, K={K}, max Re eig={np.max(self.eigenvalues.real):.4g})")
 
 
-def extended_system(A, E, C) -> tuple[FloatArray, FloatArray, FloatArray]:
+def extended_system(A: ArrayLike, E: ArrayLike, C: ArrayLike
+                    ) -> tuple[FloatArray, FloatArray, FloatArray]:
     """The error system (4) with K = 0: state col(x̃, φ̃), input d̃, output ỹ.
 
-    Returns ``(A_e, E_e, C_e)`` with A_e = [[A, E], [0, 0]], E_e = [0; I_k], C_e = [C, 0].
+    Parameters
+    ----------
+    A : array_like, shape (n, n)
+    E : array_like, shape (n, k)
+    C : array_like, shape (r, n)
+        The linear part of (1).
+
+    Returns
+    -------
+    A_e : ndarray, shape (n + k, n + k)
+        [[A, E], [0, 0]].
+    E_e : ndarray, shape (n + k, k)
+        [0; I_k].
+    C_e : ndarray, shape (r, n + k)
+        [C, 0].
 
     Examples
     --------
@@ -111,9 +186,38 @@ def extended_system(A, E, C) -> tuple[FloatArray, FloatArray, FloatArray]:
     return A_e, E_e, C_e
 
 
-def _check_eps(eps) -> float:
+def check_eps(eps: object) -> float:
+    """ε as a float, checked: a finite number > 0; ε > 1 warns (Sec. VII starts at ε = 1).
+
+    Parameters
+    ----------
+    eps : float
+        The high-gain parameter ε.
+
+    Returns
+    -------
+    float
+
+    Raises
+    ------
+    DesignError
+        ε ≤ 0 or not a number.
+    NonFiniteError
+        ε is NaN or inf.
+
+    Warns
+    -----
+    ThetahatWarning
+        ε > 1.
+
+    Examples
+    --------
+    >>> from thetahat.design.gains import check_eps
+    >>> check_eps("0.5")
+    0.5
+    """
     try:
-        e = float(eps)
+        e = float(eps)  # type: ignore[arg-type]
     except (TypeError, ValueError) as exc:
         raise DesignError(f"eps must be a number in (0, 1]; got {eps!r}.") from exc
     if not np.isfinite(e):
@@ -233,6 +337,9 @@ def place_observer(A: FloatArray, C: FloatArray, poles: Sequence[complex], *,
             best, best_cond = (X, Y), c
         if c < 1e6:
             break
+    if best is None:
+        raise DesignError("pole placement failed: the Sylvester equation has no solution; "
+                          "try other b_poles.")
     X, Y = best
     if not np.isfinite(best_cond) or best_cond > 1e12:
         raise DesignError("pole placement failed: (C_b, A_b) looks unobservable, or the "
@@ -269,9 +376,18 @@ def require_minimum_phase(sc: SCBResult, A: FloatArray, what: str) -> None:
         "enters; pass allow_nonminimum_phase=True only to study the failure.", zeros=bad)
 
 
-def high_gain(A, E, C, eps: float, chain_poles: PoleSpec = None,
+def _check_eps_power(eps: float, lengths: Sequence[int]) -> None:
+    L = max(lengths, default=1)
+    if eps ** L < EPS_POWER_MIN:
+        raise DesignError(f"eps = {eps:g} is too small: the gains grow like 1/eps^{L} (the "
+                          f"longest chain) and overflow float64. Use eps >= "
+                          f"{EPS_POWER_MIN ** (1 / L):.3g}; in practice ε stops helping long "
+                          "before (Sec. VII).")
+
+
+def high_gain(A: ArrayLike, E: ArrayLike, C: ArrayLike, eps: float, chain_poles: PoleSpec = None,
               b_poles: Sequence[complex] | None = None, *, tol: float | None = None,
-              allow_nonminimum_phase: bool = False) -> GainDesign:
+              scaling: str = "corrigendum", allow_nonminimum_phase: bool = False) -> GainDesign:
     """Gain family K(ε) for ż = A z + E δ − K C z (Sec. III-A.2 / III-B.2 with the corrigendum).
 
     Parameters
@@ -290,11 +406,16 @@ def high_gain(A, E, C, eps: float, chain_poles: PoleSpec = None,
         The n_b poles of A_b − K_bb C_b (repeated poles allowed). Default −1, −2, …, −n_b.
     tol : float, optional
         Rank tolerance of the SCB.
+    scaling : {"corrigendum", "original"}
+        The ε-exponents of the chain gains: the corrigendum's K̄_qji/ε^i (default), or the
+        original paper's K̄_qji/ε^(n̄_q − n_qj + i). They differ only for chains shorter than
+        the longest (MIMO systems of non-uniform rank), where "original" breaks Remark 2;
+        it is kept to show that in tests and examples, not for use.
     allow_nonminimum_phase : bool, default False
         Design even when (C, A, E) has zeros in the closed right half-plane (the error
         dynamics are then unstable; only for studying the failure).
 
-    Returns
+Returns
     -------
     GainDesign
 
@@ -302,7 +423,7 @@ def high_gain(A, E, C, eps: float, chain_poles: PoleSpec = None,
     ------
     DesignError
         ε ≤ 0, ε so small that the gains overflow, poles not in the open left half-plane,
-        wrong number of poles.
+        wrong number of poles, unknown scaling.
     NotLeftInvertibleError
         (C, A, E) not left-invertible.
     NotMinimumPhaseError
@@ -321,16 +442,14 @@ def high_gain(A, E, C, eps: float, chain_poles: PoleSpec = None,
     [3.0, -0.00205]
     """
     A, E, C = as_triple(A, E, C, names=("A", "E", "C"))
-    eps = _check_eps(eps)
+    eps = check_eps(eps)
+    if scaling not in SCALINGS:
+        raise DesignError(f"scaling must be one of {SCALINGS}; got {scaling!r}.")
     sc = scb(A, E, C, tol=tol)
     if not allow_nonminimum_phase:
         require_minimum_phase(sc, A, "high-gain design")
     lengths = sc.chain_lengths
-    if eps ** max(lengths) < EPS_POWER_MIN:
-        raise DesignError(f"eps = {eps:g} is too small: the gains grow like 1/eps^{max(lengths)}"
-                          f" (the longest chain) and overflow float64. Use eps >= "
-                          f"{EPS_POWER_MIN ** (1 / max(lengths)):.3g}; in practice ε stops "
-                          f"helping long before (Sec. VII).")
+    _check_eps_power(eps, lengths)
     cpoles = _resolve_chain_poles(chain_poles, lengths)
     if b_poles is None:
         bp = tuple(complex(-(i + 1)) for i in range(sc.n_b))
@@ -338,18 +457,62 @@ def high_gain(A, E, C, eps: float, chain_poles: PoleSpec = None,
         bp = _check_poles("b_poles", b_poles, sc.n_b)
     K_bb = place_observer(sc.A_b, sc.C_b, bp) if sc.n_b else np.zeros((0, sc.r_b))
     K_bars = tuple(chain_coefficients(p) for p in cpoles)
-    Kt = _scb_gain(sc, K_bars, K_bb, eps)
+    Kt = scb_gain(sc, K_bars, K_bb, eps, corrected=scaling == "corrigendum")
+    return _assemble(sc, Kt, eps, cpoles, bp, K_bars, K_bb, A, C, n_phi=None, scaling=scaling)
+
+
+def _assemble(sc: SCBResult, Kt: FloatArray, eps: float,
+              cpoles: tuple[tuple[complex, ...], ...], bp: tuple[complex, ...],
+              K_bars: tuple[FloatArray, ...], K_bb: FloatArray, A: FloatArray, C: FloatArray,
+              *, n_phi: int | None, scaling: str) -> GainDesign:
+    """K = Γs K̃ Γo⁻¹ (7), the closed-loop spectrum, and the [K_x; K_φ] split when n_phi."""
     K = sc.state_transform @ Kt @ np.linalg.solve(sc.output_transform, np.eye(C.shape[0]))
-    eig = np.sort_complex(np.linalg.eigvals(A - K @ C))
+    eig = np.sort_complex(np.linalg.eigvals(A - K @ C)).astype(np.complex128)
+    if n_phi is None:
+        K_x, K_phi = K, None
+    else:
+        n = K.shape[0] - n_phi
+        K_x, K_phi = K[:n].copy(), K[n:].copy()
     return GainDesign(K=K, eps=eps, chain_poles=cpoles, b_poles=bp, K_bar=K_bars, K_bb=K_bb,
-                      K_tilde=Kt, scb=sc, eigenvalues=eig, K_x=K, K_phi=None)
+                      K_tilde=Kt, scb=sc, eigenvalues=eig, K_x=K_x, K_phi=K_phi, A=A, C=C,
+                      scaling=scaling)
 
 
-def _scb_gain(sc: SCBResult, K_bars, K_bb, eps: float, *, corrected: bool = True) -> FloatArray:
-    """The gain in SCB coordinates, rows (χ_a, χ_b, χ_q), columns (γ_q, γ_b).
+def scb_gain(sc: SCBResult, K_bars: Sequence[FloatArray], K_bb: FloatArray, eps: float, *,
+             corrected: bool = True) -> FloatArray:
+    """The gain K̃ of (7) in SCB coordinates, rows (χ_a, χ_b, χ_q), columns (γ_q, γ_b).
 
-    ``corrected=False`` uses the uncorrected exponents of the original paper
-    (ε^(n̄_q − n_qj + i)); kept private, to show in tests why the corrigendum matters.
+    Only the chain injection K'_qj = col(K̄_qj1/ε, …, K̄_qjn/ε^n) depends on ε.
+
+    Parameters
+    ----------
+    sc : SCBResult
+        The SCB (6) of the triple the gain is designed for.
+    K_bars : sequence of ndarray
+        K̄_qj for each chain (:func:`chain_coefficients`), in the SCB's chain order.
+    K_bb : ndarray, shape (n_b, r_b)
+        Gain placing eig(A_b − K_bb C_b).
+    eps : float
+        ε > 0.
+    corrected : bool, optional
+        True (default): the corrigendum's exponents ε^i. False: the uncorrected exponents of
+        the original paper (ε^(n̄_q − n_qj + i)), to show in tests why the corrigendum matters.
+
+    Returns
+    -------
+    ndarray, shape (n, r)
+        K̃ with K = Γs K̃ Γo⁻¹.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from thetahat.design.gains import chain_coefficients, scb_gain
+    >>> from thetahat.structure.scb import scb
+    >>> sc = scb(np.array([[0.0, 1.0], [0.0, 0.0]]), np.array([[0.0], [1.0]]),
+    ...          np.array([[1.0, 0.0]]))
+    >>> K_bar = chain_coefficients([-1.0, -2.0])
+    >>> scb_gain(sc, [K_bar], np.zeros((0, 0)), 0.5).ravel().tolist()
+    [6.0, 8.0]
     """
     n_a, n_b, k = sc.n_a, sc.n_b, sc.k
     n, r = sc.A_tilde.shape[0], sc.C_tilde.shape[0]
@@ -369,9 +532,9 @@ def _scb_gain(sc: SCBResult, K_bars, K_bb, eps: float, *, corrected: bool = True
     return Kt
 
 
-def modified_high_gain(A, E, C, eps: float, chain_poles: PoleSpec = None,
+def modified_high_gain(A: ArrayLike, E: ArrayLike, C: ArrayLike, eps: float, chain_poles: PoleSpec = None,
                        b_poles: Sequence[complex] | None = None, *,
-                       tol: float | None = None,
+                       tol: float | None = None, scaling: str = "corrigendum",
                        allow_nonminimum_phase: bool = False) -> GainDesign:
     """Gains K(ε) = [K_x; K_φ] of the modified high-gain observer (3), designed on (4).
 
@@ -382,8 +545,8 @@ def modified_high_gain(A, E, C, eps: float, chain_poles: PoleSpec = None,
     ----------
     A, E, C : array_like
         The linear part of (1), or of a simplified design system (Sec. VII–VIII).
-    eps, chain_poles, b_poles, tol, allow_nonminimum_phase
-        As in :func:`high_gain` (the zeros of (4) are those of (C, A, E), Lemma 1).
+    eps, chain_poles, b_poles, tol, scaling, allow_nonminimum_phase
+        As in :func:`high_gain`.
 
     Returns
     -------
@@ -404,7 +567,5 @@ def modified_high_gain(A, E, C, eps: float, chain_poles: PoleSpec = None,
     A_, E_, C_ = as_triple(A, E, C, names=("A", "E", "C"))
     n = A_.shape[0]
     d = high_gain(*extended_system(A_, E_, C_), eps, chain_poles, b_poles, tol=tol,
-                  allow_nonminimum_phase=allow_nonminimum_phase)
-    return GainDesign(K=d.K, eps=d.eps, chain_poles=d.chain_poles, b_poles=d.b_poles,
-                      K_bar=d.K_bar, K_bb=d.K_bb, K_tilde=d.K_tilde, scb=d.scb,
-                      eigenvalues=d.eigenvalues, K_x=d.K[:n].copy(), K_phi=d.K[n:].copy())
+                  scaling=scaling, allow_nonminimum_phase=allow_nonminimum_phase)
+    return dataclasses.replace(d, K_x=d.K[:n].copy(), K_phi=d.K[n:].copy())

@@ -409,6 +409,11 @@ class CompiledObserver:
     compute, in machine code. Build it with :func:`compile_observer`, which documents the
     parameters ``observer`` and ``dt``.
 
+    Parameters
+    ----------
+    observer, dt, theta_star, phi
+        As in :func:`compile_observer`.
+
     Attributes
     ----------
     observer : ModifiedHighGainObserver

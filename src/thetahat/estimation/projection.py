@@ -218,9 +218,10 @@ class Projection:
 
     def project(self, theta: ArrayLike) -> FloatArray:
         """Nearest point of Θ in the Γ⁻¹-weighted norm (discrete time); shape (..., p)."""
+        th = np.asarray(theta, dtype=np.float64)
         if self._metric is None:
-            return self.parameter_set.nearest(theta)
-        return self.parameter_set.nearest(theta, metric=self._metric)
+            return self.parameter_set.nearest(th)
+        return self.parameter_set.nearest(th, metric=self._metric)
 
     def __repr__(self) -> str:
         kind = "hard" if self.layer == 0 else f"smooth, layer={self.layer}"

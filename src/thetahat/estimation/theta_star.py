@@ -101,6 +101,11 @@ class ThetaStar:
         object.__setattr__(self, "sizes", tuple(int(s) for s in sizes))
         object.__setattr__(self, "fn", fn)
 
+    def __reduce__(self) -> tuple[Any, ...]:
+        # The lambdified function does not pickle (worker processes of a study need it to);
+        # rebuild it from the expression.
+        return (_rebuild_theta_star, (self.expr, self.arguments, self.sizes))
+
     @classmethod
     def from_expr(cls, expr: Any, *, perturbation: SymbolicPerturbation,
                   phi: Sequence[sp.Symbol] | sp.Symbol) -> ThetaStar:
@@ -326,3 +331,9 @@ def _branches_that_invert(perturbation: Perturbation, parameter_set: ParameterSe
         if best is not None:
             good.append(best)
     return good
+
+
+def _rebuild_theta_star(expr: tuple[Any, ...], arguments: tuple[Any, ...],
+                        sizes: tuple[int, int, int]) -> ThetaStar:
+    """Unpickle a :class:`ThetaStar` (see its ``__reduce__``)."""
+    return ThetaStar(expr=expr, arguments=arguments, sizes=sizes)

@@ -273,6 +273,15 @@ class ConstantLaw(UpdateLaw):
 @final
 @dataclass(frozen=True, slots=True, eq=False)
 class SmoothRamp:
+    """The excitation weight of :func:`smooth_ramp`: a C¹ ramp of ‖φ̂‖ from 0 to 1 (Remark 5).
+
+    Parameters
+    ----------
+    low, high : float
+        0 <= low < high: the weight is 0 for ‖φ̂‖ <= low and 1 for ‖φ̂‖ >= high. Build it with
+        :func:`smooth_ramp`, which checks them.
+    """
+
     low: float
     high: float
 

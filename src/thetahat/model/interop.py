@@ -9,6 +9,7 @@ from __future__ import annotations
 from typing import Any, Literal
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 from ..errors import DimensionError, MissingExtraError
 from .paramset import ParameterSet
@@ -53,7 +54,7 @@ def _from_scipy(sys: Any) -> tuple[Any, Any, Any, Any]:
     return sys.A, sys.B, sys.C, sys.D
 
 
-def from_state_space(sys: Any, *, E: Any, perturbation: Perturbation | None = None,
+def from_state_space(sys: Any, *, E: ArrayLike, perturbation: Perturbation | None = None,
                      parameter_set: ParameterSet | None = None) -> PerturbedLinearSystem:
     """Build the model (1) from the linear part of a python-control or scipy system.
 

@@ -133,7 +133,7 @@ def _metric_factor(metric: ArrayLike, p: int) -> FloatArray | None:
     if np.allclose(W, W[0, 0] * np.eye(p), rtol=0, atol=SYMMETRY_RTOL * abs(W[0, 0])):
         return None
     try:
-        return np.linalg.cholesky(0.5 * (W + W.T))
+        return np.asarray(np.linalg.cholesky(0.5 * (W + W.T)), dtype=np.float64)
     except np.linalg.LinAlgError as exc:
         raise DimensionError("metric must be symmetric positive definite.") from exc
 
@@ -723,7 +723,7 @@ class ConvexSet(ParameterSet):
                 e[i] = h
                 fd[i] = (self._P(pt + e) - self._P(pt - e)) / (2 * h)
             if not np.all(np.isfinite(g)) or (np.linalg.norm(g - fd)
-                                               > FD_RTOL * max(1.0, np.linalg.norm(fd))):
+                                               > FD_RTOL * max(1.0, float(np.linalg.norm(fd)))):
                 raise ParameterSetError(f"ConvexSet: grad_P disagrees with finite differences "
                                         f"of P at {pt.tolist()}: grad_P={g.tolist()}, "
                                         f"estimate={fd.tolist()}. Check grad_P.")

@@ -21,7 +21,7 @@ from typing import Any, final
 
 import numpy as np
 import sympy as sp
-from numpy.typing import NDArray
+from numpy.typing import ArrayLike, NDArray
 from sympy.core.function import AppliedUndef
 from sympy.printing.numpy import NumPyPrinter
 
@@ -806,7 +806,7 @@ def _compare(name: str, J: FloatArray, J_fd: FloatArray, rtol: float, atol: floa
         reference=float(J_fd[i_rel]), ok=bool(np.all(err <= atol + rtol * np.abs(J_fd))))
 
 
-def check_jacobians(perturbation: Perturbation, v: Any, x: Any, theta: Any, *,
+def check_jacobians(perturbation: Perturbation, v: ArrayLike, x: ArrayLike, theta: ArrayLike, *,
                     rtol: float = CHECK_RTOL, atol: float = CHECK_ATOL) -> JacobianCheck:
     """Compare the Jacobians of ``perturbation`` with central finite differences of its g.
 

@@ -6,7 +6,7 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
-from numpy.typing import NDArray
+from numpy.typing import ArrayLike, NDArray
 
 from .._validate import as_matrix, as_triple, readonly
 from ..errors import DimensionError
@@ -58,7 +58,7 @@ class PerturbedLinearSystem:
     perturbation: Perturbation | None = None
     parameter_set: ParameterSet | None = None
 
-    def __init__(self, *, A: Any, B: Any, C: Any, E: Any,
+    def __init__(self, *, A: ArrayLike, B: ArrayLike, C: ArrayLike, E: ArrayLike,
                  perturbation: Perturbation | None = None,
                  parameter_set: ParameterSet | None = None) -> None:
         A_, B_, C_ = as_triple(A, B, C)

@@ -1,15 +1,19 @@
 """Model files: a :class:`~thetahat.model.system.PerturbedLinearSystem` and its estimator as text.
 
 Split by job: :mod:`.schema` reads and validates a file into a :class:`ModelSpec` (the file
-format is documented there), :mod:`.assembly` builds and runs the estimator it describes, and
-:mod:`.report` analyses it (``thetahat analyze``).
+format is documented there), :mod:`.assembly` builds and runs the estimator it describes (as an
+:class:`~thetahat.spec.EstimatorSpec`), :mod:`.report` analyses it (``thetahat analyze``) and
+:mod:`.study` simulates its ``[scenario]`` for ``thetahat sweep`` and ``thetahat tune``.
 """
 
-from .assembly import build_observer, design_gains, design_matrices, run_estimator
+from .assembly import (build_observer, design_gains, design_matrices, estimator_spec,
+                       run_estimator)
 from .report import ModelAnalysis, analyze_model
-from .schema import (EXAMPLE_MODEL, LAWS, EstimatorOptions, ModelSpec, SecondObserverOptions,
-                     load_model, loads_model)
+from .schema import (EXAMPLE_MODEL, LAWS, EstimatorOptions, ModelSpec, ScenarioOptions,
+                     SecondObserverOptions, load_model, loads_model)
+from .study import simulate_model, study_simulator
 
 __all__ = ["EXAMPLE_MODEL", "LAWS", "EstimatorOptions", "ModelAnalysis", "ModelSpec",
-           "SecondObserverOptions", "analyze_model", "build_observer", "design_gains",
-           "design_matrices", "load_model", "loads_model", "run_estimator"]
+           "ScenarioOptions", "SecondObserverOptions", "analyze_model", "build_observer",
+           "design_gains", "design_matrices", "estimator_spec", "load_model", "loads_model",
+           "run_estimator", "simulate_model", "study_simulator"]

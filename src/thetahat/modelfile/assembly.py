@@ -1,28 +1,32 @@
 """Model-file assembly: the estimator a :class:`~thetahat.modelfile.schema.ModelSpec` describes.
 
-From a spec read by :func:`~thetahat.modelfile.schema.load_model`: the gain designs on the design
-system, the observer (3) with its update law and second observer, and a run on sampled data.
+From a spec read by :func:`~thetahat.modelfile.schema.load_model`: its
+:class:`~thetahat.spec.EstimatorSpec` (the gain designs on the design system, the update law,
+the second observer, the hold), the observer (3) it builds, and a run on sampled data. All
+assembly happens in :mod:`thetahat.spec`; this module only maps the file's keys onto it and
+names the keys in its error messages.
 """
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from collections.abc import Callable
-
-from ..design.design_system import apply_design
-from ..design.gains import GainDesign, high_gain, modified_high_gain
+from ..design.gains import GainDesign
 from ..errors import ModelFileError, NotMinimumPhaseError, ThetahatError, UnstableDesignError
 from ..estimation.checks import check_theta_star
 from ..estimation.observer import ModifiedHighGainObserver, ObserverResult
-from ..estimation.redesign import SecondObserver
-from ..structure.assumptions import check_assumption_1
+from ..model.system import PerturbedLinearSystem
+from ..spec import SECOND_DESIGN_NOTE, EstimatorSpec, Hold, SecondObserverSpec
 from .schema import ModelSpec
 
-__all__ = ["build_observer", "design_gains", "design_matrices", "run_estimator"]
+__all__ = ["build_observer", "design_gains", "design_matrices", "estimator_spec",
+           "run_estimator"]
 
 FloatArray = NDArray[np.float64]
+
 
 def design_matrices(spec: ModelSpec) -> tuple[FloatArray, FloatArray, FloatArray]:
     """(A, E, C) of the system the gains are designed on: the design system if the file has one.
@@ -30,15 +34,95 @@ def design_matrices(spec: ModelSpec) -> tuple[FloatArray, FloatArray, FloatArray
     Parameters
     ----------
     spec : ModelSpec
+        From :func:`~thetahat.modelfile.schema.load_model`.
 
     Returns
     -------
     A, E, C : ndarray
         Shapes (n, n), (n, k), (r, n).
+
+    Examples
+    --------
+    >>> from thetahat.modelfile import EXAMPLE_MODEL, design_matrices, loads_model
+    >>> [a.shape for a in design_matrices(loads_model(EXAMPLE_MODEL))]
+    [(2, 2), (2, 1), (1, 2)]
     """
     s, est = spec.system, spec.estimator
     return (s.A if est.A_design is None else est.A_design,
             s.E if est.E_design is None else est.E_design, s.C)
+
+
+def estimator_spec(spec: ModelSpec, *, hold: Hold = "zoh",
+                   nan_policy: str = "raise") -> EstimatorSpec:
+    """The :class:`~thetahat.spec.EstimatorSpec` of a model file (gains designed once).
+
+    Parameters
+    ----------
+    spec : ModelSpec
+        From :func:`~thetahat.modelfile.schema.load_model`.
+    hold : {"zoh", "foh"}, optional
+        Sample hold of :meth:`~thetahat.spec.EstimatorSpec.run`.
+    nan_policy : {"raise", "skip"}, optional
+        What the observer does with a NaN sample (a dropout).
+
+    Returns
+    -------
+    EstimatorSpec
+        ``build(eps=…, Gamma=…)`` gives the file's observer for any ε and Γ.
+
+    Raises
+    ------
+    ModelFileError
+        A design failed (e.g. a wrong number of chain poles, Assumption 1 fails on the design
+        system); the message names the keys.
+    NotMinimumPhaseError
+        Assumption 1 fails on the design system (unless ``allow_nonminimum_phase = true``).
+    UnstableDesignError
+        The gains designed on the design system leave the true system unstable (unless
+        ``allow_nonminimum_phase = true``).
+
+    Examples
+    --------
+    >>> from thetahat.modelfile import EXAMPLE_MODEL, estimator_spec, loads_model
+    >>> est = estimator_spec(loads_model(EXAMPLE_MODEL))
+    >>> est
+    EstimatorSpec(law=GradientInversion, eps=0.5, Gamma=[2.0], design_system=False, second=True, hold='zoh')
+    >>> est.build(eps=0.25).K_phi.round(3).tolist()
+    [[496.0]]
+    """
+    est, s = spec.estimator, spec.system
+    has_design = est.A_design is not None or est.E_design is not None
+    where = "the design system (A_design, E_design)" if has_design else "(A, E, C)"
+    second = None
+    if est.second is not None:
+        second = SecondObserverSpec(eps2=est.second.eps2, chain_poles=est.second.chain_poles,
+                                    b_poles=est.second.b_poles,
+                                    g_on_estimates=est.second.g_on_estimates)
+    design_system = None
+    if has_design:
+        A_d, E_d, C = design_matrices(spec)
+        design_system = PerturbedLinearSystem(A=A_d, B=s.B, C=C, E=E_d)
+    try:
+        return EstimatorSpec(system=s, law=est.update_law, eps=est.eps,
+                             chain_poles=est.chain_poles, b_poles=est.b_poles,
+                             design_system=design_system, second=second, hold=hold,
+                             nan_policy=nan_policy,
+                             allow_nonminimum_phase=est.allow_nonminimum_phase)
+    except NotMinimumPhaseError as exc:
+        raise NotMinimumPhaseError(f"model file {spec.source}: Assumption 1 fails on {where}: "
+                                   f"{exc} (or set allow_nonminimum_phase = true in "
+                                   f"[estimator] to design anyway).", zeros=exc.zeros) from exc
+    except UnstableDesignError as exc:
+        name = ("[estimator.second]" if SECOND_DESIGN_NOTE in getattr(exc, "__notes__", ())
+                else "[estimator]")
+        raise UnstableDesignError(f"model file {spec.source}: {name}: {exc}",
+                                  eigenvalues=exc.eigenvalues) from exc
+    except ThetahatError as exc:
+        if SECOND_DESIGN_NOTE in getattr(exc, "__notes__", ()):
+            raise ModelFileError(f"model file {spec.source}: [estimator.second]: the "
+                                 f"high-gain design on {where} failed: {exc}") from exc
+        raise ModelFileError(f"model file {spec.source}: [estimator] eps/chain_poles/b_poles: "
+                             f"the modified high-gain design on {where} failed: {exc}") from exc
 
 
 def design_gains(spec: ModelSpec, eps: float | None) -> tuple[GainDesign, GainDesign | None]:
@@ -47,60 +131,46 @@ def design_gains(spec: ModelSpec, eps: float | None) -> tuple[GainDesign, GainDe
     Parameters
     ----------
     spec : ModelSpec
+        From :func:`~thetahat.modelfile.schema.load_model`.
     eps : float or None
         Overrides ``spec.estimator.eps``.
 
     Returns
     -------
-    design, design2 : GainDesign, GainDesign or None
+    design : GainDesign
+        K(ε) = [K_x; K_φ].
+    design2 : GainDesign or None
+        The second observer's gain.
 
     Raises
     ------
-    NotMinimumPhaseError
-        Assumption 1 fails on the system the gains are designed on (unless the file sets
-        ``allow_nonminimum_phase = true``); the message names the file and the zeros.
     ModelFileError
-        Another design failure; the message names the keys.
+        A design failed; the message names the keys.
+
+    Examples
+    --------
+    >>> from thetahat.modelfile import EXAMPLE_MODEL, design_gains, loads_model
+    >>> d1, d2 = design_gains(loads_model(EXAMPLE_MODEL), None)
+    >>> d1.eps, d2.eps
+    (0.5, 1.0)
     """
-    est = spec.estimator
-    A_d, E_d, C = design_matrices(spec)
-    where = "the design system (A_design, E_design)" if (
-        est.A_design is not None or est.E_design is not None) else "(A, E, C)"
-    allow = est.allow_nonminimum_phase
-    try:
-        d1 = modified_high_gain(A_d, E_d, C, est.eps if eps is None else eps,
-                                est.chain_poles, est.b_poles, allow_nonminimum_phase=allow)
-    except NotMinimumPhaseError as exc:
-        raise NotMinimumPhaseError(f"model file {spec.source}: Assumption 1 fails on {where}: "
-                                   f"{exc} (or set allow_nonminimum_phase = true in "
-                                   f"[estimator] to design anyway).", zeros=exc.zeros) from exc
-    except ThetahatError as exc:
-        raise ModelFileError(f"model file {spec.source}: [estimator] eps/chain_poles/b_poles: "
-                             f"the modified high-gain design on {where} failed: {exc}") from exc
-    d2 = None
-    if est.second is not None:
-        try:
-            d2 = high_gain(A_d, E_d, C, est.second.eps2, est.second.chain_poles,
-                           est.second.b_poles, allow_nonminimum_phase=allow)
-        except ThetahatError as exc:
-            raise ModelFileError(f"model file {spec.source}: [estimator.second]: the "
-                                 f"high-gain design on {where} failed: {exc}") from exc
-    return d1, d2
+    return estimator_spec(spec).designs(eps)
 
 
 def build_observer(spec: ModelSpec, *, eps: float | None = None) -> ModifiedHighGainObserver:
     """The estimator of a model file: observer (3) with the file's update law (8).
 
-    The gains K(ε) = [K_x; K_φ] are designed by
-    :func:`~thetahat.design.gains.modified_high_gain` on the design system (or the true one),
-    and the second observer, if any, by :func:`~thetahat.design.gains.high_gain`.
+    Built by :meth:`~thetahat.spec.EstimatorSpec.build` from :func:`estimator_spec`: the
+    gains K(ε) = [K_x; K_φ] are designed by :func:`~thetahat.design.gains.modified_high_gain`
+    on the design system (or the true one), and the second observer's, if any, by
+    :func:`~thetahat.design.gains.high_gain`.
 
     Parameters
     ----------
     spec : ModelSpec
         From :func:`load_model`.
     eps : float, optional
-        Overrides ``spec.estimator.eps`` (for ε sweeps).
+        Overrides ``spec.estimator.eps``.
 
     Returns
     -------
@@ -110,14 +180,9 @@ def build_observer(spec: ModelSpec, *, eps: float | None = None) -> ModifiedHigh
 
     Raises
     ------
-    NotMinimumPhaseError
-        Assumption 1 fails on the true or the design system (unless the file opts out
-        with ``allow_nonminimum_phase = true``).
-    UnstableDesignError
-        The gain designed on the design system leaves the true error system unstable.
     ModelFileError
-        The gains cannot be designed (e.g. a wrong number of chain poles); the message names
-        the keys.
+        The gains cannot be designed (e.g. a wrong number of chain poles, Assumption 1
+        fails on the design system); the message names the keys.
 
     Examples
     --------
@@ -126,53 +191,40 @@ def build_observer(spec: ModelSpec, *, eps: float | None = None) -> ModifiedHigh
     >>> obs.K_x.shape, obs.K_phi.shape
     ((2, 1), (1, 1))
     """
-    est, s = spec.estimator, spec.system
-    if not est.allow_nonminimum_phase:
-        try:
-            check_assumption_1(s.A, s.E, s.C, strict=True)
-        except NotMinimumPhaseError as exc:
-            raise NotMinimumPhaseError(
-                f"model file {spec.source}: Assumption 1 fails on the true system: {exc} (or "
-                f"set allow_nonminimum_phase = true in [estimator] to run anyway).",
-                zeros=exc.zeros) from exc
-    d1, d2 = design_gains(spec, eps)
-    if est.A_design is not None or est.E_design is not None:
-        for name, d in (("[estimator]", d1), ("[estimator.second]", d2)):
-            try:
-                if d is not None:
-                    apply_design(d, s.A, s.E, s.C, allow_unstable=est.allow_nonminimum_phase)
-            except UnstableDesignError as exc:
-                raise UnstableDesignError(f"model file {spec.source}: {name}: {exc}",
-                                          eigenvalues=exc.eigenvalues) from exc
-    second = None
-    if d2 is not None:
-        second = SecondObserver(system=spec.system, K_x=d2.K,
-                                g_on_estimates=spec.estimator.second.g_on_estimates)
-    return ModifiedHighGainObserver.from_design(spec.system, d1, spec.estimator.update_law,
-                                                second=second,
-                                                allow_nonminimum_phase=est.allow_nonminimum_phase)
+    return _build(estimator_spec(spec), spec, eps)
+
+
+def _build(est: EstimatorSpec, spec: ModelSpec, eps: float | None) -> ModifiedHighGainObserver:
+    try:
+        return est.build(eps)
+    except NotMinimumPhaseError as exc:
+        raise NotMinimumPhaseError(
+            f"model file {spec.source}: Assumption 1 fails on the true system: {exc} (or "
+            f"set allow_nonminimum_phase = true in [estimator] to run anyway).",
+            zeros=exc.zeros) from exc
 
 
 def run_estimator(spec: ModelSpec, t: ArrayLike, u: ArrayLike | None, y: ArrayLike, *,
-                  hold: str = "zoh", nan_policy: str = "raise",
+                  hold: Hold = "zoh", nan_policy: str = "raise",
                   progress: Callable[[int, int], None] | None = None) -> ObserverResult:
     """Run the file's estimator on sampled data, from the file's initial values.
 
     Parameters
     ----------
     spec : ModelSpec
+        From :func:`~thetahat.modelfile.schema.load_model`.
     t : array_like, shape (N,)
         Strictly increasing sampling instants.
     u : array_like, shape (N, m), or None when m = 0
+        Input samples.
     y : array_like, shape (N, r)
+        Output samples.
     hold : {"zoh", "foh"}
         Sample hold (see :meth:`~thetahat.estimation.observer.ModifiedHighGainObserver.run`).
     nan_policy : {"raise", "skip"}
-        What NaN in y (measurement dropouts) does: refuse the data, or predict over the
-        missing samples without output correction.
+        What the observer does with a NaN sample (a dropout).
     progress : callable, optional
-        ``progress(done, total)`` is called during the run (see
-        :meth:`~thetahat.estimation.observer.ModifiedHighGainObserver.run`).
+        ``progress(done, total)`` called as samples are processed.
 
     Returns
     -------
@@ -181,10 +233,8 @@ def run_estimator(spec: ModelSpec, t: ArrayLike, u: ArrayLike | None, y: ArrayLi
     Raises
     ------
     UpdateLawError
-        The law's θ* fails on the data (singular or on a branch that misses Θ); checked by
-        :func:`~thetahat.estimation.checks.check_theta_star` before estimation starts.
-    NotMinimumPhaseError, UnstableDesignError, ModelFileError
-        As for :func:`build_observer`.
+        The law's θ* is singular, or misses Θ, on this record (checked before estimation;
+        the message names the instants).
 
     Examples
     --------
@@ -196,12 +246,8 @@ def run_estimator(spec: ModelSpec, t: ArrayLike, u: ArrayLike | None, y: ArrayLi
     >>> res.theta_hat.shape
     (100, 1)
     """
-    obs = build_observer(spec)
-    if nan_policy != "raise":
-        obs = ModifiedHighGainObserver(
-            system=obs.system, K_x=obs.K_x, K_phi=obs.K_phi, update_law=obs.update_law,
-            second=obs.second, nan_policy=nan_policy,
-            allow_nonminimum_phase=spec.estimator.allow_nonminimum_phase)
+    est = estimator_spec(spec, hold=hold, nan_policy=nan_policy)
+    obs = _build(est, spec, None)
     s = spec.system
     theta_star = getattr(spec.estimator.update_law, "theta_star", None)
     if theta_star is not None:

@@ -105,14 +105,14 @@ class ModelAnalysis:
             lines.append(f"SCB of the error system (4), design system: {self.scb_design!r}")
         if self.design_error is not None:
             lines.append(f"gain design FAILED: {self.design_error}")
-        if self.design is not None:
+        if self.design is not None and self.spectra is not None:
             n = self.spec.system.n
             lines += [f"K(eps = {self.design.eps:g}) = [K_x; K_phi] = {vec(self.design.K)}",
                       f"  K_x = {vec(self.design.K[:n])}, K_phi = {vec(self.design.K[n:])}",
                       f"  eig on the design system: {eig(self.spectra.eig_design)}",
                       f"  eig on the true system:   {eig(self.spectra.eig_true)}",
                       f"  stable on the true system: {self.spectra.stable}"]
-        if self.design2 is not None:
+        if self.design2 is not None and self.spectra2 is not None:
             lines += [f"second observer: K(eps2 = {self.design2.eps:g}) = {vec(self.design2.K)}",
                       f"  eig on the design system: {eig(self.spectra2.eig_design)}",
                       f"  eig on the true system:   {eig(self.spectra2.eig_true)}",

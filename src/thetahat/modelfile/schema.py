@@ -34,6 +34,16 @@ A model file (TOML, read with :mod:`tomllib`, or JSON with the same structure) h
     The second observer of Sec. VI: ``eps2`` (default 1), ``chain_poles``, ``b_poles``,
     ``g_on_estimates`` (default false; true evaluates g on C x̂₂ instead of the noisy y, as in
     Sec. VIII).
+``[scenario]`` (optional)
+    The simulated experiment of ``thetahat sweep`` and ``thetahat tune``
+    (:func:`~thetahat.modelfile.study.simulate_model`): the true ``theta`` (default: the
+    point of the box Θ three quarters of the way from ``lower`` to ``upper``), ``x0``
+    (default 0), ``t_end`` (s, default 20), ``fs`` (Hz, default 100), ``noise_std`` (white
+    noise on y, default 0.01), the input as a sum of sines per channel, ``u_amplitudes`` and
+    ``u_frequencies`` (Hz) (a list of q numbers for every channel, or one list per channel;
+    default 1 sin(2π·0.1 t) + 0.5 sin(2π·0.3 t)), and the integrator ``method`` (default
+    ``"Radau"``), ``rtol`` (1e-8) and ``atol`` (a number or n numbers, 1e-10). The plant
+    is simulated with the file's g, evaluated on the noise-free output C x.
 
 Unknown keys are errors (they are usually typos). Every problem is reported as a
 :class:`~thetahat.errors.ModelFileError` naming the file, the section and the key.
@@ -52,7 +62,7 @@ import tomllib
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -72,13 +82,13 @@ from ..model.parse import parse_perturbation
 from ..model.perturbation import SymbolicPerturbation
 from ..model.system import PerturbedLinearSystem
 
-__all__ = ["EXAMPLE_MODEL", "EstimatorOptions", "LAWS", "ModelSpec", "SecondObserverOptions",
-           "load_model", "loads_model"]
+__all__ = ["EXAMPLE_MODEL", "EstimatorOptions", "LAWS", "ModelSpec", "SCENARIO_METHODS",
+           "ScenarioOptions", "SecondObserverOptions", "load_model", "loads_model"]
 
 FloatArray = NDArray[np.float64]
 
 LAWS = ("gradient", "algebraic", "intermittent")
-_TOP_KEYS = ("name", "system", "perturbation", "parameter_set", "estimator")
+_TOP_KEYS = ("name", "system", "perturbation", "parameter_set", "estimator", "scenario")
 _SYSTEM_KEYS = ("A", "B", "C", "E")
 _PERTURBATION_KEYS = ("g", "u", "y", "x", "theta", "constants")
 _BOX_KEYS = ("lower", "upper")
@@ -86,6 +96,10 @@ _ESTIMATOR_KEYS = ("law", "eps", "chain_poles", "b_poles", "Gamma", "theta_hat0"
                    "theta_star", "excitation", "on_invalid", "A_design", "E_design", "second",
                    "allow_nonminimum_phase")
 _SECOND_KEYS = ("eps2", "chain_poles", "b_poles", "g_on_estimates")
+_SCENARIO_KEYS = ("theta", "x0", "t_end", "fs", "noise_std", "u_amplitudes", "u_frequencies",
+                  "method", "rtol", "atol")
+#: Integrators a ``[scenario]`` may name (``scipy.integrate.solve_ivp`` methods).
+SCENARIO_METHODS = ("Radau", "BDF", "LSODA", "RK45", "RK23", "DOP853")
 
 
 # ---------------------------------------------------------------------------------------------
@@ -327,6 +341,49 @@ class EstimatorOptions:
 
 
 @dataclass(frozen=True, slots=True, repr=False)
+class ScenarioOptions:
+    """The ``[scenario]`` table: the simulated experiment of ``thetahat sweep``/``tune``.
+
+    Attributes
+    ----------
+    theta : ndarray, shape (p,)
+        The true parameter.
+    x0 : ndarray, shape (n,)
+        Initial state of the plant.
+    t_end, fs : float
+        Duration (s) and sampling frequency (Hz).
+    noise_std : float
+        Standard deviation of the white noise on y (0: none).
+    u_amplitudes, u_frequencies : ndarray, shape (m, q)
+        The input u_i(t) = Σ_j a_ij sin(2π f_ij t).
+    method : str
+        ``solve_ivp`` method.
+    rtol : float
+    atol : ndarray, shape (n,)
+        Integrator tolerances.
+    defaults : tuple of str
+        The keys the file did not give (their defaults were used).
+    """
+
+    theta: FloatArray
+    x0: FloatArray
+    t_end: float
+    fs: float
+    noise_std: float
+    u_amplitudes: FloatArray
+    u_frequencies: FloatArray
+    method: str
+    rtol: float
+    atol: FloatArray
+    defaults: tuple[str, ...]
+
+    def __repr__(self) -> str:
+        return (f"ScenarioOptions(theta={self.theta.tolist()}, t_end={self.t_end:g}, "
+                f"fs={self.fs:g}, noise_std={self.noise_std:g}, method={self.method!r}, "
+                f"defaults={list(self.defaults)})")
+
+
+@dataclass(frozen=True, slots=True, repr=False)
 class ModelSpec:
     """A model file, read and validated: the system, its names and the estimator options.
 
@@ -340,6 +397,9 @@ class ModelSpec:
     input_names, output_names, state_names, parameter_names : tuple of str
         The symbol names of u, y, x and θ.
     estimator : EstimatorOptions
+        The ``[estimator]`` table.
+    scenario : ScenarioOptions
+        The simulated experiment (``[scenario]``, defaults where the file has none).
     """
 
     source: str
@@ -350,6 +410,7 @@ class ModelSpec:
     state_names: tuple[str, ...]
     parameter_names: tuple[str, ...]
     estimator: EstimatorOptions
+    scenario: ScenarioOptions
 
     def __repr__(self) -> str:
         s = self.system
@@ -365,7 +426,8 @@ class _ThetaStarExpression:
 
     def __call__(self, v: ArrayLike, x_hat: ArrayLike, phi_hat: ArrayLike) -> FloatArray:
         """θ*; shape (..., p)."""
-        return self.expr.g(v, x_hat, phi_hat)
+        return self.expr.g(np.asarray(v, dtype=np.float64), np.asarray(x_hat, dtype=np.float64),
+                           np.asarray(phi_hat, dtype=np.float64))
 
     @property
     def sympy_form(self) -> tuple[tuple[Any, ...], tuple[Any, ...]]:
@@ -461,8 +523,9 @@ def _read_law(sec: _Section, pert: SymbolicPerturbation, theta_set: Box,
     try:
         if theta_star is None:
             opts = {"Gamma": Gamma, "parameter_set": theta_set, "on_invalid": on_invalid}
-            built = (AlgebraicInversion.from_perturbation(pert, **opts) if law == "algebraic"
-                     else IntermittentInversion.from_perturbation(pert, ramp, **opts))
+            built = (AlgebraicInversion.from_perturbation(  # type: ignore[attr-defined]
+                pert, **opts) if law == "algebraic"
+                else IntermittentInversion.from_perturbation(pert, ramp, **opts))
         elif law == "algebraic":
             built = AlgebraicInversion(theta_star, Gamma, theta_set, on_invalid=on_invalid)
         else:
@@ -480,7 +543,7 @@ def _read_estimator(sec: _Section, system: PerturbedLinearSystem, pert: Symbolic
                     parsed: dict[str, Any]) -> EstimatorOptions:
     sec.check_keys(_ESTIMATOR_KEYS)
     n, k, p = system.n, system.k, system.p
-    law, update_law = _read_law(sec, pert, system.parameter_set, parsed)
+    law, update_law = _read_law(sec, pert, cast(Box, system.parameter_set), parsed)
     eps = sec.number("eps", 1.0, positive=True)
     theta_hat0 = (sec.vector("theta_hat0", p, f"θ̂(0), p = {p}") if sec.has("theta_hat0")
                   else None)
@@ -515,6 +578,63 @@ def _read_estimator(sec: _Section, system: PerturbedLinearSystem, pert: Symbolic
                             b_poles=sec.poles("b_poles", nested=False),
                             theta_hat0=theta_hat0, x_hat0=x_hat0, A_design=A_d, E_design=E_d,
                             second=second, allow_nonminimum_phase=allow_nmp)
+
+
+def _scenario_input(sec: _Section, m: int) -> tuple[FloatArray, FloatArray]:
+    """(amplitudes, frequencies), each (m, q): one list for every channel or one per channel."""
+    out = []
+    for key, default in (("u_amplitudes", [1.0, 0.5]), ("u_frequencies", [0.1, 0.3])):
+        v = sec.table.get(key, default)
+        rows = v if (isinstance(v, list) and v and isinstance(v[0], list)) else [v] * m
+        ok = isinstance(v, list) and len(rows) == m and all(
+            isinstance(r, list) and r and all(_is_number(e) and math.isfinite(e) for e in r)
+            for r in rows)
+        if not ok:
+            raise sec.fail(key, f"expected a list of numbers (used for every input) or {m} "
+                                f"lists (one per input); got {_show(v)}.")
+        out.append(np.array(rows, dtype=np.float64).reshape(m, -1) if m else np.zeros((0, 1)))
+    amp, freq = out
+    if amp.shape != freq.shape:
+        raise sec.fail("u_frequencies", f"expected the shape of u_amplitudes {amp.shape}; got "
+                                        f"{freq.shape}.")
+    if np.any(freq < 0):
+        raise sec.fail("u_frequencies", "frequencies must be >= 0 Hz.")
+    return amp, freq
+
+
+def _read_scenario(sec: _Section, system: PerturbedLinearSystem, theta_set: Box
+                   ) -> ScenarioOptions:
+    sec.check_keys(_SCENARIO_KEYS)
+    n, m, p = system.n, system.m, system.p
+    if sec.has("theta"):
+        theta = sec.vector("theta", p, f"the true θ, p = {p}")
+        if not theta_set.contains(theta):
+            raise sec.fail("theta", f"the true θ = {theta.tolist()} lies outside Θ = "
+                                    f"[{theta_set.lower.tolist()}, {theta_set.upper.tolist()}]"
+                                    f"; the estimator assumes θ ∈ Θ.")
+    else:
+        theta = theta_set.lower + 0.75 * (theta_set.upper - theta_set.lower)
+    x0 = sec.vector("x0", n, f"x(0), n = {n}") if sec.has("x0") else np.zeros(n)
+    method = sec.table.get("method", "Radau")
+    if method not in SCENARIO_METHODS:
+        raise sec.fail("method", f"expected one of {list(SCENARIO_METHODS)}; got "
+                                 f"{_show(method)}.")
+    noise = sec.number("noise_std", 0.01) if sec.has("noise_std") else 0.01
+    if noise < 0:
+        raise sec.fail("noise_std", f"expected a number >= 0; got {noise}.")
+    atol_v = sec.table.get("atol", 1e-10)
+    atol = (np.full(n, float(atol_v)) if _is_number(atol_v) and atol_v > 0
+            else sec.vector("atol", n, f"tolerances > 0, n = {n}"))
+    if np.any(atol <= 0):
+        raise sec.fail("atol", f"tolerances must be > 0; got {atol.tolist()}.")
+    amp, freq = _scenario_input(sec, m)
+    for arr in (theta, x0, atol, amp, freq):
+        arr.setflags(write=False)
+    return ScenarioOptions(theta=theta, x0=x0, t_end=sec.number("t_end", 20.0, positive=True),
+                           fs=sec.number("fs", 100.0, positive=True), noise_std=noise,
+                           u_amplitudes=amp, u_frequencies=freq, method=method,
+                           rtol=sec.number("rtol", 1e-8, positive=True), atol=atol,
+                           defaults=tuple(k for k in _SCENARIO_KEYS if not sec.has(k)))
 
 
 #: A minimal model file (the Proposition 3 example of ``examples/prop3.toml`` without its
@@ -652,7 +772,9 @@ def loads_model(text: str, *, syntax: str = "toml", source: str = "<string>") ->
     except ThetahatError as exc:
         raise ModelFileError(f"model file {source}: [parameter_set]: {exc}") from exc
     estimator = _read_estimator(sections["estimator"], system, pert, parsed)
+    scenario = _read_scenario(_Section(source, "scenario", doc.get("scenario", {})), system,
+                              theta_set)
     names = parsed["names"]
     return ModelSpec(source=source, name=name, system=system, input_names=names["u"],
                      output_names=names["y"], state_names=names["x"],
-                     parameter_names=names["theta"], estimator=estimator)
+                     parameter_names=names["theta"], estimator=estimator, scenario=scenario)

@@ -22,14 +22,16 @@ import dataclasses
 import functools
 import warnings
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 import sympy as sp
 from numpy.typing import ArrayLike, NDArray
 
 from .._validate import as_vector, positive_scalar
+from ..design.gains import GainDesign, PoleSpec
 from ..errors import ArgumentTypeError, DimensionError, ParameterSetError, ThetahatWarning
+from ..estimation.observer import ModifiedHighGainObserver
 from ..estimation.theta_star import ThetaStar
 from ..model.paramset import Box
 from ..model.perturbation import SymbolicPerturbation
@@ -37,6 +39,7 @@ from ..model.system import PerturbedLinearSystem
 from ..simulation.noise import Seed, WhiteNoise
 from ..simulation.signals import Multisine, Signal
 from ..simulation.simulate import PlantTrajectory, simulate_plant
+from ..spec import EstimatorSpec, SecondObserverSpec
 
 __all__ = [
     "LUGRE_ATOL",
@@ -46,7 +49,10 @@ __all__ = [
     "LuGrePhi",
     "Scenario",
     "design_system",
+    "designs",
+    "estimator_spec",
     "linear_part",
+    "observer",
     "perturbation",
     "simulate",
     "system",
@@ -289,7 +295,8 @@ class LuGrePhi:
 
     params: LuGreParameters
 
-    def __call__(self, t: Any, x: ArrayLike, u: Any, theta: ArrayLike) -> FloatArray:
+    def __call__(self, t: ArrayLike, x: ArrayLike, u: ArrayLike | None, theta: ArrayLike
+                 ) -> FloatArray:
         """φ(x, θ); shape (..., 1)."""
         x_ = np.asarray(x, dtype=np.float64)
         omega, eta = x_[..., 0], x_[..., 1]
@@ -298,7 +305,8 @@ class LuGrePhi:
         zeta = th + p.alpha1 * np.exp(-(omega / p.omega0) ** 2)
         return (p.sigma0 * eta * np.abs(omega) / zeta)[..., None]
 
-    def dphi_dx(self, t: Any, x: ArrayLike, u: Any, theta: ArrayLike) -> FloatArray:
+    def dphi_dx(self, t: ArrayLike, x: ArrayLike, u: ArrayLike | None, theta: ArrayLike
+                ) -> FloatArray:
         """∂φ/∂x = [∂φ/∂ω, ∂φ/∂η]; shape (..., 1, 2) (sign(0) = 0 at ω = 0)."""
         x_ = np.asarray(x, dtype=np.float64)
         omega, eta = x_[..., 0], x_[..., 1]
@@ -515,17 +523,17 @@ def simulate(seed: Seed = 0, *, scenario: Scenario | None = None,
 EXCITATION = (0.75, 1.0)
 
 
-def observer(eps: float = 1.0, *, Gamma: float = 1.0, eps2: float = 1.0,
-             params: LuGreParameters = LuGreParameters(),
-             excitation: tuple[float, float] = EXCITATION, second: bool = True,
-             chain_poles: Any = None, second_poles: Any = None) -> Any:
-    """The paper's estimator for the DC motor (Sec. VIII-A), ready to ``run(t, u, y)``.
+def estimator_spec(eps: float = 1.0, *, Gamma: float = 1.0, eps2: float = 1.0,
+                   params: LuGreParameters = LuGreParameters(),
+                   excitation: tuple[float, float] = EXCITATION, second: bool = True,
+                   chain_poles: PoleSpec = None, second_poles: PoleSpec = None) -> EstimatorSpec:
+    """The paper's estimator for the DC motor (Sec. VIII-A) as an :class:`EstimatorSpec`.
 
     A modified high-gain observer (3) whose gains are designed on the σ1 = 0 design system
     with chain poles −1, −2, −3 (ε = 1 gives K ≈ [6, 0, 6]ᵀ), Proposition 2's update law with
     the algebraic inverse θ* and a smooth excitation weight l(|φ̂|), and the second observer of
     Sec. VI (poles −1, −2; ε2 = 1 gives K ≈ [3, 0]ᵀ) with g evaluated on its own estimates.
-    The observer uses the known parameters and the data only, never the true α0.
+    The estimator uses the known parameters and the data only, never the true α0.
 
     Parameters
     ----------
@@ -546,9 +554,49 @@ def observer(eps: float = 1.0, *, Gamma: float = 1.0, eps2: float = 1.0,
 
     Returns
     -------
+    EstimatorSpec
+        ``build(eps=…, Gamma=…)`` gives the observer for any ε and Γ from one SCB.
+
+    Examples
+    --------
+    >>> from thetahat.models import lugre
+    >>> spec = lugre.estimator_spec()
+    >>> [round(float(v), 4) for v in spec.design.K.ravel()]
+    [6.0, -0.0042, 6.0075]
+    """
+    from ..estimation.update_laws import IntermittentInversion, smooth_ramp
+
+    sys = system(params)
+    law = IntermittentInversion(theta_star(params), smooth_ramp(*excitation), Gamma,
+                                Box([params.theta_lower], [params.theta_upper]),
+                                on_invalid="freeze")
+    obs2 = None
+    if second:
+        obs2 = SecondObserverSpec(eps2=eps2, chain_poles=second_poles or [[-1.0, -2.0]],
+                                  g_on_estimates=True)
+    return EstimatorSpec(system=sys, law=law, eps=eps,
+                         chain_poles=chain_poles or [[-1.0, -2.0, -3.0]],
+                         design_system=design_system(params), second=obs2)
+
+
+def observer(eps: float = 1.0, *, Gamma: float = 1.0, eps2: float = 1.0,
+             params: LuGreParameters = LuGreParameters(),
+             excitation: tuple[float, float] = EXCITATION, second: bool = True,
+             chain_poles: PoleSpec = None, second_poles: PoleSpec = None
+             ) -> ModifiedHighGainObserver:
+    """The paper's estimator for the DC motor, ready to ``run(t, u, y)``: the observer that
+    ``estimator_spec(...).build()`` makes (Sec. VIII-A).
+
+    Parameters
+    ----------
+    eps, Gamma, eps2, params, excitation, second, chain_poles, second_poles
+        As in :func:`estimator_spec`.
+
+    Returns
+    -------
     ModifiedHighGainObserver
-        With ``run(t, u, y)``, ``init``/``step`` and ``rhs``. The two gain designs (SCB,
-        spectra) are returned by :func:`designs` with the same arguments.
+        With ``run(t, u, y)``, ``init``/``step`` and ``rhs``. For many ε or Γ, build from one
+        :func:`estimator_spec` instead (one SCB for all).
 
     Examples
     --------
@@ -558,22 +606,27 @@ def observer(eps: float = 1.0, *, Gamma: float = 1.0, eps2: float = 1.0,
     >>> res.theta_hat.shape
     (1001, 1)
     """
-    from ..estimation.observer import ModifiedHighGainObserver
-    from ..estimation.redesign import SecondObserver
-    from ..estimation.update_laws import IntermittentInversion, smooth_ramp
-
-    sys = system(params)
-    d1, d2 = designs(eps, eps2=eps2, params=params, chain_poles=chain_poles,
-                     second_poles=second_poles)
-    law = IntermittentInversion(theta_star(params), smooth_ramp(*excitation), Gamma,
-                                sys.parameter_set, on_invalid="freeze")
-    obs2 = SecondObserver(system=sys, K_x=d2.K, g_on_estimates=True) if second else None
-    return ModifiedHighGainObserver.from_design(sys, d1, law, second=obs2)
+    return estimator_spec(eps, Gamma=Gamma, eps2=eps2, params=params, excitation=excitation,
+                          second=second, chain_poles=chain_poles,
+                          second_poles=second_poles).build()
 
 
 def designs(eps: float = 1.0, *, eps2: float = 1.0, params: LuGreParameters = LuGreParameters(),
-            chain_poles: Any = None, second_poles: Any = None) -> tuple[Any, Any]:
+            chain_poles: PoleSpec = None, second_poles: PoleSpec = None
+            ) -> tuple[GainDesign, GainDesign]:
     """The two gain designs of Sec. VIII on the σ1 = 0 design system: (first, second).
+
+    Parameters
+    ----------
+    eps, eps2, params, chain_poles, second_poles
+        As in :func:`estimator_spec`.
+
+    Returns
+    -------
+    design : GainDesign
+        K(ε) = [K_x; K_φ] of the first observer.
+    design2 : GainDesign
+        The second observer's gain.
 
     Examples
     --------
@@ -582,9 +635,6 @@ def designs(eps: float = 1.0, *, eps2: float = 1.0, params: LuGreParameters = Lu
     >>> [round(float(v), 4) for v in d1.K.ravel()], [round(float(v), 4) for v in d2.K.ravel()]
     ([6.0, -0.0042, 6.0075], [3.0, -0.002])
     """
-    from ..design.gains import high_gain, modified_high_gain
-
-    ds = design_system(params)
-    d1 = modified_high_gain(ds.A, ds.E, ds.C, eps, chain_poles or [[-1.0, -2.0, -3.0]])
-    d2 = high_gain(ds.A, ds.E, ds.C, eps2, second_poles or [[-1.0, -2.0]])
-    return d1, d2
+    spec = estimator_spec(eps, eps2=eps2, params=params, chain_poles=chain_poles,
+                          second_poles=second_poles)
+    return spec.design, cast(GainDesign, spec.design2)       # second=True: always designed

@@ -48,23 +48,66 @@ _theta = sp.Symbol("theta", real=True)
 
 
 def system() -> PerturbedLinearSystem:
-    """The oscillator with φ = g(v, x, θ) = (1 + y²) sinh θ and Θ = [-0.5, 0.5]."""
+    """The oscillator with φ = g(v, x, θ) = (1 + y²) sinh θ and Θ = [-0.5, 0.5].
+
+    Returns
+    -------
+    PerturbedLinearSystem
+        With its perturbation g and Θ.
+    """
     return oscillator((1 + y**2) * sp.sinh(_theta), [_theta], PARAMETER_SET)
 
 
 def input_signal(t: ArrayLike) -> FloatArray:
-    """u(t) = 0.3 sin t + 0.2 sin 2.3t, shape (..., 1)."""
+    """u(t) = 0.3 sin t + 0.2 sin 2.3t, shape (..., 1).
+
+    Parameters
+    ----------
+    t : array_like, shape (...)
+        Times (s).
+
+    Returns
+    -------
+    ndarray, shape (..., 1)
+        The input.
+    """
     t_ = np.asarray(t, dtype=np.float64)
     return (0.3 * np.sin(t_) + 0.2 * np.sin(2.3 * t_))[..., None]
 
 
 def theta_star(v: ArrayLike, x_hat: ArrayLike, phi_hat: ArrayLike) -> FloatArray:
-    """θ* = asinh(φ̂ / (1 + y²)), shape (..., 1); v = col(u, y)."""
+    """θ* = asinh(φ̂ / (1 + y²)), shape (..., 1); v = col(u, y).
+
+    Parameters
+    ----------
+    v : array_like, shape (..., m + r)
+        col(u, y).
+    x_hat : array_like, shape (..., n)
+        The state estimate.
+    phi_hat : array_like, shape (..., k)
+        The perturbation estimate.
+
+    Returns
+    -------
+    ndarray, shape (..., 1)
+        θ*.
+    """
     v_ = np.asarray(v, dtype=np.float64)
     phi = np.asarray(phi_hat, dtype=np.float64)
     return np.arcsinh(phi[..., :1] / (1.0 + v_[..., 1:2] ** 2))
 
 
 def update_law(Gamma: ArrayLike = 2.0) -> IntermittentInversion:
-    """The Proposition 1 law θ̂̇ = Proj(Γ(θ* - θ̂)) on Θ."""
+    """The Proposition 1 law θ̂̇ = Proj(Γ(θ* - θ̂)) on Θ.
+
+    Parameters
+    ----------
+    Gamma : float or array_like, shape (p, p), optional
+        Adaptation gain Γ (default 2).
+
+    Returns
+    -------
+    IntermittentInversion
+        ``AlgebraicInversion(...)``: the intermittent law with l ≡ 1.
+    """
     return AlgebraicInversion(theta_star, Gamma, PARAMETER_SET)

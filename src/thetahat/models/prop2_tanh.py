@@ -53,18 +53,50 @@ _PHI_RAMP = smooth_ramp(0.9, 0.98)  # |φ̂| above 0.98: tanh saturated, atanh i
 
 
 def system() -> PerturbedLinearSystem:
-    """The oscillator with φ = g(v, x, θ) = tanh(θ y) and Θ = [0.5, 3]."""
+    """The oscillator with φ = g(v, x, θ) = tanh(θ y) and Θ = [0.5, 3].
+
+    Returns
+    -------
+    PerturbedLinearSystem
+        With its perturbation g and Θ.
+    """
     return oscillator(sp.tanh(_theta * y), [_theta], PARAMETER_SET)
 
 
 def input_signal(t: ArrayLike) -> FloatArray:
-    """u(t) = 1.2 sin 0.6t, shape (..., 1)."""
+    """u(t) = 1.2 sin 0.6t, shape (..., 1).
+
+    Parameters
+    ----------
+    t : array_like, shape (...)
+        Times (s).
+
+    Returns
+    -------
+    ndarray, shape (..., 1)
+        The input.
+    """
     t_ = np.asarray(t, dtype=np.float64)
     return (1.2 * np.sin(0.6 * t_))[..., None]
 
 
 def theta_star(v: ArrayLike, x_hat: ArrayLike, phi_hat: ArrayLike) -> FloatArray:
-    """θ* = atanh(φ̂)/y, shape (..., 1); NaN or inf where y = 0 or |φ̂| >= 1 (l = 0 there)."""
+    """θ* = atanh(φ̂)/y, shape (..., 1); NaN or inf where y = 0 or |φ̂| >= 1 (l = 0 there).
+
+    Parameters
+    ----------
+    v : array_like, shape (..., m + r)
+        col(u, y).
+    x_hat : array_like, shape (..., n)
+        The state estimate.
+    phi_hat : array_like, shape (..., k)
+        The perturbation estimate.
+
+    Returns
+    -------
+    ndarray, shape (..., 1)
+        θ*.
+    """
     v_ = np.asarray(v, dtype=np.float64)
     phi = np.asarray(phi_hat, dtype=np.float64)
     with np.errstate(divide="ignore", invalid="ignore"):
@@ -72,12 +104,37 @@ def theta_star(v: ArrayLike, x_hat: ArrayLike, phi_hat: ArrayLike) -> FloatArray
 
 
 def excitation_weight(v: ArrayLike, x_hat: ArrayLike, phi_hat: ArrayLike) -> FloatArray:
-    """l = w(|y|; 0.2, 0.5)(1 - w(|φ̂|; 0.9, 0.98)) in [0, 1], shape (...)."""
+    """l = w(|y|; 0.2, 0.5)(1 - w(|φ̂|; 0.9, 0.98)) in [0, 1], shape (...).
+
+    Parameters
+    ----------
+    v : array_like, shape (..., m + r)
+        col(u, y).
+    x_hat : array_like, shape (..., n)
+        The state estimate.
+    phi_hat : array_like, shape (..., k)
+        The perturbation estimate.
+
+    Returns
+    -------
+    ndarray, shape (...)
+        The excitation weight l.
+    """
     v_ = np.asarray(v, dtype=np.float64)
     phi = np.asarray(phi_hat, dtype=np.float64)
     return _Y_RAMP.weight(np.abs(v_[..., 1])) * (1.0 - _PHI_RAMP.weight(np.abs(phi[..., 0])))
 
 
 def update_law(Gamma: ArrayLike = 3.0) -> IntermittentInversion:
-    """The Proposition 2 law θ̂̇ = Proj(lΓ(θ* - θ̂)) on Θ."""
+    """The Proposition 2 law θ̂̇ = Proj(lΓ(θ* - θ̂)) on Θ.
+
+    Parameters
+    ----------
+    Gamma : float or array_like, shape (p, p), optional
+        Adaptation gain Γ (default 3).
+
+    Returns
+    -------
+    IntermittentInversion
+    """
     return IntermittentInversion(theta_star, excitation_weight, Gamma, PARAMETER_SET)

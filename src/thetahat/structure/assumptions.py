@@ -5,7 +5,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from numpy.typing import NDArray
+from numpy.typing import ArrayLike, NDArray
 
 from .._validate import as_triple
 from ..errors import NotLeftInvertibleError, NotMinimumPhaseError
@@ -65,7 +65,7 @@ class AssumptionReport:
                 f"minimum_phase={self.minimum_phase}, zeros={np.round(self.zeros, 6).tolist()})")
 
 
-def check_assumption_1(A, E, C, *, strict: bool = False, tol: float | None = None,
+def check_assumption_1(A: ArrayLike, E: ArrayLike, C: ArrayLike, *, strict: bool = False, tol: float | None = None,
                        rtol: float = MINIMUM_PHASE_RTOL) -> AssumptionReport:
     """Check Assumption 1: the triple (C, A, E) is left-invertible and minimum-phase.
 
@@ -107,7 +107,7 @@ def check_assumption_1(A, E, C, *, strict: bool = False, tol: float | None = Non
     zeros = invariant_zeros(A, E, C, tol=tol)
     scale = max(1.0, float(np.linalg.norm(A, 2)))
     bad = unstable_zeros(zeros, scale=scale, rtol=rtol)
-    rE = rank(E / max(np.linalg.norm(E, 2), 1e-300), 1e-10)
+    rE = rank(E / max(float(np.linalg.norm(E, 2)), 1e-300), 1e-10)
     rep = AssumptionReport(left_invertible=bool(left), normal_rank=int(nr), rank_E=int(rE),
                            zeros=zeros, minimum_phase=bad.size == 0, offending_zeros=bad,
                            n=n, k=k)

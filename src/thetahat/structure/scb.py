@@ -28,7 +28,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 import scipy.linalg as sla
-from numpy.typing import NDArray
+from numpy.typing import ArrayLike, NDArray
 
 from .._validate import as_triple
 from ..errors import (DimensionError, IllConditionedError, IllConditionedWarning,
@@ -363,7 +363,7 @@ def _equilibrate(Ta, Tb, Tq, Wq, lengths):
     return rows_to(Ta), rows_to(Tb), Tq, Wq
 
 
-def scb(A, B, C, *, tol: float | None = None) -> SCBResult:
+def scb(A: ArrayLike, B: ArrayLike, C: ArrayLike, *, tol: float | None = None) -> SCBResult:
     """Special coordinate basis of a strictly proper, left-invertible triple (Sec. III).
 
     Parameters
@@ -467,7 +467,7 @@ def _scb(A: FloatArray, B: FloatArray, C: FloatArray, tol: float, *, suggest: bo
     coef_a = np.linalg.lstsq(basis.T, (Ta0 @ A).T, rcond=None)[0].T
     P, Q = coef_a[:, :n_a], coef_a[:, n_a:n_a + n_b]
     C_b0 = (U2.T @ C) @ Tb.T
-    M = _decouple_ab(P, Q, A_b0, C_b0)
+    M = _decouple_ab(*(np.asarray(a, dtype=np.float64) for a in (P, Q, A_b0, C_b0)))
     Ta = Ta0 + M @ Tb
 
     Ta, Tb, Tq, Wq = _equilibrate(Ta, Tb, Tq, Wq, lengths)
@@ -491,9 +491,9 @@ def _pattern(n_a: int, n_b: int, lengths: tuple[int, ...], r: int):
     ia, ib = slice(0, n_a), slice(n_a, n_a + n_b)
     free[ia, ia] = True
     free[ia, ib] = True      # only as L_ab C_b: checked separately
-    free[np.ix_(range(n_a), tops)] = True
+    free[np.ix_(np.arange(n_a), tops)] = True
     free[ib, ib] = True
-    free[np.ix_(range(n_a, n_a + n_b), tops)] = True
+    free[np.ix_(np.arange(n_a, n_a + n_b), tops)] = True
     shift = np.zeros((n, n))
     for j, (s, L) in enumerate(zip(starts, lengths)):
         others = [t for jj, t in enumerate(tops) if jj != j]   # never its own top (see rows)

@@ -16,7 +16,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from fractions import Fraction
-from typing import Any, Callable, Sequence
+from typing import Any, Callable, Sequence, TypeAlias
 
 import sympy as sp
 
@@ -27,6 +27,8 @@ from ..model.parse import parse_expression
 __all__ = ["SymbolicSCBResult", "scb_symbolic"]
 
 Matrix = sp.ImmutableMatrix
+#: The type of the SCB's matrices (``sympy.ImmutableMatrix``; SymPy ships no type information).
+SymMatrix: TypeAlias = Any
 
 
 # ---------------------------------------------------------------------------------------------
@@ -194,22 +196,22 @@ class SymbolicSCBResult:
     invariant_zeros: list[sp.Expr] | None
     zero_polynomial: sp.Poly
     generic_condition: sp.Expr
-    state_transform: Matrix
-    output_transform: Matrix
-    input_transform: Matrix
-    A_tilde: Matrix
-    B_tilde: Matrix
-    C_tilde: Matrix
-    A_a: Matrix
-    L_aq: Matrix
-    L_ab: Matrix
-    A_b: Matrix
-    L_bq: Matrix
-    C_b: Matrix
-    L_qq: Matrix
-    D_a: Matrix
-    D_b: Matrix
-    D_q: Matrix
+    state_transform: SymMatrix
+    output_transform: SymMatrix
+    input_transform: SymMatrix
+    A_tilde: SymMatrix
+    B_tilde: SymMatrix
+    C_tilde: SymMatrix
+    A_a: SymMatrix
+    L_aq: SymMatrix
+    L_ab: SymMatrix
+    A_b: SymMatrix
+    L_bq: SymMatrix
+    C_b: SymMatrix
+    L_qq: SymMatrix
+    D_a: SymMatrix
+    D_b: SymMatrix
+    D_q: SymMatrix
 
     @property
     def n_q(self) -> int:
@@ -589,7 +591,8 @@ def _build(A_: sp.Matrix, B_: sp.Matrix, C_: sp.Matrix, simplify: bool) -> Symbo
         T_q, W = _siso_rows(A_, B_, C_), sp.Matrix([[1]])
         n_q = T_q.rows
         T_a = _left_null(_canon(sp.Matrix.hstack(*[A_ ** i * B_ for i in range(n_q)])))
-        T_b, lengths = sp.zeros(0, n), (n_q,)
+        T_b = sp.zeros(0, n)
+        lengths: tuple[int, ...] = (int(n_q),)
     else:
         T_q, T_b, T_a, W, lengths = _mimo_rows(A_, B_, C_)
     n_a, n_b, n_q = T_a.rows, T_b.rows, T_q.rows
@@ -614,7 +617,7 @@ def _build(A_: sp.Matrix, B_: sp.Matrix, C_: sp.Matrix, simplify: bool) -> Symbo
             At = _canon(T * A_ * Gs)
     tidy = _tidy if simplify else sp.cancel
 
-    def fin(Mx: sp.MatrixBase) -> Matrix:
+    def fin(Mx: sp.MatrixBase) -> SymMatrix:
         return Matrix(sp.Matrix(Mx).applyfunc(tidy))
 
     At_f, Ct_f = fin(At), fin(W * C_ * Gs)

@@ -25,7 +25,7 @@ from typing import Any
 
 import numpy as np
 import scipy.linalg
-from numpy.typing import NDArray
+from numpy.typing import ArrayLike, NDArray
 
 from .._validate import as_matrix, as_triple, check_finite, positive_scalar
 from ..errors import DimensionError
@@ -300,7 +300,7 @@ def _sorted(z: ComplexArray) -> ComplexArray:
 # Public API
 # --------------------------------------------------------------------------------------------
 
-def invariant_zeros(A: Any, B: Any, C: Any, D: Any = None, *,
+def invariant_zeros(A: ArrayLike, B: ArrayLike, C: ArrayLike, D: ArrayLike | None = None, *,
                     tol: float | None = None) -> ComplexArray:
     """Invariant zeros of (A, B, C, D): where the Rosenbrock matrix drops below its normal rank.
 
@@ -387,7 +387,7 @@ def invariant_zeros(A: Any, B: Any, C: Any, D: Any = None, *,
     return _sorted(z)
 
 
-def normal_rank(A: Any, B: Any, C: Any, D: Any = None, *, tol: float | None = None) -> int:
+def normal_rank(A: ArrayLike, B: ArrayLike, C: ArrayLike, D: ArrayLike | None = None, *, tol: float | None = None) -> int:
     """Normal rank of the Rosenbrock system matrix ``[[sI - A, -B], [C, D]]``.
 
     Parameters
@@ -436,7 +436,7 @@ def normal_rank(A: Any, B: Any, C: Any, D: Any = None, *, tol: float | None = No
     return red.removed_rank + red.A.shape[0] + red.D.shape[1]
 
 
-def is_left_invertible(A: Any, B: Any, C: Any, D: Any = None, *,
+def is_left_invertible(A: ArrayLike, B: ArrayLike, C: ArrayLike, D: ArrayLike | None = None, *,
                        tol: float | None = None) -> bool:
     """Whether (C, A, B) (with feedthrough D) is left-invertible: normal rank ``n + m``.
 
@@ -474,7 +474,7 @@ def is_left_invertible(A: Any, B: Any, C: Any, D: Any = None, *,
     return normal_rank(A_, B_, C_, D_, tol=tol) == A_.shape[0] + B_.shape[1]
 
 
-def unstable_zeros(zeros: Any, *, scale: float,
+def unstable_zeros(zeros: ArrayLike, *, scale: float,
                    rtol: float = MINIMUM_PHASE_RTOL) -> ComplexArray:
     """The zeros in the closed right half-plane, with a margin: ``Re z >= -rtol * scale``.
 
@@ -521,7 +521,7 @@ def unstable_zeros(zeros: Any, *, scale: float,
     return np.asarray(z[z.real >= -rtol_ * scale_], dtype=complex)
 
 
-def is_minimum_phase(A: Any, B: Any, C: Any, D: Any = None, *, tol: float | None = None,
+def is_minimum_phase(A: ArrayLike, B: ArrayLike, C: ArrayLike, D: ArrayLike | None = None, *, tol: float | None = None,
                      rtol: float = MINIMUM_PHASE_RTOL) -> bool:
     """Whether every invariant zero of (A, B, C, D) lies in the open left half-plane.
 

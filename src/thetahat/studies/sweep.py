@@ -16,47 +16,96 @@ import itertools
 import math
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, Union
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from ..errors import (
-    DesignError,
-    DimensionError,
-    NonFiniteError,
-    SimulationError,
-    UpdateLawError,
-)
-from .batch import _check_seeds, monte_carlo
-from .metrics import divergence_reason, rmse, time_to_within
+from ..errors import DesignError, DimensionError
+from ..spec import EstimatorSpec
+from .batch import check_seeds, monte_carlo
+from .runs import DIVERGENCE_ERRORS, RunMetrics, failed_run, format_number, run_metrics
 
-__all__ = ["SweepResult", "SweepRow", "eps_sweep"]
+__all__ = ["Estimator", "SweepResult", "SweepRow", "check_eps_values", "eps_sweep",
+           "observer_for", "run_observer"]
 
 FloatArray = NDArray[np.float64]
 
-#: Relative band of the settling time recorded as ``t_1pct``: |θ̂ − θ| <= 1 % |θ| for good.
-SETTLING_BAND = 0.01
-
-#: Errors of ``observer.run`` that mean "this run diverged" rather than "the set-up is wrong":
-#: the observer's own non-finite-state check, a failed integration, and floating-point or
-#: linear-algebra failures caused by an exploding state (an update law whose θ* overflows).
-_DIVERGENCE_ERRORS: tuple[type[BaseException], ...] = (
-    NonFiniteError, SimulationError, UpdateLawError, FloatingPointError, OverflowError,
-    np.linalg.LinAlgError)
+#: What a study runs: an :class:`~thetahat.spec.EstimatorSpec` (its ``build(eps=…, Gamma=…)``,
+#: one SCB for every ε) or a callable ``make_observer(eps)`` / ``make_observer(eps, Gamma=…)``.
+Estimator = Union[EstimatorSpec, Callable[..., Any]]
 
 
-@dataclass(frozen=True, slots=True)
-class _Run:
-    """Metrics of one (ε, seed) run; NaN where a failed run has no value."""
+def observer_for(estimator: Estimator, eps: float, Gamma: float | None = None) -> Any:
+    """The observer a study runs at (ε, Γ).
 
-    diverged: bool
-    t_1pct: float
-    theta_max_error: float
-    theta_rmse: float
-    x_rmse: FloatArray
-    x_rmse_refined: FloatArray | None
-    error: str | None
+    Parameters
+    ----------
+    estimator : EstimatorSpec or callable
+        A spec (``estimator.build(eps=eps, Gamma=Gamma)``, no new SCB) or a callable
+        ``estimator(eps)`` (``estimator(eps, Gamma=Gamma)`` when Γ is given).
+    eps : float
+        ε of the high-gain design.
+    Gamma : float, optional
+        Adaptation gain Γ; default: the estimator's own.
+
+    Returns
+    -------
+    observer
+        Anything with ``init(theta_hat0=...)`` and ``run(t, u, y, state0=...)``.
+
+    Examples
+    --------
+    >>> from thetahat.models import lugre
+    >>> from thetahat.studies.sweep import observer_for
+    >>> observer_for(lugre.estimator_spec(), 0.5, Gamma=3.0).update_law.Gamma.tolist()
+    [[3.0]]
+    """
+    if isinstance(estimator, EstimatorSpec):
+        return estimator.build(eps=eps, Gamma=Gamma)
+    if Gamma is None:
+        return estimator(eps)
+    return estimator(eps, Gamma=Gamma)
+
+
+def run_observer(estimator: Estimator, obs: Any, data: Any, theta_hat0: FloatArray
+                 ) -> RunMetrics:
+    """Run ``obs`` on one record from θ̂(0) and measure it; a divergence error is recorded.
+
+    Parameters
+    ----------
+    estimator : EstimatorSpec or callable
+        What built ``obs``; a spec supplies its sample hold.
+    obs : observer
+        From :func:`observer_for`.
+    data : PlantTrajectory or alike
+        ``t``, ``u``, ``y`` and the true ``x``, ``theta`` (and optionally ``phi``).
+    theta_hat0 : ndarray, shape (p,)
+        Initial parameter estimate.
+
+    Returns
+    -------
+    RunMetrics
+        Diverged with NaN values when ``run`` raised one of
+        :data:`~thetahat.studies.runs.DIVERGENCE_ERRORS`.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from thetahat.models import lugre
+    >>> from thetahat.studies.sweep import observer_for, run_observer
+    >>> spec, data = lugre.estimator_spec(), lugre.simulate(seed=0, t_end=0.2, fs=500.0)
+    >>> run_observer(spec, observer_for(spec, 1.0), data, np.array([0.5])).diverged
+    False
+    """
+    kwargs = {"hold": estimator.hold} if isinstance(estimator, EstimatorSpec) else {}
+    try:
+        with np.errstate(all="ignore"):            # an exploding state is the expected failure
+            res = obs.run(data.t, data.u, data.y, state0=obs.init(theta_hat0=theta_hat0),
+                          **kwargs)
+    except DIVERGENCE_ERRORS as exc:
+        return failed_run(np.asarray(data.x).shape[1], exc)
+    return run_metrics(data, res)
 
 
 @dataclass(frozen=True, slots=True, eq=False)
@@ -130,7 +179,7 @@ class SweepResult:
         The noise seeds (the same for every ε).
     diverged : ndarray of bool, shape (n_eps, n_seeds)
         The run raised a divergence error (non-finite state, ...) or some estimate exceeded
-        ``DIVERGENCE_FACTOR`` times the range of the truth (:func:`~thetahat.simulation.
+        ``DIVERGENCE_FACTOR`` times the range of the truth (:func:`~thetahat.studies.
         metrics.diverged`).
     t_1pct : ndarray, shape (n_eps, n_seeds)
         Settling time of θ̂ to within 1 % of θ (``inf``: not settled at the end).
@@ -245,16 +294,17 @@ class SweepResult:
         title = (f"eps sweep: {len(self.seeds)} seed(s) per eps; median/max over the stable "
                  f"runs; th = theta; errors over the second half of the record")
         lines = [title, head, "-" * len(head)]
+        fmt = format_number
         for row in self.rows:
             cells = [f"{row.eps:6.3g}", f"{row.n_stable:>3d}/{row.n_runs:<3d}",
-                     f"{_num(row.t_1pct_median, '.2f'):>8}/{_num(row.t_1pct_max, '.2f'):<8}",
-                     (f"{_num(row.theta_max_error_median, '.2e'):>9}/"
-                      f"{_num(row.theta_max_error_max, '.2e'):<10}"),
-                     f"{_num(row.theta_rmse_median, '.2e'):>12}"]
+                     f"{fmt(row.t_1pct_median, '.2f'):>8}/{fmt(row.t_1pct_max, '.2f'):<8}",
+                     (f"{fmt(row.theta_max_error_median, '.2e'):>9}/"
+                      f"{fmt(row.theta_max_error_max, '.2e'):<10}"),
+                     f"{fmt(row.theta_rmse_median, '.2e'):>12}"]
             for i in range(n):
-                cell = _num(row.x_rmse_median[i], ".2e")
-                if second:
-                    cell += "/" + _num(row.x_rmse_refined_median[i], ".2e")
+                cell = fmt(row.x_rmse_median[i], ".2e")
+                if row.x_rmse_refined_median is not None:
+                    cell += "/" + fmt(row.x_rmse_refined_median[i], ".2e")
                 cells.append(f"{cell:>19}")
             lines.append(" ".join(cells))
         lines.append(self.verdict())
@@ -311,15 +361,29 @@ class SweepResult:
                 f"first_unstable={self.first_unstable}, wall_time={self.wall_time:.3g} s)")
 
 
-def _num(v: float, fmt: str) -> str:
-    if v is None or (isinstance(v, float) and math.isnan(v)):
-        return "-"
-    if math.isinf(v):
-        return "inf"
-    return format(v, fmt)
+def check_eps_values(eps_values: Iterable[float]) -> tuple[float, ...]:
+    """The ε values of a study, checked: starting at 1, strictly decreasing, in (0, 1].
 
+    Parameters
+    ----------
+    eps_values : iterable of float
+        The ε values in the order of Sec. VII.
 
-def _check_eps(eps_values: Iterable[float]) -> tuple[float, ...]:
+    Returns
+    -------
+    tuple of float
+
+    Raises
+    ------
+    DesignError
+        Not numbers, empty, not starting at 1 or not strictly decreasing.
+
+    Examples
+    --------
+    >>> from thetahat.studies.sweep import check_eps_values
+    >>> check_eps_values([1, 0.5, 0.2])
+    (1.0, 0.5, 0.2)
+    """
     try:
         eps = tuple(float(e) for e in eps_values)
     except (TypeError, ValueError) as exc:
@@ -335,81 +399,39 @@ def _check_eps(eps_values: Iterable[float]) -> tuple[float, ...]:
     return eps
 
 
-def _scale(truth: FloatArray) -> float:
-    """Range of a true signal for the divergence test (1 when it is identically zero)."""
-    s = float(np.max(np.abs(truth))) if truth.size else 0.0
-    return s if s > 0 else 1.0
-
-
-def _metrics(data: Any, res: Any) -> _Run:
-    t = np.asarray(res.t, dtype=float)
-    half = int(np.searchsorted(t, t[0] + 0.5 * (t[-1] - t[0])))
-    theta = np.asarray(data.theta, dtype=float).ravel()
-    x = np.asarray(data.x, dtype=float)
-    th_hat = np.asarray(res.theta_hat, dtype=float).reshape(t.size, -1)
-    x_hat = np.asarray(res.x_hat, dtype=float)
-    x2 = None if res.x_hat_refined is None else np.asarray(res.x_hat_refined, dtype=float)
-    checks = [("theta_hat", th_hat, theta)] + [
-        (f"x_hat[{i}]", x_hat[:, i], x[:, i]) for i in range(x.shape[1])]
-    if x2 is not None:
-        checks += [(f"x_hat_refined[{i}]", x2[:, i], x[:, i]) for i in range(x.shape[1])]
-    phi = getattr(data, "phi", None)
-    if phi is not None and getattr(res, "phi_hat", None) is not None:
-        checks.append(("phi_hat", np.asarray(res.phi_hat, dtype=float),
-                       np.asarray(phi, dtype=float)))
-    reasons = [divergence_reason(name, est, _scale(np.asarray(tru))) for name, est, tru in checks]
-    reason = "; ".join(r for r in reasons if r is not None) or None
-    with np.errstate(over="ignore", invalid="ignore"):
-        err = th_hat[half:] - theta
-        return _Run(diverged=reason is not None,
-                    t_1pct=time_to_within(t, th_hat, theta, SETTLING_BAND),
-                    theta_max_error=float(np.max(np.abs(err))),
-                    theta_rmse=float(np.sqrt(np.mean(np.sum(err ** 2, axis=1)))),
-                    x_rmse=rmse(x_hat, x, start=half),
-                    x_rmse_refined=None if x2 is None else rmse(x2, x, start=half),
-                    error=reason)
-
-
-
-def _one_run(make_observer: Callable[[float], Any], simulate: Callable[[int], Any],
+def _one_run(estimator: Estimator, simulate: Callable[[int], Any],
              eps_values: tuple[float, ...], seeds: tuple[int, ...], theta_hat0: FloatArray,
-             index: int) -> _Run:
+             index: int) -> RunMetrics:
     """Run number ``index`` (ε-major): simulate, build, run, measure."""
-    eps = eps_values[index // len(seeds)]
     data = simulate(seeds[index % len(seeds)])
-    obs = make_observer(eps)
-    state0 = obs.init(theta_hat0=theta_hat0)
-    try:
-        with np.errstate(all="ignore"):            # an exploding state is the expected failure
-            res = obs.run(data.t, data.u, data.y, state0=state0)
-    except _DIVERGENCE_ERRORS as exc:
-        n = np.asarray(data.x).shape[1]
-        nan = np.full(n, np.nan)
-        return _Run(diverged=True, t_1pct=math.nan, theta_max_error=math.nan,
-                    theta_rmse=math.nan, x_rmse=nan, x_rmse_refined=None,
-                    error=f"{type(exc).__name__}: {exc}")
-    return _metrics(data, res)
+    obs = observer_for(estimator, eps_values[index // len(seeds)])
+    return run_observer(estimator, obs, data, theta_hat0)
 
 
-def eps_sweep(make_observer: Callable[[float], Any], simulate: Callable[[int], Any],
+def eps_sweep(estimator: Estimator, simulate: Callable[[int], Any],
               eps_values: Iterable[float], seeds: Iterable[int], *, theta_hat0: ArrayLike,
-              progress: bool = True, n_jobs: int | None = 1) -> SweepResult:
+              progress: bool = True, n_jobs: int | None = 1,
+              scheduler: Any = None) -> SweepResult:
     """Run the tuning procedure of Sec. VII: ε = 1 first, then smaller ε, over noise seeds.
 
-    For each ε and each seed: ``data = simulate(seed)``, ``obs = make_observer(eps)``,
-    ``obs.run(data.t, data.u, data.y, state0=obs.init(theta_hat0=theta_hat0))``, then record
-    divergence and accuracy against the truth in ``data``.
+    For each ε and each seed: ``data = simulate(seed)``, the observer for ε
+    (:func:`observer_for`), ``obs.run(data.t, data.u, data.y, state0=obs.init(theta_hat0=
+    theta_hat0))``, then record divergence and accuracy against the truth in ``data``.
 
     Parameters
     ----------
-    make_observer : callable ``make_observer(eps)``
-        Builds the observer for one ε, e.g. :func:`thetahat.models.lugre.observer`: anything
-        with ``init(theta_hat0=...)`` and ``run(t, u, y, state0=...)`` returning an
+    estimator : EstimatorSpec or callable ``make_observer(eps)``
+        An :class:`~thetahat.spec.EstimatorSpec` (e.g. :func:`thetahat.models.lugre.
+        estimator_spec` or :func:`thetahat.modelfile.estimator_spec`): its observers for every
+        ε come from one SCB and run with its hold. Or a callable building the observer for
+        one ε, e.g. :func:`thetahat.models.lugre.observer`: anything with
+        ``init(theta_hat0=...)`` and ``run(t, u, y, state0=...)`` returning an
         :class:`~thetahat.estimation.observer.ObserverResult`.
     simulate : callable ``simulate(seed)``
         Simulates the plant with that noise seed; returns an object with ``t (N,)``,
         ``u (N, m)``, ``y (N, r)``, the true ``x (N, n)`` and ``theta (p,)`` (and optionally
-        ``phi (N, k)``), such as a :class:`~thetahat.simulation.simulate.PlantTrajectory`.
+        ``phi (N, k)``), such as a :class:`~thetahat.simulation.simulate.PlantTrajectory`
+        (:func:`thetahat.models.lugre.simulate`, :func:`thetahat.modelfile.simulate_model`).
     eps_values : iterable of float
         Must start at 1 and decrease strictly, each in (0, 1] (Sec. VII).
     seeds : iterable of int
@@ -420,9 +442,12 @@ def eps_sweep(make_observer: Callable[[float], Any], simulate: Callable[[int], A
         Progress bar over the ε × seeds runs (tqdm, when installed; it appears after a few
         seconds).
     n_jobs : int or None, optional
-        Worker processes (1: sequential; -1: all cores). With n_jobs > 1, ``make_observer``
-        and ``simulate`` must be picklable (module-level functions or ``functools.partial``
-        of them).
+        Worker processes (1: sequential; -1: all cores). With n_jobs > 1, ``estimator``
+        and ``simulate`` must be picklable (specs, module-level functions and
+        ``functools.partial`` of them are).
+    scheduler : str or dask.distributed.Client, optional
+        Run the ε × seeds runs on a Dask cluster (see
+        :func:`~thetahat.studies.batch.monte_carlo`); same picklability as ``n_jobs``.
 
     Returns
     -------
@@ -435,7 +460,7 @@ def eps_sweep(make_observer: Callable[[float], Any], simulate: Callable[[int], A
     DimensionError
         Empty or negative seeds.
     Exception
-        Whatever ``simulate`` or ``make_observer`` raise: only failures of ``run`` that signal
+        Whatever ``simulate`` or building the observer raise: only failures of ``run`` that signal
         divergence (:class:`~thetahat.errors.NonFiniteError`, ...) are recorded as diverged.
 
     Notes
@@ -451,21 +476,22 @@ def eps_sweep(make_observer: Callable[[float], Any], simulate: Callable[[int], A
     --------
     >>> import functools
     >>> from thetahat.models import lugre
-    >>> from thetahat.simulation.sweep import eps_sweep
+    >>> from thetahat.studies.sweep import eps_sweep
     >>> sim = functools.partial(lugre.simulate, t_end=2.0, fs=500.0)
-    >>> res = eps_sweep(lugre.observer, sim, [1.0, 0.5], seeds=[0], theta_hat0=[0.5],
+    >>> res = eps_sweep(lugre.estimator_spec(), sim, [1.0, 0.5], seeds=[0], theta_hat0=[0.5],
     ...                 progress=False)
     >>> res.stable_down_to, res.first_unstable
     (0.5, None)
     >>> res.x_rmse.shape                        # (eps, seeds, states)
     (2, 1, 2)
     """
-    eps = _check_eps(eps_values)
-    seeds_ = _check_seeds(seeds)
+    eps = check_eps_values(eps_values)
+    seeds_ = check_seeds(seeds)
     th0 = np.atleast_1d(np.asarray(theta_hat0, dtype=np.float64))
-    fn = functools.partial(_one_run, make_observer, simulate, eps, seeds_, th0)
-    batch = monte_carlo(fn, range(len(eps) * len(seeds_)), progress=progress, n_jobs=n_jobs)
-    runs: list[_Run] = list(batch.results)
+    fn = functools.partial(_one_run, estimator, simulate, eps, seeds_, th0)
+    batch = monte_carlo(fn, range(len(eps) * len(seeds_)), progress=progress, n_jobs=n_jobs,
+                        scheduler=scheduler)
+    runs: list[RunMetrics] = list(batch.results)
     shape = (len(eps), len(seeds_))
     n = max(r.x_rmse.shape[0] for r in runs)
     has_second = any(r.x_rmse_refined is not None for r in runs)

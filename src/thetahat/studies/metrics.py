@@ -11,6 +11,8 @@ from numpy.typing import ArrayLike, NDArray
 from .._validate import as_vector
 from ..errors import DimensionError
 
+__all__ = ["DIVERGENCE_FACTOR", "diverged", "divergence_reason", "rmse", "time_to_within"]
+
 FloatArray = NDArray[np.float64]
 
 #: An estimate counts as diverged when it is non-finite or this many times the truth's range.
@@ -35,7 +37,7 @@ def time_to_within(t: ArrayLike, estimate: ArrayLike, truth: ArrayLike, rel: flo
 
     Examples
     --------
-    >>> from thetahat.simulation.metrics import time_to_within
+    >>> from thetahat.studies.metrics import time_to_within
     >>> time_to_within([0, 1, 2, 3], [2.0, 1.2, 1.005, 1.0], 1.0, 0.01)
     2.0
     """
@@ -62,9 +64,14 @@ def rmse(estimate: ArrayLike, truth: ArrayLike, *, start: int = 0) -> FloatArray
     start : int
         First sample included (e.g. ``N // 2`` for the second half).
 
+    Returns
+    -------
+    ndarray, shape (p,)
+        The RMSE of each component.
+
     Examples
     --------
-    >>> from thetahat.simulation.metrics import rmse
+    >>> from thetahat.studies.metrics import rmse
     >>> rmse([[1.0], [3.0]], [[0.0], [0.0]]).tolist()
     [2.23606797749979]
     """
@@ -87,7 +94,19 @@ def rmse(estimate: ArrayLike, truth: ArrayLike, *, start: int = 0) -> FloatArray
 
 
 def diverged(estimate: ArrayLike, scale: float) -> bool:
-    """True when the estimate is non-finite or exceeds ``DIVERGENCE_FACTOR·scale`` anywhere."""
+    """True when the estimate is non-finite or exceeds ``DIVERGENCE_FACTOR·scale`` anywhere.
+
+    Parameters
+    ----------
+    estimate : array_like
+        The estimate, any shape.
+    scale : float
+        The range of the truth.
+
+    Returns
+    -------
+    bool
+    """
     e = np.asarray(estimate, dtype=float)
     return bool(not np.all(np.isfinite(e)) or np.max(np.abs(e)) > DIVERGENCE_FACTOR * scale)
 
@@ -155,7 +174,7 @@ def estimate_summary(result: Any, parameter_names: Sequence[str], *,
     --------
     >>> from types import SimpleNamespace
     >>> import numpy as np
-    >>> from thetahat.simulation.metrics import estimate_summary
+    >>> from thetahat.studies.metrics import estimate_summary
     >>> res = SimpleNamespace(t=np.array([0.0, 1.0, 2.0]), skipped=np.zeros(3, bool),
     ...                       theta_hat=np.array([[0.0], [0.9], [1.0]]))
     >>> print(estimate_summary(res, ["theta"]))

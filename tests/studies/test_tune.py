@@ -11,7 +11,7 @@ import pytest
 from thetahat.cli import main
 from thetahat.errors import DesignError
 from thetahat.models import lugre
-from thetahat.simulation.tune import TuneResult, tune_eps_gamma
+from thetahat.studies.tune import TuneResult, tune_eps_gamma
 
 #: Short record: long enough for θ̂ to approach θ = 0.28 from 0.5 (the default scenario's
 #: excitation |φ̂| >= 1 recurs every ~1 s), short enough to keep the file under 20 s.

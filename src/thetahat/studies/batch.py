@@ -23,7 +23,7 @@ from numpy.typing import NDArray
 
 from ..errors import ArgumentTypeError, DimensionError, ThetahatWarning
 
-__all__ = ["BatchResult", "monte_carlo"]
+__all__ = ["BatchResult", "check_seeds", "monte_carlo"]
 
 #: A progress bar appears only when the batch has run this long (s): short batches, such as
 #: those in tests, stay silent, and long studies show progress.
@@ -99,8 +99,35 @@ def _short(seeds: Sequence[int]) -> str:
     return f"[{seeds[0]}, {seeds[1]}, {seeds[2]}, ..., {seeds[-1]}]"
 
 
-def _check_seeds(seeds: Iterable[int]) -> tuple[int, ...]:
-    out = []
+def check_seeds(seeds: Iterable[int]) -> tuple[int, ...]:
+    """The seeds as a tuple of non-negative ints, checked.
+
+    Parameters
+    ----------
+    seeds : iterable of int
+        Non-negative seeds, at least one.
+
+    Returns
+    -------
+    tuple of int
+
+    Raises
+    ------
+    DimensionError
+        No seed, or a seed that is not a non-negative integer.
+
+    Warns
+    -----
+    ThetahatWarning
+        The seeds contain duplicates.
+
+    Examples
+    --------
+    >>> from thetahat.studies.batch import check_seeds
+    >>> check_seeds(range(3))
+    (0, 1, 2)
+    """
+    out: list[int] = []
     for s in seeds:
         if isinstance(s, bool) or not isinstance(s, numbers.Integral) or int(s) < 0:
             raise DimensionError(f"seeds must be non-negative integers; got {s!r}.")
@@ -137,7 +164,8 @@ def _progress_bar(total: int, enabled: bool) -> Any:
 
 
 def monte_carlo(fn: Callable[[int], Any], seeds: Iterable[int], *, progress: bool = True,
-                n_jobs: int | None = 1) -> BatchResult:
+                n_jobs: int | None = 1, scheduler: Any = None,
+                chunk_size: int | None = None) -> BatchResult:
     """Run ``fn(seed)`` for every seed and collect the results in seed order.
 
     Parameters
@@ -153,6 +181,13 @@ def monte_carlo(fn: Callable[[int], Any], seeds: Iterable[int], *, progress: boo
     n_jobs : int or None, optional
         Worker processes: 1 or None runs sequentially in this process; -1 uses all cores.
         Capped at the number of runs.
+    scheduler : str or dask.distributed.Client, optional
+        Run on a Dask cluster (``"tcp://HOST:PORT"`` or a Client) through
+        :func:`thetahat.engine.run_keyed`, in chunks of seeds keyed by seed: a worker that
+        dies loses and duplicates nothing. ``n_jobs`` is then ignored (``n_jobs`` of the
+        result is 0). The results equal those of a run in this process.
+    chunk_size : int, optional
+        Seeds per task on a cluster (default: about 16 tasks).
 
     Returns
     -------
@@ -174,14 +209,22 @@ def monte_carlo(fn: Callable[[int], Any], seeds: Iterable[int], *, progress: boo
     Examples
     --------
     >>> import numpy as np
-    >>> from thetahat.simulation.batch import monte_carlo
+    >>> from thetahat.studies.batch import monte_carlo
     >>> res = monte_carlo(lambda s: np.random.default_rng(s).normal(), seeds=[3, 1, 2])
     >>> res.seeds, res.stack().shape
     ((3, 1, 2), (3,))
     """
     if not callable(fn):
         raise ArgumentTypeError(f"fn must be callable as fn(seed); got {type(fn).__name__}.")
-    seeds_ = _check_seeds(seeds)
+    seeds_ = check_seeds(seeds)
+    if scheduler is not None:
+        from ..engine import run_keyed, seed_task
+        start = time.perf_counter()
+        unique = tuple(dict.fromkeys(seeds_))
+        done = run_keyed(seed_task(fn), unique, unique, scheduler=scheduler,
+                         chunk_size=chunk_size, label="monte_carlo", progress=progress)
+        return BatchResult(seeds=seeds_, results=tuple(done[s] for s in seeds_), n_jobs=0,
+                           wall_time=time.perf_counter() - start)
     workers = _workers(n_jobs, len(seeds_))
     bar = _progress_bar(len(seeds_), progress)
     start = time.perf_counter()

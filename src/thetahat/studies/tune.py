@@ -30,8 +30,10 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from ..errors import DesignError, DimensionError
-from .batch import _check_seeds
-from .sweep import _DIVERGENCE_ERRORS, _check_eps, _metrics, _num, _Run
+from ..spec import EstimatorSpec
+from .batch import check_seeds
+from .runs import DIVERGENCE_ERRORS, RunMetrics, format_number, run_metrics
+from .sweep import Estimator, check_eps_values, observer_for, run_observer
 
 __all__ = ["CRITERIA", "TuneResult", "tune_eps_gamma"]
 
@@ -57,7 +59,7 @@ class TuneResult:
         The minimised score, one of :data:`CRITERIA`.
     diverged : ndarray of bool, shape (n_eps, n_Gamma, n_seeds)
         The run raised a divergence error or some estimate left ``DIVERGENCE_FACTOR`` times
-        the range of its truth (as in :func:`~thetahat.simulation.sweep.eps_sweep`).
+        the range of its truth (as in :func:`~thetahat.studies.sweep.eps_sweep`).
     theta_rmse : ndarray, shape (n_eps, n_Gamma, n_seeds)
         RMS of ‖θ̂ − θ‖ over the second half of the record (NaN when the run raised).
     t_1pct : ndarray, shape (n_eps, n_Gamma, n_seeds)
@@ -94,7 +96,7 @@ class TuneResult:
     @property
     def rejected(self) -> NDArray[np.bool_]:
         """Pairs with at least one diverged seed; shape (n_eps, n_Gamma)."""
-        return self.diverged.any(axis=2)
+        return np.asarray(self.diverged.any(axis=2), dtype=np.bool_)
 
     def verdict(self) -> str:
         """One sentence: the chosen pair and its score, or that every pair diverged."""
@@ -130,13 +132,14 @@ class TuneResult:
         lines = [(f"(eps, Gamma) search: {len(self.seeds)} seed(s) per pair; worst over the "
                  f"seeds; errors over the second half; score = {self.criterion}"),
                  head, "-" * len(head)]
+        fmt = format_number
         for (i, e), (j, g) in itertools.product(enumerate(self.eps), enumerate(self.Gamma)):
             n_ok = int((~self.diverged[i, j]).sum())
             bad = self.rejected[i, j]
             cells = [f"{e:6.3g}", f"{g:7.3g}", f"{n_ok:>3d}/{len(self.seeds):<3d}",
-                     f"{'-' if bad else _num(float(np.max(self.theta_rmse[i, j])), '.3e'):>12}",
-                     f"{'-' if bad else _num(float(np.max(self.t_1pct[i, j])), '.2f'):>13}"]
-            cells += [f"{'-' if bad else _num(float(np.max(self.x_rmse[i, j, :, c])), '.2e'):>14}"
+                     f"{'-' if bad else fmt(float(np.max(self.theta_rmse[i, j])), '.3e'):>12}",
+                     f"{'-' if bad else fmt(float(np.max(self.t_1pct[i, j])), '.2f'):>13}"]
+            cells += [f"{'-' if bad else fmt(float(np.max(self.x_rmse[i, j, :, c])), '.2e'):>14}"
                       for c in range(n)]
             mark = " <- chosen" if (e == self.best_eps and g == self.best_Gamma) else (
                 " diverged" if bad else "")
@@ -183,22 +186,8 @@ def _check_gammas(gammas: Iterable[float]) -> tuple[float, ...]:
     return out
 
 
-def _failed(n: int, exc: BaseException) -> _Run:
-    return _Run(diverged=True, t_1pct=math.nan, theta_max_error=math.nan, theta_rmse=math.nan,
-                x_rmse=np.full(n, np.nan), x_rmse_refined=None,
-                error=f"{type(exc).__name__}: {exc}")
-
-
-def _run_one(obs: Any, data: Any, th0: FloatArray) -> _Run:
-    try:
-        with np.errstate(all="ignore"):            # an exploding state is the expected failure
-            res = obs.run(data.t, data.u, data.y, state0=obs.init(theta_hat0=th0))
-    except _DIVERGENCE_ERRORS as exc:
-        return _failed(np.asarray(data.x).shape[1], exc)
-    return _metrics(data, res)
-
-
-def _run_eps(observers: list[Any], records: list[Any], th0: FloatArray) -> list[_Run]:
+def _run_eps(estimator: Estimator, observers: list[Any], records: list[Any],
+             th0: FloatArray) -> list[RunMetrics]:
     """Runs of one ε: every Γ on every seed (Γ-major), vectorised when possible.
 
     The observers of one ε differ only in Γ, so :func:`~thetahat.estimation.batch_run.
@@ -211,37 +200,41 @@ def _run_eps(observers: list[Any], records: list[Any], th0: FloatArray) -> list[
 
     pairs = [(o, d) for o in observers for d in records]
     t0 = np.asarray(records[0].t)
+    hold = estimator.hold if isinstance(estimator, EstimatorSpec) else "zoh"
     if all(isinstance(o, ModifiedHighGainObserver) for o in observers) and all(
             np.array_equal(np.asarray(d.t), t0) for d in records[1:]):
         state0 = np.stack([o.init(theta_hat0=th0) for o, _ in pairs])
         try:
             with np.errstate(all="ignore"):
                 res = run_batch([o for o, _ in pairs], t0, np.stack([d.u for _, d in pairs]),
-                                np.stack([d.y for _, d in pairs]), state0=state0)
-        except _DIVERGENCE_ERRORS:
+                                np.stack([d.y for _, d in pairs]), state0=state0, hold=hold)
+        except DIVERGENCE_ERRORS:
             pass
         else:
-            return [_metrics(d, res[b]) for b, (_, d) in enumerate(pairs)]
-    return [_run_one(o, d, th0) for o, d in pairs]
+            return [run_metrics(d, res[b]) for b, (_, d) in enumerate(pairs)]
+    return [run_observer(estimator, o, d, th0) for o, d in pairs]
 
 
-def tune_eps_gamma(make_observer: Callable[..., Any], simulate: Callable[[int], Any], *,
+def tune_eps_gamma(estimator: Estimator, simulate: Callable[[int], Any], *,
                    eps_values: Iterable[float] = (1.0, 0.7, 0.5, 0.3),
                    gammas: Iterable[float] = (1.0, 3.0, 10.0, 30.0),
                    seeds: Iterable[int] = (1000, 1001), theta_hat0: ArrayLike,
                    criterion: str = "theta_rmse", rel_tol: float = 0.05) -> TuneResult:
     """Pick ε and Γ by a grid search over tuning seeds, ε decreasing from 1 (Sec. VII).
 
-    For every ε (1 first, then decreasing) and every Γ: ``obs = make_observer(eps,
-    Gamma=Gamma)``, run on ``simulate(seed)`` for each seed from ``obs.init(theta_hat0=...)``,
+    For every ε (1 first, then decreasing) and every Γ: the observer for (ε, Γ)
+    (:func:`~thetahat.studies.sweep.observer_for`), run on ``simulate(seed)`` for each seed
+    from ``obs.init(theta_hat0=...)``,
     and record divergence, θ RMSE and t_1 % of θ̂ and the RMSE of x̂ against the truth. A pair
     with a diverged run is rejected; among the others the smallest ``criterion`` (its worst
     value over the seeds) wins.
 
     Parameters
     ----------
-    make_observer : callable ``make_observer(eps, Gamma=...)``
-        Builds the observer, e.g. :func:`thetahat.models.lugre.observer`: anything with
+    estimator : EstimatorSpec or callable ``make_observer(eps, Gamma=...)``
+        An :class:`~thetahat.spec.EstimatorSpec` (its ``build(eps=…, Gamma=…)``: one SCB
+        for the whole grid, its hold for every run), or a callable building the observer,
+        e.g. :func:`thetahat.models.lugre.observer`: anything with
         ``init(theta_hat0=...)`` and ``run(t, u, y, state0=...)``. When it returns
         :class:`~thetahat.estimation.observer.ModifiedHighGainObserver` objects, the runs of
         one ε (all Γ, all seeds) are vectorised with
@@ -294,10 +287,10 @@ def tune_eps_gamma(make_observer: Callable[..., Any], simulate: Callable[[int], 
     --------
     >>> import functools
     >>> from thetahat.models import lugre
-    >>> from thetahat.simulation.tune import tune_eps_gamma
+    >>> from thetahat.studies.tune import tune_eps_gamma
     >>> sim = functools.partial(lugre.simulate, t_end=2.0, fs=500.0)
-    >>> res = tune_eps_gamma(lugre.observer, sim, eps_values=[1.0, 0.5], gammas=[1.0, 10.0],
-    ...                      seeds=[1000], theta_hat0=[0.5])
+    >>> res = tune_eps_gamma(lugre.estimator_spec(), sim, eps_values=[1.0, 0.5],
+    ...                      gammas=[1.0, 10.0], seeds=[1000], theta_hat0=[0.5])
     >>> res.score.shape
     (2, 2)
     >>> bool(res.score[res.eps.index(res.best_eps), res.Gamma.index(res.best_Gamma)]
@@ -306,15 +299,15 @@ def tune_eps_gamma(make_observer: Callable[..., Any], simulate: Callable[[int], 
     """
     if criterion not in CRITERIA:
         raise DesignError(f"criterion must be one of {CRITERIA}; got {criterion!r}.")
-    eps = _check_eps(eps_values)
+    eps = check_eps_values(eps_values)
     gam = _check_gammas(gammas)
-    seeds_ = _check_seeds(seeds)
+    seeds_ = check_seeds(seeds)
     th0 = np.atleast_1d(np.asarray(theta_hat0, dtype=np.float64))
     start = time.perf_counter()
     records = [simulate(s) for s in seeds_]
-    runs: list[_Run] = []
+    runs: list[RunMetrics] = []
     for e in eps:
-        runs += _run_eps([make_observer(e, Gamma=g) for g in gam], records, th0)
+        runs += _run_eps(estimator, [observer_for(estimator, e, g) for g in gam], records, th0)
     shape = (len(eps), len(gam), len(seeds_))
     n = max(r.x_rmse.shape[0] for r in runs)
 

@@ -9,8 +9,8 @@ import pytest
 
 from thetahat.errors import DimensionError, ThetahatWarning
 from thetahat.models import lugre
-from thetahat.simulation import batch as batch_module
-from thetahat.simulation.batch import BatchResult, monte_carlo
+from thetahat.studies import batch as batch_module
+from thetahat.studies.batch import BatchResult, monte_carlo
 from thetahat.simulation.noise import WhiteNoise, make_rng
 
 

@@ -5,7 +5,7 @@ import pytest
 
 from thetahat.errors import DimensionError
 
-from thetahat.simulation.metrics import diverged, rmse, time_to_within
+from thetahat.studies.metrics import diverged, rmse, time_to_within
 
 
 def test_time_to_within_is_the_last_entry_into_the_band():

@@ -12,7 +12,7 @@ import pytest
 
 from thetahat.errors import DesignError, DimensionError, NonFiniteError
 from thetahat.models import lugre
-from thetahat.simulation.sweep import SweepResult, eps_sweep
+from thetahat.studies.sweep import SweepResult, eps_sweep
 
 #: ω ranges over about ±3.8 rad/s in the default scenario; an observer that tracks it at all
 #: has an RMSE far below this after the transient (measured: ≈ 0.04 rad/s at 500 Hz, 6 s).

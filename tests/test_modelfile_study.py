@@ -1,0 +1,129 @@
+"""Model-file studies: the [scenario] table, the simulated plant, ``thetahat sweep/tune MODEL``."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from thetahat import ModelFileError
+from thetahat.cli import main
+from thetahat.modelfile import EXAMPLE_MODEL, load_model, loads_model
+from thetahat.modelfile.study import ModelPhi, simulate_model
+from thetahat.models import lugre
+
+EXAMPLES = Path(__file__).resolve().parents[1] / "examples"
+
+#: lugre.simulate and the model file integrate the same plant with the same LSODA settings
+#: (rtol 1e-9) and the same noise; each agrees with a Radau reference to ~1.3e-8 rad/s in ω
+#: (thetahat.models.lugre.LUGRE_RTOL), so they agree with each other to a few 1e-8: 1e-6
+#: leaves a factor ~30.
+PLANT_ATOL = 1e-6
+#: ∂φ/∂x by central differences with step 1e-6: truncation ~1e-12·|φ'''|, rounding ~1e-10/1e-6.
+FD_RTOL = 1e-5
+
+
+def test_lugre_file_simulates_the_lugre_plant():
+    """examples/lugre.toml's [scenario] is lugre.Scenario(): same records to integrator accuracy."""
+    spec = load_model(EXAMPLES / "lugre.toml")
+    a = simulate_model(spec, seed=3, t_end=1.0)
+    b = lugre.simulate(seed=3, t_end=1.0)
+    np.testing.assert_array_equal(a.t, b.t)
+    np.testing.assert_allclose(a.x, b.x, rtol=0, atol=PLANT_ATOL)
+    np.testing.assert_allclose(a.y, b.y, rtol=0, atol=PLANT_ATOL)
+    np.testing.assert_allclose(a.u, b.u, rtol=0, atol=1e-12)
+
+
+def test_model_phi_jacobian_matches_finite_differences(rng):
+    spec = loads_model(EXAMPLE_MODEL)
+    phi = ModelPhi(perturbation=spec.system.perturbation, C=spec.system.C)
+    for _ in range(5):
+        x, u, th = rng.normal(size=2), rng.normal(size=1), rng.uniform(-2, 2, size=1)
+        J = phi.dphi_dx(0.0, x, u, th)
+        h = 1e-6
+        fd = np.stack([(phi(0.0, x + h * e, u, th) - phi(0.0, x - h * e, u, th)) / (2 * h)
+                       for e in np.eye(2)], axis=-1)
+        np.testing.assert_allclose(J, fd, rtol=FD_RTOL, atol=1e-8)
+
+
+def test_scenario_defaults_and_values():
+    spec = loads_model(EXAMPLE_MODEL)
+    sc = spec.scenario
+    assert sc.theta.tolist() == [1.0]                         # 3/4 of the way across [-2, 2]
+    assert (sc.t_end, sc.fs, sc.noise_std, sc.method) == (20.0, 100.0, 0.01, "Radau")
+    assert "theta" in sc.defaults and "fs" in sc.defaults
+    given = loads_model(EXAMPLE_MODEL + "\n[scenario]\ntheta = [1.5]\nfs = 50.0\n"
+                                        "u_amplitudes = [[1.0, 2.0]]\n"
+                                        "u_frequencies = [[0.1, 0.2]]\n").scenario
+    assert given.theta.tolist() == [1.5] and given.fs == 50.0
+    assert given.u_amplitudes.shape == (1, 2) and "theta" not in given.defaults
+
+
+@pytest.mark.parametrize("table, match", [
+    ("theta = [3.0]", r"\[scenario\] theta: the true θ = \[3.0\] lies outside Θ"),
+    ("fs = -1.0", r"\[scenario\] fs: expected a finite positive number"),
+    ("method = 'Euler'", r"\[scenario\] method: expected one of"),
+    ("u_amplitudes = [1.0, 2.0]\nu_frequencies = [0.1]", r"u_frequencies: expected the shape"),
+    ("noise = 0.1", r"\[scenario\]: unknown key\(s\) \['noise'\]"),
+    ("noise_std = -0.1", r"noise_std: expected a number >= 0"),
+])
+def test_bad_scenarios_name_the_key(table, match):
+    with pytest.raises(ModelFileError, match=match):
+        loads_model(EXAMPLE_MODEL + "\n[scenario]\n" + table + "\n")
+
+
+def test_sweep_model_file(tmp_path, capsys):
+    """Issue 10: ``thetahat sweep examples/prop3.toml`` runs the file's estimator."""
+    out = tmp_path / "out"
+    assert main(["sweep", str(EXAMPLES / "prop3.toml"), "--eps", "1", "0.5", "--seeds", "1",
+                 "--t-end", "2", "--out", str(out)]) == 0
+    printed = capsys.readouterr().out
+    assert "x1 RMSE" in printed and "x2 RMSE" in printed        # the file's state names
+    summary = json.loads((out / "sweep.json").read_text())
+    assert summary["eps"] == [1.0, 0.5] and summary["first_unstable"] is None
+
+
+def test_tune_model_file(tmp_path, capsys):
+    """Issue 10: ``thetahat tune examples/prop3.toml`` picks (ε, Γ) for the file's law."""
+    out = tmp_path / "out"
+    assert main(["tune", str(EXAMPLES / "prop3.toml"), "--eps", "1", "0.5", "--gamma", "1",
+                 "4", "--seeds", "1", "--t-end", "2", "--out", str(out)]) == 0
+    printed = capsys.readouterr().out
+    assert "chosen: eps =" in printed
+    summary = json.loads((out / "tune.json").read_text())
+    assert summary["best_eps"] in (1.0, 0.5) and summary["best_Gamma"] in (1.0, 4.0)
+
+
+def test_sweep_of_a_file_without_scenario_notes_the_defaults(tmp_path, capsys):
+    model = tmp_path / "m.toml"
+    model.write_text(EXAMPLE_MODEL)
+    assert main(["sweep", str(model), "--eps", "1", "--seeds", "1", "--t-end", "1",
+                 "--out", str(tmp_path / "out")]) == 0
+    assert "[scenario] gives no theta, u_amplitudes" in capsys.readouterr().err
+
+
+#: The file's estimator and lugre.estimator_spec() share gains (same design matrices to 16
+#: digits in the file) and θ* (the same formula, parsed vs numpy); on records that agree to
+#: ~1e-8 their sweeps agree far inside 1e-4 relative.
+SWEEP_RTOL = 1e-4
+
+
+def test_lugre_file_is_the_lugre_estimator():
+    """examples/lugre.toml and thetahat.models.lugre describe one estimator: same K(ε) for every
+    ε and the same sweep on the same seeds."""
+    from thetahat.modelfile import estimator_spec
+    from thetahat.studies.sweep import eps_sweep
+
+    spec = load_model(EXAMPLES / "lugre.toml")
+    from_file, built_in = estimator_spec(spec), lugre.estimator_spec()
+    for eps in (1.0, 0.2):
+        a, b = from_file.designs(eps), built_in.designs(eps)
+        np.testing.assert_allclose(a[0].K, b[0].K, rtol=1e-9)
+        np.testing.assert_allclose(a[1].K, b[1].K, rtol=1e-9)
+    kw = dict(eps_values=[1.0, 0.5], seeds=[0], theta_hat0=[0.5], progress=False)
+    ra = eps_sweep(from_file, lambda s: simulate_model(spec, s, t_end=0.5), **kw)
+    rb = eps_sweep(built_in, lambda s: lugre.simulate(seed=s, t_end=0.5), **kw)
+    np.testing.assert_allclose(ra.theta_rmse, rb.theta_rmse, rtol=SWEEP_RTOL)
+    np.testing.assert_allclose(ra.x_rmse, rb.x_rmse, rtol=SWEEP_RTOL)
