@@ -25,7 +25,7 @@ from thetahat.model.paramset import Ball
 from thetahat.model.system import PerturbedLinearSystem
 from thetahat.modelfile import build_observer, load_model, run_estimator
 from thetahat.models import lugre
-from thetahat.simulation.metrics import time_to_within
+from thetahat.studies.metrics import time_to_within
 
 pytestmark = pytest.mark.skipif(find_compiler() is None, reason="no C compiler (cc or $CC)")
 
