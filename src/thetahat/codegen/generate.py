@@ -341,6 +341,15 @@ def _constants(observer: ModifiedHighGainObserver, law: Any, opts: StepOptions, 
 def model_hash(observer: ModifiedHighGainObserver) -> str:
     """SHA-256 of what defines the observer: g and θ* (srepr), the matrices, gains, law and Θ.
 
+    Parameters
+    ----------
+    observer : ModifiedHighGainObserver
+
+    Returns
+    -------
+    str
+        64 hexadecimal digits.
+
     Examples
     --------
     >>> from thetahat.modelfile import EXAMPLE_MODEL, build_observer, loads_model

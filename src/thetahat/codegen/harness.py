@@ -25,6 +25,19 @@ def estimate_columns(state_names: Sequence[str], k: int, parameter_names: Sequen
 
     The same names as :func:`thetahat.datafile.estimate_columns` (a test checks it).
 
+    Parameters
+    ----------
+    state_names : sequence of str
+    k : int
+        Length of φ.
+    parameter_names : sequence of str
+    refined : bool
+        Include the second observer's columns.
+
+    Returns
+    -------
+    tuple of str
+
     Examples
     --------
     >>> estimate_columns(["x1", "x2"], 1, ["theta"], refined=False)
@@ -306,6 +319,24 @@ def harness_source(prefix: str, names: dict[str, list[str]], k: int, real: str, 
                    dt: float) -> str:
     """Source of ``<prefix>_main.c`` (see the module docstring).
 
+    Parameters
+    ----------
+    prefix : str
+        C prefix of the observer.
+    names : dict
+        Names of ``u``, ``y``, ``x`` and ``theta`` (lists of str).
+    k : int
+        Length of φ.
+    real : {"double", "float"}
+    second : bool
+        A second observer is attached.
+    dt : float
+        The fixed step length.
+
+    Returns
+    -------
+    str
+
     Examples
     --------
     >>> src = harness_source("obs", {"u": ["u"], "y": ["y"], "x": ["x1"], "theta": ["a"]}, 1,
@@ -337,6 +368,14 @@ def harness_source(prefix: str, names: dict[str, list[str]], k: int, real: str, 
 
 def makefile_source(prefix: str) -> str:
     """The ``Makefile``: ``make -C DIR`` builds ``DIR/<prefix>`` with :data:`C_FLAGS`.
+
+    Parameters
+    ----------
+    prefix : str
+
+    Returns
+    -------
+    str
 
     Examples
     --------

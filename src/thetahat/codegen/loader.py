@@ -94,6 +94,10 @@ int @P@_run_steps(@P@_state *s, long N, const real_t U[], const real_t Y[])
 def find_compiler() -> str | None:
     """Path of ``$CC`` (default ``cc``), or None when there is none.
 
+    Returns
+    -------
+    str or None
+
     Examples
     --------
     >>> isinstance(find_compiler(), (str, type(None)))
@@ -121,6 +125,13 @@ def _compiler() -> str:
 
 def build(code: CCode, directory: str | Path, *, flags: Sequence[str] = C_FLAGS) -> Path:
     """Write ``code`` into ``directory`` and compile it with the shim as a shared library.
+
+    Parameters
+    ----------
+    code : CCode
+    directory : str or Path
+    flags : sequence of str
+        Compiler flags (default: the acceptance's, with ``-Werror``).
 
     Returns
     -------
@@ -196,6 +207,13 @@ class CObserver:
 
     ``init``, ``step`` and ``run`` call ``<name>_init``, ``<name>_step`` and the shim's record
     loop; the state is a numpy vector col(x̂, z, θ̂[, x̂₂]) in the generated precision.
+
+    Parameters
+    ----------
+    code : CCode
+        The generated sources.
+    library : Path
+        The shared library built from them by :func:`build`.
     """
 
     def __init__(self, code: CCode, library: Path) -> None:
@@ -285,6 +303,16 @@ class CObserver:
 
 def load_c(code: CCode, directory: str | Path, *, flags: Sequence[str] = C_FLAGS) -> CObserver:
     """Compile ``code`` in ``directory`` (see :func:`build`) and load it.
+
+    Parameters
+    ----------
+    code : CCode
+    directory : str or Path
+    flags : sequence of str
+
+    Returns
+    -------
+    CObserver
 
     Examples
     --------

@@ -30,6 +30,14 @@ def c_printer(real_type: str) -> C99CodePrinter:
 
     ``M_PI`` and friends are POSIX, not C99: ``math_macros={}`` prints them as literals.
 
+    Parameters
+    ----------
+    real_type : {"double", "float"}
+
+    Returns
+    -------
+    sympy.printing.c.C99CodePrinter
+
     Examples
     --------
     >>> import sympy as sp
