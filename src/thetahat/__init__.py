@@ -4,6 +4,7 @@ parameterized perturbations — the modular observer of Grip, Saberi & Johansen.
 The curated public API; everything else lives in the submodules.
 """
 
+from .codegen import CCode, generate_c
 from .design.design_system import DesignSystemReport, apply_design
 from .design.gains import GainDesign, extended_system, high_gain, modified_high_gain
 from .estimation.batch_run import BatchObserverResult, run_batch
@@ -21,7 +22,7 @@ from .estimation.redesign import SecondObserver
 from .estimation.theta_star import ThetaStar
 from .estimation.update_laws import (AlgebraicInversion, ConstantLaw, GradientInversion,
                                      IntermittentInversion, UpdateLaw, smooth_ramp)
-from .errors import (ConvergenceWarning, DesignError, DimensionError, IllConditionedWarning,
+from .errors import (CCompilerError, ConvergenceWarning, DesignError, DimensionError, IllConditionedWarning,
                      MissingExtraError, ModelFileError, NonFiniteError, SimulationError, NotLeftInvertibleError,
                      NotMinimumPhaseError, ParameterSetError, ThetahatError, ThetahatWarning,
                      UpdateLawError)
@@ -73,4 +74,5 @@ __all__ = [
     "IllConditionedError", "InputLimitError", "ResourceLimitError", "SymbolicTimeoutError",
     "UnstableDesignError",
     "StepPlan", "ThetaStar",
+    "CCode", "generate_c", "CCompilerError",
 ]

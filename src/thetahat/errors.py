@@ -23,6 +23,7 @@ __all__ = [
     "UpdateLawError",
     "ModelFileError",
     "SimulationError",
+    "CCompilerError",
     "OptionError",
     "ArgumentTypeError",
     "UnsupportedError",
@@ -107,6 +108,10 @@ class ModelFileError(ThetahatError, ValueError):
 
 class SimulationError(ThetahatError, RuntimeError):
     """A numerical integration failed (the solver's message is included) or produced NaN/inf."""
+
+
+class CCompilerError(ThetahatError, RuntimeError):
+    """The C compiler is missing or rejected generated code (the message holds its output)."""
 
 
 class OptionError(ThetahatError, ValueError):

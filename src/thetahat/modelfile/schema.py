@@ -440,6 +440,12 @@ class _ThetaStarExpression:
         return self.expr.g(np.asarray(v, dtype=np.float64), np.asarray(x_hat, dtype=np.float64),
                            np.asarray(phi_hat, dtype=np.float64))
 
+    @property
+    def sympy_form(self) -> tuple[tuple[Any, ...], tuple[Any, ...]]:
+        """(θ* entries, their arguments col(u, y), x, φ in call order), for code printers."""
+        e = self.expr
+        return tuple(e.expr), (*e.u, *e.y, *e.x, *e.theta)
+
 
 def _phi_names(k: int) -> list[str]:
     return ["phi"] if k == 1 else [f"phi{i + 1}" for i in range(k)]

@@ -35,7 +35,8 @@ def structure_report(params: lugre.LuGreParameters) -> None:
 
 def report(*, out: Path | str = "out", eps: float = 1.0, seed: int = 0, show: bool = False,
            verbose: bool = True) -> dict[str, Any]:
-    """Run the example and write ``out/lugre.png`` and ``out/lugre.json``; return the summary.
+    """Run the example; write ``out/lugre.png``, ``out/lugre.json`` and the data
+    ``out/lugre_data.csv`` (columns t, u, y); return the summary.
 
     Parameters
     ----------
@@ -109,6 +110,10 @@ def report(*, out: Path | str = "out", eps: float = 1.0, seed: int = 0, show: bo
     }
     out.mkdir(parents=True, exist_ok=True)
     (out / "lugre.json").write_text(json.dumps(summary, indent=2))
+    # the record the observer ran on, in the layout `thetahat estimate` and the generated C
+    # harness read (thetahat codegen examples/lugre.toml --dt 1e-3 ...)
+    np.savetxt(out / "lugre_data.csv", np.c_[data.t, data.u, data.y], delimiter=",",
+               header="t,u,y", comments="", fmt="%.17g")
     from thetahat.plotting import figure_1
     figure_1(data.t, data.y, data.x, x2, data.theta, res.theta_hat,
              x_hat_first=res.x_hat, path=out / "lugre.png", show=show)
@@ -124,5 +129,5 @@ def report(*, out: Path | str = "out", eps: float = 1.0, seed: int = 0, show: bo
           f"{summary['t_5pct']:.2f} s, within 1 % after {summary['t_1pct']:.2f} s")
     say(f"wall time: simulate {t_sim:.2f} s, observer {t_obs:.2f} s "
           f"({summary['wall_s']['observer_us_per_step']:.0f} µs/step)")
-    say(f"wrote {out / 'lugre.png'} and {out / 'lugre.json'}")
+    say(f"wrote {out / 'lugre.png'}, {out / 'lugre.json'} and {out / 'lugre_data.csv'}")
     return summary

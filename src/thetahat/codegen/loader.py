@@ -1,0 +1,327 @@
+"""Compile generated C with the system compiler and call it through ctypes (tests, benchmarks).
+
+:func:`find_compiler` locates ``$CC`` or ``cc``; :func:`build` compiles a :class:`CCode` — as
+a shared library with a small record-loop shim (:func:`load_c`), or as the harness executable
+(:func:`build_harness`, which also takes sanitizer flags). The shim is not part of the generated
+code: it only loops ``<name>_step`` over a record inside C so that a whole run costs one call.
+"""
+
+from __future__ import annotations
+
+import ctypes
+import os
+import shutil
+import subprocess
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from ..errors import CCompilerError, DimensionError, NonFiniteError, UpdateLawError
+from .generate import CCode
+from .harness import C_FLAGS
+
+__all__ = ["CObserver", "CRun", "build", "build_harness", "find_compiler", "load_c",
+           "STATUS"]
+
+#: Status codes of the generated functions (``<NAME>_OK``…), by name.
+STATUS = {"ok": 0, "input": 1, "missing": 2, "theta_star": 3, "diverged": 4, "init": 5}
+
+_SHIM = r"""/* ctypes shim (thetahat.codegen.loader): loops @P@_step over a record. */
+#include "@P@.h"
+
+typedef @P@_real_t real_t;
+
+enum { NS = @NS@ };
+
+static void store(const @P@_state *s, real_t row[])
+{
+    int i, o = 0;
+    for (i = 0; i < @PU@_NX; ++i) {
+        row[o++] = s->x_hat[i];
+    }
+    for (i = 0; i < @PU@_NK; ++i) {
+        row[o++] = s->z[i];
+    }
+    for (i = 0; i < @PU@_NP; ++i) {
+        row[o++] = s->theta_hat[i];
+    }
+@STORE_SECOND@}
+
+/* Rows i of S and PHI: the state before sample i and phi_hat at sample i (as run() records). */
+int @P@_run_record(@P@_state *s, long N, const real_t U[], const real_t Y[], real_t S[],
+                   real_t PHI[], long *index)
+{
+    long i;
+    int status;
+    for (i = 0; i < N; ++i) {
+        *index = i;
+        store(s, S + i * NS);
+        status = @P@_phi_hat(s, U + i * (@PU@_NU > 0 ? @PU@_NU : 1), Y + i * @PU@_NY,
+                             PHI + i * @PU@_NK);
+        if (status != 0) {
+            return status;
+        }
+        if (i + 1 < N) {
+            status = @P@_step(s, U + i * (@PU@_NU > 0 ? @PU@_NU : 1), Y + i * @PU@_NY);
+            if (status != 0) {
+                return status;
+            }
+        }
+    }
+    return 0;
+}
+
+/* N steps and nothing else (for timing). */
+int @P@_run_steps(@P@_state *s, long N, const real_t U[], const real_t Y[])
+{
+    long i;
+    int status;
+    for (i = 0; i < N; ++i) {
+        status = @P@_step(s, U + i * (@PU@_NU > 0 ? @PU@_NU : 1), Y + i * @PU@_NY);
+        if (status != 0) {
+            return status;
+        }
+    }
+    return 0;
+}
+"""
+
+
+def find_compiler() -> str | None:
+    """Path of ``$CC`` (default ``cc``), or None when there is none.
+
+    Returns
+    -------
+    str or None
+
+    Examples
+    --------
+    >>> isinstance(find_compiler(), (str, type(None)))
+    True
+    """
+    return shutil.which(os.environ.get("CC", "cc"))
+
+
+def _compile(cmd: Sequence[str], cwd: Path) -> None:
+    try:
+        out = subprocess.run(list(cmd), cwd=cwd, capture_output=True, text=True, timeout=300)
+    except OSError as exc:
+        raise CCompilerError(f"cannot run the C compiler ({cmd[0]}): {exc}") from exc
+    if out.returncode != 0 or out.stderr.strip():
+        raise CCompilerError(f"{' '.join(cmd)} failed (exit {out.returncode}):\n"
+                             f"{out.stderr.strip()}")
+
+
+def _compiler() -> str:
+    cc = find_compiler()
+    if cc is None:
+        raise CCompilerError("no C compiler found: install one (e.g. gcc) or set CC.")
+    return cc
+
+
+def build(code: CCode, directory: str | Path, *, flags: Sequence[str] = C_FLAGS) -> Path:
+    """Write ``code`` into ``directory`` and compile it with the shim as a shared library.
+
+    Parameters
+    ----------
+    code : CCode
+    directory : str or Path
+    flags : sequence of str
+        Compiler flags (default: the acceptance's, with ``-Werror``).
+
+    Returns
+    -------
+    Path
+        The library ``lib<name>.so``.
+
+    Raises
+    ------
+    CCompilerError
+        No compiler, or it failed or warned (the flags include ``-Werror``).
+    """
+    out = Path(directory)
+    code.write(out)
+    P = code.name
+    second = ("    for (i = 0; i < @PU@_NX; ++i) {\n        row[o++] = s->x_hat_refined[i];\n"
+              "    }\n" if "x_hat_refined" in code.header else "")
+    shim = (_SHIM.replace("@STORE_SECOND@", second).replace("@NS@", str(code.sizes["state"]))
+            .replace("@PU@", P.upper()).replace("@P@", P))
+    (out / f"{P}_shim.c").write_text(shim, encoding="utf-8")
+    lib = out / f"lib{P}.so"
+    _compile([_compiler(), *flags, "-fPIC", "-shared", "-o", lib.name, f"{P}.c", f"{P}_shim.c",
+              "-lm"], out)
+    return lib
+
+
+def build_harness(code: CCode, directory: str | Path, *,
+                  flags: Sequence[str] = C_FLAGS) -> Path:
+    """Write ``code`` and compile the CSV harness ``<name>`` (as its Makefile does).
+
+    Parameters
+    ----------
+    code : CCode
+    directory : str or Path
+    flags : sequence of str
+        Compiler flags; e.g. ``(*C_FLAGS, "-fsanitize=address,undefined")``.
+
+    Returns
+    -------
+    Path
+        The executable.
+    """
+    out = Path(directory)
+    code.write(out)
+    P = code.name
+    _compile([_compiler(), *flags, "-o", P, f"{P}_main.c", f"{P}.c", "-lm"], out)
+    return out / P
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class CRun:
+    """A record run in C: as :class:`~thetahat.estimation.observer.ObserverResult`, plus status.
+
+    Attributes
+    ----------
+    x_hat, phi_hat, theta_hat : ndarray
+        Shapes (N, n), (N, k), (N, p), in the generated precision.
+    x_hat_refined : ndarray or None
+    status : int
+        0, or the code that stopped the run at row ``index``.
+    index : int
+    """
+
+    x_hat: NDArray[Any]
+    phi_hat: NDArray[Any]
+    theta_hat: NDArray[Any]
+    x_hat_refined: NDArray[Any] | None
+    status: int
+    index: int
+
+
+class CObserver:
+    """A generated observer loaded with ctypes (build it with :func:`load_c`).
+
+    ``init``, ``step`` and ``run`` call ``<name>_init``, ``<name>_step`` and the shim's record
+    loop; the state is a numpy vector col(x̂, z, θ̂[, x̂₂]) in the generated precision.
+
+    Parameters
+    ----------
+    code : CCode
+        The generated sources.
+    library : Path
+        The shared library built from them by :func:`build`.
+    """
+
+    def __init__(self, code: CCode, library: Path) -> None:
+        self.code = code
+        self.dtype = np.float64 if code.real == "double" else np.float32
+        ctype = ctypes.c_double if code.real == "double" else ctypes.c_float
+        self._ptr = ctypes.POINTER(ctype)
+        self._lib = ctypes.CDLL(str(library))
+        P = code.name
+        self._init = getattr(self._lib, f"{P}_init")
+        self._step = getattr(self._lib, f"{P}_step")
+        self._run = getattr(self._lib, f"{P}_run_record")
+        self._steps = getattr(self._lib, f"{P}_run_steps")
+        for fn in (self._init, self._step, self._run, self._steps):
+            fn.restype = ctypes.c_int
+
+    def _p(self, a: NDArray[Any] | None) -> Any:
+        return None if a is None else a.ctypes.data_as(self._ptr)
+
+    def _vec(self, a: ArrayLike | None, size: int) -> NDArray[Any] | None:
+        if a is None:
+            return None
+        arr = np.ascontiguousarray(np.asarray(a, dtype=np.float64).reshape(size),
+                                   dtype=self.dtype)
+        return arr
+
+    def init(self, theta_hat0: ArrayLike | None = None, x_hat0: ArrayLike | None = None
+             ) -> NDArray[Any]:
+        """A new state from ``<name>_init``; raises NonFiniteError on a refused θ̂₀/x̂₀."""
+        s = np.zeros(self.code.sizes["state"], dtype=self.dtype)
+        th, x0 = self._vec(theta_hat0, self.code.sizes["p"]), self._vec(x_hat0,
+                                                                         self.code.sizes["n"])
+        status = self._init(self._p(s), self._p(th), self._p(x0))
+        if status != 0:
+            raise NonFiniteError(f"{self.code.name}_init refused θ̂₀/x̂₀ (status {status}).")
+        return s
+
+    def step(self, state: NDArray[Any], u: ArrayLike | None, y: ArrayLike) -> int:
+        """``<name>_step`` on ``state`` in place; returns the status code."""
+        if state.dtype != self.dtype or state.shape != (self.code.sizes["state"],):
+            raise DimensionError(f"state must be a {self.dtype.__name__} vector of length "
+                                 f"{self.code.sizes['state']}.")
+        m = self.code.sizes["m"]
+        uu = self._vec(np.zeros(max(m, 1)) if u is None or m == 0 else u, max(m, 1))
+        return int(self._step(self._p(state), self._p(uu), self._p(self._vec(
+            y, self.code.sizes["r"]))))
+
+    def _records(self, u: ArrayLike | None, y: ArrayLike, N: int
+                 ) -> tuple[NDArray[Any], NDArray[Any]]:
+        m, r = self.code.sizes["m"], self.code.sizes["r"]
+        U = (np.zeros((N, 1)) if u is None or m == 0
+             else np.asarray(u, dtype=np.float64).reshape(N, m))
+        Y = np.asarray(y, dtype=np.float64).reshape(N, r)
+        return (np.ascontiguousarray(U, dtype=self.dtype),
+                np.ascontiguousarray(Y, dtype=self.dtype))
+
+    def run(self, u: ArrayLike | None, y: ArrayLike, *, state0: NDArray[Any] | None = None
+            ) -> CRun:
+        """Record run (rows as ``observer.run`` records them), stopping at the first error."""
+        Y0 = np.asarray(y)
+        N = Y0.shape[0]
+        U, Y = self._records(u, y, N)
+        s = self.init() if state0 is None else np.array(state0, dtype=self.dtype)
+        sz = self.code.sizes
+        S = np.zeros((N, sz["state"]), dtype=self.dtype)
+        PHI = np.zeros((N, sz["k"]), dtype=self.dtype)
+        index = ctypes.c_long(0)
+        status = self._run(self._p(s), ctypes.c_long(N), self._p(U), self._p(Y), self._p(S),
+                           self._p(PHI), ctypes.byref(index))
+        n, k, p = sz["n"], sz["k"], sz["p"]
+        return CRun(x_hat=S[:, :n], phi_hat=PHI, theta_hat=S[:, n + k:n + k + p],
+                    x_hat_refined=S[:, n + k + p:] if sz["state"] > n + k + p else None,
+                    status=int(status), index=int(index.value))
+
+    def run_steps(self, U: NDArray[Any], Y: NDArray[Any], state: NDArray[Any]) -> int:
+        """N steps in one C call, nothing recorded (benchmarks); arrays in the C precision."""
+        return int(self._steps(self._p(state), ctypes.c_long(Y.shape[0]), self._p(U),
+                               self._p(Y)))
+
+    def raise_for(self, status: int, where: str) -> None:
+        """Raise the Python observer's error for a status code (0: nothing)."""
+        if status == STATUS["theta_star"]:
+            raise UpdateLawError(f"θ* invalid where l > 0 {where} (on_invalid='raise').")
+        if status:
+            raise NonFiniteError(f"the C observer refused the data {where} (status {status}).")
+
+
+def load_c(code: CCode, directory: str | Path, *, flags: Sequence[str] = C_FLAGS) -> CObserver:
+    """Compile ``code`` in ``directory`` (see :func:`build`) and load it.
+
+    Parameters
+    ----------
+    code : CCode
+    directory : str or Path
+    flags : sequence of str
+
+    Returns
+    -------
+    CObserver
+
+    Examples
+    --------
+    >>> import tempfile
+    >>> from thetahat.modelfile import EXAMPLE_MODEL, build_observer, loads_model
+    >>> from thetahat.codegen import generate_c
+    >>> code = generate_c(build_observer(loads_model(EXAMPLE_MODEL)), dt=0.01, name="prop3")
+    >>> obs = load_c(code, tempfile.mkdtemp()) if find_compiler() else None
+    >>> obs is None or obs.step(obs.init(), [0.0], [0.1]) == 0
+    True
+    """
+    return CObserver(code, build(code, directory, flags=flags))
