@@ -68,6 +68,17 @@ def column_candidates(spec: ModelSpec) -> list[list[str]]:
     Each input may be named as in the model, ``u1``, ``u2``, … or ``u`` when m = 1; each output
     likewise with ``y``. The first name found in a header is used.
 
+    Parameters
+    ----------
+    spec : ModelSpec
+        The model; its ``input_names`` and ``output_names`` give the column names.
+
+    Returns
+    -------
+    list of list of str
+        1 + m + r lists, in the order t, u₁ … u_m, y₁ … y_r: the accepted names of each
+        column, the model's name first.
+
     Examples
     --------
     >>> from thetahat.modelfile import EXAMPLE_MODEL, loads_model

@@ -48,6 +48,25 @@ def chunks(items: Sequence[Any], chunk_size: int | None = None) -> list[list[Any
     """Cut ``items`` into consecutive chunks of ``chunk_size`` (default: about
     :data:`CHUNK_TARGET` chunks).
 
+    Parameters
+    ----------
+    items : sequence
+        The work, in order.
+    chunk_size : int, optional
+        Items per chunk (a positive integer; the last chunk may be shorter). Default
+        ⌈len(items) / :data:`CHUNK_TARGET`⌉, at least 1.
+
+    Returns
+    -------
+    list of list
+        The consecutive chunks; their concatenation is ``list(items)`` (no chunks when
+        ``items`` is empty).
+
+    Raises
+    ------
+    DimensionError
+        ``chunk_size`` is not a positive integer or None.
+
     Examples
     --------
     >>> from thetahat.engine import chunks
@@ -70,6 +89,18 @@ def _run_seeds(seeds: list[int], *, fn: Callable[[int], Any]) -> list[tuple[int,
 
 def seed_task(fn: Callable[[int], Any]) -> Callable[[list[int]], list[tuple[int, Any]]]:
     """The chunk task of a Monte-Carlo: ``fn(seed)`` for each seed of the chunk, keyed by seed.
+
+    Parameters
+    ----------
+    fn : callable ``fn(seed) -> result``
+        One run of the study for an integer seed. On a cluster it must be picklable (a
+        module-level function or a ``functools.partial`` of one).
+
+    Returns
+    -------
+    callable ``task(seeds) -> [(seed, result), ...]``
+        A task for :func:`run_keyed` with the seeds as items and keys: a
+        ``functools.partial``, hence picklable when ``fn`` is.
 
     Examples
     --------

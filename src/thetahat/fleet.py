@@ -156,6 +156,18 @@ def fleet_files(data: str | Path | Iterable[str | Path]) -> list[Path]:
     """The records of a fleet: a directory (its .csv and .parquet files), a glob pattern, or
     a list of paths; sorted by name (lists keep their order).
 
+    Parameters
+    ----------
+    data : str, Path or iterable of str or Path
+        A directory (its files with a suffix in :data:`DATA_SUFFIXES`, not recursive), a glob
+        pattern (``**`` recurses; only files match), any other path as one file, or a list
+        of paths (taken as given, not checked).
+
+    Returns
+    -------
+    list of Path
+        The record files.
+
     Raises
     ------
     ModelFileError
@@ -180,6 +192,21 @@ def fleet_files(data: str | Path | Iterable[str | Path]) -> list[Path]:
 
 def read_parquet(path: str | Path, spec: ModelSpec) -> DataRecord:
     """Read a Parquet record with the columns of :func:`~thetahat.datafile.read_data`.
+
+    Parameters
+    ----------
+    path : str or Path
+        Parquet file (needs pyarrow). Required columns as for
+        :func:`~thetahat.datafile.read_data` (see
+        :func:`~thetahat.datafile.column_candidates`); other columns are ignored. Every
+        value must be finite, and t strictly increasing over at least two rows.
+    spec : ModelSpec
+        The model whose estimator reads the record (its input and output names).
+
+    Returns
+    -------
+    DataRecord
+        ``t (N,)``, ``u (N, m)``, ``y (N, r)`` in float64, the columns used and the source.
 
     Raises
     ------

@@ -167,7 +167,14 @@ def run_with_time_budget(fn: Callable[..., T], *args: Any, seconds: float | None
 
 def available_memory() -> int:
     """Bytes of memory available to a new allocation (Linux ``MemAvailable``; else the
-    physical memory), or 0 when unknown."""
+    physical memory), or 0 when unknown.
+
+    Returns
+    -------
+    int
+        Available memory in bytes; 0 when it cannot be determined (then
+        :func:`check_allocation` sets no limit).
+    """
     try:
         with open("/proc/meminfo", encoding="ascii") as fh:
             for line in fh:

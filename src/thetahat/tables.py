@@ -26,6 +26,22 @@ def result_columns(result: Any, *, state_names: Sequence[str] | None = None,
                    parameter_names: Sequence[str] | None = None) -> dict[str, np.ndarray]:
     """``{column: values (N,)}`` of a result, in the CSV's order (without ``t``).
 
+    Parameters
+    ----------
+    result : ObserverResult
+        The estimates: ``t (N,)``, ``x_hat (N, n)``, ``phi_hat (N, k)``, ``theta_hat (N, p)``,
+        ``x_hat_refined (N, n)`` or None, and ``skipped (N,)``.
+    state_names : sequence of str, optional
+        n names of the states x; default ``"1"``, …, ``"n"``.
+    parameter_names : sequence of str, optional
+        p names of the parameters θ; default ``"1"``, …, ``"p"``.
+
+    Returns
+    -------
+    dict of str to ndarray, shape (N,)
+        ``x_hat_<state>`` (n), ``phi_hat_<i>`` (k, i from 1), ``theta_hat_<parameter>`` (p),
+        ``x_hat_refined_<state>`` (n, when the result has x̂₂) and ``skipped`` (bool).
+
     Examples
     --------
     >>> import numpy as np
@@ -53,6 +69,21 @@ def result_to_dataframe(result: Any, *, state_names: Sequence[str] | None = None
                         parameter_names: Sequence[str] | None = None) -> Any:
     """The result as a :class:`pandas.DataFrame` indexed by ``t`` (needs pandas).
 
+    Parameters
+    ----------
+    result : ObserverResult
+        The estimates: ``t (N,)``, ``x_hat (N, n)``, ``phi_hat (N, k)``, ``theta_hat (N, p)``,
+        ``x_hat_refined (N, n)`` or None, and ``skipped (N,)``.
+    state_names : sequence of str, optional
+        n names of the states x; default ``"1"``, …, ``"n"``.
+    parameter_names : sequence of str, optional
+        p names of the parameters θ; default ``"1"``, …, ``"p"``.
+
+    Returns
+    -------
+    pandas.DataFrame
+        N rows indexed by ``t``, with the columns of :func:`result_columns`.
+
     Raises
     ------
     MissingExtraError
@@ -71,6 +102,22 @@ def result_to_xarray(result: Any, *, state_names: Sequence[str] | None = None,
     """The result as an :class:`xarray.Dataset` over ``t`` with variables ``x_hat``
     (t, state), ``phi_hat`` (t, channel), ``theta_hat`` (t, parameter), ``x_hat_refined``
     when present and ``skipped`` (needs xarray).
+
+    Parameters
+    ----------
+    result : ObserverResult
+        The estimates: ``t (N,)``, ``x_hat (N, n)``, ``phi_hat (N, k)``, ``theta_hat (N, p)``,
+        ``x_hat_refined (N, n)`` or None, and ``skipped (N,)``.
+    state_names : sequence of str, optional
+        n names of the states x; default ``"1"``, …, ``"n"``.
+    parameter_names : sequence of str, optional
+        p names of the parameters θ; default ``"1"``, …, ``"p"``.
+
+    Returns
+    -------
+    xarray.Dataset
+        Coordinates ``t`` (N), ``state`` (the state names), ``channel`` (1 … k) and
+        ``parameter`` (the parameter names).
 
     Raises
     ------

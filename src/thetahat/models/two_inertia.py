@@ -135,13 +135,36 @@ def perturbation(params: DriveParameters = DriveParameters()) -> SymbolicPerturb
 
 
 def system(params: DriveParameters = DriveParameters()) -> PerturbedLinearSystem:
-    """The drive as a :class:`PerturbedLinearSystem` with the observer's g and Θ."""
+    """The drive as a :class:`PerturbedLinearSystem` with the observer's g and Θ.
+
+    Parameters
+    ----------
+    params : DriveParameters
+        Physical parameters of the drive; default ``DriveParameters()``.
+
+    Returns
+    -------
+    PerturbedLinearSystem
+        x = col(ω_m, Δ, ω_l), u = motor torque, y = col(ω_m, Δ), θ = col(F_m, F_l): A (3, 3),
+        B (3, 1), C (2, 3), E (3, 2), g of :func:`perturbation` and Θ = :data:`PARAMETER_SET`.
+    """
     return PerturbedLinearSystem(**_matrices(params), perturbation=perturbation(params),
                                  parameter_set=PARAMETER_SET)
 
 
 def assumption_report(params: DriveParameters = DriveParameters()) -> AssumptionReport:
-    """Assumption 1 for (C, A, E) of the drive."""
+    """Assumption 1 for (C, A, E) of the drive.
+
+    Parameters
+    ----------
+    params : DriveParameters
+        Physical parameters of the drive; default ``DriveParameters()``.
+
+    Returns
+    -------
+    AssumptionReport
+        Left invertibility and minimum phase of (C, A, E); the drive has no invariant zeros.
+    """
     m = _matrices(params)
     return check_assumption_1(m["A"], m["E"], m["C"])
 
@@ -152,6 +175,21 @@ def design(eps: float = EPS, *, params: DriveParameters = DriveParameters(),
 
     ``scaling="original"`` gives the paper's uncorrected exponents, to show what the
     corrigendum fixes.
+
+    Parameters
+    ----------
+    eps : float
+        ε of the design; default :data:`EPS`.
+    params : DriveParameters
+        Physical parameters of the drive; default ``DriveParameters()``.
+    scaling : {"corrigendum", "original"}
+        The ε-exponents of the chain gains (see
+        :func:`~thetahat.design.gains.high_gain`).
+
+    Returns
+    -------
+    GainDesign
+        K = [K_x; K_φ] with K_x (3, 2) and K_φ (2, 2), and the SCB of (4).
     """
     m = _matrices(params)
     return modified_high_gain(m["A"], m["E"], m["C"], eps, scaling=scaling)
@@ -166,6 +204,17 @@ class LoadSpeedWeight:
     """M(v, x̂, θ̂) = diag(tanh(y₁/v_s), w(|ω̂_l|) tanh(ω̂_l/v_s)) of the Proposition 4 law.
 
     w is :func:`~thetahat.estimation.update_laws.smooth_ramp` over :data:`LOAD_SPEED_RAMP`.
+    Called as ``M(v, x, theta)`` with v = col(u, y) (..., 3), x (..., 3) and θ (..., 2); returns
+    shape (..., 2, 2).
+
+    Parameters
+    ----------
+    v_s : float
+        Speed scale of the smoothed Coulomb friction F tanh(ω/v_s) (rad/s), as in
+        :class:`DriveParameters`.
+    ramp : tuple of float
+        (low, high) thresholds of |ω̂_l| (rad/s) of the weight w; default
+        :data:`LOAD_SPEED_RAMP`.
 
     Examples
     --------
@@ -198,6 +247,23 @@ def observer(eps: float = EPS, *, Gamma: float = GAMMA,
     """The estimator: observer (3) with K(ε) and the Proposition 4 gradient law (Γ) with
     M = :class:`LoadSpeedWeight`.
 
+    Parameters
+    ----------
+    eps : float
+        ε of the gain design; default :data:`EPS`.
+    Gamma : float
+        Γ of the gradient law; default :data:`GAMMA`.
+    params : DriveParameters
+        Physical parameters of the drive; default ``DriveParameters()``.
+    scaling : {"corrigendum", "original"}
+        The ε-exponents of the chain gains, as in :func:`design`.
+
+    Returns
+    -------
+    ModifiedHighGainObserver
+        On :func:`system` with K(ε) of :func:`design` (K_x (3, 2), K_φ (2, 2)) and the
+        :class:`~thetahat.estimation.update_laws.GradientInversion` law on Θ.
+
     Examples
     --------
     >>> from thetahat.models import two_inertia
@@ -214,7 +280,17 @@ def observer(eps: float = EPS, *, Gamma: float = GAMMA,
 
 @dataclass(frozen=True, slots=True)
 class TruePhi:
-    """The plant's friction φ(t, x, u, θ) and ∂φ/∂x, as :func:`simulate_plant` takes them."""
+    """The plant's friction φ(t, x, u, θ) and ∂φ/∂x, as :func:`simulate_plant` takes them.
+
+    ``phi(t, x, u, theta)`` = col(F_m tanh(ω_m/v_s), F_l tanh(ω_l/v_s)), shape (..., 2), with
+    the true ω_m (not the measured y₁); ``phi.dphi_dx(t, x, u, theta)`` has shape (2, 3).
+
+    Parameters
+    ----------
+    v_s : float
+        Speed scale of the smoothed Coulomb friction F tanh(ω/v_s) (rad/s), as in
+        :class:`DriveParameters`.
+    """
 
     v_s: float
 
