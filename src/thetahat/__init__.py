@@ -21,6 +21,8 @@ from .errors import (ConvergenceWarning, DesignError, DimensionError, IllConditi
                      MissingExtraError, ModelFileError, NonFiniteError, SimulationError, NotLeftInvertibleError,
                      NotMinimumPhaseError, ParameterSetError, ThetahatError, ThetahatWarning,
                      UpdateLawError)
+from .errors import (IllConditionedError, InputLimitError, ResourceLimitError,
+                     SymbolicTimeoutError, UnstableDesignError)
 from .model.interop import from_state_space, to_state_space
 from .model.paramset import Ball, Box, ConvexSet, Ellipsoid, ParameterSet
 from .model.parse import parse_perturbation
@@ -60,5 +62,7 @@ __all__ = [
     "apply_design", "check_assumption_1", "extended_system", "high_gain", "invariant_zeros",
     "is_left_invertible", "is_minimum_phase", "modified_high_gain", "normal_rank", "scb", "scb_symbolic",
     "unstable_zeros", "__version__",
+    "IllConditionedError", "InputLimitError", "ResourceLimitError", "SymbolicTimeoutError",
+    "UnstableDesignError",
     "StepPlan", "ThetaStar",
 ]

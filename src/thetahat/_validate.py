@@ -68,7 +68,7 @@ def as_matrix(name: str, M: Any, shape: tuple[int | None, int | None] = (None, N
 
 def as_vector(name: str, v: Any, size: int | None = None, *, finite: bool = True) -> FloatArray:
     """Return ``v`` as a 1-D float64 array of length ``size`` (scalars become length 1)."""
-    arr = np.asarray(v, dtype=np.float64)
+    arr = _real_array(name, v)
     if arr.ndim == 0:
         arr = arr.reshape(1)
     if arr.ndim != 1:
@@ -89,18 +89,29 @@ def as_square(name: str, M: Any, n: int | None = None) -> FloatArray:
     return arr
 
 
+def _real_array(name: str, M: Any) -> FloatArray:
+    """``M`` as a float64 array of any shape; complex or non-numeric input is refused."""
+    arr = np.asarray(M)
+    if np.iscomplexobj(arr):
+        raise DimensionError(f"{name} must be real; got a complex array.")
+    try:
+        return arr.astype(np.float64, copy=False)
+    except (TypeError, ValueError) as exc:
+        raise DimensionError(f"{name} must be a numeric matrix; got {type(M).__name__}.") from exc
+
+
 def as_triple(A: Any, B: Any, C: Any, *, names: tuple[str, str, str] = ("A", "B", "C")
               ) -> tuple[FloatArray, FloatArray, FloatArray]:
     """Validate a state-space triple: A (n, n), B (n, m), C (r, n)."""
     An, Bn, Cn = names
     A_ = as_square(An, A)
     n = A_.shape[0]
-    B_ = np.asarray(B, dtype=np.float64)
+    B_ = _real_array(Bn, B)
     if B_.ndim == 1 and B_.shape[0] == n:
         raise DimensionError(f"{Bn} must be 2-D of shape ({n}, ?); got a 1-D array of length {n}. "
                              f"For a single input use np.reshape({Bn}, ({n}, 1)).")
     B_ = as_matrix(Bn, B_, (n, None))
-    C_ = np.asarray(C, dtype=np.float64)
+    C_ = _real_array(Cn, C)
     if C_.ndim == 1 and C_.shape[0] == n:
         raise DimensionError(f"{Cn} must be 2-D of shape (?, {n}); got a 1-D array of length {n}. "
                              f"For a single output use np.reshape({Cn}, (1, {n})).")

@@ -7,10 +7,13 @@ Subcommands::
     thetahat tune [--eps 1 0.7 0.5 0.3] [--gamma 1 3 10 30] [--seeds 1000 1001] [--t-end 20]
                   [--out out]
     thetahat analyze MODEL
-    thetahat estimate MODEL DATA.csv [-o estimates.csv] [--hold zoh|foh]
+    thetahat estimate MODEL DATA.csv [-o estimates.csv] [--hold zoh|foh] [--nan-policy raise|skip]
+                      [--no-progress]
 
-Exit codes: 0 success, 2 usage or input error (the message is printed as
-``thetahat: error: ...``, without a traceback).
+Exit codes (see ``EXIT_CODES``): 0 success; 1 the model fails the theory's checks (Assumption 1
+fails, or the design is unstable on the true system); 2 usage or input error (the message is
+printed as ``thetahat: error: ...``, without a traceback; ``--debug`` shows it); 3 internal
+error (a bug: please report it with the ``--debug`` traceback); 130 interrupted.
 """
 
 from __future__ import annotations
@@ -23,24 +26,44 @@ from collections.abc import Sequence
 from pathlib import Path
 
 from . import __version__
-from .errors import ThetahatError
+from .errors import (NotLeftInvertibleError, NotMinimumPhaseError, ThetahatError,
+                     UnstableDesignError)
 
 EXIT_OK = 0
+EXIT_CHECK = 1
 EXIT_INPUT = 2
+EXIT_INTERNAL = 3
+EXIT_INTERRUPTED = 130
+
+#: The exit codes, as printed by ``thetahat --help``.
+EXIT_CODES = ("Exit codes: 0 success (analyze: Assumption 1 holds and the design is stable on "
+              "the true system); 1 the model fails these checks (Assumption 1 fails, or the "
+              "design is unstable on the true system); 2 usage or input error (bad file, bad "
+              "option; the message says what to fix, --debug shows the traceback); 3 internal "
+              "error (please report it with the --debug output); 130 interrupted.")
+
+#: Errors that mean "the model violates the theory", exit code 1.
+_CHECK_ERRORS = (NotMinimumPhaseError, NotLeftInvertibleError, UnstableDesignError)
 
 _LUGRE_STATES = ("omega", "eta")
 
 
 def _demo(args: argparse.Namespace) -> int:
+    from .datafile import check_writable
     from .models.lugre_report import report
+
+    check_writable(Path(args.out) / "lugre.json")          # before any work
 
     report(out=args.out, eps=args.eps, seed=args.seed, show=args.show)
     return EXIT_OK
 
 
 def _sweep(args: argparse.Namespace) -> int:
+    from .datafile import check_writable
     from .models import lugre
     from .simulation.sweep import eps_sweep
+
+    check_writable(Path(args.out) / "sweep.json")          # before any work
 
     simulate = functools.partial(lugre.simulate, t_end=args.t_end)
     result = eps_sweep(lugre.observer, simulate, args.eps, range(args.seeds),
@@ -61,8 +84,11 @@ def _sweep(args: argparse.Namespace) -> int:
 
 
 def _tune(args: argparse.Namespace) -> int:
+    from .datafile import check_writable
     from .models import lugre
     from .simulation.tune import tune_eps_gamma
+
+    check_writable(Path(args.out) / "tune.json")           # before any work
 
     simulate = functools.partial(lugre.simulate, t_end=args.t_end)
     result = tune_eps_gamma(lugre.observer, simulate, eps_values=args.eps, gammas=args.gamma,
@@ -82,19 +108,34 @@ def _tune(args: argparse.Namespace) -> int:
 def _analyze(args: argparse.Namespace) -> int:
     from .modelfile import analyze_model, load_model
 
-    print(analyze_model(load_model(args.model)))
+    report = analyze_model(load_model(args.model))
+    print(report)
+    if not report.ok:
+        print(f"thetahat: check failed: {report.verdict()}", file=sys.stderr)
+        return EXIT_CHECK
     return EXIT_OK
 
 
 def _estimate(args: argparse.Namespace) -> int:
-    from .datafile import read_data, write_estimates
-    from .modelfile import load_model, run_estimator
+    import warnings
 
+    from .datafile import check_writable, read_data, write_estimates
+    from .modelfile import load_model, run_estimator
+    from .progress import reporter
+    from .simulation.metrics import estimate_summary
+
+    check_writable(args.output)
     spec = load_model(args.model)
-    data = read_data(args.data, spec)
-    result = run_estimator(spec, data.t, data.u, data.y, hold=args.hold)
+    data = read_data(args.data, spec, nan_policy=args.nan_policy)
+    progress = None if args.no_progress else reporter("estimate")
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        result = run_estimator(spec, data.t, data.u, data.y, hold=args.hold,
+                               nan_policy=args.nan_policy, progress=progress)
     write_estimates(args.output, result, spec)
     print(f"wrote {args.output} ({data.t.size} rows)")
+    notes = [f"{w.category.__name__}: {w.message}" for w in caught]
+    print(estimate_summary(result, spec.parameter_names, warnings=notes))
     return EXIT_OK
 
 
@@ -103,8 +144,10 @@ def _parser() -> argparse.ArgumentParser:
         prog="thetahat",
         description="State, perturbation and parameter estimation for linear systems with "
                     "nonlinearly parameterized perturbations (Grip, Saberi & Johansen).",
-        epilog="Exit codes: 0 success, 2 usage or input error.")
+        epilog=EXIT_CODES)
     parser.add_argument("--version", action="version", version=f"thetahat {__version__}")
+    parser.add_argument("--debug", action="store_true",
+                        help="show the full traceback of an error")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
     demo = sub.add_parser("demo", help="run the paper's example end to end (Sec. VIII)",
@@ -156,7 +199,10 @@ def _parser() -> argparse.ArgumentParser:
     analyze = sub.add_parser("analyze", help="structural report of a model file",
                              description="Assumption 1, the SCB of the error system (4) (and "
                                          "of the design system), K(ε) and the closed-loop "
-                                         "spectra on the design and true systems.")
+                                         "spectra on the design and true systems.",
+                             epilog="Exit codes: 0 when Assumption 1 holds and the design is "
+                                    "stable on the true system; 1 when not (the report says "
+                                    "why); 2 for bad input (an unreadable or invalid file).")
     analyze.add_argument("model", help="model file (.toml or .json)")
     analyze.set_defaults(run=_analyze)
 
@@ -173,6 +219,12 @@ def _parser() -> argparse.ArgumentParser:
                           help="output CSV (default: estimates.csv)")
     estimate.add_argument("--hold", choices=["zoh", "foh"], default="zoh",
                           help="sample hold between samples (default: zoh)")
+    estimate.add_argument("--nan-policy", choices=["raise", "skip"], default="raise",
+                          help="empty or NaN output cells (dropouts): refuse the file (raise, "
+                               "default) or predict over them without output correction "
+                               "(skip)")
+    estimate.add_argument("--no-progress", action="store_true",
+                          help="do not report progress on stderr")
     estimate.set_defaults(run=_estimate)
     return parser
 
@@ -188,7 +240,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     Returns
     -------
     int
-        0 on success, 2 on a usage or input error.
+        See ``EXIT_CODES``: 0 success, 1 the model fails the theory's checks, 2 a usage or
+        input error, 3 an internal error, 130 interrupted.
     """
     parser = _parser()
     try:
@@ -197,9 +250,24 @@ def main(argv: Sequence[str] | None = None) -> int:
         return int(exc.code or 0)
     try:
         return args.run(args)
+    except _CHECK_ERRORS as exc:
+        _report(args, "check failed", exc)
+        return EXIT_CHECK
     except (ThetahatError, OSError) as exc:
-        print(f"thetahat: error: {exc}", file=sys.stderr)
+        _report(args, "error", exc)
         return EXIT_INPUT
     except KeyboardInterrupt:
         print("thetahat: interrupted", file=sys.stderr)
-        return 130
+        return EXIT_INTERRUPTED
+    except Exception as exc:  # noqa: BLE001 - a bug: no traceback unless --debug
+        _report(args, f"internal error ({type(exc).__name__}; a bug, please report it with "
+                      f"the output of --debug)", exc)
+        return EXIT_INTERNAL
+
+
+def _report(args: argparse.Namespace, what: str, exc: BaseException) -> None:
+    if args.debug:
+        import traceback
+
+        traceback.print_exception(exc, file=sys.stderr)
+    print(f"thetahat: {what}: {exc}", file=sys.stderr)

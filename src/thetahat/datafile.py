@@ -4,17 +4,21 @@ from __future__ import annotations
 
 import csv
 import math
+import os
+import warnings
+from array import array
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
 
-from .errors import ModelFileError
+from .errors import ModelFileError, OptionError
 from .estimation.observer import ObserverResult
 from .modelfile import ModelSpec
 
-__all__ = ["DataRecord", "read_data", "estimate_columns", "write_estimates"]
+__all__ = ["DataRecord", "read_data", "check_writable", "estimate_columns", "write_estimates"]
 
 FloatArray = NDArray[np.float64]
 
@@ -52,8 +56,16 @@ def _aliases(names: tuple[str, ...], letter: str) -> list[list[str]]:
     return out
 
 
-def read_data(path: str | Path, spec: ModelSpec) -> DataRecord:
+NAN_POLICIES = ("raise", "skip")
+#: Cells read as a missing output sample under ``nan_policy="skip"`` (besides NaN itself).
+MISSING_CELLS = ("", "nan", "na", "n/a", "null", "none")
+
+
+def read_data(path: str | Path, spec: ModelSpec, *, nan_policy: str = "raise") -> DataRecord:
     """Read a CSV record (header row; columns t, inputs, outputs) for a model's estimator.
+
+    The file is read as UTF-8 (a byte-order mark, as Excel writes, is accepted), with any line
+    ending (LF, CRLF), row by row into float64 columns: memory is O(N) in the samples only.
 
     Parameters
     ----------
@@ -63,6 +75,10 @@ def read_data(path: str | Path, spec: ModelSpec) -> DataRecord:
         under its name or ``y1``, … (``y`` when r = 1). Order is free; other columns are
         ignored; blank lines are skipped.
     spec : ModelSpec
+    nan_policy : {"raise", "skip"}
+        ``"skip"`` reads empty or NaN output cells (measurement dropouts) as NaN, for the
+        observer's ``nan_policy="skip"``; ``"raise"`` refuses them. Inputs and t must always
+        be finite.
 
     Returns
     -------
@@ -74,6 +90,8 @@ def read_data(path: str | Path, spec: ModelSpec) -> DataRecord:
         The file cannot be read, a column is missing, a value is not a number or is NaN or
         inf (the message gives the line and the column), a row has the wrong number of
         fields, or t is not strictly increasing.
+    OptionError
+        Unknown ``nan_policy``.
 
     Examples
     --------
@@ -85,19 +103,49 @@ def read_data(path: str | Path, spec: ModelSpec) -> DataRecord:
     >>> _ = csv_path.write_text("t,u,y\\n0,0,0.1\\n0.01,0.5,0.2\\n")
     >>> read_data(csv_path, spec).y.ravel().tolist()
     [0.1, 0.2]
+    >>> _ = csv_path.write_text("t,u,y\\r\\n0,0,0.1\\r\\n0.01,0.5,\\r\\n")   # a dropout
+    >>> read_data(csv_path, spec, nan_policy="skip").y.ravel().tolist()
+    [0.1, nan]
     """
+    if nan_policy not in NAN_POLICIES:
+        raise OptionError(f"nan_policy must be one of {NAN_POLICIES}; got {nan_policy!r}.")
     path = Path(path)
     try:
-        with path.open(newline="", encoding="utf-8") as fh:
-            rows = [(i + 1, row) for i, row in enumerate(csv.reader(fh))]
+        with path.open(newline="", encoding="utf-8-sig") as fh:
+            return _read_rows(path, csv.reader(fh), spec, nan_policy)
     except (OSError, UnicodeDecodeError, csv.Error) as exc:
         raise ModelFileError(f"cannot read data file {path}: {exc}") from exc
-    rows = [(line, row) for line, row in rows if row and any(c.strip() for c in row)]
-    if not rows:
+
+
+def _fast_columns(path: Path, header_line: int, width: int,
+                  index: list[int]) -> NDArray[np.float64] | None:
+    """The selected columns by numpy's C reader, or None when the file needs the careful
+    row-by-row reader (quoted or non-numeric cells, NaN, ragged rows, t not increasing), which
+    then gives the message with the line and the column."""
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            data = np.loadtxt(path, delimiter=",", skiprows=header_line, dtype=np.float64,
+                              ndmin=2, encoding="utf-8-sig", comments=None)
+    except (ValueError, OSError, UnicodeDecodeError):
+        return None
+    if data.shape[0] == 0 or data.shape[1] != width:
+        return None
+    cols = data[:, index]
+    if not np.isfinite(cols).all() or not np.all(np.diff(cols[:, 0]) > 0):
+        return None
+    return np.ascontiguousarray(cols)
+
+
+def _read_rows(path: Path, reader: Any, spec: ModelSpec, nan_policy: str) -> DataRecord:
+    header_line, header = 0, None
+    for line, row in enumerate(reader, start=1):
+        if row and any(c.strip() for c in row):
+            header_line, header = line, [h.strip() for h in row]
+            break
+    if header is None:
         raise ModelFileError(f"data file {path} is empty; expected a header row such as "
                              f"t,{','.join(spec.input_names + spec.output_names)}.")
-    header_line, header = rows[0]
-    header = [h.strip() for h in header]
     wanted = [["t"]] + _aliases(spec.input_names, "u") + _aliases(spec.output_names, "y")
     index = []
     for alts in wanted:
@@ -108,36 +156,102 @@ def read_data(path: str | Path, spec: ModelSpec) -> DataRecord:
                 f"header (line {header_line}: {','.join(header)}); expected t, then the "
                 f"inputs {list(spec.input_names)} and the outputs {list(spec.output_names)}.")
         index.append(header.index(found[0]))
-    if not rows[1:]:
-        raise ModelFileError(f"data file {path} has a header but no data rows.")
-    data = np.empty((len(rows) - 1, len(index)))
-    for r, (line, row) in enumerate(rows[1:]):
+    m = spec.system.m
+    cols = tuple(header[j] for j in index)
+    fast = _fast_columns(path, header_line, len(header), index)
+    if fast is not None:
+        return DataRecord(t=fast[:, 0].copy(), u=fast[:, 1:1 + m].copy(),
+                          y=fast[:, 1 + m:].copy(), columns=cols, source=str(path))
+    columns = [array("d") for _ in index]
+    lines = array("q")
+    for line, row in enumerate(reader, start=header_line + 1):
+        if not row or not any(c.strip() for c in row):
+            continue
         if len(row) != len(header):
             raise ModelFileError(f"data file {path}, line {line}: {len(row)} fields, but the "
                                  f"header has {len(header)}.")
         for c, j in enumerate(index):
-            cell = row[j].strip()
-            try:
-                value = float(cell)
-            except ValueError:
-                raise ModelFileError(f"data file {path}, line {line}, column "
-                                     f"{header[j]!r}: {cell!r} is not a number.") from None
-            if not math.isfinite(value):
-                raise ModelFileError(f"data file {path}, line {line}, column "
-                                     f"{header[j]!r}: {cell} is not finite; the estimator "
-                                     f"needs every sample (remove or fill the row).")
-            data[r, c] = value
+            columns[c].append(_cell(path, line, header[j], row[j], output=c > m,
+                                    skip=nan_policy == "skip"))
+        lines.append(line)
+    if not lines:
+        raise ModelFileError(f"data file {path} has a header but no data rows.")
+    data = np.column_stack([np.frombuffer(col, dtype=np.float64) for col in columns])
     t = data[:, 0]
     steps = np.diff(t)
     if steps.size and not np.all(steps > 0):
         r = int(np.argmax(steps <= 0)) + 1
-        raise ModelFileError(f"data file {path}, line {rows[1 + r][0]}: t = {float(t[r])!r} does not "
+        raise ModelFileError(f"data file {path}, line {lines[r]}: t = {float(t[r])!r} does not "
                              f"increase (previous t = {float(t[r - 1])!r}); t must be strictly "
                              f"increasing.")
-    m = spec.system.m
-    cols = tuple(header[j] for j in index)
-    return DataRecord(t=t, u=data[:, 1:1 + m], y=data[:, 1 + m:], columns=cols,
-                      source=str(path))
+    return DataRecord(t=t.copy(), u=data[:, 1:1 + m].copy(), y=data[:, 1 + m:].copy(),
+                      columns=cols, source=str(path))
+
+
+def _cell(path: Path, line: int, column: str, text: str, *, output: bool,
+          skip: bool) -> float:
+    cell = text.strip()
+    if output and skip and cell.lower() in MISSING_CELLS:
+        return math.nan
+    try:
+        value = float(cell)
+    except ValueError:
+        hint = (" (an empty output cell is a dropout: pass --nan-policy skip)"
+                if output and cell == "" else "")
+        raise ModelFileError(f"data file {path}, line {line}, column {column!r}: {cell!r} is "
+                             f"not a number{hint}.") from None
+    if math.isnan(value) and output and skip:
+        return value
+    if not math.isfinite(value):
+        hint = ("; a NaN output is a dropout: pass --nan-policy skip (nan_policy='skip') to "
+                "predict over it" if output and math.isnan(value) else
+                "; the estimator needs every t and input sample (remove or fill the row)")
+        raise ModelFileError(f"data file {path}, line {line}, column {column!r}: {cell} is "
+                             f"not finite{hint}.")
+    return value
+
+
+def check_writable(path: str | Path) -> Path:
+    """Check, before any work, that an output file can be written (without creating it).
+
+    Parameters
+    ----------
+    path : str or Path
+
+    Returns
+    -------
+    Path
+
+    Raises
+    ------
+    ModelFileError
+        ``path`` is a directory, an existing file that is not writable, or lies in a folder
+        that cannot be created or written.
+
+    Examples
+    --------
+    >>> import tempfile
+    >>> from thetahat.datafile import check_writable
+    >>> check_writable(tempfile.mkdtemp())
+    Traceback (most recent call last):
+    ...
+    thetahat.errors.ModelFileError: cannot write ...: it is a directory; give a file name...
+    """
+    path = Path(path)
+    if path.is_dir():
+        raise ModelFileError(f"cannot write {path}: it is a directory; give a file name, e.g. "
+                             f"{path / 'estimates.csv'}.")
+    if path.exists():
+        if not os.access(path, os.W_OK):
+            raise ModelFileError(f"cannot write {path}: the file is not writable.")
+        return path
+    folder = path.parent
+    while not folder.exists() and folder != folder.parent:
+        folder = folder.parent
+    if not folder.is_dir() or not os.access(folder, os.W_OK | os.X_OK):
+        raise ModelFileError(f"cannot write {path}: {folder} is not a writable folder; choose "
+                             f"another output path (-o).")
+    return path
 
 
 def estimate_columns(spec: ModelSpec, *, refined: bool) -> tuple[str, ...]:

@@ -22,6 +22,16 @@ __all__ = [
     "UpdateLawError",
     "ModelFileError",
     "SimulationError",
+    "OptionError",
+    "ArgumentTypeError",
+    "UnsupportedError",
+    "InputLimitError",
+    "SymbolicTimeoutError",
+    "ResourceLimitError",
+    "IllConditionedError",
+    "UnstableDesignError",
+    "IndexOutOfRangeError",
+    "FileAccessError",
     "MissingExtraError",
     "ThetahatWarning",
     "ConvergenceWarning",
@@ -98,6 +108,98 @@ class SimulationError(ThetahatError, RuntimeError):
     """A numerical integration failed (the solver's message is included) or produced NaN/inf."""
 
 
+class OptionError(ThetahatError, ValueError):
+    """An option has a value outside its allowed set (the message lists the allowed values)."""
+
+
+class ArgumentTypeError(ThetahatError, TypeError):
+    """An argument has the wrong type (the message names the type that is expected)."""
+
+
+class UnsupportedError(ThetahatError, NotImplementedError):
+    """A valid input that this routine does not handle; the message names the alternative."""
+
+
+class IndexOutOfRangeError(ThetahatError, IndexError):
+    """An index is outside the valid range (the message gives the range)."""
+
+
+class FileAccessError(ThetahatError, OSError):
+    """A file or folder thetahat needs cannot be created or written."""
+
+
+class InputLimitError(ThetahatError, ValueError):
+    """An input exceeds a size, nesting or exponent limit of :mod:`thetahat.limits`.
+
+    The limits keep hostile or accidental input (a 10-character exponent tower, a
+    10 000-deep nesting) from hanging the program; the message names the limit.
+    """
+
+
+class SymbolicTimeoutError(ThetahatError, TimeoutError):
+    """Symbolic work (SymPy ``solve``, ``simplify``, ...) exceeded its time budget.
+
+    Attributes
+    ----------
+    seconds : float
+        The budget that was exceeded (``thetahat.limits.SYMBOLIC_TIME_BUDGET`` by default).
+    """
+
+    def __init__(self, message: str, *, seconds: float = float("nan")) -> None:
+        super().__init__(message)
+        self.seconds = seconds
+
+
+class ResourceLimitError(ThetahatError, MemoryError):
+    """A computation would allocate more memory than is available (estimated before it starts).
+
+    Attributes
+    ----------
+    required, available : int
+        Bytes the allocation needs and bytes the limit allows.
+    """
+
+    def __init__(self, message: str, *, required: int = -1, available: int = -1) -> None:
+        super().__init__(message)
+        self.required = required
+        self.available = available
+
+
+class IllConditionedError(ThetahatError, ValueError):
+    """A triple is left-invertible, but too ill-conditioned to bring into SCB form at the given
+    rank tolerance (a numerical, not a structural, failure).
+
+    Attributes
+    ----------
+    condition : float
+        The estimate that decided it (for the SCB: 1 / sin of the smallest angle between V*
+        and S*).
+    tol : float
+        The tolerance that was used.
+    suggested_tol : float or None
+        A tolerance at which the construction succeeds, when one was found.
+    """
+
+    def __init__(self, message: str, *, condition: float = float("nan"),
+                 tol: float = float("nan"), suggested_tol: float | None = None) -> None:
+        super().__init__(message)
+        self.condition = condition
+        self.tol = tol
+        self.suggested_tol = suggested_tol
+
+
+class UnstableDesignError(DesignError):
+    """A gain designed on one system leaves the error dynamics of the true system unstable.
+
+    Attributes
+    ----------
+    eigenvalues : ndarray of complex
+        The eigenvalues of the true closed-loop error system with Re λ >= 0.
+    """
+
+    def __init__(self, message: str, *, eigenvalues: Sequence[complex] = ()) -> None:
+        super().__init__(message)
+        self.eigenvalues = np.asarray(eigenvalues, dtype=complex)
 class MissingExtraError(ThetahatError, ImportError):
     """A call needs an optional extra (numba, matplotlib, python-control, …) that is not
     installed; the message names the ``pip install 'thetahat[extra]'`` that provides it."""

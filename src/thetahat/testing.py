@@ -14,6 +14,8 @@ from typing import Sequence
 import numpy as np
 from numpy.typing import NDArray
 
+from .errors import DimensionError
+
 FloatArray = NDArray[np.float64]
 
 #: Structures the tests exercise (SISO, square MIMO uniform / non-uniform, non-square with χ_b):
@@ -126,19 +128,19 @@ def random_scb_system(rng: np.random.Generator, *, chain_lengths: Sequence[int],
     """
     lengths = [int(L) for L in chain_lengths]
     if any(L < 1 for L in lengths) or not lengths:
-        raise ValueError("chain_lengths must be a non-empty sequence of positive integers")
+        raise DimensionError("chain_lengths must be a non-empty sequence of positive integers")
     if r_b > n_b:
-        raise ValueError(f"r_b = {r_b} extra outputs need n_b >= r_b states (C must have "
+        raise DimensionError(f"r_b = {r_b} extra outputs need n_b >= r_b states (C must have "
                          "full row rank)")
     if n_b > 0 and r_b == 0:
-        raise ValueError("an n_b > 0 block needs r_b > 0 outputs to be observable")
+        raise DimensionError("an n_b > 0 block needs r_b > 0 outputs to be observable")
     k, n_q = len(lengths), sum(lengths)
     n, r = n_a + n_b + n_q, k + r_b
     if zeros is None:
         zeros = -rng.uniform(0.5, 3.0, n_a)
     zeros = np.asarray(zeros, dtype=complex)
     if zeros.size != n_a:
-        raise ValueError(f"zeros must have length n_a = {n_a}")
+        raise DimensionError(f"zeros must have length n_a = {n_a}")
     c = coupling
     At = np.zeros((n, n))
     ia, ib = slice(0, n_a), slice(n_a, n_a + n_b)

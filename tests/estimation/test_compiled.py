@@ -174,7 +174,8 @@ def _callable_observer() -> ModifiedHighGainObserver:
     plant = PerturbedLinearSystem(A=np.zeros((2, 2)), B=[[0.0], [1.0]], C=[[1.0, 0.0]],
                                   E=[[0.0], [1.0]], perturbation=pert)
     return ModifiedHighGainObserver(system=plant, K_x=[[3.0], [2.0]], K_phi=[[1.0]],
-                                    update_law=ConstantLaw([0.5], Box([0.0], [1.0])))
+                                    update_law=ConstantLaw([0.5], Box([0.0], [1.0])),
+                                    allow_nonminimum_phase=True)   # a toy, not left-invertible
 
 
 def _law_observer(law) -> ModifiedHighGainObserver:

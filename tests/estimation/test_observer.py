@@ -165,7 +165,8 @@ def random_linear_case(rng, n, m, r, k):
     K = place_poles(Ae.T, Ce.T, poles).gain_matrix.T
     sysm = PerturbedLinearSystem(A=A, B=B, C=C, E=E, perturbation=ZeroG((n, m, r, 1, k)))
     obs = ModifiedHighGainObserver(system=sysm, K_x=K[:n], K_phi=K[n:],
-                                   update_law=ConstantLaw([0.5], Box([0.0], [1.0])))
+                                   update_law=ConstantLaw([0.5], Box([0.0], [1.0])),
+                                   allow_nonminimum_phase=True)   # random (C, A, E)
     return obs, Ae, Be, Ce, K
 
 

@@ -450,8 +450,7 @@ def test_parser_rejects_everything_outside_the_whitelist(text, token):
 @pytest.mark.parametrize("text,kwargs,match", [
     ("x +", {}, "not a valid expression"),
     ("1/0 + x", {}, "non-finite"),
-    ("9**9**9 * x", {}, "float64 range"),
-    ("x" + " + x" * 3000, {}, "at most 10000"),
+    ("9**9**9 * x", {}, "not a finite float64"),
     ([], {}, "non-empty list"),
     ("x", {"x": ["1x"]}, "not a valid name"),
     ("x", {"theta": ["exp"]}, "clashes"),

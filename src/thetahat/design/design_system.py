@@ -13,7 +13,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from .._validate import as_triple
-from ..errors import DimensionError
+from ..errors import DimensionError, UnstableDesignError
 from .gains import GainDesign, extended_system
 
 
@@ -44,11 +44,30 @@ class DesignSystemReport:
                 f"  true:   {fmt(self.eig_true)})")
 
 
-def apply_design(design: GainDesign, A, E, C) -> DesignSystemReport:
+def apply_design(design: GainDesign, A, E, C, *, allow_unstable: bool = False
+                 ) -> DesignSystemReport:
     """Apply a gain designed on a simplified system to the true linear part (A, E, C).
 
     For a modified high-gain design (``design.K_phi`` set) the spectrum is that of the
     extended error system (4); otherwise of ż = (A − K C) z.
+
+    Parameters
+    ----------
+    design : GainDesign
+    A, E, C : array_like
+        The true linear part, shapes (n, n), (n, k), (r, n).
+    allow_unstable : bool, default False
+        Return the report even when the true spectrum is unstable (for analysis reports).
+
+    Returns
+    -------
+    DesignSystemReport
+
+    Raises
+    ------
+    UnstableDesignError
+        The gain leaves the true error system unstable (unless ``allow_unstable``); the
+        message and ``.eigenvalues`` name the unstable eigenvalues.
 
     Examples
     --------
@@ -69,5 +88,13 @@ def apply_design(design: GainDesign, A, E, C) -> DesignSystemReport:
         raise DimensionError(f"design.K has shape {design.K.shape} but the true system needs "
                              f"({A_.shape[0]}, {C_.shape[0]}).")
     eig_true = np.sort_complex(np.linalg.eigvals(A_ - design.K @ C_))
+    stable = bool(np.all(eig_true.real < 0))
+    if not stable and not allow_unstable:
+        bad = eig_true[eig_true.real >= 0]
+        raise UnstableDesignError(
+            f"the gain designed on the design system (eps = {design.eps:g}) leaves the true "
+            f"error system unstable: eigenvalue(s) "
+            f"{', '.join(f'{complex(z):.4g}' for z in bad)} with Re >= 0. Decrease eps "
+            "(Sec. VII), or design on a system closer to the true one.", eigenvalues=bad)
     return DesignSystemReport(design=design, eig_design=design.eigenvalues, eig_true=eig_true,
-                              stable=bool(np.all(eig_true.real < 0)))
+                              stable=stable)

@@ -28,14 +28,18 @@ import scipy.linalg as sla
 from numpy.typing import NDArray
 
 from .._validate import as_triple
-from ..errors import DesignError, NonFiniteError, ThetahatWarning
+from ..errors import DesignError, NonFiniteError, NotMinimumPhaseError, ThetahatWarning
 from ..structure.scb import SCBResult, scb
+from ..structure.zeros import unstable_zeros
 
 FloatArray = NDArray[np.float64]
 PoleSpec = None | Sequence[Sequence[complex]] | Callable[[int], Sequence[complex]]
 
 #: Tolerance for conjugate pairing of requested poles (relative to their magnitude).
 CONJ_RTOL = 1e-9
+#: Smallest ε^(longest chain) accepted: the gains scale like 1/ε^L and products of gains
+#: with the states must stay far from float64 overflow (1e308).
+EPS_POWER_MIN = 1e-100
 #: Attempts (different seeded right-hand sides) of the Sylvester pole placement.
 PLACE_TRIES = 8
 
@@ -237,8 +241,37 @@ def place_observer(A: FloatArray, C: FloatArray, poles: Sequence[complex], *,
     return H.T
 
 
+def require_minimum_phase(sc: SCBResult, A: FloatArray, what: str) -> None:
+    """Raise :class:`NotMinimumPhaseError` naming the zeros when eig A_a is not Hurwitz.
+
+    Parameters
+    ----------
+    sc : SCBResult
+        The SCB of the triple the design is made on.
+    A : ndarray, shape (n, n)
+        Its A (sets the scale of the minimum-phase margin, as in ``unstable_zeros``).
+    what : str
+        Names the design in the message.
+
+    Raises
+    ------
+    NotMinimumPhaseError
+        An invariant zero in the closed right half-plane (Assumption 1 fails).
+    """
+    if sc.minimum_phase:
+        return
+    bad = unstable_zeros(sc.invariant_zeros, scale=max(1.0, float(np.linalg.norm(A, 2))))
+    zs = ", ".join(f"{complex(z):.6g}" for z in bad)
+    raise NotMinimumPhaseError(
+        f"{what}: (C, A, E) is not minimum-phase: invariant zero(s) {zs} in the closed right "
+        "half-plane, so A_a of the SCB (5)/(6) is not Hurwitz and the estimation error would "
+        "grow whatever the gain (Assumption 1). Change the measured outputs or where φ "
+        "enters; pass allow_nonminimum_phase=True only to study the failure.", zeros=bad)
+
+
 def high_gain(A, E, C, eps: float, chain_poles: PoleSpec = None,
-              b_poles: Sequence[complex] | None = None, *, tol: float | None = None) -> GainDesign:
+              b_poles: Sequence[complex] | None = None, *, tol: float | None = None,
+              allow_nonminimum_phase: bool = False) -> GainDesign:
     """Gain family K(ε) for ż = A z + E δ − K C z (Sec. III-A.2 / III-B.2 with the corrigendum).
 
     Parameters
@@ -257,6 +290,9 @@ def high_gain(A, E, C, eps: float, chain_poles: PoleSpec = None,
         The n_b poles of A_b − K_bb C_b (repeated poles allowed). Default −1, −2, …, −n_b.
     tol : float, optional
         Rank tolerance of the SCB.
+    allow_nonminimum_phase : bool, default False
+        Design even when (C, A, E) has zeros in the closed right half-plane (the error
+        dynamics are then unstable; only for studying the failure).
 
     Returns
     -------
@@ -265,9 +301,13 @@ def high_gain(A, E, C, eps: float, chain_poles: PoleSpec = None,
     Raises
     ------
     DesignError
-        ε ≤ 0, poles not in the open left half-plane, wrong number of poles.
+        ε ≤ 0, ε so small that the gains overflow, poles not in the open left half-plane,
+        wrong number of poles.
     NotLeftInvertibleError
         (C, A, E) not left-invertible.
+    NotMinimumPhaseError
+        (C, A, E) not minimum-phase (unless ``allow_nonminimum_phase``); ``.zeros`` holds the
+        offending zeros.
 
     Examples
     --------
@@ -283,7 +323,14 @@ def high_gain(A, E, C, eps: float, chain_poles: PoleSpec = None,
     A, E, C = as_triple(A, E, C, names=("A", "E", "C"))
     eps = _check_eps(eps)
     sc = scb(A, E, C, tol=tol)
+    if not allow_nonminimum_phase:
+        require_minimum_phase(sc, A, "high-gain design")
     lengths = sc.chain_lengths
+    if eps ** max(lengths) < EPS_POWER_MIN:
+        raise DesignError(f"eps = {eps:g} is too small: the gains grow like 1/eps^{max(lengths)}"
+                          f" (the longest chain) and overflow float64. Use eps >= "
+                          f"{EPS_POWER_MIN ** (1 / max(lengths)):.3g}; in practice ε stops "
+                          f"helping long before (Sec. VII).")
     cpoles = _resolve_chain_poles(chain_poles, lengths)
     if b_poles is None:
         bp = tuple(complex(-(i + 1)) for i in range(sc.n_b))
@@ -324,7 +371,8 @@ def _scb_gain(sc: SCBResult, K_bars, K_bb, eps: float, *, corrected: bool = True
 
 def modified_high_gain(A, E, C, eps: float, chain_poles: PoleSpec = None,
                        b_poles: Sequence[complex] | None = None, *,
-                       tol: float | None = None) -> GainDesign:
+                       tol: float | None = None,
+                       allow_nonminimum_phase: bool = False) -> GainDesign:
     """Gains K(ε) = [K_x; K_φ] of the modified high-gain observer (3), designed on (4).
 
     The error system (4) with K = 0 is (C_e, A_e, E_e) = ``extended_system(A, E, C)``; by
@@ -334,8 +382,8 @@ def modified_high_gain(A, E, C, eps: float, chain_poles: PoleSpec = None,
     ----------
     A, E, C : array_like
         The linear part of (1), or of a simplified design system (Sec. VII–VIII).
-    eps, chain_poles, b_poles, tol
-        As in :func:`high_gain`.
+    eps, chain_poles, b_poles, tol, allow_nonminimum_phase
+        As in :func:`high_gain` (the zeros of (4) are those of (C, A, E), Lemma 1).
 
     Returns
     -------
@@ -355,7 +403,8 @@ def modified_high_gain(A, E, C, eps: float, chain_poles: PoleSpec = None,
     """
     A_, E_, C_ = as_triple(A, E, C, names=("A", "E", "C"))
     n = A_.shape[0]
-    d = high_gain(*extended_system(A_, E_, C_), eps, chain_poles, b_poles, tol=tol)
+    d = high_gain(*extended_system(A_, E_, C_), eps, chain_poles, b_poles, tol=tol,
+                  allow_nonminimum_phase=allow_nonminimum_phase)
     return GainDesign(K=d.K, eps=d.eps, chain_poles=d.chain_poles, b_poles=d.b_poles,
                       K_bar=d.K_bar, K_bb=d.K_bb, K_tilde=d.K_tilde, scb=d.scb,
                       eigenvalues=d.eigenvalues, K_x=d.K[:n].copy(), K_phi=d.K[n:].copy())

@@ -23,7 +23,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from .._validate import check_finite, readonly
-from ..errors import DimensionError
+from ..errors import DimensionError, IndexOutOfRangeError, OptionError
 from .observer import HOLDS, ModifiedHighGainObserver, ObserverResult
 from .plan import StepPlan, dt_key, stack_plans
 from .step import integrate, readout
@@ -77,7 +77,7 @@ class BatchObserverResult:
         """The result of run ``i`` as an :class:`ObserverResult`."""
         B = len(self)
         if not isinstance(i, (int, np.integer)) or not -B <= i < B:
-            raise IndexError(f"run index must be an integer in [-{B}, {B}); got {i!r}.")
+            raise IndexOutOfRangeError(f"run index must be an integer in [-{B}, {B}); got {i!r}.")
         return ObserverResult(
             t=self.t, x_hat=self.x_hat[i], phi_hat=self.phi_hat[i], theta_hat=self.theta_hat[i],
             x_hat_refined=None if self.x_hat_refined is None else self.x_hat_refined[i],
@@ -267,7 +267,7 @@ def run_batch(observers: ModifiedHighGainObserver | Sequence[ModifiedHighGainObs
     True
     """
     if hold not in HOLDS:
-        raise ValueError(f"hold must be one of {HOLDS}; got {hold!r}.")
+        raise OptionError(f"hold must be one of {HOLDS}; got {hold!r}.")
     obs = _as_observers(observers)
     _check_compatible(obs)
     ref = obs[0]

@@ -19,14 +19,16 @@ from typing import Any, final
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from .._validate import as_vector, check_finite, positive_scalar
-from ..errors import DimensionError
+from .._validate import as_matrix, as_vector, check_finite, positive_scalar
+from ..errors import DimensionError, UpdateLawError
 from ..model.paramset import Box, ParameterSet
 from ..model.perturbation import Perturbation
+from .theta_star import ThetaStar
 
 FloatArray = NDArray[np.float64]
 
-__all__ = ["MonotonicityReport", "ExcitationReport", "check_monotonicity", "excitation_report"]
+__all__ = ["MonotonicityReport", "ExcitationReport", "check_monotonicity", "excitation_report",
+           "check_theta_star"]
 
 #: Eigenvalues of the sampled symmetric matrices above -EIG_ATOL count as >= 0 in the (14) check:
 #: eigvalsh of an exactly PSD matrix returns about -1e-16 times its norm; 1e-12 leaves room for
@@ -287,3 +289,153 @@ def excitation_report(t: ArrayLike, l: ArrayLike | None = None,  # noqa: E741
         i = int(np.argmin(lam))
         sigma_S, t_S, n_windows = float(lam[i]), float(starts[i]), len(starts)
     return ExcitationReport(T, n_windows, sigma_l, t_l, sigma_S, t_S)
+
+
+#: θ* recovers θ at a data point when |θ*(v, x, g(v, x, θ)) − θ| <= THETA_STAR_RTOL·(1 + |θ|):
+#: far above the rounding of a closed-form inverse (~1e-12 relative), far below a branch error.
+THETA_STAR_RTOL = 1e-6
+#: Points of Θ at which θ* is checked along the data (the first is Θ's interior point).
+THETA_STAR_POINTS = 3
+#: Points listed in the error message.
+THETA_STAR_SHOW = 5
+
+
+def _record(name: str, a: Any, N: int, width: int) -> FloatArray:
+    """A sampled record (N, width), (N,) allowed for width 1; NaN allowed (dropouts)."""
+    arr = np.asarray(a)
+    if arr.ndim == 1 and width == 1:
+        arr = arr.reshape(-1, 1)
+    return as_matrix(name, arr, (N, width), finite=False)
+
+
+def _times(t: FloatArray, idx: Any) -> str:
+    idx = np.asarray(idx, dtype=int)
+    shown = ", ".join(f"{float(t[i]):.6g}" for i in idx[:THETA_STAR_SHOW])
+    more = f" and {idx.size - THETA_STAR_SHOW} more" if idx.size > THETA_STAR_SHOW else ""
+    return f"t = [{shown}]{more}"
+
+
+def check_theta_star(theta_star: Callable[..., Any], perturbation: Perturbation,
+                     parameter_set: ParameterSet, C: ArrayLike, t: ArrayLike,
+                     u: ArrayLike | None, y: ArrayLike, *, seed: int = 0) -> None:
+    """Check θ*(v, x, φ) where it will be used, on a data record, before estimation starts.
+
+    Along the data, with x a state consistent with y (x = C⁺ y plus one fixed random offset
+    in ker C) and θ at ``THETA_STAR_POINTS`` points of Θ, φ = g(v, x, θ) must give back
+    θ* = θ wherever ∂g/∂θ ≠ 0 (Proposition 1 needs θ* to invert g on the range the estimator
+    visits). Refused: points where θ* is NaN
+    or inf (a singularity or a branch cut on the data), points where θ* returns another θ
+    (a branch that misses Θ), and a denominator of θ* that
+    changes sign between two samples (a pole crossed by the data, e.g. θ* = log(φ + 1)/y
+    for g = exp(θ y) − 1 when y crosses 0); the last check needs θ* as a
+    :class:`~thetahat.estimation.theta_star.ThetaStar` (derived by SymPy or read from a file).
+
+    Parameters
+    ----------
+    theta_star : callable
+        θ*(v, x, φ) → (..., p), as held by an inversion law's ``theta_star``.
+    perturbation : Perturbation
+    parameter_set : ParameterSet
+    C : array_like, shape (r, n)
+    t : array_like, shape (N,)
+    u : array_like, shape (N, m), or None when m = 0
+    y : array_like, shape (N, r)
+        Rows with NaN (dropouts) are ignored.
+    seed : int
+        Seed of the points of Θ beyond the interior point.
+
+    Raises
+    ------
+    UpdateLawError
+        θ* fails on the data; the message gives the times and what to do.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from thetahat.model.parse import parse_perturbation
+    >>> from thetahat.model.paramset import Box
+    >>> from thetahat.estimation.update_laws import AlgebraicInversion
+    >>> from thetahat.estimation.checks import check_theta_star
+    >>> g = parse_perturbation("exp(theta*y) - 1", u=[], y=["y"], x=["x"], theta=["theta"])
+    >>> Theta = Box([0.5], [2.0])
+    >>> law = AlgebraicInversion.from_perturbation(g, Gamma=1.0, parameter_set=Theta)
+    >>> t = np.linspace(0.0, 1.0, 101)
+    >>> check_theta_star(law.theta_star, g, Theta, [[1.0]], t, None, 1.0 + t)  # y > 0: fine
+    >>> check_theta_star(law.theta_star, g, Theta, [[1.0]], t, None, np.cos(4 * t))
+    Traceback (most recent call last):
+    ...
+    thetahat.errors.UpdateLawError: theta_star is singular on the data: its denominator ... at t = [0.39], ...
+    """
+    n, m, r, p, k = perturbation.dims
+    t_ = as_vector("t", t)
+    C_ = as_matrix("C", C, (r, n))
+    Y = _record("y", y, t_.size, r)
+    U = np.zeros((t_.size, 0)) if u is None else _record("u", u, t_.size, m)
+    keep = np.isfinite(Y).all(axis=1) & np.isfinite(U).all(axis=1)
+    t_, U, Y = t_[keep], U[keep], Y[keep]
+    if t_.size == 0:
+        return
+    V = np.concatenate((U, Y), axis=1)
+    rng = np.random.default_rng(seed)
+    # x consistent with y: the least-norm part C⁺y plus one fixed offset in ker C (the part
+    # of x the data do not show; fixed, so that θ*'s denominators vary with the data only)
+    _, sv, Vh = np.linalg.svd(C_)
+    null = Vh[int(np.sum(sv > 1e-12 * max(1.0, float(sv[0]) if sv.size else 1.0))):]
+    X = Y @ np.linalg.pinv(C_).T + rng.standard_normal(null.shape[0]) @ null
+    thetas = np.vstack([np.asarray(parameter_set.interior_point, dtype=np.float64)[None, :],
+                        parameter_set.sample(rng, THETA_STAR_POINTS - 1)])
+    fix = ("Give theta_star explicitly with a form valid on the data, restrict Θ, or use the "
+           "gradient law (Propositions 3–4).")
+    for th in thetas:
+        with np.errstate(all="ignore"):
+            phi = np.asarray(perturbation.g(V, X, np.broadcast_to(th, (t_.size, p))),
+                             dtype=np.float64)
+            est = np.asarray(theta_star(V, X, phi), dtype=np.float64).reshape(t_.size, p)
+        with np.errstate(all="ignore"):
+            J = np.asarray(perturbation.dg_dtheta(V, X, np.broadcast_to(th, (t_.size, p))),
+                           dtype=np.float64).reshape(t_.size, -1)
+        # only where φ determines θ (∂g/∂θ ≠ 0): elsewhere no θ* can recover θ
+        usable = np.isfinite(phi).all(axis=1) & (np.abs(J) > 0).any(axis=1)
+        bad = usable & ~np.isfinite(est).all(axis=1)
+        if bad.any():
+            raise UpdateLawError(
+                f"theta_star is NaN or inf on the data at {_times(t_, np.flatnonzero(bad))} "
+                f"(θ = {np.round(th, 6).tolist()}): a singularity or branch cut of θ* lies on "
+                f"the range of the data. {fix}")
+        wrong = usable & (np.max(np.abs(est - th), axis=1) > THETA_STAR_RTOL * (
+            1.0 + np.max(np.abs(th))))
+        if wrong.any():
+            i = int(np.argmax(wrong))
+            raise UpdateLawError(
+                f"theta_star does not invert g on the data at {_times(t_, np.flatnonzero(wrong))}"
+                f": at t = {float(t_[i]):.6g} it returns {np.round(est[i], 6).tolist()} for θ = "
+                f"{np.round(th, 6).tolist()} ∈ Θ (a branch that misses Θ). {fix}")
+    _check_poles(theta_star, V, X, perturbation, thetas[0], t_, fix)
+
+
+def _check_poles(theta_star: Any, V: FloatArray, X: FloatArray, perturbation: Perturbation,
+                 th: FloatArray, t: FloatArray, fix: str) -> None:
+    """Sign changes of the denominators of a symbolic θ* between consecutive samples."""
+    if not isinstance(theta_star, ThetaStar) or t.size < 2:
+        return
+    solution, arguments = theta_star.expr, theta_star.arguments
+    import sympy as sp
+
+    with np.errstate(all="ignore"):
+        phi = np.asarray(perturbation.g(V, X, np.broadcast_to(th, (t.size, th.size))),
+                         dtype=np.float64)
+    cols = [*V.T, *X.T, *phi.T]
+    for expr in solution:
+        den = sp.denom(sp.together(expr))
+        if den.is_number:
+            continue
+        fn = sp.lambdify(list(arguments), den, "numpy")
+        with np.errstate(all="ignore"):
+            d = np.broadcast_to(np.asarray(fn(*cols), dtype=np.float64), t.shape)
+        nz = np.flatnonzero(np.isfinite(d) & (d != 0))     # a sign change between these
+        cross = nz[:-1][np.sign(d[nz[:-1]]) != np.sign(d[nz[1:]])]
+        if cross.size:
+            raise UpdateLawError(
+                f"theta_star is singular on the data: its denominator {den} (θ* = {expr}) "
+                f"vanishes between samples at {_times(t, cross)}, where θ* has a pole and "
+                f"the estimate would be driven by noise. {fix}")

@@ -20,7 +20,7 @@ machine code. Supported:
 * an attached :class:`~thetahat.estimation.redesign.SecondObserver`;
 * a fixed step dt and the zero-order hold (Φ₁ is computed once).
 
-Everything else raises :class:`NotImplementedError` naming the part; use the Python observer.
+Everything else raises :class:`~thetahat.errors.UnsupportedError` (a NotImplementedError) naming the part; use the Python observer.
 
 The generated source is written to a cache directory (``$THETAHAT_CACHE_DIR``, default
 ``~/.cache/thetahat``, else a temporary directory) under a name that hashes its content, and
@@ -53,7 +53,8 @@ from numpy.typing import NDArray
 from sympy.printing.pycode import PythonCodePrinter
 
 from .._validate import as_vector, positive_scalar
-from ..errors import DimensionError, MissingExtraError, NonFiniteError, UpdateLawError
+from ..errors import (DimensionError, FileAccessError, MissingExtraError, NonFiniteError,
+                      UnsupportedError, UpdateLawError)
 from ..model.paramset import Box
 from ..model.perturbation import SymbolicPerturbation, numpy_ready
 from ._kernel_template import CORE
@@ -131,7 +132,7 @@ def _scalar_function(name: str, params: str, inputs: Sequence[tuple[str, Sequenc
         for target, e in zip(targets, reduced):
             lines.append(f"    {target} = {printer.doprint(e)}")
     except Exception as exc:  # SymPy's printer raises several types
-        raise NotImplementedError(f"compile_observer cannot print {name[1:]} as numba code "
+        raise UnsupportedError(f"compile_observer cannot print {name[1:]} as numba code "
                                   f"({exc}); rewrite it with elementary functions or use the "
                                   "Python observer.") from exc
     lines.append("    return 0")
@@ -294,7 +295,7 @@ def _cache_dir() -> Path:
                 return d
         except OSError:
             continue
-    raise OSError("compile_observer found no writable cache directory; set THETAHAT_CACHE_DIR.")
+    raise FileAccessError("compile_observer found no writable cache directory; set THETAHAT_CACHE_DIR.")
 
 
 def _load(source: str) -> ModuleType:
@@ -320,8 +321,8 @@ def _load(source: str) -> ModuleType:
 
 
 # --------------------------------------------------------------------------- support checks
-def _unsupported(what: str) -> NotImplementedError:
-    return NotImplementedError(f"compile_observer: {what} is not supported by the compiled path "
+def _unsupported(what: str) -> UnsupportedError:
+    return UnsupportedError(f"compile_observer: {what} is not supported by the compiled path "
                                f"({_SUPPORTED}); use the Python observer (run/step) or "
                                "run_batch.")
 
@@ -373,7 +374,7 @@ def _configure(observer: ModifiedHighGainObserver) -> tuple[int, ThetaStar | Non
     ts = law.theta_star
     if isinstance(ts, ThetaStar):
         return code, ts
-    raise NotImplementedError(
+    raise UnsupportedError(
         f"compile_observer: the θ* of {type(law).__name__} is a Python callable "
         f"({type(ts).__name__}), which cannot be compiled; build the law with a ThetaStar "
         "(thetahat.estimation.theta_star.ThetaStar.from_expr(expr, perturbation=g, phi=[...]) "
@@ -569,8 +570,8 @@ class CompiledObserver:
                 f"kernel={self._kernel.__name__})")
 
 
-def _no_prediction() -> NotImplementedError:
-    return NotImplementedError("y contains NaN (nan_policy='skip'); the compiled observer does "
+def _no_prediction() -> UnsupportedError:
+    return UnsupportedError("y contains NaN (nan_policy='skip'); the compiled observer does "
                                "not predict over missing samples: use the observer's own "
                                "step/run or run_batch.")
 

@@ -19,6 +19,7 @@ from __future__ import annotations
 import math
 from collections import OrderedDict
 from dataclasses import dataclass
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
@@ -26,8 +27,10 @@ from numpy.typing import NDArray
 
 from .._validate import (as_matrix, as_time_grid, as_vector, check_finite, positive_scalar,
                          readonly)
-from ..errors import DimensionError, NonFiniteError
+from ..errors import DimensionError, NonFiniteError, OptionError, UnsupportedError
+from ..limits import check_allocation
 from ..model.system import PerturbedLinearSystem
+from ..structure.assumptions import check_assumption_1
 from .discretize import PLAN_CACHE_SIZE
 from .plan import StateLayout, StepPlan, dt_key
 from .redesign import SecondObserver
@@ -41,6 +44,8 @@ FloatArray = NDArray[np.float64]
 
 NAN_POLICIES = ("raise", "skip")
 HOLDS = ("zoh", "foh")
+#: Samples between two calls of ``run``'s progress callback.
+PROGRESS_EVERY = 1_000
 
 
 def _vec(name: str, a: Any, size: int, *, finite: bool = True) -> FloatArray:
@@ -56,7 +61,35 @@ def _vec(name: str, a: Any, size: int, *, finite: bool = True) -> FloatArray:
 
 
 
+def _real(name: str, a: Any) -> None:
+    if np.iscomplexobj(a):
+        raise DimensionError(f"{name} must be real; got complex samples. Pass the real part "
+                             "explicitly if that is what was measured.")
+
+
+def _integrate_with_progress(plan_for: Callable[[float], StepPlan], pert: Any, law: UpdateLaw,
+                             s0: FloatArray, t: FloatArray, dts: FloatArray, U: FloatArray,
+                             Y: FloatArray, ok: NDArray[np.bool_], foh: bool,
+                             progress: Callable[[int, int], None] | None) -> FloatArray:
+    """``integrate`` for one record, in pieces of PROGRESS_EVERY steps when a progress callback
+    is given (each piece starts from the last state of the previous one: the same steps)."""
+    if progress is None:
+        return integrate(plan_for, pert, law, s0[None], t, dts, U, Y, ok, foh)[0]
+    N = t.shape[0]
+    S = np.empty((N, s0.size))
+    S[0] = s0
+    for a in range(0, max(N - 1, 1), PROGRESS_EVERY):
+        progress(a, N - 1)
+        b = min(a + PROGRESS_EVERY, N - 1)
+        if b > a:
+            S[a:b + 1] = integrate(plan_for, pert, law, S[a][None], t[a:b + 1], dts[a:b],
+                                   U[:, a:b + 1], Y[:, a:b + 1], ok[:, a:b + 1], foh)[0]
+    progress(N - 1, N - 1)
+    return S
+
+
 def _record(name: str, a: Any, N: int, width: int) -> FloatArray:
+    _real(name, a)
     arr = np.asarray(a, dtype=np.float64)
     if arr.ndim == 1 and width == 1:
         arr = arr.reshape(-1, 1)
@@ -68,6 +101,7 @@ def _record(name: str, a: Any, N: int, width: int) -> FloatArray:
 
 
 def _records(name: str, a: Any, B: int | None, N: int, width: int) -> FloatArray:
+    _real(name, a)
     arr = np.asarray(a, dtype=np.float64)
     if arr.ndim == 2 and width == 1:
         arr = arr[..., None]
@@ -151,6 +185,9 @@ class ModifiedHighGainObserver:
     second : SecondObserver, optional
         The second observer of Sec. VI; its state x̂₂ is appended to the observer state and
         ``run`` reports it as ``x_hat_refined``.
+    allow_nonminimum_phase : bool, default False
+        Build the observer even when (C, A, E) violates Assumption 1 (the estimation error
+        then diverges; only for studying the failure).
     nan_policy : {"raise", "skip"}, default "raise"
         What a NaN in y means. ``"raise"``: :class:`~thetahat.errors.NonFiniteError`
         (before anything is integrated, in ``run``). ``"skip"``: the sample is missing and the
@@ -169,9 +206,12 @@ class ModifiedHighGainObserver:
     DimensionError
         Shapes disagree with the system, the system has no perturbation, or Θ of the update
         law has the wrong dimension.
+    NotMinimumPhaseError, NotLeftInvertibleError
+        (C, A, E) violates Assumption 1 (unless ``allow_nonminimum_phase``); the message
+        names the zeros.
     NonFiniteError
         A gain holds NaN or inf.
-    ValueError
+    OptionError
         Unknown ``nan_policy``.
 
     Notes
@@ -271,13 +311,15 @@ class ModifiedHighGainObserver:
 
     def __init__(self, *, system: PerturbedLinearSystem, K_x: Any, K_phi: Any,
                  update_law: UpdateLaw, second: SecondObserver | None = None,
-                 nan_policy: str = "raise") -> None:
+                 nan_policy: str = "raise", allow_nonminimum_phase: bool = False) -> None:
         if not isinstance(system, PerturbedLinearSystem):
             raise DimensionError("system must be a PerturbedLinearSystem; got "
                                  f"{type(system).__name__}.")
         if system.perturbation is None:
             raise DimensionError("ModifiedHighGainObserver needs system.perturbation (g of "
                                  "(3)); build the system with perturbation=... .")
+        if not allow_nonminimum_phase:           # Assumption 1, or the error cannot converge
+            check_assumption_1(system.A, system.E, system.C, strict=True)
         n, m, r, k, p = system.n, system.m, system.r, system.k, system.p
         Kx = readonly(as_matrix("K_x", K_x, (n, r)))
         Kphi = readonly(as_matrix("K_phi", K_phi, (k, r)))
@@ -298,7 +340,7 @@ class ModifiedHighGainObserver:
                     f"second observer's system has (n, m, r, k, p) = "
                     f"{(s2.n, s2.m, s2.r, s2.k, s2.p)}; the observer's has {(n, m, r, k, p)}.")
         if nan_policy not in NAN_POLICIES:
-            raise ValueError(f"nan_policy must be one of {NAN_POLICIES}; got {nan_policy!r}.")
+            raise OptionError(f"nan_policy must be one of {NAN_POLICIES}; got {nan_policy!r}.")
         layout = StateLayout(n=n, m=m, r=r, k=k, p=p, second=second is not None,
                              law_size=int(update_law.state_size))
         for name, val in (("system", system), ("K_x", Kx), ("K_phi", Kphi),
@@ -309,14 +351,14 @@ class ModifiedHighGainObserver:
 
     @classmethod
     def from_design(cls, system: PerturbedLinearSystem, design: Any, update_law: UpdateLaw,
-                    *, second: SecondObserver | None = None,
-                    nan_policy: str = "raise") -> ModifiedHighGainObserver:
+                    *, second: SecondObserver | None = None, nan_policy: str = "raise",
+                    allow_nonminimum_phase: bool = False) -> ModifiedHighGainObserver:
         """Build from a gain design on the extended system (reads ``design.K_x``,
         ``design.K_phi``).
 
         Parameters
         ----------
-        system, update_law, second, nan_policy
+        system, update_law, second, nan_policy, allow_nonminimum_phase
             As for the constructor.
         design : GainDesign
             Any object with attributes ``K_x`` (n, r) and ``K_phi`` (k, r).
@@ -341,7 +383,8 @@ class ModifiedHighGainObserver:
         array([[2.]])
         """
         return cls(system=system, K_x=design.K_x, K_phi=design.K_phi, update_law=update_law,
-                   second=second, nan_policy=nan_policy)
+                   second=second, nan_policy=nan_policy,
+                   allow_nonminimum_phase=allow_nonminimum_phase)
 
     # ------------------------------------------------------------------ layout
     @property
@@ -565,8 +608,8 @@ class ModifiedHighGainObserver:
         u, y, correct = self.check_samples(v_[:lay.m], v_[lay.m:])
         s = self.check_state(state)
         if lay.law_size:
-            raise NotImplementedError(f"rhs: {type(self.update_law).__name__} carries a state "
-                                      "that is defined by its discrete step only; use step/run.")
+            raise UnsupportedError(f"rhs: {type(self.update_law).__name__} carries a state "
+                                   "that is defined by its discrete step only; use step/run.")
         x, _, th, x2 = self._split(s)
         pert = self.system.perturbation
         plan = self._continuous_plan()
@@ -685,7 +728,8 @@ class ModifiedHighGainObserver:
                                 x_hat_refined=None if x2 is None else x2.copy())
 
     def run(self, t: Any, u: Any, y: Any, *, hold: str = "zoh",
-            state0: Any = None) -> ObserverResult:
+            state0: Any = None,
+            progress: Callable[[int, int], None] | None = None) -> ObserverResult:
         """Run the observer over sampled records (logged data).
 
         Parameters
@@ -702,6 +746,9 @@ class ModifiedHighGainObserver:
             evaluation of g per step, smaller error when the signals are smooth).
         state0 : array_like, shape (state_size,), optional
             Initial state at ``t[0]``; default ``init()``.
+        progress : callable, optional
+            ``progress(done, total)``, called every ``PROGRESS_EVERY`` samples and at the end
+            (e.g. :func:`thetahat.progress.reporter`).
 
         Returns
         -------
@@ -713,15 +760,19 @@ class ModifiedHighGainObserver:
             Wrong shapes, or ``t`` not strictly increasing.
         NonFiniteError
             NaN or inf in t or u; inf in y; NaN in y under ``nan_policy="raise"``.
-        ValueError
+        OptionError
             Unknown ``hold``.
         """
         if hold not in HOLDS:
-            raise ValueError(f"hold must be one of {HOLDS}; got {hold!r}.")
+            raise OptionError(f"hold must be one of {HOLDS}; got {hold!r}.")
         t_, dts, U, Y, ok = self.check_records(t, u, y)
         s0 = self.init() if state0 is None else self.check_state(state0)
-        S = integrate(self.plan, self.system.perturbation, self.update_law, s0[None], t_, dts,
-                      U, Y, ok, hold == "foh")[0]
+        N = t_.shape[0]
+        check_allocation(8.0 * N * (2 * s0.size + 2 * self.layout.n), f"the estimates of {N} "
+                         "samples", fix="run the record in pieces (pass the last state as "
+                         "state0)")
+        S = _integrate_with_progress(self.plan, self.system.perturbation, self.update_law, s0,
+                                     t_, dts, U, Y, ok, hold == "foh", progress)
         X, PHI, TH, X2 = readout(self.system.perturbation, self.system.C, S, U[0], Y[0], ok[0],
                                  self.layout)
         skipped = ~ok[0]

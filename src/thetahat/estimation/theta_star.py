@@ -17,9 +17,11 @@ import numpy as np
 import sympy as sp
 from numpy.typing import ArrayLike, NDArray
 
+from .. import limits
 from ..errors import DimensionError, UpdateLawError
 from ..model.paramset import ParameterSet
-from ..model.perturbation import Perturbation, SymbolicPerturbation, lambdify_numpy
+from ..model.perturbation import (Perturbation, SymbolicPerturbation, lambdify_numpy,
+                                  require_theta_dependence)
 
 __all__ = ["ThetaStar", "SOLVE_RTOL", "SOLVE_SAMPLES"]
 
@@ -165,8 +167,11 @@ class ThetaStar:
         Raises
         ------
         UpdateLawError
-            SymPy cannot solve, or not exactly one branch inverts g (the solution is not
-            unique): pass θ* yourself or use GradientInversion.
+            g does not depend on θ, SymPy cannot solve, or not exactly one branch inverts g
+            (the solution is not unique): pass θ* yourself or use GradientInversion.
+        SymbolicTimeoutError
+            ``solve`` (and the expansion of its solutions) ran longer than
+            ``thetahat.limits.SYMBOLIC_TIME_BUDGET``.
         DimensionError
             Θ and g disagree on p.
         """
@@ -177,6 +182,7 @@ class ThetaStar:
         if parameter_set.dim != p:
             raise DimensionError(f"parameter_set has dimension {parameter_set.dim} but the "
                                  f"perturbation has p = {p} parameters.")
+        require_theta_dependence(perturbation, parameter_set, owner="from_perturbation")
         u, y, x, th = (tuple(getattr(perturbation, a)) for a in ("u", "y", "x", "theta"))
         reps = {s: sp.Dummy(s.name, real=True) for s in (*u, *y, *x, *th)}
         phi = [sp.Dummy(f"phi{i}", real=True) for i in range(k)]
@@ -184,15 +190,15 @@ class ThetaStar:
         eqs = [sp.Eq(expr[i].xreplace(reps), phi[i]) for i in range(k)]
         unknowns = [reps[t] for t in th]
         try:
-            sols = sp.solve(eqs, unknowns, dict=True, check=False, simplify=False)
+            sols = limits.run_with_time_budget(_sympy_solve, eqs, unknowns,
+                                               what="SymPy's solve of φ = g(v, x, θ) for θ*")
         except (NotImplementedError, ValueError, TypeError) as exc:
             raise UpdateLawError(f"SymPy cannot solve φ = g(v, x, θ) for θ ({exc}); pass "
                                  f"theta_star explicitly.") from exc
         args = tuple([reps[s] for s in (*u, *y, *x)] + phi)
         branches, underdetermined = [], False
-        for sol in sols:
-            if not set(unknowns) <= set(sol) or any(sol[t].free_symbols & set(unknowns)
-                                                    for t in unknowns):
+        for sol, expanded in sols:
+            if expanded is None:
                 underdetermined = True
                 continue
             exprs = tuple(sol[t] for t in unknowns)
@@ -202,7 +208,7 @@ class ThetaStar:
             # exp(ω²/ω0²) and divides by it again, inf·0 = NaN for |ω| > 0.27); the expanded
             # form cancels such factors. Both are checked below and the better one is kept.
             forms = []
-            for form in dict.fromkeys((exprs, tuple(sp.expand(e) for e in exprs))):
+            for form in dict.fromkeys((exprs, expanded)):
                 try:
                     forms.append(cls(expr=form, arguments=args, sizes=(m + r, n, k)))
                 except Exception:  # noqa: BLE001 - SymPy raises many types for unprintable forms
@@ -269,6 +275,18 @@ class ThetaStar:
     def __repr__(self) -> str:
         body = ", ".join(str(e) for e in self.expr)
         return f"ThetaStar({body})"
+
+
+def _sympy_solve(eqs: list[sp.Eq], unknowns: list[sp.Symbol]
+                 ) -> list[tuple[dict[Any, Any], tuple[sp.Expr, ...] | None]]:
+    """sp.solve and the expanded form of each complete solution (None for the others):
+    module-level, so that all of the symbolic work runs in one time-budgeted worker."""
+    out = []
+    for sol in sp.solve(eqs, unknowns, dict=True, check=False, simplify=False):
+        complete = set(unknowns) <= set(sol) and not any(
+            sol[t].free_symbols & set(unknowns) for t in unknowns)
+        out.append((sol, tuple(sp.expand(sol[t]) for t in unknowns) if complete else None))
+    return out
 
 
 def _assemble(vals: Sequence[Any], shape: tuple[int, ...]) -> FloatArray:

@@ -22,7 +22,7 @@ from numpy.typing import ArrayLike, NDArray
 from .._validate import check_finite, positive_scalar, readonly
 from ..errors import DimensionError, ParameterSetError, UpdateLawError
 from ..model.paramset import Box, ParameterSet, safe_norm
-from ..model.perturbation import Perturbation
+from ..model.perturbation import Perturbation, require_theta_dependence
 from .projection import Projection, Saturation, as_gain
 from .theta_star import ThetaStar
 
@@ -722,6 +722,7 @@ class GradientInversion(UpdateLaw):
         if perturbation.dims[3] != parameter_set.dim:
             raise DimensionError(f"parameter_set has dimension {parameter_set.dim} but the "
                                  f"perturbation has p = {perturbation.dims[3]} parameters.")
+        require_theta_dependence(perturbation, parameter_set, owner="GradientInversion")
         if M is not None and not callable(M):
             raise UpdateLawError("GradientInversion: M must be a callable M(v, x, theta) -> "
                                  "(..., p, k), or None for (∂g/∂θ)ᵀ.")

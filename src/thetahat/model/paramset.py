@@ -30,7 +30,8 @@ import scipy.optimize
 from numpy.typing import ArrayLike, NDArray
 
 from .._validate import readonly
-from ..errors import ConvergenceWarning, DimensionError, NonFiniteError, ParameterSetError
+from ..errors import (ConvergenceWarning, DimensionError, NonFiniteError, ParameterSetError,
+                      UnsupportedError)
 
 FloatArray = NDArray[np.float64]
 
@@ -268,15 +269,15 @@ class ParameterSet(ABC):
     @property
     def interior_point(self) -> FloatArray:
         """A point with every P_j < 0 (the centre for the built-in sets); shape (p,)."""
-        raise NotImplementedError(f"{type(self).__name__} must define interior_point.")
+        raise UnsupportedError(f"{type(self).__name__} must define interior_point.")
 
     def constraint(self, theta: FloatArray) -> FloatArray:
         """Smooth convex P_j(θ), Θ = {all P_j <= 0}; shape (..., q)."""
-        raise NotImplementedError(f"{type(self).__name__} must define constraint().")
+        raise UnsupportedError(f"{type(self).__name__} must define constraint().")
 
     def constraint_grad(self, theta: FloatArray) -> FloatArray:
         """Gradients ∇P_j(θ); shape (..., q, p)."""
-        raise NotImplementedError(f"{type(self).__name__} must define constraint_grad().")
+        raise UnsupportedError(f"{type(self).__name__} must define constraint_grad().")
 
     def sample(self, rng: np.random.Generator, n: int) -> FloatArray:
         """``n`` random points of Θ, shape (n, p).

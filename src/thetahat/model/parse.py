@@ -2,13 +2,18 @@
 
 The text is parsed with Python's :mod:`ast` and only a whitelist of node types (numbers,
 declared names, whitelisted functions, + − * / ** and unary minus) is turned into SymPy
-expressions by hand, so no code from the file is ever executed.
+expressions by hand, so no code from the file is ever executed. The size limits of
+:mod:`thetahat.limits` (length, nesting depth, exponents, towers of powers) are checked
+before anything is built. :func:`parse_expression` is the one parser every API that accepts
+strings uses (model files, :func:`parse_perturbation`, θ*, string entries of
+:func:`~thetahat.structure.scb_symbolic.scb_symbolic`).
 """
 
 from __future__ import annotations
 
 import ast
 import keyword
+import math
 from collections.abc import Callable, Iterable, Mapping, Sequence
 from types import MappingProxyType
 from typing import Any
@@ -16,10 +21,11 @@ from typing import Any
 import numpy as np
 import sympy as sp
 
-from ..errors import DimensionError, ModelFileError, NonFiniteError
+from .. import limits
+from ..errors import DimensionError, InputLimitError, ModelFileError, NonFiniteError
 from .perturbation import SymbolicPerturbation
 
-__all__ = ["parse_perturbation", "MAX_EXPRESSION_CHARS"]
+__all__ = ["parse_perturbation", "parse_expression"]
 
 
 #: Functions allowed in :func:`parse_perturbation`, with their number of arguments
@@ -41,10 +47,6 @@ _BINARY_OPS: Mapping[type, Callable[[sp.Expr, sp.Expr], sp.Expr]] = MappingProxy
     ast.Mult: lambda a, b: a * b, ast.Div: lambda a, b: a / b,
 })
 
-#: Longest accepted component, in characters: model files hold short formulas, and the
-#: bound keeps pathological input (deep nesting, huge literals) away from the parser.
-MAX_EXPRESSION_CHARS: int = 10_000
-
 _ALLOWED = ("numbers, the declared names, the functions " + ", ".join(_FUNCTIONS)
             + ", the operators + - * / ** and unary minus, and parentheses")
 
@@ -52,18 +54,23 @@ _ALLOWED = ("numbers, the declared names, the functions " + ", ".join(_FUNCTIONS
 class _ExpressionBuilder:
     """Builds a SymPy expression from a Python AST, refusing anything not whitelisted."""
 
-    def __init__(self, text: str, component: int, names: Mapping[str, sp.Expr]) -> None:
+    def __init__(self, text: str, what: str, names: Mapping[str, sp.Expr],
+                 new_symbol: Callable[[str], sp.Expr] | None = None) -> None:
         self.text = text
-        self.component = component
+        self.what = what
         self.names = names
+        self.new_symbol = new_symbol
 
     def fail(self, node: ast.AST, what: str) -> ModelFileError:
         segment = ast.get_source_segment(self.text, node) or type(node).__name__
+        if len(segment) > 60:
+            segment = segment[:57] + "..."
         column = getattr(node, "col_offset", 0) + 1
+        declared = ("any name" if self.new_symbol is not None
+                    else ", ".join(self.names) or "(none)")
         return ModelFileError(
-            f"perturbation component {self.component}: {what} {segment!r} at column "
-            f"{column} is not allowed. Allowed: {_ALLOWED}. Declared names: "
-            f"{', '.join(self.names) or '(none)'}.")
+            f"{self.what}: {what} {segment!r} at column {column} is not allowed. Allowed: "
+            f"{_ALLOWED}. Declared names: {declared}.")
 
     def build(self, node: ast.AST) -> sp.Expr:
         if isinstance(node, ast.Constant):
@@ -72,11 +79,13 @@ class _ExpressionBuilder:
                 raise self.fail(node, "the literal")
             return sp.Integer(value) if isinstance(value, int) else sp.Float(value)
         if isinstance(node, ast.Name):
-            if node.id not in self.names:
-                what = "the function name without a call" if node.id in _FUNCTIONS \
-                    else "the unknown name"
-                raise self.fail(node, what)
-            return self.names[node.id]
+            if node.id in self.names:
+                return self.names[node.id]
+            if node.id in _FUNCTIONS:
+                raise self.fail(node, "the function name without a call")
+            if self.new_symbol is None or node.id.startswith("_"):
+                raise self.fail(node, "the unknown name")
+            return self.new_symbol(node.id)
         if isinstance(node, ast.UnaryOp) and isinstance(node.op, (ast.USub, ast.UAdd)):
             operand = self.build(node.operand)
             return -operand if isinstance(node.op, ast.USub) else operand
@@ -90,9 +99,23 @@ class _ExpressionBuilder:
         if isinstance(node.op, ast.Pow):
             base, exponent = self.build(node.left), self.build(node.right)
             if base.is_Number and exponent.is_Number:
-                # Evaluate numeric powers in floating point: 9**9**9 must not build a
-                # gigantic exact integer.
-                return sp.Float(base) ** exponent
+                # Evaluate numeric powers in float64: 9**9**9 must neither build a gigantic
+                # exact integer nor an mpmath float with a gigantic exponent.
+                try:
+                    value = math.pow(float(base), float(exponent))
+                except (OverflowError, ValueError):
+                    value = math.nan
+                if not math.isfinite(value):
+                    raise self.fail(node, "the numeric power (its value is not a finite "
+                                          "float64 number)")
+                return sp.Integer(int(value)) if value.is_integer() and abs(value) < 2**53 \
+                    and base.is_Integer and exponent.is_Integer else sp.Float(value)
+            if exponent.is_Number and abs(float(exponent)) > limits.MAX_EXPONENT:
+                raise InputLimitError(
+                    f"{self.what}: the exponent {exponent} in "
+                    f"{ast.get_source_segment(self.text, node)!s:.60} exceeds the limit "
+                    f"|exponent| <= {limits.MAX_EXPONENT:g} (thetahat.limits.MAX_EXPONENT); "
+                    f"rewrite the formula (e.g. with exp and log).")
             return base ** exponent
         op = _BINARY_OPS.get(type(node.op))
         if op is None:
@@ -111,6 +134,85 @@ class _ExpressionBuilder:
             want = "two or more arguments" if arity is None else f"{arity} argument"
             raise self.fail(node, f"{node.func.id} takes {want};")
         return func(*(self.build(a) for a in node.args))
+
+
+def _check_shape(tree: ast.AST, what: str) -> None:
+    """Nesting depth and power towers of a parsed formula, walked without recursion."""
+    stack: list[tuple[ast.AST, int, int]] = [(tree, 0, 0)]
+    while stack:
+        node, depth, towers = stack.pop()
+        if depth > limits.MAX_EXPRESSION_DEPTH:
+            raise InputLimitError(
+                f"{what}: the formula is nested deeper than {limits.MAX_EXPRESSION_DEPTH} "
+                f"levels (thetahat.limits.MAX_EXPRESSION_DEPTH); simplify it or split it "
+                f"with constants.")
+        if towers > limits.MAX_POWER_NESTING:
+            raise InputLimitError(
+                f"{what}: a tower of more than {limits.MAX_POWER_NESTING} nested powers "
+                f"(like y**y**y**y; thetahat.limits.MAX_POWER_NESTING) is not accepted; "
+                f"rewrite it with exp and log.")
+        for child in ast.iter_child_nodes(node):
+            in_exponent = isinstance(node, ast.BinOp) and isinstance(node.op, ast.Pow) \
+                and child is node.right
+            stack.append((child, depth + 1, towers + int(in_exponent)))
+
+
+def parse_expression(text: str, names: Mapping[str, sp.Expr], *, what: str = "expression",
+                     new_symbol: Callable[[str], sp.Expr] | None = None) -> sp.Expr:
+    """Parse one formula into a SymPy expression without evaluating it as code.
+
+    Parameters
+    ----------
+    text : str
+        The formula, in the whitelisted syntax of :func:`parse_perturbation`.
+    names : mapping of str to sympy.Expr
+        What each allowed name stands for (symbols, constants); ``pi`` is always known.
+    what : str
+        Names the formula in error messages (e.g. "perturbation component 0").
+    new_symbol : callable, optional
+        Called with an undeclared name to create its symbol; default ``None`` refuses
+        undeclared names. Names starting with an underscore are always refused.
+
+    Returns
+    -------
+    sympy.Expr
+
+    Raises
+    ------
+    ModelFileError
+        The text does not parse, or uses something outside the whitelist.
+    InputLimitError
+        The text is longer, deeper nested, or has larger exponents or higher towers of
+        powers than :mod:`thetahat.limits` allows.
+
+    Examples
+    --------
+    >>> import sympy as sp
+    >>> from thetahat.model.parse import parse_expression
+    >>> y = sp.Symbol("y", real=True)
+    >>> parse_expression("2*exp(-y**2)", {"y": y})
+    2*exp(-y**2)
+    >>> parse_expression("__import__('os').system('true')", {"y": y})
+    Traceback (most recent call last):
+    ...
+    thetahat.errors.ModelFileError: expression: the function "__import__('os').system" at column 1 is not allowed. ...
+    """
+    if not isinstance(text, str):
+        raise ModelFileError(f"{what} must be a string; got {type(text).__name__}.")
+    if len(text) > limits.MAX_EXPRESSION_CHARS:
+        raise InputLimitError(f"{what} has {len(text)} characters; at most "
+                              f"{limits.MAX_EXPRESSION_CHARS} are accepted "
+                              f"(thetahat.limits.MAX_EXPRESSION_CHARS).")
+    source = text.strip()
+    try:
+        tree = ast.parse(source, mode="eval")
+    except (SyntaxError, ValueError, RecursionError, MemoryError) as exc:
+        raise ModelFileError(f"{what} is not a valid expression: {text:.80s} "
+                             f"({type(exc).__name__}: {exc}).") from exc
+    _check_shape(tree.body, what)
+    table = dict(names)
+    table.update({k: v for k, v in _BUILTIN_CONSTANTS.items() if k not in table})
+    return _ExpressionBuilder(source, what, table, new_symbol).build(tree.body)
 
 
 def _parse_names(group: str, names: Any) -> tuple[sp.Symbol, ...]:
@@ -160,7 +262,8 @@ def parse_perturbation(text: str | Sequence[str], *, u: Sequence[str | sp.Symbol
     Parameters
     ----------
     text : str or sequence of str
-        One string per component of φ (k strings), at most MAX_EXPRESSION_CHARS each.
+        One string per component of φ (k strings), within the limits of
+        :mod:`thetahat.limits` (length, nesting, exponents).
     u, y, x, theta : sequence of str or sympy.Symbol
         Names of the inputs (may be empty), outputs, states and parameters. Strings become
         real SymPy symbols.
@@ -176,6 +279,8 @@ def parse_perturbation(text: str | Sequence[str], *, u: Sequence[str | sp.Symbol
     ModelFileError
         The text does not parse, uses something outside the whitelist, a name is invalid
         or declared twice, or the resulting g is invalid (the message says why).
+    InputLimitError
+        A component exceeds a limit of :mod:`thetahat.limits`.
 
     Examples
     --------
@@ -208,19 +313,8 @@ def parse_perturbation(text: str | Sequence[str], *, u: Sequence[str | sp.Symbol
             raise ModelFileError(f"the constant {name!r} clashes with a declared symbol, a "
                                  f"function or a built-in constant.")
         names[name] = value
-    names.update(_BUILTIN_CONSTANTS)
-    exprs = []
-    for i, component in enumerate(components):
-        if len(component) > MAX_EXPRESSION_CHARS:
-            raise ModelFileError(f"perturbation component {i} has {len(component)} characters;"
-                                 f" at most {MAX_EXPRESSION_CHARS} are accepted.")
-        try:
-            tree = ast.parse(component.strip(), mode="eval")
-        except (SyntaxError, ValueError, RecursionError, MemoryError) as exc:
-            raise ModelFileError(f"perturbation component {i} is not a valid expression: "
-                                 f"{component!r} ({exc}).") from exc
-        builder = _ExpressionBuilder(component.strip(), i, names)
-        exprs.append(builder.build(tree.body))
+    exprs = [parse_expression(c, names, what=f"perturbation component {i}")
+             for i, c in enumerate(components)]
     try:
         return SymbolicPerturbation.from_sympy(exprs, **groups)
     except (DimensionError, NonFiniteError) as exc:

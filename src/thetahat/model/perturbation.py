@@ -26,11 +26,11 @@ from sympy.core.function import AppliedUndef
 from sympy.printing.numpy import NumPyPrinter
 
 from .._validate import check_finite, positive_scalar
-from ..errors import DimensionError, NonFiniteError
+from ..errors import DimensionError, NonFiniteError, UpdateLawError
 
-__all__ = ["lambdify_numpy", "Perturbation", "SymbolicPerturbation", "CallablePerturbation", "JacobianCheck",
-           "JacobianComparison", "check_jacobians", "FD_REL_STEP",
-           "CHECK_RTOL", "CHECK_ATOL", "numpy_ready"]
+__all__ = ["lambdify_numpy", "Perturbation", "SymbolicPerturbation", "CallablePerturbation",
+           "JacobianCheck", "JacobianComparison", "check_jacobians", "require_theta_dependence",
+           "FD_REL_STEP", "CHECK_RTOL", "CHECK_ATOL", "numpy_ready"]
 
 FloatArray = NDArray[np.float64]
 
@@ -877,3 +877,66 @@ def check_jacobians(perturbation: Perturbation, v: Any, x: Any, theta: Any, *,
         J_fd = _central_difference(perturbation.g, i, [v_, x_, t_], batch, k)
         results[label] = _compare(label, J, J_fd, rtol, atol)
     return JacobianCheck(**results, rtol=rtol, atol=atol, n_points=int(np.prod(batch)))
+
+
+#: Sample points of :func:`require_theta_dependence` for perturbations without a symbolic form.
+DEPENDENCE_SAMPLES = 64
+
+
+def require_theta_dependence(perturbation: Perturbation, parameter_set: Any, *,
+                             owner: str, seed: int = 0) -> None:
+    """Refuse a perturbation whose g does not depend on θ (∂g/∂θ ≡ 0): θ cannot be estimated.
+
+    A :class:`SymbolicPerturbation` is checked structurally (no θ symbol in g, or ∂g/∂θ
+    built as zero; a dependence that only cancels after simplification is not detected); any other
+    perturbation at ``DEPENDENCE_SAMPLES`` points with θ sampled from Θ and v, x standard
+    normal (a sampled check can miss a dependence confined to a small region, never invent one).
+
+    Parameters
+    ----------
+    perturbation : Perturbation
+    parameter_set : ParameterSet
+        Θ, sampled with ``parameter_set.sample(rng, count)``.
+    owner : str
+        Names the caller in the message (e.g. "GradientInversion").
+    seed : int
+        Seed of the sampled check.
+
+    Raises
+    ------
+    UpdateLawError
+        ∂g/∂θ vanishes identically (or at every sample).
+
+    Examples
+    --------
+    >>> import sympy as sp
+    >>> from thetahat.model.perturbation import SymbolicPerturbation, require_theta_dependence
+    >>> from thetahat.model.paramset import Box
+    >>> y, x, th = sp.symbols("y x theta")
+    >>> g = SymbolicPerturbation.from_sympy(y**2, u=[], y=[y], x=[x], theta=[th])
+    >>> require_theta_dependence(g, Box([0.0], [1.0]), owner="GradientInversion")
+    Traceback (most recent call last):
+    ...
+    thetahat.errors.UpdateLawError: GradientInversion: g does not depend on θ ...
+    """
+    n, m, r, p, k = perturbation.dims
+    if isinstance(perturbation, SymbolicPerturbation):
+        J = perturbation.jacobian("theta")
+        # structural test (cheap for any size of g): no θ symbol left, or ∂g/∂θ == 0 as built
+        independent = not (perturbation.expr.free_symbols & set(perturbation.theta)) or all(
+            e == 0 for e in J)
+        how = "∂g/∂θ is identically zero"
+    else:
+        rng = np.random.default_rng(seed)
+        th = np.asarray(parameter_set.sample(rng, DEPENDENCE_SAMPLES), dtype=np.float64)
+        v = rng.standard_normal((DEPENDENCE_SAMPLES, m + r))
+        x = rng.standard_normal((DEPENDENCE_SAMPLES, n))
+        with np.errstate(all="ignore"):
+            J = np.asarray(perturbation.dg_dtheta(v, x, th), dtype=np.float64)
+        independent = bool(np.all(J == 0))
+        how = f"∂g/∂θ is zero at all {DEPENDENCE_SAMPLES} sampled points of Θ"
+    if independent:
+        raise UpdateLawError(
+            f"{owner}: g does not depend on θ ({how}), so the output carries no information "
+            f"about θ and no update law can estimate it. Check that the parameter symbols in "
+            f"g are the ones declared as theta.")

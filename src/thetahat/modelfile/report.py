@@ -11,7 +11,7 @@ from numpy.typing import NDArray
 
 from ..design.design_system import DesignSystemReport, apply_design
 from ..design.gains import GainDesign, extended_system
-from ..errors import ModelFileError
+from ..errors import ThetahatError
 from ..structure.assumptions import AssumptionReport, check_assumption_1
 from ..structure.scb import SCBResult, scb
 from .assembly import design_gains, design_matrices
@@ -30,8 +30,9 @@ class ModelAnalysis:
     spec : ModelSpec
     assumption : AssumptionReport
         Assumption 1 for the true (C, A, E).
-    scb : SCBResult
-        SCB of the extended error system (4) with K = 0 (true matrices).
+    scb : SCBResult or None
+        SCB of the extended error system (4) with K = 0 (true matrices); None when it cannot
+        be computed (the reason is in ``design_error``).
     scb_design : SCBResult or None
         The same for the design system, when the file gives one.
     design : GainDesign or None
@@ -43,14 +44,14 @@ class ModelAnalysis:
     spectra2 : DesignSystemReport or None
         Its closed-loop spectra on the design and true systems.
     design_error : str or None
-        Why the gains could not be designed.
+        Why the gains (or the SCB) could not be computed.
     warnings : tuple of str
         Warnings raised during the analysis (e.g. an ill-conditioned SCB).
     """
 
     spec: ModelSpec
     assumption: AssumptionReport
-    scb: SCBResult
+    scb: SCBResult | None
     scb_design: SCBResult | None
     design: GainDesign | None
     spectra: DesignSystemReport | None
@@ -58,6 +59,27 @@ class ModelAnalysis:
     spectra2: DesignSystemReport | None
     design_error: str | None
     warnings: tuple[str, ...]
+
+    @property
+    def ok(self) -> bool:
+        """Assumption 1 holds and every design is stable on the true system
+        (``thetahat analyze`` exits 0 exactly then)."""
+        return (self.assumption.holds and self.design is not None
+                and self.spectra is not None and self.spectra.stable
+                and (self.spectra2 is None or self.spectra2.stable))
+
+    def verdict(self) -> str:
+        """One sentence: why the analysis passed or failed."""
+        if self.ok:
+            return "Assumption 1 holds and the design is stable on the true system."
+        if not self.assumption.holds:
+            bad = ", ".join(f"{complex(z):.6g}" for z in self.assumption.offending_zeros)
+            why = ("(C, A, E) is not left-invertible" if not self.assumption.left_invertible
+                   else f"invariant zero(s) {bad} in the closed right half-plane")
+            return f"Assumption 1 fails on the true system: {why}."
+        if self.design is None:
+            return f"the gains could not be designed: {self.design_error}"
+        return "the design leaves the true error system unstable (see the spectra above)."
 
     def __repr__(self) -> str:
         return (f"ModelAnalysis(name={self.spec.name!r}, assumption_1={self.assumption.holds}, "
@@ -77,7 +99,8 @@ class ModelAnalysis:
         lines = [f"model: {self.spec.name} ({self.spec.source})",
                  f"  n = {s.n}, m = {s.m}, r = {s.r}, k = {s.k}, p = {s.p}; law = {est.law}",
                  str(self.assumption),
-                 f"SCB of the error system (4), true matrices: {self.scb!r}"]
+                 f"SCB of the error system (4), true matrices: "
+                 f"{'not computed' if self.scb is None else repr(self.scb)}"]
         if self.scb_design is not None:
             lines.append(f"SCB of the error system (4), design system: {self.scb_design!r}")
         if self.design_error is not None:
@@ -130,21 +153,20 @@ def analyze_model(spec: ModelSpec) -> ModelAnalysis:
     with warnings.catch_warnings(record=True) as record:
         warnings.simplefilter("always")
         assumption = check_assumption_1(s.A, s.E, s.C)
-        sc = scb(*extended_system(s.A, s.E, s.C))
         A_d, E_d, C = design_matrices(spec)
-        sc_d = None
-        if spec.estimator.A_design is not None or spec.estimator.E_design is not None:
-            sc_d = scb(*extended_system(A_d, E_d, C))
-        design = design2 = spectra = spectra2 = None
+        design = design2 = spectra = spectra2 = sc = sc_d = None
         error = None
         try:
+            sc = scb(*extended_system(s.A, s.E, s.C))
+            if spec.estimator.A_design is not None or spec.estimator.E_design is not None:
+                sc_d = scb(*extended_system(A_d, E_d, C))
             design, design2 = design_gains(spec, None)
-        except ModelFileError as exc:
+        except ThetahatError as exc:
             error = str(exc)
         if design is not None:
-            spectra = apply_design(design, s.A, s.E, s.C)
+            spectra = apply_design(design, s.A, s.E, s.C, allow_unstable=True)
         if design2 is not None:
-            spectra2 = apply_design(design2, s.A, s.E, s.C)
+            spectra2 = apply_design(design2, s.A, s.E, s.C, allow_unstable=True)
     caught = [f"{w.category.__name__}: {w.message}" for w in record]
     return ModelAnalysis(spec=spec, assumption=assumption, scb=sc, scb_design=sc_d,
                          design=design, spectra=spectra, design2=design2, spectra2=spectra2,

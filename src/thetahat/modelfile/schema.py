@@ -28,7 +28,8 @@ A model file (TOML, read with :mod:`tomllib`, or JSON with the same structure) h
     ``excitation`` (intermittent law, required: ``[low, high]`` thresholds on ‖φ̂‖),
     ``on_invalid`` (``"raise"`` or ``"freeze"``, default ``"raise"``), and ``A_design``,
     ``E_design``: the matrices of a simplified design system on which the gains are designed
-    (Sec. VII–VIII; default: the true A and E).
+    (Sec. VII–VIII; default: the true A and E); ``allow_nonminimum_phase`` (default false:
+    a model that violates Assumption 1 is refused; true designs anyway, to study the failure).
 ``[estimator.second]`` (optional)
     The second observer of Sec. VI: ``eps2`` (default 1), ``chain_poles``, ``b_poles``,
     ``g_on_estimates`` (default false; true evaluates g on C x̂₂ instead of the noisy y, as in
@@ -56,7 +57,8 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from ..errors import ModelFileError, ThetahatError
+from .. import limits
+from ..errors import InputLimitError, ModelFileError, ThetahatError
 from ..estimation.projection import as_gain
 from ..estimation.update_laws import (
     AlgebraicInversion,
@@ -81,7 +83,8 @@ _SYSTEM_KEYS = ("A", "B", "C", "E")
 _PERTURBATION_KEYS = ("g", "u", "y", "x", "theta", "constants")
 _BOX_KEYS = ("lower", "upper")
 _ESTIMATOR_KEYS = ("law", "eps", "chain_poles", "b_poles", "Gamma", "theta_hat0", "x_hat0",
-                   "theta_star", "excitation", "on_invalid", "A_design", "E_design", "second")
+                   "theta_star", "excitation", "on_invalid", "A_design", "E_design", "second",
+                   "allow_nonminimum_phase")
 _SECOND_KEYS = ("eps2", "chain_poles", "b_poles", "g_on_estimates")
 
 
@@ -195,12 +198,55 @@ class _Section:
             tuple(float(e) for e in v)
 
 
+def _check_nesting(text: str, source: str) -> None:
+    """Refuse brackets nested deeper than MAX_FILE_NESTING before a recursive parser sees them.
+
+    Brackets inside strings and after ``#`` comments are skipped, so valid files are never
+    refused by this scan.
+    """
+    depth = deepest = 0
+    quote = ""
+    comment = False
+    escaped = False
+    for ch in text:
+        if comment:
+            comment = ch != "\n"
+        elif quote:
+            if escaped:
+                escaped = False
+            elif ch == "\\" and quote == '"':
+                escaped = True
+            elif ch == quote or (ch == "\n" and quote == "'"):
+                quote = ""
+        elif ch in "\"'":
+            quote = ch
+        elif ch == "#":
+            comment = True
+        elif ch in "[{":
+            depth += 1
+            deepest = max(deepest, depth)
+            if deepest > limits.MAX_FILE_NESTING:
+                raise InputLimitError(
+                    f"model file {source}: tables or lists are nested deeper than "
+                    f"{limits.MAX_FILE_NESTING} levels (thetahat.limits.MAX_FILE_NESTING); a "
+                    f"model file needs at most 3 (a table holding a matrix).")
+        elif ch in "]}":
+            depth = max(0, depth - 1)
+
+
 def _parse_text(text: str, syntax: str, source: str) -> dict[str, Any]:
     if syntax not in ("toml", "json"):
         raise ModelFileError(f"model file {source}: unknown syntax {syntax!r}; use a .toml or "
                              f".json file (syntax 'toml' or 'json').")
+    if not isinstance(text, str):
+        raise ModelFileError(f"model file {source}: expected the file's text as a string; got "
+                             f"{type(text).__name__}.")
+    text = text.removeprefix("\ufeff")                   # a byte-order mark (Windows editors)
+    _check_nesting(text, source)
     try:
         doc = tomllib.loads(text) if syntax == "toml" else json.loads(text)
+    except RecursionError as exc:
+        raise InputLimitError(f"model file {source}: nested too deeply to parse.") from exc
     except tomllib.TOMLDecodeError as exc:
         raise ModelFileError(f"model file {source} is not valid TOML: {exc}") from exc
     except json.JSONDecodeError as exc:
@@ -257,6 +303,8 @@ class EstimatorOptions:
     A_design, E_design : ndarray or None
         The design system (Sec. VII–VIII), None when the gains are designed on A and E.
     second : SecondObserverOptions or None
+    allow_nonminimum_phase : bool
+        Design even when Assumption 1 fails (the explicit opt-out; default False).
     """
 
     law: str
@@ -269,6 +317,7 @@ class EstimatorOptions:
     A_design: FloatArray | None
     E_design: FloatArray | None
     second: SecondObserverOptions | None
+    allow_nonminimum_phase: bool = False
 
     def __repr__(self) -> str:
         return (f"EstimatorOptions(law={self.law!r}, eps={self.eps:g}, "
@@ -336,7 +385,7 @@ def _read_perturbation(sec: _Section) -> tuple[SymbolicPerturbation, dict[str, A
                                     f"{_show(constants)}.")
     try:
         pert = parse_perturbation(g, constants=constants, **names)
-    except ModelFileError as exc:
+    except (ModelFileError, InputLimitError) as exc:
         raise sec.fail("g", str(exc)) from exc
     return pert, {"names": names, "constants": dict(constants)}
 
@@ -363,7 +412,7 @@ def _read_theta_star(sec: _Section, pert: SymbolicPerturbation,
         expr = parse_perturbation(sec.table["theta_star"], u=names["u"], y=names["y"],
                                   x=names["x"], theta=_phi_names(k),
                                   constants=parsed["constants"])
-    except ModelFileError as exc:
+    except (ModelFileError, InputLimitError) as exc:
         raise sec.fail("theta_star", f"{exc} (θ* may use the names of u, y, x and "
                                      f"{', '.join(_phi_names(k))}).") from exc
     if expr.dims[4] != p:
@@ -384,7 +433,10 @@ def _read_law(sec: _Section, pert: SymbolicPerturbation, theta_set: Box,
             raise sec.fail(key, f"not used by the {law!r} law; remove it.")
     Gamma = _read_gamma(sec, theta_set.dim)
     if law == "gradient":
-        return law, GradientInversion(pert, Gamma, theta_set)
+        try:
+            return law, GradientInversion(pert, Gamma, theta_set)
+        except ThetahatError as exc:
+            raise sec.fail("law", str(exc)) from exc
     on_invalid = sec.table.get("on_invalid", "raise")
     if on_invalid not in ("raise", "freeze"):
         raise sec.fail("on_invalid", f"expected 'raise' or 'freeze'; got {_show(on_invalid)}.")
@@ -445,6 +497,10 @@ def _read_estimator(sec: _Section, system: PerturbedLinearSystem, pert: Symbolic
                                        chain_poles=s2.poles("chain_poles", nested=True),
                                        b_poles=s2.poles("b_poles", nested=False),
                                        g_on_estimates=on_est)
+    allow_nmp = sec.table.get("allow_nonminimum_phase", False)
+    if not isinstance(allow_nmp, bool):
+        raise sec.fail("allow_nonminimum_phase", f"expected true or false; got "
+                                                 f"{_show(allow_nmp)}.")
     for arr in (theta_hat0, x_hat0, A_d, E_d):
         if arr is not None:
             arr.setflags(write=False)
@@ -452,7 +508,7 @@ def _read_estimator(sec: _Section, system: PerturbedLinearSystem, pert: Symbolic
                             chain_poles=sec.poles("chain_poles", nested=True),
                             b_poles=sec.poles("b_poles", nested=False),
                             theta_hat0=theta_hat0, x_hat0=x_hat0, A_design=A_d, E_design=E_d,
-                            second=second)
+                            second=second, allow_nonminimum_phase=allow_nmp)
 
 
 #: A minimal model file (the Proposition 3 example of ``examples/prop3.toml`` without its

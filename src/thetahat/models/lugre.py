@@ -29,7 +29,7 @@ import sympy as sp
 from numpy.typing import ArrayLike, NDArray
 
 from .._validate import as_vector, positive_scalar
-from ..errors import DimensionError, ParameterSetError, ThetahatWarning
+from ..errors import ArgumentTypeError, DimensionError, ParameterSetError, ThetahatWarning
 from ..estimation.theta_star import ThetaStar
 from ..model.paramset import Box
 from ..model.perturbation import SymbolicPerturbation
@@ -428,7 +428,7 @@ class Scenario:
         object.__setattr__(self, "t_end", positive_scalar("t_end", self.t_end))
         object.__setattr__(self, "fs", positive_scalar("fs", self.fs))
         if not isinstance(self.params, LuGreParameters):
-            raise TypeError(f"params must be LuGreParameters; got {type(self.params).__name__}.")
+            raise ArgumentTypeError(f"params must be LuGreParameters; got {type(self.params).__name__}.")
         if not isinstance(self.u, Signal) or self.u.dim != 1:
             raise DimensionError("u must be a single-channel thetahat Signal (the motor torque); "
                                  f"got {self.u!r}.")
@@ -496,7 +496,7 @@ def simulate(seed: Seed = 0, *, scenario: Scenario | None = None,
     base = Scenario() if scenario is None else scenario
     unknown = set(scenario_overrides) - {f.name for f in dataclasses.fields(Scenario)}
     if unknown:
-        raise TypeError(f"unknown scenario field(s) {sorted(unknown)}; Scenario has "
+        raise ArgumentTypeError(f"unknown scenario field(s) {sorted(unknown)}; Scenario has "
                         f"{[f.name for f in dataclasses.fields(Scenario)]}.")
     sc = dataclasses.replace(base, **scenario_overrides) if scenario_overrides else base
     phi = true_phi(sc.params)

@@ -21,7 +21,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from ..errors import DimensionError, ThetahatWarning
+from ..errors import ArgumentTypeError, DimensionError, ThetahatWarning
 
 __all__ = ["BatchResult", "monte_carlo"]
 
@@ -180,7 +180,7 @@ def monte_carlo(fn: Callable[[int], Any], seeds: Iterable[int], *, progress: boo
     ((3, 1, 2), (3,))
     """
     if not callable(fn):
-        raise TypeError(f"fn must be callable as fn(seed); got {type(fn).__name__}.")
+        raise ArgumentTypeError(f"fn must be callable as fn(seed); got {type(fn).__name__}.")
     seeds_ = _check_seeds(seeds)
     workers = _workers(n_jobs, len(seeds_))
     bar = _progress_bar(len(seeds_), progress)
@@ -207,7 +207,7 @@ def _parallel(fn: Callable[[int], Any], seeds: tuple[int, ...], workers: int,
     try:
         pickle.dumps(fn)
     except (pickle.PicklingError, AttributeError, TypeError) as exc:
-        raise TypeError(f"with n_jobs > 1, fn must be picklable (a module-level function or a "
+        raise ArgumentTypeError(f"with n_jobs > 1, fn must be picklable (a module-level function or a "
                         f"functools.partial of one, not a lambda or a local function): {exc}"
                         ) from exc
     with ProcessPoolExecutor(max_workers=workers) as pool:

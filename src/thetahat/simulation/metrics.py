@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+from typing import Any
+
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
@@ -67,8 +70,19 @@ def rmse(estimate: ArrayLike, truth: ArrayLike, *, start: int = 0) -> FloatArray
     """
     e = np.asarray(estimate, dtype=float)
     tr = np.asarray(truth, dtype=float)
+    if e.ndim not in (1, 2) or e.shape[0] == 0:
+        raise DimensionError(f"estimate must have shape (N,) or (N, p) with N >= 1; got "
+                             f"{e.shape}.")
     e = e.reshape(e.shape[0], -1)
-    tr = np.broadcast_to(tr.reshape(tr.shape[0], -1) if tr.ndim else tr, e.shape)
+    if tr.ndim:
+        if tr.shape[0] != e.shape[0] or tr.ndim > 2 or tr.reshape(tr.shape[0], -1).shape[1] \
+                not in (1, e.shape[1]):
+            raise DimensionError(f"truth has shape {tr.shape} but estimate has {e.shape}; "
+                                 f"give the truth per sample, (N,) or (N, p), or a scalar.")
+        tr = tr.reshape(tr.shape[0], -1)
+    tr = np.broadcast_to(tr, e.shape)
+    if not 0 <= int(start) < e.shape[0]:
+        raise DimensionError(f"start must be in [0, {e.shape[0]}); got {start}.")
     return np.sqrt(np.mean((e[start:] - tr[start:]) ** 2, axis=0))
 
 
@@ -111,3 +125,56 @@ def divergence_reason(name: str, estimate: ArrayLike, scale: float) -> str | Non
     peak = float(np.max(np.abs(e)))
     return (f"{name} reached {peak:.3g}, beyond {DIVERGENCE_FACTOR:g} × the truth's scale "
             f"{scale:.3g}")
+
+
+#: Band of :func:`estimate_summary`'s settling time: θ̂ within 1 % of its final value.
+SETTLE_REL = 0.01
+
+
+def estimate_summary(result: Any, parameter_names: Sequence[str], *,
+                     warnings: Sequence[str] = ()) -> str:
+    """A few lines on an estimate: final θ̂, when it settled, skipped samples, warnings.
+
+    Parameters
+    ----------
+    result : ObserverResult
+        From ``run`` (reads ``t``, ``theta_hat`` and ``skipped``).
+    parameter_names : sequence of str
+        Names of the p parameters.
+    warnings : sequence of str
+        Warnings raised during the run.
+
+    Returns
+    -------
+    str
+        The summary ``thetahat estimate`` prints. The settling time is the first time after
+        which every θ̂ component stays within ``SETTLE_REL`` (1 %) of its final value (an
+        absolute band of 1e-12 for a final value 0).
+
+    Examples
+    --------
+    >>> from types import SimpleNamespace
+    >>> import numpy as np
+    >>> from thetahat.simulation.metrics import estimate_summary
+    >>> res = SimpleNamespace(t=np.array([0.0, 1.0, 2.0]), skipped=np.zeros(3, bool),
+    ...                       theta_hat=np.array([[0.0], [0.9], [1.0]]))
+    >>> print(estimate_summary(res, ["theta"]))
+    final theta_hat: theta = 1
+    settled (within 1 % of the final value) at t = 2 of [0, 2]
+    skipped samples (dropouts): 0
+    warnings: none
+    """
+    t = np.asarray(result.t, dtype=float)
+    th = np.asarray(result.theta_hat, dtype=float).reshape(t.size, -1)
+    final = th[-1]
+    band = np.maximum(SETTLE_REL * np.abs(final), 1e-12)
+    inside = np.all(np.abs(th - final) <= band, axis=1)
+    outside = np.flatnonzero(~inside)
+    settle = t[0] if outside.size == 0 else t[min(outside[-1] + 1, t.size - 1)]
+    values = ", ".join(f"{n} = {v:.6g}" for n, v in zip(parameter_names, final))
+    lines = [f"final theta_hat: {values}",
+             f"settled (within {SETTLE_REL * 100:g} % of the final value) at t = {settle:.6g} of "
+             f"[{t[0]:.6g}, {t[-1]:.6g}]",
+             f"skipped samples (dropouts): {int(np.sum(result.skipped))}",
+             "warnings: " + ("none" if not warnings else "; ".join(dict.fromkeys(warnings)))]
+    return "\n".join(lines)

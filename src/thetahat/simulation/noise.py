@@ -17,7 +17,7 @@ from numpy.typing import ArrayLike, NDArray
 from scipy import signal as sps
 
 from .._validate import as_vector, positive_scalar
-from ..errors import DimensionError
+from ..errors import ArgumentTypeError, DimensionError
 
 __all__ = ["ColoredNoise", "NoiseModel", "WhiteNoise", "make_rng", "measurement_noise"]
 
@@ -54,7 +54,7 @@ def make_rng(seed: Seed) -> np.random.Generator:
     if isinstance(seed, np.random.SeedSequence):
         return np.random.default_rng(seed)
     if isinstance(seed, bool) or not isinstance(seed, numbers.Integral):
-        raise TypeError(f"seed must be a non-negative int or a numpy SeedSequence; got "
+        raise ArgumentTypeError(f"seed must be a non-negative int or a numpy SeedSequence; got "
                         f"{type(seed).__name__}. Pass an explicit seed so that runs are "
                         f"reproducible.")
     if int(seed) < 0:
@@ -235,6 +235,6 @@ def measurement_noise(noise: NoiseModel, *, n_samples: int, n_outputs: int, fs: 
     ((5, 2), True)
     """
     if not isinstance(noise, NoiseModel):
-        raise TypeError(f"noise must be a thetahat NoiseModel (WhiteNoise, ColoredNoise); got "
+        raise ArgumentTypeError(f"noise must be a thetahat NoiseModel (WhiteNoise, ColoredNoise); got "
                         f"{type(noise).__name__}.")
     return noise.sample(make_rng(seed), n_samples, n_outputs, fs)

@@ -20,6 +20,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from .._validate import as_vector, check_finite, positive_scalar, readonly
 from ..errors import DimensionError, NonFiniteError
+from ..limits import check_allocation
 
 __all__ = ["FromArray", "Multisine", "Signal", "Steps", "time_grid"]
 
@@ -51,6 +52,11 @@ def _strictly_increasing(name: str, t: FloatArray) -> None:
                              f"drop duplicates.")
 
 
+#: float64 words per sample assumed by :func:`time_grid`'s memory estimate: t, u, x, y and the
+#: estimates of a small model (the LuGre example stores about a dozen).
+GRID_WORDS = 16
+
+
 def time_grid(t_end: float, fs: float, t0: float = 0.0) -> FloatArray:
     """Uniform sample times ``t0, t0 + 1/fs, ...`` up to and including ``t_end``.
 
@@ -72,6 +78,9 @@ def time_grid(t_end: float, fs: float, t0: float = 0.0) -> FloatArray:
     ------
     DimensionError
         ``fs <= 0`` or ``t_end <= t0``.
+    ResourceLimitError
+        The grid and the trajectories sampled on it (``GRID_WORDS`` float64 per sample)
+        would not fit in memory.
 
     Examples
     --------
@@ -82,7 +91,11 @@ def time_grid(t_end: float, fs: float, t0: float = 0.0) -> FloatArray:
     fs_ = positive_scalar("fs", fs)
     t0_ = float(t0)
     span = positive_scalar("t_end - t0", float(t_end) - t0_)
-    n = int(np.floor(span * fs_ + GRID_SLACK)) + 1
+    n_float = np.floor(span * fs_ + GRID_SLACK) + 1
+    check_allocation(8.0 * GRID_WORDS * n_float, f"a time grid of {n_float:.3g} samples "
+                     f"(t_end - t0 = {span:g} s at fs = {fs_:g} Hz) and its trajectories",
+                     fix="shorten t_end or lower fs")
+    n = int(n_float)
     return t0_ + np.arange(n, dtype=np.float64) / fs_
 
 

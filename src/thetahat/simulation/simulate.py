@@ -24,6 +24,7 @@ from scipy.integrate import solve_ivp
 
 from .._validate import as_vector, check_finite, positive_scalar
 from ..errors import (
+    ArgumentTypeError,
     ConvergenceWarning,
     DimensionError,
     NonFiniteError,
@@ -205,7 +206,7 @@ def _input_function(u: Signal | Callable[[float], ArrayLike] | None, m: int
                                  f"(B has shape (n, {m})).")
         return (lambda t: u(t)), u.sampled, u.breakpoints
     if not callable(u):
-        raise TypeError(f"u must be a Signal or a callable of t; got {type(u).__name__}.")
+        raise ArgumentTypeError(f"u must be a Signal or a callable of t; got {type(u).__name__}.")
 
     def one(t: float) -> FloatArray:
         return as_vector("u(t)", u(t), m)
@@ -313,11 +314,11 @@ def _prepare(system: PerturbedLinearSystem, phi: PhiFunction, dphi_dx: PhiFuncti
              rtol: float, atol: ArrayLike, t0: float) -> dict[str, Any]:
     """Validate everything once, before integrating."""
     if not isinstance(system, PerturbedLinearSystem):
-        raise TypeError(f"system must be a PerturbedLinearSystem; got {type(system).__name__}.")
+        raise ArgumentTypeError(f"system must be a PerturbedLinearSystem; got {type(system).__name__}.")
     if method not in METHODS:
         raise DimensionError(f"method must be one of {METHODS}; got {method!r}.")
     if not callable(phi) or (dphi_dx is not None and not callable(dphi_dx)):
-        raise TypeError("phi (and dphi_dx when given) must be callables (t, x, u, theta).")
+        raise ArgumentTypeError("phi (and dphi_dx when given) must be callables (t, x, u, theta).")
     n, k = system.n, system.k
     t = time_grid(t_end, fs, t0)
     x0_ = as_vector("x0", x0, n)
@@ -433,7 +434,7 @@ def simulate_plant(system: PerturbedLinearSystem, *, phi: PhiFunction,
         y, seed_out = y_clean.copy(), None
     else:
         if not isinstance(noise, NoiseModel):
-            raise TypeError(f"noise must be a thetahat NoiseModel or None; got "
+            raise ArgumentTypeError(f"noise must be a thetahat NoiseModel or None; got "
                             f"{type(noise).__name__}.")
         e = noise.sample(make_rng(seed), t.size, system.r, float(fs))
         y, seed_out = y_clean + e, (seed if isinstance(seed, int) else None)

@@ -31,7 +31,8 @@ import scipy.linalg as sla
 from numpy.typing import NDArray
 
 from .._validate import as_triple
-from ..errors import DimensionError, IllConditionedWarning, NotLeftInvertibleError
+from ..errors import (DimensionError, IllConditionedError, IllConditionedWarning,
+                      NotLeftInvertibleError)
 from . import subspaces as sub
 from .zeros import normal_rank, unstable_zeros
 
@@ -139,11 +140,59 @@ def _normalised(M: FloatArray) -> FloatArray:
     return M / nrm if nrm > 0 else M
 
 
-def _check_left_invertible(As, Bs, Cs, QV, QS, tol) -> None:
+#: Tolerances tried (in this order) to suggest one that works when the SCB of a left-invertible
+#: triple fails at the requested tolerance.
+SUGGEST_TOLS = (1e-12, 1e-14, 1e-8, 1e-6)
+
+
+def _suggest_tol(A: FloatArray, B: FloatArray, C: FloatArray, tol: float) -> float | None:
+    """The first of ``SUGGEST_TOLS`` (other than ``tol``) at which the SCB succeeds."""
+    for cand in SUGGEST_TOLS:
+        if cand == tol:
+            continue
+        try:
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore")
+                _scb(A, B, C, cand, suggest=False)
+        except (IllConditionedError, NotLeftInvertibleError, DimensionError):
+            continue
+        return cand
+    return None
+
+
+def _ill_conditioned(A, B, C, tol: float, condition: float, what: str,
+                     suggest: bool) -> IllConditionedError:
+    """The error for a left-invertible triple whose SCB fails numerically at ``tol``."""
+    cand = _suggest_tol(A, B, C, tol) if suggest else None
+    fix = (f"scb(..., tol={cand:g}) succeeds for this triple" if cand is not None else
+           f"no tolerance among {list(SUGGEST_TOLS)} works; rescale the states, or design "
+           "on a simplified system (Sec. VII)")
+    return IllConditionedError(
+        f"the triple (C, A, B) is left-invertible (the Rosenbrock matrix has full normal rank, "
+        f"the test of is_left_invertible), but too ill-conditioned to put in SCB form at "
+        f"tol={tol:g}: {what}"
+        + (f" (condition estimate {condition:.3g})" if np.isfinite(condition) else "")
+        + f"; {fix}.",
+        condition=condition, tol=tol, suggested_tol=cand)
+
+
+def _check_left_invertible(A, B, C, As, Bs, Cs, QV, QS, tol, suggest: bool) -> None:
     n, k = Bs.shape
     rB = sub.rank(Bs, tol)
     n_a = QV.shape[1]
     dim_int = n_a + rB - sub.rank(np.hstack([QV, Bs]), tol) if rB else 0
+    VS = np.hstack([QV, QS])
+    overlap = VS.shape[1] > 0 and sub.rank(VS, tol) < VS.shape[1]
+    if not (rB < k or dim_int > 0 or overlap):
+        return
+    nrank = normal_rank(As, Bs, Cs)
+    if nrank == n + k:                               # structurally fine: a numerical failure
+        sv = np.linalg.svd(VS if overlap else np.hstack([QV, Bs]), compute_uv=False)
+        cond = 1.0 / max(float(sv[-1]), np.finfo(float).tiny) if sv.size else np.inf
+        what = ("V* and S* are numerically indistinguishable (the smallest angle between them "
+                f"has sine {1 / cond:.1e} < tol)" if overlap else
+                "V* ∩ im B looks nonzero at this tolerance")
+        raise _ill_conditioned(A, B, C, tol, cond, what, suggest)
     if rB < k or dim_int > 0:
         why = []
         if rB < k:
@@ -159,9 +208,10 @@ def _check_left_invertible(As, Bs, Cs, QV, QS, tol) -> None:
             "Assumption 1 requires a left-invertible (C, A, E): add outputs that see the "
             "perturbation, or reduce the perturbation to the directions the outputs see.",
             rank_B=rB, normal_rank=nrank, dim_intersection=dim_int)
-    if sub.rank(np.hstack([QV, QS]), tol) < n_a + QS.shape[1]:  # pragma: no cover
-        raise NotLeftInvertibleError("V* ∩ S* ≠ 0: the triple is not left-invertible.",
-                                     rank_B=rB, dim_intersection=1)
+    raise NotLeftInvertibleError(
+        f"the triple (C, A, B) is not left-invertible: V* ∩ S* ≠ 0 and the Rosenbrock matrix "
+        f"has normal rank {nrank} < n + k = {n + k}. Add outputs that see the perturbation.",
+        rank_B=rB, normal_rank=nrank, dim_intersection=1)
 
 
 def _chain_tops(Cs: FloatArray, seq: list[FloatArray], tol: float
@@ -335,9 +385,15 @@ def scb(A, B, C, *, tol: float | None = None) -> SCBResult:
     Raises
     ------
     NotLeftInvertibleError
-        If rank B < k or V* ∩ im B ≠ 0; the message gives both and the normal rank.
+        The triple is not left-invertible: the Rosenbrock matrix lacks full normal rank (the
+        robust test of :func:`~thetahat.structure.zeros.is_left_invertible`); the message
+        gives rank B, dim(V* ∩ im B) and the normal rank.
+    IllConditionedError
+        The triple is left-invertible but its SCB cannot be built at ``tol`` (V* and S*
+        numerically indistinguishable, inconsistent rank decisions, or a failed pattern
+        check); the message gives the condition estimate and a tolerance that works, if any.
     DimensionError
-        Wrong shapes, C without full row rank, or inconsistent rank decisions.
+        Wrong shapes, or C without full row rank (the message names the redundant rows).
 
     Warns
     -----
@@ -354,21 +410,42 @@ def scb(A, B, C, *, tol: float | None = None) -> SCBResult:
     (0, 0, (2,))
     """
     A, B, C = as_triple(A, B, C)
-    n, k = B.shape
-    r = C.shape[0]
     tol = DEFAULT_TOL if tol is None else float(tol)
-    if k == 0:
+    if not (np.isfinite(tol) and 0 < tol < 1):
+        raise DimensionError(f"tol must be a number in (0, 1); got {tol!r}.")
+    if B.shape[1] == 0:
         raise DimensionError("B must have at least one column (k >= 1).")
-    As, Bs, Cs = _normalised(A), _normalised(B), _normalised(C)
-    if sub.rank(Cs, tol) < r:
-        raise DimensionError(
-            f"C has rank {sub.rank(Cs, tol)} < {r} rows: some outputs are redundant. Remove "
-            "them (keep an independent set of rows of C) before computing the SCB.")
+    _check_output_rank(C, tol)
+    try:
+        return _scb(A, B, C, tol, suggest=True)
+    except DimensionError as exc:        # a numerical failure after the structural checks
+        raise _ill_conditioned(A, B, C, tol, float("nan"), str(exc), True) from exc
 
+
+def _check_output_rank(C: FloatArray, tol: float) -> None:
+    """Refuse redundant outputs, naming the rank and the rows to drop."""
+    r = C.shape[0]
+    Cs = _normalised(C)
+    rank_C = sub.rank(Cs, tol)
+    if rank_C == r:
+        return
+    _, _, piv = sla.qr(Cs.T, pivoting=True, mode="economic")
+    keep = sorted(int(i) for i in piv[:rank_C])
+    drop = sorted(int(i) for i in piv[rank_C:])
+    raise DimensionError(
+        f"C has rank {rank_C} < {r} rows: outputs {drop} are linear combinations of outputs "
+        f"{keep} (redundant sensors). Keep the independent rows, C[{keep}, :] (and the same "
+        f"columns of y), before the SCB or a design: the observer needs C of full row rank.")
+
+
+def _scb(A: FloatArray, B: FloatArray, C: FloatArray, tol: float, *, suggest: bool
+         ) -> SCBResult:
+    n, k = B.shape
+    As, Bs, Cs = _normalised(A), _normalised(B), _normalised(C)
     QV = sub.largest_output_nulling(As, Bs, Cs, tol)
     seq = sub.input_containing_sequence(As, Bs, Cs, tol)
     QS = seq[-1]
-    _check_left_invertible(As, Bs, Cs, QV, QS, tol)
+    _check_left_invertible(A, B, C, As, Bs, Cs, QV, QS, tol, suggest)
     n_a, n_q = QV.shape[1], QS.shape[1]
     n_b = n - n_a - n_q
 

@@ -15,11 +15,14 @@ vanishes (for the DC motor, σ₁ = 0 raises the relative degree from 2 to 3; se
 from __future__ import annotations
 
 from dataclasses import dataclass
+from fractions import Fraction
 from typing import Any, Callable, Sequence
 
 import sympy as sp
 
-from ..errors import DimensionError, NotLeftInvertibleError
+from .. import limits
+from ..errors import DimensionError, NotLeftInvertibleError, UnsupportedError
+from ..model.parse import parse_expression
 
 __all__ = ["SymbolicSCBResult", "scb_symbolic"]
 
@@ -113,11 +116,11 @@ def _extend(base: sp.MatrixBase, cand: sp.MatrixBase) -> sp.MutableDenseMatrix:
 
 
 def _solve_left(G: sp.MatrixBase, h: sp.MatrixBase) -> sp.MutableDenseMatrix:
-    """Solve x G = h exactly; raise NotImplementedError when inconsistent or not unique."""
+    """Solve x G = h exactly; raise UnsupportedError when inconsistent or not unique."""
     p = G.rows
     R, pivots = _rref(sp.Matrix.hstack(G.T, h.T))
     if pivots != list(range(p)):
-        raise NotImplementedError(
+        raise UnsupportedError(
             "scb_symbolic: a linear system for the SCB has no unique generic solution; the "
             "structure of this triple is not generic. Substitute numbers and use the numeric "
             "scb instead.")
@@ -128,7 +131,7 @@ def _inv(M: sp.MatrixBase, what: str) -> sp.MutableDenseMatrix:
     n = M.rows
     R, pivots = _rref(sp.Matrix.hstack(M, sp.eye(n)))
     if pivots[:n] != list(range(n)):
-        raise NotImplementedError(
+        raise UnsupportedError(
             f"scb_symbolic: the {what} is singular for generic parameter values, so this triple "
             f"does not have the generic structure this routine builds. Substitute numbers and "
             f"use the numeric scb instead.")
@@ -254,17 +257,73 @@ class SymbolicSCBResult:
 # construction
 # ---------------------------------------------------------------------------------------------
 
-def _as_sym_matrix(name: str, M: Any) -> sp.MutableDenseMatrix:
-    try:
-        out = sp.Matrix(M)
-    except (TypeError, ValueError) as exc:
-        raise DimensionError(f"{name} must be a 2-D SymPy matrix (or nested lists); got "
-                             f"{type(M).__name__}.") from exc
+def _rows_of(name: str, M: Any) -> list[list[Any]]:
+    """Nested lists of the entries of M (a SymPy matrix, an array, or nested sequences)."""
+    if isinstance(M, sp.MatrixBase):
+        return M.tolist()
+    if isinstance(M, (str, bytes)) or not hasattr(M, "__iter__"):
+        raise DimensionError(f"{name} must be a 2-D SymPy matrix or nested lists of entries; "
+                             f"got {type(M).__name__}.")
+    rows = list(M.tolist() if hasattr(M, "tolist") else M)
+    if rows and all(isinstance(r, (str, bytes)) or not hasattr(r, "__iter__") for r in rows):
+        return [[e] for e in rows]                       # a flat list is a column
+    out = []
+    for r in rows:
+        if isinstance(r, (str, bytes)) or not hasattr(r, "__iter__"):
+            raise DimensionError(f"{name} mixes rows and single entries; give a list of rows.")
+        out.append(list(r))
+    return out
+
+
+def _as_sym_matrices(**mats: Any) -> dict[str, sp.MutableDenseMatrix]:
+    """SymPy matrices of A, B, C; string entries go through the safe parser, never sympify."""
+    rows = {name: _rows_of(name, M) for name, M in mats.items()}
+    for name, R in rows.items():
+        if len(R) > limits.MAX_SYMBOLIC_DIM or any(len(r) > limits.MAX_SYMBOLIC_DIM
+                                                   for r in R):
+            raise DimensionError(
+                f"{name} has more than {limits.MAX_SYMBOLIC_DIM} rows or columns; the exact "
+                f"SCB is limited to that size (thetahat.limits.MAX_SYMBOLIC_DIM). Substitute "
+                f"numbers and use the numeric scb.")
+    known: dict[str, sp.Symbol] = {}
+    for R in rows.values():
+        for r in R:
+            for e in r:
+                if isinstance(e, sp.Basic):
+                    known.update({str(s): s for s in e.free_symbols})
+
+    def symbol(name: str) -> sp.Expr:
+        return known.setdefault(name, sp.Symbol(name))
+
+    out = {}
+    for name, R in rows.items():
+        conv = []
+        for i, r in enumerate(R):
+            row = []
+            for j, e in enumerate(r):
+                if isinstance(e, str):
+                    e = parse_expression(e, {}, what=f"{name}[{i}][{j}]", new_symbol=symbol)
+                elif isinstance(e, bool) or not isinstance(e, (sp.Basic, int, float,
+                                                               complex, Fraction)) and \
+                        not (hasattr(e, "dtype") and getattr(e.dtype, "kind", "") in "iuf"):
+                    raise DimensionError(f"{name}[{i}][{j}] must be a number, a SymPy "
+                                         f"expression or a formula string; got "
+                                         f"{type(e).__name__}.")
+                row.append(sp.sympify(e, strict=True))
+            conv.append(row)
+        widths = {len(r) for r in conv}
+        if len(widths) > 1:
+            raise DimensionError(f"{name}: rows have different lengths {sorted(widths)}.")
+        try:
+            out[name] = sp.Matrix(conv) if conv else sp.zeros(0, 0)
+        except (TypeError, ValueError) as exc:
+            raise DimensionError(f"{name} must be a 2-D matrix; {exc}") from exc
     return out
 
 
 def _validate(A: Any, B: Any, C: Any) -> tuple[sp.Matrix, sp.Matrix, sp.Matrix]:
-    A_, B_, C_ = (_as_sym_matrix("A", A), _as_sym_matrix("B", B), _as_sym_matrix("C", C))
+    mats = _as_sym_matrices(A=A, B=B, C=C)
+    A_, B_, C_ = mats["A"], mats["B"], mats["C"]
     n = A_.rows
     if A_.cols != n or n == 0:
         raise DimensionError(f"A must be square and nonempty; got shape {A_.shape}.")
@@ -359,7 +418,7 @@ def _mimo_rows(A: sp.Matrix, B: sp.Matrix, C: sp.Matrix
     for L in range(len(dims) - 1, 0, -1):
         new = _extend(collected, _left_null(_canon(C * S_seq[L - 1])))
         if new.rows != count[L]:
-            raise NotImplementedError(
+            raise UnsupportedError(
                 f"scb_symbolic: found {new.rows} output directions for chains of length {L}, "
                 f"expected {count[L]}; the structure is not generic.")
         tops += [(L, new[i, :]) for i in range(new.rows)]
@@ -389,7 +448,7 @@ def _mimo_rows(A: sp.Matrix, B: sp.Matrix, C: sp.Matrix
             _canon(W_b * C), _left_null(sp.Matrix.hstack(V_star, S_star))))
     T_a0 = _extend(T_b, _left_null(S_star)) if n_a else sp.zeros(0, n)
     if T_b.rows != n_b or T_a0.rows != n_a or r - k != W_b.rows:
-        raise NotImplementedError("scb_symbolic: inconsistent subspace dimensions; the "
+        raise UnsupportedError("scb_symbolic: inconsistent subspace dimensions; the "
                                   "structure of this triple is not generic.")
     return T_q, T_b, T_a0, W, lengths
 
@@ -404,7 +463,7 @@ def _remove_ab_coupling(At: sp.Matrix, n_a: int, n_b: int, C_b: sp.Matrix
     A_a, A_ab, A_b = At[a, a], At[a, b], At[b, b]
     try:
         return None, _solve_left(C_b, A_ab), sp.Integer(1)
-    except NotImplementedError:
+    except UnsupportedError:
         pass
     K = sp.zeros(n_a * n_b, n_a * n_b)
     for j in range(n_b):
@@ -416,7 +475,7 @@ def _remove_ab_coupling(At: sp.Matrix, n_a: int, n_b: int, C_b: sp.Matrix
     rhs = sp.Matrix([-A_ab[i, j] for j in range(n_b) for i in range(n_a)])
     R, piv = _rref(sp.Matrix.hstack(K, rhs))
     if piv != list(range(n_a * n_b)):
-        raise NotImplementedError(
+        raise UnsupportedError(
             "scb_symbolic: A_a and A_b share eigenvalues for generic parameter values, so the "
             "Sylvester step that removes the a–b coupling not passing through C_b has no unique "
             "solution; this MIMO case (n_a > 0, n_b > 0) is not supported symbolically. "
@@ -470,8 +529,14 @@ def scb_symbolic(A: Any, B: Any, C: Any, *, simplify: bool = True) -> SymbolicSC
         Non-matching shapes, or C without full row rank.
     NotLeftInvertibleError
         The triple is not left-invertible for generic parameter values.
-    NotImplementedError
+    UnsupportedError
         A MIMO case outside the supported class (see Notes).
+    ModelFileError, InputLimitError
+        A string entry is not a formula in the safe syntax of
+        :func:`~thetahat.model.parse.parse_expression` (strings are parsed, never evaluated;
+        undeclared names become symbols), or exceeds a limit of :mod:`thetahat.limits`.
+    SymbolicTimeoutError
+        The exact algebra took longer than ``thetahat.limits.SYMBOLIC_TIME_BUDGET``.
 
     Notes
     -----
@@ -514,6 +579,11 @@ def scb_symbolic(A: Any, B: Any, C: Any, *, simplify: bool = True) -> SymbolicSC
     Matrix([[0, -sigma0/J, -alpha2/J]])
     """
     A_, B_, C_ = _validate(A, B, C)
+    return limits.run_with_time_budget(_build, A_, B_, C_, simplify,
+                                       what="scb_symbolic (exact SCB algebra)")
+
+
+def _build(A_: sp.Matrix, B_: sp.Matrix, C_: sp.Matrix, simplify: bool) -> SymbolicSCBResult:
     n, k, r = A_.rows, B_.cols, C_.rows
     if k == 1 and r == 1:
         T_q, W = _siso_rows(A_, B_, C_), sp.Matrix([[1]])
