@@ -2,12 +2,20 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+import os
 
-import numpy as np
-import pytest
+# One BLAS thread per process, set before NumPy loads OpenBLAS: the suite's matrices are tiny,
+# and on a shared 2-core machine OpenBLAS's spinning threads made a 3×3 expm 10 ms instead of
+# 12 µs (the two-inertia tests took 4 min instead of 25 s). Users' own settings win.
+for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
+    os.environ.setdefault(_var, "1")
 
-from thetahat.testing import STRUCTURES, random_scb_system
+from dataclasses import dataclass  # noqa: E402
+
+import numpy as np  # noqa: E402
+import pytest  # noqa: E402
+
+from thetahat.testing import STRUCTURES, random_scb_system  # noqa: E402
 
 
 @pytest.fixture

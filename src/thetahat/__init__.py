@@ -29,6 +29,7 @@ from .model.parse import parse_perturbation
 from .model.perturbation import (CallablePerturbation, JacobianCheck, Perturbation,
                                  SymbolicPerturbation, check_jacobians)
 from .model.system import PerturbedLinearSystem
+from .fleet import FleetResult, estimate_many
 from .simulation.batch import BatchResult, monte_carlo
 from .simulation.noise import ColoredNoise, WhiteNoise
 from .simulation.metrics import rmse, time_to_within
@@ -45,7 +46,7 @@ from .structure.zeros import (invariant_zeros, is_left_invertible, is_minimum_ph
 __version__ = "0.1.0"
 
 __all__ = [
-    "BatchObserverResult", "TuneResult", "tune_eps_gamma", "CompiledObserver", "compile_observer", "run_batch",
+    "BatchObserverResult", "FleetResult", "estimate_many", "TuneResult", "tune_eps_gamma", "CompiledObserver", "compile_observer", "run_batch",
     "AlgebraicInversion", "Ball", "Box", "ConstantLaw", "ConvexSet", "Ellipsoid",
     "ExcitationReport", "GradientInversion", "IntermittentInversion", "ModifiedHighGainObserver",
     "MonotonicityReport", "ObserverEstimate", "ObserverResult", "ParameterSet", "Projection",

@@ -8,7 +8,8 @@ Subcommands::
                   [--out out]
     thetahat analyze MODEL
     thetahat estimate MODEL DATA.csv [-o estimates.csv] [--hold zoh|foh] [--nan-policy raise|skip]
-                      [--no-progress]
+                      [--no-progress] [--plot fig.png]
+    thetahat estimate MODEL logs/ [-o results.csv|.parquet] [--scheduler tcp://HOST:PORT]
 
 Exit codes (see ``EXIT_CODES``): 0 success; 1 the model fails the theory's checks (Assumption 1
 fails, or the design is unstable on the true system); 2 usage or input error (the message is
@@ -116,7 +117,15 @@ def _analyze(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
+def _is_fleet(data: str) -> bool:
+    import glob
+
+    return Path(data).is_dir() or glob.has_magic(data)
+
+
 def _estimate(args: argparse.Namespace) -> int:
+    if _is_fleet(args.data):
+        return _estimate_fleet(args)
     import warnings
 
     from .datafile import check_writable, read_data, write_estimates
@@ -124,6 +133,7 @@ def _estimate(args: argparse.Namespace) -> int:
     from .progress import reporter
     from .simulation.metrics import estimate_summary
 
+    args.output = args.output or "estimates.csv"
     check_writable(args.output)
     spec = load_model(args.model)
     data = read_data(args.data, spec, nan_policy=args.nan_policy)
@@ -136,6 +146,27 @@ def _estimate(args: argparse.Namespace) -> int:
     print(f"wrote {args.output} ({data.t.size} rows)")
     notes = [f"{w.category.__name__}: {w.message}" for w in caught]
     print(estimate_summary(result, spec.parameter_names, warnings=notes))
+    if args.plot:
+        from .plotting import plot_result
+        plot_result(result, spec, args.plot, y=data.y)
+        print(f"wrote {args.plot}")
+    return EXIT_OK
+
+
+def _estimate_fleet(args: argparse.Namespace) -> int:
+    from .datafile import check_writable
+    from .fleet import estimate_many
+
+    output = args.output or "results.csv"
+    check_writable(output)
+    result = estimate_many(args.model, args.data, scheduler=args.scheduler,
+                           chunk_size=args.chunk_size, hold=args.hold,
+                           progress=not args.no_progress)
+    result.write(output)
+    print(f"wrote {output} ({len(result.rows)} files: {result.n_ok} ok, "
+          f"{len(result.rows) - result.n_ok} failed)")
+    for file, reason in result.failed.items():
+        print(f"thetahat: {file}: {reason}", file=sys.stderr)
     return EXIT_OK
 
 
@@ -207,16 +238,21 @@ def _parser() -> argparse.ArgumentParser:
     analyze.set_defaults(run=_analyze)
 
     estimate = sub.add_parser(
-        "estimate", help="run a model file's estimator on a CSV record",
+        "estimate", help="run a model file's estimator on a record or a fleet of records",
         description="Run the estimator of MODEL on DATA (CSV with a header: a column t, one "
                     "column per input named as in the model or u1, u2, ... (u when there is "
                     "one), one per output named as in the model or y1, ... (y when there is "
                     "one)). Writes t, x_hat_*, phi_hat_*, theta_hat_* and x_hat_refined_* "
-                    "as CSV.")
+                    "as CSV. With a directory or glob of CSV/Parquet files (a fleet): one row "
+                    "per file with its status, the final theta_hat_*, their standard error, "
+                    "settling time and warnings; a bad file is reported and never stops the "
+                    "others.")
     estimate.add_argument("model", help="model file (.toml or .json)")
-    estimate.add_argument("data", help="CSV data file, e.g. with columns t,u,y")
-    estimate.add_argument("-o", "--output", default="estimates.csv",
-                          help="output CSV (default: estimates.csv)")
+    estimate.add_argument("data", help="CSV data file, e.g. with columns t,u,y; or a fleet: a "
+                                       "directory or glob of CSV/Parquet files (quote it)")
+    estimate.add_argument("-o", "--output", default=None,
+                          help="output (default: estimates.csv; for a fleet results.csv, or "
+                               ".parquet: one row per file)")
     estimate.add_argument("--hold", choices=["zoh", "foh"], default="zoh",
                           help="sample hold between samples (default: zoh)")
     estimate.add_argument("--nan-policy", choices=["raise", "skip"], default="raise",
@@ -225,6 +261,13 @@ def _parser() -> argparse.ArgumentParser:
                                "(skip)")
     estimate.add_argument("--no-progress", action="store_true",
                           help="do not report progress on stderr")
+    estimate.add_argument("--plot", metavar="FIG.png", default=None,
+                          help="also write a figure of the estimates (one record; needs "
+                               "matplotlib)")
+    estimate.add_argument("--scheduler", metavar="tcp://HOST:PORT", default=None,
+                          help="fleet: run on this Dask cluster (default: in this process)")
+    estimate.add_argument("--chunk-size", type=int, default=None,
+                          help="fleet: records per task (default: about 16 tasks)")
     estimate.set_defaults(run=_estimate)
     return parser
 

@@ -18,7 +18,8 @@ from .errors import ModelFileError, OptionError
 from .estimation.observer import ObserverResult
 from .modelfile import ModelSpec
 
-__all__ = ["DataRecord", "read_data", "check_writable", "estimate_columns", "write_estimates"]
+__all__ = ["DataRecord", "column_candidates", "read_data", "check_writable", "estimate_columns",
+           "write_estimates"]
 
 FloatArray = NDArray[np.float64]
 
@@ -59,6 +60,22 @@ def _aliases(names: tuple[str, ...], letter: str) -> list[list[str]]:
 NAN_POLICIES = ("raise", "skip")
 #: Cells read as a missing output sample under ``nan_policy="skip"`` (besides NaN itself).
 MISSING_CELLS = ("", "nan", "na", "n/a", "null", "none")
+
+
+def column_candidates(spec: ModelSpec) -> list[list[str]]:
+    """The accepted names of each data column: ``[["t"], [u names...]..., [y names...]...]``.
+
+    Each input may be named as in the model, ``u1``, ``u2``, … or ``u`` when m = 1; each output
+    likewise with ``y``. The first name found in a header is used.
+
+    Examples
+    --------
+    >>> from thetahat.modelfile import EXAMPLE_MODEL, loads_model
+    >>> from thetahat.datafile import column_candidates
+    >>> column_candidates(loads_model(EXAMPLE_MODEL))
+    [['t'], ['u', 'u1'], ['y', 'y1']]
+    """
+    return [["t"]] + _aliases(spec.input_names, "u") + _aliases(spec.output_names, "y")
 
 
 def read_data(path: str | Path, spec: ModelSpec, *, nan_policy: str = "raise") -> DataRecord:
@@ -146,7 +163,7 @@ def _read_rows(path: Path, reader: Any, spec: ModelSpec, nan_policy: str) -> Dat
     if header is None:
         raise ModelFileError(f"data file {path} is empty; expected a header row such as "
                              f"t,{','.join(spec.input_names + spec.output_names)}.")
-    wanted = [["t"]] + _aliases(spec.input_names, "u") + _aliases(spec.output_names, "y")
+    wanted = column_candidates(spec)
     index = []
     for alts in wanted:
         found = [h for h in alts if h in header]

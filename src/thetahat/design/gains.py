@@ -42,6 +42,9 @@ CONJ_RTOL = 1e-9
 EPS_POWER_MIN = 1e-100
 #: Attempts (different seeded right-hand sides) of the Sylvester pole placement.
 PLACE_TRIES = 8
+#: ε-scalings of the chain gains: the corrigendum's K̄_qji/ε^i (the default), or the original
+#: paper's K̄_qji/ε^(n̄_q − n_qj + i), kept to show what the corrigendum fixes.
+SCALINGS = ("corrigendum", "original")
 
 
 @dataclass(frozen=True, slots=True, repr=False)
@@ -271,7 +274,7 @@ def require_minimum_phase(sc: SCBResult, A: FloatArray, what: str) -> None:
 
 def high_gain(A, E, C, eps: float, chain_poles: PoleSpec = None,
               b_poles: Sequence[complex] | None = None, *, tol: float | None = None,
-              allow_nonminimum_phase: bool = False) -> GainDesign:
+              scaling: str = "corrigendum", allow_nonminimum_phase: bool = False) -> GainDesign:
     """Gain family K(ε) for ż = A z + E δ − K C z (Sec. III-A.2 / III-B.2 with the corrigendum).
 
     Parameters
@@ -290,6 +293,11 @@ def high_gain(A, E, C, eps: float, chain_poles: PoleSpec = None,
         The n_b poles of A_b − K_bb C_b (repeated poles allowed). Default −1, −2, …, −n_b.
     tol : float, optional
         Rank tolerance of the SCB.
+    scaling : {"corrigendum", "original"}
+        The ε-exponents of the chain gains: the corrigendum's K̄_qji/ε^i (default), or the
+        original paper's K̄_qji/ε^(n̄_q − n_qj + i). They differ only for chains shorter than
+        the longest (MIMO systems of non-uniform rank), where "original" breaks Remark 2;
+        it is kept to show that in tests and examples, not for use.
     allow_nonminimum_phase : bool, default False
         Design even when (C, A, E) has zeros in the closed right half-plane (the error
         dynamics are then unstable; only for studying the failure).
@@ -302,7 +310,7 @@ def high_gain(A, E, C, eps: float, chain_poles: PoleSpec = None,
     ------
     DesignError
         ε ≤ 0, ε so small that the gains overflow, poles not in the open left half-plane,
-        wrong number of poles.
+        wrong number of poles, unknown scaling.
     NotLeftInvertibleError
         (C, A, E) not left-invertible.
     NotMinimumPhaseError
@@ -322,6 +330,8 @@ def high_gain(A, E, C, eps: float, chain_poles: PoleSpec = None,
     """
     A, E, C = as_triple(A, E, C, names=("A", "E", "C"))
     eps = _check_eps(eps)
+    if scaling not in SCALINGS:
+        raise DesignError(f"scaling must be one of {SCALINGS}; got {scaling!r}.")
     sc = scb(A, E, C, tol=tol)
     if not allow_nonminimum_phase:
         require_minimum_phase(sc, A, "high-gain design")
@@ -338,7 +348,7 @@ def high_gain(A, E, C, eps: float, chain_poles: PoleSpec = None,
         bp = _check_poles("b_poles", b_poles, sc.n_b)
     K_bb = place_observer(sc.A_b, sc.C_b, bp) if sc.n_b else np.zeros((0, sc.r_b))
     K_bars = tuple(chain_coefficients(p) for p in cpoles)
-    Kt = _scb_gain(sc, K_bars, K_bb, eps)
+    Kt = _scb_gain(sc, K_bars, K_bb, eps, corrected=scaling == "corrigendum")
     K = sc.state_transform @ Kt @ np.linalg.solve(sc.output_transform, np.eye(C.shape[0]))
     eig = np.sort_complex(np.linalg.eigvals(A - K @ C))
     return GainDesign(K=K, eps=eps, chain_poles=cpoles, b_poles=bp, K_bar=K_bars, K_bb=K_bb,
@@ -349,7 +359,7 @@ def _scb_gain(sc: SCBResult, K_bars, K_bb, eps: float, *, corrected: bool = True
     """The gain in SCB coordinates, rows (χ_a, χ_b, χ_q), columns (γ_q, γ_b).
 
     ``corrected=False`` uses the uncorrected exponents of the original paper
-    (ε^(n̄_q − n_qj + i)); kept private, to show in tests why the corrigendum matters.
+    (ε^(n̄_q − n_qj + i)): ``high_gain(..., scaling="original")``.
     """
     n_a, n_b, k = sc.n_a, sc.n_b, sc.k
     n, r = sc.A_tilde.shape[0], sc.C_tilde.shape[0]
@@ -371,7 +381,7 @@ def _scb_gain(sc: SCBResult, K_bars, K_bb, eps: float, *, corrected: bool = True
 
 def modified_high_gain(A, E, C, eps: float, chain_poles: PoleSpec = None,
                        b_poles: Sequence[complex] | None = None, *,
-                       tol: float | None = None,
+                       tol: float | None = None, scaling: str = "corrigendum",
                        allow_nonminimum_phase: bool = False) -> GainDesign:
     """Gains K(ε) = [K_x; K_φ] of the modified high-gain observer (3), designed on (4).
 
@@ -382,7 +392,7 @@ def modified_high_gain(A, E, C, eps: float, chain_poles: PoleSpec = None,
     ----------
     A, E, C : array_like
         The linear part of (1), or of a simplified design system (Sec. VII–VIII).
-    eps, chain_poles, b_poles, tol, allow_nonminimum_phase
+    eps, chain_poles, b_poles, tol, scaling, allow_nonminimum_phase
         As in :func:`high_gain` (the zeros of (4) are those of (C, A, E), Lemma 1).
 
     Returns
@@ -404,7 +414,7 @@ def modified_high_gain(A, E, C, eps: float, chain_poles: PoleSpec = None,
     A_, E_, C_ = as_triple(A, E, C, names=("A", "E", "C"))
     n = A_.shape[0]
     d = high_gain(*extended_system(A_, E_, C_), eps, chain_poles, b_poles, tol=tol,
-                  allow_nonminimum_phase=allow_nonminimum_phase)
+                  scaling=scaling, allow_nonminimum_phase=allow_nonminimum_phase)
     return GainDesign(K=d.K, eps=d.eps, chain_poles=d.chain_poles, b_poles=d.b_poles,
                       K_bar=d.K_bar, K_bb=d.K_bb, K_tilde=d.K_tilde, scb=d.scb,
                       eigenvalues=d.eigenvalues, K_x=d.K[:n].copy(), K_phi=d.K[n:].copy())

@@ -149,6 +149,30 @@ class ObserverResult:
                 f"phi_hat={self.phi_hat.shape}, theta_hat={self.theta_hat.shape}, "
                 f"x_hat_refined={refined}, skipped={int(self.skipped.sum())})")
 
+    def to_dataframe(self, *, state_names: Any = None, parameter_names: Any = None) -> Any:
+        """A :class:`pandas.DataFrame` indexed by t (:func:`thetahat.tables.result_to_dataframe`).
+
+        Parameters
+        ----------
+        state_names, parameter_names : sequence of str, optional
+            Column suffixes (default 1, 2, …).
+        """
+        from ..tables import result_to_dataframe
+        return result_to_dataframe(self, state_names=state_names,
+                                   parameter_names=parameter_names)
+
+    def to_xarray(self, *, state_names: Any = None, parameter_names: Any = None) -> Any:
+        """An :class:`xarray.Dataset` over t (:func:`thetahat.tables.result_to_xarray`).
+
+        Parameters
+        ----------
+        state_names, parameter_names : sequence of str, optional
+            Coordinate labels (default 1, 2, …).
+        """
+        from ..tables import result_to_xarray
+        return result_to_xarray(self, state_names=state_names,
+                                parameter_names=parameter_names)
+
 
 @dataclass(frozen=True, slots=True, eq=False)
 class ObserverEstimate:

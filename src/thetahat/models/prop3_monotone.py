@@ -25,6 +25,8 @@ True
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING, Any
+
 import numpy as np
 import sympy as sp
 from numpy.typing import ArrayLike, NDArray
@@ -36,7 +38,10 @@ from ._oscillator import oscillator, y
 
 FloatArray = NDArray[np.float64]
 
-__all__ = ["THETA", "PARAMETER_SET", "system", "input_signal", "M", "update_law"]
+if TYPE_CHECKING:
+    from ..simulation.simulate import PlantTrajectory
+
+__all__ = ["THETA", "PARAMETER_SET", "system", "input_signal", "M", "simulate", "update_law"]
 
 #: The true parameter used by the examples and tests.
 THETA = np.array([1.2])
@@ -67,3 +72,48 @@ def update_law(Gamma: ArrayLike = 2.0) -> GradientInversion:
     """The Proposition 3 law θ̂̇ = Proj(Γ M (φ̂ - g(v, x̂, θ̂))) with M = 1."""
     sys = system()
     return GradientInversion(sys.perturbation, Gamma, PARAMETER_SET, M=M)
+
+
+def simulate(seed: int = 0, *, theta: ArrayLike = THETA, t_end: float = 20.0, fs: float = 50.0,
+             noise_std: float = 0.01) -> "PlantTrajectory":
+    """The oscillator driven by :func:`input_signal`, sampled at ``fs`` with seeded noise on y.
+
+    The plant's φ is the model's g (no Remark 4 distinction here: g depends on y = x₁ only
+    through sin, and the plant uses the true x₁). Used to generate fleets of records.
+
+    Parameters
+    ----------
+    seed : int
+        Noise seed.
+    theta : array_like, shape (1,)
+        The true θ (default :data:`THETA`).
+    t_end, fs : float
+        Duration (s) and sampling frequency (Hz).
+    noise_std : float
+        Standard deviation of the white noise on y (0: none).
+
+    Returns
+    -------
+    PlantTrajectory
+
+    Examples
+    --------
+    >>> from thetahat.models import prop3_monotone
+    >>> prop3_monotone.simulate(seed=1, t_end=1.0).y.shape
+    (51, 1)
+    """
+    from ..simulation.noise import WhiteNoise
+    from ..simulation.simulate import simulate_plant
+
+    sys_ = system()
+    g = sys_.perturbation
+
+    def phi(t: Any, x: FloatArray, u: FloatArray, th: FloatArray) -> FloatArray:
+        v = np.concatenate([np.atleast_2d(u), np.atleast_2d(x)[..., :1]], axis=-1)
+        return np.asarray(g.g(v, np.atleast_2d(x), th), dtype=np.float64).reshape(
+            np.shape(x)[:-1] + (1,))
+
+    return simulate_plant(sys_, phi=phi, u=lambda t: input_signal(t), t_end=t_end, fs=fs,
+                          x0=np.zeros(2), theta=np.atleast_1d(theta), seed=seed,
+                          noise=WhiteNoise(noise_std) if noise_std > 0 else None,
+                          method="RK45", rtol=1e-8, atol=1e-10)

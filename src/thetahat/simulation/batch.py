@@ -137,7 +137,8 @@ def _progress_bar(total: int, enabled: bool) -> Any:
 
 
 def monte_carlo(fn: Callable[[int], Any], seeds: Iterable[int], *, progress: bool = True,
-                n_jobs: int | None = 1) -> BatchResult:
+                n_jobs: int | None = 1, scheduler: Any = None,
+                chunk_size: int | None = None) -> BatchResult:
     """Run ``fn(seed)`` for every seed and collect the results in seed order.
 
     Parameters
@@ -153,6 +154,13 @@ def monte_carlo(fn: Callable[[int], Any], seeds: Iterable[int], *, progress: boo
     n_jobs : int or None, optional
         Worker processes: 1 or None runs sequentially in this process; -1 uses all cores.
         Capped at the number of runs.
+    scheduler : str or dask.distributed.Client, optional
+        Run on a Dask cluster (``"tcp://HOST:PORT"`` or a Client) through
+        :func:`thetahat.engine.run_keyed`, in chunks of seeds keyed by seed: a worker that
+        dies loses and duplicates nothing. ``n_jobs`` is then ignored (``n_jobs`` of the
+        result is 0). The results equal those of a run in this process.
+    chunk_size : int, optional
+        Seeds per task on a cluster (default: about 16 tasks).
 
     Returns
     -------
@@ -182,6 +190,14 @@ def monte_carlo(fn: Callable[[int], Any], seeds: Iterable[int], *, progress: boo
     if not callable(fn):
         raise ArgumentTypeError(f"fn must be callable as fn(seed); got {type(fn).__name__}.")
     seeds_ = _check_seeds(seeds)
+    if scheduler is not None:
+        from ..engine import run_keyed, seed_task
+        start = time.perf_counter()
+        unique = tuple(dict.fromkeys(seeds_))
+        done = run_keyed(seed_task(fn), unique, unique, scheduler=scheduler,
+                         chunk_size=chunk_size, label="monte_carlo", progress=progress)
+        return BatchResult(seeds=seeds_, results=tuple(done[s] for s in seeds_), n_jobs=0,
+                           wall_time=time.perf_counter() - start)
     workers = _workers(n_jobs, len(seeds_))
     bar = _progress_bar(len(seeds_), progress)
     start = time.perf_counter()

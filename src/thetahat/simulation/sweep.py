@@ -393,7 +393,8 @@ def _one_run(make_observer: Callable[[float], Any], simulate: Callable[[int], An
 
 def eps_sweep(make_observer: Callable[[float], Any], simulate: Callable[[int], Any],
               eps_values: Iterable[float], seeds: Iterable[int], *, theta_hat0: ArrayLike,
-              progress: bool = True, n_jobs: int | None = 1) -> SweepResult:
+              progress: bool = True, n_jobs: int | None = 1,
+              scheduler: Any = None) -> SweepResult:
     """Run the tuning procedure of Sec. VII: ε = 1 first, then smaller ε, over noise seeds.
 
     For each ε and each seed: ``data = simulate(seed)``, ``obs = make_observer(eps)``,
@@ -423,6 +424,9 @@ def eps_sweep(make_observer: Callable[[float], Any], simulate: Callable[[int], A
         Worker processes (1: sequential; -1: all cores). With n_jobs > 1, ``make_observer``
         and ``simulate`` must be picklable (module-level functions or ``functools.partial``
         of them).
+    scheduler : str or dask.distributed.Client, optional
+        Run the ε × seeds runs on a Dask cluster (see
+        :func:`~thetahat.simulation.batch.monte_carlo`); same picklability as ``n_jobs``.
 
     Returns
     -------
@@ -464,7 +468,8 @@ def eps_sweep(make_observer: Callable[[float], Any], simulate: Callable[[int], A
     seeds_ = _check_seeds(seeds)
     th0 = np.atleast_1d(np.asarray(theta_hat0, dtype=np.float64))
     fn = functools.partial(_one_run, make_observer, simulate, eps, seeds_, th0)
-    batch = monte_carlo(fn, range(len(eps) * len(seeds_)), progress=progress, n_jobs=n_jobs)
+    batch = monte_carlo(fn, range(len(eps) * len(seeds_)), progress=progress, n_jobs=n_jobs,
+                        scheduler=scheduler)
     runs: list[_Run] = list(batch.results)
     shape = (len(eps), len(seeds_))
     n = max(r.x_rmse.shape[0] for r in runs)
