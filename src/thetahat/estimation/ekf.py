@@ -44,7 +44,24 @@ PRIOR_FRACTION = 0.25
 
 
 def theta_box(system: PerturbedLinearSystem) -> tuple[FloatArray, FloatArray]:
-    """(lower, upper) of Θ, which stage 2 needs as a :class:`~thetahat.model.paramset.Box`."""
+    """(lower, upper) of Θ, which stage 2 needs as a :class:`~thetahat.model.paramset.Box`.
+
+    Parameters
+    ----------
+    system : PerturbedLinearSystem
+        The model; its ``parameter_set`` Θ must be a :class:`~thetahat.model.paramset.Box`
+        (the EKF and the MAP fits project θ onto Θ by a clip).
+
+    Returns
+    -------
+    lower, upper : ndarray, shape (p,)
+        Θ's bounds per component of θ, as float64 copies.
+
+    Raises
+    ------
+    ParameterSetError
+        Θ is not a Box (use the paper's observer alone for other parameter sets).
+    """
     theta_set = system.parameter_set
     if not isinstance(theta_set, Box):
         raise ParameterSetError("stage 2 (EKF, maximum-likelihood fit) projects θ onto Θ by a "
@@ -55,7 +72,25 @@ def theta_box(system: PerturbedLinearSystem) -> tuple[FloatArray, FloatArray]:
 
 
 def theta_prior_sd(system: PerturbedLinearSystem) -> FloatArray:
-    """Prior standard deviation of θ from Θ: :data:`PRIOR_FRACTION` × its width."""
+    """Prior standard deviation of θ from Θ: :data:`PRIOR_FRACTION` × its width.
+
+    Parameters
+    ----------
+    system : PerturbedLinearSystem
+        The model; its Θ must be a :class:`~thetahat.model.paramset.Box` (see
+        :func:`theta_box`).
+
+    Returns
+    -------
+    ndarray, shape (p,)
+        |Θ|/4 per component: the prior N(centre of Θ, (|Θ|/4)²) of the EKF on col(x, θ) and
+        of the first MAP fit puts Θ's ends at 2 standard deviations.
+
+    Raises
+    ------
+    ParameterSetError
+        Θ is not a Box.
+    """
     lo, hi = theta_box(system)
     return PRIOR_FRACTION * (hi - lo)
 
@@ -69,6 +104,28 @@ class EKFKernels:
     is clipped to [lo, hi]); ``loop(s, P, U, Y, t, k0, k1, R, lo, hi, h_rho, q_x, X, TH, SD,
     NIS) -> status`` runs samples k0 … k1−1 and returns −1, or the index where s became
     non-finite.
+
+    Parameters
+    ----------
+    model : ModelKernel
+        The plant kernels (f, Φ, Γ and the RK4 sampled-data map) the EKF is built on; its
+        ``compiled`` flag says whether the operations below are numba-compiled.
+    predict : callable
+        ``predict(s, P, u0, u1, h, h_rho, q_x, Phi, Gam) -> None``: the time update over one
+        sample of length ``h`` with u linear from ``u0`` to ``u1``. Overwrites s = col(x, θ)
+        (shape (n + p,)) with (F(x, θ, u0, u1), θ) and P (shape (n + p, n + p)) with
+        T P Tᵀ + diag(q_x I, 0), T = [[Φ, Γ], [0, I]]; ``Phi`` (n, n) and ``Gam`` (n, p)
+        are work arrays that receive Φ and Γ.
+    update : callable
+        ``update(s, P, y, R, lo, hi) -> float``: the measurement update with y (r,) and
+        R (r, r), H = [C 0], P in Joseph form, then θ clipped to [lo, hi]; returns the
+        normalised innovation squared νᵀ S⁻¹ ν ÷ r (≈ 1 for a consistent filter).
+    loop : callable
+        ``loop(s, P, U, Y, t, k0, k1, R, lo, hi, h_rho, q_x, X, TH, SD, NIS) -> int``: the
+        filter over samples k0 … k1−1 (predict from sample k−1 when k > 0, then update unless
+        y_k has a non-finite entry), writing x̂ into ``X`` (N, n), θ̂ into ``TH`` (N, p),
+        √diag P_θθ into ``SD`` (N, p) and the NIS into ``NIS`` (N,; NaN where not updated);
+        returns −1, or the first sample index at which s became non-finite.
     """
 
     model: ModelKernel
@@ -230,6 +287,28 @@ def _cached(model: ModelKernel) -> EKFKernels:
 
 def ekf_kernels(system: PerturbedLinearSystem, *, compiled: bool | None = None) -> EKFKernels:
     """The EKF kernels of a model (built once per model kernel).
+
+    Parameters
+    ----------
+    system : PerturbedLinearSystem
+        The model of stage 2, with a
+        :class:`~thetahat.model.perturbation.SymbolicPerturbation` (see
+        :func:`~thetahat.estimation.model_kernel.model_kernel`).
+    compiled : bool, optional
+        Compile the kernels with numba; default (None): when numba is installed.
+
+    Returns
+    -------
+    EKFKernels
+        ``predict``, ``update`` and ``loop`` on col(x, θ) for this model; the same object for
+        the same model kernel (an LRU cache of 16).
+
+    Raises
+    ------
+    DimensionError
+        The perturbation is not symbolic.
+    MissingExtraError
+        ``compiled=True`` without numba.
 
     Examples
     --------

@@ -48,7 +48,20 @@ NIS_WINDOW = 200.0
 
 def progress_init(theta0: np.ndarray) -> np.ndarray:
     """State of :func:`progress_step` after sample 0: per component (prefix min, max, block
-    min, max, current min, max); shape (p, 6)."""
+    min, max, current min, max); shape (p, 6).
+
+    Parameters
+    ----------
+    theta0 : ndarray, shape (p,)
+        Stage 1's θ̂_G at sample 0 (the observer's initial estimate).
+
+    Returns
+    -------
+    ndarray, shape (p, 6)
+        Per component of θ: the running min and max of θ̂_G before the previous dyadic block
+        (initialised to ``theta0``), of the previous block and of the current block (both
+        empty: +inf, −inf).
+    """
     p = theta0.shape[0]
     st = np.empty((p, 6))
     for i in range(p):
@@ -63,7 +76,31 @@ def progress_init(theta0: np.ndarray) -> np.ndarray:
 
 def progress_step(st: np.ndarray, k: int, theta: np.ndarray, width: np.ndarray, c: float,
                   rho_max: float, delta: np.ndarray) -> None:
-    """Add stage 1's θ̂_G at sample k ≥ 1 to ``st`` and write δ_G into ``delta`` (p,)."""
+    """Add stage 1's θ̂_G at sample k ≥ 1 to ``st`` and write δ_G into ``delta`` (p,).
+
+    At k = 2^J the dyadic blocks shift; then, per component, *late* is the range of θ̂_G
+    over the previous and current blocks and *early* its range before them, and
+    δ_G = min(|Θ|, c·late/(1 − late/early)) if late < ρ_max·early, else |Θ| (no evidence
+    that stage 1 contracts).
+
+    Parameters
+    ----------
+    st : ndarray, shape (p, 6)
+        The progress state from :func:`progress_init` (or an earlier call), updated in place.
+    k : int
+        The absolute sample index, k ≥ 1 (called once per sample, in order).
+    theta : ndarray, shape (p,)
+        Stage 1's θ̂_G at sample k.
+    width : ndarray, shape (p,)
+        |Θ| per component (upper − lower): δ_G's value without evidence, and its cap.
+    c : float
+        Safety factor on the extrapolated remaining movement (default in use
+        :data:`GUARD_C`).
+    rho_max : float
+        Largest ratio late/early taken as evidence of contraction (:data:`GUARD_RHO_MAX`).
+    delta : ndarray, shape (p,)
+        Output: receives δ_G(k) per component.
+    """
     p = theta.shape[0]
     if k & (k - 1) == 0:                           # k = 2^J: shift the dyadic blocks
         for i in range(p):
@@ -86,7 +123,30 @@ def progress_step(st: np.ndarray, k: int, theta: np.ndarray, width: np.ndarray, 
 
 def make_guarded_loop(predict: Callable[..., None], update: Callable[..., float],
                       jit: Callable[..., Any]) -> Callable[..., int]:
-    """The per-sample loop of the guarded estimator over EKF kernels (compiled with them)."""
+    """The per-sample loop of the guarded estimator over EKF kernels (compiled with them).
+
+    Parameters
+    ----------
+    predict, update : callable
+        The EKF's time and measurement updates on col(x, θ), ``EKFKernels.predict`` and
+        ``EKFKernels.update`` of :mod:`~thetahat.estimation.ekf`.
+    jit : callable
+        fn ↦ compiled fn, applied to :func:`progress_step` and to the loop: numba's
+        ``njit`` when the kernels are compiled, the identity otherwise (one argument, unlike
+        :func:`~thetahat.estimation.model_kernel.jit`).
+
+    Returns
+    -------
+    callable
+        ``loop(s, P, P0, U, Y, tt, k0, k1, off, R, lo, hi, h_rho, q_x, thG, xG, pst, gst, cfg,
+        TH, TH2, X2, SD2, BAND, CLIP, RESET, NIS) -> int``: runs stage 2 over samples
+        k0 … k1−1 (absolute index k + ``off``) against stage 1's θ̂_G ``thG`` and x̂ ``xG``,
+        writes the guarded θ̂ (``TH``), stage 2's θ̂₂, x̂₂ and σ₂ (``TH2``, ``X2``, ``SD2``),
+        the band δ (``BAND``), the clip and reset flags and the windowed NIS, updates the
+        progress state ``pst``, ``gst`` = (dwell count, NIS average, first update index) and
+        returns the number of resets of stage 2 to stage 1. ``cfg`` = (κ, c, ρ_max, dwell in
+        samples, σ₂ cap per component…).
+    """
     prog = jit(progress_step)
 
     def loop(s, P, P0, U, Y, tt, k0, k1, off, R, lo, hi, h_rho, q_x, thG, xG, pst, gst, cfg,

@@ -292,7 +292,29 @@ def fit_map(system: PerturbedLinearSystem, t: FloatArray, U: FloatArray, Y: Floa
 
 
 def doubling_schedule(first: float = 0.08, cap: float = 12.8) -> Callable[[int], float]:
-    """Fit times first·2ʲ until ``cap``, then every ``cap`` seconds: j ↦ t_j."""
+    """Fit times first·2ʲ until ``cap``, then every ``cap`` seconds: j ↦ t_j.
+
+    Parameters
+    ----------
+    first : float
+        Time of fit j = 0, in seconds (default 0.08).
+    cap : float
+        Largest doubling step, in seconds (default 12.8): once first·2ʲ would exceed it, the
+        fits follow every ``cap`` seconds after the last doubled time.
+
+    Returns
+    -------
+    callable
+        j ↦ t_j (int → float seconds), increasing; the default ``times`` of
+        :class:`FitSchedule`.
+
+    Examples
+    --------
+    >>> from thetahat.estimation.mle import doubling_schedule
+    >>> at = doubling_schedule(0.1, 0.4)
+    >>> [round(at(j), 2) for j in range(5)]
+    [0.1, 0.2, 0.4, 0.8, 1.2]
+    """
     def at(j: int) -> float:
         t = first * 2.0 ** j
         if t <= cap:
@@ -375,7 +397,21 @@ class FitSchedule:
 
 
 def dense_schedule(j: int) -> float:
-    """The offline schedule: every 10 ms to 0.1 s, every 0.1 s to 1 s, then every second."""
+    """The offline schedule: every 10 ms to 0.1 s, every 0.1 s to 1 s, then every second.
+
+    Used as the ``times`` of :class:`FitSchedule` by :class:`MapEstimator` (method "mle").
+
+    Parameters
+    ----------
+    j : int
+        Index of the fit, j ≥ 0.
+
+    Returns
+    -------
+    float
+        t_j in seconds: 0.01 (j + 1) for j < 10, 0.1 (j − 8) for 10 ≤ j < 19, then
+        1 + (j − 18).
+    """
     if j < 10:
         return 0.01 * (j + 1)
     if j < 19:

@@ -48,7 +48,13 @@ MAX_SUBSTEPS = 500
 
 
 def have_numba() -> bool:
-    """Whether numba (the optional extra ``speed``) is importable."""
+    """Whether numba (the optional extra ``speed``) is importable.
+
+    Returns
+    -------
+    bool
+        True when ``import numba`` succeeds: stage 2's kernels are then compiled by default.
+    """
     try:
         import numba  # noqa: F401
     except ImportError:
@@ -57,7 +63,21 @@ def have_numba() -> bool:
 
 
 def jit(fn: Callable[..., Any], compiled: bool) -> Callable[..., Any]:
-    """``numba.njit(fn, nogil=True)`` when ``compiled``, else ``fn`` unchanged (the fallback)."""
+    """``numba.njit(fn, nogil=True)`` when ``compiled``, else ``fn`` unchanged (the fallback).
+
+    Parameters
+    ----------
+    fn : callable
+        A scalar-loop kernel written in numba's subset of Python.
+    compiled : bool
+        Compile with numba (which must be installed); False returns ``fn`` itself.
+
+    Returns
+    -------
+    callable
+        The compiled dispatcher (releasing the GIL, so a fit on a worker thread runs
+        alongside the caller), or ``fn``.
+    """
     if not compiled:
         return fn
     import numba
@@ -119,6 +139,17 @@ def spectral_radius_bound(F: FloatArray) -> float:
     make the bound tight for badly scaled models (a zero off-diagonal row or column is scaled
     down by 1e-8) (LuGre's ∂f/∂x has entries from 1 to 1e5,
     its eigenvalues ~3e2): ρ(F) ≤ max_i (|B_ii| + Σ_{j≠i} |B_ij|), B = D F D⁻¹.
+
+    Parameters
+    ----------
+    F : ndarray, shape (n, n)
+        A square matrix (here F_x = ∂f/∂x at the start of a sample); not modified.
+
+    Returns
+    -------
+    float
+        The bound ρ ≥ ρ(F) (0 for n = 0), which sets the number of RK4 sub-steps
+        ceil(h ρ / ``h_rho``).
     """
     n = F.shape[0]
     B = F.copy()

@@ -664,15 +664,29 @@ def estimator(method: str = "guarded", *, eps: float = 1.0, Gamma: float = 1.0,
     Parameters
     ----------
     method : {"paper", "guarded", "mle"}
+        The estimator (default ``"guarded"``).
     eps, Gamma : float
-        Stage 1's tuning (the paper's: 1, 1).
+        Stage 1's tuning: ε of the observer and Γ of the update law (the paper's: 1, 1);
+        not used by ``"mle"``.
     noise_std : float, optional
-        σ of the speed measurement; default estimated from the data.
+        σ of the speed measurement for stage 2 (EKF, MAP fits); default (None) estimated
+        from the data. Not used by ``"paper"``.
     params : LuGreParameters
+        The known motor and friction parameters (default :class:`LuGreParameters`); α0 only
+        sets Θ's bounds.
     compiled : bool, optional
-        numba kernels (default: when installed).
+        numba kernels for stage 2 and, with ``"guarded"``, a compiled stage 1; default
+        (None): when numba is installed.
     dt : float
-        Sampling period for the compiled stage 1 (the records must be sampled at it).
+        Sampling period for the compiled stage 1 of ``"guarded"`` (default 1e-3 s; the
+        records must be sampled at it).
+
+    Returns
+    -------
+    ModifiedHighGainObserver or GuardedEstimator or MapEstimator
+        The observer of :func:`observer` for ``"paper"``, a
+        :class:`~thetahat.estimation.guarded.GuardedEstimator` for ``"guarded"``, a
+        :class:`~thetahat.estimation.mle.MapEstimator` for ``"mle"``.
 
     Raises
     ------
