@@ -147,7 +147,7 @@ def _progress(total: int, enabled: bool, desc: str) -> Any:
     return tqdm(total=total, desc=desc, unit="item", delay=2.0, leave=False)
 
 
-def run_keyed(task: Callable[[list[Any]], list[tuple[Hashable, Any]]], items: Sequence[Any],
+def run_keyed(task: Callable[[list[Any]], Sequence[tuple[Hashable, Any]]], items: Sequence[Any],
               keys: Sequence[Hashable], *, scheduler: Any = None,
               chunk_size: int | None = None, label: str = "job", progress: bool = True,
               retries: int = DEFAULT_RETRIES) -> dict[Hashable, Any]:
@@ -225,7 +225,7 @@ def run_keyed(task: Callable[[list[Any]], list[tuple[Hashable, Any]]], items: Se
     return {k: out[k] for k in keys}
 
 
-def _collect(out: dict[Hashable, Any], pairs: list[tuple[Hashable, Any]], bar: Any) -> None:
+def _collect(out: dict[Hashable, Any], pairs: Sequence[tuple[Hashable, Any]], bar: Any) -> None:
     for key, value in pairs:
         if key not in out:               # a chunk re-run after a worker died counts once
             out[key] = value

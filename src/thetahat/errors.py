@@ -7,8 +7,6 @@ found, and what to do.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
-
 import numpy as np
 from numpy.typing import ArrayLike
 
@@ -203,7 +201,7 @@ class UnstableDesignError(DesignError):
         The eigenvalues of the true closed-loop error system with Re λ >= 0.
     """
 
-    def __init__(self, message: str, *, eigenvalues: Sequence[complex] = ()) -> None:
+    def __init__(self, message: str, *, eigenvalues: ArrayLike = ()) -> None:
         super().__init__(message)
         self.eigenvalues = np.asarray(eigenvalues, dtype=complex)
 

@@ -33,7 +33,7 @@ import warnings
 from collections.abc import Hashable, Iterable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 from numpy.typing import NDArray
@@ -42,6 +42,7 @@ from .datafile import DataRecord, column_candidates, read_data
 from .engine import run_keyed
 from .errors import MissingExtraError, ModelFileError
 from .estimation.batch_run import run_batch
+from .model.paramset import Box
 from .modelfile import ModelSpec, build_observer, load_model, loads_model
 from .studies.metrics import time_to_within
 
@@ -263,7 +264,7 @@ def _spec(text: str, syntax: str, source: str) -> ModelSpec:
 
 def _summary(spec: ModelSpec, t: FloatArray, theta_hat: FloatArray) -> dict[str, Any]:
     row: dict[str, Any] = {"n_samples": int(t.size), "t_end": float(t[-1])}
-    box = spec.system.parameter_set
+    box = cast(Box, spec.system.parameter_set)        # a model file's Θ is always a Box
     half_width = (np.asarray(box.upper) - np.asarray(box.lower)) / 2
     N = t.size
     tail = theta_hat[N - max(SE_BATCHES, int(TAIL_FRACTION * N)):]

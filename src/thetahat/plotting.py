@@ -265,7 +265,7 @@ def plot_result(result: Any, system: Any, path: str | Path | None = None, *,
                       label=f"±{band:.0%} of {'θ' if theta is not None else 'θ̂(end)'}")
         if theta is not None:
             panel.axhline(centre, color="k", lw=0.8, label="true")
-        if lower is not None:
+        if lower is not None and upper is not None:       # a Box Θ has both bounds
             panel.axhline(float(np.ravel(lower)[i]), color="tab:red", ls=":", lw=1.0,
                           label="Θ")
             panel.axhline(float(np.ravel(upper)[i]), color="tab:red", ls=":", lw=1.0)

@@ -17,7 +17,7 @@ import hashlib
 import re
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 import sympy as sp
@@ -51,7 +51,7 @@ FAR_FLOAT = 1e30
 #: keeps its square (1e36) finite in float, far above any sensibly scaled observer quantity.
 BOUND_FLOAT = 1e18
 
-_LAWS = {ConstantLaw: "constant", IntermittentInversion: "intermittent",
+_LAWS: dict[type, str] = {ConstantLaw: "constant", IntermittentInversion: "intermittent",
          GradientInversion: "gradient"}
 
 
@@ -183,7 +183,8 @@ def _check(observer: Any, hold: str, real: str) -> tuple[str, Any]:
     if not isinstance(pert, SymbolicPerturbation):
         raise UnsupportedError(f"g must be a SymbolicPerturbation (C is printed from its SymPy "
                            f"form); got {type(pert).__name__}.")
-    law = observer.update_law
+    # Any: the checks below read attributes (l, M, perturbation, Gamma) of several law classes.
+    law: Any = observer.update_law
     kind = _LAWS.get(type(law))
     if kind == "intermittent" and law.l is None:        # AlgebraicInversion: l ≡ 1
         kind = "algebraic"
@@ -276,10 +277,16 @@ def discretisation(observer: ModifiedHighGainObserver, dt: float, *, predict: bo
     plan = observer.plan(dt)          # StepPlan: batch axis of length 1
     out = {"PHI1": plan.Phi1[0]}
     if predict:
+        if plan.Phi1_open is None:
+            raise UnsupportedError("predict=True needs the prediction plans, which the observer "
+                                   "builds only with nan_policy='skip'.")
         out["PHI1_OPEN"] = plan.Phi1_open[0]
     if plan.second is not None:
         out["PHI12"] = plan.second.Phi1[0]
         if predict:
+            if plan.second.Phi1_open is None:
+                raise UnsupportedError("predict=True needs the second observer's prediction "
+                                       "plans, built only with nan_policy='skip'.")
             out["PHI12_OPEN"] = plan.second.Phi1_open[0]
     return out
 
@@ -301,6 +308,9 @@ def _constants(observer: ModifiedHighGainObserver, law: Any, opts: StepOptions, 
         arrays.append(("PHI1_OPEN", phi["PHI1_OPEN"],
                        "Phi1 of L = [[A, E], [0, 0]] (prediction over a missing sample)"))
     if opts.second:
+        if observer.second is None:
+            raise UnsupportedError("the step options ask for a second observer but the observer "
+                                   "has none attached.")
         arrays += [("K2", observer.second.K_x, "K_x of the second observer (Sec. VI), n x r"),
                    ("PHI12", phi["PHI12"], "Phi1 of A - K_x2 C (second observer)")]
         if opts.skip:
@@ -358,9 +368,13 @@ def model_hash(observer: ModifiedHighGainObserver) -> str:
     """
     h = hashlib.sha256()
     sysm, law = observer.system, observer.update_law
-    h.update(sp.srepr(sysm.perturbation.expr).encode())
+    # The hash is defined for the observers generate_c supports: a SymbolicPerturbation g and a
+    # Box Θ (other observers fail here with AttributeError, as before; the casts only inform mypy).
+    pert = cast(SymbolicPerturbation, sysm.perturbation)
+    box = cast(Box, law.parameter_set)
+    h.update(sp.srepr(pert.expr).encode())
     for arr in (sysm.A, sysm.B, sysm.C, sysm.E, observer.K_x, observer.K_phi,
-                law.parameter_set.lower, law.parameter_set.upper,
+                box.lower, box.upper,
                 np.asarray(getattr(law, "Gamma", 0.0))):
         h.update(np.ascontiguousarray(arr, dtype=np.float64).tobytes())
     h.update(repr((type(law).__name__, getattr(law, "on_invalid", None), observer.nan_policy,
@@ -447,7 +461,7 @@ def generate_c(observer: ModifiedHighGainObserver, *, dt: float, name: str = "ob
         raise UnsupportedError(f"dt must be a finite step length > 0; got {dt!r}.")
     prefix = _c_name(name)
     sysm = observer.system
-    pert = sysm.perturbation
+    pert = cast(SymbolicPerturbation, sysm.perturbation)     # _check verified it
     n, m, r, p, k = pert.dims
     second = observer.second
     opts = StepOptions(prefix=prefix, law=kind, freeze=getattr(law, "on_invalid", "") == "freeze",

@@ -19,7 +19,7 @@ linearly between its samples.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 from numpy.typing import NDArray
@@ -134,7 +134,7 @@ def _integrate(system: PerturbedLinearSystem, t: FloatArray, U: FloatArray, thet
         kern.rhs_jac(z[:n].copy(), U[i] + (tt - t[i]) * slopes[i], theta, f, Fx, Ft)
         # block diagonal, the second-derivative couplings left out: LSODA uses the Jacobian
         # in its Newton iteration only, so the approximation costs iterations, not accuracy
-        return np.kron(eye, Fx)
+        return cast(FloatArray, np.kron(eye, Fx))      # float64 inputs: float64 result
 
     S0 = np.zeros((nq, n))                      # row q = column q of S
     if with_m:

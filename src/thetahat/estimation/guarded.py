@@ -281,7 +281,8 @@ class GuardedEstimator:
                  pst, gst, cfg, out["TH"], out["TH2"], out["X2"], out["SD2"], out["BAND"],
                  CLIP, RESET, NIS)
             due = sched is not None and k_next == k_fit
-            if due and MIN_SAMPLES <= k_next < N:
+            # (due implies sched and prior0 are set; the two tests are spelled out for mypy)
+            if sched is not None and prior0 is not None and due and MIN_SAMPLES <= k_next < N:
                 fit = sched.fit(t_, U, Y, k_next, fits[-1] if fits else None, prior0)
                 fits.append(fit)
                 fit_at.append(k_next - 1)
@@ -468,8 +469,8 @@ class _Stream:
             self.base = new_base
 
     def maybe_submit(self, est: GuardedEstimator) -> None:
-        sched = self.sched
-        if sched is None or self.future is not None:
+        sched, prior0 = self.sched, self.prior0       # prior0 is None exactly when sched is
+        if sched is None or prior0 is None or self.future is not None:
             return
         if self.t[-1] < sched.times(self.j) - 1e-12 or self.k < MIN_SAMPLES:
             return
@@ -484,7 +485,6 @@ class _Stream:
             prev = dataclasses.replace(prev, k0=max(prev.k0 - b, 0), k1=prev.k1 - b)
         elapsed = float(t[-1])
         k1 = t.shape[0]
-        prior0 = self.prior0
 
         def job() -> FitResult:
             fit = sched.fit(t, U, Y, k1, prev, prior0, elapsed=elapsed)

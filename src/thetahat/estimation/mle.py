@@ -373,7 +373,7 @@ class FitSchedule:
         n = self.system.n
         el = float(t[k1 - 1] - t[0]) if elapsed is None else float(elapsed)
         full = previous is None or el <= self.full_window + 1e-12
-        if full:
+        if full or previous is None:            # (full already holds if previous is None)
             k0 = 0
             q_prior, info = prior0
             q_start = (q_prior.copy() if previous is None

@@ -116,7 +116,8 @@ def _generate_source(system: PerturbedLinearSystem) -> str:
     # d|z|/dz = sign(z) and DiracDelta terms of sign'(z) are dropped (a.e. derivatives)
     Fx = Fx.replace(sp.DiracDelta, lambda *a: sp.S.Zero)
     Ft = Ft.replace(sp.DiracDelta, lambda *a: sp.S.Zero)
-    entries = [("f", (i,), f[i]) for i in range(f.rows)]
+    entries: list[tuple[str, tuple[int, ...], Any]] = [
+        ("f", (i,), f[i]) for i in range(f.rows)]
     entries += [("Fx", (i, j), Fx[i, j]) for i in range(Fx.rows) for j in range(Fx.cols)]
     entries += [("Ft", (i, j), Ft[i, j]) for i in range(Ft.rows) for j in range(Ft.cols)]
     temps, reduced = sp.cse([e for _, _, e in entries], symbols=sp.numbered_symbols("c_"))

@@ -10,6 +10,7 @@ names the keys in its error messages.
 from __future__ import annotations
 
 from collections.abc import Callable
+from typing import cast
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -275,6 +276,9 @@ def run_estimator(spec: ModelSpec, t: ArrayLike, u: ArrayLike | None, y: ArrayLi
     s = spec.system
     theta_star = getattr(spec.estimator.update_law, "theta_star", None)
     if theta_star is not None:
+        if s.perturbation is None or s.parameter_set is None:
+            raise ModelFileError(f"model file {spec.source}: θ* needs the system's perturbation "
+                                 "and parameter set; the model has none.")
         check_theta_star(theta_star, s.perturbation, s.parameter_set, s.C, t, u, y)
     state0 = obs.init(x_hat0=x0, theta_hat0=th0)
     if how == "paper":
@@ -305,9 +309,12 @@ def _as_observer_result(spec: ModelSpec, t: FloatArray, u: ArrayLike | None, y: 
     N = t.shape[0]
     U = np.zeros((N, 0)) if u is None else np.asarray(u, dtype=np.float64).reshape(N, -1)
     Y = np.asarray(y, dtype=np.float64).reshape(N, -1)
+    if spec.system.perturbation is None:
+        raise ModelFileError(f"model file {spec.source}: φ̂ needs the system's perturbation; "
+                             "the model has none.")
     PHI = np.asarray(spec.system.perturbation.g(np.concatenate([U, Y], axis=1), X, TH),
                      dtype=np.float64)
-    skipped = ~np.isfinite(Y).all(axis=1)
+    skipped = cast(NDArray[np.bool_], ~np.isfinite(Y).all(axis=1))     # Y is 2-D: an array
     for a in (X, TH, PHI, skipped):
         a.setflags(write=False)
     return ObserverResult(t=t, x_hat=X, phi_hat=PHI, theta_hat=TH, x_hat_refined=None,

@@ -149,7 +149,7 @@ def simulate(seed: int = 0, *, theta: ArrayLike = THETA, t_end: float = 20.0, fs
     from ..simulation.simulate import simulate_plant
 
     sys_ = system()
-    g = sys_.perturbation
+    g = cast(Perturbation, sys_.perturbation)          # system() always attaches g
 
     def phi(t: Any, x: FloatArray, u: FloatArray, th: FloatArray) -> FloatArray:
         v = np.concatenate([np.atleast_2d(u), np.atleast_2d(x)[..., :1]], axis=-1)

@@ -49,7 +49,7 @@ from __future__ import annotations
 import dataclasses
 import functools
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 import sympy as sp
@@ -272,8 +272,9 @@ def observer(eps: float = EPS, *, Gamma: float = GAMMA,
     ((3, 2), (2, 2))
     """
     sys_ = system(params)
-    law = GradientInversion(sys_.perturbation, Gamma, sys_.parameter_set,
-                            M=LoadSpeedWeight(params.v_s))
+    # system() always attaches g and the Box Θ
+    law = GradientInversion(cast(SymbolicPerturbation, sys_.perturbation), Gamma,
+                            cast(Box, sys_.parameter_set), M=LoadSpeedWeight(params.v_s))
     return ModifiedHighGainObserver.from_design(sys_, design(eps, params=params,
                                                              scaling=scaling), law)
 
