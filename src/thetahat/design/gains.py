@@ -415,7 +415,7 @@ def high_gain(A: ArrayLike, E: ArrayLike, C: ArrayLike, eps: float, chain_poles:
         Design even when (C, A, E) has zeros in the closed right half-plane (the error
         dynamics are then unstable; only for studying the failure).
 
-Returns
+    Returns
     -------
     GainDesign
 
