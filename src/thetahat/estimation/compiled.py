@@ -100,7 +100,17 @@ class _Printer(PythonCodePrinter):
     """Python printer for numba: ``math`` functions, and no partially printed code."""
 
     def __init__(self) -> None:
-        super().__init__({"fully_qualified_modules": True, "strict": True})
+        try:
+            super().__init__({"fully_qualified_modules": True, "strict": True})
+        except TypeError:               # SymPy < 1.13 has no "strict": checked in doprint
+            super().__init__({"fully_qualified_modules": True})
+
+    def doprint(self, expr: Any, assign_to: Any = None) -> str:
+        """Code for ``expr``; raises instead of printing a "not supported" comment."""
+        code = super().doprint(expr, assign_to)
+        if "Not supported" in code:
+            raise UnsupportedError(f"SymPy cannot print {expr} as Python code: {code}")
+        return code
 
 
 def _scalar_function(name: str, params: str, inputs: Sequence[tuple[str, Sequence[sp.Symbol]]],
