@@ -37,6 +37,10 @@ def cluster():
         yield lc, client
 
 
+#: Agreement of one record's θ̂ computed in this process and in a worker (see below).
+SAME_RUN_RTOL = 1e-12
+
+
 def test_fleet_same_rows_in_process_and_on_the_cluster(cluster, fleet_dir, fleet):
     lc, client = cluster
     here = fleet
@@ -47,7 +51,14 @@ def test_fleet_same_rows_in_process_and_on_the_cluster(cluster, fleet_dir, fleet
     for a, b in zip(here.rows, there.rows):
         assert a.keys() == b.keys()
         for k in a:
-            assert a[k] == b[k] or (a[k] != a[k] and b[k] != b[k]), (k, a[k], b[k])
+            if isinstance(a[k], float) and isinstance(b[k], float):
+                # the same computation in a worker process, whose BLAS may take another kernel:
+                # equal to the last bits (bitwise with the locked versions; 1 ulp seen with
+                # numpy 1.26), far below any statistical meaning of θ̂
+                assert a[k] == b[k] or (a[k] != a[k] and b[k] != b[k]) or \
+                    abs(a[k] - b[k]) <= SAME_RUN_RTOL * abs(a[k]), (k, a[k], b[k])
+            else:
+                assert a[k] == b[k], (k, a[k], b[k])
 
 
 def _mc_run(seed):
