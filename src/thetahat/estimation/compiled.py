@@ -36,7 +36,6 @@ from __future__ import annotations
 
 import hashlib
 import importlib.util
-import math
 import os
 import re
 import sys
@@ -53,8 +52,7 @@ from numpy.typing import NDArray
 from sympy.printing.pycode import PythonCodePrinter
 
 from .._validate import as_vector, positive_scalar
-from ..errors import (DimensionError, FileAccessError, MissingExtraError, NonFiniteError,
-                      UnsupportedError, UpdateLawError)
+from ..errors import DimensionError, FileAccessError, MissingExtraError, UnsupportedError
 from ..model.paramset import Box
 from ..model.perturbation import SymbolicPerturbation, numpy_ready
 from ._kernel_template import CORE
