@@ -562,23 +562,11 @@ def main(argv: list[str] | None = None, log: Callable[[str], None] = print) -> d
                "robustness": rob}
     if args.json:
         args.json.parent.mkdir(parents=True, exist_ok=True)
-        args.json.write_text(json.dumps(jsonable(payload), indent=2))
+        args.json.write_text(json.dumps(metrics.jsonable(payload), indent=2))
         args.json.with_name(args.json.stem + "_details.json").write_text(
-            json.dumps(jsonable(details), indent=2))
+            json.dumps(metrics.jsonable(details), indent=2))
     return {"payload": payload, "details": details}
 
-
-def jsonable(o):
-    """Plain JSON: numpy scalars to Python, non-finite floats (never settled, failed) to null."""
-    if isinstance(o, dict):
-        return {str(k): jsonable(v) for k, v in o.items()}
-    if isinstance(o, (list, tuple)):
-        return [jsonable(v) for v in o]
-    if isinstance(o, (np.floating, np.integer, np.bool_)):
-        o = o.item()
-    if isinstance(o, float) and not math.isfinite(o):
-        return None
-    return o
 
 
 if __name__ == "__main__":

@@ -113,3 +113,15 @@ def pooled(runs: list[RunMetrics]) -> dict:
         per_step_us=float(np.median([m.per_step_us for m in good])),
         theta_mse=float(np.mean(mse)), theta_rmse_rel_se=rel_se, n_runs=len(runs),
         n_ok=len(good))
+
+def jsonable(o):
+    """Plain JSON: numpy scalars to Python, non-finite floats (never settled, failed) to null."""
+    if isinstance(o, dict):
+        return {str(k): jsonable(v) for k, v in o.items()}
+    if isinstance(o, (list, tuple)):
+        return [jsonable(v) for v in o]
+    if isinstance(o, (np.floating, np.integer, np.bool_)):
+        o = o.item()
+    if isinstance(o, float) and not math.isfinite(o):
+        return None
+    return o

@@ -31,6 +31,7 @@ import time
 from pathlib import Path
 
 import bench_lugre
+import metrics
 
 HERE = Path(__file__).resolve().parent
 QUICK_BUDGET_S = 120.0
@@ -72,9 +73,9 @@ def main() -> None:
     wall = time.perf_counter() - t0
     details["run_all_wall_s"] = wall
     args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps(bench_lugre.jsonable(payload), indent=2))
+    args.out.write_text(json.dumps(metrics.jsonable(payload), indent=2))
     args.out.with_name(args.out.stem + "_details.json").write_text(
-        json.dumps(bench_lugre.jsonable(details), indent=2))
+        json.dumps(metrics.jsonable(details), indent=2))
     print(f"\nwrote {args.out} and {args.out.stem}_details.json; total {wall:.0f} s")
     if args.quick and wall > QUICK_BUDGET_S:
         print(f"warning: --quick took {wall:.0f} s, over its {QUICK_BUDGET_S:.0f} s budget")
