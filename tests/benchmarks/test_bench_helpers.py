@@ -153,7 +153,5 @@ def test_bench_adapters_return_estimates_in_Theta():
 
 
 def test_jsonable_maps_non_finite_to_null():
-    import bench_lugre
-
     out = metrics.jsonable({"a": np.float64(np.inf), "b": [np.int64(3), float("nan")]})
     assert out == {"a": None, "b": [3, None]}
