@@ -10,16 +10,19 @@
 
 Unless given, the noise level is estimated from the first
 :data:`~thetahat.estimation.noise_level.MIN_SAMPLES` samples (the EKF starts its updates
-there), refined at :data:`SIGMA_SAMPLES` samples and refreshed by every fit from its window. :meth:`run` applies
-each fit at the sample after its window (deterministic); in streaming use (:meth:`step`) fits
-run on a worker thread (the numba kernels release the GIL) and are applied at the first
-``step`` after they finish — a ``step`` never waits for a fit.
+there), refined at :data:`SIGMA_SAMPLES` samples and refreshed by every fit from its window.
+:meth:`run` applies each fit at the sample after its window (deterministic). In streaming use
+(:meth:`step`) fits run in a worker process (:mod:`~thetahat.estimation.fit_worker`) and are
+applied at the first ``step`` after they finish: a ``step`` never waits for a fit and shares
+no lock with it; a fit that crashes or returns non-finite values is ignored with a
+:class:`~thetahat.errors.ThetahatWarning` (:meth:`GuardedEstimator.stream_diagnostics`).
 """
 
 from __future__ import annotations
 
 import concurrent.futures
 import dataclasses
+import warnings
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -27,15 +30,18 @@ import numpy as np
 from numpy.typing import NDArray
 
 from .._validate import as_vector
-from ..errors import DimensionError, NonFiniteError
+from ..errors import DimensionError, NonFiniteError, ThetahatWarning
 from ..model.system import PerturbedLinearSystem
 from .ekf import EKFKernels, JointEKF, as_record, ekf_kernels, resolve_noise_std, theta_box
+from .fit_worker import (TimedFit, default_executor, discard_default_executor, fit_spec,
+                         run_fit, warm_up)
 from .guard import (GUARD_C, GUARD_KAPPA, GUARD_RHO_MAX, make_guarded_loop, progress_init)
 from .mle import FitResult, FitSchedule
 from .model_kernel import H_RHO, jit
 from .noise_level import MIN_SAMPLES
 
-__all__ = ["GuardedEstimator", "GuardedResult", "SIGMA_SAMPLES", "DWELL_SECONDS"]
+__all__ = ["GuardedEstimator", "GuardedResult", "StreamDiagnostics", "SIGMA_SAMPLES",
+           "DWELL_SECONDS"]
 
 FloatArray = NDArray[np.float64]
 
@@ -117,6 +123,37 @@ class GuardedResult:
                 f"fits={len(self.fits)})")
 
 
+@dataclass(frozen=True, slots=True, eq=False)
+class StreamDiagnostics:
+    """The fits of a streaming run so far (:meth:`GuardedEstimator.stream_diagnostics`).
+
+    Attributes
+    ----------
+    fits : tuple of FitResult
+        The fits that came back finite, in order (applied to stage 2 when consistent).
+    fit_samples : ndarray of int, shape (n_fits, 2)
+        Per fit: the last sample of its window and the sample whose ``step`` applied it (the
+        first ``step`` after the fit finished).
+    fit_seconds : ndarray, shape (n_fits,)
+        Wall time of each fit in the worker (s).
+    failures : tuple of str
+        Fits that crashed or returned non-finite values, ignored (one warning each).
+    pending : bool
+        A fit (or the worker's warm-up) is running (a finished one is applied by the next
+        ``step``).
+    """
+
+    fits: tuple[FitResult, ...]
+    fit_samples: NDArray[np.int64]
+    fit_seconds: FloatArray
+    failures: tuple[str, ...]
+    pending: bool
+
+    def __repr__(self) -> str:
+        return (f"StreamDiagnostics(fits={len(self.fits)}, failures={len(self.failures)}, "
+                f"pending={self.pending})")
+
+
 def _stage1_estimates(stage1: Any, res: Any) -> tuple[FloatArray, FloatArray]:
     x = res.x_hat_refined if getattr(res, "x_hat_refined", None) is not None else res.x_hat
     return np.asarray(res.theta_hat, dtype=np.float64), np.asarray(x, dtype=np.float64)
@@ -148,6 +185,10 @@ class GuardedEstimator:
         RK4 sub-step bound (see :mod:`~thetahat.estimation.model_kernel`).
     compiled : bool, optional
         numba kernels (default: when installed).
+    fit_executor : concurrent.futures.Executor, optional
+        Where streaming fits run (anything with ``submit(fn, *args) -> Future``); default
+        the shared worker process of :func:`~thetahat.estimation.fit_worker.default_executor`.
+        :meth:`run` always fits in the caller.
 
     Examples
     --------
@@ -172,6 +213,7 @@ class GuardedEstimator:
     q_x: float = 0.0
     h_rho: float = H_RHO
     compiled: bool | None = None
+    fit_executor: Any = None
 
     # ------------------------------------------------------------------ parts
     @property
@@ -236,7 +278,8 @@ class GuardedEstimator:
         sys_ = self.model
         n, m, r, p = sys_.n, sys_.m, sys_.r, sys_.p
         t_, U, Y = as_record(t, u, y, m, r)
-        U, Y = np.ascontiguousarray(U), np.ascontiguousarray(Y)
+        # writable C copies: the compiled kernels' specialisation that streaming uses too
+        U, Y = np.array(U, order="C"), np.array(Y, order="C")
         st0 = self.init() if state0 is None else state0
         res1 = self.stage1.run(t_, U, Y, state0=st0["stage1"])
         thG, xG = _stage1_estimates(self.stage1, res1)
@@ -322,12 +365,14 @@ class GuardedEstimator:
         dict
             The next state, with the estimates at the current sample: ``theta_hat`` (p,),
             ``x_hat`` (n,), ``theta_stage1``, ``theta_stage2``, ``band``, ``clipped``,
-            ``reset``, ``fits`` (the number applied so far).
+            ``reset``, ``fits`` (the number of fits back so far), ``fits_failed`` (ignored
+            fits; see :meth:`stream_diagnostics`).
         """
         sys_ = self.model
         n, m, r, p = sys_.n, sys_.m, sys_.r, sys_.p
-        u_ = np.zeros(0) if u is None else np.asarray(u, dtype=np.float64).reshape(m)
-        y_ = np.asarray(y, dtype=np.float64).reshape(r)
+        # own, writable copies (a read-only view would need its own compiled specialisation)
+        u_ = np.zeros(0) if u is None else np.array(u, dtype=np.float64).reshape(m)
+        y_ = np.array(y, dtype=np.float64).reshape(r)
         h = float(dt)
         if not h > 0 or not np.isfinite(h):
             raise DimensionError(f"dt must be finite and > 0; got {dt!r}.")
@@ -366,12 +411,34 @@ class GuardedEstimator:
               else step1(state["stage1"], u_, y_))
         sh.refresh_sigma(k)
         sh.u_prev, sh.dt_prev, sh.k = u_, h, k + 1
-        sh.maybe_submit(self)
+        sh.maybe_submit()
         return {"stage1": s1, "shared": sh, "x_hat0": state["x_hat0"],
                 "theta_hat0": state["theta_hat0"], "theta_hat": o["TH"][k0].copy(),
                 "x_hat": o["X2"][k0].copy(), "theta_stage1": thG[0].copy(),
                 "theta_stage2": o["TH2"][k0].copy(), "band": o["BAND"][k0].copy(),
-                "clipped": bool(clip[k0]), "reset": bool(rst[k0]), "fits": len(sh.fits)}
+                "clipped": bool(clip[k0]), "reset": bool(rst[k0]), "fits": len(sh.fits),
+                "fits_failed": len(sh.failures)}
+
+    def stream_diagnostics(self, state: dict[str, Any]) -> StreamDiagnostics:
+        """The fits of the stream that ``state`` belongs to (from :meth:`step`).
+
+        Parameters
+        ----------
+        state : dict
+            A state returned by :meth:`step`.
+
+        Returns
+        -------
+        StreamDiagnostics
+        """
+        sh = state.get("shared")
+        if sh is None:
+            return StreamDiagnostics(fits=(), fit_samples=np.zeros((0, 2), np.int64),
+                                     fit_seconds=np.zeros(0), failures=(), pending=False)
+        return StreamDiagnostics(fits=tuple(sh.fits),
+                                 fit_samples=np.array(sh.fit_samples, np.int64).reshape(-1, 2),
+                                 fit_seconds=np.array(sh.fit_seconds), failures=tuple(sh.failures),
+                                 pending=sh.future is not None and not sh.future.done())
 
     def __repr__(self) -> str:
         return (f"GuardedEstimator(stage1={type(self.stage1).__name__}, n={self.model.n}, "
@@ -380,16 +447,8 @@ class GuardedEstimator:
 
 _LOOPS: dict[Any, Any] = {}
 
-#: The single worker thread that runs streaming fits (shared by all streams).
-_EXECUTOR: concurrent.futures.ThreadPoolExecutor | None = None
-
-
-def _executor() -> concurrent.futures.ThreadPoolExecutor:
-    global _EXECUTOR
-    if _EXECUTOR is None:
-        _EXECUTOR = concurrent.futures.ThreadPoolExecutor(max_workers=1,
-                                                          thread_name_prefix="thetahat-fit")
-    return _EXECUTOR
+#: Initial capacity (samples) of a stream's data log; it doubles when full.
+_LOG_CAPACITY = 1024
 
 
 class _Stream:
@@ -410,84 +469,142 @@ class _Stream:
         self.pst = np.zeros((sys_.p, 6))
         self.u_prev = np.zeros(sys_.m)
         self.dt_prev = 0.0
-        self.t: list[float] = []
-        self.u: list[FloatArray] = []
-        self.y: list[FloatArray] = []
-        self.base = 0                            # absolute index of the log's first sample
+        # the samples since the start of the current fit window: sample i is the stream's
+        # sample base + i (a log in arrays, so that a fit's window is one copy at submission)
+        self.T: FloatArray = np.empty(_LOG_CAPACITY)
+        self.U: FloatArray = np.empty((_LOG_CAPACITY, sys_.m))
+        self.Y: FloatArray = np.empty((_LOG_CAPACITY, sys_.r))
+        self.size = 0
+        self.base = 0
         self.fits: list[FitResult] = []
-        self.future: concurrent.futures.Future[FitResult] | None = None
+        self.fit_samples: list[tuple[int, int]] = []
+        self.fit_seconds: list[float] = []
+        self.failures: list[str] = []
+        self.future: concurrent.futures.Future[Any] | None = None
         self.j = 0
         self.sched = est.fit_schedule
         self.prior0 = (self.sched.initial_prior(state["x_hat0"], state["theta_hat0"])
                        if self.sched else None)
+        self.executor: concurrent.futures.Executor | None = None
+        self.spec = b""
         self._n = n
 
     @classmethod
     def start(cls, est: GuardedEstimator, state: dict[str, Any]) -> _Stream:
+        """A new stream; with fits, the worker starts compiling the fit kernels at once (the
+        first fit queues behind that warm-up; its errors, if any, come back with the fit)."""
         sh = cls(est, state)
+        if sh.sched is not None:
+            sh.executor = (est.fit_executor if est.fit_executor is not None
+                           else default_executor())
+            sh.spec = fit_spec(sh.sched)
+            sh.submit(warm_up, sh.spec)
+            sh.future = None
         return sh
 
     def record(self, k: int, u: FloatArray, y: FloatArray, dt: float) -> None:
-        t = 0.0 if k == 0 else self.t[-1] + self.dt_prev
-        self.t.append(t)
-        self.u.append(u.copy())
-        self.y.append(y.copy())
+        i = self.size
+        if i == self.T.shape[0]:
+            self._resize(2 * i)
+        self.T[i] = 0.0 if k == 0 else self.T[i - 1] + self.dt_prev
+        self.U[i] = u
+        self.Y[i] = y
+        self.size = i + 1
+
+    def _resize(self, capacity: int, cut: int = 0) -> None:
+        """New log arrays of ``capacity`` holding samples cut … size − 1 (never written in
+        place: a window handed to the executor stays intact)."""
+        keep = self.size - cut
+        T, U, Y = (np.empty((capacity,) + a.shape[1:]) for a in (self.T, self.U, self.Y))
+        T[:keep], U[:keep], Y[:keep] = self.T[cut:self.size], self.U[cut:self.size], \
+            self.Y[cut:self.size]
+        self.T, self.U, self.Y, self.size = T, U, Y, keep
 
     def refresh_sigma(self, k: int) -> None:
         """σ̂ from the samples so far, after sample k = MIN_SAMPLES − 1 and SIGMA_SAMPLES − 1
         (as :meth:`GuardedEstimator.run` does), when σ is estimated."""
         if k + 1 in (MIN_SAMPLES, SIGMA_SAMPLES) and self.gst[2] > 0:
-            self.R = np.diag(resolve_noise_std(None, np.array(self.y)) ** 2)
+            self.R = np.diag(resolve_noise_std(None, self.Y[:self.size]) ** 2)
 
     def configure(self, est: GuardedEstimator, dt: float) -> None:
         n = self._n
         self.cfg = np.concatenate([[est.kappa, est.c, est.rho_max, est.dwell / dt],
                                    np.sqrt(np.diag(self.P0)[n:])])
 
+    def submit(self, fn: Any, *args: Any) -> None:
+        """Hand ``fn(*args)`` to the executor; a broken executor ends this stream's fits."""
+        if self.executor is None:               # (start sets it whenever fits run)
+            return
+        try:
+            self.future = self.executor.submit(fn, *args)
+        except (concurrent.futures.BrokenExecutor, RuntimeError) as exc:
+            self._broken(exc)
+
+    def _broken(self, exc: BaseException) -> None:
+        self._reject(f"the fit worker failed ({type(exc).__name__}: {exc}); no more fits in "
+                     "this stream (a script that streams must keep its top-level code under "
+                     "`if __name__ == \"__main__\":` for the worker process to start)")
+        if self.executor is not None:
+            discard_default_executor(self.executor)
+        self.sched = None
+        self.future = None
+
+    def _reject(self, why: str) -> None:
+        self.failures.append(why)
+        warnings.warn(f"GuardedEstimator.step: a stage-2 fit was ignored: {why}. Stage 1 and "
+                      "the EKF go on.", ThetahatWarning, stacklevel=4)
+
     def poll_fit(self) -> None:
+        """Apply a finished fit (at the first step after it finished); never waits."""
         f = self.future
         if f is None or not f.done():
             return
         self.future = None
-        fit = f.result()
+        try:
+            done = f.result()
+        except concurrent.futures.BrokenExecutor as exc:
+            self._broken(exc)
+            return
+        except Exception as exc:                # a crashed fit is ignored, with a diagnostic
+            self._reject(f"it raised {type(exc).__name__}: {exc}")
+            return
+        fit = done.fit
+        if not (np.all(np.isfinite(fit.theta)) and np.all(np.isfinite(fit.cov))
+                and np.all(np.isfinite(fit.x_end))):
+            self._reject(f"non-finite result on samples {fit.k0}…{fit.k1 - 1}")
+            return
         n = self._n
         self.fits.append(fit)
+        self.fit_samples.append((fit.k1 - 1, self.k))
+        self.fit_seconds.append(done.seconds)
         if fit.consistent:                      # θ only: x has moved on since the fit
             self.s[n:] = fit.theta
             self.P[n:, :] = 0.0
             self.P[:, n:] = 0.0
             self.P[n:, n:] = fit.cov[n:, n:]
             self.R = np.diag(fit.noise_std ** 2)
-        if fit.k0 > 0 or (self.sched is not None and self.t[fit.k1 - 1 - self.base]
+        if fit.k0 > 0 or (self.sched is not None and self.T[fit.k1 - 1 - self.base]
                           > self.sched.full_window):
             self._trim(fit.k1 - 1)
 
     def _trim(self, new_base: int) -> None:
         cut = new_base - self.base
         if cut > 0:
-            del self.t[:cut], self.u[:cut], self.y[:cut]
+            self._resize(self.T.shape[0], cut)
             self.base = new_base
 
-    def maybe_submit(self, est: GuardedEstimator) -> None:
+    def maybe_submit(self) -> None:
         sched, prior0 = self.sched, self.prior0       # prior0 is None exactly when sched is
         if sched is None or prior0 is None or self.future is not None:
             return
-        if self.t[-1] < sched.times(self.j) - 1e-12 or self.k < MIN_SAMPLES:
+        t_last = float(self.T[self.size - 1])
+        if t_last < sched.times(self.j) - 1e-12 or self.k < MIN_SAMPLES:
             return
-        while sched.times(self.j) <= self.t[-1] + 1e-12:
+        while sched.times(self.j) <= t_last + 1e-12:
             self.j += 1
-        b = self.base
-        t = np.array(self.t)
-        U = np.array(self.u).reshape(len(self.u), -1)
-        Y = np.array(self.y).reshape(len(self.y), -1)
+        b, k1 = self.base, self.size
         prev = self.fits[-1] if self.fits else None
         if prev is not None:
             prev = dataclasses.replace(prev, k0=max(prev.k0 - b, 0), k1=prev.k1 - b)
-        elapsed = float(t[-1])
-        k1 = t.shape[0]
-
-        def job() -> FitResult:
-            fit = sched.fit(t, U, Y, k1, prev, prior0, elapsed=elapsed)
-            return dataclasses.replace(fit, k0=fit.k0 + b, k1=fit.k1 + b)
-
-        self.future = _executor().submit(job)
+        self.submit(run_fit, self.spec, self.T[:k1].copy(), self.U[:k1].copy(),
+                    self.Y[:k1].copy(), k1, prev, prior0, t_last, b)
