@@ -108,6 +108,7 @@ def stream(est: GuardedEstimator, traj, realtime: bool, watch: _GCWatch) -> dict
             "max_cpu_ms": 1e3 * cpu.max(), "argmax_cpu": int(cpu.argmax()),
             "max_runqueue_ms": 1e3 * rq.max(), "max_blocked_ms": 1e3 * blocked.max(),
             "p999_blocked_ms": 1e3 * float(np.percentile(blocked, 99.9)),
+            "argmax_blocked": int(blocked.argmax()),
             "steps_over_1ms": int(slow.sum()),
             "of_which_runqueue_over_half": int((slow & (rq > 0.5 * wall)).sum()),
             "of_which_blocked_over_half": int((slow & (blocked > 0.5 * wall)).sum()),

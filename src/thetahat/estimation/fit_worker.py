@@ -9,8 +9,9 @@ fit's kernels, seconds during which a thread would hold the GIL) then never hold
 ``step`` needs, with or without numba. What ``step`` itself pays for a fit is copying the
 window's samples at submission (O(window), a memory copy) and reading a finished
 :class:`TimedFit`; the pickling and the pipe run on the executor's helper threads in short
-GIL-holding spans. The worker runs at a lower CPU priority (:data:`WORKER_NICE`), so that when
-it competes with the sample path for a core the scheduler favours the sample path.
+GIL-holding spans. The worker starts and compiles at the caller's priority, then runs the fits at
+the lowest (:data:`WORKER_NICE`), so that when a fit competes with the sample path for a core
+the scheduler favours the sample path.
 
 The worker rebuilds the :class:`~thetahat.estimation.mle.FitSchedule` from
 :func:`fit_spec` (everything but its clock ``times``, which the worker does not need) once per
@@ -46,11 +47,15 @@ __all__ = ["TimedFit", "fit_spec", "run_fit", "warm_up", "default_executor",
 
 FloatArray = NDArray[np.float64]
 
-#: Niceness added to the worker process (Unix): the sample path wins a contended core.
-WORKER_NICE = 10
+#: Niceness added to the worker process (Unix; 19, the lowest priority): the sample path wins
+#: a contended core. Measured (benchmarks/bench_stream.py, a busy worker, 2 loaded cores):
+#: steps over 1 ms 85–98 at +0, 36–50 at +10, 14–21 at +19 (17 and 6 without fits).
+WORKER_NICE = 19
 
 #: FitSchedules rebuilt in this (worker) process, by their spec.
 _SCHEDULES: dict[bytes, FitSchedule] = {}
+#: (is this the default executor's worker process, has it lowered its priority yet)
+_WORKER = [False, False]
 
 #: The shared default executor of this process (one spawned worker process).
 _EXECUTOR: concurrent.futures.ProcessPoolExecutor | None = None
@@ -139,6 +144,9 @@ def run_fit(spec: bytes, t: FloatArray, U: FloatArray, Y: FloatArray, k1: int,
         The fit with absolute indices k0 + base, k1 + base.
     """
     sched = _schedule(spec)
+    if _WORKER[0] and not _WORKER[1]:      # never the caller's process (a thread executor)
+        _WORKER[1] = True
+        _lower_priority()
     w0, c0 = time.perf_counter(), time.thread_time()
     fit = sched.fit(t, U, Y, k1, previous, prior0, elapsed=elapsed)
     w1, c1 = time.perf_counter(), time.thread_time()
@@ -170,15 +178,21 @@ def warm_up(spec: bytes) -> float:
     q = np.zeros(n + p)
     q[n:] = theta_box(sys_)[0]
     t = np.array([0.0, 1e-3, 2e-3])
-    for skip in (False, True):
-        fit_map(sys_, t, np.zeros((3, m)), np.zeros((3, r)), k0=0, k1=3, q_start=q,
-                q_prior=q.copy(), prior_info=np.eye(n + p), noise_std=np.ones(r),
-                max_iter=1, skip_first=skip, h_rho=sched.h_rho, compiled=sched.compiled)
+    fit_map(sys_, t, np.zeros((3, m)), np.zeros((3, r)), k0=0, k1=3, q_start=q,
+            q_prior=q.copy(), prior_info=np.eye(n + p), noise_std=np.ones(r), max_iter=1,
+            h_rho=sched.h_rho, compiled=sched.compiled)
     return time.perf_counter() - t0
 
 
+def _mark_worker() -> None:
+    """Initializer of the default executor's worker process."""
+    _WORKER[0] = True
+
+
 def _lower_priority() -> None:
-    """Initializer of the worker process: :data:`WORKER_NICE` where the OS supports it."""
+    """Lower this process's priority by :data:`WORKER_NICE` where the OS supports it (the
+    first fit does it: the start and the compilation of a cold worker keep the caller's
+    priority, so that the first fits are not delayed by a loaded machine)."""
     if hasattr(os, "nice"):
         try:
             os.nice(WORKER_NICE)
@@ -199,7 +213,7 @@ def default_executor() -> concurrent.futures.Executor:
     if _EXECUTOR is None:
         _EXECUTOR = concurrent.futures.ProcessPoolExecutor(
             max_workers=1, mp_context=multiprocessing.get_context("spawn"),
-            initializer=_lower_priority)
+            initializer=_mark_worker)
     return _EXECUTOR
 
 

@@ -33,8 +33,7 @@ from .._validate import as_vector
 from ..errors import DimensionError, NonFiniteError, ThetahatWarning
 from ..model.system import PerturbedLinearSystem
 from .ekf import EKFKernels, JointEKF, as_record, ekf_kernels, resolve_noise_std, theta_box
-from .fit_worker import (TimedFit, default_executor, discard_default_executor, fit_spec,
-                         run_fit, warm_up)
+from .fit_worker import default_executor, discard_default_executor, fit_spec, run_fit, warm_up
 from .guard import (GUARD_C, GUARD_KAPPA, GUARD_RHO_MAX, make_guarded_loop, progress_init)
 from .mle import FitResult, FitSchedule
 from .model_kernel import H_RHO, jit
@@ -139,8 +138,7 @@ class StreamDiagnostics:
     failures : tuple of str
         Fits that crashed or returned non-finite values, ignored (one warning each).
     pending : bool
-        A fit (or the worker's warm-up) is running (a finished one is applied by the next
-        ``step``).
+        A fit is running (a finished one is applied by the next ``step``).
     """
 
     fits: tuple[FitResult, ...]
