@@ -29,6 +29,7 @@ from .._validate import (as_matrix, as_time_grid, as_vector, check_finite, posit
                          readonly)
 from ..errors import DimensionError, NonFiniteError, OptionError, UnsupportedError
 from ..limits import check_allocation
+from ..model.perturbation import Perturbation
 from ..model.system import PerturbedLinearSystem
 from ..structure.assumptions import check_assumption_1
 from .discretize import PLAN_CACHE_SIZE
@@ -67,7 +68,8 @@ def _real(name: str, a: Any) -> None:
                              "explicitly if that is what was measured.")
 
 
-def _integrate_with_progress(plan_for: Callable[[float], StepPlan], pert: Any, law: UpdateLaw,
+def _integrate_with_progress(plan_for: Callable[[float], StepPlan], pert: Perturbation,
+                             law: UpdateLaw,
                              s0: FloatArray, t: FloatArray, dts: FloatArray, U: FloatArray,
                              Y: FloatArray, ok: NDArray[np.bool_], foh: bool,
                              progress: Callable[[int, int], None] | None) -> FloatArray:
@@ -339,9 +341,7 @@ class ModifiedHighGainObserver:
         if not isinstance(system, PerturbedLinearSystem):
             raise DimensionError("system must be a PerturbedLinearSystem; got "
                                  f"{type(system).__name__}.")
-        if system.perturbation is None:
-            raise DimensionError("ModifiedHighGainObserver needs system.perturbation (g of "
-                                 "(3)); build the system with perturbation=... .")
+        system.require_perturbation("ModifiedHighGainObserver")
         if not allow_nonminimum_phase:           # Assumption 1, or the error cannot converge
             check_assumption_1(system.A, system.E, system.C, strict=True)
         n, m, r, k, p = system.n, system.m, system.r, system.k, system.p
@@ -584,7 +584,7 @@ class ModifiedHighGainObserver:
         check_finite(names[0], U)
         if np.isinf(Y).any():
             raise NonFiniteError(f"{names[1]} contains inf; only NaN marks a missing sample.")
-        ok = np.isfinite(Y).all(axis=2)
+        ok = np.asarray(np.isfinite(Y).all(axis=2), dtype=np.bool_)
         if not ok.all() and self.nan_policy == "raise":
             b, i = (int(a[0]) for a in np.nonzero(~ok))
             run = f" in run {b}" if batch is not None else ""
@@ -635,7 +635,7 @@ class ModifiedHighGainObserver:
             raise UnsupportedError(f"rhs: {type(self.update_law).__name__} carries a state "
                                    "that is defined by its discrete step only; use step/run.")
         x, _, th, x2 = self._split(s)
-        pert = self.system.perturbation
+        pert = self.system.require_perturbation("ModifiedHighGainObserver")
         plan = self._continuous_plan()
         F, phi, _, vv = observer_forcing(plan, pert, s[:lay.n + lay.k], th, u, y, correct)
         parts = [F]
@@ -647,8 +647,7 @@ class ModifiedHighGainObserver:
             th_dot = np.zeros_like(th)
         parts.append(th_dot)
         if x2 is not None and self.second is not None:
-            F2, _ = second_forcing(self.second.plan(None), pert, x2, u, y, th, correct,
-                                   want_N=False)
+            F2, _ = second_forcing(self.second.plan(None), pert, x2, u, y, th, correct)
             parts.append(F2)
         return np.concatenate(parts)
 
@@ -723,8 +722,8 @@ class ModifiedHighGainObserver:
         s = self.check_state(state)
         h = positive_scalar("dt", dt)
         with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
-            nxt = advance(self.plan(h), self.system.perturbation, self.update_law, s, u_, y_, h,
-                          correct)
+            nxt = advance(self.plan(h), self.system.require_perturbation("step"),
+                          self.update_law, s, u_, y_, h, correct)
         if diverged(nxt):
             raise divergence_error("in this step")
         return nxt
@@ -746,7 +745,7 @@ class ModifiedHighGainObserver:
         u_, y_, correct = self.check_samples(u, y)
         x, z, th, x2 = self._split(self.check_state(state))
         v = np.concatenate((u_, y_ if correct else self.system.C @ x))
-        phi = self.system.perturbation.g(v, x, th) + z
+        phi = self.system.require_perturbation("estimate").g(v, x, th) + z
         return ObserverEstimate(x_hat=x.copy(), phi_hat=np.asarray(phi, dtype=np.float64),
                                 theta_hat=th.copy(),
                                 x_hat_refined=None if x2 is None else x2.copy())
@@ -795,10 +794,10 @@ class ModifiedHighGainObserver:
         check_allocation(8.0 * N * (2 * s0.size + 2 * self.layout.n), f"the estimates of {N} "
                          "samples", fix="run the record in pieces (pass the last state as "
                          "state0)")
-        S = _integrate_with_progress(self.plan, self.system.perturbation, self.update_law, s0,
-                                     t_, dts, U, Y, ok, hold == "foh", progress)
-        X, PHI, TH, X2 = readout(self.system.perturbation, self.system.C, S, U[0], Y[0], ok[0],
-                                 self.layout)
+        pert = self.system.require_perturbation("run")
+        S = _integrate_with_progress(self.plan, pert, self.update_law, s0, t_, dts, U, Y, ok,
+                                     hold == "foh", progress)
+        X, PHI, TH, X2 = readout(pert, self.system.C, S, U[0], Y[0], ok[0], self.layout)
         skipped = ~ok[0]
         skipped.setflags(write=False)
         return ObserverResult(t=readonly(t_), x_hat=readonly(X), phi_hat=readonly(PHI),

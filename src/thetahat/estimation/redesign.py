@@ -89,9 +89,7 @@ class SecondObserver:
         if not isinstance(system, PerturbedLinearSystem):
             raise DimensionError("system must be a PerturbedLinearSystem; got "
                                  f"{type(system).__name__}.")
-        if system.perturbation is None:
-            raise DimensionError("SecondObserver needs system.perturbation (g of Sec. VI); "
-                                 "build the system with perturbation=... .")
+        system.require_perturbation("SecondObserver")
         K = np.array(as_matrix("K_x", K_x, (system.n, system.r)), copy=True)
         K.setflags(write=False)
         for name, val in (("system", system), ("K_x", K),
@@ -188,8 +186,8 @@ class SecondObserver:
         u, y = self._check_samples(v_[:sysm.m], v_[sysm.m:])
         x2 = as_vector("x_hat2", x_hat2, sysm.n)
         th = as_vector("theta_hat", theta_hat, sysm.p)
-        F, _ = second_forcing(self.plan(None), sysm.perturbation, x2, u, y, th, True,
-                              want_N=False)
+        F, _ = second_forcing(self.plan(None), sysm.require_perturbation("SecondObserver"), x2,
+                              u, y, th, True)
         return F
 
     def step(self, x_hat2: Any, u: Any, y: Any, theta_hat: Any, dt: float) -> FloatArray:
@@ -218,7 +216,8 @@ class SecondObserver:
         x2 = as_vector("x_hat2", x_hat2, sysm.n)
         th = as_vector("theta_hat", theta_hat, sysm.p)
         h = positive_scalar("dt", dt)
-        return second_advance(self.plan(h), sysm.perturbation, x2, u_, y_, th, h, True)
+        return second_advance(self.plan(h), sysm.require_perturbation("SecondObserver"), x2,
+                              u_, y_, th, h, True)
 
     def __repr__(self) -> str:
         return (f"SecondObserver(n={self.system.n}, r={self.system.r}, "

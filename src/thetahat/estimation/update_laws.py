@@ -745,23 +745,34 @@ class GradientInversion(UpdateLaw):
         object.__setattr__(self, "layer", proj.layer)
         object.__setattr__(self, "_proj", proj)
 
-    def _terms(self, v: ArrayLike, x_hat: ArrayLike, phi_hat: ArrayLike, theta_hat: ArrayLike,
-               jacobian: bool, Gamma: FloatArray | None = None
-               ) -> tuple[FloatArray, FloatArray, FloatArray | None, FloatArray]:
-        """(f = ΓM(φ̂ - g), ΓM, ∂g/∂θ or None, θ̂) broadcast to the batch."""
+    def _inputs(self, v: ArrayLike, x_hat: ArrayLike, phi_hat: ArrayLike, theta_hat: ArrayLike
+                ) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray, tuple[int, ...]]:
+        """(v, x̂, φ̂, θ̂, batch shape), checked, with x̂ and φ̂ saturated."""
         n, m, r, p, k = self.perturbation.dims
         v_, x, phi, th, batch = _as_batch(v, x_hat, phi_hat, theta_hat, p)
         for name, arr, size in (("v", v_, m + r), ("x_hat", x, n), ("phi_hat", phi, k)):
             if arr.shape[-1] != size:
                 raise DimensionError(f"{name} must have shape (..., {size}); got {arr.shape}.")
         x, phi = _apply_saturation(self.saturation, x, phi)
+        return v_, x, phi, th, batch
+
+    def _jacobian(self, v: FloatArray, x: FloatArray, th: FloatArray, batch: tuple[int, ...]
+                  ) -> FloatArray:
+        """∂g/∂θ broadcast to the batch, shape (..., k, p)."""
+        _, _, _, p, k = self.perturbation.dims
+        with np.errstate(over="ignore", invalid="ignore"):
+            J = np.asarray(self.perturbation.dg_dtheta(v, x, th), dtype=np.float64)
+        return np.broadcast_to(J, batch + (k, p))
+
+    def _terms(self, v_: FloatArray, x: FloatArray, phi: FloatArray, th: FloatArray,
+               batch: tuple[int, ...], J: FloatArray | None, Gamma: FloatArray | None = None
+               ) -> tuple[FloatArray, FloatArray, FloatArray]:
+        """(f = ΓM(φ̂ - g), ΓM, θ̂) broadcast to the batch; J: ∂g/∂θ if already evaluated."""
+        _, _, _, p, k = self.perturbation.dims
         with np.errstate(over="ignore", invalid="ignore"):
             resid = phi - np.asarray(self.perturbation.g(v_, x, th), dtype=np.float64)
-            J = None
-            if self.M is None or jacobian:
-                J = np.broadcast_to(self.perturbation.dg_dtheta(v_, x, th), batch + (k, p))
             if self.M is None:
-                Mm = np.swapaxes(J, -1, -2)
+                Mm = np.swapaxes(self._jacobian(v_, x, th, batch) if J is None else J, -1, -2)
             else:
                 Mm = np.asarray(self.M(v_, x, th), dtype=np.float64)
                 if Mm.shape[-2:] != (p, k):
@@ -770,12 +781,13 @@ class GradientInversion(UpdateLaw):
             G = self.Gamma if Gamma is None else Gamma
             GM = np.broadcast_to(G @ Mm, batch + (p, k))
             f = np.einsum("...pk,...k->...p", GM, np.broadcast_to(resid, batch + (k,)))
-        return f, GM, J, np.broadcast_to(th, batch + (p,))
+        return f, GM, np.broadcast_to(th, batch + (p,))
 
     def rate(self, v: ArrayLike, x_hat: ArrayLike, phi_hat: ArrayLike,
              theta_hat: ArrayLike) -> FloatArray:
         """θ̂̇ = Proj(ΓM(φ̂ - g(v, x̂, θ̂))); shape (..., p)."""
-        f, _, _, th = self._terms(v, x_hat, phi_hat, theta_hat, jacobian=False)
+        v_, x, phi, th_in, batch = self._inputs(v, x_hat, phi_hat, theta_hat)
+        f, _, th = self._terms(v_, x, phi, th_in, batch, None)
         if not np.all(np.isfinite(f)):
             raise UpdateLawError("GradientInversion: the rate overflowed (φ̂ - g or Γ too "
                                  "large); saturate φ̂ and x̂ (Saturation) or reduce Γ.")
@@ -789,7 +801,9 @@ class GradientInversion(UpdateLaw):
         """
         dt = _check_dt(dt)
         G = None if Gamma is None else np.asarray(Gamma, dtype=np.float64)
-        f, GM, J, th = self._terms(v, x_hat, phi_hat, theta_hat, jacobian=True, Gamma=G)
+        v_, x, phi, th_in, batch = self._inputs(v, x_hat, phi_hat, theta_hat)
+        J = self._jacobian(v_, x, th_in, batch)
+        f, GM, th = self._terms(v_, x, phi, th_in, batch, J, Gamma=G)
         p = th.shape[-1]
         with np.errstate(over="ignore", invalid="ignore"):
             K = GM @ J
