@@ -20,7 +20,7 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
-from numpy.typing import NDArray
+from numpy.typing import ArrayLike, NDArray
 
 from .._validate import check_finite, readonly
 from ..errors import DimensionError, IndexOutOfRangeError, OptionError
@@ -193,8 +193,8 @@ def _initial(observers: list[ModifiedHighGainObserver], state0: Any, B: int,
 
 
 def run_batch(observers: ModifiedHighGainObserver | Sequence[ModifiedHighGainObserver],
-              t: Any, U: Any, Y: Any, *, hold: str = "zoh",
-              state0: Any = None) -> BatchObserverResult:
+              t: ArrayLike, U: ArrayLike | None, Y: ArrayLike, *, hold: str = "zoh",
+              state0: ArrayLike | None = None) -> BatchObserverResult:
     """Run B observers over B sampled records at once (vectorised over a batch axis).
 
     Parameters

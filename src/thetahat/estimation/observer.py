@@ -23,7 +23,7 @@ from collections.abc import Callable
 from typing import Any
 
 import numpy as np
-from numpy.typing import NDArray
+from numpy.typing import ArrayLike, NDArray
 
 from .._validate import (as_matrix, as_time_grid, as_vector, check_finite, positive_scalar,
                          readonly)
@@ -478,7 +478,7 @@ class ModifiedHighGainObserver:
         lay = self.layout
         return s[lay.x], s[lay.z], s[lay.theta], (s[lay.x2] if lay.second else None)
 
-    def check_samples(self, u: Any, y: Any) -> tuple[FloatArray, FloatArray, bool]:
+    def check_samples(self, u: ArrayLike | None, y: ArrayLike) -> tuple[FloatArray, FloatArray, bool]:
         """Validate one pair of samples against the NaN policy.
 
         Parameters
@@ -516,7 +516,7 @@ class ModifiedHighGainObserver:
                                  "samples, or clean the data.")
         return u_, y_, False
 
-    def check_state(self, state: Any) -> FloatArray:
+    def check_state(self, state: ArrayLike) -> FloatArray:
         """Validate an observer state (shape (state_size,), finite).
 
         Parameters
@@ -538,7 +538,7 @@ class ModifiedHighGainObserver:
                                  "initialised badly; restart from init().")
         return s
 
-    def check_records(self, t: Any, u: Any, y: Any, batch: int | None = None
+    def check_records(self, t: ArrayLike, u: ArrayLike | None, y: ArrayLike, batch: int | None = None
                       ) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray,
                                  NDArray[np.bool_]]:
         """Validate sampled records against the NaN policy (before anything is integrated).
@@ -595,7 +595,8 @@ class ModifiedHighGainObserver:
         return t_, dts, U, Y, ok
 
     # ------------------------------------------------------------------ public API
-    def rhs(self, t: float, state: Any, v: Any, v_dot: Any = None) -> FloatArray:
+    def rhs(self, t: float, state: ArrayLike, v: ArrayLike,
+            v_dot: ArrayLike | None = None) -> FloatArray:
         """Time derivative of the observer state, (3a)–(3c) and (8), for ODE integrators.
 
         Parameters
@@ -651,8 +652,9 @@ class ModifiedHighGainObserver:
             parts.append(F2)
         return np.concatenate(parts)
 
-    def init(self, x_hat0: Any = None, theta_hat0: Any = None, z0: Any = None, *,
-             x_hat_refined0: Any = None) -> FloatArray:
+    def init(self, x_hat0: ArrayLike | None = None, theta_hat0: ArrayLike | None = None,
+             z0: ArrayLike | None = None, *,
+             x_hat_refined0: ArrayLike | None = None) -> FloatArray:
         """Initial observer state col(x̂₀, z₀, θ̂₀[, x̂₂₀]).
 
         Parameters
@@ -694,7 +696,7 @@ class ModifiedHighGainObserver:
                                     dtype=np.float64).reshape(lay.law_size))
         return np.concatenate(parts)
 
-    def step(self, state: Any, u: Any, y: Any, dt: float) -> FloatArray:
+    def step(self, state: ArrayLike, u: ArrayLike | None, y: ArrayLike, dt: float) -> FloatArray:
         """Advance the state by ``dt``, holding the current samples (zero-order hold).
 
         Parameters
@@ -728,7 +730,7 @@ class ModifiedHighGainObserver:
             raise divergence_error("in this step")
         return nxt
 
-    def estimate(self, state: Any, u: Any, y: Any) -> ObserverEstimate:
+    def estimate(self, state: ArrayLike, u: ArrayLike | None, y: ArrayLike) -> ObserverEstimate:
         """Read x̂, φ̂ = g(v, x̂, θ̂) + z (3c), θ̂ (and x̂₂) from a state and the current samples.
 
         Parameters
@@ -750,8 +752,8 @@ class ModifiedHighGainObserver:
                                 theta_hat=th.copy(),
                                 x_hat_refined=None if x2 is None else x2.copy())
 
-    def run(self, t: Any, u: Any, y: Any, *, hold: str = "zoh",
-            state0: Any = None,
+    def run(self, t: ArrayLike, u: ArrayLike | None, y: ArrayLike, *, hold: str = "zoh",
+            state0: ArrayLike | None = None,
             progress: Callable[[int, int], None] | None = None) -> ObserverResult:
         """Run the observer over sampled records (logged data).
 

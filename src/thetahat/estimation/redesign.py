@@ -16,7 +16,7 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
-from numpy.typing import NDArray
+from numpy.typing import ArrayLike, NDArray
 
 from .._validate import as_matrix, as_vector, positive_scalar
 from ..errors import DimensionError
@@ -153,14 +153,14 @@ class SecondObserver:
                 self._plans.popitem(last=False)
         return plan
 
-    def _check_samples(self, u: Any, y: Any) -> tuple[FloatArray, FloatArray]:
+    def _check_samples(self, u: ArrayLike | None, y: ArrayLike) -> tuple[FloatArray, FloatArray]:
         sysm = self.system
         u_ = as_vector("u", np.zeros(0) if u is None else u, sysm.m)
         y_ = as_vector("y", y, sysm.r)
         return u_, y_
 
     # ------------------------------------------------------------------ public API
-    def rhs(self, t: float, x_hat2: Any, v: Any, theta_hat: Any) -> FloatArray:
+    def rhs(self, t: float, x_hat2: ArrayLike, v: ArrayLike, theta_hat: ArrayLike) -> FloatArray:
         """Time derivative x̂₂̇ for ODE integrators.
 
         Parameters
@@ -190,7 +190,8 @@ class SecondObserver:
                               u, y, th, True)
         return F
 
-    def step(self, x_hat2: Any, u: Any, y: Any, theta_hat: Any, dt: float) -> FloatArray:
+    def step(self, x_hat2: ArrayLike, u: ArrayLike | None, y: ArrayLike,
+             theta_hat: ArrayLike, dt: float) -> FloatArray:
         """Advance x̂₂ by ``dt`` holding the current samples (zero-order hold).
 
         Parameters

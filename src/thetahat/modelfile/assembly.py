@@ -296,11 +296,12 @@ class _HeldObserver:
     def __init__(self, obs: ModifiedHighGainObserver, hold: str) -> None:
         self.obs, self.hold, self.system = obs, hold, obs.system
 
-    def init(self, **kwargs: object) -> FloatArray:
-        return self.obs.init(**kwargs)
+    def init(self, *, x_hat0: ArrayLike | None = None,
+             theta_hat0: ArrayLike | None = None) -> FloatArray:
+        return self.obs.init(x_hat0=x_hat0, theta_hat0=theta_hat0)
 
     def run(self, t: ArrayLike, u: ArrayLike | None, y: ArrayLike, *,
-            state0: object = None) -> ObserverResult:
+            state0: ArrayLike | None = None) -> ObserverResult:
         return self.obs.run(t, u, y, hold=self.hold, state0=state0)
 
 
