@@ -22,7 +22,8 @@ from numpy.typing import ArrayLike, NDArray
 from .._validate import check_finite, positive_scalar, readonly
 from ..errors import DimensionError, ParameterSetError, UpdateLawError
 from ..model.paramset import Box, ParameterSet, safe_norm
-from ..model.perturbation import Perturbation, require_theta_dependence
+from ..model.jacobian_check import require_theta_dependence
+from ..model.perturbation import Perturbation
 from .projection import Projection, Saturation, as_gain
 from .theta_star import ThetaStar
 
