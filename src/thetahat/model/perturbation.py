@@ -22,11 +22,10 @@ from typing import Any, final
 
 import numpy as np
 import sympy as sp
-from numpy.typing import ArrayLike, NDArray
+from numpy.typing import NDArray
 from sympy.core.function import AppliedUndef
 
-from .._validate import check_finite, positive_scalar
-from ..errors import DimensionError, NonFiniteError, UpdateLawError
+from ..errors import DimensionError, NonFiniteError
 from .lambdify import lambdify_numpy, numpy_ready
 
 __all__ = ["ARG_NAMES", "FD_REL_STEP", "Perturbation", "SymbolicPerturbation",
