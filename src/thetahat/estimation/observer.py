@@ -25,8 +25,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from .._validate import (as_matrix, as_time_grid, as_vector, check_finite, positive_scalar,
-                         readonly)
+from .._validate import as_matrix, as_vector, check_finite, positive_scalar, readonly
 from ..errors import DimensionError, NonFiniteError, OptionError, UnsupportedError
 from ..limits import check_allocation
 from ..model.perturbation import Perturbation
@@ -34,7 +33,9 @@ from ..model.system import PerturbedLinearSystem
 from ..structure.assumptions import check_assumption_1
 from .discretize import PLAN_CACHE_SIZE
 from .plan import StateLayout, StepPlan, dt_key
+from .records import check_records
 from .redesign import SecondObserver
+from .results import ObserverEstimate, ObserverResult
 from .step import (advance, diverged, divergence_error, integrate, observer_forcing, readout,
                    second_forcing)
 from .update_laws import UpdateLaw
@@ -61,13 +62,6 @@ def _vec(name: str, a: Any, size: int, *, finite: bool = True) -> FloatArray:
     return arr
 
 
-
-def _real(name: str, a: Any) -> None:
-    if np.iscomplexobj(a):
-        raise DimensionError(f"{name} must be real; got complex samples. Pass the real part "
-                             "explicitly if that is what was measured.")
-
-
 def _integrate_with_progress(plan_for: Callable[[float], StepPlan], pert: Perturbation,
                              law: UpdateLaw,
                              s0: FloatArray, t: FloatArray, dts: FloatArray, U: FloatArray,
@@ -88,110 +82,6 @@ def _integrate_with_progress(plan_for: Callable[[float], StepPlan], pert: Pertur
                                    U[:, a:b + 1], Y[:, a:b + 1], ok[:, a:b + 1], foh)[0]
     progress(N - 1, N - 1)
     return S
-
-
-def _record(name: str, a: Any, N: int, width: int) -> FloatArray:
-    _real(name, a)
-    arr = np.asarray(a, dtype=np.float64)
-    if arr.ndim == 1 and width == 1:
-        arr = arr.reshape(-1, 1)
-    if arr.ndim != 2 or arr.shape != (N, width):
-        raise DimensionError(f"{name} must have shape ({N}, {width})"
-                             f"{' or (N,)' if width == 1 else ''} to match t; got "
-                             f"{arr.shape}.")
-    return np.ascontiguousarray(arr)
-
-
-def _records(name: str, a: Any, B: int | None, N: int, width: int) -> FloatArray:
-    _real(name, a)
-    arr = np.asarray(a, dtype=np.float64)
-    if arr.ndim == 2 and width == 1:
-        arr = arr[..., None]
-    if arr.ndim != 3 or arr.shape[1:] != (N, width) or (B is not None and arr.shape[0] != B):
-        b = "B" if B is None else str(B)
-        raise DimensionError(f"run_batch: {name} must have shape ({b}, {N}, {width})"
-                             f"{f' or ({b}, {N})' if width == 1 else ''}: one record per run "
-                             f"on the shared time grid t; got {arr.shape}.")
-    return np.ascontiguousarray(arr)
-
-
-@dataclass(frozen=True, slots=True, eq=False)
-class ObserverResult:
-    """Estimates over a sampled record, returned by :meth:`ModifiedHighGainObserver.run`.
-
-    Attributes
-    ----------
-    t : ndarray, shape (N,)
-        Sampling instants.
-    x_hat : ndarray, shape (N, n)
-        State estimate x̂ of (3a).
-    phi_hat : ndarray, shape (N, k)
-        Perturbation estimate φ̂ = g(v, x̂, θ̂) + z of (3c).
-    theta_hat : ndarray, shape (N, p)
-        Parameter estimate θ̂ of (8).
-    x_hat_refined : ndarray, shape (N, n), or None
-        x̂₂ of the second observer of Sec. VI (None when none is attached).
-    skipped : ndarray of bool, shape (N,)
-        Samples whose y held NaN and were used without output correction
-        (``nan_policy="skip"``).
-    """
-
-    t: FloatArray
-    x_hat: FloatArray
-    phi_hat: FloatArray
-    theta_hat: FloatArray
-    x_hat_refined: FloatArray | None
-    skipped: NDArray[np.bool_]
-
-    def __repr__(self) -> str:
-        N = self.t.shape[0]
-        span = f"[{self.t[0]:.6g}, {self.t[-1]:.6g}]" if N else "[]"
-        refined = "None" if self.x_hat_refined is None else f"{self.x_hat_refined.shape}"
-        return (f"ObserverResult(N={N}, t={span}, x_hat={self.x_hat.shape}, "
-                f"phi_hat={self.phi_hat.shape}, theta_hat={self.theta_hat.shape}, "
-                f"x_hat_refined={refined}, skipped={int(self.skipped.sum())})")
-
-    def to_dataframe(self, *, state_names: Any = None, parameter_names: Any = None) -> Any:
-        """A :class:`pandas.DataFrame` indexed by t (:func:`thetahat.tables.result_to_dataframe`).
-
-        Parameters
-        ----------
-        state_names, parameter_names : sequence of str, optional
-            Column suffixes (default 1, 2, …).
-        """
-        from ..tables import result_to_dataframe
-        return result_to_dataframe(self, state_names=state_names,
-                                   parameter_names=parameter_names)
-
-    def to_xarray(self, *, state_names: Any = None, parameter_names: Any = None) -> Any:
-        """An :class:`xarray.Dataset` over t (:func:`thetahat.tables.result_to_xarray`).
-
-        Parameters
-        ----------
-        state_names, parameter_names : sequence of str, optional
-            Coordinate labels (default 1, 2, …).
-        """
-        from ..tables import result_to_xarray
-        return result_to_xarray(self, state_names=state_names,
-                                parameter_names=parameter_names)
-
-
-@dataclass(frozen=True, slots=True, eq=False)
-class ObserverEstimate:
-    """Estimates read from one streaming state (:meth:`ModifiedHighGainObserver.estimate`).
-
-    Attributes
-    ----------
-    x_hat : ndarray, shape (n,)
-    phi_hat : ndarray, shape (k,)
-    theta_hat : ndarray, shape (p,)
-    x_hat_refined : ndarray, shape (n,), or None
-    """
-
-    x_hat: FloatArray
-    phi_hat: FloatArray
-    theta_hat: FloatArray
-    x_hat_refined: FloatArray | None
 
 
 @dataclass(frozen=True, slots=True, eq=False)
@@ -538,10 +428,13 @@ class ModifiedHighGainObserver:
                                  "initialised badly; restart from init().")
         return s
 
-    def check_records(self, t: ArrayLike, u: ArrayLike | None, y: ArrayLike, batch: int | None = None
-                      ) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray,
+    def check_records(self, t: ArrayLike, u: ArrayLike | None, y: ArrayLike,
+                      batch: int | None = None) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray,
                                  NDArray[np.bool_]]:
         """Validate sampled records against the NaN policy (before anything is integrated).
+
+        :func:`~thetahat.estimation.records.check_records` with this observer's layout and
+        ``nan_policy``.
 
         Parameters
         ----------
@@ -569,30 +462,8 @@ class ModifiedHighGainObserver:
         NonFiniteError
             NaN or inf in t or u; inf in y; NaN in y under ``nan_policy="raise"``.
         """
-        lay = self.layout
-        t_, dts = as_time_grid(t)
-        N = t_.shape[0]
-        if batch is None:
-            Y = _record("y", y, N, lay.r)[None]
-            U = _record("u", np.zeros((N, 0)) if u is None else u, N, lay.m)[None]
-            names = ("u", "y")
-        else:
-            Y = _records("Y", y, None if batch < 0 else batch, N, lay.r)
-            B = Y.shape[0]
-            U = _records("U", np.zeros((B, N, 0)) if u is None else u, B, N, lay.m)
-            names = ("U", "Y")
-        check_finite(names[0], U)
-        if np.isinf(Y).any():
-            raise NonFiniteError(f"{names[1]} contains inf; only NaN marks a missing sample.")
-        ok = np.asarray(np.isfinite(Y).all(axis=2), dtype=np.bool_)
-        if not ok.all() and self.nan_policy == "raise":
-            b, i = (int(a[0]) for a in np.nonzero(~ok))
-            run = f" in run {b}" if batch is not None else ""
-            raise NonFiniteError(f"{names[1]} contains NaN ({int((~ok).sum())} samples, first"
-                                 f"{run} at index {i}) and nan_policy='raise'; pass "
-                                 "nan_policy='skip' to the observer to predict over missing "
-                                 "samples, or clean the data.")
-        return t_, dts, U, Y, ok
+        return check_records(self.layout, self.nan_policy, t, u, y, batch)
+
 
     # ------------------------------------------------------------------ public API
     def rhs(self, t: float, state: ArrayLike, v: ArrayLike,
