@@ -133,7 +133,7 @@ def _inversion_target(theta_star: ThetaStar | ThetaStarFn, weight: Weight | None
         lw = np.ones(batch)
     else:
         lw = np.broadcast_to(np.asarray(weight(v, x, phi), dtype=np.float64), batch).copy()
-        if np.any(np.isnan(lw)) or np.any(lw < -WEIGHT_TOL) or np.any(lw > 1 + WEIGHT_TOL):
+        if not ((lw >= -WEIGHT_TOL) & (lw <= 1 + WEIGHT_TOL)).all():     # NaN fails too
             raise UpdateLawError(f"{owner}: the excitation weight l must return values in "
                                  f"[0, 1] (Proposition 2); got values in [{np.nanmin(lw)}, "
                                  f"{np.nanmax(lw)}] (or NaN).")
@@ -143,13 +143,14 @@ def _inversion_target(theta_star: ThetaStar | ThetaStarFn, weight: Weight | None
     if ts.ndim == 0 or ts.shape[-1] != p:
         raise UpdateLawError(f"{owner}: theta_star must return shape (..., {p}); got "
                              f"{ts.shape}.")
-    ts = np.broadcast_to(ts, batch + (p,))
-    bad = (lw > 0) & ~np.all(np.isfinite(ts), axis=-1)
-    if np.any(bad):
+    if ts.shape != batch + (p,):
+        ts = np.broadcast_to(ts, batch + (p,))
+    bad = (lw > 0) & ~np.isfinite(ts).all(axis=-1)
+    if bad.any():
         if on_invalid == "raise":
             raise invalid_theta_star_error(owner, int(np.sum(bad)))
         lw = np.where(bad, 0.0, lw)
-    th_b = np.broadcast_to(th, batch + (p,))
+    th_b = th if th.shape == batch + (p,) else np.broadcast_to(th, batch + (p,))
     target = np.where((lw > 0)[..., None], ts, th_b)
     return target, lw
 

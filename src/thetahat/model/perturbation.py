@@ -14,6 +14,7 @@ evaluating code; :mod:`thetahat.model.lambdify` prints SymPy to NumPy.
 
 from __future__ import annotations
 
+import itertools
 from abc import ABC, abstractmethod
 from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
@@ -124,6 +125,11 @@ def batch_args(dims: tuple[int, int, int, int, int], v: Any, x: Any, theta: Any
     (3,)
     """
     n, m, r, p, _ = dims
+    if (type(v) is np.ndarray and type(x) is np.ndarray and type(theta) is np.ndarray
+            and v.dtype == x.dtype == theta.dtype == np.float64 and v.ndim and x.ndim
+            and theta.ndim and v.shape[-1] == m + r and x.shape[-1] == n
+            and theta.shape[-1] == p and v.shape[:-1] == x.shape[:-1] == theta.shape[:-1]):
+        return v, x, theta, v.shape[:-1]     # valid as given (the observer's step): no copies
     v_ = _batch_arg("v", v, m + r, f"v = col(u, y) with m + r = {m} + {r}")
     x_ = _batch_arg("x", x, n, f"the state, n = {n}")
     t_ = _batch_arg("theta", theta, p, f"the parameters, p = {p}")
@@ -313,6 +319,7 @@ class SymbolicPerturbation(Perturbation):
     theta: tuple[sp.Symbol, ...]
     _jacobians: Mapping[str, sp.ImmutableMatrix] = field(repr=False, compare=False)
     _functions: Mapping[str, Callable[..., list[Any]]] = field(repr=False, compare=False)
+    _dims: tuple[int, int, int, int, int] = field(repr=False, compare=False)
 
     def __init__(self, *, expr: Any, u: Any, y: Any, x: Any, theta: Any) -> None:
         groups = {"u": _as_symbols("u", u), "y": _as_symbols("y", y),
@@ -359,6 +366,8 @@ class SymbolicPerturbation(Perturbation):
             object.__setattr__(self, group, symbols)
         object.__setattr__(self, "_jacobians", MappingProxyType(jacobians))
         object.__setattr__(self, "_functions", MappingProxyType(functions))
+        object.__setattr__(self, "_dims", (len(self.x), len(self.u), len(self.y),
+                                           len(self.theta), column.rows))
 
     @classmethod
     def from_sympy(cls, expr: Any, *, u: Sequence[sp.Symbol], y: Sequence[sp.Symbol],
@@ -404,7 +413,7 @@ class SymbolicPerturbation(Perturbation):
     @property
     def dims(self) -> tuple[int, int, int, int, int]:
         """(n, m, r, p, k): states, inputs, outputs, parameters, perturbation size."""
-        return (len(self.x), len(self.u), len(self.y), len(self.theta), self.expr.rows)
+        return self._dims
 
     def jacobian(self, wrt: str) -> sp.ImmutableMatrix:
         """The symbolic Jacobian of g in the user's symbols.
@@ -432,13 +441,14 @@ class SymbolicPerturbation(Perturbation):
         return self._jacobians[wrt]
 
     def _evaluate(self, key: str, width: int | None, v: Any, x: Any, theta: Any) -> FloatArray:
-        v_, x_, t_, batch = batch_args(self.dims, v, x, theta)
-        k = self.expr.rows
+        v_, x_, t_, batch = batch_args(self._dims, v, x, theta)
+        k = self._dims[4]
         shape = (k,) if width is None else (k, width)
         cols = [a[..., i] for a in (v_, x_, t_) for i in range(a.shape[-1])]
         out = np.empty(batch + shape)
-        for index, value in zip(np.ndindex(*shape), self._functions[key](*cols)):
-            out[(Ellipsis, *index)] = value
+        index = itertools.product(*(range(n) for n in shape))
+        for i, value in zip(index, self._functions[key](*cols)):
+            out[(Ellipsis, *i)] = value
         return out
 
     def g(self, v: FloatArray, x: FloatArray, theta: FloatArray) -> FloatArray:
