@@ -180,8 +180,8 @@ def _estimate_fleet(args: argparse.Namespace) -> int:
     output = args.output or "results.csv"
     check_writable(output)
     result = estimate_many(args.model, args.data, scheduler=args.scheduler,
-                           chunk_size=args.chunk_size, hold=args.hold,
-                           progress=not args.no_progress)
+                           chunk_size=args.chunk_size, hold=args.hold, method=args.method,
+                           nan_policy=args.nan_policy, progress=not args.no_progress)
     result.write(output)
     print(f"wrote {output} ({len(result.rows)} files: {result.n_ok} ok, "
           f"{len(result.rows) - result.n_ok} failed)")
