@@ -14,7 +14,6 @@ evaluating code; :mod:`thetahat.model.lambdify` prints SymPy to NumPy.
 
 from __future__ import annotations
 
-import itertools
 from abc import ABC, abstractmethod
 from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
@@ -446,9 +445,13 @@ class SymbolicPerturbation(Perturbation):
         shape = (k,) if width is None else (k, width)
         cols = [a[..., i] for a in (v_, x_, t_) for i in range(a.shape[-1])]
         out = np.empty(batch + shape)
-        index = itertools.product(*(range(n) for n in shape))
-        for i, value in zip(index, self._functions[key](*cols)):
-            out[(Ellipsis, *i)] = value
+        values = self._functions[key](*cols)          # the entries in row-major order
+        if width is None:
+            for i, value in enumerate(values):
+                out[..., i] = value
+        else:
+            for i, value in enumerate(values):
+                out[..., i // width, i % width] = value
         return out
 
     def g(self, v: FloatArray, x: FloatArray, theta: FloatArray) -> FloatArray:
