@@ -16,8 +16,9 @@ from numpy.typing import ArrayLike, NDArray
 
 from .._validate import positive_scalar, readonly
 from ..errors import UpdateLawError
-from ..model.paramset import Box, ParameterSet, safe_norm
+from ..model.paramset import Box, ParameterSet
 from ..model.perturbation import Perturbation
+from ..model.set_geometry import safe_norm
 from .law_base import (UpdateLaw, apply_saturation, as_batch, check_law_options,
                        finite_candidate, is_diagonal, project_rows)
 from .projection import Projection, Saturation, as_gain
