@@ -14,8 +14,8 @@ Times are CPU times of the process (``time.process_time``, best of a few repetit
 shared machine disturbs less than wall time; run with ``OPENBLAS_NUM_THREADS=1`` there (BLAS
 threads fighting over busy cores made a 15×15 ``expm`` 1000× slower in our measurements).
 With ``--against``, each round measures this tree and the other one in two fresh processes
-(alternating, so both see the same machine load) and prints the ratio ours ÷ other of the best
-time per path: < 1 means this tree is faster.
+(alternating, so both see the same machine load) and prints the ratios ours ÷ other of the
+median and of the best time per path over the rounds: < 1 means this tree is faster.
 """
 
 from __future__ import annotations
@@ -23,6 +23,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import statistics
 import subprocess
 import sys
 import time
@@ -95,25 +96,30 @@ def main(argv: list[str] | None = None) -> dict:
     args = ap.parse_args(argv)
     here = Path(__file__).resolve().parents[1] / "src"
     trees = {"ours": here} | ({"other": args.against.resolve()} if args.against else {})
-    best: dict[str, dict[str, float]] = {name: {} for name in trees}
+    rounds: dict[str, dict[str, list[float]]] = {name: {} for name in trees}
     wall0 = time.perf_counter()
     for rnd in range(args.rounds):
         for name, src in trees.items():
             res = measure(src, args.t_end)
             for k, v in res.items():
-                best[name][k] = min(best[name].get(k, float("inf")), v)
+                rounds[name].setdefault(k, []).append(v)
             print(f"round {rnd}: {name:5} " + ", ".join(f"{k} {v:.3g} µs" for k, v in res.items()),
                   flush=True)
-    print(f"best of {args.rounds} rounds (µs per step; {args.t_end:g} s at 1 kHz, "
-          f"batch of {BATCH_SIZE}):")
-    for name, res in best.items():
-        print(f"  {name:5} " + ", ".join(f"{k} {v:.3g}" for k, v in res.items()))
-    if "other" in best:
-        ratios = {k: best["ours"][k] / best["other"][k] for k in best["ours"] if k in best["other"]}
-        print("  ratio ours ÷ other: " + ", ".join(f"{k} {v:.3f}" for k, v in ratios.items()))
-        best["ratio"] = ratios
+    out: dict = {}
+    for stat, fn in (("median", statistics.median), ("best", min)):
+        summary = {name: {k: fn(v) for k, v in res.items()} for name, res in rounds.items()}
+        print(f"{stat} of {args.rounds} rounds (µs per step; {args.t_end:g} s at 1 kHz, "
+              f"batch of {BATCH_SIZE}):")
+        for name, res in summary.items():
+            print(f"  {name:5} " + ", ".join(f"{k} {v:.3g}" for k, v in res.items()))
+        if "other" in summary:
+            ratios = {k: summary["ours"][k] / summary["other"][k] for k in summary["ours"]
+                      if k in summary["other"]}
+            print("  ratio ours ÷ other: " + ", ".join(f"{k} {v:.3f}" for k, v in ratios.items()))
+            summary["ratio"] = ratios
+        out[stat] = summary
     print(f"(wall {time.perf_counter() - wall0:.0f} s)")
-    return best
+    return out
 
 
 if __name__ == "__main__":

@@ -31,8 +31,8 @@ from .errors import (IllConditionedError, InputLimitError, ResourceLimitError,
 from .model.interop import from_state_space, to_state_space
 from .model.paramset import Ball, Box, ConvexSet, Ellipsoid, ParameterSet
 from .model.parse import parse_perturbation
-from .model.perturbation import (CallablePerturbation, JacobianCheck, Perturbation,
-                                 SymbolicPerturbation, check_jacobians)
+from .model.jacobian_check import JacobianCheck, check_jacobians
+from .model.perturbation import CallablePerturbation, Perturbation, SymbolicPerturbation
 from .model.system import PerturbedLinearSystem
 from .fleet import FleetResult, estimate_many
 from .simulation.noise import ColoredNoise, WhiteNoise

@@ -9,23 +9,28 @@ held θ), the parameter set (Box; Ball, whose projection takes the generic path)
 observer of Sec. VI (none, g on its estimates, g on y), the hold (ZOH, FOH) and the NaN policy
 (clean data with "raise"; a gap of NaN with "skip"), and checks the error behaviour: the same
 error type, with the same message, at the same sample, when the data break the NaN policy and
-when the observer diverges (ε = 0.001 at 1 kHz). A back end that is absent (numba not
-installed) skips.
+when the observer diverges: by construction (error dynamics unstable by a wide margin, on every
+numpy), and at ε = 0.001 at 1 kHz (where the record happens to cross the bound). A back end
+that is absent (numba not installed) skips.
 """
 
 from __future__ import annotations
 
+import importlib.util
 import itertools
 import re
 from functools import cache
 
 import numpy as np
 import pytest
+import scipy.signal
 
 from thetahat.errors import NonFiniteError
 from thetahat.estimation.batch_run import run_batch
 from thetahat.estimation.observer import ModifiedHighGainObserver
+from thetahat.estimation.plan import linear_part
 from thetahat.estimation.redesign import SecondObserver
+from thetahat.estimation.step import DIVERGENCE_BOUND
 from thetahat.estimation.update_laws import (AlgebraicInversion, ConstantLaw, GradientInversion,
                                              IntermittentInversion, UpdateLaw, smooth_ramp)
 from thetahat.model.paramset import Ball, Box
@@ -47,6 +52,17 @@ GAP = slice(120, 140)
 #: case, where the old ``run`` and ``run_batch`` disagreed).
 EPS_DIVERGING = 0.001
 DIVERGING_SEED, DIVERGING_T_END = 1000, 2.6
+#: Eigenvalues (1/s) placed for L = [[A − K_x C, E], [−K_φ C, 0]], the linear part of the
+#: observer's error dynamics: unstable on purpose. With the exact exponential step the linear
+#: part alone grows by e^(λ·dt) = e^0.6 … e^1 per 1 ms sample (g, linear in η̂ with a large
+#: coefficient σ0|y|/θ̂, adds to it: the norm gains 1.5–2 decades per sample near the end), so
+#: the state crosses DIVERGENCE_BOUND about 140 samples into the record with a margin no
+#: rounding difference between numpy versions or back ends can bridge (checked below).
+UNSTABLE_POLES = (600.0, 800.0, 1000.0)
+#: The state before the crossing must lie this far (in decades) below DIVERGENCE_BOUND, and the
+#: crossing step jump this far above it: rounding (1e-12 relative at most) moves log10|s| by
+#: ~1e-13, so 0.05 decades (12 %) leaves a margin of 10¹¹.
+CROSSING_MARGIN_DECADES = 0.05
 
 LAWS = ("constant", "algebraic", "intermittent", "gradient")
 SETS = ("box", "ball")
@@ -189,6 +205,63 @@ def errors_of_all_back_ends(obs, t, U, Y) -> dict[str, BaseException]:
     return out
 
 
+def unstable_observer() -> ModifiedHighGainObserver:
+    """The LuGre observer of the matrix (IntermittentInversion, Box, second observer on its
+    estimates), with K_x, K_φ placing the eigenvalues of L at UNSTABLE_POLES: it diverges by
+    construction."""
+    system = lugre.system()
+    A, C, E = system.A, system.C, system.E
+    n, k = E.shape
+    A_ext = np.block([[A, E], [np.zeros((k, n + k))]])
+    C_ext = np.hstack([C, np.zeros((C.shape[0], k))])
+    K = scipy.signal.place_poles(A_ext.T, C_ext.T, np.array(UNSTABLE_POLES)).gain_matrix.T
+    eig = np.sort(np.linalg.eigvals(linear_part(A, C, E, K[:n], K[n:])).real)
+    np.testing.assert_allclose(eig, UNSTABLE_POLES, rtol=1e-6)   # the placement took
+    _, d2 = lugre.designs(1.0)
+    return ModifiedHighGainObserver(
+        system=system, K_x=K[:n], K_phi=K[n:],
+        update_law=make_law("intermittent", parameter_set("box")),
+        second=SecondObserver(system=system, K_x=d2.K, g_on_estimates=True))
+
+
+def assert_reported_identically(errs: dict[str, BaseException]) -> int:
+    """Every back end raised NonFiniteError naming the same step, in the same words; that step."""
+    assert {type(e) for e in errs.values()} == {NonFiniteError}, errs
+    where = {name: re.search(r"t\[(\d+)\]", str(e)) for name, e in errs.items()}
+    steps = {name: int(m.group(1)) for name, m in where.items() if m}
+    assert set(steps) == set(errs) - {"step"}             # step() says "in this step"
+    assert len(set(steps.values())) == 1, steps
+    messages = {str(e).replace("of run 0 ", "") for name, e in errs.items() if name != "step"}
+    assert len(messages) == 1, messages                    # word for word
+    assert "diverged" in str(errs["step"])
+    return steps["run"]
+
+
+def test_divergence_by_construction_is_reported_identically():
+    """Unstable error dynamics: every back end present raises NonFiniteError at the same
+    sample, with the same message, on every numpy; the step loop stops at that sample too."""
+    obs = unstable_observer()
+    t, U, Y = records("raise")
+    errs = errors_of_all_back_ends(obs, t, U, Y)
+    if importlib.util.find_spec("numba") is not None:
+        assert "compiled" in errs                          # the kernel took this observer
+    with pytest.raises(Exception) as info:                 # noqa: PT011 - compared below
+        run_batch(obs, t, U[[0, 0]], Y[[0, 0]])            # the batch path proper (B = 2)
+    errs["batch of two"] = info.value
+    i = assert_reported_identically(errs)
+    s = obs.init()
+    log_norms = []
+    with pytest.raises(NonFiniteError, match="diverged"):
+        for j in range(t.size):
+            s = obs.step(s, U[0, j], Y[0, j], DT)
+            log_norms.append(np.log10(np.linalg.norm(s)))
+    assert j == i                                          # the very same step
+    # the premise: the crossing is far from a knife-edge (and well inside the record)
+    assert np.log10(DIVERGENCE_BOUND) - log_norms[-1] >= CROSSING_MARGIN_DECADES, log_norms[-3:]
+    assert log_norms[-1] - log_norms[-2] >= 2 * CROSSING_MARGIN_DECADES   # still growing fast
+    assert 10 < i < t.size - 10
+
+
 def require_divergence(obs, t, U, Y) -> None:
     """Skip unless the reference run crosses the divergence bound on this platform.
 
@@ -208,15 +281,7 @@ def test_divergence_is_reported_identically():
     obs = make_observer("intermittent", "box", "estimates", "raise", eps=EPS_DIVERGING)
     t, U, Y = diverging_records()
     require_divergence(obs, t, U, Y)
-    errs = errors_of_all_back_ends(obs, t, U, Y)
-    assert {type(e) for e in errs.values()} == {NonFiniteError}, errs
-    where = {name: re.search(r"t\[(\d+)\]", str(e)) for name, e in errs.items()}
-    steps = {name: int(m.group(1)) for name, m in where.items() if m}
-    assert set(steps) == set(errs) - {"step"}             # step() says "in this step"
-    assert len(set(steps.values())) == 1, steps
-    messages = {str(e).replace("of run 0 ", "") for name, e in errs.items() if name != "step"}
-    assert len(messages) == 1, messages                    # word for word
-    assert "diverged" in str(errs["step"])
+    assert_reported_identically(errors_of_all_back_ends(obs, t, U, Y))
 
 
 def test_divergence_step_index_agrees_with_the_step_loop():

@@ -11,8 +11,8 @@ import pytest
 import sympy as sp
 
 from thetahat.errors import DimensionError, ModelFileError, NonFiniteError
-from thetahat.model.perturbation import (CHECK_RTOL, CallablePerturbation, JacobianCheck,
-                                         SymbolicPerturbation, check_jacobians)
+from thetahat.model.jacobian_check import CHECK_RTOL, JacobianCheck, check_jacobians
+from thetahat.model.perturbation import CallablePerturbation, SymbolicPerturbation
 from thetahat.model.parse import parse_perturbation
 
 # Sec. VIII: the LuGre friction parameters that stay known (θ = α0 is the unknown one).

@@ -89,7 +89,7 @@ static int implicit_exponential_step(int q, const real_t Phi1[], const real_t N[
     return 0;
 }
 
-/* update_laws._finite_candidate, then the projection onto the box (a clip: diagonal Gamma). */
+/* law_base.finite_candidate, then the projection onto the box (a clip: diagonal Gamma). */
 static real_t into_box(real_t c, real_t fallback, real_t lo, real_t hi)
 {
     if (c != c) {

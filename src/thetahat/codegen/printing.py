@@ -17,7 +17,7 @@ from sympy.codegen.ast import float32, real
 from sympy.printing.c import C99CodePrinter
 
 from ..errors import UnsupportedError
-from ..model.perturbation import numpy_ready
+from ..model.lambdify import numpy_ready
 
 __all__ = ["REALS", "c_function", "c_printer"]
 

@@ -113,7 +113,7 @@ def _expm(q, w, o_Z, o_E, o_T, o_U):
 
 @njit(cache=True, error_model='numpy')
 def _into_box(c, fallback, lo, hi):
-    # update_laws._finite_candidate followed by the projection onto the box (a clip)
+    # law_base.finite_candidate followed by the projection onto the box (a clip)
     if c != c:
         c = fallback
     c = min(max(c, -FAR), FAR)

@@ -20,7 +20,7 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
-from numpy.typing import NDArray
+from numpy.typing import ArrayLike, NDArray
 
 from .._validate import check_finite, readonly
 from ..errors import DimensionError, IndexOutOfRangeError, OptionError
@@ -137,7 +137,8 @@ def _check_compatible(observers: list[ModifiedHighGainObserver]) -> None:
                     f"{type(obs.update_law).__name__}; only Γ may differ)")
         elif (ref.second is None) != (obs.second is None):
             what = "whether a second observer is attached"
-        elif ref.second is not None and ref.second.g_on_estimates != obs.second.g_on_estimates:
+        elif (ref.second is not None and obs.second is not None
+              and ref.second.g_on_estimates != obs.second.g_on_estimates):
             what = "the second observer's g_on_estimates"
         elif ref.nan_policy != obs.nan_policy:
             what = "nan_policy"
@@ -192,8 +193,8 @@ def _initial(observers: list[ModifiedHighGainObserver], state0: Any, B: int,
 
 
 def run_batch(observers: ModifiedHighGainObserver | Sequence[ModifiedHighGainObserver],
-              t: Any, U: Any, Y: Any, *, hold: str = "zoh",
-              state0: Any = None) -> BatchObserverResult:
+              t: ArrayLike, U: ArrayLike | None, Y: ArrayLike, *, hold: str = "zoh",
+              state0: ArrayLike | None = None) -> BatchObserverResult:
     """Run B observers over B sampled records at once (vectorised over a batch axis).
 
     Parameters
@@ -274,9 +275,9 @@ def run_batch(observers: ModifiedHighGainObserver | Sequence[ModifiedHighGainObs
     t_, dts, Ub, Yb, ok = ref.check_records(t, U, Y, batch=len(obs) if len(obs) > 1 else -1)
     B = Yb.shape[0]
     s0 = _initial(obs, state0, B, ref.state_size)
-    S = integrate(_Plans(obs), ref.system.perturbation, ref.update_law, s0, t_, dts, Ub, Yb,
-                  ok, hold == "foh")
-    X, PHI, TH, X2 = readout(ref.system.perturbation, ref.system.C, S, Ub, Yb, ok, ref.layout)
+    pert = ref.system.require_perturbation("run_batch")
+    S = integrate(_Plans(obs), pert, ref.update_law, s0, t_, dts, Ub, Yb, ok, hold == "foh")
+    X, PHI, TH, X2 = readout(pert, ref.system.C, S, Ub, Yb, ok, ref.layout)
     return BatchObserverResult(t=readonly(t_), x_hat=readonly(X), phi_hat=readonly(PHI),
                                theta_hat=readonly(TH),
                                x_hat_refined=None if X2 is None else readonly(X2),

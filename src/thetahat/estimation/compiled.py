@@ -64,7 +64,7 @@ from .theta_star import ThetaStar
 from .update_laws import (FAR, ConstantLaw, GradientInversion, IntermittentInversion, SmoothRamp,
                           invalid_theta_star_error)
 
-__all__ = ["CompiledObserver", "compile_observer"]
+__all__ = ["CompiledObserver", "KernelParts", "compile_observer", "kernel_parts"]
 
 FloatArray = NDArray[np.float64]
 
@@ -343,45 +343,88 @@ def _diagonal_gain(law: Any) -> FloatArray:
     return G
 
 
-def _law_code(law: Any) -> int:
-    """0 ConstantLaw, 1 IntermittentInversion with l ≡ 1, 2 with a smooth ramp, 3 gradient."""
-    if isinstance(law, ConstantLaw):
-        return 0
-    if isinstance(law, IntermittentInversion):
-        if law.l is None:
-            return 1
-        if isinstance(law.l, SmoothRamp):
-            return 2
-        raise _unsupported("an excitation weight l other than smooth_ramp(low, high)")
-    if isinstance(law, GradientInversion):
-        return 3
-    raise _unsupported(f"the update law {type(law).__name__}")
+@dataclass(frozen=True, slots=True)
+class KernelParts:
+    """What the kernel takes from an observer, checked (see :func:`kernel_parts`).
+
+    Attributes
+    ----------
+    code : int
+        0 ConstantLaw, 1 IntermittentInversion with l ≡ 1, 2 with a smooth ramp, 3 gradient.
+    perturbation : SymbolicPerturbation
+        g, printed into the kernel.
+    box : Box
+        Θ.
+    theta_star : ThetaStar or None
+        θ* of the inversion laws.
+    ramp : tuple of float or None
+        (low, high) of the smooth ramp l (code 2).
+    freeze : bool
+        The inversion law's ``on_invalid == "freeze"``.
+    """
+
+    code: int
+    perturbation: SymbolicPerturbation
+    box: Box
+    theta_star: ThetaStar | None = None
+    ramp: tuple[float, float] | None = None
+    freeze: bool = False
 
 
-def _configure(observer: ModifiedHighGainObserver) -> tuple[int, ThetaStar | None]:
-    """Check the observer's parts; return (law code, θ*)."""
+def kernel_parts(observer: ModifiedHighGainObserver) -> KernelParts:
+    """Check that the kernel supports the observer's parts, and collect them.
+
+    Parameters
+    ----------
+    observer : ModifiedHighGainObserver
+
+    Returns
+    -------
+    KernelParts
+
+    Raises
+    ------
+    UnsupportedError
+        A part the kernel does not support (the message names it).
+
+    Examples
+    --------
+    >>> from thetahat.models import lugre
+    >>> from thetahat.estimation.compiled import kernel_parts
+    >>> kernel_parts(lugre.observer(1.0)).code      # the intermittent law with a smooth ramp
+    2
+    """
     pert = observer.system.perturbation
     if not isinstance(pert, SymbolicPerturbation):
         raise _unsupported(f"a {type(pert).__name__} g (it must be a SymbolicPerturbation)")
     law = observer.update_law
     if law.state_size:
         raise _unsupported("an update law with a state")
-    code = _law_code(law)
-    if not isinstance(law.parameter_set, Box):
-        raise _unsupported(f"Θ = {type(law.parameter_set).__name__} (it must be a Box)")
+    box = law.parameter_set
+    if not isinstance(box, Box):
+        raise _unsupported(f"Θ = {type(box).__name__} (it must be a Box)")
     if getattr(law, "saturation", None) is not None:
         raise _unsupported("an update law with saturation")
-    if code != 0:
-        _diagonal_gain(law)
-    if code == 3 and law.M is not None:
-        raise _unsupported("GradientInversion with a user M")
-    if code == 3 and not (law.perturbation is pert or law.perturbation == pert):
-        raise _unsupported("GradientInversion with a g other than the observer's")
-    if code in (0, 3):
-        return code, None
+    if isinstance(law, ConstantLaw):
+        return KernelParts(code=0, perturbation=pert, box=box)
+    _diagonal_gain(law)
+    if isinstance(law, GradientInversion):
+        if law.M is not None:
+            raise _unsupported("GradientInversion with a user M")
+        if not (law.perturbation is pert or law.perturbation == pert):
+            raise _unsupported("GradientInversion with a g other than the observer's")
+        return KernelParts(code=3, perturbation=pert, box=box)
+    if not isinstance(law, IntermittentInversion):
+        raise _unsupported(f"the update law {type(law).__name__}")
+    code, ramp = 1, None
+    if isinstance(law.l, SmoothRamp):
+        code, ramp = 2, (float(law.l.low), float(law.l.high))
+    elif law.l is not None:
+        raise _unsupported("an excitation weight l other than smooth_ramp(low, high)")
     ts = law.theta_star
     if isinstance(ts, ThetaStar):
-        return code, ts
+        return KernelParts(code=code, perturbation=pert, box=box, theta_star=ts, ramp=ramp,
+                           freeze=law.on_invalid == "freeze")
     raise UnsupportedError(
         f"compile_observer: the θ* of {type(law).__name__} is a Python callable "
         f"({type(ts).__name__}), which cannot be compiled; build the law with a ThetaStar "
@@ -447,14 +490,15 @@ class CompiledObserver:
             raise _unsupported(f"a {type(observer).__name__} (it must be a "
                                "ModifiedHighGainObserver)")
         h = positive_scalar("dt", dt)
-        code, ts = _configure(observer)
+        parts = kernel_parts(observer)
+        ts = parts.theta_star
         plan = observer.plan(h)
-        source = _kernel_source(observer.system.perturbation,
+        source = _kernel_source(parts.perturbation,
                                 None if ts is None else ts.expr,
                                 None if ts is None else ts.arguments)
         for name, value in (("observer", observer), ("dt", h), ("theta_star", ts),
                             ("plan", plan), ("_kernel", _load(source)),
-                            ("_P", _constants(observer, plan, code))):
+                            ("_P", _constants(parts, plan))):
             object.__setattr__(self, name, value)
 
     @property
@@ -567,16 +611,15 @@ class CompiledObserver:
         if status:
             i = int(index)
             self._raise(int(status), f"in the step from t[{i}] = {t_[i]!r}")
-        arrays = {"t": t_, "x_hat": S[:, lay.x], "phi_hat": PHI, "theta_hat": S[:, lay.theta],
-                  "x_hat_refined": S[:, lay.x2] if lay.second else None}
-        for key, val in arrays.items():
-            if val is not None:
-                val = np.array(val, copy=True)
-                val.setflags(write=False)
-                arrays[key] = val
-        skipped = np.zeros(N, dtype=bool)
-        skipped.setflags(write=False)
-        return ObserverResult(skipped=skipped, **arrays)
+        def frozen(a: NDArray[Any]) -> NDArray[Any]:
+            out = np.array(a, copy=True)
+            out.setflags(write=False)
+            return out
+
+        return ObserverResult(t=frozen(t_), x_hat=frozen(S[:, lay.x]), phi_hat=frozen(PHI),
+                              theta_hat=frozen(S[:, lay.theta]),
+                              x_hat_refined=frozen(S[:, lay.x2]) if lay.second else None,
+                              skipped=frozen(np.zeros(N, dtype=bool)))
 
     def __repr__(self) -> str:
         return (f"CompiledObserver(dt={self.dt!r}, observer={self.observer!r}, "
@@ -589,22 +632,21 @@ def _no_prediction() -> UnsupportedError:
                                "step/run or run_batch.")
 
 
-def _constants(observer: ModifiedHighGainObserver, plan: StepPlan, code: int) -> FloatArray:
+def _constants(parts: KernelParts, plan: StepPlan) -> FloatArray:
     """The constants vector P from the plan: matrices, φ-matrices, Θ, Γ, ramp and the flags."""
     lay = plan.layout
     consts, P_size, _, _ = _layouts(lay.n, lay.m, lay.r, lay.k, lay.p)
-    law, second = observer.update_law, plan.second
+    second = plan.second
     values = {"L": plan.L[0], "Bv": plan.Bv[0], "KxC": plan.KxC[0], "Kx": plan.K_x[0],
               "C": plan.C, "E": plan.E, "Phi1": plan.Phi1[0], "A": plan.A,
-              "Bm": plan.B, "lower": law.parameter_set.lower, "upper": law.parameter_set.upper,
+              "Bm": plan.B, "lower": parts.box.lower, "upper": parts.box.upper,
               "Gam": np.eye(lay.p) if plan.Gamma is None else plan.Gamma[0]}
     if second is not None:
         values["K2"] = second.K_x[0]
         values["Phi12"] = second.Phi1[0]
-    if code == 2:
-        values["ramp"] = np.array([law.l.low, law.l.high])
-    values["flags"] = np.array([code, getattr(law, "on_invalid", "raise") == "freeze",
-                                second is not None,
+    if parts.ramp is not None:
+        values["ramp"] = np.array(parts.ramp)
+    values["flags"] = np.array([parts.code, parts.freeze, second is not None,
                                 second is not None and second.g_on_estimates], dtype=np.float64)
     P = np.zeros(P_size)
     for name, (off, shape) in consts.items():

@@ -23,17 +23,19 @@ from collections.abc import Callable
 from typing import Any
 
 import numpy as np
-from numpy.typing import NDArray
+from numpy.typing import ArrayLike, NDArray
 
-from .._validate import (as_matrix, as_time_grid, as_vector, check_finite, positive_scalar,
-                         readonly)
+from .._validate import as_matrix, as_vector, check_finite, positive_scalar, readonly
 from ..errors import DimensionError, NonFiniteError, OptionError, UnsupportedError
 from ..limits import check_allocation
+from ..model.perturbation import Perturbation
 from ..model.system import PerturbedLinearSystem
 from ..structure.assumptions import check_assumption_1
 from .discretize import PLAN_CACHE_SIZE
 from .plan import StateLayout, StepPlan, dt_key
+from .records import check_records
 from .redesign import SecondObserver
+from .results import ObserverEstimate, ObserverResult
 from .step import (advance, diverged, divergence_error, integrate, observer_forcing, readout,
                    second_forcing)
 from .update_laws import UpdateLaw
@@ -60,14 +62,8 @@ def _vec(name: str, a: Any, size: int, *, finite: bool = True) -> FloatArray:
     return arr
 
 
-
-def _real(name: str, a: Any) -> None:
-    if np.iscomplexobj(a):
-        raise DimensionError(f"{name} must be real; got complex samples. Pass the real part "
-                             "explicitly if that is what was measured.")
-
-
-def _integrate_with_progress(plan_for: Callable[[float], StepPlan], pert: Any, law: UpdateLaw,
+def _integrate_with_progress(plan_for: Callable[[float], StepPlan], pert: Perturbation,
+                             law: UpdateLaw,
                              s0: FloatArray, t: FloatArray, dts: FloatArray, U: FloatArray,
                              Y: FloatArray, ok: NDArray[np.bool_], foh: bool,
                              progress: Callable[[int, int], None] | None) -> FloatArray:
@@ -86,110 +82,6 @@ def _integrate_with_progress(plan_for: Callable[[float], StepPlan], pert: Any, l
                                    U[:, a:b + 1], Y[:, a:b + 1], ok[:, a:b + 1], foh)[0]
     progress(N - 1, N - 1)
     return S
-
-
-def _record(name: str, a: Any, N: int, width: int) -> FloatArray:
-    _real(name, a)
-    arr = np.asarray(a, dtype=np.float64)
-    if arr.ndim == 1 and width == 1:
-        arr = arr.reshape(-1, 1)
-    if arr.ndim != 2 or arr.shape != (N, width):
-        raise DimensionError(f"{name} must have shape ({N}, {width})"
-                             f"{' or (N,)' if width == 1 else ''} to match t; got "
-                             f"{arr.shape}.")
-    return np.ascontiguousarray(arr)
-
-
-def _records(name: str, a: Any, B: int | None, N: int, width: int) -> FloatArray:
-    _real(name, a)
-    arr = np.asarray(a, dtype=np.float64)
-    if arr.ndim == 2 and width == 1:
-        arr = arr[..., None]
-    if arr.ndim != 3 or arr.shape[1:] != (N, width) or (B is not None and arr.shape[0] != B):
-        b = "B" if B is None else str(B)
-        raise DimensionError(f"run_batch: {name} must have shape ({b}, {N}, {width})"
-                             f"{f' or ({b}, {N})' if width == 1 else ''}: one record per run "
-                             f"on the shared time grid t; got {arr.shape}.")
-    return np.ascontiguousarray(arr)
-
-
-@dataclass(frozen=True, slots=True, eq=False)
-class ObserverResult:
-    """Estimates over a sampled record, returned by :meth:`ModifiedHighGainObserver.run`.
-
-    Attributes
-    ----------
-    t : ndarray, shape (N,)
-        Sampling instants.
-    x_hat : ndarray, shape (N, n)
-        State estimate x̂ of (3a).
-    phi_hat : ndarray, shape (N, k)
-        Perturbation estimate φ̂ = g(v, x̂, θ̂) + z of (3c).
-    theta_hat : ndarray, shape (N, p)
-        Parameter estimate θ̂ of (8).
-    x_hat_refined : ndarray, shape (N, n), or None
-        x̂₂ of the second observer of Sec. VI (None when none is attached).
-    skipped : ndarray of bool, shape (N,)
-        Samples whose y held NaN and were used without output correction
-        (``nan_policy="skip"``).
-    """
-
-    t: FloatArray
-    x_hat: FloatArray
-    phi_hat: FloatArray
-    theta_hat: FloatArray
-    x_hat_refined: FloatArray | None
-    skipped: NDArray[np.bool_]
-
-    def __repr__(self) -> str:
-        N = self.t.shape[0]
-        span = f"[{self.t[0]:.6g}, {self.t[-1]:.6g}]" if N else "[]"
-        refined = "None" if self.x_hat_refined is None else f"{self.x_hat_refined.shape}"
-        return (f"ObserverResult(N={N}, t={span}, x_hat={self.x_hat.shape}, "
-                f"phi_hat={self.phi_hat.shape}, theta_hat={self.theta_hat.shape}, "
-                f"x_hat_refined={refined}, skipped={int(self.skipped.sum())})")
-
-    def to_dataframe(self, *, state_names: Any = None, parameter_names: Any = None) -> Any:
-        """A :class:`pandas.DataFrame` indexed by t (:func:`thetahat.tables.result_to_dataframe`).
-
-        Parameters
-        ----------
-        state_names, parameter_names : sequence of str, optional
-            Column suffixes (default 1, 2, …).
-        """
-        from ..tables import result_to_dataframe
-        return result_to_dataframe(self, state_names=state_names,
-                                   parameter_names=parameter_names)
-
-    def to_xarray(self, *, state_names: Any = None, parameter_names: Any = None) -> Any:
-        """An :class:`xarray.Dataset` over t (:func:`thetahat.tables.result_to_xarray`).
-
-        Parameters
-        ----------
-        state_names, parameter_names : sequence of str, optional
-            Coordinate labels (default 1, 2, …).
-        """
-        from ..tables import result_to_xarray
-        return result_to_xarray(self, state_names=state_names,
-                                parameter_names=parameter_names)
-
-
-@dataclass(frozen=True, slots=True, eq=False)
-class ObserverEstimate:
-    """Estimates read from one streaming state (:meth:`ModifiedHighGainObserver.estimate`).
-
-    Attributes
-    ----------
-    x_hat : ndarray, shape (n,)
-    phi_hat : ndarray, shape (k,)
-    theta_hat : ndarray, shape (p,)
-    x_hat_refined : ndarray, shape (n,), or None
-    """
-
-    x_hat: FloatArray
-    phi_hat: FloatArray
-    theta_hat: FloatArray
-    x_hat_refined: FloatArray | None
 
 
 @dataclass(frozen=True, slots=True, eq=False)
@@ -339,9 +231,7 @@ class ModifiedHighGainObserver:
         if not isinstance(system, PerturbedLinearSystem):
             raise DimensionError("system must be a PerturbedLinearSystem; got "
                                  f"{type(system).__name__}.")
-        if system.perturbation is None:
-            raise DimensionError("ModifiedHighGainObserver needs system.perturbation (g of "
-                                 "(3)); build the system with perturbation=... .")
+        system.require_perturbation("ModifiedHighGainObserver")
         if not allow_nonminimum_phase:           # Assumption 1, or the error cannot converge
             check_assumption_1(system.A, system.E, system.C, strict=True)
         n, m, r, k, p = system.n, system.m, system.r, system.k, system.p
@@ -478,7 +368,7 @@ class ModifiedHighGainObserver:
         lay = self.layout
         return s[lay.x], s[lay.z], s[lay.theta], (s[lay.x2] if lay.second else None)
 
-    def check_samples(self, u: Any, y: Any) -> tuple[FloatArray, FloatArray, bool]:
+    def check_samples(self, u: ArrayLike | None, y: ArrayLike) -> tuple[FloatArray, FloatArray, bool]:
         """Validate one pair of samples against the NaN policy.
 
         Parameters
@@ -516,7 +406,7 @@ class ModifiedHighGainObserver:
                                  "samples, or clean the data.")
         return u_, y_, False
 
-    def check_state(self, state: Any) -> FloatArray:
+    def check_state(self, state: ArrayLike) -> FloatArray:
         """Validate an observer state (shape (state_size,), finite).
 
         Parameters
@@ -538,10 +428,13 @@ class ModifiedHighGainObserver:
                                  "initialised badly; restart from init().")
         return s
 
-    def check_records(self, t: Any, u: Any, y: Any, batch: int | None = None
-                      ) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray,
+    def check_records(self, t: ArrayLike, u: ArrayLike | None, y: ArrayLike,
+                      batch: int | None = None) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray,
                                  NDArray[np.bool_]]:
         """Validate sampled records against the NaN policy (before anything is integrated).
+
+        :func:`~thetahat.estimation.records.check_records` with this observer's layout and
+        ``nan_policy``.
 
         Parameters
         ----------
@@ -569,33 +462,12 @@ class ModifiedHighGainObserver:
         NonFiniteError
             NaN or inf in t or u; inf in y; NaN in y under ``nan_policy="raise"``.
         """
-        lay = self.layout
-        t_, dts = as_time_grid(t)
-        N = t_.shape[0]
-        if batch is None:
-            Y = _record("y", y, N, lay.r)[None]
-            U = _record("u", np.zeros((N, 0)) if u is None else u, N, lay.m)[None]
-            names = ("u", "y")
-        else:
-            Y = _records("Y", y, None if batch < 0 else batch, N, lay.r)
-            B = Y.shape[0]
-            U = _records("U", np.zeros((B, N, 0)) if u is None else u, B, N, lay.m)
-            names = ("U", "Y")
-        check_finite(names[0], U)
-        if np.isinf(Y).any():
-            raise NonFiniteError(f"{names[1]} contains inf; only NaN marks a missing sample.")
-        ok = np.isfinite(Y).all(axis=2)
-        if not ok.all() and self.nan_policy == "raise":
-            b, i = (int(a[0]) for a in np.nonzero(~ok))
-            run = f" in run {b}" if batch is not None else ""
-            raise NonFiniteError(f"{names[1]} contains NaN ({int((~ok).sum())} samples, first"
-                                 f"{run} at index {i}) and nan_policy='raise'; pass "
-                                 "nan_policy='skip' to the observer to predict over missing "
-                                 "samples, or clean the data.")
-        return t_, dts, U, Y, ok
+        return check_records(self.layout, self.nan_policy, t, u, y, batch)
+
 
     # ------------------------------------------------------------------ public API
-    def rhs(self, t: float, state: Any, v: Any, v_dot: Any = None) -> FloatArray:
+    def rhs(self, t: float, state: ArrayLike, v: ArrayLike,
+            v_dot: ArrayLike | None = None) -> FloatArray:
         """Time derivative of the observer state, (3a)–(3c) and (8), for ODE integrators.
 
         Parameters
@@ -635,7 +507,7 @@ class ModifiedHighGainObserver:
             raise UnsupportedError(f"rhs: {type(self.update_law).__name__} carries a state "
                                    "that is defined by its discrete step only; use step/run.")
         x, _, th, x2 = self._split(s)
-        pert = self.system.perturbation
+        pert = self.system.require_perturbation("ModifiedHighGainObserver")
         plan = self._continuous_plan()
         F, phi, _, vv = observer_forcing(plan, pert, s[:lay.n + lay.k], th, u, y, correct)
         parts = [F]
@@ -647,13 +519,13 @@ class ModifiedHighGainObserver:
             th_dot = np.zeros_like(th)
         parts.append(th_dot)
         if x2 is not None and self.second is not None:
-            F2, _ = second_forcing(self.second.plan(None), pert, x2, u, y, th, correct,
-                                   want_N=False)
+            F2, _ = second_forcing(self.second.plan(None), pert, x2, u, y, th, correct)
             parts.append(F2)
         return np.concatenate(parts)
 
-    def init(self, x_hat0: Any = None, theta_hat0: Any = None, z0: Any = None, *,
-             x_hat_refined0: Any = None) -> FloatArray:
+    def init(self, x_hat0: ArrayLike | None = None, theta_hat0: ArrayLike | None = None,
+             z0: ArrayLike | None = None, *,
+             x_hat_refined0: ArrayLike | None = None) -> FloatArray:
         """Initial observer state col(x̂₀, z₀, θ̂₀[, x̂₂₀]).
 
         Parameters
@@ -695,7 +567,7 @@ class ModifiedHighGainObserver:
                                     dtype=np.float64).reshape(lay.law_size))
         return np.concatenate(parts)
 
-    def step(self, state: Any, u: Any, y: Any, dt: float) -> FloatArray:
+    def step(self, state: ArrayLike, u: ArrayLike | None, y: ArrayLike, dt: float) -> FloatArray:
         """Advance the state by ``dt``, holding the current samples (zero-order hold).
 
         Parameters
@@ -723,13 +595,13 @@ class ModifiedHighGainObserver:
         s = self.check_state(state)
         h = positive_scalar("dt", dt)
         with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
-            nxt = advance(self.plan(h), self.system.perturbation, self.update_law, s, u_, y_, h,
-                          correct)
+            nxt = advance(self.plan(h), self.system.require_perturbation("step"),
+                          self.update_law, s, u_, y_, h, correct)
         if diverged(nxt):
             raise divergence_error("in this step")
         return nxt
 
-    def estimate(self, state: Any, u: Any, y: Any) -> ObserverEstimate:
+    def estimate(self, state: ArrayLike, u: ArrayLike | None, y: ArrayLike) -> ObserverEstimate:
         """Read x̂, φ̂ = g(v, x̂, θ̂) + z (3c), θ̂ (and x̂₂) from a state and the current samples.
 
         Parameters
@@ -746,13 +618,13 @@ class ModifiedHighGainObserver:
         u_, y_, correct = self.check_samples(u, y)
         x, z, th, x2 = self._split(self.check_state(state))
         v = np.concatenate((u_, y_ if correct else self.system.C @ x))
-        phi = self.system.perturbation.g(v, x, th) + z
+        phi = self.system.require_perturbation("estimate").g(v, x, th) + z
         return ObserverEstimate(x_hat=x.copy(), phi_hat=np.asarray(phi, dtype=np.float64),
                                 theta_hat=th.copy(),
                                 x_hat_refined=None if x2 is None else x2.copy())
 
-    def run(self, t: Any, u: Any, y: Any, *, hold: str = "zoh",
-            state0: Any = None,
+    def run(self, t: ArrayLike, u: ArrayLike | None, y: ArrayLike, *, hold: str = "zoh",
+            state0: ArrayLike | None = None,
             progress: Callable[[int, int], None] | None = None) -> ObserverResult:
         """Run the observer over sampled records (logged data).
 
@@ -795,10 +667,10 @@ class ModifiedHighGainObserver:
         check_allocation(8.0 * N * (2 * s0.size + 2 * self.layout.n), f"the estimates of {N} "
                          "samples", fix="run the record in pieces (pass the last state as "
                          "state0)")
-        S = _integrate_with_progress(self.plan, self.system.perturbation, self.update_law, s0,
-                                     t_, dts, U, Y, ok, hold == "foh", progress)
-        X, PHI, TH, X2 = readout(self.system.perturbation, self.system.C, S, U[0], Y[0], ok[0],
-                                 self.layout)
+        pert = self.system.require_perturbation("run")
+        S = _integrate_with_progress(self.plan, pert, self.update_law, s0, t_, dts, U, Y, ok,
+                                     hold == "foh", progress)
+        X, PHI, TH, X2 = readout(pert, self.system.C, S, U[0], Y[0], ok[0], self.layout)
         skipped = ~ok[0]
         skipped.setflags(write=False)
         return ObserverResult(t=readonly(t_), x_hat=readonly(X), phi_hat=readonly(PHI),

@@ -17,14 +17,15 @@ is ``col(x̂, z, θ̂[, x̂₂][, law state])`` with the offsets given by :attr:
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
-from typing import Any
+from typing import TypeVar
 
 import numpy as np
-from numpy.typing import NDArray
+from numpy.typing import ArrayLike, NDArray
 
 from .._validate import positive_scalar, readonly
+from ..errors import DimensionError
 from .discretize import DT_KEY_DIGITS, PhiPlan, phi_plan
 
 __all__ = ["SecondPlan", "StateLayout", "StepPlan", "dt_key", "linear_part", "stack_plans"]
@@ -32,7 +33,12 @@ __all__ = ["SecondPlan", "StateLayout", "StepPlan", "dt_key", "linear_part", "st
 FloatArray = NDArray[np.float64]
 
 
-def _phi_or_nan(L: FloatArray, dt: float | None) -> Any:
+def _frozen(a: ArrayLike) -> FloatArray:
+    """A read-only, C-contiguous float64 copy of a plan field."""
+    return readonly(np.ascontiguousarray(a, dtype=np.float64))
+
+
+def _phi_or_nan(L: FloatArray, dt: float | None) -> PhiPlan:
     """φ-matrices of L for dt (its key), or NaN-filled ones for the continuous-time plan."""
     if dt is not None:
         return phi_plan(L, dt_key(dt))
@@ -192,8 +198,9 @@ class SecondPlan:
     Phi2_open: FloatArray | None
 
     @classmethod
-    def build(cls, *, A: Any, B: Any, C: Any, E: Any, K_x: Any, dt: float | None,
-              g_on_estimates: bool = False, predict: bool = True) -> SecondPlan:
+    def build(cls, *, A: ArrayLike, B: ArrayLike, C: ArrayLike, E: ArrayLike, K_x: ArrayLike,
+              dt: float | None, g_on_estimates: bool = False,
+              predict: bool = True) -> SecondPlan:
         """Compute the plan of one second observer (batch axis of length 1).
 
         Parameters
@@ -219,12 +226,11 @@ class SecondPlan:
         K = np.asarray(K_x, dtype=np.float64)[None]
         pl = _phi_or_nan(A_ - K[0] @ C_, dt)
         po = _phi_or_nan(A_, dt) if predict else None
-        arrays = {"A": A_, "B": B_, "C": C_, "E": E_, "K_x": K, "Phi1": pl.Phi1[None],
-                  "Phi2": pl.Phi2[None], "Phi1_open": None if po is None else po.Phi1[None],
-                  "Phi2_open": None if po is None else po.Phi2[None]}
-        return cls(dt=h, g_on_estimates=bool(g_on_estimates),
-                   **{key: None if val is None else readonly(np.ascontiguousarray(val))
-                      for key, val in arrays.items()})
+        return cls(dt=h, A=_frozen(A_), B=_frozen(B_), C=_frozen(C_), E=_frozen(E_),
+                   K_x=_frozen(K), g_on_estimates=bool(g_on_estimates),
+                   Phi1=_frozen(pl.Phi1[None]), Phi2=_frozen(pl.Phi2[None]),
+                   Phi1_open=None if po is None else _frozen(po.Phi1[None]),
+                   Phi2_open=None if po is None else _frozen(po.Phi2[None]))
 
     @property
     def batch(self) -> int:
@@ -300,9 +306,10 @@ class StepPlan:
     Gamma: FloatArray | None
 
     @classmethod
-    def build(cls, *, A: Any, B: Any, C: Any, E: Any, K_x: Any, K_phi: Any, dt: float | None,
-              p: int, second: SecondPlan | None = None, Gamma: Any = None,
-              law_size: int = 0, predict: bool = True) -> StepPlan:
+    def build(cls, *, A: ArrayLike, B: ArrayLike, C: ArrayLike, E: ArrayLike, K_x: ArrayLike,
+              K_phi: ArrayLike, dt: float | None, p: int, second: SecondPlan | None = None,
+              Gamma: ArrayLike | None = None, law_size: int = 0,
+              predict: bool = True) -> StepPlan:
         """Compute the plan of one observer (batch axis of length 1).
 
         Parameters
@@ -343,25 +350,34 @@ class StepPlan:
         Bv[0, n:, m:] = Kphi[0]
         pl = _phi_or_nan(L[0], dt)
         po = _phi_or_nan(L_open[0], dt) if predict else None
-        arrays = {"A": A_, "B": B_, "C": C_, "E": E_, "K_x": Kx, "K_phi": Kphi,
-                  "KxC": Kx @ C_, "L": L, "Bv": Bv, "Phi1": pl.Phi1[None],
-                  "Phi2": pl.Phi2[None], "Phi1_open": None if po is None else po.Phi1[None],
-                  "Phi2_open": None if po is None else po.Phi2[None],
-                  "Gamma": None if Gamma is None else np.asarray(Gamma, dtype=np.float64)[None]}
         layout = StateLayout(n=n, m=m, r=r, k=k, p=int(p), second=second is not None,
                              law_size=int(law_size))
-        return cls(dt=h, layout=layout, second=second,
-                   **{key: None if val is None else readonly(np.ascontiguousarray(val))
-                      for key, val in arrays.items()})
+        return cls(dt=h, layout=layout, A=_frozen(A_), B=_frozen(B_), C=_frozen(C_),
+                   E=_frozen(E_), K_x=_frozen(Kx), K_phi=_frozen(Kphi), KxC=_frozen(Kx @ C_),
+                   L=_frozen(L), Bv=_frozen(Bv), Phi1=_frozen(pl.Phi1[None]),
+                   Phi2=_frozen(pl.Phi2[None]),
+                   Phi1_open=None if po is None else _frozen(po.Phi1[None]),
+                   Phi2_open=None if po is None else _frozen(po.Phi2[None]), second=second,
+                   Gamma=None if Gamma is None else _frozen(np.asarray(Gamma)[None]))
 
     @property
     def batch(self) -> int:
         """Length of the batch axis (1 when the rows share one observer)."""
         return int(self.K_x.shape[0])
 
-    def rows(self, index: Any) -> StepPlan:
-        """The plan of a subset of the rows (shared arrays stay shared)."""
-        fields = _pick(self, _ROW_FIELDS, index)
+    def rows(self, index: ArrayLike) -> StepPlan:
+        """The plan of a subset of the rows (shared arrays stay shared).
+
+        Parameters
+        ----------
+        index : array_like of int
+            The rows to keep.
+
+        Returns
+        -------
+        StepPlan
+        """
+        fields: dict[str, object] = dict(_pick(self, _ROW_FIELDS, index))
         if self.second is not None:
             fields["second"] = _replace(self.second, _pick(self.second, _SECOND_ROW_FIELDS,
                                                            index))
@@ -377,25 +393,27 @@ class StepPlan:
 _ROW_FIELDS = ("K_x", "K_phi", "KxC", "L", "Bv", "Phi1", "Phi2", "Gamma")
 _SECOND_ROW_FIELDS = ("K_x", "Phi1", "Phi2")
 
-Plan = Any   # StepPlan or SecondPlan
+Plan = TypeVar("Plan", StepPlan, SecondPlan)
 
 
-def _pick(plan: Plan, names: Sequence[str], index: Any) -> dict[str, Any]:
-    out = {}
+def _pick(plan: StepPlan | SecondPlan, names: Sequence[str], index: ArrayLike
+          ) -> dict[str, FloatArray | None]:
+    out: dict[str, FloatArray | None] = {}
     for name in names:
         val = getattr(plan, name)
         out[name] = val if val is None or val.shape[0] == 1 else val[index]
     return out
 
 
-def _replace(plan: Plan, fields: dict[str, Any]) -> Any:
+def _replace(plan: Plan, fields: Mapping[str, object]) -> Plan:
     values = {name: getattr(plan, name) for name in type(plan).__dataclass_fields__}
     values.update(fields)
     return type(plan)(**values)
 
 
-def _stack(plans: Sequence[Plan], names: Sequence[str]) -> dict[str, Any]:
-    fields = {}
+def _stack(plans: Sequence[StepPlan] | Sequence[SecondPlan], names: Sequence[str]
+           ) -> dict[str, FloatArray | None]:
+    fields: dict[str, FloatArray | None] = {}
     for name in names:
         vals = [getattr(pl, name) for pl in plans]
         if vals[0] is None:
@@ -431,8 +449,11 @@ def stack_plans(plans: Sequence[StepPlan]) -> StepPlan:
     first = plans[0]
     if len(plans) == 1:
         return first
-    fields = _stack(plans, _ROW_FIELDS)
+    fields: dict[str, object] = dict(_stack(plans, _ROW_FIELDS))
     if first.second is not None:
-        seconds = [pl.second for pl in plans]
+        seconds = [pl.second for pl in plans if pl.second is not None]
+        if len(seconds) != len(plans):
+            raise DimensionError("stack_plans: either every plan has a second observer or none "
+                                 "has; stack the plans of observers built alike.")
         fields["second"] = _replace(first.second, _stack(seconds, _SECOND_ROW_FIELDS))
     return _replace(first, fields)

@@ -16,7 +16,7 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
-from numpy.typing import NDArray
+from numpy.typing import ArrayLike, NDArray
 
 from .._validate import as_matrix, as_vector, positive_scalar
 from ..errors import DimensionError
@@ -89,9 +89,7 @@ class SecondObserver:
         if not isinstance(system, PerturbedLinearSystem):
             raise DimensionError("system must be a PerturbedLinearSystem; got "
                                  f"{type(system).__name__}.")
-        if system.perturbation is None:
-            raise DimensionError("SecondObserver needs system.perturbation (g of Sec. VI); "
-                                 "build the system with perturbation=... .")
+        system.require_perturbation("SecondObserver")
         K = np.array(as_matrix("K_x", K_x, (system.n, system.r)), copy=True)
         K.setflags(write=False)
         for name, val in (("system", system), ("K_x", K),
@@ -155,14 +153,14 @@ class SecondObserver:
                 self._plans.popitem(last=False)
         return plan
 
-    def _check_samples(self, u: Any, y: Any) -> tuple[FloatArray, FloatArray]:
+    def _check_samples(self, u: ArrayLike | None, y: ArrayLike) -> tuple[FloatArray, FloatArray]:
         sysm = self.system
         u_ = as_vector("u", np.zeros(0) if u is None else u, sysm.m)
         y_ = as_vector("y", y, sysm.r)
         return u_, y_
 
     # ------------------------------------------------------------------ public API
-    def rhs(self, t: float, x_hat2: Any, v: Any, theta_hat: Any) -> FloatArray:
+    def rhs(self, t: float, x_hat2: ArrayLike, v: ArrayLike, theta_hat: ArrayLike) -> FloatArray:
         """Time derivative x̂₂̇ for ODE integrators.
 
         Parameters
@@ -188,11 +186,12 @@ class SecondObserver:
         u, y = self._check_samples(v_[:sysm.m], v_[sysm.m:])
         x2 = as_vector("x_hat2", x_hat2, sysm.n)
         th = as_vector("theta_hat", theta_hat, sysm.p)
-        F, _ = second_forcing(self.plan(None), sysm.perturbation, x2, u, y, th, True,
-                              want_N=False)
+        F, _ = second_forcing(self.plan(None), sysm.require_perturbation("SecondObserver"), x2,
+                              u, y, th, True)
         return F
 
-    def step(self, x_hat2: Any, u: Any, y: Any, theta_hat: Any, dt: float) -> FloatArray:
+    def step(self, x_hat2: ArrayLike, u: ArrayLike | None, y: ArrayLike,
+             theta_hat: ArrayLike, dt: float) -> FloatArray:
         """Advance x̂₂ by ``dt`` holding the current samples (zero-order hold).
 
         Parameters
@@ -218,7 +217,8 @@ class SecondObserver:
         x2 = as_vector("x_hat2", x_hat2, sysm.n)
         th = as_vector("theta_hat", theta_hat, sysm.p)
         h = positive_scalar("dt", dt)
-        return second_advance(self.plan(h), sysm.perturbation, x2, u_, y_, th, h, True)
+        return second_advance(self.plan(h), sysm.require_perturbation("SecondObserver"), x2,
+                              u_, y_, th, h, True)
 
     def __repr__(self) -> str:
         return (f"SecondObserver(n={self.system.n}, r={self.system.r}, "

@@ -22,20 +22,19 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
-from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
 
-from ..errors import NonFiniteError
+from ..errors import NonFiniteError, UnsupportedError
 from ..model.perturbation import Perturbation
 from .discretize import batched_step
-from .plan import SecondPlan, StepPlan
+from .plan import SecondPlan, StateLayout, StepPlan
 from .update_laws import UpdateLaw
 
 __all__ = ["DIVERGENCE_BOUND", "advance", "diverged", "divergence_error", "integrate",
            "observer_forcing", "observer_jacobian", "readout", "second_advance",
-           "second_forcing"]
+           "second_forcing", "second_jacobian"]
 
 FloatArray = NDArray[np.float64]
 
@@ -145,9 +144,9 @@ def observer_jacobian(plan: StepPlan, pert: Perturbation, Gx: FloatArray, v: Flo
 
 
 def second_forcing(plan: SecondPlan, pert: Perturbation, x2: FloatArray, u: FloatArray,
-                   y: FloatArray, th: FloatArray, correct: bool, want_N: bool
-                   ) -> tuple[FloatArray, FloatArray | None]:
-    """F = A x̂₂ + B u + E g(v̄, x̂₂, θ̂) + K_x2 (y − C x̂₂) (Sec. VI) and N = E ∂g/∂x(+∂g/∂y C).
+                   y: FloatArray, th: FloatArray, correct: bool
+                   ) -> tuple[FloatArray, FloatArray]:
+    """F = A x̂₂ + B u + E g(v̄, x̂₂, θ̂) + K_x2 (y − C x̂₂) (Sec. VI); returns (F, v̄).
 
     v̄ = col(u, C x̂₂) with ``g_on_estimates`` or for a missing sample (no injection then),
     else col(u, y).
@@ -162,28 +161,53 @@ def second_forcing(plan: SecondPlan, pert: Perturbation, x2: FloatArray, u: Floa
     th : ndarray, shape (B, p)
         θ̂ at the start of the step.
     correct : bool
-    want_N : bool
-        Also return N (shape (B, n, n)).
 
     Returns
     -------
     F : ndarray, shape (B, n)
-    N : ndarray, shape (B, n, n), or None
+    v_bar : ndarray, shape (B, m + r)
     """
-    m = plan.B.shape[1]
     y_hat = x2 @ plan.C.T
-    on_est = plan.g_on_estimates or not correct
-    v = np.concatenate((u, y_hat if on_est else y), axis=-1)
+    v = np.concatenate((u, y_hat if plan.g_on_estimates or not correct else y), axis=-1)
     g = np.asarray(pert.g(v, x2, th), dtype=np.float64)
     F = x2 @ plan.A.T + u @ plan.B.T + g @ plan.E.T
     if correct:
         F = F + _mv(plan.K_x, y - y_hat)
-    if not want_N:
-        return F, None
+    return F, v
+
+
+def second_jacobian(plan: SecondPlan, pert: Perturbation, v: FloatArray, x2: FloatArray,
+                    th: FloatArray, correct: bool) -> FloatArray:
+    """N = E ∂g/∂x, plus E ∂g/∂y C where g sees C x̂₂ (the exact Jacobian of F in x̂₂).
+
+    Parameters
+    ----------
+    plan : SecondPlan
+    pert : Perturbation
+    v : ndarray, shape (B, m + r)
+        v̄ of :func:`second_forcing`.
+    x2 : ndarray, shape (B, n)
+    th : ndarray, shape (B, p)
+    correct : bool
+
+    Returns
+    -------
+    ndarray, shape (B, n, n)
+    """
     Jg = np.asarray(pert.dg_dx(v, x2, th), dtype=np.float64)
-    if on_est:
+    if plan.g_on_estimates or not correct:
+        m = plan.B.shape[1]
         Jg = Jg + np.asarray(pert.dg_dv(v, x2, th), dtype=np.float64)[..., m:] @ plan.C
-    return F, plan.E @ Jg
+    return plan.E @ Jg
+
+
+def _prediction_phis(plan: StepPlan | SecondPlan) -> tuple[FloatArray, FloatArray]:
+    """Φ₁, Φ₂ of the prediction over a missing sample (a plan built with ``predict``)."""
+    if plan.Phi1_open is None or plan.Phi2_open is None:
+        raise UnsupportedError("this plan has no prediction over a missing sample (built with "
+                               "predict=False, as for nan_policy='raise'); build the observer "
+                               "with nan_policy='skip' to step over missing samples.")
+    return plan.Phi1_open, plan.Phi2_open
 
 
 def second_advance(plan: SecondPlan, pert: Perturbation, x2: FloatArray, u0: FloatArray,
@@ -209,15 +233,15 @@ def second_advance(plan: SecondPlan, pert: Perturbation, x2: FloatArray, u0: Flo
     -------
     ndarray, shape (B, n)
     """
-    F, N = second_forcing(plan, pert, x2, u0, y0, th, correct, want_N=True)
+    F, v = second_forcing(plan, pert, x2, u0, y0, th, correct)
+    N = second_jacobian(plan, pert, v, x2, th, correct)
     F_dot = None
     if u1 is not None:
-        F1 = second_forcing(plan, pert, x2, u1, y0 if y1 is None else y1, th, correct,
-                            want_N=False)[0]
+        F1 = second_forcing(plan, pert, x2, u1, y0 if y1 is None else y1, th, correct)[0]
         F_dot = (F1 - F) / dt
     if correct:
         return batched_step(x2, F, N, plan.Phi1, plan.Phi2, F_dot)
-    return batched_step(x2, F, N, plan.Phi1_open, plan.Phi2_open, F_dot)
+    return batched_step(x2, F, N, *_prediction_phis(plan), F_dot)
 
 
 def advance(plan: StepPlan, pert: Perturbation, law: UpdateLaw, s: FloatArray, u0: FloatArray,
@@ -296,7 +320,7 @@ def advance(plan: StepPlan, pert: Perturbation, law: UpdateLaw, s: FloatArray, u
     if correct:
         xz_next = batched_step(xz, F, N, plan.Phi1, plan.Phi2, F_dot)
     else:
-        xz_next = batched_step(xz, F, N, plan.Phi1_open, plan.Phi2_open, F_dot)
+        xz_next = batched_step(xz, F, N, *_prediction_phis(plan), F_dot)
     parts = [xz_next, th_next]
     if plan.second is not None:
         parts.append(second_advance(plan.second, pert, s[..., lay.x2], u0, y0, th, dt,
@@ -315,7 +339,7 @@ def diverged(s: FloatArray) -> NDArray[np.bool_]:
 
     Returns
     -------
-    ndarray of bool, shape (B,) or ()
+    ndarray of bool, shape (B,) or () (a 0-d array for one state)
 
     Examples
     --------
@@ -326,7 +350,7 @@ def diverged(s: FloatArray) -> NDArray[np.bool_]:
     with np.errstate(over="ignore", invalid="ignore"):
         total = float(np.vdot(s, s))
         if s.ndim == 1:
-            return np.bool_(not total <= DIVERGENCE_BOUND ** 2)
+            return np.array(not total <= DIVERGENCE_BOUND ** 2)
         if total <= DIVERGENCE_BOUND ** 2:     # every row is fine (one dot product decides)
             return np.zeros(s.shape[0], dtype=bool)
         sq = np.einsum("ij,ij->i", s, s)
@@ -384,7 +408,7 @@ def integrate(plan_for: Callable[[float], StepPlan], pert: Perturbation, law: Up
     B, N = U.shape[:2]
     S = np.empty((B, N, s0.shape[1]))
     S[:, 0] = s = s0
-    every = ok.all(axis=0)
+    every = np.asarray(ok.all(axis=0), dtype=np.bool_)
     plans: dict[float, StepPlan] = {}
     if B == 1:                        # the batch of one runs on (size,) vectors
         _integrate_one(plan_for, plans, pert, law, S[0], t, dts, U[0], Y[0], ok[0], foh)
@@ -441,7 +465,8 @@ def _integrate_one(plan_for: Callable[[float], StepPlan], plans: dict[float, Ste
 
 
 def readout(pert: Perturbation, C: FloatArray, S: FloatArray, U: FloatArray, Y: FloatArray,
-            ok: NDArray[np.bool_], lay: Any) -> tuple[FloatArray, ...]:
+            ok: NDArray[np.bool_], lay: StateLayout
+            ) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray | None]:
     """(x̂, φ̂ = g(v, x̂, θ̂) + z, θ̂, x̂₂ or None) of states S (..., N, size); y ← C x̂ if missing.
 
     Parameters
@@ -456,7 +481,10 @@ def readout(pert: Perturbation, C: FloatArray, S: FloatArray, U: FloatArray, Y: 
 
     Returns
     -------
-    tuple of ndarray
+    X : ndarray, shape (..., N, n)
+    PHI : ndarray, shape (..., N, k)
+    TH : ndarray, shape (..., N, p)
+    X2 : ndarray, shape (..., N, n), or None
     """
     X, Z, TH = S[..., lay.x], S[..., lay.z], S[..., lay.theta]
     Yv = np.where(ok[..., None], Y, X @ C.T)

@@ -25,27 +25,19 @@ from dataclasses import dataclass, field
 from typing import Any, final
 
 import numpy as np
-import scipy.linalg
 import scipy.optimize
 from numpy.typing import ArrayLike, NDArray
 
 from .._validate import readonly
 from ..errors import (ConvergenceWarning, DimensionError, NonFiniteError, ParameterSetError,
                       UnsupportedError)
+from .set_geometry import (SYMMETRY_RTOL, metric_factor, project_ellipsoid, retract,
+                           safe_norm, shrink_inside)
 
 FloatArray = NDArray[np.float64]
 
 __all__ = ["ParameterSet", "Box", "Ball", "Ellipsoid", "ConvexSet", "safe_norm"]
 
-#: Relative tolerance for the symmetry of an ellipsoid's shape matrix Q: a matrix assembled from
-#: floating-point products is symmetric only to a few ulps of its norm.
-SYMMETRY_RTOL = 1e-10
-#: Stopping tolerance of the ellipsoid secular-equation solve (relative width of the bracket on
-#: the multiplier): a few ulps, since the bracketed Newton iteration converges quadratically.
-SECULAR_RTOL = 4 * np.finfo(float).eps
-#: Iteration cap of the secular-equation solve; bisection alone would need < 1100 steps to
-#: exhaust the double-precision range, Newton typically needs fewer than 10.
-SECULAR_MAX_ITER = 200
 #: Stopping tolerance of the Newton iteration that projects onto a :class:`ConvexSet` (relative
 #: size of the last step); Newton converges quadratically, so this costs one extra iteration.
 CONVEX_RTOL = 1e-12
@@ -54,11 +46,6 @@ KKT_RTOL = 1e-13
 #: Iteration cap of that Newton iteration: 3 to 10 iterations are typical; far points of very
 #: elongated sets (axis ratio 100, distance 1000) were seen to need up to about 200.
 CONVEX_MAX_ITER = 400
-#: Bisection steps along a segment from the interior point to the boundary, once the boundary
-#: is bracketed within a factor 2: 2**-60 relative is below double precision.
-BISECTION_STEPS = 60
-#: 2**-1100 rounds to 0 in double precision, so the log-bisection starts from the interior point.
-SMALLEST_EXPONENT = 1100
 #: Relative step of the central finite differences that check a user's grad_P on construction;
 #: eps**(1/3) balances truncation and rounding error.
 FD_STEP = np.finfo(float).eps ** (1 / 3)
@@ -90,29 +77,6 @@ def _finite_theta(name: str, theta: ArrayLike, p: int) -> FloatArray:
     return arr
 
 
-def safe_norm(z: FloatArray) -> FloatArray:
-    """Euclidean norm over the last axis without overflow for entries near 1e308.
-
-    Parameters
-    ----------
-    z : ndarray, shape (..., p)
-
-    Returns
-    -------
-    ndarray, shape (...)
-
-    Examples
-    --------
-    >>> float(safe_norm(np.array([3e300, 4e300])))
-    5e+300
-    """
-    s = np.max(np.abs(z), axis=-1)
-    safe = np.where(s > 0, s, 1.0)
-    return s * np.sqrt(np.sum((z / safe[..., None]) ** 2, axis=-1))
-
-
-
-
 def _vector(owner: str, name: str, value: ArrayLike) -> FloatArray:
     arr = np.asarray(value, dtype=np.float64)
     if arr.ndim == 0:
@@ -123,125 +87,6 @@ def _vector(owner: str, name: str, value: ArrayLike) -> FloatArray:
     if not np.all(np.isfinite(arr)):
         raise ParameterSetError(f"{owner}: {name} must be finite (a compact Θ); got {arr}.")
     return arr
-
-
-def _metric_factor(metric: ArrayLike, p: int) -> FloatArray | None:
-    """Cholesky factor L (W = L Lᵀ) of an SPD metric, or None when W is a multiple of I."""
-    W = np.asarray(metric, dtype=np.float64)
-    if W.shape != (p, p):
-        raise DimensionError(f"metric must have shape ({p}, {p}); got {W.shape}.")
-    if np.allclose(W, W[0, 0] * np.eye(p), rtol=0, atol=SYMMETRY_RTOL * abs(W[0, 0])):
-        return None
-    try:
-        return np.asarray(np.linalg.cholesky(0.5 * (W + W.T)), dtype=np.float64)
-    except np.linalg.LinAlgError as exc:
-        raise DimensionError("metric must be symmetric positive definite.") from exc
-
-
-def _shrink_inside(pts: FloatArray, centre: FloatArray,
-                   P: Callable[[FloatArray], FloatArray]) -> FloatArray:
-    """Pull points with P > 0 (rounding excess only) towards ``centre`` until P <= 0.
-
-    The pull doubles from one ulp up to 2**-12 of the distance; a point still outside after
-    that (never seen: the callers' points are off by rounding) is replaced by the centre.
-    """
-    out = pts
-    with np.errstate(over="ignore", invalid="ignore"):
-        for k in range(41):
-            bad = ~(P(out) <= 0)
-            if not np.any(bad):
-                return out
-            out = np.where(bad[..., None], centre + (out - centre) * (1 - 2.0 ** (k - 52)), out)
-        return np.where((~(P(out) <= 0))[..., None], centre, out)
-
-
-def _retract(w: FloatArray, c: FloatArray,
-             P: Callable[[FloatArray], FloatArray]) -> FloatArray:
-    """The last point of Θ on each segment [c, w] (c interior); w itself when P(w) <= 0.
-
-    The fraction s of the segment is bracketed within a factor 2 by bisection on log2(s)
-    (points as far as 1e300 have their boundary at s ~ 1e-300), then refined by plain
-    bisection; the feasible end of the bracket is returned.
-    """
-    d = w - c
-    with np.errstate(over="ignore", invalid="ignore", under="ignore"):
-        inside = P(w) <= 0
-        lo_e = np.full(w.shape[:-1], -float(SMALLEST_EXPONENT))  # s = 2**lo_e rounds to 0
-        hi_e = np.zeros(w.shape[:-1])
-        while np.any(hi_e - lo_e > 1):
-            mid = np.floor(0.5 * (lo_e + hi_e))
-            ok = P(c + np.exp2(mid)[..., None] * d) <= 0
-            lo_e = np.where(ok, mid, lo_e)
-            hi_e = np.where(ok, hi_e, mid)
-        lo, hi = np.exp2(lo_e), np.exp2(hi_e)
-        for _ in range(BISECTION_STEPS):
-            mid = 0.5 * (lo + hi)
-            ok = P(c + mid[..., None] * d) <= 0
-            lo = np.where(ok, mid, lo)
-            hi = np.where(ok, hi, mid)
-    return np.where(inside[..., None], w, c + lo[..., None] * d)
-
-
-def _secular(u: FloatArray, lam: FloatArray) -> FloatArray:
-    """Nearest point of {x : Σ λ_i x_i² ≤ 1} to each row of u (diagonal coordinates).
-
-    Solves Σ λ_i u_i² / (1 + t λ_i)² = 1 for t >= 0 with a bracketed (safeguarded) Newton
-    iteration; x_i = u_i / (1 + t λ_i). The rows are rescaled first (u = s û, t = s τ) so
-    that points as far as 1e300 neither overflow nor lose the solution.
-    """
-    x = u.copy()
-    with np.errstate(over="ignore"):
-        q = np.sum(lam * u**2, axis=-1)
-    out = ~(q <= 1.0)
-    if not np.any(out):
-        return x
-    uo = u[out]
-    s = np.maximum(1.0, np.max(np.abs(uo) * np.sqrt(lam), axis=-1))
-    uh, eps = uo / s[:, None], 1.0 / s
-    lo = np.zeros(len(uo))
-    hi = np.sqrt(np.sum(uh**2 / lam, axis=-1))
-    tau = hi.copy()
-    with np.errstate(over="ignore", divide="ignore", invalid="ignore", under="ignore"):
-        for _ in range(SECULAR_MAX_ITER):
-            den = eps[:, None] + tau[:, None] * lam
-            F = np.sum(lam * uh**2 / den**2, axis=-1) - 1.0
-            dF = -2.0 * np.sum(lam**2 * uh**2 / den**3, axis=-1)
-            lo = np.where(F > 0, tau, lo)
-            hi = np.where(F > 0, hi, tau)
-            newton = tau - F / dF
-            ok = np.isfinite(newton) & (newton > lo) & (newton < hi)
-            tau = np.where(ok, newton, 0.5 * (lo + hi))
-            if np.all((hi - lo) <= SECULAR_RTOL * hi):
-                break
-        tau = hi  # the feasible side of the bracket
-        xo = uh / (eps[:, None] + tau[:, None] * lam)
-    qo = np.sum(lam * xo**2, axis=-1)
-    xo = np.where((qo > 1.0)[:, None], xo / np.sqrt(qo)[:, None], xo)
-    x[out] = xo
-    return x
-
-
-def _project_ellipsoid(z: FloatArray, c: FloatArray, Q: FloatArray,
-                       L: FloatArray | None) -> FloatArray:
-    """Nearest point of {(θ-c)ᵀQ(θ-c) ≤ 1} in the metric W = L Lᵀ (Euclidean if L is None)."""
-    flat = z.reshape(-1, z.shape[-1])
-    if L is None:
-        lam, V = np.linalg.eigh(Q)
-        x = _secular((flat - c) @ V, lam)
-        res = c + x @ V.T
-    else:
-        Li = scipy.linalg.solve_triangular(L, np.eye(len(c)), lower=True)  # L⁻¹
-        Qw = Li @ Q @ Li.T
-        lam, V = np.linalg.eigh(0.5 * (Qw + Qw.T))
-        T = Li.T @ V  # θ - c = T x
-        x = _secular((flat - c) @ L @ V, lam)
-        res = c + x @ T.T
-    P = lambda t: np.einsum("...i,ij,...j->...", t - c, Q, t - c) - 1  # noqa: E731
-    res = _shrink_inside(res, c, P)
-    with np.errstate(over="ignore", invalid="ignore"):
-        inside = P(flat) <= 0
-    res = np.where(inside[:, None], flat, res)  # bit-for-bit identity inside Θ
-    return res.reshape(z.shape)
 
 
 class ParameterSet(ABC):
@@ -298,7 +143,7 @@ class ParameterSet(ABC):
             if np.all(far) or np.max(R) > UNBOUNDED_RADIUS * scale:
                 break
             R = np.where(far, R, 2 * R)
-        edge = _retract(c + R[:, None] * d, c, P)
+        edge = retract(c + R[:, None] * d, c, P)
         return c + (edge - c) * rng.uniform(size=(n, 1)) ** (1 / p)
 
     def _contains_by_nearest(self, theta: FloatArray, inside: NDArray[np.bool_],
@@ -385,7 +230,7 @@ class Box(ParameterSet):
         if metric is None:
             return clipped
         W = np.asarray(metric, dtype=np.float64)
-        L = _metric_factor(W, self.dim)
+        L = metric_factor(W, self.dim)
         if L is None or np.allclose(W, np.diag(np.diag(W))):
             return clipped
         flat = th.reshape(-1, self.dim)
@@ -487,18 +332,18 @@ class Ball(ParameterSet):
     def nearest(self, theta: ArrayLike, *, metric: ArrayLike | None = None) -> FloatArray:
         """Projection onto the ball (radial when Euclidean); shape (..., p)."""
         th = _finite_theta("theta", theta, self.dim)
-        L = None if metric is None else _metric_factor(metric, self.dim)
+        L = None if metric is None else metric_factor(metric, self.dim)
         inside_ball = lambda t: safe_norm(t - self.center) - self.radius  # noqa: E731
         if L is not None:
             Q = np.eye(self.dim) / self.radius**2
-            res = _project_ellipsoid(th, self.center, Q, L)
-            return _shrink_inside(res, self.center, inside_ball)  # contains() uses the norm
+            res = project_ellipsoid(th, self.center, Q, L)
+            return shrink_inside(res, self.center, inside_ball)  # contains() uses the norm
         d = th - self.center
         r = safe_norm(d)
         with np.errstate(divide="ignore", invalid="ignore"):
             scale = np.where(r > self.radius, self.radius / r, 1.0)
         res = self.center + d * scale[..., None]
-        res = _shrink_inside(res, self.center, inside_ball)
+        res = shrink_inside(res, self.center, inside_ball)
         return np.where((r <= self.radius)[..., None], th, res)  # identity inside Θ
 
     def constraint(self, theta: ArrayLike) -> FloatArray:
@@ -606,8 +451,8 @@ class Ellipsoid(ParameterSet):
     def nearest(self, theta: ArrayLike, *, metric: ArrayLike | None = None) -> FloatArray:
         """Projection onto the ellipsoid (secular equation); shape (..., p)."""
         th = _finite_theta("theta", theta, self.dim)
-        L = None if metric is None else _metric_factor(metric, self.dim)
-        return _project_ellipsoid(th, self.center, self.shape, L)
+        L = None if metric is None else metric_factor(metric, self.dim)
+        return project_ellipsoid(th, self.center, self.shape, L)
 
     def constraint(self, theta: ArrayLike) -> FloatArray:
         """P(θ) = (θ - c)ᵀQ(θ - c) - 1; shape (..., 1)."""
@@ -764,7 +609,7 @@ class ConvexSet(ParameterSet):
             return th.copy()
         W = np.eye(p) if metric is None else np.asarray(metric, dtype=np.float64)
         if metric is not None:
-            _metric_factor(W, p)  # validates shape and definiteness
+            metric_factor(W, p)  # validates shape and definiteness
         W = 0.5 * (W + W.T) / np.max(np.diag(W))  # the projection ignores the metric's scale
         out[outside] = self._nearest_kkt(flat[outside], W)
         return out.reshape(th.shape)
@@ -783,7 +628,7 @@ class ConvexSet(ParameterSet):
         """Damped Newton on the KKT system of min ½‖θ - z‖²_W s.t. P(θ) = 0 (batch)."""
         c = self.interior_point
         N, p = z.shape
-        y = _retract(z, c, self._P)
+        y = retract(z, c, self._P)
         s = np.maximum(1.0, safe_norm(z - y))[:, None]  # residual scale; multiplier μ = λ/s
         zs = z / s
         g = self._grad(y)
@@ -835,7 +680,7 @@ class ConvexSet(ParameterSet):
                           f"{int(np.sum(~done))} point(s); returning points of Θ that may not be "
                           f"the nearest.", ConvergenceWarning, stacklevel=3)
             y = np.where(np.isfinite(y), y, c)
-        return _retract(y, c, self._P)  # exact membership despite rounding
+        return retract(y, c, self._P)  # exact membership despite rounding
 
     def constraint(self, theta: ArrayLike) -> FloatArray:
         """P(θ); shape (..., 1)."""

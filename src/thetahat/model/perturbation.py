@@ -7,8 +7,9 @@ broadcast against each other.
 
 Concrete, final classes: :class:`SymbolicPerturbation` (SymPy expression, exact Jacobians),
 :class:`CallablePerturbation` (numeric functions, finite differences where no Jacobian is
-given). :func:`check_jacobians` compares Jacobians with finite differences, and
-:func:`parse_perturbation` reads g from text without evaluating code.
+given). :func:`~thetahat.model.jacobian_check.check_jacobians` compares Jacobians with finite
+differences, and :func:`~thetahat.model.parse.parse_perturbation` reads g from text without
+evaluating code; :mod:`thetahat.model.lambdify` prints SymPy to NumPy.
 """
 
 from __future__ import annotations
@@ -21,16 +22,15 @@ from typing import Any, final
 
 import numpy as np
 import sympy as sp
-from numpy.typing import ArrayLike, NDArray
+from numpy.typing import NDArray
 from sympy.core.function import AppliedUndef
-from sympy.printing.numpy import NumPyPrinter
 
-from .._validate import check_finite, positive_scalar
-from ..errors import DimensionError, NonFiniteError, UpdateLawError
+from ..errors import DimensionError, NonFiniteError
+from .lambdify import lambdify_numpy, numpy_ready
 
-__all__ = ["lambdify_numpy", "Perturbation", "SymbolicPerturbation", "CallablePerturbation",
-           "JacobianCheck", "JacobianComparison", "check_jacobians", "require_theta_dependence",
-           "FD_REL_STEP", "CHECK_RTOL", "CHECK_ATOL", "numpy_ready"]
+__all__ = ["ARG_NAMES", "FD_REL_STEP", "Perturbation", "SymbolicPerturbation",
+           "CallablePerturbation", "batch_args", "central_difference", "lambdify_numpy",
+           "numpy_ready"]
 
 FloatArray = NDArray[np.float64]
 
@@ -72,18 +72,8 @@ class Perturbation(ABC):
 #: balances the two, leaving an error of order eps**(2/3) ≈ 4e-11 for a well-scaled g.
 FD_REL_STEP: float = float(np.finfo(np.float64).eps ** (1.0 / 3.0))
 
-#: Default relative tolerance of :func:`check_jacobians`. The finite-difference reference is
-#: accurate to about eps**(2/3) for well-scaled g, but to only ~1e-6 for the LuGre g, whose
-#: ω0 = 0.01 makes it vary on a scale far below the step floor of 1; 1e-4 leaves a margin of
-#: 100 over that, while any wrong formula (a missing factor or sign) is off by O(1).
-CHECK_RTOL: float = 1e-4
-
-#: Default absolute tolerance of :func:`check_jacobians`: the floor for entries that vanish
-#: analytically, where central differences return rounding noise of order eps * |g| / h
-#: ≈ 4e-11 |g|; 1e-8 covers |g| up to a few hundred.
-CHECK_ATOL: float = 1e-8
-
-_ARG_NAMES = ("v", "x", "theta")
+#: The names of g's arguments, in order.
+ARG_NAMES = ("v", "x", "theta")
 _FLOAT64_MAX = sp.Float(float(np.finfo(np.float64).max))
 
 
@@ -104,10 +94,41 @@ def _batch_arg(name: str, value: Any, size: int, meaning: str) -> FloatArray:
     return arr
 
 
-def _batch_args(dims: tuple[int, int, int, int, int], v: Any, x: Any, theta: Any
+def batch_args(dims: tuple[int, int, int, int, int], v: Any, x: Any, theta: Any
                 ) -> tuple[FloatArray, FloatArray, FloatArray, tuple[int, ...]]:
-    """Validate (v, x, θ) against ``dims`` and return them with their common batch shape."""
+    """Validate (v, x, θ) against ``dims`` and return them with their common batch shape.
+
+    Parameters
+    ----------
+    dims : tuple of int
+        (n, m, r, p, k) of the perturbation.
+    v, x, theta : array_like, shapes (..., m + r), (..., n), (..., p)
+        Real arrays; NaN and inf pass through.
+
+    Returns
+    -------
+    v, x, theta : ndarray
+        As float64 arrays.
+    batch : tuple of int
+        The broadcast leading shape.
+
+    Raises
+    ------
+    DimensionError
+        A complex or non-numeric argument, a wrong last axis, or batch shapes that do not
+        broadcast.
+
+    Examples
+    --------
+    >>> batch_args((2, 1, 1, 1, 1), [0.0, 1.0], [[1.0, 2.0]] * 3, [0.5])[3]
+    (3,)
+    """
     n, m, r, p, _ = dims
+    if (type(v) is np.ndarray and type(x) is np.ndarray and type(theta) is np.ndarray
+            and v.dtype == x.dtype == theta.dtype == np.float64 and v.ndim and x.ndim
+            and theta.ndim and v.shape[-1] == m + r and x.shape[-1] == n
+            and theta.shape[-1] == p and v.shape[:-1] == x.shape[:-1] == theta.shape[:-1]):
+        return v, x, theta, v.shape[:-1]     # valid as given (the observer's step): no copies
     v_ = _batch_arg("v", v, m + r, f"v = col(u, y) with m + r = {m} + {r}")
     x_ = _batch_arg("x", x, n, f"the state, n = {n}")
     t_ = _batch_arg("theta", theta, p, f"the parameters, p = {p}")
@@ -120,14 +141,39 @@ def _batch_args(dims: tuple[int, int, int, int, int], v: Any, x: Any, theta: Any
     return v_, x_, t_, batch
 
 
-def _central_difference(g: Callable[[FloatArray, FloatArray, FloatArray], FloatArray],
+def central_difference(g: Callable[[FloatArray, FloatArray, FloatArray], FloatArray],
                         wrt: int, args: list[FloatArray], batch: tuple[int, ...],
                         k: int) -> FloatArray:
     """∂g/∂args[wrt] by central differences, one column per component, over the batch.
 
-    ``g`` takes validated arrays and returns (batch, k). The step of component j is
-    h = FD_REL_STEP * max(|z_j|, 1), and the divisor is the exactly representable
-    difference (z_j + h) - (z_j - h).
+    The step of component j is h = FD_REL_STEP * max(|z_j|, 1), and the divisor is the exactly
+    representable difference (z_j + h) - (z_j - h).
+
+    Parameters
+    ----------
+    g : callable
+        ``g(v, x, theta)`` on validated arrays, returning shape (batch, k).
+    wrt : int
+        Which argument to differentiate (0: v, 1: x, 2: θ; see ARG_NAMES).
+    args : list of ndarray
+        [v, x, θ] as returned by :func:`batch_args`.
+    batch : tuple of int
+        Their broadcast leading shape.
+    k : int
+        Size of g.
+
+    Returns
+    -------
+    ndarray, shape (batch, k, q)
+        q is the length of ``args[wrt]``.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> J = central_difference(lambda v, x, th: x**2, 1, [np.zeros(1), np.array([3.0]),
+    ...                        np.zeros(1)], (), 1)
+    >>> bool(abs(J[0, 0] - 6.0) < 1e-8)
+    True
     """
     z = args[wrt]
     q = z.shape[-1]
@@ -218,86 +264,6 @@ def _a_e_derivative(M: sp.ImmutableMatrix) -> sp.ImmutableMatrix:
     return sp.ImmutableMatrix(M.replace(sp.DiracDelta, lambda *args: sp.S.Zero))
 
 
-def numpy_ready(entry: sp.Expr) -> sp.Expr:
-    """Rewrite Heaviside(z) as (1 + sign(z))/2 so that NaN propagates in the printed code.
-
-    Parameters
-    ----------
-    entry : sympy.Expr
-
-    Returns
-    -------
-    sympy.Expr
-
-    Examples
-    --------
-    >>> import sympy as sp
-    >>> z = sp.Symbol("z")
-    >>> numpy_ready(sp.Heaviside(z))
-    sign(z)/2 + 1/2
-    """
-    def _heaviside(z: sp.Expr, h0: sp.Expr = sp.S.Half) -> sp.Expr:
-        if h0 == sp.S.Half:
-            return (1 + sp.sign(z)) / 2
-        return sp.Heaviside(z, h0, evaluate=False)
-    return entry.replace(sp.Heaviside, _heaviside)
-
-
-class _ElementwisePrinter(NumPyPrinter):
-    """NumPy printer whose Max/Min are element-wise on arrays and propagate NaN.
-
-    SymPy's own NumPy printing of ``Max`` changed across versions (``amax`` of a tuple, which
-    fails on arrays mixed with scalars in SymPy 1.12); nested ``numpy.maximum`` is right in all.
-    """
-
-    def _print_Max(self, expr: sp.Expr) -> str:
-        return self._nested("numpy.maximum", expr)
-
-    def _print_Min(self, expr: sp.Expr) -> str:
-        return self._nested("numpy.minimum", expr)
-
-    def _nested(self, name: str, expr: sp.Expr) -> str:
-        func = self._module_format(name)
-        args = [self._print(a) for a in expr.args]
-        out = args[0]
-        for a in args[1:]:
-            out = f"{func}({out}, {a})"
-        return out
-
-
-def lambdify_numpy(args: Sequence[sp.Symbol], exprs: Sequence[sp.Expr]) -> Callable[..., list[Any]]:
-    """Element-wise NumPy function of SymPy expressions: the one lambdify of the package.
-
-    Heaviside is rewritten so that NaN propagates, Max/Min are element-wise, and common
-    subexpressions are evaluated once.
-
-    Parameters
-    ----------
-    args : sequence of sympy.Symbol
-        The positional arguments of the function, in order.
-    exprs : sequence of sympy.Expr
-        The expressions; the function returns a list with one value per expression.
-
-    Returns
-    -------
-    callable
-        ``f(*arrays) -> list``; the arrays broadcast against each other.
-
-    Examples
-    --------
-    >>> import numpy as np, sympy as sp
-    >>> x, y = sp.symbols("x y")
-    >>> f = lambdify_numpy([x, y], [sp.Max(x, 0) * y])
-    >>> f(np.array([-1.0, 2.0, np.nan]), 3.0)[0]
-    array([ 0.,  6., nan])
-    """
-    entries = [numpy_ready(sp.sympify(e)) for e in exprs]
-    if not entries:
-        return lambda *cols: []
-    return sp.lambdify(list(args), entries, modules="numpy", printer=_ElementwisePrinter,
-                       cse=True)
-
-
 def _lambdify(args: list[sp.Symbol], M: sp.ImmutableMatrix) -> Callable[..., list[Any]]:
     return lambdify_numpy(args, list(M))
 
@@ -352,6 +318,7 @@ class SymbolicPerturbation(Perturbation):
     theta: tuple[sp.Symbol, ...]
     _jacobians: Mapping[str, sp.ImmutableMatrix] = field(repr=False, compare=False)
     _functions: Mapping[str, Callable[..., list[Any]]] = field(repr=False, compare=False)
+    _dims: tuple[int, int, int, int, int] = field(repr=False, compare=False)
 
     def __init__(self, *, expr: Any, u: Any, y: Any, x: Any, theta: Any) -> None:
         groups = {"u": _as_symbols("u", u), "y": _as_symbols("y", y),
@@ -398,6 +365,8 @@ class SymbolicPerturbation(Perturbation):
             object.__setattr__(self, group, symbols)
         object.__setattr__(self, "_jacobians", MappingProxyType(jacobians))
         object.__setattr__(self, "_functions", MappingProxyType(functions))
+        object.__setattr__(self, "_dims", (len(self.x), len(self.u), len(self.y),
+                                           len(self.theta), column.rows))
 
     @classmethod
     def from_sympy(cls, expr: Any, *, u: Sequence[sp.Symbol], y: Sequence[sp.Symbol],
@@ -443,7 +412,7 @@ class SymbolicPerturbation(Perturbation):
     @property
     def dims(self) -> tuple[int, int, int, int, int]:
         """(n, m, r, p, k): states, inputs, outputs, parameters, perturbation size."""
-        return (len(self.x), len(self.u), len(self.y), len(self.theta), self.expr.rows)
+        return self._dims
 
     def jacobian(self, wrt: str) -> sp.ImmutableMatrix:
         """The symbolic Jacobian of g in the user's symbols.
@@ -471,13 +440,18 @@ class SymbolicPerturbation(Perturbation):
         return self._jacobians[wrt]
 
     def _evaluate(self, key: str, width: int | None, v: Any, x: Any, theta: Any) -> FloatArray:
-        v_, x_, t_, batch = _batch_args(self.dims, v, x, theta)
-        k = self.expr.rows
+        v_, x_, t_, batch = batch_args(self._dims, v, x, theta)
+        k = self._dims[4]
         shape = (k,) if width is None else (k, width)
         cols = [a[..., i] for a in (v_, x_, t_) for i in range(a.shape[-1])]
         out = np.empty(batch + shape)
-        for index, value in zip(np.ndindex(*shape), self._functions[key](*cols)):
-            out[(Ellipsis, *index)] = value
+        values = self._functions[key](*cols)          # the entries in row-major order
+        if width is None:
+            for i, value in enumerate(values):
+                out[..., i] = value
+        else:
+            for i, value in enumerate(values):
+                out[..., i // width, i % width] = value
         return out
 
     def g(self, v: FloatArray, x: FloatArray, theta: FloatArray) -> FloatArray:
@@ -622,7 +596,7 @@ class CallablePerturbation(Perturbation):
     def supplied_jacobians(self) -> tuple[str, ...]:
         """Which Jacobians the user supplied, among ``("v", "x", "theta")``."""
         funcs = (self._dg_dv, self._dg_dx, self._dg_dtheta)
-        return tuple(name for name, f in zip(_ARG_NAMES, funcs) if f is not None)
+        return tuple(name for name, f in zip(ARG_NAMES, funcs) if f is not None)
 
     def _call(self, name: str, func: NumericFunction, shape: tuple[int, ...],
               v: FloatArray, x: FloatArray, theta: FloatArray,
@@ -667,17 +641,17 @@ class CallablePerturbation(Perturbation):
         array([[2.],
                [6.]])
         """
-        v_, x_, t_, batch = _batch_args(self._dims, v, x, theta)
+        v_, x_, t_, batch = batch_args(self._dims, v, x, theta)
         return self._call("g", self._g, (self._dims[4],), v_, x_, t_, batch)
 
     def _jacobian(self, wrt: int, func: NumericFunction | None, v: Any, x: Any,
                   theta: Any) -> FloatArray:
-        v_, x_, t_, batch = _batch_args(self._dims, v, x, theta)
+        v_, x_, t_, batch = batch_args(self._dims, v, x, theta)
         args = [v_, x_, t_]
         width = args[wrt].shape[-1]
         if func is None:
-            return _central_difference(self._g_validated, wrt, args, batch, self._dims[4])
-        return self._call("dg_d" + _ARG_NAMES[wrt], func, (self._dims[4], width),
+            return central_difference(self._g_validated, wrt, args, batch, self._dims[4])
+        return self._call("dg_d" + ARG_NAMES[wrt], func, (self._dims[4], width),
                           v_, x_, t_, batch)
 
     def dg_dv(self, v: FloatArray, x: FloatArray, theta: FloatArray) -> FloatArray:
@@ -694,249 +668,7 @@ class CallablePerturbation(Perturbation):
 
     def __repr__(self) -> str:
         n, m, r, p, k = self._dims
-        fd = [name for name in _ARG_NAMES if name not in self.supplied_jacobians]
+        fd = [name for name in ARG_NAMES if name not in self.supplied_jacobians]
         return (f"CallablePerturbation(g={getattr(self._g, '__name__', type(self._g).__name__)}, "
                 f"n={n}, m={m}, r={r}, p={p}, k={k}, supplied_jacobians="
                 f"{self.supplied_jacobians}, finite_differences={tuple(fd)})")
-
-
-# ----------------------------------------------------------------------------------------------
-# Jacobian check
-# ----------------------------------------------------------------------------------------------
-
-@final
-@dataclass(frozen=True, slots=True)
-class JacobianComparison:
-    """One Jacobian compared with central finite differences of g.
-
-    Attributes
-    ----------
-    name : str
-        ``"dg_dv"``, ``"dg_dx"`` or ``"dg_dtheta"``.
-    max_abs_error : float
-        max |J - J_fd| over the batch and the entries.
-    max_abs_index : tuple of int
-        Where it occurs: batch index followed by (row, column).
-    max_rel_error : float
-        max |J - J_fd| / (|J_fd| + atol / rtol): the relative error, with magnitudes below
-        atol / rtol counted as atol / rtol so that vanishing entries are judged absolutely.
-        The comparison passes when this is <= rtol, i.e. |J - J_fd| <= atol + rtol |J_fd|
-        everywhere.
-    max_rel_index : tuple of int
-        Where the largest relative error occurs.
-    value, reference : float
-        J and J_fd at ``max_rel_index``.
-    ok : bool
-    """
-
-    name: str
-    max_abs_error: float
-    max_abs_index: tuple[int, ...]
-    max_rel_error: float
-    max_rel_index: tuple[int, ...]
-    value: float
-    reference: float
-    ok: bool
-
-    def __repr__(self) -> str:
-        def where(index: tuple[int, ...]) -> str:
-            if not index:
-                return ""
-            batch = f"batch {index[:-2]}, " if len(index) > 2 else ""
-            return f" at {batch}entry {list(index[-2:])}"
-        verdict = "ok" if self.ok else "MISMATCH"
-        return (f"{self.name}: {verdict}; max abs error {self.max_abs_error:.3g}"
-                f"{where(self.max_abs_index)}; max rel error {self.max_rel_error:.3g}"
-                f"{where(self.max_rel_index)} (J = {self.value:.6g}, "
-                f"finite differences = {self.reference:.6g})")
-
-
-@final
-@dataclass(frozen=True, slots=True)
-class JacobianCheck:
-    """Result of :func:`check_jacobians`: one comparison per checked Jacobian.
-
-    Attributes
-    ----------
-    dg_dv, dg_dx, dg_dtheta : JacobianComparison or None
-        None when that Jacobian was not checked (a :class:`CallablePerturbation` whose
-        Jacobian already comes from finite differences).
-    rtol, atol : float
-        The tolerances used.
-    n_points : int
-        Number of batch points compared.
-    """
-
-    dg_dv: JacobianComparison | None
-    dg_dx: JacobianComparison | None
-    dg_dtheta: JacobianComparison | None
-    rtol: float
-    atol: float
-    n_points: int
-
-    @property
-    def ok(self) -> bool:
-        """True when every checked Jacobian agrees with finite differences."""
-        return all(c.ok for c in (self.dg_dv, self.dg_dx, self.dg_dtheta) if c is not None)
-
-    def __repr__(self) -> str:
-        lines = [f"JacobianCheck(ok={self.ok}, rtol={self.rtol:g}, atol={self.atol:g}, "
-                 f"n_points={self.n_points})"]
-        for name in ("dg_dv", "dg_dx", "dg_dtheta"):
-            c = getattr(self, name)
-            lines.append(f"  {c!r}" if c is not None
-                         else f"  {name}: not checked (already finite differences)")
-        return "\n".join(lines)
-
-
-def _compare(name: str, J: FloatArray, J_fd: FloatArray, rtol: float, atol: float
-             ) -> JacobianComparison:
-    if J.size == 0:
-        return JacobianComparison(name, 0.0, (), 0.0, (), 0.0, 0.0, True)
-    err = np.abs(J - J_fd)
-    err = np.where(np.isnan(err), np.inf, err)
-    rel = err / (np.abs(J_fd) + atol / rtol)
-    rel = np.where(np.isnan(rel), np.inf, rel)
-    i_abs = np.unravel_index(int(np.argmax(err)), err.shape)
-    i_rel = np.unravel_index(int(np.argmax(rel)), rel.shape)
-    return JacobianComparison(
-        name=name, max_abs_error=float(err[i_abs]),
-        max_abs_index=tuple(int(i) for i in i_abs), max_rel_error=float(rel[i_rel]),
-        max_rel_index=tuple(int(i) for i in i_rel), value=float(J[i_rel]),
-        reference=float(J_fd[i_rel]), ok=bool(np.all(err <= atol + rtol * np.abs(J_fd))))
-
-
-def check_jacobians(perturbation: Perturbation, v: ArrayLike, x: ArrayLike, theta: ArrayLike, *,
-                    rtol: float = CHECK_RTOL, atol: float = CHECK_ATOL) -> JacobianCheck:
-    """Compare the Jacobians of ``perturbation`` with central finite differences of its g.
-
-    Parameters
-    ----------
-    perturbation : Perturbation
-    v : array_like, shape (..., m + r)
-    x : array_like, shape (..., n)
-    theta : array_like, shape (..., p)
-        The points, a batch with broadcastable leading shapes; they must be finite.
-    rtol, atol : float, optional
-        Entry (i, j) passes when |J - J_fd| <= atol + rtol |J_fd| (defaults CHECK_RTOL
-        = 1e-4 and CHECK_ATOL = 1e-8; see their comments for the reasons).
-
-    Returns
-    -------
-    JacobianCheck
-        The largest absolute and relative mismatch of each Jacobian, where it occurs,
-        and ``ok``.
-
-    Raises
-    ------
-    DimensionError
-        Wrong shapes, or tolerances that are not positive.
-    NonFiniteError
-        A point holds NaN or inf.
-
-    Notes
-    -----
-    The finite differences use the step rule of :class:`CallablePerturbation`. For a
-    :class:`CallablePerturbation` only the user-supplied Jacobians are checked. Near a
-    kink of g (|y| at y = 0) the two can legitimately disagree; check away from kinks.
-
-    Examples
-    --------
-    >>> import numpy as np
-    >>> from thetahat.model.perturbation import CallablePerturbation, check_jacobians
-    >>> pert = CallablePerturbation(g=lambda v, x, th: th * x ** 2, n=1, m=0, r=1, p=1, k=1,
-    ...                             dg_dx=lambda v, x, th: (th * x)[..., None])  # wrong: 2θx
-    >>> check_jacobians(pert, np.zeros(1), np.array([1.5]), np.array([2.0])).ok
-    False
-    """
-    if not isinstance(perturbation, Perturbation):
-        raise DimensionError(f"perturbation must be a thetahat Perturbation; got "
-                             f"{type(perturbation).__name__}.")
-    rtol = positive_scalar("rtol", rtol)
-    atol = positive_scalar("atol", atol)
-    v_, x_, t_, batch = _batch_args(perturbation.dims, v, x, theta)
-    for name, arr in (("v", v_), ("x", x_), ("theta", t_)):
-        check_finite(name, arr)
-    k = perturbation.dims[4]
-    if isinstance(perturbation, CallablePerturbation):
-        checked = perturbation.supplied_jacobians
-    else:
-        checked = _ARG_NAMES
-    methods = (perturbation.dg_dv, perturbation.dg_dx, perturbation.dg_dtheta)
-    results: dict[str, JacobianComparison | None] = {}
-    for i, (name, method) in enumerate(zip(_ARG_NAMES, methods)):
-        label = "dg_d" + name
-        if name not in checked:
-            results[label] = None
-            continue
-        expected = batch + (k, (v_, x_, t_)[i].shape[-1])
-        J = np.asarray(method(v_, x_, t_), dtype=np.float64)
-        if J.shape != expected:
-            raise DimensionError(f"{label} of {type(perturbation).__name__} returned shape "
-                                 f"{J.shape}; expected {expected}.")
-        J_fd = _central_difference(perturbation.g, i, [v_, x_, t_], batch, k)
-        results[label] = _compare(label, J, J_fd, rtol, atol)
-    return JacobianCheck(**results, rtol=rtol, atol=atol, n_points=int(np.prod(batch)))
-
-
-#: Sample points of :func:`require_theta_dependence` for perturbations without a symbolic form.
-DEPENDENCE_SAMPLES = 64
-
-
-def require_theta_dependence(perturbation: Perturbation, parameter_set: Any, *,
-                             owner: str, seed: int = 0) -> None:
-    """Refuse a perturbation whose g does not depend on θ (∂g/∂θ ≡ 0): θ cannot be estimated.
-
-    A :class:`SymbolicPerturbation` is checked structurally (no θ symbol in g, or ∂g/∂θ
-    built as zero; a dependence that only cancels after simplification is not detected); any other
-    perturbation at ``DEPENDENCE_SAMPLES`` points with θ sampled from Θ and v, x standard
-    normal (a sampled check can miss a dependence confined to a small region, never invent one).
-
-    Parameters
-    ----------
-    perturbation : Perturbation
-    parameter_set : ParameterSet
-        Θ, sampled with ``parameter_set.sample(rng, count)``.
-    owner : str
-        Names the caller in the message (e.g. "GradientInversion").
-    seed : int
-        Seed of the sampled check.
-
-    Raises
-    ------
-    UpdateLawError
-        ∂g/∂θ vanishes identically (or at every sample).
-
-    Examples
-    --------
-    >>> import sympy as sp
-    >>> from thetahat.model.perturbation import SymbolicPerturbation, require_theta_dependence
-    >>> from thetahat.model.paramset import Box
-    >>> y, x, th = sp.symbols("y x theta")
-    >>> g = SymbolicPerturbation.from_sympy(y**2, u=[], y=[y], x=[x], theta=[th])
-    >>> require_theta_dependence(g, Box([0.0], [1.0]), owner="GradientInversion")
-    Traceback (most recent call last):
-    ...
-    thetahat.errors.UpdateLawError: GradientInversion: g does not depend on θ ...
-    """
-    n, m, r, p, k = perturbation.dims
-    if isinstance(perturbation, SymbolicPerturbation):
-        J = perturbation.jacobian("theta")
-        # structural test (cheap for any size of g): no θ symbol left, or ∂g/∂θ == 0 as built
-        independent = not (perturbation.expr.free_symbols & set(perturbation.theta)) or all(
-            e == 0 for e in J)
-        how = "∂g/∂θ is identically zero"
-    else:
-        rng = np.random.default_rng(seed)
-        th = np.asarray(parameter_set.sample(rng, DEPENDENCE_SAMPLES), dtype=np.float64)
-        v = rng.standard_normal((DEPENDENCE_SAMPLES, m + r))
-        x = rng.standard_normal((DEPENDENCE_SAMPLES, n))
-        with np.errstate(all="ignore"):
-            J = np.asarray(perturbation.dg_dtheta(v, x, th), dtype=np.float64)
-        independent = bool(np.all(J == 0))
-        how = f"∂g/∂θ is zero at all {DEPENDENCE_SAMPLES} sampled points of Θ"
-    if independent:
-        raise UpdateLawError(
-            f"{owner}: g does not depend on θ ({how}), so the output carries no information "
-            f"about θ and no update law can estimate it. Check that the parameter symbols in "
-            f"g are the ones declared as theta.")

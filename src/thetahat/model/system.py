@@ -117,6 +117,37 @@ class PerturbedLinearSystem:
         """Number of unknown parameters θ (0 without a perturbation)."""
         return 0 if self.perturbation is None else self.perturbation.dims[3]
 
+    def require_perturbation(self, owner: str) -> Perturbation:
+        """The perturbation g, for an ``owner`` that cannot work without one.
+
+        Parameters
+        ----------
+        owner : str
+            Who needs g (named in the error message), e.g. ``"ModifiedHighGainObserver"``.
+
+        Returns
+        -------
+        Perturbation
+
+        Raises
+        ------
+        DimensionError
+            The system was built without a perturbation.
+
+        Examples
+        --------
+        >>> from thetahat import PerturbedLinearSystem
+        >>> sys = PerturbedLinearSystem(A=[[0.0]], B=[[1.0]], C=[[1.0]], E=[[1.0]])
+        >>> sys.require_perturbation("my observer")
+        Traceback (most recent call last):
+        ...
+        thetahat.errors.DimensionError: my observer needs system.perturbation ...
+        """
+        if self.perturbation is None:
+            raise DimensionError(f"{owner} needs system.perturbation (g of (1)); build the "
+                                 "system with perturbation=... .")
+        return self.perturbation
+
     def __repr__(self) -> str:
         g = type(self.perturbation).__name__ if self.perturbation is not None else "None"
         th = repr(self.parameter_set) if self.parameter_set is not None else "None"
