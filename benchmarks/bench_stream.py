@@ -23,7 +23,9 @@ compilation. Per variant: the median, p99, p99.9 and max wall time of one ``step
 step's time split into CPU time of the stepping thread (``time.thread_time``), time spent
 runnable but waiting for a core (Linux ``/proc/thread-self/schedstat``: the machine's load,
 not ours), and the rest, *blocked* (waiting for a lock such as the GIL, held by a fit); Python
-garbage collections inside the step are counted. The fits' durations in the worker are
+garbage collections inside the step are counted. Paced at real time, the sample-to-estimate
+latency (from the sample's time to the end of its ``step``) is reported too: it includes what
+the step's wall time cannot see, the wait for the GIL when the thread wakes up for the sample. The fits' durations in the worker are
 listed next to it. The machine's load average (``os.getloadavg``) is printed before and after.
 """
 
@@ -74,7 +76,7 @@ class _GCWatch:
 def stream(est: GuardedEstimator, traj, realtime: bool, watch: _GCWatch) -> dict:
     """Step through the record once; per-step wall, CPU, run-queue and GC times."""
     N = traj.t.size
-    wall, cpu, rq = np.empty(N), np.empty(N), np.empty(N)
+    wall, cpu, rq, late = np.empty(N), np.empty(N), np.empty(N), np.zeros(N)
     start = np.empty(N)
     u, y = np.array(traj.u), np.array(traj.y)
     st = est.init(theta_hat0=[0.5])
@@ -93,6 +95,8 @@ def stream(est: GuardedEstimator, traj, realtime: bool, watch: _GCWatch) -> dict
         c1 = time.thread_time()
         q1 = _runqueue_ns()
         start[k], wall[k], cpu[k], rq[k] = a, b - a, c1 - c0, 1e-9 * (q1 - q0)
+        if realtime:
+            late[k] = b - (t_start + traj.t[k])
     diag = est.stream_diagnostics(st)
     gc_in = np.zeros(N, bool)
     for t0, _, _ in watch.events:
@@ -102,6 +106,7 @@ def stream(est: GuardedEstimator, traj, realtime: bool, watch: _GCWatch) -> dict
     off = np.maximum(wall - cpu, 0.0)                 # off the CPU during the step
     blocked = off - np.minimum(rq, off)               # … and not waiting for a core
     q = np.percentile(wall, [50, 99, 99.9])
+    lq = np.percentile(late, [50, 99, 99.9])
     slow = wall > 1e-3
     return {"median_us": 1e6 * q[0], "p99_ms": 1e3 * q[1], "p999_ms": 1e3 * q[2],
             "max_ms": 1e3 * wall.max(), "argmax": int(wall.argmax()),
@@ -110,6 +115,8 @@ def stream(est: GuardedEstimator, traj, realtime: bool, watch: _GCWatch) -> dict
             "p999_blocked_ms": 1e3 * float(np.percentile(blocked, 99.9)),
             "argmax_blocked": int(blocked.argmax()),
             "steps_over_1ms": int(slow.sum()),
+            "latency_median_us": 1e6 * lq[0], "latency_p99_ms": 1e3 * lq[1],
+            "latency_p999_ms": 1e3 * lq[2], "latency_max_ms": 1e3 * late.max(),
             "of_which_runqueue_over_half": int((slow & (rq > 0.5 * wall)).sum()),
             "of_which_blocked_over_half": int((slow & (blocked > 0.5 * wall)).sum()),
             "gc_collections": len(watch.events),
@@ -194,6 +201,11 @@ def main(argv=None) -> dict:
                   f"{r['steps_over_1ms']} steps > 1 ms, {r['of_which_runqueue_over_half']} of "
                   f"them mostly waiting for a core, {r['of_which_blocked_over_half']} mostly "
                   f"blocked; {r['gc_collections']} GCs]", flush=True)
+            if out["realtime"]:
+                print(f"  {'':<13} sample-to-estimate latency median "
+                      f"{r['latency_median_us']:.0f} µs  p99 {r['latency_p99_ms']:.3f} ms  "
+                      f"p99.9 {r['latency_p999_ms']:.3f} ms  max {r['latency_max_ms']:.2f} ms",
+                      flush=True)
             if r["fits"] or r["fit_failures"]:
                 ms = np.array(r["fit_ms"])
                 lag = np.diff(np.array(r["fit_samples"]), axis=1).ravel()
