@@ -27,6 +27,7 @@ top-level work under ``if __name__ == "__main__":``.
 
 from __future__ import annotations
 
+import atexit
 import concurrent.futures
 import dataclasses
 import multiprocessing
@@ -214,12 +215,14 @@ def default_executor() -> concurrent.futures.Executor:
         _EXECUTOR = concurrent.futures.ProcessPoolExecutor(
             max_workers=1, mp_context=multiprocessing.get_context("spawn"),
             initializer=_mark_worker)
+        atexit.register(discard_default_executor, _EXECUTOR)
     return _EXECUTOR
 
 
 def discard_default_executor(executor: concurrent.futures.Executor) -> None:
-    """Forget ``executor`` if it is the shared default (after it broke: its process died), so
-    that the next :func:`default_executor` starts a new worker.
+    """Forget ``executor`` if it is the shared default (after it broke: its process died, or
+    at exit, while the interpreter can still collect it), so that the next
+    :func:`default_executor` starts a new worker.
 
     Parameters
     ----------
