@@ -1,6 +1,12 @@
 """θ, ω and η estimation on the paper's DC motor (Sec. VIII): thetahat against a joint EKF and UKF.
 
-Run:  .venv/bin/python benchmarks/bench_lugre.py [--quick] [--json out/bench_lugre.json]
+Run:  .venv/bin/python benchmarks/bench_lugre.py [--quick] [--jobs 2] [--json out/bench_lugre.json]
+
+The records (tuning grid points, evaluation seeds, robustness cases) run in ``--jobs`` forked
+worker processes (parallel.py; default every core), each record's estimators one after the
+other in one process. ``per_step_us`` is therefore measured with the cores shared by the
+workers: compare estimators within one run (the printed ratios), not across runs with
+another ``--jobs`` or machine load.
 
 Every estimator sees the same seeded records of ``lugre.simulate`` (20 s, 1 kHz, σ = 0.02 rad/s,
 θ = α0 = 0.28, θ̂(0) = 0.5, x̂(0) = (0, 0)) and runs in this process. Estimators, by name:
