@@ -4,12 +4,14 @@ Subcommands::
 
     thetahat demo lugre [--out out] [--eps 1] [--seed 0] [--show]
     thetahat sweep [MODEL] [--eps 1 0.7 0.5 0.3 0.2 0.1] [--seeds 5] [--t-end T] [--out out]
+                   [--jobs N] [--scheduler tcp://HOST:PORT]
     thetahat tune [MODEL] [--eps 1 0.7 0.5 0.3] [--gamma 1 3 10 30] [--seeds 1000 1001]
-                  [--t-end T] [--out out]
+                  [--t-end T] [--out out] [--jobs N] [--scheduler tcp://HOST:PORT]
     thetahat analyze MODEL
     thetahat estimate MODEL DATA.csv [-o estimates.csv] [--hold zoh|foh] [--nan-policy raise|skip]
                       [--no-progress] [--method M] [--plot fig.png]
     thetahat estimate MODEL logs/ [-o results.csv|.parquet] [--scheduler tcp://HOST:PORT]
+                      [--method M] [--nan-policy raise|skip]
     thetahat codegen MODEL --dt 1e-3 [--eps 1] [--real double|float] [--name NAME] -o DIR
 
 Exit codes (see ``EXIT_CODES``): 0 success; 1 the model fails the theory's checks (Assumption 1
@@ -90,7 +92,7 @@ def _sweep(args: argparse.Namespace) -> int:
     check_writable(Path(args.out) / "sweep.json")          # before any work
     estimator, simulate, theta_hat0, labels = _study(args)
     result = eps_sweep(estimator, simulate, args.eps, range(args.seeds),
-                       theta_hat0=theta_hat0, n_jobs=args.jobs)
+                       theta_hat0=theta_hat0, n_jobs=args.jobs, scheduler=args.scheduler)
     print(result.table(labels))
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
@@ -113,7 +115,8 @@ def _tune(args: argparse.Namespace) -> int:
     check_writable(Path(args.out) / "tune.json")           # before any work
     estimator, simulate, theta_hat0, labels = _study(args)
     result = tune_eps_gamma(estimator, simulate, eps_values=args.eps, gammas=args.gamma,
-                            seeds=args.seeds, theta_hat0=theta_hat0, criterion=args.criterion)
+                            seeds=args.seeds, theta_hat0=theta_hat0, criterion=args.criterion,
+                            n_jobs=args.jobs, scheduler=args.scheduler)
     print(result.table(labels))
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
@@ -180,8 +183,8 @@ def _estimate_fleet(args: argparse.Namespace) -> int:
     output = args.output or "results.csv"
     check_writable(output)
     result = estimate_many(args.model, args.data, scheduler=args.scheduler,
-                           chunk_size=args.chunk_size, hold=args.hold,
-                           progress=not args.no_progress)
+                           chunk_size=args.chunk_size, hold=args.hold, method=args.method,
+                           nan_policy=args.nan_policy, progress=not args.no_progress)
     result.write(output)
     print(f"wrote {output} ({len(result.rows)} files: {result.n_ok} ok, "
           f"{len(result.rows) - result.n_ok} failed)")
@@ -243,6 +246,8 @@ def _parser() -> argparse.ArgumentParser:
                        help="simulated time in s (default: the scenario's; LuGre: 20)")
     sweep.add_argument("--jobs", type=int, default=1,
                        help="worker processes (default: 1; -1: all cores)")
+    sweep.add_argument("--scheduler", metavar="tcp://HOST:PORT", default=None,
+                       help="run the ε × seeds runs on this Dask cluster")
     sweep.add_argument("--out", default="out", help="output folder (default: out)")
     sweep.set_defaults(run=_sweep)
 
@@ -267,6 +272,10 @@ def _parser() -> argparse.ArgumentParser:
                       help="score to minimise, worst over the seeds (default: theta_rmse)")
     tune.add_argument("--t-end", type=float, default=None,
                       help="simulated time in s (default: the scenario's; LuGre: 20)")
+    tune.add_argument("--jobs", type=int, default=1,
+                      help="worker processes over the ε values (default: 1; -1: all cores)")
+    tune.add_argument("--scheduler", metavar="tcp://HOST:PORT", default=None,
+                      help="run the ε values on this Dask cluster")
     tune.add_argument("--out", default="out", help="output folder (default: out)")
     tune.set_defaults(run=_tune)
 

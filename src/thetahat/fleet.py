@@ -38,12 +38,14 @@ from typing import Any, cast
 import numpy as np
 from numpy.typing import NDArray
 
-from .datafile import DataRecord, column_candidates, read_data
+from .datafile import NAN_POLICIES, DataRecord, column_candidates, read_data
 from .engine import run_keyed
-from .errors import MissingExtraError, ModelFileError
+from .errors import MissingExtraError, ModelFileError, OptionError
 from .estimation.batch_run import run_batch
 from .model.paramset import Box
-from .modelfile import ModelSpec, build_observer, load_model, loads_model
+from .modelfile import (ESTIMATION_METHODS, ModelSpec, build_observer, load_model, loads_model,
+                        run_estimator)
+from .spec import Hold
 from .studies.metrics import time_to_within
 
 __all__ = ["DATA_SUFFIXES", "FleetResult", "SETTLE_BAND", "estimate_many", "fleet_files",
@@ -191,7 +193,7 @@ def fleet_files(data: str | Path | Iterable[str | Path]) -> list[Path]:
     return files
 
 
-def read_parquet(path: str | Path, spec: ModelSpec) -> DataRecord:
+def read_parquet(path: str | Path, spec: ModelSpec, *, nan_policy: str = "raise") -> DataRecord:
     """Read a Parquet record with the columns of :func:`~thetahat.datafile.read_data`.
 
     Parameters
@@ -200,9 +202,13 @@ def read_parquet(path: str | Path, spec: ModelSpec) -> DataRecord:
         Parquet file (needs pyarrow). Required columns as for
         :func:`~thetahat.datafile.read_data` (see
         :func:`~thetahat.datafile.column_candidates`); other columns are ignored. Every
-        value must be finite, and t strictly increasing over at least two rows.
+        value must be finite (outputs may be NaN under ``nan_policy="skip"``), and t
+        strictly increasing over at least two rows.
     spec : ModelSpec
         The model whose estimator reads the record (its input and output names).
+    nan_policy : {"raise", "skip"}, optional
+        ``"skip"`` keeps NaN outputs as dropouts for the observer's ``nan_policy="skip"``;
+        ``"raise"`` refuses them.
 
     Returns
     -------
@@ -238,23 +244,28 @@ def read_parquet(path: str | Path, spec: ModelSpec) -> DataRecord:
                                 for c in cols])
     except (TypeError, ValueError) as exc:
         raise ModelFileError(f"data file {path}: a column is not numeric: {exc}") from exc
+    if nan_policy not in NAN_POLICIES:
+        raise OptionError(f"nan_policy must be one of {NAN_POLICIES}; got {nan_policy!r}.")
+    m = spec.system.m
     bad = ~np.isfinite(data)
+    if nan_policy == "skip":
+        bad[:, 1 + m:] &= ~np.isnan(data[:, 1 + m:])       # a NaN output is a dropout
     if bad.any():
         i, j = (int(a[0]) for a in np.nonzero(bad))
         raise ModelFileError(f"data file {path}, row {i}, column {cols[j]!r}: {data[i, j]} is "
-                             "not finite; the estimator needs every sample.")
+                             "not finite; the estimator needs every sample (a NaN output is "
+                             "a dropout under nan_policy='skip').")
     if data.shape[0] < 2 or not np.all(np.diff(data[:, 0]) > 0):
         raise ModelFileError(f"data file {path}: t must be strictly increasing with at least "
                              "two rows.")
-    m = spec.system.m
     return DataRecord(t=data[:, 0], u=data[:, 1:1 + m], y=data[:, 1 + m:], columns=tuple(cols),
                       source=str(path))
 
 
-def _read(path: str, spec: ModelSpec) -> DataRecord:
+def _read(path: str, spec: ModelSpec, nan_policy: str) -> DataRecord:
     if path.lower().endswith(".parquet"):
-        return read_parquet(path, spec)
-    return read_data(path, spec)
+        return read_parquet(path, spec, nan_policy=nan_policy)
+    return read_data(path, spec, nan_policy=nan_policy)
 
 
 @functools.lru_cache(maxsize=4)
@@ -284,9 +295,10 @@ def _failure(exc: BaseException) -> str:
     return f"{type(exc).__name__}: {exc}".replace("\n", " ")
 
 
-def _estimate_chunk(paths: list[str], *, model: tuple[str, str, str],
-                    hold: str) -> list[tuple[Hashable, dict[str, Any]]]:
-    """One task: read the records, run those with equal sampling instants as one batch."""
+def _estimate_chunk(paths: list[str], *, model: tuple[str, str, str], hold: str,
+                    method: str, nan_policy: str) -> list[tuple[Hashable, dict[str, Any]]]:
+    """One task: read the records; the paper's observer runs records with equal sampling
+    instants as one batch, the two-stage methods run record by record."""
     spec = _spec(*model)
     out: dict[str, dict[str, Any]] = {}
     records: dict[str, tuple[DataRecord, list[str]]] = {}
@@ -294,25 +306,45 @@ def _estimate_chunk(paths: list[str], *, model: tuple[str, str, str],
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always")
             try:
-                records[p] = (_read(p, spec), [str(w.message) for w in caught])
+                records[p] = (_read(p, spec, nan_policy), [str(w.message) for w in caught])
             except Exception as exc:       # a bad file is reported, never stops the others
                 out[p] = {"status": _failure(exc), "warnings": ""}
+    if method != "paper":
+        for p in records:
+            _estimate_one(spec, p, records[p], hold, method, nan_policy, out)
+        return [(p, out[p]) for p in paths]
     groups: dict[bytes, list[str]] = {}
     for p, (rec, _) in records.items():
         groups.setdefault(rec.t.tobytes(), []).append(p)
     for members in groups.values():
-        _estimate_group(spec, members, records, hold, out)
+        _estimate_group(spec, members, records, hold, nan_policy, out)
     return [(p, out[p]) for p in paths]
+
+
+def _estimate_one(spec: ModelSpec, path: str, record: tuple[DataRecord, list[str]], hold: str,
+                  method: str, nan_policy: str, out: dict[str, dict[str, Any]]) -> None:
+    rec, read_warnings = record
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        try:
+            res = run_estimator(spec, rec.t, rec.u, rec.y, hold=cast(Hold, hold),
+                                nan_policy=nan_policy, method=method)
+        except Exception as exc:           # a record that fails is reported, never stops others
+            out[path] = {"status": _failure(exc), "warnings": "; ".join(read_warnings)}
+            return
+    row = {"status": "ok", **_summary(spec, rec.t, np.asarray(res.theta_hat))}
+    row["warnings"] = "; ".join(dict.fromkeys(read_warnings + [str(w.message) for w in caught]))
+    out[path] = row
 
 
 def _estimate_group(spec: ModelSpec, members: list[str],
                     records: dict[str, tuple[DataRecord, list[str]]], hold: str,
-                    out: dict[str, dict[str, Any]]) -> None:
+                    nan_policy: str, out: dict[str, dict[str, Any]]) -> None:
     t = records[members[0]][0].t
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         try:
-            obs = build_observer(spec)
+            obs = build_observer(spec, nan_policy=nan_policy)
             s0 = obs.init(x_hat0=spec.estimator.x_hat0, theta_hat0=spec.estimator.theta_hat0)
             res = run_batch(obs, t, np.stack([records[p][0].u for p in members]),
                             np.stack([records[p][0].y for p in members]), hold=hold,
@@ -320,7 +352,7 @@ def _estimate_group(spec: ModelSpec, members: list[str],
         except Exception as exc:
             if len(members) > 1:           # find the record at fault: run them one by one
                 for p in members:
-                    _estimate_group(spec, [p], records, hold, out)
+                    _estimate_group(spec, [p], records, hold, nan_policy, out)
                 return
             out[members[0]] = {"status": _failure(exc),
                                "warnings": "; ".join(records[members[0]][1])}
@@ -334,6 +366,7 @@ def _estimate_group(spec: ModelSpec, members: list[str],
 
 def estimate_many(model: str | Path, data: str | Path | Iterable[str | Path], *,
                   scheduler: Any = None, chunk_size: int | None = None, hold: str = "zoh",
+                  method: str | None = None, nan_policy: str = "raise",
                   progress: bool = True) -> FleetResult:
     """Run a model file's estimator on every record of a fleet; one row per record.
 
@@ -351,6 +384,14 @@ def estimate_many(model: str | Path, data: str | Path | Iterable[str | Path], *,
         rounding (records that share their sampling instants run as one batch).
     hold : {"zoh", "foh"}
         Sample hold between samples.
+    method : {"paper", "guarded", "mle"}, optional
+        The estimator (default: the file's ``[estimator] method``, else ``"paper"``), as for
+        :func:`~thetahat.modelfile.assembly.run_estimator`. The paper's observer runs the
+        records that share their sampling instants as one batch; the two-stage methods run
+        record by record.
+    nan_policy : {"raise", "skip"}
+        ``"skip"``: a NaN output sample is a dropout the estimator predicts over;
+        ``"raise"``: such a record fails (its row says where).
     progress : bool
         Progress bar (tqdm) on long runs.
 
@@ -363,6 +404,8 @@ def estimate_many(model: str | Path, data: str | Path | Iterable[str | Path], *,
     ModelFileError
         The model file is bad or no data file matches (a bad *data* file is a row, not an
         error).
+    OptionError
+        Unknown ``method`` or ``nan_policy``.
     EngineError
         The scheduler cannot be reached.
 
@@ -389,8 +432,14 @@ def estimate_many(model: str | Path, data: str | Path | Iterable[str | Path], *,
         raise ModelFileError(f"cannot read model file {source}: {exc}") from exc
     syntax = "json" if source.suffix.lower() == ".json" else "toml"
     spec = load_model(source)                      # errors in the model stop here, once
+    how = spec.estimator.method if method is None else method
+    if how not in ESTIMATION_METHODS:
+        raise OptionError(f"method must be one of {list(ESTIMATION_METHODS)}; got {how!r}.")
+    if nan_policy not in NAN_POLICIES:
+        raise OptionError(f"nan_policy must be one of {NAN_POLICIES}; got {nan_policy!r}.")
     files = [str(f) for f in fleet_files(data)]
-    task = functools.partial(_estimate_chunk, model=(text, syntax, str(source)), hold=hold)
+    task = functools.partial(_estimate_chunk, model=(text, syntax, str(source)), hold=hold,
+                             method=how, nan_policy=nan_policy)
     results = run_keyed(task, files, files, scheduler=scheduler, chunk_size=chunk_size,
                         label="estimate", progress=progress)
     names = spec.parameter_names

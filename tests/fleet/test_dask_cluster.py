@@ -165,3 +165,24 @@ def test_eps_sweep_same_table_on_the_cluster(cluster):
     a, b = here.to_dict(), there.to_dict()
     a.pop("wall_time_s"), b.pop("wall_time_s")
     assert b == a
+
+
+def test_tune_same_choice_on_the_cluster(cluster):
+    """The tuner's ε tasks run on the engine: the same grid of scores and the same (ε, Γ)."""
+    from thetahat.studies.tune import tune_eps_gamma
+
+    _, client = cluster
+    kw = dict(eps_values=[1.0, 0.5], gammas=[1.0, 4.0], seeds=[0, 1], theta_hat0=[0.0])
+    here = tune_eps_gamma(_p3_observer_gamma, _p3_simulate, **kw)
+    there = tune_eps_gamma(_p3_observer_gamma, _p3_simulate, **kw, scheduler=client)
+    a, b = here.to_dict(), there.to_dict()
+    a.pop("wall_time_s"), b.pop("wall_time_s")
+    assert b == a and here.best_eps is not None
+
+
+def _p3_observer_gamma(eps, Gamma=2.0):
+    from thetahat import ModifiedHighGainObserver, modified_high_gain
+
+    sys_ = p3.system()
+    d = modified_high_gain(sys_.A, sys_.E, sys_.C, eps)
+    return ModifiedHighGainObserver.from_design(sys_, d, p3.update_law(Gamma))

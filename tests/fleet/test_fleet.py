@@ -78,3 +78,74 @@ def test_cli_single_record_plot(fleet_dir, tmp_path):
     assert main(["estimate", str(MODEL), str(fleet_dir / "m00.csv"), "-o",
                  str(tmp_path / "e.csv"), "--plot", str(fig)]) == 0
     assert fig.stat().st_size > 10_000
+
+
+def _with_dropouts(directory, source, name, rows=(40, 41, 90)):
+    """A copy of a fleet record whose y is missing (empty cell) on a few rows."""
+    lines = source.read_text().splitlines()
+    for r in rows:
+        t, u, _ = lines[r].split(",")
+        lines[r] = f"{t},{u},"
+    path = directory / name
+    path.write_text("\n".join(lines) + "\n")
+    return path
+
+
+def test_nan_policy_reaches_every_record(fleet_dir, tmp_path):
+    """A dropout fails its record under "raise" (the row says where) and is predicted over
+    under "skip", where the record's θ̂ stays its motor's θ (3 missing of 201 samples)."""
+    d = tmp_path / "drop"
+    d.mkdir()
+    _with_dropouts(d, fleet_dir / "m03.csv", "m03.csv")
+    (d / "m04.csv").write_text((fleet_dir / "m04.csv").read_text())
+    strict = estimate_many(MODEL, d, progress=False)
+    assert strict.n_ok == 1 and "line 41" in strict.failed[str(d / "m03.csv")]
+    skip = estimate_many(MODEL, d, nan_policy="skip", progress=False)
+    assert skip.n_ok == 2
+    assert abs(skip.rows[0]["theta_hat_theta"] - true_theta(3)) <= THETA_ATOL
+    assert skip.rows[1]["theta_hat_theta"] == pytest.approx(strict.rows[1]["theta_hat_theta"],
+                                                            rel=1e-12)
+
+
+def test_parquet_dropouts_under_skip(tmp_path):
+    pytest.importorskip("pyarrow")
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+
+    write_fleet(tmp_path, 2, corrupt=None, parquet_every=2)         # m01 is Parquet
+    table = pq.read_table(tmp_path / "m01.parquet").to_pydict()
+    table["y"][50] = float("nan")
+    pq.write_table(pa.table(table), tmp_path / "m01.parquet")
+    assert "not finite" in estimate_many(MODEL, tmp_path, progress=False).failed[
+        str(tmp_path / "m01.parquet")]
+    res = estimate_many(MODEL, tmp_path, nan_policy="skip", progress=False)
+    assert res.n_ok == 2 and abs(res.rows[1]["theta_hat_theta"] - true_theta(1)) <= THETA_ATOL
+
+
+def test_method_is_not_ignored(fleet_dir, tmp_path):
+    """Fleet rows of the guarded method are that method's run on each record (an
+    independent call of run_estimator), not the paper observer's."""
+    from thetahat.datafile import read_data
+    from thetahat.modelfile import load_model, run_estimator
+
+    d = tmp_path / "two"
+    d.mkdir()
+    for name in ("m02.csv", "m09.csv"):
+        (d / name).write_text((fleet_dir / name).read_text())
+    res = estimate_many(MODEL, d, method="guarded", progress=False)
+    paper = estimate_many(MODEL, d, method="paper", progress=False)
+    spec = load_model(MODEL)
+    for row, p_row, name in zip(res.rows, paper.rows, ("m02.csv", "m09.csv")):
+        rec = read_data(d / name, spec)
+        ref = run_estimator(spec, rec.t, rec.u, rec.y, method="guarded")
+        assert row["theta_hat_theta"] == pytest.approx(float(ref.theta_hat[-1, 0]), rel=1e-9)
+        assert row["theta_hat_theta"] != p_row["theta_hat_theta"]
+
+
+def test_unknown_method_or_policy_is_a_clear_error(fleet_dir):
+    from thetahat.errors import OptionError
+
+    with pytest.raises(OptionError, match="method must be one of"):
+        estimate_many(MODEL, fleet_dir, method="kalman")
+    with pytest.raises(OptionError, match="nan_policy must be one of"):
+        estimate_many(MODEL, fleet_dir, nan_policy="drop")

@@ -112,3 +112,12 @@ def test_zero_tolerance_picks_the_exact_minimum():
                          seeds=[1000], theta_hat0=THETA_HAT0, rel_tol=0.0)
     i, j = res.eps.index(res.best_eps), res.Gamma.index(res.best_Gamma)
     assert res.score[i, j] == res.score.min()
+
+
+def test_worker_processes_give_the_same_grid(stable_grid):
+    """Each ε is one engine task; in two worker processes the scores and the choice are
+    those computed here (same computation per task: equal to round-off, 1e-12 relative)."""
+    res = tune_eps_gamma(lugre.observer, SIM, eps_values=[1.0, 0.5], gammas=[1.0, 10.0],
+                         seeds=[1000], theta_hat0=THETA_HAT0, n_jobs=2)
+    np.testing.assert_allclose(res.score, stable_grid.score, rtol=1e-12)
+    assert (res.best_eps, res.best_Gamma) == (stable_grid.best_eps, stable_grid.best_Gamma)

@@ -158,7 +158,8 @@ def design_gains(spec: ModelSpec, eps: float | None) -> tuple[GainDesign, GainDe
     return estimator_spec(spec).designs(eps)
 
 
-def build_observer(spec: ModelSpec, *, eps: float | None = None) -> ModifiedHighGainObserver:
+def build_observer(spec: ModelSpec, *, eps: float | None = None,
+                   nan_policy: str = "raise") -> ModifiedHighGainObserver:
     """The estimator of a model file: observer (3) with the file's update law (8).
 
     Built by :meth:`~thetahat.spec.EstimatorSpec.build` from :func:`estimator_spec`: the
@@ -172,6 +173,8 @@ def build_observer(spec: ModelSpec, *, eps: float | None = None) -> ModifiedHigh
         From :func:`load_model`.
     eps : float, optional
         Overrides ``spec.estimator.eps``.
+    nan_policy : {"raise", "skip"}, optional
+        What the observer does with a NaN sample (a dropout).
 
     Returns
     -------
@@ -192,7 +195,7 @@ def build_observer(spec: ModelSpec, *, eps: float | None = None) -> ModifiedHigh
     >>> obs.K_x.shape, obs.K_phi.shape
     ((2, 1), (1, 1))
     """
-    return _build(estimator_spec(spec), spec, eps)
+    return _build(estimator_spec(spec, nan_policy=nan_policy), spec, eps)
 
 
 def _build(est: EstimatorSpec, spec: ModelSpec, eps: float | None) -> ModifiedHighGainObserver:

@@ -19,6 +19,7 @@ discretised observer diverge on sampled, noisy data.
 
 from __future__ import annotations
 
+import functools
 import itertools
 import math
 import time
@@ -31,7 +32,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from ..errors import DesignError, DimensionError
 from ..spec import EstimatorSpec
-from .batch import check_seeds
+from .batch import check_seeds, monte_carlo
 from .runs import DIVERGENCE_ERRORS, RunMetrics, format_number, run_metrics
 from .sweep import Estimator, check_eps_values, observer_for, run_observer
 
@@ -215,11 +216,20 @@ def _run_eps(estimator: Estimator, observers: list[Any], records: list[Any],
     return [run_observer(estimator, o, d, th0) for o, d in pairs]
 
 
+def _tune_eps(estimator: Estimator, eps: tuple[float, ...], gammas: tuple[float, ...],
+              records: list[Any], th0: FloatArray, index: int) -> list[RunMetrics]:
+    """The task of ε number ``index``: every Γ on every record (one engine task)."""
+    return _run_eps(estimator, [observer_for(estimator, eps[index], g) for g in gammas],
+                    records, th0)
+
+
 def tune_eps_gamma(estimator: Estimator, simulate: Callable[[int], Any], *,
                    eps_values: Iterable[float] = (1.0, 0.7, 0.5, 0.3),
                    gammas: Iterable[float] = (1.0, 3.0, 10.0, 30.0),
                    seeds: Iterable[int] = (1000, 1001), theta_hat0: ArrayLike,
-                   criterion: str = "theta_rmse", rel_tol: float = 0.05) -> TuneResult:
+                   criterion: str = "theta_rmse", rel_tol: float = 0.05,
+                   n_jobs: int | None = 1, scheduler: Any = None,
+                   progress: bool = False) -> TuneResult:
     """Pick ε and Γ by a grid search over tuning seeds, ε decreasing from 1 (Sec. VII).
 
     For every ε (1 first, then decreasing) and every Γ: the observer for (ε, Γ)
@@ -259,6 +269,15 @@ def tune_eps_gamma(estimator: Estimator, simulate: Callable[[int], Any], *,
         Scores within this relative margin of the best count as ties (default 0.05: two
         seeds cannot resolve smaller differences); ties go to the larger ε, then the
         smaller Γ.
+    n_jobs : int or None, optional
+        Worker processes for the ε values (1: in this process; -1: all cores); each ε
+        (all Γ, all seeds) is one task, run by :func:`~thetahat.studies.batch.monte_carlo`.
+        ``estimator`` must then be picklable (specs and module-level functions are).
+    scheduler : str or dask.distributed.Client, optional
+        Run the ε tasks on a Dask cluster (see :func:`~thetahat.studies.batch.monte_carlo`);
+        the result equals the one computed in this process.
+    progress : bool, optional
+        Progress bar over the ε values (tqdm, when installed).
 
     Returns
     -------
@@ -304,10 +323,11 @@ def tune_eps_gamma(estimator: Estimator, simulate: Callable[[int], Any], *,
     seeds_ = check_seeds(seeds)
     th0 = np.atleast_1d(np.asarray(theta_hat0, dtype=np.float64))
     start = time.perf_counter()
-    records = [simulate(s) for s in seeds_]
-    runs: list[RunMetrics] = []
-    for e in eps:
-        runs += _run_eps(estimator, [observer_for(estimator, e, g) for g in gam], records, th0)
+    records = [simulate(s) for s in seeds_]             # once, shipped to every ε task
+    task = functools.partial(_tune_eps, estimator, eps, gam, records, th0)
+    batch = monte_carlo(task, range(len(eps)), progress=progress, n_jobs=n_jobs,
+                        scheduler=scheduler, chunk_size=1)
+    runs: list[RunMetrics] = [r for per_eps in batch.results for r in per_eps]
     shape = (len(eps), len(gam), len(seeds_))
     n = max(r.x_rmse.shape[0] for r in runs)
 
