@@ -1,6 +1,12 @@
 """θ, ω and η estimation on the paper's DC motor (Sec. VIII): thetahat against a joint EKF and UKF.
 
-Run:  .venv/bin/python benchmarks/bench_lugre.py [--quick] [--json out/bench_lugre.json]
+Run:  .venv/bin/python benchmarks/bench_lugre.py [--quick] [--jobs 2] [--json out/bench_lugre.json]
+
+The records (tuning grid points, evaluation seeds, robustness cases) run in ``--jobs`` forked
+worker processes (parallel.py; default every core), each record's estimators one after the
+other in one process. ``per_step_us`` is therefore measured with the cores shared by the
+workers: compare estimators within one run (the printed ratios), not across runs with
+another ``--jobs`` or machine load.
 
 Every estimator sees the same seeded records of ``lugre.simulate`` (20 s, 1 kHz, σ = 0.02 rad/s,
 θ = α0 = 0.28, θ̂(0) = 0.5, x̂(0) = (0, 0)) and runs in this process. Estimators, by name:
@@ -52,6 +58,7 @@ from typing import Any, Callable
 import crlb as crlb_mod
 import metrics
 import numpy as np
+import parallel
 import peers
 from scipy.integrate import solve_ivp
 
@@ -238,16 +245,29 @@ def _simulate(seed: int, **overrides):
 
 
 # ------------------------------------------------------------------------------ phases
-def tune(name: str, spec: Spec, trajs, log) -> tuple[Any, list]:
+@functools.lru_cache(maxsize=4)
+def _tuning_traj(seed: int):
+    return _simulate(seed)
+
+
+def _grid_point(name: str, tuning: Any) -> list:
+    """One grid point of one estimator on every tuning record (runs in a worker)."""
+    runs = []
+    for seed in TUNING_SEEDS:
+        traj = _tuning_traj(seed)
+        est = ESTIMATORS[name].run(traj, tuning=tuning)
+        runs.append(metrics.run_metrics(traj.t, est.theta_hat, est.x_hat, traj.x, THETA,
+                                        est.wall_s, est.ok))
+    return runs
+
+
+def tune(name: str, spec: Spec, pool, log) -> tuple[Any, list]:
     """Grid search on the tuning records; criterion: pooled last-half θ RMSE (a grid point
-    with a diverged run scores inf)."""
+    with a diverged run scores inf). The grid points run in ``pool``."""
     scores = []
-    for tuning in spec.grid:
-        runs = []
-        for traj in trajs:
-            est = spec.run(traj, tuning=tuning)
-            runs.append(metrics.run_metrics(traj.t, est.theta_hat, est.x_hat, traj.x, THETA,
-                                            est.wall_s, est.ok))
+    futures = [pool.submit(_grid_point, name, tuning) for tuning in spec.grid]
+    for tuning, fut in zip(spec.grid, futures):
+        runs = fut.result()
         div = sum(metrics.is_diverged(m, THETA) for m in runs)
         agg = metrics.pooled(runs)
         score = agg["theta_rmse"] if div == 0 and np.isfinite(agg["theta_rmse"]) else math.inf
@@ -272,48 +292,61 @@ def _run_all(names, tunings, traj, **start) -> dict[str, Estimate]:
     return out
 
 
-def evaluate(names, tunings, seeds, log) -> dict[str, list]:
+def _evaluate_seed(names, tunings, seed: int) -> dict[str, metrics.RunMetrics]:
+    """Every estimator on one evaluation record, one after the other (runs in a worker)."""
+    traj = _simulate(seed)
+    ests = _run_all(names, tunings, traj)
+    return {n: metrics.run_metrics(traj.t, ests[n].theta_hat, ests[n].x_hat, traj.x, THETA,
+                                   ests[n].wall_s, ests[n].ok) for n in names}
+
+
+def evaluate(names, tunings, seeds, pool, log) -> dict[str, list]:
     runs: dict[str, list] = {n: [] for n in names}
-    for seed in seeds:
-        traj = _simulate(seed)
-        ests = _run_all(names, tunings, traj)
+    futures = [(seed, pool.submit(_evaluate_seed, names, tunings, seed)) for seed in seeds]
+    for seed, fut in futures:
+        ms = fut.result()
         for n in names:
-            est = ests[n]
-            runs[n].append(metrics.run_metrics(traj.t, est.theta_hat, est.x_hat, traj.x, THETA,
-                                               est.wall_s, est.ok))
+            runs[n].append(ms[n])
         log(f"    seed {seed:>3}: " + "  ".join(
             f"{n} θ̂ RMSE {math.sqrt(runs[n][-1].theta_mse):.2e}" for n in names))
     return runs
 
 
-def robustness(names, tunings, seeds, t_end, log, only=None) -> dict[str, dict[str, dict]]:
+def _robust_cell(names, tunings, case: Case, seed: int, t_end: float) -> dict[str, dict]:
+    """Every estimator on one robustness case and seed (runs in a worker)."""
+    traj = _simulate(seed, t_end=t_end, **case.overrides)
+    th = float(traj.theta[0])
+    case_tunings = dict(tunings)
+    if case.peer_tuning is not None:
+        case_tunings.update({p: case.peer_tuning for p in PEER_NAMES if p in tunings})
+    ests = _run_all(names, case_tunings, traj, x_hat0=case.x_hat0, theta_hat0=case.theta_hat0)
+    out = {}
+    for n in names:
+        est = ests[n]
+        m = metrics.run_metrics(traj.t, est.theta_hat, est.x_hat, traj.x, th, est.wall_s,
+                                est.ok)
+        tail = est.theta_hat[traj.t >= traj.t[-1] - 1.0]
+        out[n] = dict(diverged=bool(metrics.is_diverged(m, th)),
+                      theta_final=float(np.mean(tail)) if np.isfinite(tail).all()
+                      else float("nan"),
+                      omega_rmse=math.sqrt(m.omega_mse) if m.ok else float("nan"))
+    return out
+
+
+def robustness(names, tunings, seeds, t_end, pool, log, only=None) -> dict[str, dict[str, dict]]:
     """Each estimator on every case × seed: diverged (metrics.is_diverged), mean θ̂ over the
     last second, ω̂ RMSE over the last half. ``only``: names of the cases to run."""
     out: dict[str, dict[str, dict]] = {n: {} for n in names}
-    for case in robustness_cases():
-        if only is not None and case.name not in only:
-            continue
-        for seed in seeds:
-            traj = _simulate(seed, t_end=t_end, **case.overrides)
-            th = float(traj.theta[0])
-            cells = []
-            case_tunings = dict(tunings)
-            if case.peer_tuning is not None:
-                case_tunings.update({p: case.peer_tuning for p in PEER_NAMES if p in tunings})
-            ests = _run_all(names, case_tunings, traj, x_hat0=case.x_hat0,
-                            theta_hat0=case.theta_hat0)
-            for n in names:
-                est = ests[n]
-                m = metrics.run_metrics(traj.t, est.theta_hat, est.x_hat, traj.x, th,
-                                        est.wall_s, est.ok)
-                div = metrics.is_diverged(m, th)
-                tail = est.theta_hat[traj.t >= traj.t[-1] - 1.0]
-                th_end = float(np.mean(tail)) if np.isfinite(tail).all() else float("nan")
-                out[n][f"{case.name}/seed{seed}"] = dict(
-                    diverged=bool(div), theta_final=th_end,
-                    omega_rmse=math.sqrt(m.omega_mse) if m.ok else float("nan"))
-                cells.append(f"{n} {'FAILED' if div else 'ok'} θ̂(T) {th_end:.4f}")
-            log(f"    {case.name:<22} seed {seed}: " + "; ".join(cells))
+    cells = [(case, seed, pool.submit(_robust_cell, names, tunings, case, seed, t_end))
+             for case in robustness_cases() if only is None or case.name in only
+             for seed in seeds]
+    for case, seed, fut in cells:
+        res = fut.result()
+        for n in names:
+            out[n][f"{case.name}/seed{seed}"] = res[n]
+        log(f"    {case.name:<22} seed {seed}: " + "; ".join(
+            f"{n} {'FAILED' if res[n]['diverged'] else 'ok'} θ̂(T) {res[n]['theta_final']:.4f}"
+            for n in names))
     return out
 
 
@@ -483,6 +516,9 @@ def main(argv: list[str] | None = None, log: Callable[[str], None] = print) -> d
                     help="4 seeds, short robustness set, stored tunings (< 2 min)")
     ap.add_argument("--seeds", type=int, default=None, help="number of evaluation seeds")
     ap.add_argument("--json", type=Path, default=None)
+    ap.add_argument("--jobs", type=int, default=parallel.default_jobs(),
+                    help="worker processes over seeds, cases and grid points (default: all "
+                         "cores); 1 runs everything in this process")
     args = ap.parse_args(argv)
     wall0 = time.perf_counter()
     quick = args.quick
@@ -508,25 +544,26 @@ def main(argv: list[str] | None = None, log: Callable[[str], None] = print) -> d
 
     tunings = {n: ESTIMATORS[n].default for n in names}
     grids: dict[str, list] = {}
-    if quick:
-        log("tuning: stored choices of the full run's grid (run without --quick to re-tune)")
-    else:
-        log(f"tuning grid on seeds {TUNING_SEEDS} (criterion: pooled last-half θ RMSE):")
-        tuning_trajs = [_simulate(seed) for seed in TUNING_SEEDS]
+    with parallel.pool(args.jobs) as pool:      # forks after the warm-up: compiled kernels shared
+        if quick:
+            log("tuning: stored choices of the full run's grid (run without --quick to re-tune)")
+        else:
+            log(f"tuning grid on seeds {TUNING_SEEDS} (criterion: pooled last-half θ RMSE):")
+            for n in names:
+                if ESTIMATORS[n].grid:
+                    tunings[n], grids[n] = tune(n, ESTIMATORS[n], pool, log)
         for n in names:
-            if ESTIMATORS[n].grid:
-                tunings[n], grids[n] = tune(n, ESTIMATORS[n], tuning_trajs, log)
-    for n in names:
-        log(f"  {n:>14}: {_label(tunings[n])}")
+            log(f"  {n:>14}: {_label(tunings[n])}")
 
-    log("evaluation:")
-    runs = evaluate(names, tunings, range(n_seeds), log)
-    if quick:
-        log(f"robustness set ({len(QUICK_CASES)} of its cases, {ROBUST_T_END_QUICK:g} s):")
-        rob = robustness(names, tunings, ROBUST_SEEDS_QUICK, ROBUST_T_END_QUICK, log, QUICK_CASES)
-    else:
-        log(f"robustness set ({ROBUST_T_END_FULL:g} s):")
-        rob = robustness(names, tunings, ROBUST_SEEDS_FULL, ROBUST_T_END_FULL, log)
+        log(f"evaluation ({args.jobs} processes, each record's estimators in one process):")
+        runs = evaluate(names, tunings, range(n_seeds), pool, log)
+        if quick:
+            log(f"robustness set ({len(QUICK_CASES)} of its cases, {ROBUST_T_END_QUICK:g} s):")
+            rob = robustness(names, tunings, ROBUST_SEEDS_QUICK, ROBUST_T_END_QUICK, pool, log,
+                             QUICK_CASES)
+        else:
+            log(f"robustness set ({ROBUST_T_END_FULL:g} s):")
+            rob = robustness(names, tunings, ROBUST_SEEDS_FULL, ROBUST_T_END_FULL, pool, log)
     div_counts = {n: sum(v["diverged"] for v in rob[n].values()) for n in names}
     n_cases = len(next(iter(rob.values()))) if rob else 0
     tp = throughput(THROUGHPUT_T_END_QUICK if quick else THROUGHPUT_T_END_FULL, log)
