@@ -31,8 +31,10 @@ import atexit
 import concurrent.futures
 import dataclasses
 import multiprocessing
+import multiprocessing.connection
 import os
 import pickle
+import threading
 import time
 from dataclasses import dataclass
 from typing import Any
@@ -186,8 +188,18 @@ def warm_up(spec: bytes) -> float:
 
 
 def _mark_worker() -> None:
-    """Initializer of the default executor's worker process."""
+    """Initializer of the default executor's worker process: remember it, and end the process
+    when its parent ends, however abruptly (the pool's own shutdown needs a live parent)."""
     _WORKER[0] = True
+    parent = multiprocessing.parent_process()
+    if parent is not None:
+        threading.Thread(target=_exit_with, args=(parent.sentinel,), daemon=True,
+                         name="thetahat-fit-parent-watch").start()
+
+
+def _exit_with(sentinel: int) -> None:
+    multiprocessing.connection.wait([sentinel])
+    os._exit(0)
 
 
 def _lower_priority() -> None:
