@@ -34,15 +34,9 @@ numba is the optional extra ``speed``; without it this module imports, and
 
 from __future__ import annotations
 
-import hashlib
-import importlib.util
-import os
 import re
-import sys
-import tempfile
 from collections.abc import Sequence
 from dataclasses import dataclass
-from pathlib import Path
 from types import ModuleType
 from typing import Any, NoReturn
 
@@ -52,11 +46,12 @@ from numpy.typing import NDArray
 from sympy.printing.pycode import PythonCodePrinter
 
 from .._validate import as_vector, positive_scalar
-from ..errors import DimensionError, FileAccessError, MissingExtraError, UnsupportedError
+from ..errors import DimensionError, MissingExtraError, UnsupportedError
 from ..model.paramset import Box
 from ..model.perturbation import SymbolicPerturbation, numpy_ready
 from ._kernel_template import CORE
 from .discretize import IMPLICITNESS
+from .kernel_cache import load_module
 from .observer import ModifiedHighGainObserver, ObserverResult
 from .plan import StepPlan
 from .step import DIVERGENCE_BOUND, divergence_error
@@ -79,7 +74,6 @@ _SUPPORTED = ("supported: a SymbolicPerturbation g, a Box Θ with diagonal Γ, C
               "IntermittentInversion (l ≡ 1, i.e. AlgebraicInversion, or a smooth_ramp weight) "
               "with a ThetaStar θ*, GradientInversion with the default M, no saturation, no law "
               "state, an optional SecondObserver, fixed dt and zero-order hold")
-_modules: dict[str, ModuleType] = {}
 
 
 def _require_numba() -> Any:
@@ -287,45 +281,10 @@ def _kernel_source(pert: SymbolicPerturbation, theta_star: tuple[sp.Expr, ...] |
     return "\n".join(header) + "\n\n\n" + _model_source(pert, theta_star, ts_args) + core
 
 
-def _cache_dir() -> Path:
-    env = os.environ.get("THETAHAT_CACHE_DIR")
-    if env:
-        candidates = [Path(env)]
-    else:
-        xdg = os.environ.get("XDG_CACHE_HOME")
-        candidates = [Path(xdg) / "thetahat" if xdg else Path.home() / ".cache" / "thetahat"]
-    candidates.append(Path(tempfile.gettempdir()) / f"thetahat-{os.getuid()}"
-                      if hasattr(os, "getuid") else Path(tempfile.gettempdir()) / "thetahat")
-    for d in candidates:
-        try:
-            d.mkdir(parents=True, exist_ok=True)
-            if os.access(d, os.W_OK):
-                return d
-        except OSError:
-            continue
-    raise FileAccessError("compile_observer found no writable cache directory; set THETAHAT_CACHE_DIR.")
-
-
 def _load(source: str) -> ModuleType:
     """Import the generated module (written once under its content hash, then cached)."""
-    numba = _require_numba()
-    digest = hashlib.sha256(f"{numba.__version__}\n{source}".encode()).hexdigest()[:24]
-    name = f"thetahat_kernel_{digest}"
-    mod = _modules.get(name)
-    if mod is not None:
-        return mod
-    path = _cache_dir() / f"{name}.py"
-    if not path.exists() or path.read_text(encoding="utf-8") != source:
-        tmp = path.with_suffix(f".{os.getpid()}.tmp")
-        tmp.write_text(source, encoding="utf-8")
-        os.replace(tmp, path)
-    spec = importlib.util.spec_from_file_location(name, path)
-    assert spec is not None and spec.loader is not None
-    mod = importlib.util.module_from_spec(spec)
-    sys.modules[name] = mod
-    spec.loader.exec_module(mod)
-    _modules[name] = mod
-    return mod
+    _require_numba()
+    return load_module(source, "thetahat_kernel")
 
 
 # --------------------------------------------------------------------------- support checks

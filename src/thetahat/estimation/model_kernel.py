@@ -24,6 +24,8 @@ those of the computed trajectory.
 
 from __future__ import annotations
 
+import hashlib
+import linecache
 import math
 from dataclasses import dataclass
 from typing import Any, Callable
@@ -33,9 +35,10 @@ import sympy as sp
 from numpy.typing import NDArray
 from sympy.printing.pycode import PythonCodePrinter
 
-from ..errors import DimensionError, MissingExtraError
+from ..errors import DimensionError, FileAccessError, MissingExtraError
 from ..model.perturbation import SymbolicPerturbation
 from ..model.system import PerturbedLinearSystem
+from .kernel_cache import KernelSourceError, cached_njit
 
 __all__ = ["ModelKernel", "model_kernel", "have_numba", "jit", "spectral_radius_bound"]
 
@@ -76,12 +79,18 @@ def jit(fn: Callable[..., Any], compiled: bool) -> Callable[..., Any]:
     -------
     callable
         The compiled dispatcher (releasing the GIL, so a fit on a worker thread runs
-        alongside the caller), or ``fn``.
+        alongside the caller), or ``fn``. It comes from a generated module cached on disk
+        (:func:`~thetahat.estimation.kernel_cache.cached_njit`), so later processes load the
+        machine code instead of compiling; a kernel that cannot be written out that way is
+        compiled in memory.
     """
     if not compiled:
         return fn
-    import numba
-    return numba.njit(fn, nogil=True)     # a fit on a worker thread does not hold the GIL
+    try:
+        return cached_njit(fn)
+    except (KernelSourceError, FileAccessError):
+        import numba
+        return numba.njit(fn, nogil=True)     # a fit on a worker thread does not hold the GIL
 
 
 def _plant_expressions(system: PerturbedLinearSystem) -> tuple[list[sp.Symbol], list[sp.Symbol],
@@ -375,7 +384,11 @@ def model_kernel(system: PerturbedLinearSystem, *, compiled: bool | None = None)
     if hit is not None:
         return hit
     namespace: dict[str, Any] = {"math": math}
-    exec(compile(source, "<thetahat stage-2 model>", "exec"), namespace)  # noqa: S102
+    # the source is ours (SymPy's printer on the model's expressions), never user text; it is
+    # registered with linecache so that kernel_cache can write it into a cached module
+    filename = f"<thetahat stage-2 model {hashlib.sha256(source.encode()).hexdigest()[:16]}>"
+    linecache.cache[filename] = (len(source), None, source.splitlines(True), filename)
+    exec(compile(source, filename, "exec"), namespace)  # noqa: S102
     rhs_jac = jit(namespace["rhs_jac"], use)
     kern = ModelKernel(n=system.n, m=system.m, r=system.r, p=system.p,
                        C=C, compiled=use, rhs_jac=rhs_jac,
