@@ -37,7 +37,7 @@ from typing import Any
 
 import numpy as np
 
-from ..errors import FileAccessError, ThetahatError
+from ..errors import FileAccessError, MissingExtraError, ThetahatError
 
 __all__ = ["KernelSourceError", "cache_dir", "cached_njit", "load_module"]
 
@@ -255,10 +255,11 @@ def cached_njit(fn: Callable[..., Any]) -> Any:
     KernelSourceError
         ``fn`` or a kernel it calls cannot be written as module source (no source, a free
         name of another kind, a nested function).
+    MissingExtraError
+        numba is not installed (the extra ``speed``).
 
     Examples
     --------
-    >>> import pytest; _ = pytest.importorskip("numba")
     >>> from thetahat.estimation.kernel_cache import cached_njit
     >>> def scale(k):
     ...     def times(x):
@@ -267,6 +268,11 @@ def cached_njit(fn: Callable[..., Any]) -> Any:
     >>> cached_njit(scale(3.0))(2.0)
     6.0
     """
+    try:
+        import numba  # noqa: F401
+    except ImportError as exc:
+        raise MissingExtraError("compiled kernels need numba: pip install 'thetahat[speed]'"
+                                ) from exc
     writer = _Writer()
     entry = writer.function(fn)
     mod = load_module(writer.source(), "thetahat_stage2")
