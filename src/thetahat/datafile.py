@@ -14,8 +14,9 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from .errors import ModelFileError, OptionError
+from .errors import ModelFileError
 from .estimation.observer import ObserverResult
+from .estimation.records import check_nan_policy
 from .modelfile import ModelSpec
 
 __all__ = ["DataRecord", "column_candidates", "read_data", "check_writable", "estimate_columns",
@@ -57,7 +58,6 @@ def _aliases(names: tuple[str, ...], letter: str) -> list[list[str]]:
     return out
 
 
-NAN_POLICIES = ("raise", "skip")
 #: Cells read as a missing output sample under ``nan_policy="skip"`` (besides NaN itself).
 MISSING_CELLS = ("", "nan", "na", "n/a", "null", "none")
 
@@ -135,8 +135,7 @@ def read_data(path: str | Path, spec: ModelSpec, *, nan_policy: str = "raise") -
     >>> read_data(csv_path, spec, nan_policy="skip").y.ravel().tolist()
     [0.1, nan]
     """
-    if nan_policy not in NAN_POLICIES:
-        raise OptionError(f"nan_policy must be one of {NAN_POLICIES}; got {nan_policy!r}.")
+    check_nan_policy(nan_policy)
     path = Path(path)
     try:
         with path.open(newline="", encoding="utf-8-sig") as fh:

@@ -38,10 +38,11 @@ from typing import Any, cast
 import numpy as np
 from numpy.typing import NDArray
 
-from .datafile import NAN_POLICIES, DataRecord, column_candidates, read_data
+from .datafile import DataRecord, column_candidates, read_data
 from .engine import run_keyed
 from .errors import MissingExtraError, ModelFileError, OptionError
 from .estimation.batch_run import run_batch
+from .estimation.records import check_nan_policy
 from .model.paramset import Box
 from .modelfile import (ESTIMATION_METHODS, ModelSpec, build_observer, load_model, loads_model,
                         run_estimator)
@@ -244,8 +245,7 @@ def read_parquet(path: str | Path, spec: ModelSpec, *, nan_policy: str = "raise"
                                 for c in cols])
     except (TypeError, ValueError) as exc:
         raise ModelFileError(f"data file {path}: a column is not numeric: {exc}") from exc
-    if nan_policy not in NAN_POLICIES:
-        raise OptionError(f"nan_policy must be one of {NAN_POLICIES}; got {nan_policy!r}.")
+    check_nan_policy(nan_policy)
     m = spec.system.m
     bad = ~np.isfinite(data)
     if nan_policy == "skip":
@@ -435,8 +435,7 @@ def estimate_many(model: str | Path, data: str | Path | Iterable[str | Path], *,
     how = spec.estimator.method if method is None else method
     if how not in ESTIMATION_METHODS:
         raise OptionError(f"method must be one of {list(ESTIMATION_METHODS)}; got {how!r}.")
-    if nan_policy not in NAN_POLICIES:
-        raise OptionError(f"nan_policy must be one of {NAN_POLICIES}; got {nan_policy!r}.")
+    check_nan_policy(nan_policy)
     files = [str(f) for f in fleet_files(data)]
     task = functools.partial(_estimate_chunk, model=(text, syntax, str(source)), hold=hold,
                              method=how, nan_policy=nan_policy)

@@ -33,7 +33,7 @@ from ..model.system import PerturbedLinearSystem
 from ..structure.assumptions import check_assumption_1
 from .discretize import PLAN_CACHE_SIZE
 from .plan import StateLayout, StepPlan, dt_key
-from .records import check_records
+from .records import check_nan_policy, check_records
 from .redesign import SecondObserver
 from .results import ObserverEstimate, ObserverResult
 from .step import (advance, diverged, divergence_error, integrate, observer_forcing, readout,
@@ -44,7 +44,6 @@ __all__ = ["ModifiedHighGainObserver", "ObserverEstimate", "ObserverResult"]
 
 FloatArray = NDArray[np.float64]
 
-NAN_POLICIES = ("raise", "skip")
 HOLDS = ("zoh", "foh")
 #: Samples between two calls of ``run``'s progress callback.
 PROGRESS_EVERY = 1_000
@@ -253,8 +252,7 @@ class ModifiedHighGainObserver:
                 raise DimensionError(
                     f"second observer's system has (n, m, r, k, p) = "
                     f"{(s2.n, s2.m, s2.r, s2.k, s2.p)}; the observer's has {(n, m, r, k, p)}.")
-        if nan_policy not in NAN_POLICIES:
-            raise OptionError(f"nan_policy must be one of {NAN_POLICIES}; got {nan_policy!r}.")
+        check_nan_policy(nan_policy)
         layout = StateLayout(n=n, m=m, r=r, k=k, p=p, second=second is not None,
                              law_size=int(update_law.state_size))
         for name, val in (("system", system), ("K_x", Kx), ("K_phi", Kphi),

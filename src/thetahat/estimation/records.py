@@ -8,10 +8,41 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from .._validate import as_time_grid, check_finite
-from ..errors import DimensionError, NonFiniteError
+from ..errors import DimensionError, NonFiniteError, OptionError
 from .plan import StateLayout
 
-__all__ = ["as_record", "as_records", "check_real", "check_records"]
+#: What an observer does with a NaN output sample: refuse it, or skip it (a prediction).
+NAN_POLICIES = ("raise", "skip")
+
+
+def check_nan_policy(nan_policy: str) -> str:
+    """``nan_policy`` if it is one of :data:`NAN_POLICIES`.
+
+    Parameters
+    ----------
+    nan_policy : str
+
+    Returns
+    -------
+    str
+
+    Raises
+    ------
+    OptionError
+        Another value.
+
+    Examples
+    --------
+    >>> from thetahat.estimation.records import check_nan_policy
+    >>> check_nan_policy("skip")
+    'skip'
+    """
+    if nan_policy not in NAN_POLICIES:
+        raise OptionError(f"nan_policy must be one of {NAN_POLICIES}; got {nan_policy!r}.")
+    return nan_policy
+
+__all__ = ["NAN_POLICIES", "as_record", "as_records", "check_nan_policy", "check_real",
+           "check_records"]
 
 FloatArray = NDArray[np.float64]
 
