@@ -91,7 +91,18 @@ def _estimator(name: str, dt: float):
     return _EST_CACHE[key]
 
 
-def _run(name: str, sc: Scenario, traj) -> tuple[np.ndarray, np.ndarray, float]:
+def _diagnostics(res) -> dict:
+    """The guarded run's model-error alarm over the last half: mean |θ̂₂ − θ̂_G|, mean NIS, and
+    the last fit's cost per measurement (≈ 1 when the model explains the data)."""
+    h = res.t >= res.t[-1] / 2
+    last = res.fits[-1] if res.fits else None
+    return {"disagreement": float(np.mean(np.abs(res.disagreement[h]))),
+            "nis": float(np.nanmean(res.nis[h])),
+            "fit_cost": float(last.cost) if last is not None else float("nan")}
+
+
+def _run(name: str, sc: Scenario, traj, diag: dict | None = None
+         ) -> tuple[np.ndarray, np.ndarray, float]:
     dt = round(float(traj.t[1] - traj.t[0]), 12)
     if name == "ekf":
         r = peers.run_ekf(traj.t, traj.u, traj.y, tuning=sc.ekf_tuning or
@@ -103,6 +114,8 @@ def _run(name: str, sc: Scenario, traj) -> tuple[np.ndarray, np.ndarray, float]:
     t0 = time.perf_counter()
     res = est.run(traj.t, traj.u, traj.y, state0=st)
     wall = time.perf_counter() - t0
+    if diag is not None and name == "guarded":
+        diag.update(_diagnostics(res))
     x = getattr(res, "x_hat_refined", None)
     x = res.x_hat if x is None else x
     return np.asarray(res.theta_hat, float).reshape(-1), np.asarray(x, float), wall
@@ -120,9 +133,10 @@ def _cell(sc: Scenario, seed: int, t_end: float) -> dict:
     h = traj.t >= traj.t[-1] / 2
     idx = _curve_index(traj.t.size)
     out: dict = {}
+    diag: dict = {}
     for n in ESTIMATORS:
         try:
-            th, x, wall = _run(n, sc, traj)
+            th, x, wall = _run(n, sc, traj, diag)
             ok = bool(np.all(np.isfinite(th)))
         except thetahat.ThetahatError:
             th, x, wall, ok = (np.full(traj.t.size, np.nan),
@@ -134,6 +148,7 @@ def _cell(sc: Scenario, seed: int, t_end: float) -> dict:
                   "in": bool(np.all((th >= P.theta_lower) & (th <= P.theta_upper))),
                   "us": 1e6 * wall / traj.t.size,
                   "e2": (th[idx] - THETA) ** 2}
+    out["guarded"]["diag"] = diag
     return out
 
 
@@ -174,7 +189,9 @@ def scenario_table(seeds: int, t_end: float, log, only=None, jobs: int = 1) -> t
             log(f"  {sc.name:<24} t1% guarded {_f(g['t_1pct'])} / EKF {_f(e['t_1pct'])} s   "
                 f"RMSE/√CRLB guarded {g['rmse_over_crlb']:.3g} / mle "
                 f"{out[sc.name]['mle']['rmse_over_crlb']:.3g} / EKF {e['rmse_over_crlb']:.3g}   "
-                f"div {g['diverged']}/{e['diverged']}  θ̂∈Θ {g['in_Theta']}")
+                f"div {g['diverged']}/{e['diverged']}  θ̂∈Θ {g['in_Theta']}   alarm: "
+                f"|θ̂₂ − θ̂_G| {g['disagreement']:.2g}, NIS {g['nis']:.3g}, "
+                f"fit cost/meas {g['fit_cost']:.3g}")
     return out, curves
 
 
@@ -197,6 +214,9 @@ def _summary(runs: list[dict], bound) -> dict:
                   "diverged": sum(r["div"] for r in rs),
                   "in_Theta": all(r["in"] for r in rs),
                   "per_step_us": float(np.median([r["us"] for r in rs]))}
+        if n == "guarded":                # medians over seeds of the model-error alarm
+            for k in ("disagreement", "nis", "fit_cost"):
+                out[n][k] = float(np.median([r["diag"].get(k, np.nan) for r in rs]))
     out["crlb_last_half"] = crlb_rms
     return out
 
