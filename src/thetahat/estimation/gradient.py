@@ -8,7 +8,6 @@ from dataclasses import dataclass, field
 from typing import Any, final
 
 import numpy as np
-import scipy.linalg
 from numpy.typing import ArrayLike, NDArray
 
 from .._validate import positive_scalar
@@ -17,7 +16,9 @@ from ..model.jacobian_check import require_theta_dependence
 from ..model.paramset import ParameterSet
 from ..model.perturbation import Perturbation
 from .law_base import (FAR, UpdateLaw, apply_saturation, as_batch, check_law_options,
-                       finite_candidate, project_rows)
+                       project_rows)
+from .law_formulas import LAW_FORMULAS
+from .primitives import NUMPY, bound
 from .projection import Projection, Saturation, as_gain
 
 __all__ = ["GradientInversion"]
@@ -172,24 +173,53 @@ class GradientInversion(UpdateLaw):
              dt: float, *, Gamma: ArrayLike | None = None) -> FloatArray:
         """Exponential-Euler step of the linearised law, then the Γ⁻¹ projection; in Θ.
 
-        ``Gamma`` (shape (..., p, p)) gives one Γ per batch row in place of the law's own.
+        :func:`~thetahat.estimation.law_formulas.gradient_law` on NumPy arrays. ``Gamma``
+        (shape (..., p, p)) gives one Γ per batch row in place of the law's own.
         """
         dt = positive_scalar("dt", dt)
         G = None if Gamma is None else np.asarray(Gamma, dtype=np.float64)
-        v_, x, phi, th_in, batch = self._inputs(v, x_hat, phi_hat, theta_hat)
-        J = self._jacobian(v_, x, th_in, batch)
-        f, GM, th = self._terms(v_, x, phi, th_in, batch, J, Gamma=G)
-        p = th.shape[-1]
+        v_, x, phi, th, batch = self._inputs(v, x_hat, phi_hat, theta_hat)
+        _, _, _, p, k = self.perturbation.dims
+        args = [a if a.shape[:-1] == batch else np.broadcast_to(a, batch + a.shape[-1:])
+                for a in (v_, x, phi, th)]
+        LP = (self.Gamma if G is None else G, np.empty(batch + (k,)), np.empty(batch + (k, p)),
+              np.empty(batch + (p, k)), np.empty(batch + (p, k)), np.empty(batch + (p,)),
+              np.empty(batch + (p, p)), np.empty(batch + (p + 1, p + 1)),
+              np.empty(batch + (p + 1, p + 1)), None, None, G)
+        thn = np.empty(batch + (p,))
+        env = bound(self, None, LAW_FORMULAS, lambda: _gradient_names(self))
         with np.errstate(over="ignore", invalid="ignore"):
-            K = GM @ J
-            Z = np.zeros(th.shape[:-1] + (p + 1, p + 1))
-            Z[..., :p, :p] = -dt * K
-            Z[..., :p, p] = dt * f
-            ok = np.all(np.isfinite(Z), axis=(-2, -1))
-            Z = np.where(ok[..., None, None], Z, 0.0)
-            delta = scipy.linalg.expm(Z)[..., :p, p]
-            euler = np.where(np.isfinite(f), dt * f, np.sign(np.nan_to_num(f)) * FAR)
-            delta = np.where((ok[..., None] & np.all(np.isfinite(delta), axis=-1, keepdims=True)),
-                             delta, euler)
-            cand = th + delta
-        return project_rows(self._proj, finite_candidate(cand, th), G)
+            env["gradient_law"](LP, args[0], args[1], 0, args[2], args[3], 0, dt, thn, None)
+        return thn
+
+
+def _gradient_names(law: GradientInversion) -> dict[str, Any]:
+    """The NumPy namespace of :func:`law_formulas.gradient_law` for one law."""
+    pert = law.perturbation
+    _, _, _, p, k = pert.dims
+
+    def g_val(v: FloatArray, x: FloatArray, xo: int, th: FloatArray, to: int,
+              g: FloatArray) -> None:
+        g[...] = pert.g(v, x, th)
+
+    def dg_dtheta(v: FloatArray, x: FloatArray, xo: int, th: FloatArray, to: int,
+                  J: FloatArray) -> None:
+        J[...] = pert.dg_dtheta(v, x, th)
+
+    M = law.M if law.M is not None else (            # only called with a user's M
+        lambda v, x, th: np.swapaxes(pert.dg_dtheta(v, x, th), -1, -2))
+
+    def m_matrix(v: FloatArray, x: FloatArray, xo: int, th: FloatArray, to: int,
+                 Mt: FloatArray) -> None:
+        Mm = np.asarray(M(v, x, th), dtype=np.float64)
+        if Mm.shape[-2:] != (p, k):
+            raise UpdateLawError(f"GradientInversion: M must return shape (..., {p}, {k}); "
+                                 f"got {Mm.shape}.")
+        Mt[...] = Mm
+
+    def project(LP: tuple[Any, ...], thn: FloatArray) -> int:
+        thn[...] = project_rows(law._proj, thn, LP[11])
+        return 0
+
+    return {**NUMPY, "g_val": g_val, "dg_dtheta": dg_dtheta, "m_matrix": m_matrix,
+            "project": project, "NP": p, "NK": k, "USER_M": law.M is not None, "FAR": FAR}

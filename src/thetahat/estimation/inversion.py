@@ -16,21 +16,26 @@ from numpy.typing import ArrayLike, NDArray
 
 from .._validate import positive_scalar, readonly
 from ..errors import UpdateLawError
-from ..model.paramset import Box, ParameterSet
+from ..model.paramset import ParameterSet
 from ..model.perturbation import Perturbation
 from ..model.set_geometry import safe_norm
-from .law_base import (UpdateLaw, apply_saturation, as_batch, check_law_options,
-                       finite_candidate, is_diagonal, project_rows)
+from .law_base import (FAR, UpdateLaw, apply_saturation, as_batch, check_law_options,
+                       is_diagonal, project_rows)
+from .law_formulas import LAW_FORMULAS, smoothstep
+from .primitives import NUMPY, bind, bound
 from .projection import Projection, Saturation, as_gain
 from .theta_star import ThetaStar
 
 __all__ = ["AlgebraicInversion", "IntermittentInversion", "SmoothRamp", "WEIGHT_TOL",
-           "invalid_theta_star_error", "smooth_ramp"]
+           "gain_eigen", "invalid_theta_star_error", "smooth_ramp"]
 
 FloatArray = NDArray[np.float64]
 ThetaStarFn = Callable[[FloatArray, FloatArray, FloatArray], Any]
 Weight = Callable[[FloatArray, FloatArray, FloatArray], Any]
 OnInvalid = Literal["raise", "freeze"]
+
+#: :func:`law_formulas.smoothstep` on NumPy arrays.
+_smoothstep = bind({"smoothstep": smoothstep}, NUMPY)["smoothstep"]
 
 #: Values of an excitation weight l within this distance outside [0, 1] are rounding and
 #: clipped; larger excursions are an error in the user's l.
@@ -54,8 +59,7 @@ class SmoothRamp:
 
     def weight(self, s: ArrayLike) -> FloatArray:
         """0 for s <= low, 1 for s >= high, 3t² - 2t³ with t = (s - low)/(high - low) between."""
-        t = np.clip((np.asarray(s, dtype=np.float64) - self.low) / (self.high - self.low), 0, 1)
-        return t * t * (3.0 - 2.0 * t)
+        return np.asarray(_smoothstep(np.asarray(s, dtype=np.float64), self.low, self.high))
 
     def __call__(self, v: ArrayLike, x_hat: ArrayLike, phi_hat: ArrayLike) -> FloatArray:
         """l(v, x̂, φ̂) = weight(‖φ̂‖); shape (...)."""
@@ -124,28 +128,39 @@ def invalid_theta_star_error(owner: str, count: int) -> UpdateLawError:
                           f"undefined, or pass on_invalid='freeze'.")
 
 
-def _inversion_target(theta_star: ThetaStar | ThetaStarFn, weight: Weight | None,
-                      on_invalid: OnInvalid,
-                      owner: str, v: FloatArray, x: FloatArray, phi: FloatArray,
-                      th: FloatArray, batch: tuple[int, ...]) -> tuple[FloatArray, FloatArray]:
-    """(θ*, l) broadcast to the batch; θ* replaced by θ̂ where l = 0 (so that NaN is harmless)."""
-    p = th.shape[-1]
-    if weight is None:
-        lw = np.ones(batch)
-    else:
-        lw = np.broadcast_to(np.asarray(weight(v, x, phi), dtype=np.float64), batch).copy()
-        if not ((lw >= -WEIGHT_TOL) & (lw <= 1 + WEIGHT_TOL)).all():     # NaN fails too
-            raise UpdateLawError(f"{owner}: the excitation weight l must return values in "
-                                 f"[0, 1] (Proposition 2); got values in [{np.nanmin(lw)}, "
-                                 f"{np.nanmax(lw)}] (or NaN).")
-        lw = np.clip(lw, 0.0, 1.0)
+def _checked_weight(weight: Weight, owner: str, v: FloatArray, x: FloatArray, phi: FloatArray,
+                    batch: tuple[int, ...]) -> FloatArray:
+    """l(v, x̂, φ̂) broadcast to the batch, checked to lie in [0, 1] (rounding clipped)."""
+    lw = np.broadcast_to(np.asarray(weight(v, x, phi), dtype=np.float64), batch).copy()
+    ok = (-WEIGHT_TOL <= float(lw) <= 1 + WEIGHT_TOL if lw.ndim == 0      # NaN fails too
+          else bool(((lw >= -WEIGHT_TOL) & (lw <= 1 + WEIGHT_TOL)).all()))
+    if not ok:
+        raise UpdateLawError(f"{owner}: the excitation weight l must return values in "
+                             f"[0, 1] (Proposition 2); got values in [{np.nanmin(lw)}, "
+                             f"{np.nanmax(lw)}] (or NaN).")
+    return np.clip(lw, 0.0, 1.0)
+
+
+def _checked_theta_star(theta_star: ThetaStar | ThetaStarFn, owner: str, v: FloatArray,
+                        x: FloatArray, phi: FloatArray, batch: tuple[int, ...],
+                        p: int) -> FloatArray:
+    """θ*(v, x̂, φ̂) broadcast to the batch (NaN and inf allowed), its width checked."""
     with np.errstate(all="ignore"):
         ts = np.asarray(theta_star(v, x, phi), dtype=np.float64)
     if ts.ndim == 0 or ts.shape[-1] != p:
         raise UpdateLawError(f"{owner}: theta_star must return shape (..., {p}); got "
                              f"{ts.shape}.")
-    if ts.shape != batch + (p,):
-        ts = np.broadcast_to(ts, batch + (p,))
+    return ts if ts.shape == batch + (p,) else np.broadcast_to(ts, batch + (p,))
+
+
+def _inversion_target(theta_star: ThetaStar | ThetaStarFn, weight: Weight | None,
+                      on_invalid: OnInvalid,
+                      owner: str, v: FloatArray, x: FloatArray, phi: FloatArray,
+                      th: FloatArray, batch: tuple[int, ...]) -> tuple[FloatArray, FloatArray]:
+    """(θ*, l) broadcast to the batch for the rate; θ* replaced by θ̂ where l = 0."""
+    p = th.shape[-1]
+    lw = np.ones(batch) if weight is None else _checked_weight(weight, owner, v, x, phi, batch)
+    ts = _checked_theta_star(theta_star, owner, v, x, phi, batch, p)
     bad = (lw > 0) & ~np.isfinite(ts).all(axis=-1)
     if bad.any():
         if on_invalid == "raise":
@@ -156,29 +171,57 @@ def _inversion_target(theta_star: ThetaStar | ThetaStarFn, weight: Weight | None
     return target, lw
 
 
-def _inversion_step(proj: Projection, eig: tuple[FloatArray, FloatArray], target: FloatArray,
-                    lw: FloatArray, th: FloatArray, dt: float,
-                    Gamma: ArrayLike | None) -> FloatArray:
-    """Exact flow of θ̇ = lΓ(θ* - θ) over dt with θ* held, then the Γ⁻¹-weighted projection.
+def gain_eigen(Gamma: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """(Λ, V, Vᵀ) with Γ = V diag(Λ) Vᵀ, for one Γ (p, p) or one per row (..., p, p).
 
-    ``eig`` is the eigen-decomposition of the law's Γ; ``Gamma`` (B|1, p, p) replaces it per row.
+    A diagonal Γ gives V = I exactly (its diagonal is Λ).
+
+    Parameters
+    ----------
+    Gamma : ndarray, shape (..., p, p)
+        Symmetric positive definite.
+
+    Returns
+    -------
+    lam : ndarray, shape (..., p)
+    V, VT : ndarray, shape (..., p, p) or (p, p)
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> lam, V, VT = gain_eigen(np.diag([2.0, 3.0]))
+    >>> lam.tolist(), V.tolist()
+    ([2.0, 3.0], [[1.0, 0.0], [0.0, 1.0]])
     """
-    th_b = np.broadcast_to(th, target.shape)
-    G = None if Gamma is None else np.asarray(Gamma, dtype=np.float64)
-    with np.errstate(over="ignore", invalid="ignore"):
-        if G is None:
-            lam, V = eig
-            err = (target - th_b) @ V
-            cand = target - (np.exp(-lw[..., None] * dt * lam) * err) @ V.T
-        elif is_diagonal(G):
-            lam = np.diagonal(G, axis1=-2, axis2=-1)
-            cand = target - np.exp(-lw[..., None] * dt * lam) * (target - th_b)
-        else:
-            lam, V = np.linalg.eigh(G)
-            err = np.einsum("...i,...ij->...j", target - th_b, V)
-            cand = target - np.einsum("...j,...ij->...i",
-                                      np.exp(-lw[..., None] * dt * lam) * err, V)
-    return project_rows(proj, finite_candidate(cand, th_b), G)
+    p = Gamma.shape[-1]
+    if is_diagonal(Gamma):
+        eye = np.eye(p)
+        return np.diagonal(Gamma, axis1=-2, axis2=-1).copy(), eye, eye
+    lam, V = np.linalg.eigh(Gamma)
+    return lam, V, np.swapaxes(V, -1, -2).copy()
+
+
+def _inversion_names(law: IntermittentInversion) -> dict[str, Any]:
+    """The NumPy namespace of :func:`law_formulas.inversion_law` for one law."""
+    owner = "IntermittentInversion"
+    p = law.parameter_set.dim
+
+    def weight(LP: tuple[Any, ...], v: FloatArray, x: FloatArray, xo: int,
+               phi: FloatArray) -> Any:
+        if law.l is None:
+            return 1.0
+        return _checked_weight(law.l, owner, v, x, phi, phi.shape[:-1])
+
+    def theta_star(v: FloatArray, x: FloatArray, xo: int, phi: FloatArray,
+                   ts: FloatArray) -> None:
+        ts[...] = _checked_theta_star(law.theta_star, owner, v, x, phi, phi.shape[:-1], p)
+
+    def project(LP: tuple[Any, ...], thn: FloatArray) -> int:
+        thn[...] = project_rows(law._proj, thn, LP[5])
+        return 0
+
+    return {**NUMPY, "weight": weight, "theta_star": theta_star, "project": project,
+            "freeze": lambda LP: law.on_invalid == "freeze", "NP": p, "FAR": FAR}
 
 
 @final
@@ -317,11 +360,27 @@ class IntermittentInversion(UpdateLaw):
              dt: float, *, Gamma: ArrayLike | None = None) -> FloatArray:
         """Exact step θ* + e^(-lΓ dt)(θ̂ - θ*), then the Γ⁻¹-weighted projection; in Θ.
 
-        ``Gamma`` (shape (..., p, p)) gives one Γ per batch row in place of the law's own.
+        :func:`~thetahat.estimation.law_formulas.inversion_law` on NumPy arrays. ``Gamma``
+        (shape (..., p, p)) gives one Γ per batch row in place of the law's own.
         """
         dt = positive_scalar("dt", dt)
-        target, lw, th = self._target(v, x_hat, phi_hat, theta_hat)
-        return _inversion_step(self._proj, self._eig, target, lw, th, dt, Gamma)
+        v_, x, phi, th, batch = as_batch(v, x_hat, phi_hat, theta_hat, self.parameter_set.dim)
+        x, phi = apply_saturation(self.saturation, x, phi)
+        p = th.shape[-1]
+        G = None if Gamma is None else np.asarray(Gamma, dtype=np.float64)
+        lam, V, VT = ((self._eig[0], self._eig[1], self._eig[1].T) if G is None
+                      else gain_eigen(G))
+        args = [a if a.shape[:-1] == batch else np.broadcast_to(a, batch + a.shape[-1:])
+                for a in (v_, x, phi, th)]
+        thn = np.empty(batch + (p,))
+        env = bound(self, None, LAW_FORMULAS, lambda: _inversion_names(self))
+        with np.errstate(over="ignore", invalid="ignore"):
+            status = env["inversion_law"]((lam, V, VT, np.empty_like(thn), np.empty_like(thn),
+                                           G), args[0], args[1], 0, args[2], args[3], 0, dt,
+                                          thn, None)
+        if status:
+            raise invalid_theta_star_error("IntermittentInversion", status - 1)
+        return thn
 
 
 def AlgebraicInversion(theta_star: ThetaStar | ThetaStarFn, Gamma: ArrayLike,  # noqa: N802

@@ -18,6 +18,9 @@ from numpy.typing import ArrayLike, NDArray
 from .._validate import check_finite, positive_scalar
 from ..errors import DimensionError, ParameterSetError, UpdateLawError
 from ..model.paramset import Box, ParameterSet
+from . import law_formulas
+from .law_formulas import LAW_FORMULAS
+from .primitives import NUMPY, bind, bound
 from .projection import Projection, Saturation
 
 __all__ = ["FAR", "INIT_RTOL", "ConstantLaw", "UpdateLaw", "apply_saturation", "as_batch",
@@ -32,6 +35,10 @@ INIT_RTOL = 1e-12
 #: the same face as an overflowing value, small enough that differences with points of Θ stay
 #: finite.
 FAR = 1e300
+
+#: :func:`law_formulas.finite_candidate` on NumPy arrays.
+_finite_candidate = bind({"finite_candidate": law_formulas.finite_candidate},
+                         {**NUMPY, "FAR": FAR})["finite_candidate"]
 
 
 def as_batch(v: ArrayLike, x_hat: ArrayLike, phi_hat: ArrayLike, theta_hat: ArrayLike,
@@ -100,8 +107,9 @@ def finite_candidate(cand: FloatArray, fallback: FloatArray) -> FloatArray:
     >>> finite_candidate(np.array([np.nan, np.inf]), np.array([1.0, 1.0])).tolist()
     [1.0, 1e+300]
     """
-    cand = np.where(np.isnan(cand), fallback, cand)
-    return np.clip(cand, -FAR, FAR)
+    out = np.array(cand, dtype=np.float64, copy=True)
+    _finite_candidate(out.shape[-1], out, np.broadcast_to(fallback, out.shape), 0)
+    return out
 
 
 def is_diagonal(G: FloatArray) -> bool:
@@ -389,9 +397,21 @@ class ConstantLaw(UpdateLaw):
         ``Gamma`` is accepted for the batched contract and has no effect (θ̂̇ = 0).
         """
         positive_scalar("dt", dt)
-        *_, th, batch = as_batch(v, x_hat, phi_hat, theta_hat, self.parameter_set.dim)
-        return self.parameter_set.nearest(np.broadcast_to(th, batch + th.shape[-1:]))
+        v_, x, phi, th, batch = as_batch(v, x_hat, phi_hat, theta_hat, self.parameter_set.dim)
+        thn = np.empty(batch + th.shape[-1:])
+        env = bound(self, None, LAW_FORMULAS, lambda: _held_names(self))
+        env["held_law"]((), v_, x, 0, phi, np.broadcast_to(th, thn.shape), 0, dt, thn, None)
+        return thn
 
     def init(self, theta_hat0: ArrayLike | None = None) -> FloatArray:
         """``theta`` when θ̂₀ is not given, else the validated θ̂₀."""
         return UpdateLaw.init(self, self.theta if theta_hat0 is None else theta_hat0)
+
+
+def _held_names(law: ConstantLaw) -> dict[str, object]:
+    """The NumPy namespace of :func:`law_formulas.held_law` for one law."""
+    def project(LP: tuple[object, ...], thn: FloatArray) -> int:
+        thn[...] = law.parameter_set.nearest(thn)
+        return 0
+
+    return {**NUMPY, "project": project, "NP": law.parameter_set.dim}

@@ -1,204 +1,173 @@
-"""One step of observer (3) with update law (8) and the second observer of Sec. VI, written once.
+"""One step of observer (3) with update law (8) and the second observer of Sec. VI: the NumPy
+back end of the formulas of :mod:`~thetahat.estimation.formulas`.
 
-Every function here works on B rows at once (a leading batch axis): the streaming
+The formulas of one sample are written once, over primitives, in
+:mod:`~thetahat.estimation.formulas`; this module binds them to the NumPy primitives of
+:mod:`~thetahat.estimation.primitives` (a leading batch axis) and to the model's
+:class:`~thetahat.model.perturbation.Perturbation` and update law, and runs them over B rows at
+once: the streaming
 :meth:`~thetahat.estimation.observer.ModifiedHighGainObserver.step` and
 :meth:`~thetahat.estimation.observer.ModifiedHighGainObserver.run` are the batch of one,
 :func:`~thetahat.estimation.batch_run.run_batch` the batch of B; the constant data come from a
-:class:`~thetahat.estimation.plan.StepPlan`. The pieces of one sample:
-
-* the forcing F of (3a)–(3b) on (x̂, z) (:func:`observer_forcing`) and the state-dependent part
-  N of its Jacobian (:func:`observer_jacobian`), for a measured or a missing sample;
-* the update law's :meth:`~thetahat.estimation.update_laws.UpdateLaw.advance` (θ̂, law state),
-  and z corrected by −∂g/∂θ Δθ̂, the discrete form of the first term of (3b);
-* the second observer (:func:`second_forcing`), driven by θ̂ at the start of the step;
-* the exponential, linearly implicit step of :mod:`~thetahat.estimation.discretize`
-  (:func:`~thetahat.estimation.discretize.batched_step`), ZOH or FOH;
-* the NaN policy (a missing sample is a prediction: y ← C x̂, θ̂ frozen, z constant) and the
-  divergence rule (:data:`DIVERGENCE_BOUND`, :func:`diverged`), which every back end applies in
-  the same way.
+:class:`~thetahat.estimation.plan.StepPlan`. What is NumPy-specific lives here: the choice of
+the plan per step length, the rows of a batch that miss a sample (predicted over, the NaN
+policy), the per-row report of a divergence, and the readout.
 """
 
 from __future__ import annotations
 
-import math
+import threading
+from collections import OrderedDict
 from collections.abc import Callable
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
 
 from ..errors import NonFiniteError, UnsupportedError
 from ..model.perturbation import Perturbation
-from .discretize import batched_step
+from . import formulas
+from .discretize import IMPLICITNESS
+from .formulas import DIVERGENCE_BOUND, WORK
+from .inversion import invalid_theta_star_error
 from .plan import SecondPlan, StateLayout, StepPlan
+from .primitives import NUMPY, bind, bound
 from .update_laws import UpdateLaw
 
 __all__ = ["DIVERGENCE_BOUND", "advance", "diverged", "divergence_error", "integrate",
-           "observer_forcing", "observer_jacobian", "readout", "second_advance",
-           "second_forcing", "second_jacobian"]
+           "observer_forcing", "readout", "second_advance", "second_forcing"]
 
 FloatArray = NDArray[np.float64]
 
-#: A row of the state has diverged when its Euclidean norm exceeds this (or is not finite).
-#: No observer quantity of a sensibly scaled problem comes near it, and its square (1e200)
-#: stays finite, so one dot product per step decides. The same rule in every back end makes
-#: them report a divergence at the same sample (the old paths disagreed: NonFiniteError in
-#: ``run`` while ``run_batch`` returned values near 1e84 at ε = 0.001).
-DIVERGENCE_BOUND = 1e100
+_scratch = threading.local()
+#: The divergence rule on NumPy rows (:func:`formulas.within_bound`).
+_within_bound = bind({"within_bound": formulas.within_bound},
+                     {**NUMPY, "BOUND_SQ": DIVERGENCE_BOUND ** 2})["within_bound"]
 
 
-def _mv(M: FloatArray, x: FloatArray) -> FloatArray:
-    """Plan matrix times vectors: M (B|1, a, b), x (b,) or (B, b) -> (a,) or (B, a)."""
-    if M.shape[0] == 1:
-        return x @ M[0].T
-    return np.matmul(M, x[..., None])[..., 0]
+def _model_functions(pert: Perturbation, lay: StateLayout) -> dict[str, Any]:
+    """The model functions of the formulas, evaluated by the perturbation's NumPy methods."""
+    n, m, p = lay.n, lay.m, lay.p
+
+    def g_dx(v: FloatArray, x: FloatArray, xo: int, th: FloatArray, to: int, g: FloatArray,
+             Gx: FloatArray) -> None:
+        xs, ts = x[..., xo:xo + n], th[..., to:to + p]
+        g[...] = pert.g(v, xs, ts)
+        Gx[...] = pert.dg_dx(v, xs, ts)
+
+    def g_val(v: FloatArray, x: FloatArray, xo: int, th: FloatArray, to: int,
+              g: FloatArray) -> None:
+        g[...] = pert.g(v, x[..., xo:xo + n], th[..., to:to + p])
+
+    def dg_dy(v: FloatArray, x: FloatArray, xo: int, th: FloatArray, to: int,
+              Gy: FloatArray) -> None:
+        Gy[...] = np.asarray(pert.dg_dv(v, x[..., xo:xo + n], th[..., to:to + p]))[..., m:]
+
+    def dg_dtheta(v: FloatArray, x: FloatArray, xo: int, th: FloatArray, to: int,
+                  Gth: FloatArray) -> None:
+        Gth[...] = pert.dg_dtheta(v, x[..., xo:xo + n], th[..., to:to + p])
+
+    return {"g_dx": g_dx, "g_val": g_val, "dg_dy": dg_dy, "dg_dtheta": dg_dtheta}
 
 
-def _gmv(G: FloatArray, w: FloatArray) -> FloatArray:
-    """Jacobian times vectors: G (k, n) or (B, k, n), w (n,) or (B, n)."""
-    if w.ndim == 1:
-        return G @ w
-    return np.matmul(G, w[..., None])[..., 0]
+def _law_function(law: UpdateLaw, lay: StateLayout) -> Callable[..., int]:
+    """``law_step`` of the formulas: the law's :meth:`~UpdateLaw.advance` (one Γ per row)."""
+    n, p = lay.n, lay.p
+
+    def law_step(LP: tuple[Any, ...], v: FloatArray, xs: FloatArray, xo: int,
+                 phi: FloatArray, ths: FloatArray, to: int, dt: float, thn: FloatArray,
+                 lsn: FloatArray) -> int:
+        G = LP[0]
+        x, th = xs[..., xo:xo + n], ths[..., to:to + p]
+        if G is None:
+            th1, ls1 = law.advance(v, x, phi, th, lsn, dt)
+        else:
+            th1, ls1 = law.advance(v, x, phi, th, lsn, dt, Gamma=G)
+        thn[...] = th1
+        lsn[...] = ls1
+        return 0
+
+    return law_step
+
+
+def _constants(lay: StateLayout) -> dict[str, Any]:
+    """The dimensions and constants the formulas read."""
+    return {"NX": lay.n, "NU": lay.m, "NY": lay.r, "NK": lay.k, "NP": lay.p,
+            "LS": lay.law_size, "IMPLICITNESS": IMPLICITNESS,
+            "BOUND_SQ": DIVERGENCE_BOUND ** 2}
+
+
+def _binding(pert: Perturbation, law: UpdateLaw | None, lay: StateLayout) -> dict[str, Any]:
+    """The formulas bound to NumPy, the perturbation and the law (kept while in use)."""
+    def names() -> dict[str, Any]:
+        out: dict[str, Any] = {**NUMPY, **_model_functions(pert, lay), **_constants(lay)}
+        if law is not None:       # the namespace holds the law: its id stays unique
+            out["law_step"] = _law_function(law, lay)
+        return out
+
+    return bound(pert, (id(law), lay), formulas.FORMULAS, names)
+
+
+def _work(lay: StateLayout, lead: tuple[int, ...]) -> tuple[FloatArray, ...]:
+    """Scratch buffers of :func:`formulas.advance` for rows of shape ``lead`` (per thread)."""
+    cache: dict[Any, tuple[FloatArray, ...]] | None = getattr(_scratch, "work", None)
+    if cache is None:
+        cache = _scratch.work = {}
+    key = (lay.n, lay.m, lay.r, lay.k, lay.p, lay.law_size, lead)
+    W = cache.get(key)
+    if W is None:
+        dims = {"NX": lay.n, "NY": lay.r, "NK": lay.k, "NP": lay.p, "NV": lay.m + lay.r,
+                "NQ": lay.n + lay.k, "LS1": lay.law_size}
+        W = tuple(np.zeros(lead + tuple(dims[d] for d in shape)) for _, shape in WORK)
+        if len(cache) > 32:
+            cache.clear()
+        cache[key] = W
+    return W
 
 
 def _shared(M: FloatArray) -> FloatArray:
-    """A plan matrix without its batch axis when the rows share it."""
-    return M[0] if M.shape[0] == 1 else M
+    """A plan array without its batch axis when all rows share it."""
+    return M[0] if M.ndim == 3 and M.shape[0] == 1 else M
 
 
-def observer_forcing(plan: StepPlan, pert: Perturbation, xz: FloatArray, th: FloatArray,
-                     u: FloatArray, y: FloatArray, correct: bool
-                     ) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
-    """Forcing F of (3a)–(3b) on (x̂, z) without the θ̂ term; returns (F, φ̂, ∂g/∂x, v).
-
-    Measured sample: F = L col(x̂, z) + [[B, K_x], [0, K_φ]] v + col(E g, −∂g/∂x K_x ỹ).
-    Missing sample (``correct=False``): v = col(u, C x̂) and F = col(A x̂ + B u + E φ̂, 0).
-
-    Parameters
-    ----------
-    plan : StepPlan
-    pert : Perturbation
-        g and its Jacobians.
-    xz : ndarray, shape (B, n + k)
-    th : ndarray, shape (B, p)
-    u : ndarray, shape (B, m)
-    y : ndarray, shape (B, r)
-    correct : bool
-
-    Returns
-    -------
-    F : ndarray, shape (B, n + k)
-    phi_hat : ndarray, shape (B, k)
-        φ̂ = g(v, x̂, θ̂) + z (3c).
-    Gx : ndarray, shape (B, k, n)
-    v : ndarray, shape (B, m + r)
-    """
-    n = plan.layout.n
-    x, z = xz[..., :n], xz[..., n:]
-    if correct:
-        v = np.concatenate((u, y), axis=-1)
-    else:
-        v = np.concatenate((u, x @ plan.C.T), axis=-1)
-    g = np.asarray(pert.g(v, x, th), dtype=np.float64)
-    Gx = np.asarray(pert.dg_dx(v, x, th), dtype=np.float64)
-    if correct:
-        F = _mv(plan.L, xz) + _mv(plan.Bv, v)
-        F[..., :n] += g @ plan.E.T
-        F[..., n:] -= _gmv(Gx, _mv(plan.K_x, y - x @ plan.C.T))
-    else:
-        F = np.zeros(xz.shape)
-        F[..., :n] = x @ plan.A.T + u @ plan.B.T + (g + z) @ plan.E.T
-    return F, g + z, Gx, v
+#: P and P2 per (plan, correct), kept while the plan is in use.
+_ARRAYS_KEPT = 64
+_arrays: OrderedDict[tuple[int, bool], tuple[object, tuple[Any, ...]]] = OrderedDict()
 
 
-def observer_jacobian(plan: StepPlan, pert: Perturbation, Gx: FloatArray, v: FloatArray,
-                      x: FloatArray, th: FloatArray, correct: bool) -> FloatArray:
-    """N = [[E ∂g/∂x, 0], [∂g/∂x K_x C, 0]] (measured) or [[E(∂g/∂x + ∂g/∂y C), 0], [0, 0]].
-
-    The linearisation ∂d/∂(x̂, φ̂) of the paper's d without the terms proportional to ỹ and
-    θ̂̇ (see :class:`~thetahat.estimation.observer.ModifiedHighGainObserver`, Notes).
-
-    Parameters
-    ----------
-    plan : StepPlan
-    pert : Perturbation
-    Gx : ndarray, shape (B, k, n)
-    v : ndarray, shape (B, m + r)
-    x : ndarray, shape (B, n)
-    th : ndarray, shape (B, p)
-    correct : bool
-
-    Returns
-    -------
-    ndarray, shape (B, n + k, n + k)
-    """
-    lay = plan.layout
-    n, q = lay.n, lay.n + lay.k
-    N = np.zeros(x.shape[:-1] + (q, q))
-    if correct:
-        N[..., :n, :n] = plan.E @ Gx
-        N[..., n:, :n] = Gx @ _shared(plan.KxC)
-    else:
-        Gv = np.asarray(pert.dg_dv(v, x, th), dtype=np.float64)
-        N[..., :n, :n] = plan.E @ (Gx + Gv[..., lay.m:] @ plan.C)
-    return N
+def _cached(plan: StepPlan | SecondPlan, correct: bool, build: Callable[[], tuple[Any, ...]]
+            ) -> tuple[Any, ...]:
+    key = (id(plan), correct)
+    hit = _arrays.get(key)
+    if hit is not None and hit[0] is plan:
+        return hit[1]
+    arrays = build()
+    _arrays[key] = (plan, arrays)
+    if len(_arrays) > _ARRAYS_KEPT:
+        _arrays.popitem(last=False)
+    return arrays
 
 
-def second_forcing(plan: SecondPlan, pert: Perturbation, x2: FloatArray, u: FloatArray,
-                   y: FloatArray, th: FloatArray, correct: bool
-                   ) -> tuple[FloatArray, FloatArray]:
-    """F = A x̂₂ + B u + E g(v̄, x̂₂, θ̂) + K_x2 (y − C x̂₂) (Sec. VI); returns (F, v̄).
-
-    v̄ = col(u, C x̂₂) with ``g_on_estimates`` or for a missing sample (no injection then),
-    else col(u, y).
-
-    Parameters
-    ----------
-    plan : SecondPlan
-    pert : Perturbation
-    x2 : ndarray, shape (B, n)
-    u : ndarray, shape (B, m)
-    y : ndarray, shape (B, r)
-    th : ndarray, shape (B, p)
-        θ̂ at the start of the step.
-    correct : bool
-
-    Returns
-    -------
-    F : ndarray, shape (B, n)
-    v_bar : ndarray, shape (B, m + r)
-    """
-    y_hat = x2 @ plan.C.T
-    v = np.concatenate((u, y_hat if plan.g_on_estimates or not correct else y), axis=-1)
-    g = np.asarray(pert.g(v, x2, th), dtype=np.float64)
-    F = x2 @ plan.A.T + u @ plan.B.T + g @ plan.E.T
-    if correct:
-        F = F + _mv(plan.K_x, y - y_hat)
-    return F, v
+def _plan_arrays(plan: StepPlan, correct: bool) -> tuple[FloatArray, ...]:
+    """P of the formulas: the plan's arrays with the φ-matrices of this step."""
+    def build() -> tuple[FloatArray, ...]:
+        Phi1, Phi2 = (plan.Phi1, plan.Phi2) if correct else _prediction_phis(plan)
+        return tuple(_shared(M) for M in (plan.L, plan.Bv, plan.E, plan.C, plan.A, plan.B,
+                                           plan.K_x, plan.KxC, Phi1, Phi2))
+    return _cached(plan, correct, build)
 
 
-def second_jacobian(plan: SecondPlan, pert: Perturbation, v: FloatArray, x2: FloatArray,
-                    th: FloatArray, correct: bool) -> FloatArray:
-    """N = E ∂g/∂x, plus E ∂g/∂y C where g sees C x̂₂ (the exact Jacobian of F in x̂₂).
+def _second_arrays(plan: SecondPlan | None, correct: bool) -> tuple[Any, ...]:
+    """P2 of the formulas (empty without a second observer)."""
+    if plan is None:
+        return ()
 
-    Parameters
-    ----------
-    plan : SecondPlan
-    pert : Perturbation
-    v : ndarray, shape (B, m + r)
-        v̄ of :func:`second_forcing`.
-    x2 : ndarray, shape (B, n)
-    th : ndarray, shape (B, p)
-    correct : bool
-
-    Returns
-    -------
-    ndarray, shape (B, n, n)
-    """
-    Jg = np.asarray(pert.dg_dx(v, x2, th), dtype=np.float64)
-    if plan.g_on_estimates or not correct:
-        m = plan.B.shape[1]
-        Jg = Jg + np.asarray(pert.dg_dv(v, x2, th), dtype=np.float64)[..., m:] @ plan.C
-    return plan.E @ Jg
+    def build() -> tuple[FloatArray, ...]:
+        assert plan is not None
+        Phi1, Phi2 = (plan.Phi1, plan.Phi2) if correct else _prediction_phis(plan)
+        return tuple(_shared(M) for M in (plan.A, plan.B, plan.C, plan.E, plan.K_x, Phi1,
+                                           Phi2))
+    return _cached(plan, correct, build)
 
 
 def _prediction_phis(plan: StepPlan | SecondPlan) -> tuple[FloatArray, FloatArray]:
@@ -210,19 +179,112 @@ def _prediction_phis(plan: StepPlan | SecondPlan) -> tuple[FloatArray, FloatArra
     return plan.Phi1_open, plan.Phi2_open
 
 
-def second_advance(plan: SecondPlan, pert: Perturbation, x2: FloatArray, u0: FloatArray,
-                   y0: FloatArray, th: FloatArray, dt: float, correct: bool,
-                   u1: FloatArray | None = None, y1: FloatArray | None = None) -> FloatArray:
-    """One step of the second observer (ZOH, or FOH to ``u1``, ``y1``); shape (B, n).
+def observer_forcing(plan: StepPlan, pert: Perturbation, xz: FloatArray, th: FloatArray,
+                     u: FloatArray, y: FloatArray, correct: bool
+                     ) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
+    """Forcing F of (3a)–(3b) on (x̂, z) without the θ̂ term; returns (F, φ̂, ∂g/∂x, v).
+
+    :func:`formulas.observer_forcing <thetahat.estimation.formulas.observer_forcing>` on
+    NumPy arrays (for the continuous-time :meth:`rhs
+    <thetahat.estimation.observer.ModifiedHighGainObserver.rhs>`).
+
+    Parameters
+    ----------
+    plan : StepPlan
+    pert : Perturbation
+        g and its Jacobians.
+    xz : ndarray, shape (..., n + k)
+    th : ndarray, shape (..., p)
+    u : ndarray, shape (..., m)
+    y : ndarray, shape (..., r)
+    correct : bool
+
+    Returns
+    -------
+    F : ndarray, shape (..., n + k)
+    phi_hat : ndarray, shape (..., k)
+        φ̂ = g(v, x̂, θ̂) + z (3c).
+    Gx : ndarray, shape (..., k, n)
+    v : ndarray, shape (..., m + r)
+    """
+    lay = plan.layout
+    n, k = lay.n, lay.k
+    env = _binding(pert, None, lay)
+    s = np.concatenate((xz, th), axis=-1)
+    lead = s.shape[:-1]
+    v, g = np.empty(lead + (lay.m + lay.r,)), np.empty(lead + (k,))
+    Gx, F = np.empty(lead + (k, n)), np.empty(lead + (n + k,))
+    env["observer_forcing"]((plan.L, plan.Bv, plan.E, plan.C, plan.A, plan.B, plan.K_x),
+                            s, u, y, correct, v, g, Gx, F, np.empty(lead + (lay.r,)),
+                            np.empty(lead + (n,)))
+    return F, g + xz[..., n:], Gx, v
+
+
+def second_forcing(plan: SecondPlan, pert: Perturbation, x2: FloatArray, u: FloatArray,
+                   y: FloatArray, th: FloatArray, correct: bool
+                   ) -> tuple[FloatArray, FloatArray]:
+    """F = A x̂₂ + B u + E g(v̄, x̂₂, θ̂) + K_x2 (y − C x̂₂) (Sec. VI); returns (F, v̄).
+
+    :func:`formulas.second_forcing <thetahat.estimation.formulas.second_forcing>` on NumPy
+    arrays.
 
     Parameters
     ----------
     plan : SecondPlan
     pert : Perturbation
-    x2 : ndarray, shape (B, n)
-    u0, y0 : ndarray, shapes (B, m), (B, r)
+    x2 : ndarray, shape (..., n)
+    u : ndarray, shape (..., m)
+    y : ndarray, shape (..., r)
+    th : ndarray, shape (..., p)
+        θ̂ at the start of the step.
+    correct : bool
+
+    Returns
+    -------
+    F : ndarray, shape (..., n)
+    v_bar : ndarray, shape (..., m + r)
+    """
+    lay = _second_layout(pert)
+    s = _second_state(lay, x2, th)
+    lead = s.shape[:-1]
+    env = _binding(pert, None, lay)
+    v2, F2 = np.empty(lead + (lay.m + lay.r,)), np.empty(lead + (lay.n,))
+    env["second_forcing"](_second_arrays(plan, True), s, u, y, correct, plan.g_on_estimates,
+                          v2, np.empty(lead + (lay.k,)), np.empty(lead + (lay.k, lay.n)), F2,
+                          np.empty(lead + (lay.r,)))
+    return F2, v2
+
+
+def _second_layout(pert: Perturbation) -> StateLayout:
+    n, m, r, p, k = pert.dims
+    return StateLayout(n=n, m=m, r=r, k=k, p=p, second=True, law_size=0)
+
+
+def _second_state(lay: StateLayout, x2: FloatArray, th: FloatArray) -> FloatArray:
+    """A state row col(0, 0, θ̂, x̂₂) for the second observer's formulas alone."""
+    lead = np.broadcast_shapes(x2.shape[:-1], th.shape[:-1])
+    s = np.zeros(lead + (lay.size,))
+    s[..., lay.theta] = th
+    s[..., lay.x2] = x2
+    return s
+
+
+def second_advance(plan: SecondPlan, pert: Perturbation, x2: FloatArray, u0: FloatArray,
+                   y0: FloatArray, th: FloatArray, dt: float, correct: bool,
+                   u1: FloatArray | None = None, y1: FloatArray | None = None) -> FloatArray:
+    """One step of the second observer alone (ZOH, or FOH to ``u1``, ``y1``); shape (..., n).
+
+    The second observer's part of :func:`formulas.advance
+    <thetahat.estimation.formulas.advance>`.
+
+    Parameters
+    ----------
+    plan : SecondPlan
+    pert : Perturbation
+    x2 : ndarray, shape (..., n)
+    u0, y0 : ndarray, shapes (..., m), (..., r)
         Samples at the start of the step.
-    th : ndarray, shape (B, p)
+    th : ndarray, shape (..., p)
     dt : float
     correct : bool
         False: the sample is missing (prediction).
@@ -231,23 +293,35 @@ def second_advance(plan: SecondPlan, pert: Perturbation, x2: FloatArray, u0: Flo
 
     Returns
     -------
-    ndarray, shape (B, n)
+    ndarray, shape (..., n)
     """
-    F, v = second_forcing(plan, pert, x2, u0, y0, th, correct)
-    N = second_jacobian(plan, pert, v, x2, th, correct)
-    F_dot = None
-    if u1 is not None:
-        F1 = second_forcing(plan, pert, x2, u1, y0 if y1 is None else y1, th, correct)[0]
-        F_dot = (F1 - F) / dt
-    if correct:
-        return batched_step(x2, F, N, plan.Phi1, plan.Phi2, F_dot)
-    return batched_step(x2, F, N, *_prediction_phis(plan), F_dot)
+    lay = _second_layout(pert)
+    n = lay.n
+    env = _binding(pert, None, lay)
+    s = _second_state(lay, x2, th)
+    lead = s.shape[:-1]
+    W = _work(lay, lead)
+    v2, g2, Gx2, Gy2, F2, Fd2, N2, M2, rhs2, w2 = W[17:]
+    P2 = _second_arrays(plan, correct)
+    foh = u1 is not None
+    out = np.empty_like(s)
+    env["second_forcing"](P2, s, u0, y0, correct, plan.g_on_estimates, v2, g2, Gx2, F2, w2)
+    env["second_jacobian"](P2, s, v2, correct, plan.g_on_estimates, Gx2, Gy2, N2)
+    if foh:
+        env["second_forcing"](P2, s, u1, y0 if y1 is None else y1, correct,
+                              plan.g_on_estimates, v2, g2, Gx2, Fd2, w2)
+        Fd2 -= F2
+        Fd2 /= dt
+    env["implicit_step"](n, P2[5], P2[6], F2, Fd2, foh, N2, s, lay.n + lay.k + lay.p, out,
+                         M2, rhs2)
+    return out[..., lay.x2]
 
 
 def advance(plan: StepPlan, pert: Perturbation, law: UpdateLaw, s: FloatArray, u0: FloatArray,
             y0: FloatArray, dt: float, correct: bool, u1: FloatArray | None = None,
             y1: FloatArray | None = None) -> FloatArray:
-    """One step of the whole estimator for B rows: (3a)–(3c), (8), Sec. VI; shape (B, size).
+    """One step of the whole estimator for B rows: :func:`formulas.advance
+    <thetahat.estimation.formulas.advance>` on NumPy arrays; shape (B, size).
 
     Rows whose φ̂ is not finite come back as NaN (the caller reports the divergence).
 
@@ -258,7 +332,7 @@ def advance(plan: StepPlan, pert: Perturbation, law: UpdateLaw, s: FloatArray, u
     pert : Perturbation
     law : UpdateLaw
         Shared by the rows; Γ per row comes from ``plan.Gamma``.
-    s : ndarray, shape (B, size)
+    s : ndarray, shape (B, size) or (size,)
     u0, y0 : ndarray, shapes (B, m), (B, r)
         Samples at the start of the step (y0 finite when ``correct``).
     dt : float
@@ -270,64 +344,39 @@ def advance(plan: StepPlan, pert: Perturbation, law: UpdateLaw, s: FloatArray, u
 
     Returns
     -------
-    ndarray, shape (B, size)
+    ndarray, shape (B, size) or (size,)
+
+    Raises
+    ------
+    UpdateLawError
+        θ* invalid where the weight is positive (``on_invalid='raise'``).
     """
     lay = plan.layout
-    n, k = lay.n, lay.k
-    q = n + k
-    xz, x, th = s[..., :q], s[..., :n], s[..., lay.theta]
-    F, phi, Gx, v = observer_forcing(plan, pert, xz, th, u0, y0, correct)
-    finite = True if math.isfinite(float(phi.sum())) else np.isfinite(phi).all(axis=-1)
-    if not np.all(finite):            # g overflowed at a finite state: report the divergence
-        if s.ndim == 1:
-            return np.full_like(s, np.nan)
-        out = np.full_like(s, np.nan)
-        good = np.flatnonzero(finite)
+    env = _binding(pert, law, lay)
+    W = _work(lay, s.shape[:-1])
+    out = np.empty_like(s)
+    G = plan.Gamma if plan.Gamma is not None and plan.Gamma.shape[0] > 1 else None
+    second = plan.second is not None
+    foh = u1 is not None
+    status = env["advance"](
+        _plan_arrays(plan, correct), _second_arrays(plan.second, correct), (G,), s, u0, y0,
+        u1, y0 if (y1 is None or not correct) else y1, dt, correct, foh, second,
+        second and plan.second is not None and plan.second.g_on_estimates, out, W)
+    if status == 0:
+        return out
+    if status >= 2:                   # the law's own check raises first; kept for safety
+        raise invalid_theta_star_error(type(law).__name__, status - 1)
+    phi = W[10]                       # status 1: φ̂ not finite in some rows
+    if s.ndim == 1:
+        return np.full_like(s, np.nan)
+    finite = np.isfinite(phi).all(axis=-1)
+    out = np.full_like(s, np.nan)
+    good = np.flatnonzero(finite)
+    if good.size:
         out[good] = advance(plan.rows(good), pert, law, s[good], u0[good], y0[good], dt,
                             correct, None if u1 is None else u1[good],
                             None if y1 is None else y1[good])
-        return out
-    th_next, ls_next = th, s[..., lay.law]
-    z_theta = None
-    if correct:
-        if s.ndim == 1:
-            th1, ls1 = law.advance(v, x, phi, th, ls_next, dt)
-            th_next = np.asarray(th1, dtype=np.float64).reshape(lay.p)
-            ls_next = np.asarray(ls1, dtype=np.float64).reshape(lay.law_size)
-            d_th = th_next - th
-            if d_th.any():            # skip ∂g/∂θ while θ̂ rests (held, l = 0, ...)
-                z_theta = -(np.asarray(pert.dg_dtheta(v, x, th), dtype=np.float64) @ d_th) / dt
-                F[n:] += z_theta
-        else:
-            G = plan.Gamma if plan.Gamma is not None and plan.Gamma.shape[0] > 1 else None
-            th_next, ls_next = law.advance(v, x, phi, th, ls_next, dt, Gamma=G)
-            d_th = th_next - th
-            moving = np.flatnonzero(np.any(d_th != 0, axis=1))
-            if moving.size:           # skip ∂g/∂θ for the rows whose θ̂ rests
-                z_theta = np.zeros((s.shape[0], k))
-                Gth = np.asarray(pert.dg_dtheta(v[moving], x[moving], th[moving]),
-                                 dtype=np.float64)
-                z_theta[moving] = -_gmv(Gth, d_th[moving]) / dt
-                F[:, n:] += z_theta
-    N = observer_jacobian(plan, pert, Gx, v, x, th, correct)
-    F_dot = None
-    if u1 is not None:
-        F1 = observer_forcing(plan, pert, xz, th, u1, y1 if (correct and y1 is not None)
-                              else y0, correct)[0]
-        if z_theta is not None:
-            F1[..., n:] += z_theta
-        F_dot = (F1 - F) / dt
-    if correct:
-        xz_next = batched_step(xz, F, N, plan.Phi1, plan.Phi2, F_dot)
-    else:
-        xz_next = batched_step(xz, F, N, *_prediction_phis(plan), F_dot)
-    parts = [xz_next, th_next]
-    if plan.second is not None:
-        parts.append(second_advance(plan.second, pert, s[..., lay.x2], u0, y0, th, dt,
-                                    correct, u1, y1 if correct else None))
-    if lay.law_size:
-        parts.append(ls_next)
-    return np.concatenate(parts, axis=-1)
+    return out
 
 
 def diverged(s: FloatArray) -> NDArray[np.bool_]:
@@ -348,13 +397,11 @@ def diverged(s: FloatArray) -> NDArray[np.bool_]:
     [False, True, True]
     """
     with np.errstate(over="ignore", invalid="ignore"):
-        total = float(np.vdot(s, s))
         if s.ndim == 1:
-            return np.array(not total <= DIVERGENCE_BOUND ** 2)
-        if total <= DIVERGENCE_BOUND ** 2:     # every row is fine (one dot product decides)
+            return np.array(not _within_bound(s, s.shape[-1]))
+        if _within_bound(s.reshape(-1), s.size):   # every row is fine: one dot product decides
             return np.zeros(s.shape[0], dtype=bool)
-        sq = np.einsum("ij,ij->i", s, s)
-    return ~(sq <= DIVERGENCE_BOUND ** 2)
+        return ~_within_bound(s, s.shape[-1])
 
 
 def divergence_error(where: str) -> NonFiniteError:
