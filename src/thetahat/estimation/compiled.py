@@ -22,11 +22,18 @@ machine code. Supported:
 
 Everything else raises :class:`~thetahat.errors.UnsupportedError` (a NotImplementedError) naming the part; use the Python observer.
 
-The generated source is written to a cache directory (``$THETAHAT_CACHE_DIR``, default
+The kernel is not a transcription: :mod:`~thetahat.estimation.scalar_backend` emits the
+step's formulas (:mod:`~thetahat.estimation.formulas`,
+:mod:`~thetahat.estimation.law_formulas`) as written, with the scalar primitives of one row
+(:mod:`~thetahat.estimation.scalar_primitives`) and g, its Jacobians and θ* printed from their
+SymPy expressions; this module checks the observer's parts, lays its
+:class:`~thetahat.estimation.plan.StepPlan` out for the kernel (:func:`kernel_arrays`) and
+calls it. The module is written to a cache directory (``$THETAHAT_CACHE_DIR``, default
 ``~/.cache/thetahat``, else a temporary directory) under a name that hashes its content, and
-compiled with ``numba.njit(cache=True)``: the first compilation of a model costs a few
-seconds, later processes load the machine code from disk. The gains, ε, Γ, Θ, the ramp and dt
-are data, not code: observers that differ only in them share one kernel.
+compiled with ``numba.njit(cache=True)``: the first compilation of a model and law formula
+costs 20–40 s, later processes load the machine code from disk. The gains, ε, Γ, Θ, the
+ramp, ``on_invalid``, the second observer and dt are data, not code: observers that differ
+only in them share one kernel.
 
 numba is the optional extra ``speed``; without it this module imports, and
 :func:`compile_observer` raises :class:`ImportError`.
@@ -34,32 +41,29 @@ numba is the optional extra ``speed``; without it this module imports, and
 
 from __future__ import annotations
 
-import re
-from collections.abc import Sequence
 from dataclasses import dataclass
 from types import ModuleType
 from typing import Any, NoReturn
 
 import numpy as np
-import sympy as sp
 from numpy.typing import NDArray
-from sympy.printing.pycode import PythonCodePrinter
 
 from .._validate import as_vector, positive_scalar
 from ..errors import DimensionError, MissingExtraError, UnsupportedError
 from ..model.paramset import Box
-from ..model.perturbation import SymbolicPerturbation, numpy_ready
-from ._kernel_template import CORE
-from .discretize import IMPLICITNESS
+from ..model.perturbation import SymbolicPerturbation
 from .kernel_cache import load_module
 from .observer import ModifiedHighGainObserver, ObserverResult
-from .plan import StepPlan
+from .formulas import WORK
+from .plan import StateLayout, StepPlan
+from .scalar_backend import LAWS, kernel_source
 from .step import DIVERGENCE_BOUND, divergence_error
 from .theta_star import ThetaStar
-from .update_laws import (FAR, ConstantLaw, GradientInversion, IntermittentInversion, SmoothRamp,
+from .update_laws import (ConstantLaw, GradientInversion, IntermittentInversion, SmoothRamp,
                           invalid_theta_star_error)
 
-__all__ = ["CompiledObserver", "KernelParts", "compile_observer", "kernel_parts"]
+__all__ = ["CompiledObserver", "KernelParts", "compile_observer", "kernel_arrays", "kernel_parts",
+           "kernel_work"]
 
 FloatArray = NDArray[np.float64]
 
@@ -85,200 +89,6 @@ def _require_numba() -> Any:
                           "run/step, or thetahat.estimation.batch_run.run_batch for many "
                           "runs.") from exc
     return numba
-
-
-# --------------------------------------------------------------------------- code generation
-class _Printer(PythonCodePrinter):
-    """Python printer for numba: ``math`` functions, and no partially printed code."""
-
-    def __init__(self) -> None:
-        try:
-            super().__init__({"fully_qualified_modules": True, "strict": True})
-        except TypeError:               # SymPy < 1.13 has no "strict": checked in doprint
-            super().__init__({"fully_qualified_modules": True})
-
-    def doprint(self, expr: Any, assign_to: Any = None) -> str:
-        """Code for ``expr``; raises instead of printing a "not supported" comment."""
-        code = super().doprint(expr, assign_to)
-        if "Not supported" in code:
-            raise UnsupportedError(f"SymPy cannot print {expr} as Python code: {code}")
-        return code
-
-
-def _scalar_function(name: str, params: str, inputs: Sequence[tuple[str, Sequence[sp.Symbol]]],
-                     outputs: Sequence[tuple[str, sp.Matrix]]) -> str:
-    """Source of ``def name(params)`` computing the entries of ``outputs`` from ``inputs``.
-
-    ``inputs`` pairs an element template such as ``"w[o_v + {}]"`` with the symbols stored
-    at its positions 0, 1, …; ``outputs`` pairs a template with a matrix whose entries are
-    written at the row-major positions. Common subexpressions are computed once.
-    """
-    subs: dict[sp.Symbol, sp.Symbol] = {}
-    lines = ["@njit(cache=True, error_model='numpy')", f"def {name}({params}):"]
-    for template, symbols in inputs:
-        for i, s in enumerate(symbols):
-            local = sp.Symbol(f"_s{len(subs)}")
-            subs[s] = local
-            lines.append(f"    {local} = {template.format(i)}")
-    flat, targets = [], []
-    for template, M in outputs:
-        for i in range(M.rows):
-            for j in range(M.cols):
-                flat.append(numpy_ready(sp.sympify(M[i, j])).xreplace(subs))
-                targets.append(template.format(i * M.cols + j))
-    replacements, reduced = sp.cse(flat, symbols=sp.numbered_symbols("_c"))
-    printer = _Printer()
-    try:
-        for sym, e in replacements:
-            lines.append(f"    {sym} = {printer.doprint(e)}")
-        for target, e in zip(targets, reduced):
-            lines.append(f"    {target} = {printer.doprint(e)}")
-    except Exception as exc:  # SymPy's printer raises several types
-        raise UnsupportedError(f"compile_observer cannot print {name[1:]} as numba code "
-                                  f"({exc}); rewrite it with elementary functions or use the "
-                                  "Python observer.") from exc
-    lines.append("    return 0")
-    return "\n".join(lines) + "\n"
-
-
-def _model_source(pert: SymbolicPerturbation, theta_star: tuple[sp.Expr, ...] | None,
-                  ts_args: tuple[sp.Symbol, ...] | None) -> str:
-    """The model functions: g, (g, ∂g/∂x), ∂g/∂θ, ∂g/∂v and θ* as scalar code.
-
-    Each reads v from the work vector w at ``o_v``, x and θ from row ``i`` of a state array S
-    at ``o_x`` and ``o_t``, and writes its outputs into w at the given offsets.
-    """
-    n, m, r, _, _ = pert.dims
-    params = "w, S, i, o_v, o_x, o_t"
-    ins = [("w[o_v + {}]", (*pert.u, *pert.y)), ("S[i, o_x + {}]", pert.x),
-           ("S[i, o_t + {}]", pert.theta)]
-    g = sp.Matrix(pert.expr)
-    parts = [
-        _scalar_function("_g", params + ", o_g", ins, [("w[o_g + {}]", g)]),
-        _scalar_function("_g_dx", params + ", o_g, o_gx", ins,
-                         [("w[o_g + {}]", g), ("w[o_gx + {}]", pert.jacobian("x"))]),
-        _scalar_function("_dg_dtheta", params + ", o_gt", ins,
-                         [("w[o_gt + {}]", pert.jacobian("theta"))]),
-        _scalar_function("_dg_dv", params + ", o_gv", ins,
-                         [("w[o_gv + {}]", pert.jacobian("v"))]),
-    ]
-    ts_params = "w, S, i, o_v, o_x, o_phi, o_out"
-    if theta_star is None:
-        parts.append("@njit(cache=True, error_model='numpy')\n"
-                     f"def _theta_star({ts_params}):\n"
-                     "    for j in range(NP):\n        w[o_out + j] = math.nan\n"
-                     "    return 0\n")
-    else:
-        ts_args = ts_args or ()
-        ins = [("w[o_v + {}]", ts_args[:m + r]), ("S[i, o_x + {}]", ts_args[m + r:m + r + n]),
-               ("w[o_phi + {}]", ts_args[m + r + n:])]
-        parts.append(_scalar_function("_theta_star", ts_params, ins,
-                                      [("w[o_out + {}]", sp.Matrix(theta_star))]))
-    return "\n\n".join(parts)
-
-
-Layout = dict[str, tuple[int, tuple[int, ...]]]
-
-
-def _layout(blocks: Sequence[tuple[str, tuple[int, ...]]]) -> tuple[Layout, int]:
-    """Offsets of named blocks packed one after the other into a flat vector."""
-    out: Layout = {}
-    offset = 0
-    for name, shape in blocks:
-        out[name] = (offset, shape)
-        offset += int(np.prod(shape, dtype=np.int64))
-    return out, offset
-
-
-def _layouts(n: int, m: int, r: int, k: int, p: int) -> tuple[Layout, int, Layout, int]:
-    """Layouts of the constants vector P and of the work vector w."""
-    nz, nv = n + k, m + r
-    consts, P_size = _layout([
-        ("L", (nz, nz)), ("Bv", (nz, nv)), ("KxC", (n, n)), ("Kx", (n, r)), ("C", (r, n)),
-        ("E", (n, k)), ("Phi1", (nz, nz)), ("A", (n, n)), ("Bm", (n, m)), ("K2", (n, r)),
-        ("Phi12", (n, n)), ("lower", (p,)), ("upper", (p,)), ("Gam", (p, p)), ("ramp", (2,)),
-        ("flags", (4,))])
-    work, W_size = _layout([
-        ("v", (nv,)), ("g", (k,)), ("Gx", (k, n)), ("Gth", (k, p)), ("Gv", (k, nv)),
-        ("F", (nz,)), ("Nm", (nz, nz)), ("M", (nz, nz)), ("rhs", (nz,)), ("phi", (k,)),
-        ("thn", (p,)), ("dth", (p,)), ("innov", (r,)), ("kin", (n,)), ("ts", (p,)),
-        ("resid", (k,)), ("GM", (p, k)), ("fvec", (p,)), ("Kmat", (p, p)),
-        ("Zm", (p + 1, p + 1)), ("Ex", (p + 1, p + 1)), ("T1", (p + 1, p + 1)),
-        ("T2", (p + 1, p + 1)), ("v2", (nv,)), ("yhat", (r,)), ("g2", (k,)),
-        ("Gx2", (k, n)), ("Gv2", (k, nv)), ("F2", (n,)), ("N2", (n, n)), ("M2", (n, n)),
-        ("rhs2", (n,)), ("inn2", (r,))])
-    return consts, P_size, work, W_size
-
-
-def _expand(template: str, layouts: Sequence[tuple[str, str, Layout]],
-            state: dict[str, str]) -> str:
-    """Rewrite ``Name[i]`` / ``Name[i, j]`` of the named blocks into flat indexing.
-
-    A block of the constants (``"P"``) or work (``"w"``) vector becomes
-    ``P[P_Name + (i) * cols + (j)]``; a part of the state (``state`` maps its name to an offset
-    expression) becomes ``Sin[iin, offset + (i)]``. Numba then indexes one flat array instead
-    of creating array views, which cost reference counting on every sample.
-    """
-    rules: dict[str, Any] = {}
-    for array, prefix, layout in layouts:
-        for name, (_, shape) in layout.items():
-            rules[name] = (array, f"{prefix}_{name}", shape)
-    names = sorted({*rules, *state}, key=len, reverse=True)
-    pattern = re.compile(r"(?<![\w.])(" + "|".join(map(re.escape, names)) + r")\[")
-    out, pos = [], 0
-    for match in pattern.finditer(template):
-        if match.start() < pos:
-            continue
-        depth, end = 1, match.end()
-        while depth:
-            depth += {"[": 1, "]": -1}.get(template[end], 0)
-            end += 1
-        index = [part.strip() for part in _split_index(template[match.end():end - 1])]
-        name = match.group(1)
-        if name in state:
-            text = f"Sin[iin, {state[name]} + ({index[0]})]"
-        else:
-            array, offset, shape = rules[name]
-            flat = (f"({index[0]})" if len(shape) == 1
-                    else f"({index[0]}) * {shape[1]} + ({index[1]})")
-            text = f"{array}[{offset} + {flat}]"
-        out.append(template[pos:match.start()] + text)
-        pos = end
-    out.append(template[pos:])
-    return "".join(out)
-
-
-def _split_index(text: str) -> list[str]:
-    """Split an index expression at its top-level commas."""
-    parts, depth, start = [], 0, 0
-    for i, ch in enumerate(text):
-        depth += {"[": 1, "(": 1, "]": -1, ")": -1}.get(ch, 0)
-        if ch == "," and depth == 0:
-            parts.append(text[start:i])
-            start = i + 1
-    parts.append(text[start:])
-    return parts
-
-
-
-def _kernel_source(pert: SymbolicPerturbation, theta_star: tuple[sp.Expr, ...] | None,
-                   ts_args: tuple[sp.Symbol, ...] | None) -> str:
-    """The complete source of the kernel module of one model and configuration."""
-    n, m, r, p, k = pert.dims
-    consts, P_size, work, W_size = _layouts(n, m, r, k, p)
-    header = [
-        '"""Generated by thetahat.estimation.compiled; do not edit (content-addressed)."""',
-        "import math", "import numpy as np", "from numba import njit", "",
-        f"NX, NU, NY, NK, NP = {n}, {m}, {r}, {k}, {p}",
-        "NZ, NV = NX + NK, NU + NY",
-        f"IMPLICITNESS = {IMPLICITNESS!r}", f"FAR = {FAR!r}",
-        f"BOUND_SQ = {DIVERGENCE_BOUND ** 2!r}",
-        f"P_SIZE = {P_size}", f"W_SIZE = {W_size}"]
-    header += [f"P_{name} = {off}" for name, (off, _) in consts.items()]
-    header += [f"W_{name} = {off}" for name, (off, _) in work.items()]
-    core = _expand(CORE, [("P", "P", consts), ("w", "W", work)],
-                   {"x": "0", "z": "NX", "th": "NZ", "x2": "NZ + NP"})
-    return "\n".join(header) + "\n\n\n" + _model_source(pert, theta_star, ts_args) + core
 
 
 def _load(source: str) -> ModuleType:
@@ -441,7 +251,7 @@ class CompiledObserver:
     theta_star: ThetaStar | None
     plan: StepPlan
     _kernel: ModuleType
-    _P: FloatArray
+    _args: tuple[tuple[Any, ...], ...]
 
     def __init__(self, observer: ModifiedHighGainObserver, *, dt: float) -> None:
         _require_numba()
@@ -452,12 +262,11 @@ class CompiledObserver:
         parts = kernel_parts(observer)
         ts = parts.theta_star
         plan = observer.plan(h)
-        source = _kernel_source(parts.perturbation,
-                                None if ts is None else ts.expr,
-                                None if ts is None else ts.arguments)
+        source = kernel_source(parts.perturbation, None if ts is None else ts.expr,
+                               None if ts is None else ts.arguments, LAWS[parts.code])
         for name, value in (("observer", observer), ("dt", h), ("theta_star", ts),
                             ("plan", plan), ("_kernel", _load(source)),
-                            ("_P", _constants(parts, plan))):
+                            ("_args", kernel_arrays(parts, plan))):
             object.__setattr__(self, name, value)
 
     @property
@@ -481,8 +290,8 @@ class CompiledObserver:
         return self.observer.init(x_hat0, theta_hat0, z0, x_hat_refined0=x_hat_refined0)
 
     def _raise(self, status: int, where: str) -> NoReturn:
-        if status == 2:
-            raise invalid_theta_star_error(type(self.observer.update_law).__name__, 1)
+        if status >= 2:
+            raise invalid_theta_star_error(type(self.observer.update_law).__name__, status - 1)
         raise divergence_error(where)
 
     def step(self, state: Any, u: Any, y: Any) -> FloatArray:
@@ -513,8 +322,9 @@ class CompiledObserver:
         lay = obs.layout
         s = _as_input("state", state, lay.size)
         out = np.empty(lay.size)
-        status = self._kernel.step(s, _as_input("u", np.empty(0) if u is None else u, lay.m),
-                                   _as_input("y", y, lay.r), self.dt, self._P, out)
+        status = self._kernel.kernel_step(
+            s, _as_input("u", np.empty(0) if u is None else u, lay.m), _as_input("y", y, lay.r),
+            self.dt, *self._args[:3], *self._args[3], kernel_work(lay)[0], out)
         if status == 0 and float(out @ out) <= DIVERGENCE_BOUND ** 2:
             return out
         # something is wrong: find out what, with the observer's own checks and messages
@@ -566,7 +376,8 @@ class CompiledObserver:
         s0 = _kernel_array(obs.init() if state0 is None else obs.check_state(state0))
         S = np.empty((N, lay.size))
         PHI = np.empty((N, lay.k))
-        status, index = self._kernel.run(s0, U, Y, dts, self._P, S, PHI)
+        status, index = self._kernel.kernel_run(s0, U, Y, dts, *self._args[:3], *self._args[3],
+                                                *kernel_work(lay), S, PHI)
         if status:
             i = int(index)
             self._raise(int(status), f"in the step from t[{i}] = {t_[i]!r}")
@@ -591,29 +402,75 @@ def _no_prediction() -> UnsupportedError:
                                "step/run or run_batch.")
 
 
-def _constants(parts: KernelParts, plan: StepPlan) -> FloatArray:
-    """The constants vector P from the plan: matrices, φ-matrices, Θ, Γ, ramp and the flags."""
+def kernel_arrays(parts: KernelParts, plan: StepPlan) -> tuple[tuple[Any, ...], ...]:
+    """(P, P2, LP, flags): the plan's arrays for one row, the second observer's, the law's,
+    and (a second observer is attached, its g sees C x̂₂): what the kernel takes.
+
+    See :mod:`~thetahat.estimation.formulas` for P and P2 and
+    :mod:`~thetahat.estimation.law_formulas` for the law's LP (with the box Θ and the ramp at
+    :data:`~thetahat.estimation.scalar_backend.LAW_BOX`). Writable, C-contiguous copies:
+    numba compiles one specialisation per array type.
+
+    Parameters
+    ----------
+    parts : KernelParts
+    plan : StepPlan
+        For one row.
+
+    Returns
+    -------
+    tuple
+    """
     lay = plan.layout
-    consts, P_size, _, _ = _layouts(lay.n, lay.m, lay.r, lay.k, lay.p)
-    second = plan.second
-    values = {"L": plan.L[0], "Bv": plan.Bv[0], "KxC": plan.KxC[0], "Kx": plan.K_x[0],
-              "C": plan.C, "E": plan.E, "Phi1": plan.Phi1[0], "A": plan.A,
-              "Bm": plan.B, "lower": parts.box.lower, "upper": parts.box.upper,
-              "Gam": np.eye(lay.p) if plan.Gamma is None else plan.Gamma[0]}
-    if second is not None:
-        values["K2"] = second.K_x[0]
-        values["Phi12"] = second.Phi1[0]
-    if parts.ramp is not None:
-        values["ramp"] = np.array(parts.ramp)
-    values["flags"] = np.array([parts.code, parts.freeze, second is not None,
-                                second is not None and second.g_on_estimates], dtype=np.float64)
-    P = np.zeros(P_size)
-    for name, (off, shape) in consts.items():
-        if name in values:
-            P[off:off + int(np.prod(shape, dtype=np.int64))] = np.asarray(
-                values[name], dtype=np.float64).reshape(shape).ravel()
-    P.setflags(write=False)
-    return P
+    n, m, r, k, p = lay.n, lay.m, lay.r, lay.k, lay.p
+
+    def own(a: Any) -> FloatArray:
+        return np.array(a, dtype=np.float64, order="C", copy=True)
+
+    P = tuple(own(a) for a in (plan.L[0], plan.Bv[0], plan.E, plan.C, plan.A, plan.B,
+                               plan.K_x[0], plan.KxC[0], plan.Phi1[0], plan.Phi2[0]))
+    sec = plan.second
+    if sec is None:                  # never read: the kernel's SECOND is False
+        P2 = tuple(np.zeros(shape) for shape in ((n, n), (n, m), (r, n), (n, k), (n, r),
+                                                (n, n), (n, n)))
+    else:
+        P2 = tuple(own(a) for a in (sec.A, sec.B, sec.C, sec.E, sec.K_x[0], sec.Phi1[0],
+                                    sec.Phi2[0]))
+    box = (own(parts.box.lower), own(parts.box.upper))
+    G = own(np.eye(p) if plan.Gamma is None else plan.Gamma[0])
+    LP: tuple[FloatArray, ...]
+    if parts.code == 0:
+        LP = box
+    elif parts.code == 3:
+        LP = (G, np.zeros(k), np.zeros((k, p)), np.zeros((p, k)), np.zeros((p, k)),
+              np.zeros(p), np.zeros((p, p)), *(np.zeros((p + 1, p + 1)) for _ in range(4)),
+              *box)
+    else:                            # a diagonal Γ: Λ its diagonal, V = I
+        low, high = parts.ramp if parts.ramp is not None else (0.0, 1.0)
+        LP = (own(np.diagonal(G)), np.eye(p), np.eye(p), np.zeros(p), np.zeros(p), *box,
+              np.array([low, high, parts.ramp is not None, parts.freeze], dtype=np.float64))
+    return P, P2, LP, (sec is not None, sec is not None and sec.g_on_estimates)
+
+
+def kernel_work(lay: StateLayout) -> tuple[tuple[FloatArray, ...], tuple[FloatArray, ...]]:
+    """Scratch of the kernel: the formulas' work buffers and the rows (s, s⁺, u, y).
+
+    Parameters
+    ----------
+    lay : StateLayout
+
+    Returns
+    -------
+    W : tuple of ndarray
+        :data:`~thetahat.estimation.formulas.WORK`.
+    rows : tuple of ndarray
+        (s, s⁺, u, y) of one sample.
+    """
+    dims = {"NX": lay.n, "NY": lay.r, "NK": lay.k, "NP": lay.p, "NV": lay.m + lay.r,
+            "NQ": lay.n + lay.k, "LS1": max(lay.law_size, 1)}
+    W = tuple(np.zeros(tuple(dims[d] for d in shape)) for _, shape in WORK)
+    return W, (np.zeros(lay.size), np.zeros(lay.size), np.zeros(max(lay.m, 1)),
+               np.zeros(lay.r))
 
 
 def compile_observer(observer: ModifiedHighGainObserver, *, dt: float) -> CompiledObserver:
@@ -641,15 +498,16 @@ def compile_observer(observer: ModifiedHighGainObserver, *, dt: float) -> Compil
 
     Notes
     -----
-    The kernel reads the observer's :class:`~thetahat.estimation.plan.StepPlan` for ``dt`` and
-    performs the step of :mod:`thetahat.estimation.step` with the same operations in the same
-    order, except for the summation order of the small matrix products, a hand-written pivoted
-    LU in place of LAPACK's, and scalar code for g, its Jacobians and θ* (printed from the same
-    SymPy expressions the Python path lambdifies). It applies the same divergence rule
-    (:data:`~thetahat.estimation.step.DIVERGENCE_BOUND`) and raises the same errors. Measured
-    on a shared 2-core machine: 0.25 µs per sample inside ``run``, a few µs per call of
-    ``step`` from Python (validation and dispatch dominate). The first compilation of a model
-    takes a few seconds; later ones load from the cache.
+    The kernel is the step's formulas (:mod:`~thetahat.estimation.formulas`) compiled for one
+    row, reading the observer's :class:`~thetahat.estimation.plan.StepPlan` for ``dt``; it
+    differs from the Python path only in the summation order of the small matrix products, a
+    pivoted elimination in place of LAPACK's, a Taylor ``expm`` in place of SciPy's, and
+    scalar code for g, its Jacobians and θ* (printed from the same SymPy expressions the
+    Python path lambdifies). It applies the same divergence rule
+    (:data:`~thetahat.estimation.formulas.DIVERGENCE_BOUND`) and raises the same errors.
+    Measured on a shared 2-core machine: ≈ 0.2 µs per sample inside ``run``, a few µs per
+    call of ``step`` from Python (validation and dispatch dominate). The first compilation of
+    a model takes 20–40 s; later ones load from the cache.
 
     Examples
     --------

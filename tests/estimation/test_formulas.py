@@ -1,0 +1,180 @@
+"""The step written once: the primitives' two bindings agree, and the emitted scalar module
+(the formulas after the syntax rewrite, run as plain Python, no numba) reproduces ``run``.
+
+Tolerances: a product or a solve summed in another order differs by a few ulps of its largest
+term; 1e-12 relative leaves a margin of ~100× on these well-scaled inputs. The scalar expm is
+a degree-20 Taylor series with scaling and squaring, SciPy's a Padé approximant: both are
+accurate to ~1e-15 relative for the norms used, so 1e-12 again.
+"""
+
+from __future__ import annotations
+
+import ast
+import inspect
+import math
+
+import numpy as np
+import pytest
+import scipy.linalg
+
+from thetahat.estimation import formulas, law_formulas, scalar_primitives as sc
+from thetahat.estimation.compiled import kernel_arrays, kernel_parts, kernel_work
+from thetahat.estimation.observer import ModifiedHighGainObserver
+from thetahat.estimation.primitives import NUMPY, PRIMITIVES
+from thetahat.estimation.redesign import SecondObserver
+from thetahat.estimation.scalar_backend import LAWS, kernel_source
+from thetahat.estimation.update_laws import (AlgebraicInversion, ConstantLaw, GradientInversion,
+                                             IntermittentInversion, smooth_ramp)
+from thetahat.model.paramset import Box
+from thetahat.models import lugre
+
+RTOL = 1e-12
+B = 5
+
+
+@pytest.fixture
+def rng() -> np.random.Generator:
+    return np.random.default_rng(11)
+
+
+def test_both_bindings_cover_the_vocabulary() -> None:
+    assert set(NUMPY) == set(PRIMITIVES)
+    assert set(sc.SCALAR_PRIMITIVES) == set(PRIMITIVES)
+
+
+def test_formulas_import_nothing_they_call() -> None:
+    """The formula modules hold definitions only: no imports besides typing helpers."""
+    for module in (formulas, law_formulas):
+        tree = ast.parse(inspect.getsource(module))
+        imported = {alias.name for node in ast.walk(tree)
+                    if isinstance(node, (ast.Import, ast.ImportFrom))
+                    for alias in node.names}
+        assert imported <= {"annotations", "Callable", "Any"}, (module.__name__, imported)
+
+
+@pytest.mark.parametrize("acc", [0, 1, -1])
+def test_mv_rows_agree(rng: np.random.Generator, acc: int) -> None:
+    M = rng.normal(size=(B, 3, 4))
+    x = rng.normal(size=(B, 6))
+    out_np = rng.normal(size=(B, 5))
+    out_sc = out_np.copy()
+    NUMPY["mv"](M, 3, 4, x, 2, out_np, 1, acc)
+    for b in range(B):
+        sc.mv(M[b], 3, 4, x[b], 2, out_sc[b], 1, acc)
+    np.testing.assert_allclose(out_np, out_sc, rtol=RTOL)
+
+
+@pytest.mark.parametrize("acc", [0, 1])
+def test_mm_rows_agree(rng: np.random.Generator, acc: int) -> None:
+    A, Bm = rng.normal(size=(1, 3, 2)), rng.normal(size=(B, 2, 4))
+    out_np = rng.normal(size=(B, 5, 6))
+    out_sc = out_np.copy()
+    NUMPY["mm"](A, Bm, 3, 2, 4, out_np, 1, 2, acc)
+    for b in range(B):
+        sc.mm(A[0], Bm[b], 3, 2, 4, out_sc[b], 1, 2, acc)
+    np.testing.assert_allclose(out_np, out_sc, rtol=RTOL)
+    G, J = rng.normal(size=(B, 2, 2)), rng.normal(size=(B, 3, 2))
+    t_np, t_sc = np.empty((B, 2, 3)), np.empty((B, 2, 3))
+    NUMPY["mmt"](G, J, 2, 2, 3, t_np)
+    for b in range(B):
+        sc.mmt(G[b], J[b], 2, 2, 3, t_sc[b])
+    np.testing.assert_allclose(t_np, t_sc, rtol=RTOL)
+
+
+def test_solve_and_eye_minus_agree_with_lapack(rng: np.random.Generator) -> None:
+    q = 4
+    N = rng.normal(size=(B, q, q))
+    M_np = N.copy()
+    NUMPY["eye_minus"](M_np, q, 0.5)
+    np.testing.assert_allclose(M_np, np.eye(q) - 0.5 * N, rtol=RTOL)
+    rhs = rng.normal(size=(B, q))
+    expected = np.linalg.solve(M_np, rhs[..., None])[..., 0]
+    for b in range(B):
+        M, r = M_np[b].copy(), rhs[b].copy()
+        sc.solve(q, M, r)                      # pivoted elimination: a permutation is needed
+        np.testing.assert_allclose(r, expected[b], rtol=1e-10)
+    x = rhs.copy()
+    NUMPY["solve"](q, M_np.copy(), x)
+    np.testing.assert_allclose(x, expected, rtol=RTOL)
+
+
+@pytest.mark.parametrize("scale", [0.1, 3.0, 40.0])
+def test_scalar_expm_matches_scipy(rng: np.random.Generator, scale: float) -> None:
+    """Scale 40 needs squarings (‖Z‖₁ ≫ 1/2); Z has the law's shape [[−K dt, f dt], [0, 0]]."""
+    Z = np.zeros((3, 3))
+    Z[:2, :2] = -scale * (np.eye(2) + 0.3 * rng.normal(size=(2, 2)))
+    Z[:2, 2] = scale * rng.normal(size=2)
+    E, T, U = np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3))
+    sc.expm(3, Z, E, T, U)
+    ref = scipy.linalg.expm(Z)
+    np.testing.assert_allclose(E, ref, rtol=1e-11, atol=1e-13 * np.abs(ref).max())
+
+
+def test_elementwise_primitives_agree() -> None:
+    values = [0.0, -0.0, 1.5, -2.0, 1e300, -1e300, math.inf, -math.inf, math.nan, -800.0,
+              sc.EXP_TINY_ARG, math.nextafter(sc.EXP_TINY_ARG, -math.inf)]
+    arr = np.array(values)
+    for name in ("isfinite", "isnan", "absolute"):
+        got_np = NUMPY[name](arr)
+        got_sc = [sc.SCALAR_PRIMITIVES[name](v) for v in values]
+        np.testing.assert_array_equal(got_np, np.array(got_sc), err_msg=name)
+    # exp: plain Python raises OverflowError where numba's math.exp returns inf, so the
+    # overflowing arguments are left out; the underflow cut-off and NaN are in
+    small = [v for v in values if not v > 709.0]
+    np.testing.assert_array_equal(NUMPY["exp"](np.array(small)), [sc.exp(v) for v in small])
+    np.testing.assert_array_equal(NUMPY["clip"](arr, -1.0, 1.0),
+                                  [sc.clip(v, -1.0, 1.0) for v in values])
+    assert NUMPY["count_"](np.isnan(arr)) == sum(sc.count_(math.isnan(v)) for v in values)
+    big = np.array([[3e300, 4e300], [0.0, 0.0], [1.0, -1.0]])
+    np.testing.assert_allclose(NUMPY["norm"](big, 2), [sc.norm(r, 2) for r in big], rtol=RTOL)
+    np.testing.assert_allclose(NUMPY["sumsq"](big[1:], 2), [sc.sumsq(r, 2) for r in big[1:]],
+                               rtol=RTOL)
+
+
+# ------------------------------------------------------------------ the emitted scalar module
+def _observer(law: str, second: str) -> ModifiedHighGainObserver:
+    system = lugre.system()
+    d1, d2 = lugre.designs(1.0)
+    box = Box([0.05], [1.0])
+    ts = lugre.theta_star()
+    laws = {"held": ConstantLaw([0.4], box),
+            "algebraic": AlgebraicInversion(ts, 2.0, box, on_invalid="freeze"),
+            "ramp": IntermittentInversion(ts, smooth_ramp(*lugre.EXCITATION), 2.0, box),
+            "gradient": GradientInversion(lugre.perturbation(), 50.0, box)}
+    obs2 = None if second == "none" else SecondObserver(
+        system=system, K_x=d2.K, g_on_estimates=second == "estimates")
+    return ModifiedHighGainObserver(system=system, K_x=d1.K_x, K_phi=d1.K_phi,
+                                    update_law=laws[law], second=obs2)
+
+
+@pytest.mark.parametrize("law, second", [("held", "none"), ("algebraic", "y"),
+                                         ("ramp", "estimates"), ("gradient", "estimates")])
+def test_emitted_module_runs_the_formulas_as_python(law: str, second: str) -> None:
+    """The compiled path's source, without numba, equals the NumPy back end's run."""
+    obs = _observer(law, second)
+    data = lugre.simulate(seed=3, t_end=0.12)
+    dt = float(data.t[1] - data.t[0])
+    parts = kernel_parts(obs)
+    ts = parts.theta_star
+    source = kernel_source(parts.perturbation, None if ts is None else ts.expr,
+                           None if ts is None else ts.arguments, LAWS[parts.code], numba=False)
+    namespace: dict[str, object] = {"__name__": "thetahat_kernel_test"}
+    exec(compile(source, "<kernel>", "exec"), namespace)   # our generated text, no numba
+    plan = obs.plan(dt)
+    P, P2, LP, flags = kernel_arrays(parts, plan)
+    W, rows = kernel_work(plan.layout)
+    N = data.t.size
+    S, PHI = np.empty((N, obs.state_size)), np.empty((N, plan.layout.k))
+    s0 = obs.init(theta_hat0=[0.5])
+    U, Y = data.u.reshape(N, -1), data.y.reshape(N, -1)
+    with np.errstate(all="ignore"):     # numba's error_model='numpy': NaN, not a warning
+        status, _ = namespace["kernel_run"](s0, U, Y, np.diff(data.t), P, P2, LP, *flags, W,
+                                            rows, S, PHI)
+    assert status == 0
+    ref = obs.run(data.t, data.u, data.y, state0=s0)
+    scale = np.abs(ref.x_hat).max(axis=0)
+    np.testing.assert_allclose(S[:, plan.layout.x], ref.x_hat, rtol=0, atol=1e-10 * scale.max())
+    np.testing.assert_allclose(S[:, plan.layout.theta], ref.theta_hat, rtol=1e-10)
+    np.testing.assert_allclose(PHI, ref.phi_hat, rtol=0,
+                               atol=1e-10 * np.abs(ref.phi_hat).max())
+    assert np.all((S[:, plan.layout.theta] >= 0.05) & (S[:, plan.layout.theta] <= 1.0))
