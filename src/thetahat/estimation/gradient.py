@@ -3,7 +3,7 @@ exponential (Rosenbrock) Euler method."""
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from typing import Any, final
 
@@ -18,7 +18,7 @@ from ..model.perturbation import Perturbation
 from .law_base import (FAR, UpdateLaw, apply_saturation, as_batch, check_law_options,
                        project_rows)
 from .law_formulas import LAW_FORMULAS
-from .primitives import NUMPY, bound
+from .primitives import NUMPY, NUMPY_ROW, bound
 from .projection import Projection, Saturation, as_gain
 
 __all__ = ["GradientInversion"]
@@ -187,14 +187,16 @@ class GradientInversion(UpdateLaw):
               np.empty(batch + (p, p)), np.empty(batch + (p + 1, p + 1)),
               np.empty(batch + (p + 1, p + 1)), None, None, G)
         thn = np.empty(batch + (p,))
-        env = bound(self, None, LAW_FORMULAS, lambda: _gradient_names(self))
+        env = bound(self, batch == (), LAW_FORMULAS,
+                    lambda: _gradient_names(self, NUMPY_ROW if batch == () else NUMPY))
         with np.errstate(over="ignore", invalid="ignore"):
             env["gradient_law"](LP, args[0], args[1], 0, args[2], args[3], 0, dt, thn, None)
         return thn
 
 
-def _gradient_names(law: GradientInversion) -> dict[str, Any]:
-    """The NumPy namespace of :func:`law_formulas.gradient_law` for one law."""
+def _gradient_names(law: GradientInversion, prims: Mapping[str, Any]) -> dict[str, Any]:
+    """The NumPy namespace (``prims``: one row or a batch) of
+    :func:`law_formulas.gradient_law` for one law."""
     pert = law.perturbation
     _, _, _, p, k = pert.dims
 
@@ -221,5 +223,5 @@ def _gradient_names(law: GradientInversion) -> dict[str, Any]:
         thn[...] = project_rows(law._proj, thn, LP[11])
         return 0
 
-    return {**NUMPY, "g_val": g_val, "dg_dtheta": dg_dtheta, "m_matrix": m_matrix,
+    return {**prims, "g_val": g_val, "dg_dtheta": dg_dtheta, "m_matrix": m_matrix,
             "project": project, "NP": p, "NK": k, "USER_M": law.M is not None, "FAR": FAR}

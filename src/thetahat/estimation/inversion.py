@@ -7,7 +7,7 @@ for the Lipschitz l of Remark 5), and :func:`AlgebraicInversion`, the same law w
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from typing import Any, Literal, final
 
@@ -22,7 +22,7 @@ from ..model.set_geometry import safe_norm
 from .law_base import (FAR, UpdateLaw, apply_saturation, as_batch, check_law_options,
                        is_diagonal, project_rows)
 from .law_formulas import LAW_FORMULAS, smoothstep
-from .primitives import NUMPY, bind, bound
+from .primitives import NUMPY, NUMPY_ROW, bind, bound
 from .projection import Projection, Saturation, as_gain
 from .theta_star import ThetaStar
 
@@ -201,8 +201,9 @@ def gain_eigen(Gamma: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray]:
     return lam, V, np.swapaxes(V, -1, -2).copy()
 
 
-def _inversion_names(law: IntermittentInversion) -> dict[str, Any]:
-    """The NumPy namespace of :func:`law_formulas.inversion_law` for one law."""
+def _inversion_names(law: IntermittentInversion, prims: Mapping[str, Any]) -> dict[str, Any]:
+    """The NumPy namespace (``prims``: one row or a batch) of
+    :func:`law_formulas.inversion_law` for one law."""
     owner = "IntermittentInversion"
     p = law.parameter_set.dim
 
@@ -220,7 +221,7 @@ def _inversion_names(law: IntermittentInversion) -> dict[str, Any]:
         thn[...] = project_rows(law._proj, thn, LP[5])
         return 0
 
-    return {**NUMPY, "weight": weight, "theta_star": theta_star, "project": project,
+    return {**prims, "weight": weight, "theta_star": theta_star, "project": project,
             "freeze": lambda LP: law.on_invalid == "freeze", "NP": p, "FAR": FAR}
 
 
@@ -373,7 +374,8 @@ class IntermittentInversion(UpdateLaw):
         args = [a if a.shape[:-1] == batch else np.broadcast_to(a, batch + a.shape[-1:])
                 for a in (v_, x, phi, th)]
         thn = np.empty(batch + (p,))
-        env = bound(self, None, LAW_FORMULAS, lambda: _inversion_names(self))
+        env = bound(self, batch == (), LAW_FORMULAS,
+                    lambda: _inversion_names(self, NUMPY_ROW if batch == () else NUMPY))
         with np.errstate(over="ignore", invalid="ignore"):
             status = env["inversion_law"]((lam, V, VT, np.empty_like(thn), np.empty_like(thn),
                                            G), args[0], args[1], 0, args[2], args[3], 0, dt,

@@ -43,6 +43,7 @@ The primitives (``acc`` of the products: 0 assigns, 1 adds, -1 subtracts):
 
 from __future__ import annotations
 
+import math
 import threading
 import types
 from collections import OrderedDict
@@ -56,7 +57,7 @@ from scipy.linalg.lapack import dgesv as _gesv
 
 from ..model.set_geometry import safe_norm
 
-__all__ = ["NUMPY", "PRIMITIVES", "bind", "bound"]
+__all__ = ["NUMPY", "NUMPY_ROW", "PRIMITIVES", "bind", "bound"]
 
 FloatArray = NDArray[np.float64]
 
@@ -194,6 +195,66 @@ NUMPY: Mapping[str, Any] = types.MappingProxyType({
     "exp": np.exp, "sqrt": np.sqrt, "absolute": np.absolute, "norm": _norm, "isfinite": np.isfinite,
     "isnan": np.isnan, "not_": np.logical_not, "and_": np.logical_and,
     "or_": np.logical_or, "any_": _any, "count_": _count, "sumsq": _sumsq})
+
+
+def _row_put(a: FloatArray, i: int, val: Any) -> None:
+    a[i] = val
+
+
+def _row_put2(M: FloatArray, i: int, j: int, val: Any) -> None:
+    M[i, j] = val
+
+
+def _row_mv(M: FloatArray, a: int, b: int, x: FloatArray, xo: int, out: FloatArray, oo: int,
+            acc: int) -> None:
+    res = M @ x[xo:xo + b]
+    if acc == 0:
+        out[oo:oo + a] = res
+    elif acc > 0:
+        out[oo:oo + a] += res
+    else:
+        out[oo:oo + a] -= res
+
+
+def _row_mm(A: FloatArray, B: FloatArray, a: int, c: int, b: int, out: FloatArray, ro: int,
+            co: int, acc: int) -> None:
+    if acc == 0:
+        out[ro:ro + a, co:co + b] = A @ B
+    else:
+        out[ro:ro + a, co:co + b] += A @ B
+
+
+def _row_axpy(n: int, c: Any, a: FloatArray, ao: int, out: FloatArray, oo: int) -> None:
+    out[oo:oo + n] += c * a[ao:ao + n]
+
+
+def _row_copy(n: int, a: FloatArray, ao: int, out: FloatArray, oo: int) -> None:
+    out[oo:oo + n] = a[ao:ao + n]
+
+
+def _row_eye_minus(M: FloatArray, q: int, c: float) -> None:
+    M *= -c
+    M.flat[::q + 1] += 1.0
+
+
+def _row_where(c: Any, a: Any, b: Any) -> Any:
+    return a if c else b
+
+
+def _row_clip(a: Any, lo: Any, hi: Any) -> Any:
+    return min(max(a, lo), hi)                  # NaN in a stays NaN, as with np.clip
+
+
+#: The NumPy bindings for one row (vectors (size,), matrices (a, b)): the element primitives
+#: on scalars, the block ones on 2-D arrays. Same meaning as :data:`NUMPY` on one row, with
+#: less dispatch per call (the Python step runs one row per call).
+NUMPY_ROW: Mapping[str, Any] = types.MappingProxyType({
+    **NUMPY, "get": lambda a, i: a[i], "put": _row_put, "get2": lambda M, i, j: M[i, j],
+    "put2": _row_put2, "copy": _row_copy, "axpy": _row_axpy, "mv": _row_mv, "mm": _row_mm,
+    "eye_minus": _row_eye_minus, "where": _row_where, "clip": _row_clip,
+    "isfinite": math.isfinite, "isnan": math.isnan, "not_": lambda a: not a,
+    "and_": lambda a, b: bool(a and b), "or_": lambda a, b: bool(a or b),
+    "any_": bool, "count_": lambda b: 1 if b else 0})
 
 
 def bind(functions: Mapping[str, Callable[..., Any]], names: Mapping[str, Any]

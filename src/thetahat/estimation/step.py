@@ -31,7 +31,7 @@ from .discretize import IMPLICITNESS
 from .formulas import DIVERGENCE_BOUND, WORK
 from .inversion import invalid_theta_star_error
 from .plan import SecondPlan, StateLayout, StepPlan
-from .primitives import NUMPY, bind, bound
+from .primitives import NUMPY, NUMPY_ROW, bind, bound
 from .update_laws import UpdateLaw
 
 __all__ = ["DIVERGENCE_BOUND", "advance", "diverged", "divergence_error", "integrate",
@@ -97,15 +97,18 @@ def _constants(lay: StateLayout) -> dict[str, Any]:
             "BOUND_SQ": DIVERGENCE_BOUND ** 2}
 
 
-def _binding(pert: Perturbation, law: UpdateLaw | None, lay: StateLayout) -> dict[str, Any]:
-    """The formulas bound to NumPy, the perturbation and the law (kept while in use)."""
+def _binding(pert: Perturbation, law: UpdateLaw | None, lay: StateLayout, row: bool
+             ) -> dict[str, Any]:
+    """The formulas bound to NumPy (for one row, or a batch), the perturbation and the law
+    (kept while in use)."""
     def names() -> dict[str, Any]:
-        out: dict[str, Any] = {**NUMPY, **_model_functions(pert, lay), **_constants(lay)}
+        out: dict[str, Any] = {**(NUMPY_ROW if row else NUMPY), **_model_functions(pert, lay),
+                               **_constants(lay)}
         if law is not None:       # the namespace holds the law: its id stays unique
             out["law_step"] = _law_function(law, lay)
         return out
 
-    return bound(pert, (id(law), lay), formulas.FORMULAS, names)
+    return bound(pert, (id(law), lay, row), formulas.FORMULAS, names)
 
 
 def _work(lay: StateLayout, lead: tuple[int, ...]) -> tuple[FloatArray, ...]:
@@ -209,13 +212,13 @@ def observer_forcing(plan: StepPlan, pert: Perturbation, xz: FloatArray, th: Flo
     """
     lay = plan.layout
     n, k = lay.n, lay.k
-    env = _binding(pert, None, lay)
     s = np.concatenate((xz, th), axis=-1)
     lead = s.shape[:-1]
+    env = _binding(pert, None, lay, lead == ())
     v, g = np.empty(lead + (lay.m + lay.r,)), np.empty(lead + (k,))
     Gx, F = np.empty(lead + (k, n)), np.empty(lead + (n + k,))
-    env["observer_forcing"]((plan.L, plan.Bv, plan.E, plan.C, plan.A, plan.B, plan.K_x),
-                            s, u, y, correct, v, g, Gx, F, np.empty(lead + (lay.r,)),
+    env["observer_forcing"](_plan_arrays(plan, True), s, u, y, correct, v, g, Gx, F,
+                            np.empty(lead + (lay.r,)),
                             np.empty(lead + (n,)))
     return F, g + xz[..., n:], Gx, v
 
@@ -247,7 +250,7 @@ def second_forcing(plan: SecondPlan, pert: Perturbation, x2: FloatArray, u: Floa
     lay = _second_layout(pert)
     s = _second_state(lay, x2, th)
     lead = s.shape[:-1]
-    env = _binding(pert, None, lay)
+    env = _binding(pert, None, lay, lead == ())
     v2, F2 = np.empty(lead + (lay.m + lay.r,)), np.empty(lead + (lay.n,))
     env["second_forcing"](_second_arrays(plan, True), s, u, y, correct, plan.g_on_estimates,
                           v2, np.empty(lead + (lay.k,)), np.empty(lead + (lay.k, lay.n)), F2,
@@ -297,9 +300,9 @@ def second_advance(plan: SecondPlan, pert: Perturbation, x2: FloatArray, u0: Flo
     """
     lay = _second_layout(pert)
     n = lay.n
-    env = _binding(pert, None, lay)
     s = _second_state(lay, x2, th)
     lead = s.shape[:-1]
+    env = _binding(pert, None, lay, lead == ())
     W = _work(lay, lead)
     v2, g2, Gx2, Gy2, F2, Fd2, N2, M2, rhs2, w2 = W[17:]
     P2 = _second_arrays(plan, correct)
@@ -352,7 +355,7 @@ def advance(plan: StepPlan, pert: Perturbation, law: UpdateLaw, s: FloatArray, u
         θ* invalid where the weight is positive (``on_invalid='raise'``).
     """
     lay = plan.layout
-    env = _binding(pert, law, lay)
+    env = _binding(pert, law, lay, s.ndim == 1)
     W = _work(lay, s.shape[:-1])
     out = np.empty_like(s)
     G = plan.Gamma if plan.Gamma is not None and plan.Gamma.shape[0] > 1 else None
