@@ -178,3 +178,30 @@ def test_emitted_module_runs_the_formulas_as_python(law: str, second: str) -> No
     np.testing.assert_allclose(PHI, ref.phi_hat, rtol=0,
                                atol=1e-10 * np.abs(ref.phi_hat).max())
     assert np.all((S[:, plan.layout.theta] >= 0.05) & (S[:, plan.layout.theta] <= 1.0))
+
+
+def test_row_binding_agrees_with_the_batch_binding(rng: np.random.Generator) -> None:
+    """NUMPY_ROW (one row, used by step/run) means what NUMPY means on a batch of one."""
+    from thetahat.estimation.primitives import NUMPY_ROW
+    M, x = rng.normal(size=(3, 4)), rng.normal(size=6)
+    for acc in (0, 1, -1):
+        a, b = rng.normal(size=5), None
+        b = a.copy()
+        NUMPY_ROW["mv"](M, 3, 4, x, 2, a, 1, acc)
+        NUMPY["mv"](M, 3, 4, x[None], 2, b[None], 1, acc)
+        np.testing.assert_allclose(a, b, rtol=RTOL)
+    A, Bm = rng.normal(size=(2, 3)), rng.normal(size=(3, 2))
+    o1, o2 = np.zeros((4, 4)), np.zeros((1, 4, 4))
+    NUMPY_ROW["mm"](A, Bm, 2, 3, 2, o1, 1, 2, 0)
+    NUMPY["mm"](A, Bm, 2, 3, 2, o2, 1, 2, 0)
+    np.testing.assert_allclose(o1, o2[0], rtol=RTOL)
+    N = rng.normal(size=(3, 3))
+    r1, r2 = N.copy(), N[None].copy()
+    NUMPY_ROW["eye_minus"](r1, 3, 0.5)
+    NUMPY["eye_minus"](r2, 3, 0.5)
+    np.testing.assert_array_equal(r1, r2[0])
+    for v in (0.3, -2.0, 7.0, math.nan):
+        assert np.array_equal(NUMPY_ROW["clip"](v, -1.0, 1.0), NUMPY["clip"](v, -1.0, 1.0),
+                              equal_nan=True)
+        assert NUMPY_ROW["where"](v > 0.0, 1.0, 2.0) == NUMPY["where"](v > 0.0, 1.0, 2.0)
+        assert NUMPY_ROW["isfinite"](v) == NUMPY["isfinite"](v)

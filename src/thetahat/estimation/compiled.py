@@ -41,6 +41,7 @@ numba is the optional extra ``speed``; without it this module imports, and
 
 from __future__ import annotations
 
+import threading
 from dataclasses import dataclass
 from types import ModuleType
 from typing import Any, NoReturn
@@ -321,10 +322,15 @@ class CompiledObserver:
         obs = self.observer
         lay = obs.layout
         s = _as_input("state", state, lay.size)
-        out = np.empty(lay.size)
-        status = self._kernel.kernel_step(
-            s, _as_input("u", np.empty(0) if u is None else u, lay.m), _as_input("y", y, lay.r),
-            self.dt, *self._args[:3], *self._args[3], kernel_work(lay)[0], out)
+        u_ = _as_input("u", np.empty(0) if u is None else u, lay.m)
+        y_ = _as_input("y", y, lay.r)
+        # the record of one step (the samples held): the same compiled loop as run's, so a
+        # kernel has one entry point to compile
+        U, Y = np.stack((u_, u_)), np.stack((y_, y_))
+        S, PHI = np.empty((2, lay.size)), np.empty((2, lay.k))
+        status, _ = self._kernel.kernel_run(s, U, Y, np.array([self.dt]), *self._args[:3],
+                                            *self._args[3], *_scratch(lay), S, PHI)
+        out = S[1]
         if status == 0 and float(out @ out) <= DIVERGENCE_BOUND ** 2:
             return out
         # something is wrong: find out what, with the observer's own checks and messages
@@ -377,7 +383,7 @@ class CompiledObserver:
         S = np.empty((N, lay.size))
         PHI = np.empty((N, lay.k))
         status, index = self._kernel.kernel_run(s0, U, Y, dts, *self._args[:3], *self._args[3],
-                                                *kernel_work(lay), S, PHI)
+                                                *_scratch(lay), S, PHI)
         if status:
             i = int(index)
             self._raise(int(status), f"in the step from t[{i}] = {t_[i]!r}")
@@ -394,6 +400,20 @@ class CompiledObserver:
     def __repr__(self) -> str:
         return (f"CompiledObserver(dt={self.dt!r}, observer={self.observer!r}, "
                 f"kernel={self._kernel.__name__})")
+
+
+_threads = threading.local()
+
+
+def _scratch(lay: StateLayout) -> tuple[tuple[FloatArray, ...], tuple[FloatArray, ...]]:
+    """:func:`kernel_work` of this thread (scratch only: nothing is carried between calls)."""
+    cache: dict[StateLayout, Any] | None = getattr(_threads, "work", None)
+    if cache is None:
+        cache = _threads.work = {}
+    hit = cache.get(lay)
+    if hit is None:
+        hit = cache[lay] = kernel_work(lay)
+    return hit
 
 
 def _no_prediction() -> UnsupportedError:

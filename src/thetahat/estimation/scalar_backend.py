@@ -315,8 +315,7 @@ def kernel_source(pert: SymbolicPerturbation, theta_star: tuple[sp.Expr, ...] | 
     Returns
     -------
     str
-        A module defining ``kernel_step`` and ``kernel_run``
-        (:mod:`~thetahat.estimation.scalar_primitives`).
+        A module defining ``kernel_run`` (:mod:`~thetahat.estimation.scalar_primitives`).
     """
     n, m, r, p, k = pert.dims
     header = [
@@ -338,8 +337,7 @@ def kernel_source(pert: SymbolicPerturbation, theta_star: tuple[sp.Expr, ...] | 
     parts += [_source(fn, None, _FORM) for fn in law_formulas.LAW_FORMULAS.values()]
     parts += [_source(fn, None, _FORM) for fn in formulas.FORMULAS.values()]
     parts.append(_law_source(law))
-    parts += [_source(scalar_primitives.kernel_step, decorator=_INLINE),
-              _source(scalar_primitives.kernel_run, decorator=_INLINE)]
+    parts.append(_source(scalar_primitives.kernel_run, decorator=_INLINE))
     text = "\n\n".join(parts) + "\n"
     if not numba:
         text = "\n".join(line for line in text.splitlines()

@@ -4,8 +4,8 @@ Plain Python in the subset numba compiles: :mod:`~thetahat.estimation.scalar_bac
 the source of these functions, under their primitive names, into the compiled observer's
 module, next to the formulas and the model functions. A vector is a 1-D array, a matrix a 2-D
 one, a boolean or a number is a Python scalar, and the reductions over the rows (``any_``,
-``count_``) see one row. The module also holds the compiled path's loops (:func:`kernel_run`,
-:func:`kernel_step`), which call the formulas' :func:`~thetahat.estimation.formulas.advance`.
+``count_``) see one row. The module also holds the compiled path's loop (:func:`kernel_run`),
+which calls the formulas' :func:`~thetahat.estimation.formulas.advance`.
 
 Without numba these functions run as they are (slowly): the tests compare them with the
 NumPy primitives one by one.
@@ -256,13 +256,6 @@ SCALAR_PRIMITIVES: dict[str, Callable[..., Any]] = {
         get, put, get2, put2, copy, axpy, fill, mv, mm, mmt, eye_minus, solve, expm, where,
         clip, maximum, exp, sqrt, absolute, norm, isfinite, isnan, not_, and_, or_, any_,
         count_, sumsq)}
-
-
-def kernel_step(s: Any, u: Any, y: Any, dt: float, P: tuple[Any, ...], P2: tuple[Any, ...],
-                LP: tuple[Any, ...], second: bool, on_estimates: bool, W: tuple[Any, ...],
-                out: Any) -> int:
-    """One step of :func:`~thetahat.estimation.formulas.advance` (zero-order hold)."""
-    return advance(P, P2, LP, s, u, y, u, y, dt, True, False, second, on_estimates, out, W)
 
 
 def kernel_run(s0: Any, U: Any, Y: Any, dts: Any, P: tuple[Any, ...], P2: tuple[Any, ...],
