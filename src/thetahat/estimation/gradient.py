@@ -15,8 +15,8 @@ from ..errors import DimensionError, UpdateLawError
 from ..model.jacobian_check import require_theta_dependence
 from ..model.paramset import ParameterSet
 from ..model.perturbation import Perturbation
-from .law_base import (FAR, UpdateLaw, apply_saturation, as_batch, check_law_options,
-                       project_rows)
+from .law_base import (FAR, UpdateLaw, apply_saturation, as_batch, broadcast_rows,
+                       check_law_options, project_rows)
 from .law_formulas import LAW_FORMULAS
 from .primitives import NUMPY, NUMPY_ROW, bound
 from .projection import Projection, Saturation, as_gain
@@ -180,8 +180,7 @@ class GradientInversion(UpdateLaw):
         G = None if Gamma is None else np.asarray(Gamma, dtype=np.float64)
         v_, x, phi, th, batch = self._inputs(v, x_hat, phi_hat, theta_hat)
         _, _, _, p, k = self.perturbation.dims
-        args = [a if a.shape[:-1] == batch else np.broadcast_to(a, batch + a.shape[-1:])
-                for a in (v_, x, phi, th)]
+        args = broadcast_rows(batch, v_, x, phi, th)
         LP = (self.Gamma if G is None else G, np.empty(batch + (k,)), np.empty(batch + (k, p)),
               np.empty(batch + (p, k)), np.empty(batch + (p, k)), np.empty(batch + (p,)),
               np.empty(batch + (p, p)), np.empty(batch + (p + 1, p + 1)),

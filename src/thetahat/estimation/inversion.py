@@ -19,8 +19,8 @@ from ..errors import UpdateLawError
 from ..model.paramset import ParameterSet
 from ..model.perturbation import Perturbation
 from ..model.set_geometry import safe_norm
-from .law_base import (FAR, UpdateLaw, apply_saturation, as_batch, check_law_options,
-                       is_diagonal, project_rows)
+from .law_base import (FAR, UpdateLaw, apply_saturation, as_batch, broadcast_rows,
+                       check_law_options, is_diagonal, project_rows)
 from .law_formulas import LAW_FORMULAS, smoothstep
 from .primitives import NUMPY, NUMPY_ROW, bind, bound
 from .projection import Projection, Saturation, as_gain
@@ -371,8 +371,7 @@ class IntermittentInversion(UpdateLaw):
         G = None if Gamma is None else np.asarray(Gamma, dtype=np.float64)
         lam, V, VT = ((self._eig[0], self._eig[1], self._eig[1].T) if G is None
                       else gain_eigen(G))
-        args = [a if a.shape[:-1] == batch else np.broadcast_to(a, batch + a.shape[-1:])
-                for a in (v_, x, phi, th)]
+        args = broadcast_rows(batch, v_, x, phi, th)
         thn = np.empty(batch + (p,))
         env = bound(self, batch == (), LAW_FORMULAS,
                     lambda: _inversion_names(self, NUMPY_ROW if batch == () else NUMPY))

@@ -24,7 +24,8 @@ from .primitives import NUMPY, bind, bound
 from .projection import Projection, Saturation
 
 __all__ = ["FAR", "INIT_RTOL", "ConstantLaw", "UpdateLaw", "apply_saturation", "as_batch",
-           "check_law_options", "finite_candidate", "is_diagonal", "project_rows"]
+           "broadcast_rows", "check_law_options", "finite_candidate", "is_diagonal",
+           "project_rows"]
 
 FloatArray = NDArray[np.float64]
 
@@ -85,6 +86,28 @@ def as_batch(v: ArrayLike, x_hat: ArrayLike, phi_hat: ArrayLike, theta_hat: Arra
                              f"x_hat {arrs[1].shape}, phi_hat {arrs[2].shape}, theta_hat "
                              f"{arrs[3].shape}.") from exc
     return arrs[0], arrs[1], arrs[2], arrs[3], batch
+
+
+def broadcast_rows(batch: tuple[int, ...], *arrays: FloatArray) -> list[FloatArray]:
+    """Each array with its leading (batch) shape broadcast to ``batch`` (views, no copies).
+
+    Parameters
+    ----------
+    batch : tuple of int
+    *arrays : ndarray, shapes (..., size)
+
+    Returns
+    -------
+    list of ndarray, shapes batch + (size,)
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> [a.shape for a in broadcast_rows((3,), np.zeros(2), np.zeros((3, 1)))]
+    [(3, 2), (3, 1)]
+    """
+    return [a if a.shape[:-1] == batch else np.broadcast_to(a, batch + a.shape[-1:])
+            for a in arrays]
 
 
 def finite_candidate(cand: FloatArray, fallback: FloatArray) -> FloatArray:
