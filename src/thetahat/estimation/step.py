@@ -136,6 +136,7 @@ def _shared(M: FloatArray) -> FloatArray:
 #: P and P2 per (plan, correct), kept while the plan is in use.
 _ARRAYS_KEPT = 64
 _arrays: OrderedDict[tuple[int, bool], tuple[object, tuple[Any, ...]]] = OrderedDict()
+_arrays_lock = threading.Lock()
 
 
 def _cached(plan: StepPlan | SecondPlan, correct: bool, build: Callable[[], tuple[Any, ...]]
@@ -145,9 +146,10 @@ def _cached(plan: StepPlan | SecondPlan, correct: bool, build: Callable[[], tupl
     if hit is not None and hit[0] is plan:
         return hit[1]
     arrays = build()
-    _arrays[key] = (plan, arrays)
-    if len(_arrays) > _ARRAYS_KEPT:
-        _arrays.popitem(last=False)
+    with _arrays_lock:
+        _arrays[key] = (plan, arrays)
+        if len(_arrays) > _ARRAYS_KEPT:
+            _arrays.popitem(last=False)
     return arrays
 
 
