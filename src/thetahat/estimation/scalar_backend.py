@@ -18,6 +18,7 @@ from __future__ import annotations
 import ast
 import copy as copy_module
 import inspect
+import re
 import textwrap
 from collections.abc import Sequence
 from typing import Any
@@ -32,18 +33,50 @@ from .discretize import IMPLICITNESS
 from .formulas import DIVERGENCE_BOUND
 from .law_base import FAR
 
-__all__ = ["LAWS", "LAW_BOX", "kernel_source", "model_source"]
+__all__ = ["INLINE_FROM", "LAWS", "LAW_BOX", "formula_decorator", "kernel_source",
+           "model_source"]
 
 #: The law formulas the compiled path supports, by code (see ``compiled.KernelParts``).
 LAWS = {0: "held_law", 1: "inversion_law", 2: "inversion_law", 3: "gradient_law"}
 
 #: numba options. ``_nrt=False``: no reference counting (the kernels allocate nothing; the
-#: counting of ~30 array variables per sample took 40 % of the time). The formulas are inlined
-#: into the loop by numba; the primitives are written into them as syntax (:class:`_Syntax`);
-#: the model functions and the few expression primitives left (exp, norm, sumsq) stay calls
-#: (inlining them too tripled the compile time and gained nothing measurable).
+#: counting of ~30 array variables per sample took 40 % of the time). The primitives are written
+#: into the formulas as syntax (:class:`_Syntax`); the model functions and the few expression
+#: primitives left (exp, norm, sumsq) stay calls (inlining them too tripled the compile time
+#: and gained nothing measurable).
 _INLINE = "@njit(cache=True, error_model='numpy', _nrt=False)"
-_FORM = "@njit(cache=True, error_model='numpy', inline='always', _nrt=False)"
+
+#: numba from which the formulas are inlined into the loop (:func:`formula_decorator`).
+INLINE_FROM = (0, 61)
+
+
+def formula_decorator(version: str) -> str:
+    """The decorator of the formulas for a numba version: inlined into the loop from
+    :data:`INLINE_FROM` on, separate functions before.
+
+    Inlined, the kernel is ≈ 1.5–2× faster and takes 20–40 s to compile (measured with numba
+    0.61.2 and 0.68.1); numba 0.58.1 had not finished inlining it after 17 min and 7.7 GB, and
+    compiles the separate functions in ≈ 12 s. 0.59–0.60 were not tried: they get the
+    separate functions.
+
+    Parameters
+    ----------
+    version : str
+        ``numba.__version__``.
+
+    Returns
+    -------
+    str
+
+    Examples
+    --------
+    >>> "inline='always'" in formula_decorator("0.68.1"), "inline" in formula_decorator("0.58.1")
+    (True, False)
+    """
+    parts = tuple(int(p) for p in re.findall(r"\d+", version)[:2])
+    if parts >= INLINE_FROM:
+        return "@njit(cache=True, error_model='numpy', inline='always', _nrt=False)"
+    return _INLINE
 
 class _Printer(PythonCodePrinter):
     """Python printer for numba: ``math`` functions (exp: the primitive), and no partially
@@ -262,7 +295,7 @@ def _call(name: str, *args: ast.expr) -> ast.Call:
     return ast.Call(ast.Name(name, ast.Load()), list(args), [])
 
 
-def _source(fn: Any, name: str | None = None, decorator: str = _FORM) -> str:
+def _source(fn: Any, name: str | None = None, decorator: str = _INLINE) -> str:
     """A function's source at module level, decorated, optionally renamed, with the element
     primitives as syntax (:class:`_Syntax`)."""
     tree = ast.parse(textwrap.dedent(inspect.getsource(fn)))
@@ -278,7 +311,7 @@ def _source(fn: Any, name: str | None = None, decorator: str = _FORM) -> str:
 LAW_BOX = {"held_law": 0, "inversion_law": 5, "gradient_law": 11}
 
 
-def _law_source(law: str) -> str:
+def _law_source(law: str, form: str) -> str:
     """law_step and the hooks weight, freeze, project and m_matrix for one law formula."""
     box = LAW_BOX[law]
     opts = f"LP[{box + 2}]"
@@ -286,13 +319,13 @@ def _law_source(law: str) -> str:
               f"        return smoothstep(norm(phi, NK), {opts}[0], {opts}[1])\n"
               "    return 1.0\n") if law == "inversion_law" else "    return 1.0\n"
     freeze = f"{opts}[3] != 0.0" if law == "inversion_law" else "False"
-    return (f"{_FORM}\ndef weight(LP, v, x, xo, phi):\n{weight}\n\n"
-            f"{_FORM}\ndef freeze(LP):\n    return {freeze}\n\n\n"
-            f"{_FORM}\ndef project(LP, thn):\n"
+    return (f"{form}\ndef weight(LP, v, x, xo, phi):\n{weight}\n\n"
+            f"{form}\ndef freeze(LP):\n    return {freeze}\n\n\n"
+            f"{form}\ndef project(LP, thn):\n"
             f"    lo, hi = LP[{box}], LP[{box + 1}]\n"
             "    for i in range(NP):\n        thn[i] = min(max(thn[i], lo[i]), hi[i])\n"
             "    return 0\n\n\n"
-            f"{_FORM}\ndef m_matrix(v, x, xo, th, to, Mt):\n    return 0\n\n\n"
+            f"{form}\ndef m_matrix(v, x, xo, th, to, Mt):\n    return 0\n\n\n"
             f"law_step = {law}\n")
 
 
@@ -318,6 +351,7 @@ def kernel_source(pert: SymbolicPerturbation, theta_star: tuple[sp.Expr, ...] | 
         A module defining ``kernel_run`` (:mod:`~thetahat.estimation.scalar_primitives`).
     """
     n, m, r, p, k = pert.dims
+    form = formula_decorator(_numba_version())
     header = [
         '"""Generated by thetahat.estimation.scalar_backend; do not edit (content-addressed).',
         "",
@@ -334,12 +368,21 @@ def kernel_source(pert: SymbolicPerturbation, theta_star: tuple[sp.Expr, ...] | 
     parts += [_source(fn, name, _INLINE)
               for name, fn in scalar_primitives.SCALAR_PRIMITIVES.items()]
     parts.append(model_source(pert, theta_star, ts_args))
-    parts += [_source(fn, None, _FORM) for fn in law_formulas.LAW_FORMULAS.values()]
-    parts += [_source(fn, None, _FORM) for fn in formulas.FORMULAS.values()]
-    parts.append(_law_source(law))
+    parts += [_source(fn, None, form) for fn in law_formulas.LAW_FORMULAS.values()]
+    parts += [_source(fn, None, form) for fn in formulas.FORMULAS.values()]
+    parts.append(_law_source(law, form))
     parts.append(_source(scalar_primitives.kernel_run, decorator=_INLINE))
     text = "\n\n".join(parts) + "\n"
     if not numba:
         text = "\n".join(line for line in text.splitlines()
                          if not line.startswith(("@njit(", "from numba import"))) + "\n"
     return text
+
+
+def _numba_version() -> str:
+    """numba's version, or "0" without numba (the text is then for plain Python only)."""
+    try:
+        import numba
+    except ImportError:
+        return "0"
+    return str(numba.__version__)
