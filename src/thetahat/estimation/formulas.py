@@ -39,6 +39,7 @@ from typing import Any
 
 __all__ = ["DIVERGENCE_BOUND", "FORMULAS", "WORK", "advance", "implicit_step",
            "observer_forcing", "observer_jacobian", "second_forcing", "second_jacobian",
+           "phi_hat", "second_step",
            "within_bound"]
 
 #: A row of the state has diverged when its Euclidean norm exceeds this (or is not finite).
@@ -256,6 +257,46 @@ def implicit_step(q: int, Phi1: Any, Phi2: Any, F: Any, Fd: Any, foh: bool, Nm: 
     axpy(q, 1.0, rhs, 0, out, so)
 
 
+def second_step(P2: tuple[Any, ...], s: Any, u0: Any, y0: Any, u1: Any, y1: Any, dt: float,
+                correct: bool, foh: bool, on_estimates: bool, out: Any, W: tuple[Any, ...]
+                ) -> None:
+    """x̂₂ of the second observer (Sec. VI) from ``s`` into ``out``, driven by θ̂ of ``s``.
+
+    Parameters
+    ----------
+    P2 : tuple
+        The second observer's plan arrays.
+    s, out : array
+        State rows before and after the step (only x̂₂ is written).
+    u0, y0, u1, y1 : array
+        Samples at the start and (``foh``) at the end of the step.
+    dt : float
+    correct, foh, on_estimates : bool
+    W : tuple
+        Work buffers (:data:`WORK`).
+    """
+    v2, g2, Gx2, Gy2, F2, Fd2, N2, M2, rhs2, w2 = W[17:]
+    n = NX
+    second_forcing(P2, s, u0, y0, correct, on_estimates, v2, g2, Gx2, F2, w2)
+    second_jacobian(P2, s, v2, correct, on_estimates, Gx2, Gy2, N2)
+    if foh:
+        second_forcing(P2, s, u1, y1, correct, on_estimates, v2, g2, Gx2, Fd2, w2)
+        for i in range(n):
+            put(Fd2, i, (get(Fd2, i) - get(F2, i)) / dt)
+    implicit_step(n, P2[5], P2[6], F2, Fd2, foh, N2, s, n + NK + NP, out, M2, rhs2)
+
+
+def phi_hat(g: Any, s: Any, phi: Any) -> None:
+    """φ̂ = g(v, x̂, θ̂) + z (3c) into ``phi``, from g and the state rows ``s``.
+
+    Parameters
+    ----------
+    g, s, phi : array
+    """
+    copy(NK, g, 0, phi, 0)
+    axpy(NK, 1.0, s, NX, phi, 0)
+
+
 def within_bound(s: Any, size: int) -> Any:
     """Rows whose norm is at most :data:`DIVERGENCE_BOUND` (False for NaN or inf).
 
@@ -307,8 +348,7 @@ def advance(P: tuple[Any, ...], P2: tuple[Any, ...], LP: tuple[Any, ...], s: Any
     n, k, p = NX, NK, NP
     q = n + k
     observer_forcing(P, s, u0, y0, correct, v, g, Gx, F, wr, wn)
-    copy(k, g, 0, phi, 0)
-    axpy(k, 1.0, s, n, phi, 0)                      # φ̂ = g + z (3c)
+    phi_hat(g, s, phi)
     bad = False
     for a in range(k):
         bad = or_(bad, not_(isfinite(get(phi, a))))
@@ -337,14 +377,7 @@ def advance(P: tuple[Any, ...], P2: tuple[Any, ...], LP: tuple[Any, ...], s: Any
             put(Fd, i, (get(Fd, i) - get(F, i)) / dt)
     axpy(k, 1.0, zc, 0, F, n)
     if second:
-        v2, g2, Gx2, Gy2, F2, Fd2, N2, M2, rhs2, w2 = W[17:]
-        second_forcing(P2, s, u0, y0, correct, on_estimates, v2, g2, Gx2, F2, w2)
-        second_jacobian(P2, s, v2, correct, on_estimates, Gx2, Gy2, N2)
-        if foh:
-            second_forcing(P2, s, u1, y1, correct, on_estimates, v2, g2, Gx2, Fd2, w2)
-            for i in range(n):
-                put(Fd2, i, (get(Fd2, i) - get(F2, i)) / dt)
-        implicit_step(n, P2[5], P2[6], F2, Fd2, foh, N2, s, q + p, out, M2, rhs2)
+        second_step(P2, s, u0, y0, u1, y1, dt, correct, foh, on_estimates, out, W)
     implicit_step(q, P[8], P[9], F, Fd, foh, Nm, s, 0, out, M, rhs)
     copy(p, thn, 0, out, q)
     copy(LS, lsn, 0, out, q + p + (n if second else 0))
@@ -355,4 +388,6 @@ def advance(P: tuple[Any, ...], P2: tuple[Any, ...], LP: tuple[Any, ...], s: Any
 FORMULAS: dict[str, Callable[..., Any]] = {
     "observer_forcing": observer_forcing, "observer_jacobian": observer_jacobian,
     "second_forcing": second_forcing, "second_jacobian": second_jacobian,
-    "implicit_step": implicit_step, "within_bound": within_bound, "advance": advance}
+    "implicit_step": implicit_step, "second_step": second_step, "phi_hat": phi_hat,
+    "within_bound": within_bound,
+    "advance": advance}

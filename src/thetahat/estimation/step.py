@@ -301,24 +301,13 @@ def second_advance(plan: SecondPlan, pert: Perturbation, x2: FloatArray, u0: Flo
     ndarray, shape (..., n)
     """
     lay = _second_layout(pert)
-    n = lay.n
     s = _second_state(lay, x2, th)
     lead = s.shape[:-1]
     env = _binding(pert, None, lay, lead == ())
-    W = _work(lay, lead)
-    v2, g2, Gx2, Gy2, F2, Fd2, N2, M2, rhs2, w2 = W[17:]
-    P2 = _second_arrays(plan, correct)
-    foh = u1 is not None
     out = np.empty_like(s)
-    env["second_forcing"](P2, s, u0, y0, correct, plan.g_on_estimates, v2, g2, Gx2, F2, w2)
-    env["second_jacobian"](P2, s, v2, correct, plan.g_on_estimates, Gx2, Gy2, N2)
-    if foh:
-        env["second_forcing"](P2, s, u1, y0 if y1 is None else y1, correct,
-                              plan.g_on_estimates, v2, g2, Gx2, Fd2, w2)
-        Fd2 -= F2
-        Fd2 /= dt
-    env["implicit_step"](n, P2[5], P2[6], F2, Fd2, foh, N2, s, lay.n + lay.k + lay.p, out,
-                         M2, rhs2)
+    env["second_step"](_second_arrays(plan, correct), s, u0, y0, u1,
+                       y0 if y1 is None else y1, dt, correct, u1 is not None,
+                       plan.g_on_estimates, out, _work(lay, lead))
     return out[..., lay.x2]
 
 
@@ -366,7 +355,7 @@ def advance(plan: StepPlan, pert: Perturbation, law: UpdateLaw, s: FloatArray, u
     status = env["advance"](
         _plan_arrays(plan, correct), _second_arrays(plan.second, correct), (G,), s, u0, y0,
         u1, y0 if (y1 is None or not correct) else y1, dt, correct, foh, second,
-        second and plan.second is not None and plan.second.g_on_estimates, out, W)
+        plan.second is not None and plan.second.g_on_estimates, out, W)
     if status == 0:
         return out
     if status >= 2:                   # the law's own check raises first; kept for safety
