@@ -153,24 +153,6 @@ def _checked_theta_star(theta_star: ThetaStar | ThetaStarFn, owner: str, v: Floa
     return ts if ts.shape == batch + (p,) else np.broadcast_to(ts, batch + (p,))
 
 
-def _inversion_target(theta_star: ThetaStar | ThetaStarFn, weight: Weight | None,
-                      on_invalid: OnInvalid,
-                      owner: str, v: FloatArray, x: FloatArray, phi: FloatArray,
-                      th: FloatArray, batch: tuple[int, ...]) -> tuple[FloatArray, FloatArray]:
-    """(θ*, l) broadcast to the batch for the rate; θ* replaced by θ̂ where l = 0."""
-    p = th.shape[-1]
-    lw = np.ones(batch) if weight is None else _checked_weight(weight, owner, v, x, phi, batch)
-    ts = _checked_theta_star(theta_star, owner, v, x, phi, batch, p)
-    bad = (lw > 0) & ~np.isfinite(ts).all(axis=-1)
-    if bad.any():
-        if on_invalid == "raise":
-            raise invalid_theta_star_error(owner, int(np.sum(bad)))
-        lw = np.where(bad, 0.0, lw)
-    th_b = th if th.shape == batch + (p,) else np.broadcast_to(th, batch + (p,))
-    target = np.where((lw > 0)[..., None], ts, th_b)
-    return target, lw
-
-
 def gain_eigen(Gamma: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray]:
     """(Λ, V, Vᵀ) with Γ = V diag(Λ) Vᵀ, for one Γ (p, p) or one per row (..., p, p).
 
@@ -341,21 +323,25 @@ class IntermittentInversion(UpdateLaw):
         return cls(ts, l, Gamma, parameter_set, saturation=saturation, layer=layer,
                    on_invalid=on_invalid)
 
-    def _target(self, v: ArrayLike, x_hat: ArrayLike, phi_hat: ArrayLike,
-                theta_hat: ArrayLike) -> tuple[FloatArray, FloatArray, FloatArray]:
-        v_, x, phi, th, batch = as_batch(v, x_hat, phi_hat, theta_hat, self.parameter_set.dim)
-        x, phi = apply_saturation(self.saturation, x, phi)
-        target, lw = _inversion_target(self.theta_star, self.l, self.on_invalid,
-                                       "IntermittentInversion", v_, x, phi, th, batch)
-        return target, lw, th
-
     def rate(self, v: ArrayLike, x_hat: ArrayLike, phi_hat: ArrayLike,
              theta_hat: ArrayLike) -> FloatArray:
-        """θ̂̇ = Proj(lΓ(θ* - θ̂)); shape (..., p)."""
-        target, lw, th = self._target(v, x_hat, phi_hat, theta_hat)
-        th_b = np.broadcast_to(th, target.shape)
-        tau = lw[..., None] * ((target - th_b) @ self.Gamma)
-        return self._proj.proj(tau, th_b)
+        """θ̂̇ = Proj(lΓ(θ* - θ̂)); shape (..., p).
+
+        θ* and l from :func:`~thetahat.estimation.law_formulas.inversion_target` on NumPy
+        arrays (the step's own rule for an invalid θ*).
+        """
+        v_, x, phi, th, batch = as_batch(v, x_hat, phi_hat, theta_hat, self.parameter_set.dim)
+        x, phi = apply_saturation(self.saturation, x, phi)
+        args = broadcast_rows(batch, v_, x, phi, th)
+        target = np.empty(batch + th.shape[-1:])
+        env = bound(self, batch == (), LAW_FORMULAS,
+                    lambda: _inversion_names(self, NUMPY_ROW if batch == () else NUMPY))
+        nbad, lw = env["inversion_target"]((), args[0], args[1], 0, args[2], args[3], 0,
+                                           target)
+        if nbad and self.on_invalid == "raise":
+            raise invalid_theta_star_error("IntermittentInversion", nbad)
+        tau = np.broadcast_to(lw, batch)[..., None] * ((target - args[3]) @ self.Gamma)
+        return self._proj.proj(tau, args[3])
 
     def step(self, v: ArrayLike, x_hat: ArrayLike, phi_hat: ArrayLike, theta_hat: ArrayLike,
              dt: float, *, Gamma: ArrayLike | None = None) -> FloatArray:

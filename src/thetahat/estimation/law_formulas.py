@@ -27,7 +27,7 @@ from collections.abc import Callable
 from typing import Any
 
 __all__ = ["LAW_FORMULAS", "finite_candidate", "gradient_law", "held_law", "inversion_law",
-           "smoothstep"]
+           "inversion_target", "smoothstep"]
 
 # Names bound by a back end (declared for the type checker; never assigned here).
 Prim = Callable[..., Any]
@@ -121,6 +121,44 @@ def held_law(LP: tuple[Any, ...], v: Any, x: Any, xo: int, phi: Any, th: Any, to
     return project(LP, thn)
 
 
+def inversion_target(LP: tuple[Any, ...], v: Any, x: Any, xo: int, phi: Any, th: Any,
+                     to: int, ts: Any) -> tuple[int, Any]:
+    """The target of Propositions 1–2 and the weight: θ* into ``ts``, θ̂ where l = 0.
+
+    θ* may be NaN or inf where l = 0. Where l > 0 but θ* is not finite, ``freeze`` sets l = 0
+    (θ̂ is held there); otherwise the caller reports the rows counted.
+
+    Parameters
+    ----------
+    LP : tuple
+        What the hooks read.
+    v, x, phi, th : array
+    xo, to : int
+    ts : array
+        Output: the target.
+
+    Returns
+    -------
+    nbad : int
+        Rows where l > 0 and θ* is NaN or inf.
+    lw : float or array
+        The weight l (0 on those rows with ``freeze``).
+    """
+    lw = weight(LP, v, x, xo, phi)
+    theta_star(v, x, xo, phi, ts)
+    invalid = False
+    for i in range(NP):
+        invalid = or_(invalid, not_(isfinite(get(ts, i))))
+    invalid = and_(invalid, lw > 0.0)
+    nbad = count_(invalid)
+    if nbad > 0 and freeze(LP):
+        lw = where(invalid, 0.0, lw)
+    active = lw > 0.0
+    for i in range(NP):
+        put(ts, i, where(active, get(ts, i), get(th, to + i)))
+    return nbad, lw
+
+
 def inversion_law(LP: tuple[Any, ...], v: Any, x: Any, xo: int, phi: Any, th: Any, to: int,
                   dt: float, thn: Any, lsn: Any) -> int:
     """Propositions 1–2: the exact flow of θ̇ = lΓ(θ* − θ) over dt, then the projection.
@@ -145,23 +183,11 @@ def inversion_law(LP: tuple[Any, ...], v: Any, x: Any, xo: int, phi: Any, th: An
     """
     lam, V, VT, ts, err = LP[0], LP[1], LP[2], LP[3], LP[4]
     p = NP
-    lw = weight(LP, v, x, xo, phi)
-    theta_star(v, x, xo, phi, ts)
-    invalid = False
+    nbad, lw = inversion_target(LP, v, x, xo, phi, th, to, ts)
+    if nbad > 0 and not freeze(LP):
+        return nbad + 1
     for i in range(p):
-        invalid = or_(invalid, not_(isfinite(get(ts, i))))
-    invalid = and_(invalid, lw > 0.0)
-    nbad = count_(invalid)
-    if nbad > 0:
-        if not freeze(LP):
-            return nbad + 1
-        lw = where(invalid, 0.0, lw)
-    active = lw > 0.0
-    for i in range(p):
-        t = get(th, to + i)
-        target = where(active, get(ts, i), t)
-        put(ts, i, target)
-        put(err, i, target - t)
+        put(err, i, get(ts, i) - get(th, to + i))
     mv(VT, p, p, err, 0, thn, 0, 0)                 # Vᵀ (θ* − θ̂)
     for i in range(p):
         put(err, i, exp(-lw * dt * get(lam, i)) * get(thn, i))
@@ -233,4 +259,5 @@ def gradient_law(LP: tuple[Any, ...], v: Any, x: Any, xo: int, phi: Any, th: Any
 #: The law formulas a back end binds, by name.
 LAW_FORMULAS: dict[str, Callable[..., Any]] = {
     "smoothstep": smoothstep, "finite_candidate": finite_candidate, "held_law": held_law,
-    "inversion_law": inversion_law, "gradient_law": gradient_law}
+    "inversion_target": inversion_target, "inversion_law": inversion_law,
+    "gradient_law": gradient_law}
