@@ -450,7 +450,7 @@ def kernel_arrays(parts: KernelParts, plan: StepPlan) -> tuple[tuple[Any, ...], 
     P = tuple(own(a) for a in (plan.L[0], plan.Bv[0], plan.E, plan.C, plan.A, plan.B,
                                plan.K_x[0], plan.KxC[0], plan.Phi1[0], plan.Phi2[0]))
     sec = plan.second
-    if sec is None:                  # never read: the kernel's SECOND is False
+    if sec is None:                  # never read: flags[0] (a second observer) is False
         P2 = tuple(np.zeros(shape) for shape in ((n, n), (n, m), (r, n), (n, k), (n, r),
                                                 (n, n), (n, n)))
     else:

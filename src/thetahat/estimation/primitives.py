@@ -89,7 +89,7 @@ def _copy(n: int, a: FloatArray, ao: int, out: FloatArray, oo: int) -> None:
 
 
 def _axpy(n: int, c: Any, a: FloatArray, ao: int, out: FloatArray, oo: int) -> None:
-    if c == 1.0 if isinstance(c, float) else False:
+    if isinstance(c, float) and c == 1.0:
         out[..., oo:oo + n] += a[..., ao:ao + n]
         return
     if np.ndim(c):

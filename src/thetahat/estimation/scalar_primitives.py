@@ -27,6 +27,7 @@ EXP_TINY_ARG = -745.1332191019411
 advance: Callable[..., int]
 within_bound: Callable[..., bool]
 g_val: Callable[..., Any]
+phi_hat: Callable[..., None]
 NX: int
 NU: int
 NY: int
@@ -292,7 +293,9 @@ def kernel_run(s0: Any, U: Any, Y: Any, dts: Any, P: tuple[Any, ...], P2: tuple[
         v[j] = U[N - 1, j]
     for j in range(NY):
         v[NU + j] = Y[N - 1, j]
+    phi = W[10]
     g_val(v, s, 0, s, NX + NK, g)
+    phi_hat(g, s, phi)
     for a in range(NK):
-        PHI[N - 1, a] = g[a] + s[NX + a]
+        PHI[N - 1, a] = phi[a]
     return 0, 0
