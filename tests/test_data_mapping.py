@@ -178,3 +178,42 @@ def test_emps_model_file_reads_the_shipped_record():
     variables = scipy.io.loadmat(path)
     np.testing.assert_allclose(record.u[:, 0], 35.15 * variables["vir"].ravel(), rtol=EXACT)
     np.testing.assert_array_equal(record.y[:, 0], variables["qm"].ravel())
+
+
+def test_cli_estimate_reads_a_mat_file_through_the_mapping(tmp_path, capsys):
+    """``thetahat estimate MODEL FILE.mat``: the same θ̂ as the API on the mapped arrays."""
+    from thetahat.cli import main
+    from thetahat.modelfile import run_estimator
+
+    n = 200
+    rng = np.random.default_rng(7)
+    t = np.arange(n) * 0.01
+    volts, pos_mm = np.sin(t), 100 * rng.normal(size=n) * 0.01
+    model = tmp_path / "m.toml"
+    model.write_text(MAPPED)
+    path = tmp_path / "log.mat"
+    scipy.io.savemat(path, {"time": t, "volts": volts, "pos_mm": pos_mm})
+    out = tmp_path / "est.csv"
+    assert main(["estimate", str(model), str(path), "-o", str(out), "--no-progress"]) == 0
+    assert f"({n} rows)" in capsys.readouterr().out
+    table = np.loadtxt(out, delimiter=",", skiprows=1)
+    column = out.read_text().splitlines()[0].split(",").index("theta_hat_theta")
+    spec = loads_model(MAPPED)
+    api = run_estimator(spec, t, (35.15 * volts - 1.5)[:, None], (1e-3 * pos_mm)[:, None])
+    np.testing.assert_allclose(table[:, column], api.theta_hat[:, 0], rtol=1e-12, atol=1e-15)
+
+
+def test_cli_refuses_v73_and_checks_demo_output_first(tmp_path, capsys):
+    from thetahat.cli import main
+
+    model = tmp_path / "m.toml"
+    model.write_text(MAPPED)
+    path = tmp_path / "big.mat"
+    path.write_bytes(b"MATLAB 7.3 MAT-file".ljust(512, b" ") + b"\x89HDF\r\n\x1a\n")
+    assert main(["estimate", str(model), str(path), "-o", str(tmp_path / "o.csv")]) == 2
+    err = capsys.readouterr().err
+    assert "v7.3" in err and "Traceback" not in err and len(err.strip().splitlines()) == 1
+    blocker = tmp_path / "not_a_folder"
+    blocker.write_text("")
+    assert main(["demo", "emps", "--out", str(blocker)]) == 2   # refused before estimating
+    assert "not a writable folder" in capsys.readouterr().err
