@@ -100,3 +100,24 @@ def test_bad_theta_and_missing_file(record, tmp_path):
         emps.validate([-1.0, 200.0, 20.0, 0.0], record)
     with pytest.raises(ModelFileError, match="not found"):
         emps.load(tmp_path / "none.mat")
+
+
+def test_shipped_model_file():
+    """examples/emps.toml: Assumption 1 holds; Θ at least the issue's box, holding the
+    published θ; θ̂(0) not the answer: an estimator that does not move fails issue 19's
+    acceptance (3 % on M, Fv, Fc; 0.5 N on the offset)."""
+    from pathlib import Path
+
+    from thetahat.modelfile import analyze_model, load_model
+
+    spec = load_model(Path(__file__).resolve().parents[2] / "examples" / "emps.toml")
+    assert analyze_model(spec).ok
+    assert spec.parameter_names == emps.PUBLISHED.names
+    box = spec.system.parameter_set
+    assert np.all(box.lower <= [50, 50, 0, -20]) and np.all(box.upper >= [150, 400, 50, 20])
+    assert box.contains(emps.PUBLISHED.value)
+    start, published = spec.estimator.theta_hat0, emps.PUBLISHED.value
+    relative = np.abs(start[:3] - published[:3]) / published[:3]
+    assert np.any(relative > 0.03) and abs(start[3] - published[3]) > 0.5
+    assert spec.data is not None and spec.data.u[0].column == "vir"
+    assert spec.data.u[0].scale == emps.G_TAU
