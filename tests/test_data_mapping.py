@@ -217,3 +217,27 @@ def test_cli_refuses_v73_and_checks_demo_output_first(tmp_path, capsys):
     blocker.write_text("")
     assert main(["demo", "emps", "--out", str(blocker)]) == 2   # refused before estimating
     assert "not a writable folder" in capsys.readouterr().err
+
+
+def test_list_of_signals_for_several_inputs(tmp_path):
+    two_inputs = (EXAMPLE_MODEL.replace("B = [[0.0], [1.0]]", "B = [[0.0, 0.0], [1.0, 1.0]]")
+                  .replace('u = ["u"]', 'u = ["u", "w"]'))
+    spec = loads_model(two_inputs + '[data]\nt = "time"\n'
+                       'u = ["a", { column = "b", scale = 2.0 }]\ny = "pos"\n')
+    path = tmp_path / "two.mat"
+    scipy.io.savemat(path, {"time": [0.0, 1.0], "a": [1.0, 2.0], "b": [3.0, 4.0],
+                            "pos": [0.5, 0.6]})
+    record = read_data(path, spec)
+    assert record.u.tolist() == [[1.0, 6.0], [2.0, 8.0]]
+    assert record.columns == ("time", "a", "b", "pos")
+
+
+def test_output_dropouts_follow_the_nan_policy(tmp_path):
+    raw = _record()
+    raw["pos_mm"][5] = np.nan
+    path = tmp_path / "gap.mat"
+    scipy.io.savemat(path, raw)
+    spec = loads_model(MAPPED)
+    assert np.isnan(read_data(path, spec, nan_policy="skip").y[5, 0])
+    with pytest.raises(ModelFileError, match=r"'pos_mm'.*sample 5 is nan.*--nan-policy skip"):
+        read_data(path, spec)
