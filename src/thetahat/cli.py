@@ -3,6 +3,7 @@
 Subcommands::
 
     thetahat demo lugre [--out out] [--eps 1] [--seed 0] [--show]
+    thetahat demo emps [--out out]
     thetahat sweep [MODEL] [--eps 1 0.7 0.5 0.3 0.2 0.1] [--seeds 5] [--t-end T] [--out out]
                    [--jobs N] [--scheduler tcp://HOST:PORT]
     thetahat tune [MODEL] [--eps 1 0.7 0.5 0.3] [--gamma 1 3 10 30] [--seeds 1000 1001]
@@ -59,6 +60,11 @@ def _demo(args: argparse.Namespace) -> int:
     from .datafile import check_writable
     from .models.lugre_report import report
 
+    if args.example == "emps":
+        from .models.emps_report import report as emps_report
+        check_writable(Path(args.out) / "emps_paper.csv")  # before any work
+        emps_report(out=args.out, method="paper")
+        return EXIT_OK
     check_writable(Path(args.out) / "lugre.json")          # before any work
 
     report(out=args.out, eps=args.eps, seed=args.seed, show=args.show)
@@ -220,7 +226,8 @@ def _parser() -> argparse.ArgumentParser:
                           description="Run an example: structure, design, estimation, the "
                                       "figure (out/lugre.png), a summary (out/lugre.json) and "
                                       "the data (out/lugre_data.csv: t,u,y).")
-    demo.add_argument("example", choices=["lugre"], help="the example to run")
+    demo.add_argument("example", choices=["lugre", "emps"],
+                      help="the example to run (emps: the measured EMPS benchmark)")
     demo.add_argument("--out", default="out", help="output folder (default: out)")
     demo.add_argument("--eps", type=float, default=1.0, help="ε of the first observer "
                                                              "(default: 1)")

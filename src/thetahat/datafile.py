@@ -92,6 +92,9 @@ def column_candidates(spec: ModelSpec) -> list[list[str]]:
 def read_data(path: str | Path, spec: ModelSpec, *, nan_policy: str = "raise") -> DataRecord:
     """Read a CSV record (header row; columns t, inputs, outputs) for a model's estimator.
 
+    MATLAB (``.mat``) and Parquet files, and any file when the model has a ``[data]`` table,
+    are read by :func:`thetahat.data_mapping.read_mapped` instead.
+
     The file is read as UTF-8 (a byte-order mark, as Excel writes, is accepted), with any line
     ending (LF, CRLF), row by row into float64 columns: memory is O(N) in the samples only.
 
@@ -137,6 +140,9 @@ def read_data(path: str | Path, spec: ModelSpec, *, nan_policy: str = "raise") -
     """
     check_nan_policy(nan_policy)
     path = Path(path)
+    if spec.data is not None or path.suffix.lower() in (".mat", ".parquet"):
+        from .data_mapping import read_mapped          # [data] table, MATLAB and Parquet files
+        return read_mapped(path, spec, nan_policy=nan_policy)
     try:
         with path.open(newline="", encoding="utf-8-sig") as fh:
             return _read_rows(path, csv.reader(fh), spec, nan_policy)

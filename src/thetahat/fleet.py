@@ -263,7 +263,7 @@ def read_parquet(path: str | Path, spec: ModelSpec, *, nan_policy: str = "raise"
 
 
 def _read(path: str, spec: ModelSpec, nan_policy: str) -> DataRecord:
-    if path.lower().endswith(".parquet"):
+    if path.lower().endswith(".parquet") and spec.data is None:
         return read_parquet(path, spec, nan_policy=nan_policy)
     return read_data(path, spec, nan_policy=nan_policy)
 

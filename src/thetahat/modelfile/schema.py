@@ -48,13 +48,21 @@ A model file (TOML, read with :mod:`tomllib`, or JSON with the same structure) h
     ``"Radau"``), ``rtol`` (1e-8) and ``atol`` (a number or n numbers, 1e-10). The plant
     is simulated with the file's g, evaluated on the noise-free output C x.
 
+``[data]`` (optional)
+    Which variables (MATLAB files) or columns (CSV, Parquet) of a data file are ``t``, ``u``
+    and ``y``, each a name or ``{ column = "NAME", scale = 1.0, offset = 0.0 }`` (value =
+    scale · raw + offset), a list of m (r) signals for several inputs (outputs); ``t`` may
+    instead be ``{ rate = HZ }`` when the record has no time vector. See
+    :mod:`thetahat.data_mapping`.
+
 Unknown keys are errors (they are usually typos). Every problem is reported as a
 :class:`~thetahat.errors.ModelFileError` naming the file, the section and the key.
 
-Data files for :func:`thetahat.datafile.read_data` are CSV with a header row: a column ``t`` (strictly
-increasing), one column per input, named as in ``[perturbation] u`` or ``u1``, ``u2``, …
-(``u`` also works when m = 1), and one per output, named as in ``[perturbation] y`` or
-``y1``, … (``y`` when r = 1). Column order is free and other columns are ignored.
+Data files for :func:`thetahat.datafile.read_data` are CSV with a header row, Parquet or MATLAB
+(``.mat``, v4–v7) files. Without ``[data]``, they hold a column ``t`` (strictly increasing),
+one column per input, named as in ``[perturbation] u`` or ``u1``, ``u2``, … (``u`` also works
+when m = 1), and one per output, named as in ``[perturbation] y`` or ``y1``, … (``y`` when
+r = 1). Column order is free and other columns are ignored.
 """
 
 from __future__ import annotations
@@ -71,6 +79,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from .. import limits
+from ..data_mapping import DataMapping, parse_data_table
 from ..errors import InputLimitError, ModelFileError, ThetahatError
 from ..estimation.projection import as_gain
 from ..estimation.update_laws import (
@@ -92,7 +101,8 @@ __all__ = ["ESTIMATION_METHODS", "EXAMPLE_MODEL", "EstimatorOptions", "LAWS", "M
 FloatArray = NDArray[np.float64]
 
 LAWS = ("gradient", "algebraic", "intermittent")
-_TOP_KEYS = ("name", "system", "perturbation", "parameter_set", "estimator", "scenario")
+_TOP_KEYS = ("name", "system", "perturbation", "parameter_set", "estimator", "scenario",
+             "data")
 _SYSTEM_KEYS = ("A", "B", "C", "E")
 _PERTURBATION_KEYS = ("g", "u", "y", "x", "theta", "constants")
 _BOX_KEYS = ("lower", "upper")
@@ -411,6 +421,9 @@ class ModelSpec:
         The ``[estimator]`` table.
     scenario : ScenarioOptions
         The simulated experiment (``[scenario]``, defaults where the file has none).
+    data : DataMapping or None
+        The ``[data]`` table: which variables of a data file are t, u and y, with scale and
+        offset (None: the default column names).
     """
 
     source: str
@@ -422,6 +435,7 @@ class ModelSpec:
     parameter_names: tuple[str, ...]
     estimator: EstimatorOptions
     scenario: ScenarioOptions
+    data: DataMapping | None = None
 
     def __repr__(self) -> str:
         s = self.system
@@ -791,6 +805,12 @@ def loads_model(text: str, *, syntax: str = "toml", source: str = "<string>") ->
     scenario = _read_scenario(_Section(source, "scenario", doc.get("scenario", {})), system,
                               theta_set)
     names = parsed["names"]
+    data = None
+    if "data" in doc:
+        data_sec = _Section(source, "data", doc["data"])
+        data = parse_data_table(data_sec.table, names["u"], names["y"],
+                                lambda message: data_sec.fail(None, message))
     return ModelSpec(source=source, name=name, system=system, input_names=names["u"],
                      output_names=names["y"], state_names=names["x"],
-                     parameter_names=names["theta"], estimator=estimator, scenario=scenario)
+                     parameter_names=names["theta"], estimator=estimator, scenario=scenario,
+                     data=data)
