@@ -76,6 +76,10 @@ class FitResult:
     noise_std : ndarray (r,)
     n_meas : int
         Scalar measurements in the window.
+    process_noise : float
+        q of the fit's model: 0 for the output-error fit of :func:`fit_map`, the estimated
+        intensity of the noise on φ for :func:`~thetahat.estimation.likelihood.fit_process_noise`
+        (the model error the data revealed).
     """
 
     k0: int
@@ -89,6 +93,7 @@ class FitResult:
     iterations: int
     noise_std: FloatArray
     n_meas: int = 1
+    process_noise: float = 0.0
 
     @property
     def consistent(self) -> bool:
@@ -475,6 +480,32 @@ def information_schedule(first: int, growth: float = INFO_GROWTH) -> Callable[[i
     return at
 
 
+def _with_process_noise(system: PerturbedLinearSystem, t: FloatArray, U: FloatArray,
+                        Y: FloatArray, k1: int, previous: FitResult, x_hat0: FloatArray,
+                        x_sd: FloatArray, noise_std: Any, *, q: float | None, h_rho: float,
+                        compiled: bool | None) -> FitResult:
+    """The fit of samples 0 … k1 − 1 by the likelihood with process noise on φ, as a FitResult.
+
+    ``q``: the intensity (None: estimated with θ). The covariances put the filter's x
+    covariance (at the start: the prior; at the end: the filter's) beside θ's.
+    """
+    from .likelihood import fit_process_noise
+    n = system.n
+    sigma = resolve_noise_std(noise_std, Y[:k1])
+    pf = fit_process_noise(system, t[:k1], U[:k1], Y[:k1], theta0=previous.theta,
+                           x_hat0=x_hat0, x_sd=x_sd, noise_std=sigma, q=q,
+                           max_nfev=60 if q is None else 20, h_rho=h_rho, compiled=compiled)
+    p = pf.theta.shape[0]
+    cov = np.zeros((n + p, n + p))
+    cov[:n, :n] = np.diag(x_sd ** 2)
+    cov[n:, n:] = pf.cov
+    cov_end = cov.copy()
+    cov_end[:n, :n] = pf.P_end
+    return FitResult(k0=0, k1=k1, x_start=np.array(x_hat0, dtype=np.float64), x_end=pf.x_end,
+                     theta=pf.theta, cov=cov, cov_end=cov_end, cost=pf.cost, iterations=0,
+                     noise_std=sigma, n_meas=pf.n_meas, process_noise=pf.q)
+
+
 @dataclass(frozen=True, slots=True, eq=False)
 class MapResult:
     """Estimates of :class:`MapEstimator` (method "mle").
@@ -629,12 +660,24 @@ class MapEstimator:
         fits: list[FitResult] = []
         ends: list[int] = []
         ks = self.fit_samples(t_)
+        x_sd = np.full(sys_.n, float(sched.x_sd))
+        q_hat: float | None = None
         for i, k1 in enumerate(ks):
             prev = fits[-1] if fits else None
-            if self.schedule is None and i == len(ks) - 1 and prev is not None:
+            last = i == len(ks) - 1
+            if self.schedule is None and last and prev is not None:
                 # the record's own fit: iterate to convergence, not to the warm-start budget
                 sched = replace(sched, max_iter=sched.first_max_iter)
             fit = sched.fit(t_, U, Y, k1, prev, prior0)
+            if not fit.consistent and self.schedule is None:
+                # the output-error model does not explain the data (a model error, or a fit
+                # stuck far from the optimum): the likelihood with process noise on φ, taken
+                # only if it explains them
+                alt = _with_process_noise(sys_, t_, U, Y, k1, fit, st0["x_hat0"], x_sd,
+                                          self.noise_std, q=None if last else q_hat,
+                                          h_rho=sched.h_rho, compiled=self.compiled)
+                if alt.consistent:
+                    fit, q_hat = alt, alt.process_noise
             fits.append(fit)
             ends.append(k1 - 1)
             TH[k1 - 1:] = fit.theta
