@@ -11,33 +11,39 @@ eigendecomposition (directions the data and the prior do not determine are left 
 step is halved until J decreases; θ is clipped to Θ; the iteration stops when |Δθ| falls
 below :data:`STEP_TOL` standard errors or after ``max_iter`` iterations.
 
-:class:`FitSchedule` runs fits at scheduled times (t = 0.08·2ʲ s by default). While the fit
-time is at most ``full_window`` it refits all data from t = 0 (warm-started; prior q̄ =
-(x̂(0), θ̂(0)), Π from Θ and a wide x(0)); later fits use the block since the previous fit
-with the previous fit's θ and its marginal covariance as the prior on θ — the arrival cost,
-which summarises the older data — and a wide prior on x at the block's start centred at the
-previous fit's end state, so the cost per sample stays bounded on long records. (Dropping the
-older data's information on x is conservative; for models that forget x(t₀) quickly, such as
-LuGre within milliseconds, it is negligible.)
+:class:`MapEstimator` (method "mle") fits all the data so far each time the information has
+grown by a factor (:func:`information_schedule`: counts of samples, never seconds), warm-started
+from the previous fit; its last fit is the MAP estimate of the whole record.
+
+:class:`FitSchedule` serves the streaming estimator, which cannot keep every sample: fits at
+scheduled times (t = 0.08·2ʲ s by default). While the fit time is at most ``full_window`` it
+refits all data from t = 0 (warm-started; prior q̄ = (x̂(0), θ̂(0)), Π from Θ and a wide x(0));
+later fits use the block since the previous fit with the previous fit's θ and its marginal
+covariance as the prior on θ — the arrival cost, which summarises the older data — and a wide
+prior on x at the block's start centred at the previous fit's end state, so the cost per sample
+stays bounded on long records. (Dropping the older data's information on x is conservative
+only for models that forget x(t₀) quickly.)
 """
 
 from __future__ import annotations
 
 import functools
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any, Callable
 
 import numpy as np
 from numpy.typing import NDArray
 
+from ..errors import DimensionError
 from ..model.system import PerturbedLinearSystem
 from .ekf import resolve_noise_std, theta_box, theta_prior_sd
 from .noise_level import MIN_SAMPLES
 from .model_kernel import H_RHO, ModelKernel, jit, model_kernel
 
-__all__ = ["FitResult", "fit_map", "FitSchedule", "doubling_schedule", "dense_schedule",
-           "MapEstimator", "MapResult", "STEP_TOL", "X_PRIOR_SD"]
+__all__ = ["FitResult", "fit_map", "FitSchedule", "doubling_schedule", "information_schedule",
+           "first_fit_samples", "INFO_GROWTH", "MapEstimator", "MapResult", "STEP_TOL",
+           "X_PRIOR_SD"]
 
 FloatArray = NDArray[np.float64]
 
@@ -70,6 +76,10 @@ class FitResult:
     noise_std : ndarray (r,)
     n_meas : int
         Scalar measurements in the window.
+    process_noise : float
+        q of the fit's model: 0 for the output-error fit of :func:`fit_map`, the estimated
+        intensity of the noise on φ for :func:`~thetahat.estimation.likelihood.fit_process_noise`
+        (the model error the data revealed).
     """
 
     k0: int
@@ -83,6 +93,7 @@ class FitResult:
     iterations: int
     noise_std: FloatArray
     n_meas: int = 1
+    process_noise: float = 0.0
 
     @property
     def consistent(self) -> bool:
@@ -396,27 +407,103 @@ class FitSchedule:
                        h_rho=self.h_rho, compiled=self.compiled)
 
 
-def dense_schedule(j: int) -> float:
-    """The offline schedule: every 10 ms to 0.1 s, every 0.1 s to 1 s, then every second.
+#: Growth of the information between consecutive fits of :func:`information_schedule`.
+INFO_GROWTH = math.sqrt(2.0)
 
-    Used as the ``times`` of :class:`FitSchedule` by :class:`MapEstimator` (method "mle").
+
+def first_fit_samples(system: PerturbedLinearSystem) -> int:
+    """Samples before the first fit of :func:`information_schedule`: max(MIN_SAMPLES, 4(n + p)).
+
+    The fit has n + p unknowns and the noise level needs :data:`MIN_SAMPLES` samples; four
+    scalar measurements per unknown is the least at which the Gauss–Newton information is of
+    full rank with margin. A count of samples, not seconds: it holds at any sampling rate.
 
     Parameters
     ----------
-    j : int
-        Index of the fit, j ≥ 0.
+    system : PerturbedLinearSystem
 
     Returns
     -------
-    float
-        t_j in seconds: 0.01 (j + 1) for j < 10, 0.1 (j − 8) for 10 ≤ j < 19, then
-        1 + (j − 18).
+    int
+
+    Examples
+    --------
+    >>> from thetahat.models import lugre
+    >>> from thetahat.estimation.mle import first_fit_samples
+    >>> first_fit_samples(lugre.system())
+    12
     """
-    if j < 10:
-        return 0.01 * (j + 1)
-    if j < 19:
-        return 0.1 * (j - 8)
-    return 1.0 + (j - 18)
+    return max(MIN_SAMPLES, 4 * (system.n + system.p))
+
+
+def information_schedule(first: int, growth: float = INFO_GROWTH) -> Callable[[int], int]:
+    """Fit j after k_j samples, k_0 = ``first``, k_{j+1} = ⌈growth · k_j⌉: j ↦ k_j.
+
+    The Fisher information of a fit of all the data grows in proportion to the samples while
+    the excitation is steady, so a fit at every ``growth``-fold sample count is a fit each time
+    the information has grown by that factor (the Cramér–Rao bound has shrunk by √growth).
+    Counts of samples, never seconds: the schedule is the same for a process sampled at 10 Hz
+    for minutes and one sampled at 10 kHz for milliseconds. The total cost of refitting all the
+    data at each k_j is at most growth/(growth − 1) times that of one fit of the whole record.
+
+    Parameters
+    ----------
+    first : int
+        k_0 ≥ 1 (see :func:`first_fit_samples`).
+    growth : float
+        Factor > 1 between consecutive sample counts (default √2).
+
+    Returns
+    -------
+    callable
+        j ↦ k_j (int → int), strictly increasing.
+
+    Examples
+    --------
+    >>> from thetahat.estimation.mle import information_schedule
+    >>> at = information_schedule(12)
+    >>> [at(j) for j in range(6)]
+    [12, 17, 25, 36, 51, 73]
+    """
+    if not (isinstance(first, (int, np.integer)) and first >= 1):
+        raise DimensionError(f"information_schedule: first must be an integer >= 1; got "
+                             f"{first!r}.")
+    if not (math.isfinite(growth) and growth > 1.0):
+        raise DimensionError(f"information_schedule: growth must be a finite number > 1; got "
+                             f"{growth!r}.")
+    ks = [int(first)]
+
+    def at(j: int) -> int:
+        while len(ks) <= j:
+            ks.append(max(ks[-1] + 1, math.ceil(growth * ks[-1] - 1e-9)))
+        return ks[j]
+    return at
+
+
+def _with_process_noise(system: PerturbedLinearSystem, t: FloatArray, U: FloatArray,
+                        Y: FloatArray, k1: int, previous: FitResult, x_hat0: FloatArray,
+                        x_sd: FloatArray, noise_std: Any, *, q: float | None, h_rho: float,
+                        compiled: bool | None) -> FitResult:
+    """The fit of samples 0 … k1 − 1 by the likelihood with process noise on φ, as a FitResult.
+
+    ``q``: the intensity (None: estimated with θ). The covariances put the filter's x
+    covariance (at the start: the prior; at the end: the filter's) beside θ's.
+    """
+    from .likelihood import fit_process_noise
+    n = system.n
+    sigma = resolve_noise_std(noise_std, Y[:k1])
+    pf = fit_process_noise(system, t[:k1], U[:k1], Y[:k1], theta0=previous.theta,
+                           x_hat0=x_hat0, x_sd=x_sd, noise_std=sigma, q=q,
+                           max_nfev=60 if q is None else 20, h_rho=h_rho, compiled=compiled)
+    p = pf.theta.shape[0]
+    cov = np.zeros((n + p, n + p))
+    cov[:n, :n] = np.diag(x_sd ** 2)
+    cov[n:, n:] = pf.cov
+    cov_end = cov.copy()
+    cov_end[:n, :n] = pf.P_end
+    return FitResult(k0=0, k1=k1, x_start=np.array(x_hat0, dtype=np.float64), x_end=pf.x_end,
+                     theta=pf.theta, cov=cov, cov_end=cov_end, cost=pf.cost, iterations=0,
+                     noise_std=sigma, n_meas=pf.n_meas, process_noise=pf.q)
 
 
 @dataclass(frozen=True, slots=True, eq=False)
@@ -458,13 +545,23 @@ class MapResult:
 class MapEstimator:
     """Offline estimation by MAP fits alone on a schedule (method ``"mle"``).
 
+    By default every fit is a fit of all the data so far (Gauss–Newton over (x(0), θ) with
+    exact sensitivities, O(N) per iteration, warm-started from the previous fit), at the sample
+    counts of :func:`information_schedule` from :func:`first_fit_samples`, and the last fit
+    takes the whole record: θ̂ at the end is the MAP estimate of the record, with no block
+    approximation, at any record length and sampling rate.
+
     Parameters
     ----------
     system : PerturbedLinearSystem
     schedule : FitSchedule, optional
-        Default: :func:`dense_schedule` with refits of all data up to 1 s.
+        Fit at this schedule's times (seconds) and windows instead (the streaming estimator's
+        block fits with arrival cost).
     noise_std : optional
+        σ of the output noise; default estimated from the data of each fit.
     compiled : bool, optional
+    growth : float
+        Information growth between fits of the default schedule (default √2).
 
     Examples
     --------
@@ -481,12 +578,44 @@ class MapEstimator:
     schedule: FitSchedule | None = None
     noise_std: Any = None
     compiled: bool | None = None
+    growth: float = INFO_GROWTH
 
     def _schedule(self) -> FitSchedule:
         if self.schedule is not None:
             return self.schedule
-        return FitSchedule(system=self.system, times=dense_schedule, full_window=1.0,
-                           noise_std=self.noise_std, compiled=self.compiled)
+        return FitSchedule(system=self.system, full_window=math.inf, noise_std=self.noise_std,
+                           compiled=self.compiled)
+
+    def fit_samples(self, t: FloatArray) -> list[int]:
+        """The sample counts k₁ at which :meth:`run` fits (window 0 … k₁ − 1) on record ``t``.
+
+        Parameters
+        ----------
+        t : ndarray (N,)
+
+        Returns
+        -------
+        list of int
+            Increasing; the last is N (the whole record) whenever N admits a fit.
+        """
+        N = int(t.shape[0])
+        least = 3 if self.noise_std is not None else MIN_SAMPLES
+        if self.schedule is not None:
+            ks: list[int] = []
+            j = 0
+            times = self.schedule.times
+            while times(j) <= t[-1] - t[0] + 1e-12:
+                k1 = int(np.searchsorted(t - t[0], times(j) + 1e-12, side="right"))
+                if k1 >= least and (not ks or k1 > ks[-1]):
+                    ks.append(k1)
+                j += 1
+            return ks
+        at = information_schedule(max(first_fit_samples(self.system), least), self.growth)
+        ks, j = [], 0
+        while at(j) < N:
+            ks.append(at(j))
+            j += 1
+        return ks + [N] if N >= least else ks
 
     def init(self, x_hat0: Any = None, theta_hat0: Any = None) -> dict[str, Any]:
         """{"x_hat0", "theta_hat0"} (θ̂₀ in Θ, default the centre of Θ)."""
@@ -503,7 +632,19 @@ class MapEstimator:
 
     def run(self, t: Any, u: Any, y: Any, *, state0: dict[str, Any] | None = None
             ) -> MapResult:
-        """Fit on the schedule over a record; θ̂ between fits is the latest fit's."""
+        """Fit on the schedule over a record; θ̂ between fits is the latest fit's.
+
+        Parameters
+        ----------
+        t, u, y : array_like
+            The record: (N,), (N, m), (N, r).
+        state0 : dict, optional
+            From :meth:`init` (default: ``init()``).
+
+        Returns
+        -------
+        MapResult
+        """
         from .ekf import as_record
         sys_ = self.system
         t_, U, Y = as_record(t, u, y, sys_.m, sys_.r)
@@ -518,18 +659,29 @@ class MapEstimator:
         SD[:] = theta_prior_sd(sys_)
         fits: list[FitResult] = []
         ends: list[int] = []
-        j = 0
-        while True:
-            if sched.times(j) > t_[-1] - t_[0] + 1e-12:
-                break
-            k1 = int(np.searchsorted(t_ - t_[0], sched.times(j) + 1e-12, side="right"))
-            if k1 >= (3 if self.noise_std is not None else MIN_SAMPLES):
-                fit = sched.fit(t_, U, Y, k1, fits[-1] if fits else None, prior0)
-                fits.append(fit)
-                ends.append(k1 - 1)
-                TH[k1 - 1:] = fit.theta
-                SD[k1 - 1:] = fit.theta_se
-            j += 1
+        ks = self.fit_samples(t_)
+        x_sd = np.full(sys_.n, float(sched.x_sd))
+        q_hat: float | None = None
+        for i, k1 in enumerate(ks):
+            prev = fits[-1] if fits else None
+            last = i == len(ks) - 1
+            if self.schedule is None and last and prev is not None:
+                # the record's own fit: iterate to convergence, not to the warm-start budget
+                sched = replace(sched, max_iter=sched.first_max_iter)
+            fit = sched.fit(t_, U, Y, k1, prev, prior0)
+            if not fit.consistent and self.schedule is None:
+                # the output-error model does not explain the data (a model error, or a fit
+                # stuck far from the optimum): the likelihood with process noise on φ, taken
+                # only if it explains them
+                alt = _with_process_noise(sys_, t_, U, Y, k1, fit, st0["x_hat0"], x_sd,
+                                          self.noise_std, q=None if last else q_hat,
+                                          h_rho=sched.h_rho, compiled=self.compiled)
+                if alt.consistent:
+                    fit, q_hat = alt, alt.process_noise
+            fits.append(fit)
+            ends.append(k1 - 1)
+            TH[k1 - 1:] = fit.theta
+            SD[k1 - 1:] = fit.theta_se
         X = self._predictions(t_, U, Y, st0, fits, ends)
         return MapResult(t=t_, theta_hat=TH, theta_sd=SD, x_hat=X, fits=tuple(fits),
                          fit_samples=np.array(ends, dtype=np.int64))
