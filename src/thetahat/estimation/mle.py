@@ -42,7 +42,7 @@ from .noise_level import MIN_SAMPLES
 from .model_kernel import H_RHO, ModelKernel, jit, model_kernel
 
 __all__ = ["FitResult", "fit_map", "FitSchedule", "doubling_schedule", "information_schedule",
-           "first_fit_samples", "INFO_GROWTH", "MapEstimator", "MapResult", "STEP_TOL",
+           "first_fit_samples", "fit_record", "INFO_GROWTH", "MapEstimator", "MapResult", "STEP_TOL",
            "X_PRIOR_SD"]
 
 FloatArray = NDArray[np.float64]
@@ -480,6 +480,47 @@ def information_schedule(first: int, growth: float = INFO_GROWTH) -> Callable[[i
     return at
 
 
+def fit_record(schedule: FitSchedule, t: FloatArray, U: FloatArray, Y: FloatArray, k1: int,
+               previous: FitResult | None, prior0: tuple[FloatArray, FloatArray], *,
+               final: bool = False) -> FitResult:
+    """The fit of samples 0 … k1 − 1 that the data support: output error, or with process noise.
+
+    First the output-error MAP fit of all the data (:meth:`FitSchedule.fit`, warm-started from
+    ``previous``). When it is not consistent (its cost per measurement is not that of the
+    measurement noise: a model error, or a fit stuck far from the optimum) the fit of the
+    model with process noise on φ (:func:`~thetahat.estimation.likelihood.fit_process_noise`)
+    is tried from its θ and taken if it is consistent; q is estimated anew on the ``final``
+    fit and whenever ``previous`` has none, else kept from ``previous``.
+
+    Parameters
+    ----------
+    schedule : FitSchedule
+        Its ``full_window`` must cover the record (the fit is of all the data).
+    t, U, Y : ndarray, shapes (N,), (N, m), (N, r)
+    k1 : int
+        The window is 0 … k1 − 1.
+    previous : FitResult or None
+    prior0 : tuple of ndarray
+        (q̄, Π⁻¹) of :meth:`FitSchedule.initial_prior`.
+    final : bool
+        The last fit of the record (q is searched anew).
+
+    Returns
+    -------
+    FitResult
+        ``process_noise`` > 0 when the model with process noise was taken.
+    """
+    fit = schedule.fit(t, U, Y, k1, previous, prior0)
+    if fit.consistent:
+        return fit
+    q = previous.process_noise if previous is not None else 0.0
+    alt = _with_process_noise(schedule.system, t, U, Y, k1, fit, prior0[0][:schedule.system.n],
+                              np.full(schedule.system.n, float(schedule.x_sd)),
+                              schedule.noise_std, q=None if final or q == 0.0 else q,
+                              h_rho=schedule.h_rho, compiled=schedule.compiled)
+    return alt if alt.consistent else fit
+
+
 def _with_process_noise(system: PerturbedLinearSystem, t: FloatArray, U: FloatArray,
                         Y: FloatArray, k1: int, previous: FitResult, x_hat0: FloatArray,
                         x_sd: FloatArray, noise_std: Any, *, q: float | None, h_rho: float,
@@ -660,24 +701,14 @@ class MapEstimator:
         fits: list[FitResult] = []
         ends: list[int] = []
         ks = self.fit_samples(t_)
-        x_sd = np.full(sys_.n, float(sched.x_sd))
-        q_hat: float | None = None
         for i, k1 in enumerate(ks):
             prev = fits[-1] if fits else None
             last = i == len(ks) - 1
             if self.schedule is None and last and prev is not None:
                 # the record's own fit: iterate to convergence, not to the warm-start budget
                 sched = replace(sched, max_iter=sched.first_max_iter)
-            fit = sched.fit(t_, U, Y, k1, prev, prior0)
-            if not fit.consistent and self.schedule is None:
-                # the output-error model does not explain the data (a model error, or a fit
-                # stuck far from the optimum): the likelihood with process noise on φ, taken
-                # only if it explains them
-                alt = _with_process_noise(sys_, t_, U, Y, k1, fit, st0["x_hat0"], x_sd,
-                                          self.noise_std, q=None if last else q_hat,
-                                          h_rho=sched.h_rho, compiled=self.compiled)
-                if alt.consistent:
-                    fit, q_hat = alt, alt.process_noise
+            fit = (sched.fit(t_, U, Y, k1, prev, prior0) if self.schedule is not None
+                   else fit_record(sched, t_, U, Y, k1, prev, prior0, final=last))
             fits.append(fit)
             ends.append(k1 - 1)
             TH[k1 - 1:] = fit.theta
