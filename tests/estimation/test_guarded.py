@@ -15,7 +15,8 @@ import numpy as np
 import pytest
 
 from thetahat.estimation.guarded import GuardedEstimator
-from thetahat.estimation.noise_level import estimate_noise_std
+from thetahat.estimation.mle import MapEstimator
+from thetahat.estimation.noise_level import MIN_SAMPLES, estimate_noise_std
 from thetahat.models import lugre
 
 P = lugre.LuGreParameters()
@@ -139,7 +140,10 @@ def test_paper_stage1_guarded_from_the_edge_of_theta(data):
     res = est.run(data.t[:600], data.u[:600], data.y[:600], state0=est.init(theta_hat0=[HI]))
     _guarantee_holds(res)
     assert abs(res.theta_hat[-1, 0] - THETA) < 0.01 * THETA
-    assert len(res.fits) == 3 and np.all(np.abs(res.fit_cost - 1) < 0.5)
+    # the fits follow the information schedule (sample counts), the last on all but one sample
+    ks = MapEstimator(system=lugre.system(), compiled=False).fit_samples(data.t[:599])
+    assert list(res.fit_samples + 1) == [k for k in ks if MIN_SAMPLES <= k < 600]
+    assert np.all(np.abs(res.fit_cost - 1) < 0.5)
 
 
 def test_noise_level_estimate_matches_the_simulated_noise(data):

@@ -6,7 +6,7 @@ map of :mod:`~thetahat.estimation.model_kernel` (RK4 sub-steps, first-order hold
     x_{k+1} = F(x_k, θ, u_k, u_{k+1}),   θ_{k+1} = θ_k,   y_k = C x_k + e_k,  e_k ~ N(0, R),
 
 so the transition matrix is [[Φ, Γ], [0, I]] with the exact Jacobians Φ = ∂F/∂x, Γ = ∂F/∂θ.
-Prediction P ← T P Tᵀ + Q (Q = diag(q_x, 0)); update with H = [C 0] in Joseph form
+Prediction P ← T P Tᵀ + Q (Q = diag(Q_x, 0), Q_x the process noise on x over one sample); update with H = [C 0] in Joseph form
 P ← (I − K H) P (I − K H)ᵀ + K R Kᵀ, which keeps P symmetric positive semi-definite in
 floating point; then θ is projected onto Θ (a box: a clip). R = σ² I with σ given or
 estimated from the data (:func:`~thetahat.estimation.noise_level.estimate_noise_std`); the
@@ -99,9 +99,9 @@ def theta_prior_sd(system: PerturbedLinearSystem) -> FloatArray:
 class EKFKernels:
     """The EKF's per-sample operations on (s, P) in place (compiled with the model kernel).
 
-    ``predict(s, P, u0, u1, h, h_rho, q_x, Phi, Gam)`` and
+    ``predict(s, P, u0, u1, h, h_rho, Q_x, Phi, Gam)`` and
     ``update(s, P, y, R, lo, hi) -> NIS`` (normalised innovation squared ÷ r, after which θ
-    is clipped to [lo, hi]); ``loop(s, P, U, Y, t, k0, k1, R, lo, hi, h_rho, q_x, X, TH, SD,
+    is clipped to [lo, hi]); ``loop(s, P, U, Y, t, k0, k1, R, lo, hi, h_rho, Q_x, X, TH, SD,
     NIS) -> status`` runs samples k0 … k1−1 and returns −1, or the index where s became
     non-finite.
 
@@ -111,17 +111,17 @@ class EKFKernels:
         The plant kernels (f, Φ, Γ and the RK4 sampled-data map) the EKF is built on; its
         ``compiled`` flag says whether the operations below are numba-compiled.
     predict : callable
-        ``predict(s, P, u0, u1, h, h_rho, q_x, Phi, Gam) -> None``: the time update over one
+        ``predict(s, P, u0, u1, h, h_rho, Q_x, Phi, Gam) -> None``: the time update over one
         sample of length ``h`` with u linear from ``u0`` to ``u1``. Overwrites s = col(x, θ)
         (shape (n + p,)) with (F(x, θ, u0, u1), θ) and P (shape (n + p, n + p)) with
-        T P Tᵀ + diag(q_x I, 0), T = [[Φ, Γ], [0, I]]; ``Phi`` (n, n) and ``Gam`` (n, p)
+        T P Tᵀ + diag(Q_x, 0), T = [[Φ, Γ], [0, I]], Q_x (n, n); ``Phi`` (n, n) and ``Gam`` (n, p)
         are work arrays that receive Φ and Γ.
     update : callable
         ``update(s, P, y, R, lo, hi) -> float``: the measurement update with y (r,) and
         R (r, r), H = [C 0], P in Joseph form, then θ clipped to [lo, hi]; returns the
         normalised innovation squared νᵀ S⁻¹ ν ÷ r (≈ 1 for a consistent filter).
     loop : callable
-        ``loop(s, P, U, Y, t, k0, k1, R, lo, hi, h_rho, q_x, X, TH, SD, NIS) -> int``: the
+        ``loop(s, P, U, Y, t, k0, k1, R, lo, hi, h_rho, Q_x, X, TH, SD, NIS) -> int``: the
         filter over samples k0 … k1−1 (predict from sample k−1 when k > 0, then update unless
         y_k has a non-finite entry), writing x̂ into ``X`` (N, n), θ̂ into ``TH`` (N, p),
         √diag P_θθ into ``SD`` (N, p) and the NIS into ``NIS`` (N,; NaN where not updated);
@@ -139,7 +139,7 @@ def _make(model: ModelKernel) -> EKFKernels:
     C = model.C
     compiled = model.compiled
 
-    def predict(s, P, u0, u1, h, h_rho, q_x, Phi, Gam):
+    def predict(s, P, u0, u1, h, h_rho, Q_x, Phi, Gam):
         n = Phi.shape[0]
         p = Gam.shape[1]
         N = n + p
@@ -164,7 +164,8 @@ def _make(model: ModelKernel) -> EKFKernels:
                 P[i, j] = acc
                 P[j, i] = acc
         for i in range(n):
-            P[i, i] += q_x
+            for j in range(n):
+                P[i, j] += Q_x[i, j]
             s[i] = xn[i]
 
     def update(s, P, y, R, lo, hi):
@@ -254,7 +255,7 @@ def _make(model: ModelKernel) -> EKFKernels:
 
     predict_j, update_j = jit(predict, compiled), jit(update, compiled)
 
-    def loop(s, P, U, Y, tt, k0, k1, R, lo, hi, h_rho, q_x, X, TH, SD, NIS):
+    def loop(s, P, U, Y, tt, k0, k1, R, lo, hi, h_rho, Q_x, X, TH, SD, NIS):
         """Samples k0 … k1−1 (predict from k−1 when k > 0, then update); -1 or the bad index."""
         n = X.shape[1]
         p = TH.shape[1]
@@ -262,7 +263,7 @@ def _make(model: ModelKernel) -> EKFKernels:
         Gam = np.empty((n, p))
         for k in range(k0, k1):
             if k > 0:
-                predict_j(s, P, U[k - 1], U[k], tt[k] - tt[k - 1], h_rho, q_x, Phi, Gam)
+                predict_j(s, P, U[k - 1], U[k], tt[k] - tt[k - 1], h_rho, Q_x, Phi, Gam)
             finite_y = True
             for j in range(Y.shape[1]):
                 if not math.isfinite(Y[k, j]):
@@ -445,7 +446,8 @@ class JointEKF:
         N = t_.shape[0]
         X, TH, SD, NIS = (np.empty((N, n)), np.empty((N, p)), np.empty((N, p)),
                           np.full(N, np.nan))
-        bad = k.loop(s, P, U, Y, t_, 0, N, R, lo, hi, self.h_rho, self.q_x, X, TH, SD, NIS)
+        bad = k.loop(s, P, U, Y, t_, 0, N, R, lo, hi, self.h_rho, self.q_x * np.eye(n), X, TH,
+                     SD, NIS)
         if bad >= 0:
             raise NonFiniteError(f"the EKF diverged at t[{bad}] = {t_[bad]!r}; check the model "
                                  "and noise_std.")

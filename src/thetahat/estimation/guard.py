@@ -138,7 +138,7 @@ def make_guarded_loop(predict: Callable[..., None], update: Callable[..., float]
     Returns
     -------
     callable
-        ``loop(s, P, P0, U, Y, tt, k0, k1, off, R, lo, hi, h_rho, q_x, thG, xG, pst, gst, cfg,
+        ``loop(s, P, P0, U, Y, tt, k0, k1, off, R, lo, hi, h_rho, Q_x, thG, xG, pst, gst, cfg,
         TH, TH2, X2, SD2, BAND, CLIP, RESET, NIS) -> int``: runs stage 2 over samples
         k0 … k1−1 (absolute index k + ``off``) against stage 1's θ̂_G ``thG`` and x̂ ``xG``,
         writes the guarded θ̂ (``TH``), stage 2's θ̂₂, x̂₂ and σ₂ (``TH2``, ``X2``, ``SD2``),
@@ -149,7 +149,7 @@ def make_guarded_loop(predict: Callable[..., None], update: Callable[..., float]
     """
     prog = jit(progress_step)
 
-    def loop(s, P, P0, U, Y, tt, k0, k1, off, R, lo, hi, h_rho, q_x, thG, xG, pst, gst, cfg,
+    def loop(s, P, P0, U, Y, tt, k0, k1, off, R, lo, hi, h_rho, Q_x, thG, xG, pst, gst, cfg,
              TH, TH2, X2, SD2, BAND, CLIP, RESET, NIS):
         """Samples k0 … k1−1 (absolute index k + off). ``gst`` = (dwell count, NIS average,
         first update index);
@@ -163,7 +163,7 @@ def make_guarded_loop(predict: Callable[..., None], update: Callable[..., float]
         resets = 0
         for k in range(k0, k1):
             if k + off > 0:
-                predict(s, P, U[k - 1], U[k], tt[k] - tt[k - 1], h_rho, q_x, Phi, Gam)
+                predict(s, P, U[k - 1], U[k], tt[k] - tt[k - 1], h_rho, Q_x, Phi, Gam)
                 prog(pst, k + off, thG[k], width, cfg[1], cfg[2], dG)
             else:
                 for i in range(p):

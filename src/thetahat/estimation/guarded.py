@@ -22,8 +22,9 @@ from __future__ import annotations
 
 import concurrent.futures
 import dataclasses
+import math
 import warnings
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
@@ -35,7 +36,8 @@ from ..model.system import PerturbedLinearSystem
 from .ekf import EKFKernels, JointEKF, as_record, ekf_kernels, resolve_noise_std, theta_box
 from .fit_worker import default_executor, discard_default_executor, fit_spec, run_fit, warm_up
 from .guard import (GUARD_C, GUARD_KAPPA, GUARD_RHO_MAX, make_guarded_loop, progress_init)
-from .mle import FitResult, FitSchedule
+from .likelihood import unit_process_noise
+from .mle import FitResult, FitSchedule, MapEstimator, fit_record
 from .model_kernel import H_RHO, jit
 from .noise_level import MIN_SAMPLES
 
@@ -303,6 +305,17 @@ class GuardedEstimator:
         fits: list[FitResult] = []
         fit_at: list[int] = []
         prior0 = (sched.initial_prior(st0["x_hat0"], st0["theta_hat0"]) if sched else None)
+        Q_x = self.q_x * np.eye(n)
+        # the default fits: all the data so far, at the sample counts where the information
+        # has grown by INFO_GROWTH, the last on all samples but the last (whose output then
+        # follows it); a given schedule keeps its times (seconds) and windows
+        by_samples = sched is not None and self.schedule is None
+        ks: list[int] = []
+        if sched is not None and by_samples:
+            sched = replace(sched, full_window=math.inf)
+            ks = [k1 for k1 in MapEstimator(system=sys_, noise_std=self.noise_std,
+                                            compiled=self.compiled).fit_samples(t_[:N - 1])
+                  if MIN_SAMPLES <= k1 < N]
         k = 0
         j = 0
         while k < N:
@@ -313,18 +326,26 @@ class GuardedEstimator:
                     R = np.diag(sigma ** 2)
                 if k < SIGMA_SAMPLES:
                     k_next = MIN_SAMPLES if k < MIN_SAMPLES else SIGMA_SAMPLES
-            if sched is not None:
+            k_fit = N
+            if sched is not None and by_samples:
+                while j < len(ks) and ks[j] <= k:
+                    j += 1
+                k_fit = ks[j] if j < len(ks) else N
+            elif sched is not None:
                 while sched.times(j) <= t_[k] - t_[0]:
                     j += 1
                 k_fit = int(np.searchsorted(t_ - t_[0], sched.times(j) + 1e-12, side="right"))
-                k_next = min(k_fit, N, k_next)
-            loop(s, P, P0, U, Y, t_, k, k_next, 0, R, lo, hi, self.h_rho, self.q_x, thG, xG,
+            k_next = min(k_fit, N, k_next)
+            loop(s, P, P0, U, Y, t_, k, k_next, 0, R, lo, hi, self.h_rho, Q_x, thG, xG,
                  pst, gst, cfg, out["TH"], out["TH2"], out["X2"], out["SD2"], out["BAND"],
                  CLIP, RESET, NIS)
-            due = sched is not None and k_next == k_fit
+            due = sched is not None and k_next == k_fit < N
             # (due implies sched and prior0 are set; the two tests are spelled out for mypy)
-            if sched is not None and prior0 is not None and due and MIN_SAMPLES <= k_next < N:
-                fit = sched.fit(t_, U, Y, k_next, fits[-1] if fits else None, prior0)
+            if sched is not None and prior0 is not None and due and MIN_SAMPLES <= k_next:
+                prev = fits[-1] if fits else None
+                fit = (fit_record(sched, t_, U, Y, k_next, prev, prior0,
+                                  final=k_next == ks[-1]) if by_samples
+                       else sched.fit(t_, U, Y, k_next, prev, prior0))
                 fits.append(fit)
                 fit_at.append(k_next - 1)
                 if fit.consistent:
@@ -333,7 +354,12 @@ class GuardedEstimator:
                     P[:, :] = fit.cov_end
                     sigma = fit.noise_std
                     R = np.diag(sigma ** 2)
-            if due:
+                    if fit.process_noise > 0.0:
+                        # the data showed a model error: stage 2 carries it as the fit found it
+                        h = float(np.median(np.diff(t_[:k_next])))
+                        Q_x = (self.q_x * np.eye(n) + fit.process_noise
+                               * unit_process_noise(sys_.A, sys_.E, h))
+            if due and not by_samples:
                 j += 1
             k = k_next
         if not np.all(np.isfinite(out["TH"])):
@@ -402,7 +428,7 @@ class GuardedEstimator:
         if k == 0:
             sh.pst = progress_init(thG[0])
         self._loop()(sh.s, sh.P, sh.P0, U2, Y2, tt, k0, k0 + 1, k - k0, sh.R, sh.lo, sh.hi,
-                     self.h_rho, self.q_x, TH2, XG2, sh.pst, sh.gst, sh.cfg, o["TH"],
+                     self.h_rho, sh.Q_x, TH2, XG2, sh.pst, sh.gst, sh.cfg, o["TH"],
                      o["TH2"], o["X2"], o["SD2"], o["BAND"], clip, rst, nis)
         step1 = self.stage1.step
         s1 = (step1(state["stage1"], u_, y_, h) if not hasattr(self.stage1, "dt")
@@ -458,6 +484,7 @@ class _Stream:
         self.k = 0
         self.s, self.P0 = est._ekf().prior(state["x_hat0"], state["theta_hat0"])
         self.P = self.P0.copy()
+        self.Q_x = est.q_x * np.eye(n)
         self.lo, self.hi = theta_box(sys_)
         given = est.noise_std is not None
         self.R = (np.diag(resolve_noise_std(est.noise_std, np.zeros((1, sys_.r))) ** 2)
