@@ -43,7 +43,7 @@ from .ekf import theta_box
 from .model_kernel import H_RHO, ModelKernel, jit, model_kernel
 
 __all__ = ["ProcessNoiseFit", "fit_process_noise", "process_noise_scale", "unit_process_noise",
-           "Q_DECADES", "ALTERNATIONS"]
+           "search_process_noise", "fisher_covariance", "Q_DECADES", "ALTERNATIONS"]
 
 FloatArray = NDArray[np.float64]
 
@@ -341,6 +341,93 @@ def _search_q(pb: _Problem, theta: FloatArray, q0: float) -> float:
     return q if pb.nll(theta, q) <= pb.nll(theta, 0.0) else 0.0
 
 
+def _inverse_information(J: FloatArray) -> FloatArray:
+    """(JᵀJ)⁺ after Jacobi scaling, by a symmetric eigendecomposition: directions the data do
+    not determine get infinite variance, not a huge finite one."""
+    info = J.T @ J
+    d = np.sqrt(np.maximum(np.diag(info), 1e-300))
+    lam, V = np.linalg.eigh(info / np.outer(d, d))
+    keep = lam > 1e-12 * max(float(lam[-1]), 1e-300)
+    cov = ((V[:, keep] / lam[keep]) @ V[:, keep].T) / np.outer(d, d)
+    if not np.all(keep):
+        # the undetermined directions: infinite variance on every parameter they move
+        lost = np.any(np.abs(V[:, ~keep]) > 1e-6, axis=1)
+        cov[lost, lost] = np.inf
+    return np.asarray(cov, dtype=np.float64)
+
+
+def search_process_noise(system: PerturbedLinearSystem, t: FloatArray, U: FloatArray,
+                         Y: FloatArray, *, theta: FloatArray, x_hat0: FloatArray,
+                         x_sd: FloatArray, noise_std: FloatArray, h_rho: float = H_RHO,
+                         compiled: bool | None = None) -> float:
+    """The process-noise intensity q that maximises the likelihood at a fixed θ.
+
+    Parameters
+    ----------
+    system : PerturbedLinearSystem
+    t, U, Y : ndarray, shapes (N,), (N, m), (N, r)
+    theta : ndarray (p,)
+    x_hat0, x_sd : ndarray (n,)
+        Prior mean and standard deviation of x(t₀).
+    noise_std : ndarray (r,)
+    h_rho : float
+    compiled : bool, optional
+
+    Returns
+    -------
+    float
+        q̂ ≥ 0 (0 when the output-error model has the larger likelihood).
+    """
+    sigma = np.asarray(noise_std, dtype=np.float64)
+    pb = _problem(system, t, U, Y, x_hat0, x_sd, sigma, h_rho, compiled)
+    h_med = float(np.median(np.diff(t))) if t.shape[0] > 1 else 1.0
+    return _search_q(pb, np.asarray(theta, dtype=np.float64),
+                     process_noise_scale(system, h_med, sigma))
+
+
+def fisher_covariance(system: PerturbedLinearSystem, t: FloatArray, U: FloatArray,
+                      Y: FloatArray, *, theta: FloatArray, q: float, x_hat0: FloatArray,
+                      x_sd: FloatArray, noise_std: FloatArray, h_rho: float = H_RHO,
+                      compiled: bool | None = None) -> FloatArray:
+    """The Cramér–Rao covariance of θ on a record: the inverse Fisher information at θ.
+
+    The Gauss–Newton information JᵀJ of the normalised innovations ε/√S of the model with
+    process noise q on φ (module docstring), J by forward differences of whole filter passes
+    with steps of 1e-6 of Θ's width (taken inward at Θ's faces). Parameters the record does
+    not determine get an infinite variance.
+
+    Parameters
+    ----------
+    system : PerturbedLinearSystem
+    t, U, Y : ndarray, shapes (N,), (N, m), (N, r)
+    theta : ndarray (p,)
+    q : float
+        Process-noise intensity (0: the output-error model).
+    x_hat0, x_sd : ndarray (n,)
+    noise_std : ndarray (r,)
+    h_rho : float
+    compiled : bool, optional
+
+    Returns
+    -------
+    ndarray (p, p)
+    """
+    lo, hi = theta_box(system)
+    pb = _problem(system, t, U, Y, x_hat0, x_sd, np.asarray(noise_std, dtype=np.float64),
+                  h_rho, compiled)
+    th = np.asarray(theta, dtype=np.float64)
+    r0 = pb.residuals(th, q)
+    J = np.empty((r0.shape[0], th.shape[0]))
+    for i in range(th.shape[0]):
+        step = 1e-6 * (hi[i] - lo[i])
+        if th[i] + step > hi[i]:
+            step = -step
+        tp = th.copy()
+        tp[i] += step
+        J[:, i] = (pb.residuals(tp, q) - r0) / step
+    return _inverse_information(J)
+
+
 def fit_process_noise(system: PerturbedLinearSystem, t: FloatArray, U: FloatArray,
                       Y: FloatArray, *, theta0: FloatArray, x_hat0: FloatArray,
                       x_sd: FloatArray, noise_std: FloatArray, q: float | None = None,
@@ -406,11 +493,7 @@ def fit_process_noise(system: PerturbedLinearSystem, t: FloatArray, U: FloatArra
     if not np.all(np.isfinite(nu)):
         raise NonFiniteError("the process-noise likelihood's filter is not finite at the "
                              f"fitted θ = {theta}; check the model and the data.")
-    info = J.T @ J
-    d = np.sqrt(np.maximum(np.diag(info), 1e-300))
-    lam, V = np.linalg.eigh(info / np.outer(d, d))
-    keep = lam > 1e-12 * max(float(lam[-1]), 1e-300)
-    cov = ((V[:, keep] / lam[keep]) @ V[:, keep].T) / np.outer(d, d)
+    cov = _inverse_information(J)
     n_meas = int(nu.size)
     return ProcessNoiseFit(theta=theta, cov=cov, q=float(q_now), q_scale=q0,
                            nll=0.5 * float(np.sum(nu * nu + LS[pb.valid])),

@@ -4,10 +4,13 @@ streaming state (:class:`ObserverEstimate`)."""
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from numpy.typing import NDArray
+
+if TYPE_CHECKING:
+    from .trust import TrustReport
 
 __all__ = ["ObserverEstimate", "ObserverResult"]
 
@@ -33,6 +36,10 @@ class ObserverResult:
     skipped : ndarray of bool, shape (N,)
         Samples whose y held NaN and were used without output correction
         (``nan_policy="skip"``).
+    trust : TrustReport or None
+        What the estimate says about itself (:func:`~thetahat.estimation.trust.trust_report`:
+        identifiability, Θ's boundary, the guard, the model error), when it was checked
+        (:func:`~thetahat.modelfile.run_estimator` checks by default).
     """
 
     t: FloatArray
@@ -41,6 +48,7 @@ class ObserverResult:
     theta_hat: FloatArray
     x_hat_refined: FloatArray | None
     skipped: NDArray[np.bool_]
+    trust: TrustReport | None = None
 
     def __repr__(self) -> str:
         N = self.t.shape[0]

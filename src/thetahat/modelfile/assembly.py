@@ -9,19 +9,25 @@ names the keys in its error messages.
 
 from __future__ import annotations
 
+import dataclasses
+import warnings
 from collections.abc import Callable
-from typing import cast
+from typing import TYPE_CHECKING, cast
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from ..design.gains import GainDesign
-from ..errors import ModelFileError, NotMinimumPhaseError, ThetahatError, UnstableDesignError
+from ..errors import (ModelFileError, NotMinimumPhaseError, ThetahatError, ThetahatWarning,
+                      UnstableDesignError)
 from ..estimation.checks import check_theta_star
 from ..estimation.observer import ModifiedHighGainObserver, ObserverResult
 from ..model.system import PerturbedLinearSystem
 from ..spec import SECOND_DESIGN_NOTE, EstimatorSpec, Hold, SecondObserverSpec
 from .schema import ESTIMATION_METHODS, ModelSpec
+
+if TYPE_CHECKING:
+    from ..estimation.trust import TrustReport
 
 __all__ = ["build_observer", "design_gains", "design_matrices", "estimator_spec",
            "run_estimator"]
@@ -211,7 +217,8 @@ def _build(est: EstimatorSpec, spec: ModelSpec, eps: float | None) -> ModifiedHi
 def run_estimator(spec: ModelSpec, t: ArrayLike, u: ArrayLike | None, y: ArrayLike, *,
                   hold: Hold = "zoh", nan_policy: str = "raise",
                   progress: Callable[[int, int], None] | None = None,
-                  method: str | None = None, compiled: bool | None = None) -> ObserverResult:
+                  method: str | None = None, compiled: bool | None = None,
+                  diagnose: bool = True) -> ObserverResult:
     """Run the file's estimator on sampled data, from the file's initial values.
 
     ``method`` (default: the file's ``[estimator] method``, else ``"paper"``) chooses the
@@ -240,6 +247,11 @@ def run_estimator(spec: ModelSpec, t: ArrayLike, u: ArrayLike | None, y: ArrayLi
         the two-stage guarded estimator, or the offline MAP fit.
     compiled : bool, optional
         numba kernels for the two-stage methods (default: when installed).
+    diagnose : bool
+        Check the result (:func:`~thetahat.estimation.trust.trust_report`: the Cramér–Rao
+        standard deviation of each parameter on this record, Θ's boundary, the guard's band,
+        the model error) into ``result.trust``, and warn (:class:`~thetahat.errors.
+        ThetahatWarning`) of what makes it less than trustworthy.
 
     Returns
     -------
@@ -269,28 +281,50 @@ def run_estimator(spec: ModelSpec, t: ArrayLike, u: ArrayLike | None, y: ArrayLi
     if how not in ESTIMATION_METHODS:
         raise ModelFileError(f"method must be one of {list(ESTIMATION_METHODS)}; got {how!r}.")
     x0, th0 = spec.estimator.x_hat0, spec.estimator.theta_hat0
+    band = None
     if how == "mle":
         from ..estimation.mle import MapEstimator
         est_mle = MapEstimator(system=spec.system, compiled=compiled)
         res = est_mle.run(t, u, y, state0=est_mle.init(x_hat0=x0, theta_hat0=th0))
-        return _as_observer_result(spec, res.t, u, y, res.x_hat, res.theta_hat)
-    est = estimator_spec(spec, hold=hold, nan_policy=nan_policy)
-    obs = _build(est, spec, None)
-    s = spec.system
-    theta_star = getattr(spec.estimator.update_law, "theta_star", None)
-    if theta_star is not None:
-        if s.perturbation is None or s.parameter_set is None:
-            raise ModelFileError(f"model file {spec.source}: θ* needs the system's perturbation "
-                                 "and parameter set; the model has none.")
-        check_theta_star(theta_star, s.perturbation, s.parameter_set, s.C, t, u, y)
-    state0 = obs.init(x_hat0=x0, theta_hat0=th0)
-    if how == "paper":
-        return obs.run(t, u, y, hold=hold, state0=state0, progress=progress)
-    from ..estimation.guarded import GuardedEstimator
-    stage1 = _HeldObserver(obs, hold)
-    guarded = GuardedEstimator(stage1=stage1, system=spec.system, compiled=compiled)
-    res2 = guarded.run(t, u, y, state0=guarded.init(x_hat0=x0, theta_hat0=th0))
-    return _as_observer_result(spec, res2.t, u, y, res2.x_hat, res2.theta_hat)
+        result = _as_observer_result(spec, res.t, u, y, res.x_hat, res.theta_hat)
+    else:
+        est = estimator_spec(spec, hold=hold, nan_policy=nan_policy)
+        obs = _build(est, spec, None)
+        s = spec.system
+        theta_star = getattr(spec.estimator.update_law, "theta_star", None)
+        if theta_star is not None:
+            if s.perturbation is None or s.parameter_set is None:
+                raise ModelFileError(f"model file {spec.source}: θ* needs the system's "
+                                     "perturbation and parameter set; the model has none.")
+            check_theta_star(theta_star, s.perturbation, s.parameter_set, s.C, t, u, y)
+        state0 = obs.init(x_hat0=x0, theta_hat0=th0)
+        if how == "paper":
+            result = obs.run(t, u, y, hold=hold, state0=state0, progress=progress)
+        else:
+            from ..estimation.guarded import GuardedEstimator
+            stage1 = _HeldObserver(obs, hold)
+            guarded = GuardedEstimator(stage1=stage1, system=spec.system, compiled=compiled)
+            res2 = guarded.run(t, u, y, state0=guarded.init(x_hat0=x0, theta_hat0=th0))
+            band = res2.band
+            result = _as_observer_result(spec, res2.t, u, y, res2.x_hat, res2.theta_hat)
+    if not diagnose:
+        return result
+    report = _trust(spec, result, u, y, band, compiled)
+    for text in report.warnings:
+        warnings.warn(text, ThetahatWarning, stacklevel=2)
+    return dataclasses.replace(result, trust=report)
+
+
+def _trust(spec: ModelSpec, result: ObserverResult, u: ArrayLike | None, y: ArrayLike,
+           band: FloatArray | None, compiled: bool | None) -> TrustReport:
+    """The trust report of a run of the file's estimator on its record."""
+    from ..estimation.trust import trust_report
+    N = result.t.shape[0]
+    U = np.zeros((N, 0)) if u is None else np.asarray(u, dtype=np.float64).reshape(N, -1)
+    Y = np.asarray(y, dtype=np.float64).reshape(N, -1)
+    return trust_report(spec.system, result.t, np.ascontiguousarray(U),
+                        np.ascontiguousarray(Y), result.theta_hat[-1], spec.parameter_names,
+                        x_hat0=spec.estimator.x_hat0, band=band, compiled=compiled)
 
 
 class _HeldObserver:

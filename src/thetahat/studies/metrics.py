@@ -194,6 +194,9 @@ def estimate_summary(result: Any, parameter_names: Sequence[str], *,
     lines = [f"final theta_hat: {values}",
              f"settled (within {SETTLE_REL * 100:g} % of the final value) at t = {settle:.6g} of "
              f"[{t[0]:.6g}, {t[-1]:.6g}]",
-             f"skipped samples (dropouts): {int(np.sum(result.skipped))}",
-             "warnings: " + ("none" if not warnings else "; ".join(dict.fromkeys(warnings)))]
+             f"skipped samples (dropouts): {int(np.sum(result.skipped))}"]
+    trust = getattr(result, "trust", None)       # an ObserverResult checked by run_estimator
+    if trust is not None:
+        lines += trust.lines()
+    lines.append("warnings: " + ("none" if not warnings else "; ".join(dict.fromkeys(warnings))))
     return "\n".join(lines)
