@@ -30,8 +30,8 @@ def shell_blocks(text: str) -> list[str]:
 
 def test_shell_blocks_found():
     """The extraction itself: the tutorial's blocks, each ending in a newline, none empty."""
-    page = "x\n```bash\necho a\n```\n```python\nprint(1)\n```\n```bash\ncat <<'EOF'\n```\nEOF\n```\n"
-    assert shell_blocks(page) == ["echo a\n", "cat <<'EOF'\n```\nEOF\n"]
+    page = "x\n```bash\necho a\n```\n```python\nprint(1)\n```\n```bash\nls\n\npwd\n```\n"
+    assert shell_blocks(page) == ["echo a\n", "ls\n\npwd\n"]
     blocks = shell_blocks(TUTORIAL.read_text(encoding="utf-8"))
     assert len(blocks) >= 7 and all(b.strip() for b in blocks)
     joined = "\n".join(blocks)

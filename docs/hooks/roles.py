@@ -219,6 +219,10 @@ class RolesExtension(Extension):  # type: ignore[misc,valid-type]
             log.info("roles: %d name(s) not rendered on the site, shown as code: %s",
                      len(targets), ", ".join(targets))
 
+    def on_package_loaded(self, *, pkg: Any, **kwargs: Any) -> None:
+        """The same hook under its griffe 1 name (translating twice changes nothing)."""
+        self.on_package(pkg=pkg, **kwargs)
+
 
 # --- mkdocs hook (mkdocs.yml ``hooks``): the strict build fails on a raw role ---------------
 
