@@ -25,10 +25,12 @@ FIGURES = "docs/figures"
 
 
 class Entry(NamedTuple):
-    """One figure: its file under docs/figures, the command that writes it, a caption."""
+    """One figure: its file under docs/figures, the command that writes it, a title and a
+    caption (Markdown)."""
 
     figure: str
     command: str
+    title: str
     caption: str
 
 
@@ -36,30 +38,48 @@ class Entry(NamedTuple):
 GALLERY: tuple[Entry, ...] = (
     Entry("lugre.png",
           "python examples/lugre_demo.py --no-show --out docs/figures",
+          "The paper's Fig. 1: DC motor with LuGre friction",
           "Fig. 1 of the paper, reproduced: the DC motor with LuGre friction (Sec. VIII). "
           "Measured speed y with ω̂ of both observers, the bristle deflection η̂, and θ̂ = α̂0 "
           "converging to 0.28 inside Θ = [0.05, 1]. The script also writes the record it "
           "simulated, lugre_data.csv, which the entries below read."),
     Entry("two_inertia.png",
           "python examples/two_inertia_demo.py --no-show --out docs/figures",
+          "A MIMO example: the two-inertia drive",
           "A MIMO example: the two-inertia drive with two friction parameters (F_m, F_l) and "
           "chains of lengths (2, 3) in the SCB. Outputs, φ̂, and θ̂ with Θ and a ±1 % band."),
     Entry("sweep.png",
           "thetahat sweep --eps 1 0.3 0.1 --seeds 2 --out docs/figures",
-          "The ε sweep of Sec. VII on the LuGre example: settling time and errors for "
-          "decreasing ε over noise seeds; the sweep stops where the observer stops being "
-          "stable."),
+          "The ε sweep of Sec. VII",
+          "Tuning ε on the LuGre example, from ε = 1 down: the time θ̂ needs to stay within 1 %, "
+          "the largest and the RMS error of θ̂ over the second half, and the RMS error of the "
+          "states from both observers, per ε for each noise seed (dots) and their median "
+          "(line). The title line says down to which ε every seed stayed stable."),
     Entry("estimate_paper.png",
           "thetahat estimate examples/lugre.toml docs/figures/lugre_data.csv --method paper "
           "--no-progress --plot docs/figures/estimate_paper.png -o build/estimates_paper.csv",
+          "A logged record through the command line: the paper's estimator",
           "The paper's estimator run by the command line on a logged record (t, u, y): the "
           "model file examples/lugre.toml on the record of the first entry."),
     Entry("estimate_guarded.png",
           "thetahat estimate examples/lugre.toml docs/figures/lugre_data.csv --method guarded "
           "--no-progress --plot docs/figures/estimate_guarded.png -o build/estimates_guarded.csv",
+          "The same record: the guarded estimator",
           "The same record through the guarded two-stage estimator "
-          "([Guaranteed and efficient](guarded.md)): the paper's observer as stage 1, MAP fits "
-          "as stage 2, the output kept within the guard's band of stage 1."),
+          "([Guaranteed and efficient](guarded.md)): the paper's observer as stage 1, an EKF "
+          "re-anchored by MAP fits as stage 2, the output kept within the guard's band of "
+          "stage 1. θ̂ is within 1 % of α0 = 0.28 after a fraction of a second instead of "
+          "about ten."),
+    Entry("guarded_crlb.png",
+          "python benchmarks/bench_guarded.py --only nominal 'alpha2x0.8(model error)' "
+          "--seeds 3 --t-end 10 --no-cost --jobs 1 --figure docs/figures/guarded_crlb.png",
+          "The guarded estimator against the Cramér–Rao bound",
+          "The RMS over noise seeds of θ̂ − θ for the guarded estimator, the MAP fits (mle), a "
+          "joint EKF (filterpy) and the paper's estimator, against √CRLB(t) (dashed), on the "
+          "nominal LuGre scenario and with a model error (the plant's α2 is 0.8 times the "
+          "model's), where every estimator settles off by the bias the wrong model causes. A "
+          "short run of the benchmark (3 seeds, 10 s, two of its eight scenarios; "
+          "`python benchmarks/bench_guarded.py` runs them all)."),
 )
 
 PAGE_HEAD = """# Gallery
@@ -86,9 +106,8 @@ def page(entries: tuple[Entry, ...] = GALLERY) -> str:
     """The Markdown of the gallery page."""
     parts = [PAGE_HEAD]
     for entry in entries:
-        stem = Path(entry.figure).stem.replace("_", " ")
-        parts.append(f"## {stem}\n\n![{stem}](figures/{entry.figure})\n\n{entry.caption}\n\n"
-                     f"```bash\n{entry.command}\n```\n")
+        parts.append(f"## {entry.title}\n\n![{entry.title}](figures/{entry.figure})\n\n"
+                     f"{entry.caption}\n\n```bash\n{entry.command}\n```\n")
     return "\n".join(parts)
 
 
