@@ -56,12 +56,14 @@ $(DOCS_STAMP): $(STAMP)
 	touch $(DOCS_STAMP)
 
 # The figures: docs/hooks/gallery.py runs the command of every entry of its GALLERY table (the
-# page gallery.md is generated from the same table). Then the tutorial's shell blocks (a slow
-# test, outside `make test`) and the site. One BLAS thread: the examples step tiny matrices,
-# where OpenBLAS's threads only contend.
+# page gallery.md is generated from the same table). Then the tests that need the docs extra or
+# are slow (the tutorial's shell blocks, the roles of every docstring translated by griffe),
+# and the site. One BLAS thread: the examples step tiny matrices, where OpenBLAS's threads
+# only contend.
 docs: $(DOCS_STAMP)
 	OPENBLAS_NUM_THREADS=1 $(BIN)/python docs/hooks/gallery.py
-	OPENBLAS_NUM_THREADS=1 $(BIN)/python -m pytest -q -m slow -p no:cacheprovider tests/test_tutorial.py
+	OPENBLAS_NUM_THREADS=1 $(BIN)/python -m pytest -q -p no:cacheprovider -m "" \
+	    tests/test_tutorial.py tests/test_docs.py -k "tutorial or role"
 	$(BIN)/python -m mkdocs build --strict --clean
 
 bench: $(STAMP)
