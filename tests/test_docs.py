@@ -155,6 +155,6 @@ def test_no_raw_role_survives_in_any_docstring():
             for o in roles._documented(package) if roles.RAW_ROLE.search(o.docstring.value)}
     assert before > 100 and not left, left
     # A module a reference page renders is linked whenever a docstring names it.
-    rendered_modules = set(roles.rendered_identifiers(root / "docs"))
+    rendered_modules = {ident for ident, _ in roles.rendered_identifiers(root / "docs")}
     named = {t for ts in unresolved.values() for t in ts}
     assert not named & rendered_modules, named & rendered_modules

@@ -30,8 +30,11 @@ ROLE = re.compile(r":(?:py:)?(?P<role>class|meth|func|mod|attr|data|const|exc|ob
 RAW_ROLE = re.compile(r":[a-z]+(?::[a-z]+)?:`")
 #: The same, as MkDocs renders it in HTML: the backticks became <code>.
 RAW_ROLE_HTML = re.compile(r":[a-z]+(?::[a-z]+)?:<code>")
-#: A ``::: identifier`` line of a page: the object and everything public in it is rendered.
-DIRECTIVE = re.compile(r"^:::\s+(?P<ident>[\w.]+)\s*$", re.MULTILINE)
+#: A ``::: identifier`` line of a page and its indented options: the object is rendered, and
+#: everything public in it unless the options say ``members: false``.
+DIRECTIVE = re.compile(r"^:::\s+(?P<ident>[\w.]+)[ \t]*\n(?P<options>(?:[ \t]+\S.*\n?)*)",
+                       re.MULTILINE)
+NO_MEMBERS = re.compile(r"^\s*members:\s*(?:false|\[\s*\])\s*$", re.MULTILINE)
 
 log = logging.getLogger("mkdocs.plugins.thetahat.roles")
 
@@ -77,11 +80,14 @@ def translate(text: str, resolve: Callable[[str], str | None]) -> tuple[str, lis
     return ROLE.sub(one, text), unresolved
 
 
-def rendered_identifiers(docs_dir: Path) -> list[str]:
-    """The identifiers of the ``::: identifier`` directives in the pages under ``docs_dir``."""
-    found: list[str] = []
+def rendered_identifiers(docs_dir: Path) -> list[tuple[str, bool]]:
+    """The ``::: identifier`` directives of the pages under ``docs_dir``: (identifier, whether
+    its members are rendered too)."""
+    found: list[tuple[str, bool]] = []
     for page in sorted(docs_dir.rglob("*.md")):
-        found += [m["ident"] for m in DIRECTIVE.finditer(page.read_text(encoding="utf-8"))]
+        text = page.read_text(encoding="utf-8")
+        found += [(m["ident"], not NO_MEMBERS.search(m["options"]))
+                  for m in DIRECTIVE.finditer(text)]
     return found
 
 
@@ -102,10 +108,10 @@ def _shown(obj: Any) -> bool:
     return not obj.name.startswith("_") and not obj.is_alias and obj.has_docstring
 
 
-def _rendered_paths(root: Any) -> Iterator[str]:
+def _rendered_paths(root: Any, members: bool = True) -> Iterator[str]:
     """Canonical paths of ``root`` and of the members mkdocstrings renders under it."""
     yield root.path
-    for member in root.members.values():
+    for member in root.members.values() if members else ():
         if _shown(member) and not member.is_module:
             yield from _rendered_paths(member)
 
@@ -165,16 +171,17 @@ def make_resolver(owner: Any, package: Any, rendered: set[str],
     return resolve
 
 
-def translate_package(package: Any, identifiers: Iterable[str]) -> dict[str, list[str]]:
+def translate_package(package: Any, identifiers: Iterable[tuple[str, bool]]
+                      ) -> dict[str, list[str]]:
     """Rewrite the docstrings of a loaded griffe package in place; return, per object path,
-    the targets that stayed plain code. ``identifiers``: the ``:::`` directives of the site."""
+    the targets that stayed plain code. ``identifiers``: :func:`rendered_identifiers`."""
     rendered: set[str] = set()
-    for ident in identifiers:
+    for ident, members in identifiers:
         if ident == package.name or ident.startswith(package.name + "."):
             obj = package if ident == package.name else _lookup(package,
                                                                  ident[len(package.name) + 1:])
             if obj is not None:
-                rendered.update(_rendered_paths(obj))
+                rendered.update(_rendered_paths(obj, members))
     objects = list(_documented(package))
     by_name: dict[str, list[Any]] = {}
     for obj in objects:
