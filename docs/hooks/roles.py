@@ -126,11 +126,11 @@ def _documented(root: Any) -> Iterator[Any]:
 
 
 def _lookup(scope: Any, name: str) -> Any:
+    """``scope[name]`` (dotted) with aliases followed, or None: a missing member, or an alias
+    on the way that leaves the loaded packages."""
     try:
         return _target(scope[name])
-    except (KeyError, ValueError, AttributeError, TypeError):
-        return None
-    except Exception:  # alias resolution inside a dotted lookup
+    except Exception:  # KeyError, or griffe's alias resolution errors
         return None
 
 
