@@ -171,6 +171,36 @@ def make_resolver(owner: Any, package: Any, rendered: set[str],
     return resolve
 
 
+def doc_comments(package: Any) -> int:
+    """Give each module-level attribute without a docstring the Sphinx ``#:`` comment lines
+    just above it, as its docstring (griffe reads only string docstrings); return how many."""
+    from griffe import Docstring
+
+    count = 0
+    for module in _modules(package):
+        lines = module.lines
+        for attr in module.members.values():
+            if (attr.is_alias or not attr.is_attribute or attr.docstring is not None
+                    or not attr.lineno):
+                continue
+            comment: list[str] = []
+            row = attr.lineno - 2  # the line above, 0-based
+            while row >= 0 and lines[row].startswith("#:"):
+                comment.insert(0, lines[row][2:].strip())
+                row -= 1
+            if comment:
+                attr.docstring = Docstring("\n".join(comment), parent=attr)
+                count += 1
+    return count
+
+
+def _modules(root: Any) -> Iterator[Any]:
+    yield root
+    for member in root.members.values():
+        if not member.is_alias and member.is_module:
+            yield from _modules(member)
+
+
 def translate_package(package: Any, identifiers: Iterable[tuple[str, bool]]
                       ) -> dict[str, list[str]]:
     """Rewrite the docstrings of a loaded griffe package in place; return, per object path,
@@ -219,7 +249,8 @@ class RolesExtension(Extension):  # type: ignore[misc,valid-type]
         self.docs_dir = Path(docs_dir)
 
     def on_package(self, *, pkg: Any, **kwargs: Any) -> None:
-        """Rewrite the roles of every docstring of the loaded package ``pkg``."""
+        """Read the ``#:`` comments, then rewrite the roles of every docstring of ``pkg``."""
+        doc_comments(pkg)
         unresolved = translate_package(pkg, rendered_identifiers(self.docs_dir))
         targets = sorted({t for ts in unresolved.values() for t in ts})
         if targets:
