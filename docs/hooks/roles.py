@@ -8,7 +8,8 @@ code ``text`` when it does not (an external name such as ``numpy.random.Generato
 helper, a module the reference does not show); the second kind is reported, never dropped.
 
 :class:`RolesExtension` is the griffe extension mkdocs.yml loads for mkdocstrings: once the
-package is loaded it rewrites every docstring, resolving short names the way Sphinx does: from
+package is loaded it gives module constants their Sphinx ``#:`` comments as docstrings (so the
+reference shows them and :data: links reach them), then rewrites every docstring, resolving short names the way Sphinx does: from
 the documented object outwards (its members, its class, its module, the enclosing packages),
 then the package root, then a unique suffix match over the package. A role the pattern below
 does not recognise survives as raw text, and the ``roles_check`` hook fails the strict build
