@@ -55,10 +55,15 @@ $(DOCS_STAMP): $(STAMP)
 	$(BIN)/python -m pip install -q -c $(LOCK) -e ".[docs]"
 	touch $(DOCS_STAMP)
 
-# One BLAS thread: the examples step tiny matrices, where OpenBLAS's threads only contend.
+# The figures: docs/hooks/gallery.py runs the command of every entry of its GALLERY table (the
+# page gallery.md is generated from the same table). Then the tests that need the docs extra or
+# are slow (the tutorial's shell blocks, the roles of every docstring translated by griffe),
+# and the site. One BLAS thread: the examples step tiny matrices, where OpenBLAS's threads
+# only contend.
 docs: $(DOCS_STAMP)
-	OPENBLAS_NUM_THREADS=1 $(BIN)/python examples/two_inertia_demo.py --no-show --out docs/figures
-	OPENBLAS_NUM_THREADS=1 $(BIN)/python examples/lugre_demo.py --no-show --out docs/figures
+	OPENBLAS_NUM_THREADS=1 $(BIN)/python docs/hooks/gallery.py
+	OPENBLAS_NUM_THREADS=1 $(BIN)/python -m pytest -q -p no:cacheprovider -m "" \
+	    tests/test_tutorial.py tests/test_docs.py -k "tutorial or role"
 	$(BIN)/python -m mkdocs build --strict --clean
 
 bench: $(STAMP)

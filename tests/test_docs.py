@@ -108,3 +108,54 @@ def test_docstring_examples_run(modname):
     for test in finder.find(mod, modname):
         runner.run(test)
     assert runner.failures == 0, f"{runner.failures} doctest failure(s) in {modname}"
+
+
+# --- the site's cross-references: Sphinx roles become autorefs links (docs/hooks/roles.py) ---
+
+def _roles_hook():
+    import importlib.util
+    import pathlib
+    path = pathlib.Path(__file__).resolve().parents[1] / "docs" / "hooks" / "roles.py"
+    spec = importlib.util.spec_from_file_location("docs_roles_hook", path)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_roles_translate_each_form():
+    """Every role form the docstrings use: plain, ~ (last part shown), explicit title, !
+    (never linked), a name broken over two lines; resolved names become autorefs links,
+    unresolved ones plain code, and are reported."""
+    roles = _roles_hook()
+    known = {"thetahat.a.B": "thetahat.a.B", "B": "thetahat.a.B", "thetahat.a.B.run":
+             "thetahat.a.B.run", ".c": "thetahat.c"}
+    text = ("See :class:`B`, :meth:`~thetahat.a.B.run`, :func:`the run <thetahat.a.B.run>`,\n"
+            ":mod:`.c`, :class:`!B`, :py:class:`B`, :data:`thetahat.a.\n    B` and "
+            ":class:`numpy.random.Generator`.")
+    out, missed = roles.translate(text, known.get)
+    assert out == ("See [`B`][thetahat.a.B], [`run`][thetahat.a.B.run], "
+                   "[`the run`][thetahat.a.B.run],\n[`.c`][thetahat.c], `B`, [`B`][thetahat.a.B], "
+                   "[`thetahat.a.B`][thetahat.a.B] and `numpy.random.Generator`.")
+    assert missed == ["numpy.random.Generator"]
+    assert not roles.RAW_ROLE.search(out)
+
+
+def test_no_raw_role_survives_in_any_docstring():
+    """The translation over every docstring of the package, loaded by griffe as mkdocstrings
+    loads it (with the ``#:`` comments of constants as docstrings): afterwards no text that looks like a role (a broader pattern than the one
+    translated) is left, and every thetahat name a page renders is linked, not shown as code."""
+    griffe = pytest.importorskip("griffe")
+    import pathlib
+    roles = _roles_hook()
+    root = pathlib.Path(__file__).resolve().parents[1]
+    package = griffe.load("thetahat", search_paths=[str(root / "src")])
+    assert roles.doc_comments(package) > 20  # the #: comments of constants, as the site reads
+    before = sum(len(roles.ROLE.findall(o.docstring.value)) for o in roles._documented(package))
+    unresolved = roles.translate_package(package, roles.rendered_identifiers(root / "docs"))
+    left = {o.path: roles.RAW_ROLE.findall(o.docstring.value)
+            for o in roles._documented(package) if roles.RAW_ROLE.search(o.docstring.value)}
+    assert before > 100 and not left, left
+    # A module a reference page renders is linked whenever a docstring names it.
+    rendered_modules = {ident for ident, _ in roles.rendered_identifiers(root / "docs")}
+    named = {t for ts in unresolved.values() for t in ts}
+    assert not named & rendered_modules, named & rendered_modules

@@ -232,7 +232,7 @@ class CompiledObserver:
 
     Parameters
     ----------
-    observer, dt, theta_star, phi
+    observer, dt
         As in :func:`compile_observer`.
 
     Attributes

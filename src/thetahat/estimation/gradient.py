@@ -29,7 +29,12 @@ FloatArray = NDArray[np.float64]
 @final
 @dataclass(frozen=True, slots=True, eq=False)
 class GradientInversion(UpdateLaw):
-    """Propositions 3 and 4: θ̂̇ = Proj(Γ M(v, x̂, θ̂)(φ̂ - g(v, x̂, θ̂))).
+    r"""Propositions 3 and 4: θ̂̇ = Proj(Γ M(v, x̂, θ̂)(φ̂ - g(v, x̂, θ̂))).
+
+    $$
+    \dot{\hat\theta} = \operatorname{Proj}\bigl(\Gamma\,M(v, \hat x, \hat\theta)\,
+      (\hat\phi - g(v, \hat x, \hat\theta))\bigr)
+    $$
 
     Parameters
     ----------

@@ -210,7 +210,12 @@ def _inversion_names(law: IntermittentInversion, prims: Mapping[str, Any]) -> di
 @final
 @dataclass(frozen=True, slots=True, eq=False)
 class IntermittentInversion(UpdateLaw):
-    """Propositions 1 and 2: θ̂̇ = Proj(l(v, x̂, φ̂) Γ(θ*(v, x̂, φ̂) - θ̂)).
+    r"""Propositions 1 and 2: θ̂̇ = Proj(l(v, x̂, φ̂) Γ(θ*(v, x̂, φ̂) - θ̂)).
+
+    $$
+    \dot{\hat\theta} = \operatorname{Proj}\bigl(l(v, \hat x, \hat\phi)\,
+      \Gamma\,(\theta^*(v, \hat x, \hat\phi) - \hat\theta)\bigr)
+    $$
 
     Parameters
     ----------

@@ -236,7 +236,12 @@ def apply_saturation(sat: Saturation | None, x: FloatArray,
 
 
 class UpdateLaw(ABC):
-    """Abstract update law (8): θ̂̇ = u_θ(v, x̂, φ̂, θ̂), projection included.
+    r"""Abstract update law (8): θ̂̇ = u_θ(v, x̂, φ̂, θ̂), projection included.
+
+    $$
+    \dot{\hat\theta} = u_\theta(v, \hat x, \hat\phi, \hat\theta),
+    \qquad \hat\theta(t) \in \Theta \text{ for all } t. \tag{8}
+    $$
 
     Concrete laws are final frozen dataclasses. Two entry points over one law:
     ``rate`` for continuous time (the observer's (3b) uses it as θ̂̇) and ``step`` for

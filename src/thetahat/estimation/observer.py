@@ -1,12 +1,18 @@
-"""The modified high-gain observer (3) of Sec. III, with the parameter estimator (8) in the loop.
+r"""The modified high-gain observer (3) of Sec. III, with the parameter estimator (8) in the loop.
 
 State ``s = col(x̂, z, θ̂)`` (plus ``x̂₂`` when a :class:`SecondObserver` is attached, and the
 update law's own state when it has one), and
 
-    x̂̇ = A x̂ + B u + E φ̂ + K_x (y − C x̂),                                  (3a)
-    ż  = −∂g/∂θ(v, x̂, θ̂) θ̂̇ − ∂g/∂x(v, x̂, θ̂) K_x (y − C x̂) + K_φ (y − C x̂),  (3b)
-    φ̂  = g(v, x̂, θ̂) + z,                                                  (3c)
-    θ̂̇ = u_θ(v, x̂, φ̂, θ̂).                                                  (8)
+$$
+\begin{aligned}
+\dot{\hat x} &= A\hat x + Bu + E\hat\phi + K_x(\varepsilon)(y - C\hat x), && \text{(3a)} \\
+\dot z &= -\frac{\partial g}{\partial\theta}(v, \hat x, \hat\theta)\,\dot{\hat\theta}
+  - \frac{\partial g}{\partial x}(v, \hat x, \hat\theta)\,K_x(\varepsilon)(y - C\hat x)
+  + K_\phi(\varepsilon)(y - C\hat x), && \text{(3b)} \\
+\hat\phi &= g(v, \hat x, \hat\theta) + z, && \text{(3c)} \\
+\dot{\hat\theta} &= u_\theta(v, \hat x, \hat\phi, \hat\theta). && \text{(8)}
+\end{aligned}
+$$
 
 One implementation serves three uses: ``rhs`` for ODE integrators, ``init``/``step`` for
 streaming, and ``run`` for logged sample arrays; the discrete step is that of
@@ -85,7 +91,7 @@ def _integrate_with_progress(plan_for: Callable[[float], StepPlan], pert: Pertur
 
 @dataclass(frozen=True, slots=True, eq=False)
 class ModifiedHighGainObserver:
-    """Modified high-gain observer (3) with update law (8): estimates x, φ and θ.
+    r"""Modified high-gain observer (3) with update law (8): estimates x, φ and θ.
 
     Parameters
     ----------
@@ -142,7 +148,9 @@ class ModifiedHighGainObserver:
     **Discretisation.** ``step`` and ``run`` use the exponential, linearly implicit step of
     :mod:`thetahat.estimation.discretize` on ``(x̂, z)`` with the constant part
 
-        L = [[A − K_x C, E], [−K_φ C, 0]]
+    $$
+    L = \begin{bmatrix} A - K_x C & E \\ -K_\phi C & 0 \end{bmatrix}
+    $$
 
     (its φ-functions computed once per step length and cached) and the state-dependent part
     ``N = [[E ∂g/∂x, 0], [∂g/∂x K_x C, 0]]``, which in the coordinates ``(x̂, φ̂)`` is the
