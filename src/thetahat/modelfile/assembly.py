@@ -204,9 +204,10 @@ def build_observer(spec: ModelSpec, *, eps: float | None = None,
     return _build(estimator_spec(spec, nan_policy=nan_policy), spec, eps)
 
 
-def _build(est: EstimatorSpec, spec: ModelSpec, eps: float | None) -> ModifiedHighGainObserver:
+def _build(est: EstimatorSpec, spec: ModelSpec, eps: float | None,
+           Gamma: FloatArray | None = None) -> ModifiedHighGainObserver:
     try:
-        return est.build(eps)
+        return est.build(eps, Gamma=Gamma)
     except NotMinimumPhaseError as exc:
         raise NotMinimumPhaseError(
             f"model file {spec.source}: Assumption 1 fails on the true system: {exc} (or "
@@ -297,6 +298,8 @@ def run_estimator(spec: ModelSpec, t: ArrayLike, u: ArrayLike | None, y: ArrayLi
                 raise ModelFileError(f"model file {spec.source}: θ* needs the system's "
                                      "perturbation and parameter set; the model has none.")
             check_theta_star(theta_star, s.perturbation, s.parameter_set, s.C, t, u, y)
+        if spec.estimator.gamma_auto:
+            obs = _build(est, spec, None, Gamma=_auto_gamma(est, spec, t, u, y, hold))
         state0 = obs.init(x_hat0=x0, theta_hat0=th0)
         if how == "paper":
             result = obs.run(t, u, y, hold=hold, state0=state0, progress=progress)
@@ -313,6 +316,29 @@ def run_estimator(spec: ModelSpec, t: ArrayLike, u: ArrayLike | None, y: ArrayLi
     for text in report.warnings:
         warnings.warn(text, ThetahatWarning, stacklevel=2)
     return dataclasses.replace(result, trust=report)
+
+
+def _auto_gamma(est: EstimatorSpec, spec: ModelSpec, t: ArrayLike, u: ArrayLike | None,
+                y: ArrayLike, hold: Hold) -> FloatArray:
+    """``Gamma = "auto"``: Γ from the record's information at θ̂₀, x̂ from a first pass of the
+    observer with θ̂ held at θ̂₀ (:func:`~thetahat.estimation.auto_gain.information_gain`)."""
+    from ..estimation.auto_gain import information_gain
+    from ..estimation.law_base import ConstantLaw
+    s = spec.system
+    if s.perturbation is None or s.parameter_set is None:
+        raise ModelFileError(f"model file {spec.source}: Gamma = 'auto' needs the system's "
+                             "perturbation and parameter set; the model has none.")
+    th0 = spec.estimator.theta_hat0
+    held = dataclasses.replace(est, law=ConstantLaw(th0, s.parameter_set))
+    obs = _build(held, spec, None)
+    first = obs.run(t, u, y, hold=hold, state0=obs.init(x_hat0=spec.estimator.x_hat0,
+                                                         theta_hat0=th0))
+    N = first.t.shape[0]
+    U = np.zeros((N, 0)) if u is None else np.asarray(u, dtype=np.float64).reshape(N, -1)
+    Y = np.asarray(y, dtype=np.float64).reshape(N, -1)
+    return information_gain(s.perturbation, np.concatenate([U, Y], axis=1), first.x_hat,
+                            np.asarray(th0, dtype=np.float64),
+                            float(first.t[-1] - first.t[0]))
 
 
 def _trust(spec: ModelSpec, result: ObserverResult, u: ArrayLike | None, y: ArrayLike,

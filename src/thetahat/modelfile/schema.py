@@ -21,7 +21,9 @@ A model file (TOML, read with :mod:`tomllib`, or JSON with the same structure) h
     ``"intermittent"`` (:class:`~thetahat.estimation.update_laws.IntermittentInversion`,
     Proposition 2, with the excitation weight ``smooth_ramp(*excitation)`` of ‖φ̂‖).
     Optional: ``eps`` (default 1, Sec. VII), ``chain_poles`` (one list per chain; default
-    −1, −2, …), ``b_poles``, ``Gamma`` (number or p × p; default 1), ``theta_hat0``
+    −1, −2, …), ``b_poles``, ``Gamma`` (number, p × p or ``"auto"``; default ``"auto"`` for
+    the gradient law — :mod:`~thetahat.estimation.auto_gain` — and 1 for the inversion
+    laws), ``theta_hat0``
     (default: the centre of Θ), ``x_hat0`` (default 0), ``theta_star`` (algebraic and
     intermittent laws: θ*(v, x, φ) as a string or list of p strings, in the names of u, y, x
     and ``phi`` (k = 1) or ``phi1``, …, ``phik``; default: solved from g with SymPy),
@@ -338,6 +340,10 @@ class EstimatorOptions:
     second : SecondObserverOptions or None
     allow_nonminimum_phase : bool
         Design even when Assumption 1 fails (the explicit opt-out; default False).
+    gamma_auto : bool
+        ``Gamma = "auto"`` (the gradient law's default): Γ is chosen on the record by
+        :func:`~thetahat.estimation.auto_gain.information_gain` when the estimator runs;
+        ``update_law`` holds Γ = I until then.
     """
 
     law: str
@@ -352,6 +358,7 @@ class EstimatorOptions:
     second: SecondObserverOptions | None
     allow_nonminimum_phase: bool = False
     method: str = "paper"
+    gamma_auto: bool = False
 
     def __repr__(self) -> str:
         method = "" if self.method == "paper" else f"method={self.method!r}, "
@@ -483,16 +490,24 @@ def _read_perturbation(sec: _Section) -> tuple[SymbolicPerturbation, dict[str, A
     return pert, {"names": names, "constants": dict(constants)}
 
 
-def _read_gamma(sec: _Section, p: int) -> FloatArray:
-    G = sec.table.get("Gamma", 1.0)
+def _read_gamma(sec: _Section, p: int, law: str) -> tuple[FloatArray, bool]:
+    """(Γ, auto): ``"auto"`` (the default of the gradient law) is resolved on the record by
+    :func:`~thetahat.estimation.auto_gain.information_gain`; Γ = 1 stands in until then."""
+    G = sec.table.get("Gamma", "auto" if law == "gradient" else 1.0)
+    if G == "auto":
+        if law != "gradient":
+            raise sec.fail("Gamma", f"'auto' is for the gradient law (Propositions 3–4), whose "
+                                    f"Γ must match the parameters' scales; the {law!r} law's Γ "
+                                    "is a rate (1/s): give a positive number.")
+        return np.eye(p), True
     rows = G if isinstance(G, list) else None
     numeric = _is_number(G) or (rows is not None and all(
         isinstance(r, list) and all(_is_number(e) for e in r) for r in rows))
     if not numeric:
-        raise sec.fail("Gamma", f"expected a positive number or a {p} × {p} symmetric "
-                                f"positive-definite matrix; got {_show(G)}.")
+        raise sec.fail("Gamma", f"expected a positive number, a {p} × {p} symmetric "
+                                f"positive-definite matrix or 'auto'; got {_show(G)}.")
     try:
-        return as_gain("Gamma", G, p)
+        return as_gain("Gamma", G, p), False
     except (ThetahatError, ValueError) as exc:
         raise sec.fail("Gamma", str(exc)) from exc
 
@@ -515,7 +530,7 @@ def _read_theta_star(sec: _Section, pert: SymbolicPerturbation,
 
 
 def _read_law(sec: _Section, pert: SymbolicPerturbation, theta_set: Box,
-              parsed: dict[str, Any]) -> tuple[str, UpdateLaw]:
+              parsed: dict[str, Any]) -> tuple[str, UpdateLaw, bool]:
     law = sec.require("law", f"one of {list(LAWS)}")
     if law not in LAWS:
         raise sec.fail("law", f"unknown law {_show(law)}; expected one of {list(LAWS)} "
@@ -524,10 +539,10 @@ def _read_law(sec: _Section, pert: SymbolicPerturbation, theta_set: Box,
         unused = law == "gradient" or (key == "excitation" and law != "intermittent")
         if sec.has(key) and unused:
             raise sec.fail(key, f"not used by the {law!r} law; remove it.")
-    Gamma = _read_gamma(sec, theta_set.dim)
+    Gamma, auto = _read_gamma(sec, theta_set.dim, law)
     if law == "gradient":
         try:
-            return law, GradientInversion(pert, Gamma, theta_set)
+            return law, GradientInversion(pert, Gamma, theta_set), auto
         except ThetahatError as exc:
             raise sec.fail("law", str(exc)) from exc
     on_invalid = sec.table.get("on_invalid", "raise")
@@ -561,14 +576,14 @@ def _read_law(sec: _Section, pert: SymbolicPerturbation, theta_set: Box,
             raise sec.fail("theta_star", f"not given, and it cannot be derived from g: {exc}"
                            ) from exc
         raise sec.fail("law", str(exc)) from exc
-    return law, built
+    return law, built, False
 
 
 def _read_estimator(sec: _Section, system: PerturbedLinearSystem, pert: SymbolicPerturbation,
                     parsed: dict[str, Any]) -> EstimatorOptions:
     sec.check_keys(_ESTIMATOR_KEYS)
     n, k, p = system.n, system.k, system.p
-    law, update_law = _read_law(sec, pert, cast(Box, system.parameter_set), parsed)
+    law, update_law, gamma_auto = _read_law(sec, pert, cast(Box, system.parameter_set), parsed)
     method = sec.table.get("method", "paper")
     if method not in ESTIMATION_METHODS:
         raise sec.fail("method", f"unknown method {_show(method)}; expected one of "
@@ -607,7 +622,7 @@ def _read_estimator(sec: _Section, system: PerturbedLinearSystem, pert: Symbolic
                             b_poles=sec.poles("b_poles", nested=False),
                             theta_hat0=theta_hat0, x_hat0=x_hat0, A_design=A_d, E_design=E_d,
                             second=second, allow_nonminimum_phase=allow_nmp,
-                            method=method)
+                            method=method, gamma_auto=gamma_auto)
 
 
 def _scenario_input(sec: _Section, m: int) -> tuple[FloatArray, FloatArray]:
