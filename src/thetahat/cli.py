@@ -62,8 +62,9 @@ def _demo(args: argparse.Namespace) -> int:
 
     if args.example == "emps":
         from .models.emps_report import report as emps_report
-        check_writable(Path(args.out) / "emps_paper.csv")  # before any work
-        emps_report(out=args.out, method="paper")
+        for method in ("paper", "guarded", "mle"):          # before any work
+            check_writable(Path(args.out) / f"emps_{method}.csv")
+        emps_report(out=args.out)
         return EXIT_OK
     check_writable(Path(args.out) / "lugre.json")          # before any work
 
