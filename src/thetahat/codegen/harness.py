@@ -153,6 +153,13 @@ static int parse_real(const char *text, double *out)
     return *end == '\0';
 }
 
+static int refused(const char *path, long lineno, int status)
+{
+    fflush(stdout);
+    fprintf(stderr, "@P@: error: %s, line %ld: %s\n", path, lineno, @P@_error_message(status));
+    return 3;
+}
+
 static void print_row(double t, const @P@_state *s, const real_t phi[])
 {
     int i;
@@ -173,6 +180,9 @@ int main(int argc, char **argv)
 {
     const char *path = NULL;
     real_t theta0[@PU@_NP], u[@PU@_NU > 0 ? @PU@_NU : 1], y[@PU@_NY], phi[@PU@_NK];
+#if @FOH@
+    real_t u_prev[@PU@_NU > 0 ? @PU@_NU : 1], y_prev[@PU@_NY];
+#endif
     int col_t, col_y[@PU@_NY], have_theta0 = 0;
 #if @PU@_NU > 0
     int col_u[@PU@_NU];
@@ -290,20 +300,45 @@ int main(int argc, char **argv)
             }
             y[i] = (real_t)value;
         }
+#if @FOH@
+        if (rows > 0) {     /* first-order hold: the step from the previous row to this one */
+            status = @P@_phi_hat(&state, u_prev, y_prev, phi);
+            if (status == @PU@_OK) {
+                print_row(t_prev, &state, phi);
+                status = @P@_step(&state, u_prev, y_prev, u, y);
+            }
+            if (status != @PU@_OK) {
+                return refused(path, lineno - 1, status);
+            }
+        }
+        for (i = 0; i < @PU@_NY; ++i) {
+            y_prev[i] = y[i];
+        }
+        for (i = 0; i < (@PU@_NU > 0 ? @PU@_NU : 1); ++i) {
+            u_prev[i] = u[i];
+        }
+#else
         status = @P@_phi_hat(&state, u, y, phi);
         if (status == @PU@_OK) {
             print_row(t, &state, phi);
             status = @P@_step(&state, u, y);
         }
         if (status != @PU@_OK) {
-            fflush(stdout);
-            fprintf(stderr, "@P@: error: %s, line %ld: %s\n", path, lineno,
-                    @P@_error_message(status));
-            return 3;
+            return refused(path, lineno, status);
         }
+#endif
         t_prev = t;
         ++rows;
     }
+#if @FOH@
+    if (rows > 0) {
+        status = @P@_phi_hat(&state, u_prev, y_prev, phi);
+        if (status != @PU@_OK) {
+            return refused(path, lineno, status);
+        }
+        print_row(t_prev, &state, phi);
+    }
+#endif
     if (in != stdin) {
         fclose(in);
     }
@@ -316,7 +351,7 @@ int main(int argc, char **argv)
 
 
 def harness_source(prefix: str, names: dict[str, list[str]], k: int, real: str, second: bool,
-                   dt: float) -> str:
+                   dt: float, foh: bool = False) -> str:
     """Source of ``<prefix>_main.c`` (see the module docstring).
 
     Parameters
@@ -332,6 +367,9 @@ def harness_source(prefix: str, names: dict[str, list[str]], k: int, real: str, 
         A second observer is attached.
     dt : float
         The fixed step length.
+    foh : bool
+        The step takes the next samples (first-order hold): each row is printed when the
+        next one has been read.
 
     Returns
     -------
@@ -361,6 +399,7 @@ def harness_source(prefix: str, names: dict[str, list[str]], k: int, real: str, 
                        ("@THETA_EXAMPLE@", ",".join("0.5" for _ in names["theta"])),
                        ("@DT_RTOL@", repr(DT_RTOL)), ("@DT@", repr(float(dt))),
                        ("@DIGITS@", "17" if real == "double" else "9"),
+                       ("@FOH@", "1" if foh else "0"),
                        ("@PU@", prefix.upper()), ("@P@", prefix)):
         text = text.replace(key, value)
     return text

@@ -21,35 +21,30 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from ..errors import CCompilerError, DimensionError, NonFiniteError, UpdateLawError
+from .c_api import STATUS as C_STATUS
 from .generate import CCode
 from .harness import C_FLAGS
 
 __all__ = ["CObserver", "CRun", "build", "build_harness", "find_compiler", "load_c",
            "STATUS"]
 
-#: Status codes of the generated functions (``<NAME>_OK``…), by name.
-STATUS = {"ok": 0, "input": 1, "missing": 2, "theta_star": 3, "diverged": 4, "init": 5}
+#: Status codes of the generated functions (``<NAME>_OK``…), by name (:data:`.c_api.STATUS`).
+STATUS = {name: code for name, (code, _) in C_STATUS.items()}
 
 _SHIM = r"""/* ctypes shim (thetahat.codegen.loader): loops @P@_step over a record. */
 #include "@P@.h"
 
 typedef @P@_real_t real_t;
 
-enum { NS = @NS@ };
+enum { NS = @NS@, NUB = @PU@_NU > 0 ? @PU@_NU : 1 };
 
 static void store(const @P@_state *s, real_t row[])
 {
-    int i, o = 0;
-    for (i = 0; i < @PU@_NX; ++i) {
-        row[o++] = s->x_hat[i];
+    int i;
+    for (i = 0; i < NS; ++i) {
+        row[i] = s->s[i];
     }
-    for (i = 0; i < @PU@_NK; ++i) {
-        row[o++] = s->z[i];
-    }
-    for (i = 0; i < @PU@_NP; ++i) {
-        row[o++] = s->theta_hat[i];
-    }
-@STORE_SECOND@}
+}
 
 /* Rows i of S and PHI: the state before sample i and phi_hat at sample i (as run() records). */
 int @P@_run_record(@P@_state *s, long N, const real_t U[], const real_t Y[], real_t S[],
@@ -60,13 +55,13 @@ int @P@_run_record(@P@_state *s, long N, const real_t U[], const real_t Y[], rea
     for (i = 0; i < N; ++i) {
         *index = i;
         store(s, S + i * NS);
-        status = @P@_phi_hat(s, U + i * (@PU@_NU > 0 ? @PU@_NU : 1), Y + i * @PU@_NY,
+        status = @P@_phi_hat(s, U + i * NUB, Y + i * @PU@_NY,
                              PHI + i * @PU@_NK);
         if (status != 0) {
             return status;
         }
         if (i + 1 < N) {
-            status = @P@_step(s, U + i * (@PU@_NU > 0 ? @PU@_NU : 1), Y + i * @PU@_NY);
+            status = @P@_step(s, U + i * NUB, Y + i * @PU@_NY@NEXT@);
             if (status != 0) {
                 return status;
             }
@@ -80,8 +75,8 @@ int @P@_run_steps(@P@_state *s, long N, const real_t U[], const real_t Y[])
 {
     long i;
     int status;
-    for (i = 0; i < N; ++i) {
-        status = @P@_step(s, U + i * (@PU@_NU > 0 ? @PU@_NU : 1), Y + i * @PU@_NY);
+    for (i = 0; i + @FOH@ < N; ++i) {
+        status = @P@_step(s, U + i * NUB, Y + i * @PU@_NY@NEXT@);
         if (status != 0) {
             return status;
         }
@@ -146,10 +141,11 @@ def build(code: CCode, directory: str | Path, *, flags: Sequence[str] = C_FLAGS)
     out = Path(directory)
     code.write(out)
     P = code.name
-    second = ("    for (i = 0; i < @PU@_NX; ++i) {\n        row[o++] = s->x_hat_refined[i];\n"
-              "    }\n" if "x_hat_refined" in code.header else "")
-    shim = (_SHIM.replace("@STORE_SECOND@", second).replace("@NS@", str(code.sizes["state"]))
-            .replace("@PU@", P.upper()).replace("@P@", P))
+    foh = code.hold == "foh"
+    nxt = ", U + (i + 1) * NUB, Y + (i + 1) * @PU@_NY" if foh else ""
+    shim = (_SHIM.replace("@NEXT@", nxt).replace("@FOH@", "1" if foh else "0")
+            .replace("@NS@", str(code.sizes["state"])).replace("@PU@", P.upper())
+            .replace("@P@", P))
     (out / f"{P}_shim.c").write_text(shim, encoding="utf-8")
     lib = out / f"lib{P}.so"
     _compile([_compiler(), *flags, "-fPIC", "-shared", "-o", lib.name, f"{P}.c", f"{P}_shim.c",
