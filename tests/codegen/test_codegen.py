@@ -159,9 +159,11 @@ def test_proposition_examples_match_python(tmp_path, prop):
 
 
 # --------------------------------------------------------------------------- the C itself
-#: The sanitizers: ASan, UBSan, and the two checks UBSan leaves out by default. A division by
-#: zero is defined by IEEE 754 but would mean a θ* or g evaluated where it is not meant to be.
-SANITIZE = "-fsanitize=address,undefined,float-divide-by-zero,float-cast-overflow"
+#: The sanitizers: ASan, UBSan, and float-cast-overflow, which UBSan leaves out by default.
+#: Not float-divide-by-zero: IEEE 754 defines it, and the formulas evaluate θ* also where the
+#: weight l is 0 and discard it there (law_formulas.inversion_target; LuGre's θ* divides by
+#: φ̂, which is 0 at the start), exactly as the NumPy and numba back ends do.
+SANITIZE = "-fsanitize=address,undefined,float-cast-overflow"
 
 
 def _sanitizers_work(tmp_path: Path) -> bool:
@@ -221,9 +223,8 @@ def test_no_heap_no_mutable_globals_math_h_only():
             if line and not line[0].isspace() and line[0] not in "#/}{*":
                 assert (line.startswith(("static const ", "typedef ", "enum "))
                         or re.match(r"(static )?[\w ]+\**\s*\w+\(", line)), line
-        assert {"advance", "update_law_8", "implicit_exponential_step", "solve",
-                f"{code.name}_step", "g_and_jacobians", "main"} <= set(_functions(
-                    code.source + code.main))
+        assert {"f_advance", "f_law_step", "f_implicit_step", f"{code.name}_step", "g_dx",
+                "main"} <= set(_functions(code.source + code.main))
         assert not _recursive(code.source + code.main), code.name
     assert _recursive("static int f(int a)\n{\n    return g(a);\n}\n"      # the check works
                       "int g(int a)\n{\n    return a ? f(a - 1) : 0;\n}\n") == ["f", "g"]
@@ -383,8 +384,8 @@ def test_harness_theta0_aliases_and_bad_input(tmp_path, lugre_data):
 def test_unsupported_parts_raise_codegen_error():
     spec = load_model(LUGRE)
     obs = build_observer(spec)
-    with pytest.raises(UnsupportedError, match="causal"):
-        generate_c(obs, dt=1e-3, hold="foh")
+    with pytest.raises(UnsupportedError, match="hold"):
+        generate_c(obs, dt=1e-3, hold="cubic")
     from thetahat.models import prop1_sinh
     prop1 = build_observer(load_model(EXAMPLES / "prop1.toml"))
     callable_law = ModifiedHighGainObserver(system=prop1.system, K_x=prop1.K_x,

@@ -8,6 +8,7 @@ status codes of :data:`STATUS` (the one table the loader and the docs read).
 
 from __future__ import annotations
 
+import re
 from dataclasses import dataclass
 from string import Template
 
@@ -218,20 +219,13 @@ ${INIT_SECOND}    }
 int ${P}_step(${P}_state *state, const real_t u[], const real_t y[]${NEXT_PARAMS})
 {
     real_t *s = state->s;
-    real_t next[NS], u0[NUB], y0[NY]${NEXT_DECL};
+    real_t next[NS]${STEP_DECL};
 ${STEP_BUFFERS}    int correct, status, i${NEXT_INT};
     status = samples(u, y, &correct);
     if (status != ${PU}_OK) {
         return status;
     }
-    u0[0] = 0;
-    for (i = 0; i < NU; ++i) {
-        u0[i] = u[i];
-    }
-    for (i = 0; i < NY; ++i) {
-        y0[i] = y[i];
-    }
-${NEXT_COPY}${STEP_CALLS}    for (i = 0; i < NS; ++i) {
+${STEP_COPY}${NEXT_COPY}${STEP_CALLS}    for (i = 0; i < NS; ++i) {
         s[i] = next[i];
     }
     return ${PU}_OK;
@@ -239,7 +233,7 @@ ${NEXT_COPY}${STEP_CALLS}    for (i = 0; i < NS; ++i) {
 
 int ${P}_phi_hat(const ${P}_state *state, const real_t u[], const real_t y[], real_t phi_hat[])
 {
-    real_t s[NS], u0[NUB], y0[NY];
+    real_t s[NS]${PHI_DECL};
 ${PHI_BUFFERS}    int correct, status, i;
     status = samples(u, y, &correct);
     if (status != ${PU}_OK) {
@@ -248,14 +242,7 @@ ${PHI_BUFFERS}    int correct, status, i;
     for (i = 0; i < NS; ++i) {
         s[i] = state->s[i];
     }
-    u0[0] = 0;
-    for (i = 0; i < NU; ++i) {
-        u0[i] = u[i];
-    }
-    for (i = 0; i < NY; ++i) {
-        y0[i] = y[i];
-    }
-${PHI_CALLS}    return ${PU}_OK;
+${PHI_COPY}${PHI_CALLS}    return ${PU}_OK;
 }
 
 const real_t *${P}_x_hat(const ${P}_state *s)
@@ -277,18 +264,27 @@ ${MESSAGES}    default:
 }
 """
 
-_NEXT_COPY = r"""    status = read_sample(u_next, y_next, &next_present);
+_NEXT_CHECK = r"""    status = read_sample(u_next, y_next, &next_present);
     if (status != ${PU}_OK) {
         return status;
     }
-    u1[0] = 0;
-    for (i = 0; i < NU; ++i) {
-        u1[i] = u_next[i];
-    }
-    for (i = 0; i < NY; ++i) {
-        y1[i] = next_present ? y_next[i] : y[i];
-    }
 """
+
+
+def _copies(calls: str, foh: bool) -> tuple[str, str]:
+    """Declarations and copies of the sample buffers the calls use (u0, y0[, u1, y1])."""
+    names = set(re.findall(r"[A-Za-z_]\w*", calls))
+    decl, copy = "", ""
+    rows = [("u0", "NUB", "NU", "u[i]"), ("y0", "NY", "NY", "y[i]")]
+    if foh:
+        rows += [("u1", "NUB", "NU", "u_next[i]"),
+                 ("y1", "NY", "NY", "next_present ? y_next[i] : y[i]")]
+    for name, size, count, value in rows:
+        if name not in names:
+            continue
+        decl += f", {name}[{size}]"
+        copy += (f"    for (i = 0; i < {count}; ++i) {{\n        {name}[i] = {value};\n    }}\n")
+    return decl, copy
 
 
 def source_text(lay: CLayout, banner: str, step: DerivedStep) -> str:
@@ -311,13 +307,15 @@ def source_text(lay: CLayout, banner: str, step: DerivedStep) -> str:
         f"        return \"{text}\";\n" for key, (_, text) in STATUS.items())
     access = (f"\nconst real_t *{P}_x_hat_refined(const {P}_state *s)\n{{\n"
               "    return s->s + NX + NK + NP;\n}\n" if lay.second else "")
+    step_decl, step_copy = _copies(step.step_calls, lay.foh)
+    phi_decl, phi_copy = _copies(step.phi_calls, False)
     api = Template(_API).safe_substitute(
         SKIP="1" if lay.skip else "0",
         INIT_SECOND="        s->s[NX + NK + NP + i] = x0[i];\n" if lay.second else "",
         NEXT_PARAMS=(",\n" + " " * (len(P) + 10) + "const real_t u_next[], const real_t "
                      "y_next[]") if lay.foh else "",
-        NEXT_DECL=", u1[NUB], y1[NY]" if lay.foh else "",
-        NEXT_COPY=_NEXT_COPY if lay.foh else "", NEXT_INT=", next_present" if lay.foh else "",
+        STEP_DECL=step_decl, STEP_COPY=step_copy, PHI_DECL=phi_decl, PHI_COPY=phi_copy,
+        NEXT_COPY=_NEXT_CHECK if lay.foh else "", NEXT_INT=", next_present" if lay.foh else "",
         STEP_BUFFERS=step.step_buffers, STEP_CALLS=step.step_calls,
         PHI_BUFFERS=step.phi_buffers, PHI_CALLS=step.phi_calls,
         ACCESS_SECOND=access, MESSAGES=messages)
