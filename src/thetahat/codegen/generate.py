@@ -3,12 +3,13 @@
 The generated pair ``<name>.h``/``<name>.c`` implements the step of
 :class:`~thetahat.estimation.observer.ModifiedHighGainObserver` — observer (3), the update law
 (8) with its projection onto Θ and excitation weight, and the second observer of Sec. VI — at a
-fixed step dt and zero-order hold, in ``float`` or ``double``, with no heap, no recursion and no
-global mutable state: the caller owns the state struct. The numbers come from the observer's
-public objects (its matrices, gains, law and the discretisation ``observer.plan(dt)``); g,
-∂g/∂x, ∂g/∂θ, ∂g/∂v and θ* are printed from their SymPy expressions by SymPy's C99 printer with
-common-subexpression elimination (:mod:`.printing`); the stages of the step are those of the
-Python step (:mod:`.c_step`).
+fixed step dt with a zero- or first-order hold, in ``float`` or ``double``, with no heap, no
+recursion and no global mutable state: the caller owns the state struct. The step is not
+written here: it is the formulas of :mod:`~thetahat.estimation.formulas` and
+:mod:`~thetahat.estimation.law_formulas` printed as C (:mod:`.c_printer`, :mod:`.c_derive`),
+reading the data the numba kernel reads (``compiled.kernel_arrays`` of ``observer.plan(dt)``);
+g, ∂g/∂x, ∂g/∂θ, ∂g/∂y and θ* are printed from their SymPy expressions by SymPy's C99 printer
+with common-subexpression elimination (:mod:`.printing`); :mod:`.c_api` writes the interface.
 """
 
 from __future__ import annotations
