@@ -1,9 +1,11 @@
 """The conformance matrix: every back end of the observer step agrees with the reference.
 
 Back ends: a loop of ``ModifiedHighGainObserver.step`` (ZOH only), ``run_batch`` (row 0 of a
-batch of two records) and the numba kernel of ``compile_observer`` (optional extra ``speed``;
-ZOH, a Box Θ, no prediction over missing samples; the combinations it does not offer are left
-out of the matrix, see ``supported``). The reference is
+batch of two records), the numba kernel of ``compile_observer`` (optional extra ``speed``;
+ZOH, a Box Θ, no prediction over missing samples) and the generated C of
+``thetahat.codegen.generate_c`` (a Box Θ; every law, hold, NaN policy and second observer;
+all configurations compiled into one library, skipped without a C compiler); the combinations
+a back end does not offer are left out of the matrix, see ``supported``. The reference is
 ``ModifiedHighGainObserver.run``. The matrix crosses the update law (Propositions 1–4 and a
 held θ), the parameter set (Box; Ball, whose projection takes the generic path), the second
 observer of Sec. VI (none, g on its estimates, g on y), the hold (ZOH, FOH) and the NaN policy
@@ -138,12 +140,33 @@ def supported(law: str, theta_set: str, second: str, hold: str, policy: str,
         return hold == "zoh"
     if backend == "compiled":
         return hold == "zoh" and policy == "raise" and theta_set == "box"
+    if backend == "c":
+        return theta_set == "box"
     return True
 
 
-CASES = [case for case in itertools.product(LAWS, SETS, SECONDS, HOLDS, POLICIES,
-                                            ("step", "batch", "compiled"))
+BACK_ENDS = ("step", "batch", "compiled", "c")
+CASES = [case for case in itertools.product(LAWS, SETS, SECONDS, HOLDS, POLICIES, BACK_ENDS)
          if supported(*case)]
+#: The generated C's configurations: (law, second, hold, policy), compiled into one library.
+C_CONFIGS = sorted({(law, second, hold, policy) for law, _, second, hold, policy, backend
+                    in CASES if backend == "c"})
+
+
+@pytest.fixture(scope="module")
+def c_observers(tmp_path_factory):
+    """The generated C (thetahat.codegen) of every configuration the matrix runs in C, built
+    with the acceptance's flags into one shared library (one compiler run, ≈ 10 s)."""
+    from thetahat.codegen import generate_c
+    from thetahat.codegen.loader import CObserver, build_many, find_compiler
+
+    if find_compiler() is None:
+        pytest.skip("no C compiler (cc or $CC)")
+    codes = {config: generate_c(make_observer(config[0], "box", config[1], config[3]), dt=DT,
+                                hold=config[2], name=f"obs{i}")
+             for i, config in enumerate(C_CONFIGS)}
+    lib = build_many(list(codes.values()), tmp_path_factory.mktemp("c"))
+    return {config: CObserver(code, lib) for config, code in codes.items()}
 
 
 def step_states(obs: ModifiedHighGainObserver, t, U, Y) -> np.ndarray:
@@ -155,12 +178,16 @@ def step_states(obs: ModifiedHighGainObserver, t, U, Y) -> np.ndarray:
     return np.array(S)
 
 
-def back_end(name: str, obs, hold: str, policy: str, t, U, Y):
-    """(x̂, θ̂, x̂₂) of record 0 by one back end."""
+def back_end(name: str, obs, hold: str, policy: str, t, U, Y, c_obs=None):
+    """(x̂, θ̂, x̂₂) of record 0 by one back end (``c_obs``: the generated C's)."""
     lay = obs.layout
     if name == "step":
         S = step_states(obs, t, U[0], Y[0])
         return S[:, lay.x], S[:, lay.theta], S[:, lay.x2] if lay.second else None
+    if name == "c":
+        res = c_obs.run(U[0], Y[0])
+        assert res.status == 0, (res.status, res.index)
+        return res.x_hat, res.theta_hat, res.x_hat_refined
     if name == "batch":
         res = run_batch(obs, t, U, Y, hold=hold)[0]
     else:
@@ -170,11 +197,14 @@ def back_end(name: str, obs, hold: str, policy: str, t, U, Y):
 
 @pytest.mark.parametrize("law, theta_set, second, hold, policy, backend", CASES,
                          ids=["-".join(case) for case in CASES])
-def test_back_end_agrees_with_reference(law, theta_set, second, hold, policy, backend):
+def test_back_end_agrees_with_reference(law, theta_set, second, hold, policy, backend,
+                                        request):
     obs = make_observer(law, theta_set, second, policy)
     t, U, Y = records(policy)
     ref = obs.run(t, U[0], Y[0], hold=hold)
-    x, th, x2 = back_end(backend, obs, hold, policy, t, U, Y)
+    c_obs = (request.getfixturevalue("c_observers")[(law, second, hold, policy)]
+             if backend == "c" else None)
+    x, th, x2 = back_end(backend, obs, hold, policy, t, U, Y, c_obs)
     assert rel_err(x, ref.x_hat) <= AGREE_RTOL
     assert rel_err(th, ref.theta_hat) <= AGREE_RTOL
     assert (x2 is None) == (ref.x_hat_refined is None)

@@ -225,7 +225,7 @@ ${STEP_BUFFERS}    int correct, status, i${NEXT_INT};
     if (status != ${PU}_OK) {
         return status;
     }
-${STEP_COPY}${NEXT_COPY}${STEP_CALLS}    for (i = 0; i < NS; ++i) {
+${NEXT_COPY}${STEP_COPY}${STEP_CALLS}    for (i = 0; i < NS; ++i) {
         s[i] = next[i];
     }
     return ${PU}_OK;
@@ -315,7 +315,7 @@ def source_text(lay: CLayout, banner: str, step: DerivedStep) -> str:
         NEXT_PARAMS=(",\n" + " " * (len(P) + 10) + "const real_t u_next[], const real_t "
                      "y_next[]") if lay.foh else "",
         STEP_DECL=step_decl, STEP_COPY=step_copy, PHI_DECL=phi_decl, PHI_COPY=phi_copy,
-        NEXT_COPY=_NEXT_CHECK if lay.foh else "", NEXT_INT=", next_present" if lay.foh else "",
+        NEXT_COPY=_NEXT_CHECK if lay.foh else "", NEXT_INT=", next_present = 0" if lay.foh else "",
         STEP_BUFFERS=step.step_buffers, STEP_CALLS=step.step_calls,
         PHI_BUFFERS=step.phi_buffers, PHI_CALLS=step.phi_calls,
         ACCESS_SECOND=access, MESSAGES=messages)

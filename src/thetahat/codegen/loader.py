@@ -25,7 +25,7 @@ from .c_api import STATUS as C_STATUS
 from .generate import CCode
 from .harness import C_FLAGS
 
-__all__ = ["CObserver", "CRun", "build", "build_harness", "find_compiler", "load_c",
+__all__ = ["CObserver", "CRun", "build", "build_harness", "build_many", "find_compiler", "load_c",
            "STATUS"]
 
 #: Status codes of the generated functions (``<NAME>_OK``…), by name (:data:`.c_api.STATUS`).
@@ -118,6 +118,51 @@ def _compiler() -> str:
     return cc
 
 
+def _write_with_shim(code: CCode, out: Path) -> list[str]:
+    """Write ``code`` and its record-loop shim into ``out``; the two C files' names."""
+    code.write(out)
+    P = code.name
+    foh = code.hold == "foh"
+    nxt = ", U + (i + 1) * NUB, Y + (i + 1) * @PU@_NY" if foh else ""
+    shim = (_SHIM.replace("@NEXT@", nxt).replace("@FOH@", "1" if foh else "0")
+            .replace("@NS@", str(code.sizes["state"])).replace("@PU@", P.upper())
+            .replace("@P@", P))
+    (out / f"{P}_shim.c").write_text(shim, encoding="utf-8")
+    return [f"{P}.c", f"{P}_shim.c"]
+
+
+def build_many(codes: Sequence[CCode], directory: str | Path, *,
+               flags: Sequence[str] = C_FLAGS) -> Path:
+    """Compile several generated observers (distinct names) into one shared library.
+
+    One compiler run for all of them (the conformance tests build dozens of configurations).
+
+    Parameters
+    ----------
+    codes : sequence of CCode
+    directory : str or Path
+    flags : sequence of str
+
+    Returns
+    -------
+    Path
+        ``libobservers.so``; load each with ``CObserver(code, path)``.
+
+    Raises
+    ------
+    CCompilerError
+        No compiler, or it failed or warned.
+    """
+    out = Path(directory)
+    names = [code.name for code in codes]
+    if len(set(names)) != len(names):
+        raise CCompilerError(f"build_many needs distinct names; got {names}.")
+    sources = [f for code in codes for f in _write_with_shim(code, out)]
+    lib = out / "libobservers.so"
+    _compile([_compiler(), *flags, "-fPIC", "-shared", "-o", lib.name, *sources, "-lm"], out)
+    return lib
+
+
 def build(code: CCode, directory: str | Path, *, flags: Sequence[str] = C_FLAGS) -> Path:
     """Write ``code`` into ``directory`` and compile it with the shim as a shared library.
 
@@ -139,17 +184,10 @@ def build(code: CCode, directory: str | Path, *, flags: Sequence[str] = C_FLAGS)
         No compiler, or it failed or warned (the flags include ``-Werror``).
     """
     out = Path(directory)
-    code.write(out)
     P = code.name
-    foh = code.hold == "foh"
-    nxt = ", U + (i + 1) * NUB, Y + (i + 1) * @PU@_NY" if foh else ""
-    shim = (_SHIM.replace("@NEXT@", nxt).replace("@FOH@", "1" if foh else "0")
-            .replace("@NS@", str(code.sizes["state"])).replace("@PU@", P.upper())
-            .replace("@P@", P))
-    (out / f"{P}_shim.c").write_text(shim, encoding="utf-8")
+    sources = _write_with_shim(code, out)
     lib = out / f"lib{P}.so"
-    _compile([_compiler(), *flags, "-fPIC", "-shared", "-o", lib.name, f"{P}.c", f"{P}_shim.c",
-              "-lm"], out)
+    _compile([_compiler(), *flags, "-fPIC", "-shared", "-o", lib.name, *sources, "-lm"], out)
     return lib
 
 
