@@ -292,6 +292,23 @@ def test_divergence_by_construction_is_reported_identically():
     assert 10 < i < t.size - 10
 
 
+def test_generated_c_refuses_the_diverging_step_at_the_same_sample(tmp_path):
+    """The generated C reports the divergence by construction as the status ``diverged`` at
+    the sample where every Python back end raises, and stops there."""
+    from thetahat.codegen import generate_c
+    from thetahat.codegen.loader import STATUS, find_compiler, load_c
+
+    if find_compiler() is None:
+        pytest.skip("no C compiler (cc or $CC)")
+    obs = unstable_observer()
+    t, U, Y = records("raise")
+    with pytest.raises(NonFiniteError, match=r"t\[(\d+)\]") as info:
+        obs.run(t, U[0], Y[0])
+    i = int(re.search(r"t\[(\d+)\]", str(info.value)).group(1))
+    res = load_c(generate_c(obs, dt=DT, name="unstable"), tmp_path).run(U[0], Y[0])
+    assert (res.status, res.index) == (STATUS["diverged"], i)
+
+
 def require_divergence(obs, t, U, Y) -> None:
     """Skip unless the reference run crosses the divergence bound on this platform.
 

@@ -19,6 +19,7 @@ only its own branch.
 from __future__ import annotations
 
 import ast
+import functools
 import textwrap
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -36,7 +37,7 @@ from ..estimation.law_base import FAR
 from ..estimation.plan import StepPlan
 from ..estimation.scalar_backend import LAW_BOX, LAWS, law_source, rewritten
 from ..model.perturbation import SymbolicPerturbation
-from .c_printer import Arr, Const, CUnit, Scal, WritesConstant, real_literal
+from .c_printer import Arr, Const, CUnit, Scal, real_literal
 from .printing import c_function
 
 __all__ = ["BOUND_FLOAT", "FAR_FLOAT", "DerivedStep", "derived_step", "inwards", "readout"]
@@ -47,6 +48,10 @@ FAR_FLOAT = 1e30
 #: The divergence bound in float: formulas.DIVERGENCE_BOUND (1e100) is beyond FLT_MAX; 1e18
 #: keeps its square (1e36) finite in float, far above any sensibly scaled observer quantity.
 BOUND_FLOAT = 1e18
+
+#: Per law formula, the LAW_i arrays its formulas write (scratch, found by printing): the next
+#: observer with that law is printed once.
+_SCRATCH: dict[str, frozenset[str]] = {}
 
 #: Names of the plan tuples' arrays in the generated C (formulas' module docstring).
 _P_NAMES = ("L", "BV", "E", "C", "A", "B", "KX", "KXC", "PHI1", "PHI2")
@@ -119,7 +124,9 @@ class DerivedStep:
     const_count: int
 
 
+@functools.cache
 def _module_functions() -> dict[str, ast.FunctionDef]:
+    """The rewritten formulas, scalar primitives and the driver, by name (read-only)."""
     out: dict[str, ast.FunctionDef] = {}
     for table in (scalar_primitives.SCALAR_PRIMITIVES, law_formulas.LAW_FORMULAS,
                   formulas.FORMULAS, {"readout": readout}):
@@ -298,12 +305,11 @@ def derived_step(parts: KernelParts, plan: StepPlan, *, prefix: str, real: str, 
                       "EXP_TINY_ARG": Const(scalar_primitives.EXP_TINY_ARG, "EXP_TINY_ARG"),
                       "BOUND_SQ": Const(bound * bound, "BOUND_SQ"), "USER_M": Const(False)})
     hooks, law_fn = _hooks(law)
-    functions = {**_module_functions(), **hooks}
+    functions = {**_module_functions(), **hooks}          # a copy: the cache stays
     size = lay.size
-    scratch: set[str] = set()
-    for _ in range(len(data) + 1):
-        try:
-            return _print(functions, constants, data, scratch, plans, lp_names, options, box,
+    scratch = set(_SCRATCH.get(law, ()))
+    for _ in range(2):
+        step, written = _print(functions, constants, data, scratch, plans, lp_names, options, box,
                           law_fn, set(extra), pert=parts.perturbation, ts=ts, prefix=prefix,
                           real=real, foh=foh, dt=dt,
                           skip=skip, second=second, on_est=on_est, size=size,
@@ -311,10 +317,12 @@ def derived_step(parts: KernelParts, plan: StepPlan, *, prefix: str, real: str, 
                                               "THETAHAT_FAR": far, "BOUND_SQ": bound * bound,
                                               "DT": dt,
                                               "EXP_TINY_ARG": scalar_primitives.EXP_TINY_ARG})
-        except WritesConstant as exc:
-            if exc.name in scratch or exc.name not in data:
-                raise UnsupportedError(f"the C printer cannot write {exc.name}") from exc
-            scratch.add(exc.name)
+        if not written:
+            _SCRATCH[law] = frozenset(scratch)
+            return step
+        if not written <= set(data) - scratch:
+            raise UnsupportedError(f"the C printer cannot write {sorted(written)}")
+        scratch |= written
     raise UnsupportedError("the C printer did not settle the scratch arrays")  # pragma: no cover
 
 
@@ -324,7 +332,7 @@ def _print(functions: dict[str, ast.FunctionDef], constants: dict[str, Any],
            pert: SymbolicPerturbation, ts: Any, prefix: str, real: str, foh: bool,
            dt: float, skip: bool,
            second: bool, on_est: bool, size: int, dims: dict[str, int],
-           scalars: dict[str, float]) -> DerivedStep:
+           scalars: dict[str, float]) -> tuple[DerivedStep, set[str]]:
     def arr(name: str) -> Arr:
         a = data[name]
         if name in scratch:
@@ -343,7 +351,7 @@ def _print(functions: dict[str, ast.FunctionDef], constants: dict[str, Any],
             if i in used_inputs:
                 continue
             if isinstance(value, Arr) and value.glob:
-                raise WritesConstant(value.name)
+                unit.written_globals.add(value.name)
             texts.append(_pointer(value, None))
         return name, texts
 
@@ -414,7 +422,8 @@ def _print(functions: dict[str, ast.FunctionDef], constants: dict[str, Any],
             count += 1
     return DerivedStep(constants="\n".join(const_lines) + "\n", functions=functions_text,
                        step_buffers=step_buffers, step_calls=step_calls,
-                       phi_buffers=phi_buffers, phi_calls=phi_calls, const_count=count)
+                       phi_buffers=phi_buffers, phi_calls=phi_calls,
+                       const_count=count), unit.written_globals
 
 
 def _tokens(text: str) -> set[str]:

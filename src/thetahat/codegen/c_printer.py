@@ -28,6 +28,7 @@ pointers. No heap, no recursion (the formulas have none), no mutable file-scope 
 from __future__ import annotations
 
 import ast
+import functools
 import math
 import re
 from collections.abc import Callable, Mapping, Sequence
@@ -178,10 +179,11 @@ class CUnit:
         (g_val, g_dx, dg_dy, dg_dtheta, theta_star, m_matrix) or None if ``name`` is not one.
     real : {"double", "float"}
 
-    Raises
-    ------
-    WritesConstant
-        (from :meth:`call`) a formula writes into a global, which is then scratch, not data.
+    Notes
+    -----
+    A formula that writes into an array passed as constant data adds its name to
+    :attr:`written_globals`: that array is scratch, and the unit must be printed again with it
+    as a buffer (:mod:`.c_derive` does).
 
     Examples
     --------
@@ -296,15 +298,13 @@ class _FunctionPrinter:
 
     # ------------------------------------------------------------------ setup
     def run(self) -> CFunction:
-        self._count_assignments()
+        self.assigned, self.returns_tuple = _analysis(self.fdef)
         names = [a.arg for a in self.fdef.args.args]
         if len(names) != len(self.args):
             raise UnsupportedError(f"{self.fdef.name} takes {len(names)} arguments, "
                                    f"given {len(self.args)}")
         for i, (pname, value) in enumerate(zip(names, self.args)):
             self.env[pname] = self._bind(pname, value, str(i))
-        self.returns_tuple = any(isinstance(n, ast.Return) and isinstance(n.value, ast.Tuple)
-                                 for n in ast.walk(self.fdef))
         body = self._block(self.fdef.body, 1)
         if isinstance(self.result, Const) and self.only_const_return:
             return CFunction(self.cname, [], self.result)
@@ -344,22 +344,6 @@ class _FunctionPrinter:
     @staticmethod
     def _c_name(name: str) -> str:
         return f"{name}_" if name in _RESERVED else name
-
-    def _count_assignments(self) -> None:
-        for node in ast.walk(self.fdef):
-            targets: list[ast.expr] = []
-            if isinstance(node, ast.Assign):
-                targets = list(node.targets)
-            elif isinstance(node, (ast.AugAssign, ast.For)):
-                targets = [node.target]
-                if isinstance(node, ast.AugAssign) and isinstance(node.target, ast.Name):
-                    self.assigned[node.target.id] = self.assigned.get(node.target.id, 0) + 2
-                    continue
-            for t in targets:
-                for n in ast.walk(t):
-                    if isinstance(n, ast.Name) and isinstance(n.ctx, ast.Store):
-                        self.assigned[n.id] = self.assigned.get(n.id, 0) + (
-                            2 if isinstance(node, ast.For) else 1)
 
     # ------------------------------------------------------------------ statements
     def _block(self, stmts: Sequence[ast.stmt], depth: int) -> list[str]:
@@ -718,7 +702,7 @@ class _FunctionPrinter:
             raise UnsupportedError("assignment target outside the formulas' subset")
         arr = self._array(node.value)
         if store and arr.glob:
-            raise WritesConstant(arr.name)
+            self.unit.written_globals.add(arr.name)     # scratch, not data: printed again
         return f"{arr.name}[{self._index(arr, node.slice)}]"
 
     def _load_subscript(self, node: ast.Subscript) -> Any:
@@ -819,12 +803,25 @@ class _FunctionPrinter:
                 self.used.add(token)
 
 
-class WritesConstant(UnsupportedError):
-    """A formula writes into an array the printer took for constant data (its name)."""
-
-    def __init__(self, name: str) -> None:
-        super().__init__(name)
-        self.name = name
+@functools.lru_cache(maxsize=512)
+def _analysis(fdef: ast.FunctionDef) -> tuple[dict[str, int], bool]:
+    """How often each name is assigned (a loop or an update counts twice), and whether the
+    function returns tuples."""
+    assigned: dict[str, int] = {}
+    for node in ast.walk(fdef):
+        targets: list[ast.expr] = []
+        weight = 1
+        if isinstance(node, ast.Assign):
+            targets = list(node.targets)
+        elif isinstance(node, (ast.AugAssign, ast.For)):
+            targets, weight = [node.target], 2
+        for t in targets:
+            for n in ast.walk(t):
+                if isinstance(n, ast.Name) and isinstance(n.ctx, ast.Store):
+                    assigned[n.id] = assigned.get(n.id, 0) + weight
+    returns_tuple = any(isinstance(n, ast.Return) and isinstance(n.value, ast.Tuple)
+                        for n in ast.walk(fdef))
+    return assigned, returns_tuple
 
 
 def _identifiers(text: str) -> list[str]:
