@@ -389,7 +389,8 @@ def _banner(name: str, info: dict[str, str], what: str) -> str:
 
 
 def generate_c_from_model(path: str | Path, *, dt: float, eps: float | None = None,
-                          real: str = "double", name: str | None = None) -> CCode:
+                          real: str = "double", name: str | None = None,
+                          nan_policy: str = "raise", hold: str = "zoh") -> CCode:
     """:func:`generate_c` for the estimator of a model file (``thetahat codegen``).
 
     Parameters
@@ -403,6 +404,9 @@ def generate_c_from_model(path: str | Path, *, dt: float, eps: float | None = No
     real : {"double", "float"}
     name : str, optional
         File stem and C prefix; default the model file's stem.
+    nan_policy : {"raise", "skip"}
+        A NaN output sample is refused, or predicted over.
+    hold : {"zoh", "foh"}
 
     Returns
     -------
@@ -415,7 +419,9 @@ def generate_c_from_model(path: str | Path, *, dt: float, eps: float | None = No
     ModelFileError
         The file cannot be read or is invalid.
     UnsupportedError
-        A part of the estimator has no C form.
+        A part of the estimator has no C form, or the file's ``[estimator] method`` is not
+        ``"paper"`` (the guarded and MAP estimators have no C form; the file is refused, never
+        generated as another method).
 
     Examples
     --------
@@ -429,9 +435,14 @@ def generate_c_from_model(path: str | Path, *, dt: float, eps: float | None = No
     from ..modelfile import build_observer, load_model
 
     spec = load_model(path)
+    if spec.estimator.method != "paper":
+        raise UnsupportedError(
+            f"{path}: [estimator] method = {spec.estimator.method!r} has no C form; codegen "
+            "generates the paper's estimator only (method = \"paper\"). Set method = "
+            "\"paper\" in a copy of the file to generate the observer alone.")
     digest = hashlib.sha256(Path(path).read_bytes()).hexdigest()
-    observer = build_observer(spec, eps=eps)
-    return generate_c(observer, dt=dt, name=name or Path(path).stem, real=real,
+    observer = build_observer(spec, eps=eps, nan_policy=nan_policy)
+    return generate_c(observer, dt=dt, name=name or Path(path).stem, real=real, hold=hold,
                       theta_hat0=spec.estimator.theta_hat0, x_hat0=spec.estimator.x_hat0,
                       eps=spec.estimator.eps if eps is None else eps, model_sha256=digest,
                       title=spec.name)
