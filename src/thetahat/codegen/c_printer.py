@@ -60,7 +60,14 @@ _RESERVED = frozenset({
 
 @dataclass(frozen=True)
 class Const:
-    """A compile-time value (int, float or bool); ``text`` names it in C (e.g. ``DT``)."""
+    """A compile-time value, folded by the printer.
+
+    Parameters
+    ----------
+    value : int, float or bool
+    text : str, optional
+        Its name in C (e.g. ``DT``); named constants are printed by name, not folded.
+    """
 
     value: Any
     text: str | None = None
@@ -68,7 +75,18 @@ class Const:
 
 @dataclass(frozen=True)
 class Arr:
-    """A flat C array of ``shape``: a ``static const`` global (``glob``) or a runtime pointer."""
+    """A flat, row-major C array.
+
+    Parameters
+    ----------
+    name : str
+        Its C name.
+    shape : tuple of int
+        (size,) or (rows, cols).
+    glob : bool
+        A ``static const`` array at file scope (constant data, baked into a specialisation);
+        else a runtime array, passed as a parameter.
+    """
 
     name: str
     shape: tuple[int, ...]
@@ -81,7 +99,15 @@ class Arr:
 
 @dataclass(frozen=True)
 class Scal:
-    """A runtime scalar: a C expression and its type (:data:`REAL` or :data:`INT`)."""
+    """A runtime scalar.
+
+    Parameters
+    ----------
+    text : str
+        A C expression.
+    ctype : {"real_t", "int"}
+        Its type (booleans are ``int``).
+    """
 
     text: str
     ctype: str
@@ -122,10 +148,17 @@ def real_literal(value: float, real: str) -> str:
 
 @dataclass
 class CFunction:
-    """A specialised function: C name, the caller's argument per kept parameter, its result.
+    """A specialised function.
 
-    ``result`` is a :class:`Const` when the call folds to a constant (nothing is emitted), a
-    C type, ``"void"``, or a tuple of C types (returned through pointers).
+    Parameters
+    ----------
+    name : str
+        Its C name.
+    args : list of str
+        The caller's C argument per kept parameter.
+    result : Const, str or tuple of str
+        A :class:`Const` when the call folds to a constant (nothing is emitted), a C type,
+        ``"void"``, or a tuple of C types (returned through pointers).
     """
 
     name: str
@@ -161,10 +194,6 @@ def _key(value: Any) -> Any:
     raise UnsupportedError(f"the C printer cannot pass {value!r}")
 
 
-class _Return(Exception):
-    pass
-
-
 class CUnit:
     """One C translation unit of specialised formula functions.
 
@@ -198,7 +227,7 @@ class CUnit:
     """
 
     def __init__(self, functions: Mapping[str, ast.FunctionDef], constants: Mapping[str, Any],
-                 model: Callable[[str, Sequence[Any]], tuple[str, list[str]] | None],
+                 model: Callable[[str, Sequence[Any] | None], tuple[str, list[str]] | None],
                  real: str) -> None:
         self.functions = dict(functions)
         self.constants = dict(constants)
@@ -288,7 +317,6 @@ class _FunctionPrinter:
     env: dict[str, Any] = field(default_factory=dict)
     params: list[tuple[str, str, str]] = field(default_factory=list)   # (decl, c name, path)
     locals: dict[str, _Local] = field(default_factory=dict)
-    used: set[str] = field(default_factory=set)
     lines: list[str] = field(default_factory=list)
     result: Any = None
     assigned: dict[str, int] = field(default_factory=dict)
@@ -447,9 +475,7 @@ class _FunctionPrinter:
         return [f"{pad}{self._use(name)} = {self._text(value)};"]
 
     def _use(self, name: str) -> str:
-        cname = self._c_name(name)
-        self.used.add(cname)
-        return cname
+        return self._c_name(name)
 
     def _for(self, st: ast.For, depth: int) -> list[str]:
         pad = "    " * depth
@@ -599,10 +625,6 @@ class _FunctionPrinter:
     def _name(self, name: str) -> Any:
         if name in self.env:
             value = self.env[name]
-            if isinstance(value, Scal) and name in self.locals:
-                self.used.add(value.text)
-            elif isinstance(value, (Scal, Arr)) and not getattr(value, "glob", False):
-                self.used.add(value.text if isinstance(value, Scal) else value.name)
             return value
         if name in self.unit.constants:
             return self.unit.constants[name]
@@ -625,9 +647,9 @@ class _FunctionPrinter:
                 return Scal(f"{t} * {t}", REAL)
             raise UnsupportedError("only the square ** 2 is in the formulas' subset")
         unit = {ast.Add: 0, ast.Sub: 0, ast.Mult: 1}.get(op)
-        for const, other, right in ((b, a, True), (a, b, False)):
+        for const, other, on_right in ((b, a, True), (a, b, False)):
             if (unit is not None and isinstance(const, Const) and const.text is None
-                    and const.value == unit and (right or op is not ast.Sub)
+                    and const.value == unit and (on_right or op is not ast.Sub)
                     and (isinstance(const.value, int) or _c_type(other) == REAL)):
                 return other
         ta, tb = _c_type(a), _c_type(b)
@@ -782,8 +804,6 @@ class _FunctionPrinter:
         if not isinstance(target, Fn):
             raise UnsupportedError(f"{func.id} is not a function (in {self.fdef.name})")
         args = [self._expr(a) for a in node.args]
-        for a in args:
-            self._mark_used(a)
         model = self.unit.model(target.name, args)
         if model is not None:
             self.unit.model_calls.add(target.name)
@@ -791,16 +811,6 @@ class _FunctionPrinter:
             return CFunction(cname, cargs, INT)
         fn = self.unit.call(target.name, args)
         return fn
-
-    def _mark_used(self, value: Any) -> None:
-        if isinstance(value, tuple):
-            for v in value:
-                self._mark_used(v)
-        elif isinstance(value, Arr) and not value.glob:
-            self.used.add(value.name)
-        elif isinstance(value, Scal):
-            for token in _identifiers(value.text):
-                self.used.add(token)
 
 
 @functools.lru_cache(maxsize=512)
