@@ -44,8 +44,8 @@ __all__ = ["Arr", "CFunction", "CUnit", "Const", "Scal", "real_literal"]
 #: Loops with constant bounds are written out while the iterations of the nest written out
 #: stay at most this many: their indices fold to constants, as in numba's (LLVM's) full
 #: unrolling of the same loops, which gcc -O2 does not do; the bound keeps the code size of
-#: larger models in check. Measured on LuGre (benchmarks/bench_codegen.py): 0.83× the
-#: per-step cost of the hand-written C it replaced, against 1.16× without.
+#: larger models in check. Measured on LuGre (benchmarks/bench_codegen.py, one run each): 0.88×
+#: the per-step cost of the hand-written C the printer replaced, against 1.16× without.
 UNROLL = 16
 #: C types of runtime scalars.
 REAL, INT = "real_t", "int"

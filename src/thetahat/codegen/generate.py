@@ -261,8 +261,8 @@ def generate_c(observer: ModifiedHighGainObserver, *, dt: float, name: str = "ob
         File stem and C prefix (made a C identifier).
     real : {"double", "float"}
         The C type of every number (``<name>_real_t``).
-    hold : {"zoh"}
-        Sample hold; the C step is causal.
+    hold : {"zoh", "foh"}
+        Sample hold; with "foh" ``<name>_step`` also takes the next samples.
     theta_hat0, x_hat0 : array_like, optional
         Defaults compiled in for ``<name>_init(s, NULL, NULL)``: ``update_law.init()`` and 0.
     eps : float, optional
@@ -284,15 +284,16 @@ def generate_c(observer: ModifiedHighGainObserver, *, dt: float, name: str = "ob
 
     Notes
     -----
-    The C step computes, in the same stages, what ``observer.step(state, u, y, dt)`` computes:
-    the forcing of (3a)–(3b) with φ̂ = g + z (3c), the law's step and the projection onto Θ,
-    the θ-term of (3b), the Jacobian part N, the second observer, then the linearly implicit
-    exponential step with Φ₁ of ``observer.plan(dt)``. The state is committed only when it
-    has not diverged (the rule of ``thetahat.estimation.step``: its norm is finite and at most
-    ``DIVERGENCE_BOUND``, 1e18 in float); otherwise the step returns an error code and leaves
-    it unchanged — the C form of the NonFiniteError / UpdateLawError the Python step raises. NaN in y follows
-    ``nan_policy``, an invalid θ* ``on_invalid``. IEEE 754 arithmetic (C99 Annex F) is
-    assumed, as on every target with an FPU; ``-ffast-math`` is refused.
+    The C step is the step's formulas (:mod:`~thetahat.estimation.formulas`,
+    :mod:`~thetahat.estimation.law_formulas`) printed as C for this observer
+    (:mod:`.c_printer`, :mod:`.c_derive`): what ``observer.run`` computes, reading the
+    ``observer.plan(dt)`` data the numba kernel reads. The state is committed only when it has
+    not diverged (``formulas.within_bound``: its norm is finite and at most
+    ``DIVERGENCE_BOUND``, 1e18 in float); otherwise the step returns a status code
+    (:data:`.c_api.STATUS`) and leaves it unchanged — the C form of the NonFiniteError /
+    UpdateLawError the Python step raises. NaN in y follows ``nan_policy``, an invalid θ*
+    ``on_invalid``. IEEE 754 arithmetic (C99 Annex F) is assumed, as on every target with an
+    FPU; ``-ffast-math`` and ``-ffinite-math-only`` are refused.
 
     Examples
     --------
@@ -407,6 +408,7 @@ def generate_c_from_model(path: str | Path, *, dt: float, eps: float | None = No
     nan_policy : {"raise", "skip"}
         A NaN output sample is refused, or predicted over.
     hold : {"zoh", "foh"}
+        Sample hold.
 
     Returns
     -------
