@@ -142,8 +142,12 @@ def real_literal(value: float, real: str) -> str:
         raise UnsupportedError(f"the C step needs finite constants; got {v!r}.")
     if real == "double":
         return repr(v)
-    text = repr(float(np.float32(v)))
-    return text + "F"
+    with np.errstate(over="ignore"):
+        single = float(np.float32(v))
+    if not math.isfinite(single):
+        raise UnsupportedError(f"the constant {v!r} is beyond the range of float; generate "
+                               "with real='double' (--real double).")
+    return repr(single) + "F"
 
 
 @dataclass
