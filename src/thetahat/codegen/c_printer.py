@@ -362,7 +362,11 @@ class _FunctionPrinter:
         if isinstance(value, (Const, Fn)) or (isinstance(value, Arr) and value.glob):
             return value
         if isinstance(value, tuple):
-            items = [self._bind(f"{pname}_{i}", v, f"{path}.{i}") for i, v in enumerate(value)]
+            taken = {p[1] for p in self.params}
+            # an element keeps the caller's name (w_F, law_3) where it is one
+            items = [self._bind(v.name if isinstance(v, Arr) and v.name.isidentifier()
+                                and v.name not in taken else f"{pname}_{i}", v, f"{path}.{i}")
+                     for i, v in enumerate(value)]
             return type(value)(*items) if hasattr(value, "_fields") else tuple(items)
         cname = self._c_name(pname)
         if isinstance(value, Arr):
