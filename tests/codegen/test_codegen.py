@@ -19,7 +19,7 @@ from thetahat.codegen import generate_c, generate_c_from_model
 from thetahat.codegen.harness import C_FLAGS, estimate_columns
 from thetahat.codegen.loader import STATUS, build_harness, find_compiler, load_c
 from thetahat.datafile import estimate_columns as datafile_columns
-from thetahat.errors import UnsupportedError, NonFiniteError, UpdateLawError
+from thetahat.errors import DimensionError, NonFiniteError, UnsupportedError, UpdateLawError
 from thetahat.estimation.observer import ModifiedHighGainObserver
 from thetahat.estimation.update_laws import IntermittentInversion
 from thetahat.model.paramset import Ball
@@ -644,3 +644,18 @@ def test_command_line_nan_policy_skip_and_foh_follow_python(tmp_path, lugre_data
         ref = run_estimator(spec, d.t[:N], d.u[:N], y, nan_policy="skip", hold=hold)
         expected = np.c_[ref.t, ref.x_hat, ref.phi_hat, ref.theta_hat, ref.x_hat_refined]
         assert rel_err(table, expected) <= DOUBLE_RTOL, hold
+
+
+def test_foh_step_takes_the_next_samples_and_matches_python(tmp_path):
+    """``<name>_step(s, u, y, u_next, y_next)``: one first-order-hold step as the Python
+    observer's run over two samples; the zero-order-hold signature is refused for it."""
+    obs = build_observer(load_model(LUGRE))
+    c = load_c(generate_c(obs, dt=1e-3, name="lugre_foh", hold="foh"), tmp_path)
+    s = c.init([0.5], [0.01, 1e-4])
+    t = np.array([0.0, 1e-3])
+    u, y = np.array([[0.2], [0.3]]), np.array([[0.05], [0.07]])
+    assert c.step(s, u[0], y[0], u[1], y[1]) == STATUS["ok"]
+    ref = obs.run(t, u, y, hold="foh", state0=obs.init(theta_hat0=[0.5], x_hat0=[0.01, 1e-4]))
+    np.testing.assert_allclose(s[:2], ref.x_hat[1], rtol=DOUBLE_RTOL)
+    with pytest.raises(DimensionError, match="hold='foh'"):
+        c.step(s, u[0], y[0])

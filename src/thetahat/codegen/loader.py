@@ -285,15 +285,29 @@ class CObserver:
             raise NonFiniteError(f"{self.code.name}_init refused θ̂₀/x̂₀ (status {status}).")
         return s
 
-    def step(self, state: NDArray[Any], u: ArrayLike | None, y: ArrayLike) -> int:
-        """``<name>_step`` on ``state`` in place; returns the status code."""
+    def step(self, state: NDArray[Any], u: ArrayLike | None, y: ArrayLike,
+             u_next: ArrayLike | None = None, y_next: ArrayLike | None = None) -> int:
+        """``<name>_step`` on ``state`` in place; returns the status code.
+
+        ``u_next``, ``y_next``: the next samples, which a first-order hold step takes (and
+        only it).
+        """
         if state.dtype != self.dtype or state.shape != (self.code.sizes["state"],):
             raise DimensionError(f"state must be a {self.dtype.__name__} vector of length "
                                  f"{self.code.sizes['state']}.")
-        m = self.code.sizes["m"]
-        uu = self._vec(np.zeros(max(m, 1)) if u is None or m == 0 else u, max(m, 1))
-        return int(self._step(self._p(state), self._p(uu), self._p(self._vec(
-            y, self.code.sizes["r"]))))
+        foh = self.code.hold == "foh"
+        if foh != (y_next is not None):
+            raise DimensionError(f"{self.code.name}_step takes the next samples (u_next, "
+                                 "y_next) exactly when it was generated with hold='foh'.")
+        m, r = self.code.sizes["m"], self.code.sizes["r"]
+
+        def inputs(a: ArrayLike | None) -> Any:
+            return self._vec(np.zeros(max(m, 1)) if a is None or m == 0 else a, max(m, 1))
+
+        args = [self._p(inputs(u)), self._p(self._vec(y, r))]
+        if foh:
+            args += [self._p(inputs(u_next)), self._p(self._vec(y_next, r))]
+        return int(self._step(self._p(state), *args))
 
     def _records(self, u: ArrayLike | None, y: ArrayLike, N: int
                  ) -> tuple[NDArray[Any], NDArray[Any]]:
