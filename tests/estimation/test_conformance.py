@@ -349,6 +349,17 @@ def test_divergence_step_index_agrees_with_the_step_loop():
     assert abs(j - i) <= 1, (i, j)
 
 
+def test_generated_c_refuses_nan_under_raise_policy_where_python_does(c_observers):
+    """The C of a "raise" configuration stops with ERR_MISSING at the first NaN sample, where
+    every Python back end raises (and its "skip" twin runs through)."""
+    from thetahat.codegen.loader import STATUS
+
+    t, U, Y = records("skip")                                  # holds NaN gaps
+    res = c_observers[("intermittent", "estimates", "zoh", "raise")].run(U[0], Y[0])
+    assert (res.status, res.index) == (STATUS["missing"], GAP.start)
+    assert c_observers[("intermittent", "estimates", "zoh", "skip")].run(U[0], Y[0]).status == 0
+
+
 def test_nan_under_raise_policy_is_reported_identically():
     obs = make_observer("intermittent", "box", "estimates", "raise")
     t, U, Y = records("skip")                                  # holds NaN gaps
