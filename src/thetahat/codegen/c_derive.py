@@ -37,7 +37,8 @@ from ..estimation.law_base import FAR
 from ..estimation.plan import StepPlan
 from ..estimation.scalar_backend import LAW_BOX, LAWS, law_source, rewritten
 from ..model.perturbation import SymbolicPerturbation
-from .c_printer import Arr, Const, CUnit, Scal, real_literal
+from .c_printer import CUnit
+from .c_values import Arr, Const, Scal, real_literal
 from .printing import c_function
 
 __all__ = ["BOUND_FLOAT", "FAR_FLOAT", "DerivedStep", "derived_step", "inwards", "readout"]

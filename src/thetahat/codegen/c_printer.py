@@ -38,8 +38,10 @@ from typing import Any
 import numpy as np
 
 from ..errors import UnsupportedError
+from .c_values import (INT, REAL, Arr, CFunction, Const, Fn, Scal, c_type, join,
+                       real_literal, specialisation_key)
 
-__all__ = ["Arr", "CFunction", "CUnit", "Const", "Scal", "real_literal"]
+__all__ = ["CUnit", "UNROLL"]
 
 #: Loops with constant bounds are written out while the iterations of the nest written out
 #: stay at most this many: their indices fold to constants, as in numba's (LLVM's) full
@@ -47,8 +49,6 @@ __all__ = ["Arr", "CFunction", "CUnit", "Const", "Scal", "real_literal"]
 #: larger models in check. Measured on LuGre (benchmarks/bench_codegen.py, one run each): 0.88×
 #: the per-step cost of the hand-written C the printer replaced, against 1.16× without.
 UNROLL = 16
-#: C types of runtime scalars.
-REAL, INT = "real_t", "int"
 #: Names that must not be C identifiers of locals (C keywords and <math.h> macros).
 _RESERVED = frozenset({
     "auto", "break", "case", "char", "const", "continue", "default", "do", "double", "else",
@@ -56,146 +56,6 @@ _RESERVED = frozenset({
     "restrict", "return", "short", "signed", "sizeof", "static", "struct", "switch",
     "typedef", "union", "unsigned", "void", "volatile", "while", "isfinite", "isnan", "isinf",
     "exp", "expf", "sqrt", "fabs", "y0", "y1", "j0", "j1", "jn", "yn", "real_t"})
-
-
-@dataclass(frozen=True)
-class Const:
-    """A compile-time value, folded by the printer.
-
-    Parameters
-    ----------
-    value : int, float or bool
-    text : str, optional
-        Its name in C (e.g. ``DT``); named constants are printed by name, not folded.
-    """
-
-    value: Any
-    text: str | None = None
-
-
-@dataclass(frozen=True)
-class Arr:
-    """A flat, row-major C array.
-
-    Parameters
-    ----------
-    name : str
-        Its C name.
-    shape : tuple of int
-        (size,) or (rows, cols).
-    glob : bool
-        A ``static const`` array at file scope (constant data, baked into a specialisation);
-        else a runtime array, passed as a parameter.
-    """
-
-    name: str
-    shape: tuple[int, ...]
-    glob: bool = False
-
-    @property
-    def size(self) -> int:
-        return int(np.prod(self.shape)) if self.shape else 1
-
-
-@dataclass(frozen=True)
-class Scal:
-    """A runtime scalar.
-
-    Parameters
-    ----------
-    text : str
-        A C expression.
-    ctype : {"real_t", "int"}
-        Its type (booleans are ``int``).
-    """
-
-    text: str
-    ctype: str
-
-
-@dataclass(frozen=True)
-class Fn:
-    """A function name (a formula, a hook, a primitive or a model function)."""
-
-    name: str
-
-
-def real_literal(value: float, real: str) -> str:
-    """The C literal of ``value`` in ``real`` ("double" or "float").
-
-    Parameters
-    ----------
-    value : float
-    real : {"double", "float"}
-
-    Returns
-    -------
-    str
-
-    Examples
-    --------
-    >>> real_literal(0.5, "float"), real_literal(1e200, "double"), real_literal(3.0, "double")
-    ('0.5F', '1e+200', '3.0')
-    """
-    v = float(value)
-    if not math.isfinite(v):
-        raise UnsupportedError(f"the C step needs finite constants; got {v!r}.")
-    if real == "double":
-        return repr(v)
-    with np.errstate(over="ignore"):
-        single = float(np.float32(v))
-    if not math.isfinite(single):
-        raise UnsupportedError(f"the constant {v!r} is beyond the range of float; generate "
-                               "with real='double' (--real double).")
-    return repr(single) + "F"
-
-
-@dataclass
-class CFunction:
-    """A specialised function.
-
-    Parameters
-    ----------
-    name : str
-        Its C name.
-    args : list of str
-        The caller's C argument per kept parameter.
-    result : Const, str or tuple of str
-        A :class:`Const` when the call folds to a constant (nothing is emitted), a C type,
-        ``"void"``, or a tuple of C types (returned through pointers).
-    """
-
-    name: str
-    args: list[str]
-    result: Any
-
-
-def _c_type(value: Any) -> str:
-    if isinstance(value, Scal):
-        return value.ctype
-    if isinstance(value, Const):
-        return REAL if isinstance(value.value, float) else INT
-    raise UnsupportedError(f"the C printer cannot store {value!r} in a scalar")
-
-
-def _join(a: str, b: str) -> str:
-    return REAL if REAL in (a, b) else INT
-
-
-def _key(value: Any) -> Any:
-    """What a specialisation depends on: constants by value, arrays by shape (and name when
-    they are globals), scalars by type."""
-    if isinstance(value, Const):
-        return ("c", type(value.value).__name__, value.value, value.text)
-    if isinstance(value, Arr):
-        return ("g", value.name, value.shape) if value.glob else ("a", value.shape)
-    if isinstance(value, Scal):
-        return ("s", value.ctype)
-    if isinstance(value, Fn):
-        return ("f", value.name)
-    if isinstance(value, tuple):
-        return ("t", type(value).__name__, tuple(_key(v) for v in value))
-    raise UnsupportedError(f"the C printer cannot pass {value!r}")
 
 
 class CUnit:
@@ -261,7 +121,7 @@ class CUnit:
         fdef = self.functions.get(name)
         if fdef is None:
             raise UnsupportedError(f"the C printer has no definition of {name}")
-        key = (name, tuple(_key(a) for a in args))
+        key = (name, tuple(specialisation_key(a) for a in args))
         hit = self.done.get(key)
         if hit is not None:
             return CFunction(hit.name, self._args_of(hit, args), hit.result)
@@ -345,7 +205,7 @@ class _FunctionPrinter:
         decls = [decl for decl, _ in kept]
         result = self.result
         if isinstance(result, Const):
-            result = _c_type(result)
+            result = c_type(result)
         if self.returns_tuple:
             decls += [f"{t} *ret{i}" for i, t in enumerate(result)]
             rtype = "void"
@@ -469,7 +329,7 @@ class _FunctionPrinter:
         if isinstance(value, (Arr, tuple, Fn)):
             raise UnsupportedError(f"{name} is rebound to an array in {self.fdef.name}")
         self.only_const_return = False
-        ctype = _c_type(value)
+        ctype = c_type(value)
         loc = self.locals.get(name)
         if loc is None:
             cname = self._c_name(name)
@@ -543,11 +403,11 @@ class _FunctionPrinter:
             if not isinstance(st.value, ast.Tuple):
                 raise UnsupportedError(f"{self.fdef.name} returns tuples and non-tuples")
             values = [self._expr(e) for e in st.value.elts]
-            types = [_c_type(v) for v in values]
+            types = [c_type(v) for v in values]
             if self.result is None:
                 self.result = types
             else:
-                self.result = [_join(a, b) for a, b in zip(self.result, types)]
+                self.result = [join(a, b) for a, b in zip(self.result, types)]
             return [f"{pad}*ret{i} = {self._text(v)};" for i, v in enumerate(values)] + [
                 f"{pad}return;"]
         value = self._expr(st.value)
@@ -555,14 +415,14 @@ class _FunctionPrinter:
             if self.result is None and self.only_const_return:
                 self.result = value
                 return [f"{pad}return {self._text(value)};"]
-            ctype = _c_type(value)
+            ctype = c_type(value)
         else:
             self.only_const_return = False
             ctype = value.ctype
         prev = self.result
         if isinstance(prev, Const):
-            prev = _c_type(prev)
-        self.result = ctype if prev is None else _join(prev, ctype)
+            prev = c_type(prev)
+        self.result = ctype if prev is None else join(prev, ctype)
         return [f"{pad}return {self._text(value)};"]
 
     def _tuple_call(self, target: ast.Tuple, call: ast.Call, pad: str) -> list[str]:
@@ -617,7 +477,7 @@ class _FunctionPrinter:
             if isinstance(test, Const):
                 return self._expr(node.body if test.value else node.orelse)
             a, b = self._expr(node.body), self._expr(node.orelse)
-            ctype = _join(_c_type(a), _c_type(b))
+            ctype = join(c_type(a), c_type(b))
             return Scal(f"({test.text} ? {self._text(a)} : {self._text(b)})", ctype)
         if isinstance(node, ast.Subscript):
             return self._load_subscript(node)
@@ -658,10 +518,10 @@ class _FunctionPrinter:
         for const, other, on_right in ((b, a, True), (a, b, False)):
             if (unit is not None and isinstance(const, Const) and const.text is None
                     and const.value == unit and (on_right or op is not ast.Sub)
-                    and (isinstance(const.value, int) or _c_type(other) == REAL)):
+                    and (isinstance(const.value, int) or c_type(other) == REAL)):
                 return other
-        ta, tb = _c_type(a), _c_type(b)
-        ctype = _join(ta, tb)
+        ta, tb = c_type(a), c_type(b)
+        ctype = join(ta, tb)
         left, right = self._paren(a), self._paren(b)
         if op is ast.Div:
             ctype = REAL
