@@ -98,6 +98,7 @@ def header_source(lay: CLayout, banner: str) -> str:
                 "y[NY]. */")
     second = (f"const {P}_real_t *{P}_x_hat_refined(const {P}_state *s);\n"
               if lay.second else "")
+    second_row = ", x_hat_refined" if lay.second else ""
     return banner + f"""#ifndef {PU}_H
 #define {PU}_H
 
@@ -112,7 +113,7 @@ typedef {lay.real} {P}_real_t;
 #define {PU}_NY {r} /* outputs y */
 #define {PU}_NK {k} /* perturbation phi */
 #define {PU}_NP {p} /* parameters theta */
-#define {PU}_NS {lay.size} /* state row: x_hat, z, theta_hat{', x_hat_refined' if lay.second else ''} */
+#define {PU}_NS {lay.size} /* the state row: x_hat, z, theta_hat{second_row} */
 
 /* Status codes of {P}_init, {P}_step and {P}_phi_hat ({P}_error_message explains them). On an
  * error the state is left unchanged. */
@@ -325,7 +326,7 @@ def source_text(lay: CLayout, banner: str, step: DerivedStep) -> str:
 #include <math.h>
 
 #if defined(__FAST_MATH__) || (defined(__FINITE_MATH_ONLY__) && __FINITE_MATH_ONLY__)
-#error "compile without -ffast-math / -ffinite-math-only: the NaN and overflow policy needs IEEE isfinite()"
+#error "compile without -ffast-math or -ffinite-math-only: the NaN policy needs isfinite()"
 #endif
 
 typedef {P}_real_t real_t;

@@ -19,6 +19,7 @@ only its own branch.
 from __future__ import annotations
 
 import ast
+import collections
 import functools
 import textwrap
 from collections.abc import Sequence
@@ -256,6 +257,7 @@ def derived_step(parts: KernelParts, plan: StepPlan, *, prefix: str, real: str, 
     lay = plan.layout
     n, m, r, k, p = lay.n, lay.m, lay.r, lay.k, lay.p
     P, P2, LP, flags = kernel_arrays(parts, plan)
+    kinds = (type(P), type(P2), type(LP))     # named tuples stay named (attribute access)
     second, on_est = bool(flags[0]), bool(flags[1])
     law = LAWS[parts.code]
     box = LAW_BOX[law]
@@ -311,7 +313,8 @@ def derived_step(parts: KernelParts, plan: StepPlan, *, prefix: str, real: str, 
     scratch = set(_SCRATCH.get(law, ()))
     for _ in range(2):
         step, written = _print(functions, constants, data, scratch, plans, lp_names, options, box,
-                          law_fn, set(extra), pert=parts.perturbation, ts=ts, prefix=prefix,
+                          law_fn, set(extra), kinds=kinds,
+                          pert=parts.perturbation, ts=ts, prefix=prefix,
                           real=real, foh=foh, dt=dt,
                           skip=skip, second=second, on_est=on_est, size=size,
                           dims=dims, scalars={"IMPLICITNESS": IMPLICITNESS,
@@ -330,7 +333,8 @@ def derived_step(parts: KernelParts, plan: StepPlan, *, prefix: str, real: str, 
 def _print(functions: dict[str, ast.FunctionDef], constants: dict[str, Any],
            data: dict[str, Any], scratch: set[str], plans: dict[bool, Any],
            lp_names: list[str], options: Any, box: int, law_fn: str, extra: set[str], *,
-           pert: SymbolicPerturbation, ts: Any, prefix: str, real: str, foh: bool,
+           kinds: tuple[type, type, type], pert: SymbolicPerturbation, ts: Any, prefix: str,
+           real: str, foh: bool,
            dt: float, skip: bool,
            second: bool, on_est: bool, size: int, dims: dict[str, int],
            scalars: dict[str, float]) -> tuple[DerivedStep, set[str]]:
@@ -361,8 +365,9 @@ def _print(functions: dict[str, ast.FunctionDef], constants: dict[str, Any],
     lp: list[Any] = [arr(name) for name in lp_names]
     if options is not None:
         lp[box + 2] = options
-    LP = tuple(lp)
-    W = tuple(Arr(f"w_{name}", tuple(dims[d] for d in shape)) for name, shape in WORK)
+    LP = _like(kinds[2], lp)
+    W: tuple[Any, ...] = _WORK_TUPLE(*(Arr(f"w_{name}", tuple(dims[d] for d in shape))
+                                       for name, shape in WORK))
     nub = max(dims["NU"], 1)
     s, nxt = Arr("s", (size,)), Arr("next", (size,))
     u0, y0 = Arr("u0", (nub,)), Arr("y0", (dims["NY"],))
@@ -370,8 +375,8 @@ def _print(functions: dict[str, ast.FunctionDef], constants: dict[str, Any],
     dtc = Const(dt, "DT")
     calls = {}
     for correct, (pn, p2n) in plans.items():
-        P = tuple(arr(x) for x in pn)
-        P2 = tuple(arr(x) for x in p2n)
+        P = _like(kinds[0], [arr(x) for x in pn])
+        P2 = _like(kinds[1], [arr(x) for x in p2n])
         calls[correct] = unit.call("advance", [P, P2, LP, s, u0, y0, u1, y1, dtc, Const(correct),
                                                Const(foh), Const(second), Const(on_est), nxt, W])
     bound = unit.call("within_bound", [nxt, Const(size)])
@@ -425,6 +430,16 @@ def _print(functions: dict[str, ast.FunctionDef], constants: dict[str, Any],
                        step_buffers=step_buffers, step_calls=step_calls,
                        phi_buffers=phi_buffers, phi_calls=phi_calls,
                        const_count=count), unit.written_globals
+
+
+#: The work buffers as a named tuple of :data:`~thetahat.estimation.formulas.WORK`'s names.
+_WORK_TUPLE = collections.namedtuple(  # type: ignore[misc]
+    "_WORK_TUPLE", [name for name, _ in WORK])
+
+
+def _like(kind: type, items: Sequence[Any]) -> tuple[Any, ...]:
+    """``items`` as a tuple of ``kind`` (a named tuple type keeps its field names)."""
+    return kind(*items) if hasattr(kind, "_fields") else tuple(items)
 
 
 def _tokens(text: str) -> set[str]:

@@ -81,7 +81,8 @@ class CUnit:
     Examples
     --------
     >>> import ast
-    >>> fn = ast.parse("def twice(a, n):\\n    for i in range(n):\\n        a[i] = 2.0 * a[i]\\n").body[0]
+    >>> src = "def twice(a, n):\\n    for i in range(n):\\n        a[i] = 2.0 * a[i]\\n"
+    >>> fn = ast.parse(src).body[0]
     >>> unit = CUnit({"twice": fn}, {}, lambda name, args: None, "double")
     >>> f = unit.call("twice", [Arr("buf", (3,)), Const(3)])
     >>> f.name, f.args
