@@ -1,6 +1,7 @@
 """Per-step cost of the generated C observer against the numba kernel and the Python step.
 
 Run:  .venv/bin/python benchmarks/bench_codegen.py [--t-end 20] [--json out/bench_codegen.json]
+      [--against OTHER/src]
 
 One process, one record: the paper's DC motor (``lugre.observer()``, ε = 1, second observer,
 1 kHz, ``lugre.simulate(seed=0)``), the same observer object for every back end:
@@ -9,7 +10,11 @@ One process, one record: the paper's DC motor (``lugre.observer()``, ε = 1, sec
   the acceptance) and called once through ctypes for the whole record; ``steps`` loops
   ``lugre_step`` only, ``record`` also stores the state and φ̂ per sample (what ``run`` does);
 * ``numba``: ``compile_observer(...).run`` (the kernel's loop, which records state and φ̂);
-* ``python``: ``ModifiedHighGainObserver.step`` per call (on the first 2000 samples).
+* ``python``: ``ModifiedHighGainObserver.step`` per call (on the first 2000 samples);
+* ``other_double_steps`` (with ``--against OTHER/src``): the C that another source tree's
+  ``generate_c`` writes for the same observer (built in a subprocess with that tree first on
+  the path, loaded here), timed in the same rounds, e.g. the hand-written C before the C was
+  derived from the formulas.
 
 Each time is the least CPU time (``time.process_time``: the 2-core machine is shared, and wall
 time would count other processes) of REPEATS runs, taken round-robin over the back ends, in ns
@@ -22,10 +27,13 @@ numba (the issue asks for ≤ 1), and the float C error against double C. Where
 from __future__ import annotations
 
 import argparse
+import ctypes
 import json
 import math
+import os
 import shutil
 import subprocess
+import sys
 import tempfile
 import time
 from pathlib import Path
@@ -70,6 +78,34 @@ def c_timers(code, tmp: Path, U: np.ndarray, Y: np.ndarray) -> tuple[dict, objec
     return {"steps": steps, "record": record}, obs.run(U, Y)
 
 
+_OTHER = """
+import sys
+from thetahat.codegen import generate_c
+from thetahat.codegen.loader import build
+from thetahat.models import lugre
+code = generate_c(lugre.observer(), dt=1e-3, name="other", theta_hat0=[float(sys.argv[2])])
+print(build(code, sys.argv[1]))
+"""
+
+
+def other_timer(src: Path, tmp: Path, U: np.ndarray, Y: np.ndarray, theta_hat0: float):
+    """Time ``other_run_steps`` of the C another tree generates (see the module docstring)."""
+    env = {**os.environ, "PYTHONPATH": str(src)}
+    lib = subprocess.run([sys.executable, "-c", _OTHER, str(tmp / "other"), repr(theta_hat0)],
+                         env=env, check=True, capture_output=True, text=True).stdout.strip()
+    dll = ctypes.CDLL(lib)
+    ptr = ctypes.POINTER(ctypes.c_double)
+    Uc, Yc = (np.ascontiguousarray(a, dtype=np.float64) for a in (U, Y))
+    state = np.zeros(64)                      # larger than either state struct
+
+    def steps() -> None:
+        assert dll.other_init(state.ctypes.data_as(ptr), None, None) == 0
+        assert dll.other_run_steps(state.ctypes.data_as(ptr), ctypes.c_long(Y.shape[0]),
+                                   Uc.ctypes.data_as(ptr), Yc.ctypes.data_as(ptr)) == 0
+
+    return steps
+
+
 def interleaved(timers: dict[str, object], repeats: int) -> dict[str, float]:
     """Best time of each callable, measured round-robin so that load changes hit all alike."""
     out = {name: math.inf for name in timers}
@@ -101,6 +137,8 @@ def main(argv: list[str] | None = None) -> dict:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--t-end", type=float, default=20.0)
     ap.add_argument("--json", type=Path, default=None)
+    ap.add_argument("--against", type=Path, default=None,
+                    help="another tree's src/: time the C its generate_c writes")
     args = ap.parse_args(argv)
     if find_compiler() is None:
         raise SystemExit("no C compiler (cc or $CC): nothing to benchmark")
@@ -118,6 +156,8 @@ def main(argv: list[str] | None = None) -> dict:
                               theta_hat0=theta_hat0)
             fns, results[real] = c_timers(code, tmp, U, Y)
             timers[f"c_{real}_steps"], timers[f"c_{real}_record"] = fns["steps"], fns["record"]
+        if args.against is not None:
+            timers["other_double_steps"] = other_timer(args.against, tmp, U, Y, theta_hat0[0])
         arm = arm_sizes(tmp)
         ref = None
         try:
@@ -151,6 +191,9 @@ def main(argv: list[str] | None = None) -> dict:
         err = float(np.max(np.abs(c["double"]["result"].theta_hat - ref.theta_hat)))
         print(f"  |θ̂ C double − θ̂ numba| max = {err:.2e}")
     ratios["python_step/c_double_steps"] = rows["python_step"] / rows["c_double_steps"]
+    if "other_double_steps" in rows:
+        ratios["c_double_steps/other_double_steps"] = (rows["c_double_steps"]
+                                                       / rows["other_double_steps"])
     for name, value in ratios.items():
         print(f"  ratio {name:<30} {value:10.3f}")
     f_err = float(np.max(np.abs(c["float"]["result"].theta_hat - c["double"]["result"].theta_hat)))

@@ -13,7 +13,8 @@ Subcommands::
                       [--no-progress] [--method M] [--plot fig.png]
     thetahat estimate MODEL logs/ [-o results.csv|.parquet] [--scheduler tcp://HOST:PORT]
                       [--method M] [--nan-policy raise|skip]
-    thetahat codegen MODEL --dt 1e-3 [--eps 1] [--real double|float] [--name NAME] -o DIR
+    thetahat codegen MODEL --dt 1e-3 [--eps 1] [--real double|float] [--name NAME]
+                     [--nan-policy raise|skip] [--hold zoh|foh] -o DIR
 
 Exit codes (see ``EXIT_CODES``): 0 success; 1 the model fails the theory's checks (Assumption 1
 fails, or the design is unstable on the true system); 2 usage or input error (the message is
@@ -204,7 +205,7 @@ def _codegen(args: argparse.Namespace) -> int:
     from .codegen import generate_c_from_model
 
     code = generate_c_from_model(args.model, dt=args.dt, eps=args.eps, real=args.real,
-                                 name=args.name)
+                                 name=args.name, nan_policy=args.nan_policy, hold=args.hold)
     paths = code.write(args.output)
     print(code.summary())
     print("wrote " + ", ".join(str(p) for p in paths)
@@ -337,7 +338,7 @@ def _parser() -> argparse.ArgumentParser:
     codegen = sub.add_parser(
         "codegen", help="generate the model file's estimator as C99",
         description="Generate a dependency-free C99 observer <name>.h/<name>.c (fixed dt, "
-                    "zero-order hold, no heap), a CSV harness <name>_main.c and a Makefile "
+                    "no heap; the paper's estimator, [estimator] method = paper), a CSV harness <name>_main.c and a Makefile "
                     "(make -C DIR builds DIR/<name>, which reads the CSV layout of `thetahat "
                     "estimate` and writes its columns). Prints the sizes of the state struct "
                     "and of the constants.")
@@ -349,6 +350,11 @@ def _parser() -> argparse.ArgumentParser:
                          help="C type of every number (default: double)")
     codegen.add_argument("--name", default=None,
                          help="file stem and C prefix (default: the model file's stem)")
+    codegen.add_argument("--nan-policy", choices=["raise", "skip"], default="raise",
+                         help="a NaN output sample: refused (raise, default), or predicted "
+                              "over (skip)")
+    codegen.add_argument("--hold", choices=["zoh", "foh"], default="zoh",
+                         help="sample hold; foh: <name>_step also takes the next samples")
     codegen.add_argument("-o", "--output", required=True, help="output folder")
     codegen.set_defaults(run=_codegen)
     return parser

@@ -1,9 +1,11 @@
 """The conformance matrix: every back end of the observer step agrees with the reference.
 
 Back ends: a loop of ``ModifiedHighGainObserver.step`` (ZOH only), ``run_batch`` (row 0 of a
-batch of two records) and the numba kernel of ``compile_observer`` (optional extra ``speed``;
-ZOH, a Box Θ, no prediction over missing samples; the combinations it does not offer are left
-out of the matrix, see ``supported``). The reference is
+batch of two records), the numba kernel of ``compile_observer`` (optional extra ``speed``;
+ZOH, a Box Θ, no prediction over missing samples) and the generated C of
+``thetahat.codegen.generate_c`` (a Box Θ; every law, hold, NaN policy and second observer;
+all configurations compiled into one library, skipped without a C compiler); the combinations
+a back end does not offer are left out of the matrix, see ``supported``. The reference is
 ``ModifiedHighGainObserver.run``. The matrix crosses the update law (Propositions 1–4 and a
 held θ), the parameter set (Box; Ball, whose projection takes the generic path), the second
 observer of Sec. VI (none, g on its estimates, g on y), the hold (ZOH, FOH) and the NaN policy
@@ -138,12 +140,33 @@ def supported(law: str, theta_set: str, second: str, hold: str, policy: str,
         return hold == "zoh"
     if backend == "compiled":
         return hold == "zoh" and policy == "raise" and theta_set == "box"
+    if backend == "c":
+        return theta_set == "box"
     return True
 
 
-CASES = [case for case in itertools.product(LAWS, SETS, SECONDS, HOLDS, POLICIES,
-                                            ("step", "batch", "compiled"))
+BACK_ENDS = ("step", "batch", "compiled", "c")
+CASES = [case for case in itertools.product(LAWS, SETS, SECONDS, HOLDS, POLICIES, BACK_ENDS)
          if supported(*case)]
+#: The generated C's configurations: (law, second, hold, policy), compiled into one library.
+C_CONFIGS = sorted({(law, second, hold, policy) for law, _, second, hold, policy, backend
+                    in CASES if backend == "c"})
+
+
+@pytest.fixture(scope="module")
+def c_observers(tmp_path_factory):
+    """The generated C (thetahat.codegen) of every configuration the matrix runs in C, built
+    with the acceptance's flags into one shared library (one compiler run, ≈ 10 s)."""
+    from thetahat.codegen import generate_c
+    from thetahat.codegen.loader import CObserver, build_many, find_compiler
+
+    if find_compiler() is None:
+        pytest.skip("no C compiler (cc or $CC)")
+    codes = {config: generate_c(make_observer(config[0], "box", config[1], config[3]), dt=DT,
+                                hold=config[2], name=f"obs{i}")
+             for i, config in enumerate(C_CONFIGS)}
+    lib = build_many(list(codes.values()), tmp_path_factory.mktemp("c"))
+    return {config: CObserver(code, lib) for config, code in codes.items()}
 
 
 def step_states(obs: ModifiedHighGainObserver, t, U, Y) -> np.ndarray:
@@ -155,12 +178,16 @@ def step_states(obs: ModifiedHighGainObserver, t, U, Y) -> np.ndarray:
     return np.array(S)
 
 
-def back_end(name: str, obs, hold: str, policy: str, t, U, Y):
-    """(x̂, θ̂, x̂₂) of record 0 by one back end."""
+def back_end(name: str, obs, hold: str, policy: str, t, U, Y, c_obs=None):
+    """(x̂, θ̂, x̂₂) of record 0 by one back end (``c_obs``: the generated C's)."""
     lay = obs.layout
     if name == "step":
         S = step_states(obs, t, U[0], Y[0])
         return S[:, lay.x], S[:, lay.theta], S[:, lay.x2] if lay.second else None
+    if name == "c":
+        res = c_obs.run(U[0], Y[0])
+        assert res.status == 0, (res.status, res.index)
+        return res.x_hat, res.theta_hat, res.x_hat_refined
     if name == "batch":
         res = run_batch(obs, t, U, Y, hold=hold)[0]
     else:
@@ -170,11 +197,14 @@ def back_end(name: str, obs, hold: str, policy: str, t, U, Y):
 
 @pytest.mark.parametrize("law, theta_set, second, hold, policy, backend", CASES,
                          ids=["-".join(case) for case in CASES])
-def test_back_end_agrees_with_reference(law, theta_set, second, hold, policy, backend):
+def test_back_end_agrees_with_reference(law, theta_set, second, hold, policy, backend,
+                                        request):
     obs = make_observer(law, theta_set, second, policy)
     t, U, Y = records(policy)
     ref = obs.run(t, U[0], Y[0], hold=hold)
-    x, th, x2 = back_end(backend, obs, hold, policy, t, U, Y)
+    c_obs = (request.getfixturevalue("c_observers")[(law, second, hold, policy)]
+             if backend == "c" else None)
+    x, th, x2 = back_end(backend, obs, hold, policy, t, U, Y, c_obs)
     assert rel_err(x, ref.x_hat) <= AGREE_RTOL
     assert rel_err(th, ref.theta_hat) <= AGREE_RTOL
     assert (x2 is None) == (ref.x_hat_refined is None)
@@ -262,6 +292,23 @@ def test_divergence_by_construction_is_reported_identically():
     assert 10 < i < t.size - 10
 
 
+def test_generated_c_refuses_the_diverging_step_at_the_same_sample(tmp_path):
+    """The generated C reports the divergence by construction as the status ``diverged`` at
+    the sample where every Python back end raises, and stops there."""
+    from thetahat.codegen import generate_c
+    from thetahat.codegen.loader import STATUS, find_compiler, load_c
+
+    if find_compiler() is None:
+        pytest.skip("no C compiler (cc or $CC)")
+    obs = unstable_observer()
+    t, U, Y = records("raise")
+    with pytest.raises(NonFiniteError, match=r"t\[(\d+)\]") as info:
+        obs.run(t, U[0], Y[0])
+    i = int(re.search(r"t\[(\d+)\]", str(info.value)).group(1))
+    res = load_c(generate_c(obs, dt=DT, name="unstable"), tmp_path).run(U[0], Y[0])
+    assert (res.status, res.index) == (STATUS["diverged"], i)
+
+
 def require_divergence(obs, t, U, Y) -> None:
     """Skip unless the reference run crosses the divergence bound on this platform.
 
@@ -300,6 +347,17 @@ def test_divergence_step_index_agrees_with_the_step_loop():
     # so only a last-bit difference between the vector and the batch arithmetic (numpy
     # versions differ there) can move the crossing of DIVERGENCE_BOUND by one sample
     assert abs(j - i) <= 1, (i, j)
+
+
+def test_generated_c_refuses_nan_under_raise_policy_where_python_does(c_observers):
+    """The C of a "raise" configuration stops with ERR_MISSING at the first NaN sample, where
+    every Python back end raises (and its "skip" twin runs through)."""
+    from thetahat.codegen.loader import STATUS
+
+    t, U, Y = records("skip")                                  # holds NaN gaps
+    res = c_observers[("intermittent", "estimates", "zoh", "raise")].run(U[0], Y[0])
+    assert (res.status, res.index) == (STATUS["missing"], GAP.start)
+    assert c_observers[("intermittent", "estimates", "zoh", "skip")].run(U[0], Y[0]).status == 0
 
 
 def test_nan_under_raise_policy_is_reported_identically():
@@ -361,3 +419,32 @@ def test_law_state_lives_in_the_observer_state_and_every_back_end_propagates_it(
     from thetahat.estimation.compiled import compile_observer
     with pytest.raises(NotImplementedError, match="law with a state"):
         compile_observer(obs, dt=DT)
+
+
+#: float C against the double reference, relative to each column's largest |value|: measured
+#: 1.2e-6 in θ̂ over the matrix's 300 steps (single precision: ε = 6e-8, the observer
+#: contracts); the C tests' bound, with a margin of 80.
+C_FLOAT_RTOL = 1e-4
+
+
+@pytest.mark.slow
+def test_generated_c_in_float_follows_the_reference(tmp_path):
+    """Every C configuration of the matrix, generated in float (one library, ≈ 20 s)."""
+    from thetahat.codegen import generate_c
+    from thetahat.codegen.loader import CObserver, build_many, find_compiler
+
+    if find_compiler() is None:
+        pytest.skip("no C compiler (cc or $CC)")
+    codes = {config: generate_c(make_observer(config[0], "box", config[1], config[3]), dt=DT,
+                                hold=config[2], name=f"f{i}", real="float")
+             for i, config in enumerate(C_CONFIGS)}
+    lib = build_many(list(codes.values()), tmp_path)
+    for (law, second, hold, policy), code in codes.items():
+        obs = make_observer(law, "box", second, policy)
+        t, U, Y = records(policy)
+        ref = obs.run(t, U[0], Y[0], hold=hold)
+        res = CObserver(code, lib).run(U[0], Y[0])
+        assert res.status == 0
+        assert rel_err(res.theta_hat.astype(float), ref.theta_hat) <= C_FLOAT_RTOL
+        assert rel_err(res.x_hat.astype(float), ref.x_hat) <= C_FLOAT_RTOL
+        assert Box([0.05], [1.0]).contains(res.theta_hat.astype(float), tol=0.0).all()

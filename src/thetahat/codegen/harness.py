@@ -67,11 +67,16 @@ _MAIN = r"""/* @P@_main.c -- CSV harness of the generated observer @P@ (thetahat
  *
  *   @P@ DATA.csv [--theta0 v1,v2,...] > estimates.csv
  *
- * DATA.csv: a header row with t, the inputs (@INPUTS@) and the outputs (@OUTPUTS@), named as
- * in the model or u1.../y1... (any order; other columns are ignored); one row per sample,
- * spaced by dt = @DT@ s. Writes the columns of `thetahat estimate` to stdout. "-" reads stdin.
- * Exit codes: 0 success, 2 bad input, 3 the observer refused a sample (message on stderr).
+ * DATA.csv: what `thetahat estimate` reads: UTF-8 (a byte-order mark is skipped), LF or CRLF,
+ * fields quoted or not, lines of any length; a header row with t, the inputs (@INPUTS@) and
+ * the outputs (@OUTPUTS@), named as in the model or u1.../y1... (any order; other columns
+ * are ignored); one row per sample, spaced by dt = @DT@ s; an empty, NaN or NA output cell
+ * is a missing sample (nan_policy). Writes the columns of `thetahat estimate` to stdout; "-"
+ * reads stdin. Streaming: one record at a time, nothing allocated.
+ * Exit codes: 0 success, 2 bad input, 3 the observer refused a sample, 4 the output could not
+ * be written (message on stderr).
  */
+#include <float.h>
 #include <stdio.h>
 #include <stdlib.h>
 #include <string.h>
@@ -79,21 +84,22 @@ _MAIN = r"""/* @P@_main.c -- CSV harness of the generated observer @P@ (thetahat
 
 #include "@P@.h"
 
-#define LINE_MAX_CHARS 65536
-#define MAX_FIELDS 1024
+/* Longest kept field (a header name or a number); other fields may be of any length. */
+#define FIELD_MAX 255
+/* The columns read: t, the inputs, the outputs. */
+#define NCOLS (1 + @PU@_NU + @PU@_NY)
 
 typedef @P@_real_t real_t;
 
-#if @PU@_NU > 0
-static const char *const IN_ALIASES[][3] = {@IN_ALIASES@};
-#endif
-static const char *const OUT_ALIASES[][3] = {@OUT_ALIASES@};
+/* Names a column may have, in order of preference (NULL-terminated). */
+static const char *const ALIASES[NCOLS][4] = {{"t", NULL, NULL, NULL}, @ALIASES@};
 static const char *const COLUMNS[] = {@COLUMNS@};
+static const char *const MISSING[] = {"", "nan", "na", "n/a", "null", "none"};
 static const double DT = @DT@;
 static const double DT_RTOL = @DT_RTOL@;
 
-static char line[LINE_MAX_CHARS];
-static char *fields[MAX_FIELDS];
+static char cells[NCOLS][FIELD_MAX + 1];
+static char field[FIELD_MAX + 1];
 
 static int fail(const char *path, long lineno, const char *what)
 {
@@ -101,46 +107,96 @@ static int fail(const char *path, long lineno, const char *what)
     return 2;
 }
 
-/* Split line in place at commas; trims blanks; returns the number of fields. */
-static int split(char *s)
+static int refused(const char *path, long lineno, int status)
 {
-    int count = 0;
-    char *start = s, *end;
-    for (;;) {
-        char *comma = strchr(start, ',');
-        if (comma != NULL) {
-            *comma = '\0';
-        }
-        while (*start == ' ' || *start == '\t') {
-            ++start;
-        }
-        end = start + strlen(start);
-        while (end > start && (end[-1] == ' ' || end[-1] == '\t' || end[-1] == '\r'
-                               || end[-1] == '\n')) {
-            *--end = '\0';
-        }
-        if (count < MAX_FIELDS) {
-            fields[count] = start;
-        }
-        ++count;
-        if (comma == NULL) {
-            return count;
-        }
-        start = comma + 1;
-    }
+    fflush(stdout);
+    fprintf(stderr, "@P@: error: %s, line %ld: %s\n", path, lineno, @P@_error_message(status));
+    return 3;
 }
 
-static int find(int nfields, const char *const aliases[3])
+static void trim(char *s)
 {
-    int a, i;
-    for (a = 0; a < 3 && aliases[a] != NULL; ++a) {
-        for (i = 0; i < nfields && i < MAX_FIELDS; ++i) {
-            if (strcmp(fields[i], aliases[a]) == 0) {
-                return i;
+    char *start = s, *end;
+    while (*start == ' ' || *start == '\t') {
+        ++start;
+    }
+    end = start + strlen(start);
+    while (end > start && (end[-1] == ' ' || end[-1] == '\t' || end[-1] == '\r')) {
+        --end;
+    }
+    memmove(s, start, (size_t)(end - start));
+    s[end - start] = '\0';
+}
+
+/* One CSV record (RFC 4180 quotes; LF or CRLF), field by field through `field` (unquoted,
+ * trimmed). The header (header != 0) sets cols[k] to the field of column k's most preferred
+ * alias (rank[k]); a data row copies the fields cols[] names into cells[] (*toolong: one was
+ * longer than FIELD_MAX). Returns the number of fields, 0 for a blank line, -1 at the end of
+ * the input, -2 for an unterminated quote. */
+static int read_record(FILE *in, int header, int cols[], int rank[], int *toolong)
+{
+    int c, n = 0, len = 0, quoted = 0, over = 0, blank = 1, k, a;
+    *toolong = 0;
+    for (;;) {
+        c = getc(in);
+        if (c == EOF && n == 0 && len == 0 && blank && !quoted) {
+            return -1;
+        }
+        if (quoted) {
+            if (c == EOF) {
+                return -2;
             }
+            if (c == '"') {
+                c = getc(in);
+                if (c != '"') {
+                    quoted = 0;
+                    if (c != EOF) {
+                        ungetc(c, in);
+                    }
+                    continue;
+                }
+            }
+        } else if (c == '"') {
+            quoted = 1;
+            blank = 0;
+            len = 0;
+            continue;
+        } else if (c == ',' || c == '\n' || c == EOF) {
+            field[len] = '\0';
+            trim(field);
+            for (k = 0; k < NCOLS; ++k) {
+                if (header) {
+                    for (a = 0; a < 4 && ALIASES[k][a] != NULL && a < rank[k]; ++a) {
+                        if (!over && strcmp(field, ALIASES[k][a]) == 0) {
+                            rank[k] = a;
+                            cols[k] = n;
+                            break;
+                        }
+                    }
+                } else if (cols[k] == n) {
+                    if (over) {
+                        *toolong = 1;
+                    }
+                    strcpy(cells[k], field);
+                }
+            }
+            ++n;
+            len = 0;
+            over = 0;
+            if (c != ',') {
+                return (n == 1 && blank) ? 0 : n;
+            }
+            continue;
+        }
+        if (c != ' ' && c != '\t' && c != '\r') {
+            blank = 0;
+        }
+        if (len < FIELD_MAX) {
+            field[len++] = (char)c;
+        } else {
+            over = 1;
         }
     }
-    return -1;
 }
 
 static int parse_real(const char *text, double *out)
@@ -151,6 +207,25 @@ static int parse_real(const char *text, double *out)
     }
     *out = strtod(text, &end);
     return *end == '\0';
+}
+
+/* An output cell: a number, or a missing sample (NaN). */
+static int parse_output(const char *text, double *out)
+{
+    char lower[8];
+    size_t i, n = strlen(text);
+    if (n < sizeof lower) {
+        for (i = 0; i <= n; ++i) {
+            lower[i] = (char)(text[i] >= 'A' && text[i] <= 'Z' ? text[i] - 'A' + 'a' : text[i]);
+        }
+        for (i = 0; i < sizeof MISSING / sizeof MISSING[0]; ++i) {
+            if (strcmp(lower, MISSING[i]) == 0) {
+                *out = NAN;
+                return 1;
+            }
+        }
+    }
+    return parse_real(text, out);
 }
 
 static void print_row(double t, const @P@_state *s, const real_t phi[])
@@ -169,15 +244,25 @@ static void print_row(double t, const @P@_state *s, const real_t phi[])
 @PRINT_SECOND@    printf("\n");
 }
 
+/* The estimates reached stdout (a full disk or a closed pipe is an error, exit 4). */
+static int written(void)
+{
+    if (fflush(stdout) != 0 || ferror(stdout)) {
+        fprintf(stderr, "@P@: error: cannot write the estimates to the standard output\n");
+        return 4;
+    }
+    return 0;
+}
+
 int main(int argc, char **argv)
 {
     const char *path = NULL;
     real_t theta0[@PU@_NP], u[@PU@_NU > 0 ? @PU@_NU : 1], y[@PU@_NY], phi[@PU@_NK];
-    int col_t, col_y[@PU@_NY], have_theta0 = 0;
-#if @PU@_NU > 0
-    int col_u[@PU@_NU];
+    int cols[NCOLS], rank[NCOLS], have_theta0 = 0, toolong;
+#if @FOH@
+    real_t u_prev[@PU@_NU > 0 ? @PU@_NU : 1], y_prev[@PU@_NY];
 #endif
-    int i, nfields, nheader = -1, status, rows = 0;
+    int i, c, nfields, nheader = -1, status, rows = 0;
     long lineno = 0;
     double t = 0, t_prev = 0, value;
     @P@_state state;
@@ -208,7 +293,7 @@ int main(int argc, char **argv)
         fprintf(stderr, "usage: @P@ DATA.csv [--theta0 v1,v2,...]\n");
         return 2;
     }
-    in = strcmp(path, "-") == 0 ? stdin : fopen(path, "r");
+    in = strcmp(path, "-") == 0 ? stdin : fopen(path, "rb");
     if (in == NULL) {
         fprintf(stderr, "@P@: error: cannot open %s\n", path);
         return 2;
@@ -218,47 +303,41 @@ int main(int argc, char **argv)
         fprintf(stderr, "@P@: error: --theta0: %s\n", @P@_error_message(status));
         return 2;
     }
-    col_t = -1;
-#if @PU@_NU > 0
-    for (i = 0; i < @PU@_NU; ++i) {
-        col_u[i] = 0;
+    c = getc(in);                                       /* a UTF-8 byte-order mark */
+    if (c == 0xEF) {
+        if (getc(in) != 0xBB || getc(in) != 0xBF) {
+            return fail(path, 1, "not a UTF-8 CSV file");
+        }
+    } else if (c != EOF) {
+        ungetc(c, in);
     }
-#endif
+    for (i = 0; i < NCOLS; ++i) {
+        cols[i] = -1;
+        rank[i] = 4;
+    }
     u[0] = 0;
-    for (i = 0; i < @PU@_NY; ++i) {
-        col_y[i] = 0;
-    }
-    while (fgets(line, sizeof line, in) != NULL) {
+    for (;;) {
+        nfields = read_record(in, nheader < 0, cols, rank, &toolong);
         ++lineno;
-        if (strchr(line, '\n') == NULL && !feof(in)) {
-            return fail(path, lineno, "line too long");
+        if (nfields == -1) {
+            break;
         }
-        nfields = split(line);
-        if (nfields == 1 && fields[0][0] == '\0') {
+        if (nfields == -2) {
+            return fail(path, lineno, "a quoted field is not closed");
+        }
+        if (nfields == 0) {
             continue;
-        }
-        if (nfields > MAX_FIELDS) {
-            return fail(path, lineno, "too many columns");
         }
         if (nheader < 0) {
             nheader = nfields;
-            col_t = find(nfields, (const char *const[3]){"t", NULL, NULL});
-#if @PU@_NU > 0
-            for (i = 0; i < @PU@_NU; ++i) {
-                col_u[i] = find(nfields, IN_ALIASES[i]);
-                if (col_u[i] < 0) {
-                    return fail(path, lineno, "missing input column (@INPUTS@)");
-                }
-            }
-#endif
-            for (i = 0; i < @PU@_NY; ++i) {
-                col_y[i] = find(nfields, OUT_ALIASES[i]);
-                if (col_y[i] < 0) {
-                    return fail(path, lineno, "missing output column (@OUTPUTS@)");
-                }
-            }
-            if (col_t < 0) {
+            if (cols[0] < 0) {
                 return fail(path, lineno, "missing column t");
+            }
+            for (i = 1; i < NCOLS; ++i) {
+                if (cols[i] < 0) {
+                    return fail(path, lineno, i <= @PU@_NU ? "missing input column (@INPUTS@)"
+                                                           : "missing output column (@OUTPUTS@)");
+                }
             }
             for (i = 0; i < (int)(sizeof COLUMNS / sizeof COLUMNS[0]); ++i) {
                 printf(i ? ",%s" : "%s", COLUMNS[i]);
@@ -269,54 +348,85 @@ int main(int argc, char **argv)
         if (nfields != nheader) {
             return fail(path, lineno, "the number of fields differs from the header's");
         }
-        if (!parse_real(fields[col_t], &t) || !isfinite(t)) {
+        if (toolong) {
+            return fail(path, lineno, "a number is longer than 255 characters");
+        }
+        if (!parse_real(cells[0], &t) || !isfinite(t)) {
             return fail(path, lineno, "t is not a finite number");
         }
-        if (rows > 0 && !(fabs((t - t_prev) - DT) <= DT_RTOL * DT)) {
+        /* the spacing to dt, relative to dt, allowing the rounding of t itself: a uniform
+         * grid far from 0 (t = 8192 s at 1 kHz) has spacings off by an ulp of t */
+        if (rows > 0 && !(fabs((t - t_prev) - DT) <= DT_RTOL * DT + 4 * DBL_EPSILON * fabs(t))) {
             return fail(path, lineno, "t is not spaced by the generated dt; resample the data "
                                       "or generate again with thetahat codegen --dt");
         }
-#if @PU@_NU > 0
         for (i = 0; i < @PU@_NU; ++i) {
-            if (!parse_real(fields[col_u[i]], &value)) {
+            if (!parse_real(cells[1 + i], &value)) {
                 return fail(path, lineno, "an input is not a number");
             }
             u[i] = (real_t)value;
         }
-#endif
         for (i = 0; i < @PU@_NY; ++i) {
-            if (!parse_real(fields[col_y[i]], &value)) {
+            if (!parse_output(cells[1 + @PU@_NU + i], &value)) {
                 return fail(path, lineno, "an output is not a number (NaN marks a missing one)");
             }
             y[i] = (real_t)value;
         }
+#if @FOH@
+        if (rows > 0) {     /* first-order hold: the step from the previous row to this one */
+            status = @P@_phi_hat(&state, u_prev, y_prev, phi);
+            if (status == @PU@_OK) {
+                print_row(t_prev, &state, phi);
+                status = @P@_step(&state, u_prev, y_prev, u, y);
+            }
+            if (status != @PU@_OK) {
+                return refused(path, lineno - 1, status);
+            }
+        }
+        for (i = 0; i < @PU@_NY; ++i) {
+            y_prev[i] = y[i];
+        }
+        for (i = 0; i < (@PU@_NU > 0 ? @PU@_NU : 1); ++i) {
+            u_prev[i] = u[i];
+        }
+#else
         status = @P@_phi_hat(&state, u, y, phi);
         if (status == @PU@_OK) {
             print_row(t, &state, phi);
             status = @P@_step(&state, u, y);
         }
         if (status != @PU@_OK) {
-            fflush(stdout);
-            fprintf(stderr, "@P@: error: %s, line %ld: %s\n", path, lineno,
-                    @P@_error_message(status));
-            return 3;
+            return refused(path, lineno, status);
         }
+#endif
         t_prev = t;
         ++rows;
+        if (ferror(stdout)) {
+            return written();
+        }
     }
+#if @FOH@
+    if (rows > 0) {
+        status = @P@_phi_hat(&state, u_prev, y_prev, phi);
+        if (status != @PU@_OK) {
+            return refused(path, lineno, status);
+        }
+        print_row(t_prev, &state, phi);
+    }
+#endif
     if (in != stdin) {
         fclose(in);
     }
     if (nheader < 0 || rows == 0) {
         return fail(path, lineno, "no header or no data rows");
     }
-    return 0;
+    return written();
 }
 """
 
 
 def harness_source(prefix: str, names: dict[str, list[str]], k: int, real: str, second: bool,
-                   dt: float) -> str:
+                   dt: float, foh: bool = False) -> str:
     """Source of ``<prefix>_main.c`` (see the module docstring).
 
     Parameters
@@ -332,6 +442,9 @@ def harness_source(prefix: str, names: dict[str, list[str]], k: int, real: str, 
         A second observer is attached.
     dt : float
         The fixed step length.
+    foh : bool
+        The step takes the next samples (first-order hold): each row is printed when the
+        next one has been read.
 
     Returns
     -------
@@ -344,23 +457,22 @@ def harness_source(prefix: str, names: dict[str, list[str]], k: int, real: str, 
     >>> '"theta_hat_a"' in src and "malloc" not in src
     True
     """
-    def aliases(group: str, letter: str) -> str:
-        rows = _aliases(names[group], letter) or [[]]
-        return ", ".join("{" + _c_strings(a) + ", NULL" * (3 - len(a)) + "}" for a in rows)
+    rows = _aliases(names["u"], "u") + _aliases(names["y"], "y")
+    alias_text = ", ".join("{" + _c_strings(a) + ", NULL" * (4 - len(a)) + "}" for a in rows)
 
     cols = estimate_columns(names["x"], k, names["theta"], refined=second)
     print_second = ("    for (i = 0; i < @PU@_NX; ++i) {\n"
                     "        printf(\",%.@DIGITS@g\", (double)@P@_x_hat_refined(s)[i]);\n"
                     "    }\n" if second else "")
     text = _MAIN.replace("@PRINT_SECOND@", print_second)
-    for key, value in (("@IN_ALIASES@", aliases("u", "u")),
-                       ("@OUT_ALIASES@", aliases("y", "y")),
+    for key, value in (("@ALIASES@", alias_text),
                        ("@COLUMNS@", _c_strings(cols)),
                        ("@INPUTS@", ", ".join(names["u"]) or "none"),
                        ("@OUTPUTS@", ", ".join(names["y"])),
                        ("@THETA_EXAMPLE@", ",".join("0.5" for _ in names["theta"])),
                        ("@DT_RTOL@", repr(DT_RTOL)), ("@DT@", repr(float(dt))),
                        ("@DIGITS@", "17" if real == "double" else "9"),
+                       ("@FOH@", "1" if foh else "0"),
                        ("@PU@", prefix.upper()), ("@P@", prefix)):
         text = text.replace(key, value)
     return text

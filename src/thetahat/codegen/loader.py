@@ -21,35 +21,30 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from ..errors import CCompilerError, DimensionError, NonFiniteError, UpdateLawError
+from .c_api import STATUS as C_STATUS
 from .generate import CCode
 from .harness import C_FLAGS
 
-__all__ = ["CObserver", "CRun", "build", "build_harness", "find_compiler", "load_c",
+__all__ = ["CObserver", "CRun", "build", "build_harness", "build_many", "find_compiler", "load_c",
            "STATUS"]
 
-#: Status codes of the generated functions (``<NAME>_OK``…), by name.
-STATUS = {"ok": 0, "input": 1, "missing": 2, "theta_star": 3, "diverged": 4, "init": 5}
+#: Status codes of the generated functions (``<NAME>_OK``…), by name (:data:`.c_api.STATUS`).
+STATUS = {name: code for name, (code, _) in C_STATUS.items()}
 
 _SHIM = r"""/* ctypes shim (thetahat.codegen.loader): loops @P@_step over a record. */
 #include "@P@.h"
 
 typedef @P@_real_t real_t;
 
-enum { NS = @NS@ };
+enum { NS = @NS@, NUB = @PU@_NU > 0 ? @PU@_NU : 1 };
 
 static void store(const @P@_state *s, real_t row[])
 {
-    int i, o = 0;
-    for (i = 0; i < @PU@_NX; ++i) {
-        row[o++] = s->x_hat[i];
+    int i;
+    for (i = 0; i < NS; ++i) {
+        row[i] = s->s[i];
     }
-    for (i = 0; i < @PU@_NK; ++i) {
-        row[o++] = s->z[i];
-    }
-    for (i = 0; i < @PU@_NP; ++i) {
-        row[o++] = s->theta_hat[i];
-    }
-@STORE_SECOND@}
+}
 
 /* Rows i of S and PHI: the state before sample i and phi_hat at sample i (as run() records). */
 int @P@_run_record(@P@_state *s, long N, const real_t U[], const real_t Y[], real_t S[],
@@ -60,13 +55,13 @@ int @P@_run_record(@P@_state *s, long N, const real_t U[], const real_t Y[], rea
     for (i = 0; i < N; ++i) {
         *index = i;
         store(s, S + i * NS);
-        status = @P@_phi_hat(s, U + i * (@PU@_NU > 0 ? @PU@_NU : 1), Y + i * @PU@_NY,
+        status = @P@_phi_hat(s, U + i * NUB, Y + i * @PU@_NY,
                              PHI + i * @PU@_NK);
         if (status != 0) {
             return status;
         }
         if (i + 1 < N) {
-            status = @P@_step(s, U + i * (@PU@_NU > 0 ? @PU@_NU : 1), Y + i * @PU@_NY);
+            status = @P@_step(s, U + i * NUB, Y + i * @PU@_NY@NEXT@);
             if (status != 0) {
                 return status;
             }
@@ -80,8 +75,8 @@ int @P@_run_steps(@P@_state *s, long N, const real_t U[], const real_t Y[])
 {
     long i;
     int status;
-    for (i = 0; i < N; ++i) {
-        status = @P@_step(s, U + i * (@PU@_NU > 0 ? @PU@_NU : 1), Y + i * @PU@_NY);
+    for (i = 0; i + @FOH@ < N; ++i) {
+        status = @P@_step(s, U + i * NUB, Y + i * @PU@_NY@NEXT@);
         if (status != 0) {
             return status;
         }
@@ -123,6 +118,51 @@ def _compiler() -> str:
     return cc
 
 
+def _write_with_shim(code: CCode, out: Path) -> list[str]:
+    """Write ``code`` and its record-loop shim into ``out``; the two C files' names."""
+    code.write(out)
+    P = code.name
+    foh = code.hold == "foh"
+    nxt = ", U + (i + 1) * NUB, Y + (i + 1) * @PU@_NY" if foh else ""
+    shim = (_SHIM.replace("@NEXT@", nxt).replace("@FOH@", "1" if foh else "0")
+            .replace("@NS@", str(code.sizes["state"])).replace("@PU@", P.upper())
+            .replace("@P@", P))
+    (out / f"{P}_shim.c").write_text(shim, encoding="utf-8")
+    return [f"{P}.c", f"{P}_shim.c"]
+
+
+def build_many(codes: Sequence[CCode], directory: str | Path, *,
+               flags: Sequence[str] = C_FLAGS) -> Path:
+    """Compile several generated observers (distinct names) into one shared library.
+
+    One compiler run for all of them (the conformance tests build dozens of configurations).
+
+    Parameters
+    ----------
+    codes : sequence of CCode
+    directory : str or Path
+    flags : sequence of str
+
+    Returns
+    -------
+    Path
+        ``libobservers.so``; load each with ``CObserver(code, path)``.
+
+    Raises
+    ------
+    CCompilerError
+        No compiler, or it failed or warned.
+    """
+    out = Path(directory)
+    names = [code.name for code in codes]
+    if len(set(names)) != len(names):
+        raise CCompilerError(f"build_many needs distinct names; got {names}.")
+    sources = [f for code in codes for f in _write_with_shim(code, out)]
+    lib = out / "libobservers.so"
+    _compile([_compiler(), *flags, "-fPIC", "-shared", "-o", lib.name, *sources, "-lm"], out)
+    return lib
+
+
 def build(code: CCode, directory: str | Path, *, flags: Sequence[str] = C_FLAGS) -> Path:
     """Write ``code`` into ``directory`` and compile it with the shim as a shared library.
 
@@ -144,16 +184,10 @@ def build(code: CCode, directory: str | Path, *, flags: Sequence[str] = C_FLAGS)
         No compiler, or it failed or warned (the flags include ``-Werror``).
     """
     out = Path(directory)
-    code.write(out)
     P = code.name
-    second = ("    for (i = 0; i < @PU@_NX; ++i) {\n        row[o++] = s->x_hat_refined[i];\n"
-              "    }\n" if "x_hat_refined" in code.header else "")
-    shim = (_SHIM.replace("@STORE_SECOND@", second).replace("@NS@", str(code.sizes["state"]))
-            .replace("@PU@", P.upper()).replace("@P@", P))
-    (out / f"{P}_shim.c").write_text(shim, encoding="utf-8")
+    sources = _write_with_shim(code, out)
     lib = out / f"lib{P}.so"
-    _compile([_compiler(), *flags, "-fPIC", "-shared", "-o", lib.name, f"{P}.c", f"{P}_shim.c",
-              "-lm"], out)
+    _compile([_compiler(), *flags, "-fPIC", "-shared", "-o", lib.name, *sources, "-lm"], out)
     return lib
 
 
@@ -251,15 +285,29 @@ class CObserver:
             raise NonFiniteError(f"{self.code.name}_init refused θ̂₀/x̂₀ (status {status}).")
         return s
 
-    def step(self, state: NDArray[Any], u: ArrayLike | None, y: ArrayLike) -> int:
-        """``<name>_step`` on ``state`` in place; returns the status code."""
+    def step(self, state: NDArray[Any], u: ArrayLike | None, y: ArrayLike,
+             u_next: ArrayLike | None = None, y_next: ArrayLike | None = None) -> int:
+        """``<name>_step`` on ``state`` in place; returns the status code.
+
+        ``u_next``, ``y_next``: the next samples, which a first-order hold step takes (and
+        only it).
+        """
         if state.dtype != self.dtype or state.shape != (self.code.sizes["state"],):
             raise DimensionError(f"state must be a {self.dtype.__name__} vector of length "
                                  f"{self.code.sizes['state']}.")
-        m = self.code.sizes["m"]
-        uu = self._vec(np.zeros(max(m, 1)) if u is None or m == 0 else u, max(m, 1))
-        return int(self._step(self._p(state), self._p(uu), self._p(self._vec(
-            y, self.code.sizes["r"]))))
+        foh = self.code.hold == "foh"
+        if foh != (y_next is not None):
+            raise DimensionError(f"{self.code.name}_step takes the next samples (u_next, "
+                                 "y_next) exactly when it was generated with hold='foh'.")
+        m, r = self.code.sizes["m"], self.code.sizes["r"]
+
+        def inputs(a: ArrayLike | None) -> Any:
+            return self._vec(np.zeros(max(m, 1)) if a is None or m == 0 else a, max(m, 1))
+
+        args = [self._p(inputs(u)), self._p(self._vec(y, r))]
+        if foh:
+            args += [self._p(inputs(u_next)), self._p(self._vec(y_next, r))]
+        return int(self._step(self._p(state), *args))
 
     def _records(self, u: ArrayLike | None, y: ArrayLike, N: int
                  ) -> tuple[NDArray[Any], NDArray[Any]]:

@@ -34,7 +34,7 @@ from .formulas import DIVERGENCE_BOUND
 from .law_base import FAR
 
 __all__ = ["INLINE_FROM", "LAWS", "LAW_BOX", "formula_decorator", "kernel_source",
-           "model_source"]
+           "law_source", "model_source", "rewritten"]
 
 #: The law formulas the compiled path supports, by code (see ``compiled.KernelParts``).
 LAWS = {0: "held_law", 1: "inversion_law", 2: "inversion_law", 3: "gradient_law"}
@@ -295,12 +295,38 @@ def _call(name: str, *args: ast.expr) -> ast.Call:
     return ast.Call(ast.Name(name, ast.Load()), list(args), [])
 
 
+def rewritten(fn: Any) -> ast.Module:
+    """A formula's (or scalar primitive's) source as the scalar back end emits it: the element
+    primitives as syntax, the block primitives expanded in place (:class:`_Syntax`).
+
+    The other printers of the formulas (the C of :mod:`thetahat.codegen`) start from this tree.
+
+    Parameters
+    ----------
+    fn : function
+        A function of :mod:`~thetahat.estimation.formulas`,
+        :mod:`~thetahat.estimation.law_formulas` or
+        :mod:`~thetahat.estimation.scalar_primitives`.
+
+    Returns
+    -------
+    ast.Module
+        Holding the one function definition.
+
+    Examples
+    --------
+    >>> import ast
+    >>> ast.unparse(rewritten(formulas.phi_hat)).splitlines()[-1].strip()
+    'phi[0 + i__axpy2] += 1.0 * s[NX + i__axpy2]'
+    """
+    tree = ast.parse(textwrap.dedent(inspect.getsource(fn)))
+    return ast.fix_missing_locations(_Syntax().visit(tree))
+
+
 def _source(fn: Any, name: str | None = None, decorator: str = _INLINE) -> str:
     """A function's source at module level, decorated, optionally renamed, with the element
     primitives as syntax (:class:`_Syntax`)."""
-    tree = ast.parse(textwrap.dedent(inspect.getsource(fn)))
-    tree = ast.fix_missing_locations(_Syntax().visit(tree))
-    text = ast.unparse(tree)
+    text = ast.unparse(rewritten(fn))
     if name is not None and name != fn.__name__:
         text = text.replace(f"def {fn.__name__}(", f"def {name}(", 1)
     return f"{decorator}\n{text}\n"
@@ -311,8 +337,27 @@ def _source(fn: Any, name: str | None = None, decorator: str = _INLINE) -> str:
 LAW_BOX = {"held_law": 0, "inversion_law": 5, "gradient_law": 11}
 
 
-def _law_source(law: str, form: str) -> str:
-    """law_step and the hooks weight, freeze, project and m_matrix for one law formula."""
+def law_source(law: str, form: str) -> str:
+    """law_step and the hooks weight, freeze, project and m_matrix for one law formula.
+
+    Parameters
+    ----------
+    law : str
+        A value of :data:`LAWS`.
+    form : str
+        The decorator line of each hook (empty for plain Python).
+
+    Returns
+    -------
+    str
+        Python source in the formulas' subset; the options are read from ``LP`` at
+        :data:`LAW_BOX`.
+
+    Examples
+    --------
+    >>> "law_step = held_law" in law_source("held_law", "")
+    True
+    """
     box = LAW_BOX[law]
     opts = f"LP[{box + 2}]"
     weight = (f"    if {opts}[2] != 0.0:\n"
@@ -370,7 +415,7 @@ def kernel_source(pert: SymbolicPerturbation, theta_star: tuple[sp.Expr, ...] | 
     parts.append(model_source(pert, theta_star, ts_args))
     parts += [_source(fn, None, form) for fn in law_formulas.LAW_FORMULAS.values()]
     parts += [_source(fn, None, form) for fn in formulas.FORMULAS.values()]
-    parts.append(_law_source(law, form))
+    parts.append(law_source(law, form))
     parts.append(_source(scalar_primitives.kernel_run, decorator=_INLINE))
     text = "\n\n".join(parts) + "\n"
     if not numba:
