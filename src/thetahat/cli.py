@@ -89,8 +89,15 @@ def _study(args: argparse.Namespace) -> tuple[Any, Any, Any, tuple[str, ...]]:
     if chosen:                  # the experiment itself was not given: say what was assumed
         print(f"thetahat: note: {args.model} [scenario] gives no {', '.join(chosen)}; "
               f"using {spec.scenario!r}", file=sys.stderr)
-    return (estimator_spec(spec), study_simulator(spec, t_end=args.t_end),
-            spec.estimator.theta_hat0, spec.state_names)
+    est, simulate = estimator_spec(spec), study_simulator(spec, t_end=args.t_end)
+    if spec.estimator.gamma_auto:       # Γ = "auto": chosen on the scenario's first record
+        import dataclasses
+
+        from .modelfile import auto_gamma
+        first = simulate(0)
+        est = dataclasses.replace(est, law=est.law_with_gamma(
+            auto_gamma(spec, first.t, first.u, first.y)))
+    return est, simulate, spec.estimator.theta_hat0, spec.state_names
 
 
 def _sweep(args: argparse.Namespace) -> int:

@@ -6,14 +6,15 @@ format is documented there), :mod:`.assembly` builds and runs the estimator it d
 :mod:`.study` simulates its ``[scenario]`` for ``thetahat sweep`` and ``thetahat tune``.
 """
 
-from .assembly import (build_observer, design_gains, design_matrices, estimator_spec,
-                       run_estimator)
+from .assembly import (auto_gamma, build_observer, design_gains, design_matrices,
+                       estimator_spec, run_estimator)
 from .report import ModelAnalysis, analyze_model
 from .schema import (ESTIMATION_METHODS, EXAMPLE_MODEL, LAWS, EstimatorOptions, ModelSpec,
                      ScenarioOptions, SecondObserverOptions, load_model, loads_model)
 from .study import simulate_model, study_simulator
 
-__all__ = ["ESTIMATION_METHODS", "EXAMPLE_MODEL", "LAWS", "EstimatorOptions", "ModelAnalysis",
+__all__ = ["auto_gamma", "ESTIMATION_METHODS", "EXAMPLE_MODEL", "LAWS", "EstimatorOptions",
+           "ModelAnalysis",
            "ModelSpec", "ScenarioOptions", "SecondObserverOptions", "analyze_model",
            "build_observer", "design_gains", "design_matrices", "estimator_spec", "load_model",
            "loads_model", "run_estimator", "simulate_model", "study_simulator"]

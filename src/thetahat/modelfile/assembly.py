@@ -29,7 +29,7 @@ from .schema import ESTIMATION_METHODS, ModelSpec
 if TYPE_CHECKING:
     from ..estimation.trust import TrustReport
 
-__all__ = ["build_observer", "design_gains", "design_matrices", "estimator_spec",
+__all__ = ["auto_gamma", "build_observer", "design_gains", "design_matrices", "estimator_spec",
            "run_estimator"]
 
 FloatArray = NDArray[np.float64]
@@ -192,7 +192,8 @@ def build_observer(spec: ModelSpec, *, eps: float | None = None,
     ------
     ModelFileError
         The gains cannot be designed (e.g. a wrong number of chain poles, Assumption 1
-        fails on the design system); the message names the keys.
+        fails on the design system); the message names the keys. Or Γ is ``"auto"``, which
+        needs a record (:func:`run_estimator`).
 
     Examples
     --------
@@ -201,6 +202,12 @@ def build_observer(spec: ModelSpec, *, eps: float | None = None,
     >>> obs.K_x.shape, obs.K_phi.shape
     ((2, 1), (1, 1))
     """
+    if spec.estimator.gamma_auto:
+        raise ModelFileError(
+            f"model file {spec.source}: [estimator] Gamma = 'auto' (the gradient law's default) "
+            "is chosen on a record, and there is none here: give Gamma in [estimator] (a "
+            "number or a p × p matrix), or estimate with run_estimator / thetahat estimate, "
+            "which choose it on the data.")
     return _build(estimator_spec(spec, nan_policy=nan_policy), spec, eps)
 
 
@@ -299,7 +306,7 @@ def run_estimator(spec: ModelSpec, t: ArrayLike, u: ArrayLike | None, y: ArrayLi
                                      "perturbation and parameter set; the model has none.")
             check_theta_star(theta_star, s.perturbation, s.parameter_set, s.C, t, u, y)
         if spec.estimator.gamma_auto:
-            obs = _build(est, spec, None, Gamma=_auto_gamma(est, spec, t, u, y, hold))
+            obs = _build(est, spec, None, Gamma=auto_gamma(spec, t, u, y, hold=hold))
         state0 = obs.init(x_hat0=x0, theta_hat0=th0)
         if how == "paper":
             result = obs.run(t, u, y, hold=hold, state0=state0, progress=progress)
@@ -318,10 +325,43 @@ def run_estimator(spec: ModelSpec, t: ArrayLike, u: ArrayLike | None, y: ArrayLi
     return dataclasses.replace(result, trust=report)
 
 
-def _auto_gamma(est: EstimatorSpec, spec: ModelSpec, t: ArrayLike, u: ArrayLike | None,
-                y: ArrayLike, hold: Hold) -> FloatArray:
-    """``Gamma = "auto"``: Γ from the record's information at θ̂₀, x̂ from a first pass of the
-    observer with θ̂ held at θ̂₀ (:func:`~thetahat.estimation.auto_gain.information_gain`)."""
+def auto_gamma(spec: ModelSpec, t: ArrayLike, u: ArrayLike | None, y: ArrayLike, *,
+               hold: Hold = "zoh") -> FloatArray:
+    """``Gamma = "auto"`` on a record: the gradient law's Γ from the record's information.
+
+    x̂ from a first pass of the file's observer with θ̂ held at θ̂₀, then
+    :func:`~thetahat.estimation.auto_gain.information_gain` at θ̂₀.
+
+    Parameters
+    ----------
+    spec : ModelSpec
+        With a gradient law.
+    t, u, y : array_like
+        The record, as for :func:`run_estimator`.
+    hold : {"zoh", "foh"}
+
+    Returns
+    -------
+    ndarray (p, p)
+        Diagonal, positive definite.
+
+    Raises
+    ------
+    ModelFileError
+        The model has no perturbation or parameter set.
+    UpdateLawError
+        ∂g/∂θ vanishes on the whole record for a parameter.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from thetahat.modelfile import EXAMPLE_MODEL, auto_gamma, loads_model
+    >>> spec = loads_model(EXAMPLE_MODEL)
+    >>> t = np.arange(0.0, 5.0, 0.01)
+    >>> G = auto_gamma(spec, t, np.sin(t)[:, None], np.sin(t)[:, None])
+    >>> G.shape, bool(G[0, 0] > 0)
+    ((1, 1), True)
+    """
     from ..estimation.auto_gain import information_gain
     from ..estimation.law_base import ConstantLaw
     s = spec.system
@@ -329,6 +369,7 @@ def _auto_gamma(est: EstimatorSpec, spec: ModelSpec, t: ArrayLike, u: ArrayLike 
         raise ModelFileError(f"model file {spec.source}: Gamma = 'auto' needs the system's "
                              "perturbation and parameter set; the model has none.")
     th0 = spec.estimator.theta_hat0
+    est = estimator_spec(spec, hold=hold)
     held = dataclasses.replace(est, law=ConstantLaw(th0, s.parameter_set))
     obs = _build(held, spec, None)
     first = obs.run(t, u, y, hold=hold, state0=obs.init(x_hat0=spec.estimator.x_hat0,
