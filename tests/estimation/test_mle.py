@@ -90,3 +90,25 @@ def test_final_estimate_is_efficient(name):
         err.append(TH[-1] - sc.theta)
     ratio = np.sqrt(np.mean(np.square(err), axis=0) / var)
     assert np.all(ratio <= EFFICIENCY_BOUND), ratio
+
+
+def _time_scaled_prop3(c: float) -> str:
+    """prop3 slowed down c times: ẋ = (A x + B u + E g)/c, the same g and Θ."""
+    text = (EXAMPLES / "prop3.toml").read_text()
+    text = text.replace("A = [[0.0, 1.0], [-1.0, -0.5]]",
+                        f"A = [[0.0, {1.0 / c!r}], [{-1.0 / c!r}, {-0.5 / c!r}]]")
+    text = text.replace("B = [[0.0], [1.0]]", f"B = [[0.0], [{1.0 / c!r}]]")
+    return text.replace("E = [[0.0], [1.0]]", f"E = [[0.0], [{1.0 / c!r}]]")
+
+
+@pytest.mark.parametrize("c", [60.0, 1e-2])     # a process in minutes, one in milliseconds
+def test_mle_is_the_same_at_any_time_scale(c):
+    from thetahat.modelfile import loads_model
+    spec = load_model(EXAMPLES / "prop3.toml")
+    d = simulate_model(spec, 4, t_end=10.0)
+    U, Y = np.asarray(d.u), np.asarray(d.y)
+    ref = run_estimator(spec, d.t, U, Y, method="mle", diagnose=False)
+    slow = run_estimator(loads_model(_time_scaled_prop3(c)), c * d.t, U, Y, method="mle",
+                         diagnose=False)
+    # the same fits at the same samples: equal up to the rounding of the rescaled matrices
+    assert np.allclose(slow.theta_hat, ref.theta_hat, rtol=1e-6, atol=1e-9)
