@@ -510,12 +510,20 @@ def fit_record(schedule: FitSchedule, t: FloatArray, U: FloatArray, Y: FloatArra
     FitResult
         ``process_noise`` > 0 when the model with process noise was taken.
     """
+    n = schedule.system.n
+    x_hat0, x_sd = prior0[0][:n], np.full(n, float(schedule.x_sd))
+    q = previous.process_noise if previous is not None else 0.0
+    if previous is not None and q > 0.0:
+        # the data already showed the model error: its likelihood first, from the last fit
+        alt = _with_process_noise(schedule.system, t, U, Y, k1, previous, x_hat0, x_sd,
+                                  schedule.noise_std, q=None if final else q,
+                                  h_rho=schedule.h_rho, compiled=schedule.compiled)
+        if alt.consistent:
+            return alt
     fit = schedule.fit(t, U, Y, k1, previous, prior0)
     if fit.consistent:
         return fit
-    q = previous.process_noise if previous is not None else 0.0
-    alt = _with_process_noise(schedule.system, t, U, Y, k1, fit, prior0[0][:schedule.system.n],
-                              np.full(schedule.system.n, float(schedule.x_sd)),
+    alt = _with_process_noise(schedule.system, t, U, Y, k1, fit, x_hat0, x_sd,
                               schedule.noise_std, q=None if final or q == 0.0 else q,
                               h_rho=schedule.h_rho, compiled=schedule.compiled)
     return alt if alt.consistent else fit
