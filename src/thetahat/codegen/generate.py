@@ -32,6 +32,7 @@ from ..estimation.update_laws import (FAR, INIT_RTOL, ConstantLaw, GradientInver
                                       IntermittentInversion, SmoothRamp)
 from ..model.paramset import Box
 from ..model.perturbation import SymbolicPerturbation
+from ..safe_io import write_text
 from .c_step import StepOptions, step_source
 from .harness import harness_source, makefile_source
 from .printing import REALS, c_function
@@ -95,7 +96,8 @@ class CCode:
                 f"{self.name}_main.c": self.main, "Makefile": self.makefile}
 
     def write(self, directory: str | Path) -> tuple[Path, ...]:
-        """Write the four files into ``directory`` (created); returns their paths.
+        """Write the four files into ``directory`` (created), each atomically; returns their
+        paths.
 
         Raises
         ------
@@ -107,9 +109,7 @@ class CCode:
         try:
             out.mkdir(parents=True, exist_ok=True)
             for fname, text in self.files().items():
-                path = out / fname
-                path.write_text(text, encoding="utf-8")
-                paths.append(path)
+                paths.append(write_text(out / fname, text))          # atomic, each file
         except OSError as exc:
             raise FileAccessError(f"cannot write the generated C into {out}: {exc}; choose a "
                                   "writable folder with -o.") from exc
