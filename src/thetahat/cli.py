@@ -176,7 +176,7 @@ def _estimate(args: argparse.Namespace) -> int:
     from .datafile import ESTIMATE_SUFFIXES, read_data, write_estimates
     from .modelfile import load_model, run_estimator
     from .progress import reporter
-    from .safe_io import atomic_path, check_regular, check_writable, same_file
+    from .safe_io import atomic_path, check_writable, same_file
     from .studies.metrics import estimate_summary
 
     args.output = args.output or "estimates.csv"
@@ -187,7 +187,6 @@ def _estimate(args: argparse.Namespace) -> int:
             raise OptionError(f"--plot {args.plot} is also the estimates output (-o); give "
                               f"the figure its own name.")
         _check_plot(args.plot, inputs)
-    check_regular(args.data, "data file")
     spec = load_model(args.model)
     data = read_data(args.data, spec, nan_policy=args.nan_policy)
     progress = None if args.no_progress else reporter("estimate")

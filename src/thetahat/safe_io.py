@@ -256,14 +256,14 @@ def check_writable(path: str | Path, *, inputs: Iterable[str | Path] = (),
             raise ModelFileError(f"cannot write {path}: it is an input of this run ({source}); "
                                  f"writing it would destroy the input. Choose another output "
                                  f"path (-o).")
+    if path.is_dir():
+        raise ModelFileError(f"cannot write {path}: it is a directory; give a file name, e.g. "
+                             f"{path / 'estimates.csv'}.")
     if suffixes is not None:
         allowed = tuple(suffixes)
         if path.suffix.lower() not in allowed:
             raise ModelFileError(f"cannot write {what} {path}: the suffix must be one of "
                                  f"{', '.join(allowed)}; got {path.suffix or '(none)'!r}.")
-    if path.is_dir():
-        raise ModelFileError(f"cannot write {path}: it is a directory; give a file name, e.g. "
-                             f"{path / 'estimates.csv'}.")
     if path.exists() or path.is_symlink():
         if not path.exists() or not stat.S_ISREG(os.stat(path).st_mode):
             raise ModelFileError(f"cannot write {path}: it exists and is not a regular file.")
