@@ -314,10 +314,11 @@ def _cell(path: Path, line: int, column: str, text: str, *, output: bool,
     if output and skip and cell.lower() in MISSING_CELLS:
         return math.nan
     try:
-        if "_" in cell:                  # float() reads 1_000 as 1000: not a CSV number
-            raise ValueError(cell)
-        value = float(cell)
+        value = math.nan if "_" in cell else float(cell)   # float() reads 1_000 as 1000
+        ok = "_" not in cell
     except ValueError:
+        ok = False
+    if not ok:
         hint = (" (an empty output cell is a dropout: pass --nan-policy skip)"
                 if output and cell == "" else
                 " (digit separators such as 1_000 are not accepted)" if "_" in cell else

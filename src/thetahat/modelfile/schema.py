@@ -814,10 +814,13 @@ def loads_model(text: str, *, syntax: str = "toml", source: str = "<string>") ->
     upper = box.vector("upper", p, f"one per parameter in [perturbation] theta, p = {p}")
     try:
         theta_set = Box(lower, upper)
+    except ThetahatError as exc:
+        raise ModelFileError(f"model file {source}: [parameter_set]: {exc}") from exc
+    try:
         system = PerturbedLinearSystem(A=A, B=B, C=C, E=E, perturbation=pert,
                                        parameter_set=theta_set)
     except ThetahatError as exc:
-        raise ModelFileError(f"model file {source}: [parameter_set]: {exc}") from exc
+        raise ModelFileError(f"model file {source}: [system]: {exc}") from exc
     estimator = _read_estimator(sections["estimator"], system, pert, parsed)
     scenario = _read_scenario(_Section(source, "scenario", doc.get("scenario", {})), system,
                               theta_set)
