@@ -177,6 +177,7 @@ def _estimate(args: argparse.Namespace) -> int:
     from .modelfile import load_model, run_estimator
     from .progress import reporter
     from .safe_io import atomic_path, check_writable, same_file
+    from .studies.information import explain_nonfinite, stuck_parameters
     from .studies.metrics import estimate_summary
 
     args.output = args.output or "estimates.csv"
@@ -192,12 +193,20 @@ def _estimate(args: argparse.Namespace) -> int:
     progress = None if args.no_progress else reporter("estimate")
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
-        result = run_estimator(spec, data.t, data.u, data.y, hold=args.hold,
-                               nan_policy=args.nan_policy, progress=progress,
-                               method=args.method)
+        try:
+            result = run_estimator(spec, data.t, data.u, data.y, hold=args.hold,
+                                   nan_policy=args.nan_policy, progress=progress,
+                                   method=args.method)
+        except ThetahatError as exc:
+            raise explain_nonfinite(exc, spec.system, data.t, data.u, data.y,
+                                    spec.estimator.x_hat0, spec.estimator.theta_hat0) from exc
     write_estimates(args.output, result, spec)                         # atomic
     print(f"wrote {args.output} ({data.t.size} rows)")
     notes = [f"{w.category.__name__}: {w.message}" for w in caught]
+    stuck = stuck_parameters(spec.system, data.u, data.y, result.x_hat, result.theta_hat,
+                             spec.parameter_names)
+    if stuck:
+        notes.append(f"ConvergenceWarning: {stuck}")
     print(estimate_summary(result, spec.parameter_names, warnings=notes))
     if args.plot:
         from .plotting import plot_result

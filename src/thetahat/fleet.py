@@ -50,6 +50,7 @@ from .modelfile import (ESTIMATION_METHODS, ModelSpec, build_observer, loads_mod
                         run_estimator)
 from .safe_io import atomic_path, check_writable, read_text, same_file
 from .spec import Hold
+from .studies.information import explain_nonfinite, stuck_parameters
 from .studies.metrics import time_to_within
 
 __all__ = ["DATA_SUFFIXES", "FleetResult", "RESULT_SUFFIXES", "SETTLE_BAND", "check_output",
@@ -323,11 +324,24 @@ def _estimate_one(spec: ModelSpec, path: str, record: tuple[DataRecord, list[str
             res = run_estimator(spec, rec.t, rec.u, rec.y, hold=cast(Hold, hold),
                                 nan_policy=nan_policy, method=method)
         except Exception as exc:           # a record that fails is reported, never stops others
-            out[path] = {"status": _failure(exc), "warnings": "; ".join(read_warnings)}
+            out[path] = {"status": _failure(_explain(exc, spec, rec)),
+                         "warnings": "; ".join(read_warnings)}
             return
-    row = {"status": "ok", **_summary(spec, rec.t, np.asarray(res.theta_hat))}
-    row["warnings"] = "; ".join(dict.fromkeys(read_warnings + [str(w.message) for w in caught]))
-    out[path] = row
+    out[path] = _ok_row(spec, rec, np.asarray(res.x_hat), np.asarray(res.theta_hat),
+                        read_warnings + [str(w.message) for w in caught])
+
+
+def _explain(exc: BaseException, spec: ModelSpec, rec: DataRecord) -> BaseException:
+    return explain_nonfinite(exc, spec.system, rec.t, rec.u, rec.y, spec.estimator.x_hat0,
+                             spec.estimator.theta_hat0)
+
+
+def _ok_row(spec: ModelSpec, rec: DataRecord, x_hat: FloatArray, theta_hat: FloatArray,
+            notes: list[str]) -> dict[str, Any]:
+    row = {"status": "ok", **_summary(spec, rec.t, theta_hat)}
+    stuck = stuck_parameters(spec.system, rec.u, rec.y, x_hat, theta_hat, spec.parameter_names)
+    row["warnings"] = "; ".join(dict.fromkeys(notes + ([stuck] if stuck else [])))
+    return row
 
 
 def _estimate_group(spec: ModelSpec, members: list[str],
@@ -347,14 +361,14 @@ def _estimate_group(spec: ModelSpec, members: list[str],
                 for p in members:
                     _estimate_group(spec, [p], records, hold, nan_policy, out)
                 return
-            out[members[0]] = {"status": _failure(exc),
+            rec = records[members[0]][0]
+            out[members[0]] = {"status": _failure(_explain(exc, spec, rec)),
                                "warnings": "; ".join(records[members[0]][1])}
             return
     batch_warnings = [str(w.message) for w in caught]
     for i, p in enumerate(members):
-        row = {"status": "ok", **_summary(spec, t, np.asarray(res.theta_hat[i]))}
-        row["warnings"] = "; ".join(dict.fromkeys(records[p][1] + batch_warnings))
-        out[p] = row
+        out[p] = _ok_row(spec, records[p][0], np.asarray(res.x_hat[i]),
+                         np.asarray(res.theta_hat[i]), records[p][1] + batch_warnings)
 
 
 def estimate_many(model: str | Path, data: str | Path | Iterable[str | Path], *,
