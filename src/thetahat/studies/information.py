@@ -66,12 +66,12 @@ def stuck_parameters(system: Any, u: ArrayLike | None, y: ArrayLike, x_hat: Arra
     >>> from types import SimpleNamespace
     >>> g = parse_perturbation("Abs(theta)**2*(2 + sin(y))", u=[], y=["y"], x=["x"],
     ...                        theta=["theta"])
-    >>> sys = SimpleNamespace(perturbation=g, parameter_set=Box([-2.0], [2.0]))
+    >>> sys = SimpleNamespace(perturbation=g, parameter_set=Box([-1.0], [3.0]))
     >>> N = 50
     >>> msg = stuck_parameters(sys, None, np.ones((N, 1)), np.zeros((N, 1)), np.zeros((N, 1)),
     ...                        ["theta"])
     >>> msg.split(":")[0]
-    'no information reached the update law for theta'
+    'no information reached the update law for theta (θ̂ = 0)'
     """
     th = np.asarray(theta_hat, dtype=np.float64)
     N = th.shape[0]
