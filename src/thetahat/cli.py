@@ -197,7 +197,7 @@ def _estimate(args: argparse.Namespace) -> int:
             result = run_estimator(spec, data.t, data.u, data.y, hold=args.hold,
                                    nan_policy=args.nan_policy, progress=progress,
                                    method=args.method)
-        except ThetahatError as exc:
+        except (ThetahatError, ArithmeticError, ValueError) as exc:     # LinAlgError too
             raise explain_nonfinite(exc, spec.system, data.t, data.u, data.y,
                                     spec.estimator.x_hat0, spec.estimator.theta_hat0) from exc
     write_estimates(args.output, result, spec)                         # atomic

@@ -178,7 +178,9 @@ def explain_nonfinite(exc: BaseException, system: Any, t: ArrayLike, u: ArrayLik
                       theta_hat0: ArrayLike | None = None) -> BaseException:
     """The error to report for a run that failed with ``exc``: when g is undefined on the data
     (:func:`undefined_perturbation`), a :class:`~thetahat.errors.NonFiniteError` naming that
-    cause; else ``exc`` itself.
+    cause; a numerical failure outside thetahat's errors (``LinAlgError``, an overflow)
+    becomes a :class:`~thetahat.errors.SimulationError` with the scale of the data; else
+    ``exc`` itself.
 
     Parameters
     ----------
@@ -205,12 +207,21 @@ def explain_nonfinite(exc: BaseException, system: Any, t: ArrayLike, u: ArrayLik
     >>> type(err).__name__, str(err)[:40]
     ('NonFiniteError', 'g is undefined (NaN or inf) at t = 0, wi')
     """
-    from ..errors import NonFiniteError
+    from ..errors import NonFiniteError, SimulationError, ThetahatError
 
     try:
         cause = undefined_perturbation(system, t, u, y, x_hat0, theta_hat0)
     except Exception:  # noqa: BLE001 - a diagnosis must never hide the original failure
+        cause = None
+    if cause is not None:
+        return NonFiniteError(f"{cause} (the run then failed: {exc})")
+    if isinstance(exc, ThetahatError) or not isinstance(exc, (ArithmeticError, ValueError)):
         return exc
-    if cause is None:
-        return exc
-    return NonFiniteError(f"{cause} (the run then failed: {exc})")
+    with np.errstate(all="ignore"):
+        size = {name: float(np.nanmax(np.abs(a), initial=0.0)) for name, a in
+                (("u", np.asarray(u, dtype=np.float64) if u is not None else np.zeros(0)),
+                 ("y", np.asarray(y, dtype=np.float64)))}
+    return SimulationError(f"the run failed numerically ({type(exc).__name__}: {exc}); the "
+                           f"data reach |u| = {size['u']:.3g} and |y| = {size['y']:.3g}: "
+                           f"check that they are in the model's units and scale (the "
+                           f"observer's linear algebra fails once its state overflows).")
