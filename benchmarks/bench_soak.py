@@ -64,6 +64,15 @@ def rss_mb() -> float:
     return pages * os.sysconf("SC_PAGE_SIZE") / 1e6
 
 
+def peak_rss_mb() -> float:
+    """Peak resident set of this process in MB (``getrusage``; 0 where unavailable)."""
+    try:
+        import resource
+    except ImportError:
+        return 0.0
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1e3     # Linux: kB
+
+
 def one_period(spec) -> tuple[np.ndarray, np.ndarray]:
     """(u, y) over one period of the plant's periodic steady state, sampled at DT."""
     sysm = spec.system
@@ -188,6 +197,9 @@ def main(argv: list[str] | None = None) -> dict:
               f"{row['flat_mb']:+.1f} MB (limit {FLAT_LIMIT_MB:g}); θ̂ = {theta_hat:.6g} "
               f"(θ = {THETA:g}, error {row['theta_rel_error']:.2%}) {'ok' if row['ok'] else 'FAIL'}")
     out["ok"] = ok
+    out["process_peak_rss_mb"] = peak_rss_mb()
+    print(f"process peak resident set (interpreter, NumPy, SciPy, SymPy, numba and both "
+          f"streams): {out['process_peak_rss_mb']:.0f} MB")
     if args.json:
         args.json.parent.mkdir(parents=True, exist_ok=True)
         args.json.write_text(json.dumps(out, indent=2))
