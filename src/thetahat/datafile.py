@@ -240,23 +240,30 @@ def _header(path: Path, reader: Any, spec: ModelSpec) -> tuple[int, list[str], l
     else:
         raise ModelFileError(f"data file {path} is empty; expected a header row such as "
                              f"t,{','.join(spec.input_names + spec.output_names)}.")
-    twice = sorted({h for h in header if h and header.count(h) > 1})
+    cols = _find_columns(f"data file {path}, line {header_line}", header, spec)
+    index = [header.index(c) for c in cols]
+    return header_line, header, index
+
+
+def _find_columns(where: str, names: list[str], spec: ModelSpec) -> list[str]:
+    """The column names of t, u..., y... in a header: each present once, one name per signal."""
+    twice = sorted({h for h in names if h and names.count(h) > 1})
     if twice:
-        raise ModelFileError(f"data file {path}, line {header_line}: the column(s) {twice} "
-                             f"appear more than once in the header; rename or drop the copies.")
-    index = []
+        raise ModelFileError(f"{where}: the column(s) {twice} appear more than once in the "
+                             f"header; rename or drop the copies.")
+    cols = []
     for alts in column_candidates(spec):
-        found = [h for h in alts if h in header]
+        found = [h for h in alts if h in names]
         if not found:
             raise ModelFileError(
-                f"data file {path}: missing column {' or '.join(repr(a) for a in alts)} in the "
-                f"header (line {header_line}: {','.join(header)}); expected t, then the "
-                f"inputs {list(spec.input_names)} and the outputs {list(spec.output_names)}.")
+                f"{where}: missing column {' or '.join(repr(a) for a in alts)} in the header "
+                f"({','.join(names)}); expected t, then the inputs {list(spec.input_names)} "
+                f"and the outputs {list(spec.output_names)}.")
         if len(found) > 1:
-            raise ModelFileError(f"data file {path}, line {header_line}: the columns {found} "
-                                 f"name the same signal; keep one of them.")
-        index.append(header.index(found[0]))
-    return header_line, header, index
+            raise ModelFileError(f"{where}: the columns {found} name the same signal; keep one "
+                                 f"of them.")
+        cols.append(found[0])
+    return cols
 
 
 def _read_rows(path: Path, fh: Any, spec: ModelSpec, nan_policy: str) -> DataRecord:
@@ -474,20 +481,7 @@ def read_parquet(path: str | Path, spec: ModelSpec, *, nan_policy: str = "raise"
             table = pq.read_table(fh)
         except (OSError, ValueError) as exc:   # pyarrow's ArrowInvalid derives from ValueError
             raise ModelFileError(f"cannot read data file {path}: {exc}") from exc
-    names = table.column_names
-    twice = sorted({c for c in names if names.count(c) > 1})
-    if twice:
-        raise ModelFileError(f"data file {path}: the column(s) {twice} appear more than once.")
-    cols = []
-    for alts in column_candidates(spec):
-        found = [a for a in alts if a in names]
-        if not found:
-            raise ModelFileError(f"data file {path}: missing column "
-                                 f"{' or '.join(repr(a) for a in alts)}; it has {names}.")
-        if len(found) > 1:
-            raise ModelFileError(f"data file {path}: the columns {found} name the same "
-                                 f"signal; keep one of them.")
-        cols.append(found[0])
+    cols = _find_columns(f"data file {path}", table.column_names, spec)
     data = np.column_stack([_parquet_column(path, table.column(c), c, is_t=i == 0)
                             for i, c in enumerate(cols)])
     m = spec.system.m
