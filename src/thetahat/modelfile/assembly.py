@@ -15,6 +15,7 @@ from typing import cast
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from .._validate import as_samples, seconds_from_first
 from ..design.gains import GainDesign
 from ..errors import ModelFileError, NotMinimumPhaseError, ThetahatError, UnstableDesignError
 from ..estimation.checks import check_theta_star
@@ -269,6 +270,11 @@ def run_estimator(spec: ModelSpec, t: ArrayLike, u: ArrayLike | None, y: ArrayLi
     if how not in ESTIMATION_METHODS:
         raise ModelFileError(f"method must be one of {list(ESTIMATION_METHODS)}; got {how!r}.")
     x0, th0 = spec.estimator.x_hat0, spec.estimator.theta_hat0
+    # every method sees the same samples: masked entries as NaN, dates as seconds, booleans,
+    # text and dates in u or y refused
+    t = as_samples("t", seconds_from_first("t", t))
+    u = None if u is None else as_samples("u", u)
+    y = as_samples("y", y)
     if how == "mle":
         from ..estimation.mle import MapEstimator
         est_mle = MapEstimator(system=spec.system, compiled=compiled)
