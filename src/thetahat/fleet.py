@@ -211,6 +211,15 @@ def fleet_files(data: str | Path | Iterable[str | Path]) -> list[Path]:
     ------
     ModelFileError
         Nothing matches.
+    ArgumentTypeError
+        ``data`` is neither a path nor an iterable of paths.
+
+    Notes
+    -----
+    A path that exists is taken literally, even with ``[`` or ``*`` in its name; only a path
+    that does not exist is read as a glob (:func:`is_glob`). Entries of a directory or a glob
+    that are not regular files (a FIFO, a link to a device) are kept: reading them fails, and
+    their row says why.
     """
     if isinstance(data, (str, Path)):
         p = Path(data)
@@ -409,8 +418,10 @@ def estimate_many(model: str | Path, data: str | Path | Iterable[str | Path], *,
     Raises
     ------
     ModelFileError
-        The model file is bad or no data file matches (a bad *data* file is a row, not an
-        error).
+        The model file is bad, is not a regular file, or no data file matches (a bad, special
+        or unreadable *data* file is a row, not an error).
+    ArgumentTypeError
+        ``model`` is not a path, or ``data`` is not a path, a pattern or a list of paths.
     OptionError
         Unknown ``method`` or ``nan_policy``.
     EngineError
