@@ -21,8 +21,8 @@ from __future__ import annotations
 import contextlib
 import io
 import os
+import secrets
 import stat
-import tempfile
 from collections.abc import Iterable, Iterator
 from pathlib import Path
 from typing import IO
@@ -328,20 +328,16 @@ def atomic_path(path: str | Path) -> Iterator[Path]:
     path = Path(path)
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
-        fd, name = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.",
-                                    suffix=f".tmp{path.suffix}")
-        os.close(fd)
+        tmp = _new_temporary(path)
     except OSError as exc:
         raise FileAccessError(f"cannot write {path}: {exc}; choose a writable output "
                               f"path.") from exc
-    tmp = Path(name)
     try:
         yield tmp
-        mode = os.stat(path).st_mode & 0o777 if path.exists() else 0o666 & ~_umask()
         with open(tmp, "rb+") as fh:
-            fh.flush()
             os.fsync(fh.fileno())
-        os.chmod(tmp, mode)
+        if path.exists():                       # keep the mode of the file replaced
+            os.chmod(tmp, os.stat(path).st_mode & 0o7777)
         os.replace(tmp, path)
         _fsync_dir(path.parent)
     except OSError as exc:
@@ -352,10 +348,18 @@ def atomic_path(path: str | Path) -> Iterator[Path]:
             tmp.unlink()
 
 
-def _umask() -> int:
-    mask = os.umask(0)
-    os.umask(mask)
-    return mask
+def _new_temporary(path: Path) -> Path:
+    """A new empty file next to ``path``, created with mode 0666 less the umask (as ``open``
+    would create ``path`` itself), keeping the suffix."""
+    for _ in range(100):
+        tmp = path.with_name(f".{path.name}.{secrets.token_hex(6)}.tmp{path.suffix}")
+        try:
+            fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666)
+        except FileExistsError:
+            continue
+        os.close(fd)
+        return tmp
+    raise FileExistsError(f"no free temporary name next to {path}")
 
 
 def write_text(path: str | Path, text: str) -> Path:
