@@ -25,7 +25,7 @@ from .errors import MissingExtraError, ModelFileError
 from .estimation.observer import ObserverResult
 from .estimation.records import check_nan_policy
 from .modelfile import ModelSpec
-from .safe_io import atomic_path, check_writable, open_input
+from .safe_io import atomic_path, check_regular, check_writable, open_input
 
 __all__ = ["DataRecord", "DATA_SUFFIXES", "ESTIMATE_SUFFIXES", "column_candidates", "read_data",
            "read_csv", "read_parquet", "check_writable", "estimate_columns", "write_estimates",
@@ -143,7 +143,8 @@ def read_data(path: str | Path, spec: ModelSpec, *, nan_policy: str = "raise") -
     [0.0, 0.01]
     """
     check_nan_policy(nan_policy)
-    if Path(path).suffix.lower() == ".parquet":
+    path = check_regular(path, "data file", limits.MAX_DATA_FILE_BYTES)   # every format
+    if path.suffix.lower() == ".parquet":
         return read_parquet(path, spec, nan_policy=nan_policy)
     return read_csv(path, spec, nan_policy=nan_policy)
 
