@@ -359,7 +359,7 @@ def _new_temporary(path: Path) -> Path:
             continue
         os.close(fd)
         return tmp
-    raise FileExistsError(f"no free temporary name next to {path}")
+    raise FileAccessError(f"cannot write {path}: no free temporary name in its folder.")
 
 
 def write_text(path: str | Path, text: str) -> Path:
