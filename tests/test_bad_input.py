@@ -1148,3 +1148,17 @@ def test_one_sample_is_not_settled():
                           theta_hat=np.array([[0.5]]))
     text = estimate_summary(res, ["theta"])
     assert "not decided" in text and "settled (within" not in text
+
+
+def test_cli_y_of_1e30_is_a_one_line_error(tmp_path, capsys):
+    """LuGre with y = 1e30: the second observer's implicit step meets a singular matrix; the
+    CLI says so with the data's scale (exit 2), not "internal error"."""
+    lugre_model = Path(__file__).resolve().parents[1] / "examples" / "lugre.toml"
+    t = np.arange(2000) * 1e-3
+    data = tmp_path / "y30.csv"
+    np.savetxt(data, np.c_[t, np.sin(t), 1e30 + 0 * t], delimiter=",", header="t,u,y",
+               comments="")
+    out = tmp_path / "e.csv"
+    assert main(["estimate", str(lugre_model), str(data), "-o", str(out), "--no-progress"]) == 2
+    err = capsys.readouterr().err
+    assert "|y| = 1e+30" in err and "internal error" not in err and not out.exists()
