@@ -19,6 +19,8 @@ Run:  .venv/bin/python benchmarks/run_all.py [--quick] [--out out/bench.json]
   after the other in one process, and the cost comparisons run alone in this process.
 * bench_scb.py runs as a subprocess (n = 10, 50 with ``--quick``; its defaults otherwise); its
   rows go under ``scb``.
+* bench_soak.py runs as a subprocess (10⁷ samples; 2·10⁵ with ``--quick``): the streaming
+  soak's memory growth, θ̂ at the end and its checks go under ``soak``.
 
 Tunings, grid scores and the per-case robustness results go to out/bench_details.json.
 ``--quick`` is meant to finish in under two minutes.
@@ -41,6 +43,7 @@ import parallel
 HERE = Path(__file__).resolve().parent
 QUICK_BUDGET_S = 120.0
 QUICK_SCB_SIZES = ("10", "50")
+QUICK_SOAK_SAMPLES = 200_000
 
 
 def run_scb(quick: bool) -> list:
@@ -54,6 +57,23 @@ def run_scb(quick: bool) -> list:
         if proc.returncode != 0:
             print(f"bench_scb.py failed (exit {proc.returncode}):\n{proc.stderr}")
             return []
+        return json.loads(path.read_text())
+
+
+def run_soak(quick: bool) -> dict | None:
+    """bench_soak.py in a fresh interpreter (its memory figures must not include ours)."""
+    with tempfile.TemporaryDirectory() as tmp:
+        path = Path(tmp) / "soak.json"
+        cmd = [sys.executable, str(HERE / "bench_soak.py"), "--json", str(path)]
+        if quick:
+            cmd += ["--samples", str(QUICK_SOAK_SAMPLES)]
+        proc = subprocess.run(cmd, capture_output=True, text=True)
+        print(proc.stdout, end="")
+        if not path.exists():
+            print(f"bench_soak.py failed (exit {proc.returncode}):\n{proc.stderr}")
+            return None
+        if proc.returncode != 0:
+            print("bench_soak.py: a soak check FAILED (see above)")
         return json.loads(path.read_text())
 
 
@@ -77,6 +97,8 @@ def main() -> None:
         print("\n=== bench_guarded.py")
         payload["guarded_scenarios"] = bench_guarded.main(
             ["--seeds", "20", "--figure", str(args.out.with_name("guarded_crlb.png")), *jobs])
+    print("\n=== bench_soak.py" + (f" --samples {QUICK_SOAK_SAMPLES}" if args.quick else ""))
+    payload["soak"] = run_soak(args.quick)
     details = dict(lugre["details"])
     wall = time.perf_counter() - t0
     details["run_all_wall_s"] = wall

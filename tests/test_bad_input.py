@@ -24,7 +24,7 @@ from thetahat.estimation.update_laws import AlgebraicInversion, GradientInversio
 from thetahat.model.paramset import Box
 from thetahat.model.parse import parse_expression, parse_perturbation
 from thetahat.model.perturbation import SymbolicPerturbation
-from thetahat.modelfile import EXAMPLE_MODEL, build_observer, loads_model
+from thetahat.modelfile import EXAMPLE_MODEL, build_observer, loads_model, run_estimator
 from thetahat.studies.metrics import rmse, time_to_within
 from thetahat.simulation.signals import time_grid
 from thetahat.structure.scb import scb
@@ -510,3 +510,655 @@ def test_run_batch_refuses_complex_y():
     t = np.arange(5) * 0.01
     with pytest.raises(E.DimensionError, match="Y must be real"):
         run_batch(obs, t, np.zeros((2, 5)), np.zeros((2, 5)) + 1j)
+
+
+# =============================================================================================
+# Round two (issue 22): nothing lost, nothing hangs, nothing silent
+# =============================================================================================
+
+import json as _json
+import os
+import signal
+import subprocess
+import sys
+from pathlib import Path
+
+from thetahat import limits
+from thetahat.fleet import FleetResult, estimate_many, fleet_files, is_glob
+from thetahat.safe_io import atomic_path, check_regular, write_text
+from thetahat.studies.information import (explain_nonfinite, stuck_parameters,
+                                          undefined_perturbation)
+from thetahat.studies.metrics import estimate_summary
+from thetahat.structure.assumptions import check_assumption_1
+
+#: Seconds after which a read that should have been refused counts as a hang (the issue's
+#: acceptance: no hang past 10 s).
+HANG_SECONDS = 10
+
+
+@pytest.fixture
+def no_hang():
+    """Turn a hang into a failure: SIGALRM interrupts a blocking open() or read()."""
+    def on_alarm(signum, frame):
+        raise TimeoutError(f"hung for {HANG_SECONDS} s")
+
+    old = signal.signal(signal.SIGALRM, on_alarm)
+    signal.alarm(HANG_SECONDS)
+    yield
+    signal.alarm(0)
+    signal.signal(signal.SIGALRM, old)
+
+
+def _record(path: Path, N: int = 200, *, y_scale: float = 0.1) -> Path:
+    t = np.arange(N) * 0.01
+    rows = "\n".join(f"{float(ti)!r},{float(np.sin(ti))!r},{float(y_scale * np.cos(ti))!r}"
+                     for ti in t)
+    path.write_text("t,u,y\n" + rows + "\n", encoding="utf-8")
+    return path
+
+
+@pytest.fixture
+def files(tmp_path):
+    """A model file and a record, with their bytes to check that nothing was overwritten."""
+    model = _write(tmp_path, "m.toml", EXAMPLE_MODEL)
+    data = _record(tmp_path / "d.csv")
+    return model, data, {model: model.read_bytes(), data: data.read_bytes()}
+
+
+def _unchanged(before: dict) -> bool:
+    return all(p.read_bytes() == b for p, b in before.items())
+
+
+def _leftovers(folder: Path) -> list[str]:
+    return [p.name for p in folder.iterdir() if ".tmp" in p.name]
+
+
+# --- data loss: an output never replaces an input ---------------------------------------------
+
+def _link(tmp_path, target, kind):
+    out = tmp_path / f"{kind}.csv"
+    (os.symlink if kind == "symlink" else os.link)(target, out)
+    return out
+
+
+OUTPUT_ON_INPUT = [
+    ("data", lambda p, m, d: d, "is an input"),
+    ("model", lambda p, m, d: m, "is an input"),
+    ("symlink to data", lambda p, m, d: _link(p, d, "symlink"), "is an input"),
+    ("hard link to data", lambda p, m, d: _link(p, d, "hardlink"), "is an input"),
+    ("data via ..", lambda p, m, d: p / "sub" / ".." / d.name, "is an input"),
+]
+
+
+@pytest.mark.parametrize("name,output,words", OUTPUT_ON_INPUT, ids=[c[0] for c in OUTPUT_ON_INPUT])
+def test_estimate_never_writes_over_an_input(tmp_path, files, capsys, name, output, words):
+    model, data, before = files
+    (tmp_path / "sub").mkdir()
+    out = output(tmp_path, model, data)
+    assert main(["estimate", str(model), str(data), "-o", str(out), "--no-progress"]) == 2
+    assert words in capsys.readouterr().err
+    assert _unchanged(before)
+
+
+def test_estimate_refuses_an_unknown_output_suffix_before_the_work(files, tmp_path, capsys):
+    model, data, _ = files
+    start = time.perf_counter()
+    assert main(["estimate", str(model), str(data), "-o", str(tmp_path / "e.txt")]) == 2
+    assert "suffix must be one of .csv, .parquet" in capsys.readouterr().err
+    assert not (tmp_path / "e.txt").exists() and time.perf_counter() - start < FAST_SECONDS
+
+
+PLOT_CASES = [
+    ("bad suffix", lambda p, d: p / "fig.xyz", "suffix must be one of .png"),
+    ("same as -o", lambda p, d: p / "e.csv", "is also the estimates output"),
+    ("the data file", lambda p, d: d, "is an input"),
+    ("folder under a file", lambda p, d: d / "fig.png", "not a writable folder"),
+]
+
+
+@pytest.mark.parametrize("name,plot,words", PLOT_CASES, ids=[c[0] for c in PLOT_CASES])
+def test_plot_path_is_checked_before_the_work(tmp_path, files, capsys, name, plot, words):
+    model, data, before = files
+    out = tmp_path / "e.csv"
+    assert main(["estimate", str(model), str(data), "-o", str(out), "--plot",
+                 str(plot(tmp_path, data)), "--no-progress"]) == 2
+    assert words in capsys.readouterr().err
+    assert not out.exists()                       # refused before the estimates were written
+    assert _unchanged(before)
+
+
+def test_single_record_parquet_output_is_parquet(tmp_path, files):
+    pq = pytest.importorskip("pyarrow.parquet")
+    from thetahat.datafile import estimate_columns
+
+    model, data, _ = files
+    out = tmp_path / "e.parquet"
+    assert main(["estimate", str(model), str(data), "-o", str(out), "--no-progress"]) == 0
+    table = pq.read_table(out)
+    assert tuple(table.column_names) == estimate_columns(loads_model(EXAMPLE_MODEL),
+                                                         refined=True)
+    np.testing.assert_array_equal(table.column("t").to_numpy(), np.arange(200) * 0.01)
+
+
+def test_atomic_write_keeps_the_old_file_on_failure(tmp_path):
+    out = tmp_path / "e.csv"
+    out.write_text("old")
+    with pytest.raises(RuntimeError):
+        with atomic_path(out) as tmp:
+            tmp.write_text("half of the new cont")
+            raise RuntimeError("disk full")
+    assert out.read_text() == "old" and _leftovers(tmp_path) == []
+
+
+def test_atomic_write_replaces_and_keeps_the_mode(tmp_path):
+    out = tmp_path / "e.json"
+    out.write_text("old")
+    out.chmod(0o640)
+    write_text(out, "{}")
+    assert out.read_text() == "{}" and (out.stat().st_mode & 0o777) == 0o640
+    assert _leftovers(tmp_path) == []
+
+
+def test_file_size_limit_leaves_the_old_output(tmp_path):
+    """`ulimit -f` during the write: the write fails, the old output is intact (issue 22)."""
+    out = tmp_path / "big.csv"
+    out.write_text("the old estimates\n")
+    code = ("import resource, signal, sys\n"
+            "signal.signal(signal.SIGXFSZ, signal.SIG_IGN)\n"
+            "resource.setrlimit(resource.RLIMIT_FSIZE, (50 * 1024, 50 * 1024))\n"
+            "from thetahat.safe_io import write_text\n"
+            "from thetahat.errors import FileAccessError\n"
+            "try:\n"
+            f"    write_text({str(out)!r}, 'x' * 200_000)\n"
+            "except FileAccessError as exc:\n"
+            "    print('refused:', exc); sys.exit(0)\n"
+            "sys.exit(1)\n")
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join(sys.path))
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                          timeout=120, env=env, check=False)
+    assert proc.returncode == 0, proc.stderr
+    assert "File too large" in proc.stdout
+    assert out.read_text() == "the old estimates\n" and _leftovers(tmp_path) == []
+
+
+def test_sweep_output_may_not_be_its_model(tmp_path, capsys):
+    model = _write(tmp_path, "sweep.json", "{}")
+    before = model.read_bytes()
+    assert main(["sweep", str(model), "--out", str(tmp_path)]) == 2
+    assert "is an input" in capsys.readouterr().err and model.read_bytes() == before
+
+
+@pytest.fixture
+def fleet(tmp_path):
+    d = tmp_path / "fleet"
+    d.mkdir()
+    for i in range(2):
+        _record(d / f"r{i}.csv", y_scale=0.1 * (i + 1))
+    model = _write(tmp_path, "m.toml", EXAMPLE_MODEL)
+    return model, d
+
+
+FLEET_OUTPUTS = [
+    ("a record", lambda d: d / "r0.csv", "is an input"),
+    ("new file in the fleet folder", lambda d: d / "results.csv", "fleet's folder"),
+    (".txt", lambda d: d.parent / "results.txt", "suffix must be one of .csv, .parquet"),
+    ("the model", lambda d: d.parent / "m.toml", "is an input"),
+]
+
+
+@pytest.mark.parametrize("name,output,words", FLEET_OUTPUTS, ids=[c[0] for c in FLEET_OUTPUTS])
+def test_fleet_output_is_checked_before_the_work(fleet, capsys, name, output, words):
+    model, d = fleet
+    before = {p: p.read_bytes() for p in [model, *d.iterdir()]}
+    start = time.perf_counter()
+    assert main(["estimate", str(model), str(d), "-o", str(output(d)), "--no-progress"]) == 2
+    assert words in capsys.readouterr().err
+    assert _unchanged(before) and time.perf_counter() - start < FAST_SECONDS
+
+
+def test_fleet_result_write_refuses_its_inputs(fleet):
+    model, d = fleet
+    res = estimate_many(model, d, progress=False)
+    with pytest.raises(E.ModelFileError, match="is an input"):
+        res.write(d / "r1.csv")
+    with pytest.raises(E.ModelFileError, match="suffix"):
+        res.write(d.parent / "res.xlsx")
+
+
+# --- hangs: only regular files are read --------------------------------------------------------
+
+def _fifo(tmp_path, name):
+    path = tmp_path / name
+    os.mkfifo(path)
+    return path
+
+
+def _devlink(tmp_path, name, device="/dev/zero"):
+    path = tmp_path / name
+    os.symlink(device, path)
+    return path
+
+
+SPECIAL_MODEL = [
+    ("fifo", lambda p: _fifo(p, "m.toml"), "FIFO"),
+    ("symlink to /dev/zero", lambda p: _devlink(p, "m.toml"), "character device"),
+    ("symlink to /dev/urandom", lambda p: _devlink(p, "m.json", "/dev/urandom"),
+     "character device"),
+]
+
+
+@pytest.mark.parametrize("name,make,words", SPECIAL_MODEL, ids=[c[0] for c in SPECIAL_MODEL])
+def test_analyze_refuses_special_model_files(tmp_path, capsys, no_hang, name, make, words):
+    assert main(["analyze", str(make(tmp_path))]) == 2
+    err = capsys.readouterr().err
+    assert words in err and "only regular files" in err
+
+
+SPECIAL_DATA = [
+    ("/dev/zero", lambda p: Path("/dev/zero"), "character device"),
+    ("fifo", lambda p: _fifo(p, "d.csv"), "FIFO"),
+    ("symlink to /dev/zero", lambda p: _devlink(p, "d.csv"), "character device"),
+    ("fifo parquet", lambda p: _fifo(p, "d.parquet"), "FIFO"),
+]
+
+
+@pytest.mark.parametrize("name,make,words", SPECIAL_DATA, ids=[c[0] for c in SPECIAL_DATA])
+def test_estimate_refuses_special_data_files(tmp_path, capsys, no_hang, name, make, words):
+    model = _write(tmp_path, "m.toml", EXAMPLE_MODEL)
+    assert main(["estimate", str(model), str(make(tmp_path)), "-o", str(tmp_path / "e.csv"),
+                 "--no-progress"]) == 2
+    assert words in capsys.readouterr().err
+
+
+def test_fleet_reports_special_entries_as_failed_rows(fleet, no_hang):
+    model, d = fleet
+    _fifo(d, "pipe.csv")
+    _devlink(d, "zero.csv")
+    res = estimate_many(model, d, progress=False)
+    assert res.n_ok == 2
+    assert "FIFO" in res.failed[str(d / "pipe.csv")]
+    assert "character device" in res.failed[str(d / "zero.csv")]
+
+
+def test_model_file_size_limit(tmp_path, monkeypatch):
+    from thetahat.modelfile import load_model
+
+    monkeypatch.setattr(limits, "MAX_MODEL_FILE_BYTES", 100)
+    path = _write(tmp_path, "m.toml", EXAMPLE_MODEL)
+    with pytest.raises(E.InputLimitError, match="MAX_MODEL_FILE_BYTES|more than the limit"):
+        load_model(path)
+
+
+def test_data_file_size_limit(tmp_path, spec, monkeypatch):
+    monkeypatch.setattr(limits, "MAX_DATA_FILE_BYTES", 1000)
+    with pytest.raises(E.InputLimitError, match="more than the limit of 1000 bytes"):
+        read_data(_record(tmp_path / "d.csv"), spec)
+
+
+def test_check_regular_refuses_a_directory(tmp_path):
+    with pytest.raises(E.ModelFileError, match="it is a directory"):
+        check_regular(tmp_path, "data file")
+
+
+# --- names: NFKC, as formulas -----------------------------------------------------------------
+
+NAME_CASES = [
+    ({"x": ["eta", "\uff45ta"]}, "declared twice"),                   # full-width e
+    ({"x": ["x1", "x2"], "theta": ["\u00b5"], "y": ["\u03bc"]}, "declared twice"),
+    ({"x": ["\ufb01x", "fix"]}, "declared twice"),                    # the ligature fi
+]
+
+
+@pytest.mark.parametrize("groups,words", NAME_CASES, ids=["fullwidth", "micro-mu", "ligature"])
+def test_look_alike_names_are_refused(groups, words):
+    names = {"u": [], "y": ["y"], "x": ["x1", "x2"], "theta": ["theta"], **groups}
+    with pytest.raises(E.ModelFileError, match=words):
+        parse_perturbation(f"{names['theta'][0]}*{names['y'][0]}", **names)
+
+
+def test_look_alike_constants_are_refused():
+    with pytest.raises(E.ModelFileError, match="NFKC"):
+        parse_perturbation("y*theta", **NAMES, constants={"\u03bc0": 1.0, "\u00b50": 2.0})
+
+
+def test_a_full_width_name_is_the_ascii_name():
+    """Python reads the formula's identifiers in NFKC; the declared name is read the same."""
+    g = parse_perturbation("eta*theta", u=[], y=["y"], x=["\uff45ta"], theta=["theta"])
+    assert float(g.g([1.0], [3.0], [2.0])[0]) == 6.0
+
+
+def test_model_file_look_alike_states(tmp_path):
+    text = _model('x = ["x1", "x2"]', 'x = ["x1", "\uff58\uff11"]')      # full-width x1
+    with pytest.raises(E.ModelFileError, match="declared twice"):
+        loads_model(text)
+
+
+# --- numbers ------------------------------------------------------------------------------------
+
+NUMBER_CASES = [
+    ("((theta**100)**100)**100*y", E.InputLimitError, "product of nested exponents"),
+    ("(y**50*theta)**3", E.InputLimitError, "exponent of 150"),
+    ("sqrt((theta**60)**2)*y", E.InputLimitError, "exponent of 120"),
+]
+
+
+@pytest.mark.parametrize("text,error,words", NUMBER_CASES,
+                         ids=[f"nested{i}" for i in range(len(NUMBER_CASES))])
+def test_nested_exponents_multiply(text, error, words):
+    with pytest.raises(error, match=re.escape(words)):
+        parse_perturbation(text, **NAMES)
+
+
+def test_nested_exponents_within_the_limit_parse():
+    g = parse_perturbation("(theta**2)**3*y", **NAMES)              # exponent 6
+    assert float(g.g([0.0, 2.0], [0.0, 0.0], [2.0])[0]) == 128.0
+
+
+BIG = "1" + "0" * 400
+HUGE_NUMBERS = [
+    ("json matrix", '{"system": {"A": [[' + BIG + ', 1], [0, 0]]}}', "json", "system.A[0][0]"),
+    ("toml eps", _model("eps = 0.5", f"eps = {BIG}"), "toml", "estimator.eps"),
+    ("toml bound", _model("upper = [2.0]", f"upper = [{BIG}]"), "toml",
+     "parameter_set.upper[0]"),
+    ("toml constant", _model("[perturbation]", "[perturbation]\nconstants = {c = " + BIG + "}"),
+     "toml", "perturbation.constants.c"),
+]
+
+
+@pytest.mark.parametrize("name,text,syntax,where", HUGE_NUMBERS, ids=[c[0] for c in HUGE_NUMBERS])
+def test_huge_integers_name_their_field(name, text, syntax, where):
+    with pytest.raises(E.ModelFileError, match=re.escape(where) + ".*401 digits"):
+        loads_model(text, syntax=syntax)
+
+
+def test_huge_integer_constant_in_the_api():
+    with pytest.raises(E.ModelFileError, match="401 digits"):
+        parse_perturbation("y*theta*c", **NAMES, constants={"c": int(BIG)})
+
+
+def test_json_duplicate_keys_are_refused():
+    doc = '{"name": "a", "name": "b"}'
+    with pytest.raises(E.ModelFileError, match="'name' is given twice"):
+        loads_model(doc, syntax="json")
+
+
+def test_huge_eps_is_a_design_error(tmp_path, capsys):
+    model = _write(tmp_path, "m.toml", _model("eps = 0.5", "eps = 1e300"))
+    data = _record(tmp_path / "d.csv")
+    assert main(["estimate", str(model), str(data), "-o", str(tmp_path / "e.csv"),
+                 "--no-progress"]) == 2
+    assert "too large" in capsys.readouterr().err
+
+
+def test_analyze_huge_matrix_entries(tmp_path, capsys):
+    model = _write(tmp_path, "m.toml", _model("A = [[0.0, 1.0], [-1.0, -0.5]]",
+                                              "A = [[0.0, 1e308], [-1.0, -0.5]]"))
+    assert main(["analyze", str(model)]) == 2
+    err = capsys.readouterr().err
+    assert "[system]" in err and "MAX_MATRIX_ENTRY" in err
+
+
+def test_check_assumption_1_refuses_entries_of_1e300():
+    with pytest.raises(E.InputLimitError, match=r"A\[0, 1\] = 1e\+300"):
+        check_assumption_1([[0.0, 1e300], [-1.0, 0.0]], [[0.0], [1.0]], [[1.0, 0.0]])
+
+
+def test_linalg_failure_names_the_data_scale():
+    g = _pert("theta*y")
+    system = type("S", (), {"perturbation": g, "parameter_set": Box([0.0], [1.0])})()
+    err = explain_nonfinite(np.linalg.LinAlgError("Singular matrix"), system, [0.0, 0.1],
+                            None, [[1e30], [1e30]], [0.0], [0.5])
+    assert isinstance(err, E.SimulationError) and "|y| = 1e+30" in str(err)
+
+
+# --- types of data --------------------------------------------------------------------------------
+
+T_API = np.arange(200) * 0.01
+
+
+def _api_run(y, **kw):
+    spec_ = loads_model(EXAMPLE_MODEL)
+    t = kw.pop("t", T_API)
+    return run_estimator(spec_, t, np.sin(T_API), y, **kw)
+
+
+def test_masked_y_is_refused_under_raise():
+    y = np.ma.masked_array(0.1 * np.cos(T_API), mask=T_API > 1.0)
+    with pytest.raises(E.NonFiniteError, match="y contains NaN"):
+        _api_run(y)
+
+
+def test_masked_y_is_a_dropout_under_skip():
+    y = 0.1 * np.cos(T_API)
+    masked = np.ma.masked_array(y, mask=(T_API > 1.0) & (T_API < 1.2))
+    filled = np.where(masked.mask, np.nan, y)
+    a = _api_run(masked, nan_policy="skip")
+    b = _api_run(filled, nan_policy="skip")
+    np.testing.assert_array_equal(a.theta_hat, b.theta_hat)
+    assert a.skipped.sum() == masked.mask.sum()
+
+
+def test_datetime_t_is_seconds_from_the_first_sample():
+    stamps = np.datetime64("2024-05-01T12:00:00") + (T_API * 1e6).astype("timedelta64[us]")
+    a = _api_run(0.1 * np.cos(T_API), t=stamps)
+    b = _api_run(0.1 * np.cos(T_API))
+    np.testing.assert_allclose(a.t, T_API, rtol=0, atol=1e-12)   # µs stamps: exact to 1e-12
+    np.testing.assert_allclose(a.theta_hat, b.theta_hat, rtol=0, atol=1e-9)
+
+
+SAMPLE_TYPES = [
+    ("bool y", lambda: np.cos(T_API) > 0, "booleans"),
+    ("text y", lambda: np.array(["0.1"] * 200), "text"),
+    ("text list y", lambda: ["a"] * 200, "text"),
+    ("datetime y", lambda: np.datetime64("2024-01-01") + np.arange(200).astype("timedelta64[s]"),
+     "dates or times"),
+]
+
+
+@pytest.mark.parametrize("name,y,words", SAMPLE_TYPES, ids=[c[0] for c in SAMPLE_TYPES])
+def test_samples_of_the_wrong_kind_are_refused(name, y, words):
+    with pytest.raises(E.DimensionError, match=words):
+        _observer().run(T_API, np.sin(T_API), y())
+
+
+CSV_ROUND_TWO = [
+    ("t,u,y\n0,0,1_000\n0.01,0,0\n", "digit separators"),
+    ("t,u,y,y\n0,0,0,1\n0.01,0,0,1\n", "appear more than once"),
+    ("t,u,y,y1\n0,0,0,1\n0.01,0,0,1\n", "name the same signal"),
+    ("t,u,y\n0,0,0.1\n", "one data row"),
+    ("t,u,y\n2024-01-01T00:00:00,0,0\n2024-01-01T00:00:01,0,0\n", "not a date or time"),
+    ("t,u,y\n0,True,0\n0.01,False,0\n", "'True' is not a number"),
+]
+
+
+@pytest.mark.parametrize("text,words", CSV_ROUND_TWO,
+                         ids=[f"csv-r2-{i}" for i in range(len(CSV_ROUND_TWO))])
+def test_csv_round_two_refuses(tmp_path, spec, text, words):
+    path = _write(tmp_path, "d.csv", text)
+    with pytest.raises(E.ModelFileError, match=re.escape(words)):
+        read_data(path, spec)
+
+
+def _parquet(tmp_path, columns, name="d.parquet"):
+    pa = pytest.importorskip("pyarrow")
+    pq = pytest.importorskip("pyarrow.parquet")
+    path = tmp_path / name
+    pq.write_table(pa.table(columns), path)
+    return path
+
+
+def test_single_parquet_file_is_read(tmp_path, spec, capsys):
+    t = np.arange(50) * 0.01
+    path = _parquet(tmp_path, {"t": t, "u": np.sin(t), "y": 0.1 * np.cos(t)})
+    rec = read_data(path, spec)
+    np.testing.assert_array_equal(rec.y.ravel(), 0.1 * np.cos(t))
+    model = _write(tmp_path, "m.toml", EXAMPLE_MODEL)
+    assert main(["estimate", str(model), str(path), "-o", str(tmp_path / "e.csv"),
+                 "--no-progress"]) == 0
+    assert "wrote" in capsys.readouterr().out
+
+
+def test_parquet_timestamp_t_is_seconds(tmp_path, spec):
+    t = np.arange(50) * 0.01
+    stamps = np.datetime64("2024-05-01T00:00:00", "ns") + (t * 1e9).astype("timedelta64[ns]")
+    rec = read_data(_parquet(tmp_path, {"t": stamps, "u": np.sin(t), "y": np.cos(t)}), spec)
+    np.testing.assert_allclose(rec.t, t, rtol=0, atol=1e-12)
+
+
+PARQUET_REFUSED = [
+    ("bool y", lambda t: {"t": t, "u": t, "y": t > 0.1}, "booleans and text"),
+    ("text u", lambda t: {"t": t, "u": [str(v) for v in t], "y": t}, "booleans and text"),
+    ("timestamp y", lambda t: {"t": t, "u": t, "y": np.datetime64("2024-01-01", "ns")
+                               + np.arange(t.size).astype("timedelta64[s]")}, "dates or times"),
+    ("one row", lambda t: {"t": t[:1], "u": t[:1], "y": t[:1]}, "at least two rows"),
+]
+
+
+@pytest.mark.parametrize("name,columns,words", PARQUET_REFUSED, ids=[c[0] for c in PARQUET_REFUSED])
+def test_parquet_refuses(tmp_path, spec, name, columns, words):
+    path = _parquet(tmp_path, columns(np.arange(20) * 0.01))
+    with pytest.raises(E.ModelFileError, match=re.escape(words)):
+        read_data(path, spec)
+
+
+# --- brackets in paths are literal when the file exists ----------------------------------------
+
+def test_brackets_in_an_existing_path_are_literal(tmp_path, capsys):
+    model = _write(tmp_path, "m.toml", EXAMPLE_MODEL)
+    real = _record(tmp_path / "data[1].csv", N=150)
+    _record(tmp_path / "data1.csv", N=120)             # what the glob would have matched
+    assert not is_glob(real) and fleet_files(str(real)) == [real]
+    assert main(["estimate", str(model), str(real), "-o", str(tmp_path / "e.csv"),
+                 "--no-progress"]) == 0
+    assert "(150 rows)" in capsys.readouterr().out
+
+
+def test_brackets_glob_when_no_such_file(tmp_path):
+    for name in ("data1.csv", "data2.csv"):
+        _record(tmp_path / name, N=20)
+    pattern = str(tmp_path / "data[12].csv")
+    assert is_glob(pattern) and len(fleet_files(pattern)) == 2
+
+
+# --- the API: typed errors, not bare builtins ----------------------------------------------------
+
+API_ROUND_TWO = [
+    ("Box text", lambda: Box(["a"], ["b"]), E.ParameterSetError, "text"),
+    ("Box ragged", lambda: Box([[0.0, 1.0], [2.0]], [1.0, 2.0]), E.ParameterSetError,
+     "numeric array"),
+    ("time_to_within rel<0", lambda: time_to_within([0.0, 1.0], [1.0, 1.0], 1.0, -0.1),
+     E.DimensionError, "rel must be > 0"),
+    ("estimate_many data=42", lambda: estimate_many(_EXAMPLE_PATH, 42), E.ArgumentTypeError,
+     "data must be a folder"),
+    ("estimate_many model=42", lambda: estimate_many(42, "."), E.ArgumentTypeError,
+     "model must be the path"),
+    ("estimate_many list of ints", lambda: estimate_many(_EXAMPLE_PATH, [1, 2]),
+     E.ArgumentTypeError, "each record must be a path"),
+    ("observer y of text", lambda: _observer().run(np.arange(3.0), np.zeros(3), ["a", "b", "c"]),
+     E.DimensionError, "text"),
+]
+
+
+@pytest.fixture(scope="module", autouse=True)
+def _example_path(tmp_path_factory):
+    global _EXAMPLE_PATH
+    _EXAMPLE_PATH = tmp_path_factory.mktemp("example") / "m.toml"
+    _EXAMPLE_PATH.write_text(EXAMPLE_MODEL, encoding="utf-8")
+
+
+_EXAMPLE_PATH: Path = Path("m.toml")
+
+
+@pytest.mark.parametrize("name,call,error,words", API_ROUND_TWO, ids=[c[0] for c in API_ROUND_TWO])
+def test_api_round_two_refuses(name, call, error, words):
+    with pytest.raises(error, match=re.escape(words)):
+        call()
+
+
+# --- g undefined on the data, stuck estimates, one-sample summaries ------------------------------
+
+UNDEFINED_G = [
+    ("sqrt(y - 10)*theta", [0.0, 2.0], "θ̂(0)"),
+    ("y/theta", [0.0, 2.0], "θ = [0.]"),
+    ("log(theta)*y", [0.0, 2.0], "θ = [0.]"),
+]
+
+
+@pytest.mark.parametrize("g,bounds,words", UNDEFINED_G, ids=["sqrt", "division", "log"])
+def test_undefined_g_is_named_with_its_instant(g, bounds, words):
+    pert = parse_perturbation(g, u=[], y=["y"], x=["x"], theta=["theta"])
+    system = type("S", (), {"perturbation": pert, "parameter_set": Box(*map(list, zip(bounds))
+                                                                            )})()
+    msg = undefined_perturbation(system, [0.0, 0.5], None, [[1.0], [2.0]], [0.0], [0.0])
+    assert msg is not None and "g is undefined" in msg and "t = 0" in msg and words in msg
+
+
+def test_cli_names_g_undefined_instead_of_divergence(tmp_path, capsys):
+    model = _write(tmp_path, "m.toml", _model('g = "(2 + sin(y))*(theta + theta**3/3)"',
+                                              'g = "sqrt(y - 10)*theta"'))
+    data = _record(tmp_path / "d.csv")
+    assert main(["estimate", str(model), str(data), "-o", str(tmp_path / "e.csv"),
+                 "--no-progress"]) == 2
+    err = capsys.readouterr().err
+    assert "g is undefined (NaN or inf) at t = 0" in err
+
+
+def test_stuck_estimate_is_reported(tmp_path, capsys):
+    """g = sqrt|θ|(2 + sin y) from θ̂(0) = 0: ∂g/∂θ vanishes there, θ̂ never moves."""
+    model = _write(tmp_path, "m.toml", _model('g = "(2 + sin(y))*(theta + theta**3/3)"',
+                                              'g = "Abs(theta)**0.5*(2 + sin(y))"'))
+    data = _record(tmp_path / "d.csv")
+    assert main(["estimate", str(model), str(data), "-o", str(tmp_path / "e.csv"),
+                 "--no-progress"]) == 0
+    assert "no information reached the update law for theta" in capsys.readouterr().out
+
+
+def test_informative_run_is_not_reported_stuck(tmp_path, capsys):
+    model = _write(tmp_path, "m.toml", EXAMPLE_MODEL)
+    data = _record(tmp_path / "d.csv")
+    assert main(["estimate", str(model), str(data), "-o", str(tmp_path / "e.csv"),
+                 "--no-progress"]) == 0
+    assert "no information" not in capsys.readouterr().out
+
+
+def test_fleet_row_reports_a_stuck_estimate(tmp_path):
+    model = _write(tmp_path, "m.toml", _model('g = "(2 + sin(y))*(theta + theta**3/3)"',
+                                              'g = "Abs(theta)**0.5*(2 + sin(y))"'))
+    d = tmp_path / "f"
+    d.mkdir()
+    _record(d / "a.csv")
+    res = estimate_many(model, d, progress=False)
+    assert res.n_ok == 1 and "no information" in res.rows[0]["warnings"]
+
+
+def test_stuck_parameters_direct():
+    g = parse_perturbation("Abs(theta)**0.5*(2 + sin(y))", u=[], y=["y"], x=["x"],
+                           theta=["theta"])
+    system = type("S", (), {"perturbation": g, "parameter_set": Box([-1.0], [3.0])})()
+    N = 20
+    y = np.linspace(0.0, 1.0, N)[:, None]
+    assert stuck_parameters(system, None, y, np.zeros((N, 1)), np.zeros((N, 1)), ["a"])
+    assert stuck_parameters(system, None, y, np.zeros((N, 1)), np.ones((N, 1)), ["a"]) is None
+
+
+def test_one_sample_is_not_settled():
+    from types import SimpleNamespace
+
+    res = SimpleNamespace(t=np.array([0.0]), skipped=np.zeros(1, bool),
+                          theta_hat=np.array([[0.5]]))
+    text = estimate_summary(res, ["theta"])
+    assert "not decided" in text and "settled (within" not in text
+
+
+def test_cli_y_of_1e30_is_a_one_line_error(tmp_path, capsys):
+    """LuGre with y = 1e30: the second observer's implicit step meets a singular matrix; the
+    CLI says so with the data's scale (exit 2), not "internal error"."""
+    lugre_model = Path(__file__).resolve().parents[1] / "examples" / "lugre.toml"
+    t = np.arange(2000) * 1e-3
+    data = tmp_path / "y30.csv"
+    np.savetxt(data, np.c_[t, np.sin(t), 1e30 + 0 * t], delimiter=",", header="t,u,y",
+               comments="")
+    out = tmp_path / "e.csv"
+    assert main(["estimate", str(lugre_model), str(data), "-o", str(out), "--no-progress"]) == 2
+    err = capsys.readouterr().err
+    assert "|y| = 1e+30" in err and "internal error" not in err and not out.exists()

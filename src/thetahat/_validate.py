@@ -13,7 +13,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from .errors import DimensionError, NonFiniteError
+from .errors import DimensionError, InputLimitError, NonFiniteError
 
 FloatArray = NDArray[np.float64]
 
@@ -42,13 +42,7 @@ def as_matrix(name: str, M: Any, shape: tuple[int | None, int | None] = (None, N
     Scalars and 1-D input are *not* silently reshaped except a scalar for a (1, 1) matrix:
     a 1-D array is ambiguous (row or column), so the message says which one was expected.
     """
-    arr = np.asarray(M)
-    if np.iscomplexobj(arr):
-        raise DimensionError(f"{name} must be real; got a complex array.")
-    try:
-        arr = arr.astype(np.float64, copy=False)
-    except (TypeError, ValueError) as exc:
-        raise DimensionError(f"{name} must be a numeric matrix; got {type(M).__name__}.") from exc
+    arr = _real_array(name, M)
     if arr.ndim == 0 and shape in ((1, 1), (None, None), (1, None), (None, 1)):
         arr = arr.reshape(1, 1)
     if arr.ndim != 2:
@@ -94,14 +88,64 @@ def as_square(name: str, M: Any, n: int | None = None) -> FloatArray:
 
 
 def _real_array(name: str, M: Any) -> FloatArray:
-    """``M`` as a float64 array of any shape; complex or non-numeric input is refused."""
-    arr = np.asarray(M)
-    if np.iscomplexobj(arr):
-        raise DimensionError(f"{name} must be real; got a complex array.")
+    """``M`` as a float64 array of any shape.
+
+    Complex numbers, booleans, text, dates and other non-numbers are refused; the masked
+    entries of a masked array become NaN (so the caller's NaN rule applies: refused, or a
+    dropout of an output under ``nan_policy="skip"``); integers too large for float64 are
+    refused.
+    """
+    if isinstance(M, np.ma.MaskedArray):
+        if M.dtype.kind not in "biuf":
+            raise DimensionError(f"{name} must be real numbers; got a masked array of "
+                                 f"{M.dtype}.")
+        M = np.ma.filled(M.astype(np.float64), np.nan)
     try:
-        return arr.astype(np.float64, copy=False)
-    except (TypeError, ValueError) as exc:
-        raise DimensionError(f"{name} must be a numeric matrix; got {type(M).__name__}.") from exc
+        arr = np.asarray(M)
+    except (TypeError, ValueError, OverflowError) as exc:
+        raise DimensionError(f"{name} must be a numeric array; got {type(M).__name__} "
+                             f"({exc}).") from exc
+    kind = arr.dtype.kind
+    if kind == "c":
+        raise DimensionError(f"{name} must be real; got a complex array.")
+    if kind == "b":
+        raise DimensionError(f"{name} must be real numbers; got booleans (convert them "
+                             f"explicitly, e.g. {name}.astype(float), if 0/1 is meant).")
+    if kind in "mM":
+        raise DimensionError(f"{name} must be real numbers; got dates or times ({arr.dtype}).")
+    if kind in "USV":
+        raise DimensionError(f"{name} must be real numbers; got text ({arr.dtype}); convert "
+                             f"it with float() where it is read.")
+    try:
+        out = arr.astype(np.float64, copy=False)
+    except (TypeError, ValueError, OverflowError) as exc:
+        raise DimensionError(f"{name} must be a numeric array; got {type(M).__name__} "
+                             f"({exc}).") from exc
+    if kind == "O" and any(isinstance(v, (bool, np.bool_, str, bytes)) for v in arr.flat):
+        raise DimensionError(f"{name} must be real numbers; got booleans or text.")
+    return out
+
+
+def as_samples(name: str, a: Any) -> FloatArray:
+    """Samples (u, y, records) as a float64 array of any shape, with the rules of
+    :func:`_real_array` (masked entries become NaN; booleans, text, dates refused)."""
+    return _real_array(name, a)
+
+
+def seconds_from_first(name: str, t: Any) -> Any:
+    """Datetimes (``datetime64``) or durations (``timedelta64``) as float seconds from the
+    first sample; anything else unchanged."""
+    arr = t if isinstance(t, np.ndarray) else None
+    if arr is None:
+        try:
+            arr = np.asarray(t)
+        except (TypeError, ValueError):
+            return t
+    if arr.dtype.kind not in "mM" or arr.size == 0:
+        return t
+    if np.isnat(arr).any():
+        raise NonFiniteError(f"{name} holds a missing time (NaT).")
+    return np.asarray((arr - arr.ravel()[0]) / np.timedelta64(1, "ns"), dtype=np.float64) * 1e-9
 
 
 def as_triple(A: Any, B: Any, C: Any, *, names: tuple[str, str, str] = ("A", "B", "C")
@@ -120,7 +164,23 @@ def as_triple(A: Any, B: Any, C: Any, *, names: tuple[str, str, str] = ("A", "B"
         raise DimensionError(f"{Cn} must be 2-D of shape (?, {n}); got a 1-D array of length {n}. "
                              f"For a single output use np.reshape({Cn}, (1, {n})).")
     C_ = as_matrix(Cn, C_, (None, n))
+    for name, M in ((An, A_), (Bn, B_), (Cn, C_)):
+        check_magnitude(name, M)
     return A_, B_, C_
+
+
+def check_magnitude(name: str, M: FloatArray) -> None:
+    """Refuse a system matrix with entries beyond :data:`thetahat.limits.MAX_MATRIX_ENTRY`
+    (products of its entries would overflow float64)."""
+    from . import limits
+
+    big = np.abs(M) > limits.MAX_MATRIX_ENTRY
+    if big.any():
+        where = tuple(int(i) for i in np.argwhere(big)[0])
+        raise InputLimitError(f"{name}[{where[0]}, {where[1]}] = {M[where]:g} exceeds "
+                              f"{limits.MAX_MATRIX_ENTRY:g} in magnitude "
+                              f"(thetahat.limits.MAX_MATRIX_ENTRY): products of such entries "
+                              f"overflow float64. Rescale the model's units.")
 
 
 def positive_scalar(name: str, value: Any) -> float:
@@ -149,9 +209,12 @@ def readonly(a: Any, dtype: Any = np.float64) -> NDArray[Any]:
 def as_time_grid(t: Any) -> tuple[FloatArray, FloatArray]:
     """Sampling instants ``t`` (finite, at least one, strictly increasing) and ``diff(t)``.
 
+    Datetimes and durations (``datetime64``, ``timedelta64``) are converted to seconds from
+    the first sample.
+
     Raises :class:`DimensionError` naming the first offending pair of samples.
     """
-    t_ = as_vector("t", t)
+    t_ = as_vector("t", seconds_from_first("t", t))
     if t_.shape[0] == 0:
         raise DimensionError("t must hold at least one sampling instant; got none.")
     dts = np.diff(t_)

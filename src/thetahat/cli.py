@@ -33,7 +33,7 @@ from pathlib import Path
 from typing import Any
 
 from . import __version__
-from .errors import (NotLeftInvertibleError, NotMinimumPhaseError, ThetahatError,
+from .errors import (NotLeftInvertibleError, NotMinimumPhaseError, OptionError, ThetahatError,
                      UnstableDesignError)
 
 EXIT_OK = 0
@@ -57,17 +57,41 @@ _LUGRE_STATES = ("omega", "eta")
 _SCENARIO_CHOICES = ("theta", "u_amplitudes", "u_frequencies", "noise_std", "t_end", "fs")
 
 
+#: Figure formats of ``--plot`` (Matplotlib's Agg backend).
+PLOT_SUFFIXES = (".png", ".pdf", ".svg", ".svgz", ".jpg", ".jpeg", ".eps", ".ps", ".tif",
+                 ".tiff", ".webp", ".pgf")
+
+
+def _inputs(*paths: str | None) -> list[str]:
+    return [p for p in paths if p is not None]
+
+
+def _check_plot(path: str, inputs: list[str]) -> None:
+    """A figure path: its suffix, its folder and matplotlib, before any work."""
+    import importlib.util
+
+    from .errors import MissingExtraError
+    from .safe_io import check_writable
+
+    check_writable(path, inputs=inputs, suffixes=PLOT_SUFFIXES, what="figure")
+    if importlib.util.find_spec("matplotlib") is None:
+        raise MissingExtraError("--plot needs matplotlib: pip install 'thetahat[plot]', or "
+                                "drop --plot.")
+
+
 def _demo(args: argparse.Namespace) -> int:
-    from .datafile import check_writable
     from .models.lugre_report import report
+    from .safe_io import check_writable
 
     if args.example == "emps":
         from .models.emps_report import report as emps_report
-        for method in ("paper", "guarded", "mle"):          # before any work
+        for method in ("paper", "guarded", "mle"):                     # before any work
             check_writable(Path(args.out) / f"emps_{method}.csv")
+        check_writable(Path(args.out) / "emps.png")
         emps_report(out=args.out)
         return EXIT_OK
-    check_writable(Path(args.out) / "lugre.json")          # before any work
+    for name in ("lugre.json", "lugre.png", "lugre_data.csv"):        # before any work
+        check_writable(Path(args.out) / name)
 
     report(out=args.out, eps=args.eps, seed=args.seed, show=args.show)
     return EXIT_OK
@@ -101,21 +125,22 @@ def _study(args: argparse.Namespace) -> tuple[Any, Any, Any, tuple[str, ...]]:
 
 
 def _sweep(args: argparse.Namespace) -> int:
-    from .datafile import check_writable
+    from .safe_io import atomic_path, check_writable, write_text
     from .studies.sweep import eps_sweep
 
-    check_writable(Path(args.out) / "sweep.json")          # before any work
+    out = Path(args.out)
+    for name in ("sweep.json", "sweep.png"):                          # before any work
+        check_writable(out / name, inputs=_inputs(args.model))
     estimator, simulate, theta_hat0, labels = _study(args)
     result = eps_sweep(estimator, simulate, args.eps, range(args.seeds),
                        theta_hat0=theta_hat0, n_jobs=args.jobs, scheduler=args.scheduler)
     print(result.table(labels))
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
-    (out / "sweep.json").write_text(json.dumps(result.to_dict(), indent=2))
+    write_text(out / "sweep.json", json.dumps(result.to_dict(), indent=2))
     written = [out / "sweep.json"]
     try:
         from .plotting import plot_sweep
-        plot_sweep(result, out / "sweep.png", state_labels=labels)
+        with atomic_path(out / "sweep.png") as tmp:
+            plot_sweep(result, tmp, state_labels=labels)
         written.append(out / "sweep.png")
     except ImportError as exc:
         print(f"thetahat: note: {exc}; sweep.png not written", file=sys.stderr)
@@ -124,18 +149,17 @@ def _sweep(args: argparse.Namespace) -> int:
 
 
 def _tune(args: argparse.Namespace) -> int:
-    from .datafile import check_writable
+    from .safe_io import check_writable, write_text
     from .studies.tune import tune_eps_gamma
 
-    check_writable(Path(args.out) / "tune.json")           # before any work
+    check_writable(Path(args.out) / "tune.json", inputs=_inputs(args.model))   # before work
     estimator, simulate, theta_hat0, labels = _study(args)
     result = tune_eps_gamma(estimator, simulate, eps_values=args.eps, gammas=args.gamma,
                             seeds=args.seeds, theta_hat0=theta_hat0, criterion=args.criterion,
                             n_jobs=args.jobs, scheduler=args.scheduler)
     print(result.table(labels))
     out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
-    (out / "tune.json").write_text(json.dumps(result.to_dict(), indent=2))
+    write_text(out / "tune.json", json.dumps(result.to_dict(), indent=2))
     print(f"wrote {out / 'tune.json'}")
     if result.best_eps is None:
         print(f"thetahat: error: {result.verdict()}", file=sys.stderr)
@@ -155,9 +179,9 @@ def _analyze(args: argparse.Namespace) -> int:
 
 
 def _is_fleet(data: str) -> bool:
-    import glob
+    from .fleet import is_glob
 
-    return Path(data).is_dir() or glob.has_magic(data)
+    return Path(data).is_dir() or is_glob(data)
 
 
 def _estimate(args: argparse.Namespace) -> int:
@@ -165,38 +189,57 @@ def _estimate(args: argparse.Namespace) -> int:
         return _estimate_fleet(args)
     import warnings
 
-    from .datafile import check_writable, read_data, write_estimates
+    from .datafile import ESTIMATE_SUFFIXES, read_data, write_estimates
     from .modelfile import load_model, run_estimator
     from .progress import reporter
+    from .safe_io import atomic_path, check_writable, same_file
+    from .studies.information import explain_nonfinite, stuck_parameters
     from .studies.metrics import estimate_summary
 
     args.output = args.output or "estimates.csv"
-    check_writable(args.output)
+    inputs = [args.model, args.data]                                   # before any work:
+    check_writable(args.output, inputs=inputs, suffixes=ESTIMATE_SUFFIXES, what="estimates")
+    if args.plot:
+        if same_file(args.plot, args.output):
+            raise OptionError(f"--plot {args.plot} is also the estimates output (-o); give "
+                              f"the figure its own name.")
+        _check_plot(args.plot, inputs)
     spec = load_model(args.model)
     data = read_data(args.data, spec, nan_policy=args.nan_policy)
     progress = None if args.no_progress else reporter("estimate")
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
-        result = run_estimator(spec, data.t, data.u, data.y, hold=args.hold,
-                               nan_policy=args.nan_policy, progress=progress,
-                               method=args.method)
-    write_estimates(args.output, result, spec)
+        try:
+            result = run_estimator(spec, data.t, data.u, data.y, hold=args.hold,
+                                   nan_policy=args.nan_policy, progress=progress,
+                                   method=args.method)
+        except (ThetahatError, ArithmeticError, ValueError) as exc:     # LinAlgError too
+            raise explain_nonfinite(exc, spec.system, data.t, data.u, data.y,
+                                    spec.estimator.x_hat0, spec.estimator.theta_hat0) from exc
+    write_estimates(args.output, result, spec)                         # atomic
     print(f"wrote {args.output} ({data.t.size} rows)")
     notes = [f"{w.category.__name__}: {w.message}" for w in caught]
+    stuck = stuck_parameters(spec.system, data.u, data.y, result.x_hat, result.theta_hat,
+                             spec.parameter_names)
+    if stuck:
+        notes.append(f"ConvergenceWarning: {stuck}")
     print(estimate_summary(result, spec.parameter_names, warnings=notes))
     if args.plot:
         from .plotting import plot_result
-        plot_result(result, spec, args.plot, y=data.y)
+        with atomic_path(args.plot) as tmp:
+            plot_result(result, spec, tmp, y=data.y)
         print(f"wrote {args.plot}")
     return EXIT_OK
 
 
 def _estimate_fleet(args: argparse.Namespace) -> int:
-    from .datafile import check_writable
-    from .fleet import estimate_many
+    from .fleet import check_output, estimate_many, fleet_files
 
     output = args.output or "results.csv"
-    check_writable(output)
+    if args.plot:
+        raise OptionError("--plot draws one record; it is not available for a fleet (drop "
+                          "--plot, or estimate one file).")
+    check_output(output, args.model, fleet_files(args.data), args.data)   # before any work
     result = estimate_many(args.model, args.data, scheduler=args.scheduler,
                            chunk_size=args.chunk_size, hold=args.hold, method=args.method,
                            nan_policy=args.nan_policy, progress=not args.no_progress)
@@ -210,9 +253,13 @@ def _estimate_fleet(args: argparse.Namespace) -> int:
 
 def _codegen(args: argparse.Namespace) -> int:
     from .codegen import generate_c_from_model
+    from .safe_io import check_writable
 
+    check_writable(Path(args.output) / "Makefile", inputs=[args.model])   # before any work
     code = generate_c_from_model(args.model, dt=args.dt, eps=args.eps, real=args.real,
                                  name=args.name, nan_policy=args.nan_policy, hold=args.hold)
+    for name in code.files():
+        check_writable(Path(args.output) / name, inputs=[args.model])
     paths = code.write(args.output)
     print(code.summary())
     print("wrote " + ", ".join(str(p) for p in paths)
@@ -319,8 +366,8 @@ def _parser() -> argparse.ArgumentParser:
     estimate.add_argument("data", help="CSV data file, e.g. with columns t,u,y; or a fleet: a "
                                        "directory or glob of CSV/Parquet files (quote it)")
     estimate.add_argument("-o", "--output", default=None,
-                          help="output (default: estimates.csv; for a fleet results.csv, or "
-                               ".parquet: one row per file)")
+                          help="output, .csv or .parquet (default: estimates.csv; for a fleet "
+                               "results.csv: one row per file); never one of the inputs")
     estimate.add_argument("--hold", choices=["zoh", "foh"], default="zoh",
                           help="sample hold between samples (default: zoh)")
     estimate.add_argument("--nan-policy", choices=["raise", "skip"], default="raise",
@@ -331,7 +378,7 @@ def _parser() -> argparse.ArgumentParser:
                           help="do not report progress on stderr")
     estimate.add_argument("--plot", metavar="FIG.png", default=None,
                           help="also write a figure of the estimates (one record; needs "
-                               "matplotlib)")
+                               "matplotlib; " + ", ".join(PLOT_SUFFIXES) + ")")
     estimate.add_argument("--scheduler", metavar="tcp://HOST:PORT", default=None,
                           help="fleet: run on this Dask cluster (default: in this process)")
     estimate.add_argument("--chunk-size", type=int, default=None,

@@ -29,6 +29,7 @@ from __future__ import annotations
 import functools
 import glob
 import math
+import os
 import warnings
 from collections.abc import Hashable, Iterable
 from dataclasses import dataclass
@@ -38,24 +39,27 @@ from typing import Any, cast
 import numpy as np
 from numpy.typing import NDArray
 
-from .datafile import DataRecord, column_candidates, read_data
+from . import limits
+from .datafile import (DATA_SUFFIXES, DataRecord, read_data, read_parquet, write_parquet_table)
 from .engine import run_keyed
-from .errors import MissingExtraError, ModelFileError, OptionError
+from .errors import ArgumentTypeError, MissingExtraError, ModelFileError, OptionError
 from .estimation.batch_run import run_batch
 from .estimation.records import check_nan_policy
 from .model.paramset import Box
-from .modelfile import (ESTIMATION_METHODS, ModelSpec, build_observer, load_model, loads_model,
+from .modelfile import (ESTIMATION_METHODS, ModelSpec, build_observer, loads_model,
                         run_estimator)
+from .safe_io import atomic_path, check_writable, read_text, same_file
 from .spec import Hold
+from .studies.information import explain_nonfinite, stuck_parameters
 from .studies.metrics import time_to_within
 
-__all__ = ["DATA_SUFFIXES", "FleetResult", "SETTLE_BAND", "estimate_many", "fleet_files",
-           "read_parquet"]
+__all__ = ["DATA_SUFFIXES", "FleetResult", "RESULT_SUFFIXES", "SETTLE_BAND", "check_output",
+           "estimate_many", "fleet_files", "is_glob", "read_parquet"]
 
 FloatArray = NDArray[np.float64]
 
-#: Record formats a fleet may hold.
-DATA_SUFFIXES = (".csv", ".parquet")
+#: Formats of the results table (:meth:`FleetResult.write`).
+RESULT_SUFFIXES = (".csv", ".parquet")
 #: Relative band of the settling time (1 %, the accuracy the examples aim for).
 SETTLE_BAND = 0.01
 #: Fraction of the record at its end over which the standard error is computed.
@@ -108,25 +112,30 @@ class FleetResult:
         return pd.DataFrame(list(self.rows), columns=list(self.columns))
 
     def write(self, path: str | Path) -> Path:
-        """Write the table as CSV or Parquet (by suffix; Parquet needs pyarrow).
+        """Write the table as CSV or Parquet (by suffix; Parquet needs pyarrow), atomically.
+
+        Parameters
+        ----------
+        path : str or Path
+            ``.csv`` or ``.parquet``; it may not be the model file or one of the records.
+
+        Returns
+        -------
+        Path
 
         Raises
         ------
         ModelFileError
-            Unknown suffix, or the file cannot be written.
+            Unknown suffix, or the path is an input of the run.
+        FileAccessError
+            The file cannot be written (an old file there is left unchanged).
         """
-        path = Path(path)
-        try:
-            path.parent.mkdir(parents=True, exist_ok=True)
-            if path.suffix == ".csv":
-                _write_csv(path, self)
-            elif path.suffix == ".parquet":
-                _write_parquet(path, self)
-            else:
-                raise ModelFileError(f"results file {path}: the suffix must be .csv or "
-                                     f".parquet; got {path.suffix!r}.")
-        except OSError as exc:
-            raise ModelFileError(f"cannot write results to {path}: {exc}") from exc
+        path = check_output(path, self.model, [r["file"] for r in self.rows])
+        if path.suffix.lower() == ".parquet":
+            write_parquet_table(path, {c: [r[c] for r in self.rows] for c in self.columns})
+        else:
+            with atomic_path(path) as tmp:
+                _write_csv(tmp, self)
         return path
 
     def __repr__(self) -> str:
@@ -145,15 +154,41 @@ def _write_csv(path: Path, result: FleetResult) -> None:
                         for v in (r[c] for c in result.columns)])
 
 
-def _write_parquet(path: Path, result: FleetResult) -> None:
-    try:
-        import pyarrow as pa
-        import pyarrow.parquet as pq
-    except ImportError as exc:
-        raise MissingExtraError("writing Parquet needs pyarrow: pip install 'thetahat[data]', "
-                             "or write .csv") from exc
-    table = pa.table({c: [r[c] for r in result.rows] for c in result.columns})
-    pq.write_table(table, path)
+def check_output(path: str | Path, model: str | Path, files: Iterable[str | Path],
+                 data: str | Path | None = None) -> Path:
+    """Check a fleet's results path before any work: a known suffix, writable, and neither the
+    model, nor a record, nor a new record-like file in the fleet's folder (the next run would
+    read it as a record).
+
+    Parameters
+    ----------
+    path : str or Path
+        The results file (``.csv`` or ``.parquet``).
+    model : str or Path
+        The model file.
+    files : iterable of str or Path
+        The records.
+    data : str or Path, optional
+        The fleet as given (a folder is checked for the last rule).
+
+    Returns
+    -------
+    Path
+
+    Raises
+    ------
+    ModelFileError
+        The path is refused; the message says why.
+    """
+    files = list(files)
+    out = check_writable(path, inputs=[model, *files], suffixes=RESULT_SUFFIXES,
+                         what="results")
+    if data is not None and isinstance(data, (str, Path)) and Path(data).is_dir() \
+            and same_file(out.parent, data):
+        raise ModelFileError(f"cannot write {out}: it lies in the fleet's folder {data}, where "
+                             f"the next run would read it as a record; write it elsewhere "
+                             f"(-o).")
+    return out
 
 
 def fleet_files(data: str | Path | Iterable[str | Path]) -> list[Path]:
@@ -176,96 +211,64 @@ def fleet_files(data: str | Path | Iterable[str | Path]) -> list[Path]:
     ------
     ModelFileError
         Nothing matches.
+    ArgumentTypeError
+        ``data`` is neither a path nor an iterable of paths.
+
+    Notes
+    -----
+    A path that exists is taken literally, even with ``[`` or ``*`` in its name; only a path
+    that does not exist is read as a glob (:func:`is_glob`). Entries of a directory or a glob
+    that are not regular files (a FIFO, a link to a device) are kept: reading them fails, and
+    their row says why.
     """
     if isinstance(data, (str, Path)):
         p = Path(data)
         if p.is_dir():
             files = sorted(f for f in p.iterdir() if f.suffix.lower() in DATA_SUFFIXES)
-        elif glob.has_magic(str(data)):
+        elif is_glob(data):
             files = sorted(Path(f) for f in glob.glob(str(data), recursive=True)
-                           if Path(f).is_file())
+                           if not Path(f).is_dir())
         else:
             files = [p]
+    elif isinstance(data, Iterable) and not isinstance(data, bytes):
+        files = [Path(f) for f in _paths(data)]
     else:
-        files = [Path(f) for f in data]
+        raise ArgumentTypeError(f"data must be a folder, a glob pattern or a list of paths; "
+                                f"got {type(data).__name__}.")
     if not files:
-        raise ModelFileError(f"no data files in {data}: expected a directory with .csv or "
+        raise ModelFileError(f"no data files in {data!s:.200}: expected a directory with .csv or "
                              f".parquet files, or a glob such as 'logs/*.csv'.")
     return files
 
 
-def read_parquet(path: str | Path, spec: ModelSpec, *, nan_policy: str = "raise") -> DataRecord:
-    """Read a Parquet record with the columns of :func:`~thetahat.datafile.read_data`.
+def is_glob(data: str | Path) -> bool:
+    """True when ``data`` is a glob pattern: it has ``*``, ``?`` or ``[`` and no file or folder
+    of that exact name exists (brackets in a real file's name are taken literally).
 
     Parameters
     ----------
-    path : str or Path
-        Parquet file (needs pyarrow). Required columns as for
-        :func:`~thetahat.datafile.read_data` (see
-        :func:`~thetahat.datafile.column_candidates`); other columns are ignored. Every
-        value must be finite (outputs may be NaN under ``nan_policy="skip"``), and t
-        strictly increasing over at least two rows.
-    spec : ModelSpec
-        The model whose estimator reads the record (its input and output names).
-    nan_policy : {"raise", "skip"}, optional
-        ``"skip"`` keeps NaN outputs as dropouts for the observer's ``nan_policy="skip"``;
-        ``"raise"`` refuses them.
+    data : str or Path
 
     Returns
     -------
-    DataRecord
-        ``t (N,)``, ``u (N, m)``, ``y (N, r)`` in float64, the columns used and the source.
+    bool
 
-    Raises
-    ------
-    ModelFileError
-        pyarrow missing, unreadable file, a missing column, a non-finite value, or t not
-        strictly increasing.
+    Examples
+    --------
+    >>> from thetahat.fleet import is_glob
+    >>> is_glob("logs/*.csv"), is_glob("/")
+    (True, False)
     """
-    try:
-        import pyarrow.parquet as pq
-    except ImportError as exc:
-        raise ModelFileError("reading Parquet needs pyarrow: pip install 'thetahat[data]'"
-                             ) from exc
-    path = Path(path)
-    try:
-        table = pq.read_table(path)
-    except (OSError, ValueError) as exc:       # pyarrow's ArrowInvalid derives from ValueError
-        raise ModelFileError(f"cannot read data file {path}: {exc}") from exc
-    names = table.column_names
-    cols = []
-    for alts in column_candidates(spec):
-        found = [a for a in alts if a in names]
-        if not found:
-            raise ModelFileError(f"data file {path}: missing column "
-                                 f"{' or '.join(repr(a) for a in alts)}; it has {names}.")
-        cols.append(found[0])
-    try:
-        data = np.column_stack([np.asarray(table.column(c).to_numpy(), dtype=np.float64)
-                                for c in cols])
-    except (TypeError, ValueError) as exc:
-        raise ModelFileError(f"data file {path}: a column is not numeric: {exc}") from exc
-    check_nan_policy(nan_policy)
-    m = spec.system.m
-    bad = ~np.isfinite(data)
-    if nan_policy == "skip":
-        bad[:, 1 + m:] &= ~np.isnan(data[:, 1 + m:])       # a NaN output is a dropout
-    if bad.any():
-        i, j = (int(a[0]) for a in np.nonzero(bad))
-        raise ModelFileError(f"data file {path}, row {i}, column {cols[j]!r}: {data[i, j]} is "
-                             "not finite; the estimator needs every sample (a NaN output is "
-                             "a dropout under nan_policy='skip').")
-    if data.shape[0] < 2 or not np.all(np.diff(data[:, 0]) > 0):
-        raise ModelFileError(f"data file {path}: t must be strictly increasing with at least "
-                             "two rows.")
-    return DataRecord(t=data[:, 0], u=data[:, 1:1 + m], y=data[:, 1 + m:], columns=tuple(cols),
-                      source=str(path))
+    return glob.has_magic(str(data)) and not os.path.lexists(data)
 
 
-def _read(path: str, spec: ModelSpec, nan_policy: str) -> DataRecord:
-    if path.lower().endswith(".parquet") and spec.data is None:
-        return read_parquet(path, spec, nan_policy=nan_policy)
-    return read_data(path, spec, nan_policy=nan_policy)
+def _paths(data: Iterable[Any]) -> list[str | Path]:
+    out = list(data)
+    for f in out:
+        if not isinstance(f, (str, Path)):
+            raise ArgumentTypeError(f"data: each record must be a path (str or Path); got "
+                                    f"{type(f).__name__}.")
+    return out
 
 
 @functools.lru_cache(maxsize=4)
@@ -306,7 +309,7 @@ def _estimate_chunk(paths: list[str], *, model: tuple[str, str, str], hold: str,
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always")
             try:
-                records[p] = (_read(p, spec, nan_policy), [str(w.message) for w in caught])
+                records[p] = (read_data(p, spec, nan_policy=nan_policy), [str(w.message) for w in caught])
             except Exception as exc:       # a bad file is reported, never stops the others
                 out[p] = {"status": _failure(exc), "warnings": ""}
     if method != "paper":
@@ -330,11 +333,24 @@ def _estimate_one(spec: ModelSpec, path: str, record: tuple[DataRecord, list[str
             res = run_estimator(spec, rec.t, rec.u, rec.y, hold=cast(Hold, hold),
                                 nan_policy=nan_policy, method=method)
         except Exception as exc:           # a record that fails is reported, never stops others
-            out[path] = {"status": _failure(exc), "warnings": "; ".join(read_warnings)}
+            out[path] = {"status": _failure(_explain(exc, spec, rec)),
+                         "warnings": "; ".join(read_warnings)}
             return
-    row = {"status": "ok", **_summary(spec, rec.t, np.asarray(res.theta_hat))}
-    row["warnings"] = "; ".join(dict.fromkeys(read_warnings + [str(w.message) for w in caught]))
-    out[path] = row
+    out[path] = _ok_row(spec, rec, np.asarray(res.x_hat), np.asarray(res.theta_hat),
+                        read_warnings + [str(w.message) for w in caught])
+
+
+def _explain(exc: BaseException, spec: ModelSpec, rec: DataRecord) -> BaseException:
+    return explain_nonfinite(exc, spec.system, rec.t, rec.u, rec.y, spec.estimator.x_hat0,
+                             spec.estimator.theta_hat0)
+
+
+def _ok_row(spec: ModelSpec, rec: DataRecord, x_hat: FloatArray, theta_hat: FloatArray,
+            notes: list[str]) -> dict[str, Any]:
+    row = {"status": "ok", **_summary(spec, rec.t, theta_hat)}
+    stuck = stuck_parameters(spec.system, rec.u, rec.y, x_hat, theta_hat, spec.parameter_names)
+    row["warnings"] = "; ".join(dict.fromkeys(notes + ([stuck] if stuck else [])))
+    return row
 
 
 def _estimate_group(spec: ModelSpec, members: list[str],
@@ -354,14 +370,14 @@ def _estimate_group(spec: ModelSpec, members: list[str],
                 for p in members:
                     _estimate_group(spec, [p], records, hold, nan_policy, out)
                 return
-            out[members[0]] = {"status": _failure(exc),
+            rec = records[members[0]][0]
+            out[members[0]] = {"status": _failure(_explain(exc, spec, rec)),
                                "warnings": "; ".join(records[members[0]][1])}
             return
     batch_warnings = [str(w.message) for w in caught]
     for i, p in enumerate(members):
-        row = {"status": "ok", **_summary(spec, t, np.asarray(res.theta_hat[i]))}
-        row["warnings"] = "; ".join(dict.fromkeys(records[p][1] + batch_warnings))
-        out[p] = row
+        out[p] = _ok_row(spec, records[p][0], np.asarray(res.x_hat[i]),
+                         np.asarray(res.theta_hat[i]), records[p][1] + batch_warnings)
 
 
 def estimate_many(model: str | Path, data: str | Path | Iterable[str | Path], *,
@@ -402,8 +418,10 @@ def estimate_many(model: str | Path, data: str | Path | Iterable[str | Path], *,
     Raises
     ------
     ModelFileError
-        The model file is bad or no data file matches (a bad *data* file is a row, not an
-        error).
+        The model file is bad, is not a regular file, or no data file matches (a bad, special
+        or unreadable *data* file is a row, not an error).
+    ArgumentTypeError
+        ``model`` is not a path, or ``data`` is not a path, a pattern or a list of paths.
     OptionError
         Unknown ``method`` or ``nan_policy``.
     EngineError
@@ -425,13 +443,16 @@ def estimate_many(model: str | Path, data: str | Path | Iterable[str | Path], *,
     >>> res.n_ok, res.failed[str(d / "b.csv")].split(":")[0]
     (1, 'ModelFileError')
     """
+    if not isinstance(model, (str, Path)):
+        raise ArgumentTypeError(f"model must be the path of a model file; got "
+                                f"{type(model).__name__}.")
     source = Path(model)
-    try:
-        text = source.read_text(encoding="utf-8")
-    except (OSError, UnicodeDecodeError) as exc:
-        raise ModelFileError(f"cannot read model file {source}: {exc}") from exc
-    syntax = "json" if source.suffix.lower() == ".json" else "toml"
-    spec = load_model(source)                      # errors in the model stop here, once
+    syntax = source.suffix.lower().lstrip(".")
+    if syntax not in ("toml", "json"):
+        raise ModelFileError(f"model file {source}: unknown type "
+                             f"{source.suffix or '(no suffix)'!r}; use a .toml or .json file.")
+    text = read_text(source, "model file", limits.MAX_MODEL_FILE_BYTES)
+    spec = _spec(text, syntax, str(source))        # errors in the model stop here, once
     how = spec.estimator.method if method is None else method
     if how not in ESTIMATION_METHODS:
         raise OptionError(f"method must be one of {list(ESTIMATION_METHODS)}; got {how!r}.")

@@ -26,6 +26,7 @@ from .errors import ResourceLimitError, SymbolicTimeoutError, UnsupportedError
 
 __all__ = ["MAX_EXPRESSION_CHARS", "MAX_EXPRESSION_DEPTH", "MAX_EXPONENT", "MAX_POWER_NESTING",
            "MAX_SYMBOLIC_DIM", "MAX_FILE_NESTING", "SYMBOLIC_TIME_BUDGET", "MEMORY_FRACTION",
+           "MAX_MODEL_FILE_BYTES", "MAX_MATRIX_ENTRY", "MAX_DATA_FILE_BYTES",
            "run_with_time_budget", "check_allocation", "available_memory"]
 
 T = TypeVar("T")
@@ -50,6 +51,16 @@ MAX_FILE_NESTING: int = 32
 SYMBOLIC_TIME_BUDGET: float = 30.0
 #: Fraction of the available memory one allocation may take.
 MEMORY_FRACTION: float = 0.5
+#: Largest |entry| of a system matrix (A, B, C, E): the structure and gain computations form
+#: products of up to three entries (C A E, Rosenbrock pencils), which overflow float64
+#: (1.8e308) beyond 1e100; rescale the units (time, states) instead.
+MAX_MATRIX_ENTRY: float = 1e100
+#: Largest model file read, in bytes (checked before reading): model files hold a few small
+#: matrices and short formulas (the examples have under 4 kB).
+MAX_MODEL_FILE_BYTES: int = 1 << 20
+#: Largest data file (CSV or Parquet) read, in bytes (checked before reading): a 10⁷-sample
+#: record of t, u, y is about 0.6 GB of CSV text; split bigger logs or raise the limit.
+MAX_DATA_FILE_BYTES: int = 4 << 30
 
 
 def _child(conn: Any, fn: Callable[..., Any], args: tuple[Any, ...]) -> None:

@@ -35,6 +35,7 @@ from ..model.perturbation import SymbolicPerturbation
 from ..estimation.compiled import KernelParts
 from .c_api import CLayout, header_source, source_text
 from .c_derive import derived_step, inwards
+from ..safe_io import write_text
 from .harness import harness_source, makefile_source
 from .printing import REALS
 
@@ -93,7 +94,8 @@ class CCode:
                 f"{self.name}_main.c": self.main, "Makefile": self.makefile}
 
     def write(self, directory: str | Path) -> tuple[Path, ...]:
-        """Write the four files into ``directory`` (created); returns their paths.
+        """Write the four files into ``directory`` (created), each atomically; returns their
+        paths.
 
         Raises
         ------
@@ -105,9 +107,7 @@ class CCode:
         try:
             out.mkdir(parents=True, exist_ok=True)
             for fname, text in self.files().items():
-                path = out / fname
-                path.write_text(text, encoding="utf-8")
-                paths.append(path)
+                paths.append(write_text(out / fname, text))          # atomic, each file
         except OSError as exc:
             raise FileAccessError(f"cannot write the generated C into {out}: {exc}; choose a "
                                   "writable folder with -o.") from exc

@@ -20,6 +20,8 @@ Remark 2: eig(A − K(ε)C) = eig(A_a) ∪ eig(A_b − K_bb C_b) ∪ {n_q poles 
 from __future__ import annotations
 
 import dataclasses
+import math
+import sys
 import warnings
 from dataclasses import dataclass
 from typing import Callable, Sequence
@@ -378,6 +380,10 @@ def require_minimum_phase(sc: SCBResult, A: FloatArray, what: str) -> None:
 
 def _check_eps_power(eps: float, lengths: Sequence[int]) -> None:
     L = max(lengths, default=1)
+    if math.log(eps) * L > math.log(sys.float_info.max):       # ε^L overflows float64
+        raise DesignError(f"eps = {eps:g} is too large: the gains shrink like 1/eps^{L} and "
+                          f"eps^{L} overflows float64. ε is a small parameter (start at 1 and "
+                          f"decrease it, Sec. VII).")
     if eps ** L < EPS_POWER_MIN:
         raise DesignError(f"eps = {eps:g} is too small: the gains grow like 1/eps^{L} (the "
                           f"longest chain) and overflow float64. Use eps >= "

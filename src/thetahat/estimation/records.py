@@ -7,7 +7,7 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from .._validate import as_time_grid, check_finite
+from .._validate import as_samples, as_time_grid, check_finite
 from ..errors import DimensionError, NonFiniteError, OptionError
 from .plan import StateLayout
 
@@ -101,8 +101,7 @@ def as_record(name: str, a: ArrayLike, N: int, width: int) -> FloatArray:
     >>> as_record("y", [1.0, 2.0, 3.0], 3, 1).shape
     (3, 1)
     """
-    check_real(name, a)
-    arr = np.asarray(a, dtype=np.float64)
+    arr = as_samples(name, a)
     if arr.ndim == 1 and width == 1:
         arr = arr.reshape(-1, 1)
     if arr.ndim != 2 or arr.shape != (N, width):
@@ -141,8 +140,7 @@ def as_records(name: str, a: ArrayLike, B: int | None, N: int, width: int) -> Fl
     >>> as_records("Y", [[1.0, 2.0], [3.0, 4.0]], None, 2, 1).shape
     (2, 2, 1)
     """
-    check_real(name, a)
-    arr = np.asarray(a, dtype=np.float64)
+    arr = as_samples(name, a)
     if arr.ndim == 2 and width == 1:
         arr = arr[..., None]
     if arr.ndim != 3 or arr.shape[1:] != (N, width) or (B is not None and arr.shape[0] != B):

@@ -32,6 +32,7 @@ from typing import Sequence
 import numpy as np
 from numpy.typing import NDArray
 
+from ..errors import ThetahatError
 from ..model.system import PerturbedLinearSystem
 from .ekf import theta_box
 from .likelihood import fisher_covariance, process_noise_scale, search_process_noise
@@ -66,8 +67,9 @@ class TrustReport:
     theta : ndarray (p,)
         The final estimate θ̂.
     crlb_sd : ndarray (p,)
-        Cramér–Rao standard deviation of each parameter for this record, at θ̂ (NaN when it
-        could not be computed).
+        Cramér–Rao standard deviation of each parameter for this record, at θ̂ (NaN when the
+        model cannot be evaluated along the record at θ̂; inf for a direction the record does
+        not determine).
     unpinned : tuple of str
         Parameters the record does not pin (sd ≥ UNPINNED_FRACTION · Θ's width).
     on_boundary : tuple of str
@@ -194,14 +196,19 @@ def trust_report(system: PerturbedLinearSystem, t: FloatArray, U: FloatArray, Y:
         h_med = float(np.median(np.diff(t)))
         q0 = process_noise_scale(system, h_med, sigma)
         x_sds = np.full(system.n, float(x_sd))
-        q = search_process_noise(system, t, U, Y, theta=th, x_hat0=x_hat0, x_sd=x_sds,
-                                 noise_std=sigma, h_rho=h_rho, compiled=compiled)
-        cov = fisher_covariance(system, t, U, Y, theta=th, q=q, x_hat0=x_hat0,
-                                     x_sd=x_sds, noise_std=sigma, h_rho=h_rho,
-                                     compiled=compiled)
-        crlb_sd = np.sqrt(np.maximum(np.diag(cov), 0.0))
+        try:
+            q = search_process_noise(system, t, U, Y, theta=th, x_hat0=x_hat0, x_sd=x_sds,
+                                     noise_std=sigma, h_rho=h_rho, compiled=compiled)
+            cov = fisher_covariance(system, t, U, Y, theta=th, q=q, x_hat0=x_hat0,
+                                    x_sd=x_sds, noise_std=sigma, h_rho=h_rho,
+                                    compiled=compiled)
+            crlb_sd = np.sqrt(np.maximum(np.diag(cov), 0.0))
+        except (ThetahatError, ArithmeticError, np.linalg.LinAlgError):
+            # the model cannot be evaluated along the record at θ̂ (e.g. g not differentiable
+            # there): the bound is unknown (n/a in the summary) and the estimate stands
+            q = 0.0
     unpinned = tuple(n for n, sd, w in zip(names_, crlb_sd, width)
-                     if not (sd < UNPINNED_FRACTION * w))
+                     if not np.isnan(sd) and not (sd < UNPINNED_FRACTION * w))
     on_bnd = tuple(n for n, v, a, b, w in zip(names_, th, lo, hi, width)
                    if v - a <= BOUNDARY_RTOL * w or b - v <= BOUNDARY_RTOL * w)
     empty = None

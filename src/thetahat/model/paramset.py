@@ -28,7 +28,7 @@ import numpy as np
 import scipy.optimize
 from numpy.typing import ArrayLike, NDArray
 
-from .._validate import readonly
+from .._validate import as_samples, readonly
 from ..errors import (ConvergenceWarning, DimensionError, NonFiniteError, ParameterSetError,
                       UnsupportedError)
 from .set_geometry import (SYMMETRY_RTOL, metric_factor, project_ellipsoid, retract,
@@ -78,7 +78,10 @@ def _finite_theta(name: str, theta: ArrayLike, p: int) -> FloatArray:
 
 
 def _vector(owner: str, name: str, value: ArrayLike) -> FloatArray:
-    arr = np.asarray(value, dtype=np.float64)
+    try:
+        arr = as_samples(f"{owner}: {name}", value)
+    except DimensionError as exc:          # text, booleans, ragged lists
+        raise ParameterSetError(f"{exc} Give numbers, one bound per parameter.") from None
     if arr.ndim == 0:
         arr = arr.reshape(1)
     if arr.ndim != 1 or arr.size == 0:

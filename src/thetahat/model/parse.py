@@ -14,6 +14,7 @@ from __future__ import annotations
 import ast
 import keyword
 import math
+import unicodedata
 from collections.abc import Callable, Iterable, Mapping, Sequence
 from types import MappingProxyType
 from typing import Any
@@ -25,7 +26,7 @@ from .. import limits
 from ..errors import DimensionError, InputLimitError, ModelFileError, NonFiniteError
 from .perturbation import SymbolicPerturbation
 
-__all__ = ["parse_perturbation", "parse_expression"]
+__all__ = ["parse_perturbation", "parse_expression", "normalize_name"]
 
 
 #: Functions allowed in :func:`parse_perturbation`, with their number of arguments
@@ -136,11 +137,26 @@ class _ExpressionBuilder:
         return func(*(self.build(a) for a in node.args))
 
 
-def _check_shape(tree: ast.AST, what: str) -> None:
-    """Nesting depth and power towers of a parsed formula, walked without recursion."""
-    stack: list[tuple[ast.AST, int, int]] = [(tree, 0, 0)]
+def _literal_exponent(node: ast.AST) -> float:
+    """|e| of a numeric literal exponent (``2``, ``-0.5``), else 1 (the tower limit applies)."""
+    try:
+        value = ast.literal_eval(node)
+    except (ValueError, TypeError, SyntaxError, MemoryError, RecursionError):
+        return 1.0
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        return 1.0
+    try:
+        return abs(float(value))
+    except OverflowError:
+        return math.inf
+
+
+def _check_shape(tree: ast.AST, what: str, text: str = "") -> None:
+    """Nesting depth, power towers and the product of nested exponents of a parsed formula
+    (``((y**100)**100)**100`` is y**1000000), walked without recursion."""
+    stack: list[tuple[ast.AST, int, int, float]] = [(tree, 0, 0, 1.0)]
     while stack:
-        node, depth, towers = stack.pop()
+        node, depth, towers, power = stack.pop()
         if depth > limits.MAX_EXPRESSION_DEPTH:
             raise InputLimitError(
                 f"{what}: the formula is nested deeper than {limits.MAX_EXPRESSION_DEPTH} "
@@ -151,10 +167,20 @@ def _check_shape(tree: ast.AST, what: str) -> None:
                 f"{what}: a tower of more than {limits.MAX_POWER_NESTING} nested powers "
                 f"(like y**y**y**y; thetahat.limits.MAX_POWER_NESTING) is not accepted; "
                 f"rewrite it with exp and log.")
+        is_pow = isinstance(node, ast.BinOp) and isinstance(node.op, ast.Pow)
+        if is_pow:
+            own = _literal_exponent(node.right)         # type: ignore[attr-defined]
+            power *= own
+            if power > limits.MAX_EXPONENT >= own:       # (one exponent: _binary says so)
+                raise InputLimitError(
+                    f"{what}: the nested powers in {ast.get_source_segment(text, node)!s:.60} "
+                    f"raise to an exponent of {power:g} in all, beyond the limit |exponent| "
+                    f"<= {limits.MAX_EXPONENT:g} (thetahat.limits.MAX_EXPONENT, which applies "
+                    f"to the product of nested exponents); rewrite the formula.")
         for child in ast.iter_child_nodes(node):
-            in_exponent = isinstance(node, ast.BinOp) and isinstance(node.op, ast.Pow) \
-                and child is node.right
-            stack.append((child, depth + 1, towers + int(in_exponent)))
+            in_exponent = is_pow and child is node.right      # type: ignore[attr-defined]
+            stack.append((child, depth + 1, towers + int(in_exponent),
+                          1.0 if in_exponent else power))
 
 
 def parse_expression(text: str, names: Mapping[str, sp.Expr], *, what: str = "expression",
@@ -209,10 +235,31 @@ def parse_expression(text: str, names: Mapping[str, sp.Expr], *, what: str = "ex
     except (SyntaxError, ValueError, RecursionError, MemoryError) as exc:
         raise ModelFileError(f"{what} is not a valid expression: {text:.80s} "
                              f"({type(exc).__name__}: {exc}).") from exc
-    _check_shape(tree.body, what)
+    _check_shape(tree.body, what, source)
     table = dict(names)
     table.update({k: v for k, v in _BUILTIN_CONSTANTS.items() if k not in table})
     return _ExpressionBuilder(source, what, table, new_symbol).build(tree.body)
+
+
+def normalize_name(name: str) -> str:
+    """A declared name in the form the formula parser sees it: Unicode NFKC, as Python
+    normalises identifiers (a full-width ``ｅ`` is ``e``, the micro sign ``µ`` is Greek ``μ``).
+
+    Parameters
+    ----------
+    name : str
+
+    Returns
+    -------
+    str
+
+    Examples
+    --------
+    >>> from thetahat.model.parse import normalize_name
+    >>> normalize_name("\uff45ta"), normalize_name("\u00b50") == normalize_name("\u03bc0")
+    ('eta', True)
+    """
+    return unicodedata.normalize("NFKC", name)
 
 
 def _parse_names(group: str, names: Any) -> tuple[sp.Symbol, ...]:
@@ -228,7 +275,7 @@ def _parse_names(group: str, names: Any) -> tuple[sp.Symbol, ...]:
         if not isinstance(name, str) or not name.isidentifier() or keyword.iskeyword(name):
             raise ModelFileError(f"{group}: {name!r} is not a valid name (letters, digits and "
                                  f"underscores, not starting with a digit).")
-        out.append(sp.Symbol(name, real=True))
+        out.append(sp.Symbol(normalize_name(name), real=True))
     return tuple(out)
 
 
@@ -237,13 +284,23 @@ def _parse_constants(constants: Mapping[str, float] | None) -> dict[str, sp.Expr
     for name, value in (constants or {}).items():
         if not isinstance(name, str) or not name.isidentifier() or keyword.iskeyword(name):
             raise ModelFileError(f"constant name {name!r} is not a valid name.")
+        if normalize_name(name) in out:
+            raise ModelFileError(f"the constant {name!r} is the same name as another constant "
+                                 f"once Unicode look-alikes are normalised (NFKC): rename one.")
         if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, float,
                                                                       np.integer, np.floating)):
             raise ModelFileError(f"constant {name} must be a real number; got {value!r}.")
-        if not np.isfinite(value):
-            raise ModelFileError(f"constant {name} must be finite; got {value}.")
-        out[name] = sp.Integer(int(value)) if isinstance(value, (int, np.integer)) \
-            else sp.Float(float(value))
+        try:
+            number = float(value)
+        except OverflowError:
+            number = math.inf
+        if not math.isfinite(number):
+            shown = value if isinstance(value, (float, np.floating)) else \
+                f"an integer of {len(str(abs(int(value))))} digits"
+            raise ModelFileError(f"constant {name} must be finite (a float64 number); got "
+                                 f"{shown}.")
+        out[normalize_name(name)] = sp.Integer(int(value)) \
+            if isinstance(value, (int, np.integer)) else sp.Float(number)
     return out
 
 
@@ -306,7 +363,10 @@ def parse_perturbation(text: str | Sequence[str], *, u: Sequence[str | sp.Symbol
         for s in symbols:
             if s.name in names or s.name in _FUNCTIONS or s.name in _BUILTIN_CONSTANTS:
                 raise ModelFileError(f"the name {s.name!r} in {group} is declared twice or "
-                                     f"clashes with a function or constant name.")
+                                     f"clashes with a function or constant name (names are "
+                                     f"compared after Unicode NFKC normalisation, as in "
+                                     f"formulas: look-alikes such as a full-width letter or "
+                                     f"the micro sign count as the same name).")
             names[s.name] = s
     for name, value in _parse_constants(constants).items():
         if name in names or name in _FUNCTIONS or name in _BUILTIN_CONSTANTS:

@@ -17,6 +17,7 @@ from typing import TYPE_CHECKING, cast
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from .._validate import as_samples, seconds_from_first
 from ..design.gains import GainDesign
 from ..errors import (ModelFileError, NotMinimumPhaseError, ThetahatError, ThetahatWarning,
                       UnstableDesignError)
@@ -290,6 +291,11 @@ def run_estimator(spec: ModelSpec, t: ArrayLike, u: ArrayLike | None, y: ArrayLi
         raise ModelFileError(f"method must be one of {list(ESTIMATION_METHODS)}; got {how!r}.")
     x0, th0 = spec.estimator.x_hat0, spec.estimator.theta_hat0
     band = None
+    # every method sees the same samples: masked entries as NaN, dates as seconds, booleans,
+    # text and dates in u or y refused
+    t = as_samples("t", seconds_from_first("t", t))
+    u = None if u is None else as_samples("u", u)
+    y = as_samples("y", y)
     if how == "mle":
         from ..estimation.mle import MapEstimator
         est_mle = MapEstimator(system=spec.system, compiled=compiled)

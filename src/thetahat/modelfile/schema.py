@@ -69,8 +69,10 @@ r = 1). Column order is free and other columns are ignored.
 
 from __future__ import annotations
 
+import functools
 import json
 import math
+import sys
 import tomllib
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
@@ -84,6 +86,7 @@ from .. import limits
 from ..data_mapping import DataMapping, parse_data_table
 from ..errors import InputLimitError, ModelFileError, ThetahatError
 from ..estimation.projection import as_gain
+from ..safe_io import read_text
 from ..estimation.update_laws import (
     AlgebraicInversion,
     GradientInversion,
@@ -277,7 +280,8 @@ def _parse_text(text: str, syntax: str, source: str) -> dict[str, Any]:
     text = text.removeprefix("\ufeff")                   # a byte-order mark (Windows editors)
     _check_nesting(text, source)
     try:
-        doc = tomllib.loads(text) if syntax == "toml" else json.loads(text)
+        doc = tomllib.loads(text) if syntax == "toml" else \
+            json.loads(text, object_pairs_hook=functools.partial(_json_object, source))
     except RecursionError as exc:
         raise InputLimitError(f"model file {source}: nested too deeply to parse.") from exc
     except tomllib.TOMLDecodeError as exc:
@@ -287,7 +291,37 @@ def _parse_text(text: str, syntax: str, source: str) -> dict[str, Any]:
                              f"{exc.lineno}, column {exc.colno}.") from exc
     if not isinstance(doc, dict):
         raise ModelFileError(f"model file {source}: the top level must be a table (object).")
+    _check_integers(doc, source, "")
     return doc
+
+
+def _json_object(source: str, pairs: list[tuple[str, Any]]) -> dict[str, Any]:
+    """A JSON object; a key given twice is refused (as TOML does) instead of the last winning."""
+    out: dict[str, Any] = {}
+    for key, value in pairs:
+        if key in out:
+            raise ModelFileError(f"model file {source}: the key {key!r} is given twice in one "
+                                 f"object; keep one.")
+        out[key] = value
+    return out
+
+
+def _check_integers(value: Any, source: str, where: str) -> None:
+    """Refuse integers that do not fit a float64 (a 400-digit number), naming the key."""
+    stack = [(value, where)]
+    while stack:
+        item, at = stack.pop()
+        if isinstance(item, dict):
+            stack.extend((v, f"{at}.{k}" if at else str(k)) for k, v in item.items())
+        elif isinstance(item, list):
+            stack.extend((v, f"{at}[{i}]") for i, v in enumerate(item))
+        elif isinstance(item, int) and not isinstance(item, bool) and abs(item) > _FLOAT_MAX:
+            raise ModelFileError(f"model file {source}: {at}: the integer with "
+                                 f"{len(str(abs(item)))} digits is too large for a float64 "
+                                 f"number (at most about 1.8e308).")
+
+
+_FLOAT_MAX = int(sys.float_info.max)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -749,10 +783,7 @@ def load_model(path: str | Path) -> ModelSpec:
     if syntax not in ("toml", "json"):
         raise ModelFileError(f"model file {path}: unknown type {path.suffix or '(no suffix)'!r}"
                              f"; use a .toml or .json file.")
-    try:
-        text = path.read_text(encoding="utf-8")
-    except (OSError, UnicodeDecodeError) as exc:
-        raise ModelFileError(f"cannot read model file {path}: {exc}") from exc
+    text = read_text(path, "model file", limits.MAX_MODEL_FILE_BYTES)   # regular files only
     return loads_model(text, syntax=syntax, source=str(path))
 
 
@@ -812,10 +843,13 @@ def loads_model(text: str, *, syntax: str = "toml", source: str = "<string>") ->
     upper = box.vector("upper", p, f"one per parameter in [perturbation] theta, p = {p}")
     try:
         theta_set = Box(lower, upper)
+    except ThetahatError as exc:
+        raise ModelFileError(f"model file {source}: [parameter_set]: {exc}") from exc
+    try:
         system = PerturbedLinearSystem(A=A, B=B, C=C, E=E, perturbation=pert,
                                        parameter_set=theta_set)
     except ThetahatError as exc:
-        raise ModelFileError(f"model file {source}: [parameter_set]: {exc}") from exc
+        raise ModelFileError(f"model file {source}: [system]: {exc}") from exc
     estimator = _read_estimator(sections["estimator"], system, pert, parsed)
     scenario = _read_scenario(_Section(source, "scenario", doc.get("scenario", {})), system,
                               theta_set)

@@ -20,6 +20,7 @@ import numpy as np
 
 import thetahat as th
 from thetahat.models import lugre
+from thetahat.safe_io import atomic_path, write_text
 from thetahat.studies.metrics import rmse, time_to_within
 
 
@@ -108,15 +109,16 @@ def report(*, out: Path | str = "out", eps: float = 1.0, seed: int = 0, show: bo
         "wall_s": {"simulate": t_sim, "observer": t_obs,
                    "observer_us_per_step": 1e6 * t_obs / data.t.size},
     }
-    out.mkdir(parents=True, exist_ok=True)
-    (out / "lugre.json").write_text(json.dumps(summary, indent=2))
+    write_text(out / "lugre.json", json.dumps(summary, indent=2))         # atomic
     # the record the observer ran on, in the layout `thetahat estimate` and the generated C
     # harness read (thetahat codegen examples/lugre.toml --dt 1e-3 ...)
-    np.savetxt(out / "lugre_data.csv", np.c_[data.t, data.u, data.y], delimiter=",",
-               header="t,u,y", comments="", fmt="%.17g")
+    with atomic_path(out / "lugre_data.csv") as tmp:
+        np.savetxt(tmp, np.c_[data.t, data.u, data.y], delimiter=",", header="t,u,y",
+                   comments="", fmt="%.17g")
     from thetahat.plotting import figure_1
-    figure_1(data.t, data.y, data.x, x2, data.theta, res.theta_hat,
-             x_hat_first=res.x_hat, path=out / "lugre.png", show=show)
+    with atomic_path(out / "lugre.png") as tmp:
+        figure_1(data.t, data.y, data.x, x2, data.theta, res.theta_hat,
+                 x_hat_first=res.x_hat, path=tmp, show=show)
 
     r = summary["rmse"]
     say()

@@ -8,7 +8,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from .._validate import as_vector
+from .._validate import as_vector, positive_scalar
 from ..errors import DimensionError
 
 __all__ = ["DIVERGENCE_FACTOR", "diverged", "divergence_reason", "rmse", "time_to_within"]
@@ -28,7 +28,7 @@ def time_to_within(t: ArrayLike, estimate: ArrayLike, truth: ArrayLike, rel: flo
     estimate : array_like, shape (N,) or (N, p)
     truth : array_like, shape (p,) or scalar (a constant parameter)
     rel : float
-        Relative band, e.g. 0.01 for 1 %. For p > 1, every component must be within.
+        Relative band >= 0, e.g. 0.01 for 1 %. For p > 1, every component must be within.
 
     Returns
     -------
@@ -42,12 +42,13 @@ def time_to_within(t: ArrayLike, estimate: ArrayLike, truth: ArrayLike, rel: flo
     2.0
     """
     t = as_vector("t", t)
+    band = positive_scalar("rel", rel) if rel != 0 else 0.0      # a band is >= 0
     est = np.asarray(estimate, dtype=float)
     if est.shape[0] != t.size:
         raise DimensionError(f"estimate has {est.shape[0]} samples but t has {t.size}.")
     est = est.reshape(t.size, -1)
     tru = np.broadcast_to(np.asarray(truth, dtype=float).ravel(), (est.shape[1],))
-    inside = np.all(np.abs(est - tru) <= rel * np.abs(tru), axis=1)
+    inside = np.all(np.abs(est - tru) <= band * np.abs(tru), axis=1)
     if not inside[-1]:
         return float("inf")
     outside = np.flatnonzero(~inside)
@@ -191,9 +192,10 @@ def estimate_summary(result: Any, parameter_names: Sequence[str], *,
     outside = np.flatnonzero(~inside)
     settle = t[0] if outside.size == 0 else t[min(outside[-1] + 1, t.size - 1)]
     values = ", ".join(f"{n} = {v:.6g}" for n, v in zip(parameter_names, final))
-    lines = [f"final theta_hat: {values}",
-             f"settled (within {SETTLE_REL * 100:g} % of the final value) at t = {settle:.6g} of "
-             f"[{t[0]:.6g}, {t[-1]:.6g}]",
+    settled = (f"settled (within {SETTLE_REL * 100:g} % of the final value) at t = "
+               f"{settle:.6g} of [{t[0]:.6g}, {t[-1]:.6g}]" if t.size > 1 else
+               "settled: not decided (a single sample has no course to settle)")
+    lines = [f"final theta_hat: {values}", settled,
              f"skipped samples (dropouts): {int(np.sum(result.skipped))}"]
     trust = getattr(result, "trust", None)       # an ObserverResult checked by run_estimator
     if trust is not None:

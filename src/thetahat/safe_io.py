@@ -1,0 +1,393 @@
+"""Files in and out: every output is written atomically and never over an input; only regular
+files are read, within a size limit.
+
+Outputs
+    :func:`atomic_path` (for libraries that write by path: NumPy, pyarrow, Matplotlib) and
+    :func:`write_text` write into a temporary file in the output's own folder, flush and
+    ``fsync`` it, and ``os.replace`` it over the output: a failure (a full disk, ``ulimit
+    -f``, an exception) leaves the old output untouched and no partial file behind.
+    :func:`check_writable` is called on every output path before any work: it refuses a
+    directory, an unwritable place, a suffix the writer does not know, and a path that resolves
+    to one of the inputs (the same file, a symlink or hard link to it).
+Inputs
+    :func:`open_input` opens a file without blocking, checks that it is a regular file (not a
+    FIFO, a device such as ``/dev/zero``, or a symlink to one) and that its size is within the
+    limit (:data:`thetahat.limits.MAX_MODEL_FILE_BYTES`,
+    :data:`thetahat.limits.MAX_DATA_FILE_BYTES`) before a byte is read.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import io
+import os
+import secrets
+import stat
+from collections.abc import Iterable, Iterator
+from pathlib import Path
+from typing import IO
+
+from .errors import FileAccessError, InputLimitError, ModelFileError
+
+__all__ = ["atomic_path", "write_text", "check_writable", "check_regular", "open_input",
+           "read_text", "same_file"]
+
+
+def _kind(mode: int) -> str:
+    for test, name in ((stat.S_ISFIFO, "a FIFO (named pipe)"), (stat.S_ISCHR, "a character "
+                        "device"), (stat.S_ISBLK, "a block device"), (stat.S_ISSOCK, "a socket"),
+                       (stat.S_ISDIR, "a directory")):
+        if test(mode):
+            return name
+    return "not a regular file"
+
+
+def _check_stat(st: os.stat_result, path: Path, what: str, limit: int | None) -> None:
+    if not stat.S_ISREG(st.st_mode):
+        raise ModelFileError(f"cannot read {what} {path}: it is {_kind(st.st_mode)}; thetahat "
+                             f"reads only regular files (copy the content into a file).")
+    if limit is not None and st.st_size > limit:
+        raise InputLimitError(f"cannot read {what} {path}: it has {st.st_size} bytes, more "
+                              f"than the limit of {limit} bytes (thetahat.limits); raise the "
+                              f"limit or split the file.")
+
+
+def check_regular(path: str | Path, what: str, limit: int | None = None) -> Path:
+    """Check, without opening it, that ``path`` is a regular file within ``limit`` bytes.
+
+    Symlinks are followed: a link to a regular file is fine, a link to ``/dev/zero`` is not.
+
+    Parameters
+    ----------
+    path : str or Path
+    what : str
+        Names the file in messages ("data file", "model file").
+    limit : int, optional
+        Largest accepted size in bytes (no limit when None).
+
+    Returns
+    -------
+    Path
+
+    Raises
+    ------
+    ModelFileError
+        The file does not exist, cannot be inspected, or is not a regular file.
+    InputLimitError
+        The file is larger than ``limit``.
+
+    Examples
+    --------
+    >>> from thetahat.safe_io import check_regular
+    >>> check_regular("/dev/zero", "data file")
+    Traceback (most recent call last):
+    ...
+    thetahat.errors.ModelFileError: cannot read data file /dev/zero: it is a character device; ...
+    """
+    path = Path(path)
+    try:
+        st = os.stat(path)
+    except (OSError, ValueError) as exc:
+        raise ModelFileError(f"cannot read {what} {path}: {exc}") from exc
+    _check_stat(st, path, what, limit)
+    return path
+
+
+def open_input(path: str | Path, what: str, limit: int | None = None) -> IO[bytes]:
+    """Open a regular file for reading in binary mode, refusing anything else before reading.
+
+    The file is opened with ``O_NONBLOCK`` (so a FIFO cannot block the open), checked with
+    ``fstat`` on the open descriptor (so a file swapped between check and open is caught), and
+    then switched back to blocking reads.
+
+    Parameters
+    ----------
+    path : str or Path
+    what : str
+        Names the file in messages.
+    limit : int, optional
+        Largest accepted size in bytes.
+
+    Returns
+    -------
+    binary file object
+        The caller closes it (use it in a ``with`` block).
+
+    Raises
+    ------
+    ModelFileError
+        The file cannot be opened or is not a regular file.
+    InputLimitError
+        The file is larger than ``limit``.
+
+    Examples
+    --------
+    >>> import tempfile, pathlib
+    >>> from thetahat.safe_io import open_input
+    >>> p = pathlib.Path(tempfile.mkdtemp()) / "a.txt"
+    >>> _ = p.write_text("hello")
+    >>> with open_input(p, "text file", limit=100) as fh:
+    ...     fh.read()
+    b'hello'
+    """
+    path = Path(path)
+    flags = os.O_RDONLY | getattr(os, "O_NONBLOCK", 0) | getattr(os, "O_NOCTTY", 0)
+    try:
+        fd = os.open(path, flags)
+    except (OSError, ValueError) as exc:
+        raise ModelFileError(f"cannot read {what} {path}: {exc}") from exc
+    try:
+        _check_stat(os.fstat(fd), path, what, limit)
+        if hasattr(os, "set_blocking"):
+            os.set_blocking(fd, True)
+        return os.fdopen(fd, "rb")
+    except BaseException:
+        os.close(fd)
+        raise
+
+
+def read_text(path: str | Path, what: str, limit: int | None = None) -> str:
+    """The text of a regular UTF-8 file (a byte-order mark is dropped), read via
+    :func:`open_input`.
+
+    Parameters
+    ----------
+    path : str or Path
+    what : str
+        Names the file in messages.
+    limit : int, optional
+        Largest accepted size in bytes.
+
+    Returns
+    -------
+    str
+
+    Raises
+    ------
+    ModelFileError
+        Not a regular file, unreadable, or not UTF-8.
+    InputLimitError
+        Larger than ``limit``.
+
+    Examples
+    --------
+    >>> import tempfile, pathlib
+    >>> from thetahat.safe_io import read_text
+    >>> p = pathlib.Path(tempfile.mkdtemp()) / "m.toml"
+    >>> _ = p.write_bytes("\\ufeffa = 1".encode())
+    >>> read_text(p, "model file")
+    'a = 1'
+    """
+    with open_input(path, what, limit) as fh:
+        try:
+            return io.TextIOWrapper(fh, encoding="utf-8-sig", newline=None).read()
+        except (OSError, UnicodeDecodeError) as exc:
+            raise ModelFileError(f"cannot read {what} {path}: {exc}") from exc
+
+
+def same_file(a: str | Path, b: str | Path) -> bool:
+    """True when ``a`` and ``b`` name the same file (same path after resolving symlinks, or the
+    same inode: a hard link).
+
+    Parameters
+    ----------
+    a, b : str or Path
+
+    Returns
+    -------
+    bool
+
+    Examples
+    --------
+    >>> from thetahat.safe_io import same_file
+    >>> same_file("/tmp/../tmp/x.csv", "/tmp/x.csv")
+    True
+    """
+    pa, pb = Path(a), Path(b)
+    try:
+        if pa.resolve() == pb.resolve():
+            return True
+        return pa.exists() and pb.exists() and os.path.samefile(pa, pb)
+    except (OSError, ValueError, RuntimeError):
+        return False
+
+
+def check_writable(path: str | Path, *, inputs: Iterable[str | Path] = (),
+                   suffixes: Iterable[str] | None = None, what: str = "output") -> Path:
+    """Check, before any work, that an output file can be written (without creating it).
+
+    Parameters
+    ----------
+    path : str or Path
+        The output file.
+    inputs : iterable of str or Path, optional
+        Files the run reads: the output may not be any of them (nor a link to one).
+    suffixes : iterable of str, optional
+        The suffixes the writer knows (lower case, with the dot); None accepts any.
+    what : str
+        Names the output in messages.
+
+    Returns
+    -------
+    Path
+
+    Raises
+    ------
+    ModelFileError
+        ``path`` is a directory, resolves to an input, has an unknown suffix, is an existing
+        file that is not writable, or lies in a folder that cannot be created or written.
+
+    Examples
+    --------
+    >>> import tempfile
+    >>> from thetahat.safe_io import check_writable
+    >>> check_writable(tempfile.mkdtemp())
+    Traceback (most recent call last):
+    ...
+    thetahat.errors.ModelFileError: cannot write ...: it is a directory; give a file name...
+    >>> check_writable("/tmp/data.csv", inputs=["/tmp/data.csv"])
+    Traceback (most recent call last):
+    ...
+    thetahat.errors.ModelFileError: cannot write /tmp/data.csv: it is an input of this run ...
+    """
+    path = Path(path)
+    for source in inputs:
+        if same_file(path, source):
+            raise ModelFileError(f"cannot write {path}: it is an input of this run ({source}); "
+                                 f"writing it would destroy the input. Choose another output "
+                                 f"path (-o).")
+    if path.is_dir():
+        raise ModelFileError(f"cannot write {path}: it is a directory; give a file name, e.g. "
+                             f"{path / 'estimates.csv'}.")
+    if suffixes is not None:
+        allowed = tuple(suffixes)
+        if path.suffix.lower() not in allowed:
+            raise ModelFileError(f"cannot write {what} {path}: the suffix must be one of "
+                                 f"{', '.join(allowed)}; got {path.suffix or '(none)'!r}.")
+    if path.exists() or path.is_symlink():
+        if not path.exists() or not stat.S_ISREG(os.stat(path).st_mode):
+            raise ModelFileError(f"cannot write {path}: it exists and is not a regular file.")
+        if not os.access(path, os.W_OK):
+            raise ModelFileError(f"cannot write {path}: the file is not writable.")
+    folder = path.parent
+    while not folder.exists() and folder != folder.parent:
+        folder = folder.parent
+    if not folder.is_dir() or not os.access(folder, os.W_OK | os.X_OK):
+        raise ModelFileError(f"cannot write {path}: {folder} is not a writable folder; choose "
+                             f"another output path (-o).")
+    return path
+
+
+def _fsync_dir(folder: Path) -> None:
+    try:
+        fd = os.open(folder, os.O_RDONLY)
+    except OSError:
+        return                              # not supported (Windows): the rename still holds
+    try:
+        os.fsync(fd)
+    except OSError:
+        pass
+    finally:
+        os.close(fd)
+
+
+@contextlib.contextmanager
+def atomic_path(path: str | Path) -> Iterator[Path]:
+    """A temporary path next to ``path`` to write to; on success it replaces ``path``.
+
+    The temporary file keeps the output's suffix (writers that choose the format by suffix
+    still work). On leaving the block without an error the file is flushed to disk and renamed
+    over ``path`` (``os.replace``, atomic on POSIX); on an error it is removed and ``path`` is
+    left as it was. The folder is created when missing.
+
+    Parameters
+    ----------
+    path : str or Path
+        The final output file.
+
+    Yields
+    ------
+    Path
+        Where to write.
+
+    Raises
+    ------
+    FileAccessError
+        The folder cannot be created, or the file cannot be written or renamed.
+
+    Examples
+    --------
+    >>> import tempfile, pathlib
+    >>> from thetahat.safe_io import atomic_path
+    >>> out = pathlib.Path(tempfile.mkdtemp()) / "table.csv"
+    >>> with atomic_path(out) as tmp:
+    ...     _ = tmp.write_text("t,y\\n0,1\\n")
+    >>> out.read_text()
+    't,y\\n0,1\\n'
+    """
+    path = Path(path)
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        tmp = _new_temporary(path)
+    except OSError as exc:
+        raise FileAccessError(f"cannot write {path}: {exc}; choose a writable output "
+                              f"path.") from exc
+    try:
+        yield tmp
+        with open(tmp, "rb+") as fh:
+            os.fsync(fh.fileno())
+        if path.exists():                       # keep the mode of the file replaced
+            os.chmod(tmp, os.stat(path).st_mode & 0o7777)
+        os.replace(tmp, path)
+        _fsync_dir(path.parent)
+    except OSError as exc:
+        raise FileAccessError(f"cannot write {path}: {exc}; the previous content (if any) is "
+                              f"unchanged.") from exc
+    finally:
+        with contextlib.suppress(OSError):
+            tmp.unlink()
+
+
+def _new_temporary(path: Path) -> Path:
+    """A new empty file next to ``path``, created with mode 0666 less the umask (as ``open``
+    would create ``path`` itself), keeping the suffix."""
+    for _ in range(100):
+        tmp = path.with_name(f".{path.name}.{secrets.token_hex(6)}.tmp{path.suffix}")
+        try:
+            fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666)
+        except FileExistsError:
+            continue
+        os.close(fd)
+        return tmp
+    raise FileAccessError(f"cannot write {path}: no free temporary name in its folder.")
+
+
+def write_text(path: str | Path, text: str) -> Path:
+    """Write ``text`` (UTF-8) to ``path`` atomically (see :func:`atomic_path`).
+
+    Parameters
+    ----------
+    path : str or Path
+    text : str
+
+    Returns
+    -------
+    Path
+
+    Raises
+    ------
+    FileAccessError
+        The file cannot be written; an old file at ``path`` is unchanged.
+
+    Examples
+    --------
+    >>> import tempfile, pathlib
+    >>> from thetahat.safe_io import write_text
+    >>> write_text(pathlib.Path(tempfile.mkdtemp()) / "a.json", "{}").read_text()
+    '{}'
+    """
+    path = Path(path)
+    with atomic_path(path) as tmp:
+        with open(tmp, "w", encoding="utf-8", newline="") as fh:
+            fh.write(text)
+    return path
