@@ -371,7 +371,8 @@ def kernel_source(pert: SymbolicPerturbation, theta_star: tuple[sp.Expr, ...] | 
     parts += [_source(fn, None, form) for fn in law_formulas.LAW_FORMULAS.values()]
     parts += [_source(fn, None, form) for fn in formulas.FORMULAS.values()]
     parts.append(_law_source(law, form))
-    parts.append(_source(scalar_primitives.kernel_run, decorator=_INLINE))
+    parts += [_source(fn, decorator=_INLINE)
+              for fn in (scalar_primitives.load_phis, scalar_primitives.kernel_run)]
     text = "\n\n".join(parts) + "\n"
     if not numba:
         text = "\n".join(line for line in text.splitlines()
