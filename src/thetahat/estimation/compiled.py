@@ -42,6 +42,7 @@ numba is the optional extra ``speed``; without it this module imports, and
 from __future__ import annotations
 
 import threading
+import warnings
 from collections.abc import Callable
 from dataclasses import dataclass
 from types import ModuleType
@@ -51,7 +52,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from .._validate import as_vector, positive_scalar
-from ..errors import MissingExtraError, OptionError, UnsupportedError
+from ..errors import MissingExtraError, OptionError, ThetahatWarning, UnsupportedError
 from ..model.paramset import Box
 from ..model.perturbation import SymbolicPerturbation
 from .kernel_cache import load_module
@@ -65,7 +66,7 @@ from .update_laws import (ConstantLaw, GradientInversion, IntermittentInversion,
                           invalid_theta_star_error)
 
 __all__ = ["CompiledObserver", "KernelParts", "compile_observer", "kernel_arrays", "kernel_parts",
-           "kernel_work", "phi_table"]
+           "kernel_work", "phi_table", "runner", "COMPILE_MIN_SAMPLES"]
 
 FloatArray = NDArray[np.float64]
 
@@ -569,6 +570,60 @@ def kernel_work(lay: StateLayout) -> tuple[tuple[FloatArray, ...], tuple[FloatAr
     W = tuple(np.zeros(tuple(dims[d] for d in shape)) for _, shape in WORK)
     return W, (np.zeros(lay.size), np.zeros(lay.size), np.zeros(max(lay.m, 1)),
                np.zeros(lay.r), np.zeros(max(lay.m, 1)), np.zeros(lay.r))
+
+
+#: Below this many samples :func:`runner` keeps the observer in Python unless asked: a model's
+#: first compilation costs 20–40 s (later processes load it from the cache in < 1 s) and the
+#: Python step runs ≈ 3 000 samples/s, so a shorter record finishes sooner uncompiled.
+COMPILE_MIN_SAMPLES = 20_000
+
+
+def runner(observer: ModifiedHighGainObserver, t: Any, *, compiled: bool | None = None
+           ) -> ModifiedHighGainObserver | CompiledObserver:
+    """What runs an observer over the record ``t``: its compiled form, or the observer itself.
+
+    Both have ``run(t, u, y, state0=, hold=, progress=)`` with the same results (to
+    rounding). The compiled form is chosen when ``compiled`` is True, or None (the default)
+    and ``t`` has at least :data:`COMPILE_MIN_SAMPLES` samples; it falls back to the observer
+    with a one-line :class:`~thetahat.errors.ThetahatWarning` when numba is missing or a part
+    of the observer is not supported (the note names it).
+
+    Parameters
+    ----------
+    observer : ModifiedHighGainObserver
+    t : array_like, shape (N,)
+        The record's sampling instants (its first step sets the compiled ``step``'s dt; ``run``
+        takes every step's own length).
+    compiled : bool, optional
+        True: compile whenever possible; False: never; None: for long records.
+
+    Returns
+    -------
+    ModifiedHighGainObserver or CompiledObserver
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from thetahat.models import lugre
+    >>> from thetahat.estimation.compiled import runner
+    >>> obs = lugre.observer()
+    >>> runner(obs, np.arange(100) * 1e-3) is obs       # short: Python, no compilation
+    True
+    """
+    t_ = np.asarray(t, dtype=np.float64).reshape(-1)
+    if compiled is False or (compiled is None and t_.size < COMPILE_MIN_SAMPLES):
+        return observer
+    steps = np.diff(t_[:2])
+    dt = float(steps[0]) if steps.size and np.isfinite(steps[0]) and steps[0] > 0 else 1.0
+    try:
+        return compile_observer(observer, dt=dt)
+    except MissingExtraError:
+        note = ("numba is not installed (pip install 'thetahat[speed]' for the compiled "
+                "kernel)")
+    except UnsupportedError as exc:
+        note = str(exc).split(" (supported:")[0].removeprefix("compile_observer: ")
+    warnings.warn(f"the observer runs in Python: {note}.", ThetahatWarning, stacklevel=2)
+    return observer
 
 
 def compile_observer(observer: ModifiedHighGainObserver, *, dt: float) -> CompiledObserver:

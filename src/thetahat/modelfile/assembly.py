@@ -239,7 +239,10 @@ def run_estimator(spec: ModelSpec, t: ArrayLike, u: ArrayLike | None, y: ArrayLi
         The estimator: the paper's observer (default: the file's ``[estimator] method``),
         the two-stage guarded estimator, or the offline MAP fit.
     compiled : bool, optional
-        numba kernels for the two-stage methods (default: when installed).
+        numba kernels (default: when installed; for the paper's observer, on records of at
+        least :data:`~thetahat.estimation.compiled.COMPILE_MIN_SAMPLES` samples, see
+        :func:`~thetahat.estimation.compiled.runner`). A part the kernel does not support
+        falls back to Python with a one-line ThetahatWarning.
 
     Returns
     -------
@@ -285,19 +288,22 @@ def run_estimator(spec: ModelSpec, t: ArrayLike, u: ArrayLike | None, y: ArrayLi
         check_theta_star(theta_star, s.perturbation, s.parameter_set, s.C, t, u, y)
     state0 = obs.init(x_hat0=x0, theta_hat0=th0)
     if how == "paper":
-        return obs.run(t, u, y, hold=hold, state0=state0, progress=progress)
+        from ..estimation.compiled import runner
+        return runner(obs, t, compiled=compiled).run(t, u, y, hold=hold, state0=state0,
+                                                     progress=progress)
     from ..estimation.guarded import GuardedEstimator
-    stage1 = _HeldObserver(obs, hold)
+    stage1 = _HeldObserver(obs, hold, compiled)
     guarded = GuardedEstimator(stage1=stage1, system=spec.system, compiled=compiled)
     res2 = guarded.run(t, u, y, state0=guarded.init(x_hat0=x0, theta_hat0=th0))
     return _as_observer_result(spec, res2.t, u, y, res2.x_hat, res2.theta_hat)
 
 
 class _HeldObserver:
-    """The observer with its ``run`` bound to a sample hold (stage 1 of the guarded run)."""
+    """The observer with its ``run`` bound to a sample hold (stage 1 of the guarded run),
+    compiled as :func:`~thetahat.estimation.compiled.runner` chooses."""
 
-    def __init__(self, obs: ModifiedHighGainObserver, hold: str) -> None:
-        self.obs, self.hold, self.system = obs, hold, obs.system
+    def __init__(self, obs: ModifiedHighGainObserver, hold: str, compiled: bool | None) -> None:
+        self.obs, self.hold, self.system, self.compiled = obs, hold, obs.system, compiled
 
     def init(self, *, x_hat0: ArrayLike | None = None,
              theta_hat0: ArrayLike | None = None) -> FloatArray:
@@ -305,7 +311,9 @@ class _HeldObserver:
 
     def run(self, t: ArrayLike, u: ArrayLike | None, y: ArrayLike, *,
             state0: ArrayLike | None = None) -> ObserverResult:
-        return self.obs.run(t, u, y, hold=self.hold, state0=state0)
+        from ..estimation.compiled import runner
+        return runner(self.obs, t, compiled=self.compiled).run(t, u, y, hold=self.hold,
+                                                               state0=state0)
 
 
 def _as_observer_result(spec: ModelSpec, t: FloatArray, u: ArrayLike | None, y: ArrayLike,
