@@ -15,7 +15,8 @@ import numpy as np
 import pytest
 import sympy as sp
 
-from thetahat.errors import DimensionError, MissingExtraError, NonFiniteError, UpdateLawError
+from thetahat.errors import (DimensionError, MissingExtraError, NonFiniteError, OptionError,
+                             UpdateLawError)
 from thetahat.estimation.compiled import CompiledObserver, compile_observer
 from thetahat.estimation.observer import ModifiedHighGainObserver
 from thetahat.estimation.redesign import SecondObserver
@@ -153,10 +154,34 @@ def test_invalid_theta_star_raises_like_python(motor):
 
 
 # --------------------------------------------------------------------------- input errors
-def test_run_rejects_other_spacing_and_nan(motor):
+def test_run_takes_the_records_own_spacing(motor):
+    """Another dt (every other sample: 2 ms) and irregular steps (a third of the samples
+    dropped at random): each step uses the φ-matrices of its own length, as the Python run."""
+    data, obs, fast = motor
+    keep = np.random.default_rng(0).uniform(size=data.t.size) > 1 / 3
+    keep[0] = True
+    for sel in (slice(None, None, 2), keep):
+        t, u, y = data.t[sel], data.u[sel], data.y[sel]
+        assert_agree(fast.run(t, u, y), obs.run(t, u, y))
+
+
+def test_foh_matches_python_run(motor):
+    data, obs, fast = motor
+    assert_agree(fast.run(data.t, data.u, data.y, hold="foh"),
+                 obs.run(data.t, data.u, data.y, hold="foh"))
+
+
+def test_progress_is_reported_to_the_end(motor):
     data, _, fast = motor
-    with pytest.raises(DimensionError, match="dt = 0.001"):
-        fast.run(data.t[::2], data.u[::2], data.y[::2])
+    seen: list[tuple[int, int]] = []
+    fast.run(data.t, data.u, data.y, progress=lambda done, total: seen.append((done, total)))
+    N = data.t.size
+    assert seen[0] == (0, N - 1) and seen[-1] == (N - 1, N - 1)
+    assert [d for d, _ in seen] == sorted(d for d, _ in seen)
+
+
+def test_run_rejects_nan_under_raise_and_bad_input(motor):
+    data, _, fast = motor
     y = data.y[:50].copy()
     y[10] = np.nan
     with pytest.raises(NonFiniteError, match="NaN"):       # the observer's own NaN policy
@@ -167,6 +192,8 @@ def test_run_rejects_other_spacing_and_nan(motor):
         fast.step(np.full(fast.state_size, np.nan), [0.0], [1.0])
     with pytest.raises(DimensionError):
         fast.step(fast.init(), [0.0], [1.0, 2.0])
+    with pytest.raises(OptionError, match="hold"):
+        fast.run(data.t, data.u, data.y, hold="cubic")
 
 
 def _callable_observer() -> ModifiedHighGainObserver:
