@@ -259,3 +259,26 @@ def test_from_perturbation_inverts_the_lugre_g():
     assert np.all(np.isfinite(est))
     assert np.allclose(est, lugre.theta_star()(v, x, phi), rtol=1e-10, atol=1e-12)
     assert np.allclose(est, 0.28, rtol=1e-9)
+
+
+# --------------------------------------------------------------------------- named arguments
+def test_kernel_arrays_are_the_named_tuples_every_binding_uses():
+    """P, P2, LP of the kernel are kernel_args' named tuples, each field the plan's or the
+    law's array of that name (the NumPy binding builds the same tuples by keyword)."""
+    from thetahat.estimation.compiled import kernel_arrays, kernel_parts
+    from thetahat.estimation.kernel_args import LawArrays, PlanArrays, SecondArrays
+    obs = lugre.observer()
+    plan = obs.plan(DT)
+    P, P2, LP, flags = kernel_arrays(kernel_parts(obs), plan)
+    assert (type(P), type(P2), type(LP)) == (PlanArrays, SecondArrays, LawArrays)
+    for name in ("L", "Bv", "K_x", "KxC", "Phi1", "Phi2"):
+        np.testing.assert_array_equal(getattr(P, name), getattr(plan, name)[0])
+    for name in ("A", "B", "C", "E"):
+        np.testing.assert_array_equal(getattr(P, name), getattr(plan, name))
+    np.testing.assert_array_equal(P2.K_x, plan.second.K_x[0])
+    np.testing.assert_array_equal(P2.Phi1, plan.second.Phi1[0])
+    box = obs.update_law.parameter_set
+    np.testing.assert_array_equal(LP.lower, box.lower)
+    np.testing.assert_array_equal(LP.upper, box.upper)
+    np.testing.assert_array_equal(LP.lam, np.diagonal(plan.Gamma[0]))   # Γ = V diag(λ) Vᵀ
+    assert LP.Gamma is None and flags == (True, True)

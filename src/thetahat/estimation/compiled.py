@@ -58,6 +58,7 @@ from ..model.perturbation import SymbolicPerturbation
 from .kernel_cache import load_module
 from .observer import HOLDS, PROGRESS_EVERY, ModifiedHighGainObserver, ObserverResult
 from .formulas import WORK
+from .kernel_args import LawArrays, PlanArrays, SecondArrays
 from .plan import StateLayout, StepPlan
 from .scalar_backend import LAWS, kernel_source
 from .step import DIVERGENCE_BOUND, divergence_error
@@ -248,7 +249,7 @@ class CompiledObserver:
     theta_star: ThetaStar | None
     plan: StepPlan
     _kernel: ModuleType
-    _args: tuple[tuple[Any, ...], ...]
+    _args: tuple[PlanArrays, SecondArrays, LawArrays, tuple[bool, bool]]
 
     def __init__(self, observer: ModifiedHighGainObserver, *, dt: float) -> None:
         _require_numba()
@@ -347,7 +348,7 @@ class CompiledObserver:
         P, P2, LP, flags = self._args
         W, rows, (Q1, Q2, R1, R2) = _scratch(self.observer.layout)
         # the φ-matrices are loaded into this thread's buffers: the shared arrays stay read
-        P, P2 = (*P[:8], Q1, Q2), (*P2[:5], R1, R2)
+        P, P2 = P._replace(Phi1=Q1, Phi2=Q2), P2._replace(Phi1=R1, Phi2=R2)
         status, index = self._kernel.kernel_run(s0, U, Y, dts, ok, plan_of, PH, P, P2, LP,
                                                 *flags, foh, W, rows, S, PHI)
         return int(status), int(index)
@@ -489,6 +490,7 @@ def phi_table(observer: ModifiedHighGainObserver, dts: FloatArray, present: NDAr
     for j, key in enumerate(uniq.tolist()):
         plan = observer.plan(abs(key))
         sec = plan.second
+        mats: tuple[FloatArray | None, ...]
         if key > 0:
             mats = (plan.Phi1, plan.Phi2, None if sec is None else sec.Phi1,
                     None if sec is None else sec.Phi2)
@@ -501,14 +503,15 @@ def phi_table(observer: ModifiedHighGainObserver, dts: FloatArray, present: NDAr
     return np.ascontiguousarray(inverse.reshape(-1), dtype=np.int64), table
 
 
-def kernel_arrays(parts: KernelParts, plan: StepPlan) -> tuple[tuple[Any, ...], ...]:
+def kernel_arrays(parts: KernelParts, plan: StepPlan
+                  ) -> tuple[PlanArrays, SecondArrays, LawArrays, tuple[bool, bool]]:
     """(P, P2, LP, flags): the plan's arrays for one row, the second observer's, the law's,
     and (a second observer is attached, its g sees C x̂₂): what the kernel takes.
 
-    See :mod:`~thetahat.estimation.formulas` for P and P2 and
-    :mod:`~thetahat.estimation.law_formulas` for the law's LP (with the box Θ and the ramp at
-    :data:`~thetahat.estimation.scalar_backend.LAW_BOX`). Writable, C-contiguous copies:
-    numba compiles one specialisation per array type.
+    The named tuples of :mod:`~thetahat.estimation.kernel_args` (the fields every binding
+    uses; see :mod:`~thetahat.estimation.formulas` and
+    :mod:`~thetahat.estimation.law_formulas`). Writable, C-contiguous copies: numba compiles
+    one specialisation per array type.
 
     Parameters
     ----------
@@ -526,28 +529,30 @@ def kernel_arrays(parts: KernelParts, plan: StepPlan) -> tuple[tuple[Any, ...], 
     def own(a: Any) -> FloatArray:
         return np.array(a, dtype=np.float64, order="C", copy=True)
 
-    P = tuple(own(a) for a in (plan.L[0], plan.Bv[0], plan.E, plan.C, plan.A, plan.B,
-                               plan.K_x[0], plan.KxC[0], plan.Phi1[0], plan.Phi2[0]))
+    P = PlanArrays(L=own(plan.L[0]), Bv=own(plan.Bv[0]), E=own(plan.E), C=own(plan.C),
+                   A=own(plan.A), B=own(plan.B), K_x=own(plan.K_x[0]), KxC=own(plan.KxC[0]),
+                   Phi1=own(plan.Phi1[0]), Phi2=own(plan.Phi2[0]))
     sec = plan.second
     if sec is None:                  # never read: flags[0] (a second observer) is False
-        P2 = tuple(np.zeros(shape) for shape in ((n, n), (n, m), (r, n), (n, k), (n, r),
-                                                (n, n), (n, n)))
+        P2 = SecondArrays(*(np.zeros(shape) for shape in ((n, n), (n, m), (r, n), (n, k),
+                                                          (n, r), (n, n), (n, n))))
     else:
-        P2 = tuple(own(a) for a in (sec.A, sec.B, sec.C, sec.E, sec.K_x[0], sec.Phi1[0],
-                                    sec.Phi2[0]))
-    box = (own(parts.box.lower), own(parts.box.upper))
+        P2 = SecondArrays(A=own(sec.A), B=own(sec.B), C=own(sec.C), E=own(sec.E),
+                          K_x=own(sec.K_x[0]), Phi1=own(sec.Phi1[0]), Phi2=own(sec.Phi2[0]))
+    box = {"lower": own(parts.box.lower), "upper": own(parts.box.upper)}
     G = own(np.eye(p) if plan.Gamma is None else plan.Gamma[0])
-    LP: tuple[FloatArray, ...]
     if parts.code == 0:
-        LP = box
+        LP = LawArrays(**box)
     elif parts.code == 3:
-        LP = (G, np.zeros(k), np.zeros((k, p)), np.zeros((p, k)), np.zeros((p, k)),
-              np.zeros(p), np.zeros((p, p)), *(np.zeros((p + 1, p + 1)) for _ in range(4)),
-              *box)
+        LP = LawArrays(Gamma=G, g=np.zeros(k), J=np.zeros((k, p)), Mt=np.zeros((p, k)),
+                       GM=np.zeros((p, k)), f=np.zeros(p), K=np.zeros((p, p)),
+                       Z=np.zeros((p + 1, p + 1)), Ex=np.zeros((p + 1, p + 1)),
+                       T=np.zeros((p + 1, p + 1)), U=np.zeros((p + 1, p + 1)), **box)
     else:                            # a diagonal Γ: Λ its diagonal, V = I
         low, high = parts.ramp if parts.ramp is not None else (0.0, 1.0)
-        LP = (own(np.diagonal(G)), np.eye(p), np.eye(p), np.zeros(p), np.zeros(p), *box,
-              np.array([low, high, parts.ramp is not None, parts.freeze], dtype=np.float64))
+        LP = LawArrays(lam=own(np.diagonal(G)), V=np.eye(p), VT=np.eye(p), ts=np.zeros(p),
+                       err=np.zeros(p), opts=np.array([low, high, parts.ramp is not None,
+                                                       parts.freeze], dtype=np.float64), **box)
     return P, P2, LP, (sec is not None, sec is not None and sec.g_on_estimates)
 
 

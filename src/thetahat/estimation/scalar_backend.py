@@ -34,7 +34,7 @@ from .formulas import DIVERGENCE_BOUND
 from .law_base import FAR
 from .primitives import check_aliasing
 
-__all__ = ["INLINE_FROM", "LAWS", "LAW_BOX", "formula_decorator", "kernel_source",
+__all__ = ["INLINE_FROM", "LAWS", "formula_decorator", "kernel_source",
            "model_source"]
 
 #: The law formulas the compiled path supports, by code (see ``compiled.KernelParts``).
@@ -307,15 +307,9 @@ def _source(fn: Any, name: str | None = None, decorator: str = _INLINE) -> str:
     return f"{decorator}\n{text}\n"
 
 
-#: Per law, where its LP holds the box Θ (lower, upper), followed for the inversion law by
-#: its options (low, high, whether l is the smooth ramp, whether on_invalid is 'freeze').
-LAW_BOX = {"held_law": 0, "inversion_law": 5, "gradient_law": 11}
-
-
 def _law_source(law: str, form: str) -> str:
     """law_step and the hooks weight, freeze, project and m_matrix for one law formula."""
-    box = LAW_BOX[law]
-    opts = f"LP[{box + 2}]"
+    opts = "LP.opts"
     weight = (f"    if {opts}[2] != 0.0:\n"
               f"        return smoothstep(norm(phi, NK), {opts}[0], {opts}[1])\n"
               "    return 1.0\n") if law == "inversion_law" else "    return 1.0\n"
@@ -323,7 +317,7 @@ def _law_source(law: str, form: str) -> str:
     return (f"{form}\ndef weight(LP, v, x, xo, phi):\n{weight}\n\n"
             f"{form}\ndef freeze(LP):\n    return {freeze}\n\n\n"
             f"{form}\ndef project(LP, thn):\n"
-            f"    lo, hi = LP[{box}], LP[{box + 1}]\n"
+            "    lo, hi = LP.lower, LP.upper\n"
             "    for i in range(NP):\n        thn[i] = min(max(thn[i], lo[i]), hi[i])\n"
             "    return 0\n\n\n"
             f"{form}\ndef m_matrix(v, x, xo, th, to, Mt):\n    return 0\n\n\n"

@@ -15,7 +15,10 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
-from typing import Any
+from typing import TYPE_CHECKING, Any
+
+if TYPE_CHECKING:                    # the argument tuples (named; every binding builds them)
+    from .kernel_args import LawArrays, PlanArrays, SecondArrays
 
 __all__ = ["EXP_TINY_ARG", "SCALAR_PRIMITIVES", "kernel_run", "load_phis"]
 
@@ -259,17 +262,17 @@ SCALAR_PRIMITIVES: dict[str, Callable[..., Any]] = {
         count_, sumsq)}
 
 
-def load_phis(PH: tuple[Any, ...], j: int, P: tuple[Any, ...], P2: tuple[Any, ...],
+def load_phis(PH: tuple[Any, ...], j: int, P: PlanArrays, P2: SecondArrays,
               second: bool) -> None:
     """Φ₁, Φ₂ of the observer (and of the second observer) of table entry ``j`` into P, P2."""
     Phi1, Phi2, Phi1s, Phi2s = PH[0], PH[1], PH[2], PH[3]
-    Q1, Q2 = P[8], P[9]
+    Q1, Q2 = P.Phi1, P.Phi2
     for a in range(NX + NK):
         for b in range(NX + NK):
             Q1[a, b] = Phi1[j, a, b]
             Q2[a, b] = Phi2[j, a, b]
     if second:
-        R1, R2 = P2[5], P2[6]
+        R1, R2 = P2.Phi1, P2.Phi2
         for a in range(NX):
             for b in range(NX):
                 R1[a, b] = Phi1s[j, a, b]
@@ -277,7 +280,7 @@ def load_phis(PH: tuple[Any, ...], j: int, P: tuple[Any, ...], P2: tuple[Any, ..
 
 
 def kernel_run(s0: Any, U: Any, Y: Any, dts: Any, ok: Any, plan_of: Any, PH: tuple[Any, ...],
-               P: tuple[Any, ...], P2: tuple[Any, ...], LP: tuple[Any, ...], second: bool,
+               P: PlanArrays, P2: SecondArrays, LP: LawArrays, second: bool,
                on_estimates: bool, foh: bool, W: tuple[Any, ...], rows: tuple[Any, ...], S: Any,
                PHI: Any) -> tuple[int, int]:
     """The states S and φ̂ = g + z (PHI) over a record; (status, failing step).
@@ -291,7 +294,7 @@ def kernel_run(s0: Any, U: Any, Y: Any, dts: Any, ok: Any, plan_of: Any, PH: tup
     """
     N, size = S.shape
     s, out, u, y, u1, y1 = rows
-    C = P[3]
+    C = P.C
     for j in range(size):
         s[j] = s0[j]
         S[0, j] = s0[j]
