@@ -405,6 +405,15 @@ def _plant_record(spec, t_end: float, seed: int) -> tuple[np.ndarray, np.ndarray
     return t, U, Y + 1e-3 * rng.standard_normal(Y.shape)
 
 
+def _user_m_observer() -> ModifiedHighGainObserver:
+    """two_inertia's Python model: the gradient law with a user's M (LoadSpeedWeight, which
+    carries its SymPy form), nan_policy="skip"."""
+    from thetahat.models import two_inertia
+    obs = two_inertia.observer()
+    return ModifiedHighGainObserver.from_design(obs.system, two_inertia.design(),
+                                                obs.update_law, nan_policy="skip")
+
+
 @cache
 def model_file_case(name: str):
     """(spec, observer with nan_policy="skip", t, u, y): the record irregular (a sixth of the
@@ -423,6 +432,21 @@ def model_file_case(name: str):
     return spec, build_observer(spec, nan_policy="skip"), t, u, y
 
 
+@pytest.mark.parametrize("hold", HOLDS)
+def test_kernel_source_runs_a_user_m(hold):
+    """The gradient law with a user's M (two_inertia's LoadSpeedWeight, printed from its
+    SymPy form): the kernel's text, run as Python, equals the Python run."""
+    spec, _, t, u, y = model_file_case("two_inertia")
+    obs = _user_m_observer()
+    s0 = obs.init(theta_hat0=spec.estimator.theta_hat0)
+    ref = obs.run(t, u, y, hold=hold, state0=s0)
+    S = _emitted_run(obs, t, u, y, hold, s0)
+    lay = obs.layout
+    assert rel_err(S[:, lay.x], ref.x_hat) <= AGREE_RTOL
+    assert rel_err(S[:, lay.theta], ref.theta_hat) <= AGREE_RTOL
+    assert np.ptp(ref.theta_hat, axis=0).min() > 1e-3    # both parameters moved
+
+
 def _emitted_run(obs: ModifiedHighGainObserver, t, u, y, hold: str, s0) -> np.ndarray:
     """The states of the kernel's source run as plain Python (no numba: the kernel's text,
     with every argument the compiled observer passes)."""
@@ -431,7 +455,8 @@ def _emitted_run(obs: ModifiedHighGainObserver, t, u, y, hold: str, s0) -> np.nd
     parts = kernel_parts(obs)
     ts = parts.theta_star
     source = kernel_source(parts.perturbation, None if ts is None else ts.expr,
-                           None if ts is None else ts.arguments, LAWS[parts.code], numba=False)
+                           None if ts is None else ts.arguments, LAWS[parts.code], numba=False,
+                           M=parts.M)
     namespace: dict[str, object] = {"__name__": "thetahat_kernel_test"}
     exec(compile(source, "<kernel>", "exec"), namespace)   # our generated text, no numba
     t_, dts, U3, Y3, ok3 = obs.check_records(t, u, y)
@@ -477,3 +502,16 @@ def test_run_estimator_compiled_agrees_on_model_files(name):
         for field in ("x_hat", "phi_hat", "theta_hat"):
             assert rel_err(getattr(fast, field), getattr(ref, field)) <= AGREE_RTOL, field
         assert np.array_equal(fast.skipped, ref.skipped)
+
+
+@pytest.mark.slow
+def test_compiled_user_m_agrees():
+    """The numba kernel with a user's M (its first compilation: slow) equals the Python run."""
+    spec, _, t, u, y = model_file_case("two_inertia")
+    obs = _user_m_observer()
+    fast = compiled(obs)
+    for hold in HOLDS:
+        ref = obs.run(t, u, y, hold=hold)
+        res = fast.run(t, u, y, hold=hold)
+        assert rel_err(res.x_hat, ref.x_hat) <= AGREE_RTOL
+        assert rel_err(res.theta_hat, ref.theta_hat) <= AGREE_RTOL

@@ -12,15 +12,18 @@ machine code. Supported:
 * update laws: :class:`~thetahat.estimation.update_laws.ConstantLaw`,
   :class:`~thetahat.estimation.update_laws.IntermittentInversion` (l ≡ 1, as built by
   :func:`~thetahat.estimation.update_laws.AlgebraicInversion`, or the weight of
-  :func:`~thetahat.estimation.update_laws.smooth_ramp`) whose θ* is a
-  :class:`~thetahat.estimation.theta_star.ThetaStar` (from ``from_perturbation`` or
-  ``ThetaStar.from_expr``), and
+  :func:`~thetahat.estimation.update_laws.smooth_ramp`) whose θ* has a SymPy form (a
+  :class:`~thetahat.estimation.theta_star.ThetaStar` from ``from_perturbation`` or
+  ``ThetaStar.from_expr``, or a model file's ``theta_star``), and
   :class:`~thetahat.estimation.update_laws.GradientInversion` with the default M = (∂g/∂θ)ᵀ;
   none of them with a ``saturation``;
 * an attached :class:`~thetahat.estimation.redesign.SecondObserver`;
-* a fixed step dt and the zero-order hold (Φ₁ is computed once).
+* any sampling the Python ``run`` takes: irregular steps (the φ-matrices of each distinct step
+  length, from the observer's cached plans), missing samples under ``nan_policy="skip"``
+  (the prediction's φ-matrices), the zero- and first-order holds.
 
-Everything else raises :class:`~thetahat.errors.UnsupportedError` (a NotImplementedError) naming the part; use the Python observer.
+Everything else raises :class:`~thetahat.errors.UnsupportedError` (a NotImplementedError)
+naming the part; use the Python observer.
 
 The kernel is not a transcription: :mod:`~thetahat.estimation.scalar_backend` emits the
 step's formulas (:mod:`~thetahat.estimation.formulas`,
@@ -32,8 +35,9 @@ calls it. The module is written to a cache directory (``$THETAHAT_CACHE_DIR``, d
 ``~/.cache/thetahat``, else a temporary directory) under a name that hashes its content, and
 compiled with ``numba.njit(cache=True)``: the first compilation of a model and law formula
 costs 20–40 s, later processes load the machine code from disk. The gains, ε, Γ, Θ, the
-ramp, ``on_invalid``, the second observer and dt are data, not code: observers that differ
-only in them share one kernel.
+ramp, ``on_invalid``, the second observer and the step lengths are data, not code: observers
+that differ only in them share one kernel. :func:`runner` chooses between the compiled and
+the Python observer for a record (``run_estimator`` uses it).
 
 numba is the optional extra ``speed``; without it this module imports, and
 :func:`compile_observer` raises :class:`ImportError`.
@@ -73,8 +77,8 @@ FloatArray = NDArray[np.float64]
 
 _SUPPORTED = ("supported: a SymbolicPerturbation g, a Box Θ with diagonal Γ, ConstantLaw, "
               "IntermittentInversion (l ≡ 1, i.e. AlgebraicInversion, or a smooth_ramp weight) "
-              "with a ThetaStar θ*, GradientInversion with the default M, no saturation, no law "
-              "state, an optional SecondObserver, fixed dt and zero-order hold")
+              "with a symbolic θ*, GradientInversion with the default M, no saturation, no law "
+              "state, an optional SecondObserver")
 
 
 def _require_numba() -> Any:
@@ -127,6 +131,8 @@ class KernelParts:
         (low, high) of the smooth ramp l (code 2).
     freeze : bool
         The inversion law's ``on_invalid == "freeze"``.
+    M : sympy.Matrix or None
+        A user's M of the gradient law (code 3), in g's symbols (its ``sympy_form``).
     """
 
     code: int
@@ -135,6 +141,7 @@ class KernelParts:
     theta_star: ThetaStar | None = None
     ramp: tuple[float, float] | None = None
     freeze: bool = False
+    M: Any = None
 
 
 def kernel_parts(observer: ModifiedHighGainObserver) -> KernelParts:
@@ -175,11 +182,17 @@ def kernel_parts(observer: ModifiedHighGainObserver) -> KernelParts:
         return KernelParts(code=0, perturbation=pert, box=box)
     _diagonal_gain(law)
     if isinstance(law, GradientInversion):
-        if law.M is not None:
-            raise _unsupported("GradientInversion with a user M")
         if not (law.perturbation is pert or law.perturbation == pert):
             raise _unsupported("GradientInversion with a g other than the observer's")
-        return KernelParts(code=3, perturbation=pert, box=box)
+        M = None
+        if law.M is not None:
+            form = getattr(law.M, "sympy_form", None)
+            if form is None:
+                raise _unsupported(f"GradientInversion with a user M that is a Python callable "
+                                   f"({type(law.M).__name__}) without sympy_form(g), its "
+                                   "SymPy matrix in g's symbols")
+            M = form(pert)
+        return KernelParts(code=3, perturbation=pert, box=box, M=M)
     if not isinstance(law, IntermittentInversion):
         raise _unsupported(f"the update law {type(law).__name__}")
     code, ramp = 1, None
@@ -221,10 +234,10 @@ def _kernel_array(a: FloatArray) -> FloatArray:
 
 @dataclass(frozen=True, slots=True, eq=False)
 class CompiledObserver:
-    """A :class:`ModifiedHighGainObserver` compiled for one step length (zero-order hold).
+    """A :class:`ModifiedHighGainObserver` compiled (numba).
 
-    ``step`` and ``run`` compute what the observer's own ``step`` and ``run(hold="zoh")``
-    compute, in machine code. Build it with :func:`compile_observer`, which documents the
+    ``step`` and ``run`` compute what the observer's own ``step`` and ``run`` compute, in
+    machine code; ``step`` advances by ``dt``, ``run`` by each step of its record. Build it with :func:`compile_observer`, which documents the
     parameters ``observer`` and ``dt``.
 
     Parameters
@@ -237,7 +250,7 @@ class CompiledObserver:
     observer : ModifiedHighGainObserver
         The observer it was compiled from (gains, law, second observer).
     dt : float
-        The fixed step length (s).
+        The step length (s) of ``step``.
     theta_star : ThetaStar or None
         The θ* compiled into the kernel, the update law's own (None for laws without θ*).
     plan : StepPlan
@@ -261,7 +274,8 @@ class CompiledObserver:
         ts = parts.theta_star
         plan = observer.plan(h)
         source = kernel_source(parts.perturbation, None if ts is None else ts.expr,
-                               None if ts is None else ts.arguments, LAWS[parts.code])
+                               None if ts is None else ts.arguments, LAWS[parts.code],
+                               M=parts.M)
         for name, value in (("observer", observer), ("dt", h), ("theta_star", ts),
                             ("plan", plan), ("_kernel", _load(source)),
                             ("_args", kernel_arrays(parts, plan))):
@@ -638,10 +652,10 @@ def compile_observer(observer: ModifiedHighGainObserver, *, dt: float) -> Compil
     ----------
     observer : ModifiedHighGainObserver
         Observer (3) with update law (8) and optionally a second observer (Sec. VI); its parts
-        must be of the supported kinds (see the module docstring). A law with a θ* needs a
-        :class:`~thetahat.estimation.theta_star.ThetaStar` (it carries the SymPy form).
+        must be of the supported kinds (see the module docstring). A law with a θ* needs its
+        SymPy form: a :class:`~thetahat.estimation.theta_star.ThetaStar`, or a model file's.
     dt : float
-        The step length (s) > 0; ``run`` checks that its t is spaced by it.
+        The step length (s) > 0 of ``step``; ``run`` steps by its record's own spacing.
 
     Returns
     -------

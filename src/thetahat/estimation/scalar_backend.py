@@ -137,6 +137,11 @@ def _function(name: str, params: str, inputs: Sequence[tuple[str, Sequence[sp.Sy
     return "\n".join(lines) + "\n"
 
 
+def _model_inputs(pert: SymbolicPerturbation) -> list[tuple[str, Sequence[sp.Symbol]]]:
+    """Where the model functions read g's symbols: v = col(u, y), x̂ = x[xo:], θ̂ = th[to:]."""
+    return [("v[{}]", (*pert.u, *pert.y)), ("x[xo + {}]", pert.x), ("th[to + {}]", pert.theta)]
+
+
 def model_source(pert: SymbolicPerturbation, theta_star: tuple[sp.Expr, ...] | None,
                  ts_args: tuple[sp.Symbol, ...] | None) -> str:
     """The model functions of the formulas as scalar code: g_dx, g_val, dg_dy, dg_dtheta, θ*.
@@ -164,7 +169,7 @@ def model_source(pert: SymbolicPerturbation, theta_star: tuple[sp.Expr, ...] | N
     """
     n, m, r, _, _ = pert.dims
     params = "v, x, xo, th, to"
-    ins = [("v[{}]", (*pert.u, *pert.y)), ("x[xo + {}]", pert.x), ("th[to + {}]", pert.theta)]
+    ins = _model_inputs(pert)
     g = sp.Matrix(pert.expr)
     Gv = pert.jacobian("v")
     parts = [
@@ -307,26 +312,27 @@ def _source(fn: Any, name: str | None = None, decorator: str = _INLINE) -> str:
     return f"{decorator}\n{text}\n"
 
 
-def _law_source(law: str, form: str) -> str:
-    """law_step and the hooks weight, freeze, project and m_matrix for one law formula."""
+def _law_source(law: str, form: str, user_m: bool) -> str:
+    """law_step and the hooks weight, freeze, project (and a stub m_matrix without a user's
+    M) for one law formula."""
     opts = "LP.opts"
     weight = (f"    if {opts}[2] != 0.0:\n"
               f"        return smoothstep(norm(phi, NK), {opts}[0], {opts}[1])\n"
               "    return 1.0\n") if law == "inversion_law" else "    return 1.0\n"
     freeze = f"{opts}[3] != 0.0" if law == "inversion_law" else "False"
+    stub = "" if user_m else f"{form}\ndef m_matrix(v, x, xo, th, to, Mt):\n    return 0\n\n\n"
     return (f"{form}\ndef weight(LP, v, x, xo, phi):\n{weight}\n\n"
             f"{form}\ndef freeze(LP):\n    return {freeze}\n\n\n"
             f"{form}\ndef project(LP, thn):\n"
             "    lo, hi = LP.lower, LP.upper\n"
             "    for i in range(NP):\n        thn[i] = min(max(thn[i], lo[i]), hi[i])\n"
             "    return 0\n\n\n"
-            f"{form}\ndef m_matrix(v, x, xo, th, to, Mt):\n    return 0\n\n\n"
-            f"law_step = {law}\n")
+            + stub + f"law_step = {law}\n")
 
 
 def kernel_source(pert: SymbolicPerturbation, theta_star: tuple[sp.Expr, ...] | None,
                   ts_args: tuple[sp.Symbol, ...] | None, law: str, *,
-                  numba: bool = True) -> str:
+                  numba: bool = True, M: sp.Matrix | None = None) -> str:
     """The complete source of the kernel module of one model and configuration.
 
     Parameters
@@ -339,6 +345,9 @@ def kernel_source(pert: SymbolicPerturbation, theta_star: tuple[sp.Expr, ...] | 
         observer and the gains is data.
     numba : bool
         Decorate the functions with ``numba.njit``; False gives plain Python (for tests).
+    M : sympy.Matrix, shape (p, k), optional
+        A user's M(v, x, θ) of the gradient law (Propositions 3–4) in g's symbols; default
+        (∂g/∂θ)ᵀ.
 
     Returns
     -------
@@ -360,14 +369,17 @@ def kernel_source(pert: SymbolicPerturbation, theta_star: tuple[sp.Expr, ...] | 
         f"IMPLICITNESS = {IMPLICITNESS!r}", f"FAR = {FAR!r}",
         f"EXP_TINY_ARG = {scalar_primitives.EXP_TINY_ARG!r}",
         f"BOUND_SQ = {DIVERGENCE_BOUND ** 2!r}",
-        "USER_M = False"]
+        f"USER_M = {M is not None}"]
     parts = ["\n".join(header)]
     parts += [_source(fn, name, _INLINE)
               for name, fn in scalar_primitives.SCALAR_PRIMITIVES.items()]
     parts.append(model_source(pert, theta_star, ts_args))
+    if M is not None:
+        parts.append(_function("m_matrix", "v, x, xo, th, to, Mt", _model_inputs(pert),
+                               [("Mt", sp.Matrix(M), False)]))
     parts += [_source(fn, None, form) for fn in law_formulas.LAW_FORMULAS.values()]
     parts += [_source(fn, None, form) for fn in formulas.FORMULAS.values()]
-    parts.append(_law_source(law, form))
+    parts.append(_law_source(law, form, M is not None))
     parts += [_source(fn, decorator=_INLINE)
               for fn in (scalar_primitives.load_phis, scalar_primitives.kernel_run)]
     text = "\n\n".join(parts) + "\n"
