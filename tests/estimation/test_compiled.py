@@ -282,3 +282,27 @@ def test_kernel_arrays_are_the_named_tuples_every_binding_uses():
     np.testing.assert_array_equal(LP.upper, box.upper)
     np.testing.assert_array_equal(LP.lam, np.diagonal(plan.Gamma[0]))   # Γ = V diag(λ) Vᵀ
     assert LP.Gamma is None and flags == (True, True)
+
+
+# --------------------------------------------------------------------------- the default path
+def test_runner_keeps_short_records_in_python():
+    from thetahat.estimation.compiled import COMPILE_MIN_SAMPLES, runner
+    obs = lugre.observer()
+    assert runner(obs, np.arange(COMPILE_MIN_SAMPLES - 1) * DT) is obs
+    assert runner(obs, np.arange(10 * COMPILE_MIN_SAMPLES) * DT, compiled=False) is obs
+
+
+def test_runner_falls_back_with_a_one_line_note(monkeypatch):
+    """An unsupported part, or numba missing: the observer itself, and a ThetahatWarning of
+    one line naming why."""
+    from thetahat.errors import ThetahatWarning
+    from thetahat.estimation.compiled import runner
+    t = np.arange(100) * DT
+    obs = UNSUPPORTED["ball"][0]()
+    with pytest.warns(ThetahatWarning, match="runs in Python: .*must be a Box") as rec:
+        assert runner(obs, t, compiled=True) is obs
+    assert "\n" not in str(rec[0].message)
+    monkeypatch.setitem(sys.modules, "numba", None)       # `import numba` now fails
+    obs = lugre.observer()
+    with pytest.warns(ThetahatWarning, match=r"numba is not installed .*thetahat\[speed\]"):
+        assert runner(obs, t, compiled=True) is obs
