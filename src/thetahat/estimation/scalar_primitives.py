@@ -20,7 +20,7 @@ from typing import TYPE_CHECKING, Any
 if TYPE_CHECKING:                    # the argument tuples (named; every binding builds them)
     from .kernel_args import LawArrays, PlanArrays, SecondArrays
 
-__all__ = ["EXP_TINY_ARG", "SCALAR_PRIMITIVES", "kernel_run", "load_phis"]
+__all__ = ["EXP_TINY_ARG", "SCALAR_PRIMITIVES"]
 
 #: Below this argument exp underflows to 0 in float64 (the largest a with exp(a) == 0 is just
 #: under it); ``math.exp`` there takes libm's slow path, which the scalar ``exp`` avoids.
