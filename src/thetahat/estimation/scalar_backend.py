@@ -55,10 +55,13 @@ def formula_decorator(version: str) -> str:
     """The decorator of the formulas for a numba version: inlined into the loop from
     :data:`INLINE_FROM` on, separate functions before.
 
-    Inlined, the kernel is ≈ 1.5–2× faster and takes 20–40 s to compile (measured with numba
-    0.61.2 and 0.68.1); numba 0.58.1 had not finished inlining it after 17 min and 7.7 GB, and
-    compiles the separate functions in ≈ 12 s. 0.59–0.60 were not tried: they get the
-    separate functions.
+    Inlined, the kernel is faster and takes longer to compile: the DC motor's kernel, measured
+    in one run on a loaded 2-core machine with numba 0.68.1, compiles in 56 s and runs 0.33 µs
+    a sample inlined, 21 s and 1.9 µs a sample as separate functions (earlier measurements:
+    20–40 s inlined with 0.61.2 and 0.68.1). The first compilation happens once per machine
+    (the cache), the per-sample cost at every run, so the formulas are inlined. numba 0.58.1
+    had not finished inlining after 17 min and 7.7 GB, and compiles the separate functions in
+    ≈ 12 s; 0.59–0.60 were not tried: they get the separate functions.
 
     Parameters
     ----------
