@@ -629,7 +629,10 @@ def runner(observer: ModifiedHighGainObserver, t: Any, *, compiled: bool | None 
     >>> runner(obs, np.arange(100) * 1e-3) is obs       # short: Python, no compilation
     True
     """
-    t_ = np.asarray(t, dtype=np.float64).reshape(-1)
+    try:
+        t_ = np.asarray(t, dtype=np.float64).reshape(-1)
+    except (TypeError, ValueError):        # not numbers: the observer's run says what is wrong
+        return observer
     if compiled is False or (compiled is None and t_.size < COMPILE_MIN_SAMPLES):
         return observer
     steps = np.diff(t_[:2])
