@@ -17,6 +17,11 @@ Run:  .venv/bin/python benchmarks/run_all.py [--quick] [--out out/bench.json]
 * ``--jobs`` (default: every core) forks that many worker processes over the independent
   records (seeds, robustness cases, grid points) of both; each record's estimators run one
   after the other in one process, and the cost comparisons run alone in this process.
+* bench_estimate.py (``--quick``: 10⁵ samples) runs in this process: ``thetahat estimate`` on a
+  10⁶-sample LuGre log (warm kernel cache), and the compiled vs Python per-sample cost of
+  ``run_estimator``, under ``estimate``.
+* bench_cold_start.py (full run only: two first compilations) runs in this process: the time
+  of ``import thetahat`` and of a model's first compiled run, under ``cold_start``.
 * bench_scb.py runs as a subprocess (n = 10, 50 with ``--quick``; its defaults otherwise); its
   rows go under ``scb``.
 * bench_soak.py runs as a subprocess (10⁷ samples; 2·10⁵ with ``--quick``): the streaming
@@ -92,11 +97,18 @@ def main() -> None:
     scb = run_scb(args.quick)
     payload = dict(lugre["payload"])
     payload["scb"] = scb
+    import bench_estimate
+    print("\n=== bench_estimate.py" + (" --samples 100000" if args.quick else ""))
+    payload["estimate"] = bench_estimate.main(
+        ["--samples", "100000", "--python-samples", "5000"] if args.quick else [])
     if not args.quick:
         import bench_guarded
         print("\n=== bench_guarded.py")
         payload["guarded_scenarios"] = bench_guarded.main(
             ["--seeds", "20", "--figure", str(args.out.with_name("guarded_crlb.png")), *jobs])
+        import bench_cold_start
+        print("\n=== bench_cold_start.py")
+        payload["cold_start"] = bench_cold_start.main([])
     print("\n=== bench_soak.py" + (f" --samples {QUICK_SOAK_SAMPLES}" if args.quick else ""))
     payload["soak"] = run_soak(args.quick)
     details = dict(lugre["details"])

@@ -25,8 +25,10 @@ SRC = Path(thetahat.__file__).resolve().parent
 BUILTIN_EXCEPTIONS = {name for name, obj in vars(builtins).items()
                       if inspect.isclass(obj) and issubclass(obj, BaseException)}
 
-#: Re-raised builtins that are not errors of ours (the CLI's argparse exit, Ctrl-C).
-ALLOWED = {"SystemExit", "KeyboardInterrupt", "StopIteration", "GeneratorExit"}
+#: Re-raised builtins that are not errors of ours (the CLI's argparse exit, Ctrl-C), and the
+#: AttributeError that a module's ``__getattr__`` (PEP 562, thetahat's lazy names) must raise for
+#: an unknown name: ``hasattr`` and ``from thetahat import X`` rely on exactly that type.
+ALLOWED = {"SystemExit", "KeyboardInterrupt", "StopIteration", "GeneratorExit", "AttributeError"}
 
 
 def _raised_name(node: ast.Raise) -> str | None:

@@ -1,53 +1,61 @@
 """thetahat: state, perturbation and parameter estimation for linear systems with nonlinearly
 parameterized perturbations — the modular observer of Grip, Saberi & Johansen.
 
-The curated public API; everything else lives in the submodules.
+The curated public API; everything else lives in the submodules. The names are imported on
+first use (PEP 562, :data:`_EXPORTS`): ``import thetahat`` loads no subpackage, and
+``from thetahat import X`` or ``thetahat.X`` imports only the module that defines X.
 """
 
-from .codegen import CCode, generate_c
-from .design.design_system import DesignSystemReport, apply_design
-from .design.gains import GainDesign, extended_system, high_gain, modified_high_gain
-from .estimation.batch_run import BatchObserverResult, run_batch
-from .estimation.checks import (ExcitationReport, MonotonicityReport, check_monotonicity,
-                                excitation_report)
-from .estimation.compiled import CompiledObserver, compile_observer
-from .estimation.crlb import CRLBResult, crlb
-from .estimation.ekf import JointEKF
-from .estimation.guarded import GuardedEstimator, GuardedResult
-from .estimation.mle import MapEstimator
-from .estimation.observer import ModifiedHighGainObserver, ObserverEstimate, ObserverResult
-from .estimation.plan import StepPlan
-from .estimation.projection import Projection, Saturation, saturate
-from .estimation.redesign import SecondObserver
-from .estimation.theta_star import ThetaStar
-from .estimation.update_laws import (AlgebraicInversion, ConstantLaw, GradientInversion,
-                                     IntermittentInversion, UpdateLaw, smooth_ramp)
-from .errors import (CCompilerError, ConvergenceWarning, DesignError, DimensionError, IllConditionedWarning,
-                     MissingExtraError, ModelFileError, NonFiniteError, SimulationError, NotLeftInvertibleError,
-                     NotMinimumPhaseError, ParameterSetError, ThetahatError, ThetahatWarning,
-                     UpdateLawError)
-from .errors import (IllConditionedError, InputLimitError, ResourceLimitError,
-                     SymbolicTimeoutError, UnstableDesignError)
-from .model.interop import from_state_space, to_state_space
-from .model.paramset import Ball, Box, ConvexSet, Ellipsoid, ParameterSet
-from .model.parse import parse_perturbation
-from .model.jacobian_check import JacobianCheck, check_jacobians
-from .model.perturbation import CallablePerturbation, Perturbation, SymbolicPerturbation
-from .model.system import PerturbedLinearSystem
-from .fleet import FleetResult, estimate_many
-from .simulation.noise import ColoredNoise, WhiteNoise
-from .simulation.signals import FromArray, Multisine, Steps
-from .simulation.simulate import PlantTrajectory, convergence_check, simulate_plant
-from .spec import EstimatorSpec, SecondObserverSpec
-from .studies.batch import BatchResult, monte_carlo
-from .studies.metrics import rmse, time_to_within
-from .studies.sweep import SweepResult, eps_sweep
-from .studies.tune import TuneResult, tune_eps_gamma
-from .structure.assumptions import AssumptionReport, check_assumption_1
-from .structure.scb import SCBResult, scb
-from .structure.scb_symbolic import SymbolicSCBResult, scb_symbolic
-from .structure.zeros import (invariant_zeros, is_left_invertible, is_minimum_phase,
-                              normal_rank, unstable_zeros)
+from __future__ import annotations
+
+import importlib
+from typing import TYPE_CHECKING, Any
+
+if TYPE_CHECKING:                    # the real imports, for type checkers and IDEs
+    from .codegen import CCode, generate_c
+    from .design.design_system import DesignSystemReport, apply_design
+    from .design.gains import GainDesign, extended_system, high_gain, modified_high_gain
+    from .errors import (CCompilerError, ConvergenceWarning, DesignError, DimensionError,
+                         IllConditionedError, IllConditionedWarning, InputLimitError,
+                         MissingExtraError, ModelFileError, NonFiniteError,
+                         NotLeftInvertibleError, NotMinimumPhaseError, ParameterSetError,
+                         ResourceLimitError, SimulationError, SymbolicTimeoutError, ThetahatError,
+                         ThetahatWarning, UnstableDesignError, UpdateLawError)
+    from .estimation.batch_run import BatchObserverResult, run_batch
+    from .estimation.checks import (ExcitationReport, MonotonicityReport, check_monotonicity,
+                                    excitation_report)
+    from .estimation.compiled import CompiledObserver, compile_observer
+    from .estimation.crlb import CRLBResult, crlb
+    from .estimation.ekf import JointEKF
+    from .estimation.guarded import GuardedEstimator, GuardedResult
+    from .estimation.mle import MapEstimator
+    from .estimation.observer import ModifiedHighGainObserver, ObserverEstimate, ObserverResult
+    from .estimation.plan import StepPlan
+    from .estimation.projection import Projection, Saturation, saturate
+    from .estimation.redesign import SecondObserver
+    from .estimation.theta_star import ThetaStar
+    from .estimation.update_laws import (AlgebraicInversion, ConstantLaw, GradientInversion,
+                                         IntermittentInversion, UpdateLaw, smooth_ramp)
+    from .fleet import FleetResult, estimate_many
+    from .model.interop import from_state_space, to_state_space
+    from .model.jacobian_check import JacobianCheck, check_jacobians
+    from .model.paramset import Ball, Box, ConvexSet, Ellipsoid, ParameterSet
+    from .model.parse import parse_perturbation
+    from .model.perturbation import CallablePerturbation, Perturbation, SymbolicPerturbation
+    from .model.system import PerturbedLinearSystem
+    from .simulation.noise import ColoredNoise, WhiteNoise
+    from .simulation.signals import FromArray, Multisine, Steps
+    from .simulation.simulate import PlantTrajectory, convergence_check, simulate_plant
+    from .spec import EstimatorSpec, SecondObserverSpec
+    from .structure.assumptions import AssumptionReport, check_assumption_1
+    from .structure.scb import SCBResult, scb
+    from .structure.scb_symbolic import SymbolicSCBResult, scb_symbolic
+    from .structure.zeros import (invariant_zeros, is_left_invertible, is_minimum_phase,
+                                  normal_rank, unstable_zeros)
+    from .studies.batch import BatchResult, monte_carlo
+    from .studies.metrics import rmse, time_to_within
+    from .studies.sweep import SweepResult, eps_sweep
+    from .studies.tune import TuneResult, tune_eps_gamma
 
 __version__ = "0.1.0"
 
@@ -76,3 +84,66 @@ __all__ = [
     "StepPlan", "ThetaStar",
     "CCode", "generate_c", "CCompilerError",
 ]
+
+#: Module (relative to this package) that defines each public name.
+_EXPORTS: dict[str, tuple[str, ...]] = {
+    "codegen": ("CCode", "generate_c"),
+    "design.design_system": ("DesignSystemReport", "apply_design"),
+    "design.gains": ("GainDesign", "extended_system", "high_gain", "modified_high_gain"),
+    "errors": ("CCompilerError", "ConvergenceWarning", "DesignError", "DimensionError",
+               "IllConditionedError", "IllConditionedWarning", "InputLimitError",
+               "MissingExtraError", "ModelFileError", "NonFiniteError", "NotLeftInvertibleError",
+               "NotMinimumPhaseError", "ParameterSetError", "ResourceLimitError",
+               "SimulationError", "SymbolicTimeoutError", "ThetahatError", "ThetahatWarning",
+               "UnstableDesignError", "UpdateLawError"),
+    "estimation.batch_run": ("BatchObserverResult", "run_batch"),
+    "estimation.checks": ("ExcitationReport", "MonotonicityReport", "check_monotonicity",
+                          "excitation_report"),
+    "estimation.compiled": ("CompiledObserver", "compile_observer"),
+    "estimation.crlb": ("CRLBResult", "crlb"),
+    "estimation.ekf": ("JointEKF",),
+    "estimation.guarded": ("GuardedEstimator", "GuardedResult"),
+    "estimation.mle": ("MapEstimator",),
+    "estimation.observer": ("ModifiedHighGainObserver", "ObserverEstimate", "ObserverResult"),
+    "estimation.plan": ("StepPlan",),
+    "estimation.projection": ("Projection", "Saturation", "saturate"),
+    "estimation.redesign": ("SecondObserver",),
+    "estimation.theta_star": ("ThetaStar",),
+    "estimation.update_laws": ("AlgebraicInversion", "ConstantLaw", "GradientInversion",
+                               "IntermittentInversion", "UpdateLaw", "smooth_ramp"),
+    "fleet": ("FleetResult", "estimate_many"),
+    "model.interop": ("from_state_space", "to_state_space"),
+    "model.jacobian_check": ("JacobianCheck", "check_jacobians"),
+    "model.paramset": ("Ball", "Box", "ConvexSet", "Ellipsoid", "ParameterSet"),
+    "model.parse": ("parse_perturbation",),
+    "model.perturbation": ("CallablePerturbation", "Perturbation", "SymbolicPerturbation"),
+    "model.system": ("PerturbedLinearSystem",),
+    "simulation.noise": ("ColoredNoise", "WhiteNoise"),
+    "simulation.signals": ("FromArray", "Multisine", "Steps"),
+    "simulation.simulate": ("PlantTrajectory", "convergence_check", "simulate_plant"),
+    "spec": ("EstimatorSpec", "SecondObserverSpec"),
+    "structure.assumptions": ("AssumptionReport", "check_assumption_1"),
+    "structure.scb": ("SCBResult", "scb"),
+    "structure.scb_symbolic": ("SymbolicSCBResult", "scb_symbolic"),
+    "structure.zeros": ("invariant_zeros", "is_left_invertible", "is_minimum_phase", "normal_rank",
+                        "unstable_zeros"),
+    "studies.batch": ("BatchResult", "monte_carlo"),
+    "studies.metrics": ("rmse", "time_to_within"),
+    "studies.sweep": ("SweepResult", "eps_sweep"),
+    "studies.tune": ("TuneResult", "tune_eps_gamma"),
+}
+_MODULE_OF = {name: module for module, names in _EXPORTS.items() for name in names}
+
+
+def __getattr__(name: str) -> Any:
+    """Import the module that defines the public ``name`` on first use, and keep the value."""
+    module = _MODULE_OF.get(name)
+    if module is None:
+        raise AttributeError(f"module 'thetahat' has no attribute {name!r}")
+    value = getattr(importlib.import_module(f".{module}", __name__), name)
+    globals()[name] = value
+    return value
+
+
+def __dir__() -> list[str]:
+    return sorted(set(globals()) | set(__all__))

@@ -15,7 +15,8 @@ import numpy as np
 import pytest
 import sympy as sp
 
-from thetahat.errors import DimensionError, MissingExtraError, NonFiniteError, UpdateLawError
+from thetahat.errors import (DimensionError, MissingExtraError, NonFiniteError, OptionError,
+                             UpdateLawError)
 from thetahat.estimation.compiled import CompiledObserver, compile_observer
 from thetahat.estimation.observer import ModifiedHighGainObserver
 from thetahat.estimation.redesign import SecondObserver
@@ -153,10 +154,34 @@ def test_invalid_theta_star_raises_like_python(motor):
 
 
 # --------------------------------------------------------------------------- input errors
-def test_run_rejects_other_spacing_and_nan(motor):
+def test_run_takes_the_records_own_spacing(motor):
+    """Another dt (every other sample: 2 ms) and irregular steps (a third of the samples
+    dropped at random): each step uses the φ-matrices of its own length, as the Python run."""
+    data, obs, fast = motor
+    keep = np.random.default_rng(0).uniform(size=data.t.size) > 1 / 3
+    keep[0] = True
+    for sel in (slice(None, None, 2), keep):
+        t, u, y = data.t[sel], data.u[sel], data.y[sel]
+        assert_agree(fast.run(t, u, y), obs.run(t, u, y))
+
+
+def test_foh_matches_python_run(motor):
+    data, obs, fast = motor
+    assert_agree(fast.run(data.t, data.u, data.y, hold="foh"),
+                 obs.run(data.t, data.u, data.y, hold="foh"))
+
+
+def test_progress_is_reported_to_the_end(motor):
     data, _, fast = motor
-    with pytest.raises(DimensionError, match="dt = 0.001"):
-        fast.run(data.t[::2], data.u[::2], data.y[::2])
+    seen: list[tuple[int, int]] = []
+    fast.run(data.t, data.u, data.y, progress=lambda done, total: seen.append((done, total)))
+    N = data.t.size
+    assert seen[0] == (0, N - 1) and seen[-1] == (N - 1, N - 1)
+    assert [d for d, _ in seen] == sorted(d for d, _ in seen)
+
+
+def test_run_rejects_nan_under_raise_and_bad_input(motor):
+    data, _, fast = motor
     y = data.y[:50].copy()
     y[10] = np.nan
     with pytest.raises(NonFiniteError, match="NaN"):       # the observer's own NaN policy
@@ -167,6 +192,8 @@ def test_run_rejects_other_spacing_and_nan(motor):
         fast.step(np.full(fast.state_size, np.nan), [0.0], [1.0])
     with pytest.raises(DimensionError):
         fast.step(fast.init(), [0.0], [1.0, 2.0])
+    with pytest.raises(OptionError, match="hold"):
+        fast.run(data.t, data.u, data.y, hold="cubic")
 
 
 def _callable_observer() -> ModifiedHighGainObserver:
@@ -232,3 +259,50 @@ def test_from_perturbation_inverts_the_lugre_g():
     assert np.all(np.isfinite(est))
     assert np.allclose(est, lugre.theta_star()(v, x, phi), rtol=1e-10, atol=1e-12)
     assert np.allclose(est, 0.28, rtol=1e-9)
+
+
+# --------------------------------------------------------------------------- named arguments
+def test_kernel_arrays_are_the_named_tuples_every_binding_uses():
+    """P, P2, LP of the kernel are kernel_args' named tuples, each field the plan's or the
+    law's array of that name (the NumPy binding builds the same tuples by keyword)."""
+    from thetahat.estimation.compiled import kernel_arrays, kernel_parts
+    from thetahat.estimation.kernel_args import LawArrays, PlanArrays, SecondArrays
+    obs = lugre.observer()
+    plan = obs.plan(DT)
+    P, P2, LP, flags = kernel_arrays(kernel_parts(obs), plan)
+    assert (type(P), type(P2), type(LP)) == (PlanArrays, SecondArrays, LawArrays)
+    for name in ("L", "Bv", "K_x", "KxC", "Phi1", "Phi2"):
+        np.testing.assert_array_equal(getattr(P, name), getattr(plan, name)[0])
+    for name in ("A", "B", "C", "E"):
+        np.testing.assert_array_equal(getattr(P, name), getattr(plan, name))
+    np.testing.assert_array_equal(P2.K_x, plan.second.K_x[0])
+    np.testing.assert_array_equal(P2.Phi1, plan.second.Phi1[0])
+    box = obs.update_law.parameter_set
+    np.testing.assert_array_equal(LP.lower, box.lower)
+    np.testing.assert_array_equal(LP.upper, box.upper)
+    np.testing.assert_array_equal(LP.lam, np.diagonal(plan.Gamma[0]))   # Γ = V diag(λ) Vᵀ
+    assert LP.Gamma is None and flags == (True, True)
+
+
+# --------------------------------------------------------------------------- the default path
+def test_runner_keeps_short_records_in_python():
+    from thetahat.estimation.compiled import COMPILE_MIN_SAMPLES, runner
+    obs = lugre.observer()
+    assert runner(obs, np.arange(COMPILE_MIN_SAMPLES - 1) * DT) is obs
+    assert runner(obs, np.arange(10 * COMPILE_MIN_SAMPLES) * DT, compiled=False) is obs
+
+
+def test_runner_falls_back_with_a_one_line_note(monkeypatch):
+    """An unsupported part, or numba missing: the observer itself, and a ThetahatWarning of
+    one line naming why."""
+    from thetahat.errors import ThetahatWarning
+    from thetahat.estimation.compiled import runner
+    t = np.arange(100) * DT
+    obs = UNSUPPORTED["ball"][0]()
+    with pytest.warns(ThetahatWarning, match="runs in Python: .*must be a Box") as rec:
+        assert runner(obs, t, compiled=True) is obs
+    assert "\n" not in str(rec[0].message)
+    monkeypatch.setitem(sys.modules, "numba", None)       # `import numba` now fails
+    obs = lugre.observer()
+    with pytest.warns(ThetahatWarning, match=r"numba is not installed .*thetahat\[speed\]"):
+        assert runner(obs, t, compiled=True) is obs

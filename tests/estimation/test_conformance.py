@@ -2,10 +2,10 @@
 
 Back ends: a loop of ``ModifiedHighGainObserver.step`` (ZOH only), ``run_batch`` (row 0 of a
 batch of two records), the numba kernel of ``compile_observer`` (optional extra ``speed``;
-ZOH, a Box Θ, no prediction over missing samples) and the generated C of
-``thetahat.codegen.generate_c`` (a Box Θ; every law, hold, NaN policy and second observer;
-all configurations compiled into one library, skipped without a C compiler); the combinations
-a back end does not offer are left out of the matrix, see ``supported``. The reference is
+a Box Θ; every hold and NaN policy) and the generated C of ``thetahat.codegen.generate_c`` (a
+Box Θ; every law, hold, NaN policy and second observer; all configurations compiled into one
+library, skipped without a C compiler); the combinations a back end does not offer are left
+out of the matrix, see ``supported``. The reference is
 ``ModifiedHighGainObserver.run``. The matrix crosses the update law (Propositions 1–4 and a
 held θ), the parameter set (Box; Ball, whose projection takes the generic path), the second
 observer of Sec. VI (none, g on its estimates, g on y), the hold (ZOH, FOH) and the NaN policy
@@ -22,6 +22,7 @@ import importlib.util
 import itertools
 import re
 from functools import cache
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -131,15 +132,14 @@ def compiled(obs: ModifiedHighGainObserver):
 
 def supported(law: str, theta_set: str, second: str, hold: str, policy: str,
               backend: str) -> bool:
-    """The combinations a back end offers: ``step`` is the ZOH; the kernel is ZOH, a Box Θ and
-    no prediction over missing samples (it refuses the others with NotImplementedError, see
-    test_compiled.py). g on y is crossed with the Box and the moving laws only (suite time)."""
+    """The combinations a back end offers: ``step`` is the ZOH; the kernel needs a Box Θ (it
+    refuses the others with NotImplementedError, see test_compiled.py). g on y is crossed with the Box and the moving laws only (suite time)."""
     if second == "y" and (theta_set == "ball" or law == "constant"):
         return False
     if backend == "step":
         return hold == "zoh"
     if backend == "compiled":
-        return hold == "zoh" and policy == "raise" and theta_set == "box"
+        return theta_set == "box"
     if backend == "c":
         return theta_set == "box"
     return True
@@ -191,7 +191,7 @@ def back_end(name: str, obs, hold: str, policy: str, t, U, Y, c_obs=None):
     if name == "batch":
         res = run_batch(obs, t, U, Y, hold=hold)[0]
     else:
-        res = compiled(obs).run(t, U[0], Y[0])
+        res = compiled(obs).run(t, U[0], Y[0], hold=hold)
     return res.x_hat, res.theta_hat, res.x_hat_refined
 
 
@@ -448,3 +448,156 @@ def test_generated_c_in_float_follows_the_reference(tmp_path):
         assert rel_err(res.theta_hat.astype(float), ref.theta_hat) <= C_FLOAT_RTOL
         assert rel_err(res.x_hat.astype(float), ref.x_hat) <= C_FLOAT_RTOL
         assert Box([0.05], [1.0]).contains(res.theta_hat.astype(float), tol=0.0).all()
+# --------------------------------------------------------------------------- model files
+#: The example model files whose observers the kernel must take: θ* given in the file (lugre,
+#: prop1, prop2) and the gradient law of a MIMO file (two_inertia).
+MODEL_FILES = ("lugre", "prop1", "prop2", "two_inertia")
+EXAMPLES = Path(__file__).resolve().parents[2] / "examples"
+#: RK4 substeps per 1 ms sample of the plant simulation of the files without a [scenario]:
+#: 0.1 ms resolves their fastest plant mode (two_inertia's shaft, ~82 rad/s) 100-fold.
+SUBSTEPS = 10
+
+
+def _plant_record(spec, t_end: float, seed: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(t, u, y) of the file's plant at 1 kHz, θ inside Θ, by RK4 on a 0.1 ms grid."""
+    s = spec.system
+    rng = np.random.default_rng(seed)
+    box = s.parameter_set
+    theta = box.lower + 0.7 * (box.upper - box.lower)
+    h = 1e-3 / SUBSTEPS
+
+    def u_of(t: float) -> np.ndarray:
+        return np.full(s.m, 10.0 * np.sin(2 * np.pi * 1.5 * t) + 5.0 * np.sin(2 * np.pi * 4.1 * t))
+
+    def f(t: float, x: np.ndarray) -> np.ndarray:
+        u = u_of(t)
+        phi = np.asarray(s.perturbation.g(np.concatenate([u, s.C @ x]), x, theta))
+        return s.A @ x + s.B @ u + s.E @ phi
+
+    N = int(round(t_end / 1e-3)) + 1
+    x = np.zeros(s.n)
+    t = np.arange(N) * 1e-3
+    Y = np.empty((N, s.r))
+    for i in range(N):
+        Y[i] = s.C @ x
+        for j in range(SUBSTEPS):
+            tt = t[i] + j * h
+            k1 = f(tt, x)
+            k2 = f(tt + h / 2, x + h / 2 * k1)
+            k3 = f(tt + h / 2, x + h / 2 * k2)
+            k4 = f(tt + h, x + h * k3)
+            x = x + h / 6 * (k1 + 2 * k2 + 2 * k3 + k4)
+    U = np.array([u_of(tt) for tt in t])
+    return t, U, Y + 1e-3 * rng.standard_normal(Y.shape)
+
+
+def _user_m_observer() -> ModifiedHighGainObserver:
+    """two_inertia's Python model: the gradient law with a user's M (LoadSpeedWeight, which
+    carries its SymPy form), nan_policy="skip"."""
+    from thetahat.models import two_inertia
+    obs = two_inertia.observer()
+    return ModifiedHighGainObserver.from_design(obs.system, two_inertia.design(),
+                                                obs.update_law, nan_policy="skip")
+
+
+@cache
+def model_file_case(name: str):
+    """(spec, observer with nan_policy="skip", t, u, y): the record irregular (a sixth of the
+    samples dropped, so steps of 1, 2 and 3 ms) and with a NaN gap."""
+    from thetahat.modelfile import build_observer, load_model
+    spec = load_model(EXAMPLES / f"{name}.toml")
+    if name == "lugre":
+        run = lugre.simulate(seed=5, t_end=0.4)
+        t, u, y = run.t, run.u.reshape(run.t.size, -1), run.y.reshape(run.t.size, -1)
+    else:
+        t, u, y = _plant_record(spec, 0.4, seed=5)
+    keep = np.random.default_rng(6).uniform(size=t.size) > 1 / 6
+    keep[[0, -1]] = True
+    t, u, y = t[keep], u[keep], y[keep].copy()
+    y[t.size // 2:t.size // 2 + 15] = np.nan
+    return spec, build_observer(spec, nan_policy="skip"), t, u, y
+
+
+@pytest.mark.parametrize("hold", HOLDS)
+def test_kernel_source_runs_a_user_m(hold):
+    """The gradient law with a user's M (two_inertia's LoadSpeedWeight, printed from its
+    SymPy form): the kernel's text, run as Python, equals the Python run."""
+    spec, _, t, u, y = model_file_case("two_inertia")
+    obs = _user_m_observer()
+    s0 = obs.init(theta_hat0=spec.estimator.theta_hat0)
+    ref = obs.run(t, u, y, hold=hold, state0=s0)
+    S = _emitted_run(obs, t, u, y, hold, s0)
+    lay = obs.layout
+    assert rel_err(S[:, lay.x], ref.x_hat) <= AGREE_RTOL
+    assert rel_err(S[:, lay.theta], ref.theta_hat) <= AGREE_RTOL
+    assert np.ptp(ref.theta_hat, axis=0).min() > 1e-3    # both parameters moved
+
+
+def _emitted_run(obs: ModifiedHighGainObserver, t, u, y, hold: str, s0) -> np.ndarray:
+    """The states of the kernel's source run as plain Python (no numba: the kernel's text,
+    with every argument the compiled observer passes)."""
+    from thetahat.estimation.compiled import kernel_arrays, kernel_parts, kernel_work, phi_table
+    from thetahat.estimation.scalar_backend import LAWS, kernel_source
+    parts = kernel_parts(obs)
+    ts = parts.theta_star
+    source = kernel_source(parts.perturbation, None if ts is None else ts.expr,
+                           None if ts is None else ts.arguments, LAWS[parts.code], numba=False,
+                           M=parts.M)
+    namespace: dict[str, object] = {"__name__": "thetahat_kernel_test"}
+    exec(compile(source, "<kernel>", "exec"), namespace)   # our generated text, no numba
+    t_, dts, U3, Y3, ok3 = obs.check_records(t, u, y)
+    plan = obs.plan(float(dts[0]))
+    P, P2, LP, flags = kernel_arrays(parts, plan)
+    W, rows = kernel_work(plan.layout)
+    plan_of, PH = phi_table(obs, dts, ok3[0, :-1])
+    S, PHI = np.empty((t_.size, obs.state_size)), np.empty((t_.size, plan.layout.k))
+    with np.errstate(all="ignore"):     # numba's error_model='numpy': NaN, not a warning
+        status, _ = namespace["kernel_run"](s0, U3[0], Y3[0], dts, ok3[0], plan_of, PH, P, P2,
+                                            LP, *flags, hold == "foh", W, rows, S, PHI)
+    assert status == 0
+    return S
+
+
+@pytest.mark.parametrize("hold", HOLDS)
+@pytest.mark.parametrize("name", MODEL_FILES)
+def test_kernel_source_runs_model_file_observers(name, hold):
+    """The kernel's text, run as Python, on each example file's observer: θ* from the file,
+    irregular steps and a gap of missing samples, both holds — equal to the Python run."""
+    spec, obs, t, u, y = model_file_case(name)
+    s0 = obs.init(x_hat0=spec.estimator.x_hat0, theta_hat0=spec.estimator.theta_hat0)
+    ref = obs.run(t, u, y, hold=hold, state0=s0)
+    S = _emitted_run(obs, t, u, y, hold, s0)
+    lay = obs.layout
+    assert rel_err(S[:, lay.x], ref.x_hat) <= AGREE_RTOL
+    assert rel_err(S[:, lay.theta], ref.theta_hat) <= AGREE_RTOL
+    assert spec.system.parameter_set.contains(S[:, lay.theta], tol=1e-12).all()
+    assert np.ptp(ref.theta_hat, axis=0).max() > 1e-3    # the law moved θ̂: the case tests it
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("name", MODEL_FILES)
+def test_run_estimator_compiled_agrees_on_model_files(name):
+    """``run_estimator`` on the numba kernel equals its Python run (each file's first
+    compilation: 20–40 s, hence slow), both holds, irregular steps and a gap."""
+    pytest.importorskip("numba")
+    from thetahat.modelfile import run_estimator
+    spec, _, t, u, y = model_file_case(name)
+    for hold in HOLDS:
+        fast, ref = (run_estimator(spec, t, u, y, hold=hold, nan_policy="skip", compiled=c)
+                     for c in (True, False))
+        for field in ("x_hat", "phi_hat", "theta_hat"):
+            assert rel_err(getattr(fast, field), getattr(ref, field)) <= AGREE_RTOL, field
+        assert np.array_equal(fast.skipped, ref.skipped)
+
+
+@pytest.mark.slow
+def test_compiled_user_m_agrees():
+    """The numba kernel with a user's M (its first compilation: slow) equals the Python run."""
+    spec, _, t, u, y = model_file_case("two_inertia")
+    obs = _user_m_observer()
+    fast = compiled(obs)
+    for hold in HOLDS:
+        ref = obs.run(t, u, y, hold=hold)
+        res = fast.run(t, u, y, hold=hold)
+        assert rel_err(res.x_hat, ref.x_hat) <= AGREE_RTOL
+        assert rel_err(res.theta_hat, ref.theta_hat) <= AGREE_RTOL

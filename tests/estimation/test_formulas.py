@@ -10,6 +10,7 @@ accurate to ~1e-15 relative for the norms used, so 1e-12 again.
 from __future__ import annotations
 
 import ast
+import importlib.util
 import inspect
 import math
 
@@ -18,9 +19,10 @@ import pytest
 import scipy.linalg
 
 from thetahat.estimation import formulas, law_formulas, scalar_primitives as sc
-from thetahat.estimation.compiled import kernel_arrays, kernel_parts, kernel_work
+from thetahat.estimation.compiled import kernel_arrays, kernel_parts, kernel_work, phi_table
 from thetahat.estimation.observer import ModifiedHighGainObserver
-from thetahat.estimation.primitives import NUMPY, PRIMITIVES
+from thetahat.estimation.primitives import (ARRAYS, NUMPY, NUMPY_ROW, PRIMITIVES, AliasingError,
+                                            bind, check_aliasing)
 from thetahat.estimation.redesign import SecondObserver
 from thetahat.estimation.scalar_backend import LAWS, kernel_source
 from thetahat.estimation.update_laws import (AlgebraicInversion, ConstantLaw, GradientInversion,
@@ -43,13 +45,15 @@ def test_both_bindings_cover_the_vocabulary() -> None:
 
 
 def test_formulas_import_nothing_they_call() -> None:
-    """The formula modules hold definitions only: no imports besides typing helpers."""
+    """The formula modules hold definitions only: no imports besides typing helpers and, for
+    the type checker only, the named argument tuples (kernel_args) they read."""
     for module in (formulas, law_formulas):
         tree = ast.parse(inspect.getsource(module))
         imported = {alias.name for node in ast.walk(tree)
                     if isinstance(node, (ast.Import, ast.ImportFrom))
                     for alias in node.names}
-        assert imported <= {"annotations", "Callable", "Any"}, (module.__name__, imported)
+        assert imported <= {"annotations", "Callable", "Any", "TYPE_CHECKING", "LawArrays",
+                            "PlanArrays", "SecondArrays"}, (module.__name__, imported)
 
 
 @pytest.mark.parametrize("acc", [0, 1, -1])
@@ -168,12 +172,15 @@ def test_emitted_module_runs_the_formulas_as_python(law: str, second: str) -> No
     P, P2, LP, flags = kernel_arrays(parts, plan)
     W, rows = kernel_work(plan.layout)
     N = data.t.size
+    dts = np.diff(data.t)
+    ok = np.ones(N, dtype=bool)
+    plan_of, PH = phi_table(obs, dts, ok[:-1])
     S, PHI = np.empty((N, obs.state_size)), np.empty((N, plan.layout.k))
     s0 = obs.init(theta_hat0=[0.5])
     U, Y = data.u.reshape(N, -1), data.y.reshape(N, -1)
     with np.errstate(all="ignore"):     # numba's error_model='numpy': NaN, not a warning
-        status, _ = namespace["kernel_run"](s0, U, Y, np.diff(data.t), P, P2, LP, *flags, W,
-                                            rows, S, PHI)
+        status, _ = namespace["kernel_run"](s0, U, Y, dts, ok, plan_of, PH, P, P2, LP, *flags,
+                                            False, W, rows, S, PHI)
     assert status == 0
     ref = obs.run(data.t, data.u, data.y, state0=s0)
     scale = np.abs(ref.x_hat).max(axis=0)
@@ -209,3 +216,58 @@ def test_row_binding_agrees_with_the_batch_binding(rng: np.random.Generator) -> 
                               equal_nan=True)
         assert NUMPY_ROW["where"](v > 0.0, 1.0, 2.0) == NUMPY["where"](v > 0.0, 1.0, 2.0)
         assert NUMPY_ROW["isfinite"](v) == NUMPY["isfinite"](v)
+
+
+# --------------------------------------------------------------------------- aliasing
+def test_aliased_output_makes_the_bindings_disagree() -> None:
+    """Why aliasing is refused: mv(M, …, x, …, x, …) with the swap M = [[0, 1], [1, 0]] and
+    x = [1, 2] gives [2, 1] in NumPy (the product first) and [2, 2] in the scalar loop (x[0]
+    written before row 1 reads it)."""
+    M = np.array([[0.0, 1.0], [1.0, 0.0]])
+    a, b = np.array([1.0, 2.0]), np.array([1.0, 2.0])
+    NUMPY["mv"](M, 2, 2, a, 0, a, 0, 0)
+    sc.mv(M, 2, 2, b, 0, b, 0, 0)
+    assert a.tolist() == [2.0, 1.0] and b.tolist() == [2.0, 2.0]
+
+
+def _aliased_call(name: str, written: int, other: int) -> str:
+    """Source of a call of primitive ``name`` whose array arguments are a0, a1, … except that
+    the one at ``other`` repeats the written one (the others are integers)."""
+    arrays, _ = ARRAYS[name]
+    params = list(inspect.signature(sc.SCALAR_PRIMITIVES[name]).parameters)
+    args = [f"a{i}" if i in arrays else "1" for i in range(len(params))]
+    args[other] = args[written]
+    return f"def formula(a0, a1, a2, a3, a4, a5):\n    {name}({', '.join(args)})\n"
+
+
+CASES_ALIASED = [(name, w, o) for name, (arrays, written) in ARRAYS.items()
+                 for w in written for o in arrays if o != w]
+
+
+@pytest.mark.parametrize("name, written, other", CASES_ALIASED)
+def test_every_primitive_refuses_an_aliased_output_where_bound(tmp_path, name, written, other):
+    """Each block primitive, each written argument aliased with each other array argument:
+    bind (NumPy, both row and batch) and the scalar emitter refuse the formula."""
+    path = tmp_path / f"formula_{name}_{written}_{other}.py"
+    path.write_text(_aliased_call(name, written, other), encoding="utf-8")
+    spec = importlib.util.spec_from_file_location(path.stem, path)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)                      # a file: inspect reads its source
+    for names in (NUMPY, NUMPY_ROW):
+        with pytest.raises(AliasingError, match=f"argument {written + 1} \\(written\\)"):
+            bind({"formula": module.formula}, names)
+    with pytest.raises(AliasingError):
+        check_aliasing(module.formula)
+
+
+def test_the_formulas_alias_nothing_and_distinct_arguments_pass(tmp_path) -> None:
+    for fn in (*formulas.FORMULAS.values(), *law_formulas.LAW_FORMULAS.values()):
+        check_aliasing(fn)                               # what every back end binds
+    path = tmp_path / "formula_ok.py"
+    path.write_text("def formula(M, x, y):\n    mv(M, 2, 2, x, 0, y, 0, 0)\n", encoding="utf-8")
+    spec = importlib.util.spec_from_file_location(path.stem, path)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    M, x, y = np.eye(2), np.array([1.0, 2.0]), np.zeros(2)
+    bind({"formula": module.formula}, NUMPY_ROW)["formula"](M, x, y)
+    assert y.tolist() == [1.0, 2.0]

@@ -36,7 +36,7 @@ from ..estimation.discretize import IMPLICITNESS
 from ..estimation.formulas import DIVERGENCE_BOUND, WORK
 from ..estimation.law_base import FAR
 from ..estimation.plan import StepPlan
-from ..estimation.scalar_backend import LAW_BOX, LAWS, law_source, rewritten
+from ..estimation.scalar_backend import LAWS, law_source, rewritten
 from ..model.perturbation import SymbolicPerturbation
 from .c_printer import CUnit
 from .c_values import Arr, Const, Scal, real_literal
@@ -260,10 +260,10 @@ def derived_step(parts: KernelParts, plan: StepPlan, *, prefix: str, real: str, 
     kinds = (type(P), type(P2), type(LP))     # named tuples stay named (attribute access)
     second, on_est = bool(flags[0]), bool(flags[1])
     law = LAWS[parts.code]
-    box = LAW_BOX[law]
     if real == "float":             # rounded inwards: θ̂ stays in Θ in float too
-        lo, hi = inwards(LP[box], LP[box + 1])
-        LP = (*LP[:box], lo, hi, *LP[box + 2:])
+        lo, hi = inwards(LP.lower, LP.upper)
+        LP = LP._replace(lower=lo, upper=hi)
+    opts_at = LP._fields.index("opts")
     data: dict[str, Any] = {}
 
     def named(prefix: str, names: Sequence[str], arrays: Sequence[Any]) -> list[str]:
@@ -292,10 +292,13 @@ def derived_step(parts: KernelParts, plan: StepPlan, *, prefix: str, real: str, 
         plans[False] = (pn, p2n)
     options = None
     if law == "inversion_law":
-        options = tuple(Const(float(v)) for v in LP[box + 2])
-    lp_names = [f"LAW_{i}" for i in range(len(LP))]
+        options = tuple(Const(float(v)) for v in LP.opts)
+    # the law's arrays by field; a field this binding leaves None has no C array
+    lp_names: list[str | None] = [None if a is None else f"LAW_{f.upper()}"
+                                  for f, a in zip(LP._fields, LP)]
     for name, a in zip(lp_names, LP):
-        data[name] = np.asarray(a, dtype=np.float64)
+        if name is not None:
+            data[name] = np.asarray(a, dtype=np.float64)
     data.update({k_: np.asarray(v, dtype=np.float64) for k_, v in extra.items()})
     ts = theta_star
     far = FAR if real == "double" else FAR_FLOAT
@@ -312,8 +315,8 @@ def derived_step(parts: KernelParts, plan: StepPlan, *, prefix: str, real: str, 
     size = lay.size
     scratch = set(_SCRATCH.get(law, ()))
     for _ in range(2):
-        step, written = _print(functions, constants, data, scratch, plans, lp_names, options, box,
-                          law_fn, set(extra), kinds=kinds,
+        step, written = _print(functions, constants, data, scratch, plans, lp_names, options,
+                               opts_at, law_fn, set(extra), kinds=kinds,
                           pert=parts.perturbation, ts=ts, prefix=prefix,
                           real=real, foh=foh, dt=dt,
                           skip=skip, second=second, on_est=on_est, size=size,
@@ -332,7 +335,8 @@ def derived_step(parts: KernelParts, plan: StepPlan, *, prefix: str, real: str, 
 
 def _print(functions: dict[str, ast.FunctionDef], constants: dict[str, Any],
            data: dict[str, Any], scratch: set[str], plans: dict[bool, Any],
-           lp_names: list[str], options: Any, box: int, law_fn: str, extra: set[str], *,
+           lp_names: list[str | None], options: Any, opts_at: int, law_fn: str,
+           extra: set[str], *,
            kinds: tuple[type, type, type], pert: SymbolicPerturbation, ts: Any, prefix: str,
            real: str, foh: bool,
            dt: float, skip: bool,
@@ -362,9 +366,9 @@ def _print(functions: dict[str, ast.FunctionDef], constants: dict[str, Any],
 
     unit = CUnit(functions, constants, model, real)
     unit.functions["law_step"] = functions[law_fn]
-    lp: list[Any] = [arr(name) for name in lp_names]
+    lp: list[Any] = [None if name is None else arr(name) for name in lp_names]
     if options is not None:
-        lp[box + 2] = options
+        lp[opts_at] = options
     LP = _like(kinds[2], lp)
     W: tuple[Any, ...] = _WORK_TUPLE(*(Arr(f"w_{name}", tuple(dims[d] for d in shape))
                                        for name, shape in WORK))

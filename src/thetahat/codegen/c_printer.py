@@ -219,8 +219,10 @@ class _FunctionPrinter:
                          tuple(result) if self.returns_tuple else (result or "void"))
 
     def _bind(self, pname: str, value: Any, path: str) -> Any:
-        """The callee's view of an argument: runtime parts become parameters."""
-        if isinstance(value, (Const, Fn)) or (isinstance(value, Arr) and value.glob):
+        """The callee's view of an argument: runtime parts become parameters (a named
+        tuple's field a binding leaves None stays None: nothing to pass)."""
+        if value is None or isinstance(value, (Const, Fn)) or (isinstance(value, Arr)
+                                                               and value.glob):
             return value
         if isinstance(value, tuple):
             taken = {p[1] for p in self.params}

@@ -189,7 +189,7 @@ def specialisation_key(value: Any) -> Any:
 
     Parameters
     ----------
-    value : Const, Arr, Scal, Fn or tuple of them
+    value : Const, Arr, Scal, Fn, None or tuple of them
 
     Returns
     -------
@@ -211,4 +211,6 @@ def specialisation_key(value: Any) -> Any:
         return ("f", value.name)
     if isinstance(value, tuple):
         return ("t", type(value).__name__, tuple(specialisation_key(v) for v in value))
+    if value is None:                   # a named tuple's field the binding leaves unset
+        return ("n",)
     raise UnsupportedError(f"the C printer cannot pass {value!r}")

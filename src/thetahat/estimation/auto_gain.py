@@ -76,7 +76,7 @@ def information_gain(perturbation: Perturbation, v: FloatArray, x_hat: FloatArra
     >>> t = np.linspace(0.0, 10.0, 1001)
     >>> G = information_gain(g, np.sin(t)[:, None], np.zeros((t.size, 1)), np.zeros(2), 10.0)
     >>> np.round(np.diag(G), 2)                 # κ/T / mean(sin²), κ/T / 1
-    array([1.94, 1.  ])
+    array([2.1, 1. ])
     """
     if not (np.isfinite(duration) and duration > 0):
         raise DimensionError(f"information_gain: the record's duration must be > 0; got "

@@ -12,15 +12,18 @@ machine code. Supported:
 * update laws: :class:`~thetahat.estimation.update_laws.ConstantLaw`,
   :class:`~thetahat.estimation.update_laws.IntermittentInversion` (l ≡ 1, as built by
   :func:`~thetahat.estimation.update_laws.AlgebraicInversion`, or the weight of
-  :func:`~thetahat.estimation.update_laws.smooth_ramp`) whose θ* is a
-  :class:`~thetahat.estimation.theta_star.ThetaStar` (from ``from_perturbation`` or
-  ``ThetaStar.from_expr``), and
+  :func:`~thetahat.estimation.update_laws.smooth_ramp`) whose θ* has a SymPy form (a
+  :class:`~thetahat.estimation.theta_star.ThetaStar` from ``from_perturbation`` or
+  ``ThetaStar.from_expr``, or a model file's ``theta_star``), and
   :class:`~thetahat.estimation.update_laws.GradientInversion` with the default M = (∂g/∂θ)ᵀ;
   none of them with a ``saturation``;
 * an attached :class:`~thetahat.estimation.redesign.SecondObserver`;
-* a fixed step dt and the zero-order hold (Φ₁ is computed once).
+* any sampling the Python ``run`` takes: irregular steps (the φ-matrices of each distinct step
+  length, from the observer's cached plans), missing samples under ``nan_policy="skip"``
+  (the prediction's φ-matrices), the zero- and first-order holds.
 
-Everything else raises :class:`~thetahat.errors.UnsupportedError` (a NotImplementedError) naming the part; use the Python observer.
+Everything else raises :class:`~thetahat.errors.UnsupportedError` (a NotImplementedError)
+naming the part; use the Python observer.
 
 The kernel is not a transcription: :mod:`~thetahat.estimation.scalar_backend` emits the
 step's formulas (:mod:`~thetahat.estimation.formulas`,
@@ -32,8 +35,9 @@ calls it. The module is written to a cache directory (``$THETAHAT_CACHE_DIR``, d
 ``~/.cache/thetahat``, else a temporary directory) under a name that hashes its content, and
 compiled with ``numba.njit(cache=True)``: the first compilation of a model and law formula
 costs 20–40 s, later processes load the machine code from disk. The gains, ε, Γ, Θ, the
-ramp, ``on_invalid``, the second observer and dt are data, not code: observers that differ
-only in them share one kernel.
+ramp, ``on_invalid``, the second observer and the step lengths are data, not code: observers
+that differ only in them share one kernel. :func:`runner` chooses between the compiled and
+the Python observer for a record (``run_estimator`` uses it).
 
 numba is the optional extra ``speed``; without it this module imports, and
 :func:`compile_observer` raises :class:`ImportError`.
@@ -42,6 +46,8 @@ numba is the optional extra ``speed``; without it this module imports, and
 from __future__ import annotations
 
 import threading
+import warnings
+from collections.abc import Callable
 from dataclasses import dataclass
 from types import ModuleType
 from typing import Any, NoReturn
@@ -50,35 +56,29 @@ import numpy as np
 from numpy.typing import NDArray
 
 from .._validate import as_vector, positive_scalar
-from ..errors import DimensionError, MissingExtraError, UnsupportedError
+from ..errors import MissingExtraError, OptionError, ThetahatWarning, UnsupportedError
 from ..model.paramset import Box
 from ..model.perturbation import SymbolicPerturbation
 from .kernel_cache import load_module
-from .observer import ModifiedHighGainObserver, ObserverResult
+from .observer import HOLDS, PROGRESS_EVERY, ModifiedHighGainObserver, ObserverResult
 from .formulas import WORK
+from .kernel_args import LawArrays, PlanArrays, SecondArrays
 from .plan import StateLayout, StepPlan
 from .scalar_backend import LAWS, kernel_source
 from .step import DIVERGENCE_BOUND, divergence_error
-from .theta_star import ThetaStar
+from .theta_star import ThetaStar, as_theta_star
 from .update_laws import (ConstantLaw, GradientInversion, IntermittentInversion, SmoothRamp,
                           invalid_theta_star_error)
 
 __all__ = ["CompiledObserver", "KernelParts", "compile_observer", "kernel_arrays", "kernel_parts",
-           "kernel_work"]
+           "kernel_work", "phi_table", "runner", "COMPILE_MIN_SAMPLES"]
 
 FloatArray = NDArray[np.float64]
 
-#: The samples given to ``CompiledObserver.run`` must be spaced by dt to this relative accuracy.
-#: A uniform grid ``np.arange(N) * dt`` has spacings off by up to ~1e-12 relative (rounding);
-#: the kernel uses Φ₁(dt) for every step, and each step's own spacing in the update law and
-#: the ∂g/∂θ term, as the Python ``run`` does. 1e-9 changes Φ₁ by far less than the 1e-9
-#: agreement promised between the two paths.
-DT_RTOL = 1e-9
-
 _SUPPORTED = ("supported: a SymbolicPerturbation g, a Box Θ with diagonal Γ, ConstantLaw, "
               "IntermittentInversion (l ≡ 1, i.e. AlgebraicInversion, or a smooth_ramp weight) "
-              "with a ThetaStar θ*, GradientInversion with the default M, no saturation, no law "
-              "state, an optional SecondObserver, fixed dt and zero-order hold")
+              "with a symbolic θ*, GradientInversion with the default M, no saturation, no law "
+              "state, an optional SecondObserver")
 
 
 def _require_numba() -> Any:
@@ -131,6 +131,8 @@ class KernelParts:
         (low, high) of the smooth ramp l (code 2).
     freeze : bool
         The inversion law's ``on_invalid == "freeze"``.
+    M : sympy.Matrix or None
+        A user's M of the gradient law (code 3), in g's symbols (its ``sympy_form``).
     """
 
     code: int
@@ -139,6 +141,7 @@ class KernelParts:
     theta_star: ThetaStar | None = None
     ramp: tuple[float, float] | None = None
     freeze: bool = False
+    M: Any = None
 
 
 def kernel_parts(observer: ModifiedHighGainObserver) -> KernelParts:
@@ -179,11 +182,17 @@ def kernel_parts(observer: ModifiedHighGainObserver) -> KernelParts:
         return KernelParts(code=0, perturbation=pert, box=box)
     _diagonal_gain(law)
     if isinstance(law, GradientInversion):
-        if law.M is not None:
-            raise _unsupported("GradientInversion with a user M")
         if not (law.perturbation is pert or law.perturbation == pert):
             raise _unsupported("GradientInversion with a g other than the observer's")
-        return KernelParts(code=3, perturbation=pert, box=box)
+        M = None
+        if law.M is not None:
+            form = getattr(law.M, "sympy_form", None)
+            if form is None:
+                raise _unsupported(f"GradientInversion with a user M that is a Python callable "
+                                   f"({type(law.M).__name__}) without sympy_form(g), its "
+                                   "SymPy matrix in g's symbols")
+            M = form(pert)
+        return KernelParts(code=3, perturbation=pert, box=box, M=M)
     if not isinstance(law, IntermittentInversion):
         raise _unsupported(f"the update law {type(law).__name__}")
     code, ramp = 1, None
@@ -191,15 +200,16 @@ def kernel_parts(observer: ModifiedHighGainObserver) -> KernelParts:
         code, ramp = 2, (float(law.l.low), float(law.l.high))
     elif law.l is not None:
         raise _unsupported("an excitation weight l other than smooth_ramp(low, high)")
-    ts = law.theta_star
-    if isinstance(ts, ThetaStar):
+    ts = as_theta_star(law.theta_star, pert)
+    if ts is not None:
         return KernelParts(code=code, perturbation=pert, box=box, theta_star=ts, ramp=ramp,
                            freeze=law.on_invalid == "freeze")
     raise UnsupportedError(
         f"compile_observer: the θ* of {type(law).__name__} is a Python callable "
-        f"({type(ts).__name__}), which cannot be compiled; build the law with a ThetaStar "
-        "(thetahat.estimation.theta_star.ThetaStar.from_expr(expr, perturbation=g, phi=[...]) "
-        "or from_perturbation), which carries θ*'s SymPy form.")
+        f"({type(law.theta_star).__name__}), which cannot be compiled; build the law with a "
+        "ThetaStar (thetahat.estimation.theta_star.ThetaStar.from_expr(expr, perturbation=g, "
+        "phi=[...]) or from_perturbation), or give theta_star in the model file: both carry "
+        "θ*'s SymPy form.")
 
 
 # --------------------------------------------------------------------------- public API
@@ -224,10 +234,10 @@ def _kernel_array(a: FloatArray) -> FloatArray:
 
 @dataclass(frozen=True, slots=True, eq=False)
 class CompiledObserver:
-    """A :class:`ModifiedHighGainObserver` compiled for one step length (zero-order hold).
+    """A :class:`ModifiedHighGainObserver` compiled (numba).
 
-    ``step`` and ``run`` compute what the observer's own ``step`` and ``run(hold="zoh")``
-    compute, in machine code. Build it with :func:`compile_observer`, which documents the
+    ``step`` and ``run`` compute what the observer's own ``step`` and ``run`` compute, in
+    machine code; ``step`` advances by ``dt``, ``run`` by each step of its record. Build it with :func:`compile_observer`, which documents the
     parameters ``observer`` and ``dt``.
 
     Parameters
@@ -240,7 +250,7 @@ class CompiledObserver:
     observer : ModifiedHighGainObserver
         The observer it was compiled from (gains, law, second observer).
     dt : float
-        The fixed step length (s).
+        The step length (s) of ``step``.
     theta_star : ThetaStar or None
         The θ* compiled into the kernel, the update law's own (None for laws without θ*).
     plan : StepPlan
@@ -252,7 +262,7 @@ class CompiledObserver:
     theta_star: ThetaStar | None
     plan: StepPlan
     _kernel: ModuleType
-    _args: tuple[tuple[Any, ...], ...]
+    _args: tuple[PlanArrays, SecondArrays, LawArrays, tuple[bool, bool]]
 
     def __init__(self, observer: ModifiedHighGainObserver, *, dt: float) -> None:
         _require_numba()
@@ -264,7 +274,8 @@ class CompiledObserver:
         ts = parts.theta_star
         plan = observer.plan(h)
         source = kernel_source(parts.perturbation, None if ts is None else ts.expr,
-                               None if ts is None else ts.arguments, LAWS[parts.code])
+                               None if ts is None else ts.arguments, LAWS[parts.code],
+                               M=parts.M)
         for name, value in (("observer", observer), ("dt", h), ("theta_star", ts),
                             ("plan", plan), ("_kernel", _load(source)),
                             ("_args", kernel_arrays(parts, plan))):
@@ -304,7 +315,8 @@ class CompiledObserver:
         u : array_like, shape (m,)
             Current input sample (``None`` when m = 0).
         y : array_like, shape (r,)
-            Current output sample (finite: the compiled path does not skip missing samples).
+            Current output sample; NaN marks a missing sample under ``nan_policy="skip"``
+            (the observers predict over it).
 
         Returns
         -------
@@ -315,7 +327,8 @@ class CompiledObserver:
         DimensionError
             Wrong shapes.
         NonFiniteError
-            NaN or inf in the state, u or y, or the step diverged.
+            NaN or inf in the state or u, NaN in y under ``nan_policy="raise"``, or the step
+            diverged.
         UpdateLawError
             θ* invalid where l > 0 and ``on_invalid='raise'``.
         """
@@ -324,69 +337,101 @@ class CompiledObserver:
         s = _as_input("state", state, lay.size)
         u_ = _as_input("u", np.empty(0) if u is None else u, lay.m)
         y_ = _as_input("y", y, lay.r)
+        present = bool(np.isfinite(y_).all())
+        if not present:
+            obs.check_samples(u, y)              # raises under nan_policy="raise"
         # the record of one step (the samples held): the same compiled loop as run's, so a
         # kernel has one entry point to compile
-        U, Y = np.stack((u_, u_)), np.stack((y_, y_))
+        ok = np.array([present, True])
         S, PHI = np.empty((2, lay.size)), np.empty((2, lay.k))
-        status, _ = self._kernel.kernel_run(s, U, Y, np.array([self.dt]), *self._args[:3],
-                                            *self._args[3], *_scratch(lay), S, PHI)
+        status, _ = self._call(s, np.stack((u_, u_)), np.stack((y_, y_)),
+                               np.array([self.dt]), ok, False, S, PHI)
         out = S[1]
         if status == 0 and float(out @ out) <= DIVERGENCE_BOUND ** 2:
             return out
         # something is wrong: find out what, with the observer's own checks and messages
         obs.check_state(state)
-        if not obs.check_samples(u, y)[2]:
-            raise _no_prediction()
+        obs.check_samples(u, y)
         self._raise(int(status) or 1, "in this step")
 
-    def run(self, t: Any, u: Any, y: Any, *, state0: Any = None) -> ObserverResult:
-        """Run over sampled records spaced by ``dt`` (the loop runs in machine code).
+    def _call(self, s0: FloatArray, U: FloatArray, Y: FloatArray, dts: FloatArray,
+              ok: NDArray[np.bool_], foh: bool, S: FloatArray, PHI: FloatArray
+              ) -> tuple[int, int]:
+        """The kernel over one piece of a record (the φ-matrices of its step lengths)."""
+        plan_of, PH = phi_table(self.observer, dts, ok[:-1])
+        P, P2, LP, flags = self._args
+        W, rows, (Q1, Q2, R1, R2) = _scratch(self.observer.layout)
+        # the φ-matrices are loaded into this thread's buffers: the shared arrays stay read
+        P, P2 = P._replace(Phi1=Q1, Phi2=Q2), P2._replace(Phi1=R1, Phi2=R2)
+        status, index = self._kernel.kernel_run(s0, U, Y, dts, ok, plan_of, PH, P, P2, LP,
+                                                *flags, foh, W, rows, S, PHI)
+        return int(status), int(index)
+
+    def run(self, t: Any, u: Any, y: Any, *, state0: Any = None, hold: str = "zoh",
+            progress: Callable[[int, int], None] | None = None) -> ObserverResult:
+        """Run over sampled records (the loop runs in machine code).
+
+        The samples may be spaced irregularly: each step uses the φ-matrices of its own length
+        (one :class:`~thetahat.estimation.plan.StepPlan` per distinct length, as the Python
+        path), and missing samples (NaN in y under ``nan_policy="skip"``) are predicted over.
 
         Parameters
         ----------
         t : array_like, shape (N,)
-            Sampling instants spaced by ``dt`` (to a relative ``DT_RTOL`` = 1e-9).
+            Strictly increasing sampling instants.
         u : array_like, shape (N, m) or (N,) when m = 1
             Input samples (``None`` when m = 0).
         y : array_like, shape (N, r) or (N,) when r = 1
-            Output samples, finite.
+            Output samples; NaN marks a missing sample under ``nan_policy="skip"``.
         state0 : array_like, shape (state_size,), optional
             Initial state; default ``init()``.
+        hold : {"zoh", "foh"}
+            Sample hold, as :meth:`ModifiedHighGainObserver.run`.
+        progress : callable, optional
+            ``progress(done, total)``, called every ``PROGRESS_EVERY`` samples and at the end.
 
         Returns
         -------
         ObserverResult
-            As :meth:`ModifiedHighGainObserver.run` with ``hold="zoh"`` (agreement to rounding;
-            see :func:`compile_observer`).
+            As :meth:`ModifiedHighGainObserver.run` (agreement to rounding; see
+            :func:`compile_observer`).
 
         Raises
         ------
         DimensionError
-            Wrong shapes, or t not spaced by dt.
+            Wrong shapes.
+        OptionError
+            Unknown ``hold``.
         NonFiniteError
-            NaN or inf in t, u or y, or the state diverged.
+            NaN or inf in t or u, NaN in y under ``nan_policy="raise"``, or the state
+            diverged.
         UpdateLawError
             θ* invalid where l > 0 and ``on_invalid='raise'``.
         """
+        if hold not in HOLDS:
+            raise OptionError(f"hold must be one of {HOLDS}; got {hold!r}.")
         obs = self.observer
         lay = obs.layout
-        t_, dts, U3, Y3, ok = obs.check_records(t, u, y)
+        t_, dts, U3, Y3, ok3 = obs.check_records(t, u, y)
         N = t_.shape[0]
-        if N > 1 and not np.all(np.abs(dts - self.dt) <= DT_RTOL * self.dt):
-            raise DimensionError(f"the compiled observer steps dt = {self.dt!r}; t has spacings "
-                                 f"in [{float(dts.min())!r}, {float(dts.max())!r}]. Resample, "
-                                 "or compile again with compile_observer(observer, dt=...).")
-        if not ok.all():
-            raise _no_prediction()
         U, Y, dts = (_kernel_array(a) for a in (U3[0], Y3[0], dts))
-        s0 = _kernel_array(obs.init() if state0 is None else obs.check_state(state0))
+        ok = np.ascontiguousarray(ok3[0], dtype=np.bool_)
         S = np.empty((N, lay.size))
         PHI = np.empty((N, lay.k))
-        status, index = self._kernel.kernel_run(s0, U, Y, dts, *self._args[:3], *self._args[3],
-                                                *_scratch(lay), S, PHI)
-        if status:
-            i = int(index)
-            self._raise(int(status), f"in the step from t[{i}] = {t_[i]!r}")
+        S[0] = _kernel_array(obs.init() if state0 is None else obs.check_state(state0))
+        step = PROGRESS_EVERY if progress is not None else max(N - 1, 1)
+        for a in range(0, max(N - 1, 1), step):
+            if progress is not None:
+                progress(a, N - 1)
+            b = min(a + step, N - 1)
+            status, index = self._call(S[a].copy(), U[a:b + 1], Y[a:b + 1], dts[a:b],
+                                       ok[a:b + 1], hold == "foh", S[a:b + 1], PHI[a:b + 1])
+            if status:
+                i = a + index
+                self._raise(status, f"in the step from t[{i}] = {t_[i]!r}")
+        if progress is not None:
+            progress(N - 1, N - 1)
+
         def frozen(a: NDArray[Any]) -> NDArray[Any]:
             out = np.array(a, copy=True)
             out.setflags(write=False)
@@ -395,7 +440,7 @@ class CompiledObserver:
         return ObserverResult(t=frozen(t_), x_hat=frozen(S[:, lay.x]), phi_hat=frozen(PHI),
                               theta_hat=frozen(S[:, lay.theta]),
                               x_hat_refined=frozen(S[:, lay.x2]) if lay.second else None,
-                              skipped=frozen(np.zeros(N, dtype=bool)))
+                              skipped=frozen(~ok))
 
     def __repr__(self) -> str:
         return (f"CompiledObserver(dt={self.dt!r}, observer={self.observer!r}, "
@@ -405,31 +450,82 @@ class CompiledObserver:
 _threads = threading.local()
 
 
-def _scratch(lay: StateLayout) -> tuple[tuple[FloatArray, ...], tuple[FloatArray, ...]]:
-    """:func:`kernel_work` of this thread (scratch only: nothing is carried between calls)."""
+def _scratch(lay: StateLayout) -> tuple[tuple[FloatArray, ...], tuple[FloatArray, ...],
+                                        tuple[FloatArray, ...]]:
+    """:func:`kernel_work` of this thread and its buffers of the φ-matrices (Φ₁, Φ₂ and the
+    second observer's) of the current step (scratch only: nothing is carried between
+    calls)."""
     cache: dict[StateLayout, Any] | None = getattr(_threads, "work", None)
     if cache is None:
         cache = _threads.work = {}
     hit = cache.get(lay)
     if hit is None:
-        hit = cache[lay] = kernel_work(lay)
+        q, n = lay.n + lay.k, lay.n
+        hit = cache[lay] = (*kernel_work(lay), tuple(np.zeros((d, d)) for d in (q, q, n, n)))
     return hit
 
 
-def _no_prediction() -> UnsupportedError:
-    return UnsupportedError("y contains NaN (nan_policy='skip'); the compiled observer does "
-                               "not predict over missing samples: use the observer's own "
-                               "step/run or run_batch.")
+def phi_table(observer: ModifiedHighGainObserver, dts: FloatArray, present: NDArray[np.bool_]
+              ) -> tuple[NDArray[np.int64], tuple[FloatArray, ...]]:
+    """The φ-matrices of a record's steps: which table entry each step uses, and the table.
+
+    One entry per distinct (step length, sample present): Φ₁, Φ₂ of the observer's
+    :meth:`~ModifiedHighGainObserver.plan` for that length — the corrected ones, or the
+    prediction's over a missing sample — and the second observer's (zeros without one).
+
+    Parameters
+    ----------
+    observer : ModifiedHighGainObserver
+    dts : ndarray, shape (N - 1,)
+        Step lengths.
+    present : ndarray of bool, shape (N - 1,)
+        Whether the sample at the start of each step is present.
+
+    Returns
+    -------
+    plan_of : ndarray of int64, shape (N - 1,)
+    table : tuple of ndarray
+        (Φ₁, Φ₂, Φ₁ of the second observer, Φ₂ of the second observer), shapes (J, ·, ·).
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from thetahat.models import lugre
+    >>> plan_of, table = phi_table(lugre.observer(), np.array([1e-3, 2e-3, 1e-3]),
+    ...                            np.ones(3, dtype=bool))
+    >>> plan_of.tolist(), table[0].shape
+    ([0, 1, 0], (2, 3, 3))
+    """
+    lay = observer.layout
+    keys = np.where(present, dts, -dts)          # a missing sample: its own entry
+    uniq, inverse = np.unique(keys, return_inverse=True)
+    q, n = lay.n + lay.k, lay.n
+    table = tuple(np.zeros((uniq.size, d, d)) for d in (q, q, n, n))
+    for j, key in enumerate(uniq.tolist()):
+        plan = observer.plan(abs(key))
+        sec = plan.second
+        mats: tuple[FloatArray | None, ...]
+        if key > 0:
+            mats = (plan.Phi1, plan.Phi2, None if sec is None else sec.Phi1,
+                    None if sec is None else sec.Phi2)
+        else:
+            mats = (plan.Phi1_open, plan.Phi2_open, None if sec is None else sec.Phi1_open,
+                    None if sec is None else sec.Phi2_open)
+        for dest, M in zip(table, mats):
+            if M is not None:
+                dest[j] = M[0]
+    return np.ascontiguousarray(inverse.reshape(-1), dtype=np.int64), table
 
 
-def kernel_arrays(parts: KernelParts, plan: StepPlan) -> tuple[tuple[Any, ...], ...]:
+def kernel_arrays(parts: KernelParts, plan: StepPlan
+                  ) -> tuple[PlanArrays, SecondArrays, LawArrays, tuple[bool, bool]]:
     """(P, P2, LP, flags): the plan's arrays for one row, the second observer's, the law's,
     and (a second observer is attached, its g sees C x̂₂): what the kernel takes.
 
-    See :mod:`~thetahat.estimation.formulas` for P and P2 and
-    :mod:`~thetahat.estimation.law_formulas` for the law's LP (with the box Θ and the ramp at
-    :data:`~thetahat.estimation.scalar_backend.LAW_BOX`). Writable, C-contiguous copies:
-    numba compiles one specialisation per array type.
+    The named tuples of :mod:`~thetahat.estimation.kernel_args` (the fields every binding
+    uses; see :mod:`~thetahat.estimation.formulas` and
+    :mod:`~thetahat.estimation.law_formulas`). Writable, C-contiguous copies: numba compiles
+    one specialisation per array type.
 
     Parameters
     ----------
@@ -447,28 +543,30 @@ def kernel_arrays(parts: KernelParts, plan: StepPlan) -> tuple[tuple[Any, ...], 
     def own(a: Any) -> FloatArray:
         return np.array(a, dtype=np.float64, order="C", copy=True)
 
-    P = tuple(own(a) for a in (plan.L[0], plan.Bv[0], plan.E, plan.C, plan.A, plan.B,
-                               plan.K_x[0], plan.KxC[0], plan.Phi1[0], plan.Phi2[0]))
+    P = PlanArrays(L=own(plan.L[0]), Bv=own(plan.Bv[0]), E=own(plan.E), C=own(plan.C),
+                   A=own(plan.A), B=own(plan.B), K_x=own(plan.K_x[0]), KxC=own(plan.KxC[0]),
+                   Phi1=own(plan.Phi1[0]), Phi2=own(plan.Phi2[0]))
     sec = plan.second
     if sec is None:                  # never read: flags[0] (a second observer) is False
-        P2 = tuple(np.zeros(shape) for shape in ((n, n), (n, m), (r, n), (n, k), (n, r),
-                                                (n, n), (n, n)))
+        P2 = SecondArrays(*(np.zeros(shape) for shape in ((n, n), (n, m), (r, n), (n, k),
+                                                          (n, r), (n, n), (n, n))))
     else:
-        P2 = tuple(own(a) for a in (sec.A, sec.B, sec.C, sec.E, sec.K_x[0], sec.Phi1[0],
-                                    sec.Phi2[0]))
-    box = (own(parts.box.lower), own(parts.box.upper))
+        P2 = SecondArrays(A=own(sec.A), B=own(sec.B), C=own(sec.C), E=own(sec.E),
+                          K_x=own(sec.K_x[0]), Phi1=own(sec.Phi1[0]), Phi2=own(sec.Phi2[0]))
+    box = {"lower": own(parts.box.lower), "upper": own(parts.box.upper)}
     G = own(np.eye(p) if plan.Gamma is None else plan.Gamma[0])
-    LP: tuple[FloatArray, ...]
     if parts.code == 0:
-        LP = box
+        LP = LawArrays(**box)
     elif parts.code == 3:
-        LP = (G, np.zeros(k), np.zeros((k, p)), np.zeros((p, k)), np.zeros((p, k)),
-              np.zeros(p), np.zeros((p, p)), *(np.zeros((p + 1, p + 1)) for _ in range(4)),
-              *box)
+        LP = LawArrays(Gamma=G, g=np.zeros(k), J=np.zeros((k, p)), Mt=np.zeros((p, k)),
+                       GM=np.zeros((p, k)), f=np.zeros(p), K=np.zeros((p, p)),
+                       Z=np.zeros((p + 1, p + 1)), Ex=np.zeros((p + 1, p + 1)),
+                       T=np.zeros((p + 1, p + 1)), U=np.zeros((p + 1, p + 1)), **box)
     else:                            # a diagonal Γ: Λ its diagonal, V = I
         low, high = parts.ramp if parts.ramp is not None else (0.0, 1.0)
-        LP = (own(np.diagonal(G)), np.eye(p), np.eye(p), np.zeros(p), np.zeros(p), *box,
-              np.array([low, high, parts.ramp is not None, parts.freeze], dtype=np.float64))
+        LP = LawArrays(lam=own(np.diagonal(G)), V=np.eye(p), VT=np.eye(p), ts=np.zeros(p),
+                       err=np.zeros(p), opts=np.array([low, high, parts.ramp is not None,
+                                                       parts.freeze], dtype=np.float64), **box)
     return P, P2, LP, (sec is not None, sec is not None and sec.g_on_estimates)
 
 
@@ -484,13 +582,70 @@ def kernel_work(lay: StateLayout) -> tuple[tuple[FloatArray, ...], tuple[FloatAr
     W : tuple of ndarray
         :data:`~thetahat.estimation.formulas.WORK`.
     rows : tuple of ndarray
-        (s, s⁺, u, y) of one sample.
+        (s, s⁺, u, y, u₁, y₁) of one sample (u₁, y₁: the end of a first-order-hold step).
     """
     dims = {"NX": lay.n, "NY": lay.r, "NK": lay.k, "NP": lay.p, "NV": lay.m + lay.r,
             "NQ": lay.n + lay.k, "LS1": max(lay.law_size, 1)}
     W = tuple(np.zeros(tuple(dims[d] for d in shape)) for _, shape in WORK)
     return W, (np.zeros(lay.size), np.zeros(lay.size), np.zeros(max(lay.m, 1)),
-               np.zeros(lay.r))
+               np.zeros(lay.r), np.zeros(max(lay.m, 1)), np.zeros(lay.r))
+
+
+#: Below this many samples :func:`runner` keeps the observer in Python unless asked: a model's
+#: first compilation costs 20–40 s (later processes load it from the cache in < 1 s) and the
+#: Python step runs ≈ 3 000 samples/s, so a shorter record finishes sooner uncompiled.
+COMPILE_MIN_SAMPLES = 20_000
+
+
+def runner(observer: ModifiedHighGainObserver, t: Any, *, compiled: bool | None = None
+           ) -> ModifiedHighGainObserver | CompiledObserver:
+    """What runs an observer over the record ``t``: its compiled form, or the observer itself.
+
+    Both have ``run(t, u, y, state0=, hold=, progress=)`` with the same results (to
+    rounding). The compiled form is chosen when ``compiled`` is True, or None (the default)
+    and ``t`` has at least :data:`COMPILE_MIN_SAMPLES` samples; it falls back to the observer
+    with a one-line :class:`~thetahat.errors.ThetahatWarning` when numba is missing or a part
+    of the observer is not supported (the note names it).
+
+    Parameters
+    ----------
+    observer : ModifiedHighGainObserver
+    t : array_like, shape (N,)
+        The record's sampling instants (its first step sets the compiled ``step``'s dt; ``run``
+        takes every step's own length).
+    compiled : bool, optional
+        True: compile whenever possible; False: never; None: for long records.
+
+    Returns
+    -------
+    ModifiedHighGainObserver or CompiledObserver
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from thetahat.models import lugre
+    >>> from thetahat.estimation.compiled import runner
+    >>> obs = lugre.observer()
+    >>> runner(obs, np.arange(100) * 1e-3) is obs       # short: Python, no compilation
+    True
+    """
+    try:
+        t_ = np.asarray(t, dtype=np.float64).reshape(-1)
+    except (TypeError, ValueError):        # not numbers: the observer's run says what is wrong
+        return observer
+    if compiled is False or (compiled is None and t_.size < COMPILE_MIN_SAMPLES):
+        return observer
+    steps = np.diff(t_[:2])
+    dt = float(steps[0]) if steps.size and np.isfinite(steps[0]) and steps[0] > 0 else 1.0
+    try:
+        return compile_observer(observer, dt=dt)
+    except MissingExtraError:
+        note = ("numba is not installed (pip install 'thetahat[speed]' for the compiled "
+                "kernel)")
+    except UnsupportedError as exc:
+        note = str(exc).split(" (supported:")[0].removeprefix("compile_observer: ")
+    warnings.warn(f"the observer runs in Python: {note}.", ThetahatWarning, stacklevel=2)
+    return observer
 
 
 def compile_observer(observer: ModifiedHighGainObserver, *, dt: float) -> CompiledObserver:
@@ -500,10 +655,10 @@ def compile_observer(observer: ModifiedHighGainObserver, *, dt: float) -> Compil
     ----------
     observer : ModifiedHighGainObserver
         Observer (3) with update law (8) and optionally a second observer (Sec. VI); its parts
-        must be of the supported kinds (see the module docstring). A law with a θ* needs a
-        :class:`~thetahat.estimation.theta_star.ThetaStar` (it carries the SymPy form).
+        must be of the supported kinds (see the module docstring). A law with a θ* needs its
+        SymPy form: a :class:`~thetahat.estimation.theta_star.ThetaStar`, or a model file's.
     dt : float
-        The step length (s) > 0; ``run`` checks that its t is spaced by it.
+        The step length (s) > 0 of ``step``; ``run`` steps by its record's own spacing.
 
     Returns
     -------

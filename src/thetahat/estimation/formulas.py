@@ -35,7 +35,10 @@ invalid (1 + the number of rows).
 from __future__ import annotations
 
 from collections.abc import Callable
-from typing import Any
+from typing import TYPE_CHECKING, Any
+
+if TYPE_CHECKING:                    # the argument tuples (named; every binding builds them)
+    from .kernel_args import LawArrays, PlanArrays, SecondArrays
 
 __all__ = ["DIVERGENCE_BOUND", "FORMULAS", "WORK", "advance", "implicit_step",
            "observer_forcing", "observer_jacobian", "second_forcing", "second_jacobian",
@@ -89,7 +92,7 @@ IMPLICITNESS: float
 BOUND_SQ: float
 
 
-def observer_forcing(P: tuple[Any, ...], s: Any, u: Any, y: Any, correct: bool, v: Any,
+def observer_forcing(P: PlanArrays, s: Any, u: Any, y: Any, correct: bool, v: Any,
                      g: Any, Gx: Any, F: Any, wr: Any, wn: Any) -> None:
     """F of (3a)–(3b) on (x̂, z) without the θ̂ term; v, g(v, x̂, θ̂) and ∂g/∂x into buffers.
 
@@ -110,7 +113,7 @@ def observer_forcing(P: tuple[Any, ...], s: Any, u: Any, y: Any, correct: bool, 
     v, g, Gx, F, wr, wn : array
         Outputs v, g, ∂g/∂x, F; scratch of lengths r and n.
     """
-    L, Bv, E, C, A, Bm, Kx = P[0], P[1], P[2], P[3], P[4], P[5], P[6]
+    L, Bv, E, C, A, Bm, Kx = P.L, P.Bv, P.E, P.C, P.A, P.B, P.K_x
     n, k, m, r = NX, NK, NU, NY
     q = n + k
     copy(m, u, 0, v, 0)
@@ -136,7 +139,7 @@ def observer_forcing(P: tuple[Any, ...], s: Any, u: Any, y: Any, correct: bool, 
             put(F, n + a, 0.0)
 
 
-def observer_jacobian(P: tuple[Any, ...], s: Any, v: Any, correct: bool, Gx: Any, Gy: Any,
+def observer_jacobian(P: PlanArrays, s: Any, v: Any, correct: bool, Gx: Any, Gy: Any,
                       Nm: Any) -> None:
     """N = [[E ∂g/∂x, 0], [∂g/∂x K_x C, 0]] (measured) or [[E(∂g/∂x + ∂g/∂y C), 0], [0, 0]].
 
@@ -154,7 +157,7 @@ def observer_jacobian(P: tuple[Any, ...], s: Any, v: Any, correct: bool, Gx: Any
     Nm : array
         Output N.
     """
-    E, C, KxC = P[2], P[3], P[7]
+    E, C, KxC = P.E, P.C, P.KxC
     n, k, r = NX, NK, NY
     fill(Nm, 0.0)
     if correct:
@@ -166,7 +169,7 @@ def observer_jacobian(P: tuple[Any, ...], s: Any, v: Any, correct: bool, Gx: Any
         mm(E, Gx, n, k, n, Nm, 0, 0, 0)
 
 
-def second_forcing(P2: tuple[Any, ...], s: Any, u: Any, y: Any, correct: bool,
+def second_forcing(P2: SecondArrays, s: Any, u: Any, y: Any, correct: bool,
                    on_estimates: bool, v2: Any, g2: Any, Gx2: Any, F2: Any, w2: Any) -> None:
     """F = A x̂₂ + B u + E g(v̄, x̂₂, θ̂) + K_x2 (y − C x̂₂) of Sec. VI; v̄, g, ∂g/∂x into buffers.
 
@@ -184,7 +187,7 @@ def second_forcing(P2: tuple[Any, ...], s: Any, u: Any, y: Any, correct: bool,
     v2, g2, Gx2, F2, w2 : array
         Outputs v̄, g, ∂g/∂x, F; scratch of length r.
     """
-    A, Bm, C, E, K2 = P2[0], P2[1], P2[2], P2[3], P2[4]
+    A, Bm, C, E, K2 = P2.A, P2.B, P2.C, P2.E, P2.K_x
     n, k, m, r = NX, NK, NU, NY
     o2 = n + k + NP
     copy(m, u, 0, v2, 0)
@@ -202,7 +205,7 @@ def second_forcing(P2: tuple[Any, ...], s: Any, u: Any, y: Any, correct: bool,
         mv(K2, n, r, w2, 0, F2, 0, 1)
 
 
-def second_jacobian(P2: tuple[Any, ...], s: Any, v2: Any, correct: bool, on_estimates: bool,
+def second_jacobian(P2: SecondArrays, s: Any, v2: Any, correct: bool, on_estimates: bool,
                     Gx2: Any, Gy2: Any, N2: Any) -> None:
     """N = E ∂g/∂x, plus E ∂g/∂y C where g sees C x̂₂ (the exact Jacobian of F in x̂₂).
 
@@ -216,7 +219,7 @@ def second_jacobian(P2: tuple[Any, ...], s: Any, v2: Any, correct: bool, on_esti
     N2 : array
         Output.
     """
-    C, E = P2[2], P2[3]
+    C, E = P2.C, P2.E
     n, k, r = NX, NK, NY
     if on_estimates or not correct:
         dg_dy(v2, s, n + k + NP, s, n + k, Gy2)
@@ -257,7 +260,7 @@ def implicit_step(q: int, Phi1: Any, Phi2: Any, F: Any, Fd: Any, foh: bool, Nm: 
     axpy(q, 1.0, rhs, 0, out, so)
 
 
-def second_step(P2: tuple[Any, ...], s: Any, u0: Any, y0: Any, u1: Any, y1: Any, dt: float,
+def second_step(P2: SecondArrays, s: Any, u0: Any, y0: Any, u1: Any, y1: Any, dt: float,
                 correct: bool, foh: bool, on_estimates: bool, out: Any, W: tuple[Any, ...]
                 ) -> None:
     """x̂₂ of the second observer (Sec. VI) from ``s`` into ``out``, driven by θ̂ of ``s``.
@@ -283,7 +286,7 @@ def second_step(P2: tuple[Any, ...], s: Any, u0: Any, y0: Any, u1: Any, y1: Any,
         second_forcing(P2, s, u1, y1, correct, on_estimates, v2, g2, Gx2, Fd2, w2)
         for i in range(n):
             put(Fd2, i, (get(Fd2, i) - get(F2, i)) / dt)
-    implicit_step(n, P2[5], P2[6], F2, Fd2, foh, N2, s, n + NK + NP, out, M2, rhs2)
+    implicit_step(n, P2.Phi1, P2.Phi2, F2, Fd2, foh, N2, s, n + NK + NP, out, M2, rhs2)
 
 
 def phi_hat(g: Any, s: Any, phi: Any) -> None:
@@ -312,7 +315,7 @@ def within_bound(s: Any, size: int) -> Any:
     return sumsq(s, size) <= BOUND_SQ
 
 
-def advance(P: tuple[Any, ...], P2: tuple[Any, ...], LP: tuple[Any, ...], s: Any, u0: Any,
+def advance(P: PlanArrays, P2: SecondArrays, LP: LawArrays, s: Any, u0: Any,
             y0: Any, u1: Any, y1: Any, dt: float, correct: bool, foh: bool, second: bool,
             on_estimates: bool, out: Any, W: tuple[Any, ...]) -> int:
     """One step of the whole estimator from ``s`` into ``out``: (3a)–(3c), (8), Sec. VI.
@@ -378,7 +381,7 @@ def advance(P: tuple[Any, ...], P2: tuple[Any, ...], LP: tuple[Any, ...], s: Any
     axpy(k, 1.0, zc, 0, F, n)
     if second:
         second_step(P2, s, u0, y0, u1, y1, dt, correct, foh, on_estimates, out, W)
-    implicit_step(q, P[8], P[9], F, Fd, foh, Nm, s, 0, out, M, rhs)
+    implicit_step(q, P.Phi1, P.Phi2, F, Fd, foh, Nm, s, 0, out, M, rhs)
     copy(p, thn, 0, out, q)
     copy(LS, lsn, 0, out, q + p + (n if second else 0))
     return 0

@@ -17,6 +17,7 @@ from ..model.paramset import ParameterSet
 from ..model.perturbation import Perturbation
 from .law_base import (FAR, UpdateLaw, apply_saturation, as_batch, broadcast_rows,
                        check_law_options, project_rows)
+from .kernel_args import LawArrays
 from .law_formulas import LAW_FORMULAS
 from .primitives import NUMPY, NUMPY_ROW, bound
 from .projection import Projection, Saturation, as_gain
@@ -186,10 +187,11 @@ class GradientInversion(UpdateLaw):
         v_, x, phi, th, batch = self._inputs(v, x_hat, phi_hat, theta_hat)
         _, _, _, p, k = self.perturbation.dims
         args = broadcast_rows(batch, v_, x, phi, th)
-        LP = (self.Gamma if G is None else G, np.empty(batch + (k,)), np.empty(batch + (k, p)),
-              np.empty(batch + (p, k)), np.empty(batch + (p, k)), np.empty(batch + (p,)),
-              np.empty(batch + (p, p)), np.empty(batch + (p + 1, p + 1)),
-              np.empty(batch + (p + 1, p + 1)), None, None, G)
+        LP = LawArrays(Gamma=self.Gamma if G is None else G, g=np.empty(batch + (k,)),
+                       J=np.empty(batch + (k, p)), Mt=np.empty(batch + (p, k)),
+                       GM=np.empty(batch + (p, k)), f=np.empty(batch + (p,)),
+                       K=np.empty(batch + (p, p)), Z=np.empty(batch + (p + 1, p + 1)),
+                       Ex=np.empty(batch + (p + 1, p + 1)), Gamma_rows=G)
         thn = np.empty(batch + (p,))
         env = bound(self, batch == (), LAW_FORMULAS,
                     lambda: _gradient_names(self, NUMPY_ROW if batch == () else NUMPY))
@@ -223,8 +225,8 @@ def _gradient_names(law: GradientInversion, prims: Mapping[str, Any]) -> dict[st
                                  f"got {Mm.shape}.")
         Mt[...] = Mm
 
-    def project(LP: tuple[Any, ...], thn: FloatArray) -> int:
-        thn[...] = project_rows(law._proj, thn, LP[11])
+    def project(LP: LawArrays, thn: FloatArray) -> int:
+        thn[...] = project_rows(law._proj, thn, LP.Gamma_rows)
         return 0
 
     return {**prims, "g_val": g_val, "dg_dtheta": dg_dtheta, "m_matrix": m_matrix,

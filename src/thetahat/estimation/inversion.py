@@ -21,6 +21,7 @@ from ..model.perturbation import Perturbation
 from ..model.set_geometry import safe_norm
 from .law_base import (FAR, UpdateLaw, apply_saturation, as_batch, broadcast_rows,
                        check_law_options, is_diagonal, project_rows)
+from .kernel_args import LawArrays
 from .law_formulas import LAW_FORMULAS, smoothstep
 from .primitives import NUMPY, NUMPY_ROW, bind, bound
 from .projection import Projection, Saturation, as_gain
@@ -189,7 +190,7 @@ def _inversion_names(law: IntermittentInversion, prims: Mapping[str, Any]) -> di
     owner = "IntermittentInversion"
     p = law.parameter_set.dim
 
-    def weight(LP: tuple[Any, ...], v: FloatArray, x: FloatArray, xo: int,
+    def weight(LP: LawArrays, v: FloatArray, x: FloatArray, xo: int,
                phi: FloatArray) -> Any:
         if law.l is None:
             return 1.0
@@ -199,8 +200,8 @@ def _inversion_names(law: IntermittentInversion, prims: Mapping[str, Any]) -> di
                    ts: FloatArray) -> None:
         ts[...] = _checked_theta_star(law.theta_star, owner, v, x, phi, phi.shape[:-1], p)
 
-    def project(LP: tuple[Any, ...], thn: FloatArray) -> int:
-        thn[...] = project_rows(law._proj, thn, LP[5])
+    def project(LP: LawArrays, thn: FloatArray) -> int:
+        thn[...] = project_rows(law._proj, thn, LP.Gamma_rows)
         return 0
 
     return {**prims, "weight": weight, "theta_star": theta_star, "project": project,
@@ -367,9 +368,10 @@ class IntermittentInversion(UpdateLaw):
         env = bound(self, batch == (), LAW_FORMULAS,
                     lambda: _inversion_names(self, NUMPY_ROW if batch == () else NUMPY))
         with np.errstate(over="ignore", invalid="ignore"):
-            status = env["inversion_law"]((lam, V, VT, np.empty_like(thn), np.empty_like(thn),
-                                           G), args[0], args[1], 0, args[2], args[3], 0, dt,
-                                          thn, None)
+            LP = LawArrays(lam=lam, V=V, VT=VT, ts=np.empty_like(thn), err=np.empty_like(thn),
+                           Gamma_rows=G)
+            status = env["inversion_law"](LP, args[0], args[1], 0, args[2], args[3], 0, dt, thn,
+                                          None)
         if status:
             raise invalid_theta_star_error("IntermittentInversion", status - 1)
         return thn

@@ -19,6 +19,7 @@ from .._validate import check_finite, positive_scalar
 from ..errors import DimensionError, ParameterSetError, UpdateLawError
 from ..model.paramset import Box, ParameterSet
 from . import law_formulas
+from .kernel_args import LawArrays
 from .law_formulas import LAW_FORMULAS
 from .primitives import NUMPY, bind, bound
 from .projection import Projection, Saturation
@@ -428,7 +429,7 @@ class ConstantLaw(UpdateLaw):
         v_, x, phi, th, batch = as_batch(v, x_hat, phi_hat, theta_hat, self.parameter_set.dim)
         thn = np.empty(batch + th.shape[-1:])
         env = bound(self, None, LAW_FORMULAS, lambda: _held_names(self))
-        env["held_law"]((), v_, x, 0, phi, np.broadcast_to(th, thn.shape), 0, dt, thn, None)
+        env["held_law"](LawArrays(), v_, x, 0, phi, np.broadcast_to(th, thn.shape), 0, dt, thn, None)
         return thn
 
     def init(self, theta_hat0: ArrayLike | None = None) -> FloatArray:
@@ -438,7 +439,7 @@ class ConstantLaw(UpdateLaw):
 
 def _held_names(law: ConstantLaw) -> dict[str, object]:
     """The NumPy namespace of :func:`law_formulas.held_law` for one law."""
-    def project(LP: tuple[object, ...], thn: FloatArray) -> int:
+    def project(LP: LawArrays, thn: FloatArray) -> int:
         thn[...] = law.parameter_set.nearest(thn)
         return 0
 

@@ -24,7 +24,10 @@ place; returns 0), ``freeze(LP)`` (``on_invalid == 'freeze'``), the constants ``
 from __future__ import annotations
 
 from collections.abc import Callable
-from typing import Any
+from typing import TYPE_CHECKING, Any
+
+if TYPE_CHECKING:                    # the argument tuples (named; every binding builds them)
+    from .kernel_args import LawArrays
 
 __all__ = ["LAW_FORMULAS", "finite_candidate", "gradient_law", "held_law", "inversion_law",
            "inversion_target", "smoothstep"]
@@ -99,7 +102,7 @@ def finite_candidate(p: int, cand: Any, th: Any, to: int) -> None:
         put(cand, i, clip(where(isnan(c), get(th, to + i), c), -FAR, FAR))
 
 
-def held_law(LP: tuple[Any, ...], v: Any, x: Any, xo: int, phi: Any, th: Any, to: int,
+def held_law(LP: LawArrays, v: Any, x: Any, xo: int, phi: Any, th: Any, to: int,
              dt: float, thn: Any, lsn: Any) -> int:
     """θ̂̇ = 0 (:class:`~thetahat.estimation.law_base.ConstantLaw`): θ̂, projected onto Θ.
 
@@ -121,7 +124,7 @@ def held_law(LP: tuple[Any, ...], v: Any, x: Any, xo: int, phi: Any, th: Any, to
     return project(LP, thn)
 
 
-def inversion_target(LP: tuple[Any, ...], v: Any, x: Any, xo: int, phi: Any, th: Any,
+def inversion_target(LP: LawArrays, v: Any, x: Any, xo: int, phi: Any, th: Any,
                      to: int, ts: Any) -> tuple[int, Any]:
     """The target of Propositions 1–2 and the weight: θ* into ``ts``, θ̂ where l = 0.
 
@@ -159,7 +162,7 @@ def inversion_target(LP: tuple[Any, ...], v: Any, x: Any, xo: int, phi: Any, th:
     return nbad, lw
 
 
-def inversion_law(LP: tuple[Any, ...], v: Any, x: Any, xo: int, phi: Any, th: Any, to: int,
+def inversion_law(LP: LawArrays, v: Any, x: Any, xo: int, phi: Any, th: Any, to: int,
                   dt: float, thn: Any, lsn: Any) -> int:
     """Propositions 1–2: the exact flow of θ̇ = lΓ(θ* − θ) over dt, then the projection.
 
@@ -181,7 +184,7 @@ def inversion_law(LP: tuple[Any, ...], v: Any, x: Any, xo: int, phi: Any, th: An
     -------
     int
     """
-    lam, V, VT, ts, err = LP[0], LP[1], LP[2], LP[3], LP[4]
+    lam, V, VT, ts, err = LP.lam, LP.V, LP.VT, LP.ts, LP.err
     p = NP
     nbad, lw = inversion_target(LP, v, x, xo, phi, th, to, ts)
     if nbad > 0 and not freeze(LP):
@@ -198,7 +201,7 @@ def inversion_law(LP: tuple[Any, ...], v: Any, x: Any, xo: int, phi: Any, th: An
     return project(LP, thn)
 
 
-def gradient_law(LP: tuple[Any, ...], v: Any, x: Any, xo: int, phi: Any, th: Any, to: int,
+def gradient_law(LP: LawArrays, v: Any, x: Any, xo: int, phi: Any, th: Any, to: int,
                  dt: float, thn: Any, lsn: Any) -> int:
     """Propositions 3–4: exponential Euler on θ̇ = ΓM(φ̂ − g(v, x̂, θ)), then the projection.
 
@@ -220,8 +223,8 @@ def gradient_law(LP: tuple[Any, ...], v: Any, x: Any, xo: int, phi: Any, th: Any
     -------
     int
     """
-    Gam, g, J, Mt, GM, f, K = LP[0], LP[1], LP[2], LP[3], LP[4], LP[5], LP[6]
-    Z, Ex, T, U = LP[7], LP[8], LP[9], LP[10]
+    Gam, g, J, Mt, GM, f, K = LP.Gamma, LP.g, LP.J, LP.Mt, LP.GM, LP.f, LP.K
+    Z, Ex, T, U = LP.Z, LP.Ex, LP.T, LP.U
     p, k = NP, NK
     g_val(v, x, xo, th, to, g)
     dg_dtheta(v, x, xo, th, to, J)

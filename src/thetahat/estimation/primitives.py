@@ -43,7 +43,11 @@ The primitives (``acc`` of the products: 0 assigns, 1 adds, -1 subtracts):
 
 from __future__ import annotations
 
+import ast
+import functools
+import inspect
 import math
+import textwrap
 import threading
 import types
 from collections import OrderedDict
@@ -55,9 +59,11 @@ import scipy.linalg
 from numpy.typing import NDArray
 from scipy.linalg.lapack import dgesv as _gesv
 
+from ..errors import ThetahatError
 from ..model.set_geometry import safe_norm
 
-__all__ = ["NUMPY", "NUMPY_ROW", "PRIMITIVES", "bind", "bound"]
+__all__ = ["ARRAYS", "NUMPY", "NUMPY_ROW", "PRIMITIVES", "AliasingError", "bind", "bound",
+           "check_aliasing"]
 
 FloatArray = NDArray[np.float64]
 
@@ -257,6 +263,78 @@ NUMPY_ROW: Mapping[str, Any] = types.MappingProxyType({
     "any_": bool, "count_": lambda b: 1 if b else 0})
 
 
+#: The array parameters of the block primitives, by position, and which of them are written.
+#: The back ends differ where a written array is also read through another argument (NumPy
+#: computes the product first, the scalar loops write as they go: ``mv(M, …, x, …, x, …)``
+#: gives [2, 1] in one and [2, 2] in the other), so the formulas may not do that: see
+#: :func:`check_aliasing`.
+ARRAYS: Mapping[str, tuple[tuple[int, ...], tuple[int, ...]]] = types.MappingProxyType({
+    "copy": ((1, 3), (3,)), "axpy": ((2, 4), (4,)), "mv": ((0, 3, 5), (5,)),
+    "mm": ((0, 1, 5), (5,)), "mmt": ((0, 1, 5), (5,)), "solve": ((1, 2), (1, 2)),
+    "expm": ((1, 2, 3, 4), (2, 3, 4))})
+
+
+class AliasingError(ThetahatError, ValueError):
+    """A formula passes one array as a written argument of a primitive and as another of its
+    arguments (the back ends would disagree)."""
+
+
+@functools.cache
+def _aliasing_problems(code: types.CodeType, source: str) -> tuple[str, ...]:
+    problems = []
+    for node in ast.walk(ast.parse(textwrap.dedent(source))):
+        if not (isinstance(node, ast.Call) and isinstance(node.func, ast.Name)
+                and node.func.id in ARRAYS):
+            continue
+        arrays, written = ARRAYS[node.func.id]
+        names = {i: ast.unparse(node.args[i]) for i in arrays if i < len(node.args)}
+        for w in written:
+            clash = [i for i, text in names.items() if i != w and text == names.get(w)]
+            if clash:
+                problems.append(f"{code.co_name}, line {node.lineno}: {ast.unparse(node)} "
+                                f"passes {names[w]} as argument {w + 1} (written) and "
+                                f"{', '.join(str(i + 1) for i in clash)}")
+    return tuple(dict.fromkeys(problems))
+
+
+def check_aliasing(fn: Callable[..., Any]) -> None:
+    """Refuse a formula that passes one array as a written argument of a primitive and as
+    another of its arguments (the same expression twice; :data:`ARRAYS`).
+
+    Run where the formulas are bound (:func:`bind`) and emitted
+    (:func:`~thetahat.estimation.scalar_backend.kernel_source`), so that every back end
+    computes the same thing.
+
+    Parameters
+    ----------
+    fn : function
+        A formula (its source is read).
+
+    Raises
+    ------
+    AliasingError
+        The calls that alias, with their lines.
+
+    Examples
+    --------
+    >>> def bad(M, x):
+    ...     mv(M, 2, 2, x, 0, x, 0, 0)  # noqa: F821
+    >>> check_aliasing(bad)
+    Traceback (most recent call last):
+    ...
+    thetahat.estimation.primitives.AliasingError: ...passes x as argument 6 (written) and 4...
+    """
+    try:
+        source = inspect.getsource(fn)
+    except (OSError, TypeError):        # no source (built in a string): nothing to check
+        return
+    problems = _aliasing_problems(fn.__code__, source)
+    if problems:
+        raise AliasingError("a formula aliases an output of a primitive with another of its "
+                            "arguments (the back ends would disagree); use a work buffer: "
+                            + "; ".join(problems))
+
+
 def bind(functions: Mapping[str, Callable[..., Any]], names: Mapping[str, Any]
          ) -> dict[str, Any]:
     """The formula ``functions`` rebuilt with the globals ``names`` (and each other).
@@ -273,6 +351,12 @@ def bind(functions: Mapping[str, Callable[..., Any]], names: Mapping[str, Any]
     dict
         The namespace: ``names`` plus the rebound functions under their keys.
 
+    Raises
+    ------
+    AliasingError
+        A function aliases a primitive's output with another argument
+        (:func:`check_aliasing`).
+
     Examples
     --------
     >>> import numpy as np
@@ -284,6 +368,7 @@ def bind(functions: Mapping[str, Callable[..., Any]], names: Mapping[str, Any]
     """
     env: dict[str, Any] = dict(names)
     for key, fn in functions.items():
+        check_aliasing(fn)
         code = fn.__code__
         env[key] = types.FunctionType(code, env, code.co_name, fn.__defaults__, None)
     return env

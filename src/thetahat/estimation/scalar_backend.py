@@ -32,9 +32,10 @@ from . import formulas, law_formulas, scalar_primitives
 from .discretize import IMPLICITNESS
 from .formulas import DIVERGENCE_BOUND
 from .law_base import FAR
+from .primitives import check_aliasing
 
-__all__ = ["INLINE_FROM", "LAWS", "LAW_BOX", "formula_decorator", "kernel_source",
-           "law_source", "model_source", "rewritten"]
+__all__ = ["INLINE_FROM", "LAWS", "formula_decorator", "kernel_source", "law_source",
+           "model_source", "rewritten"]
 
 #: The law formulas the compiled path supports, by code (see ``compiled.KernelParts``).
 LAWS = {0: "held_law", 1: "inversion_law", 2: "inversion_law", 3: "gradient_law"}
@@ -54,10 +55,13 @@ def formula_decorator(version: str) -> str:
     """The decorator of the formulas for a numba version: inlined into the loop from
     :data:`INLINE_FROM` on, separate functions before.
 
-    Inlined, the kernel is ≈ 1.5–2× faster and takes 20–40 s to compile (measured with numba
-    0.61.2 and 0.68.1); numba 0.58.1 had not finished inlining it after 17 min and 7.7 GB, and
-    compiles the separate functions in ≈ 12 s. 0.59–0.60 were not tried: they get the
-    separate functions.
+    Inlined, the kernel is faster and takes longer to compile: the DC motor's kernel, measured
+    in one run on a loaded 2-core machine with numba 0.68.1, compiles in 56 s and runs 0.33 µs
+    a sample inlined, 21 s and 1.9 µs a sample as separate functions (earlier measurements:
+    20–40 s inlined with 0.61.2 and 0.68.1). The first compilation happens once per machine
+    (the cache), the per-sample cost at every run, so the formulas are inlined. numba 0.58.1
+    had not finished inlining after 17 min and 7.7 GB, and compiles the separate functions in
+    ≈ 12 s; 0.59–0.60 were not tried: they get the separate functions.
 
     Parameters
     ----------
@@ -136,6 +140,11 @@ def _function(name: str, params: str, inputs: Sequence[tuple[str, Sequence[sp.Sy
     return "\n".join(lines) + "\n"
 
 
+def _model_inputs(pert: SymbolicPerturbation) -> list[tuple[str, Sequence[sp.Symbol]]]:
+    """Where the model functions read g's symbols: v = col(u, y), x̂ = x[xo:], θ̂ = th[to:]."""
+    return [("v[{}]", (*pert.u, *pert.y)), ("x[xo + {}]", pert.x), ("th[to + {}]", pert.theta)]
+
+
 def model_source(pert: SymbolicPerturbation, theta_star: tuple[sp.Expr, ...] | None,
                  ts_args: tuple[sp.Symbol, ...] | None) -> str:
     """The model functions of the formulas as scalar code: g_dx, g_val, dg_dy, dg_dtheta, θ*.
@@ -163,7 +172,7 @@ def model_source(pert: SymbolicPerturbation, theta_star: tuple[sp.Expr, ...] | N
     """
     n, m, r, _, _ = pert.dims
     params = "v, x, xo, th, to"
-    ins = [("v[{}]", (*pert.u, *pert.y)), ("x[xo + {}]", pert.x), ("th[to + {}]", pert.theta)]
+    ins = _model_inputs(pert)
     g = sp.Matrix(pert.expr)
     Gv = pert.jacobian("v")
     parts = [
@@ -332,13 +341,9 @@ def _source(fn: Any, name: str | None = None, decorator: str = _INLINE) -> str:
     return f"{decorator}\n{text}\n"
 
 
-#: Per law, where its LP holds the box Θ (lower, upper), followed for the inversion law by
-#: its options (low, high, whether l is the smooth ramp, whether on_invalid is 'freeze').
-LAW_BOX = {"held_law": 0, "inversion_law": 5, "gradient_law": 11}
-
-
-def law_source(law: str, form: str) -> str:
-    """law_step and the hooks weight, freeze, project and m_matrix for one law formula.
+def law_source(law: str, form: str, user_m: bool = False) -> str:
+    """law_step and the hooks weight, freeze, project (and a stub m_matrix without a user's
+    M) for one law formula.
 
     Parameters
     ----------
@@ -346,37 +351,39 @@ def law_source(law: str, form: str) -> str:
         A value of :data:`LAWS`.
     form : str
         The decorator line of each hook (empty for plain Python).
+    user_m : bool
+        The kernel has a user's M (m_matrix printed from its SymPy form); else a stub.
 
     Returns
     -------
     str
-        Python source in the formulas' subset; the options are read from ``LP`` at
-        :data:`LAW_BOX`.
+        Python source in the formulas' subset; the box Θ and the inversion law's options are
+        read from ``LP.lower``, ``LP.upper`` and ``LP.opts``
+        (:class:`~thetahat.estimation.kernel_args.LawArrays`).
 
     Examples
     --------
     >>> "law_step = held_law" in law_source("held_law", "")
     True
     """
-    box = LAW_BOX[law]
-    opts = f"LP[{box + 2}]"
+    opts = "LP.opts"
     weight = (f"    if {opts}[2] != 0.0:\n"
               f"        return smoothstep(norm(phi, NK), {opts}[0], {opts}[1])\n"
               "    return 1.0\n") if law == "inversion_law" else "    return 1.0\n"
     freeze = f"{opts}[3] != 0.0" if law == "inversion_law" else "False"
+    stub = "" if user_m else f"{form}\ndef m_matrix(v, x, xo, th, to, Mt):\n    return 0\n\n\n"
     return (f"{form}\ndef weight(LP, v, x, xo, phi):\n{weight}\n\n"
             f"{form}\ndef freeze(LP):\n    return {freeze}\n\n\n"
             f"{form}\ndef project(LP, thn):\n"
-            f"    lo, hi = LP[{box}], LP[{box + 1}]\n"
+            "    lo, hi = LP.lower, LP.upper\n"
             "    for i in range(NP):\n        thn[i] = min(max(thn[i], lo[i]), hi[i])\n"
             "    return 0\n\n\n"
-            f"{form}\ndef m_matrix(v, x, xo, th, to, Mt):\n    return 0\n\n\n"
-            f"law_step = {law}\n")
+            + stub + f"law_step = {law}\n")
 
 
 def kernel_source(pert: SymbolicPerturbation, theta_star: tuple[sp.Expr, ...] | None,
                   ts_args: tuple[sp.Symbol, ...] | None, law: str, *,
-                  numba: bool = True) -> str:
+                  numba: bool = True, M: sp.Matrix | None = None) -> str:
     """The complete source of the kernel module of one model and configuration.
 
     Parameters
@@ -389,6 +396,9 @@ def kernel_source(pert: SymbolicPerturbation, theta_star: tuple[sp.Expr, ...] | 
         observer and the gains is data.
     numba : bool
         Decorate the functions with ``numba.njit``; False gives plain Python (for tests).
+    M : sympy.Matrix, shape (p, k), optional
+        A user's M(v, x, θ) of the gradient law (Propositions 3–4) in g's symbols; default
+        (∂g/∂θ)ᵀ.
 
     Returns
     -------
@@ -396,6 +406,8 @@ def kernel_source(pert: SymbolicPerturbation, theta_star: tuple[sp.Expr, ...] | 
         A module defining ``kernel_run`` (:mod:`~thetahat.estimation.scalar_primitives`).
     """
     n, m, r, p, k = pert.dims
+    for fn in (*law_formulas.LAW_FORMULAS.values(), *formulas.FORMULAS.values()):
+        check_aliasing(fn)
     form = formula_decorator(_numba_version())
     header = [
         '"""Generated by thetahat.estimation.scalar_backend; do not edit (content-addressed).',
@@ -408,15 +420,19 @@ def kernel_source(pert: SymbolicPerturbation, theta_star: tuple[sp.Expr, ...] | 
         f"IMPLICITNESS = {IMPLICITNESS!r}", f"FAR = {FAR!r}",
         f"EXP_TINY_ARG = {scalar_primitives.EXP_TINY_ARG!r}",
         f"BOUND_SQ = {DIVERGENCE_BOUND ** 2!r}",
-        "USER_M = False"]
+        f"USER_M = {M is not None}"]
     parts = ["\n".join(header)]
     parts += [_source(fn, name, _INLINE)
               for name, fn in scalar_primitives.SCALAR_PRIMITIVES.items()]
     parts.append(model_source(pert, theta_star, ts_args))
+    if M is not None:
+        parts.append(_function("m_matrix", "v, x, xo, th, to, Mt", _model_inputs(pert),
+                               [("Mt", sp.Matrix(M), False)]))
     parts += [_source(fn, None, form) for fn in law_formulas.LAW_FORMULAS.values()]
     parts += [_source(fn, None, form) for fn in formulas.FORMULAS.values()]
-    parts.append(law_source(law, form))
-    parts.append(_source(scalar_primitives.kernel_run, decorator=_INLINE))
+    parts.append(law_source(law, form, M is not None))
+    parts += [_source(fn, decorator=_INLINE)
+              for fn in (scalar_primitives.load_phis, scalar_primitives.kernel_run)]
     text = "\n\n".join(parts) + "\n"
     if not numba:
         text = "\n".join(line for line in text.splitlines()

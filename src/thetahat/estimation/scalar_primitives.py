@@ -15,7 +15,10 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
-from typing import Any
+from typing import TYPE_CHECKING, Any
+
+if TYPE_CHECKING:                    # the argument tuples (named; every binding builds them)
+    from .kernel_args import LawArrays, PlanArrays, SecondArrays
 
 __all__ = ["EXP_TINY_ARG", "SCALAR_PRIMITIVES"]
 
@@ -259,24 +262,57 @@ SCALAR_PRIMITIVES: dict[str, Callable[..., Any]] = {
         count_, sumsq)}
 
 
-def kernel_run(s0: Any, U: Any, Y: Any, dts: Any, P: tuple[Any, ...], P2: tuple[Any, ...],
-               LP: tuple[Any, ...], second: bool, on_estimates: bool, W: tuple[Any, ...],
-               rows: tuple[Any, ...], S: Any, PHI: Any) -> tuple[int, int]:
+def load_phis(PH: tuple[Any, ...], j: int, P: PlanArrays, P2: SecondArrays,
+              second: bool) -> None:
+    """Φ₁, Φ₂ of the observer (and of the second observer) of table entry ``j`` into P, P2."""
+    Phi1, Phi2, Phi1s, Phi2s = PH[0], PH[1], PH[2], PH[3]
+    Q1, Q2 = P.Phi1, P.Phi2
+    for a in range(NX + NK):
+        for b in range(NX + NK):
+            Q1[a, b] = Phi1[j, a, b]
+            Q2[a, b] = Phi2[j, a, b]
+    if second:
+        R1, R2 = P2.Phi1, P2.Phi2
+        for a in range(NX):
+            for b in range(NX):
+                R1[a, b] = Phi1s[j, a, b]
+                R2[a, b] = Phi2s[j, a, b]
+
+
+def kernel_run(s0: Any, U: Any, Y: Any, dts: Any, ok: Any, plan_of: Any, PH: tuple[Any, ...],
+               P: PlanArrays, P2: SecondArrays, LP: LawArrays, second: bool,
+               on_estimates: bool, foh: bool, W: tuple[Any, ...], rows: tuple[Any, ...], S: Any,
+               PHI: Any) -> tuple[int, int]:
     """The states S and φ̂ = g + z (PHI) over a record; (status, failing step).
 
-    ``rows`` holds buffers (s, s⁺, u, y) of one sample.
+    Step i has length ``dts[i]``, its sample is present where ``ok[i]`` (else the observers
+    predict over it), and its φ-matrices are entry ``plan_of[i]`` of the table ``PH`` =
+    (Φ₁, Φ₂, Φ₁ of the second observer, Φ₂ of the second observer), each of shape (J, ·, ·),
+    copied into P and P2 when the entry changes. ``foh``: first-order hold (the samples at
+    the end of the step, y held over a missing one). ``rows`` holds buffers
+    (s, s⁺, u, y, u₁, y₁) of one sample.
     """
     N, size = S.shape
-    s, out, u, y = rows
+    s, out, u, y, u1, y1 = rows
+    C = P.C
     for j in range(size):
         s[j] = s0[j]
         S[0, j] = s0[j]
+    current = -1
     for i in range(N - 1):
+        if plan_of[i] != current:
+            current = plan_of[i]
+            load_phis(PH, current, P, P2, second)
+        correct = ok[i]
+        end = i + 1 if foh else i
+        held = end if (correct and ok[end]) else i
         for j in range(NU):
             u[j] = U[i, j]
+            u1[j] = U[end, j]
         for j in range(NY):
             y[j] = Y[i, j]
-        status = advance(P, P2, LP, s, u, y, u, y, dts[i], True, False, second,
+            y1[j] = Y[held, j]
+        status = advance(P, P2, LP, s, u, y, u1, y1, dts[i], correct, foh, second,
                          on_estimates, out, W)
         phi = W[10]
         for a in range(NK):
@@ -292,7 +328,13 @@ def kernel_run(s0: Any, U: Any, Y: Any, dts: Any, P: tuple[Any, ...], P2: tuple[
     for j in range(NU):
         v[j] = U[N - 1, j]
     for j in range(NY):
-        v[NU + j] = Y[N - 1, j]
+        if ok[N - 1]:
+            v[NU + j] = Y[N - 1, j]
+        else:                                       # a missing last sample: y ← C x̂
+            t = 0.0
+            for c in range(NX):
+                t += C[j, c] * s[c]
+            v[NU + j] = t
     phi = W[10]
     g_val(v, s, 0, s, NX + NK, g)
     phi_hat(g, s, phi)

@@ -30,6 +30,7 @@ from . import formulas
 from .discretize import IMPLICITNESS
 from .formulas import DIVERGENCE_BOUND, WORK
 from .inversion import invalid_theta_star_error
+from .kernel_args import LawArrays, PlanArrays, SecondArrays
 from .plan import SecondPlan, StateLayout, StepPlan
 from .primitives import NUMPY, NUMPY_ROW, bind, bound
 from .update_laws import UpdateLaw
@@ -74,10 +75,10 @@ def _law_function(law: UpdateLaw, lay: StateLayout) -> Callable[..., int]:
     """``law_step`` of the formulas: the law's :meth:`~UpdateLaw.advance` (one Γ per row)."""
     n, p = lay.n, lay.p
 
-    def law_step(LP: tuple[Any, ...], v: FloatArray, xs: FloatArray, xo: int,
+    def law_step(LP: LawArrays, v: FloatArray, xs: FloatArray, xo: int,
                  phi: FloatArray, ths: FloatArray, to: int, dt: float, thn: FloatArray,
                  lsn: FloatArray) -> int:
-        G = LP[0]
+        G = LP.Gamma_rows
         x, th = xs[..., xo:xo + n], ths[..., to:to + p]
         if G is None:
             th1, ls1 = law.advance(v, x, phi, th, lsn, dt)
@@ -157,8 +158,9 @@ def _plan_arrays(plan: StepPlan, correct: bool) -> tuple[FloatArray, ...]:
     """P of the formulas: the plan's arrays with the φ-matrices of this step."""
     def build() -> tuple[FloatArray, ...]:
         Phi1, Phi2 = (plan.Phi1, plan.Phi2) if correct else _prediction_phis(plan)
-        return tuple(_shared(M) for M in (plan.L, plan.Bv, plan.E, plan.C, plan.A, plan.B,
-                                           plan.K_x, plan.KxC, Phi1, Phi2))
+        return PlanArrays(L=_shared(plan.L), Bv=_shared(plan.Bv), E=plan.E, C=plan.C,
+                          A=plan.A, B=plan.B, K_x=_shared(plan.K_x), KxC=_shared(plan.KxC),
+                          Phi1=_shared(Phi1), Phi2=_shared(Phi2))
     return _cached(plan, correct, build)
 
 
@@ -170,8 +172,8 @@ def _second_arrays(plan: SecondPlan | None, correct: bool) -> tuple[Any, ...]:
     def build() -> tuple[FloatArray, ...]:
         assert plan is not None
         Phi1, Phi2 = (plan.Phi1, plan.Phi2) if correct else _prediction_phis(plan)
-        return tuple(_shared(M) for M in (plan.A, plan.B, plan.C, plan.E, plan.K_x, Phi1,
-                                           Phi2))
+        return SecondArrays(A=plan.A, B=plan.B, C=plan.C, E=plan.E, K_x=_shared(plan.K_x),
+                            Phi1=_shared(Phi1), Phi2=_shared(Phi2))
     return _cached(plan, correct, build)
 
 
@@ -353,7 +355,8 @@ def advance(plan: StepPlan, pert: Perturbation, law: UpdateLaw, s: FloatArray, u
     second = plan.second is not None
     foh = u1 is not None
     status = env["advance"](
-        _plan_arrays(plan, correct), _second_arrays(plan.second, correct), (G,), s, u0, y0,
+        _plan_arrays(plan, correct), _second_arrays(plan.second, correct),
+        LawArrays(Gamma_rows=G), s, u0, y0,
         u1, y0 if (y1 is None or not correct) else y1, dt, correct, foh, second,
         plan.second is not None and plan.second.g_on_estimates, out, W)
     if status == 0:

@@ -24,7 +24,7 @@ from ..model.jacobian_check import require_theta_dependence
 from ..model.lambdify import lambdify_numpy
 from ..model.perturbation import Perturbation, SymbolicPerturbation
 
-__all__ = ["ThetaStar", "SOLVE_RTOL", "SOLVE_SAMPLES"]
+__all__ = ["ThetaStar", "SOLVE_RTOL", "SOLVE_SAMPLES", "as_theta_star"]
 
 FloatArray = NDArray[np.float64]
 
@@ -281,6 +281,58 @@ class ThetaStar:
     def __repr__(self) -> str:
         body = ", ".join(str(e) for e in self.expr)
         return f"ThetaStar({body})"
+
+
+def as_theta_star(theta_star: Any, perturbation: SymbolicPerturbation) -> ThetaStar | None:
+    """θ* as a :class:`ThetaStar` when its SymPy form is known, else None.
+
+    A ThetaStar is returned as is; a model file's θ* (an expression object whose
+    ``sympy_form`` is (entries, arguments col(u, y), x, φ)) becomes the ThetaStar of that form;
+    a plain Python callable has no SymPy form (None).
+
+    Parameters
+    ----------
+    theta_star : ThetaStar, model-file θ* or callable
+    perturbation : SymbolicPerturbation
+        The g it inverts (its dimensions split the arguments).
+
+    Returns
+    -------
+    ThetaStar or None
+
+    Examples
+    --------
+    >>> from thetahat.modelfile import loads_model
+    >>> spec = loads_model('''
+    ... [system]
+    ... A = [[0.0, 1.0], [-1.0, -0.5]]
+    ... B = [[0.0], [1.0]]
+    ... C = [[1.0, 0.0]]
+    ... E = [[0.0], [1.0]]
+    ... [perturbation]
+    ... g = "(1 + y**2)*sinh(theta)"
+    ... u = ["u"]
+    ... y = ["y"]
+    ... x = ["x1", "x2"]
+    ... theta = ["theta"]
+    ... [parameter_set]
+    ... lower = [-0.5]
+    ... upper = [0.5]
+    ... [estimator]
+    ... law = "algebraic"
+    ... theta_star = "asinh(phi/(1 + y**2))"
+    ... ''')
+    >>> as_theta_star(spec.estimator.update_law.theta_star, spec.system.perturbation)
+    ThetaStar(asinh(phi/(y**2 + 1)))
+    """
+    if isinstance(theta_star, ThetaStar):
+        return theta_star
+    form = getattr(theta_star, "sympy_form", None)
+    if form is None:
+        return None
+    n, m, r, _, k = perturbation.dims
+    expr, arguments = form
+    return ThetaStar(expr=expr, arguments=arguments, sizes=(m + r, n, k))
 
 
 def _sympy_solve(eqs: list[sp.Eq], unknowns: list[sp.Symbol]

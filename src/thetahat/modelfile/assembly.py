@@ -255,7 +255,10 @@ def run_estimator(spec: ModelSpec, t: ArrayLike, u: ArrayLike | None, y: ArrayLi
         The estimator: the paper's observer (default: the file's ``[estimator] method``),
         the two-stage guarded estimator, or the offline MAP fit.
     compiled : bool, optional
-        numba kernels for the two-stage methods (default: when installed).
+        numba kernels (default: when installed; for the paper's observer, on records of at
+        least :data:`~thetahat.estimation.compiled.COMPILE_MIN_SAMPLES` samples, see
+        :func:`~thetahat.estimation.compiled.runner`). A part the kernel does not support
+        falls back to Python with a one-line ThetahatWarning.
     diagnose : bool
         Check the result (:func:`~thetahat.estimation.trust.trust_report`: the Cramér–Rao
         standard deviation of each parameter on this record, Θ's boundary, the guard's band,
@@ -315,10 +318,12 @@ def run_estimator(spec: ModelSpec, t: ArrayLike, u: ArrayLike | None, y: ArrayLi
             obs = _build(est, spec, None, Gamma=auto_gamma(spec, t, u, y, hold=hold))
         state0 = obs.init(x_hat0=x0, theta_hat0=th0)
         if how == "paper":
-            result = obs.run(t, u, y, hold=hold, state0=state0, progress=progress)
+            from ..estimation.compiled import runner
+            result = runner(obs, t, compiled=compiled).run(t, u, y, hold=hold, state0=state0,
+                                                           progress=progress)
         else:
             from ..estimation.guarded import GuardedEstimator
-            stage1 = _HeldObserver(obs, hold)
+            stage1 = _HeldObserver(obs, hold, compiled)
             guarded = GuardedEstimator(stage1=stage1, system=spec.system, compiled=compiled)
             res2 = guarded.run(t, u, y, state0=guarded.init(x_hat0=x0, theta_hat0=th0))
             band = res2.band
@@ -378,8 +383,9 @@ def auto_gamma(spec: ModelSpec, t: ArrayLike, u: ArrayLike | None, y: ArrayLike,
     est = estimator_spec(spec, hold=hold)
     held = dataclasses.replace(est, law=ConstantLaw(th0, s.parameter_set))
     obs = _build(held, spec, None)
-    first = obs.run(t, u, y, hold=hold, state0=obs.init(x_hat0=spec.estimator.x_hat0,
-                                                         theta_hat0=th0))
+    from ..estimation.compiled import runner
+    first = runner(obs, t).run(t, u, y, hold=hold,
+                               state0=obs.init(x_hat0=spec.estimator.x_hat0, theta_hat0=th0))
     N = first.t.shape[0]
     U = np.zeros((N, 0)) if u is None else np.asarray(u, dtype=np.float64).reshape(N, -1)
     Y = np.asarray(y, dtype=np.float64).reshape(N, -1)
@@ -401,10 +407,11 @@ def _trust(spec: ModelSpec, result: ObserverResult, u: ArrayLike | None, y: Arra
 
 
 class _HeldObserver:
-    """The observer with its ``run`` bound to a sample hold (stage 1 of the guarded run)."""
+    """The observer with its ``run`` bound to a sample hold (stage 1 of the guarded run),
+    compiled as :func:`~thetahat.estimation.compiled.runner` chooses."""
 
-    def __init__(self, obs: ModifiedHighGainObserver, hold: str) -> None:
-        self.obs, self.hold, self.system = obs, hold, obs.system
+    def __init__(self, obs: ModifiedHighGainObserver, hold: str, compiled: bool | None) -> None:
+        self.obs, self.hold, self.system, self.compiled = obs, hold, obs.system, compiled
 
     def init(self, *, x_hat0: ArrayLike | None = None,
              theta_hat0: ArrayLike | None = None) -> FloatArray:
@@ -412,7 +419,9 @@ class _HeldObserver:
 
     def run(self, t: ArrayLike, u: ArrayLike | None, y: ArrayLike, *,
             state0: ArrayLike | None = None) -> ObserverResult:
-        return self.obs.run(t, u, y, hold=self.hold, state0=state0)
+        from ..estimation.compiled import runner
+        return runner(self.obs, t, compiled=self.compiled).run(t, u, y, hold=self.hold,
+                                                               state0=state0)
 
 
 def _as_observer_result(spec: ModelSpec, t: FloatArray, u: ArrayLike | None, y: ArrayLike,

@@ -240,6 +240,23 @@ class LoadSpeedWeight:
         out[..., 1, 1] = w * np.tanh(x_[..., 2] / self.v_s)
         return out
 
+    def sympy_form(self, perturbation: SymbolicPerturbation) -> sp.Matrix:
+        """M as a SymPy matrix in the symbols of g (its y₁ and ω̂_l), for the compiled kernel.
+
+        Parameters
+        ----------
+        perturbation : SymbolicPerturbation
+            The drive's g (u, y = (y₁, y₂), x = (ω_m, D, ω_l), θ = (F_m, F_l)).
+
+        Returns
+        -------
+        sympy.Matrix, shape (2, 2)
+        """
+        low, high = self.ramp
+        y1, w_l = perturbation.y[0], perturbation.x[2]
+        t = sp.Min(sp.Max((sp.Abs(w_l) - low) / (high - low), 0), 1)
+        return sp.diag(sp.tanh(y1 / self.v_s), t * t * (3 - 2 * t) * sp.tanh(w_l / self.v_s))
+
 
 def observer(eps: float = EPS, *, Gamma: float = GAMMA,
              params: DriveParameters = DriveParameters(),
