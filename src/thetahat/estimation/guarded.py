@@ -354,11 +354,11 @@ class GuardedEstimator:
                     P[:, :] = fit.cov_end
                     sigma = fit.noise_std
                     R = np.diag(sigma ** 2)
+                    # stage 2 carries the model error as the fit found it (none: q = 0)
+                    Q_x = self.q_x * np.eye(n)
                     if fit.process_noise > 0.0:
-                        # the data showed a model error: stage 2 carries it as the fit found it
                         h = float(np.median(np.diff(t_[:k_next])))
-                        Q_x = (self.q_x * np.eye(n) + fit.process_noise
-                               * unit_process_noise(sys_.A, sys_.E, h))
+                        Q_x = Q_x + fit.process_noise * unit_process_noise(sys_.A, sys_.E, h)
             if due and not by_samples:
                 j += 1
             k = k_next

@@ -490,8 +490,9 @@ def fit_record(schedule: FitSchedule, t: FloatArray, U: FloatArray, Y: FloatArra
     measurement noise: a model error, or a fit stuck far from the optimum) the fit of the
     model with process noise on φ (:func:`~thetahat.estimation.likelihood.fit_process_noise`)
     is tried from its θ and taken if it is consistent; q is estimated anew on the ``final``
-    fit and whenever ``previous`` has none, else kept from ``previous``. After a fit with
-    process noise, the next (not final) fit tries that model first.
+    fit and whenever ``previous`` has none, else kept from ``previous``. The output-error model
+    is always tried first: a fit with process noise taken on a short window (where an
+    output-error fit can stall far from its optimum) must not decide the later ones.
 
     Parameters
     ----------
@@ -514,14 +515,6 @@ def fit_record(schedule: FitSchedule, t: FloatArray, U: FloatArray, Y: FloatArra
     n = schedule.system.n
     x_hat0, x_sd = prior0[0][:n], np.full(n, float(schedule.x_sd))
     q = previous.process_noise if previous is not None else 0.0
-    if previous is not None and q > 0.0 and not final:
-        # the data already showed the model error: its likelihood first, from the last fit
-        # (the record's own fit tries the output-error model first again)
-        alt = _with_process_noise(schedule.system, t, U, Y, k1, previous, x_hat0, x_sd,
-                                  schedule.noise_std, q=None if final else q,
-                                  h_rho=schedule.h_rho, compiled=schedule.compiled)
-        if alt.consistent:
-            return alt
     fit = schedule.fit(t, U, Y, k1, previous, prior0)
     if fit.consistent:
         return fit
