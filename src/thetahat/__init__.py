@@ -17,6 +17,10 @@ from .estimation.guarded import GuardedEstimator, GuardedResult
 from .estimation.mle import MapEstimator
 from .estimation.observer import ModifiedHighGainObserver, ObserverEstimate, ObserverResult
 from .estimation.plan import StepPlan
+from .estimation.protocol import EstimateResult, Estimator, ObserverDiagnostics
+from .estimation.ekf import EKFDiagnostics
+from .estimation.guarded import GuardedDiagnostics
+from .estimation.mle import MapDiagnostics
 from .estimation.projection import Projection, Saturation, saturate
 from .estimation.redesign import SecondObserver
 from .estimation.theta_star import ThetaStar
@@ -52,6 +56,8 @@ from .structure.zeros import (invariant_zeros, is_left_invertible, is_minimum_ph
 __version__ = "0.1.0"
 
 __all__ = [
+    "Estimator", "EstimateResult", "ObserverDiagnostics", "GuardedDiagnostics", "MapDiagnostics",
+    "EKFDiagnostics",
     "CRLBResult", "crlb", "JointEKF", "GuardedEstimator", "GuardedResult", "MapEstimator",
     "BatchObserverResult", "FleetResult", "estimate_many", "TuneResult", "tune_eps_gamma", "CompiledObserver", "compile_observer", "run_batch",
     "EstimatorSpec", "SecondObserverSpec",

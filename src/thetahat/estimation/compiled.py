@@ -54,7 +54,9 @@ from ..errors import DimensionError, MissingExtraError, UnsupportedError
 from ..model.paramset import Box
 from ..model.perturbation import SymbolicPerturbation
 from .kernel_cache import load_module
-from .observer import ModifiedHighGainObserver, ObserverResult
+from .observer import ModifiedHighGainObserver
+from .protocol import EstimateResult, ObserverDiagnostics
+from .results import ObserverEstimate
 from .formulas import WORK
 from .plan import StateLayout, StepPlan
 from .scalar_backend import LAWS, kernel_source
@@ -295,7 +297,7 @@ class CompiledObserver:
             raise invalid_theta_star_error(type(self.observer.update_law).__name__, status - 1)
         raise divergence_error(where)
 
-    def step(self, state: Any, u: Any, y: Any) -> FloatArray:
+    def step(self, state: Any, u: Any, y: Any, dt: float | None = None) -> FloatArray:
         """Advance the state by ``dt`` holding the samples (as the observer's ``step``).
 
         Parameters
@@ -305,6 +307,9 @@ class CompiledObserver:
             Current input sample (``None`` when m = 0).
         y : array_like, shape (r,)
             Current output sample (finite: the compiled path does not skip missing samples).
+        dt : float, optional
+            Time to the next sample: the compiled step length :attr:`dt` (to a relative
+            ``DT_RTOL``); default :attr:`dt`. Part of the estimator protocol's signature.
 
         Returns
         -------
@@ -313,12 +318,16 @@ class CompiledObserver:
         Raises
         ------
         DimensionError
-            Wrong shapes.
+            Wrong shapes, or ``dt`` other than the compiled step length.
         NonFiniteError
             NaN or inf in the state, u or y, or the step diverged.
         UpdateLawError
             θ* invalid where l > 0 and ``on_invalid='raise'``.
         """
+        if dt is not None and not abs(float(dt) - self.dt) <= DT_RTOL * self.dt:
+            raise DimensionError(f"the compiled observer steps dt = {self.dt!r}; got dt = "
+                                 f"{dt!r}. Compile again with compile_observer(observer, "
+                                 "dt=...), or use the observer's own step.")
         obs = self.observer
         lay = obs.layout
         s = _as_input("state", state, lay.size)
@@ -339,7 +348,22 @@ class CompiledObserver:
             raise _no_prediction()
         self._raise(int(status) or 1, "in this step")
 
-    def run(self, t: Any, u: Any, y: Any, *, state0: Any = None) -> ObserverResult:
+    def estimate(self, state: Any, u: Any, y: Any) -> ObserverEstimate:
+        """x̂, φ̂, θ̂ (and x̂₂) of a state; see :meth:`ModifiedHighGainObserver.estimate`.
+
+        Parameters
+        ----------
+        state : array_like, shape (state_size,)
+        u : array_like, shape (m,)
+        y : array_like, shape (r,)
+
+        Returns
+        -------
+        ObserverEstimate
+        """
+        return self.observer.estimate(state, u, y)
+
+    def run(self, t: Any, u: Any, y: Any, *, state0: Any = None) -> EstimateResult:
         """Run over sampled records spaced by ``dt`` (the loop runs in machine code).
 
         Parameters
@@ -355,7 +379,7 @@ class CompiledObserver:
 
         Returns
         -------
-        ObserverResult
+        EstimateResult
             As :meth:`ModifiedHighGainObserver.run` with ``hold="zoh"`` (agreement to rounding;
             see :func:`compile_observer`).
 
@@ -392,10 +416,11 @@ class CompiledObserver:
             out.setflags(write=False)
             return out
 
-        return ObserverResult(t=frozen(t_), x_hat=frozen(S[:, lay.x]), phi_hat=frozen(PHI),
+        return EstimateResult(t=frozen(t_), x_hat=frozen(S[:, lay.x]), phi_hat=frozen(PHI),
                               theta_hat=frozen(S[:, lay.theta]),
-                              x_hat_refined=frozen(S[:, lay.x2]) if lay.second else None,
-                              skipped=frozen(np.zeros(N, dtype=bool)))
+                              skipped=frozen(np.zeros(N, dtype=bool)),
+                              diagnostics=ObserverDiagnostics(
+                                  x_hat_refined=frozen(S[:, lay.x2]) if lay.second else None))
 
     def __repr__(self) -> str:
         return (f"CompiledObserver(dt={self.dt!r}, observer={self.observer!r}, "

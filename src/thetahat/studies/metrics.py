@@ -157,7 +157,7 @@ def estimate_summary(result: Any, parameter_names: Sequence[str], *,
 
     Parameters
     ----------
-    result : ObserverResult
+    result : EstimateResult
         From ``run`` (reads ``t``, ``theta_hat`` and ``skipped``).
     parameter_names : sequence of str
         Names of the p parameters.
