@@ -529,7 +529,7 @@ class JointEKF:
         if state.k > 0 and state.u_prev is not None:
             p = sys_.p
             k.predict(s, P, np.array(state.u_prev, dtype=np.float64), u_, state.dt_prev,
-                      self.h_rho, self.q_x, np.empty((n, n)), np.empty((n, p)))
+                      self.h_rho, self.q_x * np.eye(n), np.empty((n, n)), np.empty((n, p)))
         sigma, y_first = state.noise_std, state.y_first
         if sigma is None:
             y_first = np.vstack([np.zeros((0, r)) if y_first is None else y_first, y_[None]])
@@ -596,7 +596,7 @@ class JointEKF:
         k = self.kernels
         if st.k > 0 and st.u_prev is not None:
             k.predict(s, P, np.array(st.u_prev, dtype=np.float64), U[0].copy(), st.dt_prev,
-                      self.h_rho, self.q_x, np.empty((n, n)), np.empty((n, p)))
+                      self.h_rho, self.q_x * np.eye(n), np.empty((n, n)), np.empty((n, p)))
         N = t_.shape[0]
         X, TH, SD, NIS = (np.empty((N, n)), np.empty((N, p)), np.empty((N, p)),
                           np.full(N, np.nan))
