@@ -95,9 +95,10 @@ def _diagnostics(res) -> dict:
     """The guarded run's model-error alarm over the last half: mean |θ̂₂ − θ̂_G|, mean NIS, and
     the last fit's cost per measurement (≈ 1 when the model explains the data)."""
     h = res.t >= res.t[-1] / 2
-    last = res.fits[-1] if res.fits else None
-    return {"disagreement": float(np.mean(np.abs(res.disagreement[h]))),
-            "nis": float(np.nanmean(res.nis[h])),
+    diag = res.diagnostics
+    last = diag.fits[-1] if diag.fits else None
+    return {"disagreement": float(np.mean(np.abs(diag.disagreement[h]))),
+            "nis": float(np.nanmean(diag.nis[h])),
             "fit_cost": float(last.cost) if last is not None else float("nan")}
 
 
@@ -274,7 +275,7 @@ def cost(log) -> dict:
            "ratio": best_g / best_e, "stream_step_us": stream_us,
            "worst_stream_step_ms": 1e3 * worst, "one_fit_1p6s_ms": 1e3 * fit_s,
            "worst_stream_step_no_fits_ms": 1e3 * worst0,
-           "fits": len(res.fits)}
+           "fits": len(res.diagnostics.fits)}
     log(f"  cost: guarded {out['guarded_us']:.2f} µs/step amortised ({out['fits']} fits, stage 1 "
         f"compiled) ÷ compiled EKF {out['ekf_compiled_us']:.2f} µs/step = {out['ratio']:.2f}x; "
         f"streaming step {stream_us:.1f} µs (Python per-call overhead), worst single step "

@@ -125,7 +125,7 @@ def stream(est: GuardedEstimator, traj, realtime: bool, watch: _GCWatch) -> dict
             "fits": len(diag.fits), "fit_failures": len(diag.failures),
             "fit_ms": [round(1e3 * s, 2) for s in diag.fit_seconds],
             "fit_samples": diag.fit_samples.tolist(),
-            "theta_hat_end": float(st["theta_hat"][0])}
+            "theta_hat_end": float(st.theta_hat[0])}
 
 
 def _cold_child(worker: str) -> dict:

@@ -1142,10 +1142,11 @@ def test_stuck_parameters_direct():
 
 
 def test_one_sample_is_not_settled():
-    from types import SimpleNamespace
+    from thetahat.estimation.protocol import EstimateResult, ObserverDiagnostics
 
-    res = SimpleNamespace(t=np.array([0.0]), skipped=np.zeros(1, bool),
-                          theta_hat=np.array([[0.5]]))
+    z = np.zeros((1, 1))
+    res = EstimateResult(t=np.array([0.0]), x_hat=z, phi_hat=z, theta_hat=np.array([[0.5]]),
+                         skipped=np.zeros(1, bool), diagnostics=ObserverDiagnostics())
     text = estimate_summary(res, ["theta"])
     assert "not decided" in text and "settled (within" not in text
 

@@ -26,9 +26,10 @@ if TYPE_CHECKING:                    # the real imports, for type checkers and I
                                     excitation_report)
     from .estimation.compiled import CompiledObserver, compile_observer
     from .estimation.crlb import CRLBResult, crlb
-    from .estimation.ekf import JointEKF
-    from .estimation.guarded import GuardedEstimator, GuardedResult
-    from .estimation.mle import MapEstimator
+    from .estimation.ekf import EKFDiagnostics, JointEKF
+    from .estimation.guarded import GuardedDiagnostics, GuardedEstimator, GuardedResult
+    from .estimation.mle import MapDiagnostics, MapEstimator
+    from .estimation.protocol import EstimateResult, Estimator, ObserverDiagnostics
     from .estimation.observer import ModifiedHighGainObserver, ObserverEstimate, ObserverResult
     from .estimation.plan import StepPlan
     from .estimation.projection import Projection, Saturation, saturate
@@ -60,6 +61,8 @@ if TYPE_CHECKING:                    # the real imports, for type checkers and I
 __version__ = "0.1.0"
 
 __all__ = [
+    "Estimator", "EstimateResult", "ObserverDiagnostics", "GuardedDiagnostics", "MapDiagnostics",
+    "EKFDiagnostics",
     "CRLBResult", "crlb", "JointEKF", "GuardedEstimator", "GuardedResult", "MapEstimator",
     "BatchObserverResult", "FleetResult", "estimate_many", "TuneResult", "tune_eps_gamma", "CompiledObserver", "compile_observer", "run_batch",
     "EstimatorSpec", "SecondObserverSpec",
@@ -101,9 +104,10 @@ _EXPORTS: dict[str, tuple[str, ...]] = {
                           "excitation_report"),
     "estimation.compiled": ("CompiledObserver", "compile_observer"),
     "estimation.crlb": ("CRLBResult", "crlb"),
-    "estimation.ekf": ("JointEKF",),
-    "estimation.guarded": ("GuardedEstimator", "GuardedResult"),
-    "estimation.mle": ("MapEstimator",),
+    "estimation.ekf": ("EKFDiagnostics", "JointEKF"),
+    "estimation.guarded": ("GuardedDiagnostics", "GuardedEstimator", "GuardedResult"),
+    "estimation.mle": ("MapDiagnostics", "MapEstimator"),
+    "estimation.protocol": ("EstimateResult", "Estimator", "ObserverDiagnostics"),
     "estimation.observer": ("ModifiedHighGainObserver", "ObserverEstimate", "ObserverResult"),
     "estimation.plan": ("StepPlan",),
     "estimation.projection": ("Projection", "Saturation", "saturate"),

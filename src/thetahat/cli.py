@@ -383,10 +383,10 @@ def _parser() -> argparse.ArgumentParser:
                           help="fleet: run on this Dask cluster (default: in this process)")
     estimate.add_argument("--chunk-size", type=int, default=None,
                           help="fleet: records per task (default: about 16 tasks)")
-    estimate.add_argument("--method", choices=["paper", "guarded", "mle"], default=None,
+    estimate.add_argument("--method", choices=["paper", "guarded", "mle", "ekf"], default=None,
                           help="estimator: the paper's observer, the guarded two-stage "
-                               "estimator or offline MAP fits (default: the model file's "
-                               "[estimator] method, else paper)")
+                               "estimator, offline MAP fits or the joint EKF (default: the "
+                               "model file's [estimator] method, else paper)")
     estimate.set_defaults(run=_estimate)
 
     codegen = sub.add_parser(

@@ -195,8 +195,9 @@ def plot_result(result: Any, system: Any, path: str | Path | None = None, *,
 
     Parameters
     ----------
-    result : ObserverResult
-        From ``ModifiedHighGainObserver.run`` or ``thetahat estimate``.
+    result : EstimateResult
+        From any estimator's ``run`` (:class:`~thetahat.estimation.protocol.Estimator`) or
+        ``thetahat estimate``.
     system : PerturbedLinearSystem or ModelSpec
         C and Θ (a model file's spec also supplies the names).
     path : str or Path, optional

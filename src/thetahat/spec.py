@@ -24,7 +24,8 @@ from numpy.typing import ArrayLike
 from .design.design_system import apply_design
 from .design.gains import GainDesign, PoleSpec, check_eps, high_gain, modified_high_gain
 from .errors import DimensionError, ThetahatError, UpdateLawError
-from .estimation.observer import ModifiedHighGainObserver, ObserverResult
+from .estimation.observer import ModifiedHighGainObserver
+from .estimation.protocol import EstimateResult
 from .estimation.redesign import SecondObserver
 from .estimation.update_laws import UpdateLaw
 from .model.system import PerturbedLinearSystem
@@ -321,7 +322,7 @@ class EstimatorSpec:
     def run(self, t: ArrayLike, u: ArrayLike | None, y: ArrayLike, *,
             eps: float | None = None, Gamma: ArrayLike | None = None,
             x_hat0: ArrayLike | None = None, theta_hat0: ArrayLike | None = None,
-            progress: Callable[[int, int], None] | None = None) -> ObserverResult:
+            progress: Callable[[int, int], None] | None = None) -> EstimateResult:
         """Build the observer and run it on sampled data with the spec's hold.
 
         Parameters
@@ -342,7 +343,7 @@ class EstimatorSpec:
 
         Returns
         -------
-        ObserverResult
+        EstimateResult
 
         Examples
         --------

@@ -1,4 +1,4 @@
-"""Estimates as tables: an :class:`~thetahat.estimation.observer.ObserverResult` as a pandas
+"""Estimates as tables: an :class:`~thetahat.estimation.protocol.EstimateResult` as a pandas
 DataFrame or an xarray Dataset (both optional; imported lazily).
 
 Columns (and Dataset variables) follow the names of ``thetahat estimate``'s CSV:
@@ -28,7 +28,7 @@ def result_columns(result: Any, *, state_names: Sequence[str] | None = None,
 
     Parameters
     ----------
-    result : ObserverResult
+    result : EstimateResult
         The estimates: ``t (N,)``, ``x_hat (N, n)``, ``phi_hat (N, k)``, ``theta_hat (N, p)``,
         ``x_hat_refined (N, n)`` or None, and ``skipped (N,)``.
     state_names : sequence of str, optional
@@ -45,10 +45,10 @@ def result_columns(result: Any, *, state_names: Sequence[str] | None = None,
     Examples
     --------
     >>> import numpy as np
-    >>> from thetahat.estimation.observer import ObserverResult
+    >>> from thetahat.estimation.protocol import EstimateResult, ObserverDiagnostics
     >>> z = np.zeros((3, 1))
-    >>> res = ObserverResult(t=np.arange(3.0), x_hat=z, phi_hat=z, theta_hat=z + 0.5,
-    ...                      x_hat_refined=None, skipped=np.zeros(3, bool))
+    >>> res = EstimateResult(t=np.arange(3.0), x_hat=z, phi_hat=z, theta_hat=z + 0.5,
+    ...                      skipped=np.zeros(3, bool), diagnostics=ObserverDiagnostics())
     >>> list(result_columns(res, parameter_names=["alpha0"]))
     ['x_hat_1', 'phi_hat_1', 'theta_hat_alpha0', 'skipped']
     """
@@ -71,7 +71,7 @@ def result_to_dataframe(result: Any, *, state_names: Sequence[str] | None = None
 
     Parameters
     ----------
-    result : ObserverResult
+    result : EstimateResult
         The estimates: ``t (N,)``, ``x_hat (N, n)``, ``phi_hat (N, k)``, ``theta_hat (N, p)``,
         ``x_hat_refined (N, n)`` or None, and ``skipped (N,)``.
     state_names : sequence of str, optional
@@ -105,7 +105,7 @@ def result_to_xarray(result: Any, *, state_names: Sequence[str] | None = None,
 
     Parameters
     ----------
-    result : ObserverResult
+    result : EstimateResult
         The estimates: ``t (N,)``, ``x_hat (N, n)``, ``phi_hat (N, k)``, ``theta_hat (N, p)``,
         ``x_hat_refined (N, n)`` or None, and ``skipped (N,)``.
     state_names : sequence of str, optional

@@ -65,7 +65,8 @@ def test_bound_equals_the_covariance_of_an_exact_ekf(record, bound):
     P0[0, 0] = P0[1, 1] = 1e-18
     res = ekf.run(record.t, record.u, record.y, x_hat0=[0.0, 0.0], theta_hat0=[P.alpha0],
                   P0=P0)
-    assert res.theta_sd[-1, 0] / bound.std[-1, 0] == pytest.approx(1.0, abs=EKF_RATIO_TOL)
+    sd = res.diagnostics.theta_sd
+    assert sd[-1, 0] / bound.std[-1, 0] == pytest.approx(1.0, abs=EKF_RATIO_TOL)
     assert bound.time_to(0.01, [P.alpha0]) < 1.0
 
 

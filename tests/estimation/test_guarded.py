@@ -58,7 +58,8 @@ def data():
 
 
 def _guarantee_holds(res):
-    assert np.all(np.abs(res.theta_hat - res.theta_stage1) <= res.band + ROUND)
+    d = res.diagnostics
+    assert np.all(np.abs(res.theta_hat - d.theta_stage1) <= d.band + ROUND)
     assert np.all((res.theta_hat >= LO) & (res.theta_hat <= HI))
 
 
@@ -69,9 +70,10 @@ def test_slow_stage1_does_not_bias_a_correct_stage2(data):
                            compiled=False)
     res = est.run(data.t, data.u, data.y, state0=est.init(theta_hat0=[0.5]))
     _guarantee_holds(res)
-    assert abs(res.theta_stage1[-1, 0] - THETA) > 0.1 * THETA
-    assert res.clipped_fraction == 0.0 and res.resets == 0
-    assert abs(res.theta_hat[-1, 0] - THETA) < 4 * res.theta_sd[-1, 0]
+    assert abs(res.diagnostics.theta_stage1[-1, 0] - THETA) > 0.1 * THETA
+    d = res.diagnostics
+    assert d.clipped_fraction == 0.0 and d.resets == 0
+    assert abs(res.theta_hat[-1, 0] - THETA) < 4 * d.theta_sd[-1, 0]
 
 
 def test_settling_stage1_narrows_the_band_without_clipping_a_correct_stage2(data):
@@ -81,9 +83,9 @@ def test_settling_stage1_narrows_the_band_without_clipping_a_correct_stage2(data
                            compiled=False)
     res = est.run(data.t, data.u, data.y, state0=est.init(theta_hat0=[1.0]))
     _guarantee_holds(res)
-    assert res.band[-1, 0] < 0.1 * (HI - LO)
+    assert res.diagnostics.band[-1, 0] < 0.1 * (HI - LO)
     late = data.t > 0.5
-    assert not res.clipped[late].any()
+    assert not res.diagnostics.clipped[late].any()
     assert abs(res.theta_hat[-1, 0] - THETA) < 0.01 * THETA
 
 
@@ -100,9 +102,10 @@ def test_broken_stage2_cannot_take_the_output_away_from_stage1(data):
         data.t, data.u, data.y, state0=est.init(theta_hat0=[0.5]))
     assert abs(stage2_alone.theta_hat[-1, 0] - THETA) > 0.05 * THETA      # it is broken
     err_out = abs(res.theta_hat[-1, 0] - THETA)
-    assert err_out <= abs(res.theta_stage1[-1, 0] - THETA) + res.band[-1, 0] + ROUND
+    d = res.diagnostics
+    assert err_out <= abs(d.theta_stage1[-1, 0] - THETA) + d.band[-1, 0] + ROUND
     assert err_out < 0.01 * THETA
-    assert res.clipped[-100:].all()                     # the disagreement alarm is raised
+    assert d.clipped[-100:].all()                     # the disagreement alarm is raised
 
 
 def test_nan_injected_into_stage2_resets_it_and_the_output_stays_finite(data):
@@ -113,8 +116,8 @@ def test_nan_injected_into_stage2_resets_it_and_the_output_stays_finite(data):
     for k in range(400):
         st = est.step(st, data.u[k], data.y[k], 1e-3)
         if k == 250:
-            st["shared"].s[:] = np.nan                # stage 2's state is corrupted
-        out.append((st["theta_hat"][0], st["reset"], st["theta_stage1"][0], st["band"][0]))
+            st.stream.s[:] = np.nan                # stage 2's state is corrupted
+        out.append((st.theta_hat[0], st.reset, st.theta_stage1[0], st.band[0]))
     th, reset, thG, band = map(np.array, zip(*out))
     assert np.all(np.isfinite(th)) and reset[251] and reset.sum() == 1
     assert np.all(np.abs(th - thG) <= band + ROUND)
@@ -130,7 +133,7 @@ def test_streaming_step_reproduces_run_without_fits(data):
     st, th = st0, []
     for k in range(n):
         st = est.step(st, data.u[k], data.y[k], 1e-3)
-        th.append(st["theta_hat"][0])
+        th.append(st.theta_hat[0])
     assert np.max(np.abs(np.array(th) - res.theta_hat[:, 0])) < 1e-9
     _guarantee_holds(res)
 
@@ -142,8 +145,8 @@ def test_paper_stage1_guarded_from_the_edge_of_theta(data):
     assert abs(res.theta_hat[-1, 0] - THETA) < 0.01 * THETA
     # the fits follow the information schedule (sample counts), the last on all but one sample
     ks = MapEstimator(system=lugre.system(), compiled=False).fit_samples(data.t[:599])
-    assert list(res.fit_samples + 1) == [k for k in ks if MIN_SAMPLES <= k < 600]
-    assert np.all(np.abs(res.fit_cost - 1) < 0.5)
+    assert list(res.diagnostics.fit_samples + 1) == [k for k in ks if MIN_SAMPLES <= k < 600]
+    assert np.all(np.abs(res.diagnostics.fit_cost - 1) < 0.5)
 
 
 def test_noise_level_estimate_matches_the_simulated_noise(data):

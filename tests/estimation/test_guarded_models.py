@@ -42,7 +42,8 @@ def test_guarded_is_guaranteed_and_efficient(name):
         th = res.theta_hat
         assert np.all(np.isfinite(th)) and np.all((th >= lo) & (th <= hi))
         # |θ̂ − θ| ≤ |θ̂_G − θ| + δ at every sample, whatever stage 2 did
-        assert np.all(np.abs(th - sc.theta) <= np.abs(res.theta_stage1 - sc.theta) + res.band
+        d2 = res.diagnostics
+        assert np.all(np.abs(th - sc.theta) <= np.abs(d2.theta_stage1 - sc.theta) + d2.band
                       + ROUND * (hi - lo))
         err.append(th[N // 2:] - sc.theta)
     ratio = np.sqrt(np.mean(np.concatenate(err) ** 2, axis=0) / var)

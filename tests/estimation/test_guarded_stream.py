@@ -89,12 +89,12 @@ def test_step_never_waits_for_a_blocked_fit_and_applies_it_right_after(data):
         # the fit due after sample 20 was handed over and is still blocked: 180 steps returned
         # meanwhile (had a step waited for it, it would have been applied by now)
         assert len(ex.fits) == 1 and not ex.fits[0].done()
-        assert st["fits"] == 0 and est.stream_diagnostics(st).pending
+        assert st.fits == 0 and est.stream_diagnostics(st).pending
         ex.gate.set()
         ex.fits[0].result(timeout=PATIENCE)
         st = _steps(est, st, data, [200])
         diag = est.stream_diagnostics(st)
-        assert st["fits"] == 1 and diag.failures == ()
+        assert st.fits == 1 and diag.failures == ()
         assert diag.fit_samples.tolist() == [[K_FIT, 200]]    # window end, applied at
         fit = diag.fits[0]
         assert (fit.k0, fit.k1) == (0, K_FIT + 1)
@@ -118,10 +118,10 @@ def test_a_crashed_fit_is_ignored_with_a_warning(data):
             ex.fits[0].exception(timeout=PATIENCE)
             st = _steps(est, st, data, range(60, 300))
         diag = est.stream_diagnostics(st)
-        assert st["fits"] == 0 and st["fits_failed"] == len(diag.failures) >= 1
+        assert st.fits == 0 and st.fits_failed == len(diag.failures) >= 1
         assert len(ex.fits) >= 2                      # the stream went on submitting fits
-        assert LO <= st["theta_hat"][0] <= HI
-        assert abs(st["theta_hat"][0] - THETA) < 0.05 * THETA   # stage 1 (τ = 0.1 s) carries on
+        assert LO <= st.theta_hat[0] <= HI
+        assert abs(st.theta_hat[0] - THETA) < 0.05 * THETA   # stage 1 (τ = 0.1 s) carries on
     finally:
         ex.shutdown()
 
@@ -139,9 +139,9 @@ def test_a_non_finite_fit_is_ignored_and_stage2_keeps_its_estimate(data):
         ex.fits[0].result(timeout=PATIENCE)
         with pytest.warns(ThetahatWarning, match="non-finite"):
             st = _steps(est, st, data, [100])
-        assert st["fits"] == 0 and st["fits_failed"] == 1
-        assert np.isfinite(st["theta_stage2"][0]) and np.isfinite(st["theta_hat"][0])
-        assert LO <= st["theta_hat"][0] <= HI
+        assert st.fits == 0 and st.fits_failed == 1
+        assert np.isfinite(st.theta_stage2[0]) and np.isfinite(st.theta_hat[0])
+        assert LO <= st.theta_hat[0] <= HI
     finally:
         ex.shutdown()
 
@@ -155,7 +155,7 @@ def test_fits_in_the_worker_process_equal_the_offline_fits(data):
     st = _steps(est, est.init(theta_hat0=[0.5]), data, range(K_FIT + 1))
     deadline = time.monotonic() + PATIENCE
     k = K_FIT + 1
-    while st["fits"] == 0 and st["fits_failed"] == 0 and time.monotonic() < deadline:
+    while st.fits == 0 and st.fits_failed == 0 and time.monotonic() < deadline:
         time.sleep(0.01)                             # a sensor loop between samples
         st = _steps(est, st, data, [k])
         k += 1
@@ -163,6 +163,7 @@ def test_fits_in_the_worker_process_equal_the_offline_fits(data):
     assert diag.failures == () and len(diag.fits) == 1
     assert diag.fit_samples[0, 0] == K_FIT and diag.fit_samples[0, 1] == k - 1
     res = est.run(data.t, data.u, data.y, state0=est.init(theta_hat0=[0.5]))
-    assert res.fit_samples[0] == K_FIT
-    np.testing.assert_allclose(diag.fits[0].theta, res.fits[0].theta, rtol=0, atol=1e-9)
-    assert diag.fits[0].iterations == res.fits[0].iterations
+    assert res.diagnostics.fit_samples[0] == K_FIT
+    fit = res.diagnostics.fits[0]
+    np.testing.assert_allclose(diag.fits[0].theta, fit.theta, rtol=0, atol=1e-9)
+    assert diag.fits[0].iterations == fit.iterations

@@ -58,7 +58,7 @@ def test_last_fit_is_the_map_of_the_record():
     est = MapEstimator(system=spec.system)
     res = est.run(d.t, U, Y, state0=est.init(x_hat0=spec.estimator.x_hat0,
                                              theta_hat0=spec.estimator.theta_hat0))
-    last = res.fits[-1]
+    last = res.diagnostics.fits[-1]
     assert (last.k0, last.k1) == (0, d.t.size)
     q0 = np.concatenate([spec.estimator.x_hat0, spec.estimator.theta_hat0])
     sd = np.concatenate([np.full(spec.system.n, 10.0),

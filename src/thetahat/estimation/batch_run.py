@@ -24,7 +24,8 @@ from numpy.typing import ArrayLike, NDArray
 
 from .._validate import check_finite, readonly
 from ..errors import DimensionError, IndexOutOfRangeError, OptionError
-from .observer import HOLDS, ModifiedHighGainObserver, ObserverResult
+from .observer import HOLDS, ModifiedHighGainObserver
+from .protocol import EstimateResult, ObserverDiagnostics
 from .plan import StepPlan, dt_key, stack_plans
 from .step import integrate, readout
 from .update_laws import ConstantLaw, UpdateLaw
@@ -59,7 +60,7 @@ class BatchObserverResult:
 
     Notes
     -----
-    ``result[i]`` is the :class:`~thetahat.estimation.observer.ObserverResult` of run i, the
+    ``result[i]`` is the :class:`~thetahat.estimation.protocol.EstimateResult` of run i, the
     same object ``observers[i].run`` returns (up to rounding); ``len(result)`` is B.
     """
 
@@ -73,15 +74,15 @@ class BatchObserverResult:
     def __len__(self) -> int:
         return int(self.x_hat.shape[0])
 
-    def __getitem__(self, i: int) -> ObserverResult:
-        """The result of run ``i`` as an :class:`ObserverResult`."""
+    def __getitem__(self, i: int) -> EstimateResult:
+        """The result of run ``i`` as an :class:`~thetahat.estimation.protocol.EstimateResult`."""
         B = len(self)
         if not isinstance(i, (int, np.integer)) or not -B <= i < B:
             raise IndexOutOfRangeError(f"run index must be an integer in [-{B}, {B}); got {i!r}.")
-        return ObserverResult(
+        return EstimateResult(
             t=self.t, x_hat=self.x_hat[i], phi_hat=self.phi_hat[i], theta_hat=self.theta_hat[i],
-            x_hat_refined=None if self.x_hat_refined is None else self.x_hat_refined[i],
-            skipped=self.skipped[i])
+            skipped=self.skipped[i], diagnostics=ObserverDiagnostics(
+                x_hat_refined=None if self.x_hat_refined is None else self.x_hat_refined[i]))
 
     def __repr__(self) -> str:
         B, N = self.x_hat.shape[:2]

@@ -56,11 +56,14 @@ import numpy as np
 from numpy.typing import NDArray
 
 from .._validate import as_vector, positive_scalar
-from ..errors import MissingExtraError, OptionError, ThetahatWarning, UnsupportedError
+from ..errors import (DimensionError, MissingExtraError, OptionError, ThetahatWarning,
+                      UnsupportedError)
 from ..model.paramset import Box
 from ..model.perturbation import SymbolicPerturbation
 from .kernel_cache import load_module
-from .observer import HOLDS, PROGRESS_EVERY, ModifiedHighGainObserver, ObserverResult
+from .observer import HOLDS, PROGRESS_EVERY, ModifiedHighGainObserver
+from .protocol import EstimateResult, ObserverDiagnostics
+from .results import ObserverEstimate
 from .formulas import WORK
 from .kernel_args import LawArrays, PlanArrays, SecondArrays
 from .plan import StateLayout, StepPlan
@@ -306,7 +309,7 @@ class CompiledObserver:
             raise invalid_theta_star_error(type(self.observer.update_law).__name__, status - 1)
         raise divergence_error(where)
 
-    def step(self, state: Any, u: Any, y: Any) -> FloatArray:
+    def step(self, state: Any, u: Any, y: Any, dt: float | None = None) -> FloatArray:
         """Advance the state by ``dt`` holding the samples (as the observer's ``step``).
 
         Parameters
@@ -317,6 +320,9 @@ class CompiledObserver:
         y : array_like, shape (r,)
             Current output sample; NaN marks a missing sample under ``nan_policy="skip"``
             (the observers predict over it).
+        dt : float, optional
+            Time to the next sample: the compiled step length :attr:`dt` (to a relative
+            ``DT_RTOL``); default :attr:`dt`. Part of the estimator protocol's signature.
 
         Returns
         -------
@@ -325,13 +331,17 @@ class CompiledObserver:
         Raises
         ------
         DimensionError
-            Wrong shapes.
+            Wrong shapes, or ``dt`` other than the compiled step length.
         NonFiniteError
             NaN or inf in the state or u, NaN in y under ``nan_policy="raise"``, or the step
             diverged.
         UpdateLawError
             θ* invalid where l > 0 and ``on_invalid='raise'``.
         """
+        if dt is not None and not abs(float(dt) - self.dt) <= DT_RTOL * self.dt:
+            raise DimensionError(f"the compiled observer steps dt = {self.dt!r}; got dt = "
+                                 f"{dt!r}. Compile again with compile_observer(observer, "
+                                 "dt=...), or use the observer's own step.")
         obs = self.observer
         lay = obs.layout
         s = _as_input("state", state, lay.size)
@@ -354,6 +364,21 @@ class CompiledObserver:
         obs.check_samples(u, y)
         self._raise(int(status) or 1, "in this step")
 
+    def estimate(self, state: Any, u: Any, y: Any) -> ObserverEstimate:
+        """x̂, φ̂, θ̂ (and x̂₂) of a state; see :meth:`ModifiedHighGainObserver.estimate`.
+
+        Parameters
+        ----------
+        state : array_like, shape (state_size,)
+        u : array_like, shape (m,)
+        y : array_like, shape (r,)
+
+        Returns
+        -------
+        ObserverEstimate
+        """
+        return self.observer.estimate(state, u, y)
+
     def _call(self, s0: FloatArray, U: FloatArray, Y: FloatArray, dts: FloatArray,
               ok: NDArray[np.bool_], foh: bool, S: FloatArray, PHI: FloatArray
               ) -> tuple[int, int]:
@@ -368,7 +393,7 @@ class CompiledObserver:
         return int(status), int(index)
 
     def run(self, t: Any, u: Any, y: Any, *, state0: Any = None, hold: str = "zoh",
-            progress: Callable[[int, int], None] | None = None) -> ObserverResult:
+            progress: Callable[[int, int], None] | None = None) -> EstimateResult:
         """Run over sampled records (the loop runs in machine code).
 
         The samples may be spaced irregularly: each step uses the φ-matrices of its own length
@@ -392,7 +417,7 @@ class CompiledObserver:
 
         Returns
         -------
-        ObserverResult
+        EstimateResult
             As :meth:`ModifiedHighGainObserver.run` (agreement to rounding; see
             :func:`compile_observer`).
 
@@ -437,10 +462,11 @@ class CompiledObserver:
             out.setflags(write=False)
             return out
 
-        return ObserverResult(t=frozen(t_), x_hat=frozen(S[:, lay.x]), phi_hat=frozen(PHI),
+        return EstimateResult(t=frozen(t_), x_hat=frozen(S[:, lay.x]), phi_hat=frozen(PHI),
                               theta_hat=frozen(S[:, lay.theta]),
-                              x_hat_refined=frozen(S[:, lay.x2]) if lay.second else None,
-                              skipped=frozen(~ok))
+                              skipped=frozen(~ok),
+                              diagnostics=ObserverDiagnostics(
+                                  x_hat_refined=frozen(S[:, lay.x2]) if lay.second else None))
 
     def __repr__(self) -> str:
         return (f"CompiledObserver(dt={self.dt!r}, observer={self.observer!r}, "
@@ -591,6 +617,8 @@ def kernel_work(lay: StateLayout) -> tuple[tuple[FloatArray, ...], tuple[FloatAr
                np.zeros(lay.r), np.zeros(max(lay.m, 1)), np.zeros(lay.r))
 
 
+#: Relative tolerance of ``step``'s ``dt`` against the compiled step length.
+DT_RTOL = 1e-9
 #: Below this many samples :func:`runner` keeps the observer in Python unless asked: a model's
 #: first compilation costs 20–40 s (later processes load it from the cache in < 1 s) and the
 #: Python step runs ≈ 3 000 samples/s, so a shorter record finishes sooner uncompiled.

@@ -27,14 +27,16 @@ import numpy as np
 from numpy.typing import NDArray
 
 from .._validate import as_vector
-from ..errors import DimensionError, NonFiniteError, ParameterSetError
+from ..errors import DimensionError, NonFiniteError, OptionError, ParameterSetError
 from ..model.paramset import Box
 from ..model.system import PerturbedLinearSystem
 from .model_kernel import H_RHO, ModelKernel, jit, model_kernel
 from .noise_level import MIN_SAMPLES, estimate_noise_std
+from .protocol import (Diagnostics, EstimateResult, missing_samples, phi_hat_from_model,
+                       stream_sample)
 
-__all__ = ["EKFKernels", "ekf_kernels", "JointEKF", "EKFResult", "theta_box", "theta_prior_sd",
-           "PRIOR_FRACTION"]
+__all__ = ["EKFKernels", "ekf_kernels", "JointEKF", "EKFDiagnostics", "EKFResult", "EKFState",
+           "theta_box", "theta_prior_sd", "PRIOR_FRACTION"]
 
 FloatArray = NDArray[np.float64]
 
@@ -327,14 +329,11 @@ def ekf_kernels(system: PerturbedLinearSystem, *, compiled: bool | None = None) 
 
 
 @dataclass(frozen=True, slots=True, eq=False)
-class EKFResult:
-    """Estimates of :meth:`JointEKF.run`.
+class EKFDiagnostics(Diagnostics):
+    """What :meth:`JointEKF.run` reports beyond the common estimates (``result.diagnostics``).
 
     Attributes
     ----------
-    t : ndarray, shape (N,)
-    x_hat : ndarray, shape (N, n)
-    theta_hat : ndarray, shape (N, p)
     theta_sd : ndarray, shape (N, p)
         √diag P_θθ after each update.
     nis : ndarray, shape (N,)
@@ -344,15 +343,59 @@ class EKFResult:
         σ used for R.
     """
 
-    t: FloatArray
-    x_hat: FloatArray
-    theta_hat: FloatArray
     theta_sd: FloatArray
     nis: FloatArray
     noise_std: FloatArray
 
     def __repr__(self) -> str:
-        return (f"EKFResult(N={self.t.shape[0]}, theta_hat[-1]={self.theta_hat[-1]}, "
+        return (f"EKFDiagnostics(theta_sd[-1]={self.theta_sd[-1]}, "
+                f"mean_nis={float(np.nanmean(self.nis)) if np.isfinite(self.nis).any() else None}, "
+                f"noise_std={self.noise_std})")
+
+
+#: The EKF's former result name, kept importable: :meth:`JointEKF.run` returns an
+#: :class:`~thetahat.estimation.protocol.EstimateResult` with :class:`EKFDiagnostics`.
+EKFResult = EstimateResult
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class EKFState:
+    """The filter's state between two samples (from :meth:`JointEKF.init` or ``step``).
+
+    Attributes
+    ----------
+    x_hat : ndarray, shape (n,)
+    theta_hat : ndarray, shape (p,)
+        The estimates after the last sample's update (θ̂ in Θ).
+    P : ndarray, shape (n + p, n + p)
+        Their covariance.
+    k : int
+        Samples processed.
+    u_prev : ndarray, shape (m,)
+        The last sample's input (the next prediction holds u linear from it).
+    dt_prev : float
+        Time from the last sample to the next one (the ``dt`` of the last ``step``).
+    noise_std : ndarray, shape (r,), or None
+        σ of R; None until known (then the first :data:`MIN_SAMPLES` outputs are collected in
+        ``y_first`` and no update is made before σ is estimated from them).
+    y_first : ndarray, shape (j, r)
+        Outputs collected while σ is unknown.
+    nis : float
+        The last update's normalised innovation squared ÷ r (NaN: no update).
+    """
+
+    x_hat: FloatArray
+    theta_hat: FloatArray
+    P: FloatArray
+    k: int = 0
+    u_prev: FloatArray | None = None
+    dt_prev: float = 0.0
+    noise_std: FloatArray | None = None
+    y_first: FloatArray | None = None
+    nis: float = math.nan
+
+    def __repr__(self) -> str:
+        return (f"EKFState(k={self.k}, x_hat={self.x_hat}, theta_hat={self.theta_hat}, "
                 f"noise_std={self.noise_std})")
 
 
@@ -377,6 +420,12 @@ class JointEKF:
         RK4 sub-step bound (see :mod:`~thetahat.estimation.model_kernel`).
     compiled : bool, optional
         numba kernels (default: when installed).
+
+    Notes
+    -----
+    An :class:`~thetahat.estimation.protocol.Estimator`: :meth:`init` gives an
+    :class:`EKFState`, :meth:`step` processes one sample, :meth:`run` a record (also from
+    the keywords ``x_hat0``, ``theta_hat0``, ``P0``); results carry :class:`EKFDiagnostics`.
 
     Examples
     --------
@@ -416,33 +465,138 @@ class JointEKF:
         x_sd = np.broadcast_to(np.asarray(self.x_sd, dtype=np.float64), (n,))
         return np.concatenate([x0, th0]), np.diag(np.concatenate([x_sd, th_sd]) ** 2)
 
-    def run(self, t: Any, u: Any, y: Any, *, x_hat0: Any = None, theta_hat0: Any = None,
-            P0: Any = None) -> EKFResult:
-        """Filter a record: sample 0 is an update at the prior, later samples predict then update.
+    def init(self, x_hat0: Any = None, theta_hat0: Any = None) -> EKFState:
+        """The filter's state before the first sample: x̂₀, θ̂₀ and the prior covariance.
+
+        Parameters
+        ----------
+        x_hat0 : array_like (n,), optional
+            Default zeros.
+        theta_hat0 : array_like (p,), optional
+            In Θ; default the centre of Θ.
+
+        Returns
+        -------
+        EKFState
+
+        Raises
+        ------
+        ParameterSetError
+            θ̂₀ outside Θ.
+        """
+        n = self.system.n
+        s, P = self.prior(x_hat0, theta_hat0)
+        sigma = (None if self.noise_std is None
+                 else resolve_noise_std(self.noise_std, np.zeros((1, self.system.r))))
+        return EKFState(x_hat=s[:n], theta_hat=s[n:], P=P, noise_std=sigma,
+                        y_first=np.zeros((0, self.system.r)))
+
+    def step(self, state: EKFState, u: Any, y: Any, dt: float) -> EKFState:
+        """Process the samples of one instant: predict from the previous one, then update.
+
+        Parameters
+        ----------
+        state : EKFState
+            From :meth:`init` or the previous ``step`` (not modified).
+        u : array_like (m,)
+            The input at this instant (``None`` when m = 0).
+        y : array_like (r,)
+            The output; NaN: no update (the filter predicts over it).
+        dt : float
+            Time to the next sample, > 0 (used by the next ``step``'s prediction).
+
+        Returns
+        -------
+        EKFState
+            The estimates at this instant (row k of :meth:`run` after k + 1 steps). Without a
+            given ``noise_std`` no update is made before :data:`MIN_SAMPLES` outputs have
+            come in (σ is then estimated from them); with one, a loop of ``step`` computes
+            what :meth:`run` computes.
+
+        Raises
+        ------
+        DimensionError
+            Wrong shapes or dt ≤ 0.
+        NonFiniteError
+            NaN or inf in u, inf in y, or the filter diverged.
+        """
+        sys_ = self.system
+        n, r = sys_.n, sys_.r
+        u_, y_, h = stream_sample(sys_, u, y, dt)
+        k = self.kernels
+        s = np.concatenate([state.x_hat, state.theta_hat])
+        P = np.array(state.P, dtype=np.float64, order="C")
+        if state.k > 0 and state.u_prev is not None:
+            p = sys_.p
+            k.predict(s, P, np.array(state.u_prev, dtype=np.float64), u_, state.dt_prev,
+                      self.h_rho, self.q_x * np.eye(n), np.empty((n, n)), np.empty((n, p)))
+        sigma, y_first = state.noise_std, state.y_first
+        if sigma is None:
+            y_first = np.vstack([np.zeros((0, r)) if y_first is None else y_first, y_[None]])
+            if y_first.shape[0] >= MIN_SAMPLES:
+                sigma = resolve_noise_std(None, y_first)
+        nis = math.nan
+        if sigma is not None and np.all(np.isfinite(y_)):
+            lo, hi = theta_box(sys_)
+            nis = float(k.update(s, P, y_, np.diag(sigma ** 2), lo, hi))
+        if not np.all(np.isfinite(s)):
+            raise NonFiniteError(f"the EKF diverged at sample {state.k}; check the model and "
+                                 "noise_std.")
+        return EKFState(x_hat=s[:n], theta_hat=s[n:], P=P, k=state.k + 1, u_prev=u_, dt_prev=h,
+                        noise_std=sigma, y_first=y_first, nis=nis)
+
+    def run(self, t: Any, u: Any, y: Any, *, state0: EKFState | None = None,
+            x_hat0: Any = None, theta_hat0: Any = None, P0: Any = None) -> EstimateResult:
+        """Filter a record: sample 0 is an update at the prior (or, from a ``state0`` that has
+        seen samples, a prediction from its last sample then an update), later samples
+        predict then update.
 
         Parameters
         ----------
         t : array_like (N,)
         u : array_like (N, m) or (N,)
         y : array_like (N, r) or (N,); NaN samples are predicted over.
+        state0 : EKFState, optional
+            From :meth:`init` or :meth:`step` (default ``init(x_hat0, theta_hat0)``). Its σ
+            is used when known; else σ is estimated from the record.
         x_hat0, theta_hat0 : array_like, optional
+            Shortcuts for ``state0=init(x_hat0, theta_hat0)`` (not with ``state0``).
         P0 : array_like (n + p, n + p), optional
-            Overrides the prior covariance.
+            Overrides the prior covariance (not with ``state0``).
 
         Returns
         -------
-        EKFResult
+        EstimateResult
+            Row k: the estimates after sample k's update; ``diagnostics`` is an
+            :class:`EKFDiagnostics` (θ's standard deviation, NIS, σ).
+
+        Raises
+        ------
+        OptionError
+            ``state0`` together with ``x_hat0``, ``theta_hat0`` or ``P0``.
+        NonFiniteError
+            The filter diverged.
         """
         sys_ = self.system
         n, m, r, p = sys_.n, sys_.m, sys_.r, sys_.p
         t_, U, Y = as_record(t, u, y, m, r)
-        sigma = resolve_noise_std(self.noise_std, Y)
+        if state0 is not None and (x_hat0 is not None or theta_hat0 is not None
+                                   or P0 is not None):
+            raise OptionError("JointEKF.run: pass either state0 or x_hat0/theta_hat0/P0, not "
+                              "both (state0 already holds the initial estimates).")
+        st = self.init(x_hat0, theta_hat0) if state0 is None else state0
+        sigma = (st.noise_std if st.noise_std is not None
+                 else resolve_noise_std(self.noise_std, Y))
         R = np.diag(sigma ** 2)
-        s, P = self.prior(x_hat0, theta_hat0)
+        s = np.concatenate([st.x_hat, st.theta_hat])
+        P = np.array(st.P, dtype=np.float64, order="C")
         if P0 is not None:
             P = np.array(P0, dtype=np.float64).reshape(n + p, n + p)
         lo, hi = theta_box(sys_)
         k = self.kernels
+        if st.k > 0 and st.u_prev is not None:
+            k.predict(s, P, np.array(st.u_prev, dtype=np.float64), U[0].copy(), st.dt_prev,
+                      self.h_rho, self.q_x * np.eye(n), np.empty((n, n)), np.empty((n, p)))
         N = t_.shape[0]
         X, TH, SD, NIS = (np.empty((N, n)), np.empty((N, p)), np.empty((N, p)),
                           np.full(N, np.nan))
@@ -451,7 +605,10 @@ class JointEKF:
         if bad >= 0:
             raise NonFiniteError(f"the EKF diverged at t[{bad}] = {t_[bad]!r}; check the model "
                                  "and noise_std.")
-        return EKFResult(t=t_, x_hat=X, theta_hat=TH, theta_sd=SD, nis=NIS, noise_std=sigma)
+        return EstimateResult(t=t_, x_hat=X, theta_hat=TH,
+                              phi_hat=phi_hat_from_model(sys_, U, Y, X, TH),
+                              skipped=missing_samples(Y),
+                              diagnostics=EKFDiagnostics(theta_sd=SD, nis=NIS, noise_std=sigma))
 
     def __repr__(self) -> str:
         return f"JointEKF(n={self.system.n}, p={self.system.p}, compiled={self.kernels.model.compiled})"

@@ -1,7 +1,8 @@
 """The two-stage guarded estimator: the paper's guarantee with an EKF's efficiency.
 
-* **Stage 1** — the paper's observer (3) with its update law, unchanged (any object with the
-  observer's public ``init``/``step``/``run``): Theorem 1's convergence from anywhere in Θ.
+* **Stage 1** — the paper's observer (3) with its update law, unchanged (an
+  :class:`~thetahat.estimation.protocol.Estimator` whose states its ``estimate`` reads: the
+  observer or its compiled form): Theorem 1's convergence from anywhere in Θ.
 * **Stage 2** — :class:`~thetahat.estimation.ekf.JointEKF`'s kernels on col(x, θ), re-anchored
   at the times of a :class:`~thetahat.estimation.mle.FitSchedule` by the MAP fit of
   (x(t₀), θ) (the EKF then takes θ and P_θθ from the fit, cross-covariances zeroed).
@@ -31,7 +32,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from .._validate import as_vector
-from ..errors import DimensionError, NonFiniteError, ThetahatWarning
+from ..errors import DimensionError, NonFiniteError, OptionError, ThetahatWarning
 from ..model.system import PerturbedLinearSystem
 from .ekf import EKFKernels, JointEKF, as_record, ekf_kernels, resolve_noise_std, theta_box
 from .fit_worker import default_executor, discard_default_executor, fit_spec, run_fit, warm_up
@@ -40,8 +41,10 @@ from .likelihood import unit_process_noise
 from .mle import FitResult, FitSchedule, MapEstimator, fit_record
 from .model_kernel import H_RHO, jit
 from .noise_level import MIN_SAMPLES
+from .protocol import Diagnostics, EstimateResult, missing_samples, phi_hat_from_model
 
-__all__ = ["GuardedEstimator", "GuardedResult", "StreamDiagnostics", "SIGMA_SAMPLES",
+__all__ = ["GuardedDiagnostics", "GuardedEstimator", "GuardedResult", "GuardedState",
+           "StreamDiagnostics", "SIGMA_SAMPLES",
            "DWELL_SECONDS"]
 
 FloatArray = NDArray[np.float64]
@@ -53,16 +56,13 @@ DWELL_SECONDS = 0.5
 
 
 @dataclass(frozen=True, slots=True, eq=False)
-class GuardedResult:
-    """Estimates and diagnostics of :meth:`GuardedEstimator.run`.
+class GuardedDiagnostics(Diagnostics):
+    """What :meth:`GuardedEstimator.run` reports beyond the common estimates
+    (``result.diagnostics``; the result's ``theta_hat`` is the guarded output, its ``x_hat``
+    stage 2's x̂).
 
     Attributes
     ----------
-    t : ndarray (N,)
-    theta_hat : ndarray (N, p)
-        The guarded output.
-    x_hat : ndarray (N, n)
-        Stage 2's x̂.
     theta_stage1, theta_stage2 : ndarray (N, p)
         θ̂_G and θ̂₂.
     theta_sd : ndarray (N, p)
@@ -81,9 +81,6 @@ class GuardedResult:
         The last σ used.
     """
 
-    t: FloatArray
-    theta_hat: FloatArray
-    x_hat: FloatArray
     theta_stage1: FloatArray
     theta_stage2: FloatArray
     theta_sd: FloatArray
@@ -102,10 +99,12 @@ class GuardedResult:
 
     @property
     def resets(self) -> int:
+        """How many times stage 2 was reset from stage 1."""
         return int(self.reset.sum())
 
     @property
     def clipped_fraction(self) -> float:
+        """Fraction of the samples where the guard clipped stage 2."""
         return float(self.clipped.mean())
 
     @property
@@ -119,9 +118,60 @@ class GuardedResult:
         return np.array([f.theta_se for f in self.fits]).reshape(len(self.fits), -1)
 
     def __repr__(self) -> str:
-        return (f"GuardedResult(N={self.t.shape[0]}, theta_hat[-1]={self.theta_hat[-1]}, "
-                f"resets={self.resets}, clipped={self.clipped_fraction:.3f}, "
-                f"fits={len(self.fits)})")
+        return (f"GuardedDiagnostics(resets={self.resets}, "
+                f"clipped={self.clipped_fraction:.3f}, fits={len(self.fits)}, "
+                f"noise_std={self.noise_std})")
+
+
+#: The guarded estimator's former result name, kept importable (``thetahat.GuardedResult``):
+#: :meth:`GuardedEstimator.run` returns an
+#: :class:`~thetahat.estimation.protocol.EstimateResult` with :class:`GuardedDiagnostics`.
+GuardedResult = EstimateResult
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class GuardedState:
+    """The state of :class:`GuardedEstimator` (from :meth:`~GuardedEstimator.init` or
+    :meth:`~GuardedEstimator.step`).
+
+    Attributes
+    ----------
+    stage1 : ndarray
+        Stage 1's (the observer's) state.
+    x_hat0, theta_hat0 : ndarray (n,), (p,)
+        Stage 2's start values (θ̂₀ in Θ).
+    stream : object or None
+        The stream's shared data log, stage 2's (s, P) and pending fit (None before the first
+        ``step``): states of one stream share it, so step each state once, in order.
+    theta_hat : ndarray (p,) or None
+        The guarded θ̂ at the last sample stepped (None before the first ``step``).
+    x_hat : ndarray (n,) or None
+        Stage 2's x̂ there.
+    theta_stage1, theta_stage2, band : ndarray (p,) or None
+        θ̂_G, θ̂₂ and δ there.
+    clipped, reset : bool
+        The guard clipped stage 2 / reset it from stage 1 there.
+    fits, fits_failed : int
+        Fits back so far / ignored (see :meth:`GuardedEstimator.stream_diagnostics`).
+    """
+
+    stage1: Any
+    x_hat0: FloatArray
+    theta_hat0: FloatArray
+    stream: Any = None
+    theta_hat: FloatArray | None = None
+    x_hat: FloatArray | None = None
+    theta_stage1: FloatArray | None = None
+    theta_stage2: FloatArray | None = None
+    band: FloatArray | None = None
+    clipped: bool = False
+    reset: bool = False
+    fits: int = 0
+    fits_failed: int = 0
+
+    def __repr__(self) -> str:
+        return (f"GuardedState(theta_hat={self.theta_hat}, clipped={self.clipped}, "
+                f"reset={self.reset}, fits={self.fits})")
 
 
 @dataclass(frozen=True, slots=True, eq=False)
@@ -154,11 +204,6 @@ class StreamDiagnostics:
                 f"pending={self.pending})")
 
 
-def _stage1_estimates(stage1: Any, res: Any) -> tuple[FloatArray, FloatArray]:
-    x = res.x_hat_refined if getattr(res, "x_hat_refined", None) is not None else res.x_hat
-    return np.asarray(res.theta_hat, dtype=np.float64), np.asarray(x, dtype=np.float64)
-
-
 @dataclass(frozen=True, slots=True, eq=False)
 class GuardedEstimator:
     """Stage 1 (the paper) + stage 2 (EKF + MAP re-anchoring) + the evidence-based guard.
@@ -166,7 +211,9 @@ class GuardedEstimator:
     Parameters
     ----------
     stage1 : ModifiedHighGainObserver or CompiledObserver
-        The paper's estimator; its ``system`` is stage 2's model unless ``system`` is given.
+        The paper's estimator (an :class:`~thetahat.estimation.protocol.Estimator` whose
+        state ``estimate`` reads); its ``system`` is stage 2's model unless ``system`` is
+        given.
     system : PerturbedLinearSystem, optional
         Stage 2's model (symbolic g, Box Θ).
     noise_std : optional
@@ -189,6 +236,12 @@ class GuardedEstimator:
         Where streaming fits run (anything with ``submit(fn, *args) -> Future``); default
         the shared worker process of :func:`~thetahat.estimation.fit_worker.default_executor`.
         :meth:`run` always fits in the caller.
+
+    Notes
+    -----
+    An :class:`~thetahat.estimation.protocol.Estimator`: :meth:`init` gives a
+    :class:`GuardedState`, :meth:`step` streams, :meth:`run` runs a record; results carry
+    :class:`GuardedDiagnostics`.
 
     Examples
     --------
@@ -247,20 +300,32 @@ class GuardedEstimator:
         return JointEKF(system=self.model, noise_std=self.noise_std, x_sd=self.x_sd,
                         compiled=self.compiled)
 
-    def init(self, x_hat0: Any = None, theta_hat0: Any = None) -> dict[str, Any]:
-        """Initial state of both stages: a dict with ``stage1`` (the observer's state),
-        ``x_hat0`` and ``theta_hat0`` (θ̂₀ must lie in Θ)."""
+    def init(self, x_hat0: Any = None, theta_hat0: Any = None) -> GuardedState:
+        """Initial state of both stages.
+
+        Parameters
+        ----------
+        x_hat0 : array_like (n,), optional
+            Default zeros.
+        theta_hat0 : array_like (p,), optional
+            In Θ; default the centre of Θ.
+
+        Returns
+        -------
+        GuardedState
+            Stage 1's state and stage 2's start values.
+        """
         sys_ = self.model
         lo, hi = theta_box(sys_)
         th0 = 0.5 * (lo + hi) if theta_hat0 is None else as_vector("theta_hat0", theta_hat0,
                                                                    sys_.p)
         x0 = np.zeros(sys_.n) if x_hat0 is None else as_vector("x_hat0", x_hat0, sys_.n)
         s1 = self.stage1.init(x_hat0=x0, theta_hat0=th0)
-        return {"stage1": s1, "x_hat0": x0, "theta_hat0": th0}
+        return GuardedState(stage1=s1, x_hat0=x0, theta_hat0=th0)
 
     # ------------------------------------------------------------------ offline
-    def run(self, t: Any, u: Any, y: Any, *, state0: dict[str, Any] | None = None
-            ) -> GuardedResult:
+    def run(self, t: Any, u: Any, y: Any, *, state0: GuardedState | None = None
+            ) -> EstimateResult:
         """Run both stages and the guard over a record.
 
         Parameters
@@ -268,12 +333,20 @@ class GuardedEstimator:
         t : array_like (N,)
         u : array_like (N, m) or (N,)
         y : array_like (N, r) or (N,)
-        state0 : dict, optional
-            From :meth:`init` (default ``init()``).
+        state0 : GuardedState, optional
+            From :meth:`init` (default ``init()``); a record starts a new experiment, so a
+            state that has been stepped is refused.
 
         Returns
         -------
-        GuardedResult
+        EstimateResult
+            ``theta_hat`` the guarded output, ``x_hat`` stage 2's; ``diagnostics`` a
+            :class:`GuardedDiagnostics` (both stages, the guard's band, the fits).
+
+        Raises
+        ------
+        OptionError
+            ``state0`` has been stepped (continue that stream with :meth:`step`).
         """
         sys_ = self.model
         n, m, r, p = sys_.n, sys_.m, sys_.r, sys_.p
@@ -281,15 +354,20 @@ class GuardedEstimator:
         # writable C copies: the compiled kernels' specialisation that streaming uses too
         U, Y = np.array(U, order="C"), np.array(Y, order="C")
         st0 = self.init() if state0 is None else state0
-        res1 = self.stage1.run(t_, U, Y, state0=st0["stage1"])
-        thG, xG = _stage1_estimates(self.stage1, res1)
-        thG, xG = np.array(thG, order="C"), np.array(xG, order="C")     # writable copies
+        if st0.stream is not None:
+            raise OptionError("GuardedEstimator.run starts an experiment from init(); this "
+                              "state0 has been stepped: continue its stream with step.")
+        res1 = self.stage1.run(t_, U, Y, state0=st0.stage1)
+        xs = res1.x_hat if res1.x_hat_refined is None else res1.x_hat_refined
+        # writable C copies (the compiled loop's array type)
+        thG = np.array(res1.theta_hat, dtype=np.float64, order="C")
+        xG = np.array(xs, dtype=np.float64, order="C")
         N = t_.shape[0]
         estimate_sigma = self.noise_std is None
         k_first = MIN_SAMPLES if estimate_sigma else 0
         sigma = resolve_noise_std(self.noise_std, Y[:max(k_first, MIN_SAMPLES)])
         R = np.diag(sigma ** 2)
-        s, P0 = self._ekf().prior(st0["x_hat0"], st0["theta_hat0"])
+        s, P0 = self._ekf().prior(st0.x_hat0, st0.theta_hat0)
         P = P0.copy()
         lo, hi = theta_box(sys_)
         out = {name: np.empty((N, w)) for name, w in
@@ -304,7 +382,7 @@ class GuardedEstimator:
         sched = self.fit_schedule
         fits: list[FitResult] = []
         fit_at: list[int] = []
-        prior0 = (sched.initial_prior(st0["x_hat0"], st0["theta_hat0"]) if sched else None)
+        prior0 = (sched.initial_prior(st0.x_hat0, st0.theta_hat0) if sched else None)
         Q_x = self.q_x * np.eye(n)
         # the default fits: all the data so far, at the sample counts where the information
         # has grown by INFO_GROWTH, the last on all samples but the last (whose output then
@@ -365,18 +443,21 @@ class GuardedEstimator:
         if not np.all(np.isfinite(out["TH"])):
             raise NonFiniteError("the guarded output became non-finite: stage 1 diverged "
                                  "(check its gains and the data scaling).")
-        return GuardedResult(t=t_, theta_hat=out["TH"], x_hat=out["X2"], theta_stage1=thG,
-                             theta_stage2=out["TH2"], theta_sd=out["SD2"], band=out["BAND"],
-                             clipped=CLIP, reset=RESET, nis=NIS, fits=tuple(fits),
-                             fit_samples=np.array(fit_at, dtype=np.int64), noise_std=sigma)
+        diag = GuardedDiagnostics(theta_stage1=thG, theta_stage2=out["TH2"], theta_sd=out["SD2"],
+                                  band=out["BAND"], clipped=CLIP, reset=RESET, nis=NIS,
+                                  fits=tuple(fits),
+                                  fit_samples=np.array(fit_at, dtype=np.int64), noise_std=sigma)
+        return EstimateResult(t=t_, x_hat=out["X2"], theta_hat=out["TH"],
+                              phi_hat=phi_hat_from_model(sys_, U, Y, out["X2"], out["TH"]),
+                              skipped=missing_samples(Y), diagnostics=diag)
 
     # ------------------------------------------------------------------ streaming
-    def step(self, state: dict[str, Any], u: Any, y: Any, dt: float) -> dict[str, Any]:
+    def step(self, state: GuardedState, u: Any, y: Any, dt: float) -> GuardedState:
         """Process the current samples (u, y) and advance stage 1 by ``dt``; never waits.
 
         Parameters
         ----------
-        state : dict
+        state : GuardedState
             From :meth:`init` or the previous ``step``. States of one stream share its data
             log and fit worker: step each state once, in order.
         u : array_like (m,)
@@ -386,11 +467,12 @@ class GuardedEstimator:
 
         Returns
         -------
-        dict
-            The next state, with the estimates at the current sample: ``theta_hat`` (p,),
-            ``x_hat`` (n,), ``theta_stage1``, ``theta_stage2``, ``band``, ``clipped``,
-            ``reset``, ``fits`` (the number of fits back so far), ``fits_failed`` (ignored
-            fits; see :meth:`stream_diagnostics`).
+        GuardedState
+            The next state, with the estimates at the current sample (row k of :meth:`run`
+            after k + 1 steps when no fit is made): ``theta_hat`` (p,), ``x_hat`` (n,),
+            ``theta_stage1``, ``theta_stage2``, ``band``, ``clipped``, ``reset``, ``fits``
+            (the number of fits back so far), ``fits_failed`` (ignored fits; see
+            :meth:`stream_diagnostics`).
         """
         sys_ = self.model
         n, m, r, p = sys_.n, sys_.m, sys_.r, sys_.p
@@ -402,12 +484,9 @@ class GuardedEstimator:
             raise DimensionError(f"dt must be finite and > 0; got {dt!r}.")
         if not np.all(np.isfinite(u_)):
             raise NonFiniteError("u contains NaN or inf; clean the input sample.")
-        sh = state.get("shared") or _Stream.start(self, state)
+        sh = state.stream or _Stream.start(self, state)
         k = sh.k
-        est1 = self.stage1.estimate(state["stage1"], u_, y_) if hasattr(
-            self.stage1, "estimate") else None
-        if est1 is None:                       # a CompiledObserver: read θ̂ from its state
-            est1 = self.stage1.observer.estimate(state["stage1"], u_, y_)
+        est1 = self.stage1.estimate(state.stage1, u_, y_)
         thG = np.asarray(est1.theta_hat, dtype=np.float64).reshape(1, p)
         xs = est1.x_hat_refined if est1.x_hat_refined is not None else est1.x_hat
         xG = np.asarray(xs, dtype=np.float64).reshape(1, n)
@@ -430,32 +509,30 @@ class GuardedEstimator:
         self._loop()(sh.s, sh.P, sh.P0, U2, Y2, tt, k0, k0 + 1, k - k0, sh.R, sh.lo, sh.hi,
                      self.h_rho, sh.Q_x, TH2, XG2, sh.pst, sh.gst, sh.cfg, o["TH"],
                      o["TH2"], o["X2"], o["SD2"], o["BAND"], clip, rst, nis)
-        step1 = self.stage1.step
-        s1 = (step1(state["stage1"], u_, y_, h) if not hasattr(self.stage1, "dt")
-              else step1(state["stage1"], u_, y_))
+        s1 = self.stage1.step(state.stage1, u_, y_, h)
         sh.refresh_sigma(k)
         sh.u_prev, sh.dt_prev, sh.k = u_, h, k + 1
         sh.maybe_submit()
-        return {"stage1": s1, "shared": sh, "x_hat0": state["x_hat0"],
-                "theta_hat0": state["theta_hat0"], "theta_hat": o["TH"][k0].copy(),
-                "x_hat": o["X2"][k0].copy(), "theta_stage1": thG[0].copy(),
-                "theta_stage2": o["TH2"][k0].copy(), "band": o["BAND"][k0].copy(),
-                "clipped": bool(clip[k0]), "reset": bool(rst[k0]), "fits": len(sh.fits),
-                "fits_failed": len(sh.failures)}
+        return GuardedState(stage1=s1, x_hat0=state.x_hat0, theta_hat0=state.theta_hat0,
+                            stream=sh, theta_hat=o["TH"][k0].copy(), x_hat=o["X2"][k0].copy(),
+                            theta_stage1=thG[0].copy(), theta_stage2=o["TH2"][k0].copy(),
+                            band=o["BAND"][k0].copy(), clipped=bool(clip[k0]),
+                            reset=bool(rst[k0]), fits=len(sh.fits),
+                            fits_failed=len(sh.failures))
 
-    def stream_diagnostics(self, state: dict[str, Any]) -> StreamDiagnostics:
+    def stream_diagnostics(self, state: GuardedState) -> StreamDiagnostics:
         """The fits of the stream that ``state`` belongs to (from :meth:`step`).
 
         Parameters
         ----------
-        state : dict
+        state : GuardedState
             A state returned by :meth:`step`.
 
         Returns
         -------
         StreamDiagnostics
         """
-        sh = state.get("shared")
+        sh = state.stream
         if sh is None:
             return StreamDiagnostics(fits=(), fit_samples=np.zeros((0, 2), np.int64),
                                      fit_seconds=np.zeros(0), failures=(), pending=False)
@@ -478,11 +555,11 @@ _LOG_CAPACITY = 1024
 class _Stream:
     """The data log, stage 2's (s, P) and the pending fit of one streaming run."""
 
-    def __init__(self, est: GuardedEstimator, state: dict[str, Any]) -> None:
+    def __init__(self, est: GuardedEstimator, state: GuardedState) -> None:
         sys_ = est.model
         n = sys_.n
         self.k = 0
-        self.s, self.P0 = est._ekf().prior(state["x_hat0"], state["theta_hat0"])
+        self.s, self.P0 = est._ekf().prior(state.x_hat0, state.theta_hat0)
         self.P = self.P0.copy()
         self.Q_x = est.q_x * np.eye(n)
         self.lo, self.hi = theta_box(sys_)
@@ -508,14 +585,14 @@ class _Stream:
         self.future: concurrent.futures.Future[Any] | None = None
         self.j = 0
         self.sched = est.fit_schedule
-        self.prior0 = (self.sched.initial_prior(state["x_hat0"], state["theta_hat0"])
+        self.prior0 = (self.sched.initial_prior(state.x_hat0, state.theta_hat0)
                        if self.sched else None)
         self.executor: concurrent.futures.Executor | None = None
         self.spec = b""
         self._n = n
 
     @classmethod
-    def start(cls, est: GuardedEstimator, state: dict[str, Any]) -> _Stream:
+    def start(cls, est: GuardedEstimator, state: GuardedState) -> _Stream:
         """A new stream; with fits, the worker starts compiling the fit kernels at once (the
         first fit queues behind that warm-up; its errors, if any, come back with the fit)."""
         sh = cls(est, state)

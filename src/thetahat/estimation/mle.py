@@ -40,10 +40,12 @@ from ..model.system import PerturbedLinearSystem
 from .ekf import resolve_noise_std, theta_box, theta_prior_sd
 from .noise_level import MIN_SAMPLES
 from .model_kernel import H_RHO, ModelKernel, jit, model_kernel
+from .protocol import (Diagnostics, EstimateResult, missing_samples, phi_hat_from_model,
+                       stream_sample)
 
 __all__ = ["FitResult", "fit_map", "FitSchedule", "doubling_schedule", "information_schedule",
-           "first_fit_samples", "fit_record", "INFO_GROWTH", "MapEstimator", "MapResult", "STEP_TOL",
-           "X_PRIOR_SD"]
+           "first_fit_samples", "fit_record", "INFO_GROWTH", "MapDiagnostics", "MapEstimator",
+           "MapResult", "MapState", "STEP_TOL", "X_PRIOR_SD"]
 
 FloatArray = NDArray[np.float64]
 
@@ -551,38 +553,97 @@ def _with_process_noise(system: PerturbedLinearSystem, t: FloatArray, U: FloatAr
 
 
 @dataclass(frozen=True, slots=True, eq=False)
-class MapResult:
-    """Estimates of :class:`MapEstimator` (method "mle").
+class MapDiagnostics(Diagnostics):
+    """What :class:`MapEstimator` reports beyond the common estimates (``result.diagnostics``).
 
     Attributes
     ----------
-    t : ndarray (N,)
-    theta_hat : ndarray (N, p)
-        The latest fit's θ at each sample (θ̂(0) before the first fit).
     theta_sd : ndarray (N, p)
-        Its standard error (the prior's before the first fit).
-    x_hat : ndarray (N, n)
-        The model's prediction from the latest fit's end state and θ (causal; from x̂(0),
-        θ̂(0) before the first fit).
+        The standard error of θ̂ (the prior's before the first fit).
     fits : tuple of FitResult
     fit_samples : ndarray of int
         The sample at which each fit's window ends.
     """
 
-    t: FloatArray
-    theta_hat: FloatArray
     theta_sd: FloatArray
-    x_hat: FloatArray
     fits: tuple[FitResult, ...]
     fit_samples: NDArray[np.int64]
 
     @property
     def fit_cost(self) -> FloatArray:
+        """Each fit's cost per measurement (≈ 1 when the model and σ are right)."""
         return np.array([f.cost for f in self.fits])
 
     def __repr__(self) -> str:
-        return (f"MapResult(N={self.t.shape[0]}, theta_hat[-1]={self.theta_hat[-1]}, "
-                f"fits={len(self.fits)})")
+        return (f"MapDiagnostics(fits={len(self.fits)}, "
+                f"fit_samples={self.fit_samples.tolist()[:8]}"
+                f"{'…' if len(self.fits) > 8 else ''})")
+
+
+#: The MAP estimator's former result name, kept importable: :meth:`MapEstimator.run` returns
+#: an :class:`~thetahat.estimation.protocol.EstimateResult` with :class:`MapDiagnostics`.
+MapResult = EstimateResult
+
+
+class _MapLog:
+    """The samples of one MAP stream (arrays that double when full; shared by its states)."""
+
+    def __init__(self, m: int, r: int) -> None:
+        self.T: FloatArray = np.empty(256)
+        self.U: FloatArray = np.empty((256, m))
+        self.Y: FloatArray = np.empty((256, r))
+        self.size = 0
+
+    def append(self, t: float, u: FloatArray, y: FloatArray) -> None:
+        i = self.size
+        if i == self.T.shape[0]:
+            self.T, self.U, self.Y = (np.concatenate([a, np.empty_like(a)])
+                                      for a in (self.T, self.U, self.Y))
+        self.T[i], self.U[i], self.Y[i] = t, u, y
+        self.size = i + 1
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class MapState:
+    """The state of :class:`MapEstimator`: the start values and, once streaming, the latest
+    estimates and the stream's data log.
+
+    Attributes
+    ----------
+    x_hat0, theta_hat0 : ndarray (n,), (p,)
+        x̂(0) and θ̂(0) (θ̂(0) in Θ): the prior of the first fit.
+    x_hat, theta_hat, theta_sd : ndarray (n,), (p,), (p,)
+        The estimates at the last sample stepped (x̂ predicted from the latest fit).
+    k : int
+        Samples stepped.
+    elapsed : float
+        Time of the last sample since the first.
+    j : int
+        The next scheduled fit.
+    fits : tuple of FitResult
+    fit_samples : tuple of int
+        The sample at which each fit's window ends.
+    dt_prev : float
+        The last step's dt.
+    log : object or None
+        The stream's samples (None before the first ``step``), shared by its states.
+    """
+
+    x_hat0: FloatArray
+    theta_hat0: FloatArray
+    x_hat: FloatArray
+    theta_hat: FloatArray
+    theta_sd: FloatArray
+    k: int = 0
+    elapsed: float = 0.0
+    j: int = 0
+    fits: tuple[FitResult, ...] = ()
+    fit_samples: tuple[int, ...] = ()
+    dt_prev: float = 0.0
+    log: _MapLog | None = None
+
+    def __repr__(self) -> str:
+        return (f"MapState(k={self.k}, theta_hat={self.theta_hat}, fits={len(self.fits)})")
 
 
 @dataclass(frozen=True, slots=True, eq=False)
@@ -606,6 +667,12 @@ class MapEstimator:
     compiled : bool, optional
     growth : float
         Information growth between fits of the default schedule (default √2).
+
+    Notes
+    -----
+    An :class:`~thetahat.estimation.protocol.Estimator`: :meth:`init` gives a
+    :class:`MapState`; :meth:`step` appends one sample and runs the fits whose window ends
+    there (in the caller); :meth:`run` fits a record; results carry :class:`MapDiagnostics`.
 
     Examples
     --------
@@ -643,7 +710,7 @@ class MapEstimator:
             Increasing; the last is N (the whole record) whenever N admits a fit.
         """
         N = int(t.shape[0])
-        least = 3 if self.noise_std is not None else MIN_SAMPLES
+        least = self._min_samples()
         if self.schedule is not None:
             ks: list[int] = []
             j = 0
@@ -661,8 +728,29 @@ class MapEstimator:
             j += 1
         return ks + [N] if N >= least else ks
 
-    def init(self, x_hat0: Any = None, theta_hat0: Any = None) -> dict[str, Any]:
-        """{"x_hat0", "theta_hat0"} (θ̂₀ in Θ, default the centre of Θ)."""
+    def _min_samples(self) -> int:
+        """Samples a window needs before a fit (σ estimated from it unless given)."""
+        return 3 if self.noise_std is not None else MIN_SAMPLES
+
+    def init(self, x_hat0: Any = None, theta_hat0: Any = None) -> MapState:
+        """The state before the first sample: x̂(0), θ̂(0) (θ̂(0) in Θ, default the centre).
+
+        Parameters
+        ----------
+        x_hat0 : array_like (n,), optional
+            Default zeros.
+        theta_hat0 : array_like (p,), optional
+            Default the centre of Θ.
+
+        Returns
+        -------
+        MapState
+
+        Raises
+        ------
+        ParameterSetError
+            θ̂(0) outside Θ.
+        """
         from .._validate import as_vector
         lo, hi = theta_box(self.system)
         th0 = 0.5 * (lo + hi) if theta_hat0 is None else as_vector("theta_hat0", theta_hat0,
@@ -672,34 +760,127 @@ class MapEstimator:
             raise ParameterSetError(f"theta_hat0 = {th0} lies outside Θ = [{lo}, {hi}].")
         x0 = (np.zeros(self.system.n) if x_hat0 is None
               else as_vector("x_hat0", x_hat0, self.system.n))
-        return {"x_hat0": x0, "theta_hat0": th0}
+        return MapState(x_hat0=x0, theta_hat0=th0, x_hat=x0, theta_hat=th0,
+                        theta_sd=theta_prior_sd(self.system))
 
-    def run(self, t: Any, u: Any, y: Any, *, state0: dict[str, Any] | None = None
-            ) -> MapResult:
+    def step(self, state: MapState, u: Any, y: Any, dt: float) -> MapState:
+        """Append the samples of one instant and run the fits whose window ends here.
+
+        The default schedule fits all the samples so far when their count reaches one of
+        :func:`information_schedule`'s; a given ``schedule`` fits at the last sample with
+        elapsed time ≤ t_j (``dt`` says the next sample comes after t_j). These are the fits
+        :meth:`run` makes, except its last: ``run`` also fits the whole record at its end,
+        which a stream does not have. Between fits x̂ is the model's prediction from the
+        latest fit. The fits run in the caller (a ``step`` that fits takes as long as the
+        fit).
+
+        Parameters
+        ----------
+        state : MapState
+            From :meth:`init` or the previous ``step``. States of one stream share its data
+            log: step each state once, in order.
+        u : array_like (m,)
+            ``None`` when m = 0.
+        y : array_like (r,)
+            NaN: a missing sample (it does not enter the fits).
+        dt : float
+            Time to the next sample, > 0.
+
+        Returns
+        -------
+        MapState
+            The estimates at this sample: row k of :meth:`run` after k + 1 steps, for every
+            row but the record's last (to the rounding of the accumulated sample times; see
+            the protocol page).
+
+        Raises
+        ------
+        DimensionError
+            Wrong shapes or dt ≤ 0.
+        NonFiniteError
+            NaN or inf in u, or inf in y.
+        """
+        from ..errors import DimensionError
+        sys_ = self.system
+        n, m, r, p = sys_.n, sys_.m, sys_.r, sys_.p
+        u_, y_, h = stream_sample(sys_, u, y, dt)
+        log = _MapLog(m, r) if state.log is None else state.log
+        if log.size != state.k:
+            raise DimensionError("MapEstimator.step: this state is not the latest of its "
+                                 "stream (step each state once, in order).")
+        elapsed = 0.0 if state.k == 0 else state.elapsed + state.dt_prev
+        x, th, sd = state.x_hat, state.theta_hat, state.theta_sd
+        if state.k > 0:
+            model = model_kernel(sys_, compiled=self.compiled)
+            x = np.asarray(model.propagate(np.array(x), np.array(th), log.U[state.k - 1].copy(),
+                                           u_, state.dt_prev, self._schedule().h_rho, False,
+                                           np.empty((n, n)), np.empty((n, p))))
+        log.append(elapsed, u_, y_)
+        sched = self._schedule()
+        k1 = state.k + 1
+        j, fits, ends = state.j, list(state.fits), list(state.fit_samples)
+        due = False
+        if self.schedule is not None:           # times (s): due when the next sample is later
+            while sched.times(j) + 1e-12 < elapsed + h:
+                due, j = True, j + 1
+        else:                                   # sample counts of the information schedule
+            at = information_schedule(max(first_fit_samples(sys_), self._min_samples()),
+                                      self.growth)
+            while at(j) <= k1:
+                due, j = due or at(j) == k1, j + 1
+        if due and k1 >= self._min_samples():
+            prior0 = sched.initial_prior(state.x_hat0, state.theta_hat0)
+            prev = fits[-1] if fits else None
+            fit = (sched.fit(log.T[:k1], log.U[:k1], log.Y[:k1], k1, prev, prior0)
+                   if self.schedule is not None
+                   else fit_record(sched, log.T[:k1], log.U[:k1], log.Y[:k1], k1, prev, prior0))
+            fits.append(fit)
+            ends.append(state.k)
+            x, th, sd = fit.x_end, fit.theta, fit.theta_se
+        return MapState(x_hat0=state.x_hat0, theta_hat0=state.theta_hat0, x_hat=np.array(x),
+                        theta_hat=np.array(th), theta_sd=np.array(sd), k=state.k + 1,
+                        elapsed=elapsed, j=j, fits=tuple(fits), fit_samples=tuple(ends),
+                        dt_prev=h, log=log)
+
+    def run(self, t: Any, u: Any, y: Any, *, state0: MapState | None = None
+            ) -> EstimateResult:
         """Fit on the schedule over a record; θ̂ between fits is the latest fit's.
 
         Parameters
         ----------
-        t, u, y : array_like
-            The record: (N,), (N, m), (N, r).
-        state0 : dict, optional
-            From :meth:`init` (default: ``init()``).
+        t : array_like (N,)
+        u : array_like (N, m) or (N,)
+        y : array_like (N, r) or (N,)
+        state0 : MapState, optional
+            From :meth:`init` (default ``init()``); a record starts a new experiment, so a
+            state that has already been stepped is refused.
 
         Returns
         -------
-        MapResult
+        EstimateResult
+            Row k: the latest fit's θ̂ and x̂ predicted from it; ``diagnostics`` is a
+            :class:`MapDiagnostics` (standard errors and the fits).
+
+        Raises
+        ------
+        OptionError
+            ``state0`` has been stepped (continue that stream with :meth:`step`).
         """
         from .ekf import as_record
         sys_ = self.system
         t_, U, Y = as_record(t, u, y, sys_.m, sys_.r)
         U, Y = np.ascontiguousarray(U), np.ascontiguousarray(Y)
         st0 = self.init() if state0 is None else state0
+        if st0.k:
+            from ..errors import OptionError
+            raise OptionError("MapEstimator.run starts an experiment from init(); this state0 "
+                              "has been stepped: continue its stream with step.")
         sched = self._schedule()
-        prior0 = sched.initial_prior(st0["x_hat0"], st0["theta_hat0"])
+        prior0 = sched.initial_prior(st0.x_hat0, st0.theta_hat0)
         N, p = t_.shape[0], sys_.p
         TH = np.empty((N, p))
         SD = np.empty((N, p))
-        TH[:] = st0["theta_hat0"]
+        TH[:] = st0.theta_hat0
         SD[:] = theta_prior_sd(sys_)
         fits: list[FitResult] = []
         ends: list[int] = []
@@ -717,10 +898,14 @@ class MapEstimator:
             TH[k1 - 1:] = fit.theta
             SD[k1 - 1:] = fit.theta_se
         X = self._predictions(t_, U, Y, st0, fits, ends)
-        return MapResult(t=t_, theta_hat=TH, theta_sd=SD, x_hat=X, fits=tuple(fits),
-                         fit_samples=np.array(ends, dtype=np.int64))
+        return EstimateResult(t=t_, x_hat=X, theta_hat=TH,
+                              phi_hat=phi_hat_from_model(sys_, U, Y, X, TH),
+                              skipped=missing_samples(Y),
+                              diagnostics=MapDiagnostics(theta_sd=SD, fits=tuple(fits),
+                                                         fit_samples=np.array(ends,
+                                                                              dtype=np.int64)))
 
-    def _predictions(self, t: FloatArray, U: FloatArray, Y: FloatArray, st0: dict[str, Any],
+    def _predictions(self, t: FloatArray, U: FloatArray, Y: FloatArray, st0: MapState,
                      fits: list[FitResult], ends: list[int]) -> FloatArray:
         """x̂ between fits: the model run from each fit's end state with its θ."""
         sys_ = self.system
@@ -728,7 +913,7 @@ class MapEstimator:
         sweep = _sweep_for(model_kernel(sys_, compiled=self.compiled))
         X = np.empty((N, n))
         starts = [0] + ends
-        anchors = [(st0["x_hat0"], st0["theta_hat0"])] + [(f.x_end, f.theta) for f in fits]
+        anchors = [(st0.x_hat0, st0.theta_hat0)] + [(f.x_end, f.theta) for f in fits]
         A, b, T = np.empty((n + p, n + p)), np.empty(n + p), np.empty((n, n + p))
         Rinv = np.ones(sys_.r)
         for i, (k0, (x0, th)) in enumerate(zip(starts, anchors)):

@@ -41,12 +41,13 @@ from .discretize import PLAN_CACHE_SIZE
 from .plan import StateLayout, StepPlan, dt_key
 from .records import check_nan_policy, check_records
 from .redesign import SecondObserver
+from .protocol import EstimateResult, ObserverDiagnostics
 from .results import ObserverEstimate, ObserverResult
 from .step import (advance, diverged, divergence_error, integrate, observer_forcing, readout,
                    second_forcing)
 from .update_laws import UpdateLaw
 
-__all__ = ["ModifiedHighGainObserver", "ObserverEstimate", "ObserverResult"]
+__all__ = ["HeldObserver", "ModifiedHighGainObserver", "ObserverEstimate", "ObserverResult"]
 
 FloatArray = NDArray[np.float64]
 
@@ -184,6 +185,13 @@ class ModifiedHighGainObserver:
     (∂²g/∂x² K_x ỹ, with |K_x| ≈ 6/ε) dominate.
 
     ``v̇`` is never needed: z absorbs ∂g/∂v v̇ (Sec. III).
+
+    **The estimator protocol.** The observer is an
+    :class:`~thetahat.estimation.protocol.Estimator`: its state is the array above (not a
+    wrapper object: ``rhs`` and ODE solvers integrate it as it is), ``run`` returns an
+    :class:`~thetahat.estimation.protocol.EstimateResult` whose ``diagnostics`` is an
+    :class:`~thetahat.estimation.protocol.ObserverDiagnostics`, and :class:`HeldObserver`
+    binds a ``hold`` for code that takes any estimator.
 
     References
     ----------
@@ -631,7 +639,7 @@ class ModifiedHighGainObserver:
 
     def run(self, t: ArrayLike, u: ArrayLike | None, y: ArrayLike, *, hold: str = "zoh",
             state0: ArrayLike | None = None,
-            progress: Callable[[int, int], None] | None = None) -> ObserverResult:
+            progress: Callable[[int, int], None] | None = None) -> EstimateResult:
         """Run the observer over sampled records (logged data).
 
         Parameters
@@ -654,7 +662,11 @@ class ModifiedHighGainObserver:
 
         Returns
         -------
-        ObserverResult
+        EstimateResult
+            Row k holds the state at ``t[k]`` (before sample k is processed: the state
+            ``step`` returns after samples 0 … k − 1); ``diagnostics`` is an
+            :class:`~thetahat.estimation.protocol.ObserverDiagnostics` (x̂₂ of the second
+            observer, also read as ``result.x_hat_refined``).
 
         Raises
         ------
@@ -679,10 +691,10 @@ class ModifiedHighGainObserver:
         X, PHI, TH, X2 = readout(pert, self.system.C, S, U[0], Y[0], ok[0], self.layout)
         skipped = ~ok[0]
         skipped.setflags(write=False)
-        return ObserverResult(t=readonly(t_), x_hat=readonly(X), phi_hat=readonly(PHI),
-                              theta_hat=readonly(TH),
-                              x_hat_refined=None if X2 is None else readonly(X2),
-                              skipped=skipped)
+        return EstimateResult(t=readonly(t_), x_hat=readonly(X), phi_hat=readonly(PHI),
+                              theta_hat=readonly(TH), skipped=skipped,
+                              diagnostics=ObserverDiagnostics(
+                                  x_hat_refined=None if X2 is None else readonly(X2)))
 
     def __repr__(self) -> str:
         lay = self.layout
@@ -691,3 +703,118 @@ class ModifiedHighGainObserver:
                 f"update_law={type(self.update_law).__name__}, "
                 f"second={'None' if self.second is None else 'SecondObserver'}, "
                 f"nan_policy={self.nan_policy!r})")
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class HeldObserver:
+    """An observer with its ``run`` bound to a sample hold (and a progress callback).
+
+    The :class:`~thetahat.estimation.protocol.Estimator` protocol's ``run(t, u, y, *,
+    state0)`` has no ``hold``; an :class:`~thetahat.spec.EstimatorSpec` or a model file that
+    chooses ``"foh"`` hands this object to code that takes any estimator (studies, the
+    guarded estimator's stage 1, ``run_estimator``). ``init``, ``step`` and ``estimate`` are
+    the observer's (``step`` always holds the samples: it is causal).
+
+    Parameters
+    ----------
+    observer : ModifiedHighGainObserver
+    hold : {"zoh", "foh"}
+        The hold of :meth:`run` (see :meth:`ModifiedHighGainObserver.run`).
+    progress : callable, optional
+        ``progress(done, total)`` for :meth:`run`.
+    compiled : bool, optional
+        Run on the compiled kernel (:func:`~thetahat.estimation.compiled.runner`: by default
+        for long records when numba is installed, with a plain fallback).
+
+    Raises
+    ------
+    OptionError
+        Unknown ``hold``.
+
+    Examples
+    --------
+    >>> from thetahat.models import lugre
+    >>> from thetahat.estimation.protocol import Estimator
+    >>> held = HeldObserver(observer=lugre.observer(), hold="foh")
+    >>> isinstance(held, Estimator), held.system is held.observer.system
+    (True, True)
+    """
+
+    observer: ModifiedHighGainObserver
+    hold: str = "zoh"
+    progress: Callable[[int, int], None] | None = None
+    compiled: bool | None = None
+
+    def __post_init__(self) -> None:
+        if self.hold not in HOLDS:
+            raise OptionError(f"hold must be one of {HOLDS}; got {self.hold!r}.")
+
+    @property
+    def system(self) -> PerturbedLinearSystem:
+        """The observer's plant model."""
+        return self.observer.system
+
+    def init(self, x_hat0: ArrayLike | None = None,
+             theta_hat0: ArrayLike | None = None) -> FloatArray:
+        """:meth:`ModifiedHighGainObserver.init`.
+
+        Parameters
+        ----------
+        x_hat0, theta_hat0 : array_like, optional
+            As there.
+
+        Returns
+        -------
+        ndarray, shape (state_size,)
+        """
+        return self.observer.init(x_hat0=x_hat0, theta_hat0=theta_hat0)
+
+    def step(self, state: ArrayLike, u: ArrayLike | None, y: ArrayLike,
+             dt: float) -> FloatArray:
+        """:meth:`ModifiedHighGainObserver.step` (zero-order hold).
+
+        Parameters
+        ----------
+        state, u, y, dt
+            As there.
+
+        Returns
+        -------
+        ndarray, shape (state_size,)
+        """
+        return self.observer.step(state, u, y, dt)
+
+    def estimate(self, state: ArrayLike, u: ArrayLike | None, y: ArrayLike) -> ObserverEstimate:
+        """:meth:`ModifiedHighGainObserver.estimate`.
+
+        Parameters
+        ----------
+        state, u, y
+            As there.
+
+        Returns
+        -------
+        ObserverEstimate
+        """
+        return self.observer.estimate(state, u, y)
+
+    def run(self, t: ArrayLike, u: ArrayLike | None, y: ArrayLike, *,
+            state0: ArrayLike | None = None) -> EstimateResult:
+        """:meth:`ModifiedHighGainObserver.run` with this hold and progress callback, on the
+        compiled kernel where :func:`~thetahat.estimation.compiled.runner` chooses it.
+
+        Parameters
+        ----------
+        t, u, y, state0
+            As there.
+
+        Returns
+        -------
+        EstimateResult
+        """
+        from .compiled import runner          # (compiled imports this module)
+        return runner(self.observer, t, compiled=self.compiled).run(
+            t, u, y, hold=self.hold, state0=state0, progress=self.progress)
+
+    def __repr__(self) -> str:
+        return f"HeldObserver(hold={self.hold!r}, observer={self.observer!r})"

@@ -122,10 +122,11 @@ class TrustReport:
                            f"was Θ's full width for up to {100 * worst:.0f} % of the run "
                            "(stage 1 showed no convergence; the output is stage 2's)")
         if self.model_error:
-            out.append(f"model error: the record is explained only with process noise on φ "
-                       f"(q̂ = {self.process_noise:.3g}, {self.process_noise / self.process_noise_scale:.3g}"
-                       " × the measurement noise's scale); θ̂ is the best fit of a model that "
-                       "errs")
+            ratio = self.process_noise / self.process_noise_scale
+            out.append(f"model error: at θ̂ the model explains the record only with process "
+                       f"noise on φ (q̂ = {self.process_noise:.3g}, {ratio:.3g} × the "
+                       "measurement noise's scale): the model errs, or θ̂ is not yet where the "
+                       "data put it")
         return tuple(out)
 
     def lines(self) -> list[str]:

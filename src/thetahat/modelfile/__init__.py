@@ -6,8 +6,8 @@ format is documented there), :mod:`.assembly` builds and runs the estimator it d
 :mod:`.study` simulates its ``[scenario]`` for ``thetahat sweep`` and ``thetahat tune``.
 """
 
-from .assembly import (auto_gamma, build_observer, design_gains, design_matrices,
-                       estimator_spec, run_estimator)
+from .assembly import (auto_gamma, build_estimator, build_observer, design_gains,
+                       design_matrices, estimator_spec, run_estimator)
 from .report import ModelAnalysis, analyze_model
 from .schema import (ESTIMATION_METHODS, EXAMPLE_MODEL, LAWS, EstimatorOptions, ModelSpec,
                      ScenarioOptions, SecondObserverOptions, load_model, loads_model)
@@ -16,5 +16,6 @@ from .study import simulate_model, study_simulator
 __all__ = ["auto_gamma", "ESTIMATION_METHODS", "EXAMPLE_MODEL", "LAWS", "EstimatorOptions",
            "ModelAnalysis",
            "ModelSpec", "ScenarioOptions", "SecondObserverOptions", "analyze_model",
-           "build_observer", "design_gains", "design_matrices", "estimator_spec", "load_model",
+           "build_estimator", "build_observer", "design_gains", "design_matrices",
+           "estimator_spec", "load_model",
            "loads_model", "run_estimator", "simulate_model", "study_simulator"]

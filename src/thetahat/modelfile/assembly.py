@@ -12,7 +12,7 @@ from __future__ import annotations
 import dataclasses
 import warnings
 from collections.abc import Callable
-from typing import TYPE_CHECKING, cast
+from typing import TYPE_CHECKING
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -22,7 +22,8 @@ from ..design.gains import GainDesign
 from ..errors import (ModelFileError, NotMinimumPhaseError, ThetahatError, ThetahatWarning,
                       UnstableDesignError)
 from ..estimation.checks import check_theta_star
-from ..estimation.observer import ModifiedHighGainObserver, ObserverResult
+from ..estimation.observer import HeldObserver, ModifiedHighGainObserver
+from ..estimation.protocol import EstimateResult, Estimator
 from ..model.system import PerturbedLinearSystem
 from ..spec import SECOND_DESIGN_NOTE, EstimatorSpec, Hold, SecondObserverSpec
 from .schema import ESTIMATION_METHODS, ModelSpec
@@ -30,10 +31,13 @@ from .schema import ESTIMATION_METHODS, ModelSpec
 if TYPE_CHECKING:
     from ..estimation.trust import TrustReport
 
-__all__ = ["auto_gamma", "build_observer", "design_gains", "design_matrices", "estimator_spec",
-           "run_estimator"]
+__all__ = ["auto_gamma", "build_estimator", "build_observer", "design_gains",
+           "design_matrices", "estimator_spec", "run_estimator"]
 
 FloatArray = NDArray[np.float64]
+
+#: The methods that run the paper's observer (with the law's θ*, checked on the record first).
+OBSERVER_METHODS = ("paper", "guarded")
 
 
 def design_matrices(spec: ModelSpec) -> tuple[FloatArray, FloatArray, FloatArray]:
@@ -203,13 +207,18 @@ def build_observer(spec: ModelSpec, *, eps: float | None = None,
     >>> obs.K_x.shape, obs.K_phi.shape
     ((2, 1), (1, 1))
     """
+    _refuse_auto_gamma(spec)
+    return _build(estimator_spec(spec, nan_policy=nan_policy), spec, eps)
+
+
+def _refuse_auto_gamma(spec: ModelSpec) -> None:
+    """``Gamma = "auto"`` is chosen on a record: refused where there is none."""
     if spec.estimator.gamma_auto:
         raise ModelFileError(
             f"model file {spec.source}: [estimator] Gamma = 'auto' (the gradient law's default) "
             "is chosen on a record, and there is none here: give Gamma in [estimator] (a "
             "number or a p × p matrix), or estimate with run_estimator / thetahat estimate, "
             "which choose it on the data.")
-    return _build(estimator_spec(spec, nan_policy=nan_policy), spec, eps)
 
 
 def _build(est: EstimatorSpec, spec: ModelSpec, eps: float | None,
@@ -223,17 +232,85 @@ def _build(est: EstimatorSpec, spec: ModelSpec, eps: float | None,
             zeros=exc.zeros) from exc
 
 
+def build_estimator(spec: ModelSpec, *, method: str | None = None, hold: Hold = "zoh",
+                    nan_policy: str = "raise", compiled: bool | None = None,
+                    progress: Callable[[int, int], None] | None = None,
+                    Gamma: FloatArray | None = None) -> Estimator:
+    """The estimator a model file describes, by method, behind the one estimator protocol.
+
+    Parameters
+    ----------
+    spec : ModelSpec
+        From :func:`~thetahat.modelfile.schema.load_model`.
+    method : {"paper", "guarded", "mle", "ekf"}, optional
+        The paper's observer (default: the file's ``[estimator] method``), the two-stage
+        guarded estimator (that observer as stage 1), the MAP fits or the joint EKF.
+    hold : {"zoh", "foh"}
+        Sample hold of the observer's ``run`` (``step`` always holds the samples).
+    nan_policy : {"raise", "skip"}
+        What the observer does with a NaN sample (a dropout).
+    compiled : bool, optional
+        numba kernels for the statistical methods (default: when installed).
+    progress : callable, optional
+        ``progress(done, total)`` for the observer's ``run``.
+    Gamma : ndarray (p, p), optional
+        The observer's Γ in place of the file's (:func:`run_estimator` passes the Γ of
+        ``Gamma = "auto"``, computed on the record).
+
+    Returns
+    -------
+    Estimator
+        Start it with ``init(x_hat0=spec.estimator.x_hat0,
+        theta_hat0=spec.estimator.theta_hat0)``.
+
+    Raises
+    ------
+    ModelFileError
+        Unknown ``method``; or ``Gamma = "auto"`` in the file and no ``Gamma`` given (it is
+        chosen on a record: :func:`auto_gamma`).
+    NotMinimumPhaseError, UnstableDesignError
+        As for :func:`build_observer` (the observer's methods).
+
+    Examples
+    --------
+    >>> from thetahat.modelfile import EXAMPLE_MODEL, build_estimator, loads_model
+    >>> from thetahat.estimation.protocol import Estimator
+    >>> spec = loads_model(EXAMPLE_MODEL)
+    >>> all(isinstance(build_estimator(spec, method=m), Estimator)
+    ...     for m in ("paper", "guarded", "mle", "ekf"))
+    True
+    """
+    how = spec.estimator.method if method is None else method
+    if how not in ESTIMATION_METHODS:
+        raise ModelFileError(f"method must be one of {list(ESTIMATION_METHODS)}; got {how!r}.")
+    if how == "mle":
+        from ..estimation.mle import MapEstimator
+        return MapEstimator(system=spec.system, compiled=compiled)
+    if how == "ekf":
+        from ..estimation.ekf import JointEKF
+        return JointEKF(system=spec.system, compiled=compiled)
+    if Gamma is None:
+        _refuse_auto_gamma(spec)
+    obs = HeldObserver(observer=_build(estimator_spec(spec, hold=hold, nan_policy=nan_policy),
+                                       spec, None, Gamma=Gamma), hold=hold, progress=progress,
+                       compiled=compiled)
+    if how == "paper":
+        return obs
+    from ..estimation.guarded import GuardedEstimator
+    return GuardedEstimator(stage1=obs, system=spec.system, compiled=compiled)
+
+
 def run_estimator(spec: ModelSpec, t: ArrayLike, u: ArrayLike | None, y: ArrayLike, *,
                   hold: Hold = "zoh", nan_policy: str = "raise",
                   progress: Callable[[int, int], None] | None = None,
                   method: str | None = None, compiled: bool | None = None,
-                  diagnose: bool = True) -> ObserverResult:
+                  diagnose: bool = True) -> EstimateResult:
     """Run the file's estimator on sampled data, from the file's initial values.
 
     ``method`` (default: the file's ``[estimator] method``, else ``"paper"``) chooses the
-    paper's observer, the guarded two-stage estimator (that observer as stage 1) or the
-    offline MAP fits; for the last two the result carries their θ̂ and x̂ with
-    φ̂ = g(v, x̂, θ̂), no refined x̂, and ``hold`` applies to stage 1 only.
+    paper's observer, the guarded two-stage estimator (that observer as stage 1), the
+    offline MAP fits or the joint EKF (:func:`build_estimator`); every one returns an
+    :class:`~thetahat.estimation.protocol.EstimateResult` with its own ``diagnostics``.
 
     Parameters
     ----------
@@ -246,14 +323,14 @@ def run_estimator(spec: ModelSpec, t: ArrayLike, u: ArrayLike | None, y: ArrayLi
     y : array_like, shape (N, r)
         Output samples.
     hold : {"zoh", "foh"}
-        Sample hold (see :meth:`~thetahat.estimation.observer.ModifiedHighGainObserver.run`).
+        Sample hold (see :meth:`~thetahat.estimation.observer.ModifiedHighGainObserver.run`);
+        for the guarded estimator it applies to stage 1.
     nan_policy : {"raise", "skip"}
         What the observer does with a NaN sample (a dropout).
     progress : callable, optional
-        ``progress(done, total)`` called as samples are processed.
-    method : {"paper", "guarded", "mle"}, optional
-        The estimator: the paper's observer (default: the file's ``[estimator] method``),
-        the two-stage guarded estimator, or the offline MAP fit.
+        ``progress(done, total)`` called as samples are processed (the observer's methods).
+    method : {"paper", "guarded", "mle", "ekf"}, optional
+        The estimator (default: the file's ``[estimator] method``).
     compiled : bool, optional
         numba kernels (default: when installed; for the paper's observer, on records of at
         least :data:`~thetahat.estimation.compiled.COMPILE_MIN_SAMPLES` samples, see
@@ -267,7 +344,7 @@ def run_estimator(spec: ModelSpec, t: ArrayLike, u: ArrayLike | None, y: ArrayLi
 
     Returns
     -------
-    ObserverResult
+    EstimateResult
 
     Raises
     ------
@@ -292,44 +369,25 @@ def run_estimator(spec: ModelSpec, t: ArrayLike, u: ArrayLike | None, y: ArrayLi
     how = spec.estimator.method if method is None else method
     if how not in ESTIMATION_METHODS:
         raise ModelFileError(f"method must be one of {list(ESTIMATION_METHODS)}; got {how!r}.")
-    x0, th0 = spec.estimator.x_hat0, spec.estimator.theta_hat0
-    band = None
     # every method sees the same samples: masked entries as NaN, dates as seconds, booleans,
     # text and dates in u or y refused
     t = as_samples("t", seconds_from_first("t", t))
     u = None if u is None else as_samples("u", u)
     y = as_samples("y", y)
-    if how == "mle":
-        from ..estimation.mle import MapEstimator
-        est_mle = MapEstimator(system=spec.system, compiled=compiled)
-        res = est_mle.run(t, u, y, state0=est_mle.init(x_hat0=x0, theta_hat0=th0))
-        result = _as_observer_result(spec, res.t, u, y, res.x_hat, res.theta_hat)
-    else:
-        est = estimator_spec(spec, hold=hold, nan_policy=nan_policy)
-        obs = _build(est, spec, None)
-        s = spec.system
-        theta_star = getattr(spec.estimator.update_law, "theta_star", None)
-        if theta_star is not None:
-            if s.perturbation is None or s.parameter_set is None:
-                raise ModelFileError(f"model file {spec.source}: θ* needs the system's "
-                                     "perturbation and parameter set; the model has none.")
-            check_theta_star(theta_star, s.perturbation, s.parameter_set, s.C, t, u, y)
+    gamma = None
+    if how in OBSERVER_METHODS:
+        _check_theta_star(spec, t, u, y)
         if spec.estimator.gamma_auto:
-            obs = _build(est, spec, None, Gamma=auto_gamma(spec, t, u, y, hold=hold))
-        state0 = obs.init(x_hat0=x0, theta_hat0=th0)
-        if how == "paper":
-            from ..estimation.compiled import runner
-            result = runner(obs, t, compiled=compiled).run(t, u, y, hold=hold, state0=state0,
-                                                           progress=progress)
-        else:
-            from ..estimation.guarded import GuardedEstimator
-            stage1 = _HeldObserver(obs, hold, compiled)
-            guarded = GuardedEstimator(stage1=stage1, system=spec.system, compiled=compiled)
-            res2 = guarded.run(t, u, y, state0=guarded.init(x_hat0=x0, theta_hat0=th0))
-            band = res2.band
-            result = _as_observer_result(spec, res2.t, u, y, res2.x_hat, res2.theta_hat)
+            gamma = auto_gamma(spec, t, u, y, hold=hold)
+    est = build_estimator(spec, method=how, hold=hold, nan_policy=nan_policy,
+                          compiled=compiled, progress=progress, Gamma=gamma)
+    x0, th0 = spec.estimator.x_hat0, spec.estimator.theta_hat0
+    result = est.run(t, u, y, state0=est.init(x_hat0=x0, theta_hat0=th0))
     if not diagnose:
         return result
+    from ..estimation.guarded import GuardedDiagnostics
+    d = result.diagnostics
+    band = d.band if isinstance(d, GuardedDiagnostics) else None
     report = _trust(spec, result, u, y, band, compiled)
     for text in report.warnings:
         warnings.warn(text, ThetahatWarning, stacklevel=2)
@@ -394,7 +452,18 @@ def auto_gamma(spec: ModelSpec, t: ArrayLike, u: ArrayLike | None, y: ArrayLike,
                             float(first.t[-1] - first.t[0]))
 
 
-def _trust(spec: ModelSpec, result: ObserverResult, u: ArrayLike | None, y: ArrayLike,
+def _check_theta_star(spec: ModelSpec, t: ArrayLike, u: ArrayLike | None, y: ArrayLike) -> None:
+    """The law's θ* on this record, before the observer runs (a clear error, not a late one)."""
+    s = spec.system
+    theta_star = getattr(spec.estimator.update_law, "theta_star", None)
+    if theta_star is not None:
+        if s.perturbation is None or s.parameter_set is None:
+            raise ModelFileError(f"model file {spec.source}: θ* needs the system's perturbation "
+                                 "and parameter set; the model has none.")
+        check_theta_star(theta_star, s.perturbation, s.parameter_set, s.C, t, u, y)
+
+
+def _trust(spec: ModelSpec, result: EstimateResult, u: ArrayLike | None, y: ArrayLike,
            band: FloatArray | None, compiled: bool | None) -> TrustReport:
     """The trust report of a run of the file's estimator on its record."""
     from ..estimation.trust import trust_report
@@ -404,38 +473,3 @@ def _trust(spec: ModelSpec, result: ObserverResult, u: ArrayLike | None, y: Arra
     return trust_report(spec.system, result.t, np.ascontiguousarray(U),
                         np.ascontiguousarray(Y), result.theta_hat[-1], spec.parameter_names,
                         x_hat0=spec.estimator.x_hat0, band=band, compiled=compiled)
-
-
-class _HeldObserver:
-    """The observer with its ``run`` bound to a sample hold (stage 1 of the guarded run),
-    compiled as :func:`~thetahat.estimation.compiled.runner` chooses."""
-
-    def __init__(self, obs: ModifiedHighGainObserver, hold: str, compiled: bool | None) -> None:
-        self.obs, self.hold, self.system, self.compiled = obs, hold, obs.system, compiled
-
-    def init(self, *, x_hat0: ArrayLike | None = None,
-             theta_hat0: ArrayLike | None = None) -> FloatArray:
-        return self.obs.init(x_hat0=x_hat0, theta_hat0=theta_hat0)
-
-    def run(self, t: ArrayLike, u: ArrayLike | None, y: ArrayLike, *,
-            state0: ArrayLike | None = None) -> ObserverResult:
-        from ..estimation.compiled import runner
-        return runner(self.obs, t, compiled=self.compiled).run(t, u, y, hold=self.hold,
-                                                               state0=state0)
-
-
-def _as_observer_result(spec: ModelSpec, t: FloatArray, u: ArrayLike | None, y: ArrayLike,
-                        X: FloatArray, TH: FloatArray) -> ObserverResult:
-    N = t.shape[0]
-    U = np.zeros((N, 0)) if u is None else np.asarray(u, dtype=np.float64).reshape(N, -1)
-    Y = np.asarray(y, dtype=np.float64).reshape(N, -1)
-    if spec.system.perturbation is None:
-        raise ModelFileError(f"model file {spec.source}: φ̂ needs the system's perturbation; "
-                             "the model has none.")
-    PHI = np.asarray(spec.system.perturbation.g(np.concatenate([U, Y], axis=1), X, TH),
-                     dtype=np.float64)
-    skipped = cast(NDArray[np.bool_], ~np.isfinite(Y).all(axis=1))     # Y is 2-D: an array
-    for a in (X, TH, PHI, skipped):
-        a.setflags(write=False)
-    return ObserverResult(t=t, x_hat=X, phi_hat=PHI, theta_hat=TH, x_hat_refined=None,
-                          skipped=skipped)

@@ -31,7 +31,8 @@ A model file (TOML, read with :mod:`tomllib`, or JSON with the same structure) h
     ``on_invalid`` (``"raise"`` or ``"freeze"``, default ``"raise"``), ``method``
     (``"paper"``, default: the observer and law above; ``"guarded"``: that observer as stage 1
     of :class:`~thetahat.estimation.guarded.GuardedEstimator`; ``"mle"``:
-    :class:`~thetahat.estimation.mle.MapEstimator`, offline), and ``A_design``,
+    :class:`~thetahat.estimation.mle.MapEstimator`, offline; ``"ekf"``:
+    :class:`~thetahat.estimation.ekf.JointEKF`), and ``A_design``,
     ``E_design``: the matrices of a simplified design system on which the gains are designed
     (Sec. VII–VIII; default: the true A and E); ``allow_nonminimum_phase`` (default false:
     a model that violates Assumption 1 is refused; true designs anyway, to study the failure).
@@ -116,7 +117,7 @@ _ESTIMATOR_KEYS = ("method", "law", "eps", "chain_poles", "b_poles", "Gamma", "t
                    "second", "allow_nonminimum_phase")
 #: The values of ``[estimator] method``: the paper's estimator, the two-stage guarded one, the
 #: offline MAP fits.
-ESTIMATION_METHODS = ("paper", "guarded", "mle")
+ESTIMATION_METHODS = ("paper", "guarded", "mle", "ekf")
 _SECOND_KEYS = ("eps2", "chain_poles", "b_poles", "g_on_estimates")
 _SCENARIO_KEYS = ("theta", "x0", "t_end", "fs", "noise_std", "u_amplitudes", "u_frequencies",
                   "method", "rtol", "atol")
@@ -357,7 +358,7 @@ class EstimatorOptions:
     Attributes
     ----------
     law : {"gradient", "algebraic", "intermittent"}
-    method : {"paper", "guarded", "mle"}
+    method : {"paper", "guarded", "mle", "ekf"}
         How :func:`~thetahat.modelfile.run_estimator` estimates (default "paper").
     update_law : UpdateLaw
         The law, built and validated.

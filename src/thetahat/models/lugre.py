@@ -32,6 +32,7 @@ from .._validate import as_vector, positive_scalar
 from ..design.gains import GainDesign, PoleSpec
 from ..errors import ArgumentTypeError, DimensionError, ParameterSetError, ThetahatWarning
 from ..estimation.observer import ModifiedHighGainObserver
+from ..estimation.protocol import Estimator
 from ..estimation.theta_star import ThetaStar
 from ..model.paramset import Box
 from ..model.perturbation import SymbolicPerturbation
@@ -643,27 +644,28 @@ def designs(eps: float = 1.0, *, eps2: float = 1.0, params: LuGreParameters = Lu
 
 
 #: The estimation methods of :func:`estimator`.
-METHODS = ("paper", "guarded", "mle")
+METHODS = ("paper", "guarded", "mle", "ekf")
 
 
 def estimator(method: str = "guarded", *, eps: float = 1.0, Gamma: float = 1.0,
               noise_std: float | None = None, params: LuGreParameters = LuGreParameters(),
-              compiled: bool | None = None, dt: float = 1e-3) -> Any:
-    """The LuGre estimator by method: ``"paper"``, ``"guarded"`` or ``"mle"``.
+              compiled: bool | None = None, dt: float = 1e-3) -> Estimator:
+    """The LuGre estimator by method: ``"paper"``, ``"guarded"``, ``"mle"`` or ``"ekf"``.
 
     * ``"paper"``: :func:`observer` (stage 1 as printed, Sec. VIII-A), with ``eps``, ``Gamma``;
     * ``"guarded"``: :class:`~thetahat.estimation.guarded.GuardedEstimator` — that observer
       (compiled for step ``dt`` when numba is available) guarding an EKF on col(ω, η, θ)
       re-anchored by MAP fits; streaming-capable;
     * ``"mle"``: :class:`~thetahat.estimation.mle.MapEstimator` — MAP fits of (x(0), θ) on a
-      dense schedule (offline).
+      dense schedule (offline);
+    * ``"ekf"``: :class:`~thetahat.estimation.ekf.JointEKF` on col(ω, η, θ) alone.
 
-    Each returns an object with ``init(x_hat0=…, theta_hat0=…)`` and ``run(t, u, y,
-    state0=…)`` whose result has ``theta_hat`` of shape (N, 1).
+    Each is an :class:`~thetahat.estimation.protocol.Estimator` (``init``, ``step``,
+    ``run``) whose result has ``theta_hat`` of shape (N, 1).
 
     Parameters
     ----------
-    method : {"paper", "guarded", "mle"}
+    method : {"paper", "guarded", "mle", "ekf"}
         The estimator (default ``"guarded"``).
     eps, Gamma : float
         Stage 1's tuning: ε of the observer and Γ of the update law (the paper's: 1, 1);
@@ -683,10 +685,11 @@ def estimator(method: str = "guarded", *, eps: float = 1.0, Gamma: float = 1.0,
 
     Returns
     -------
-    ModifiedHighGainObserver or GuardedEstimator or MapEstimator
+    Estimator
         The observer of :func:`observer` for ``"paper"``, a
         :class:`~thetahat.estimation.guarded.GuardedEstimator` for ``"guarded"``, a
-        :class:`~thetahat.estimation.mle.MapEstimator` for ``"mle"``.
+        :class:`~thetahat.estimation.mle.MapEstimator` for ``"mle"``, a
+        :class:`~thetahat.estimation.ekf.JointEKF` for ``"ekf"``.
 
     Raises
     ------
@@ -710,6 +713,9 @@ def estimator(method: str = "guarded", *, eps: float = 1.0, Gamma: float = 1.0,
         raise DimensionError(f"method must be one of {METHODS}; got {method!r}.")
     if method == "mle":
         return MapEstimator(system=system(params), noise_std=noise_std, compiled=compiled)
+    if method == "ekf":
+        from ..estimation.ekf import JointEKF
+        return JointEKF(system=system(params), noise_std=noise_std, compiled=compiled)
     obs = observer(eps, Gamma=Gamma, params=params)
     if method == "paper":
         return obs

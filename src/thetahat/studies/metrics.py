@@ -3,13 +3,13 @@
 from __future__ import annotations
 
 from collections.abc import Sequence
-from typing import Any
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from .._validate import as_vector, positive_scalar
 from ..errors import DimensionError
+from ..estimation.protocol import EstimateResult
 
 __all__ = ["DIVERGENCE_FACTOR", "diverged", "divergence_reason", "rmse", "time_to_within"]
 
@@ -151,14 +151,14 @@ def divergence_reason(name: str, estimate: ArrayLike, scale: float) -> str | Non
 SETTLE_REL = 0.01
 
 
-def estimate_summary(result: Any, parameter_names: Sequence[str], *,
+def estimate_summary(result: EstimateResult, parameter_names: Sequence[str], *,
                      warnings: Sequence[str] = ()) -> str:
     """A few lines on an estimate: final θ̂, when it settled, skipped samples, warnings.
 
     Parameters
     ----------
-    result : ObserverResult
-        From ``run`` (reads ``t``, ``theta_hat`` and ``skipped``).
+    result : EstimateResult
+        From any estimator's ``run`` (reads ``t``, ``theta_hat``, ``skipped`` and ``trust``).
     parameter_names : sequence of str
         Names of the p parameters.
     warnings : sequence of str
@@ -173,11 +173,13 @@ def estimate_summary(result: Any, parameter_names: Sequence[str], *,
 
     Examples
     --------
-    >>> from types import SimpleNamespace
     >>> import numpy as np
+    >>> from thetahat.estimation.protocol import EstimateResult, ObserverDiagnostics
     >>> from thetahat.studies.metrics import estimate_summary
-    >>> res = SimpleNamespace(t=np.array([0.0, 1.0, 2.0]), skipped=np.zeros(3, bool),
-    ...                       theta_hat=np.array([[0.0], [0.9], [1.0]]))
+    >>> z = np.zeros((3, 1))
+    >>> res = EstimateResult(t=np.array([0.0, 1.0, 2.0]), x_hat=z, phi_hat=z,
+    ...                      theta_hat=np.array([[0.0], [0.9], [1.0]]),
+    ...                      skipped=np.zeros(3, bool), diagnostics=ObserverDiagnostics())
     >>> print(estimate_summary(res, ["theta"]))
     final theta_hat: theta = 1
     settled (within 1 % of the final value) at t = 2 of [0, 2]
@@ -197,8 +199,7 @@ def estimate_summary(result: Any, parameter_names: Sequence[str], *,
                "settled: not decided (a single sample has no course to settle)")
     lines = [f"final theta_hat: {values}", settled,
              f"skipped samples (dropouts): {int(np.sum(result.skipped))}"]
-    trust = getattr(result, "trust", None)       # an ObserverResult checked by run_estimator
-    if trust is not None:
-        lines += trust.lines()
+    if result.trust is not None:                 # checked by run_estimator
+        lines += result.trust.lines()
     lines.append("warnings: " + ("none" if not warnings else "; ".join(dict.fromkeys(warnings))))
     return "\n".join(lines)

@@ -14,6 +14,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from ..errors import NonFiniteError, SimulationError, UpdateLawError
+from ..estimation.protocol import EstimateResult
 from .metrics import divergence_reason, rmse, time_to_within
 
 __all__ = ["DIVERGENCE_ERRORS", "SETTLING_BAND", "RunMetrics", "failed_run", "format_number",
@@ -98,16 +99,15 @@ def _scale(truth: ArrayLike) -> float:
     return s if s > 0 else 1.0
 
 
-def run_metrics(data: Any, res: Any) -> RunMetrics:
+def run_metrics(data: Any, res: EstimateResult) -> RunMetrics:
     """Accuracy and divergence of one observer run against the simulated truth.
 
     Parameters
     ----------
     data : PlantTrajectory or alike
         With the true ``x (N, n)`` and ``theta (p,)`` (and optionally ``phi (N, k)``).
-    res : ObserverResult or alike
-        With ``t (N,)``, ``theta_hat (N, p)``, ``x_hat (N, n)``, ``x_hat_refined`` (or
-        None) and optionally ``phi_hat``.
+    res : EstimateResult
+        Any estimator's result (``x_hat_refined`` is checked when the observer has one).
 
     Returns
     -------
@@ -119,11 +119,13 @@ def run_metrics(data: Any, res: Any) -> RunMetrics:
     --------
     >>> import numpy as np
     >>> from types import SimpleNamespace
+    >>> from thetahat.estimation.protocol import EstimateResult, ObserverDiagnostics
     >>> from thetahat.studies.runs import run_metrics
     >>> t = np.linspace(0.0, 1.0, 11)
     >>> data = SimpleNamespace(x=np.ones((11, 1)), theta=np.array([0.5]))
-    >>> res = SimpleNamespace(t=t, theta_hat=np.full((11, 1), 0.5), x_hat=np.ones((11, 1)),
-    ...                       x_hat_refined=None)
+    >>> res = EstimateResult(t=t, theta_hat=np.full((11, 1), 0.5), x_hat=np.ones((11, 1)),
+    ...                      phi_hat=np.zeros((11, 1)), skipped=np.zeros(11, bool),
+    ...                      diagnostics=ObserverDiagnostics())
     >>> m = run_metrics(data, res)
     >>> m.diverged, m.t_1pct, m.theta_rmse
     (False, 0.0, 0.0)
@@ -140,7 +142,7 @@ def run_metrics(data: Any, res: Any) -> RunMetrics:
     if x2 is not None:
         checks += [(f"x_hat_refined[{i}]", x2[:, i], x[:, i]) for i in range(x.shape[1])]
     phi = getattr(data, "phi", None)
-    if phi is not None and getattr(res, "phi_hat", None) is not None:
+    if phi is not None:
         checks.append(("phi_hat", np.asarray(res.phi_hat, dtype=float),
                        np.asarray(phi, dtype=float)))
     reasons = [divergence_reason(name, est, _scale(tru)) for name, est, tru in checks]

@@ -22,21 +22,24 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from ..errors import DesignError, DimensionError
+from ..estimation.observer import HeldObserver, ModifiedHighGainObserver
+from ..estimation.protocol import Estimator
 from ..spec import EstimatorSpec
 from .batch import check_seeds, monte_carlo
 from .runs import DIVERGENCE_ERRORS, RunMetrics, failed_run, format_number, run_metrics
 
-__all__ = ["Estimator", "SweepResult", "SweepRow", "check_eps_values", "eps_sweep",
+__all__ = ["EstimatorSource", "SweepResult", "SweepRow", "check_eps_values", "eps_sweep",
            "observer_for", "run_observer"]
 
 FloatArray = NDArray[np.float64]
 
-#: What a study runs: an :class:`~thetahat.spec.EstimatorSpec` (its ``build(eps=…, Gamma=…)``,
-#: one SCB for every ε) or a callable ``make_observer(eps)`` / ``make_observer(eps, Gamma=…)``.
-Estimator = Union[EstimatorSpec, Callable[..., Any]]
+#: What a study builds its estimators from: an :class:`~thetahat.spec.EstimatorSpec` (its
+#: ``build(eps=…, Gamma=…)``, one SCB for every ε) or a callable ``make(eps)`` /
+#: ``make(eps, Gamma=…)`` returning any :class:`~thetahat.estimation.protocol.Estimator`.
+EstimatorSource = Union[EstimatorSpec, Callable[..., Estimator]]
 
 
-def observer_for(estimator: Estimator, eps: float, Gamma: float | None = None) -> Any:
+def observer_for(estimator: EstimatorSource, eps: float, Gamma: float | None = None) -> Any:
     """The observer a study runs at (ε, Γ).
 
     Parameters
@@ -51,8 +54,9 @@ def observer_for(estimator: Estimator, eps: float, Gamma: float | None = None) -
 
     Returns
     -------
-    observer
-        Anything with ``init(theta_hat0=...)`` and ``run(t, u, y, state0=...)``.
+    Estimator
+        The spec's observer, or what the callable returns (any
+        :class:`~thetahat.estimation.protocol.Estimator`).
 
     Examples
     --------
@@ -68,16 +72,17 @@ def observer_for(estimator: Estimator, eps: float, Gamma: float | None = None) -
     return estimator(eps, Gamma=Gamma)
 
 
-def run_observer(estimator: Estimator, obs: Any, data: Any, theta_hat0: FloatArray
-                 ) -> RunMetrics:
+def run_observer(estimator: EstimatorSource, obs: Estimator, data: Any,
+                 theta_hat0: FloatArray) -> RunMetrics:
     """Run ``obs`` on one record from θ̂(0) and measure it; a divergence error is recorded.
 
     Parameters
     ----------
     estimator : EstimatorSpec or callable
         What built ``obs``; a spec supplies its sample hold.
-    obs : observer
-        From :func:`observer_for`.
+    obs : Estimator
+        From :func:`observer_for` (run through the estimator protocol; a spec's observer
+        with the spec's hold, :class:`~thetahat.estimation.observer.HeldObserver`).
     data : PlantTrajectory or alike
         ``t``, ``u``, ``y`` and the true ``x``, ``theta`` (and optionally ``phi``).
     theta_hat0 : ndarray, shape (p,)
@@ -98,11 +103,12 @@ def run_observer(estimator: Estimator, obs: Any, data: Any, theta_hat0: FloatArr
     >>> run_observer(spec, observer_for(spec, 1.0), data, np.array([0.5])).diverged
     False
     """
-    kwargs = {"hold": estimator.hold} if isinstance(estimator, EstimatorSpec) else {}
+    est = (HeldObserver(observer=obs, hold=estimator.hold)
+           if isinstance(estimator, EstimatorSpec) and isinstance(obs, ModifiedHighGainObserver)
+           else obs)
     try:
         with np.errstate(all="ignore"):            # an exploding state is the expected failure
-            res = obs.run(data.t, data.u, data.y, state0=obs.init(theta_hat0=theta_hat0),
-                          **kwargs)
+            res = est.run(data.t, data.u, data.y, state0=est.init(theta_hat0=theta_hat0))
     except DIVERGENCE_ERRORS as exc:
         return failed_run(np.asarray(data.x).shape[1], exc)
     return run_metrics(data, res)
@@ -399,7 +405,7 @@ def check_eps_values(eps_values: Iterable[float]) -> tuple[float, ...]:
     return eps
 
 
-def _one_run(estimator: Estimator, simulate: Callable[[int], Any],
+def _one_run(estimator: EstimatorSource, simulate: Callable[[int], Any],
              eps_values: tuple[float, ...], seeds: tuple[int, ...], theta_hat0: FloatArray,
              index: int) -> RunMetrics:
     """Run number ``index`` (ε-major): simulate, build, run, measure."""
@@ -408,7 +414,7 @@ def _one_run(estimator: Estimator, simulate: Callable[[int], Any],
     return run_observer(estimator, obs, data, theta_hat0)
 
 
-def eps_sweep(estimator: Estimator, simulate: Callable[[int], Any],
+def eps_sweep(estimator: EstimatorSource, simulate: Callable[[int], Any],
               eps_values: Iterable[float], seeds: Iterable[int], *, theta_hat0: ArrayLike,
               progress: bool = True, n_jobs: int | None = 1,
               scheduler: Any = None) -> SweepResult:
@@ -426,7 +432,8 @@ def eps_sweep(estimator: Estimator, simulate: Callable[[int], Any],
         ε come from one SCB and run with its hold. Or a callable building the observer for
         one ε, e.g. :func:`thetahat.models.lugre.observer`: anything with
         ``init(theta_hat0=...)`` and ``run(t, u, y, state0=...)`` returning an
-        :class:`~thetahat.estimation.observer.ObserverResult`.
+        :class:`~thetahat.estimation.protocol.EstimateResult` (any
+        :class:`~thetahat.estimation.protocol.Estimator`).
     simulate : callable ``simulate(seed)``
         Simulates the plant with that noise seed; returns an object with ``t (N,)``,
         ``u (N, m)``, ``y (N, r)``, the true ``x (N, n)`` and ``theta (p,)`` (and optionally

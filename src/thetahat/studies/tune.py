@@ -34,7 +34,7 @@ from ..errors import DesignError, DimensionError
 from ..spec import EstimatorSpec
 from .batch import check_seeds, monte_carlo
 from .runs import DIVERGENCE_ERRORS, RunMetrics, format_number, run_metrics
-from .sweep import Estimator, check_eps_values, observer_for, run_observer
+from .sweep import EstimatorSource, check_eps_values, observer_for, run_observer
 
 __all__ = ["CRITERIA", "TuneResult", "tune_eps_gamma"]
 
@@ -187,7 +187,7 @@ def _check_gammas(gammas: Iterable[float]) -> tuple[float, ...]:
     return out
 
 
-def _run_eps(estimator: Estimator, observers: list[Any], records: list[Any],
+def _run_eps(estimator: EstimatorSource, observers: list[Any], records: list[Any],
              th0: FloatArray) -> list[RunMetrics]:
     """Runs of one ε: every Γ on every seed (Γ-major), vectorised when possible.
 
@@ -216,14 +216,14 @@ def _run_eps(estimator: Estimator, observers: list[Any], records: list[Any],
     return [run_observer(estimator, o, d, th0) for o, d in pairs]
 
 
-def _tune_eps(estimator: Estimator, eps: tuple[float, ...], gammas: tuple[float, ...],
+def _tune_eps(estimator: EstimatorSource, eps: tuple[float, ...], gammas: tuple[float, ...],
               records: list[Any], th0: FloatArray, index: int) -> list[RunMetrics]:
     """The task of ε number ``index``: every Γ on every record (one engine task)."""
     return _run_eps(estimator, [observer_for(estimator, eps[index], g) for g in gammas],
                     records, th0)
 
 
-def tune_eps_gamma(estimator: Estimator, simulate: Callable[[int], Any], *,
+def tune_eps_gamma(estimator: EstimatorSource, simulate: Callable[[int], Any], *,
                    eps_values: Iterable[float] = (1.0, 0.7, 0.5, 0.3),
                    gammas: Iterable[float] = (1.0, 3.0, 10.0, 30.0),
                    seeds: Iterable[int] = (1000, 1001), theta_hat0: ArrayLike,

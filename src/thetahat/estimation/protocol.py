@@ -1,0 +1,301 @@
+"""One interface for every estimator: :class:`Estimator`, and one result, :class:`EstimateResult`.
+
+The paper's observer (:class:`~thetahat.estimation.observer.ModifiedHighGainObserver`), its
+compiled form (:class:`~thetahat.estimation.compiled.CompiledObserver`), the guarded two-stage
+estimator (:class:`~thetahat.estimation.guarded.GuardedEstimator`), the MAP fits
+(:class:`~thetahat.estimation.mle.MapEstimator`) and the joint EKF
+(:class:`~thetahat.estimation.ekf.JointEKF`) all implement
+
+* ``init(x_hat0=None, theta_hat0=None) -> state`` (θ̂₀ must lie in Θ),
+* ``step(state, u, y, dt) -> state`` (process the samples at the current instant, the next
+  one comes ``dt`` later), and
+* ``run(t, u, y, *, state0=None) -> EstimateResult`` (a logged record).
+
+The state is an explicit value passed from call to call, never kept in the estimator. Each
+estimator documents its state type and how a state from ``step`` lines up with a row of
+``run``. What differs between methods lives in the result's ``diagnostics``, a frozen object
+of one type per method (:class:`ObserverDiagnostics` here, ``GuardedDiagnostics``,
+``MapDiagnostics`` and ``EKFDiagnostics`` in their modules). The page
+``docs/estimator-protocol.md`` shows them side by side.
+
+This module imports nothing from the estimators (they import it).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any, Protocol, runtime_checkable
+
+import numpy as np
+from numpy.typing import NDArray
+
+from ..errors import DimensionError, NonFiniteError
+from ..model.system import PerturbedLinearSystem
+
+if TYPE_CHECKING:
+    from .trust import TrustReport
+
+__all__ = ["Diagnostics", "EstimateResult", "Estimator", "ObserverDiagnostics",
+           "missing_samples", "phi_hat_from_model", "stream_sample"]
+
+FloatArray = NDArray[np.float64]
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class Diagnostics:
+    """Base of the per-method diagnostics of an :class:`EstimateResult` (no fields).
+
+    Each estimator has one final subclass: :class:`ObserverDiagnostics`,
+    :class:`~thetahat.estimation.guarded.GuardedDiagnostics`,
+    :class:`~thetahat.estimation.mle.MapDiagnostics`,
+    :class:`~thetahat.estimation.ekf.EKFDiagnostics`.
+    """
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class ObserverDiagnostics(Diagnostics):
+    """What the paper's observer (and its compiled form) report beyond the common estimates.
+
+    Attributes
+    ----------
+    x_hat_refined : ndarray, shape (N, n), or None
+        x̂₂ of the second observer of Sec. VI (None when none is attached).
+    """
+
+    x_hat_refined: FloatArray | None = None
+
+    def __repr__(self) -> str:
+        shape = None if self.x_hat_refined is None else self.x_hat_refined.shape
+        return f"ObserverDiagnostics(x_hat_refined={shape})"
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class EstimateResult:
+    """Estimates over a sampled record: what every :class:`Estimator`'s ``run`` returns.
+
+    Attributes
+    ----------
+    t : ndarray, shape (N,)
+        Sampling instants.
+    x_hat : ndarray, shape (N, n)
+        State estimate x̂ (the observer's (3a); stage 2's x̂ for the guarded estimator; the
+        model's prediction from the latest fit for the MAP fits; the EKF's x̂).
+    theta_hat : ndarray, shape (N, p)
+        Parameter estimate θ̂, in Θ at every sample.
+    phi_hat : ndarray, shape (N, k)
+        Perturbation estimate: the observer's φ̂ = g(v, x̂, θ̂) + z of (3c); for the other
+        methods φ̂ = g(v, x̂, θ̂) (:func:`phi_hat_from_model`).
+    skipped : ndarray of bool, shape (N,)
+        Samples whose y held NaN (no output correction was made there).
+    diagnostics : Diagnostics
+        Per-method extras (e.g. ``result.diagnostics.resets`` of the guarded estimator).
+    trust : TrustReport or None
+        What the estimate says about itself (:func:`~thetahat.estimation.trust.trust_report`:
+        identifiability, Θ's boundary, the guard, the model error), when it was checked
+        (:func:`~thetahat.modelfile.run_estimator` checks by default).
+
+    Notes
+    -----
+    The arrays are read-only. ``x_hat_refined`` reads the second observer's x̂₂ from an
+    :class:`ObserverDiagnostics` (None for every other method), so the tables, the CSV writer
+    and the plots read any method's result the same way.
+    """
+
+    t: FloatArray
+    x_hat: FloatArray
+    theta_hat: FloatArray
+    phi_hat: FloatArray
+    skipped: NDArray[np.bool_]
+    diagnostics: Diagnostics
+    trust: TrustReport | None = None
+
+    def __post_init__(self) -> None:
+        for a in (self.t, self.x_hat, self.theta_hat, self.phi_hat, self.skipped):
+            if a.flags.writeable:
+                a.setflags(write=False)
+
+    @property
+    def x_hat_refined(self) -> FloatArray | None:
+        """x̂₂ of the second observer (Sec. VI), shape (N, n), or None."""
+        d = self.diagnostics
+        return d.x_hat_refined if isinstance(d, ObserverDiagnostics) else None
+
+    def __repr__(self) -> str:
+        N = self.t.shape[0]
+        span = f"[{self.t[0]:.6g}, {self.t[-1]:.6g}]" if N else "[]"
+        return (f"EstimateResult(N={N}, t={span}, x_hat={self.x_hat.shape}, "
+                f"theta_hat={self.theta_hat.shape}, phi_hat={self.phi_hat.shape}, "
+                f"skipped={int(self.skipped.sum())}, diagnostics={self.diagnostics!r})")
+
+    def to_dataframe(self, *, state_names: Any = None, parameter_names: Any = None) -> Any:
+        """A :class:`pandas.DataFrame` indexed by t (:func:`thetahat.tables.result_to_dataframe`).
+
+        Parameters
+        ----------
+        state_names, parameter_names : sequence of str, optional
+            Column suffixes (default 1, 2, …).
+        """
+        from ..tables import result_to_dataframe
+        return result_to_dataframe(self, state_names=state_names,
+                                   parameter_names=parameter_names)
+
+    def to_xarray(self, *, state_names: Any = None, parameter_names: Any = None) -> Any:
+        """An :class:`xarray.Dataset` over t (:func:`thetahat.tables.result_to_xarray`).
+
+        Parameters
+        ----------
+        state_names, parameter_names : sequence of str, optional
+            Coordinate labels (default 1, 2, …).
+        """
+        from ..tables import result_to_xarray
+        return result_to_xarray(self, state_names=state_names,
+                                parameter_names=parameter_names)
+
+
+@runtime_checkable
+class Estimator(Protocol):
+    """What every estimator offers: ``init``, ``step`` and ``run`` over one explicit state.
+
+    Implemented by :class:`~thetahat.estimation.observer.ModifiedHighGainObserver`,
+    :class:`~thetahat.estimation.compiled.CompiledObserver`,
+    :class:`~thetahat.estimation.guarded.GuardedEstimator`,
+    :class:`~thetahat.estimation.mle.MapEstimator` and
+    :class:`~thetahat.estimation.ekf.JointEKF`. ``isinstance(e, Estimator)`` checks that
+    the three methods exist (Python checks no signatures at run time; mypy does).
+
+    Examples
+    --------
+    >>> from thetahat.models import lugre
+    >>> from thetahat.estimation.protocol import Estimator
+    >>> obs = lugre.observer()
+    >>> isinstance(obs, Estimator)
+    True
+    >>> data = lugre.simulate(seed=0, t_end=0.1)
+    >>> res = obs.run(data.t, data.u, data.y, state0=obs.init(theta_hat0=[0.5]))
+    >>> res.theta_hat.shape, type(res.diagnostics).__name__
+    ((101, 1), 'ObserverDiagnostics')
+    """
+
+    def init(self, x_hat0: Any = None, theta_hat0: Any = None) -> Any:
+        """The state at the first sample, from x̂₀ and θ̂₀ (θ̂₀ in Θ; defaults per method)."""
+        ...
+
+    def step(self, state: Any, u: Any, y: Any, dt: float) -> Any:
+        """The next state after the samples (u, y) of the current instant; ``dt`` > 0 to the
+        next sample."""
+        ...
+
+    def run(self, t: Any, u: Any, y: Any, *, state0: Any = None) -> EstimateResult:
+        """Estimates over a record (t (N,), u (N, m), y (N, r)) from ``state0`` (default
+        ``init()``)."""
+        ...
+
+
+def stream_sample(system: PerturbedLinearSystem, u: Any, y: Any,
+                  dt: float) -> tuple[FloatArray, FloatArray, float]:
+    """The samples of one ``step`` checked: own float64 copies of u (m,) and y (r,), and dt.
+
+    Parameters
+    ----------
+    system : PerturbedLinearSystem
+        Gives m and r.
+    u : array_like (m,)
+        ``None`` when m = 0; must be finite.
+    y : array_like (r,)
+        NaN marks a missing sample; inf is refused.
+    dt : float
+        Time to the next sample, finite and > 0.
+
+    Returns
+    -------
+    u, y : ndarray, shapes (m,), (r,)
+        Writable copies (one array type for the compiled kernels).
+    dt : float
+
+    Raises
+    ------
+    DimensionError
+        Wrong shapes, or dt not finite and > 0.
+    NonFiniteError
+        NaN or inf in u, or inf in y.
+
+    Examples
+    --------
+    >>> from thetahat.models import lugre
+    >>> u, y, h = stream_sample(lugre.system(), [1.0], [float("nan")], 1e-3)
+    >>> u.shape, y.shape, h
+    ((1,), (1,), 0.001)
+    """
+    m, r = system.m, system.r
+    u_ = np.zeros(0) if u is None else np.array(u, dtype=np.float64).reshape(-1)
+    y_ = np.array(y, dtype=np.float64).reshape(-1)
+    if u_.shape != (m,) or y_.shape != (r,):
+        raise DimensionError(f"u and y must have shapes ({m},) and ({r},); got {u_.shape} "
+                             f"and {y_.shape}.")
+    h = float(dt)
+    if not (h > 0 and np.isfinite(h)):
+        raise DimensionError(f"dt must be finite and > 0; got {dt!r}.")
+    if not np.all(np.isfinite(u_)):
+        raise NonFiniteError("u contains NaN or inf; clean the input sample.")
+    if np.isinf(y_).any():
+        raise NonFiniteError("y contains inf; only NaN marks a missing sample.")
+    return u_, y_, h
+
+
+def missing_samples(Y: FloatArray) -> NDArray[np.bool_]:
+    """Rows of ``Y`` (N, r) holding a NaN: the samples without output correction.
+
+    Parameters
+    ----------
+    Y : ndarray, shape (N, r)
+
+    Returns
+    -------
+    ndarray of bool, shape (N,)
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> missing_samples(np.array([[1.0], [np.nan], [2.0]])).tolist()
+    [False, True, False]
+    """
+    return np.asarray(~np.isfinite(Y).all(axis=1), dtype=bool)
+
+
+def phi_hat_from_model(system: PerturbedLinearSystem, U: FloatArray, Y: FloatArray,
+                       X: FloatArray, TH: FloatArray) -> FloatArray:
+    """φ̂ = g(v, x̂, θ̂) per sample, v = col(u, y), with y replaced by C x̂ where it is missing.
+
+    The perturbation estimate of the methods that estimate (x, θ) but no φ of their own
+    (guarded, MAP, EKF); the observer's φ̂ (3c) adds its z.
+
+    Parameters
+    ----------
+    system : PerturbedLinearSystem
+        With a perturbation g.
+    U : ndarray, shape (N, m)
+    Y : ndarray, shape (N, r)
+        NaN marks a missing sample (g then sees the predicted output C x̂, as the observer's
+        prediction does).
+    X : ndarray, shape (N, n)
+    TH : ndarray, shape (N, p)
+
+    Returns
+    -------
+    ndarray, shape (N, k)
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from thetahat.models import lugre
+    >>> sys_ = lugre.system()
+    >>> phi = phi_hat_from_model(sys_, np.zeros((2, 1)), np.array([[0.0], [np.nan]]),
+    ...                          np.zeros((2, 2)), np.full((2, 1), 0.28))
+    >>> phi.shape, bool(np.isfinite(phi).all())
+    ((2, 1), True)
+    """
+    pert = system.require_perturbation("phi_hat_from_model")
+    gone = missing_samples(Y)
+    Yc = np.where(gone[:, None], X @ system.C.T, Y) if gone.any() else Y
+    V = np.concatenate([U, Yc], axis=1)
+    return np.asarray(pert.g(V, X, TH), dtype=np.float64).reshape(X.shape[0], system.k)
