@@ -20,6 +20,8 @@ Run:  .venv/bin/python benchmarks/run_all.py [--quick] [--out out/bench.json]
 * bench_estimate.py (``--quick``: 10⁵ samples) runs in this process: ``thetahat estimate`` on a
   10⁶-sample LuGre log (warm kernel cache), and the compiled vs Python per-sample cost of
   ``run_estimator``, under ``estimate``.
+* bench_emps.py runs in this process: each method on the measured EMPS record (warm cache)
+  against the benchmark's own IDIM-LS, wall time and real-time factor.
 * bench_cold_start.py (full run only: two first compilations) runs in this process: the time
   of ``import thetahat`` and of a model's first compiled run, under ``cold_start``.
 * bench_scb.py runs as a subprocess (n = 10, 50 with ``--quick``; its defaults otherwise); its
@@ -101,6 +103,9 @@ def main() -> None:
     print("\n=== bench_estimate.py" + (" --samples 100000" if args.quick else ""))
     payload["estimate"] = bench_estimate.main(
         ["--samples", "100000", "--python-samples", "5000"] if args.quick else [])
+    import bench_emps
+    print("\n=== bench_emps.py")
+    payload["emps"] = bench_emps.main([])
     if not args.quick:
         import bench_guarded
         print("\n=== bench_guarded.py")

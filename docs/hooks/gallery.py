@@ -70,6 +70,13 @@ GALLERY: tuple[Entry, ...] = (
           "re-anchored by MAP fits as stage 2, the output kept within the guard's band of "
           "stage 1. θ̂ is within 1 % of α0 = 0.28 after a fraction of a second instead of "
           "about ten."),
+    Entry("emps.png",
+          "thetahat demo emps --out docs/figures",
+          "A real machine: the EMPS benchmark",
+          "θ̂(t) of the paper's estimator, the guarded estimator and the MAP fits on the "
+          "measured EMPS record (Janot, Gautier & Brunot 2019) against the published IDIM-LS "
+          "values ± 3σ, and the closed loop simulated with θ̂ against the measured position "
+          "and force ([Real data: EMPS](real-data-emps.md))."),
     Entry("guarded_crlb.png",
           "python benchmarks/bench_guarded.py --only nominal 'alpha2x0.8(model error)' "
           "--seeds 3 --t-end 10 --no-cost --jobs 1 --figure docs/figures/guarded_crlb.png",
