@@ -35,7 +35,7 @@ from .noise_level import MIN_SAMPLES, estimate_noise_std
 from .protocol import (Diagnostics, EstimateResult, missing_samples, phi_hat_from_model,
                        stream_sample)
 
-__all__ = ["EKFKernels", "ekf_kernels", "JointEKF", "EKFDiagnostics", "EKFResult", "EKFState",
+__all__ = ["start_values", "EKFKernels", "ekf_kernels", "JointEKF", "EKFDiagnostics", "EKFResult", "EKFState",
            "theta_box", "theta_prior_sd", "PRIOR_FRACTION"]
 
 FloatArray = NDArray[np.float64]
@@ -71,6 +71,46 @@ def theta_box(system: PerturbedLinearSystem) -> tuple[FloatArray, FloatArray]:
                                 "Use the paper's observer alone for other parameter sets.")
     return (np.asarray(theta_set.lower, dtype=np.float64),
             np.asarray(theta_set.upper, dtype=np.float64))
+
+
+def start_values(system: PerturbedLinearSystem, x_hat0: Any = None, theta_hat0: Any = None
+                 ) -> tuple[FloatArray, FloatArray]:
+    """(x̂₀, θ̂₀) of the statistical estimators: defaults zeros and the centre of Θ, θ̂₀ in Θ.
+
+    Parameters
+    ----------
+    system : PerturbedLinearSystem
+        With a box Θ.
+    x_hat0 : array_like (n,), optional
+    theta_hat0 : array_like (p,), optional
+
+    Returns
+    -------
+    x_hat0, theta_hat0 : ndarray
+
+    Raises
+    ------
+    ParameterSetError
+        θ̂₀ outside Θ.
+    DimensionError
+        Wrong lengths.
+
+    Examples
+    --------
+    >>> from thetahat.models import lugre
+    >>> from thetahat.estimation.ekf import start_values
+    >>> start_values(lugre.system())[1]
+    array([0.525])
+    """
+    lo, hi = theta_box(system)
+    x0 = (np.zeros(system.n) if x_hat0 is None
+          else as_vector("x_hat0", x_hat0, system.n))
+    th0 = (0.5 * (lo + hi) if theta_hat0 is None
+           else as_vector("theta_hat0", theta_hat0, system.p))
+    if np.any(th0 < lo) or np.any(th0 > hi):
+        raise ParameterSetError(f"theta_hat0 = {th0} lies outside Θ = [{lo}, {hi}]; start the "
+                                "estimate inside Θ.")
+    return x0, th0
 
 
 def theta_prior_sd(system: PerturbedLinearSystem) -> FloatArray:
@@ -454,12 +494,7 @@ class JointEKF:
         """(s0, P0): x̂(0), θ̂(0) (default: zeros, centre of Θ) and the prior covariance."""
         sys_ = self.system
         n, p = sys_.n, sys_.p
-        lo, hi = theta_box(sys_)
-        x0 = np.zeros(n) if x_hat0 is None else as_vector("x_hat0", x_hat0, n)
-        th0 = 0.5 * (lo + hi) if theta_hat0 is None else as_vector("theta_hat0", theta_hat0, p)
-        if np.any(th0 < lo) or np.any(th0 > hi):
-            raise ParameterSetError(f"theta_hat0 = {th0} lies outside Θ = [{lo}, {hi}]; start "
-                                    "the estimate inside Θ.")
+        x0, th0 = start_values(sys_, x_hat0, theta_hat0)
         th_sd = (theta_prior_sd(sys_) if self.theta_sd is None
                  else as_vector("theta_sd", self.theta_sd, p))
         x_sd = np.broadcast_to(np.asarray(self.x_sd, dtype=np.float64), (n,))

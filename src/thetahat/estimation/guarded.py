@@ -31,10 +31,10 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from .._validate import as_vector
 from ..errors import DimensionError, NonFiniteError, OptionError, ThetahatWarning
 from ..model.system import PerturbedLinearSystem
-from .ekf import EKFKernels, JointEKF, as_record, ekf_kernels, resolve_noise_std, theta_box
+from .ekf import (EKFKernels, JointEKF, as_record, ekf_kernels, resolve_noise_std, start_values,
+                  theta_box)
 from .fit_worker import default_executor, discard_default_executor, fit_spec, run_fit, warm_up
 from .guard import (GUARD_C, GUARD_KAPPA, GUARD_RHO_MAX, make_guarded_loop, progress_init)
 from .likelihood import unit_process_noise
@@ -315,11 +315,7 @@ class GuardedEstimator:
         GuardedState
             Stage 1's state and stage 2's start values.
         """
-        sys_ = self.model
-        lo, hi = theta_box(sys_)
-        th0 = 0.5 * (lo + hi) if theta_hat0 is None else as_vector("theta_hat0", theta_hat0,
-                                                                   sys_.p)
-        x0 = np.zeros(sys_.n) if x_hat0 is None else as_vector("x_hat0", x_hat0, sys_.n)
+        x0, th0 = start_values(self.model, x_hat0, theta_hat0)
         s1 = self.stage1.init(x_hat0=x0, theta_hat0=th0)
         return GuardedState(stage1=s1, x_hat0=x0, theta_hat0=th0)
 

@@ -37,7 +37,7 @@ from numpy.typing import NDArray
 
 from ..errors import DimensionError
 from ..model.system import PerturbedLinearSystem
-from .ekf import resolve_noise_std, theta_box, theta_prior_sd
+from .ekf import resolve_noise_std, start_values, theta_box, theta_prior_sd
 from .noise_level import MIN_SAMPLES
 from .model_kernel import H_RHO, ModelKernel, jit, model_kernel
 from .protocol import (Diagnostics, EstimateResult, missing_samples, phi_hat_from_model,
@@ -751,15 +751,7 @@ class MapEstimator:
         ParameterSetError
             θ̂(0) outside Θ.
         """
-        from .._validate import as_vector
-        lo, hi = theta_box(self.system)
-        th0 = 0.5 * (lo + hi) if theta_hat0 is None else as_vector("theta_hat0", theta_hat0,
-                                                                   self.system.p)
-        if np.any(th0 < lo) or np.any(th0 > hi):
-            from ..errors import ParameterSetError
-            raise ParameterSetError(f"theta_hat0 = {th0} lies outside Θ = [{lo}, {hi}].")
-        x0 = (np.zeros(self.system.n) if x_hat0 is None
-              else as_vector("x_hat0", x_hat0, self.system.n))
+        x0, th0 = start_values(self.system, x_hat0, theta_hat0)
         return MapState(x_hat0=x0, theta_hat0=th0, x_hat=x0, theta_hat=th0,
                         theta_sd=theta_prior_sd(self.system))
 
