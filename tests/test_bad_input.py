@@ -1163,3 +1163,17 @@ def test_cli_y_of_1e30_is_a_one_line_error(tmp_path, capsys):
     assert main(["estimate", str(lugre_model), str(data), "-o", str(out), "--no-progress"]) == 2
     err = capsys.readouterr().err
     assert "|y| = 1e+30" in err and "internal error" not in err and not out.exists()
+
+
+@pytest.mark.parametrize("stage1", [None, "paper", 42])
+def test_guarded_estimator_refuses_a_stage1_that_is_not_an_estimator(stage1):
+    from thetahat import GuardedEstimator
+    with pytest.raises(E.ArgumentTypeError, match="stage1 must be an estimator"):
+        GuardedEstimator(stage1=stage1)
+
+
+def test_generate_c_refuses_a_name_that_is_not_a_string():
+    from thetahat import generate_c
+    from thetahat.models import lugre
+    with pytest.raises(E.ArgumentTypeError, match="name must be a string"):
+        generate_c(lugre.observer(), dt=0.01, name=None)

@@ -25,7 +25,7 @@ import numpy as np
 import sympy as sp
 from numpy.typing import ArrayLike, NDArray
 
-from ..errors import FileAccessError, UnsupportedError
+from ..errors import ArgumentTypeError, FileAccessError, UnsupportedError
 from ..estimation.observer import ModifiedHighGainObserver
 from ..estimation.theta_star import ThetaStar
 from ..estimation.update_laws import (INIT_RTOL, ConstantLaw, GradientInversion,
@@ -129,6 +129,9 @@ class CCode:
 
 
 def _c_name(name: str) -> str:
+    if not isinstance(name, str):
+        raise ArgumentTypeError(f"name must be a string (the C identifier's stem, e.g. "
+                                f"'lugre'); got {type(name).__name__}.")
     ident = re.sub(r"\W", "_", name.strip(), flags=re.ASCII).lower()
     if not ident or ident[0].isdigit():
         ident = "obs_" + ident

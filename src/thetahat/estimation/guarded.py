@@ -31,7 +31,8 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from ..errors import DimensionError, NonFiniteError, OptionError, ThetahatWarning
+from ..errors import (ArgumentTypeError, DimensionError, NonFiniteError, OptionError,
+                      ThetahatWarning)
 from ..model.system import PerturbedLinearSystem
 from .ekf import (EKFKernels, JointEKF, as_record, ekf_kernels, resolve_noise_std, start_values,
                   theta_box)
@@ -267,6 +268,19 @@ class GuardedEstimator:
     h_rho: float = H_RHO
     compiled: bool | None = None
     fit_executor: Any = None
+
+    def __post_init__(self) -> None:
+        from .protocol import Estimator
+        if not isinstance(self.stage1, Estimator):
+            raise ArgumentTypeError(
+                f"stage1 must be an estimator with init, step and run (the paper's observer: "
+                f"a ModifiedHighGainObserver, its CompiledObserver or a HeldObserver); got "
+                f"{type(self.stage1).__name__}. For a model file use "
+                "thetahat.modelfile.build_estimator(spec, method='guarded').")
+        if self.system is None and not isinstance(getattr(self.stage1, "system", None),
+                                                  PerturbedLinearSystem):
+            raise ArgumentTypeError("stage 2 needs a model: give system=, or a stage1 with a "
+                                    "PerturbedLinearSystem as its system.")
 
     # ------------------------------------------------------------------ parts
     @property
