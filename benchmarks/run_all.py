@@ -20,6 +20,8 @@ Run:  .venv/bin/python benchmarks/run_all.py [--quick] [--out out/bench.json]
 * bench_estimate.py (``--quick``: 10⁵ samples) runs in this process: ``thetahat estimate`` on a
   10⁶-sample LuGre log (warm kernel cache), and the compiled vs Python per-sample cost of
   ``run_estimator``, under ``estimate``.
+* bench_models.py (full run only; 4 seeds) runs in this process: every shipped model file by
+  every method (paper, guarded, mle, JointEKF), RMSE ÷ √CRLB and median t1%.
 * bench_emps.py runs in this process: each method on the measured EMPS record (warm cache)
   against the benchmark's own IDIM-LS, wall time and real-time factor.
 * bench_cold_start.py (full run only: two first compilations) runs in this process: the time
@@ -111,6 +113,9 @@ def main() -> None:
         print("\n=== bench_guarded.py")
         payload["guarded_scenarios"] = bench_guarded.main(
             ["--seeds", "20", "--figure", str(args.out.with_name("guarded_crlb.png")), *jobs])
+        import bench_models
+        print("\n=== bench_models.py")
+        payload["models"] = bench_models.main(["--seeds", "4"])
         import bench_cold_start
         print("\n=== bench_cold_start.py")
         payload["cold_start"] = bench_cold_start.main([])
