@@ -12,6 +12,8 @@ import thetahat
 from thetahat.estimation.guarded import GuardedEstimator
 from thetahat.modelfile import build_observer, load_model, simulate_model
 
+pytest.importorskip("numba", reason="24 guarded runs take minutes without the compiled "
+                    "kernels (extra speed)")
 EXAMPLES = Path(__file__).resolve().parents[2] / "examples"
 SEEDS = 6
 #: RMSE over the last half of SEEDS runs ÷ √(mean CRLB over the last half, x(0) unknown): the

@@ -71,6 +71,8 @@ def test_last_fit_is_the_map_of_the_record():
 
 @pytest.mark.parametrize("name", MODELS)
 def test_final_estimate_is_efficient(name):
+    pytest.importorskip("numba", reason="32 MAP runs take minutes without the compiled "
+                        "kernels (extra speed)")
     spec = load_model(EXAMPLES / f"{name}.toml")
     sc = spec.scenario
     lo, hi = spec.system.parameter_set.lower, spec.system.parameter_set.upper
@@ -103,6 +105,7 @@ def _time_scaled_prop3(c: float) -> str:
 
 @pytest.mark.parametrize("c", [60.0, 1e-2])     # a process in minutes, one in milliseconds
 def test_mle_is_the_same_at_any_time_scale(c):
+    pytest.importorskip("numba", reason="slow without the compiled kernels (extra speed)")
     from thetahat.modelfile import loads_model
     spec = load_model(EXAMPLES / "prop3.toml")
     d = simulate_model(spec, 4, t_end=10.0)

@@ -84,6 +84,8 @@ def test_an_empty_guard_is_reported():
 
 
 def test_emps_model_error_is_reported():
+    pytest.importorskip("numba", reason="the 24 841-sample filter passes take minutes without "
+                        "the compiled kernels (extra speed)")
     spec = load_model(EXAMPLES / "emps.toml")
     from thetahat.models import emps
     rec = emps.load()

@@ -18,6 +18,8 @@ from thetahat.errors import ThetahatWarning
 from thetahat.modelfile import load_model, run_estimator
 from thetahat.models import emps
 
+pytest.importorskip("numba", reason="the EMPS record's fits take minutes without the "
+                    "compiled kernels (extra speed)")
 ROOT = Path(__file__).resolve().parents[2]
 #: The issue's acceptance: 3 % on M, Fv, Fc; 0.5 N on the offset.
 REL_TOL = 0.03
