@@ -242,8 +242,9 @@ class Box(ParameterSet):
         # box the active set, hence the projection, is the same beyond a finite distance
         m, h = self.interior_point, float(np.max(self.upper - self.lower))
         dist = np.max(np.abs(flat - m), axis=-1, keepdims=True)
-        # (the factor is 1 within FAR_PULL·h: no division by a zero distance at the centre)
-        flat = m + (flat - m) * (FAR_PULL * h / np.maximum(dist, FAR_PULL * h))
+        # (points within FAR_PULL·h stay exactly as they are; the denominator is never 0)
+        scale = FAR_PULL * h / np.maximum(dist, FAR_PULL * h)
+        flat = np.where(dist > FAR_PULL * h, m + (flat - m) * scale, flat)
         LT = L.T
         for i in np.flatnonzero(np.any(flat != out, axis=-1)):
             res = scipy.optimize.lsq_linear(LT, LT @ flat[i], bounds=(self.lower, self.upper),
