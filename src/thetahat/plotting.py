@@ -9,6 +9,7 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from .errors import MissingExtraError
+from .safe_io import atomic_path
 
 
 def _pyplot(show: bool) -> Any:
@@ -78,7 +79,8 @@ def figure_1(t: ArrayLike, y: ArrayLike, x: ArrayLike, x_hat: ArrayLike, theta: 
     fig.tight_layout()
     if path is not None:
         Path(path).parent.mkdir(parents=True, exist_ok=True)
-        fig.savefig(path, dpi=120)
+        with atomic_path(path) as tmp:                   # never a half-written figure
+            fig.savefig(tmp, dpi=120)
     if show:  # pragma: no cover - interactive
         plt.show()
     return fig
@@ -170,7 +172,8 @@ def plot_sweep(result: Any, path: str | Path | None = None, show: bool = False, 
     fig.tight_layout()
     if path is not None:
         Path(path).parent.mkdir(parents=True, exist_ok=True)
-        fig.savefig(path, dpi=120)
+        with atomic_path(path) as tmp:                   # never a half-written figure
+            fig.savefig(tmp, dpi=120)
     if show:  # pragma: no cover - interactive
         plt.show()
     return fig
@@ -279,7 +282,8 @@ def plot_result(result: Any, system: Any, path: str | Path | None = None, *,
     fig.tight_layout()
     if path is not None:
         Path(path).parent.mkdir(parents=True, exist_ok=True)
-        fig.savefig(path, dpi=110)
+        with atomic_path(path) as tmp:                   # never a half-written figure
+            fig.savefig(tmp, dpi=110)
     if show:  # pragma: no cover - interactive
         plt.show()
     return fig

@@ -21,6 +21,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from ..errors import CCompilerError, DimensionError, NonFiniteError, UpdateLawError
+from ..safe_io import write_text
 from .c_api import STATUS as C_STATUS
 from .generate import CCode
 from .harness import C_FLAGS
@@ -127,7 +128,7 @@ def _write_with_shim(code: CCode, out: Path) -> list[str]:
     shim = (_SHIM.replace("@NEXT@", nxt).replace("@FOH@", "1" if foh else "0")
             .replace("@NS@", str(code.sizes["state"])).replace("@PU@", P.upper())
             .replace("@P@", P))
-    (out / f"{P}_shim.c").write_text(shim, encoding="utf-8")
+    write_text(out / f"{P}_shim.c", shim)
     return [f"{P}.c", f"{P}_shim.c"]
 
 

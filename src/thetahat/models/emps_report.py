@@ -21,6 +21,7 @@ from typing import Sequence
 import numpy as np
 from numpy.typing import NDArray
 
+from ..safe_io import atomic_path
 from . import emps
 
 __all__ = ["MODEL_FILE", "METHODS", "EmpsRun", "EmpsReport", "report"]
@@ -148,7 +149,8 @@ def _figure(runs: Sequence[EmpsRun], record: emps.EmpsRecord, path: Path) -> Pat
     ax.set_title("force τ [N]")
     ax.set_xlabel("t [s]")
     ax.legend(fontsize=8)
-    fig.savefig(path, dpi=110)
+    with atomic_path(path) as tmp:                   # never a half-written figure
+        fig.savefig(tmp, dpi=110)
     plt.close(fig)
     return path
 
