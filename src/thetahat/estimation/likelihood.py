@@ -43,7 +43,7 @@ from .ekf import theta_box
 from .model_kernel import H_RHO, ModelKernel, jit, model_kernel
 
 __all__ = ["ProcessNoiseFit", "fit_process_noise", "process_noise_scale", "unit_process_noise",
-           "search_process_noise", "fisher_covariance", "Q_DECADES", "ALTERNATIONS"]
+           "record_bound", "fisher_covariance", "Q_DECADES", "ALTERNATIONS"]
 
 FloatArray = NDArray[np.float64]
 
@@ -356,11 +356,12 @@ def _inverse_information(J: FloatArray) -> FloatArray:
     return np.asarray(cov, dtype=np.float64)
 
 
-def search_process_noise(system: PerturbedLinearSystem, t: FloatArray, U: FloatArray,
-                         Y: FloatArray, *, theta: FloatArray, x_hat0: FloatArray,
-                         x_sd: FloatArray, noise_std: FloatArray, h_rho: float = H_RHO,
-                         compiled: bool | None = None) -> float:
-    """The process-noise intensity q that maximises the likelihood at a fixed θ.
+def record_bound(system: PerturbedLinearSystem, t: FloatArray, U: FloatArray, Y: FloatArray,
+                 *, theta: FloatArray, x_hat0: FloatArray, x_sd: FloatArray,
+                 noise_std: FloatArray, h_rho: float = H_RHO, compiled: bool | None = None
+                 ) -> tuple[float, FloatArray]:
+    """At a fixed θ: the process-noise intensity q the record supports, and θ's Cramér–Rao
+    covariance with it (one filter set-up for both).
 
     Parameters
     ----------
@@ -375,14 +376,17 @@ def search_process_noise(system: PerturbedLinearSystem, t: FloatArray, U: FloatA
 
     Returns
     -------
-    float
-        q̂ ≥ 0 (0 when the output-error model has the larger likelihood).
+    q : float
+        q̂ ≥ 0 maximising the likelihood at θ (0 when the output-error model has the larger).
+    cov : ndarray (p, p)
+        As :func:`fisher_covariance` at (θ, q̂).
     """
     sigma = np.asarray(noise_std, dtype=np.float64)
     pb = _problem(system, t, U, Y, x_hat0, x_sd, sigma, h_rho, compiled)
+    th = np.asarray(theta, dtype=np.float64)
     h_med = float(np.median(np.diff(t))) if t.shape[0] > 1 else 1.0
-    return _search_q(pb, np.asarray(theta, dtype=np.float64),
-                     process_noise_scale(system, h_med, sigma))
+    q = _search_q(pb, th, process_noise_scale(system, h_med, sigma))
+    return q, _covariance(pb, th, q, *theta_box(system))
 
 
 def fisher_covariance(system: PerturbedLinearSystem, t: FloatArray, U: FloatArray,
@@ -412,10 +416,13 @@ def fisher_covariance(system: PerturbedLinearSystem, t: FloatArray, U: FloatArra
     -------
     ndarray (p, p)
     """
-    lo, hi = theta_box(system)
     pb = _problem(system, t, U, Y, x_hat0, x_sd, np.asarray(noise_std, dtype=np.float64),
                   h_rho, compiled)
-    th = np.asarray(theta, dtype=np.float64)
+    return _covariance(pb, np.asarray(theta, dtype=np.float64), q, *theta_box(system))
+
+
+def _covariance(pb: _Problem, th: FloatArray, q: float, lo: FloatArray, hi: FloatArray
+                ) -> FloatArray:
     r0 = pb.residuals(th, q)
     J = np.empty((r0.shape[0], th.shape[0]))
     for i in range(th.shape[0]):

@@ -35,7 +35,7 @@ from numpy.typing import NDArray
 from ..errors import ThetahatError
 from ..model.system import PerturbedLinearSystem
 from .ekf import theta_box
-from .likelihood import fisher_covariance, process_noise_scale, search_process_noise
+from .likelihood import process_noise_scale, record_bound
 from .model_kernel import H_RHO
 from .noise_level import MIN_SAMPLES, estimate_noise_std
 
@@ -198,11 +198,8 @@ def trust_report(system: PerturbedLinearSystem, t: FloatArray, U: FloatArray, Y:
         q0 = process_noise_scale(system, h_med, sigma)
         x_sds = np.full(system.n, float(x_sd))
         try:
-            q = search_process_noise(system, t, U, Y, theta=th, x_hat0=x_hat0, x_sd=x_sds,
-                                     noise_std=sigma, h_rho=h_rho, compiled=compiled)
-            cov = fisher_covariance(system, t, U, Y, theta=th, q=q, x_hat0=x_hat0,
-                                    x_sd=x_sds, noise_std=sigma, h_rho=h_rho,
-                                    compiled=compiled)
+            q, cov = record_bound(system, t, U, Y, theta=th, x_hat0=x_hat0, x_sd=x_sds,
+                                  noise_std=sigma, h_rho=h_rho, compiled=compiled)
             crlb_sd = np.sqrt(np.maximum(np.diag(cov), 0.0))
         except (ThetahatError, ArithmeticError, np.linalg.LinAlgError):
             # the model cannot be evaluated along the record at θ̂ (e.g. g not differentiable
