@@ -48,3 +48,35 @@ def test_method_reproduces_the_published_table(record, method):
     texts = [str(w.message) for w in caught if issubclass(w.category, ThetahatWarning)]
     assert any("model error" in w for w in texts)
     assert res.trust is not None and res.trust.unpinned == ()
+
+
+
+def test_the_published_theta_is_recovered_from_its_closed_loop_simulation(record):
+    # The closed loop simulated with the published θ along DATA_EMPS's reference and the
+    # encoder's quantisation: the truth is known and the model file inexact as on the machine
+    # (sharp sign friction that sticks at q̇ = 0, smoothed as tanh(q̇/v_s) in the file).
+    spec, data = record
+    rec = emps.load(ROOT / "examples" / "data" / "emps" / "DATA_EMPS.mat")
+    pub = emps.PUBLISHED.value
+    q, nu = emps.simulate_closed_loop(pub, rec)
+    dy = np.diff(data.y[:, 0])
+    step = np.min(np.abs(dy[dy != 0]))                  # the encoder's resolution on the record
+    y = (np.round(q / step) * step)[:, None]
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", ThetahatWarning)
+        res = run_estimator(spec, rec.t, emps.G_TAU * nu[:, None], y, method="mle")
+    th = res.theta_hat[-1]
+    assert np.all(np.abs(th[:3] / pub[:3] - 1) < REL_TOL), th
+    assert abs(th[3] - pub[3]) < OFFSET_TOL, th
+
+
+def test_a_constant_disturbance_is_an_offset():
+    # simulate_closed_loop's disturbance acts on the load like the model's offset, with the
+    # opposite sign: the two closed loops are one (the plant is integrated exactly)
+    rec = emps.load(ROOT / "examples" / "data" / "emps" / "DATA_EMPS.mat")
+    pub = emps.PUBLISHED.value
+    shifted = pub + np.array([0.0, 0.0, 0.0, 2.0])
+    q1, nu1 = emps.simulate_closed_loop(shifted, rec)
+    q2, nu2 = emps.simulate_closed_loop(pub, rec, disturbance=np.full(rec.t.size, -2.0))
+    np.testing.assert_allclose(q2, q1, rtol=0, atol=1e-12)    # m; round-off of a 0.3 m stroke
+    np.testing.assert_allclose(nu2, nu1, rtol=0, atol=1e-6)   # V; KP·KV·1e-12 m, amplified

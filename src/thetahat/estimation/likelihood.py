@@ -56,6 +56,11 @@ ALTERNATIONS = 1
 Q_XTOL = 0.1
 #: Relative tolerance of the Gauss–Newton fit of θ (steps and cost).
 FIT_RTOL = 1e-6
+#: θ is fitted with Huber's loss on the normalised innovations, quadratic within ±HUBER_C:
+#: a record of an inexact model carries bursts the Gaussian w does not describe (an unmeasured
+#: force pulse, a slip), which would otherwise pull θ; for innovations that are Gaussian, the
+#: loss costs 0.04 % of efficiency at 3 (Huber's asymptotic efficiency, 0.9996).
+HUBER_C = 3.0
 #: Sample lengths equal to this relative precision share one Q₁(h).
 H_RTOL = 1e-6
 
@@ -327,7 +332,7 @@ def _fit_theta(pb: _Problem, theta0: FloatArray, q: float, lo: FloatArray, hi: F
     inner = np.clip(theta0, lo + 1e-9 * width, hi - 1e-9 * width)
     sol = least_squares(lambda th: pb.residuals(th, q), inner, bounds=(lo, hi),
                         x_scale=width, method="trf", max_nfev=max_nfev, xtol=FIT_RTOL,
-                        ftol=FIT_RTOL)
+                        ftol=FIT_RTOL, loss="huber", f_scale=HUBER_C)
     return np.asarray(sol.x, dtype=np.float64), np.asarray(sol.jac, dtype=np.float64)
 
 

@@ -295,7 +295,8 @@ class EmpsValidation:
                 f"velocity={self.velocity:.4g} %, force={self.force:.4g} %)")
 
 
-def simulate_closed_loop(theta: ArrayLike, record: EmpsRecord) -> tuple[FloatArray, FloatArray]:
+def simulate_closed_loop(theta: ArrayLike, record: EmpsRecord, *,
+                         disturbance: ArrayLike | None = None) -> tuple[FloatArray, FloatArray]:
     """Simulate the EMPS under its PD controller (eqs. 3, 6, 7) along the record's reference.
 
     The controller runs at the record's samples: at t_k it reads q(t_k), forms ν_k by eq. (6)
@@ -309,6 +310,9 @@ def simulate_closed_loop(theta: ArrayLike, record: EmpsRecord) -> tuple[FloatArr
         (M, Fv, Fc, offset) with M > 0, Fv > 0, Fc ≥ 0.
     record : EmpsRecord
         The measured record (its t, q_ref and q_m(0) are used).
+    disturbance : array_like, shape (N,), optional
+        A force (N) acting on the load besides the motor's, held over each sample like τ:
+        the benchmark's cross-test record applies force pulses this way. Default: none.
 
     Returns
     -------
@@ -320,7 +324,16 @@ def simulate_closed_loop(theta: ArrayLike, record: EmpsRecord) -> tuple[FloatArr
     ParameterSetError
         M or Fv not positive, or Fc negative.
     DimensionError
-        theta does not have 4 entries.
+        theta does not have 4 entries, or disturbance is not one number per sample.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from thetahat.models import emps
+    >>> rec = emps.load()
+    >>> q, nu = emps.simulate_closed_loop(emps.PUBLISHED.value, rec)
+    >>> bool(emps.relative_error(rec.y[:, 0], q) < 0.1)        # within 0.1 % of q_m (eq. 11)
+    True
     """
     th = as_vector("theta", theta)
     if th.size != 4:
@@ -331,6 +344,10 @@ def simulate_closed_loop(theta: ArrayLike, record: EmpsRecord) -> tuple[FloatArr
                                 f"and Fc >= 0.")
     t, q_ref = record.t, record.q_ref
     N = t.size
+    push = np.zeros(N) if disturbance is None else as_vector("disturbance", disturbance)
+    if push.size != N:
+        raise DimensionError(f"disturbance: expected one force per sample ({N}); got "
+                             f"{push.size}.")
     q_sim, nu_sim = np.empty(N), np.empty(N)
     x1, x2 = float(record.y[0, 0]), 0.0
     q_prev = q_f_prev = x1
@@ -342,7 +359,8 @@ def simulate_closed_loop(theta: ArrayLike, record: EmpsRecord) -> tuple[FloatArr
         nu_sim[k] = min(SATURATION, max(-SATURATION, nu))
         q_prev, q_f_prev = x1, q_f
         if k + 1 < N:
-            x1, x2 = _slide(x1, x2, G_TAU * nu_sim[k], t[k + 1] - t[k], (M, Fv, Fc, offset))
+            x1, x2 = _slide(x1, x2, G_TAU * nu_sim[k] + push[k], t[k + 1] - t[k],
+                            (M, Fv, Fc, offset))
     return q_sim, nu_sim
 
 
