@@ -190,7 +190,7 @@ def _estimate(args: argparse.Namespace) -> int:
     import warnings
 
     from .datafile import ESTIMATE_SUFFIXES, read_data, write_estimates
-    from .modelfile import load_model, run_estimator
+    from .modelfile import load_model, run_estimator, start_x_hat
     from .progress import reporter
     from .safe_io import atomic_path, check_writable, same_file
     from .studies.information import explain_nonfinite, stuck_parameters
@@ -215,7 +215,8 @@ def _estimate(args: argparse.Namespace) -> int:
                                    method=args.method)
         except (ThetahatError, ArithmeticError, ValueError) as exc:     # LinAlgError too
             raise explain_nonfinite(exc, spec.system, data.t, data.u, data.y,
-                                    spec.estimator.x_hat0, spec.estimator.theta_hat0) from exc
+                                    start_x_hat(spec, data.y), spec.estimator.theta_hat0
+                                    ) from exc
     write_estimates(args.output, result, spec)                         # atomic
     print(f"wrote {args.output} ({data.t.size} rows)")
     notes = [f"{w.category.__name__}: {w.message}" for w in caught]

@@ -46,7 +46,7 @@ from .errors import ArgumentTypeError, MissingExtraError, ModelFileError, Option
 from .estimation.batch_run import run_batch
 from .estimation.records import check_nan_policy
 from .model.paramset import Box
-from .modelfile import (ESTIMATION_METHODS, ModelSpec, build_observer, loads_model,
+from .modelfile import (ESTIMATION_METHODS, ModelSpec, build_observer, loads_model, start_x_hat,
                         run_estimator)
 from .safe_io import atomic_path, check_writable, read_text, same_file
 from .spec import Hold
@@ -341,7 +341,7 @@ def _estimate_one(spec: ModelSpec, path: str, record: tuple[DataRecord, list[str
 
 
 def _explain(exc: BaseException, spec: ModelSpec, rec: DataRecord) -> BaseException:
-    return explain_nonfinite(exc, spec.system, rec.t, rec.u, rec.y, spec.estimator.x_hat0,
+    return explain_nonfinite(exc, spec.system, rec.t, rec.u, rec.y, start_x_hat(spec, rec.y),
                              spec.estimator.theta_hat0)
 
 
@@ -361,7 +361,8 @@ def _estimate_group(spec: ModelSpec, members: list[str],
         warnings.simplefilter("always")
         try:
             obs = build_observer(spec, nan_policy=nan_policy)
-            s0 = obs.init(x_hat0=spec.estimator.x_hat0, theta_hat0=spec.estimator.theta_hat0)
+            s0 = np.stack([obs.init(x_hat0=start_x_hat(spec, records[p][0].y),
+                                    theta_hat0=spec.estimator.theta_hat0) for p in members])
             res = run_batch(obs, t, np.stack([records[p][0].u for p in members]),
                             np.stack([records[p][0].y for p in members]), hold=hold,
                             state0=s0)

@@ -130,6 +130,9 @@ typedef struct {P}_state {{
 
 /* Start at theta_hat0 (in Theta) and x_hat0; NULL for the generated defaults. */
 int {P}_init({P}_state *s, const {P}_real_t theta_hat0[], const {P}_real_t x_hat0[]);
+/* x_hat <- x_hat + C^+ (y - C x_hat) with the first output sample y, after {P}_init: the state
+ * nearest x_hat0 that fits y (thetahat.estimation.initial_state); a y with a NaN keeps x_hat0. */
+int {P}_start_from_y({P}_state *s, const {P}_real_t y[]);
 {step_doc}
 int {P}_step({P}_state *s, const {P}_real_t u[], const {P}_real_t y[]{nxt});
 /* phi_hat = g(v, x_hat, theta_hat) + z (3c) at the current samples. */
@@ -214,6 +217,31 @@ ${INIT_SECOND}    }
         s->s[NX + NK + i] = th[i] < THETA_LOWER[i] ? THETA_LOWER[i]
                             : (th[i] > THETA_UPPER[i] ? THETA_UPPER[i] : th[i]);
     }
+    return ${PU}_OK;
+}
+
+int ${P}_start_from_y(${P}_state *s, const real_t y[])
+{
+    real_t e[NY], d;
+    int i, j;
+    for (j = 0; j < NY; ++j) {
+        if (!isfinite(y[j])) {
+            return ${PU}_OK;
+        }
+    }
+    for (j = 0; j < NY; ++j) {
+        e[j] = y[j];
+        for (i = 0; i < NX; ++i) {
+            e[j] -= OUT_C[j * NX + i] * s->s[i];
+        }
+    }
+    for (i = 0; i < NX; ++i) {
+        d = 0;
+        for (j = 0; j < NY; ++j) {
+            d += OUT_CPINV[i * NY + j] * e[j];
+        }
+        s->s[i] += d;
+${START_SECOND}    }
     return ${PU}_OK;
 }
 
@@ -313,6 +341,7 @@ def source_text(lay: CLayout, banner: str, step: DerivedStep) -> str:
     api = Template(_API).safe_substitute(
         SKIP="1" if lay.skip else "0",
         INIT_SECOND="        s->s[NX + NK + NP + i] = x0[i];\n" if lay.second else "",
+        START_SECOND="        s->s[NX + NK + NP + i] = s->s[i];\n" if lay.second else "",
         NEXT_PARAMS=(",\n" + " " * (len(P) + 10) + "const real_t u_next[], const real_t "
                      "y_next[]") if lay.foh else "",
         STEP_DECL=step_decl, STEP_COPY=step_copy, PHI_DECL=phi_decl, PHI_COPY=phi_copy,

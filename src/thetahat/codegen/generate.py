@@ -36,6 +36,7 @@ from ..estimation.compiled import KernelParts
 from .c_api import CLayout, header_source, source_text
 from .c_derive import derived_step, inwards
 from ..safe_io import write_text
+from ..estimation.initial_state import output_pinv
 from .harness import harness_source, makefile_source
 from .printing import REALS
 
@@ -247,7 +248,8 @@ def model_hash(observer: ModifiedHighGainObserver) -> str:
 def generate_c(observer: ModifiedHighGainObserver, *, dt: float, name: str = "observer",
                real: str = "double", hold: str = "zoh", theta_hat0: ArrayLike | None = None,
                x_hat0: ArrayLike | None = None, eps: float | None = None,
-               model_sha256: str | None = None, title: str | None = None) -> CCode:
+               model_sha256: str | None = None, title: str | None = None,
+               x_hat0_from_y: bool = False) -> CCode:
     """Generate a dependency-free C99 implementation of the observer's step at a fixed dt.
 
     Parameters
@@ -275,6 +277,10 @@ def generate_c(observer: ModifiedHighGainObserver, *, dt: float, name: str = "ob
         line passes the model file's).
     title : str, optional
         Model title for the header comment.
+    x_hat0_from_y : bool
+        The harness starts x̂ at x̂₀ + C⁺(y(0) − C x̂₀) (``<name>_start_from_y`` on its first
+        sample), as :func:`~thetahat.modelfile.start_x_hat` does for a model file's estimators;
+        default False: at x̂₀. The library always offers ``<name>_start_from_y``.
 
     Returns
     -------
@@ -330,7 +336,7 @@ def generate_c(observer: ModifiedHighGainObserver, *, dt: float, name: str = "ob
     if real == "float":
         lower, upper = inwards(lower, upper)
     extra = {"THETA_LOWER": lower, "THETA_UPPER": upper, "THETA_HAT0": th0, "X_HAT0": x0,
-             "INIT_RTOL": INIT_RTOL}
+             "INIT_RTOL": INIT_RTOL, "OUT_C": sysm.C, "OUT_CPINV": output_pinv(sysm.C)}
     step = derived_step(parts, observer.plan(h), prefix=prefix, real=real, foh=lay.foh,
                         skip=lay.skip, dt=h, theta_star=ts, extra=extra)
     word = 8 if real == "double" else 4
@@ -349,7 +355,8 @@ def generate_c(observer: ModifiedHighGainObserver, *, dt: float, name: str = "ob
     names = {"u": [s.name for s in pert.u], "y": [s.name for s in pert.y],
              "x": [s.name for s in pert.x], "theta": [s.name for s in pert.theta]}
     return CCode(name=prefix, real=real, dt=h, header=header, source=source,
-                 main=harness_source(prefix, names, k, real, second is not None, h, lay.foh),
+                 main=harness_source(prefix, names, k, real, second is not None, h, lay.foh,
+                                     start_from_y=x_hat0_from_y),
                  makefile=makefile_source(prefix), state_bytes=lay.size * word,
                  const_bytes=step.const_count * word,
                  sizes={"n": n, "m": m, "r": r, "k": k, "p": p, "state": lay.size},
@@ -450,4 +457,4 @@ def generate_c_from_model(path: str | Path, *, dt: float, eps: float | None = No
     return generate_c(observer, dt=dt, name=name or Path(path).stem, real=real, hold=hold,
                       theta_hat0=spec.estimator.theta_hat0, x_hat0=spec.estimator.x_hat0,
                       eps=spec.estimator.eps if eps is None else eps, model_sha256=digest,
-                      title=spec.name)
+                      title=spec.name, x_hat0_from_y=spec.estimator.x_hat0_from_y)

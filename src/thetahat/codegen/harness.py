@@ -372,6 +372,11 @@ int main(int argc, char **argv)
             }
             y[i] = (real_t)value;
         }
+#if @START@
+        if (rows == 0) {
+            @P@_start_from_y(&state, y);
+        }
+#endif
 #if @FOH@
         if (rows > 0) {     /* first-order hold: the step from the previous row to this one */
             status = @P@_phi_hat(&state, u_prev, y_prev, phi);
@@ -426,7 +431,7 @@ int main(int argc, char **argv)
 
 
 def harness_source(prefix: str, names: dict[str, list[str]], k: int, real: str, second: bool,
-                   dt: float, foh: bool = False) -> str:
+                   dt: float, foh: bool = False, *, start_from_y: bool = False) -> str:
     """Source of ``<prefix>_main.c`` (see the module docstring).
 
     Parameters
@@ -445,6 +450,9 @@ def harness_source(prefix: str, names: dict[str, list[str]], k: int, real: str, 
     foh : bool
         The step takes the next samples (first-order hold): each row is printed when the
         next one has been read.
+    start_from_y : bool
+        Call ``<prefix>_start_from_y`` with the first row's outputs (x̂(0) = x̂₀ + C⁺(y(0) −
+        C x̂₀), as the model file's estimators start).
 
     Returns
     -------
@@ -473,6 +481,7 @@ def harness_source(prefix: str, names: dict[str, list[str]], k: int, real: str, 
                        ("@DT_RTOL@", repr(DT_RTOL)), ("@DT@", repr(float(dt))),
                        ("@DIGITS@", "17" if real == "double" else "9"),
                        ("@FOH@", "1" if foh else "0"),
+                       ("@START@", "1" if start_from_y else "0"),
                        ("@PU@", prefix.upper()), ("@P@", prefix)):
         text = text.replace(key, value)
     return text

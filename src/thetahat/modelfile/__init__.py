@@ -7,7 +7,7 @@ format is documented there), :mod:`.assembly` builds and runs the estimator it d
 """
 
 from .assembly import (auto_gamma, build_estimator, build_observer, design_gains,
-                       design_matrices, estimator_spec, run_estimator)
+                       design_matrices, estimator_spec, run_estimator, start_x_hat)
 from .report import ModelAnalysis, analyze_model
 from .schema import (ESTIMATION_METHODS, EXAMPLE_MODEL, LAWS, EstimatorOptions, ModelSpec,
                      ScenarioOptions, SecondObserverOptions, load_model, loads_model)
@@ -18,4 +18,4 @@ __all__ = ["auto_gamma", "ESTIMATION_METHODS", "EXAMPLE_MODEL", "LAWS", "Estimat
            "ModelSpec", "ScenarioOptions", "SecondObserverOptions", "analyze_model",
            "build_estimator", "build_observer", "design_gains", "design_matrices",
            "estimator_spec", "load_model",
-           "loads_model", "run_estimator", "simulate_model", "study_simulator"]
+           "loads_model", "run_estimator", "simulate_model", "start_x_hat", "study_simulator"]

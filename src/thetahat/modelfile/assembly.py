@@ -22,6 +22,7 @@ from ..design.gains import GainDesign
 from ..errors import (ModelFileError, NotMinimumPhaseError, ThetahatError, ThetahatWarning,
                       UnstableDesignError)
 from ..estimation.checks import check_theta_star
+from ..estimation.initial_state import x_hat_from_output
 from ..estimation.observer import HeldObserver, ModifiedHighGainObserver
 from ..estimation.protocol import EstimateResult, Estimator
 from ..model.system import PerturbedLinearSystem
@@ -32,7 +33,7 @@ if TYPE_CHECKING:
     from ..estimation.trust import TrustReport
 
 __all__ = ["auto_gamma", "build_estimator", "build_observer", "design_gains",
-           "design_matrices", "estimator_spec", "run_estimator"]
+           "design_matrices", "estimator_spec", "run_estimator", "start_x_hat"]
 
 FloatArray = NDArray[np.float64]
 
@@ -381,17 +382,51 @@ def run_estimator(spec: ModelSpec, t: ArrayLike, u: ArrayLike | None, y: ArrayLi
             gamma = auto_gamma(spec, t, u, y, hold=hold)
     est = build_estimator(spec, method=how, hold=hold, nan_policy=nan_policy,
                           compiled=compiled, progress=progress, Gamma=gamma)
-    x0, th0 = spec.estimator.x_hat0, spec.estimator.theta_hat0
+    x0, th0 = start_x_hat(spec, y), spec.estimator.theta_hat0
     result = est.run(t, u, y, state0=est.init(x_hat0=x0, theta_hat0=th0))
     if not diagnose:
         return result
     from ..estimation.guarded import GuardedDiagnostics
     d = result.diagnostics
     band = d.band if isinstance(d, GuardedDiagnostics) else None
-    report = _trust(spec, result, u, y, band, compiled)
+    report = _trust(spec, result, u, y, band, compiled, x0)
     for text in report.warnings:
         warnings.warn(text, ThetahatWarning, stacklevel=2)
     return dataclasses.replace(result, trust=report)
+
+
+def start_x_hat(spec: ModelSpec, y: ArrayLike) -> FloatArray:
+    """x̂(0) of a model file's estimators on a record: x̂₀ + C⁺(y(0) − C x̂₀), or x̂₀.
+
+    :func:`~thetahat.estimation.initial_state.x_hat_from_output` of the first sample with the
+    file's ``x_hat0`` as the prior, unless the file sets ``x_hat0_from_y = false``. Every
+    method, :func:`run_estimator`, ``thetahat estimate`` and ``fleet`` and the generated C
+    harness start there.
+
+    Parameters
+    ----------
+    spec : ModelSpec
+    y : array_like, shape (N, r)
+        The record's outputs (only y(0) is read).
+
+    Returns
+    -------
+    ndarray, shape (n,)
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from thetahat.modelfile import EXAMPLE_MODEL, loads_model, start_x_hat
+    >>> spec = loads_model(EXAMPLE_MODEL)                   # C = [1, 0], x_hat0 = 0
+    >>> start_x_hat(spec, np.array([[0.3], [0.4]])).tolist()
+    [0.3, 0.0]
+    """
+    est = spec.estimator
+    if not est.x_hat0_from_y:
+        return np.array(est.x_hat0, dtype=np.float64)
+    C = spec.system.C
+    Y = np.asarray(y, dtype=np.float64).reshape(-1, C.shape[0])
+    return x_hat_from_output(C, Y[0], est.x_hat0)
 
 
 def auto_gamma(spec: ModelSpec, t: ArrayLike, u: ArrayLike | None, y: ArrayLike, *,
@@ -443,7 +478,7 @@ def auto_gamma(spec: ModelSpec, t: ArrayLike, u: ArrayLike | None, y: ArrayLike,
     obs = _build(held, spec, None)
     from ..estimation.compiled import runner
     first = runner(obs, t).run(t, u, y, hold=hold,
-                               state0=obs.init(x_hat0=spec.estimator.x_hat0, theta_hat0=th0))
+                               state0=obs.init(x_hat0=start_x_hat(spec, y), theta_hat0=th0))
     N = first.t.shape[0]
     U = np.zeros((N, 0)) if u is None else np.asarray(u, dtype=np.float64).reshape(N, -1)
     Y = np.asarray(y, dtype=np.float64).reshape(N, -1)
@@ -464,7 +499,7 @@ def _check_theta_star(spec: ModelSpec, t: ArrayLike, u: ArrayLike | None, y: Arr
 
 
 def _trust(spec: ModelSpec, result: EstimateResult, u: ArrayLike | None, y: ArrayLike,
-           band: FloatArray | None, compiled: bool | None) -> TrustReport:
+           band: FloatArray | None, compiled: bool | None, x0: FloatArray) -> TrustReport:
     """The trust report of a run of the file's estimator on its record."""
     from ..estimation.trust import trust_report
     N = result.t.shape[0]
@@ -472,4 +507,4 @@ def _trust(spec: ModelSpec, result: EstimateResult, u: ArrayLike | None, y: Arra
     Y = np.asarray(y, dtype=np.float64).reshape(N, -1)
     return trust_report(spec.system, result.t, np.ascontiguousarray(U),
                         np.ascontiguousarray(Y), result.theta_hat[-1], spec.parameter_names,
-                        x_hat0=spec.estimator.x_hat0, band=band, compiled=compiled)
+                        x_hat0=x0, band=band, compiled=compiled)

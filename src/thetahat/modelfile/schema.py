@@ -24,7 +24,10 @@ A model file (TOML, read with :mod:`tomllib`, or JSON with the same structure) h
     −1, −2, …), ``b_poles``, ``Gamma`` (number, p × p or ``"auto"``; default ``"auto"`` for
     the gradient law — :mod:`~thetahat.estimation.auto_gain` — and 1 for the inversion
     laws), ``theta_hat0``
-    (default: the centre of Θ), ``x_hat0`` (default 0), ``theta_star`` (algebraic and
+    (default: the centre of Θ), ``x_hat0`` (default 0: the prior of x̂(0)), ``x_hat0_from_y``
+    (default true: every method starts at x̂(0) = x̂₀ + C⁺(y(0) − C x̂₀), the state nearest
+    x̂₀ that fits the record's first sample, :func:`~thetahat.estimation.initial_state.
+    x_hat_from_output`; false: at x̂₀), ``theta_star`` (algebraic and
     intermittent laws: θ*(v, x, φ) as a string or list of p strings, in the names of u, y, x
     and ``phi`` (k = 1) or ``phi1``, …, ``phik``; default: solved from g with SymPy),
     ``excitation`` (intermittent law, required: ``[low, high]`` thresholds on ‖φ̂‖),
@@ -114,7 +117,7 @@ _PERTURBATION_KEYS = ("g", "u", "y", "x", "theta", "constants")
 _BOX_KEYS = ("lower", "upper")
 _ESTIMATOR_KEYS = ("method", "law", "eps", "chain_poles", "b_poles", "Gamma", "theta_hat0",
                    "x_hat0", "theta_star", "excitation", "on_invalid", "A_design", "E_design",
-                   "second", "allow_nonminimum_phase")
+                   "second", "allow_nonminimum_phase", "x_hat0_from_y")
 #: The values of ``[estimator] method``: the paper's estimator, the two-stage guarded one, the
 #: offline MAP fits.
 ESTIMATION_METHODS = ("paper", "guarded", "mle", "ekf")
@@ -375,6 +378,8 @@ class EstimatorOptions:
     second : SecondObserverOptions or None
     allow_nonminimum_phase : bool
         Design even when Assumption 1 fails (the explicit opt-out; default False).
+    x_hat0_from_y : bool
+        Start x̂ at x̂₀ + C⁺(y(0) − C x̂₀) on a record (default True), else at x̂₀.
     gamma_auto : bool
         ``Gamma = "auto"`` (the gradient law's default): Γ is chosen on the record by
         :func:`~thetahat.estimation.auto_gain.information_gain` when the estimator runs;
@@ -394,6 +399,7 @@ class EstimatorOptions:
     allow_nonminimum_phase: bool = False
     method: str = "paper"
     gamma_auto: bool = False
+    x_hat0_from_y: bool = True
 
     def __repr__(self) -> str:
         method = "" if self.method == "paper" else f"method={self.method!r}, "
@@ -649,6 +655,9 @@ def _read_estimator(sec: _Section, system: PerturbedLinearSystem, pert: Symbolic
     if not isinstance(allow_nmp, bool):
         raise sec.fail("allow_nonminimum_phase", f"expected true or false; got "
                                                  f"{_show(allow_nmp)}.")
+    from_y = sec.table.get("x_hat0_from_y", True)
+    if not isinstance(from_y, bool):
+        raise sec.fail("x_hat0_from_y", f"expected true or false; got {_show(from_y)}.")
     for arr in (theta_hat0, x_hat0, A_d, E_d):
         if arr is not None:
             arr.setflags(write=False)
@@ -657,7 +666,7 @@ def _read_estimator(sec: _Section, system: PerturbedLinearSystem, pert: Symbolic
                             b_poles=sec.poles("b_poles", nested=False),
                             theta_hat0=theta_hat0, x_hat0=x_hat0, A_design=A_d, E_design=E_d,
                             second=second, allow_nonminimum_phase=allow_nmp,
-                            method=method, gamma_auto=gamma_auto)
+                            method=method, gamma_auto=gamma_auto, x_hat0_from_y=from_y)
 
 
 def _scenario_input(sec: _Section, m: int) -> tuple[FloatArray, FloatArray]:
