@@ -659,3 +659,22 @@ def test_foh_step_takes_the_next_samples_and_matches_python(tmp_path):
     np.testing.assert_allclose(s[:2], ref.x_hat[1], rtol=DOUBLE_RTOL)
     with pytest.raises(DimensionError, match="hold='foh'"):
         c.step(s, u[0], y[0])
+
+
+def test_harness_starts_from_the_first_sample_as_python(tmp_path):
+    """A record that begins in motion (prop3's scenario cut at y(0) = 3.75, x̂₀ = 0): the
+    harness's first sample sets x̂(0) = x̂₀ + C⁺(y(0) − C x̂₀) as ``thetahat estimate`` does."""
+    from thetahat.modelfile import simulate_model
+
+    path = EXAMPLES / "prop3.toml"
+    spec = load_model(path)
+    d = simulate_model(spec, 0)
+    s = slice(779, 779 + int(PROP_T_END * 100))
+    t, u, y = d.t[s] - d.t[s.start], d.u[s], d.y[s]
+    exe = build_harness(generate_c_from_model(path, dt=0.01), tmp_path / "c")
+    code, table, _, err = run_harness(exe, write_csv(tmp_path / "d.csv", t, u, y))
+    assert code == 0, err
+    ref = run_estimator(spec, t, u, y, diagnose=False)
+    assert table[0, 1] == pytest.approx(y[0, 0], rel=1e-15) and abs(y[0, 0]) > 3.0
+    expected = np.c_[ref.t, ref.x_hat, ref.phi_hat, ref.theta_hat, ref.x_hat_refined]
+    assert rel_err(table, expected) <= DOUBLE_RTOL
