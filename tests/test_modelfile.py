@@ -13,6 +13,7 @@ import pytest
 from thetahat import simulate_plant
 from thetahat.errors import ModelFileError
 from thetahat.datafile import estimate_columns, read_data
+from thetahat.estimation.initial_state import x_hat_from_output
 from thetahat.modelfile import (
     EXAMPLE_MODEL,
     analyze_model,
@@ -59,7 +60,8 @@ def test_lugre_file_builds_the_papers_observer(lugre_spec):
     data = lugre.simulate(seed=3, t_end=1.5)
     ours = run_estimator(lugre_spec, data.t, data.u, data.y)
     ref_obs = lugre.observer()
-    ref = ref_obs.run(data.t, data.u, data.y, state0=ref_obs.init(theta_hat0=[0.5]))
+    x0 = x_hat_from_output(ref_obs.system.C, data.y[0])   # the file's start: x̂₀ = 0 + C⁺y(0)
+    ref = ref_obs.run(data.t, data.u, data.y, state0=ref_obs.init(x_hat0=x0, theta_hat0=[0.5]))
     for name in ("x_hat", "phi_hat", "theta_hat", "x_hat_refined"):
         np.testing.assert_allclose(getattr(ours, name), getattr(ref, name),
                                    rtol=SAME_OBSERVER_RTOL, atol=0, err_msg=name)
