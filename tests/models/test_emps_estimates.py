@@ -24,6 +24,14 @@ ROOT = Path(__file__).resolve().parents[2]
 #: The issue's acceptance: 3 % on M, Fv, Fc; 0.5 N on the offset.
 REL_TOL = 0.03
 OFFSET_TOL = 0.5
+#: A record that begins in motion: DATA_EMPS from this sample on, t restarted at 0; q(0) is
+#: 0.18 m from x̂₀ = 0, so the estimators start at x̂₀ + C⁺(y(0) − C x̂₀) (x_hat0_from_y).
+CUT = 9000
+#: The paper's method (constant-gain gradient law, Γ = "auto") ends at M −7.4 % on the whole
+#: record and −5.8 % on the cut one: issue 19's 3 % does not hold for it yet (strict: a fix
+#: shows up as XPASS and this mark must go).
+PAPER_OPEN = pytest.mark.xfail(strict=True, reason="the paper's constant-gain law fits the "
+                               "record's tail (docs/real-data-emps.md)")
 
 
 @pytest.fixture(scope="module")
@@ -33,16 +41,33 @@ def record():
     return spec, data
 
 
-@pytest.mark.parametrize("method", ["mle", "guarded"])
+def assert_published(th):
+    pub = emps.PUBLISHED.value
+    assert np.all(np.abs(th[:3] / pub[:3] - 1) < REL_TOL), th
+    assert abs(th[3] - pub[3]) < OFFSET_TOL, th
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("method", ["mle", "guarded", pytest.param("paper", marks=PAPER_OPEN)])
+def test_record_that_begins_in_motion(record, method):
+    spec, data = record
+    t, u, y = data.t[CUT:] - data.t[CUT], data.u[CUT:], data.y[CUT:]
+    assert abs(y[0, 0]) > 0.1                                       # m, far from C x̂₀ = 0
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        res = run_estimator(spec, t, u, y, method=method, diagnose=False)
+    assert_published(res.theta_hat[-1])
+    lo, hi = spec.system.parameter_set.lower, spec.system.parameter_set.upper
+    assert np.all((res.theta_hat >= lo) & (res.theta_hat <= hi))
+
+
+@pytest.mark.parametrize("method", ["mle", "guarded", pytest.param("paper", marks=PAPER_OPEN)])
 def test_method_reproduces_the_published_table(record, method):
     spec, data = record
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         res = run_estimator(spec, data.t, data.u, data.y, method=method)
-    th = res.theta_hat[-1]
-    pub = emps.PUBLISHED.value
-    assert np.all(np.abs(th[:3] / pub[:3] - 1) < REL_TOL), th
-    assert abs(th[3] - pub[3]) < OFFSET_TOL, th
+    assert_published(res.theta_hat[-1])
     lo, hi = spec.system.parameter_set.lower, spec.system.parameter_set.upper
     assert np.all((res.theta_hat >= lo) & (res.theta_hat <= hi))
     texts = [str(w.message) for w in caught if issubclass(w.category, ThetahatWarning)]
