@@ -278,7 +278,7 @@ def _spec(text: str, syntax: str, source: str) -> ModelSpec:
 
 def _summary(spec: ModelSpec, t: FloatArray, theta_hat: FloatArray) -> dict[str, Any]:
     row: dict[str, Any] = {"n_samples": int(t.size), "t_end": float(t[-1])}
-    lower, upper = theta_bounds(spec.system.parameter_set)   # Θ's bounding box (any set)
+    lower, upper = theta_bounds(spec.system.require_parameter_set("the fleet summary"))   # Θ's bounding box (any set)
     half_width = (upper - lower) / 2
     N = t.size
     tail = theta_hat[N - max(SE_BATCHES, int(TAIL_FRACTION * N)):]

@@ -71,7 +71,7 @@ def theta_box(system: PerturbedLinearSystem) -> tuple[FloatArray, FloatArray]:
     >>> [b.tolist() for b in theta_box(lugre.system())]
     [[0.05], [1.0]]
     """
-    return theta_bounds(system.parameter_set)
+    return theta_bounds(system.require_parameter_set("stage 2"))
 
 
 def start_values(system: PerturbedLinearSystem, x_hat0: Any = None, theta_hat0: Any = None
@@ -104,7 +104,7 @@ def start_values(system: PerturbedLinearSystem, x_hat0: Any = None, theta_hat0: 
     >>> start_values(lugre.system())[1]
     array([0.525])
     """
-    theta_set = system.parameter_set
+    theta_set = system.require_parameter_set("stage 2")
     x0 = (np.zeros(system.n) if x_hat0 is None
           else as_vector("x_hat0", x_hat0, system.n))
     th0 = (np.array(theta_set.interior_point, dtype=np.float64) if theta_hat0 is None
@@ -395,7 +395,7 @@ def ekf_kernels(system: PerturbedLinearSystem, *, compiled: bool | None = None) 
     >>> bool(P[0, 0] < 4e-4)           # the measurement of ω shrank its variance below R
     True
     """
-    theta_set = system.parameter_set
+    theta_set = system.require_parameter_set("stage 2")
     if has_compiled_projection(theta_set):
         return _cached(model_kernel(system, compiled=compiled))
     if compiled:
@@ -610,7 +610,7 @@ class JointEKF:
                 sigma = resolve_noise_std(None, y_first)
         nis = math.nan
         if sigma is not None and np.all(np.isfinite(y_)):
-            ts = stage2_set(sys_.parameter_set)
+            ts = stage2_set(sys_.require_parameter_set("stage 2"))
             nis = float(k.update(s, P, y_, np.diag(sigma ** 2), ts.lo, ts.hi, ts.ell))
         if not np.all(np.isfinite(s)):
             raise NonFiniteError(f"the EKF diverged at sample {state.k}; check the model and "
@@ -665,7 +665,7 @@ class JointEKF:
         P = np.array(st.P, dtype=np.float64, order="C")
         if P0 is not None:
             P = np.array(P0, dtype=np.float64).reshape(n + p, n + p)
-        ts = stage2_set(sys_.parameter_set)
+        ts = stage2_set(sys_.require_parameter_set("stage 2"))
         k = self.kernels
         if st.k > 0 and st.u_prev is not None:
             k.predict(s, P, np.array(st.u_prev, dtype=np.float64), U[0].copy(), st.dt_prev,

@@ -379,7 +379,7 @@ class GuardedEstimator:
         R = np.diag(sigma ** 2)
         s, P0 = self._ekf().prior(st0.x_hat0, st0.theta_hat0)
         P = P0.copy()
-        ts = stage2_set(sys_.parameter_set)
+        ts = stage2_set(sys_.require_parameter_set("stage 2"))
         lo, hi, ell = ts.lo, ts.hi, ts.ell
         out = {name: np.empty((N, w)) for name, w in
                (("TH", p), ("TH2", p), ("X2", n), ("SD2", p), ("BAND", p))}
@@ -573,7 +573,7 @@ class _Stream:
         self.s, self.P0 = est._ekf().prior(state.x_hat0, state.theta_hat0)
         self.P = self.P0.copy()
         self.Q_x = est.q_x * np.eye(n)
-        ts = stage2_set(sys_.parameter_set)
+        ts = stage2_set(sys_.require_parameter_set("stage 2"))
         self.lo, self.hi, self.ell = ts.lo, ts.hi, ts.ell
         given = est.noise_std is not None
         self.R = (np.diag(resolve_noise_std(est.noise_std, np.zeros((1, sys_.r))) ** 2)

@@ -493,7 +493,7 @@ def fit_process_noise(system: PerturbedLinearSystem, t: FloatArray, U: FloatArra
     >>> bool(abs(fit.theta[0] - 1.2) < 4 * fit.theta_se[0])
     True
     """
-    theta_set = system.parameter_set
+    theta_set = system.require_parameter_set("stage 2")
     sigma = np.asarray(noise_std, dtype=np.float64)
     pb = _problem(system, t, U, Y, x_hat0, x_sd, sigma, h_rho, compiled)
     h_med = float(np.median(np.diff(t))) if t.shape[0] > 1 else 1.0

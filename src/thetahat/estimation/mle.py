@@ -9,10 +9,10 @@ sensitivities ψ_k = C ∂x_k/∂q chained through the same map's exact Jacobian
 (Σ ψᵀR⁻¹ψ + Π⁻¹) Δ = Σ ψᵀR⁻¹ r − Π⁻¹(q − q̄), solved after Jacobi scaling by a symmetric
 eigendecomposition (directions the data and the prior do not determine are left alone); the
 step is halved until J decreases; θ is projected onto Θ after each step (projected
-Gauss–Newton: the projection of :mod:`~thetahat.estimation.stage2_set` in the norm of the
-step's own covariance of θ, M⁻¹ restricted to θ — a clip for a box, the exact weighted
-projection for a ball or ellipsoid, :meth:`~thetahat.model.paramset.ConvexSet.nearest` for a
-general convex set; each trial point is feasible and J decreases, so the iteration is a
+Gauss–Newton: the projection of :mod:`~thetahat.estimation.stage2_set` in the norm weighted
+by the inverse of the step's marginal covariance of θ, ((M⁻¹)_θθ)⁻¹ — a clip for a box, the
+exact weighted projection for a ball or ellipsoid,
+:meth:`~thetahat.model.paramset.ConvexSet.nearest` for a general convex set; each trial point is feasible and J decreases, so the iteration is a
 descent method on Θ); the iteration stops when |Δθ| falls below :data:`STEP_TOL` standard
 errors or after ``max_iter`` iterations.
 
@@ -258,7 +258,7 @@ def fit_map(system: PerturbedLinearSystem, t: FloatArray, U: FloatArray, Y: Floa
     sweep = _sweep_for(model)
     n, p = system.n, system.p
     nq = n + p
-    theta_set = system.parameter_set
+    theta_set = system.require_parameter_set("stage 2")
     Rinv = 1.0 / noise_std ** 2
     A, b, T = np.empty((nq, nq)), np.empty(nq), np.empty((n, nq))
     X = np.empty((k1 - k0, n))

@@ -209,7 +209,8 @@ def trust_report(system: PerturbedLinearSystem, t: FloatArray, U: FloatArray, Y:
             q = 0.0
     unpinned = tuple(n for n, sd, w in zip(names_, crlb_sd, width)
                      if not np.isnan(sd) and not (sd < UNPINNED_FRACTION * w))
-    on_bnd = tuple(n for n, flag in zip(names_, on_boundary(system.parameter_set, th)) if flag)
+    flags = on_boundary(system.require_parameter_set("trust_report"), th)
+    on_bnd = tuple(n for n, flag in zip(names_, flags) if flag)
     empty = None
     if band is not None:
         B = np.asarray(band, dtype=np.float64).reshape(-1, th.shape[0])

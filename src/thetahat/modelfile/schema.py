@@ -650,7 +650,7 @@ def _read_estimator(sec: _Section, system: PerturbedLinearSystem, pert: Symbolic
                     parsed: dict[str, Any]) -> EstimatorOptions:
     sec.check_keys(_ESTIMATOR_KEYS)
     n, k, p = system.n, system.k, system.p
-    law, update_law, gamma_auto = _read_law(sec, pert, system.parameter_set, parsed)
+    law, update_law, gamma_auto = _read_law(sec, pert, system.require_parameter_set("[estimator]"), parsed)
     method = sec.table.get("method", "paper")
     if method not in ESTIMATION_METHODS:
         raise sec.fail("method", f"unknown method {_show(method)}; expected one of "
