@@ -27,6 +27,13 @@ __all__ = ["Status", "MESSAGES", "status_constants"]
 class Status(IntEnum):
     """Status codes of the step in every back end (Python, numba, C).
 
+    Parameters
+    ----------
+    value : int
+        A code: ``Status(6)`` is ``Status.SINGULAR``.
+    kwds : dict
+        Passed on by Python's Enum machinery; not used.
+
     Examples
     --------
     >>> from thetahat.estimation.status import Status
