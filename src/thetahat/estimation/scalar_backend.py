@@ -425,7 +425,9 @@ def kernel_source(pert: SymbolicPerturbation, theta_star: tuple[sp.Expr, ...] | 
         *(f"{name} = {code}" for name, code in status_constants().items()),
         f"USER_M = {M is not None}"]
     parts = ["\n".join(header)]
-    parts += [_source(fn, name, _INLINE)
+    # solve returns a status, so it is not expanded in place (_EXPANDED): numba inlines it
+    # like the formulas instead (a call per step costs ~60 % of the LuGre step)
+    parts += [_source(fn, name, form if name == "solve" else _INLINE)
               for name, fn in scalar_primitives.SCALAR_PRIMITIVES.items()]
     parts.append(model_source(pert, theta_star, ts_args))
     if M is not None:
