@@ -232,3 +232,18 @@ def test_project_theta_in_a_covariance_metric_moves_the_uncertain_component():
     th = project_theta(ell, [1.0, 1.0], cov=np.diag([1.0, 1e-4]))
     assert bool(ell.contains(th))
     assert abs(1.0 - th[1]) < 1e-2 < abs(1.0 - th[0])      # θ₂ is pinned, θ₁ gives way
+
+
+def test_joint_ekf_compiled_and_python_agree_on_a_ball(records):
+    pytest.importorskip("numba")
+    _, _, outside, _ = CASES["two_inertia"]
+    system = _spec("two_inertia", outside).system      # the truth outside: projections act
+    d = records["two_inertia"]
+    N = 600
+    runs = [JointEKF(system=system, compiled=c).run(d.t[:N], d.u[:N], d.y[:N])
+            for c in (False, True)]
+    for res in runs:
+        _check_in_theta(system.parameter_set, res.theta_hat)
+    # the same arithmetic in both (numba's and Python's float64), rounding only
+    np.testing.assert_allclose(runs[0].theta_hat, runs[1].theta_hat, rtol=1e-9, atol=1e-12)
+    assert bool(np.any(on_boundary(system.parameter_set, runs[1].theta_hat[-1])))
