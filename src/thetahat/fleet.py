@@ -45,7 +45,7 @@ from .engine import run_keyed
 from .errors import ArgumentTypeError, MissingExtraError, ModelFileError, OptionError
 from .estimation.batch_run import run_batch
 from .estimation.records import check_nan_policy
-from .model.paramset import Box
+from .estimation.stage2_set import theta_bounds
 from .modelfile import (ESTIMATION_METHODS, ModelSpec, build_observer, loads_model, start_x_hat,
                         run_estimator)
 from .safe_io import atomic_path, check_writable, read_text, same_file
@@ -278,8 +278,8 @@ def _spec(text: str, syntax: str, source: str) -> ModelSpec:
 
 def _summary(spec: ModelSpec, t: FloatArray, theta_hat: FloatArray) -> dict[str, Any]:
     row: dict[str, Any] = {"n_samples": int(t.size), "t_end": float(t[-1])}
-    box = cast(Box, spec.system.parameter_set)        # a model file's Θ is always a Box
-    half_width = (np.asarray(box.upper) - np.asarray(box.lower)) / 2
+    lower, upper = theta_bounds(spec.system.require_parameter_set("the fleet summary"))   # Θ's bounding box (any set)
+    half_width = (upper - lower) / 2
     N = t.size
     tail = theta_hat[N - max(SE_BATCHES, int(TAIL_FRACTION * N)):]
     means = np.array([b.mean(axis=0) for b in np.array_split(tail, SE_BATCHES)])

@@ -17,6 +17,7 @@ from thetahat.codegen.loader import find_compiler
 from thetahat.errors import UnsupportedError
 from thetahat.estimation import scalar_primitives
 from thetahat.estimation.scalar_backend import rewritten
+from thetahat.estimation.status import status_constants
 
 #: A pivoted elimination printed as C against LAPACK's, relative to the solution's norm:
 #: rounding only (different pivot arithmetic order), 1e-12 is ~1e4 ulps on these
@@ -65,7 +66,8 @@ def test_printed_solve_agrees_with_lapack(tmp_path):
     if find_compiler() is None:
         pytest.skip("no C compiler (cc or $CC)")
     q = 5
-    unit = CUnit({"solve": rewritten(scalar_primitives.solve).body[0]}, {},
+    unit = CUnit({"solve": rewritten(scalar_primitives.solve).body[0]},
+                 {k: Const(v) for k, v in status_constants().items()},
                  lambda name, args: None, "double")
     fn = unit.call("solve", [Const(q), Arr("M", (q, q)), Arr("rhs", (q,))])
     src = tmp_path / "solve.c"

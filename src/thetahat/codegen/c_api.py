@@ -12,26 +12,15 @@ import re
 from dataclasses import dataclass
 from string import Template
 
+from ..estimation.status import MESSAGES, Status
 from .c_derive import DerivedStep
 
 __all__ = ["STATUS", "CLayout", "header_source", "source_text"]
 
 #: Status codes of the generated functions (``<NAME>_OK``, ``<NAME>_ERR_…``), by name, with
-#: their message. The formulas' codes map onto them: ``advance`` 1 (φ̂ not finite) and the
-#: divergence rule (a singular solve gives a non-finite state, so it is caught there) →
-#: ``diverged``; ≥ 2 (θ* invalid) → ``theta_star``.
-STATUS = {
-    "ok": (0, "ok"),
-    "input": (1, "u holds NaN or inf, or y holds inf (only NaN marks a missing y)"),
-    "missing": (2, "y holds NaN and nan_policy='raise'; build the observer with "
-                   "nan_policy='skip' to predict over missing samples, or clean the data"),
-    "theta_star": (3, "theta* is NaN or inf where the excitation weight is positive and "
-                      "on_invalid='raise'; make l vanish there or use on_invalid='freeze'"),
-    "diverged": (4, "the observer state would diverge (norm above the bound, NaN or inf, or "
-                    "a singular implicit step): the gains are too high for this dt (decrease "
-                    "dt or increase eps), or the data scaling is off; the state is unchanged"),
-    "init": (5, "theta_hat0 lies outside Theta, or theta_hat0 / x_hat0 is not finite"),
-}
+#: their message: derived from :class:`~thetahat.estimation.status.Status` (the codes the
+#: formulas return, so the step's status passes through unchanged).
+STATUS = {s.name.lower(): (int(s), MESSAGES[s]) for s in Status}
 
 
 @dataclass(frozen=True)

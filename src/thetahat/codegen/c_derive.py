@@ -37,6 +37,7 @@ from ..estimation.formulas import DIVERGENCE_BOUND, WORK
 from ..estimation.law_base import FAR
 from ..estimation.plan import StepPlan
 from ..estimation.scalar_backend import LAWS, law_source, rewritten
+from ..estimation.status import status_constants
 from ..model.perturbation import SymbolicPerturbation
 from .c_printer import CUnit
 from .c_values import Arr, Const, Scal, real_literal
@@ -310,6 +311,7 @@ def derived_step(parts: KernelParts, plan: StepPlan, *, prefix: str, real: str, 
                       "FAR": Const(far, "THETAHAT_FAR"),
                       "EXP_TINY_ARG": Const(scalar_primitives.EXP_TINY_ARG, "EXP_TINY_ARG"),
                       "BOUND_SQ": Const(bound * bound, "BOUND_SQ"), "USER_M": Const(False)})
+    constants.update({name: Const(code) for name, code in status_constants().items()})
     hooks, law_fn = _hooks(law)
     functions = {**_module_functions(), **hooks}          # a copy: the cache stays
     size = lay.size
@@ -400,8 +402,8 @@ def _print(functions: dict[str, ast.FunctionDef], constants: dict[str, Any],
     else:
         advance = f"    status = {call(calls[True])};\n"
     step_calls = advance + (
-        "    if (status != 0) {\n"
-        f"        return status >= 2 ? {PU}_ERR_THETA_STAR : {PU}_ERR_DIVERGED;\n    }}\n"
+        "    if (status != 0) {\n"              # the formulas' codes are the header's
+        "        return status;\n    }\n"
         f"    if (!{call(bound)}) {{\n        return {PU}_ERR_DIVERGED;\n    }}\n")
     phi_calls = f"    {call(phi)};\n"
     buffers = [*W, *(arr(x) for x in sorted(scratch))]

@@ -20,7 +20,10 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from ..errors import CCompilerError, DimensionError, NonFiniteError, UpdateLawError
+from ..errors import CCompilerError, DimensionError, NonFiniteError
+from ..estimation.inversion import invalid_theta_star_error
+from ..estimation.status import MESSAGES, Status
+from ..estimation.step import divergence_error
 from ..safe_io import write_text
 from .c_api import STATUS as C_STATUS
 from .generate import CCode
@@ -343,11 +346,17 @@ class CObserver:
                                self._p(Y)))
 
     def raise_for(self, status: int, where: str) -> None:
-        """Raise the Python observer's error for a status code (0: nothing)."""
-        if status == STATUS["theta_star"]:
-            raise UpdateLawError(f"θ* invalid where l > 0 {where} (on_invalid='raise').")
+        """Raise the Python observer's error for a status code (0: nothing): the one failure
+        behaviour of :mod:`thetahat.estimation.status`, as the NumPy and numba paths raise."""
+        if status == Status.THETA_STAR:
+            raise invalid_theta_star_error("the C observer's update law", 1)
+        if status in (Status.DIVERGED, Status.SINGULAR):
+            raise divergence_error(where)
         if status:
-            raise NonFiniteError(f"the C observer refused the data {where} (status {status}).")
+            known = status in {int(code) for code in Status}
+            text = MESSAGES[Status(status)] if known else "unknown status"
+            raise NonFiniteError(f"the C observer refused the data {where} (status {status}: "
+                                 f"{text}).")
 
 
 def load_c(code: CCode, directory: str | Path, *, flags: Sequence[str] = C_FLAGS) -> CObserver:

@@ -68,6 +68,7 @@ from .formulas import WORK
 from .kernel_args import LawArrays, PlanArrays, SecondArrays
 from .plan import StateLayout, StepPlan
 from .scalar_backend import LAWS, kernel_source
+from .status import Status
 from .step import DIVERGENCE_BOUND, divergence_error
 from .theta_star import ThetaStar, as_theta_star
 from .update_laws import (ConstantLaw, GradientInversion, IntermittentInversion, SmoothRamp,
@@ -305,9 +306,10 @@ class CompiledObserver:
         return self.observer.init(x_hat0, theta_hat0, z0, x_hat_refined0=x_hat_refined0)
 
     def _raise(self, status: int, where: str) -> NoReturn:
-        if status >= 2:
-            raise invalid_theta_star_error(type(self.observer.update_law).__name__, status - 1)
-        raise divergence_error(where)
+        """The API's one failure behaviour for a step's status (:mod:`.status`)."""
+        if status == Status.THETA_STAR:
+            raise invalid_theta_star_error(type(self.observer.update_law).__name__, 1)
+        raise divergence_error(where)        # DIVERGED or SINGULAR
 
     def step(self, state: Any, u: Any, y: Any, dt: float | None = None) -> FloatArray:
         """Advance the state by ``dt`` holding the samples (as the observer's ``step``).
@@ -362,7 +364,7 @@ class CompiledObserver:
         # something is wrong: find out what, with the observer's own checks and messages
         obs.check_state(state)
         obs.check_samples(u, y)
-        self._raise(int(status) or 1, "in this step")
+        self._raise(int(status) or Status.DIVERGED, "in this step")
 
     def estimate(self, state: Any, u: Any, y: Any) -> ObserverEstimate:
         """x̂, φ̂, θ̂ (and x̂₂) of a state; see :meth:`ModifiedHighGainObserver.estimate`.

@@ -8,7 +8,8 @@ map of :mod:`~thetahat.estimation.model_kernel` (RK4 sub-steps, first-order hold
 so the transition matrix is [[Φ, Γ], [0, I]] with the exact Jacobians Φ = ∂F/∂x, Γ = ∂F/∂θ.
 Prediction P ← T P Tᵀ + Q (Q = diag(Q_x, 0), Q_x the process noise on x over one sample); update with H = [C 0] in Joseph form
 P ← (I − K H) P (I − K H)ᵀ + K R Kᵀ, which keeps P symmetric positive semi-definite in
-floating point; then θ is projected onto Θ (a box: a clip). R = σ² I with σ given or
+floating point; then θ is projected onto Θ in the P_θθ⁻¹-weighted norm (a box: a clip; any
+convex Θ, see :mod:`~thetahat.estimation.stage2_set`). R = σ² I with σ given or
 estimated from the data (:func:`~thetahat.estimation.noise_level.estimate_noise_std`); the
 prior on θ comes from Θ (centre ± |Θ|/4 per component unless told), on x(0) it is wide.
 
@@ -28,10 +29,11 @@ from numpy.typing import NDArray
 
 from .._validate import as_vector
 from ..errors import DimensionError, NonFiniteError, OptionError, ParameterSetError
-from ..model.paramset import Box
+from ..errors import UnsupportedError
 from ..model.system import PerturbedLinearSystem
 from .model_kernel import H_RHO, ModelKernel, jit, model_kernel
 from .noise_level import MIN_SAMPLES, estimate_noise_std
+from .stage2_set import has_compiled_projection, project_kernel, stage2_set, theta_bounds
 from .protocol import (Diagnostics, EstimateResult, missing_samples, phi_hat_from_model,
                        stream_sample)
 
@@ -46,31 +48,30 @@ PRIOR_FRACTION = 0.25
 
 
 def theta_box(system: PerturbedLinearSystem) -> tuple[FloatArray, FloatArray]:
-    """(lower, upper) of Θ, which stage 2 needs as a :class:`~thetahat.model.paramset.Box`.
+    """(lower, upper): Θ's bounding box, Θ itself for a :class:`~thetahat.model.paramset.Box`.
 
     Parameters
     ----------
     system : PerturbedLinearSystem
-        The model; its ``parameter_set`` Θ must be a :class:`~thetahat.model.paramset.Box`
-        (the EKF and the MAP fits project θ onto Θ by a clip).
+        The model; its ``parameter_set`` Θ may be any
+        :class:`~thetahat.model.paramset.ParameterSet` (Box, Ball, Ellipsoid, ConvexSet).
 
     Returns
     -------
     lower, upper : ndarray, shape (p,)
-        Θ's bounds per component of θ, as float64 copies.
+        Θ's extent per component of θ (:func:`~thetahat.estimation.stage2_set.theta_bounds`),
+        as float64 copies: the prior's width and the guard's widest band. Stage 2 keeps θ̂ in
+        Θ itself by projecting onto Θ (:mod:`~thetahat.estimation.stage2_set`), not by
+        clipping to this box unless Θ is the box.
 
-    Raises
-    ------
-    ParameterSetError
-        Θ is not a Box (use the paper's observer alone for other parameter sets).
+    Examples
+    --------
+    >>> from thetahat.models import lugre
+    >>> from thetahat.estimation.ekf import theta_box
+    >>> [b.tolist() for b in theta_box(lugre.system())]
+    [[0.05], [1.0]]
     """
-    theta_set = system.parameter_set
-    if not isinstance(theta_set, Box):
-        raise ParameterSetError("stage 2 (EKF, maximum-likelihood fit) projects θ onto Θ by a "
-                                f"clip and needs Θ as a Box; got {type(theta_set).__name__}. "
-                                "Use the paper's observer alone for other parameter sets.")
-    return (np.asarray(theta_set.lower, dtype=np.float64),
-            np.asarray(theta_set.upper, dtype=np.float64))
+    return theta_bounds(system.require_parameter_set("stage 2"))
 
 
 def start_values(system: PerturbedLinearSystem, x_hat0: Any = None, theta_hat0: Any = None
@@ -80,7 +81,8 @@ def start_values(system: PerturbedLinearSystem, x_hat0: Any = None, theta_hat0: 
     Parameters
     ----------
     system : PerturbedLinearSystem
-        With a box Θ.
+        Any Θ; the default θ̂₀ is its ``interior_point`` (the centre of a box, ball or
+        ellipsoid).
     x_hat0 : array_like (n,), optional
     theta_hat0 : array_like (p,), optional
 
@@ -102,14 +104,14 @@ def start_values(system: PerturbedLinearSystem, x_hat0: Any = None, theta_hat0: 
     >>> start_values(lugre.system())[1]
     array([0.525])
     """
-    lo, hi = theta_box(system)
+    theta_set = system.require_parameter_set("stage 2")
     x0 = (np.zeros(system.n) if x_hat0 is None
           else as_vector("x_hat0", x_hat0, system.n))
-    th0 = (0.5 * (lo + hi) if theta_hat0 is None
+    th0 = (np.array(theta_set.interior_point, dtype=np.float64) if theta_hat0 is None
            else as_vector("theta_hat0", theta_hat0, system.p))
-    if np.any(th0 < lo) or np.any(th0 > hi):
-        raise ParameterSetError(f"theta_hat0 = {th0} lies outside Θ = [{lo}, {hi}]; start the "
-                                "estimate inside Θ.")
+    if not bool(theta_set.contains(th0)):
+        raise ParameterSetError(f"theta_hat0 = {th0} lies outside Θ = {theta_set!r}; start "
+                                "the estimate inside Θ.")
     return x0, th0
 
 
@@ -119,8 +121,7 @@ def theta_prior_sd(system: PerturbedLinearSystem) -> FloatArray:
     Parameters
     ----------
     system : PerturbedLinearSystem
-        The model; its Θ must be a :class:`~thetahat.model.paramset.Box` (see
-        :func:`theta_box`).
+        The model; any Θ (its bounding box, :func:`theta_box`, gives the width).
 
     Returns
     -------
@@ -128,10 +129,12 @@ def theta_prior_sd(system: PerturbedLinearSystem) -> FloatArray:
         |Θ|/4 per component: the prior N(centre of Θ, (|Θ|/4)²) of the EKF on col(x, θ) and
         of the first MAP fit puts Θ's ends at 2 standard deviations.
 
-    Raises
-    ------
-    ParameterSetError
-        Θ is not a Box.
+    Examples
+    --------
+    >>> from thetahat.models import lugre
+    >>> from thetahat.estimation.ekf import theta_prior_sd
+    >>> theta_prior_sd(lugre.system()).round(4).tolist()
+    [0.2375]
     """
     lo, hi = theta_box(system)
     return PRIOR_FRACTION * (hi - lo)
@@ -142,10 +145,11 @@ class EKFKernels:
     """The EKF's per-sample operations on (s, P) in place (compiled with the model kernel).
 
     ``predict(s, P, u0, u1, h, h_rho, Q_x, Phi, Gam)`` and
-    ``update(s, P, y, R, lo, hi) -> NIS`` (normalised innovation squared ÷ r, after which θ
-    is clipped to [lo, hi]); ``loop(s, P, U, Y, t, k0, k1, R, lo, hi, h_rho, Q_x, X, TH, SD,
-    NIS) -> status`` runs samples k0 … k1−1 and returns −1, or the index where s became
-    non-finite.
+    ``update(s, P, y, R, lo, hi, ell) -> NIS`` (normalised innovation squared ÷ r, after which
+    θ is projected onto Θ = (lo, hi, ell), see
+    :func:`~thetahat.estimation.stage2_set.project_kernel`); ``loop(s, P, U, Y, t, k0, k1, R,
+    lo, hi, ell, h_rho, Q_x, X, TH, SD, NIS) -> status`` runs samples k0 … k1−1 and returns
+    −1, or the index where s became non-finite.
 
     Parameters
     ----------
@@ -159,24 +163,30 @@ class EKFKernels:
         T P Tᵀ + diag(Q_x, 0), T = [[Φ, Γ], [0, I]], Q_x (n, n); ``Phi`` (n, n) and ``Gam`` (n, p)
         are work arrays that receive Φ and Γ.
     update : callable
-        ``update(s, P, y, R, lo, hi) -> float``: the measurement update with y (r,) and
-        R (r, r), H = [C 0], P in Joseph form, then θ clipped to [lo, hi]; returns the
-        normalised innovation squared νᵀ S⁻¹ ν ÷ r (≈ 1 for a consistent filter).
+        ``update(s, P, y, R, lo, hi, ell) -> float``: the measurement update with y (r,) and
+        R (r, r), H = [C 0], P in Joseph form, then θ projected onto Θ in the P_θθ⁻¹-weighted
+        norm (``project``); returns the normalised innovation squared νᵀ S⁻¹ ν ÷ r (≈ 1 for a
+        consistent filter).
     loop : callable
-        ``loop(s, P, U, Y, t, k0, k1, R, lo, hi, h_rho, Q_x, X, TH, SD, NIS) -> int``: the
+        ``loop(s, P, U, Y, t, k0, k1, R, lo, hi, ell, h_rho, Q_x, X, TH, SD, NIS) -> int``: the
         filter over samples k0 … k1−1 (predict from sample k−1 when k > 0, then update unless
         y_k has a non-finite entry), writing x̂ into ``X`` (N, n), θ̂ into ``TH`` (N, p),
         √diag P_θθ into ``SD`` (N, p) and the NIS into ``NIS`` (N,; NaN where not updated);
         returns −1, or the first sample index at which s became non-finite.
+    project : callable
+        ``project(theta, M, lo, hi, ell) -> None``: Π_Θ in place in the norm ‖·‖_{M⁻¹}
+        (:func:`~thetahat.estimation.stage2_set.project_kernel`, or a ConvexSet's Python
+        projection); the guard uses it with M = I.
     """
 
     model: ModelKernel
     predict: Callable[..., None]
     update: Callable[..., float]
     loop: Callable[..., int]
+    project: Callable[..., None]
 
 
-def _make(model: ModelKernel) -> EKFKernels:
+def _make(model: ModelKernel, project: Callable[..., None]) -> EKFKernels:
     prop = model.propagate
     C = model.C
     compiled = model.compiled
@@ -210,7 +220,7 @@ def _make(model: ModelKernel) -> EKFKernels:
                 P[i, j] += Q_x[i, j]
             s[i] = xn[i]
 
-    def update(s, P, y, R, lo, hi):
+    def update(s, P, y, R, lo, hi, ell):
         N = P.shape[0]
         r = C.shape[0]
         n = C.shape[1]
@@ -291,13 +301,16 @@ def _make(model: ModelKernel) -> EKFKernels:
                         acc += K[i, a] * R[a, b] * K[j, b]
                 P[i, j] = acc
                 P[j, i] = acc
-        for i in range(lo.shape[0]):
-            s[n + i] = min(max(s[n + i], lo[i]), hi[i])
+        p = lo.shape[0]
+        th = s[n:].copy()
+        project(th, P[n:, n:].copy(), lo, hi, ell)
+        for i in range(p):
+            s[n + i] = th[i]
         return nis / r
 
     predict_j, update_j = jit(predict, compiled), jit(update, compiled)
 
-    def loop(s, P, U, Y, tt, k0, k1, R, lo, hi, h_rho, Q_x, X, TH, SD, NIS):
+    def loop(s, P, U, Y, tt, k0, k1, R, lo, hi, ell, h_rho, Q_x, X, TH, SD, NIS):
         """Samples k0 … k1−1 (predict from k−1 when k > 0, then update); -1 or the bad index."""
         n = X.shape[1]
         p = TH.shape[1]
@@ -310,7 +323,7 @@ def _make(model: ModelKernel) -> EKFKernels:
             for j in range(Y.shape[1]):
                 if not math.isfinite(Y[k, j]):
                     finite_y = False
-            NIS[k] = update_j(s, P, Y[k], R, lo, hi) if finite_y else np.nan
+            NIS[k] = update_j(s, P, Y[k], R, lo, hi, ell) if finite_y else np.nan
             for i in range(n + p):
                 if not math.isfinite(s[i]):
                     return k
@@ -320,12 +333,23 @@ def _make(model: ModelKernel) -> EKFKernels:
                 SD[k, i] = math.sqrt(max(P[n + i, n + i], 0.0))
         return -1
 
-    return EKFKernels(model=model, predict=predict_j, update=update_j, loop=jit(loop, compiled))
+    return EKFKernels(model=model, predict=predict_j, update=update_j, loop=jit(loop, compiled),
+                      project=project)
 
 
 @functools.lru_cache(maxsize=16)
 def _cached(model: ModelKernel) -> EKFKernels:
-    return _make(model)
+    return _make(model, jit(project_kernel, model.compiled))
+
+
+@functools.lru_cache(maxsize=16)
+def _cached_python_projection(model: ModelKernel, theta_set: Any) -> EKFKernels:
+    st = stage2_set(theta_set)
+
+    def project(theta, M, lo, hi, ell):
+        st.project(theta, M)
+
+    return _make(model, project)
 
 
 def ekf_kernels(system: PerturbedLinearSystem, *, compiled: bool | None = None) -> EKFKernels:
@@ -338,13 +362,17 @@ def ekf_kernels(system: PerturbedLinearSystem, *, compiled: bool | None = None) 
         :class:`~thetahat.model.perturbation.SymbolicPerturbation` (see
         :func:`~thetahat.estimation.model_kernel.model_kernel`).
     compiled : bool, optional
-        Compile the kernels with numba; default (None): when numba is installed.
+        Compile the kernels with numba; default (None): when numba is installed and Θ has a
+        compiled projection (a Box, Ball or Ellipsoid). A
+        :class:`~thetahat.model.paramset.ConvexSet` Θ is projected in Python
+        (:mod:`~thetahat.estimation.stage2_set`), so its kernels run uncompiled.
 
     Returns
     -------
     EKFKernels
-        ``predict``, ``update`` and ``loop`` on col(x, θ) for this model; the same object for
-        the same model kernel (an LRU cache of 16).
+        ``predict``, ``update``, ``loop`` and ``project`` on col(x, θ) for this model; the
+        same object for the same model kernel (an LRU cache of 16). Θ itself is data
+        (``lo, hi, ell`` of :class:`~thetahat.estimation.stage2_set.StageTwoSet`).
 
     Raises
     ------
@@ -352,6 +380,8 @@ def ekf_kernels(system: PerturbedLinearSystem, *, compiled: bool | None = None) 
         The perturbation is not symbolic.
     MissingExtraError
         ``compiled=True`` without numba.
+    UnsupportedError
+        ``compiled=True`` with a ConvexSet Θ.
 
     Examples
     --------
@@ -361,11 +391,18 @@ def ekf_kernels(system: PerturbedLinearSystem, *, compiled: bool | None = None) 
     >>> k = ekf_kernels(lugre.system(), compiled=False)
     >>> s, P = np.array([0.0, 0.0, 0.5]), np.diag([1.0, 1e-6, 0.05])
     >>> nis = k.update(s, P, np.array([0.1]), np.array([[4e-4]]), np.array([0.05]),
-    ...                np.array([1.0]))
+    ...                np.array([1.0]), np.zeros((2, 1)))
     >>> bool(P[0, 0] < 4e-4)           # the measurement of ω shrank its variance below R
     True
     """
-    return _cached(model_kernel(system, compiled=compiled))
+    theta_set = system.require_parameter_set("stage 2")
+    if has_compiled_projection(theta_set):
+        return _cached(model_kernel(system, compiled=compiled))
+    if compiled:
+        raise UnsupportedError(f"Θ = {theta_set!r} has no compiled projection (its P is a "
+                               "Python callable); pass compiled=None or False, or give Θ as a "
+                               "Box, Ball or Ellipsoid.")
+    return _cached_python_projection(model_kernel(system, compiled=False), theta_set)
 
 
 @dataclass(frozen=True, slots=True, eq=False)
@@ -446,7 +483,8 @@ class JointEKF:
     Parameters
     ----------
     system : PerturbedLinearSystem
-        With a symbolic g and a Box Θ.
+        With a symbolic g and any convex Θ (θ̂ is projected onto it after each update, see
+        :mod:`~thetahat.estimation.stage2_set`).
     noise_std : float or array_like (r,), optional
         σ of the output noise; default: estimated from the record (:meth:`run`) or from the
         first samples (:meth:`step` delays its updates until :data:`MIN_SAMPLES` samples).
@@ -572,8 +610,8 @@ class JointEKF:
                 sigma = resolve_noise_std(None, y_first)
         nis = math.nan
         if sigma is not None and np.all(np.isfinite(y_)):
-            lo, hi = theta_box(sys_)
-            nis = float(k.update(s, P, y_, np.diag(sigma ** 2), lo, hi))
+            ts = stage2_set(sys_.require_parameter_set("stage 2"))
+            nis = float(k.update(s, P, y_, np.diag(sigma ** 2), ts.lo, ts.hi, ts.ell))
         if not np.all(np.isfinite(s)):
             raise NonFiniteError(f"the EKF diverged at sample {state.k}; check the model and "
                                  "noise_std.")
@@ -627,7 +665,7 @@ class JointEKF:
         P = np.array(st.P, dtype=np.float64, order="C")
         if P0 is not None:
             P = np.array(P0, dtype=np.float64).reshape(n + p, n + p)
-        lo, hi = theta_box(sys_)
+        ts = stage2_set(sys_.require_parameter_set("stage 2"))
         k = self.kernels
         if st.k > 0 and st.u_prev is not None:
             k.predict(s, P, np.array(st.u_prev, dtype=np.float64), U[0].copy(), st.dt_prev,
@@ -635,8 +673,8 @@ class JointEKF:
         N = t_.shape[0]
         X, TH, SD, NIS = (np.empty((N, n)), np.empty((N, p)), np.empty((N, p)),
                           np.full(N, np.nan))
-        bad = k.loop(s, P, U, Y, t_, 0, N, R, lo, hi, self.h_rho, self.q_x * np.eye(n), X, TH,
-                     SD, NIS)
+        bad = k.loop(s, P, U, Y, t_, 0, N, R, ts.lo, ts.hi, ts.ell, self.h_rho,
+                     self.q_x * np.eye(n), X, TH, SD, NIS)
         if bad >= 0:
             raise NonFiniteError(f"the EKF diverged at t[{bad}] = {t_[bad]!r}; check the model "
                                  "and noise_std.")

@@ -21,15 +21,17 @@ Free names a binding provides:
   returns 0, or 1 + the number of rows where θ* is invalid under ``on_invalid='raise'``
   (:mod:`~thetahat.estimation.law_formulas`);
 * the dimensions ``NX, NU, NY, NK, NP`` and ``LS`` (law state length), the implicitness γ
-  ``IMPLICITNESS`` and the divergence bound ``BOUND_SQ`` (:data:`DIVERGENCE_BOUND` squared).
+  ``IMPLICITNESS``, the divergence bound ``BOUND_SQ`` (:data:`DIVERGENCE_BOUND` squared) and
+  the status codes ``ST_<NAME>`` of :class:`~thetahat.estimation.status.Status`.
 
 The state of a row is ``col(x̂, z, θ̂[, x̂₂][, law state])``. The plan tuples:
 ``P = (L, Bv, E, C, A, B, K_x, K_x C, Φ₁, Φ₂)`` with the φ-matrices of this step (corrected,
 or the prediction's over a missing sample), ``P2 = (A, B, C, E, K_x2, Φ₁, Φ₂)`` of the second
 observer, and the work buffers ``W`` (:data:`WORK`).
 
-Status codes of :func:`advance`: 0; 1 when φ̂ is not finite (a divergence); ≥ 2 when θ* is
-invalid (1 + the number of rows).
+Status codes of :func:`advance` (:class:`~thetahat.estimation.status.Status`): ``ST_OK``;
+``ST_DIVERGED`` when φ̂ is not finite; ``ST_THETA_STAR`` when θ* is invalid (the law's);
+``ST_SINGULAR`` when an implicit step's matrix is singular (``solve``'s status).
 """
 
 from __future__ import annotations
@@ -90,6 +92,9 @@ NP: int
 LS: int
 IMPLICITNESS: float
 BOUND_SQ: float
+ST_OK: int
+ST_DIVERGED: int
+ST_SINGULAR: int
 
 
 def observer_forcing(P: PlanArrays, s: Any, u: Any, y: Any, correct: bool, v: Any,
@@ -228,7 +233,7 @@ def second_jacobian(P2: SecondArrays, s: Any, v2: Any, correct: bool, on_estimat
 
 
 def implicit_step(q: int, Phi1: Any, Phi2: Any, F: Any, Fd: Any, foh: bool, Nm: Any, s: Any,
-                  so: int, out: Any, M: Any, rhs: Any) -> None:
+                  so: int, out: Any, M: Any, rhs: Any) -> Any:
     """s⁺ = s + (I − γΦ₁N)⁻¹ (Φ₁F + Φ₂Ḟ) on the q entries at ``so`` (Ḟ only with ``foh``).
 
     The exponential, linearly implicit step of :mod:`~thetahat.estimation.discretize`.
@@ -249,20 +254,27 @@ def implicit_step(q: int, Phi1: Any, Phi2: Any, F: Any, Fd: Any, foh: bool, Nm: 
         Offset of the q entries in the rows.
     M, rhs : array
         Scratch.
+
+    Returns
+    -------
+    int or array of int
+        ``solve``'s status (per row in a batch): ``ST_OK``, or ``ST_SINGULAR`` when
+        I − γΦ₁N is singular (``out`` is then not meaningful).
     """
     mv(Phi1, q, q, F, 0, rhs, 0, 0)
     if foh:
         mv(Phi2, q, q, Fd, 0, rhs, 0, 1)
     mm(Phi1, Nm, q, q, q, M, 0, 0, 0)
     eye_minus(M, q, IMPLICITNESS)
-    solve(q, M, rhs)
+    status = solve(q, M, rhs)
     copy(q, s, so, out, so)
     axpy(q, 1.0, rhs, 0, out, so)
+    return status
 
 
 def second_step(P2: SecondArrays, s: Any, u0: Any, y0: Any, u1: Any, y1: Any, dt: float,
                 correct: bool, foh: bool, on_estimates: bool, out: Any, W: tuple[Any, ...]
-                ) -> None:
+                ) -> Any:
     """x̂₂ of the second observer (Sec. VI) from ``s`` into ``out``, driven by θ̂ of ``s``.
 
     Parameters
@@ -277,6 +289,11 @@ def second_step(P2: SecondArrays, s: Any, u0: Any, y0: Any, u1: Any, y1: Any, dt
     correct, foh, on_estimates : bool
     W : tuple
         Work buffers (:data:`WORK`).
+
+    Returns
+    -------
+    int or array of int
+        The implicit step's status (:func:`implicit_step`).
     """
     v2, g2, Gx2, Gy2, F2, Fd2, N2, M2, rhs2, w2 = W[17:]
     n = NX
@@ -286,7 +303,8 @@ def second_step(P2: SecondArrays, s: Any, u0: Any, y0: Any, u1: Any, y1: Any, dt
         second_forcing(P2, s, u1, y1, correct, on_estimates, v2, g2, Gx2, Fd2, w2)
         for i in range(n):
             put(Fd2, i, (get(Fd2, i) - get(F2, i)) / dt)
-    implicit_step(n, P2.Phi1, P2.Phi2, F2, Fd2, foh, N2, s, n + NK + NP, out, M2, rhs2)
+    return implicit_step(n, P2.Phi1, P2.Phi2, F2, Fd2, foh, N2, s, n + NK + NP, out, M2,
+                         rhs2)
 
 
 def phi_hat(g: Any, s: Any, phi: Any) -> None:
@@ -356,7 +374,7 @@ def advance(P: PlanArrays, P2: SecondArrays, LP: LawArrays, s: Any, u0: Any,
     for a in range(k):
         bad = or_(bad, not_(isfinite(get(phi, a))))
     if any_(bad):
-        return 1
+        return ST_DIVERGED
     copy(p, s, q, thn, 0)
     copy(LS, s, q + p + (n if second else 0), lsn, 0)
     fill(zc, 0.0)
@@ -380,11 +398,15 @@ def advance(P: PlanArrays, P2: SecondArrays, LP: LawArrays, s: Any, u0: Any,
             put(Fd, i, (get(Fd, i) - get(F, i)) / dt)
     axpy(k, 1.0, zc, 0, F, n)
     if second:
-        second_step(P2, s, u0, y0, u1, y1, dt, correct, foh, on_estimates, out, W)
-    implicit_step(q, P.Phi1, P.Phi2, F, Fd, foh, Nm, s, 0, out, M, rhs)
+        solved2 = second_step(P2, s, u0, y0, u1, y1, dt, correct, foh, on_estimates, out, W)
+        if any_(solved2 != ST_OK):
+            return ST_SINGULAR
+    solved = implicit_step(q, P.Phi1, P.Phi2, F, Fd, foh, Nm, s, 0, out, M, rhs)
+    if any_(solved != ST_OK):
+        return ST_SINGULAR
     copy(p, thn, 0, out, q)
     copy(LS, lsn, 0, out, q + p + (n if second else 0))
-    return 0
+    return ST_OK
 
 
 #: The formulas a back end binds, by name.

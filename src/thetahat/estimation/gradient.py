@@ -21,6 +21,7 @@ from .kernel_args import LawArrays
 from .law_formulas import LAW_FORMULAS
 from .primitives import NUMPY, NUMPY_ROW, bound
 from .projection import Projection, Saturation, as_gain
+from .status import status_constants
 
 __all__ = ["GradientInversion"]
 
@@ -230,4 +231,5 @@ def _gradient_names(law: GradientInversion, prims: Mapping[str, Any]) -> dict[st
         return 0
 
     return {**prims, "g_val": g_val, "dg_dtheta": dg_dtheta, "m_matrix": m_matrix,
-            "project": project, "NP": p, "NK": k, "USER_M": law.M is not None, "FAR": FAR}
+            "project": project, "NP": p, "NK": k, "USER_M": law.M is not None, "FAR": FAR,
+            **status_constants()}

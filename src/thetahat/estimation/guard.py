@@ -5,8 +5,11 @@ The output θ̂ follows stage 2 (θ̂₂, EKF + MAP re-anchoring) only inside a 
 
     θ̂ = Π_Θ( θ̂_G + clip(θ̂₂ − θ̂_G, −δ, δ) ),    δ(t) = max(δ_G(t), κ σ₂(t)),
 
-so that, whatever stage 2 does, |θ̂ − θ| ≤ |θ̂_G − θ| + δ(t) and θ̂ ∈ Θ (Θ a box containing
-θ̂_G). The band's width is built on evidence only:
+so that, whatever stage 2 does, θ̂ ∈ Θ and ‖θ̂ − θ‖ ≤ ‖θ̂_G − θ‖ + ‖δ(t)‖ for the true θ ∈ Θ
+(Π_Θ is the Euclidean projection, non-expansive towards any point of the convex Θ; for a box
+it is a clip and the bound holds per component, |θ̂_i − θ_i| ≤ |θ̂_G,i − θ_i| + δ_i). Θ may be
+any convex set of :mod:`~thetahat.model.paramset`; |Θ| below is the width of its bounding box
+(:func:`~thetahat.estimation.stage2_set.theta_bounds`). The band's width is built on evidence only:
 
 * δ_G(t), stage 1's measured progress. With the samples split dyadically, *late* is the range
   of θ̂_G over [2^{J−1}, k] (k ∈ [2^J, 2^{J+1})) and *early* its range before 2^{J−1}; their
@@ -122,7 +125,8 @@ def progress_step(st: np.ndarray, k: int, theta: np.ndarray, width: np.ndarray, 
 
 
 def make_guarded_loop(predict: Callable[..., None], update: Callable[..., float],
-                      jit: Callable[..., Any]) -> Callable[..., int]:
+                      project: Callable[..., None], jit: Callable[..., Any]
+                      ) -> Callable[..., int]:
     """The per-sample loop of the guarded estimator over EKF kernels (compiled with them).
 
     Parameters
@@ -130,6 +134,9 @@ def make_guarded_loop(predict: Callable[..., None], update: Callable[..., float]
     predict, update : callable
         The EKF's time and measurement updates on col(x, θ), ``EKFKernels.predict`` and
         ``EKFKernels.update`` of :mod:`~thetahat.estimation.ekf`.
+    project : callable
+        ``project(theta, M, lo, hi, ell)``, Π_Θ in place (``EKFKernels.project``); the guard
+        calls it with M = I.
     jit : callable
         fn ↦ compiled fn, applied to :func:`progress_step` and to the loop: numba's
         ``njit`` when the kernels are compiled, the identity otherwise (one argument, unlike
@@ -138,8 +145,8 @@ def make_guarded_loop(predict: Callable[..., None], update: Callable[..., float]
     Returns
     -------
     callable
-        ``loop(s, P, P0, U, Y, tt, k0, k1, off, R, lo, hi, h_rho, Q_x, thG, xG, pst, gst, cfg,
-        TH, TH2, X2, SD2, BAND, CLIP, RESET, NIS) -> int``: runs stage 2 over samples
+        ``loop(s, P, P0, U, Y, tt, k0, k1, off, R, lo, hi, ell, h_rho, Q_x, thG, xG, pst, gst,
+        cfg, TH, TH2, X2, SD2, BAND, CLIP, RESET, NIS) -> int``: runs stage 2 over samples
         k0 … k1−1 (absolute index k + ``off``) against stage 1's θ̂_G ``thG`` and x̂ ``xG``,
         writes the guarded θ̂ (``TH``), stage 2's θ̂₂, x̂₂ and σ₂ (``TH2``, ``X2``, ``SD2``),
         the band δ (``BAND``), the clip and reset flags and the windowed NIS, updates the
@@ -149,8 +156,8 @@ def make_guarded_loop(predict: Callable[..., None], update: Callable[..., float]
     """
     prog = jit(progress_step)
 
-    def loop(s, P, P0, U, Y, tt, k0, k1, off, R, lo, hi, h_rho, Q_x, thG, xG, pst, gst, cfg,
-             TH, TH2, X2, SD2, BAND, CLIP, RESET, NIS):
+    def loop(s, P, P0, U, Y, tt, k0, k1, off, R, lo, hi, ell, h_rho, Q_x, thG, xG, pst, gst,
+             cfg, TH, TH2, X2, SD2, BAND, CLIP, RESET, NIS):
         """Samples k0 … k1−1 (absolute index k + off). ``gst`` = (dwell count, NIS average,
         first update index);
         ``cfg`` = (κ, c, ρ_max, dwell, σ₂ cap per component…); returns the reset count."""
@@ -160,6 +167,8 @@ def make_guarded_loop(predict: Callable[..., None], update: Callable[..., float]
         Phi = np.empty((n, n))
         Gam = np.empty((n, p))
         dG = np.empty(p)
+        eye = np.eye(p)
+        z = np.empty(p)
         resets = 0
         for k in range(k0, k1):
             if k + off > 0:
@@ -174,7 +183,7 @@ def make_guarded_loop(predict: Callable[..., None], update: Callable[..., float]
                 if not math.isfinite(Y[k, j]):
                     finite_y = False
             if finite_y and k + off >= gst[2]:
-                nis = update(s, P, Y[k], R, lo, hi)
+                nis = update(s, P, Y[k], R, lo, hi, ell)
             bad = False
             for i in range(s.shape[0]):
                 if not math.isfinite(s[i]) or not math.isfinite(P[i, i]):
@@ -192,8 +201,11 @@ def make_guarded_loop(predict: Callable[..., None], update: Callable[..., float]
                 elif d < -band:
                     d = -band
                     clipped = True
-                TH[k, i] = min(max(thG[k, i] + d, lo[i]), hi[i])
+                z[i] = thG[k, i] + d
                 BAND[k, i] = band
+            project(z, eye, lo, hi, ell)
+            for i in range(p):
+                TH[k, i] = z[i]
             gst[0] = gst[0] + 1.0 if clipped else 0.0
             settled = True
             for i in range(p):

@@ -34,8 +34,8 @@ from numpy.typing import NDArray
 from ..errors import (ArgumentTypeError, DimensionError, NonFiniteError, OptionError,
                       ThetahatWarning)
 from ..model.system import PerturbedLinearSystem
-from .ekf import (EKFKernels, JointEKF, as_record, ekf_kernels, resolve_noise_std, start_values,
-                  theta_box)
+from .ekf import (EKFKernels, JointEKF, as_record, ekf_kernels, resolve_noise_std, start_values)
+from .stage2_set import stage2_set
 from .fit_worker import default_executor, discard_default_executor, fit_spec, run_fit, warm_up
 from .guard import (GUARD_C, GUARD_KAPPA, GUARD_RHO_MAX, make_guarded_loop, progress_init)
 from .likelihood import unit_process_noise
@@ -216,7 +216,7 @@ class GuardedEstimator:
         state ``estimate`` reads); its ``system`` is stage 2's model unless ``system`` is
         given.
     system : PerturbedLinearSystem, optional
-        Stage 2's model (symbolic g, Box Θ).
+        Stage 2's model (symbolic g, any convex Θ).
     noise_std : optional
         σ of the output noise; default estimated from the data.
     schedule : FitSchedule, optional
@@ -306,7 +306,7 @@ class GuardedEstimator:
         loop = _LOOPS.get(k)
         if loop is None:
             compiled = k.model.compiled
-            loop = _LOOPS[k] = make_guarded_loop(k.predict, k.update,
+            loop = _LOOPS[k] = make_guarded_loop(k.predict, k.update, k.project,
                                                  lambda fn: jit(fn, compiled))
         return loop
 
@@ -379,7 +379,8 @@ class GuardedEstimator:
         R = np.diag(sigma ** 2)
         s, P0 = self._ekf().prior(st0.x_hat0, st0.theta_hat0)
         P = P0.copy()
-        lo, hi = theta_box(sys_)
+        ts = stage2_set(sys_.require_parameter_set("stage 2"))
+        lo, hi, ell = ts.lo, ts.hi, ts.ell
         out = {name: np.empty((N, w)) for name, w in
                (("TH", p), ("TH2", p), ("X2", n), ("SD2", p), ("BAND", p))}
         CLIP, RESET, NIS = np.zeros(N, bool), np.zeros(N, bool), np.full(N, np.nan)
@@ -424,7 +425,7 @@ class GuardedEstimator:
                     j += 1
                 k_fit = int(np.searchsorted(t_ - t_[0], sched.times(j) + 1e-12, side="right"))
             k_next = min(k_fit, N, k_next)
-            loop(s, P, P0, U, Y, t_, k, k_next, 0, R, lo, hi, self.h_rho, Q_x, thG, xG,
+            loop(s, P, P0, U, Y, t_, k, k_next, 0, R, lo, hi, ell, self.h_rho, Q_x, thG, xG,
                  pst, gst, cfg, out["TH"], out["TH2"], out["X2"], out["SD2"], out["BAND"],
                  CLIP, RESET, NIS)
             due = sched is not None and k_next == k_fit < N
@@ -517,7 +518,7 @@ class GuardedEstimator:
         if k == 0:
             sh.pst = progress_init(thG[0])
         self._loop()(sh.s, sh.P, sh.P0, U2, Y2, tt, k0, k0 + 1, k - k0, sh.R, sh.lo, sh.hi,
-                     self.h_rho, sh.Q_x, TH2, XG2, sh.pst, sh.gst, sh.cfg, o["TH"],
+                     sh.ell, self.h_rho, sh.Q_x, TH2, XG2, sh.pst, sh.gst, sh.cfg, o["TH"],
                      o["TH2"], o["X2"], o["SD2"], o["BAND"], clip, rst, nis)
         s1 = self.stage1.step(state.stage1, u_, y_, h)
         sh.refresh_sigma(k)
@@ -572,7 +573,8 @@ class _Stream:
         self.s, self.P0 = est._ekf().prior(state.x_hat0, state.theta_hat0)
         self.P = self.P0.copy()
         self.Q_x = est.q_x * np.eye(n)
-        self.lo, self.hi = theta_box(sys_)
+        ts = stage2_set(sys_.require_parameter_set("stage 2"))
+        self.lo, self.hi, self.ell = ts.lo, ts.hi, ts.ell
         given = est.noise_std is not None
         self.R = (np.diag(resolve_noise_std(est.noise_std, np.zeros((1, sys_.r))) ** 2)
                   if given else np.eye(sys_.r))

@@ -44,7 +44,7 @@ def output_pinv(C: ArrayLike) -> FloatArray:
     [[1.0], [0.0]]
     """
     C_ = np.atleast_2d(np.asarray(C, dtype=np.float64))
-    return np.linalg.pinv(C_)
+    return np.asarray(np.linalg.pinv(C_), dtype=np.float64)
 
 
 def x_hat_from_output(C: ArrayLike, y0: ArrayLike, x_hat0: ArrayLike | None = None

@@ -25,6 +25,7 @@ from .kernel_args import LawArrays
 from .law_formulas import LAW_FORMULAS, smoothstep
 from .primitives import NUMPY, NUMPY_ROW, bind, bound
 from .projection import Projection, Saturation, as_gain
+from .status import Status, status_constants
 from .theta_star import ThetaStar
 
 __all__ = ["AlgebraicInversion", "IntermittentInversion", "SmoothRamp", "WEIGHT_TOL",
@@ -110,21 +111,23 @@ def smooth_ramp(low: float, high: float) -> SmoothRamp:
     return SmoothRamp(lo, hi)
 
 
-def invalid_theta_star_error(owner: str, count: int) -> UpdateLawError:
+def invalid_theta_star_error(owner: str, count: int | None) -> UpdateLawError:
     """The error every back end raises when θ* is NaN or inf where l > 0 (on_invalid='raise').
 
     Parameters
     ----------
     owner : str
         The law's name.
-    count : int
-        Number of points (batch rows) affected.
+    count : int or None
+        Number of points (batch rows) affected, when known (the formulas' status
+        :attr:`~thetahat.estimation.status.Status.THETA_STAR` does not count them).
 
     Returns
     -------
     UpdateLawError
     """
-    return UpdateLawError(f"{owner}: theta_star is NaN or inf at {count} point(s) where the "
+    where = "some point(s)" if count is None else f"{count} point(s)"
+    return UpdateLawError(f"{owner}: theta_star is NaN or inf at {where} where the "
                           f"weight is positive; make l vanish where the inversion is "
                           f"undefined, or pass on_invalid='freeze'.")
 
@@ -205,7 +208,8 @@ def _inversion_names(law: IntermittentInversion, prims: Mapping[str, Any]) -> di
         return 0
 
     return {**prims, "weight": weight, "theta_star": theta_star, "project": project,
-            "freeze": lambda LP: law.on_invalid == "freeze", "NP": p, "FAR": FAR}
+            "freeze": lambda LP: law.on_invalid == "freeze", "NP": p, "FAR": FAR,
+            **status_constants()}
 
 
 @final
@@ -372,8 +376,8 @@ class IntermittentInversion(UpdateLaw):
                            Gamma_rows=G)
             status = env["inversion_law"](LP, args[0], args[1], 0, args[2], args[3], 0, dt, thn,
                                           None)
-        if status:
-            raise invalid_theta_star_error("IntermittentInversion", status - 1)
+        if status == Status.THETA_STAR:
+            raise invalid_theta_star_error("IntermittentInversion", None)
         return thn
 
 

@@ -10,15 +10,16 @@ functions with the scalar primitives.
 
 A law's step has the signature ``law(LP, v, x, xo, phi, th, to, dt, thn, lsn)``: v, x̂ =
 x[xo:], φ̂, θ̂ = th[to:] and the step length in, θ̂⁺ (and the law state, none of the laws
-here has one) out; ``LP`` holds the law's arrays and scratch. It returns 0, or 1 + the number
-of rows where θ* is NaN or inf while the weight is positive (``on_invalid='raise'``).
+here has one) out; ``LP`` holds the law's arrays and scratch. It returns ``ST_OK`` (0), or
+``ST_THETA_STAR`` (:class:`~thetahat.estimation.status.Status`) when θ* is NaN or inf in some
+row while the weight is positive (``on_invalid='raise'``).
 
 Free names a binding provides, besides the primitives: ``weight(LP, v, x, xo, phi)``
 (the excitation weight l, or 1), ``theta_star(v, x, xo, phi, ts)``, ``g_val``, ``dg_dtheta`` (as in
 :mod:`~thetahat.estimation.formulas`), ``m_matrix(v, x, xo, th, to, Mt)`` (a user's M of
 Proposition 3, with ``USER_M``), ``project(LP, thn)`` (the Γ⁻¹-weighted projection onto Θ in
 place; returns 0), ``freeze(LP)`` (``on_invalid == 'freeze'``), the constants ``NP``, ``NK``,
-``USER_M`` and ``FAR`` (:data:`~thetahat.estimation.law_base.FAR`).
+``USER_M``, ``FAR`` (:data:`~thetahat.estimation.law_base.FAR`) and ``ST_THETA_STAR``.
 """
 
 from __future__ import annotations
@@ -64,6 +65,7 @@ NK: int
 freeze: Prim
 USER_M: bool
 FAR: float
+ST_THETA_STAR: int
 
 
 def smoothstep(s: Any, low: float, high: float) -> Any:
@@ -188,7 +190,7 @@ def inversion_law(LP: LawArrays, v: Any, x: Any, xo: int, phi: Any, th: Any, to:
     p = NP
     nbad, lw = inversion_target(LP, v, x, xo, phi, th, to, ts)
     if nbad > 0 and not freeze(LP):
-        return nbad + 1
+        return ST_THETA_STAR
     for i in range(p):
         put(err, i, get(ts, i) - get(th, to + i))
     mv(VT, p, p, err, 0, thn, 0, 0)                 # Vᵀ (θ* − θ̂)

@@ -18,7 +18,8 @@ Over a sample of length h, w adds q Q₁(h), Q₁(h) = ∫₀^h e^{Aτ} E Eᵀ e
 exponential, once per distinct sample length), to the covariance of x; x is propagated by the
 model's sampled-data map with its exact Jacobian (:mod:`~thetahat.estimation.model_kernel`);
 the outputs update one at a time in Joseph form. θ is fitted by Gauss–Newton on the normalised
-innovations ε/√S (SciPy's trust-region least squares inside the box Θ, the Jacobian by
+innovations ε/√S (SciPy's trust-region least squares inside Θ's bounding box, then projected
+onto Θ, the Jacobian by
 differences of whole filter passes) and log q by a bounded one-dimensional search of −log L,
 alternately. The scale of q is the data's own: q₀ is the intensity whose one-sample effect on
 y equals the measurement noise, C q₀ Q₁(h) Cᵀ = σ², and q is searched over q₀·10^[−6, 6] and
@@ -39,7 +40,9 @@ from scipy.optimize import least_squares, minimize_scalar
 
 from ..errors import NonFiniteError
 from ..model.system import PerturbedLinearSystem
+from ..model.paramset import Box, ParameterSet
 from .ekf import theta_box
+from .stage2_set import project_theta, theta_bounds
 from .model_kernel import H_RHO, ModelKernel, jit, model_kernel
 
 __all__ = ["ProcessNoiseFit", "fit_process_noise", "process_noise_scale", "unit_process_noise",
@@ -326,14 +329,21 @@ def _problem(system: PerturbedLinearSystem, t: FloatArray, U: FloatArray, Y: Flo
                     run=_filter_for(model), valid=valid)
 
 
-def _fit_theta(pb: _Problem, theta0: FloatArray, q: float, lo: FloatArray, hi: FloatArray,
+def _fit_theta(pb: _Problem, theta0: FloatArray, q: float, theta_set: ParameterSet,
                max_nfev: int) -> tuple[FloatArray, FloatArray]:
+    """Least squares of θ within Θ's bounding box, then projected onto Θ (exact for a box; for
+    another convex Θ the projection is in the norm of the fit's own information JᵀJ)."""
+    lo, hi = theta_bounds(theta_set)
     width = hi - lo
     inner = np.clip(theta0, lo + 1e-9 * width, hi - 1e-9 * width)
     sol = least_squares(lambda th: pb.residuals(th, q), inner, bounds=(lo, hi),
                         x_scale=width, method="trf", max_nfev=max_nfev, xtol=FIT_RTOL,
                         ftol=FIT_RTOL, loss="huber", f_scale=HUBER_C)
-    return np.asarray(sol.x, dtype=np.float64), np.asarray(sol.jac, dtype=np.float64)
+    theta = np.asarray(sol.x, dtype=np.float64)
+    J = np.asarray(sol.jac, dtype=np.float64)
+    if not isinstance(theta_set, Box):
+        theta = project_theta(theta_set, theta, _inverse_information(J))
+    return theta, J
 
 
 def _search_q(pb: _Problem, theta: FloatArray, q0: float) -> float:
@@ -450,11 +460,11 @@ def fit_process_noise(system: PerturbedLinearSystem, t: FloatArray, U: FloatArra
     Parameters
     ----------
     system : PerturbedLinearSystem
-        With a symbolic g and a box Θ.
+        With a symbolic g and any convex Θ (fitted in its bounding box, then projected onto Θ).
     t, U, Y : ndarray, shapes (N,), (N, m), (N, r)
         The record (validated by the caller); NaN in Y marks missing samples.
     theta0 : ndarray (p,)
-        Starting θ (clipped into Θ).
+        Starting θ (projected onto Θ).
     x_hat0, x_sd : ndarray (n,)
         Prior mean and standard deviation of x(t₀).
     noise_std : ndarray (r,)
@@ -488,18 +498,18 @@ def fit_process_noise(system: PerturbedLinearSystem, t: FloatArray, U: FloatArra
     >>> bool(abs(fit.theta[0] - 1.2) < 4 * fit.theta_se[0])
     True
     """
-    lo, hi = theta_box(system)
+    theta_set = system.require_parameter_set("stage 2")
     sigma = np.asarray(noise_std, dtype=np.float64)
     pb = _problem(system, t, U, Y, x_hat0, x_sd, sigma, h_rho, compiled)
     h_med = float(np.median(np.diff(t))) if t.shape[0] > 1 else 1.0
     q0 = process_noise_scale(system, h_med, sigma)
-    theta = np.clip(np.asarray(theta0, dtype=np.float64), lo, hi)
+    theta = project_theta(theta_set, np.asarray(theta0, dtype=np.float64))
     q_now = q0 if q is None else float(q)
     if q is None:
         for _ in range(ALTERNATIONS):
-            theta, _ = _fit_theta(pb, theta, q_now, lo, hi, max_nfev)
+            theta, _ = _fit_theta(pb, theta, q_now, theta_set, max_nfev)
             q_now = _search_q(pb, theta, q0)
-    theta, J = _fit_theta(pb, theta, q_now, lo, hi, max_nfev)
+    theta, J = _fit_theta(pb, theta, q_now, theta_set, max_nfev)
     NU, LS, xP = pb.filter(theta, q_now)
     nu = NU[pb.valid]
     if not np.all(np.isfinite(nu)):

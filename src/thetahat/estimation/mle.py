@@ -8,8 +8,13 @@ x_k(q) from the sampled-data map of :mod:`~thetahat.estimation.model_kernel`, wi
 sensitivities ψ_k = C ∂x_k/∂q chained through the same map's exact Jacobians (Φ, Γ):
 (Σ ψᵀR⁻¹ψ + Π⁻¹) Δ = Σ ψᵀR⁻¹ r − Π⁻¹(q − q̄), solved after Jacobi scaling by a symmetric
 eigendecomposition (directions the data and the prior do not determine are left alone); the
-step is halved until J decreases; θ is clipped to Θ; the iteration stops when |Δθ| falls
-below :data:`STEP_TOL` standard errors or after ``max_iter`` iterations.
+step is halved until J decreases; θ is projected onto Θ after each step (projected
+Gauss–Newton: the projection of :mod:`~thetahat.estimation.stage2_set` in the norm weighted
+by the inverse of the step's marginal covariance of θ, ((M⁻¹)_θθ)⁻¹ — a clip for a box, the
+exact weighted projection for a ball or ellipsoid,
+:meth:`~thetahat.model.paramset.ConvexSet.nearest` for a general convex set; each trial point is feasible and J decreases, so the iteration is a
+descent method on Θ); the iteration stops when |Δθ| falls below :data:`STEP_TOL` standard
+errors or after ``max_iter`` iterations.
 
 :class:`MapEstimator` (method "mle") fits all the data so far each time the information has
 grown by a factor (:func:`information_schedule`: counts of samples, never seconds), warm-started
@@ -37,7 +42,8 @@ from numpy.typing import NDArray
 
 from ..errors import DimensionError
 from ..model.system import PerturbedLinearSystem
-from .ekf import resolve_noise_std, start_values, theta_box, theta_prior_sd
+from .ekf import resolve_noise_std, start_values, theta_prior_sd
+from .stage2_set import project_theta
 from .noise_level import MIN_SAMPLES
 from .model_kernel import H_RHO, ModelKernel, jit, model_kernel
 from .protocol import (Diagnostics, EstimateResult, missing_samples, phi_hat_from_model,
@@ -252,7 +258,7 @@ def fit_map(system: PerturbedLinearSystem, t: FloatArray, U: FloatArray, Y: Floa
     sweep = _sweep_for(model)
     n, p = system.n, system.p
     nq = n + p
-    lo, hi = theta_box(system)
+    theta_set = system.require_parameter_set("stage 2")
     Rinv = 1.0 / noise_std ** 2
     A, b, T = np.empty((nq, nq)), np.empty(nq), np.empty((n, nq))
     X = np.empty((k1 - k0, n))
@@ -264,7 +270,7 @@ def fit_map(system: PerturbedLinearSystem, t: FloatArray, U: FloatArray, Y: Floa
         return Jd + float(d @ prior_info @ d)
 
     q = q_start.copy()
-    q[n:] = np.clip(q[n:], lo, hi)
+    q[n:] = project_theta(theta_set, q[n:])
     iterations = 0
     J = total(q, True)
     Minv = np.zeros((nq, nq))
@@ -277,7 +283,7 @@ def fit_map(system: PerturbedLinearSystem, t: FloatArray, U: FloatArray, Y: Floa
         step, accepted = 1.0, False
         for _ in range(MAX_HALVINGS):
             q_new = q + step * delta
-            q_new[n:] = np.clip(q_new[n:], lo, hi)
+            q_new[n:] = project_theta(theta_set, q_new[n:], Minv[n:, n:])
             J_new = total(q_new, False)
             if math.isfinite(J_new) and J_new <= J:
                 accepted = True

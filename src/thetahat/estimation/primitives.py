@@ -29,7 +29,8 @@ The primitives (``acc`` of the products: 0 assigns, 1 adds, -1 subtracts):
 ``mm(A, B, a, c, b, out, ro, co, acc)``  out[ro:ro+a, co:co+b] (+)= A B, A (a, c), B (c, b)
 ``mmt(A, B, a, c, b, out)``              out = A Bᵀ, A (a, c), B (b, c)
 ``eye_minus(M, q, c)``                   M ← I − c M (q × q)
-``solve(q, M, rhs)``                     rhs ← M⁻¹ rhs (M is overwritten)
+``solve(q, M, rhs)``                     rhs ← M⁻¹ rhs (M is overwritten); returns ST_OK, or
+                                         ST_SINGULAR at a zero pivot (per row)
 ``expm(q, Z, E, T, U)``                  E = exp(Z) (T, U: work)
 ``where``, ``clip``, ``maximum``         elementwise, as in NumPy
 ``exp``, ``sqrt``, ``absolute``          elementwise
@@ -61,6 +62,7 @@ from scipy.linalg.lapack import dgesv as _gesv
 
 from ..errors import ThetahatError
 from ..model.set_geometry import safe_norm
+from .status import Status
 
 __all__ = ["ARRAYS", "NUMPY", "NUMPY_ROW", "PRIMITIVES", "AliasingError", "bind", "bound",
            "check_aliasing"]
@@ -153,14 +155,28 @@ def _eye_minus(M: FloatArray, q: int, c: float) -> None:
     M[..., idx, idx] += 1.0
 
 
-def _solve(q: int, M: FloatArray, rhs: FloatArray) -> None:
+def _solve(q: int, M: FloatArray, rhs: FloatArray) -> Any:
+    """rhs ← M⁻¹ rhs; the status (:class:`~thetahat.estimation.status.Status`) per row: a zero
+    pivot of LAPACK's LU (info > 0) is ``SINGULAR`` and leaves NaN in that row's rhs."""
     if M.ndim == 2:                     # one row: LAPACK's gesv (np.linalg.solve costs ~4 µs)
         _, _, x, info = _gesv(M, rhs)
-        if info != 0:
-            x = np.linalg.solve(M, rhs)  # raises LinAlgError with numpy's message
+        if info > 0:
+            rhs[...] = np.nan
+            return int(Status.SINGULAR)
         rhs[...] = x
-    else:
+        return int(Status.OK)
+    status = np.full(M.shape[:-2], int(Status.OK))
+    try:
         rhs[...] = np.linalg.solve(M, rhs[..., None])[..., 0]
+    except np.linalg.LinAlgError:       # some row is singular: find it, row by row
+        for i in np.ndindex(*M.shape[:-2]):
+            _, _, x, info = _gesv(M[i], rhs[i])
+            if info > 0:
+                rhs[i] = np.nan
+                status[i] = int(Status.SINGULAR)
+            else:
+                rhs[i] = x
+    return status
 
 
 def _expm(q: int, Z: FloatArray, E: FloatArray, T: FloatArray, U: FloatArray) -> None:

@@ -33,6 +33,7 @@ from .discretize import IMPLICITNESS
 from .formulas import DIVERGENCE_BOUND
 from .law_base import FAR
 from .primitives import check_aliasing
+from .status import status_constants
 
 __all__ = ["INLINE_FROM", "LAWS", "formula_decorator", "kernel_source", "law_source",
            "model_source", "rewritten"]
@@ -198,8 +199,9 @@ def model_source(pert: SymbolicPerturbation, theta_star: tuple[sp.Expr, ...] | N
 
 #: Block primitives expanded in place where a formula calls them as a statement (then the
 #: dimensions are constants there and the loops unroll); ``expm`` (the gradient law's, once
-#: per sample) stays a call: expanding it costs ~15 s of compile time for no measurable gain.
-_EXPANDED = ("copy", "axpy", "fill", "mv", "mm", "mmt", "eye_minus", "solve")
+#: per sample) stays a call: expanding it costs ~15 s of compile time for no measurable gain;
+#: ``solve`` stays a call because it returns a status (a zero pivot is ``ST_SINGULAR``).
+_EXPANDED = ("copy", "axpy", "fill", "mv", "mm", "mmt", "eye_minus")
 
 
 def _body(name: str) -> tuple[list[str], list[ast.stmt]]:
@@ -420,9 +422,12 @@ def kernel_source(pert: SymbolicPerturbation, theta_star: tuple[sp.Expr, ...] | 
         f"IMPLICITNESS = {IMPLICITNESS!r}", f"FAR = {FAR!r}",
         f"EXP_TINY_ARG = {scalar_primitives.EXP_TINY_ARG!r}",
         f"BOUND_SQ = {DIVERGENCE_BOUND ** 2!r}",
+        *(f"{name} = {code}" for name, code in status_constants().items()),
         f"USER_M = {M is not None}"]
     parts = ["\n".join(header)]
-    parts += [_source(fn, name, _INLINE)
+    # solve returns a status, so it is not expanded in place (_EXPANDED): numba inlines it
+    # like the formulas instead (a call per step costs ~60 % of the LuGre step)
+    parts += [_source(fn, name, form if name == "solve" else _INLINE)
               for name, fn in scalar_primitives.SCALAR_PRIMITIVES.items()]
     parts.append(model_source(pert, theta_star, ts_args))
     if M is not None:

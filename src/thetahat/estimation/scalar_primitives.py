@@ -17,6 +17,8 @@ import math
 from collections.abc import Callable
 from typing import TYPE_CHECKING, Any
 
+from .status import Status
+
 if TYPE_CHECKING:                    # the argument tuples (named; every binding builds them)
     from .kernel_args import LawArrays, PlanArrays, SecondArrays
 
@@ -25,6 +27,12 @@ __all__ = ["EXP_TINY_ARG", "SCALAR_PRIMITIVES"]
 #: Below this argument exp underflows to 0 in float64 (the largest a with exp(a) == 0 is just
 #: under it); ``math.exp`` there takes libm's slow path, which the scalar ``exp`` avoids.
 EXP_TINY_ARG = -745.1332191019411
+
+#: The status codes the primitives return (:class:`~thetahat.estimation.status.Status`; the
+#: emitted module defines them from the same enum).
+ST_OK = int(Status.OK)
+ST_DIVERGED = int(Status.DIVERGED)
+ST_SINGULAR = int(Status.SINGULAR)
 
 # Names of the emitted module (declared for the type checker; never assigned here).
 advance: Callable[..., int]
@@ -110,8 +118,9 @@ def eye_minus(M: Any, q: int, c: float) -> None:
         M[i, i] += 1.0
 
 
-def solve(q: int, M: Any, rhs: Any) -> None:
-    # Gaussian elimination with partial pivoting; M is overwritten by its LU factors
+def solve(q: int, M: Any, rhs: Any) -> int:
+    # Gaussian elimination with partial pivoting; M is overwritten by its LU factors.
+    # ST_SINGULAR at a zero pivot (LAPACK's info > 0), rhs then undefined; else ST_OK
     for c in range(q):
         piv = c
         best = abs(M[c, c])
@@ -119,6 +128,8 @@ def solve(q: int, M: Any, rhs: Any) -> None:
             if abs(M[i, c]) > best:
                 best = abs(M[i, c])
                 piv = i
+        if best == 0.0:
+            return ST_SINGULAR
         if piv != c:
             for j in range(q):
                 t = M[c, j]
@@ -137,6 +148,7 @@ def solve(q: int, M: Any, rhs: Any) -> None:
         for j in range(c + 1, q):
             t -= M[c, j] * rhs[j]
         rhs[c] = t / M[c, c]
+    return ST_OK
 
 
 def expm(q: int, Z: Any, E: Any, T: Any, U: Any) -> None:
@@ -320,7 +332,7 @@ def kernel_run(s0: Any, U: Any, Y: Any, dts: Any, ok: Any, plan_of: Any, PH: tup
         if status != 0:
             return status, i
         if not within_bound(out, size):
-            return 1, i
+            return ST_DIVERGED, i
         for j in range(size):
             S[i + 1, j] = out[j]
         s, out = out, s

@@ -33,6 +33,7 @@ from .inversion import invalid_theta_star_error
 from .kernel_args import LawArrays, PlanArrays, SecondArrays
 from .plan import SecondPlan, StateLayout, StepPlan
 from .primitives import NUMPY, NUMPY_ROW, bind, bound
+from .status import Status, status_constants
 from .update_laws import UpdateLaw
 
 __all__ = ["DIVERGENCE_BOUND", "advance", "diverged", "divergence_error", "integrate",
@@ -95,7 +96,7 @@ def _constants(lay: StateLayout) -> dict[str, Any]:
     """The dimensions and constants the formulas read."""
     return {"NX": lay.n, "NU": lay.m, "NY": lay.r, "NK": lay.k, "NP": lay.p,
             "LS": lay.law_size, "IMPLICITNESS": IMPLICITNESS,
-            "BOUND_SQ": DIVERGENCE_BOUND ** 2}
+            "BOUND_SQ": DIVERGENCE_BOUND ** 2, **status_constants()}
 
 
 def _binding(pert: Perturbation, law: UpdateLaw | None, lay: StateLayout, row: bool
@@ -359,13 +360,22 @@ def advance(plan: StepPlan, pert: Perturbation, law: UpdateLaw, s: FloatArray, u
         LawArrays(Gamma_rows=G), s, u0, y0,
         u1, y0 if (y1 is None or not correct) else y1, dt, correct, foh, second,
         plan.second is not None and plan.second.g_on_estimates, out, W)
-    if status == 0:
+    if status == Status.OK:
         return out
-    if status >= 2:                   # the law's own check raises first; kept for safety
-        raise invalid_theta_star_error(type(law).__name__, status - 1)
-    phi = W[10]                       # status 1: φ̂ not finite in some rows
+    if status == Status.THETA_STAR:   # the law's own check raises first; kept for safety
+        raise invalid_theta_star_error(type(law).__name__, None)
+    # DIVERGED (φ̂ not finite) or SINGULAR (an implicit step): those rows become NaN, which
+    # the callers report as the divergence of that step (divergence_error)
     if s.ndim == 1:
         return np.full_like(s, np.nan)
+    if status == Status.SINGULAR:     # which rows: each row on its own
+        out = np.empty_like(s)
+        for i in range(s.shape[0]):
+            out[i] = advance(plan.rows(np.array([i])), pert, law, s[i:i + 1], u0[i:i + 1],
+                             y0[i:i + 1], dt, correct, None if u1 is None else u1[i:i + 1],
+                             None if y1 is None else y1[i:i + 1])[0]
+        return out
+    phi = W[10]
     finite = np.isfinite(phi).all(axis=-1)
     out = np.full_like(s, np.nan)
     good = np.flatnonzero(finite)
@@ -413,10 +423,10 @@ def divergence_error(where: str) -> NonFiniteError:
     -------
     NonFiniteError
     """
-    return NonFiniteError(f"the observer state diverged (NaN, inf or a norm above "
-                          f"{DIVERGENCE_BOUND:g}) {where}: the gains are too high for this dt "
-                          "(decrease dt or increase ε), or the update law / data scaling is "
-                          "off.")
+    return NonFiniteError(f"the observer state diverged (NaN, inf, a norm above "
+                          f"{DIVERGENCE_BOUND:g}, or a singular implicit step) {where}: the "
+                          "gains are too high for this dt (decrease dt or increase ε), or the "
+                          "update law / data scaling is off.")
 
 
 def integrate(plan_for: Callable[[float], StepPlan], pert: Perturbation, law: UpdateLaw,

@@ -14,9 +14,12 @@ estimate θ̂ of a record against four questions and :class:`TrustReport` answer
   at least :data:`UNPINNED_FRACTION` of Θ's width is named as one the data cannot pin: the
   record says no more about it than Θ does.
 * **Did θ̂ end on Θ's boundary?** Then Θ, not the data, decided it (within
-  :data:`BOUNDARY_RTOL` of a face of the box).
+  :data:`BOUNDARY_RTOL` of a face of a box; for a ball, ellipsoid or convex set, within that
+  fraction of the boundary surface, naming the parameters along which its normal points:
+  :func:`~thetahat.estimation.stage2_set.on_boundary`).
 * **Was the guarantee empty?** For the guarded estimator: the fraction of the run in which the
-  guard's band δ was Θ's full width (the output then is stage 2's, clipped to Θ, and stage 1's
+  guard's band δ was Θ's full width — per component, the width of Θ's bounding box (the
+  output then is stage 2's, projected onto Θ, and stage 1's
   convergence guarantees nothing); warned when above :data:`EMPTY_GUARD_FRACTION`.
 * **Is the model wrong?** When the likelihood prefers process noise on φ (q̂ > 0 at more than
   :data:`MODEL_ERROR_Q` times the data's own scale q₀), the model does not explain the record
@@ -35,6 +38,7 @@ from numpy.typing import NDArray
 from ..errors import ThetahatError
 from ..model.system import PerturbedLinearSystem
 from .ekf import theta_box
+from .stage2_set import BOUNDARY_RTOL, on_boundary
 from .likelihood import process_noise_scale, record_bound
 from .model_kernel import H_RHO
 from .noise_level import MIN_SAMPLES, estimate_noise_std
@@ -47,8 +51,6 @@ FloatArray = NDArray[np.float64]
 #: A Cramér–Rao standard deviation of at least this fraction of Θ's width: the record does not
 #: pin the parameter (the prior from Θ, centre ± |Θ|/4, says as much).
 UNPINNED_FRACTION = 0.25
-#: θ̂ within this fraction of Θ's width of a face lies on Θ's boundary.
-BOUNDARY_RTOL = 1e-3
 #: Warn when the guard's band was Θ's full width for more than this fraction of the run.
 EMPTY_GUARD_FRACTION = 0.5
 #: q̂ / q₀ above this: the model error shows (q₀ is the intensity whose effect on y over one
@@ -152,7 +154,7 @@ def trust_report(system: PerturbedLinearSystem, t: FloatArray, U: FloatArray, Y:
     Parameters
     ----------
     system : PerturbedLinearSystem
-        With a symbolic g and a box Θ.
+        With a symbolic g and any convex Θ.
     t, U, Y : ndarray, shapes (N,), (N, m), (N, r)
         The record.
     theta : ndarray (p,)
@@ -207,8 +209,8 @@ def trust_report(system: PerturbedLinearSystem, t: FloatArray, U: FloatArray, Y:
             q = 0.0
     unpinned = tuple(n for n, sd, w in zip(names_, crlb_sd, width)
                      if not np.isnan(sd) and not (sd < UNPINNED_FRACTION * w))
-    on_bnd = tuple(n for n, v, a, b, w in zip(names_, th, lo, hi, width)
-                   if v - a <= BOUNDARY_RTOL * w or b - v <= BOUNDARY_RTOL * w)
+    flags = on_boundary(system.require_parameter_set("trust_report"), th)
+    on_bnd = tuple(n for n, flag in zip(names_, flags) if flag)
     empty = None
     if band is not None:
         B = np.asarray(band, dtype=np.float64).reshape(-1, th.shape[0])

@@ -148,6 +148,37 @@ class PerturbedLinearSystem:
                                  "system with perturbation=... .")
         return self.perturbation
 
+    def require_parameter_set(self, owner: str) -> ParameterSet:
+        """Θ, for an ``owner`` that cannot work without one.
+
+        Parameters
+        ----------
+        owner : str
+            Who needs Θ (named in the error message), e.g. ``"JointEKF"``.
+
+        Returns
+        -------
+        ParameterSet
+
+        Raises
+        ------
+        DimensionError
+            The system was built without a parameter set.
+
+        Examples
+        --------
+        >>> from thetahat import PerturbedLinearSystem
+        >>> sys = PerturbedLinearSystem(A=[[0.0]], B=[[1.0]], C=[[1.0]], E=[[1.0]])
+        >>> sys.require_parameter_set("stage 2")
+        Traceback (most recent call last):
+        ...
+        thetahat.errors.DimensionError: stage 2 needs system.parameter_set ...
+        """
+        if self.parameter_set is None:
+            raise DimensionError(f"{owner} needs system.parameter_set (Θ of Sec. II); build the "
+                                 "system with parameter_set=... .")
+        return self.parameter_set
+
     def __repr__(self) -> str:
         g = type(self.perturbation).__name__ if self.perturbation is not None else "None"
         th = repr(self.parameter_set) if self.parameter_set is not None else "None"

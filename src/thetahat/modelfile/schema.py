@@ -13,7 +13,12 @@ A model file (TOML, read with :mod:`tomllib`, or JSON with the same structure) h
     ``x``, ``theta``: the symbol names (lists of m, r, n and p names; a single name may be
     given as a string); ``constants`` (optional table): named numbers used in the formulas.
 ``[parameter_set]``
-    Θ as a box: ``lower`` and ``upper`` (p numbers each).
+    Θ, one of three convex sets (:mod:`thetahat.model.paramset`): a box, ``lower`` and
+    ``upper`` (p numbers each); a ball, ``center`` (p numbers) and ``radius`` (a number > 0),
+    {θ : ‖θ − center‖ ≤ radius}; or an ellipsoid, ``center`` and ``shape`` (a p × p symmetric
+    positive-definite Q), {θ : (θ − center)ᵀ Q (θ − center) ≤ 1} (each eigenvalue of Q is
+    1/a² for a semi-axis a). A general convex set {P(θ) ≤ 0} needs a Python callable P and
+    exists in the API only (:class:`~thetahat.model.paramset.ConvexSet`).
 ``[estimator]``
     ``law`` (required): ``"gradient"`` (:class:`~thetahat.estimation.update_laws.
     GradientInversion` with the default M = (∂g/∂θ)ᵀ, Propositions 3–4), ``"algebraic"``
@@ -46,7 +51,8 @@ A model file (TOML, read with :mod:`tomllib`, or JSON with the same structure) h
 ``[scenario]`` (optional)
     The simulated experiment of ``thetahat sweep`` and ``thetahat tune``
     (:func:`~thetahat.modelfile.study.simulate_model`): the true ``theta`` (default: the
-    point of the box Θ three quarters of the way from ``lower`` to ``upper``), ``x0``
+    point half way from Θ's centre to its point nearest the upper corner of Θ's bounding box:
+    for a box, three quarters of the way from ``lower`` to ``upper``), ``x0``
     (default 0), ``t_end`` (s, default 20), ``fs`` (Hz, default 100), ``noise_std`` (white
     noise on y, default 0.01), the input as a sum of sines per channel, ``u_amplitudes`` and
     ``u_frequencies`` (Hz) (a list of q numbers for every channel, or one list per channel;
@@ -81,7 +87,7 @@ import tomllib
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, cast
+from typing import Any
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -98,8 +104,9 @@ from ..estimation.update_laws import (
     UpdateLaw,
     smooth_ramp,
 )
-from ..model.paramset import Box
+from ..model.paramset import Ball, Box, Ellipsoid, ParameterSet
 from ..model.parse import parse_perturbation
+from ..estimation.stage2_set import theta_bounds
 from ..model.perturbation import SymbolicPerturbation
 from ..model.system import PerturbedLinearSystem
 
@@ -115,6 +122,8 @@ _TOP_KEYS = ("name", "system", "perturbation", "parameter_set", "estimator", "sc
 _SYSTEM_KEYS = ("A", "B", "C", "E")
 _PERTURBATION_KEYS = ("g", "u", "y", "x", "theta", "constants")
 _BOX_KEYS = ("lower", "upper")
+_BALL_KEYS = ("center", "radius")
+_ELLIPSOID_KEYS = ("center", "shape")
 _ESTIMATOR_KEYS = ("method", "law", "eps", "chain_poles", "b_poles", "Gamma", "theta_hat0",
                    "x_hat0", "theta_star", "excitation", "on_invalid", "A_design", "E_design",
                    "second", "allow_nonminimum_phase", "x_hat0_from_y")
@@ -570,7 +579,30 @@ def _read_theta_star(sec: _Section, pert: SymbolicPerturbation,
     return _ThetaStarExpression(expr)
 
 
-def _read_law(sec: _Section, pert: SymbolicPerturbation, theta_set: Box,
+def _read_parameter_set(sec: _Section, p: int) -> ParameterSet:
+    """Θ from [parameter_set]: a box (lower, upper), ball (center, radius) or ellipsoid
+    (center, shape), told apart by their keys."""
+    what = f"one per parameter in [perturbation] theta, p = {p}"
+    try:
+        if sec.has("radius"):
+            sec.check_keys(_BALL_KEYS)
+            return Ball(sec.vector("center", p, what), sec.number("radius", positive=True))
+        if sec.has("shape"):
+            sec.check_keys(_ELLIPSOID_KEYS)
+            return Ellipsoid(sec.vector("center", p, what),
+                             sec.matrix("shape", p, p, f"p × p, p = {p}"))
+        if sec.has("center"):
+            raise sec.fail("center", "a ball needs radius = R, an ellipsoid shape = Q (p × p); "
+                                     "a box is given by lower and upper instead.")
+        sec.check_keys(_BOX_KEYS)
+        return Box(sec.vector("lower", p, what), sec.vector("upper", p, what))
+    except ModelFileError:
+        raise
+    except ThetahatError as exc:
+        raise sec.fail(None, str(exc)) from exc
+
+
+def _read_law(sec: _Section, pert: SymbolicPerturbation, theta_set: ParameterSet,
               parsed: dict[str, Any]) -> tuple[str, UpdateLaw, bool]:
     law = sec.require("law", f"one of {list(LAWS)}")
     if law not in LAWS:
@@ -624,7 +656,7 @@ def _read_estimator(sec: _Section, system: PerturbedLinearSystem, pert: Symbolic
                     parsed: dict[str, Any]) -> EstimatorOptions:
     sec.check_keys(_ESTIMATOR_KEYS)
     n, k, p = system.n, system.k, system.p
-    law, update_law, gamma_auto = _read_law(sec, pert, cast(Box, system.parameter_set), parsed)
+    law, update_law, gamma_auto = _read_law(sec, pert, system.require_parameter_set("[estimator]"), parsed)
     method = sec.table.get("method", "paper")
     if method not in ESTIMATION_METHODS:
         raise sec.fail("method", f"unknown method {_show(method)}; expected one of "
@@ -691,7 +723,7 @@ def _scenario_input(sec: _Section, m: int) -> tuple[FloatArray, FloatArray]:
     return amp, freq
 
 
-def _read_scenario(sec: _Section, system: PerturbedLinearSystem, theta_set: Box
+def _read_scenario(sec: _Section, system: PerturbedLinearSystem, theta_set: ParameterSet
                    ) -> ScenarioOptions:
     sec.check_keys(_SCENARIO_KEYS)
     n, m, p = system.n, system.m, system.p
@@ -699,10 +731,13 @@ def _read_scenario(sec: _Section, system: PerturbedLinearSystem, theta_set: Box
         theta = sec.vector("theta", p, f"the true θ, p = {p}")
         if not theta_set.contains(theta):
             raise sec.fail("theta", f"the true θ = {theta.tolist()} lies outside Θ = "
-                                    f"[{theta_set.lower.tolist()}, {theta_set.upper.tolist()}]"
-                                    f"; the estimator assumes θ ∈ Θ.")
+                                    f"{theta_set!r}; the estimator assumes θ ∈ Θ.")
     else:
-        theta = theta_set.lower + 0.75 * (theta_set.upper - theta_set.lower)
+        # half way from Θ's centre to its point nearest the bounding box's upper corner (for a
+        # box: three quarters of the way from lower to upper)
+        centre = np.asarray(theta_set.interior_point, dtype=np.float64)
+        corner = theta_set.nearest(theta_bounds(theta_set)[1])
+        theta = centre + 0.5 * (corner - centre)
     x0 = sec.vector("x0", n, f"x(0), n = {n}") if sec.has("x0") else np.zeros(n)
     method = sec.table.get("method", "Radau")
     if method not in SCENARIO_METHODS:
@@ -847,14 +882,7 @@ def loads_model(text: str, *, syntax: str = "toml", source: str = "<string>") ->
     B = sys_sec.matrix("B", n, m, f"n × m with m = {m} inputs from [perturbation] u")
     C = sys_sec.matrix("C", r, n, f"r × n with r = {r} outputs from [perturbation] y")
     E = sys_sec.matrix("E", n, k, f"n × k with k = {k} components of [perturbation] g")
-    box = sections["parameter_set"]
-    box.check_keys(_BOX_KEYS)
-    lower = box.vector("lower", p, f"one per parameter in [perturbation] theta, p = {p}")
-    upper = box.vector("upper", p, f"one per parameter in [perturbation] theta, p = {p}")
-    try:
-        theta_set = Box(lower, upper)
-    except ThetahatError as exc:
-        raise ModelFileError(f"model file {source}: [parameter_set]: {exc}") from exc
+    theta_set = _read_parameter_set(sections["parameter_set"], p)
     try:
         system = PerturbedLinearSystem(A=A, B=B, C=C, E=E, perturbation=pert,
                                        parameter_set=theta_set)

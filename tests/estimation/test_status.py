@@ -1,0 +1,146 @@
+"""One status enum in every binding: a singular implicit step is Status.SINGULAR in NumPy,
+numba and C, and the API turns it into the same documented error."""
+
+from __future__ import annotations
+
+import ast
+import ctypes
+import subprocess
+
+import numpy as np
+import pytest
+
+from thetahat.codegen.c_api import STATUS
+from thetahat.codegen.c_printer import CUnit
+from thetahat.codegen.c_values import Arr, Const
+from thetahat.codegen.harness import C_FLAGS
+from thetahat.codegen.loader import find_compiler
+from thetahat.errors import NonFiniteError, UpdateLawError
+from thetahat.estimation import formulas, scalar_primitives
+from thetahat.estimation.compiled import kernel_parts
+from thetahat.estimation.discretize import IMPLICITNESS
+from thetahat.estimation.primitives import NUMPY, NUMPY_ROW, bind
+from thetahat.estimation.scalar_backend import LAWS, kernel_source, rewritten
+from thetahat.estimation.status import MESSAGES, Status, status_constants
+from thetahat.estimation.step import divergence_error
+from thetahat.models import lugre
+
+Q = 2
+#: Φ₁ = I and N = diag(2, 0): I − γΦ₁N = diag(0, 1) with γ = 1/2, exactly singular (a zero
+#: pivot in LAPACK's LU and in the scalar elimination alike).
+SINGULAR_N = np.diag([2.0, 0.0])
+#: A regular N: I − γΦ₁N = diag(0.5, 1).
+REGULAR_N = np.diag([1.0, 0.0])
+
+
+def _args(N: np.ndarray) -> tuple:
+    F = np.array([1.0, 2.0])
+    return (Q, np.eye(Q), np.zeros((Q, Q)), F, np.zeros(Q), False, N.copy(), np.zeros(Q), 0,
+            np.zeros(Q), np.zeros((Q, Q)), np.zeros(Q))
+
+
+def _numpy_implicit_step(row: bool):
+    names = {**(NUMPY_ROW if row else NUMPY), "IMPLICITNESS": IMPLICITNESS,
+             **status_constants()}
+    return bind({"implicit_step": formulas.implicit_step}, names)["implicit_step"]
+
+
+def test_the_c_header_codes_are_the_enum():
+    assert {k: v[0] for k, v in STATUS.items()} == {s.name.lower(): int(s) for s in Status}
+    assert all(STATUS[s.name.lower()][1] == MESSAGES[s] for s in Status)
+    # the codes the C interface used before the enum keep their values
+    assert (STATUS["ok"][0], STATUS["theta_star"][0], STATUS["diverged"][0],
+            STATUS["init"][0]) == (0, 3, 4, 5)
+
+
+def test_numpy_row_and_batch_report_a_singular_step():
+    step = _numpy_implicit_step(True)
+    a = _args(SINGULAR_N)
+    assert step(*a) == Status.SINGULAR
+    b = _args(REGULAR_N)
+    assert step(*b) == Status.OK
+    np.testing.assert_allclose(b[9], [2.0, 2.0])            # (I − ½N)⁻¹ F = [1/0.5, 2]
+    batch = _numpy_implicit_step(False)
+    rows = [_args(SINGULAR_N), _args(REGULAR_N)]
+    stacked = [np.stack([r[i] for r in rows]) if isinstance(rows[0][i], np.ndarray)
+               else rows[0][i] for i in range(len(rows[0]))]
+    status = batch(*stacked)
+    assert status.tolist() == [Status.SINGULAR, Status.OK]  # per row, no LinAlgError
+    np.testing.assert_allclose(stacked[9][1], [2.0, 2.0])
+
+
+def test_python_scalar_primitives_report_a_singular_step():
+    M = np.diag([0.0, 1.0])
+    assert scalar_primitives.solve(Q, M, np.array([1.0, 2.0])) == Status.SINGULAR
+
+
+def test_numba_reports_a_singular_step():
+    pytest.importorskip("numba")
+    from thetahat.estimation.kernel_cache import load_module
+    parts = kernel_parts(lugre.observer(1.0))
+    ts = parts.theta_star
+    source = kernel_source(parts.perturbation, None if ts is None else ts.expr,
+                           None if ts is None else ts.arguments, LAWS[parts.code], numba=True)
+    mod = load_module(source, "thetahat_status_test")
+    # implicit_step alone (compiled on this first call; it calls mv, mm, eye_minus, solve)
+    assert mod.implicit_step(*_args(SINGULAR_N)) == Status.SINGULAR
+    b = _args(REGULAR_N)
+    assert mod.implicit_step(*b) == Status.OK
+    np.testing.assert_allclose(b[9], [2.0, 2.0])
+
+
+def test_c_reports_a_singular_step(tmp_path):
+    if find_compiler() is None:
+        pytest.skip("no C compiler (cc or $CC)")
+    names = ("implicit_step", "mv", "mm", "eye_minus", "solve", "copy", "axpy")
+    functions = {name: rewritten(getattr(formulas, name, None)
+                                 or scalar_primitives.SCALAR_PRIMITIVES[name]).body[0]
+                 for name in names}
+    for fn in functions.values():
+        assert isinstance(fn, ast.FunctionDef)
+    constants = {"IMPLICITNESS": Const(IMPLICITNESS),
+                 **{k: Const(v) for k, v in status_constants().items()}}
+    unit = CUnit(functions, constants, lambda name, args: None, "double")
+    arrays = {"Phi1": (Q, Q), "Phi2": (Q, Q), "F": (Q,), "Fd": (Q,), "Nm": (Q, Q), "s": (Q,),
+              "out": (Q,), "M": (Q, Q), "rhs": (Q,)}
+    call = unit.call("implicit_step", [Const(Q), Arr("Phi1", arrays["Phi1"]),
+                                       Arr("Phi2", arrays["Phi2"]), Arr("F", arrays["F"]),
+                                       Arr("Fd", arrays["Fd"]), Const(False),
+                                       Arr("Nm", arrays["Nm"]), Arr("s", arrays["s"]),
+                                       Const(0), Arr("out", arrays["out"]),
+                                       Arr("M", arrays["M"]), Arr("rhs", arrays["rhs"])])
+    params = ", ".join(f"real_t {a}[]" for a in call.args)
+    src = tmp_path / "step.c"
+    src.write_text("#include <math.h>\ntypedef double real_t;\n" + unit.source()
+                   + f"\nint run({params});\nint run({params})\n{{\n"
+                   f"    return {call.name}({', '.join(call.args)});\n}}\n")
+    lib = tmp_path / "libstep.so"
+    out = subprocess.run([find_compiler(), *C_FLAGS, "-fPIC", "-shared", "-o", str(lib),
+                          str(src)], capture_output=True, text=True)
+    assert out.returncode == 0 and not out.stderr, out.stderr
+    run = ctypes.CDLL(str(lib)).run
+    ptr = ctypes.POINTER(ctypes.c_double)
+    for N, want in ((SINGULAR_N, Status.SINGULAR), (REGULAR_N, Status.OK)):
+        a = _args(N)
+        values = {"Phi1": a[1], "Phi2": a[2], "F": a[3], "Fd": a[4], "Nm": a[6], "s": a[7],
+                  "out": a[9], "M": a[10], "rhs": a[11]}
+        bufs = {k: np.ascontiguousarray(v, dtype=np.float64) for k, v in values.items()}
+        assert run(*(bufs[name].ctypes.data_as(ptr) for name in call.args)) == want
+        if want == Status.OK:
+            np.testing.assert_allclose(bufs["out"], [2.0, 2.0])
+
+
+def test_every_binding_raises_the_same_error_for_a_failed_step():
+    from thetahat.codegen.loader import CObserver
+    from thetahat.estimation.compiled import CompiledObserver
+    where = "in the step from t[3] = 0.003"
+    expected = str(divergence_error(where))
+    assert "singular" in expected and "t[3]" in expected
+    for status in (Status.SINGULAR, Status.DIVERGED):
+        with pytest.raises(NonFiniteError) as c_err:
+            CObserver.raise_for(None, int(status), where)          # type: ignore[arg-type]
+        with pytest.raises(NonFiniteError) as nb_err:
+            CompiledObserver._raise(None, int(status), where)      # type: ignore[arg-type]
+        assert str(c_err.value) == str(nb_err.value) == expected
+    with pytest.raises(UpdateLawError, match="theta_star"):
+        CObserver.raise_for(None, int(Status.THETA_STAR), where)   # type: ignore[arg-type]
