@@ -50,7 +50,7 @@ import warnings
 from collections.abc import Callable
 from dataclasses import dataclass
 from types import ModuleType
-from typing import Any, NoReturn
+from typing import TYPE_CHECKING, Any, NoReturn
 
 import numpy as np
 from numpy.typing import NDArray
@@ -70,6 +70,8 @@ from .plan import StateLayout, StepPlan
 from .scalar_backend import LAWS, kernel_source
 from .step import DIVERGENCE_BOUND, divergence_error
 from .theta_star import ThetaStar, as_theta_star
+if TYPE_CHECKING:
+    from ..codegen.native import NativeObserver
 from .update_laws import (ConstantLaw, GradientInversion, IntermittentInversion, SmoothRamp,
                           invalid_theta_star_error)
 
@@ -626,12 +628,15 @@ COMPILE_MIN_SAMPLES = 20_000
 
 
 def runner(observer: ModifiedHighGainObserver, t: Any, *, compiled: bool | None = None
-           ) -> ModifiedHighGainObserver | CompiledObserver:
+           ) -> ModifiedHighGainObserver | CompiledObserver | NativeObserver:
     """What runs an observer over the record ``t``: its compiled form, or the observer itself.
 
     Both have ``run(t, u, y, state0=, hold=, progress=)`` with the same results (to
     rounding). The compiled form is chosen when ``compiled`` is True, or None (the default)
-    and ``t`` has at least :data:`COMPILE_MIN_SAMPLES` samples; it falls back to the observer
+    and ``t`` has at least :data:`COMPILE_MIN_SAMPLES` samples: with a C compiler, the C
+    printed from the formulas (:class:`~thetahat.codegen.native.NativeObserver`: built in
+    under a second, where numba's first compilation takes 20–60 s; a record it cannot take
+    runs on numba); else the numba kernel. It falls back to the observer
     with a one-line :class:`~thetahat.errors.ThetahatWarning` when numba is missing or a part
     of the observer is not supported (the note names it).
 
@@ -646,7 +651,7 @@ def runner(observer: ModifiedHighGainObserver, t: Any, *, compiled: bool | None 
 
     Returns
     -------
-    ModifiedHighGainObserver or CompiledObserver
+    ModifiedHighGainObserver or CompiledObserver or NativeObserver
 
     Examples
     --------
@@ -665,6 +670,15 @@ def runner(observer: ModifiedHighGainObserver, t: Any, *, compiled: bool | None 
         return observer
     steps = np.diff(t_[:2])
     dt = float(steps[0]) if steps.size and np.isfinite(steps[0]) and steps[0] > 0 else 1.0
+    from ..codegen.native import NativeObserver, native_enabled
+    if native_enabled():                 # the C of the formulas: < 1 s to build, not 20-60 s
+        return NativeObserver(observer, lambda: _numba_runner(observer, dt))
+    return _numba_runner(observer, dt)
+
+
+def _numba_runner(observer: ModifiedHighGainObserver, dt: float
+                  ) -> ModifiedHighGainObserver | CompiledObserver:
+    """The numba kernel of ``observer``, or the observer itself with a one-line note."""
     try:
         return compile_observer(observer, dt=dt)
     except MissingExtraError:
