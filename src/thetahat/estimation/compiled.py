@@ -670,8 +670,9 @@ def runner(observer: ModifiedHighGainObserver, t: Any, *, compiled: bool | None 
         return observer
     steps = np.diff(t_[:2])
     dt = float(steps[0]) if steps.size and np.isfinite(steps[0]) and steps[0] > 0 else 1.0
+    from ..codegen.generate import supports_c
     from ..codegen.native import NativeObserver, native_enabled
-    if native_enabled():                 # the C of the formulas: < 1 s to build, not 20-60 s
+    if native_enabled() and supports_c(observer):    # the C of the formulas: < 1 s to build
         return NativeObserver(observer, lambda: _numba_runner(observer, dt))
     return _numba_runner(observer, dt)
 
