@@ -152,6 +152,39 @@ class NativeObserver:
         """
         return np.asarray(self.observer.init(x_hat0, theta_hat0), dtype=np.float64)
 
+    @property
+    def system(self) -> Any:
+        """The observer's system."""
+        return self.observer.system
+
+    def step(self, state: Any, u: Any, y: Any, dt: float) -> NDArray[np.float64]:
+        """One step: the observer's own (one sample does not repay a library call).
+
+        Parameters
+        ----------
+        state, u, y, dt
+            As :meth:`~thetahat.estimation.observer.ModifiedHighGainObserver.step`.
+
+        Returns
+        -------
+        ndarray
+        """
+        return np.asarray(self.observer.step(state, u, y, dt), dtype=np.float64)
+
+    def estimate(self, state: Any, u: Any, y: Any) -> Any:
+        """x̂, φ̂, θ̂ (and x̂₂) of a state: the observer's ``estimate``.
+
+        Parameters
+        ----------
+        state, u, y
+            As :meth:`~thetahat.estimation.observer.ModifiedHighGainObserver.estimate`.
+
+        Returns
+        -------
+        ObserverEstimate
+        """
+        return self.observer.estimate(state, u, y)
+
     def fallback(self) -> Any:
         """What runs the records the C cannot take (built on first use).
 
