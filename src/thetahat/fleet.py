@@ -393,6 +393,7 @@ def _estimate_group(spec: ModelSpec, members: list[str],
             obs = build_observer(spec, nan_policy=nan_policy)
             s0 = obs.init(x_hat0=spec.estimator.x_hat0, theta_hat0=spec.estimator.theta_hat0)
             fast = _group_runner(obs, t, len(members))
+            res: Any
             if fast is obs:
                 res = run_batch(obs, t, np.stack([records[p][0].u for p in members]),
                                 np.stack([records[p][0].y for p in members]), hold=hold,
