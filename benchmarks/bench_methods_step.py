@@ -35,9 +35,9 @@ def estimator(method: str, back_end: str, dt: float):
     from thetahat.estimation.compiled import compile_observer
     from thetahat.models import lugre
 
+    os.environ["THETAHAT_C"] = "0" if back_end == "numba" else "1"
     if back_end == "C" and (method in ("mle", "ekf") or not native_enabled()):
         return None
-    os.environ["THETAHAT_C"] = "0" if back_end == "numba" else "1"
     if method != "paper":
         return lugre.estimator(method, compiled=back_end != "python")
     obs = lugre.observer()
