@@ -29,7 +29,6 @@ import os
 import shutil
 import tempfile
 from collections.abc import Callable
-from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -38,7 +37,8 @@ from numpy.typing import NDArray
 from ..errors import CCompilerError, FileAccessError, UnsupportedError
 from ..estimation.kernel_cache import cache_dir
 from ..estimation.observer import PROGRESS_EVERY
-from ..estimation.protocol import EstimateResult, ObserverDiagnostics
+from ..estimation.compiled import states_result
+from ..estimation.protocol import EstimateResult
 from ..safe_io import atomic_path
 from .generate import CCode, generate_c
 from .harness import C_FLAGS
@@ -253,15 +253,7 @@ class NativeObserver:
         if progress is not None:
             progress(N - 1, N - 1)
 
-        def frozen(arr: NDArray[Any]) -> NDArray[Any]:
-            out = np.array(arr, copy=True)
-            out.setflags(write=False)
-            return out
-
-        return EstimateResult(t=frozen(t_), x_hat=frozen(S[:, lay.x]), phi_hat=frozen(PHI),
-                              theta_hat=frozen(S[:, lay.theta]), skipped=frozen(~ok3[0]),
-                              diagnostics=ObserverDiagnostics(
-                                  x_hat_refined=frozen(S[:, lay.x2]) if lay.second else None))
+        return states_result(lay, t_, S, PHI, ok3[0])
 
     def __repr__(self) -> str:
         return f"NativeObserver(observer={self.observer!r})"

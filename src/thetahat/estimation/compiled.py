@@ -76,7 +76,7 @@ from .update_laws import (ConstantLaw, GradientInversion, IntermittentInversion,
                           invalid_theta_star_error)
 
 __all__ = ["CompiledObserver", "KernelParts", "compile_observer", "kernel_arrays", "kernel_parts",
-           "kernel_work", "phi_table", "runner", "COMPILE_MIN_SAMPLES"]
+           "kernel_work", "phi_table", "runner", "states_result", "COMPILE_MIN_SAMPLES"]
 
 FloatArray = NDArray[np.float64]
 
@@ -459,20 +459,51 @@ class CompiledObserver:
         if progress is not None:
             progress(N - 1, N - 1)
 
-        def frozen(a: NDArray[Any]) -> NDArray[Any]:
-            out = np.array(a, copy=True)
-            out.setflags(write=False)
-            return out
-
-        return EstimateResult(t=frozen(t_), x_hat=frozen(S[:, lay.x]), phi_hat=frozen(PHI),
-                              theta_hat=frozen(S[:, lay.theta]),
-                              skipped=frozen(~ok),
-                              diagnostics=ObserverDiagnostics(
-                                  x_hat_refined=frozen(S[:, lay.x2]) if lay.second else None))
+        return states_result(lay, t_, S, PHI, ok)
 
     def __repr__(self) -> str:
         return (f"CompiledObserver(dt={self.dt!r}, observer={self.observer!r}, "
                 f"kernel={self._kernel.__name__})")
+
+
+def states_result(lay: StateLayout, t: FloatArray, S: FloatArray, PHI: FloatArray,
+                  present: NDArray[np.bool_]) -> EstimateResult:
+    """The record's EstimateResult from its state rows (read-only copies).
+
+    Parameters
+    ----------
+    lay : StateLayout
+    t : ndarray, shape (N,)
+    S : ndarray, shape (N, state_size)
+        The state at each sample.
+    PHI : ndarray, shape (N, k)
+        φ̂ at each sample.
+    present : ndarray of bool, shape (N,)
+        Whether each output sample was present (False: skipped).
+
+    Returns
+    -------
+    EstimateResult
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from thetahat.models import lugre
+    >>> lay = lugre.observer().layout
+    >>> res = states_result(lay, np.arange(3.0), np.zeros((3, lay.size)), np.zeros((3, lay.k)),
+    ...                     np.array([True, False, True]))
+    >>> res.theta_hat.shape, res.skipped.tolist(), res.theta_hat.flags.writeable
+    ((3, 1), [False, True, False], False)
+    """
+    def frozen(a: NDArray[Any]) -> NDArray[Any]:
+        out = np.array(a, copy=True)
+        out.setflags(write=False)
+        return out
+
+    return EstimateResult(t=frozen(t), x_hat=frozen(S[:, lay.x]), phi_hat=frozen(PHI),
+                          theta_hat=frozen(S[:, lay.theta]), skipped=frozen(~present),
+                          diagnostics=ObserverDiagnostics(
+                              x_hat_refined=frozen(S[:, lay.x2]) if lay.second else None))
 
 
 _threads = threading.local()
