@@ -24,8 +24,12 @@ Run:  .venv/bin/python benchmarks/run_all.py [--quick] [--out out/bench.json]
   every method (paper, guarded, mle, JointEKF), RMSE ÷ √CRLB and median t1%.
 * bench_emps.py runs in this process: each method on the measured EMPS record (warm cache)
   against the benchmark's own IDIM-LS, wall time and real-time factor.
-* bench_cold_start.py (full run only: two first compilations) runs in this process: the time
-  of ``import thetahat`` and of a model's first compiled run, under ``cold_start``.
+* bench_cold_start.py (full run only: first compilations in fresh processes) runs in this
+  process: the time of ``import thetahat`` and of ``thetahat estimate``'s first run of a model
+  with an empty cache, on the C and on the numba back end, under ``cold_start``.
+* bench_methods_step.py (full run only) runs in this process: µs per sample of every method
+  (paper, guarded, mle, JointEKF) on each back end (Python, numba, C), under ``methods_step``
+  (the README's table).
 * bench_scb.py runs as a subprocess (n = 10, 50 with ``--quick``; its defaults otherwise); its
   rows go under ``scb``.
 * bench_soak.py runs as a subprocess (10⁷ samples; 2·10⁵ with ``--quick``): the streaming
@@ -119,6 +123,9 @@ def main() -> None:
         import bench_cold_start
         print("\n=== bench_cold_start.py")
         payload["cold_start"] = bench_cold_start.main([])
+        import bench_methods_step
+        print("\n=== bench_methods_step.py")
+        payload["methods_step"] = bench_methods_step.main([])
     print("\n=== bench_soak.py" + (f" --samples {QUICK_SOAK_SAMPLES}" if args.quick else ""))
     payload["soak"] = run_soak(args.quick)
     details = dict(lugre["details"])

@@ -298,6 +298,7 @@ def test_runner_falls_back_with_a_one_line_note(monkeypatch):
     one line naming why."""
     from thetahat.errors import ThetahatWarning
     from thetahat.estimation.compiled import runner
+    monkeypatch.setenv("THETAHAT_C", "0")     # the numba path (the C one: tests/codegen)
     t = np.arange(100) * DT
     obs = UNSUPPORTED["ball"][0]()
     # the reason named is the first that applies: numba missing (test-core), else the part

@@ -47,6 +47,34 @@ def test_chunking_does_not_change_results(fleet, fleet_dir):
     np.testing.assert_allclose(other.theta_hat(), fleet.theta_hat(), rtol=1e-12, atol=1e-14)
 
 
+def test_fastest_back_end_agrees_with_the_numpy_batch(fleet, fleet_dir, monkeypatch):
+    """With a C compiler the records run one by one on the C printed from the formulas; with
+    THETAHAT_C=0 and a group below COMPILE_MIN_SAMPLES, as one NumPy batch (run_batch). They
+    agree to the conformance matrix's 1e-9 relative (rounding only: sums in another order)."""
+    from thetahat.codegen.loader import find_compiler
+    if find_compiler() is None:
+        pytest.skip("no C compiler (cc or $CC)")
+    import thetahat.fleet as fleet_mod
+    chosen = []
+    real = fleet_mod._group_runner
+
+    def spy(obs, t, records):
+        chosen.append(type(real(obs, t, records)).__name__)
+        return real(obs, t, records)
+    monkeypatch.setattr(fleet_mod, "_group_runner", spy)
+    monkeypatch.setenv("THETAHAT_C", "0")
+    numpy_batch = estimate_many(MODEL, fleet_dir, chunk_size=8, progress=False)
+    assert set(chosen) == {"ModifiedHighGainObserver"}           # run_batch
+    monkeypatch.delenv("THETAHAT_C")
+    chosen.clear()
+    fast = estimate_many(MODEL, fleet_dir, chunk_size=8, progress=False)
+    assert set(chosen) == {"NativeObserver"}
+    assert [r["status"] for r in fast.rows] == [r["status"] for r in numpy_batch.rows]
+    np.testing.assert_allclose(fast.theta_hat(), numpy_batch.theta_hat(), rtol=1e-9,
+                               atol=1e-12)
+    assert np.isfinite(fast.theta_hat()).sum() == N_FILES - 1     # all but the corrupt one
+
+
 def test_parquet_records_and_outputs(tmp_path):
     pytest.importorskip("pyarrow")
     pd = pytest.importorskip("pandas")

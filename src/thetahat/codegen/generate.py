@@ -40,7 +40,7 @@ from ..estimation.initial_state import output_pinv
 from .harness import harness_source, makefile_source
 from .printing import REALS
 
-__all__ = ["CCode", "HOLDS", "generate_c", "generate_c_from_model", "model_hash"]
+__all__ = ["CCode", "HOLDS", "generate_c", "generate_c_from_model", "model_hash", "supports_c"]
 
 FloatArray = NDArray[np.float64]
 
@@ -200,6 +200,31 @@ def _check(observer: Any, hold: str, real: str) -> tuple[str, Any]:
         raise UnsupportedError("GradientInversion needs the default M = (∂g/∂θ)ᵀ and the "
                            "observer's own g.")
     return kind, law
+
+
+def supports_c(observer: Any) -> bool:
+    """Whether :func:`generate_c` supports the observer's parts (cheap: no SymPy printing).
+
+    Parameters
+    ----------
+    observer : object
+        Usually a ModifiedHighGainObserver.
+
+    Returns
+    -------
+    bool
+
+    Examples
+    --------
+    >>> from thetahat.modelfile import EXAMPLE_MODEL, build_observer, loads_model
+    >>> supports_c(build_observer(loads_model(EXAMPLE_MODEL))), supports_c(object())
+    (True, False)
+    """
+    try:
+        _check(observer, "zoh", "double")
+    except UnsupportedError:
+        return False
+    return True
 
 
 def model_hash(observer: ModifiedHighGainObserver) -> str:

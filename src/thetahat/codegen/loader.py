@@ -330,15 +330,43 @@ class CObserver:
         U, Y = self._records(u, y, N)
         s = self.init() if state0 is None else np.array(state0, dtype=self.dtype)
         sz = self.code.sizes
-        S = np.zeros((N, sz["state"]), dtype=self.dtype)
-        PHI = np.zeros((N, sz["k"]), dtype=self.dtype)
-        index = ctypes.c_long(0)
-        status = self._run(self._p(s), ctypes.c_long(N), self._p(U), self._p(Y), self._p(S),
-                           self._p(PHI), ctypes.byref(index))
+        S, PHI, status, index = self.run_rows(s, U, Y)
         n, k, p = sz["n"], sz["k"], sz["p"]
         return CRun(x_hat=S[:, :n], phi_hat=PHI, theta_hat=S[:, n + k:n + k + p],
                     x_hat_refined=S[:, n + k + p:] if sz["state"] > n + k + p else None,
-                    status=int(status), index=int(index.value))
+                    status=status, index=index)
+
+    def run_rows(self, state: NDArray[Any], U: NDArray[Any], Y: NDArray[Any]
+                 ) -> tuple[NDArray[Any], NDArray[Any], int, int]:
+        """The shim's record loop on prepared arrays: every state row, φ̂, status and index.
+
+        Parameters
+        ----------
+        state : ndarray, shape (state,)
+            The state before the first row, in the C precision; advanced in place (to the
+            state at the last row, or where a nonzero status stopped the run).
+        U : ndarray, shape (N, max(m, 1))
+            C-contiguous, in the C precision (zeros when m = 0).
+        Y : ndarray, shape (N, r)
+            C-contiguous, in the C precision.
+
+        Returns
+        -------
+        S : ndarray, shape (N, state)
+            Row i: the state at sample i (before its step).
+        PHI : ndarray, shape (N, k)
+            φ̂ at sample i.
+        status : int
+            0, or the code (:data:`STATUS`) that stopped the run at row ``index``.
+        index : int
+        """
+        N = Y.shape[0]
+        S = np.zeros((N, self.code.sizes["state"]), dtype=self.dtype)
+        PHI = np.zeros((N, self.code.sizes["k"]), dtype=self.dtype)
+        index = ctypes.c_long(0)
+        status = self._run(self._p(state), ctypes.c_long(N), self._p(U), self._p(Y),
+                           self._p(S), self._p(PHI), ctypes.byref(index))
+        return S, PHI, int(status), int(index.value)
 
     def run_steps(self, U: NDArray[Any], Y: NDArray[Any], state: NDArray[Any]) -> int:
         """N steps in one C call, nothing recorded (benchmarks); arrays in the C precision."""

@@ -50,7 +50,7 @@ import warnings
 from collections.abc import Callable
 from dataclasses import dataclass
 from types import ModuleType
-from typing import Any, NoReturn
+from typing import TYPE_CHECKING, Any, NoReturn
 
 import numpy as np
 from numpy.typing import NDArray
@@ -71,11 +71,13 @@ from .scalar_backend import LAWS, kernel_source
 from .status import Status
 from .step import DIVERGENCE_BOUND, divergence_error
 from .theta_star import ThetaStar, as_theta_star
+if TYPE_CHECKING:
+    from ..codegen.native import NativeObserver
 from .update_laws import (ConstantLaw, GradientInversion, IntermittentInversion, SmoothRamp,
                           invalid_theta_star_error)
 
 __all__ = ["CompiledObserver", "KernelParts", "compile_observer", "kernel_arrays", "kernel_parts",
-           "kernel_work", "phi_table", "runner", "COMPILE_MIN_SAMPLES"]
+           "kernel_work", "phi_table", "runner", "states_result", "COMPILE_MIN_SAMPLES"]
 
 FloatArray = NDArray[np.float64]
 
@@ -459,20 +461,51 @@ class CompiledObserver:
         if progress is not None:
             progress(N - 1, N - 1)
 
-        def frozen(a: NDArray[Any]) -> NDArray[Any]:
-            out = np.array(a, copy=True)
-            out.setflags(write=False)
-            return out
-
-        return EstimateResult(t=frozen(t_), x_hat=frozen(S[:, lay.x]), phi_hat=frozen(PHI),
-                              theta_hat=frozen(S[:, lay.theta]),
-                              skipped=frozen(~ok),
-                              diagnostics=ObserverDiagnostics(
-                                  x_hat_refined=frozen(S[:, lay.x2]) if lay.second else None))
+        return states_result(lay, t_, S, PHI, ok)
 
     def __repr__(self) -> str:
         return (f"CompiledObserver(dt={self.dt!r}, observer={self.observer!r}, "
                 f"kernel={self._kernel.__name__})")
+
+
+def states_result(lay: StateLayout, t: FloatArray, S: FloatArray, PHI: FloatArray,
+                  present: NDArray[np.bool_]) -> EstimateResult:
+    """The record's EstimateResult from its state rows (read-only copies).
+
+    Parameters
+    ----------
+    lay : StateLayout
+    t : ndarray, shape (N,)
+    S : ndarray, shape (N, state_size)
+        The state at each sample.
+    PHI : ndarray, shape (N, k)
+        φ̂ at each sample.
+    present : ndarray of bool, shape (N,)
+        Whether each output sample was present (False: skipped).
+
+    Returns
+    -------
+    EstimateResult
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from thetahat.models import lugre
+    >>> lay = lugre.observer().layout
+    >>> res = states_result(lay, np.arange(3.0), np.zeros((3, lay.size)), np.zeros((3, lay.k)),
+    ...                     np.array([True, False, True]))
+    >>> res.theta_hat.shape, res.skipped.tolist(), res.theta_hat.flags.writeable
+    ((3, 1), [False, True, False], False)
+    """
+    def frozen(a: NDArray[Any]) -> NDArray[Any]:
+        out = np.array(a, copy=True)
+        out.setflags(write=False)
+        return out
+
+    return EstimateResult(t=frozen(t), x_hat=frozen(S[:, lay.x]), phi_hat=frozen(PHI),
+                          theta_hat=frozen(S[:, lay.theta]), skipped=frozen(~present),
+                          diagnostics=ObserverDiagnostics(
+                              x_hat_refined=frozen(S[:, lay.x2]) if lay.second else None))
 
 
 _threads = threading.local()
@@ -628,12 +661,15 @@ COMPILE_MIN_SAMPLES = 20_000
 
 
 def runner(observer: ModifiedHighGainObserver, t: Any, *, compiled: bool | None = None
-           ) -> ModifiedHighGainObserver | CompiledObserver:
+           ) -> ModifiedHighGainObserver | CompiledObserver | NativeObserver:
     """What runs an observer over the record ``t``: its compiled form, or the observer itself.
 
     Both have ``run(t, u, y, state0=, hold=, progress=)`` with the same results (to
     rounding). The compiled form is chosen when ``compiled`` is True, or None (the default)
-    and ``t`` has at least :data:`COMPILE_MIN_SAMPLES` samples; it falls back to the observer
+    and ``t`` has at least :data:`COMPILE_MIN_SAMPLES` samples: with a C compiler, the C
+    printed from the formulas (:class:`~thetahat.codegen.native.NativeObserver`: built in
+    under a second, where numba's first compilation takes 20–60 s; a record it cannot take
+    runs on numba); else the numba kernel. It falls back to the observer
     with a one-line :class:`~thetahat.errors.ThetahatWarning` when numba is missing or a part
     of the observer is not supported (the note names it).
 
@@ -648,7 +684,7 @@ def runner(observer: ModifiedHighGainObserver, t: Any, *, compiled: bool | None 
 
     Returns
     -------
-    ModifiedHighGainObserver or CompiledObserver
+    ModifiedHighGainObserver or CompiledObserver or NativeObserver
 
     Examples
     --------
@@ -667,6 +703,16 @@ def runner(observer: ModifiedHighGainObserver, t: Any, *, compiled: bool | None 
         return observer
     steps = np.diff(t_[:2])
     dt = float(steps[0]) if steps.size and np.isfinite(steps[0]) and steps[0] > 0 else 1.0
+    from ..codegen.generate import supports_c
+    from ..codegen.native import NativeObserver, native_enabled
+    if native_enabled() and supports_c(observer):    # the C of the formulas: < 1 s to build
+        return NativeObserver(observer, lambda: _numba_runner(observer, dt))
+    return _numba_runner(observer, dt)
+
+
+def _numba_runner(observer: ModifiedHighGainObserver, dt: float
+                  ) -> ModifiedHighGainObserver | CompiledObserver:
+    """The numba kernel of ``observer``, or the observer itself with a one-line note."""
     try:
         return compile_observer(observer, dt=dt)
     except MissingExtraError:

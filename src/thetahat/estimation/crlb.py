@@ -102,7 +102,8 @@ def _make_rhs(rhs_jac: Any, compiled: bool) -> Any:
         Ft = np.empty((n, p))
         rhs_jac(z[:n].copy(), u, theta, f, Fx, Ft)
         out = np.empty(z.shape[0])
-        out[:n] = f
+        for a in range(n):      # element by element: numba's array-into-slice assignment
+            out[a] = f[a]       # compiles a string-formatting error path (≈ 2 s)
         for q in range(nq):
             col = z[n + q * n:n + (q + 1) * n]
             for a in range(n):

@@ -198,9 +198,16 @@ def _make(model: ModelKernel, project: Callable[..., None]) -> EKFKernels:
         x = s[:n].copy()
         th = s[n:].copy()
         xn = prop(x, th, u0, u1, h, h_rho, True, Phi, Gam)
-        T = np.eye(N)
-        T[:n, :n] = Phi
-        T[:n, n:] = Gam
+        # T = [[Φ, Γ], [0, I]], element by element: numba's slice assignment compiles its
+        # string-formatting error path (≈ 3 s of a guarded run's first compilation)
+        T = np.zeros((N, N))
+        for i in range(n):
+            for j in range(n):
+                T[i, j] = Phi[i, j]
+            for j in range(p):
+                T[i, n + j] = Gam[i, j]
+        for i in range(n, N):
+            T[i, i] = 1.0
         TP = np.zeros((N, N))
         for i in range(N):
             for j in range(N):
@@ -264,7 +271,8 @@ def _make(model: ModelKernel, project: Callable[..., None]) -> EKFKernels:
                 for k in range(i + 1, r):
                     z[i] -= L[k, i] * z[k]
                 z[i] /= L[i, i]
-            K[row] = z
+            for i in range(r):          # element by element: see predict
+                K[row, i] = z[i]
         w = nu.copy()
         for i in range(r):
             for k in range(i):
@@ -327,7 +335,8 @@ def _make(model: ModelKernel, project: Callable[..., None]) -> EKFKernels:
             for i in range(n + p):
                 if not math.isfinite(s[i]):
                     return k
-            X[k] = s[:n]
+            for i in range(n):              # element by element: see predict
+                X[k, i] = s[i]
             for i in range(p):
                 TH[k, i] = s[n + i]
                 SD[k, i] = math.sqrt(max(P[n + i, n + i], 0.0))

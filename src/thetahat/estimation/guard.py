@@ -217,7 +217,9 @@ def make_guarded_loop(predict: Callable[..., None], update: Callable[..., float]
                     s[i] = xG[k, i]
                 for i in range(p):
                     s[n + i] = thG[k, i]
-                P[:, :] = P0
+                for i in range(n + p):      # element by element: numba's slice assignment
+                    for j in range(n + p):  # compiles its string-formatting error path
+                        P[i, j] = P0[i, j]
                 gst[0] = 0.0
                 resets += 1
             if math.isfinite(nis):

@@ -193,13 +193,12 @@ def _make_filter(model: ModelKernel) -> Callable[..., int]:
         output (0 where y is missing); the last x and P into xP[0], xP[1:]. Returns −1, or the
         first sample at which the filter is not finite."""
         n = x0.shape[0]
-        p = th.shape[0]
         r = C.shape[0]
         N = tt.shape[0]
         x = x0.copy()
         P = P0.copy()
         Phi = np.empty((n, n))
-        Gam = np.empty((n, p))
+        Gam = np.empty((n, 0))          # the filter needs Φ only: Γ's columns are skipped
         T = np.empty((n, n))
         PC = np.empty(n)
         K = np.empty(n)

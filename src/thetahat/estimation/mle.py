@@ -155,8 +155,11 @@ def _make_sweep(model: ModelKernel) -> Callable[..., float]:
                             for a in range(n):
                                 acc += Phi[i, a] * S[a, j]
                             Sn[i, j] = acc
-                    S[:, :] = Sn
-            X[k - k0] = x
+                    for i in range(n):      # element by element: numba's array-into-slice
+                        for j in range(nq):  # assignment compiles a string-formatting path
+                            S[i, j] = Sn[i, j]
+            for i in range(n):
+                X[k - k0, i] = x[i]
             ok = True
             for i in range(r):
                 acc = Y[k, i]
@@ -188,7 +191,9 @@ def _make_sweep(model: ModelKernel) -> Callable[..., float]:
             for j in range(nq):
                 for l in range(j):
                     A[j, l] = A[l, j]
-            T[:, :] = S
+            for i in range(n):
+                for j in range(nq):
+                    T[i, j] = S[i, j]
         return J
 
     return jit(sweep, model.compiled)

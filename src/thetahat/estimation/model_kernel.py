@@ -190,9 +190,10 @@ def _make_propagate(rhs_jac: Callable[..., None], compiled: bool) -> Callable[..
     radius = jit(spectral_radius_bound, compiled)
 
     def stage_jac(Fx, Ft, Phi, Gam, Dx_prev, Dt_prev, c, Dx, Dt):
-        """Dx = Fx (Φ + c Dx_prev), Dt = Fx (Γ + c Dt_prev) + Ft (c = 0: no previous stage)."""
+        """Dx = Fx (Φ + c Dx_prev), Dt = Fx (Γ + c Dt_prev) + Ft (c = 0: no previous stage);
+        Dt's columns only (none: Φ alone)."""
         n = Fx.shape[0]
-        p = Ft.shape[1]
+        p = Dt.shape[1]
         for i in range(n):
             for j in range(n):
                 s = 0.0
@@ -208,9 +209,11 @@ def _make_propagate(rhs_jac: Callable[..., None], compiled: bool) -> Callable[..
     stage = jit(stage_jac, compiled)
 
     def propagate(x, th, u0, u1, h, h_rho, want_jac, Phi, Gam):  # noqa: PLR0913
-        """x(t + h) by RK4 sub-steps, u linear from u0 to u1; Φ, Γ in place if want_jac."""
+        """x(t + h) by RK4 sub-steps, u linear from u0 to u1; Φ, Γ in place if want_jac
+        (Γ's columns only: a Gam of shape (n, 0) asks for Φ alone)."""
         n = x.shape[0]
         p = th.shape[0]
+        pg = Gam.shape[1]
         m = u0.shape[0]
         Fx = np.empty((n, n))
         Ft = np.empty((n, p))
@@ -230,15 +233,15 @@ def _make_propagate(rhs_jac: Callable[..., None], compiled: bool) -> Callable[..
         D2x = np.zeros((n, n))
         D3x = np.zeros((n, n))
         D4x = np.zeros((n, n))
-        D1t = np.zeros((n, p))
-        D2t = np.zeros((n, p))
-        D3t = np.zeros((n, p))
-        D4t = np.zeros((n, p))
+        D1t = np.zeros((n, pg))
+        D2t = np.zeros((n, pg))
+        D3t = np.zeros((n, pg))
+        D4t = np.zeros((n, pg))
         if want_jac:
             for i in range(n):
                 for j in range(n):
                     Phi[i, j] = 1.0 if i == j else 0.0
-                for j in range(p):
+                for j in range(pg):
                     Gam[i, j] = 0.0
         for s in range(ns):
             a = s / ns
@@ -270,7 +273,7 @@ def _make_propagate(rhs_jac: Callable[..., None], compiled: bool) -> Callable[..
                     for j in range(n):
                         Phi[i, j] += dt / 6.0 * (D1x[i, j] + 2.0 * D2x[i, j] + 2.0 * D3x[i, j]
                                                  + D4x[i, j])
-                    for j in range(p):
+                    for j in range(pg):
                         Gam[i, j] += dt / 6.0 * (D1t[i, j] + 2.0 * D2t[i, j] + 2.0 * D3t[i, j]
                                                  + D4t[i, j])
             for i in range(n):
@@ -297,7 +300,8 @@ class ModelKernel:
     propagate : callable
         ``propagate(x, th, u0, u1, h, h_rho, want_jac, Phi (n, n), Gam (n, p)) -> x_next``:
         the RK4 map over one sample (first-order hold on u) and, when ``want_jac``, its exact
-        Jacobians Φ = ∂x_next/∂x, Γ = ∂x_next/∂θ written into ``Phi``, ``Gam``.
+        Jacobians Φ = ∂x_next/∂x, Γ = ∂x_next/∂θ written into ``Phi``, ``Gam`` (a ``Gam``
+        of shape (n, 0): Φ alone, a third of the work when p = 2n).
     source : str
         The generated code of ``rhs_jac``.
     """

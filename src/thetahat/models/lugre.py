@@ -722,7 +722,12 @@ def estimator(method: str = "guarded", *, eps: float = 1.0, Gamma: float = 1.0,
     use = have_numba() if compiled is None else compiled
     stage1: Any = obs
     if use:
+        from ..codegen.generate import supports_c
+        from ..codegen.native import NativeObserver, native_enabled
         from ..estimation.compiled import compile_observer
-        stage1 = compile_observer(obs, dt=dt)
+        if native_enabled() and supports_c(obs):     # the C of the formulas, numba behind it
+            stage1 = NativeObserver(obs, lambda: compile_observer(obs, dt=dt))
+        else:
+            stage1 = compile_observer(obs, dt=dt)
     return GuardedEstimator(stage1=stage1, system=system(params), noise_std=noise_std,
                             compiled=compiled)

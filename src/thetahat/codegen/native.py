@@ -1,0 +1,259 @@
+"""The paper's observer on the C derived from its formulas, built by the system's C compiler.
+
+A model's first numba compilation of the observer kernel takes 20–60 s; the C that
+:func:`~thetahat.codegen.generate.generate_c` prints from the same formulas compiles in well
+under a second with ``cc -O2`` and runs as fast (the conformance tests hold the two to
+rounding). :class:`NativeObserver` runs a record through that C, loaded with ctypes
+(:class:`~thetahat.codegen.loader.CObserver`), wherever it can:
+
+* a C compiler exists (``$CC`` or ``cc``; :func:`~thetahat.codegen.loader.find_compiler`) and
+  ``THETAHAT_C`` is not ``0``;
+* ``generate_c`` supports the observer;
+* the record is sampled uniformly (the C step has one step length compiled in): every step
+  within ``DT_RTOL`` of the record's mean spacing.
+
+Otherwise — and on any nonzero status of the C run, so that every error is the one the other
+back ends raise, with their message — it hands the record to its fallback (the numba kernel,
+or the observer itself).
+
+Built libraries are kept in :func:`~thetahat.estimation.kernel_cache.cache_dir` under the
+SHA-256 of the compiler's path, its flags and the generated sources (which are printed from the
+formulas and hold every number of the model), written atomically (:mod:`thetahat.safe_io`): a
+second process loads the library without compiling.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import os
+import shutil
+import tempfile
+from collections.abc import Callable
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from ..errors import CCompilerError, FileAccessError, UnsupportedError
+from ..estimation.kernel_cache import cache_dir
+from ..estimation.observer import PROGRESS_EVERY
+from ..estimation.compiled import states_result
+from ..estimation.protocol import EstimateResult
+from ..safe_io import atomic_path
+from .generate import CCode, generate_c
+from .harness import C_FLAGS
+from .loader import CObserver, build, find_compiler
+
+__all__ = ["NativeObserver", "native_enabled", "load_cached", "DT_RTOL"]
+
+#: Relative spread of a record's steps around their mean that the fixed-step C accepts.
+DT_RTOL = 1e-9
+
+
+def native_enabled() -> bool:
+    """Whether the C path may be used: a compiler exists and ``THETAHAT_C`` is not ``"0"``.
+
+    Returns
+    -------
+    bool
+
+    Examples
+    --------
+    >>> isinstance(native_enabled(), bool)
+    True
+    """
+    return os.environ.get("THETAHAT_C", "1") != "0" and find_compiler() is not None
+
+
+def load_cached(code: CCode) -> CObserver:
+    """Load ``code``'s shared library from the kernel cache, building it there first if needed.
+
+    Parameters
+    ----------
+    code : CCode
+        Generated C (:func:`~thetahat.codegen.generate.generate_c`).
+
+    Returns
+    -------
+    CObserver
+
+    Raises
+    ------
+    CCompilerError
+        No compiler, or it failed.
+    FileAccessError
+        The cache cannot be written.
+
+    Examples
+    --------
+    >>> from thetahat.modelfile import EXAMPLE_MODEL, build_observer, loads_model
+    >>> code = generate_c(build_observer(loads_model(EXAMPLE_MODEL)), dt=0.01, name="prop3")
+    >>> obs = load_cached(code) if native_enabled() else None
+    >>> obs is None or obs.step(obs.init(), [0.0], [0.1]) == 0
+    True
+    """
+    cc = find_compiler()
+    if cc is None:
+        raise CCompilerError("no C compiler found: install one (e.g. gcc) or set CC.")
+    h = hashlib.sha256()
+    for part in (cc, " ".join(C_FLAGS), code.hold, code.header, code.source):
+        h.update(part.encode())
+        h.update(b"\0")
+    lib = cache_dir() / f"thetahat_c_{code.name}_{h.hexdigest()[:24]}.so"
+    if not lib.is_file():
+        with tempfile.TemporaryDirectory(dir=cache_dir()) as tmp:
+            built = build(code, tmp)
+            with atomic_path(lib) as dest:
+                shutil.copyfile(built, dest)
+    return CObserver(code, lib)
+
+
+class NativeObserver:
+    """An observer's record runs in generated C where possible, else in ``fallback``.
+
+    Parameters
+    ----------
+    observer : ModifiedHighGainObserver
+        The observer (one whose parts ``generate_c`` does not support runs in the fallback).
+    fallback : callable
+        Returns what runs a record the C cannot take (non-uniform steps, a status): an
+        object with the observer's ``run(t, u, y, state0=, hold=, progress=)``; called at
+        most once, when first needed.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from thetahat.modelfile import EXAMPLE_MODEL, build_observer, loads_model
+    >>> obs = build_observer(loads_model(EXAMPLE_MODEL))
+    >>> fast = NativeObserver(obs, lambda: obs)
+    >>> t = np.arange(200) * 0.01
+    >>> a = fast.run(t, np.sin(t)[:, None], np.cos(t)[:, None])
+    >>> b = obs.run(t, np.sin(t)[:, None], np.cos(t)[:, None])
+    >>> bool(np.allclose(a.theta_hat, b.theta_hat, rtol=1e-9, atol=1e-12))
+    True
+    """
+
+    def __init__(self, observer: Any, fallback: Callable[[], Any]) -> None:
+        self.observer = observer
+        self._fallback_of = fallback
+        self._fallback: Any = None
+        self._loaded: dict[tuple[float, str], CObserver] = {}
+
+    def init(self, x_hat0: Any = None, theta_hat0: Any = None) -> NDArray[np.float64]:
+        """The observer's initial state (see its ``init``).
+
+        Parameters
+        ----------
+        x_hat0, theta_hat0 : array_like, optional
+
+        Returns
+        -------
+        ndarray
+        """
+        return np.asarray(self.observer.init(x_hat0, theta_hat0), dtype=np.float64)
+
+    @property
+    def system(self) -> Any:
+        """The observer's system."""
+        return self.observer.system
+
+    def step(self, state: Any, u: Any, y: Any, dt: float) -> NDArray[np.float64]:
+        """One step: the observer's own (one sample does not repay a library call).
+
+        Parameters
+        ----------
+        state, u, y, dt
+            As :meth:`~thetahat.estimation.observer.ModifiedHighGainObserver.step`.
+
+        Returns
+        -------
+        ndarray
+        """
+        return np.asarray(self.observer.step(state, u, y, dt), dtype=np.float64)
+
+    def estimate(self, state: Any, u: Any, y: Any) -> Any:
+        """x̂, φ̂, θ̂ (and x̂₂) of a state: the observer's ``estimate``.
+
+        Parameters
+        ----------
+        state, u, y
+            As :meth:`~thetahat.estimation.observer.ModifiedHighGainObserver.estimate`.
+
+        Returns
+        -------
+        ObserverEstimate
+        """
+        return self.observer.estimate(state, u, y)
+
+    def fallback(self) -> Any:
+        """What runs the records the C cannot take (built on first use).
+
+        Returns
+        -------
+        object
+            With ``run(t, u, y, state0=, hold=, progress=)``.
+        """
+        if self._fallback is None:
+            self._fallback = self._fallback_of()
+        return self._fallback
+
+    def _c(self, dt: float, hold: str) -> CObserver:
+        key = (dt, hold)
+        if key not in self._loaded:
+            code = generate_c(self.observer, dt=dt, hold=hold, name="thetahat_observer")
+            self._loaded[key] = load_cached(code)
+        return self._loaded[key]
+
+    def run(self, t: Any, u: Any, y: Any, *, state0: Any = None, hold: str = "zoh",
+            progress: Callable[[int, int], None] | None = None) -> EstimateResult:
+        """Run over a record: in C when its steps are uniform, else in the fallback.
+
+        Parameters
+        ----------
+        t, u, y, state0, hold, progress
+            As :meth:`~thetahat.estimation.observer.ModifiedHighGainObserver.run`.
+
+        Returns
+        -------
+        EstimateResult
+            As the observer's (to rounding: the C uses the mean step length).
+        """
+        obs = self.observer
+        lay = obs.layout
+        t_, dts, U3, Y3, ok3 = obs.check_records(t, u, y)
+        N = t_.shape[0]
+        dt = float((t_[-1] - t_[0]) / (N - 1)) if N > 1 else 0.0
+        uniform = (N > 1 and dt > 0.0 and hold in ("zoh", "foh")
+                   and float(np.max(np.abs(dts - dt))) <= DT_RTOL * dt)
+        c = None
+        if uniform:
+            try:
+                c = self._c(dt, hold)
+            except (UnsupportedError, CCompilerError, FileAccessError, OSError):
+                c = None
+        if c is None or c.code.sizes["state"] != lay.size:
+            return self.fallback().run(t, u, y, state0=state0, hold=hold, progress=progress)
+        U = np.ascontiguousarray(U3[0] if lay.m else np.zeros((N, 1)), dtype=np.float64)
+        Y = np.ascontiguousarray(Y3[0], dtype=np.float64)
+        S = np.empty((N, lay.size))
+        PHI = np.empty((N, lay.k))
+        s = np.array(obs.init() if state0 is None else obs.check_state(state0),
+                     dtype=np.float64)
+        step = PROGRESS_EVERY if progress is not None else N
+        for a in range(0, max(N - 1, 1), step):
+            if progress is not None:
+                progress(a, N - 1)
+            b = min(a + step, N - 1)
+            rows, phi, status, _ = c.run_rows(s, U[a:b + 1], Y[a:b + 1])
+            if status:             # the other back ends raise the matching error
+                return self.fallback().run(t, u, y, state0=state0, hold=hold,
+                                           progress=progress)
+            S[a:b + 1], PHI[a:b + 1] = rows, phi
+            s = np.array(rows[-1], dtype=np.float64)
+        if progress is not None:
+            progress(N - 1, N - 1)
+
+        return states_result(lay, t_, S, PHI, ok3[0])
+
+    def __repr__(self) -> str:
+        return f"NativeObserver(observer={self.observer!r})"

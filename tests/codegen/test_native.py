@@ -1,0 +1,157 @@
+"""The observer on the C printed from its formulas (thetahat.codegen.native), as runner's choice.
+
+Agreement is against the Python observer's own run, the conformance matrix's reference, to
+its tolerance AGREE_RTOL = 1e-9: the C sums in another order and takes the record's mean step
+(the steps of np.arange differ from it by rounding, ~1e-13 relative), rounding only (measured
+≤ 3e-13 on these records), a margin above 1000×.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from thetahat.codegen.loader import find_compiler
+
+pytestmark = pytest.mark.skipif(find_compiler() is None, reason="no C compiler (cc or $CC)")
+
+EXAMPLES = Path(__file__).resolve().parents[2] / "examples"
+MODEL_FILES = ("lugre", "prop1", "prop2", "two_inertia")
+AGREE_RTOL = 1e-9
+
+
+def rel_err(a: np.ndarray, b: np.ndarray) -> float:
+    scale = np.maximum(np.max(np.abs(b), axis=0), np.finfo(float).tiny)
+    return float(np.max(np.abs(a - b) / scale))
+
+
+def case(name: str):
+    """(spec, observer with nan_policy="skip", t, u, y, state0): the file's scenario for 2 s
+    (lugre: 0.4 s at its 1 kHz), uniform, with a gap of missing samples."""
+    from thetahat.modelfile import build_observer, load_model
+    from thetahat.modelfile.study import simulate_model
+    spec = load_model(EXAMPLES / f"{name}.toml")
+    run = simulate_model(spec, 3, t_end=0.4 if name == "lugre" else 2.0)
+    N = run.t.size
+    u, y = run.u.reshape(N, -1), run.y.reshape(N, -1).copy()
+    y[N // 2:N // 2 + 10] = np.nan
+    obs = build_observer(spec, nan_policy="skip")
+    s0 = obs.init(x_hat0=spec.estimator.x_hat0, theta_hat0=spec.estimator.theta_hat0)
+    return spec, obs, run.t, u, y, s0
+
+
+def never() -> None:
+    raise AssertionError("the fallback ran: the record should have run in C")
+
+
+@pytest.fixture(autouse=True)
+def own_cache(tmp_path, monkeypatch):
+    monkeypatch.setenv("THETAHAT_CACHE_DIR", str(tmp_path / "cache"))
+    monkeypatch.delenv("THETAHAT_C", raising=False)
+
+
+@pytest.mark.parametrize("hold", ("zoh", "foh"))
+@pytest.mark.parametrize("name", MODEL_FILES)
+def test_c_run_equals_the_python_run(name, hold):
+    from thetahat.codegen.native import NativeObserver
+    spec, obs, t, u, y, s0 = case(name)
+    ref = obs.run(t, u, y, hold=hold, state0=s0)
+    calls = []
+    res = NativeObserver(obs, never).run(t, u, y, hold=hold, state0=s0,
+                                         progress=lambda a, b: calls.append((a, b)))
+    for field in ("x_hat", "phi_hat", "theta_hat"):
+        assert rel_err(getattr(res, field), getattr(ref, field)) <= AGREE_RTOL, field
+    assert (res.x_hat_refined is None) == (ref.x_hat_refined is None)
+    if ref.x_hat_refined is not None:
+        assert rel_err(res.x_hat_refined, ref.x_hat_refined) <= AGREE_RTOL
+    assert np.array_equal(res.skipped, ref.skipped) and res.skipped.any()
+    assert spec.system.parameter_set.contains(res.theta_hat, tol=1e-12).all()
+    assert np.ptp(ref.theta_hat, axis=0).max() > 1e-3      # the law moved θ̂: the case tests it
+    assert calls[-1] == (t.size - 1, t.size - 1)
+
+
+def test_progress_chunks_carry_the_state(monkeypatch):
+    """Runs cut into pieces for progress reports continue each from the last row: the same
+    numbers as one piece, bit for bit."""
+    import thetahat.codegen.native as native
+    _, obs, t, u, y, s0 = case("lugre")
+    whole = native.NativeObserver(obs, never).run(t, u, y, state0=s0)
+    monkeypatch.setattr(native, "PROGRESS_EVERY", 37)
+    calls = []
+    cut = native.NativeObserver(obs, never).run(t, u, y, state0=s0,
+                                                progress=lambda a, b: calls.append(a))
+    assert len(calls) > 10
+    assert np.array_equal(cut.x_hat, whole.x_hat) and np.array_equal(cut.theta_hat,
+                                                                     whole.theta_hat)
+
+
+def test_irregular_record_runs_in_the_fallback():
+    from thetahat.codegen.native import NativeObserver
+    _, obs, t, u, y, s0 = case("prop1")
+    keep = np.ones(t.size, dtype=bool)
+    keep[5::7] = False                                   # steps of 1 and 2 samples
+    used = []
+
+    def fallback():
+        used.append(True)
+        return obs
+    res = NativeObserver(obs, fallback).run(t[keep], u[keep], y[keep], state0=s0)
+    ref = obs.run(t[keep], u[keep], y[keep], state0=s0)
+    assert used == [True]
+    assert np.array_equal(res.theta_hat, ref.theta_hat)
+
+
+def test_a_failing_c_run_raises_the_observers_error():
+    """A nonzero C status hands the record to the fallback, which raises its own error."""
+    from thetahat.codegen.native import NativeObserver
+    from thetahat.errors import NonFiniteError
+    _, obs, t, u, y, s0 = case("prop1")
+    y = y * 1e200                                        # the state leaves the bound
+    with pytest.raises(NonFiniteError) as ref:
+        obs.run(t, u, y, state0=s0)
+    with pytest.raises(NonFiniteError) as got:
+        NativeObserver(obs, lambda: obs).run(t, u, y, state0=s0)
+    assert str(got.value) == str(ref.value)
+
+
+def test_library_is_built_once_per_cache(monkeypatch, tmp_path):
+    """A second observer of the same model loads the cached library: the compiler is not run."""
+    import thetahat.codegen.native as native
+    _, obs, t, u, y, s0 = case("prop2")
+    first = native.NativeObserver(obs, never).run(t, u, y, state0=s0)
+    libs = list((tmp_path / "cache").glob("thetahat_c_*.so"))
+    assert len(libs) == 1
+
+    def no_build(*args, **kwargs):
+        raise AssertionError("compiled again")
+    monkeypatch.setattr(native, "build", no_build)
+    again = native.NativeObserver(obs, never).run(t, u, y, state0=s0)
+    assert np.array_equal(first.theta_hat, again.theta_hat)
+
+
+def test_runner_chooses_c_and_thetahat_c_0_turns_it_off(monkeypatch):
+    from thetahat.codegen.native import NativeObserver
+    from thetahat.estimation.compiled import runner
+    _, obs, t, *_ = case("prop1")
+    assert isinstance(runner(obs, t, compiled=True), NativeObserver)
+    monkeypatch.setenv("THETAHAT_C", "0")
+    assert not isinstance(runner(obs, t, compiled=True), NativeObserver)
+
+
+def test_without_numba_the_c_runs_and_nothing_is_noted(monkeypatch):
+    """numba missing changes nothing for a uniform record the C takes: no fallback, no note."""
+    import sys
+    import warnings
+
+    from thetahat.codegen.native import NativeObserver
+    from thetahat.estimation.compiled import runner
+    spec, obs, t, u, y, s0 = case("prop1")
+    monkeypatch.setitem(sys.modules, "numba", None)       # `import numba` now fails
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        fast = runner(obs, t, compiled=True)
+        assert isinstance(fast, NativeObserver)
+        res = fast.run(t, u, y, state0=s0)
+    assert rel_err(res.theta_hat, obs.run(t, u, y, state0=s0).theta_hat) <= AGREE_RTOL
