@@ -37,7 +37,8 @@ from ..model.system import PerturbedLinearSystem
 from .ekf import (EKFKernels, JointEKF, as_record, ekf_kernels, resolve_noise_std, start_values,
                   theta_box)
 from .fit_worker import default_executor, discard_default_executor, fit_spec, run_fit, warm_up
-from .guard import (GUARD_C, GUARD_KAPPA, GUARD_RHO_MAX, make_guarded_loop, progress_init)
+from .guard import (GUARD_C, GUARD_DWELL, GUARD_KAPPA, GUARD_RHO_MAX, make_guarded_loop,
+                    progress_init)
 from .likelihood import unit_process_noise
 from .mle import FitResult, FitSchedule, MapEstimator, fit_record
 from .model_kernel import H_RHO, jit
@@ -45,15 +46,12 @@ from .noise_level import MIN_SAMPLES
 from .protocol import Diagnostics, EstimateResult, missing_samples, phi_hat_from_model
 
 __all__ = ["GuardedDiagnostics", "GuardedEstimator", "GuardedResult", "GuardedState",
-           "StreamDiagnostics", "SIGMA_SAMPLES",
-           "DWELL_SECONDS"]
+           "StreamDiagnostics", "SIGMA_SAMPLES"]
 
 FloatArray = NDArray[np.float64]
 
 #: Samples after which σ̂ is re-estimated once before the first fit (when σ is not given).
 SIGMA_SAMPLES = 32
-#: Time stage 2 may stay clipped by a settled stage 1 before it is reset from stage 1 (s).
-DWELL_SECONDS = 0.5
 
 
 @dataclass(frozen=True, slots=True, eq=False)
@@ -226,7 +224,8 @@ class GuardedEstimator:
     x_sd : float
         Prior standard deviation of x(0) for stage 2.
     kappa, c, rho_max, dwell : float
-        The guard's constants (see :mod:`~thetahat.estimation.guard`); ``dwell`` in seconds.
+        The guard's constants (see :mod:`~thetahat.estimation.guard`); ``dwell`` a fraction
+        of the samples so far (default :data:`~thetahat.estimation.guard.GUARD_DWELL`).
     q_x : float
         Stage 2's process-noise variance per sample on x (default 0: the model is exact).
     h_rho : float
@@ -263,7 +262,7 @@ class GuardedEstimator:
     kappa: float = GUARD_KAPPA
     c: float = GUARD_C
     rho_max: float = GUARD_RHO_MAX
-    dwell: float = DWELL_SECONDS
+    dwell: float = GUARD_DWELL
     q_x: float = 0.0
     h_rho: float = H_RHO
     compiled: bool | None = None
@@ -385,9 +384,9 @@ class GuardedEstimator:
         CLIP, RESET, NIS = np.zeros(N, bool), np.zeros(N, bool), np.full(N, np.nan)
         pst = progress_init(thG[0])
         gst = np.array([0.0, 1.0, float(k_first)])
-        cfg = np.concatenate([[self.kappa, self.c, self.rho_max,
-                               self.dwell / float(np.median(np.diff(t_)))],
-                              np.sqrt(np.diag(P0)[n:])])
+        # (κ, c, ρ_max, dwell, σ₂ cap; θ_F, κ s_F of the latest consistent fit: none yet)
+        cfg = np.concatenate([[self.kappa, self.c, self.rho_max, self.dwell],
+                              np.sqrt(np.diag(P0)[n:]), np.zeros(p), np.full(p, -1.0)])
         loop = self._loop()
         sched = self.fit_schedule
         fits: list[FitResult] = []
@@ -440,6 +439,8 @@ class GuardedEstimator:
                     # the fit ends at this very sample: take (x, θ) and their joint covariance
                     s[:n], s[n:] = fit.x_end, fit.theta
                     P[:, :] = fit.cov_end
+                    cfg[4 + p:4 + 2 * p] = fit.theta
+                    cfg[4 + 2 * p:] = self.kappa * fit.theta_se
                     sigma = fit.noise_std
                     R = np.diag(sigma ** 2)
                     # stage 2 carries the model error as the fit found it (none: q = 0)
@@ -640,8 +641,9 @@ class _Stream:
 
     def configure(self, est: GuardedEstimator, dt: float) -> None:
         n = self._n
-        self.cfg = np.concatenate([[est.kappa, est.c, est.rho_max, est.dwell / dt],
-                                   np.sqrt(np.diag(self.P0)[n:])])
+        p = self.P0.shape[0] - n
+        self.cfg = np.concatenate([[est.kappa, est.c, est.rho_max, est.dwell],
+                                   np.sqrt(np.diag(self.P0)[n:]), np.zeros(p), np.full(p, -1.0)])
 
     def submit(self, fn: Any, *args: Any) -> None:
         """Hand ``fn(*args)`` to the executor; a broken executor ends this stream's fits."""
@@ -695,6 +697,9 @@ class _Stream:
             self.P[:, n:] = 0.0
             self.P[n:, n:] = fit.cov[n:, n:]
             self.R = np.diag(fit.noise_std ** 2)
+            p = fit.theta.shape[0]
+            self.cfg[4 + p:4 + 2 * p] = fit.theta
+            self.cfg[4 + 2 * p:] = self.cfg[0] * fit.theta_se
         if fit.k0 > 0 or (self.sched is not None and self.T[fit.k1 - 1 - self.base]
                           > self.sched.full_window):
             self._trim(fit.k1 - 1)
