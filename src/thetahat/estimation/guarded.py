@@ -218,7 +218,8 @@ class GuardedEstimator:
     noise_std : optional
         σ of the output noise; default estimated from the data.
     schedule : FitSchedule, optional
-        The re-anchoring fits (default :class:`FitSchedule` at 0.08·2ʲ s).
+        The re-anchoring fits (default :class:`FitSchedule`: all the data so far, each time
+        the information has grown by √2; one with ``times`` fits at those times, in seconds).
     use_fits : bool
         False: no re-anchoring (stage 2 = the EKF alone).
     x_sd : float
@@ -395,12 +396,12 @@ class GuardedEstimator:
         Q_x = self.q_x * np.eye(n)
         # the default fits: all the data so far, at the sample counts where the information
         # has grown by INFO_GROWTH, the last on all samples but the last (whose output then
-        # follows it); a given schedule keeps its times (seconds) and windows
-        by_samples = sched is not None and self.schedule is None
+        # follows it); a schedule with times keeps its times (seconds) and windows
+        by_samples = sched is not None and sched.times is None
         ks: list[int] = []
         if sched is not None and by_samples:
             sched = replace(sched, full_window=math.inf)
-            ks = [k1 for k1 in MapEstimator(system=sys_, noise_std=self.noise_std,
+            ks = [k1 for k1 in MapEstimator(system=sys_, schedule=sched, noise_std=self.noise_std,
                                             compiled=self.compiled).fit_samples(t_[:N - 1])
                   if MIN_SAMPLES <= k1 < N]
         k = 0
@@ -418,7 +419,7 @@ class GuardedEstimator:
                 while j < len(ks) and ks[j] <= k:
                     j += 1
                 k_fit = ks[j] if j < len(ks) else N
-            elif sched is not None:
+            elif sched is not None and sched.times is not None:
                 while sched.times(j) <= t_[k] - t_[0]:
                     j += 1
                 k_fit = int(np.searchsorted(t_ - t_[0], sched.times(j) + 1e-12, side="right"))
@@ -715,13 +716,22 @@ class _Stream:
         if sched is None or prior0 is None or self.future is not None:
             return
         t_last = float(self.T[self.size - 1])
-        if t_last < sched.times(self.j) - 1e-12 or self.k < MIN_SAMPLES:
+        if self.k < MIN_SAMPLES:
             return
-        while sched.times(self.j) <= t_last + 1e-12:
-            self.j += 1
+        if sched.times is None:                 # sample counts: the data so far, k_j of them
+            at = sched.sample_counts()
+            if self.k < at(self.j):
+                return
+            while at(self.j) <= self.k:
+                self.j += 1
+        else:                                   # the caller's times (s)
+            if t_last < sched.times(self.j) - 1e-12:
+                return
+            while sched.times(self.j) <= t_last + 1e-12:
+                self.j += 1
         b, k1 = self.base, self.size
         prev = self.fits[-1] if self.fits else None
         if prev is not None:
             prev = dataclasses.replace(prev, k0=max(prev.k0 - b, 0), k1=prev.k1 - b)
         self.submit(run_fit, self.spec, self.T[:k1].copy(), self.U[:k1].copy(),
-                    self.Y[:k1].copy(), k1, prev, prior0, t_last, b)
+                    self.Y[:k1].copy(), k1, prev, prior0, t_last, b, sched.times is None)
