@@ -3,7 +3,7 @@
 The output θ̂ follows stage 2 (θ̂₂, EKF + MAP re-anchoring) only inside a band around stage 1
 (θ̂_G, the paper's observer and update law, Theorem 1):
 
-    θ̂ = Π_Θ( θ̂_G + clip(θ̂₂ − θ̂_G, −δ, δ) ),    δ(t) = max(δ_G(t), κ σ₂(t)),
+    θ̂ = Π_Θ( θ̂_G + clip(θ̂₂ − θ̂_G, −δ, δ) ),    δ(t) = max(δ_G(t), κ σ₂(t), δ_F(t)),
 
 so that, whatever stage 2 does, |θ̂ − θ| ≤ |θ̂_G − θ| + δ(t) and θ̂ ∈ Θ (Θ a box containing
 θ̂_G). The band's width is built on evidence only:
