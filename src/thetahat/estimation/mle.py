@@ -307,22 +307,25 @@ def fit_map(system: PerturbedLinearSystem, t: FloatArray, U: FloatArray, Y: Floa
                      n_meas=n_meas)
 
 
-def doubling_schedule(first: float = 0.08, cap: float = 12.8) -> Callable[[int], float]:
+def doubling_schedule(first: float, cap: float = math.inf) -> Callable[[int], float]:
     """Fit times first·2ʲ until ``cap``, then every ``cap`` seconds: j ↦ t_j.
+
+    Times in seconds, for a caller who knows the process's time scale and must bound a
+    stream's memory (``FitSchedule(times=…, full_window=…)``); no default: the estimators'
+    own schedule counts samples (:func:`information_schedule`).
 
     Parameters
     ----------
     first : float
-        Time of fit j = 0, in seconds (default 0.08).
+        Time of fit j = 0, in seconds.
     cap : float
-        Largest doubling step, in seconds (default 12.8): once first·2ʲ would exceed it, the
-        fits follow every ``cap`` seconds after the last doubled time.
+        Largest doubling step, in seconds (default inf: doubling throughout): once first·2ʲ
+        would exceed it, the fits follow every ``cap`` seconds after the last doubled time.
 
     Returns
     -------
     callable
-        j ↦ t_j (int → float seconds), increasing; the default ``times`` of
-        :class:`FitSchedule`.
+        j ↦ t_j (int → float seconds), increasing.
 
     Examples
     --------
