@@ -146,3 +146,20 @@ def test_mle_at_the_bound_on_other_time_scales(name):
     # the fit's information is at θ̂ with σ̂, the bound's at θ with σ: agreement to 20 %
     assert np.all(np.abs(last.theta_se / sd - 1.0) < 0.2), last.theta_se / sd
     assert np.all(np.abs(TH[-1] - sc.theta) <= 4.0 * sd), (TH[-1] - sc.theta) / sd
+
+
+def test_blocks_too_short_for_a_noise_estimate_take_the_previous_one():
+    """A caller's schedule in seconds on a slow process (fits every 5 samples at 10 Hz after a
+    2 s full window): the blocks are shorter than the noise estimate needs, and the fit keeps
+    the previous fit's σ̂ instead of raising (the heater's `--method mle` DimensionError)."""
+    pytest.importorskip("numba", reason="slow without the compiled kernels (extra speed)")
+    from thetahat.estimation.mle import FitSchedule
+    spec = load_model(EXAMPLES / "heater.toml")
+    d = simulate_model(spec, 5, t_end=10.0)
+    sched = FitSchedule(system=spec.system, times=lambda j: 0.5 * (j + 1), full_window=2.0)
+    est = MapEstimator(system=spec.system, schedule=sched)
+    res = est.run(d.t, d.u, d.y, state0=est.init(theta_hat0=spec.estimator.theta_hat0))
+    fits = res.diagnostics.fits
+    blocks = [i for i, f in enumerate(fits) if f.k0 > 0]
+    assert blocks and all(fits[i].k1 - fits[i].k0 < MIN_SAMPLES for i in blocks)
+    assert all(np.array_equal(fits[i].noise_std, fits[i - 1].noise_std) for i in blocks)

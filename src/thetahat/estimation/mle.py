@@ -430,7 +430,11 @@ class FitSchedule:
             info[:n, :n] = np.eye(n) / float(self.x_sd) ** 2
             info[n:, n:] = info_th
             q_start = q_prior.copy()
-        sigma = resolve_noise_std(self.noise_std, Y[:k1] if full else Y[k0:k1])
+        if not full and previous is not None and self.noise_std is None \
+                and k1 - k0 < MIN_SAMPLES:
+            sigma = previous.noise_std          # a block too short to estimate σ from
+        else:
+            sigma = resolve_noise_std(self.noise_std, Y[:k1] if full else Y[k0:k1])
         return fit_map(self.system, t, U, Y, k0=k0, k1=k1, q_start=q_start, q_prior=q_prior,
                        prior_info=info, noise_std=sigma, skip_first=not full,
                        max_iter=self.first_max_iter if previous is None else self.max_iter,
