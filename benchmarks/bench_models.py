@@ -2,7 +2,8 @@
 
 Run:  .venv/bin/python benchmarks/bench_models.py [--seeds 4] [--models prop1 ...]
 
-For each model file of examples/ with a simulated scenario (lugre, two_inertia, prop1–prop4)
+For each model file of examples/ with a simulated scenario (lugre, two_inertia, prop1–prop4,
+heater (minutes, 10 Hz), actuator (milliseconds, 10 kHz), spring_friction (p = 3))
 and ``--seeds`` records of its own ``[scenario]`` (``thetahat.modelfile.simulate_model``),
 each method through the user's entry points — ``run_estimator(spec, t, u, y, method=M)`` for
 paper, guarded and mle (default settings, no trust report), ``thetahat.JointEKF(system=…)
@@ -29,7 +30,8 @@ from pathlib import Path
 import numpy as np
 
 EXAMPLES = Path(__file__).resolve().parents[1] / "examples"
-MODELS = ("lugre", "two_inertia", "prop1", "prop2", "prop3", "prop4")
+MODELS = ("lugre", "two_inertia", "prop1", "prop2", "prop3", "prop4", "heater", "actuator",
+          "spring_friction")
 METHODS = ("paper", "guarded", "mle", "ekf")
 
 

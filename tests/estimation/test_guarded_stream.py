@@ -167,3 +167,27 @@ def test_fits_in_the_worker_process_equal_the_offline_fits(data):
     fit = res.diagnostics.fits[0]
     np.testing.assert_allclose(diag.fits[0].theta, fit.theta, rtol=0, atol=1e-9)
     assert diag.fits[0].iterations == fit.iterations
+
+
+def test_default_stream_fits_all_the_data_at_the_information_schedule(data):
+    """Without given times the stream fits at the sample counts of the information schedule
+    (never seconds), every fit of all the data so far (k0 = 0), as the offline run does."""
+    ex = GatedExecutor()
+    ex.gate.set()
+    try:
+        sys_ = lugre.system()
+        est = GuardedEstimator(stage1=ExponentialStage1(tau=0.1), system=sys_, noise_std=0.02,
+                               compiled=False, fit_executor=ex)
+        st = est.init(theta_hat0=[0.5])
+        for k in range(120):
+            st = est.step(st, data.u[k], data.y[k], 1e-3)
+            if ex.fits:                         # let each fit finish before the next sample
+                ex.fits[-1].result(timeout=PATIENCE)
+        diag = est.stream_diagnostics(st)
+        at = est.fit_schedule.sample_counts()
+        expected = [at(j) for j in range(20) if at(j) < 120]
+        assert [f.k1 for f in diag.fits] == expected
+        assert all(f.k0 == 0 for f in diag.fits)
+        assert diag.failures == ()
+    finally:
+        ex.shutdown()

@@ -43,7 +43,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from .ekf import theta_box
-from .mle import FitResult, FitSchedule, fit_map
+from .mle import FitResult, FitSchedule, fit_map, fit_record
 
 __all__ = ["TimedFit", "fit_spec", "run_fit", "warm_up", "default_executor",
            "discard_default_executor", "WORKER_NICE"]
@@ -121,8 +121,12 @@ def _schedule(spec: bytes) -> FitSchedule:
 
 def run_fit(spec: bytes, t: FloatArray, U: FloatArray, Y: FloatArray, k1: int,
             previous: FitResult | None, prior0: tuple[FloatArray, FloatArray], elapsed: float,
-            base: int) -> TimedFit:
-    """:meth:`FitSchedule.fit` on a stream's retained window (runs in the worker).
+            base: int, by_samples: bool = False) -> TimedFit:
+    """The fit of a stream's retained window (runs in the worker).
+
+    :func:`~thetahat.estimation.mle.fit_record` (all the data so far; output error, else with
+    process noise when that is consistent) for a schedule by sample counts, as the offline
+    run fits; :meth:`FitSchedule.fit` (blocks with arrival cost) for one with times.
 
     Parameters
     ----------
@@ -140,6 +144,9 @@ def run_fit(spec: bytes, t: FloatArray, U: FloatArray, Y: FloatArray, k1: int,
         Time since the start of the stream (s).
     base : int
         Absolute index of the window's first sample.
+    by_samples : bool
+        The stream fits on sample counts (its schedule has no ``times``; the worker's
+        rebuilt schedule does not carry them).
 
     Returns
     -------
@@ -151,7 +158,8 @@ def run_fit(spec: bytes, t: FloatArray, U: FloatArray, Y: FloatArray, k1: int,
         _WORKER[1] = True
         _lower_priority()
     w0, c0 = time.perf_counter(), time.thread_time()
-    fit = sched.fit(t, U, Y, k1, previous, prior0, elapsed=elapsed)
+    fit = (fit_record(sched, t, U, Y, k1, previous, prior0) if by_samples
+           else sched.fit(t, U, Y, k1, previous, prior0, elapsed=elapsed))
     w1, c1 = time.perf_counter(), time.thread_time()
     fit = dataclasses.replace(fit, k0=fit.k0 + base, k1=fit.k1 + base)
     return TimedFit(fit=fit, seconds=w1 - w0, cpu_seconds=c1 - c0)

@@ -3,7 +3,7 @@
 The output θ̂ follows stage 2 (θ̂₂, EKF + MAP re-anchoring) only inside a band around stage 1
 (θ̂_G, the paper's observer and update law, Theorem 1):
 
-    θ̂ = Π_Θ( θ̂_G + clip(θ̂₂ − θ̂_G, −δ, δ) ),    δ(t) = max(δ_G(t), κ σ₂(t)),
+    θ̂ = Π_Θ( θ̂_G + clip(θ̂₂ − θ̂_G, −δ, δ) ),    δ(t) = max(δ_G(t), κ σ₂(t), δ_F(t)),
 
 so that, whatever stage 2 does, θ̂ ∈ Θ and ‖θ̂ − θ‖ ≤ ‖θ̂_G − θ‖ + ‖δ(t)‖ for the true θ ∈ Θ
 (Π_Θ is the Euclidean projection, non-expansive towards any point of the convex Θ; for a box
@@ -22,9 +22,19 @@ any convex set of :mod:`~thetahat.model.paramset`; |Θ| below is the width of it
 * σ₂(t), stage 2's own standard deviation √P_θθ (capped at the prior's |Θ|/4), so that its
   noise is never clipped.
 
+* δ_F(t), a consistent MAP fit's evidence on stage 1's error: when a fit of the data so far
+  passed its consistency check with estimate θ_F and standard error s_F, θ lies within κ s_F
+  of θ_F, so stage 1's error is at least |θ̂_G − θ_F| − κ s_F; δ_G, which stands for that
+  error, is then at least |θ̂_G − θ_F| + κ s_F. (A slow stage 1 can look settled — its late
+  range small against the early one — while still far from θ; the fit is the evidence that
+  it is not.)
+
 Stage 2 is reset from stage 1 (x̂, θ̂_G and the prior covariance) when it is non-finite, or
-after it has been clipped for ``dwell`` consecutive samples while stage 1 shows evidence
-(δ_G < |Θ|): then stage 2 disagrees with a settled stage 1 beyond both stages' uncertainty.
+after it has been clipped for ``dwell``·k consecutive samples (k the samples so far; with
+:data:`GUARD_DWELL` = 1 − 1/√2 the span since k/√2, over which the information of the data
+grew by the fit schedule's factor √2: a fraction of the run, never seconds) while stage 1
+shows evidence (δ_G < |Θ|): then stage 2 disagrees with a settled stage 1 beyond both stages'
+uncertainty.
 The windowed normalised innovation squared (NIS ≈ 1 for a consistent filter) is reported as
 a consistency diagnostic.
 """
@@ -37,7 +47,7 @@ from typing import Any, Callable
 import numpy as np
 
 __all__ = ["progress_init", "progress_step", "make_guarded_loop", "GUARD_C", "GUARD_RHO_MAX",
-           "GUARD_KAPPA", "NIS_WINDOW"]
+           "GUARD_KAPPA", "GUARD_DWELL", "NIS_WINDOW"]
 
 #: Safety factor of δ_G on the extrapolated remaining movement of stage 1.
 GUARD_C = 2.0
@@ -45,6 +55,9 @@ GUARD_C = 2.0
 GUARD_RHO_MAX = 0.5
 #: Stage 2's standard deviations kept inside the band.
 GUARD_KAPPA = 4.0
+#: Fraction of the samples so far that stage 2 must stay clipped before it is reset: the
+#: span since k/√2, over which the information grew by the fit schedule's factor √2.
+GUARD_DWELL = 1.0 - 1.0 / math.sqrt(2.0)
 #: Samples of the exponentially weighted NIS average.
 NIS_WINDOW = 200.0
 
@@ -151,8 +164,9 @@ def make_guarded_loop(predict: Callable[..., None], update: Callable[..., float]
         writes the guarded θ̂ (``TH``), stage 2's θ̂₂, x̂₂ and σ₂ (``TH2``, ``X2``, ``SD2``),
         the band δ (``BAND``), the clip and reset flags and the windowed NIS, updates the
         progress state ``pst``, ``gst`` = (dwell count, NIS average, first update index) and
-        returns the number of resets of stage 2 to stage 1. ``cfg`` = (κ, c, ρ_max, dwell in
-        samples, σ₂ cap per component…).
+        returns the number of resets of stage 2 to stage 1. ``cfg`` = (κ, c, ρ_max, dwell as a
+        fraction of the samples so far, σ₂ cap per component…, and optionally θ_F per
+        component…, κ s_F per component… of the latest consistent fit; κ s_F < 0: none).
     """
     prog = jit(progress_step)
 
@@ -160,7 +174,8 @@ def make_guarded_loop(predict: Callable[..., None], update: Callable[..., float]
              cfg, TH, TH2, X2, SD2, BAND, CLIP, RESET, NIS):
         """Samples k0 … k1−1 (absolute index k + off). ``gst`` = (dwell count, NIS average,
         first update index);
-        ``cfg`` = (κ, c, ρ_max, dwell, σ₂ cap per component…); returns the reset count."""
+        ``cfg`` = (κ, c, ρ_max, dwell fraction, σ₂ cap per component…[, θ_F…, κ s_F…]);
+        returns the reset count."""
         n = X2.shape[1]
         p = TH.shape[1]
         width = hi - lo
@@ -170,6 +185,7 @@ def make_guarded_loop(predict: Callable[..., None], update: Callable[..., float]
         eye = np.eye(p)
         z = np.empty(p)
         resets = 0
+        with_fit = cfg.shape[0] >= 4 + 3 * p
         for k in range(k0, k1):
             if k + off > 0:
                 predict(s, P, U[k - 1], U[k], tt[k] - tt[k - 1], h_rho, Q_x, Phi, Gam)
@@ -193,6 +209,8 @@ def make_guarded_loop(predict: Callable[..., None], update: Callable[..., float]
                 d = s[n + i] - thG[k, i]
                 sd = math.sqrt(max(P[n + i, n + i], 0.0)) if not bad else 0.0
                 band = max(dG[i], cfg[0] * min(sd, cfg[4 + i]))
+                if with_fit and cfg[4 + 2 * p + i] >= 0.0:
+                    band = max(band, abs(thG[k, i] - cfg[4 + p + i]) + cfg[4 + 2 * p + i])
                 if bad:
                     d = 0.0
                 if d > band:
@@ -211,7 +229,7 @@ def make_guarded_loop(predict: Callable[..., None], update: Callable[..., float]
             for i in range(p):
                 if dG[i] >= width[i]:
                     settled = False
-            reset = bad or (gst[0] > cfg[3] and settled)
+            reset = bad or (gst[0] > cfg[3] * (k + off + 1) and settled)
             if reset:
                 for i in range(n):
                     s[i] = xG[k, i]

@@ -37,7 +37,8 @@ from ..model.system import PerturbedLinearSystem
 from .ekf import (EKFKernels, JointEKF, as_record, ekf_kernels, resolve_noise_std, start_values)
 from .stage2_set import stage2_set
 from .fit_worker import default_executor, discard_default_executor, fit_spec, run_fit, warm_up
-from .guard import (GUARD_C, GUARD_KAPPA, GUARD_RHO_MAX, make_guarded_loop, progress_init)
+from .guard import (GUARD_C, GUARD_DWELL, GUARD_KAPPA, GUARD_RHO_MAX, make_guarded_loop,
+                    progress_init)
 from .likelihood import unit_process_noise
 from .mle import FitResult, FitSchedule, MapEstimator, fit_record
 from .model_kernel import H_RHO, jit
@@ -45,15 +46,12 @@ from .noise_level import MIN_SAMPLES
 from .protocol import Diagnostics, EstimateResult, missing_samples, phi_hat_from_model
 
 __all__ = ["GuardedDiagnostics", "GuardedEstimator", "GuardedResult", "GuardedState",
-           "StreamDiagnostics", "SIGMA_SAMPLES",
-           "DWELL_SECONDS"]
+           "StreamDiagnostics", "SIGMA_SAMPLES"]
 
 FloatArray = NDArray[np.float64]
 
 #: Samples after which σ̂ is re-estimated once before the first fit (when σ is not given).
 SIGMA_SAMPLES = 32
-#: Time stage 2 may stay clipped by a settled stage 1 before it is reset from stage 1 (s).
-DWELL_SECONDS = 0.5
 
 
 @dataclass(frozen=True, slots=True, eq=False)
@@ -220,13 +218,15 @@ class GuardedEstimator:
     noise_std : optional
         σ of the output noise; default estimated from the data.
     schedule : FitSchedule, optional
-        The re-anchoring fits (default :class:`FitSchedule` at 0.08·2ʲ s).
+        The re-anchoring fits (default :class:`FitSchedule`: all the data so far, each time
+        the information has grown by √2; one with ``times`` fits at those times, in seconds).
     use_fits : bool
         False: no re-anchoring (stage 2 = the EKF alone).
     x_sd : float
         Prior standard deviation of x(0) for stage 2.
     kappa, c, rho_max, dwell : float
-        The guard's constants (see :mod:`~thetahat.estimation.guard`); ``dwell`` in seconds.
+        The guard's constants (see :mod:`~thetahat.estimation.guard`); ``dwell`` a fraction
+        of the samples so far (default :data:`~thetahat.estimation.guard.GUARD_DWELL`).
     q_x : float
         Stage 2's process-noise variance per sample on x (default 0: the model is exact).
     h_rho : float
@@ -263,7 +263,7 @@ class GuardedEstimator:
     kappa: float = GUARD_KAPPA
     c: float = GUARD_C
     rho_max: float = GUARD_RHO_MAX
-    dwell: float = DWELL_SECONDS
+    dwell: float = GUARD_DWELL
     q_x: float = 0.0
     h_rho: float = H_RHO
     compiled: bool | None = None
@@ -386,9 +386,9 @@ class GuardedEstimator:
         CLIP, RESET, NIS = np.zeros(N, bool), np.zeros(N, bool), np.full(N, np.nan)
         pst = progress_init(thG[0])
         gst = np.array([0.0, 1.0, float(k_first)])
-        cfg = np.concatenate([[self.kappa, self.c, self.rho_max,
-                               self.dwell / float(np.median(np.diff(t_)))],
-                              np.sqrt(np.diag(P0)[n:])])
+        # (κ, c, ρ_max, dwell, σ₂ cap; θ_F, κ s_F of the latest consistent fit: none yet)
+        cfg = np.concatenate([[self.kappa, self.c, self.rho_max, self.dwell],
+                              np.sqrt(np.diag(P0)[n:]), np.zeros(p), np.full(p, -1.0)])
         loop = self._loop()
         sched = self.fit_schedule
         fits: list[FitResult] = []
@@ -397,12 +397,12 @@ class GuardedEstimator:
         Q_x = self.q_x * np.eye(n)
         # the default fits: all the data so far, at the sample counts where the information
         # has grown by INFO_GROWTH, the last on all samples but the last (whose output then
-        # follows it); a given schedule keeps its times (seconds) and windows
-        by_samples = sched is not None and self.schedule is None
+        # follows it); a schedule with times keeps its times (seconds) and windows
+        by_samples = sched is not None and sched.times is None
         ks: list[int] = []
         if sched is not None and by_samples:
             sched = replace(sched, full_window=math.inf)
-            ks = [k1 for k1 in MapEstimator(system=sys_, noise_std=self.noise_std,
+            ks = [k1 for k1 in MapEstimator(system=sys_, schedule=sched, noise_std=self.noise_std,
                                             compiled=self.compiled).fit_samples(t_[:N - 1])
                   if MIN_SAMPLES <= k1 < N]
         k = 0
@@ -420,7 +420,7 @@ class GuardedEstimator:
                 while j < len(ks) and ks[j] <= k:
                     j += 1
                 k_fit = ks[j] if j < len(ks) else N
-            elif sched is not None:
+            elif sched is not None and sched.times is not None:
                 while sched.times(j) <= t_[k] - t_[0]:
                     j += 1
                 k_fit = int(np.searchsorted(t_ - t_[0], sched.times(j) + 1e-12, side="right"))
@@ -441,6 +441,8 @@ class GuardedEstimator:
                     # the fit ends at this very sample: take (x, θ) and their joint covariance
                     s[:n], s[n:] = fit.x_end, fit.theta
                     P[:, :] = fit.cov_end
+                    cfg[4 + p:4 + 2 * p] = fit.theta
+                    cfg[4 + 2 * p:] = self.kappa * fit.theta_se
                     sigma = fit.noise_std
                     R = np.diag(sigma ** 2)
                     # stage 2 carries the model error as the fit found it (none: q = 0)
@@ -642,8 +644,9 @@ class _Stream:
 
     def configure(self, est: GuardedEstimator, dt: float) -> None:
         n = self._n
-        self.cfg = np.concatenate([[est.kappa, est.c, est.rho_max, est.dwell / dt],
-                                   np.sqrt(np.diag(self.P0)[n:])])
+        p = self.P0.shape[0] - n
+        self.cfg = np.concatenate([[est.kappa, est.c, est.rho_max, est.dwell],
+                                   np.sqrt(np.diag(self.P0)[n:]), np.zeros(p), np.full(p, -1.0)])
 
     def submit(self, fn: Any, *args: Any) -> None:
         """Hand ``fn(*args)`` to the executor; a broken executor ends this stream's fits."""
@@ -697,6 +700,9 @@ class _Stream:
             self.P[:, n:] = 0.0
             self.P[n:, n:] = fit.cov[n:, n:]
             self.R = np.diag(fit.noise_std ** 2)
+            p = fit.theta.shape[0]
+            self.cfg[4 + p:4 + 2 * p] = fit.theta
+            self.cfg[4 + 2 * p:] = self.cfg[0] * fit.theta_se
         if fit.k0 > 0 or (self.sched is not None and self.T[fit.k1 - 1 - self.base]
                           > self.sched.full_window):
             self._trim(fit.k1 - 1)
@@ -712,13 +718,22 @@ class _Stream:
         if sched is None or prior0 is None or self.future is not None:
             return
         t_last = float(self.T[self.size - 1])
-        if t_last < sched.times(self.j) - 1e-12 or self.k < MIN_SAMPLES:
+        if self.k < MIN_SAMPLES:
             return
-        while sched.times(self.j) <= t_last + 1e-12:
-            self.j += 1
+        if sched.times is None:                 # sample counts: the data so far, k_j of them
+            at = sched.sample_counts()
+            if self.k < at(self.j):
+                return
+            while at(self.j) <= self.k:
+                self.j += 1
+        else:                                   # the caller's times (s)
+            if t_last < sched.times(self.j) - 1e-12:
+                return
+            while sched.times(self.j) <= t_last + 1e-12:
+                self.j += 1
         b, k1 = self.base, self.size
         prev = self.fits[-1] if self.fits else None
         if prev is not None:
             prev = dataclasses.replace(prev, k0=max(prev.k0 - b, 0), k1=prev.k1 - b)
         self.submit(run_fit, self.spec, self.T[:k1].copy(), self.U[:k1].copy(),
-                    self.Y[:k1].copy(), k1, prev, prior0, t_last, b)
+                    self.Y[:k1].copy(), k1, prev, prior0, t_last, b, sched.times is None)

@@ -20,14 +20,17 @@ errors or after ``max_iter`` iterations.
 grown by a factor (:func:`information_schedule`: counts of samples, never seconds), warm-started
 from the previous fit; its last fit is the MAP estimate of the whole record.
 
-:class:`FitSchedule` serves the streaming estimator, which cannot keep every sample: fits at
-scheduled times (t = 0.08·2ʲ s by default). While the fit time is at most ``full_window`` it
-refits all data from t = 0 (warm-started; prior q̄ = (x̂(0), θ̂(0)), Π from Θ and a wide x(0));
-later fits use the block since the previous fit with the previous fit's θ and its marginal
-covariance as the prior on θ — the arrival cost, which summarises the older data — and a wide
-prior on x at the block's start centred at the previous fit's end state, so the cost per sample
-stays bounded on long records. (Dropping the older data's information on x is conservative
-only for models that forget x(t₀) quickly.)
+:class:`FitSchedule` holds the fits' settings. By default (``times`` None) it fits on the same
+information schedule, all the data so far each time — offline and streaming alike; refitting
+at √2-fold sample counts costs at most √2/(√2 − 1) ≈ 3.4 fits of the whole record, O(1) per
+sample amortised, while the stream keeps its samples (O(N) memory). A caller who must bound
+the memory gives ``times`` (seconds, e.g. :func:`doubling_schedule`) and a finite
+``full_window``: fits at those times refit all data while the elapsed time is at most
+``full_window``; later ones use the block since the previous fit with the previous fit's θ and
+its marginal covariance as the prior on θ — the arrival cost, which summarises the older data
+— and a wide prior on x at the block's start centred at the previous fit's end state.
+(Dropping the older data's information on x is conservative only for models that forget
+x(t₀) quickly: the caller's choice of times and window says how quickly.)
 """
 
 from __future__ import annotations
@@ -315,22 +318,25 @@ def fit_map(system: PerturbedLinearSystem, t: FloatArray, U: FloatArray, Y: Floa
                      n_meas=n_meas)
 
 
-def doubling_schedule(first: float = 0.08, cap: float = 12.8) -> Callable[[int], float]:
+def doubling_schedule(first: float, cap: float = math.inf) -> Callable[[int], float]:
     """Fit times first·2ʲ until ``cap``, then every ``cap`` seconds: j ↦ t_j.
+
+    Times in seconds, for a caller who knows the process's time scale and must bound a
+    stream's memory (``FitSchedule(times=…, full_window=…)``); no default: the estimators'
+    own schedule counts samples (:func:`information_schedule`).
 
     Parameters
     ----------
     first : float
-        Time of fit j = 0, in seconds (default 0.08).
+        Time of fit j = 0, in seconds.
     cap : float
-        Largest doubling step, in seconds (default 12.8): once first·2ʲ would exceed it, the
-        fits follow every ``cap`` seconds after the last doubled time.
+        Largest doubling step, in seconds (default inf: doubling throughout): once first·2ʲ
+        would exceed it, the fits follow every ``cap`` seconds after the last doubled time.
 
     Returns
     -------
     callable
-        j ↦ t_j (int → float seconds), increasing; the default ``times`` of
-        :class:`FitSchedule`.
+        j ↦ t_j (int → float seconds), increasing.
 
     Examples
     --------
@@ -355,10 +361,13 @@ class FitSchedule:
     Parameters
     ----------
     system : PerturbedLinearSystem
-    times : callable j ↦ t_j
-        The fit times (increasing); default :func:`doubling_schedule` (0.08·2ʲ s).
+    times : callable j ↦ t_j, optional
+        Fit times in seconds (increasing), for a caller that must bound the stream's memory;
+        default None: the sample counts of :meth:`sample_counts` (:func:`information_schedule`
+        from :func:`first_fit_samples`), every fit of all the data so far.
     full_window : float
-        Fits at t ≤ ``full_window`` refit all data; later ones use blocks with arrival cost.
+        With ``times``: fits at t ≤ ``full_window`` (s) refit all data; later ones use blocks
+        with arrival cost (default inf: all data).
     x_sd : float
         Prior standard deviation of x(0).
     noise_std : optional
@@ -370,14 +379,33 @@ class FitSchedule:
     """
 
     system: PerturbedLinearSystem
-    times: Callable[[int], float] = doubling_schedule()
-    full_window: float = 1.6
+    times: Callable[[int], float] | None = None
+    full_window: float = math.inf
     x_sd: float = X_PRIOR_SD
     noise_std: Any = None
     max_iter: int = 6
     first_max_iter: int = 25
     h_rho: float = H_RHO
     compiled: bool | None = None
+
+    def sample_counts(self, growth: float | None = None) -> Callable[[int], int]:
+        """The fits' sample counts when ``times`` is None: j ↦ k_j.
+
+        :func:`information_schedule` from max(:func:`first_fit_samples`, the samples the
+        noise estimate needs when σ is not given), growth :data:`INFO_GROWTH` unless given.
+
+        Parameters
+        ----------
+        growth : float, optional
+
+        Returns
+        -------
+        callable
+            j ↦ k_j (the fit j covers samples 0 … k_j − 1).
+        """
+        least = 3 if self.noise_std is not None else MIN_SAMPLES
+        return information_schedule(max(first_fit_samples(self.system), least),
+                                    INFO_GROWTH if growth is None else growth)
 
     def initial_prior(self, x_hat0: FloatArray, theta_hat0: FloatArray
                       ) -> tuple[FloatArray, FloatArray]:
@@ -413,7 +441,11 @@ class FitSchedule:
             info[:n, :n] = np.eye(n) / float(self.x_sd) ** 2
             info[n:, n:] = info_th
             q_start = q_prior.copy()
-        sigma = resolve_noise_std(self.noise_std, Y[:k1] if full else Y[k0:k1])
+        if not full and previous is not None and self.noise_std is None \
+                and k1 - k0 < MIN_SAMPLES:
+            sigma = previous.noise_std          # a block too short to estimate σ from
+        else:
+            sigma = resolve_noise_std(self.noise_std, Y[:k1] if full else Y[k0:k1])
         return fit_map(self.system, t, U, Y, k0=k0, k1=k1, q_start=q_start, q_prior=q_prior,
                        prior_info=info, noise_std=sigma, skip_first=not full,
                        max_iter=self.first_max_iter if previous is None else self.max_iter,
@@ -671,8 +703,8 @@ class MapEstimator:
     ----------
     system : PerturbedLinearSystem
     schedule : FitSchedule, optional
-        Fit at this schedule's times (seconds) and windows instead (the streaming estimator's
-        block fits with arrival cost).
+        The fits' settings; with ``times`` given, fit at those times (seconds) and windows
+        instead (block fits with arrival cost).
     noise_std : optional
         σ of the output noise; default estimated from the data of each fit.
     compiled : bool, optional
@@ -702,6 +734,11 @@ class MapEstimator:
     compiled: bool | None = None
     growth: float = INFO_GROWTH
 
+    @property
+    def _by_times(self) -> bool:
+        """A schedule with fit times in seconds was given (else: information schedule)."""
+        return self.schedule is not None and self.schedule.times is not None
+
     def _schedule(self) -> FitSchedule:
         if self.schedule is not None:
             return self.schedule
@@ -722,17 +759,17 @@ class MapEstimator:
         """
         N = int(t.shape[0])
         least = self._min_samples()
-        if self.schedule is not None:
+        times = self.schedule.times if self.schedule is not None else None
+        if times is not None:
             ks: list[int] = []
             j = 0
-            times = self.schedule.times
             while times(j) <= t[-1] - t[0] + 1e-12:
                 k1 = int(np.searchsorted(t - t[0], times(j) + 1e-12, side="right"))
                 if k1 >= least and (not ks or k1 > ks[-1]):
                     ks.append(k1)
                 j += 1
             return ks
-        at = information_schedule(max(first_fit_samples(self.system), least), self.growth)
+        at = self._schedule().sample_counts(self.growth)
         ks, j = [], 0
         while at(j) < N:
             ks.append(at(j))
@@ -823,19 +860,18 @@ class MapEstimator:
         k1 = state.k + 1
         j, fits, ends = state.j, list(state.fits), list(state.fit_samples)
         due = False
-        if self.schedule is not None:           # times (s): due when the next sample is later
+        if sched.times is not None:             # times (s): due when the next sample is later
             while sched.times(j) + 1e-12 < elapsed + h:
                 due, j = True, j + 1
         else:                                   # sample counts of the information schedule
-            at = information_schedule(max(first_fit_samples(sys_), self._min_samples()),
-                                      self.growth)
+            at = sched.sample_counts(self.growth)
             while at(j) <= k1:
                 due, j = due or at(j) == k1, j + 1
         if due and k1 >= self._min_samples():
             prior0 = sched.initial_prior(state.x_hat0, state.theta_hat0)
             prev = fits[-1] if fits else None
             fit = (sched.fit(log.T[:k1], log.U[:k1], log.Y[:k1], k1, prev, prior0)
-                   if self.schedule is not None
+                   if self._by_times
                    else fit_record(sched, log.T[:k1], log.U[:k1], log.Y[:k1], k1, prev, prior0))
             fits.append(fit)
             ends.append(state.k)
@@ -891,10 +927,10 @@ class MapEstimator:
         for i, k1 in enumerate(ks):
             prev = fits[-1] if fits else None
             last = i == len(ks) - 1
-            if self.schedule is None and last and prev is not None:
+            if not self._by_times and last and prev is not None:
                 # the record's own fit: iterate to convergence, not to the warm-start budget
                 sched = replace(sched, max_iter=sched.first_max_iter)
-            fit = (sched.fit(t_, U, Y, k1, prev, prior0) if self.schedule is not None
+            fit = (sched.fit(t_, U, Y, k1, prev, prior0) if self._by_times
                    else fit_record(sched, t_, U, Y, k1, prev, prior0, final=last))
             fits.append(fit)
             ends.append(k1 - 1)

@@ -5,10 +5,18 @@ white noise e_k with standard deviation σ has variance 6 σ², while the signal
 h² ÿ. The median of |d_k| (the median absolute deviation, robust to the few samples where the
 signal changes abruptly, e.g. at the velocity reversals of a friction model) estimates it:
 σ̂ = median|d| / (0.6745 √6), 0.6745 = Φ⁻¹(3/4) being the MAD of a unit normal.
+
+"Sampled fast" is checked on the data, not assumed: a process sampled at only a few samples
+per time constant (a coil's current at 10 kHz) leaves h² ÿ comparable with σ, and the second
+difference overstates σ. The o-th difference has noise variance C(2o, o) σ² and signal
+h^o y^(o), which falls geometrically with o for a smooth output; so σ̂_o is computed for
+o = 2, 3, … and the first o is taken after which σ̂ no longer falls by more than its own
+scatter (2/√M relative, M the number of differences), up to :data:`MAX_ORDER`.
 """
 
 from __future__ import annotations
 
+import math
 from typing import Any
 
 import numpy as np
@@ -16,15 +24,31 @@ from numpy.typing import NDArray
 
 from ..errors import DimensionError
 
-__all__ = ["estimate_noise_std", "MIN_SAMPLES"]
+__all__ = ["estimate_noise_std", "MIN_SAMPLES", "MAX_ORDER"]
 
 #: Fewest samples from which σ̂ is computed (10 second differences).
 MIN_SAMPLES = 12
+#: Highest order of the differences tried (the signal of a smooth output at a few samples per
+#: time constant is gone by then; higher orders only add scatter).
+MAX_ORDER = 5
 _MAD_NORMAL = 0.6744897501960817
 
 
+def _sigma_of_order(y: NDArray[np.float64], order: int) -> tuple[float, int]:
+    """(σ̂ from the order-th differences of one channel, the number of finite differences)."""
+    d = np.diff(y, n=order)
+    d = d[np.isfinite(d)]
+    if d.size == 0:
+        return math.nan, 0
+    return (float(np.median(np.abs(d))) / (_MAD_NORMAL * math.sqrt(math.comb(2 * order, order))),
+            int(d.size))
+
+
 def estimate_noise_std(y: Any) -> NDArray[np.float64]:
-    """σ̂ per output channel from the second differences of y (median absolute deviation).
+    """σ̂ per output channel from the differences of y (median absolute deviation).
+
+    The second differences, or higher ones where the data show the signal still in them
+    (see the module docstring).
 
     Parameters
     ----------
@@ -58,9 +82,13 @@ def estimate_noise_std(y: Any) -> NDArray[np.float64]:
         raise DimensionError(f"estimate_noise_std needs y of shape (N, r) with N >= "
                              f"{MIN_SAMPLES}; got {np.shape(y)}. Pass noise_std explicitly "
                              "for shorter records.")
-    d = Y[2:] - 2.0 * Y[1:-1] + Y[:-2]
     out = np.empty(Y.shape[1])
     for j in range(Y.shape[1]):
-        dj = d[np.isfinite(d[:, j]), j]
-        out[j] = np.median(np.abs(dj)) / (_MAD_NORMAL * np.sqrt(6.0)) if dj.size else np.nan
+        sigma, M = _sigma_of_order(Y[:, j], 2)
+        for order in range(3, MAX_ORDER + 1):
+            nxt, M_next = _sigma_of_order(Y[:, j], order)
+            if not (M_next > 0 and nxt < sigma * (1.0 - 2.0 / math.sqrt(M))):
+                break                           # no longer falling beyond its scatter
+            sigma, M = nxt, M_next
+        out[j] = sigma
     return out
