@@ -161,7 +161,7 @@ def main(argv: list[str] | None = None) -> dict:
         arm = arm_sizes(tmp)
         ref = None
         try:
-            from thetahat.estimation.compiled import compile_observer
+            from thetahat.estimation.kernels.compiled import compile_observer
             fast = compile_observer(obs, dt=1e-3)
             state0 = obs.init(theta_hat0=theta_hat0)
             fast.run(data.t[:10], U[:10], Y[:10], state0=state0)       # JIT outside timing

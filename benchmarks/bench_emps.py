@@ -74,9 +74,9 @@ def main(argv: list[str] | None = None) -> dict:
 
 def output_error_fit(rec) -> dict:
     """The MAP fit of all the record with the model taken as exact (no process noise)."""
-    from thetahat.estimation.ekf import theta_prior_sd
-    from thetahat.estimation.mle import X_PRIOR_SD, fit_map
-    from thetahat.estimation.noise_level import estimate_noise_std
+    from thetahat.estimation.statistical.ekf import theta_prior_sd
+    from thetahat.estimation.statistical.mle import X_PRIOR_SD, fit_map
+    from thetahat.estimation.statistical.noise_level import estimate_noise_std
     from thetahat.modelfile import load_model
     from thetahat.models import emps
     from thetahat.models.emps_report import MODEL_FILE

@@ -84,7 +84,7 @@ def _estimator(name: str, dt: float):
     key = (name, dt)
     if key not in _EST_CACHE:
         if name == "paper":
-            from thetahat.estimation.compiled import compile_observer
+            from thetahat.estimation.kernels.compiled import compile_observer
             _EST_CACHE[key] = compile_observer(lugre.observer(), dt=dt)
         else:
             _EST_CACHE[key] = lugre.estimator(name, dt=dt)
@@ -261,7 +261,7 @@ def cost(log) -> dict:
             worst = max(worst, time.perf_counter() - a)
         return worst, time.perf_counter() - t0
 
-    from thetahat.estimation.guarded import GuardedEstimator
+    from thetahat.estimation.statistical.guarded import GuardedEstimator
     no_fits = GuardedEstimator(stage1=est.stage1, system=est.system, use_fits=False)
     worst0, _ = stream(no_fits)
     worst, elapsed = stream(est)

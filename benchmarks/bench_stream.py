@@ -41,8 +41,8 @@ from pathlib import Path
 
 import numpy as np
 
-from thetahat.estimation.guarded import GuardedEstimator
-from thetahat.estimation.mle import FitSchedule
+from thetahat.estimation.statistical.guarded import GuardedEstimator
+from thetahat.estimation.statistical.mle import FitSchedule
 from thetahat.models import lugre
 
 #: The busy schedule: a fit due every BUSY_EVERY seconds.

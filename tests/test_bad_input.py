@@ -19,8 +19,8 @@ from thetahat.cli import main
 from thetahat.datafile import check_writable, read_data
 from thetahat.design.design_system import apply_design
 from thetahat.design.gains import high_gain, modified_high_gain
-from thetahat.estimation.checks import check_theta_star
-from thetahat.estimation.update_laws import AlgebraicInversion, GradientInversion
+from thetahat.estimation.paper.checks import check_theta_star
+from thetahat.estimation.paper.update_laws import AlgebraicInversion, GradientInversion
 from thetahat.model.paramset import Box
 from thetahat.model.parse import parse_expression, parse_perturbation
 from thetahat.model.perturbation import SymbolicPerturbation
@@ -442,7 +442,7 @@ def test_observer_refuses_unknown_hold():
 
 def test_compiled_observer_refuses_complex_y():
     pytest.importorskip("numba")
-    from thetahat.estimation.compiled import compile_observer
+    from thetahat.estimation.kernels.compiled import compile_observer
 
     obs = _observer()
     dt = 0.01
@@ -504,7 +504,7 @@ def test_cli_help_documents_the_exit_codes(capsys):
 
 
 def test_run_batch_refuses_complex_y():
-    from thetahat.estimation.batch_run import run_batch
+    from thetahat.estimation.kernels.batch_run import run_batch
 
     obs = _observer()
     t = np.arange(5) * 0.01

@@ -143,7 +143,7 @@ def test_demo_calls_the_lugre_report(monkeypatch, capsys):
 def test_estimate_method_guarded_writes_the_guarded_theta(tmp_path, lugre_csv, capsys,
                                                           monkeypatch):
     # numpy kernels (no numba compilation in the default suite); same numbers as compiled
-    import thetahat.estimation.model_kernel as mk
+    import thetahat.estimation.kernels.model_kernel as mk
     monkeypatch.setattr(mk, "have_numba", lambda: False)
     csv_path, data = lugre_csv
     out = tmp_path / "est.csv"

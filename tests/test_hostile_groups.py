@@ -22,7 +22,7 @@ from thetahat import limits
 from thetahat.cli import main
 from thetahat.datafile import read_data
 from thetahat.design.gains import modified_high_gain
-from thetahat.estimation.update_laws import AlgebraicInversion, GradientInversion
+from thetahat.estimation.paper.update_laws import AlgebraicInversion, GradientInversion
 from thetahat.model.paramset import Box
 from thetahat.model.parse import parse_perturbation
 from thetahat.model.perturbation import SymbolicPerturbation

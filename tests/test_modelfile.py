@@ -13,7 +13,7 @@ import pytest
 from thetahat import simulate_plant
 from thetahat.errors import ModelFileError
 from thetahat.datafile import estimate_columns, read_data
-from thetahat.estimation.initial_state import x_hat_from_output
+from thetahat.estimation.paper.initial_state import x_hat_from_output
 from thetahat.modelfile import (
     EXAMPLE_MODEL,
     analyze_model,

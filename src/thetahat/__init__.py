@@ -21,21 +21,21 @@ if TYPE_CHECKING:                    # the real imports, for type checkers and I
                          NotLeftInvertibleError, NotMinimumPhaseError, ParameterSetError,
                          ResourceLimitError, SimulationError, SymbolicTimeoutError, ThetahatError,
                          ThetahatWarning, UnstableDesignError, UpdateLawError)
-    from .estimation.batch_run import BatchObserverResult, run_batch
-    from .estimation.checks import (ExcitationReport, MonotonicityReport, check_monotonicity,
+    from .estimation.kernels.batch_run import BatchObserverResult, run_batch
+    from .estimation.paper.checks import (ExcitationReport, MonotonicityReport, check_monotonicity,
                                     excitation_report)
-    from .estimation.compiled import CompiledObserver, compile_observer
-    from .estimation.crlb import CRLBResult, crlb
-    from .estimation.ekf import EKFDiagnostics, JointEKF
-    from .estimation.guarded import GuardedDiagnostics, GuardedEstimator, GuardedResult
-    from .estimation.mle import MapDiagnostics, MapEstimator
+    from .estimation.kernels.compiled import CompiledObserver, compile_observer
+    from .estimation.statistical.crlb import CRLBResult, crlb
+    from .estimation.statistical.ekf import EKFDiagnostics, JointEKF
+    from .estimation.statistical.guarded import GuardedDiagnostics, GuardedEstimator, GuardedResult
+    from .estimation.statistical.mle import MapDiagnostics, MapEstimator
     from .estimation.protocol import EstimateResult, Estimator, ObserverDiagnostics
-    from .estimation.observer import ModifiedHighGainObserver, ObserverEstimate, ObserverResult
-    from .estimation.plan import StepPlan
-    from .estimation.projection import Projection, Saturation, saturate
-    from .estimation.redesign import SecondObserver
-    from .estimation.theta_star import ThetaStar
-    from .estimation.update_laws import (AlgebraicInversion, ConstantLaw, GradientInversion,
+    from .estimation.paper.observer import ModifiedHighGainObserver, ObserverEstimate, ObserverResult
+    from .estimation.kernels.plan import StepPlan
+    from .estimation.paper.projection import Projection, Saturation, saturate
+    from .estimation.paper.redesign import SecondObserver
+    from .estimation.paper.theta_star import ThetaStar
+    from .estimation.paper.update_laws import (AlgebraicInversion, ConstantLaw, GradientInversion,
                                          IntermittentInversion, UpdateLaw, smooth_ramp)
     from .fleet import FleetResult, estimate_many
     from .model.interop import from_state_space, to_state_space
@@ -99,21 +99,21 @@ _EXPORTS: dict[str, tuple[str, ...]] = {
                "NotMinimumPhaseError", "ParameterSetError", "ResourceLimitError",
                "SimulationError", "SymbolicTimeoutError", "ThetahatError", "ThetahatWarning",
                "UnstableDesignError", "UpdateLawError"),
-    "estimation.batch_run": ("BatchObserverResult", "run_batch"),
-    "estimation.checks": ("ExcitationReport", "MonotonicityReport", "check_monotonicity",
+    "estimation.kernels.batch_run": ("BatchObserverResult", "run_batch"),
+    "estimation.paper.checks": ("ExcitationReport", "MonotonicityReport", "check_monotonicity",
                           "excitation_report"),
-    "estimation.compiled": ("CompiledObserver", "compile_observer"),
-    "estimation.crlb": ("CRLBResult", "crlb"),
-    "estimation.ekf": ("EKFDiagnostics", "JointEKF"),
-    "estimation.guarded": ("GuardedDiagnostics", "GuardedEstimator", "GuardedResult"),
-    "estimation.mle": ("MapDiagnostics", "MapEstimator"),
+    "estimation.kernels.compiled": ("CompiledObserver", "compile_observer"),
+    "estimation.statistical.crlb": ("CRLBResult", "crlb"),
+    "estimation.statistical.ekf": ("EKFDiagnostics", "JointEKF"),
+    "estimation.statistical.guarded": ("GuardedDiagnostics", "GuardedEstimator", "GuardedResult"),
+    "estimation.statistical.mle": ("MapDiagnostics", "MapEstimator"),
     "estimation.protocol": ("EstimateResult", "Estimator", "ObserverDiagnostics"),
-    "estimation.observer": ("ModifiedHighGainObserver", "ObserverEstimate", "ObserverResult"),
-    "estimation.plan": ("StepPlan",),
-    "estimation.projection": ("Projection", "Saturation", "saturate"),
-    "estimation.redesign": ("SecondObserver",),
-    "estimation.theta_star": ("ThetaStar",),
-    "estimation.update_laws": ("AlgebraicInversion", "ConstantLaw", "GradientInversion",
+    "estimation.paper.observer": ("ModifiedHighGainObserver", "ObserverEstimate", "ObserverResult"),
+    "estimation.kernels.plan": ("StepPlan",),
+    "estimation.paper.projection": ("Projection", "Saturation", "saturate"),
+    "estimation.paper.redesign": ("SecondObserver",),
+    "estimation.paper.theta_star": ("ThetaStar",),
+    "estimation.paper.update_laws": ("AlgebraicInversion", "ConstantLaw", "GradientInversion",
                                "IntermittentInversion", "UpdateLaw", "smooth_ramp"),
     "fleet": ("FleetResult", "estimate_many"),
     "model.interop": ("from_state_space", "to_state_space"),

@@ -367,7 +367,7 @@ def read_mapped(path: str | Path, spec: ModelSpec, *, nan_policy: str = "raise")
     ([2.0, 4.0], [0.005, 0.007])
     """
     from .datafile import DataRecord, column_candidates
-    from .estimation.records import check_nan_policy
+    from .estimation.paper.records import check_nan_policy
 
     check_nan_policy(nan_policy)
     path = Path(path)

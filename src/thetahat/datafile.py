@@ -22,8 +22,8 @@ from numpy.typing import NDArray
 
 from . import limits
 from .errors import MissingExtraError, ModelFileError
-from .estimation.observer import ObserverResult
-from .estimation.records import check_nan_policy
+from .estimation.paper.observer import ObserverResult
+from .estimation.paper.records import check_nan_policy
 from .modelfile import ModelSpec
 from .safe_io import atomic_path, check_regular, check_writable, open_input
 

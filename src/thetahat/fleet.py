@@ -5,7 +5,7 @@ are independent, so :func:`estimate_many` hands them to :func:`thetahat.engine.r
 chunks (in this process, or on a Dask cluster); within a chunk, records with the same sampling
 instants run on the fastest back end installed: one by one on the C printed from the
 formulas (a C compiler) or numba's kernel (a group of at least ``COMPILE_MIN_SAMPLES``
-samples), else together through :func:`~thetahat.estimation.batch_run.run_batch` (NumPy; the
+samples), else together through :func:`~thetahat.estimation.kernels.batch_run.run_batch` (NumPy; the
 results agree to rounding, 1e-9 relative). A record that
 cannot be read or estimated gets its reason in ``status`` and never stops the others.
 
@@ -46,9 +46,9 @@ from . import limits
 from .datafile import (DATA_SUFFIXES, DataRecord, read_data, read_parquet, write_parquet_table)
 from .engine import run_keyed
 from .errors import ArgumentTypeError, MissingExtraError, ModelFileError, OptionError
-from .estimation.batch_run import run_batch
-from .estimation.records import check_nan_policy
-from .estimation.stage2_set import theta_bounds
+from .estimation.kernels.batch_run import run_batch
+from .estimation.paper.records import check_nan_policy
+from .estimation.statistical.stage2_set import theta_bounds
 from .modelfile import (ESTIMATION_METHODS, ModelSpec, build_observer, loads_model, start_x_hat,
                         run_estimator)
 from .safe_io import atomic_path, check_writable, read_text, same_file
@@ -375,7 +375,7 @@ def _group_runner(obs: Any, t: FloatArray, records: int) -> Any:
     """
     from .codegen.generate import supports_c
     from .codegen.native import NativeObserver, native_enabled
-    from .estimation.compiled import COMPILE_MIN_SAMPLES, runner
+    from .estimation.kernels.compiled import COMPILE_MIN_SAMPLES, runner
     big = records * t.size >= COMPILE_MIN_SAMPLES
     if native_enabled() and supports_c(obs):
         return NativeObserver(obs, (lambda: runner(obs, t, compiled=True)) if big

@@ -15,9 +15,9 @@ from thetahat.codegen.c_values import Arr, Const, Scal
 from thetahat.codegen.harness import C_FLAGS
 from thetahat.codegen.loader import find_compiler
 from thetahat.errors import UnsupportedError
-from thetahat.estimation import scalar_primitives
-from thetahat.estimation.scalar_backend import rewritten
-from thetahat.estimation.status import status_constants
+from thetahat.estimation.kernels import scalar_primitives
+from thetahat.estimation.kernels.scalar_backend import rewritten
+from thetahat.estimation.kernels.status import status_constants
 
 #: A pivoted elimination printed as C against LAPACK's, relative to the solution's norm:
 #: rounding only (different pivot arithmetic order), 1e-12 is ~1e4 ulps on these

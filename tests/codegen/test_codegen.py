@@ -20,8 +20,8 @@ from thetahat.codegen.harness import C_FLAGS, estimate_columns
 from thetahat.codegen.loader import STATUS, build_harness, find_compiler, load_c
 from thetahat.datafile import estimate_columns as datafile_columns
 from thetahat.errors import DimensionError, NonFiniteError, UnsupportedError, UpdateLawError
-from thetahat.estimation.observer import ModifiedHighGainObserver
-from thetahat.estimation.update_laws import IntermittentInversion
+from thetahat.estimation.paper.observer import ModifiedHighGainObserver
+from thetahat.estimation.paper.update_laws import IntermittentInversion
 from thetahat.model.paramset import Ball
 from thetahat.model.system import PerturbedLinearSystem
 from thetahat.modelfile import build_observer, load_model, run_estimator
@@ -428,8 +428,8 @@ def _toy(with_input: bool):
 
 @pytest.mark.parametrize("law_name", ["constant", "gradient", "algebraic_sympy", "no_input"])
 def test_mimo_laws_match_python(tmp_path, law_name):
-    from thetahat.estimation.redesign import SecondObserver
-    from thetahat.estimation.update_laws import (AlgebraicInversion, ConstantLaw,
+    from thetahat.estimation.paper.redesign import SecondObserver
+    from thetahat.estimation.paper.update_laws import (AlgebraicInversion, ConstantLaw,
                                                  GradientInversion)
 
     g, box, system = _toy(law_name != "no_input")

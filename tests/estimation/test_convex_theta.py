@@ -15,8 +15,8 @@ import numpy as np
 import pytest
 
 from thetahat.errors import ModelFileError, UnsupportedError
-from thetahat.estimation.ekf import JointEKF
-from thetahat.estimation.stage2_set import (BOUNDARY_RTOL, ELLIPSOID_MARGIN, on_boundary, project_kernel,
+from thetahat.estimation.statistical.ekf import JointEKF
+from thetahat.estimation.statistical.stage2_set import (BOUNDARY_RTOL, ELLIPSOID_MARGIN, on_boundary, project_kernel,
                                             project_theta, stage2_set, theta_bounds)
 from thetahat.model.paramset import Ball, Box, ConvexSet, Ellipsoid
 from thetahat.modelfile import loads_model, run_estimator, simulate_model
@@ -107,7 +107,7 @@ def test_a_singular_covariance_falls_back_to_a_point_of_theta():
 
 def test_the_compiled_kernel_agrees_with_python(rng):
     pytest.importorskip("numba")
-    from thetahat.estimation.model_kernel import jit
+    from thetahat.estimation.kernels.model_kernel import jit
     fast = jit(project_kernel, True)
     ell = Ellipsoid([0.0, 1.0], np.array([[4.0, 1.0], [1.0, 1.0]]))
     st = stage2_set(ell)

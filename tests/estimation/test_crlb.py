@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from thetahat import DimensionError, crlb
-from thetahat.estimation.ekf import JointEKF
+from thetahat.estimation.statistical.ekf import JointEKF
 from thetahat.models import lugre
 
 P = lugre.LuGreParameters()

@@ -18,14 +18,14 @@ import numpy as np
 import pytest
 import scipy.linalg
 
-from thetahat.estimation import formulas, law_formulas, scalar_primitives as sc
-from thetahat.estimation.compiled import kernel_arrays, kernel_parts, kernel_work, phi_table
-from thetahat.estimation.observer import ModifiedHighGainObserver
-from thetahat.estimation.primitives import (ARRAYS, NUMPY, NUMPY_ROW, PRIMITIVES, AliasingError,
+from thetahat.estimation.kernels import formulas, law_formulas, scalar_primitives as sc
+from thetahat.estimation.kernels.compiled import kernel_arrays, kernel_parts, kernel_work, phi_table
+from thetahat.estimation.paper.observer import ModifiedHighGainObserver
+from thetahat.estimation.kernels.primitives import (ARRAYS, NUMPY, NUMPY_ROW, PRIMITIVES, AliasingError,
                                             bind, check_aliasing)
-from thetahat.estimation.redesign import SecondObserver
-from thetahat.estimation.scalar_backend import LAWS, kernel_source
-from thetahat.estimation.update_laws import (AlgebraicInversion, ConstantLaw, GradientInversion,
+from thetahat.estimation.paper.redesign import SecondObserver
+from thetahat.estimation.kernels.scalar_backend import LAWS, kernel_source
+from thetahat.estimation.paper.update_laws import (AlgebraicInversion, ConstantLaw, GradientInversion,
                                              IntermittentInversion, smooth_ramp)
 from thetahat.model.paramset import Box
 from thetahat.models import lugre
@@ -193,7 +193,7 @@ def test_emitted_module_runs_the_formulas_as_python(law: str, second: str) -> No
 
 def test_row_binding_agrees_with_the_batch_binding(rng: np.random.Generator) -> None:
     """NUMPY_ROW (one row, used by step/run) means what NUMPY means on a batch of one."""
-    from thetahat.estimation.primitives import NUMPY_ROW
+    from thetahat.estimation.kernels.primitives import NUMPY_ROW
     M, x = rng.normal(size=(3, 4)), rng.normal(size=6)
     for acc in (0, 1, -1):
         a, b = rng.normal(size=5), None

@@ -14,9 +14,9 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from thetahat.estimation.guarded import GuardedEstimator
-from thetahat.estimation.mle import MapEstimator
-from thetahat.estimation.noise_level import MIN_SAMPLES, estimate_noise_std
+from thetahat.estimation.statistical.guarded import GuardedEstimator
+from thetahat.estimation.statistical.mle import MapEstimator
+from thetahat.estimation.statistical.noise_level import MIN_SAMPLES, estimate_noise_std
 from thetahat.models import lugre
 
 P = lugre.LuGreParameters()

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 import thetahat
-from thetahat.estimation.guarded import GuardedEstimator
+from thetahat.estimation.statistical.guarded import GuardedEstimator
 from thetahat.modelfile import build_observer, load_model, simulate_model
 
 pytest.importorskip("numba", reason="24 guarded runs take minutes without the compiled "

@@ -6,8 +6,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from thetahat.estimation.ekf import JointEKF
-from thetahat.estimation.model_kernel import model_kernel, spectral_radius_bound
+from thetahat.estimation.statistical.ekf import JointEKF
+from thetahat.estimation.kernels.model_kernel import model_kernel, spectral_radius_bound
 from thetahat.models import lugre
 
 #: Central differences with step 1e-6 (relative) of a smooth map: truncation ~1e-12 and

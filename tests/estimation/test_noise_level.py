@@ -6,7 +6,7 @@ import math
 
 import numpy as np
 
-from thetahat.estimation.noise_level import estimate_noise_std
+from thetahat.estimation.statistical.noise_level import estimate_noise_std
 
 
 def test_few_samples_per_period_do_not_inflate_sigma():

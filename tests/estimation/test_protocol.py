@@ -16,9 +16,9 @@ import pytest
 from thetahat import (EKFDiagnostics, EstimateResult, Estimator, GuardedDiagnostics,
                       MapDiagnostics, ObserverDiagnostics)
 from thetahat.errors import OptionError
-from thetahat.estimation.ekf import JointEKF
-from thetahat.estimation.guarded import GuardedEstimator
-from thetahat.estimation.mle import MapEstimator
+from thetahat.estimation.statistical.ekf import JointEKF
+from thetahat.estimation.statistical.guarded import GuardedEstimator
+from thetahat.estimation.statistical.mle import MapEstimator
 from thetahat.models import lugre
 
 P = lugre.LuGreParameters()
@@ -40,7 +40,7 @@ MAP_TOL = 1e-9
 
 def _compiled():
     pytest.importorskip("numba")
-    from thetahat.estimation.compiled import compile_observer
+    from thetahat.estimation.kernels.compiled import compile_observer
     return compile_observer(lugre.observer(), dt=DT)
 
 
@@ -155,7 +155,7 @@ def test_ekf_keeps_its_keyword_start(data):
 def test_ekf_step_waits_for_sigma_without_noise_std(data):
     """Without σ the streaming EKF makes no update before MIN_SAMPLES outputs (θ̂ stays θ̂₀),
     then updates with σ estimated from them."""
-    from thetahat.estimation.noise_level import MIN_SAMPLES
+    from thetahat.estimation.statistical.noise_level import MIN_SAMPLES
     ekf = JointEKF(system=lugre.system(), compiled=False)
     st = ekf.init(theta_hat0=[TH0])
     for k in range(MIN_SAMPLES - 1):
@@ -176,7 +176,7 @@ def test_compiled_step_refuses_another_dt(data):
 def test_cli_and_fleet_accept_every_method(method, tmp_path, monkeypatch, capsys):
     """``thetahat estimate --method m`` and ``estimate_many(method=m)`` run each method
     through the protocol and write θ̂ ∈ Θ; both agree with run_estimator."""
-    import thetahat.estimation.model_kernel as mk
+    import thetahat.estimation.kernels.model_kernel as mk
     monkeypatch.setattr(mk, "have_numba", lambda: False)     # numpy kernels: no compilation
     from pathlib import Path
 

@@ -16,13 +16,13 @@ from thetahat.codegen.c_values import Arr, Const
 from thetahat.codegen.harness import C_FLAGS
 from thetahat.codegen.loader import find_compiler
 from thetahat.errors import NonFiniteError, UpdateLawError
-from thetahat.estimation import formulas, scalar_primitives
-from thetahat.estimation.compiled import kernel_parts
-from thetahat.estimation.discretize import IMPLICITNESS
-from thetahat.estimation.primitives import NUMPY, NUMPY_ROW, bind
-from thetahat.estimation.scalar_backend import LAWS, kernel_source, rewritten
-from thetahat.estimation.status import MESSAGES, Status, status_constants
-from thetahat.estimation.step import divergence_error
+from thetahat.estimation.kernels import formulas, scalar_primitives
+from thetahat.estimation.kernels.compiled import kernel_parts
+from thetahat.estimation.kernels.discretize import IMPLICITNESS
+from thetahat.estimation.kernels.primitives import NUMPY, NUMPY_ROW, bind
+from thetahat.estimation.kernels.scalar_backend import LAWS, kernel_source, rewritten
+from thetahat.estimation.kernels.status import MESSAGES, Status, status_constants
+from thetahat.estimation.kernels.step import divergence_error
 from thetahat.models import lugre
 
 Q = 2
@@ -76,7 +76,7 @@ def test_python_scalar_primitives_report_a_singular_step():
 
 def test_numba_reports_a_singular_step():
     pytest.importorskip("numba")
-    from thetahat.estimation.kernel_cache import load_module
+    from thetahat.estimation.kernels.kernel_cache import load_module
     parts = kernel_parts(lugre.observer(1.0))
     ts = parts.theta_star
     source = kernel_source(parts.perturbation, None if ts is None else ts.expr,
@@ -132,7 +132,7 @@ def test_c_reports_a_singular_step(tmp_path):
 
 def test_every_binding_raises_the_same_error_for_a_failed_step():
     from thetahat.codegen.loader import CObserver
-    from thetahat.estimation.compiled import CompiledObserver
+    from thetahat.estimation.kernels.compiled import CompiledObserver
     where = "in the step from t[3] = 0.003"
     expected = str(divergence_error(where))
     assert "singular" in expected and "t[3]" in expected

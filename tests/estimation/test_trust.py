@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 
 import thetahat
-from thetahat.estimation.likelihood import fisher_covariance
-from thetahat.estimation.trust import trust_report
+from thetahat.estimation.statistical.likelihood import fisher_covariance
+from thetahat.estimation.statistical.trust import trust_report
 from thetahat.modelfile import load_model, run_estimator, simulate_model
 
 EXAMPLES = Path(__file__).resolve().parents[2] / "examples"

@@ -1,6 +1,6 @@
 """C code generation: the designed observer as dependency-free C99 for a controller.
 
-:func:`generate_c` turns a built :class:`~thetahat.estimation.observer.ModifiedHighGainObserver`
+:func:`generate_c` turns a built :class:`~thetahat.estimation.paper.observer.ModifiedHighGainObserver`
 into ``<name>.h``/``<name>.c`` (the step at a fixed dt, no heap, caller-owned state), a CSV
 harness ``<name>_main.c`` and a ``Makefile``; ``thetahat codegen MODEL --dt … -o DIR`` does the
 same from a model file. :mod:`thetahat.codegen.loader` compiles the result with the system C

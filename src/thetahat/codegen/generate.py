@@ -1,12 +1,12 @@
 """C99 code generation for a built observer: :func:`generate_c` and its result :class:`CCode`.
 
 The generated pair ``<name>.h``/``<name>.c`` implements the step of
-:class:`~thetahat.estimation.observer.ModifiedHighGainObserver` — observer (3), the update law
+:class:`~thetahat.estimation.paper.observer.ModifiedHighGainObserver` — observer (3), the update law
 (8) with its projection onto Θ and excitation weight, and the second observer of Sec. VI — at a
 fixed step dt with a zero- or first-order hold, in ``float`` or ``double``, with no heap, no
 recursion and no global mutable state: the caller owns the state struct. The step is not
-written here: it is the formulas of :mod:`~thetahat.estimation.formulas` and
-:mod:`~thetahat.estimation.law_formulas` printed as C (:mod:`.c_printer`, :mod:`.c_derive`),
+written here: it is the formulas of :mod:`~thetahat.estimation.kernels.formulas` and
+:mod:`~thetahat.estimation.kernels.law_formulas` printed as C (:mod:`.c_printer`, :mod:`.c_derive`),
 reading the data the numba kernel reads (``compiled.kernel_arrays`` of ``observer.plan(dt)``);
 g, ∂g/∂x, ∂g/∂θ, ∂g/∂y and θ* are printed from their SymPy expressions by SymPy's C99 printer
 with common-subexpression elimination (:mod:`.printing`); :mod:`.c_api` writes the interface.
@@ -26,17 +26,17 @@ import sympy as sp
 from numpy.typing import ArrayLike, NDArray
 
 from ..errors import ArgumentTypeError, FileAccessError, UnsupportedError
-from ..estimation.observer import ModifiedHighGainObserver
-from ..estimation.theta_star import ThetaStar
-from ..estimation.update_laws import (INIT_RTOL, ConstantLaw, GradientInversion,
+from ..estimation.paper.observer import ModifiedHighGainObserver
+from ..estimation.paper.theta_star import ThetaStar
+from ..estimation.paper.update_laws import (INIT_RTOL, ConstantLaw, GradientInversion,
                                       IntermittentInversion, SmoothRamp)
 from ..model.paramset import Box
 from ..model.perturbation import SymbolicPerturbation
-from ..estimation.compiled import KernelParts
+from ..estimation.kernels.compiled import KernelParts
 from .c_api import CLayout, header_source, source_text
 from .c_derive import derived_step, inwards
 from ..safe_io import write_text
-from ..estimation.initial_state import output_pinv
+from ..estimation.paper.initial_state import output_pinv
 from .harness import harness_source, makefile_source
 from .printing import REALS
 
@@ -318,8 +318,8 @@ def generate_c(observer: ModifiedHighGainObserver, *, dt: float, name: str = "ob
 
     Notes
     -----
-    The C step is the step's formulas (:mod:`~thetahat.estimation.formulas`,
-    :mod:`~thetahat.estimation.law_formulas`) printed as C for this observer
+    The C step is the step's formulas (:mod:`~thetahat.estimation.kernels.formulas`,
+    :mod:`~thetahat.estimation.kernels.law_formulas`) printed as C for this observer
     (:mod:`.c_printer`, :mod:`.c_derive`): what ``observer.run`` computes, reading the
     ``observer.plan(dt)`` data the numba kernel reads. The state is committed only when it has
     not diverged (``formulas.within_bound``: its norm is finite and at most

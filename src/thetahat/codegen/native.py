@@ -16,7 +16,7 @@ Otherwise — and on any nonzero status of the C run, so that every error is the
 back ends raise, with their message — it hands the record to its fallback (the numba kernel,
 or the observer itself).
 
-Built libraries are kept in :func:`~thetahat.estimation.kernel_cache.cache_dir` under the
+Built libraries are kept in :func:`~thetahat.estimation.kernels.kernel_cache.cache_dir` under the
 SHA-256 of the compiler's path, its flags and the generated sources (which are printed from the
 formulas and hold every number of the model), written atomically (:mod:`thetahat.safe_io`): a
 second process loads the library without compiling.
@@ -35,9 +35,9 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ..errors import CCompilerError, FileAccessError, UnsupportedError
-from ..estimation.kernel_cache import cache_dir
-from ..estimation.observer import PROGRESS_EVERY
-from ..estimation.compiled import states_result
+from ..estimation.kernels.kernel_cache import cache_dir
+from ..estimation.paper.observer import PROGRESS_EVERY
+from ..estimation.kernels.compiled import states_result
 from ..estimation.protocol import EstimateResult
 from ..safe_io import atomic_path
 from .generate import CCode, generate_c
@@ -163,7 +163,7 @@ class NativeObserver:
         Parameters
         ----------
         state, u, y, dt
-            As :meth:`~thetahat.estimation.observer.ModifiedHighGainObserver.step`.
+            As :meth:`~thetahat.estimation.paper.observer.ModifiedHighGainObserver.step`.
 
         Returns
         -------
@@ -177,7 +177,7 @@ class NativeObserver:
         Parameters
         ----------
         state, u, y
-            As :meth:`~thetahat.estimation.observer.ModifiedHighGainObserver.estimate`.
+            As :meth:`~thetahat.estimation.paper.observer.ModifiedHighGainObserver.estimate`.
 
         Returns
         -------
@@ -211,7 +211,7 @@ class NativeObserver:
         Parameters
         ----------
         t, u, y, state0, hold, progress
-            As :meth:`~thetahat.estimation.observer.ModifiedHighGainObserver.run`.
+            As :meth:`~thetahat.estimation.paper.observer.ModifiedHighGainObserver.run`.
 
         Returns
         -------

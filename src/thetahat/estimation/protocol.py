@@ -1,10 +1,10 @@
 """One interface for every estimator: :class:`Estimator`, and one result, :class:`EstimateResult`.
 
-The paper's observer (:class:`~thetahat.estimation.observer.ModifiedHighGainObserver`), its
-compiled form (:class:`~thetahat.estimation.compiled.CompiledObserver`), the guarded two-stage
-estimator (:class:`~thetahat.estimation.guarded.GuardedEstimator`), the MAP fits
-(:class:`~thetahat.estimation.mle.MapEstimator`) and the joint EKF
-(:class:`~thetahat.estimation.ekf.JointEKF`) all implement
+The paper's observer (:class:`~thetahat.estimation.paper.observer.ModifiedHighGainObserver`), its
+compiled form (:class:`~thetahat.estimation.kernels.compiled.CompiledObserver`), the guarded two-stage
+estimator (:class:`~thetahat.estimation.statistical.guarded.GuardedEstimator`), the MAP fits
+(:class:`~thetahat.estimation.statistical.mle.MapEstimator`) and the joint EKF
+(:class:`~thetahat.estimation.statistical.ekf.JointEKF`) all implement
 
 * ``init(x_hat0=None, theta_hat0=None) -> state`` (θ̂₀ must lie in Θ),
 * ``step(state, u, y, dt) -> state`` (process the samples at the current instant, the next
@@ -33,7 +33,7 @@ from ..errors import DimensionError, NonFiniteError
 from ..model.system import PerturbedLinearSystem
 
 if TYPE_CHECKING:
-    from .trust import TrustReport
+    from .statistical.trust import TrustReport
 
 __all__ = ["Diagnostics", "EstimateResult", "Estimator", "ObserverDiagnostics",
            "missing_samples", "phi_hat_from_model", "stream_sample"]
@@ -46,9 +46,9 @@ class Diagnostics:
     """Base of the per-method diagnostics of an :class:`EstimateResult` (no fields).
 
     Each estimator has one final subclass: :class:`ObserverDiagnostics`,
-    :class:`~thetahat.estimation.guarded.GuardedDiagnostics`,
-    :class:`~thetahat.estimation.mle.MapDiagnostics`,
-    :class:`~thetahat.estimation.ekf.EKFDiagnostics`.
+    :class:`~thetahat.estimation.statistical.guarded.GuardedDiagnostics`,
+    :class:`~thetahat.estimation.statistical.mle.MapDiagnostics`,
+    :class:`~thetahat.estimation.statistical.ekf.EKFDiagnostics`.
     """
 
 
@@ -90,7 +90,7 @@ class EstimateResult:
     diagnostics : Diagnostics
         Per-method extras (e.g. ``result.diagnostics.resets`` of the guarded estimator).
     trust : TrustReport or None
-        What the estimate says about itself (:func:`~thetahat.estimation.trust.trust_report`:
+        What the estimate says about itself (:func:`~thetahat.estimation.statistical.trust.trust_report`:
         identifiability, Θ's boundary, the guard, the model error), when it was checked
         (:func:`~thetahat.modelfile.run_estimator` checks by default).
 
@@ -156,11 +156,11 @@ class EstimateResult:
 class Estimator(Protocol):
     """What every estimator offers: ``init``, ``step`` and ``run`` over one explicit state.
 
-    Implemented by :class:`~thetahat.estimation.observer.ModifiedHighGainObserver`,
-    :class:`~thetahat.estimation.compiled.CompiledObserver`,
-    :class:`~thetahat.estimation.guarded.GuardedEstimator`,
-    :class:`~thetahat.estimation.mle.MapEstimator` and
-    :class:`~thetahat.estimation.ekf.JointEKF`. ``isinstance(e, Estimator)`` checks that
+    Implemented by :class:`~thetahat.estimation.paper.observer.ModifiedHighGainObserver`,
+    :class:`~thetahat.estimation.kernels.compiled.CompiledObserver`,
+    :class:`~thetahat.estimation.statistical.guarded.GuardedEstimator`,
+    :class:`~thetahat.estimation.statistical.mle.MapEstimator` and
+    :class:`~thetahat.estimation.statistical.ekf.JointEKF`. ``isinstance(e, Estimator)`` checks that
     the three methods exist (Python checks no signatures at run time; mypy does).
 
     Examples

@@ -21,16 +21,16 @@ from .._validate import as_samples, seconds_from_first
 from ..design.gains import GainDesign
 from ..errors import (ModelFileError, NotMinimumPhaseError, ThetahatError, ThetahatWarning,
                       UnstableDesignError)
-from ..estimation.checks import check_theta_star
-from ..estimation.initial_state import x_hat_from_output
-from ..estimation.observer import HeldObserver, ModifiedHighGainObserver
+from ..estimation.paper.checks import check_theta_star
+from ..estimation.paper.initial_state import x_hat_from_output
+from ..estimation.paper.observer import HeldObserver, ModifiedHighGainObserver
 from ..estimation.protocol import EstimateResult, Estimator
 from ..model.system import PerturbedLinearSystem
 from ..spec import SECOND_DESIGN_NOTE, EstimatorSpec, Hold, SecondObserverSpec
 from .schema import ESTIMATION_METHODS, ModelSpec
 
 if TYPE_CHECKING:
-    from ..estimation.trust import TrustReport
+    from ..estimation.statistical.trust import TrustReport
 
 __all__ = ["auto_gamma", "build_estimator", "build_observer", "design_gains",
            "design_matrices", "estimator_spec", "run_estimator", "start_x_hat"]
@@ -285,10 +285,10 @@ def build_estimator(spec: ModelSpec, *, method: str | None = None, hold: Hold = 
     if how not in ESTIMATION_METHODS:
         raise ModelFileError(f"method must be one of {list(ESTIMATION_METHODS)}; got {how!r}.")
     if how == "mle":
-        from ..estimation.mle import MapEstimator
+        from ..estimation.statistical.mle import MapEstimator
         return MapEstimator(system=spec.system, compiled=compiled)
     if how == "ekf":
-        from ..estimation.ekf import JointEKF
+        from ..estimation.statistical.ekf import JointEKF
         return JointEKF(system=spec.system, compiled=compiled)
     if Gamma is None:
         _refuse_auto_gamma(spec)
@@ -297,7 +297,7 @@ def build_estimator(spec: ModelSpec, *, method: str | None = None, hold: Hold = 
                        compiled=compiled)
     if how == "paper":
         return obs
-    from ..estimation.guarded import GuardedEstimator
+    from ..estimation.statistical.guarded import GuardedEstimator
     return GuardedEstimator(stage1=obs, system=spec.system, compiled=compiled)
 
 
@@ -324,7 +324,7 @@ def run_estimator(spec: ModelSpec, t: ArrayLike, u: ArrayLike | None, y: ArrayLi
     y : array_like, shape (N, r)
         Output samples.
     hold : {"zoh", "foh"}
-        Sample hold (see :meth:`~thetahat.estimation.observer.ModifiedHighGainObserver.run`);
+        Sample hold (see :meth:`~thetahat.estimation.paper.observer.ModifiedHighGainObserver.run`);
         for the guarded estimator it applies to stage 1.
     nan_policy : {"raise", "skip"}
         What the observer does with a NaN sample (a dropout).
@@ -334,11 +334,11 @@ def run_estimator(spec: ModelSpec, t: ArrayLike, u: ArrayLike | None, y: ArrayLi
         The estimator (default: the file's ``[estimator] method``).
     compiled : bool, optional
         numba kernels (default: when installed; for the paper's observer, on records of at
-        least :data:`~thetahat.estimation.compiled.COMPILE_MIN_SAMPLES` samples, see
-        :func:`~thetahat.estimation.compiled.runner`). A part the kernel does not support
+        least :data:`~thetahat.estimation.kernels.compiled.COMPILE_MIN_SAMPLES` samples, see
+        :func:`~thetahat.estimation.kernels.compiled.runner`). A part the kernel does not support
         falls back to Python with a one-line ThetahatWarning.
     diagnose : bool
-        Check the result (:func:`~thetahat.estimation.trust.trust_report`: the Cramér–Rao
+        Check the result (:func:`~thetahat.estimation.statistical.trust.trust_report`: the Cramér–Rao
         standard deviation of each parameter on this record, Θ's boundary, the guard's band,
         the model error) into ``result.trust``, and warn (:class:`~thetahat.errors.
         ThetahatWarning`) of what makes it less than trustworthy.
@@ -386,7 +386,7 @@ def run_estimator(spec: ModelSpec, t: ArrayLike, u: ArrayLike | None, y: ArrayLi
     result = est.run(t, u, y, state0=est.init(x_hat0=x0, theta_hat0=th0))
     if not diagnose:
         return result
-    from ..estimation.guarded import GuardedDiagnostics
+    from ..estimation.statistical.guarded import GuardedDiagnostics
     d = result.diagnostics
     band = d.band if isinstance(d, GuardedDiagnostics) else None
     report = _trust(spec, result, u, y, band, compiled, x0)
@@ -398,7 +398,7 @@ def run_estimator(spec: ModelSpec, t: ArrayLike, u: ArrayLike | None, y: ArrayLi
 def start_x_hat(spec: ModelSpec, y: ArrayLike) -> FloatArray:
     """x̂(0) of a model file's estimators on a record: x̂₀ + C⁺(y(0) − C x̂₀), or x̂₀.
 
-    :func:`~thetahat.estimation.initial_state.x_hat_from_output` of the first sample with the
+    :func:`~thetahat.estimation.paper.initial_state.x_hat_from_output` of the first sample with the
     file's ``x_hat0`` as the prior, unless the file sets ``x_hat0_from_y = false``. Every
     method, :func:`run_estimator`, ``thetahat estimate`` and ``fleet`` and the generated C
     harness start there.
@@ -434,7 +434,7 @@ def auto_gamma(spec: ModelSpec, t: ArrayLike, u: ArrayLike | None, y: ArrayLike,
     """``Gamma = "auto"`` on a record: the gradient law's Γ from the record's information.
 
     x̂ from a first pass of the file's observer with θ̂ held at θ̂₀, then
-    :func:`~thetahat.estimation.auto_gain.information_gain` at θ̂₀.
+    :func:`~thetahat.estimation.paper.auto_gain.information_gain` at θ̂₀.
 
     Parameters
     ----------
@@ -466,8 +466,8 @@ def auto_gamma(spec: ModelSpec, t: ArrayLike, u: ArrayLike | None, y: ArrayLike,
     >>> G.shape, bool(G[0, 0] > 0)
     ((1, 1), True)
     """
-    from ..estimation.auto_gain import information_gain
-    from ..estimation.law_base import ConstantLaw
+    from ..estimation.paper.auto_gain import information_gain
+    from ..estimation.paper.law_base import ConstantLaw
     s = spec.system
     if s.perturbation is None or s.parameter_set is None:
         raise ModelFileError(f"model file {spec.source}: Gamma = 'auto' needs the system's "
@@ -476,7 +476,7 @@ def auto_gamma(spec: ModelSpec, t: ArrayLike, u: ArrayLike | None, y: ArrayLike,
     est = estimator_spec(spec, hold=hold)
     held = dataclasses.replace(est, law=ConstantLaw(th0, s.parameter_set))
     obs = _build(held, spec, None)
-    from ..estimation.compiled import runner
+    from ..estimation.kernels.compiled import runner
     first = runner(obs, t).run(t, u, y, hold=hold,
                                state0=obs.init(x_hat0=start_x_hat(spec, y), theta_hat0=th0))
     N = first.t.shape[0]
@@ -501,7 +501,7 @@ def _check_theta_star(spec: ModelSpec, t: ArrayLike, u: ArrayLike | None, y: Arr
 def _trust(spec: ModelSpec, result: EstimateResult, u: ArrayLike | None, y: ArrayLike,
            band: FloatArray | None, compiled: bool | None, x0: FloatArray) -> TrustReport:
     """The trust report of a run of the file's estimator on its record."""
-    from ..estimation.trust import trust_report
+    from ..estimation.statistical.trust import trust_report
     N = result.t.shape[0]
     U = np.zeros((N, 0)) if u is None else np.asarray(u, dtype=np.float64).reshape(N, -1)
     Y = np.asarray(y, dtype=np.float64).reshape(N, -1)

@@ -20,27 +20,27 @@ A model file (TOML, read with :mod:`tomllib`, or JSON with the same structure) h
     1/a² for a semi-axis a). A general convex set {P(θ) ≤ 0} needs a Python callable P and
     exists in the API only (:class:`~thetahat.model.paramset.ConvexSet`).
 ``[estimator]``
-    ``law`` (required): ``"gradient"`` (:class:`~thetahat.estimation.update_laws.
+    ``law`` (required): ``"gradient"`` (:class:`~thetahat.estimation.paper.update_laws.
     GradientInversion` with the default M = (∂g/∂θ)ᵀ, Propositions 3–4), ``"algebraic"``
-    (:class:`~thetahat.estimation.update_laws.AlgebraicInversion`, Proposition 1) or
-    ``"intermittent"`` (:class:`~thetahat.estimation.update_laws.IntermittentInversion`,
+    (:class:`~thetahat.estimation.paper.update_laws.AlgebraicInversion`, Proposition 1) or
+    ``"intermittent"`` (:class:`~thetahat.estimation.paper.update_laws.IntermittentInversion`,
     Proposition 2, with the excitation weight ``smooth_ramp(*excitation)`` of ‖φ̂‖).
     Optional: ``eps`` (default 1, Sec. VII), ``chain_poles`` (one list per chain; default
     −1, −2, …), ``b_poles``, ``Gamma`` (number, p × p or ``"auto"``; default ``"auto"`` for
-    the gradient law — :mod:`~thetahat.estimation.auto_gain` — and 1 for the inversion
+    the gradient law — :mod:`~thetahat.estimation.paper.auto_gain` — and 1 for the inversion
     laws), ``theta_hat0``
     (default: the centre of Θ), ``x_hat0`` (default 0: the prior of x̂(0)), ``x_hat0_from_y``
     (default true: every method starts at x̂(0) = x̂₀ + C⁺(y(0) − C x̂₀), the state nearest
-    x̂₀ that fits the record's first sample, :func:`~thetahat.estimation.initial_state.
+    x̂₀ that fits the record's first sample, :func:`~thetahat.estimation.paper.initial_state.
     x_hat_from_output`; false: at x̂₀), ``theta_star`` (algebraic and
     intermittent laws: θ*(v, x, φ) as a string or list of p strings, in the names of u, y, x
     and ``phi`` (k = 1) or ``phi1``, …, ``phik``; default: solved from g with SymPy),
     ``excitation`` (intermittent law, required: ``[low, high]`` thresholds on ‖φ̂‖),
     ``on_invalid`` (``"raise"`` or ``"freeze"``, default ``"raise"``), ``method``
     (``"paper"``, default: the observer and law above; ``"guarded"``: that observer as stage 1
-    of :class:`~thetahat.estimation.guarded.GuardedEstimator`; ``"mle"``:
-    :class:`~thetahat.estimation.mle.MapEstimator`, offline; ``"ekf"``:
-    :class:`~thetahat.estimation.ekf.JointEKF`), and ``A_design``,
+    of :class:`~thetahat.estimation.statistical.guarded.GuardedEstimator`; ``"mle"``:
+    :class:`~thetahat.estimation.statistical.mle.MapEstimator`, offline; ``"ekf"``:
+    :class:`~thetahat.estimation.statistical.ekf.JointEKF`), and ``A_design``,
     ``E_design``: the matrices of a simplified design system on which the gains are designed
     (Sec. VII–VIII; default: the true A and E); ``allow_nonminimum_phase`` (default false:
     a model that violates Assumption 1 is refused; true designs anyway, to study the failure).
@@ -95,9 +95,9 @@ from numpy.typing import ArrayLike, NDArray
 from .. import limits
 from ..data_mapping import DataMapping, parse_data_table
 from ..errors import InputLimitError, ModelFileError, ThetahatError
-from ..estimation.projection import as_gain
+from ..estimation.paper.projection import as_gain
 from ..safe_io import read_text
-from ..estimation.update_laws import (
+from ..estimation.paper.update_laws import (
     AlgebraicInversion,
     GradientInversion,
     IntermittentInversion,
@@ -106,7 +106,7 @@ from ..estimation.update_laws import (
 )
 from ..model.paramset import Ball, Box, Ellipsoid, ParameterSet
 from ..model.parse import parse_perturbation
-from ..estimation.stage2_set import theta_bounds
+from ..estimation.statistical.stage2_set import theta_bounds
 from ..model.perturbation import SymbolicPerturbation
 from ..model.system import PerturbedLinearSystem
 
@@ -391,7 +391,7 @@ class EstimatorOptions:
         Start x̂ at x̂₀ + C⁺(y(0) − C x̂₀) on a record (default True), else at x̂₀.
     gamma_auto : bool
         ``Gamma = "auto"`` (the gradient law's default): Γ is chosen on the record by
-        :func:`~thetahat.estimation.auto_gain.information_gain` when the estimator runs;
+        :func:`~thetahat.estimation.paper.auto_gain.information_gain` when the estimator runs;
         ``update_law`` holds Γ = I until then.
     """
 
@@ -542,7 +542,7 @@ def _read_perturbation(sec: _Section) -> tuple[SymbolicPerturbation, dict[str, A
 
 def _read_gamma(sec: _Section, p: int, law: str) -> tuple[FloatArray, bool]:
     """(Γ, auto): ``"auto"`` (the default of the gradient law) is resolved on the record by
-    :func:`~thetahat.estimation.auto_gain.information_gain`; Γ = 1 stands in until then."""
+    :func:`~thetahat.estimation.paper.auto_gain.information_gain`; Γ = 1 stands in until then."""
     G = sec.table.get("Gamma", "auto" if law == "gradient" else 1.0)
     if G == "auto":
         if law != "gradient":

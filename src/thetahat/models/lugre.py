@@ -31,9 +31,9 @@ from numpy.typing import ArrayLike, NDArray
 from .._validate import as_vector, positive_scalar
 from ..design.gains import GainDesign, PoleSpec
 from ..errors import ArgumentTypeError, DimensionError, ParameterSetError, ThetahatWarning
-from ..estimation.observer import ModifiedHighGainObserver
+from ..estimation.paper.observer import ModifiedHighGainObserver
 from ..estimation.protocol import Estimator
-from ..estimation.theta_star import ThetaStar
+from ..estimation.paper.theta_star import ThetaStar
 from ..model.paramset import Box
 from ..model.perturbation import SymbolicPerturbation
 from ..model.system import PerturbedLinearSystem
@@ -346,7 +346,7 @@ def theta_star(params: LuGreParameters = LuGreParameters()) -> ThetaStar:
 
     It solves φ̂ = g(v, x̂, θ) for θ; it is defined where φ̂ ≠ 0 (NaN where φ̂ = 0), and the
     paper uses it only where the excitation indicator l(v, x̂, φ̂) = 1, i.e. |φ̂| ≥ 1. The
-    :class:`~thetahat.estimation.theta_star.ThetaStar` carries the SymPy expression (in the
+    :class:`~thetahat.estimation.paper.theta_star.ThetaStar` carries the SymPy expression (in the
     symbols of :func:`perturbation` and ``phi``) and its numpy function, so the Python and the
     compiled paths evaluate the same formula.
 
@@ -567,7 +567,7 @@ def estimator_spec(eps: float = 1.0, *, Gamma: float = 1.0, eps2: float = 1.0,
     >>> [round(float(v), 4) for v in spec.design.K.ravel()]
     [6.0, -0.0042, 6.0075]
     """
-    from ..estimation.update_laws import IntermittentInversion, smooth_ramp
+    from ..estimation.paper.update_laws import IntermittentInversion, smooth_ramp
 
     sys = system(params)
     law = IntermittentInversion(theta_star(params), smooth_ramp(*excitation), Gamma,
@@ -653,12 +653,12 @@ def estimator(method: str = "guarded", *, eps: float = 1.0, Gamma: float = 1.0,
     """The LuGre estimator by method: ``"paper"``, ``"guarded"``, ``"mle"`` or ``"ekf"``.
 
     * ``"paper"``: :func:`observer` (stage 1 as printed, Sec. VIII-A), with ``eps``, ``Gamma``;
-    * ``"guarded"``: :class:`~thetahat.estimation.guarded.GuardedEstimator` — that observer
+    * ``"guarded"``: :class:`~thetahat.estimation.statistical.guarded.GuardedEstimator` — that observer
       (compiled for step ``dt`` when numba is available) guarding an EKF on col(ω, η, θ)
       re-anchored by MAP fits; streaming-capable;
-    * ``"mle"``: :class:`~thetahat.estimation.mle.MapEstimator` — MAP fits of (x(0), θ) on a
+    * ``"mle"``: :class:`~thetahat.estimation.statistical.mle.MapEstimator` — MAP fits of (x(0), θ) on a
       dense schedule (offline);
-    * ``"ekf"``: :class:`~thetahat.estimation.ekf.JointEKF` on col(ω, η, θ) alone.
+    * ``"ekf"``: :class:`~thetahat.estimation.statistical.ekf.JointEKF` on col(ω, η, θ) alone.
 
     Each is an :class:`~thetahat.estimation.protocol.Estimator` (``init``, ``step``,
     ``run``) whose result has ``theta_hat`` of shape (N, 1).
@@ -687,9 +687,9 @@ def estimator(method: str = "guarded", *, eps: float = 1.0, Gamma: float = 1.0,
     -------
     Estimator
         The observer of :func:`observer` for ``"paper"``, a
-        :class:`~thetahat.estimation.guarded.GuardedEstimator` for ``"guarded"``, a
-        :class:`~thetahat.estimation.mle.MapEstimator` for ``"mle"``, a
-        :class:`~thetahat.estimation.ekf.JointEKF` for ``"ekf"``.
+        :class:`~thetahat.estimation.statistical.guarded.GuardedEstimator` for ``"guarded"``, a
+        :class:`~thetahat.estimation.statistical.mle.MapEstimator` for ``"mle"``, a
+        :class:`~thetahat.estimation.statistical.ekf.JointEKF` for ``"ekf"``.
 
     Raises
     ------
@@ -705,16 +705,16 @@ def estimator(method: str = "guarded", *, eps: float = 1.0, Gamma: float = 1.0,
     >>> res.theta_hat.shape
     (201, 1)
     """
-    from ..estimation.guarded import GuardedEstimator
-    from ..estimation.mle import MapEstimator
-    from ..estimation.model_kernel import have_numba
+    from ..estimation.statistical.guarded import GuardedEstimator
+    from ..estimation.statistical.mle import MapEstimator
+    from ..estimation.kernels.model_kernel import have_numba
 
     if method not in METHODS:
         raise DimensionError(f"method must be one of {METHODS}; got {method!r}.")
     if method == "mle":
         return MapEstimator(system=system(params), noise_std=noise_std, compiled=compiled)
     if method == "ekf":
-        from ..estimation.ekf import JointEKF
+        from ..estimation.statistical.ekf import JointEKF
         return JointEKF(system=system(params), noise_std=noise_std, compiled=compiled)
     obs = observer(eps, Gamma=Gamma, params=params)
     if method == "paper":
@@ -724,7 +724,7 @@ def estimator(method: str = "guarded", *, eps: float = 1.0, Gamma: float = 1.0,
     if use:
         from ..codegen.generate import supports_c
         from ..codegen.native import NativeObserver, native_enabled
-        from ..estimation.compiled import compile_observer
+        from ..estimation.kernels.compiled import compile_observer
         if native_enabled() and supports_c(obs):     # the C of the formulas, numba behind it
             stage1 = NativeObserver(obs, lambda: compile_observer(obs, dt=dt))
         else:

@@ -22,7 +22,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from ..errors import DesignError, DimensionError
-from ..estimation.observer import HeldObserver, ModifiedHighGainObserver
+from ..estimation.paper.observer import HeldObserver, ModifiedHighGainObserver
 from ..estimation.protocol import Estimator
 from ..spec import EstimatorSpec
 from .batch import check_seeds, monte_carlo
@@ -82,7 +82,7 @@ def run_observer(estimator: EstimatorSource, obs: Estimator, data: Any,
         What built ``obs``; a spec supplies its sample hold.
     obs : Estimator
         From :func:`observer_for` (run through the estimator protocol; a spec's observer
-        with the spec's hold, :class:`~thetahat.estimation.observer.HeldObserver`).
+        with the spec's hold, :class:`~thetahat.estimation.paper.observer.HeldObserver`).
     data : PlantTrajectory or alike
         ``t``, ``u``, ``y`` and the true ``x``, ``theta`` (and optionally ``phi``).
     theta_hat0 : ndarray, shape (p,)

@@ -1,0 +1,221 @@
+"""Sampled records checked once, before anything is integrated: shapes, real values, inf, and
+NaN against the observer's NaN policy (shared by ``run``, ``run_batch`` and the compiled path).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from ..._validate import as_samples, as_time_grid, check_finite
+from ...errors import DimensionError, NonFiniteError, OptionError
+from ..kernels.plan import StateLayout
+
+#: What an observer does with a NaN output sample: refuse it, or skip it (a prediction).
+NAN_POLICIES = ("raise", "skip")
+
+
+def check_nan_policy(nan_policy: str) -> str:
+    """``nan_policy`` if it is one of :data:`NAN_POLICIES`.
+
+    Parameters
+    ----------
+    nan_policy : str
+
+    Returns
+    -------
+    str
+
+    Raises
+    ------
+    OptionError
+        Another value.
+
+    Examples
+    --------
+    >>> from thetahat.estimation.paper.records import check_nan_policy
+    >>> check_nan_policy("skip")
+    'skip'
+    """
+    if nan_policy not in NAN_POLICIES:
+        raise OptionError(f"nan_policy must be one of {NAN_POLICIES}; got {nan_policy!r}.")
+    return nan_policy
+
+__all__ = ["NAN_POLICIES", "as_record", "as_records", "check_nan_policy", "check_real",
+           "check_records"]
+
+FloatArray = NDArray[np.float64]
+
+
+def check_real(name: str, a: ArrayLike) -> None:
+    """Refuse complex samples.
+
+    Parameters
+    ----------
+    name : str
+        The argument's name, for the message.
+    a : array_like
+
+    Raises
+    ------
+    DimensionError
+        ``a`` is complex.
+
+    Examples
+    --------
+    >>> check_real("y", [1.0, 2.0])
+    >>> check_real("y", [1j])
+    Traceback (most recent call last):
+    ...
+    thetahat.errors.DimensionError: y must be real; got complex samples. ...
+    """
+    if np.iscomplexobj(a):
+        raise DimensionError(f"{name} must be real; got complex samples. Pass the real part "
+                             "explicitly if that is what was measured.")
+
+
+def as_record(name: str, a: ArrayLike, N: int, width: int) -> FloatArray:
+    """One record of N samples as a C-contiguous (N, width) float64 array.
+
+    Parameters
+    ----------
+    name : str
+        The argument's name, for the message.
+    a : array_like, shape (N, width), or (N,) when width = 1
+    N : int
+        Number of samples (the length of t).
+    width : int
+        Samples' width (m or r).
+
+    Returns
+    -------
+    ndarray, shape (N, width)
+
+    Raises
+    ------
+    DimensionError
+        Complex samples or the wrong shape.
+
+    Examples
+    --------
+    >>> as_record("y", [1.0, 2.0, 3.0], 3, 1).shape
+    (3, 1)
+    """
+    arr = as_samples(name, a)
+    if arr.ndim == 1 and width == 1:
+        arr = arr.reshape(-1, 1)
+    if arr.ndim != 2 or arr.shape != (N, width):
+        raise DimensionError(f"{name} must have shape ({N}, {width})"
+                             f"{' or (N,)' if width == 1 else ''} to match t; got "
+                             f"{arr.shape}.")
+    return np.ascontiguousarray(arr)
+
+
+def as_records(name: str, a: ArrayLike, B: int | None, N: int, width: int) -> FloatArray:
+    """B records of N samples as a C-contiguous (B, N, width) float64 array.
+
+    Parameters
+    ----------
+    name : str
+        The argument's name, for the message.
+    a : array_like, shape (B, N, width), or (B, N) when width = 1
+    B : int or None
+        Number of records (None: any).
+    N : int
+        Number of samples.
+    width : int
+        Samples' width (m or r).
+
+    Returns
+    -------
+    ndarray, shape (B, N, width)
+
+    Raises
+    ------
+    DimensionError
+        Complex samples or the wrong shape.
+
+    Examples
+    --------
+    >>> as_records("Y", [[1.0, 2.0], [3.0, 4.0]], None, 2, 1).shape
+    (2, 2, 1)
+    """
+    arr = as_samples(name, a)
+    if arr.ndim == 2 and width == 1:
+        arr = arr[..., None]
+    if arr.ndim != 3 or arr.shape[1:] != (N, width) or (B is not None and arr.shape[0] != B):
+        b = "B" if B is None else str(B)
+        raise DimensionError(f"run_batch: {name} must have shape ({b}, {N}, {width})"
+                             f"{f' or ({b}, {N})' if width == 1 else ''}: one record per run "
+                             f"on the shared time grid t; got {arr.shape}.")
+    return np.ascontiguousarray(arr)
+
+
+def check_records(layout: StateLayout, nan_policy: str, t: ArrayLike, u: ArrayLike | None,
+                  y: ArrayLike, batch: int | None = None
+                  ) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray, NDArray[np.bool_]]:
+    """Validate sampled records against the NaN policy (before anything is integrated).
+
+    Parameters
+    ----------
+    layout : StateLayout
+        The observer's dimensions.
+    nan_policy : {"raise", "skip"}
+        The observer's NaN policy.
+    t : array_like, shape (N,)
+        Strictly increasing sampling instants.
+    u : array_like, shape ([B,] N, m), or ([B,] N) when m = 1
+        ``None`` when m = 0.
+    y : array_like, shape ([B,] N, r), or ([B,] N) when r = 1
+    batch : int, optional
+        None: one record (no leading axis); else the records carry a leading axis of
+        length B (-1: any B).
+
+    Returns
+    -------
+    t, dts : ndarray, shapes (N,), (N - 1,)
+    U, Y : ndarray, shapes (B, N, m), (B, N, r)
+        B = 1 for a single record.
+    ok : ndarray of bool, shape (B, N)
+        Samples whose y is present.
+
+    Raises
+    ------
+    DimensionError
+        Wrong shapes, or ``t`` not strictly increasing.
+    NonFiniteError
+        NaN or inf in t or u; inf in y; NaN in y under ``nan_policy="raise"``.
+
+    Examples
+    --------
+    >>> from thetahat.estimation.kernels.plan import StateLayout
+    >>> lay = StateLayout(n=2, m=1, r=1, k=1, p=1, second=False, law_size=0)
+    >>> t, dts, U, Y, ok = check_records(lay, "skip", [0.0, 1.0], [0.0, 0.0],
+    ...                                  [1.0, float("nan")])
+    >>> ok.tolist()
+    [[True, False]]
+    """
+    lay = layout
+    t_, dts = as_time_grid(t)
+    N = t_.shape[0]
+    if batch is None:
+        Y = as_record("y", y, N, lay.r)[None]
+        U = as_record("u", np.zeros((N, 0)) if u is None else u, N, lay.m)[None]
+        names = ("u", "y")
+    else:
+        Y = as_records("Y", y, None if batch < 0 else batch, N, lay.r)
+        B = Y.shape[0]
+        U = as_records("U", np.zeros((B, N, 0)) if u is None else u, B, N, lay.m)
+        names = ("U", "Y")
+    check_finite(names[0], U)
+    if np.isinf(Y).any():
+        raise NonFiniteError(f"{names[1]} contains inf; only NaN marks a missing sample.")
+    ok = np.asarray(np.isfinite(Y).all(axis=2), dtype=np.bool_)
+    if not ok.all() and nan_policy == "raise":
+        b, i = (int(a[0]) for a in np.nonzero(~ok))
+        run = f" in run {b}" if batch is not None else ""
+        raise NonFiniteError(f"{names[1]} contains NaN ({int((~ok).sum())} samples, first"
+                             f"{run} at index {i}) and nan_policy='raise'; pass "
+                             "nan_policy='skip' to the observer to predict over missing "
+                             "samples, or clean the data.")
+    return t_, dts, U, Y, ok

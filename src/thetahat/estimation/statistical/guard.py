@@ -1,0 +1,255 @@
+"""The guard between the two stages: evidence-based, so it never biases a correct stage 2.
+
+The output θ̂ follows stage 2 (θ̂₂, EKF + MAP re-anchoring) only inside a band around stage 1
+(θ̂_G, the paper's observer and update law, Theorem 1):
+
+    θ̂ = Π_Θ( θ̂_G + clip(θ̂₂ − θ̂_G, −δ, δ) ),    δ(t) = max(δ_G(t), κ σ₂(t), δ_F(t)),
+
+so that, whatever stage 2 does, θ̂ ∈ Θ and ‖θ̂ − θ‖ ≤ ‖θ̂_G − θ‖ + ‖δ(t)‖ for the true θ ∈ Θ
+(Π_Θ is the Euclidean projection, non-expansive towards any point of the convex Θ; for a box
+it is a clip and the bound holds per component, |θ̂_i − θ_i| ≤ |θ̂_G,i − θ_i| + δ_i). Θ may be
+any convex set of :mod:`~thetahat.model.paramset`; |Θ| below is the width of its bounding box
+(:func:`~thetahat.estimation.statistical.stage2_set.theta_bounds`). The band's width is built on evidence only:
+
+* δ_G(t), stage 1's measured progress. With the samples split dyadically, *late* is the range
+  of θ̂_G over [2^{J−1}, k] (k ∈ [2^J, 2^{J+1})) and *early* its range before 2^{J−1}; their
+  ratio ρ = late/early measures stage 1's contraction. If stage 1 converges geometrically,
+  late/(1 − ρ) bounds the movement still to come from 2^{J−1} on, hence its error; δ_G =
+  c·late/(1 − ρ). Without evidence of contraction (ρ ≥ ρ_max, or stage 1 has not moved, as
+  under weak excitation where Theorem 1 gives no rate) δ_G = |Θ|: stage 2 is not held back.
+  No rate is assumed: a slow stage 1 keeps a wide band until its own data show it settling,
+  which is the failure of a band shrinking at a fixed rate (design note, "the guard's pitfall").
+* σ₂(t), stage 2's own standard deviation √P_θθ (capped at the prior's |Θ|/4), so that its
+  noise is never clipped.
+
+* δ_F(t), a consistent MAP fit's evidence on stage 1's error: when a fit of the data so far
+  passed its consistency check with estimate θ_F and standard error s_F, θ lies within κ s_F
+  of θ_F, so stage 1's error is at least |θ̂_G − θ_F| − κ s_F; δ_G, which stands for that
+  error, is then at least |θ̂_G − θ_F| + κ s_F. (A slow stage 1 can look settled — its late
+  range small against the early one — while still far from θ; the fit is the evidence that
+  it is not.)
+
+Stage 2 is reset from stage 1 (x̂, θ̂_G and the prior covariance) when it is non-finite, or
+after it has been clipped for ``dwell``·k consecutive samples (k the samples so far; with
+:data:`GUARD_DWELL` = 1 − 1/√2 the span since k/√2, over which the information of the data
+grew by the fit schedule's factor √2: a fraction of the run, never seconds) while stage 1
+shows evidence (δ_G < |Θ|): then stage 2 disagrees with a settled stage 1 beyond both stages'
+uncertainty.
+The windowed normalised innovation squared (NIS ≈ 1 for a consistent filter) is reported as
+a consistency diagnostic.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any, Callable
+
+import numpy as np
+
+__all__ = ["progress_init", "progress_step", "make_guarded_loop", "GUARD_C", "GUARD_RHO_MAX",
+           "GUARD_KAPPA", "GUARD_DWELL", "NIS_WINDOW"]
+
+#: Safety factor of δ_G on the extrapolated remaining movement of stage 1.
+GUARD_C = 2.0
+#: Largest contraction ratio late/early taken as evidence that stage 1 converges.
+GUARD_RHO_MAX = 0.5
+#: Stage 2's standard deviations kept inside the band.
+GUARD_KAPPA = 4.0
+#: Fraction of the samples so far that stage 2 must stay clipped before it is reset: the
+#: span since k/√2, over which the information grew by the fit schedule's factor √2.
+GUARD_DWELL = 1.0 - 1.0 / math.sqrt(2.0)
+#: Samples of the exponentially weighted NIS average.
+NIS_WINDOW = 200.0
+
+
+def progress_init(theta0: np.ndarray) -> np.ndarray:
+    """State of :func:`progress_step` after sample 0: per component (prefix min, max, block
+    min, max, current min, max); shape (p, 6).
+
+    Parameters
+    ----------
+    theta0 : ndarray, shape (p,)
+        Stage 1's θ̂_G at sample 0 (the observer's initial estimate).
+
+    Returns
+    -------
+    ndarray, shape (p, 6)
+        Per component of θ: the running min and max of θ̂_G before the previous dyadic block
+        (initialised to ``theta0``), of the previous block and of the current block (both
+        empty: +inf, −inf).
+    """
+    p = theta0.shape[0]
+    st = np.empty((p, 6))
+    for i in range(p):
+        st[i, 0] = theta0[i]
+        st[i, 1] = theta0[i]
+        st[i, 2] = np.inf
+        st[i, 3] = -np.inf
+        st[i, 4] = np.inf
+        st[i, 5] = -np.inf
+    return st
+
+
+def progress_step(st: np.ndarray, k: int, theta: np.ndarray, width: np.ndarray, c: float,
+                  rho_max: float, delta: np.ndarray) -> None:
+    """Add stage 1's θ̂_G at sample k ≥ 1 to ``st`` and write δ_G into ``delta`` (p,).
+
+    At k = 2^J the dyadic blocks shift; then, per component, *late* is the range of θ̂_G
+    over the previous and current blocks and *early* its range before them, and
+    δ_G = min(|Θ|, c·late/(1 − late/early)) if late < ρ_max·early, else |Θ| (no evidence
+    that stage 1 contracts).
+
+    Parameters
+    ----------
+    st : ndarray, shape (p, 6)
+        The progress state from :func:`progress_init` (or an earlier call), updated in place.
+    k : int
+        The absolute sample index, k ≥ 1 (called once per sample, in order).
+    theta : ndarray, shape (p,)
+        Stage 1's θ̂_G at sample k.
+    width : ndarray, shape (p,)
+        |Θ| per component (upper − lower): δ_G's value without evidence, and its cap.
+    c : float
+        Safety factor on the extrapolated remaining movement (default in use
+        :data:`GUARD_C`).
+    rho_max : float
+        Largest ratio late/early taken as evidence of contraction (:data:`GUARD_RHO_MAX`).
+    delta : ndarray, shape (p,)
+        Output: receives δ_G(k) per component.
+    """
+    p = theta.shape[0]
+    if k & (k - 1) == 0:                           # k = 2^J: shift the dyadic blocks
+        for i in range(p):
+            st[i, 0] = min(st[i, 0], st[i, 2])
+            st[i, 1] = max(st[i, 1], st[i, 3])
+            st[i, 2] = st[i, 4]
+            st[i, 3] = st[i, 5]
+            st[i, 4] = np.inf
+            st[i, 5] = -np.inf
+    for i in range(p):
+        st[i, 4] = min(st[i, 4], theta[i])
+        st[i, 5] = max(st[i, 5], theta[i])
+        early = st[i, 1] - st[i, 0]
+        late = max(st[i, 3], st[i, 5]) - min(st[i, 2], st[i, 4])
+        if not (early > 0.0) or not math.isfinite(late) or late >= rho_max * early:
+            delta[i] = width[i]
+        else:
+            delta[i] = min(width[i], c * late / (1.0 - late / early))
+
+
+def make_guarded_loop(predict: Callable[..., None], update: Callable[..., float],
+                      project: Callable[..., None], jit: Callable[..., Any]
+                      ) -> Callable[..., int]:
+    """The per-sample loop of the guarded estimator over EKF kernels (compiled with them).
+
+    Parameters
+    ----------
+    predict, update : callable
+        The EKF's time and measurement updates on col(x, θ), ``EKFKernels.predict`` and
+        ``EKFKernels.update`` of :mod:`~thetahat.estimation.statistical.ekf`.
+    project : callable
+        ``project(theta, M, lo, hi, ell)``, Π_Θ in place (``EKFKernels.project``); the guard
+        calls it with M = I.
+    jit : callable
+        fn ↦ compiled fn, applied to :func:`progress_step` and to the loop: numba's
+        ``njit`` when the kernels are compiled, the identity otherwise (one argument, unlike
+        :func:`~thetahat.estimation.kernels.model_kernel.jit`).
+
+    Returns
+    -------
+    callable
+        ``loop(s, P, P0, U, Y, tt, k0, k1, off, R, lo, hi, ell, h_rho, Q_x, thG, xG, pst, gst,
+        cfg, TH, TH2, X2, SD2, BAND, CLIP, RESET, NIS) -> int``: runs stage 2 over samples
+        k0 … k1−1 (absolute index k + ``off``) against stage 1's θ̂_G ``thG`` and x̂ ``xG``,
+        writes the guarded θ̂ (``TH``), stage 2's θ̂₂, x̂₂ and σ₂ (``TH2``, ``X2``, ``SD2``),
+        the band δ (``BAND``), the clip and reset flags and the windowed NIS, updates the
+        progress state ``pst``, ``gst`` = (dwell count, NIS average, first update index) and
+        returns the number of resets of stage 2 to stage 1. ``cfg`` = (κ, c, ρ_max, dwell as a
+        fraction of the samples so far, σ₂ cap per component…, and optionally θ_F per
+        component…, κ s_F per component… of the latest consistent fit; κ s_F < 0: none).
+    """
+    prog = jit(progress_step)
+
+    def loop(s, P, P0, U, Y, tt, k0, k1, off, R, lo, hi, ell, h_rho, Q_x, thG, xG, pst, gst,
+             cfg, TH, TH2, X2, SD2, BAND, CLIP, RESET, NIS):
+        """Samples k0 … k1−1 (absolute index k + off). ``gst`` = (dwell count, NIS average,
+        first update index);
+        ``cfg`` = (κ, c, ρ_max, dwell fraction, σ₂ cap per component…[, θ_F…, κ s_F…]);
+        returns the reset count."""
+        n = X2.shape[1]
+        p = TH.shape[1]
+        width = hi - lo
+        Phi = np.empty((n, n))
+        Gam = np.empty((n, p))
+        dG = np.empty(p)
+        eye = np.eye(p)
+        z = np.empty(p)
+        resets = 0
+        with_fit = cfg.shape[0] >= 4 + 3 * p
+        for k in range(k0, k1):
+            if k + off > 0:
+                predict(s, P, U[k - 1], U[k], tt[k] - tt[k - 1], h_rho, Q_x, Phi, Gam)
+                prog(pst, k + off, thG[k], width, cfg[1], cfg[2], dG)
+            else:
+                for i in range(p):
+                    dG[i] = width[i]
+            nis = np.nan
+            finite_y = True
+            for j in range(Y.shape[1]):
+                if not math.isfinite(Y[k, j]):
+                    finite_y = False
+            if finite_y and k + off >= gst[2]:
+                nis = update(s, P, Y[k], R, lo, hi, ell)
+            bad = False
+            for i in range(s.shape[0]):
+                if not math.isfinite(s[i]) or not math.isfinite(P[i, i]):
+                    bad = True
+            clipped = False
+            for i in range(p):
+                d = s[n + i] - thG[k, i]
+                sd = math.sqrt(max(P[n + i, n + i], 0.0)) if not bad else 0.0
+                band = max(dG[i], cfg[0] * min(sd, cfg[4 + i]))
+                if with_fit and cfg[4 + 2 * p + i] >= 0.0:
+                    band = max(band, abs(thG[k, i] - cfg[4 + p + i]) + cfg[4 + 2 * p + i])
+                if bad:
+                    d = 0.0
+                if d > band:
+                    d = band
+                    clipped = True
+                elif d < -band:
+                    d = -band
+                    clipped = True
+                z[i] = thG[k, i] + d
+                BAND[k, i] = band
+            project(z, eye, lo, hi, ell)
+            for i in range(p):
+                TH[k, i] = z[i]
+            gst[0] = gst[0] + 1.0 if clipped else 0.0
+            settled = True
+            for i in range(p):
+                if dG[i] >= width[i]:
+                    settled = False
+            reset = bad or (gst[0] > cfg[3] * (k + off + 1) and settled)
+            if reset:
+                for i in range(n):
+                    s[i] = xG[k, i]
+                for i in range(p):
+                    s[n + i] = thG[k, i]
+                for i in range(n + p):      # element by element: numba's slice assignment
+                    for j in range(n + p):  # compiles its string-formatting error path
+                        P[i, j] = P0[i, j]
+                gst[0] = 0.0
+                resets += 1
+            if math.isfinite(nis):
+                gst[1] += (nis - gst[1]) / NIS_WINDOW
+            for i in range(n):
+                X2[k, i] = s[i]
+            for i in range(p):
+                TH2[k, i] = s[n + i]
+                SD2[k, i] = math.sqrt(max(P[n + i, n + i], 0.0))
+            CLIP[k] = clipped
+            RESET[k] = reset
+            NIS[k] = gst[1]
+        return resets
+
+    return jit(loop)

@@ -1,0 +1,523 @@
+"""The likelihood of the model with process noise on φ: the fit for a model that is not exact.
+
+When the model is not exact — a real machine's friction is asymmetric, a plant has dynamics
+the model leaves out — a fit that trusts the model over the whole record (the output-error MAP
+:func:`~thetahat.estimation.statistical.mle.fit_map`) lets the model's error accumulate in x and pays for
+it with a biased θ. The remedy is to say so in the model: the error enters where the
+perturbation enters,
+
+    ẋ = A x + B u + E (g(v, x, θ) + w),   y = C x + e,
+
+with w white of intensity q (unknown, estimated from the data) and e white with covariance
+R = diag(σ²). The likelihood of (θ, q) is that of the extended Kalman filter's innovations
+ε_k with variances S_k (the prediction-error method):
+
+    −log L(θ, q) = ½ Σ_k Σ_i (ε_{k,i}² / S_{k,i} + log S_{k,i}) + const.
+
+Over a sample of length h, w adds q Q₁(h), Q₁(h) = ∫₀^h e^{Aτ} E Eᵀ e^{Aᵀτ} dτ (Van Loan's
+exponential, once per distinct sample length), to the covariance of x; x is propagated by the
+model's sampled-data map with its exact Jacobian (:mod:`~thetahat.estimation.kernels.model_kernel`);
+the outputs update one at a time in Joseph form. θ is fitted by Gauss–Newton on the normalised
+innovations ε/√S (SciPy's trust-region least squares inside Θ's bounding box, then projected
+onto Θ, the Jacobian by
+differences of whole filter passes) and log q by a bounded one-dimensional search of −log L,
+alternately. The scale of q is the data's own: q₀ is the intensity whose one-sample effect on
+y equals the measurement noise, C q₀ Q₁(h) Cᵀ = σ², and q is searched over q₀·10^[−6, 6] and
+at 0 (the output-error model, which wins when the model is exact).
+"""
+
+from __future__ import annotations
+
+import functools
+import math
+from dataclasses import dataclass
+from typing import Callable
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy.linalg import expm
+from scipy.optimize import least_squares, minimize_scalar
+
+from ...errors import NonFiniteError
+from ...model.system import PerturbedLinearSystem
+from ...model.paramset import Box, ParameterSet
+from .ekf import theta_box
+from .stage2_set import project_theta, theta_bounds
+from ..kernels.model_kernel import H_RHO, ModelKernel, jit, model_kernel
+
+__all__ = ["ProcessNoiseFit", "fit_process_noise", "process_noise_scale", "unit_process_noise",
+           "record_bound", "fisher_covariance", "Q_DECADES", "ALTERNATIONS"]
+
+FloatArray = NDArray[np.float64]
+
+#: q is searched over q₀·10^[−Q_DECADES, Q_DECADES] (and at 0).
+Q_DECADES = 6.0
+#: Rounds of (fit θ at q, search q at θ) before the final fit of θ.
+ALTERNATIONS = 1
+#: Precision of the search of log₁₀ q (a tenth of a decade: the likelihood is flat near its
+#: maximum, and θ̂ changes far less than its standard error within it).
+Q_XTOL = 0.1
+#: Relative tolerance of the Gauss–Newton fit of θ (steps and cost).
+FIT_RTOL = 1e-6
+#: θ is fitted with Huber's loss on the normalised innovations, quadratic within ±HUBER_C:
+#: a record of an inexact model carries bursts the Gaussian w does not describe (an unmeasured
+#: force pulse, a slip), which would otherwise pull θ; for innovations that are Gaussian, the
+#: loss costs 0.04 % of efficiency at 3 (Huber's asymptotic efficiency, 0.9996).
+HUBER_C = 3.0
+#: Sample lengths equal to this relative precision share one Q₁(h).
+H_RTOL = 1e-6
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class ProcessNoiseFit:
+    """θ and the process-noise intensity q that maximise the innovations' likelihood.
+
+    Attributes
+    ----------
+    theta : ndarray (p,)
+    cov : ndarray (p, p)
+        Inverse Gauss–Newton information of θ at q (the Laplace covariance).
+    q : float
+        Intensity of the white noise w added to φ (units of φ² · s); 0 when the output-error
+        model (q = 0) has the larger likelihood.
+    q_scale : float
+        q₀, the intensity whose one-sample effect on y equals the measurement noise.
+    nll : float
+        −log L at the optimum (without the constant).
+    x_end : ndarray (n,)
+        The filtered state after the last sample.
+    P_end : ndarray (n, n)
+        Its covariance.
+    cost : float
+        Mean squared normalised innovation (≈ 1 when the noise model is right).
+    n_meas : int
+        Scalar measurements used.
+    noise_std : ndarray (r,)
+    """
+
+    theta: FloatArray
+    cov: FloatArray
+    q: float
+    q_scale: float
+    nll: float
+    x_end: FloatArray
+    P_end: FloatArray
+    cost: float
+    n_meas: int
+    noise_std: FloatArray
+
+    @property
+    def theta_se(self) -> FloatArray:
+        """Standard errors of θ, √diag(cov)."""
+        return np.sqrt(np.maximum(np.diag(self.cov), 0.0))
+
+    def __repr__(self) -> str:
+        return (f"ProcessNoiseFit(theta={self.theta}, se={self.theta_se}, q={self.q:.3g} "
+                f"(q/q0 = {self.q / self.q_scale:.3g}), cost={self.cost:.3g})")
+
+
+def unit_process_noise(A: FloatArray, E: FloatArray, h: float) -> FloatArray:
+    """Q₁(h) = ∫₀^h e^{Aτ} E Eᵀ e^{Aᵀτ} dτ, by Van Loan's block exponential.
+
+    Parameters
+    ----------
+    A : ndarray (n, n)
+    E : ndarray (n, k)
+    h : float
+        Sample length > 0.
+
+    Returns
+    -------
+    ndarray (n, n)
+        Symmetric positive semi-definite.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from thetahat.estimation.statistical.likelihood import unit_process_noise
+    >>> Q = unit_process_noise(np.array([[0.0, 1.0], [0.0, 0.0]]), np.array([[0.0], [1.0]]), 0.1)
+    >>> bool(np.allclose(Q, [[0.1 ** 3 / 3, 0.1 ** 2 / 2], [0.1 ** 2 / 2, 0.1]]))
+    True
+    """
+    n = A.shape[0]
+    M = np.zeros((2 * n, 2 * n))
+    M[:n, :n] = -A
+    M[:n, n:] = E @ E.T
+    M[n:, n:] = A.T
+    V = expm(M * h)
+    Phi = V[n:, n:].T
+    Q = Phi @ V[:n, n:]
+    return 0.5 * (Q + Q.T)
+
+
+def process_noise_scale(system: PerturbedLinearSystem, h: float, noise_std: FloatArray) -> float:
+    """q₀: the intensity of w whose effect on y over one sample of length h equals σ².
+
+    Parameters
+    ----------
+    system : PerturbedLinearSystem
+    h : float
+        A typical sample length (the median).
+    noise_std : ndarray (r,)
+        σ of the output noise.
+
+    Returns
+    -------
+    float
+        The mean over the outputs of σ_i² / (C Q₁(h) Cᵀ)_ii (outputs that w does not reach
+        in one sample are left out; 1 when none is reached).
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from thetahat.models import prop3_monotone
+    >>> from thetahat.estimation.statistical.likelihood import process_noise_scale
+    >>> q0 = process_noise_scale(prop3_monotone.system(), 0.01, np.array([0.01]))
+    >>> bool(290 < q0 < 310)        # ≈ σ² / (h³/3) = 1e-4 / 3.3e-7 for a double integration
+    True
+    """
+    Q1 = unit_process_noise(system.A, system.E, h)
+    c = np.einsum("ia,ab,ib->i", system.C, Q1, system.C)
+    ok = c > 0
+    if not np.any(ok):
+        return 1.0
+    return float(np.mean(np.asarray(noise_std)[ok] ** 2 / c[ok]))
+
+
+def _make_filter(model: ModelKernel) -> Callable[..., int]:
+    prop = model.propagate
+    C = model.C
+
+    def innovations(x0, P0, th, U, Y, tt, Rdiag, Qs, qidx, q, h_rho, NU, LS, xP):
+        """EKF on x with θ fixed: normalised innovations NU and log S (LS) per sample and
+        output (0 where y is missing); the last x and P into xP[0], xP[1:]. Returns −1, or the
+        first sample at which the filter is not finite."""
+        n = x0.shape[0]
+        r = C.shape[0]
+        N = tt.shape[0]
+        x = x0.copy()
+        P = P0.copy()
+        Phi = np.empty((n, n))
+        Gam = np.empty((n, 0))          # the filter needs Φ only: Γ's columns are skipped
+        T = np.empty((n, n))
+        PC = np.empty(n)
+        K = np.empty(n)
+        for k in range(N):
+            if k > 0:
+                x = prop(x, th, U[k - 1], U[k], tt[k] - tt[k - 1], h_rho, True, Phi, Gam)
+                for i in range(n):
+                    for j in range(n):
+                        acc = 0.0
+                        for a in range(n):
+                            acc += Phi[i, a] * P[a, j]
+                        T[i, j] = acc
+                for i in range(n):
+                    for j in range(i, n):
+                        acc = q * Qs[qidx[k], i, j]
+                        for a in range(n):
+                            acc += T[i, a] * Phi[j, a]
+                        P[i, j] = acc
+                        P[j, i] = acc
+            for i in range(r):
+                yi = Y[k, i]
+                if not math.isfinite(yi):
+                    NU[k, i] = 0.0
+                    LS[k, i] = 0.0
+                    continue
+                e = yi
+                for a in range(n):
+                    e -= C[i, a] * x[a]
+                s = Rdiag[i]
+                for a in range(n):
+                    acc = 0.0
+                    for b in range(n):
+                        acc += P[a, b] * C[i, b]
+                    PC[a] = acc
+                    s += C[i, a] * acc
+                if not (s > 0.0 and math.isfinite(s) and math.isfinite(e)):
+                    return k
+                NU[k, i] = e / math.sqrt(s)
+                LS[k, i] = math.log(s)
+                for a in range(n):
+                    K[a] = PC[a] / s
+                    x[a] += K[a] * e
+                # Joseph form: P ← (I − K c) P (I − K c)ᵀ + K R Kᵀ, c = C[i]
+                for a in range(n):
+                    for b in range(n):
+                        acc = P[a, b] - K[a] * PC[b]
+                        T[a, b] = acc
+                for a in range(n):
+                    for b in range(a, n):
+                        acc = T[a, b]
+                        for c_ in range(n):
+                            acc -= T[a, c_] * C[i, c_] * K[b]
+                        acc += K[a] * Rdiag[i] * K[b]
+                        P[a, b] = acc
+                        P[b, a] = acc
+        for a in range(n):
+            xP[0, a] = x[a]
+            for b in range(n):
+                xP[1 + a, b] = P[a, b]
+        return -1
+
+    return jit(innovations, model.compiled)
+
+
+@functools.lru_cache(maxsize=16)
+def _filter_for(model: ModelKernel) -> Callable[..., int]:
+    return _make_filter(model)
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class _Problem:
+    """One record and everything the filter needs but θ and q."""
+
+    system: PerturbedLinearSystem
+    t: FloatArray
+    U: FloatArray
+    Y: FloatArray
+    x0: FloatArray
+    P0: FloatArray
+    Rdiag: FloatArray
+    Qs: FloatArray
+    qidx: NDArray[np.int64]
+    h_rho: float
+    run: Callable[..., int]
+    valid: NDArray[np.bool_]
+
+    def filter(self, theta: FloatArray, q: float) -> tuple[FloatArray, FloatArray, FloatArray]:
+        N, r, n = self.t.shape[0], self.Y.shape[1], self.x0.shape[0]
+        NU, LS, xP = np.empty((N, r)), np.empty((N, r)), np.empty((n + 1, n))
+        bad = self.run(self.x0, self.P0, np.array(theta, dtype=np.float64), self.U, self.Y,
+                       self.t, self.Rdiag, self.Qs, self.qidx, float(q), self.h_rho, NU, LS, xP)
+        if bad >= 0:
+            NU[bad:] = np.nan
+        return NU, LS, xP
+
+    def residuals(self, theta: FloatArray, q: float) -> FloatArray:
+        NU = self.filter(theta, q)[0][self.valid]
+        # a filter that failed part-way is a very poor θ, not an error: a large finite residual
+        return np.where(np.isfinite(NU), NU, 1e6)
+
+    def nll(self, theta: FloatArray, q: float) -> float:
+        NU, LS, _ = self.filter(theta, q)
+        nu, ls = NU[self.valid], LS[self.valid]
+        if not np.all(np.isfinite(nu)):
+            return math.inf
+        return 0.5 * float(np.sum(nu * nu + ls))
+
+
+def _problem(system: PerturbedLinearSystem, t: FloatArray, U: FloatArray, Y: FloatArray,
+             x0: FloatArray, x_sd: FloatArray, noise_std: FloatArray, h_rho: float,
+             compiled: bool | None) -> _Problem:
+    model = model_kernel(system, compiled=compiled)
+    h = np.diff(t)
+    if h.size == 0:
+        h = np.array([1.0])
+    # one Q₁ per distinct sample length (to H_RTOL): a uniform record needs one exponential
+    key = np.round(np.log(h) / H_RTOL).astype(np.int64)
+    uniq, first, inv = np.unique(key, return_index=True, return_inverse=True)
+    Qs = np.stack([unit_process_noise(system.A, system.E, float(h[i])) for i in first])
+    qidx = np.concatenate([[0], inv]).astype(np.int64)
+    valid = np.isfinite(Y)
+    return _Problem(system=system, t=np.ascontiguousarray(t, dtype=np.float64),
+                    U=np.ascontiguousarray(U), Y=np.ascontiguousarray(Y),
+                    x0=np.array(x0, dtype=np.float64), P0=np.diag(np.asarray(x_sd) ** 2),
+                    Rdiag=np.asarray(noise_std, dtype=np.float64) ** 2,
+                    Qs=np.ascontiguousarray(Qs), qidx=qidx, h_rho=h_rho,
+                    run=_filter_for(model), valid=valid)
+
+
+def _fit_theta(pb: _Problem, theta0: FloatArray, q: float, theta_set: ParameterSet,
+               max_nfev: int) -> tuple[FloatArray, FloatArray]:
+    """Least squares of θ within Θ's bounding box, then projected onto Θ (exact for a box; for
+    another convex Θ the projection is in the norm of the fit's own information JᵀJ)."""
+    lo, hi = theta_bounds(theta_set)
+    width = hi - lo
+    inner = np.clip(theta0, lo + 1e-9 * width, hi - 1e-9 * width)
+    sol = least_squares(lambda th: pb.residuals(th, q), inner, bounds=(lo, hi),
+                        x_scale=width, method="trf", max_nfev=max_nfev, xtol=FIT_RTOL,
+                        ftol=FIT_RTOL, loss="huber", f_scale=HUBER_C)
+    theta = np.asarray(sol.x, dtype=np.float64)
+    J = np.asarray(sol.jac, dtype=np.float64)
+    if not isinstance(theta_set, Box):
+        theta = project_theta(theta_set, theta, _inverse_information(J))
+    return theta, J
+
+
+def _search_q(pb: _Problem, theta: FloatArray, q0: float) -> float:
+    def f(s: float) -> float:
+        return pb.nll(theta, q0 * 10.0 ** s)
+
+    res = minimize_scalar(f, bounds=(-Q_DECADES, Q_DECADES), method="bounded",
+                          options={"xatol": Q_XTOL})
+    q = q0 * 10.0 ** float(res.x)
+    return q if pb.nll(theta, q) <= pb.nll(theta, 0.0) else 0.0
+
+
+def _inverse_information(J: FloatArray) -> FloatArray:
+    """(JᵀJ)⁺ after Jacobi scaling, by a symmetric eigendecomposition: directions the data do
+    not determine get infinite variance, not a huge finite one."""
+    info = J.T @ J
+    d = np.sqrt(np.maximum(np.diag(info), 1e-300))
+    lam, V = np.linalg.eigh(info / np.outer(d, d))
+    keep = lam > 1e-12 * max(float(lam[-1]), 1e-300)
+    cov = ((V[:, keep] / lam[keep]) @ V[:, keep].T) / np.outer(d, d)
+    if not np.all(keep):
+        # the undetermined directions: infinite variance on every parameter they move
+        lost = np.any(np.abs(V[:, ~keep]) > 1e-6, axis=1)
+        cov[lost, lost] = np.inf
+    return np.asarray(cov, dtype=np.float64)
+
+
+def record_bound(system: PerturbedLinearSystem, t: FloatArray, U: FloatArray, Y: FloatArray,
+                 *, theta: FloatArray, x_hat0: FloatArray, x_sd: FloatArray,
+                 noise_std: FloatArray, h_rho: float = H_RHO, compiled: bool | None = None
+                 ) -> tuple[float, FloatArray]:
+    """At a fixed θ: the process-noise intensity q the record supports, and θ's Cramér–Rao
+    covariance with it (one filter set-up for both).
+
+    Parameters
+    ----------
+    system : PerturbedLinearSystem
+    t, U, Y : ndarray, shapes (N,), (N, m), (N, r)
+    theta : ndarray (p,)
+    x_hat0, x_sd : ndarray (n,)
+        Prior mean and standard deviation of x(t₀).
+    noise_std : ndarray (r,)
+    h_rho : float
+    compiled : bool, optional
+
+    Returns
+    -------
+    q : float
+        q̂ ≥ 0 maximising the likelihood at θ (0 when the output-error model has the larger).
+    cov : ndarray (p, p)
+        As :func:`fisher_covariance` at (θ, q̂).
+    """
+    sigma = np.asarray(noise_std, dtype=np.float64)
+    pb = _problem(system, t, U, Y, x_hat0, x_sd, sigma, h_rho, compiled)
+    th = np.asarray(theta, dtype=np.float64)
+    h_med = float(np.median(np.diff(t))) if t.shape[0] > 1 else 1.0
+    q = _search_q(pb, th, process_noise_scale(system, h_med, sigma))
+    return q, _covariance(pb, th, q, *theta_box(system))
+
+
+def fisher_covariance(system: PerturbedLinearSystem, t: FloatArray, U: FloatArray,
+                      Y: FloatArray, *, theta: FloatArray, q: float, x_hat0: FloatArray,
+                      x_sd: FloatArray, noise_std: FloatArray, h_rho: float = H_RHO,
+                      compiled: bool | None = None) -> FloatArray:
+    """The Cramér–Rao covariance of θ on a record: the inverse Fisher information at θ.
+
+    The Gauss–Newton information JᵀJ of the normalised innovations ε/√S of the model with
+    process noise q on φ (module docstring), J by forward differences of whole filter passes
+    with steps of 1e-6 of Θ's width (taken inward at Θ's faces). Parameters the record does
+    not determine get an infinite variance.
+
+    Parameters
+    ----------
+    system : PerturbedLinearSystem
+    t, U, Y : ndarray, shapes (N,), (N, m), (N, r)
+    theta : ndarray (p,)
+    q : float
+        Process-noise intensity (0: the output-error model).
+    x_hat0, x_sd : ndarray (n,)
+    noise_std : ndarray (r,)
+    h_rho : float
+    compiled : bool, optional
+
+    Returns
+    -------
+    ndarray (p, p)
+    """
+    pb = _problem(system, t, U, Y, x_hat0, x_sd, np.asarray(noise_std, dtype=np.float64),
+                  h_rho, compiled)
+    return _covariance(pb, np.asarray(theta, dtype=np.float64), q, *theta_box(system))
+
+
+def _covariance(pb: _Problem, th: FloatArray, q: float, lo: FloatArray, hi: FloatArray
+                ) -> FloatArray:
+    r0 = pb.residuals(th, q)
+    J = np.empty((r0.shape[0], th.shape[0]))
+    for i in range(th.shape[0]):
+        step = 1e-6 * (hi[i] - lo[i])
+        if th[i] + step > hi[i]:
+            step = -step
+        tp = th.copy()
+        tp[i] += step
+        J[:, i] = (pb.residuals(tp, q) - r0) / step
+    return _inverse_information(J)
+
+
+def fit_process_noise(system: PerturbedLinearSystem, t: FloatArray, U: FloatArray,
+                      Y: FloatArray, *, theta0: FloatArray, x_hat0: FloatArray,
+                      x_sd: FloatArray, noise_std: FloatArray, q: float | None = None,
+                      max_nfev: int = 60, h_rho: float = H_RHO,
+                      compiled: bool | None = None) -> ProcessNoiseFit:
+    """Maximum-likelihood θ and q of the model with process noise on φ (module docstring).
+
+    Parameters
+    ----------
+    system : PerturbedLinearSystem
+        With a symbolic g and any convex Θ (fitted in its bounding box, then projected onto Θ).
+    t, U, Y : ndarray, shapes (N,), (N, m), (N, r)
+        The record (validated by the caller); NaN in Y marks missing samples.
+    theta0 : ndarray (p,)
+        Starting θ (projected onto Θ).
+    x_hat0, x_sd : ndarray (n,)
+        Prior mean and standard deviation of x(t₀).
+    noise_std : ndarray (r,)
+        σ of the output noise, > 0.
+    q : float, optional
+        The intensity; default: estimated with θ.
+    max_nfev : int
+        Filter passes per Gauss–Newton fit of θ (each costs p + 1 with the differences).
+    h_rho : float
+    compiled : bool, optional
+
+    Returns
+    -------
+    ProcessNoiseFit
+
+    Raises
+    ------
+    NonFiniteError
+        The filter is not finite at the fitted θ.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from thetahat.models import prop3_monotone
+    >>> from thetahat.estimation.statistical.likelihood import fit_process_noise
+    >>> d = prop3_monotone.simulate(seed=0, t_end=10.0)
+    >>> fit = fit_process_noise(prop3_monotone.system(), d.t, np.asarray(d.u), np.asarray(d.y),
+    ...                         theta0=np.array([1.0]), x_hat0=np.zeros(2),
+    ...                         x_sd=np.full(2, 10.0), noise_std=np.array([0.01]),
+    ...                         compiled=False)
+    >>> bool(abs(fit.theta[0] - 1.2) < 4 * fit.theta_se[0])
+    True
+    """
+    theta_set = system.require_parameter_set("stage 2")
+    sigma = np.asarray(noise_std, dtype=np.float64)
+    pb = _problem(system, t, U, Y, x_hat0, x_sd, sigma, h_rho, compiled)
+    h_med = float(np.median(np.diff(t))) if t.shape[0] > 1 else 1.0
+    q0 = process_noise_scale(system, h_med, sigma)
+    theta = project_theta(theta_set, np.asarray(theta0, dtype=np.float64))
+    q_now = q0 if q is None else float(q)
+    if q is None:
+        for _ in range(ALTERNATIONS):
+            theta, _ = _fit_theta(pb, theta, q_now, theta_set, max_nfev)
+            q_now = _search_q(pb, theta, q0)
+    theta, J = _fit_theta(pb, theta, q_now, theta_set, max_nfev)
+    NU, LS, xP = pb.filter(theta, q_now)
+    nu = NU[pb.valid]
+    if not np.all(np.isfinite(nu)):
+        raise NonFiniteError("the process-noise likelihood's filter is not finite at the "
+                             f"fitted θ = {theta}; check the model and the data.")
+    cov = _inverse_information(J)
+    n_meas = int(nu.size)
+    return ProcessNoiseFit(theta=theta, cov=cov, q=float(q_now), q_scale=q0,
+                           nll=0.5 * float(np.sum(nu * nu + LS[pb.valid])),
+                           x_end=xP[0].copy(), P_end=xP[1:].copy(),
+                           cost=float(np.mean(nu * nu)) if n_meas else math.nan,
+                           n_meas=n_meas, noise_std=sigma)

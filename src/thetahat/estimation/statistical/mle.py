@@ -1,0 +1,964 @@
+"""Stage 2's re-anchoring: the MAP / maximum-likelihood fit of (x(t₀), θ) by Gauss–Newton.
+
+On a window of samples k₀ … k₁ the fit minimises over q = col(x(t_{k₀}), θ)
+
+    J(q) = Σ_k ‖y_k − C x_k(q)‖²_{R⁻¹} + (q − q̄)ᵀ Π⁻¹ (q − q̄),
+
+x_k(q) from the sampled-data map of :mod:`~thetahat.estimation.kernels.model_kernel`, with the
+sensitivities ψ_k = C ∂x_k/∂q chained through the same map's exact Jacobians (Φ, Γ):
+(Σ ψᵀR⁻¹ψ + Π⁻¹) Δ = Σ ψᵀR⁻¹ r − Π⁻¹(q − q̄), solved after Jacobi scaling by a symmetric
+eigendecomposition (directions the data and the prior do not determine are left alone); the
+step is halved until J decreases; θ is projected onto Θ after each step (projected
+Gauss–Newton: the projection of :mod:`~thetahat.estimation.statistical.stage2_set` in the norm weighted
+by the inverse of the step's marginal covariance of θ, ((M⁻¹)_θθ)⁻¹ — a clip for a box, the
+exact weighted projection for a ball or ellipsoid,
+:meth:`~thetahat.model.paramset.ConvexSet.nearest` for a general convex set; each trial point is feasible and J decreases, so the iteration is a
+descent method on Θ); the iteration stops when |Δθ| falls below :data:`STEP_TOL` standard
+errors or after ``max_iter`` iterations.
+
+:class:`MapEstimator` (method "mle") fits all the data so far each time the information has
+grown by a factor (:func:`information_schedule`: counts of samples, never seconds), warm-started
+from the previous fit; its last fit is the MAP estimate of the whole record.
+
+:class:`FitSchedule` holds the fits' settings. By default (``times`` None) it fits on the same
+information schedule, all the data so far each time — offline and streaming alike; refitting
+at √2-fold sample counts costs at most √2/(√2 − 1) ≈ 3.4 fits of the whole record, O(1) per
+sample amortised, while the stream keeps its samples (O(N) memory). A caller who must bound
+the memory gives ``times`` (seconds, e.g. :func:`doubling_schedule`) and a finite
+``full_window``: fits at those times refit all data while the elapsed time is at most
+``full_window``; later ones use the block since the previous fit with the previous fit's θ and
+its marginal covariance as the prior on θ — the arrival cost, which summarises the older data
+— and a wide prior on x at the block's start centred at the previous fit's end state.
+(Dropping the older data's information on x is conservative only for models that forget
+x(t₀) quickly: the caller's choice of times and window says how quickly.)
+"""
+
+from __future__ import annotations
+
+import functools
+import math
+from dataclasses import dataclass, replace
+from typing import Any, Callable
+
+import numpy as np
+from numpy.typing import NDArray
+
+from ...errors import DimensionError
+from ...model.system import PerturbedLinearSystem
+from .ekf import resolve_noise_std, start_values, theta_prior_sd
+from .stage2_set import project_theta
+from .noise_level import MIN_SAMPLES
+from ..kernels.model_kernel import H_RHO, ModelKernel, jit, model_kernel
+from ..protocol import (Diagnostics, EstimateResult, missing_samples, phi_hat_from_model,
+                       stream_sample)
+
+__all__ = ["FitResult", "fit_map", "FitSchedule", "doubling_schedule", "information_schedule",
+           "first_fit_samples", "fit_record", "INFO_GROWTH", "MapDiagnostics", "MapEstimator",
+           "MapResult", "MapState", "STEP_TOL", "X_PRIOR_SD"]
+
+FloatArray = NDArray[np.float64]
+
+#: The iteration stops once the θ step is below this many standard errors of θ.
+STEP_TOL = 0.02
+#: Default prior standard deviation of x(0) (wide: the data determine x(0)).
+X_PRIOR_SD = 10.0
+#: Halvings of the Gauss–Newton step before the fit gives up improving.
+MAX_HALVINGS = 10
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class FitResult:
+    """One MAP fit on samples k0 … k1 − 1.
+
+    Attributes
+    ----------
+    k0, k1 : int
+        The window (sample indices, k1 exclusive).
+    x_start, x_end : ndarray (n,)
+        Fitted x at the first and the last sample of the window.
+    theta : ndarray (p,)
+    cov : ndarray (n + p, n + p)
+        Inverse of the Gauss–Newton information of (x_start, θ) (the Laplace covariance).
+    cov_end : ndarray (n + p, n + p)
+        The same mapped to (x_end, θ).
+    cost : float
+        J at the optimum ÷ the number of scalar measurements (≈ 1 for a correct model).
+    iterations : int
+    noise_std : ndarray (r,)
+    n_meas : int
+        Scalar measurements in the window.
+    process_noise : float
+        q of the fit's model: 0 for the output-error fit of :func:`fit_map`, the estimated
+        intensity of the noise on φ for :func:`~thetahat.estimation.statistical.likelihood.fit_process_noise`
+        (the model error the data revealed).
+    """
+
+    k0: int
+    k1: int
+    x_start: FloatArray
+    x_end: FloatArray
+    theta: FloatArray
+    cov: FloatArray
+    cov_end: FloatArray
+    cost: float
+    iterations: int
+    noise_std: FloatArray
+    n_meas: int = 1
+    process_noise: float = 0.0
+
+    @property
+    def consistent(self) -> bool:
+        """The cost per measurement is within 6 standard deviations of its χ² mean (1):
+        otherwise the fit is stuck or the model is wrong, and stage 2 does not take it."""
+        return bool(np.isfinite(self.cost) and self.cost <= 1.0 + 6.0 * math.sqrt(2.0 / max(
+            self.n_meas, 1)) and np.all(np.isfinite(self.cov_end)))
+
+    @property
+    def theta_se(self) -> FloatArray:
+        """Standard errors of θ, √diag of its covariance block."""
+        n = self.x_start.shape[0]
+        return np.sqrt(np.maximum(np.diag(self.cov)[n:], 0.0))
+
+    def __repr__(self) -> str:
+        return (f"FitResult(samples {self.k0}…{self.k1 - 1}, theta={self.theta}, "
+                f"se={self.theta_se}, cost={self.cost:.3g}, iterations={self.iterations})")
+
+
+def _make_sweep(model: ModelKernel) -> Callable[..., float]:
+    prop = model.propagate
+    C = model.C
+
+    def sweep(x0, th, U, Y, tt, k0, k1, skip0, Rinv, h_rho, want, A, b, T, X):
+        """Data cost over k0…k1−1 (k0 itself not if skip0) from x(k0) = x0; with want: A = Σψᵀ R⁻¹ψ, b = Σψᵀ R⁻¹ r,
+        T = ∂x_{k1−1}/∂q; X receives the trajectory."""
+        n = x0.shape[0]
+        p = th.shape[0]
+        r = C.shape[0]
+        nq = n + p
+        x = x0.copy()
+        S = np.zeros((n, nq))
+        for i in range(n):
+            S[i, i] = 1.0
+        Phi = np.empty((n, n))
+        Gam = np.empty((n, p))
+        Sn = np.empty((n, nq))
+        psi = np.empty((r, nq))
+        res = np.empty(r)
+        if want:
+            A[:, :] = 0.0
+            b[:] = 0.0
+        J = 0.0
+        for k in range(k0, k1):
+            if k > k0:
+                x = prop(x, th, U[k - 1], U[k], tt[k] - tt[k - 1], h_rho, want, Phi, Gam)
+                if want:
+                    for i in range(n):
+                        for j in range(nq):
+                            acc = Gam[i, j - n] if j >= n else 0.0
+                            for a in range(n):
+                                acc += Phi[i, a] * S[a, j]
+                            Sn[i, j] = acc
+                    for i in range(n):      # element by element: numba's array-into-slice
+                        for j in range(nq):  # assignment compiles a string-formatting path
+                            S[i, j] = Sn[i, j]
+            for i in range(n):
+                X[k - k0, i] = x[i]
+            ok = True
+            for i in range(r):
+                acc = Y[k, i]
+                for a in range(n):
+                    acc -= C[i, a] * x[a]
+                res[i] = acc
+                if not math.isfinite(acc):
+                    ok = False
+            if not ok or (skip0 and k == k0):
+                continue
+            for i in range(r):
+                J += res[i] * res[i] * Rinv[i]
+            if want:
+                for i in range(r):
+                    for j in range(nq):
+                        acc = 0.0
+                        for a in range(n):
+                            acc += C[i, a] * S[a, j]
+                        psi[i, j] = acc
+                for j in range(nq):
+                    for i in range(r):
+                        b[j] += psi[i, j] * Rinv[i] * res[i]
+                    for l in range(j, nq):
+                        acc = 0.0
+                        for i in range(r):
+                            acc += psi[i, j] * Rinv[i] * psi[i, l]
+                        A[j, l] += acc
+        if want:
+            for j in range(nq):
+                for l in range(j):
+                    A[j, l] = A[l, j]
+            for i in range(n):
+                for j in range(nq):
+                    T[i, j] = S[i, j]
+        return J
+
+    return jit(sweep, model.compiled)
+
+
+@functools.lru_cache(maxsize=16)
+def _sweep_for(model: ModelKernel) -> Callable[..., float]:
+    return _make_sweep(model)
+
+
+def _solve_scaled(M: FloatArray, g: FloatArray) -> tuple[FloatArray, FloatArray]:
+    """(M⁺ g, M⁺) for a symmetric PSD M, by Jacobi scaling and a symmetric eigendecomposition."""
+    d = np.sqrt(np.maximum(np.diag(M), 1e-300))
+    Ms = M / np.outer(d, d)
+    lam, V = np.linalg.eigh(Ms)
+    keep = lam > 1e-12 * max(lam[-1], 1e-300)
+    inv = (V[:, keep] / lam[keep]) @ V[:, keep].T
+    Minv = inv / np.outer(d, d)
+    return Minv @ g, Minv
+
+
+def fit_map(system: PerturbedLinearSystem, t: FloatArray, U: FloatArray, Y: FloatArray, *,
+            k0: int, k1: int, q_start: FloatArray, q_prior: FloatArray,
+            prior_info: FloatArray, noise_std: FloatArray, max_iter: int = 6,
+            skip_first: bool = False,
+            h_rho: float = H_RHO, compiled: bool | None = None) -> FitResult:
+    """One Gauss–Newton MAP fit of q = col(x(t_{k0}), θ) on samples k0 … k1 − 1.
+
+    Parameters
+    ----------
+    system : PerturbedLinearSystem
+    t, U, Y : ndarray, shapes (N,), (N, m), (N, r)
+        The record (validated by the caller); NaN in Y marks missing samples.
+    k0, k1 : int
+        The window.
+    q_start : ndarray (n + p,)
+        Starting point (warm start).
+    q_prior, prior_info : ndarray (n + p,), (n + p, n + p)
+        The prior mean q̄ and information Π⁻¹ (the arrival cost).
+    noise_std : ndarray (r,)
+    max_iter : int
+    skip_first : bool
+        Leave y_{k0} out (it is already summarised by the arrival cost).
+    h_rho : float
+    compiled : bool, optional
+
+    Returns
+    -------
+    FitResult
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from thetahat.models import lugre
+    >>> from thetahat.estimation.statistical.mle import fit_map
+    >>> sys_ = lugre.system()
+    >>> d = lugre.simulate(seed=0, t_end=0.3)
+    >>> U, Y = np.array(d.u), np.array(d.y)
+    >>> fit = fit_map(sys_, d.t, U, Y, k0=0, k1=301, q_start=np.array([0.0, 0.0, 0.5]),
+    ...               q_prior=np.array([0.0, 0.0, 0.5]),
+    ...               prior_info=np.diag([1e-2, 1e-2, 1 / 0.2375 ** 2]),
+    ...               noise_std=np.array([0.02]), max_iter=20, compiled=False)
+    >>> bool(abs(fit.theta[0] - 0.28) < 3 * fit.theta_se[0] + 1e-3)
+    True
+    """
+    model = model_kernel(system, compiled=compiled)
+    sweep = _sweep_for(model)
+    n, p = system.n, system.p
+    nq = n + p
+    theta_set = system.require_parameter_set("stage 2")
+    Rinv = 1.0 / noise_std ** 2
+    A, b, T = np.empty((nq, nq)), np.empty(nq), np.empty((n, nq))
+    X = np.empty((k1 - k0, n))
+    tt = np.ascontiguousarray(t, dtype=np.float64)
+
+    def total(q: FloatArray, want: bool) -> float:
+        d = q - q_prior
+        Jd = sweep(q[:n].copy(), q[n:].copy(), U, Y, tt, k0, k1, skip_first, Rinv, h_rho, want, A, b, T, X)
+        return Jd + float(d @ prior_info @ d)
+
+    q = q_start.copy()
+    q[n:] = project_theta(theta_set, q[n:])
+    iterations = 0
+    J = total(q, True)
+    Minv = np.zeros((nq, nq))
+    for it in range(max_iter):
+        iterations = it + 1
+        M = A + prior_info
+        g = b - prior_info @ (q - q_prior)
+        delta, Minv = _solve_scaled(M, g)
+        se = np.sqrt(np.maximum(np.diag(Minv)[n:], 1e-300))
+        step, accepted = 1.0, False
+        for _ in range(MAX_HALVINGS):
+            q_new = q + step * delta
+            q_new[n:] = project_theta(theta_set, q_new[n:], Minv[n:, n:])
+            J_new = total(q_new, False)
+            if math.isfinite(J_new) and J_new <= J:
+                accepted = True
+                break
+            step *= 0.5
+        if not accepted:
+            break
+        moved = np.abs(q_new[n:] - q[n:])
+        q = q_new
+        J = total(q, True)                      # A, b, T, X at the new point
+        if np.all(moved < STEP_TOL * se):
+            break
+    M = A + prior_info
+    _, Minv = _solve_scaled(M, b)
+    x_end = X[-1].copy()
+    Tq = np.zeros((nq, nq))
+    Tq[:n] = T
+    Tq[n:, n:] = np.eye(p)
+    cov_end = Tq @ Minv @ Tq.T
+    n_meas = max(int(np.isfinite(Y[k0:k1]).sum()), 1)
+    return FitResult(k0=k0, k1=k1, x_start=q[:n].copy(), x_end=x_end, theta=q[n:].copy(),
+                     cov=Minv, cov_end=0.5 * (cov_end + cov_end.T),
+                     cost=float(J) / n_meas, iterations=iterations, noise_std=noise_std,
+                     n_meas=n_meas)
+
+
+def doubling_schedule(first: float, cap: float = math.inf) -> Callable[[int], float]:
+    """Fit times first·2ʲ until ``cap``, then every ``cap`` seconds: j ↦ t_j.
+
+    Times in seconds, for a caller who knows the process's time scale and must bound a
+    stream's memory (``FitSchedule(times=…, full_window=…)``); no default: the estimators'
+    own schedule counts samples (:func:`information_schedule`).
+
+    Parameters
+    ----------
+    first : float
+        Time of fit j = 0, in seconds.
+    cap : float
+        Largest doubling step, in seconds (default inf: doubling throughout): once first·2ʲ
+        would exceed it, the fits follow every ``cap`` seconds after the last doubled time.
+
+    Returns
+    -------
+    callable
+        j ↦ t_j (int → float seconds), increasing.
+
+    Examples
+    --------
+    >>> from thetahat.estimation.statistical.mle import doubling_schedule
+    >>> at = doubling_schedule(0.1, 0.4)
+    >>> [round(at(j), 2) for j in range(5)]
+    [0.1, 0.2, 0.4, 0.8, 1.2]
+    """
+    def at(j: int) -> float:
+        t = first * 2.0 ** j
+        if t <= cap:
+            return t
+        jc = int(math.floor(math.log2(cap / first) + 1e-9))
+        return first * 2.0 ** jc + (j - jc) * cap
+    return at
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class FitSchedule:
+    """When and on which window the MAP fits run (see the module docstring).
+
+    Parameters
+    ----------
+    system : PerturbedLinearSystem
+    times : callable j ↦ t_j, optional
+        Fit times in seconds (increasing), for a caller that must bound the stream's memory;
+        default None: the sample counts of :meth:`sample_counts` (:func:`information_schedule`
+        from :func:`first_fit_samples`), every fit of all the data so far.
+    full_window : float
+        With ``times``: fits at t ≤ ``full_window`` (s) refit all data; later ones use blocks
+        with arrival cost (default inf: all data).
+    x_sd : float
+        Prior standard deviation of x(0).
+    noise_std : optional
+        σ; default estimated from the window's data.
+    max_iter, first_max_iter : int
+        Gauss–Newton iterations (the first fit starts cold and may need more).
+    h_rho : float
+    compiled : bool, optional
+    """
+
+    system: PerturbedLinearSystem
+    times: Callable[[int], float] | None = None
+    full_window: float = math.inf
+    x_sd: float = X_PRIOR_SD
+    noise_std: Any = None
+    max_iter: int = 6
+    first_max_iter: int = 25
+    h_rho: float = H_RHO
+    compiled: bool | None = None
+
+    def sample_counts(self, growth: float | None = None) -> Callable[[int], int]:
+        """The fits' sample counts when ``times`` is None: j ↦ k_j.
+
+        :func:`information_schedule` from max(:func:`first_fit_samples`, the samples the
+        noise estimate needs when σ is not given), growth :data:`INFO_GROWTH` unless given.
+
+        Parameters
+        ----------
+        growth : float, optional
+
+        Returns
+        -------
+        callable
+            j ↦ k_j (the fit j covers samples 0 … k_j − 1).
+        """
+        least = 3 if self.noise_std is not None else MIN_SAMPLES
+        return information_schedule(max(first_fit_samples(self.system), least),
+                                    INFO_GROWTH if growth is None else growth)
+
+    def initial_prior(self, x_hat0: FloatArray, theta_hat0: FloatArray
+                      ) -> tuple[FloatArray, FloatArray]:
+        """(q̄, Π⁻¹) at t = 0: (x̂(0), θ̂(0)) with sd (x_sd, |Θ|/4)."""
+        n = self.system.n
+        sd = np.concatenate([np.full(n, float(self.x_sd)), theta_prior_sd(self.system)])
+        return np.concatenate([x_hat0, theta_hat0]), np.diag(1.0 / sd ** 2)
+
+    def fit(self, t: FloatArray, U: FloatArray, Y: FloatArray, k1: int,
+            previous: FitResult | None, prior0: tuple[FloatArray, FloatArray],
+            elapsed: float | None = None) -> FitResult:
+        """The fit due when sample k1 − 1 has arrived, warm-started from ``previous``.
+
+        ``elapsed`` is the time since the start of the experiment (default t[k1−1] − t[0];
+        a streaming caller that trimmed old samples from ``t`` passes it).
+        """
+        n = self.system.n
+        el = float(t[k1 - 1] - t[0]) if elapsed is None else float(elapsed)
+        full = previous is None or el <= self.full_window + 1e-12
+        if full or previous is None:            # (full already holds if previous is None)
+            k0 = 0
+            q_prior, info = prior0
+            q_start = (q_prior.copy() if previous is None
+                       else np.concatenate([previous.x_start, previous.theta]))
+        else:
+            k0 = previous.k1 - 1                 # the block starts where the last one ended
+            q_prior = np.concatenate([previous.x_end, previous.theta])
+            # arrival cost: θ's marginal from the older data; x at the block start stays wide
+            # (its covariance given θ is nearly singular for a model without process noise,
+            # and the data of the block determine it)
+            _, info_th = _solve_scaled(previous.cov[n:, n:], np.zeros(self.system.p))
+            info = np.zeros((n + self.system.p, n + self.system.p))
+            info[:n, :n] = np.eye(n) / float(self.x_sd) ** 2
+            info[n:, n:] = info_th
+            q_start = q_prior.copy()
+        if not full and previous is not None and self.noise_std is None \
+                and k1 - k0 < MIN_SAMPLES:
+            sigma = previous.noise_std          # a block too short to estimate σ from
+        else:
+            sigma = resolve_noise_std(self.noise_std, Y[:k1] if full else Y[k0:k1])
+        return fit_map(self.system, t, U, Y, k0=k0, k1=k1, q_start=q_start, q_prior=q_prior,
+                       prior_info=info, noise_std=sigma, skip_first=not full,
+                       max_iter=self.first_max_iter if previous is None else self.max_iter,
+                       h_rho=self.h_rho, compiled=self.compiled)
+
+
+#: Growth of the information between consecutive fits of :func:`information_schedule`.
+INFO_GROWTH = math.sqrt(2.0)
+
+
+def first_fit_samples(system: PerturbedLinearSystem) -> int:
+    """Samples before the first fit of :func:`information_schedule`: max(MIN_SAMPLES, 4(n + p)).
+
+    The fit has n + p unknowns and the noise level needs :data:`MIN_SAMPLES` samples; four
+    scalar measurements per unknown is the least at which the Gauss–Newton information is of
+    full rank with margin. A count of samples, not seconds: it holds at any sampling rate.
+
+    Parameters
+    ----------
+    system : PerturbedLinearSystem
+
+    Returns
+    -------
+    int
+
+    Examples
+    --------
+    >>> from thetahat.models import lugre
+    >>> from thetahat.estimation.statistical.mle import first_fit_samples
+    >>> first_fit_samples(lugre.system())
+    12
+    """
+    return max(MIN_SAMPLES, 4 * (system.n + system.p))
+
+
+def information_schedule(first: int, growth: float = INFO_GROWTH) -> Callable[[int], int]:
+    """Fit j after k_j samples, k_0 = ``first``, k_{j+1} = ⌈growth · k_j⌉: j ↦ k_j.
+
+    The Fisher information of a fit of all the data grows in proportion to the samples while
+    the excitation is steady, so a fit at every ``growth``-fold sample count is a fit each time
+    the information has grown by that factor (the Cramér–Rao bound has shrunk by √growth).
+    Counts of samples, never seconds: the schedule is the same for a process sampled at 10 Hz
+    for minutes and one sampled at 10 kHz for milliseconds. The total cost of refitting all the
+    data at each k_j is at most growth/(growth − 1) times that of one fit of the whole record.
+
+    Parameters
+    ----------
+    first : int
+        k_0 ≥ 1 (see :func:`first_fit_samples`).
+    growth : float
+        Factor > 1 between consecutive sample counts (default √2).
+
+    Returns
+    -------
+    callable
+        j ↦ k_j (int → int), strictly increasing.
+
+    Examples
+    --------
+    >>> from thetahat.estimation.statistical.mle import information_schedule
+    >>> at = information_schedule(12)
+    >>> [at(j) for j in range(6)]
+    [12, 17, 25, 36, 51, 73]
+    """
+    if not (isinstance(first, (int, np.integer)) and first >= 1):
+        raise DimensionError(f"information_schedule: first must be an integer >= 1; got "
+                             f"{first!r}.")
+    if not (math.isfinite(growth) and growth > 1.0):
+        raise DimensionError(f"information_schedule: growth must be a finite number > 1; got "
+                             f"{growth!r}.")
+    ks = [int(first)]
+
+    def at(j: int) -> int:
+        while len(ks) <= j:
+            ks.append(max(ks[-1] + 1, math.ceil(growth * ks[-1] - 1e-9)))
+        return ks[j]
+    return at
+
+
+def fit_record(schedule: FitSchedule, t: FloatArray, U: FloatArray, Y: FloatArray, k1: int,
+               previous: FitResult | None, prior0: tuple[FloatArray, FloatArray], *,
+               final: bool = False) -> FitResult:
+    """The fit of samples 0 … k1 − 1 that the data support: output error, or with process noise.
+
+    First the output-error MAP fit of all the data (:meth:`FitSchedule.fit`, warm-started from
+    ``previous``). When it is not consistent (its cost per measurement is not that of the
+    measurement noise: a model error, or a fit stuck far from the optimum) the fit of the
+    model with process noise on φ (:func:`~thetahat.estimation.statistical.likelihood.fit_process_noise`)
+    is tried from its θ and taken if it is consistent; q is estimated anew on the ``final``
+    fit and whenever ``previous`` has none, else kept from ``previous``. The output-error model
+    is always tried first: a fit with process noise taken on a short window (where an
+    output-error fit can stall far from its optimum) must not decide the later ones.
+
+    Parameters
+    ----------
+    schedule : FitSchedule
+        Its ``full_window`` must cover the record (the fit is of all the data).
+    t, U, Y : ndarray, shapes (N,), (N, m), (N, r)
+    k1 : int
+        The window is 0 … k1 − 1.
+    previous : FitResult or None
+    prior0 : tuple of ndarray
+        (q̄, Π⁻¹) of :meth:`FitSchedule.initial_prior`.
+    final : bool
+        The last fit of the record (q is searched anew).
+
+    Returns
+    -------
+    FitResult
+        ``process_noise`` > 0 when the model with process noise was taken.
+    """
+    n = schedule.system.n
+    x_hat0, x_sd = prior0[0][:n], np.full(n, float(schedule.x_sd))
+    q = previous.process_noise if previous is not None else 0.0
+    fit = schedule.fit(t, U, Y, k1, previous, prior0)
+    if fit.consistent:
+        return fit
+    alt = _with_process_noise(schedule.system, t, U, Y, k1, fit, x_hat0, x_sd,
+                              schedule.noise_std, q=None if final or q == 0.0 else q,
+                              h_rho=schedule.h_rho, compiled=schedule.compiled)
+    return alt if alt.consistent else fit
+
+
+def _with_process_noise(system: PerturbedLinearSystem, t: FloatArray, U: FloatArray,
+                        Y: FloatArray, k1: int, previous: FitResult, x_hat0: FloatArray,
+                        x_sd: FloatArray, noise_std: Any, *, q: float | None, h_rho: float,
+                        compiled: bool | None) -> FitResult:
+    """The fit of samples 0 … k1 − 1 by the likelihood with process noise on φ, as a FitResult.
+
+    ``q``: the intensity (None: estimated with θ). The covariances put the filter's x
+    covariance (at the start: the prior; at the end: the filter's) beside θ's.
+    """
+    from .likelihood import fit_process_noise
+    n = system.n
+    sigma = resolve_noise_std(noise_std, Y[:k1])
+    pf = fit_process_noise(system, t[:k1], U[:k1], Y[:k1], theta0=previous.theta,
+                           x_hat0=x_hat0, x_sd=x_sd, noise_std=sigma, q=q,
+                           max_nfev=60 if q is None else 20, h_rho=h_rho, compiled=compiled)
+    p = pf.theta.shape[0]
+    cov = np.zeros((n + p, n + p))
+    cov[:n, :n] = np.diag(x_sd ** 2)
+    cov[n:, n:] = pf.cov
+    cov_end = cov.copy()
+    cov_end[:n, :n] = pf.P_end
+    return FitResult(k0=0, k1=k1, x_start=np.array(x_hat0, dtype=np.float64), x_end=pf.x_end,
+                     theta=pf.theta, cov=cov, cov_end=cov_end, cost=pf.cost, iterations=0,
+                     noise_std=sigma, n_meas=pf.n_meas, process_noise=pf.q)
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class MapDiagnostics(Diagnostics):
+    """What :class:`MapEstimator` reports beyond the common estimates (``result.diagnostics``).
+
+    Attributes
+    ----------
+    theta_sd : ndarray (N, p)
+        The standard error of θ̂ (the prior's before the first fit).
+    fits : tuple of FitResult
+    fit_samples : ndarray of int
+        The sample at which each fit's window ends.
+    """
+
+    theta_sd: FloatArray
+    fits: tuple[FitResult, ...]
+    fit_samples: NDArray[np.int64]
+
+    @property
+    def fit_cost(self) -> FloatArray:
+        """Each fit's cost per measurement (≈ 1 when the model and σ are right)."""
+        return np.array([f.cost for f in self.fits])
+
+    def __repr__(self) -> str:
+        return (f"MapDiagnostics(fits={len(self.fits)}, "
+                f"fit_samples={self.fit_samples.tolist()[:8]}"
+                f"{'…' if len(self.fits) > 8 else ''})")
+
+
+#: The MAP estimator's former result name, kept importable: :meth:`MapEstimator.run` returns
+#: an :class:`~thetahat.estimation.protocol.EstimateResult` with :class:`MapDiagnostics`.
+MapResult = EstimateResult
+
+
+class _MapLog:
+    """The samples of one MAP stream (arrays that double when full; shared by its states)."""
+
+    def __init__(self, m: int, r: int) -> None:
+        self.T: FloatArray = np.empty(256)
+        self.U: FloatArray = np.empty((256, m))
+        self.Y: FloatArray = np.empty((256, r))
+        self.size = 0
+
+    def append(self, t: float, u: FloatArray, y: FloatArray) -> None:
+        i = self.size
+        if i == self.T.shape[0]:
+            self.T, self.U, self.Y = (np.concatenate([a, np.empty_like(a)])
+                                      for a in (self.T, self.U, self.Y))
+        self.T[i], self.U[i], self.Y[i] = t, u, y
+        self.size = i + 1
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class MapState:
+    """The state of :class:`MapEstimator`: the start values and, once streaming, the latest
+    estimates and the stream's data log.
+
+    Attributes
+    ----------
+    x_hat0, theta_hat0 : ndarray (n,), (p,)
+        x̂(0) and θ̂(0) (θ̂(0) in Θ): the prior of the first fit.
+    x_hat, theta_hat, theta_sd : ndarray (n,), (p,), (p,)
+        The estimates at the last sample stepped (x̂ predicted from the latest fit).
+    k : int
+        Samples stepped.
+    elapsed : float
+        Time of the last sample since the first.
+    j : int
+        The next scheduled fit.
+    fits : tuple of FitResult
+    fit_samples : tuple of int
+        The sample at which each fit's window ends.
+    dt_prev : float
+        The last step's dt.
+    log : object or None
+        The stream's samples (None before the first ``step``), shared by its states.
+    """
+
+    x_hat0: FloatArray
+    theta_hat0: FloatArray
+    x_hat: FloatArray
+    theta_hat: FloatArray
+    theta_sd: FloatArray
+    k: int = 0
+    elapsed: float = 0.0
+    j: int = 0
+    fits: tuple[FitResult, ...] = ()
+    fit_samples: tuple[int, ...] = ()
+    dt_prev: float = 0.0
+    log: _MapLog | None = None
+
+    def __repr__(self) -> str:
+        return (f"MapState(k={self.k}, theta_hat={self.theta_hat}, fits={len(self.fits)})")
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class MapEstimator:
+    """Offline estimation by MAP fits alone on a schedule (method ``"mle"``).
+
+    By default every fit is a fit of all the data so far (Gauss–Newton over (x(0), θ) with
+    exact sensitivities, O(N) per iteration, warm-started from the previous fit), at the sample
+    counts of :func:`information_schedule` from :func:`first_fit_samples`, and the last fit
+    takes the whole record: θ̂ at the end is the MAP estimate of the record, with no block
+    approximation, at any record length and sampling rate.
+
+    Parameters
+    ----------
+    system : PerturbedLinearSystem
+    schedule : FitSchedule, optional
+        The fits' settings; with ``times`` given, fit at those times (seconds) and windows
+        instead (block fits with arrival cost).
+    noise_std : optional
+        σ of the output noise; default estimated from the data of each fit.
+    compiled : bool, optional
+    growth : float
+        Information growth between fits of the default schedule (default √2).
+
+    Notes
+    -----
+    An :class:`~thetahat.estimation.protocol.Estimator`: :meth:`init` gives a
+    :class:`MapState`; :meth:`step` appends one sample and runs the fits whose window ends
+    there (in the caller); :meth:`run` fits a record; results carry :class:`MapDiagnostics`.
+
+    Examples
+    --------
+    >>> from thetahat.models import lugre
+    >>> from thetahat.estimation.statistical.mle import MapEstimator
+    >>> data = lugre.simulate(seed=0, t_end=0.2)
+    >>> est = MapEstimator(system=lugre.system(), compiled=False)
+    >>> res = est.run(data.t, data.u, data.y, state0=est.init(theta_hat0=[0.5]))
+    >>> bool(abs(res.theta_hat[-1, 0] - 0.28) < 0.01)
+    True
+    """
+
+    system: PerturbedLinearSystem
+    schedule: FitSchedule | None = None
+    noise_std: Any = None
+    compiled: bool | None = None
+    growth: float = INFO_GROWTH
+
+    @property
+    def _by_times(self) -> bool:
+        """A schedule with fit times in seconds was given (else: information schedule)."""
+        return self.schedule is not None and self.schedule.times is not None
+
+    def _schedule(self) -> FitSchedule:
+        if self.schedule is not None:
+            return self.schedule
+        return FitSchedule(system=self.system, full_window=math.inf, noise_std=self.noise_std,
+                           compiled=self.compiled)
+
+    def fit_samples(self, t: FloatArray) -> list[int]:
+        """The sample counts k₁ at which :meth:`run` fits (window 0 … k₁ − 1) on record ``t``.
+
+        Parameters
+        ----------
+        t : ndarray (N,)
+
+        Returns
+        -------
+        list of int
+            Increasing; the last is N (the whole record) whenever N admits a fit.
+        """
+        N = int(t.shape[0])
+        least = self._min_samples()
+        times = self.schedule.times if self.schedule is not None else None
+        if times is not None:
+            ks: list[int] = []
+            j = 0
+            while times(j) <= t[-1] - t[0] + 1e-12:
+                k1 = int(np.searchsorted(t - t[0], times(j) + 1e-12, side="right"))
+                if k1 >= least and (not ks or k1 > ks[-1]):
+                    ks.append(k1)
+                j += 1
+            return ks
+        at = self._schedule().sample_counts(self.growth)
+        ks, j = [], 0
+        while at(j) < N:
+            ks.append(at(j))
+            j += 1
+        return ks + [N] if N >= least else ks
+
+    def _min_samples(self) -> int:
+        """Samples a window needs before a fit (σ estimated from it unless given)."""
+        return 3 if self.noise_std is not None else MIN_SAMPLES
+
+    def init(self, x_hat0: Any = None, theta_hat0: Any = None) -> MapState:
+        """The state before the first sample: x̂(0), θ̂(0) (θ̂(0) in Θ, default the centre).
+
+        Parameters
+        ----------
+        x_hat0 : array_like (n,), optional
+            Default zeros.
+        theta_hat0 : array_like (p,), optional
+            Default the centre of Θ.
+
+        Returns
+        -------
+        MapState
+
+        Raises
+        ------
+        ParameterSetError
+            θ̂(0) outside Θ.
+        """
+        x0, th0 = start_values(self.system, x_hat0, theta_hat0)
+        return MapState(x_hat0=x0, theta_hat0=th0, x_hat=x0, theta_hat=th0,
+                        theta_sd=theta_prior_sd(self.system))
+
+    def step(self, state: MapState, u: Any, y: Any, dt: float) -> MapState:
+        """Append the samples of one instant and run the fits whose window ends here.
+
+        The default schedule fits all the samples so far when their count reaches one of
+        :func:`information_schedule`'s; a given ``schedule`` fits at the last sample with
+        elapsed time ≤ t_j (``dt`` says the next sample comes after t_j). These are the fits
+        :meth:`run` makes, except its last: ``run`` also fits the whole record at its end,
+        which a stream does not have. Between fits x̂ is the model's prediction from the
+        latest fit. The fits run in the caller (a ``step`` that fits takes as long as the
+        fit).
+
+        Parameters
+        ----------
+        state : MapState
+            From :meth:`init` or the previous ``step``. States of one stream share its data
+            log: step each state once, in order.
+        u : array_like (m,)
+            ``None`` when m = 0.
+        y : array_like (r,)
+            NaN: a missing sample (it does not enter the fits).
+        dt : float
+            Time to the next sample, > 0.
+
+        Returns
+        -------
+        MapState
+            The estimates at this sample: row k of :meth:`run` after k + 1 steps, for every
+            row but the record's last (to the rounding of the accumulated sample times; see
+            the protocol page).
+
+        Raises
+        ------
+        DimensionError
+            Wrong shapes or dt ≤ 0.
+        NonFiniteError
+            NaN or inf in u, or inf in y.
+        """
+        from ...errors import DimensionError
+        sys_ = self.system
+        n, m, r, p = sys_.n, sys_.m, sys_.r, sys_.p
+        u_, y_, h = stream_sample(sys_, u, y, dt)
+        log = _MapLog(m, r) if state.log is None else state.log
+        if log.size != state.k:
+            raise DimensionError("MapEstimator.step: this state is not the latest of its "
+                                 "stream (step each state once, in order).")
+        elapsed = 0.0 if state.k == 0 else state.elapsed + state.dt_prev
+        x, th, sd = state.x_hat, state.theta_hat, state.theta_sd
+        if state.k > 0:
+            model = model_kernel(sys_, compiled=self.compiled)
+            x = np.asarray(model.propagate(np.array(x), np.array(th), log.U[state.k - 1].copy(),
+                                           u_, state.dt_prev, self._schedule().h_rho, False,
+                                           np.empty((n, n)), np.empty((n, p))))
+        log.append(elapsed, u_, y_)
+        sched = self._schedule()
+        k1 = state.k + 1
+        j, fits, ends = state.j, list(state.fits), list(state.fit_samples)
+        due = False
+        if sched.times is not None:             # times (s): due when the next sample is later
+            while sched.times(j) + 1e-12 < elapsed + h:
+                due, j = True, j + 1
+        else:                                   # sample counts of the information schedule
+            at = sched.sample_counts(self.growth)
+            while at(j) <= k1:
+                due, j = due or at(j) == k1, j + 1
+        if due and k1 >= self._min_samples():
+            prior0 = sched.initial_prior(state.x_hat0, state.theta_hat0)
+            prev = fits[-1] if fits else None
+            fit = (sched.fit(log.T[:k1], log.U[:k1], log.Y[:k1], k1, prev, prior0)
+                   if self._by_times
+                   else fit_record(sched, log.T[:k1], log.U[:k1], log.Y[:k1], k1, prev, prior0))
+            fits.append(fit)
+            ends.append(state.k)
+            x, th, sd = fit.x_end, fit.theta, fit.theta_se
+        return MapState(x_hat0=state.x_hat0, theta_hat0=state.theta_hat0, x_hat=np.array(x),
+                        theta_hat=np.array(th), theta_sd=np.array(sd), k=state.k + 1,
+                        elapsed=elapsed, j=j, fits=tuple(fits), fit_samples=tuple(ends),
+                        dt_prev=h, log=log)
+
+    def run(self, t: Any, u: Any, y: Any, *, state0: MapState | None = None
+            ) -> EstimateResult:
+        """Fit on the schedule over a record; θ̂ between fits is the latest fit's.
+
+        Parameters
+        ----------
+        t : array_like (N,)
+        u : array_like (N, m) or (N,)
+        y : array_like (N, r) or (N,)
+        state0 : MapState, optional
+            From :meth:`init` (default ``init()``); a record starts a new experiment, so a
+            state that has already been stepped is refused.
+
+        Returns
+        -------
+        EstimateResult
+            Row k: the latest fit's θ̂ and x̂ predicted from it; ``diagnostics`` is a
+            :class:`MapDiagnostics` (standard errors and the fits).
+
+        Raises
+        ------
+        OptionError
+            ``state0`` has been stepped (continue that stream with :meth:`step`).
+        """
+        from .ekf import as_record
+        sys_ = self.system
+        t_, U, Y = as_record(t, u, y, sys_.m, sys_.r)
+        U, Y = np.ascontiguousarray(U), np.ascontiguousarray(Y)
+        st0 = self.init() if state0 is None else state0
+        if st0.k:
+            from ...errors import OptionError
+            raise OptionError("MapEstimator.run starts an experiment from init(); this state0 "
+                              "has been stepped: continue its stream with step.")
+        sched = self._schedule()
+        prior0 = sched.initial_prior(st0.x_hat0, st0.theta_hat0)
+        N, p = t_.shape[0], sys_.p
+        TH = np.empty((N, p))
+        SD = np.empty((N, p))
+        TH[:] = st0.theta_hat0
+        SD[:] = theta_prior_sd(sys_)
+        fits: list[FitResult] = []
+        ends: list[int] = []
+        ks = self.fit_samples(t_)
+        for i, k1 in enumerate(ks):
+            prev = fits[-1] if fits else None
+            last = i == len(ks) - 1
+            if not self._by_times and last and prev is not None:
+                # the record's own fit: iterate to convergence, not to the warm-start budget
+                sched = replace(sched, max_iter=sched.first_max_iter)
+            fit = (sched.fit(t_, U, Y, k1, prev, prior0) if self._by_times
+                   else fit_record(sched, t_, U, Y, k1, prev, prior0, final=last))
+            fits.append(fit)
+            ends.append(k1 - 1)
+            TH[k1 - 1:] = fit.theta
+            SD[k1 - 1:] = fit.theta_se
+        X = self._predictions(t_, U, Y, st0, fits, ends)
+        return EstimateResult(t=t_, x_hat=X, theta_hat=TH,
+                              phi_hat=phi_hat_from_model(sys_, U, Y, X, TH),
+                              skipped=missing_samples(Y),
+                              diagnostics=MapDiagnostics(theta_sd=SD, fits=tuple(fits),
+                                                         fit_samples=np.array(ends,
+                                                                              dtype=np.int64)))
+
+    def _predictions(self, t: FloatArray, U: FloatArray, Y: FloatArray, st0: MapState,
+                     fits: list[FitResult], ends: list[int]) -> FloatArray:
+        """x̂ between fits: the model run from each fit's end state with its θ."""
+        sys_ = self.system
+        n, p, N = sys_.n, sys_.p, t.shape[0]
+        sweep = _sweep_for(model_kernel(sys_, compiled=self.compiled))
+        X = np.empty((N, n))
+        starts = [0] + ends
+        anchors = [(st0.x_hat0, st0.theta_hat0)] + [(f.x_end, f.theta) for f in fits]
+        A, b, T = np.empty((n + p, n + p)), np.empty(n + p), np.empty((n, n + p))
+        Rinv = np.ones(sys_.r)
+        for i, (k0, (x0, th)) in enumerate(zip(starts, anchors)):
+            k1 = starts[i + 1] + 1 if i + 1 < len(starts) else N
+            seg = np.empty((k1 - k0, n))
+            sweep(np.array(x0, dtype=np.float64), np.array(th, dtype=np.float64), U, Y, t, k0,
+                  k1, False, Rinv, self._schedule().h_rho, False, A, b, T, seg)
+            X[k0:k1] = seg
+        return X
