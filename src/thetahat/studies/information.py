@@ -215,12 +215,18 @@ def explain_nonfinite(exc: BaseException, system: Any, t: ArrayLike, u: ArrayLik
         cause = None
     if cause is not None:
         return NonFiniteError(f"{cause} (the run then failed: {exc})")
-    if isinstance(exc, ThetahatError) or not isinstance(exc, (ArithmeticError, ValueError)):
+    numeric = isinstance(exc, NonFiniteError)        # a diverged or singular step: a status
+    if not numeric and (isinstance(exc, ThetahatError)
+                        or not isinstance(exc, (ArithmeticError, ValueError))):
         return exc
     with np.errstate(all="ignore"):
         size = {name: float(np.nanmax(np.abs(a), initial=0.0)) for name, a in
                 (("u", np.asarray(u, dtype=np.float64) if u is not None else np.zeros(0)),
                  ("y", np.asarray(y, dtype=np.float64)))}
+    if numeric:
+        return NonFiniteError(f"{str(exc).rstrip('.')}; the data reach |u| = {size['u']:.3g} "
+                              f"and |y| = {size['y']:.3g}: check that they are in the model's "
+                              "units and scale.")
     return SimulationError(f"the run failed numerically ({type(exc).__name__}: {exc}); the "
                            f"data reach |u| = {size['u']:.3g} and |y| = {size['y']:.3g}: "
                            f"check that they are in the model's units and scale (the "

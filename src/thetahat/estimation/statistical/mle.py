@@ -534,7 +534,10 @@ def fit_record(schedule: FitSchedule, t: FloatArray, U: FloatArray, Y: FloatArra
     ``previous``). When it is not consistent (its cost per measurement is not that of the
     measurement noise: a model error, or a fit stuck far from the optimum) the fit of the
     model with process noise on φ (:func:`~thetahat.estimation.statistical.likelihood.fit_process_noise`)
-    is tried from its θ and taken if it is consistent; q is estimated anew on the ``final``
+    is tried from its θ and taken if it is consistent, or if neither is but it explains the data
+    better (a smaller cost per measurement: real innovations have heavier tails than the χ²
+    test allows on a long record, while a wrong output-error model misses by orders of
+    magnitude); q is estimated anew on the ``final``
     fit and whenever ``previous`` has none, else kept from ``previous``. The output-error model
     is always tried first: a fit with process noise taken on a short window (where an
     output-error fit can stall far from its optimum) must not decide the later ones.
@@ -566,7 +569,7 @@ def fit_record(schedule: FitSchedule, t: FloatArray, U: FloatArray, Y: FloatArra
     alt = _with_process_noise(schedule.system, t, U, Y, k1, fit, x_hat0, x_sd,
                               schedule.noise_std, q=None if final or q == 0.0 else q,
                               h_rho=schedule.h_rho, compiled=schedule.compiled)
-    return alt if alt.consistent else fit
+    return alt if alt.consistent or alt.cost < fit.cost else fit
 
 
 def _with_process_noise(system: PerturbedLinearSystem, t: FloatArray, U: FloatArray,
