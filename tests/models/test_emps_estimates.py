@@ -27,7 +27,7 @@ OFFSET_TOL = 0.5
 #: A record that begins in motion: DATA_EMPS from this sample on, t restarted at 0; q(0) is
 #: 0.18 m from x̂₀ = 0, so the estimators start at x̂₀ + C⁺(y(0) − C x̂₀) (x_hat0_from_y).
 CUT = 9000
-#: The paper's method (constant-gain gradient law, Γ = "auto") ends at M −7.4 % on the whole
+#: The paper's method (constant-gain gradient law, Γ = "auto") ends at M −7.3 % on the whole
 #: record and −5.8 % on the cut one: issue 19's 3 % does not hold for it yet (strict: a fix
 #: shows up as XPASS and this mark must go).
 PAPER_OPEN = pytest.mark.xfail(strict=True, reason="the paper's constant-gain law fits the "
