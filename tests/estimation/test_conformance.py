@@ -542,7 +542,7 @@ def _emitted_run(obs: ModifiedHighGainObserver, t, u, y, hold: str, s0) -> np.nd
     ts = parts.theta_star
     source = kernel_source(parts.perturbation, None if ts is None else ts.expr,
                            None if ts is None else ts.arguments, LAWS[parts.code], numba=False,
-                           M=parts.M)
+                           M=parts.M, ellipsoid=parts.ellipsoid)
     namespace: dict[str, object] = {"__name__": "thetahat_kernel_test"}
     exec(compile(source, "<kernel>", "exec"), namespace)   # our generated text, no numba
     t_, dts, U3, Y3, ok3 = obs.check_records(t, u, y)

@@ -182,8 +182,10 @@ def _check(observer: Any, hold: str, real: str) -> tuple[str, Any]:
         raise UnsupportedError(f"the update law {type(law).__name__} has a state of its own; the C "
                            "step supports memoryless laws only.")
     if not isinstance(law.parameter_set, Box):
-        raise UnsupportedError(f"Θ must be a Box (its projection is a clip); got "
-                           f"{type(law.parameter_set).__name__}.")
+        raise UnsupportedError(f"Θ must be a Box (its projection is a clip) for the C step; "
+                           f"got {type(law.parameter_set).__name__}. A Ball or Ellipsoid Θ "
+                           "runs on the numba kernel (thetahat estimate and run_estimator "
+                           "choose it).")
     if getattr(law, "saturation", None) is not None:
         raise UnsupportedError("update laws with a saturation (Remark 3) have no C form yet; build "
                            "the law without saturation=.")
@@ -352,11 +354,11 @@ def generate_c(observer: ModifiedHighGainObserver, *, dt: float, name: str = "ob
     x0 = np.zeros(n) if x_hat0 is None else np.asarray(x_hat0, dtype=np.float64).reshape(n)
     code = {"constant": 0, "algebraic": 1, "intermittent": 2, "gradient": 3}[kind]
     ramp = (float(law.l.low), float(law.l.high)) if kind == "intermittent" else None
-    parts = KernelParts(code=code, perturbation=pert, box=cast(Box, law.parameter_set),
+    parts = KernelParts(code=code, perturbation=pert, theta_set=cast(Box, law.parameter_set),
                         ramp=ramp, freeze=getattr(law, "on_invalid", "") == "freeze")
     lay = CLayout(prefix=prefix, real=real, dims=(n, m, r, k, p), second=second is not None,
                   skip=observer.nan_policy == "skip", foh=hold == "foh")
-    box = parts.box
+    box = cast(Box, parts.theta_set)
     lower, upper = box.lower, box.upper
     if real == "float":
         lower, upper = inwards(lower, upper)

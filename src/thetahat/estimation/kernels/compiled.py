@@ -7,8 +7,11 @@ machine code. Supported:
 
 * g: a :class:`~thetahat.model.perturbation.SymbolicPerturbation` (g, ∂g/∂x, ∂g/∂θ and ∂g/∂v
   are printed to scalar Python code with SymPy's common-subexpression elimination);
-* Θ: a :class:`~thetahat.model.paramset.Box`, with a diagonal Γ (the Γ⁻¹-weighted projection
-  onto a box is then a clip);
+* Θ: a :class:`~thetahat.model.paramset.Box` with a diagonal Γ (the Γ⁻¹-weighted projection
+  onto a box is then a clip), or a :class:`~thetahat.model.paramset.Ball` or
+  :class:`~thetahat.model.paramset.Ellipsoid` with any Γ (the Γ⁻¹-weighted projection of
+  :func:`~thetahat.estimation.kernels.set_projection.project_kernel`; Θ's centre and shape are
+  data, so one kernel serves every ball and ellipsoid of a model);
 * update laws: :class:`~thetahat.estimation.paper.update_laws.ConstantLaw`,
   :class:`~thetahat.estimation.paper.update_laws.IntermittentInversion` (l ≡ 1, as built by
   :func:`~thetahat.estimation.paper.update_laws.AlgebraicInversion`, or the weight of
@@ -58,7 +61,7 @@ from numpy.typing import NDArray
 from ..._validate import as_vector, positive_scalar
 from ...errors import (DimensionError, MissingExtraError, OptionError, ThetahatWarning,
                       UnsupportedError)
-from ...model.paramset import Box
+from ...model.paramset import Ball, Box, Ellipsoid
 from ...model.perturbation import SymbolicPerturbation
 from .kernel_cache import load_module
 from ..paper.observer import HOLDS, PROGRESS_EVERY, ModifiedHighGainObserver
@@ -68,8 +71,10 @@ from .formulas import WORK
 from .kernel_args import LawArrays, PlanArrays, SecondArrays
 from .plan import StateLayout, StepPlan
 from .scalar_backend import LAWS, kernel_source
+from .set_projection import ellipsoid_data
 from .status import Status
 from .step import DIVERGENCE_BOUND, divergence_error
+from ..paper.inversion import gain_eigen
 from ..paper.theta_star import ThetaStar, as_theta_star
 if TYPE_CHECKING:
     from ...codegen.native import NativeObserver
@@ -81,7 +86,8 @@ __all__ = ["CompiledObserver", "KernelParts", "compile_observer", "kernel_arrays
 
 FloatArray = NDArray[np.float64]
 
-_SUPPORTED = ("supported: a SymbolicPerturbation g, a Box Θ with diagonal Γ, ConstantLaw, "
+_SUPPORTED = ("supported: a SymbolicPerturbation g, a Box Θ with diagonal Γ or a Ball or "
+              "Ellipsoid Θ, ConstantLaw, "
               "IntermittentInversion (l ≡ 1, i.e. AlgebraicInversion, or a smooth_ramp weight) "
               "with a symbolic θ*, GradientInversion with the default M, no saturation, no law "
               "state, an optional SecondObserver")
@@ -129,7 +135,7 @@ class KernelParts:
         0 ConstantLaw, 1 IntermittentInversion with l ≡ 1, 2 with a smooth ramp, 3 gradient.
     perturbation : SymbolicPerturbation
         g, printed into the kernel.
-    box : Box
+    theta_set : Box, Ball or Ellipsoid
         Θ.
     theta_star : ThetaStar or None
         θ* of the inversion laws.
@@ -143,11 +149,16 @@ class KernelParts:
 
     code: int
     perturbation: SymbolicPerturbation
-    box: Box
+    theta_set: Box | Ball | Ellipsoid
     theta_star: ThetaStar | None = None
     ramp: tuple[float, float] | None = None
     freeze: bool = False
     M: Any = None
+
+    @property
+    def ellipsoid(self) -> bool:
+        """Θ is a ball or an ellipsoid (``kernel_source(..., ellipsoid=True)``), not a box."""
+        return not isinstance(self.theta_set, Box)
 
 
 def kernel_parts(observer: ModifiedHighGainObserver) -> KernelParts:
@@ -180,13 +191,14 @@ def kernel_parts(observer: ModifiedHighGainObserver) -> KernelParts:
     if law.state_size:
         raise _unsupported("an update law with a state")
     box = law.parameter_set
-    if not isinstance(box, Box):
-        raise _unsupported(f"Θ = {type(box).__name__} (it must be a Box)")
+    if not isinstance(box, Box | Ball | Ellipsoid):
+        raise _unsupported(f"Θ = {type(box).__name__} (it must be a Box, Ball or Ellipsoid)")
     if getattr(law, "saturation", None) is not None:
         raise _unsupported("an update law with saturation")
     if isinstance(law, ConstantLaw):
-        return KernelParts(code=0, perturbation=pert, box=box)
-    _diagonal_gain(law)
+        return KernelParts(code=0, perturbation=pert, theta_set=box)
+    if isinstance(box, Box):
+        _diagonal_gain(law)
     if isinstance(law, GradientInversion):
         if not (law.perturbation is pert or law.perturbation == pert):
             raise _unsupported("GradientInversion with a g other than the observer's")
@@ -198,7 +210,7 @@ def kernel_parts(observer: ModifiedHighGainObserver) -> KernelParts:
                                    f"({type(law.M).__name__}) without sympy_form(g), its "
                                    "SymPy matrix in g's symbols")
             M = form(pert)
-        return KernelParts(code=3, perturbation=pert, box=box, M=M)
+        return KernelParts(code=3, perturbation=pert, theta_set=box, M=M)
     if not isinstance(law, IntermittentInversion):
         raise _unsupported(f"the update law {type(law).__name__}")
     code, ramp = 1, None
@@ -208,7 +220,7 @@ def kernel_parts(observer: ModifiedHighGainObserver) -> KernelParts:
         raise _unsupported("an excitation weight l other than smooth_ramp(low, high)")
     ts = as_theta_star(law.theta_star, pert)
     if ts is not None:
-        return KernelParts(code=code, perturbation=pert, box=box, theta_star=ts, ramp=ramp,
+        return KernelParts(code=code, perturbation=pert, theta_set=box, theta_star=ts, ramp=ramp,
                            freeze=law.on_invalid == "freeze")
     raise UnsupportedError(
         f"compile_observer: the θ* of {type(law).__name__} is a Python callable "
@@ -281,7 +293,7 @@ class CompiledObserver:
         plan = observer.plan(h)
         source = kernel_source(parts.perturbation, None if ts is None else ts.expr,
                                None if ts is None else ts.arguments, LAWS[parts.code],
-                               M=parts.M)
+                               M=parts.M, ellipsoid=parts.ellipsoid)
         for name, value in (("observer", observer), ("dt", h), ("theta_star", ts),
                             ("plan", plan), ("_kernel", _load(source)),
                             ("_args", kernel_arrays(parts, plan))):
@@ -614,18 +626,25 @@ def kernel_arrays(parts: KernelParts, plan: StepPlan
     else:
         P2 = SecondArrays(A=own(sec.A), B=own(sec.B), C=own(sec.C), E=own(sec.E),
                           K_x=own(sec.K_x[0]), Phi1=own(sec.Phi1[0]), Phi2=own(sec.Phi2[0]))
-    box = {"lower": own(parts.box.lower), "upper": own(parts.box.upper)}
+    ps = parts.theta_set
     G = own(np.eye(p) if plan.Gamma is None else plan.Gamma[0])
+    if isinstance(ps, Box):
+        box: dict[str, Any] = {"lower": own(ps.lower), "upper": own(ps.upper)}
+    else:                            # the metric Γ (ConstantLaw: Euclidean), Θ's c and Q
+        box = {"lower": own(ps.center), "upper": own(ps.center), "ell": ellipsoid_data(ps),
+               "pw": np.zeros((p + 2, p + 1)), "Gamma": np.eye(p) if parts.code == 0 else G}
     if parts.code == 0:
         LP = LawArrays(**box)
     elif parts.code == 3:
-        LP = LawArrays(Gamma=G, g=np.zeros(k), J=np.zeros((k, p)), Mt=np.zeros((p, k)),
+        LP = LawArrays(g=np.zeros(k), J=np.zeros((k, p)), Mt=np.zeros((p, k)),
                        GM=np.zeros((p, k)), f=np.zeros(p), K=np.zeros((p, p)),
                        Z=np.zeros((p + 1, p + 1)), Ex=np.zeros((p + 1, p + 1)),
-                       T=np.zeros((p + 1, p + 1)), U=np.zeros((p + 1, p + 1)), **box)
-    else:                            # a diagonal Γ: Λ its diagonal, V = I
+                       T=np.zeros((p + 1, p + 1)), U=np.zeros((p + 1, p + 1)),
+                       **{"Gamma": G, **box})
+    else:                            # Γ = V diag(Λ) Vᵀ (a diagonal Γ: V = I exactly)
         low, high = parts.ramp if parts.ramp is not None else (0.0, 1.0)
-        LP = LawArrays(lam=own(np.diagonal(G)), V=np.eye(p), VT=np.eye(p), ts=np.zeros(p),
+        lam, V, VT = (own(a) for a in gain_eigen(G))
+        LP = LawArrays(lam=lam, V=V, VT=VT, ts=np.zeros(p),
                        err=np.zeros(p), opts=np.array([low, high, parts.ramp is not None,
                                                        parts.freeze], dtype=np.float64), **box)
     return P, P2, LP, (sec is not None, sec is not None and sec.g_on_estimates)

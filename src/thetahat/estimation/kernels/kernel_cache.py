@@ -39,7 +39,8 @@ import numpy as np
 
 from ...errors import FileAccessError, MissingExtraError, ThetahatError
 
-__all__ = ["KernelSourceError", "cache_dir", "cached_njit", "load_module"]
+__all__ = ["KernelSourceError", "cache_dir", "cached_njit", "kernel_module_source",
+           "load_module"]
 
 #: Modules a kernel may use by name, with the import line that binds them.
 _MODULES = {id(math): ("math", "import math"), id(np): ("np", "import numpy as np")}
@@ -235,6 +236,40 @@ class _Writer:
                          + ["\n\n" + f for f in self.functions]) + "\n"
 
 
+def kernel_module_source(fn: Callable[..., Any]) -> tuple[str, str]:
+    """The module text :func:`cached_njit` compiles: ``fn`` and every kernel it calls.
+
+    Parameters
+    ----------
+    fn : callable
+        As for :func:`cached_njit`.
+
+    Returns
+    -------
+    source : str
+        Python source; each function decorated ``numba.njit(nogil=True, cache=True)``.
+    entry : str
+        The name ``fn`` has in it.
+
+    Raises
+    ------
+    KernelSourceError
+        As for :func:`cached_njit`.
+
+    Examples
+    --------
+    >>> from thetahat.estimation.kernels.kernel_cache import kernel_module_source
+    >>> def double(x):
+    ...     return 2.0 * x
+    >>> source, entry = kernel_module_source(double)
+    >>> entry, f"def {entry}(x):" in source
+    ('double_f0', True)
+    """
+    writer = _Writer()
+    entry = writer.function(fn)
+    return writer.source(), entry
+
+
 def cached_njit(fn: Callable[..., Any]) -> Any:
     """``numba.njit(fn, nogil=True)``, compiled once per machine through a cached module.
 
@@ -273,9 +308,8 @@ def cached_njit(fn: Callable[..., Any]) -> Any:
     except ImportError as exc:
         raise MissingExtraError("compiled kernels need numba: pip install 'thetahat[speed]'"
                                 ) from exc
-    writer = _Writer()
-    entry = writer.function(fn)
-    mod = load_module(writer.source(), "thetahat_stage2")
+    source, entry = kernel_module_source(fn)
+    mod = load_module(source, "thetahat_stage2")
     out = getattr(mod, entry)
     _origin[id(out)] = (mod.__name__, entry, out)
     return out

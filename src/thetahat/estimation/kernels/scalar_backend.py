@@ -6,7 +6,8 @@ formulas of :mod:`~thetahat.estimation.kernels.formulas` and
 scalar primitives of :mod:`~thetahat.estimation.kernels.scalar_primitives` under their primitive
 names, the model functions g, ∂g/∂x, ∂g/∂y, ∂g/∂θ and θ* printed from their SymPy expressions
 (with common subexpressions computed once), the law's hooks (its weight, the projection onto
-a box, which for a diagonal Γ is a clip) and the dimensions as constants. Every function is
+Θ: a clip for a box with a diagonal Γ, the Γ⁻¹-weighted projection of
+:mod:`~thetahat.estimation.kernels.set_projection` for a ball or an ellipsoid) and the dimensions as constants. Every function is
 ``numba.njit``-compiled with ``cache=True`` and inlined into the loops
 (:func:`~thetahat.estimation.kernels.scalar_primitives.kernel_run`), so that the compiled step is the
 formulas' step, specialised to one row. :mod:`~thetahat.estimation.kernels.compiled` loads the
@@ -32,7 +33,9 @@ from . import formulas, law_formulas, scalar_primitives
 from .discretize import IMPLICITNESS
 from .formulas import DIVERGENCE_BOUND
 from ..paper.law_base import FAR
+from .kernel_cache import kernel_module_source
 from .primitives import check_aliasing
+from .set_projection import project_into
 from .status import status_constants
 
 __all__ = ["INLINE_FROM", "LAWS", "formula_decorator", "kernel_source", "law_source",
@@ -343,7 +346,8 @@ def _source(fn: Any, name: str | None = None, decorator: str = _INLINE) -> str:
     return f"{decorator}\n{text}\n"
 
 
-def law_source(law: str, form: str, user_m: bool = False) -> str:
+def law_source(law: str, form: str, user_m: bool = False,
+               ellipsoid: str | None = None) -> str:
     """law_step and the hooks weight, freeze, project (and a stub m_matrix without a user's
     M) for one law formula.
 
@@ -355,12 +359,17 @@ def law_source(law: str, form: str, user_m: bool = False) -> str:
         The decorator line of each hook (empty for plain Python).
     user_m : bool
         The kernel has a user's M (m_matrix printed from its SymPy form); else a stub.
+    ellipsoid : str, optional
+        Θ is a ball or an ellipsoid: the name the module gives
+        :func:`~thetahat.estimation.kernels.set_projection.project_into`, which ``project``
+        calls with the metric M = ``LP.Gamma`` (the Γ⁻¹-weighted projection), Θ from
+        ``LP.ell`` and the scratch ``LP.pw``. None: Θ is a box with diagonal Γ, and ``project`` is a clip.
 
     Returns
     -------
     str
-        Python source in the formulas' subset; the box Θ and the inversion law's options are
-        read from ``LP.lower``, ``LP.upper`` and ``LP.opts``
+        Python source in the formulas' subset; Θ and the inversion law's options are
+        read from ``LP.lower``, ``LP.upper`` (``LP.Gamma``, ``LP.ell``) and ``LP.opts``
         (:class:`~thetahat.estimation.kernels.kernel_args.LawArrays`).
 
     Examples
@@ -373,19 +382,21 @@ def law_source(law: str, form: str, user_m: bool = False) -> str:
               f"        return smoothstep(norm(phi, NK), {opts}[0], {opts}[1])\n"
               "    return 1.0\n") if law == "inversion_law" else "    return 1.0\n"
     freeze = f"{opts}[3] != 0.0" if law == "inversion_law" else "False"
+    project = ("    lo, hi = LP.lower, LP.upper\n"
+               "    for i in range(NP):\n        thn[i] = min(max(thn[i], lo[i]), hi[i])\n"
+               if ellipsoid is None else
+               f"    {ellipsoid}(thn, LP.Gamma, LP.lower, LP.upper, LP.ell, LP.pw)\n")
     stub = "" if user_m else f"{form}\ndef m_matrix(v, x, xo, th, to, Mt):\n    return 0\n\n\n"
     return (f"{form}\ndef weight(LP, v, x, xo, phi):\n{weight}\n\n"
             f"{form}\ndef freeze(LP):\n    return {freeze}\n\n\n"
-            f"{form}\ndef project(LP, thn):\n"
-            "    lo, hi = LP.lower, LP.upper\n"
-            "    for i in range(NP):\n        thn[i] = min(max(thn[i], lo[i]), hi[i])\n"
-            "    return 0\n\n\n"
+            f"{form}\ndef project(LP, thn):\n" + project + "    return 0\n\n\n"
             + stub + f"law_step = {law}\n")
 
 
 def kernel_source(pert: SymbolicPerturbation, theta_star: tuple[sp.Expr, ...] | None,
                   ts_args: tuple[sp.Symbol, ...] | None, law: str, *,
-                  numba: bool = True, M: sp.Matrix | None = None) -> str:
+                  numba: bool = True, M: sp.Matrix | None = None,
+                  ellipsoid: bool = False) -> str:
     """The complete source of the kernel module of one model and configuration.
 
     Parameters
@@ -401,6 +412,10 @@ def kernel_source(pert: SymbolicPerturbation, theta_star: tuple[sp.Expr, ...] | 
     M : sympy.Matrix, shape (p, k), optional
         A user's M(v, x, θ) of the gradient law (Propositions 3–4) in g's symbols; default
         (∂g/∂θ)ᵀ.
+    ellipsoid : bool
+        Θ is a ball or an ellipsoid (data in ``LP.ell``): the module holds
+        :func:`~thetahat.estimation.kernels.set_projection.project_into` and the projection
+        calls it; False: Θ is a box, projected by a clip.
 
     Returns
     -------
@@ -435,13 +450,18 @@ def kernel_source(pert: SymbolicPerturbation, theta_star: tuple[sp.Expr, ...] | 
                                [("Mt", sp.Matrix(M), False)]))
     parts += [_source(fn, None, form) for fn in law_formulas.LAW_FORMULAS.values()]
     parts += [_source(fn, None, form) for fn in formulas.FORMULAS.values()]
-    parts.append(law_source(law, form, M is not None))
+    entry = None
+    if ellipsoid:                    # the one definition of the projection, emitted verbatim
+        text, entry = kernel_module_source(project_into)
+        parts.append(text)
+    parts.append(law_source(law, form, M is not None, entry))
     parts += [_source(fn, decorator=_INLINE)
               for fn in (scalar_primitives.load_phis, scalar_primitives.kernel_run)]
     text = "\n\n".join(parts) + "\n"
     if not numba:
         text = "\n".join(line for line in text.splitlines()
-                         if not line.startswith(("@njit(", "from numba import"))) + "\n"
+                         if not line.startswith(("@njit(", "from numba import", "@numba.",
+                                                  "import numba"))) + "\n"
     return text
 
 

@@ -45,7 +45,6 @@ constraints: a survey", IET Control Theory & Applications 4(8), 2010.
 from __future__ import annotations
 
 import functools
-import math
 from dataclasses import dataclass
 from typing import Any, Callable
 
@@ -55,6 +54,7 @@ from numpy.typing import NDArray
 
 from ...errors import ParameterSetError
 from ...model.paramset import Ball, Box, ConvexSet, Ellipsoid, ParameterSet
+from ..kernels.set_projection import ELLIPSOID_MARGIN, ellipsoid_data, project_kernel
 
 __all__ = ["ELLIPSOID_MARGIN", "BOUNDARY_RTOL", "theta_bounds", "ellipsoid_data",
            "project_kernel", "project_theta", "on_boundary", "has_compiled_projection",
@@ -62,189 +62,9 @@ __all__ = ["ELLIPSOID_MARGIN", "BOUNDARY_RTOL", "theta_bounds", "ellipsoid_data"
 
 FloatArray = NDArray[np.float64]
 
-#: Projections onto an ellipsoid end at (θ − c)ᵀQ(θ − c) ≤ 1 − ELLIPSOID_MARGIN, i.e. a relative
-#: 5e-13 of the semi-axes inside: far above rounding (1e-16), far below any statistical scale.
-ELLIPSOID_MARGIN = 1e-12
-#: Doublings of λ allowed while bracketing (2**400 covers any double-precision scale ratio).
-LAMBDA_DOUBLINGS = 400
-#: Bisection steps on λ once bracketed within a factor 2 (2**-60: below double precision).
-LAMBDA_BISECTIONS = 60
 #: θ̂ counts as on Θ's boundary within this fraction of Θ's width per component (box) or of
 #: the constraint's range (P ≥ −BOUNDARY_RTOL for the normalised P of balls, ellipsoids).
 BOUNDARY_RTOL = 1e-3
-
-
-def _solve_shifted(M: FloatArray, Q: FloatArray, lam: float, d0: FloatArray,
-                   d: FloatArray) -> float:
-    """d = (I + λ M Q)⁻¹ d0 by Gaussian elimination with partial pivoting; returns dᵀQd."""
-    p = d0.shape[0]
-    A = np.empty((p, p + 1))
-    for i in range(p):
-        for j in range(p):
-            acc = 0.0
-            for k in range(p):
-                acc += M[i, k] * Q[k, j]
-            A[i, j] = lam * acc + (1.0 if i == j else 0.0)
-        A[i, p] = d0[i]
-    for col in range(p):
-        piv = col
-        for i in range(col + 1, p):
-            if abs(A[i, col]) > abs(A[piv, col]):
-                piv = i
-        if piv != col:
-            for j in range(p + 1):
-                tmp = A[col, j]
-                A[col, j] = A[piv, j]
-                A[piv, j] = tmp
-        for i in range(col + 1, p):
-            f = A[i, col] / A[col, col]
-            for j in range(col, p + 1):
-                A[i, j] -= f * A[col, j]
-    for i in range(p - 1, -1, -1):
-        acc = A[i, p]
-        for j in range(i + 1, p):
-            acc -= A[i, j] * d[j]
-        d[i] = acc / A[i, i]
-    q = 0.0
-    for i in range(p):
-        for j in range(p):
-            q += d[i] * Q[i, j] * d[j]
-    return q
-
-
-def _ellipsoid_in_metric(theta: FloatArray, M: FloatArray, c: FloatArray, Q: FloatArray,
-                         target: float) -> bool:
-    """θ ← c + d with d the M⁻¹-nearest point of {dᵀQd ≤ target}; False if M cannot reach it."""
-    p = theta.shape[0]
-    d0 = np.empty(p)
-    for i in range(p):
-        d0[i] = theta[i] - c[i]
-    d = np.empty(p)
-    # λ's scale: 1/mean eigenvalue of M Q (trace), so that the first λ is O(1) in effect
-    tr = 0.0
-    for i in range(p):
-        for k in range(p):
-            tr += M[i, k] * Q[k, i]
-    lam_hi = p / tr if tr > 0.0 else 1.0
-    lam_lo = 0.0
-    found = False
-    for _ in range(LAMBDA_DOUBLINGS):
-        if _solve_shifted(M, Q, lam_hi, d0, d) <= target:
-            found = True
-            break
-        lam_lo = lam_hi
-        lam_hi *= 2.0
-    if not found:
-        return False
-    for _ in range(LAMBDA_BISECTIONS):
-        mid = 0.5 * (lam_lo + lam_hi)
-        if _solve_shifted(M, Q, mid, d0, d) <= target:
-            lam_hi = mid
-        else:
-            lam_lo = mid
-    _solve_shifted(M, Q, lam_hi, d0, d)         # the feasible end of the bracket
-    for i in range(p):
-        theta[i] = c[i] + d[i]
-    return True
-
-
-def project_kernel(theta: FloatArray, M: FloatArray, lo: FloatArray, hi: FloatArray,
-                   ell: FloatArray) -> None:
-    """Project θ onto Θ in place, in the norm ‖·‖_{M⁻¹} (numba's subset; module docstring).
-
-    Parameters
-    ----------
-    theta : ndarray, shape (p,)
-        Overwritten with Π_Θ(θ); left unchanged when inside Θ.
-    M : ndarray, shape (p, p)
-        Symmetric positive semi-definite covariance defining the metric (I: Euclidean).
-    lo, hi : ndarray, shape (p,)
-        A box Θ (clip); for an ellipsoid its bounding box (not used).
-    ell : ndarray, shape (p + 1, p)
-        Row 0 the ellipsoid's centre c, rows 1… its Q; all zeros for a box.
-
-    Examples
-    --------
-    >>> import numpy as np
-    >>> from thetahat.model.paramset import Ball
-    >>> from thetahat.estimation.statistical.stage2_set import stage2_set, project_kernel
-    >>> st = stage2_set(Ball([0.0, 0.0], 1.0))
-    >>> th = np.array([3.0, 4.0])
-    >>> project_kernel(th, np.eye(2), st.lo, st.hi, st.ell)
-    >>> np.round(th, 9).tolist()
-    [0.6, 0.8]
-    """
-    p = theta.shape[0]
-    is_box = True
-    for i in range(p):
-        for j in range(p):
-            if ell[1 + i, j] != 0.0:
-                is_box = False
-    if is_box:
-        for i in range(p):
-            theta[i] = min(max(theta[i], lo[i]), hi[i])
-        return
-    c = ell[0]
-    Q = ell[1:]
-    q = 0.0
-    for i in range(p):
-        for j in range(p):
-            q += (theta[i] - c[i]) * Q[i, j] * (theta[j] - c[j])
-    target = 1.0 - ELLIPSOID_MARGIN
-    if q <= target:
-        return
-    ok = False
-    finite_m = True
-    for i in range(p):
-        for j in range(p):
-            if not math.isfinite(M[i, j]):
-                finite_m = False
-    if finite_m:
-        ok = _ellipsoid_in_metric(theta, M, c, Q, target)
-    if not ok:
-        _ellipsoid_in_metric(theta, np.eye(p), c, Q, target)
-    # rounding of c + d: pull radially inside until the test computed from θ holds
-    for _ in range(60):
-        q = 0.0
-        for i in range(p):
-            for j in range(p):
-                q += (theta[i] - c[i]) * Q[i, j] * (theta[j] - c[j])
-        if q <= target:
-            return
-        f = math.sqrt(target / q) * (1.0 - ELLIPSOID_MARGIN)
-        for i in range(p):
-            theta[i] = c[i] + f * (theta[i] - c[i])
-    for i in range(p):
-        theta[i] = c[i]
-
-
-def ellipsoid_data(parameter_set: ParameterSet) -> FloatArray:
-    """``ell`` (p + 1, p) of :func:`project_kernel`: centre and Q, or zeros for a box.
-
-    Parameters
-    ----------
-    parameter_set : ParameterSet
-        A Box, Ball or Ellipsoid (a ConvexSet gives zeros: it is projected in Python).
-
-    Returns
-    -------
-    ndarray, shape (p + 1, p)
-
-    Examples
-    --------
-    >>> from thetahat.model.paramset import Ball
-    >>> ellipsoid_data(Ball([1.0], 2.0)).tolist()
-    [[1.0], [0.25]]
-    """
-    p = parameter_set.dim
-    ell = np.zeros((p + 1, p))
-    if isinstance(parameter_set, Ball):
-        ell[0] = parameter_set.center
-        ell[1:] = np.eye(p) / parameter_set.radius ** 2
-    elif isinstance(parameter_set, Ellipsoid):
-        ell[0] = parameter_set.center
-        ell[1:] = parameter_set.shape
-    return ell
 
 
 def _support(parameter_set: ConvexSet, e: FloatArray) -> float:
