@@ -23,7 +23,7 @@ from thetahat.estimation.paper.observer import ModifiedHighGainObserver
 from thetahat.estimation.paper.redesign import SecondObserver
 from thetahat.estimation.paper.update_laws import (AlgebraicInversion, ConstantLaw, GradientInversion,
                                              IntermittentInversion, smooth_ramp)
-from thetahat.model.paramset import Ball, Box
+from thetahat.model.paramset import Box, ConvexSet
 from thetahat.model.perturbation import CallablePerturbation, SymbolicPerturbation
 from thetahat.model.system import PerturbedLinearSystem
 from thetahat.models import lugre
@@ -211,9 +211,14 @@ def _law_observer(law) -> ModifiedHighGainObserver:
     return ModifiedHighGainObserver.from_design(sys_, lugre.designs()[0], law)
 
 
+#: Θ = [0.1, 0.9] as a general convex set (its P a Python callable: no compiled projection).
+DISK = ConvexSet(P=lambda t: (t[..., 0] - 0.5) ** 2 / 0.16 - 1.0,
+                 grad_P=lambda t: 2.0 * (t - 0.5) / 0.16, interior_point=[0.5])
+
 UNSUPPORTED = {
     "callable_g": (_callable_observer, "SymbolicPerturbation"),
-    "ball": (lambda: _law_observer(ConstantLaw([0.5], Ball([0.5], 0.4))), "must be a Box"),
+    "convex_set": (lambda: _law_observer(ConstantLaw([0.5], DISK)),
+                   "must be a Box, Ball or Ellipsoid"),
     "python_theta_star": (lambda: _law_observer(IntermittentInversion(
         lambda v, x, phi: phi, smooth_ramp(0.5, 1.0), 1.0, Box([0.05], [1.0]))), "ThetaStar"),
     "user_M": (lambda: _law_observer(GradientInversion(
@@ -300,9 +305,10 @@ def test_runner_falls_back_with_a_one_line_note(monkeypatch):
     from thetahat.estimation.kernels.compiled import runner
     monkeypatch.setenv("THETAHAT_C", "0")     # the numba path (the C one: tests/codegen)
     t = np.arange(100) * DT
-    obs = UNSUPPORTED["ball"][0]()
+    obs = UNSUPPORTED["convex_set"][0]()
     # the reason named is the first that applies: numba missing (test-core), else the part
-    why = "must be a Box" if importlib.util.find_spec("numba") else "numba is not installed"
+    why = ("must be a Box, Ball or Ellipsoid" if importlib.util.find_spec("numba")
+           else "numba is not installed")
     with pytest.warns(ThetahatWarning, match=f"runs in Python: .*{why}") as rec:
         assert runner(obs, t, compiled=True) is obs
     assert "\n" not in str(rec[0].message)

@@ -2,8 +2,8 @@
 
 Back ends: a loop of ``ModifiedHighGainObserver.step`` (ZOH only), ``run_batch`` (row 0 of a
 batch of two records), the numba kernel of ``compile_observer`` (optional extra ``speed``;
-a Box Θ; every hold and NaN policy) and the generated C of ``thetahat.codegen.generate_c`` (a
-Box Θ; every law, hold, NaN policy and second observer; all configurations compiled into one
+a Box or a Ball Θ; every hold and NaN policy) and the generated C of
+``thetahat.codegen.generate_c`` (a Box Θ; every law, hold, NaN policy and second observer; all configurations compiled into one
 library, skipped without a C compiler); the combinations a back end does not offer are left
 out of the matrix, see ``supported``. The reference is
 ``ModifiedHighGainObserver.run``. The matrix crosses the update law (Propositions 1–4 and a
@@ -132,14 +132,16 @@ def compiled(obs: ModifiedHighGainObserver):
 
 def supported(law: str, theta_set: str, second: str, hold: str, policy: str,
               backend: str) -> bool:
-    """The combinations a back end offers: ``step`` is the ZOH; the kernel needs a Box Θ (it
-    refuses the others with NotImplementedError, see test_compiled.py). g on y is crossed with the Box and the moving laws only (suite time)."""
+    """The combinations a back end offers: ``step`` is the ZOH; the C needs a Box Θ (it
+    refuses the others with UnsupportedError, and the runner takes numba: see
+    test_convex_theta.py). g on y is crossed with the Box and the moving laws only (suite
+    time)."""
     if second == "y" and (theta_set == "ball" or law == "constant"):
         return False
     if backend == "step":
         return hold == "zoh"
-    if backend == "compiled":
-        return theta_set == "box"
+    if backend == "compiled" and theta_set == "ball":
+        return law != "constant"     # a held θ̂ never leaves Θ: a kernel compiled for nothing
     if backend == "c":
         return theta_set == "box"
     return True
