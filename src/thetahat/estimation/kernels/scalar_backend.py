@@ -35,7 +35,7 @@ from .formulas import DIVERGENCE_BOUND
 from ..paper.law_base import FAR
 from .kernel_cache import kernel_module_source
 from .primitives import check_aliasing
-from .set_projection import project_into
+from .set_projection import OBSERVER_MARGIN, project_into
 from .status import status_constants
 
 __all__ = ["INLINE_FROM", "LAWS", "formula_decorator", "kernel_source", "law_source",
@@ -363,7 +363,9 @@ def law_source(law: str, form: str, user_m: bool = False,
         Θ is a ball or an ellipsoid: the name the module gives
         :func:`~thetahat.estimation.kernels.set_projection.project_into`, which ``project``
         calls with the metric M = ``LP.Gamma`` (the Γ⁻¹-weighted projection), Θ from
-        ``LP.ell`` and the scratch ``LP.pw``. None: Θ is a box with diagonal Γ, and ``project`` is a clip.
+        ``LP.ell``, the scratch ``LP.pw`` and
+        :data:`~thetahat.estimation.kernels.set_projection.OBSERVER_MARGIN`. None: Θ is a
+        box with diagonal Γ, and ``project`` is a clip.
 
     Returns
     -------
@@ -385,7 +387,8 @@ def law_source(law: str, form: str, user_m: bool = False,
     project = ("    lo, hi = LP.lower, LP.upper\n"
                "    for i in range(NP):\n        thn[i] = min(max(thn[i], lo[i]), hi[i])\n"
                if ellipsoid is None else
-               f"    {ellipsoid}(thn, LP.Gamma, LP.lower, LP.upper, LP.ell, LP.pw)\n")
+               f"    {ellipsoid}(thn, LP.Gamma, LP.lower, LP.upper, LP.ell, LP.pw, "
+               f"{OBSERVER_MARGIN!r})\n")
     stub = "" if user_m else f"{form}\ndef m_matrix(v, x, xo, th, to, Mt):\n    return 0\n\n\n"
     return (f"{form}\ndef weight(LP, v, x, xo, phi):\n{weight}\n\n"
             f"{form}\ndef freeze(LP):\n    return {freeze}\n\n\n"

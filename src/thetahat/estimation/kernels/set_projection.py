@@ -5,8 +5,9 @@
 and g(λ) = (θ − c)ᵀQ(θ − c) decreases in λ ≥ 0; λ is bracketed by doubling and found by
 bisection (no inverse of M is formed, so a singular M is fine). If M is so degenerate that no λ
 reaches the boundary, the Euclidean projection (M = I) is used. The result is pulled radially
-inside so that (θ − c)ᵀQ(θ − c) ≤ 1 − :data:`ELLIPSOID_MARGIN`, far above rounding, so that
-membership holds however Θ's own test rounds. A box (``ell`` all zeros) is a clip.
+inside so that (θ − c)ᵀQ(θ − c) ≤ 1 − margin, so that membership holds however Θ's own test
+rounds: :data:`ELLIPSOID_MARGIN` (far above rounding) for stage 2, :data:`OBSERVER_MARGIN` (a
+few ulps) for the observer, whose run must stay within rounding of the NumPy path's. A box (``ell`` all zeros) is a clip.
 :func:`project_into` allocates nothing (its scratch is an argument): the observer's kernel is
 compiled without numba's reference counting; :func:`project_kernel` allocates it.
 
@@ -27,7 +28,8 @@ from numpy.typing import NDArray
 
 from ...model.paramset import Ball, Ellipsoid, ParameterSet
 
-__all__ = ["ELLIPSOID_MARGIN", "LAMBDA_BISECTIONS", "LAMBDA_DOUBLINGS", "ellipsoid_data",
+__all__ = ["ELLIPSOID_MARGIN", "LAMBDA_BISECTIONS", "LAMBDA_DOUBLINGS", "OBSERVER_MARGIN",
+           "ellipsoid_data",
            "project_into", "project_kernel"]
 
 FloatArray = NDArray[np.float64]
@@ -37,6 +39,11 @@ FloatArray = NDArray[np.float64]
 ELLIPSOID_MARGIN = 1e-12
 #: Doublings of λ allowed while bracketing (2**400 covers any double-precision scale ratio).
 LAMBDA_DOUBLINGS = 400
+#: The paper observer's projections end at (θ − c)ᵀQ(θ − c) ≤ 1 − OBSERVER_MARGIN: 16 ulps of 1
+#: (a relative 1.8e-15 of the semi-axes) inside, so that θ̂ stays in Θ however its test rounds,
+#: and within rounding of the NumPy path's nearest point on ∂Θ (a larger margin, pushed back
+#: at every projected step, would move the compiled run away from the NumPy one).
+OBSERVER_MARGIN = 16 * 2.0 ** -52
 #: Bisection steps on λ once bracketed within a factor 2 (2**-60: below double precision).
 LAMBDA_BISECTIONS = 60
 
@@ -129,8 +136,8 @@ def _quadratic(theta: FloatArray, ell: FloatArray) -> float:
 
 
 def project_into(theta: FloatArray, M: FloatArray, lo: FloatArray, hi: FloatArray,
-                 ell: FloatArray, work: FloatArray) -> None:
-    """:func:`project_kernel` with its scratch given: it allocates nothing.
+                 ell: FloatArray, work: FloatArray, margin: float) -> None:
+    """:func:`project_kernel` with its scratch and margin given: it allocates nothing.
 
     Parameters
     ----------
@@ -138,6 +145,9 @@ def project_into(theta: FloatArray, M: FloatArray, lo: FloatArray, hi: FloatArra
         As for :func:`project_kernel`.
     work : ndarray, shape (p + 2, p + 1)
         Scratch.
+    margin : float
+        The result ends at (θ − c)ᵀQ(θ − c) ≤ 1 − margin (points there are left unchanged):
+        :data:`ELLIPSOID_MARGIN`, or :data:`OBSERVER_MARGIN`.
 
     Examples
     --------
@@ -146,7 +156,7 @@ def project_into(theta: FloatArray, M: FloatArray, lo: FloatArray, hi: FloatArra
     >>> th = np.array([0.0, 5.0])
     >>> project_into(th, np.eye(2), np.zeros(2), np.zeros(2),
     ...              ellipsoid_data(Ellipsoid([0.0, 0.0], np.diag([1.0, 0.25]))),
-    ...              np.zeros((4, 3)))
+    ...              np.zeros((4, 3)), OBSERVER_MARGIN)
     >>> np.round(th, 9).tolist()
     [0.0, 2.0]
     """
@@ -160,7 +170,7 @@ def project_into(theta: FloatArray, M: FloatArray, lo: FloatArray, hi: FloatArra
         for i in range(p):
             theta[i] = min(max(theta[i], lo[i]), hi[i])
         return
-    target = 1.0 - ELLIPSOID_MARGIN
+    target = 1.0 - margin
     if _quadratic(theta, ell) <= target:
         return
     ok = False
@@ -178,7 +188,7 @@ def project_into(theta: FloatArray, M: FloatArray, lo: FloatArray, hi: FloatArra
         q = _quadratic(theta, ell)
         if q <= target:
             return
-        f = math.sqrt(target / q) * (1.0 - ELLIPSOID_MARGIN)
+        f = math.sqrt(target / q) * (1.0 - margin)
         for i in range(p):
             theta[i] = ell[0, i] + f * (theta[i] - ell[0, i])
     for i in range(p):
@@ -212,7 +222,7 @@ def project_kernel(theta: FloatArray, M: FloatArray, lo: FloatArray, hi: FloatAr
     [0.6, 0.8]
     """
     p = theta.shape[0]
-    project_into(theta, M, lo, hi, ell, np.empty((p + 2, p + 1)))
+    project_into(theta, M, lo, hi, ell, np.empty((p + 2, p + 1)), ELLIPSOID_MARGIN)
 
 
 def ellipsoid_data(parameter_set: ParameterSet) -> FloatArray:
