@@ -52,6 +52,13 @@ def _spec(name: str, theta_set: str, truth: list[float] | None = None,
           gamma: str | None = None):
     """examples/<name>.toml with [parameter_set] replaced, θ̂(0) at Θ's centre, the
     scenario's θ set to ``truth`` (removed when None) and Γ set to ``gamma`` (TOML)."""
+    return loads_model(_spec_text(name, theta_set, truth, gamma),
+                       source=f"{name}-convex.toml")
+
+
+def _spec_text(name: str, theta_set: str, truth: list[float] | None = None,
+               gamma: str | None = None) -> str:
+    """The text of :func:`_spec`'s model file."""
     text = (EXAMPLES / f"{name}.toml").read_text()
     if gamma is not None:
         text = re.sub(r"\nGamma = .*\n", f"\nGamma = {gamma}\n", text)
@@ -64,7 +71,7 @@ def _spec(name: str, theta_set: str, truth: list[float] | None = None,
         text = head + "\n[scenario]\n" + re.sub(r"\ntheta = .*\n", line, tail)
     elif truth is not None:
         text += f"\n[scenario]\ntheta = {truth}\n"
-    return loads_model(text, source=f"{name}-convex.toml")
+    return text
 
 
 @pytest.fixture(scope="module")
@@ -336,3 +343,26 @@ def test_the_runner_compiles_a_ball_theta_with_numba_where_c_refuses(observer_ru
         warnings.simplefilter("error", ThetahatWarning)
         fast = runner(obs, t)
     assert isinstance(fast, CompiledObserver)
+
+
+def test_estimate_on_an_ellipsoid_file_runs_compiled_without_a_fallback_note(
+        observer_runs, records, tmp_path, capsys):
+    """``thetahat estimate`` on a model file with an ellipsoid Θ and a record long enough for
+    the compiled path: no "runs in Python" note (the kernel is the one observer_runs built)."""
+    from thetahat.cli import main
+    from thetahat.estimation.kernels.compiled import COMPILE_MIN_SAMPLES
+    _, ellipsoid, _ = OBSERVER_SETS["two_inertia"]
+    model = tmp_path / "ellipsoid.toml"
+    model.write_text(_spec_text("two_inertia", ellipsoid))
+    d = records["two_inertia"]
+    reps = -(-COMPILE_MIN_SAMPLES // d.t.size)       # the record repeated: long enough
+    N = reps * d.t.size
+    t = np.arange(N) * (d.t[1] - d.t[0])
+    data = tmp_path / "data.csv"
+    np.savetxt(data, np.c_[t, np.tile(d.u, (reps, 1)), np.tile(d.y, (reps, 1))],
+               delimiter=",", header="t,u,y1,y2", comments="")
+    assert main(["estimate", str(model), str(data), "-o", str(tmp_path / "e.csv"),
+                 "--method", "paper", "--no-progress"]) == 0
+    out = capsys.readouterr()
+    assert "wrote" in out.out + out.err
+    assert "runs in Python" not in out.out + out.err
