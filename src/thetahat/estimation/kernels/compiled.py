@@ -10,7 +10,7 @@ machine code. Supported:
 * Θ: a :class:`~thetahat.model.paramset.Box` with a diagonal Γ (the Γ⁻¹-weighted projection
   onto a box is then a clip), or a :class:`~thetahat.model.paramset.Ball` or
   :class:`~thetahat.model.paramset.Ellipsoid` with any Γ (the Γ⁻¹-weighted projection of
-  :func:`~thetahat.estimation.kernels.set_projection.project_kernel`; Θ's centre and shape are
+  :func:`~thetahat.estimation.kernels.set_projection.project_into`; Θ's centre and shape are
   data, so one kernel serves every ball and ellipsoid of a model);
 * update laws: :class:`~thetahat.estimation.paper.update_laws.ConstantLaw`,
   :class:`~thetahat.estimation.paper.update_laws.IntermittentInversion` (l ≡ 1, as built by
@@ -190,14 +190,15 @@ def kernel_parts(observer: ModifiedHighGainObserver) -> KernelParts:
     law = observer.update_law
     if law.state_size:
         raise _unsupported("an update law with a state")
-    box = law.parameter_set
-    if not isinstance(box, Box | Ball | Ellipsoid):
-        raise _unsupported(f"Θ = {type(box).__name__} (it must be a Box, Ball or Ellipsoid)")
+    theta_set = law.parameter_set
+    if not isinstance(theta_set, Box | Ball | Ellipsoid):
+        raise _unsupported(f"Θ = {type(theta_set).__name__} (it must be a Box, Ball or "
+                           "Ellipsoid)")
     if getattr(law, "saturation", None) is not None:
         raise _unsupported("an update law with saturation")
     if isinstance(law, ConstantLaw):
-        return KernelParts(code=0, perturbation=pert, theta_set=box)
-    if isinstance(box, Box):
+        return KernelParts(code=0, perturbation=pert, theta_set=theta_set)
+    if isinstance(theta_set, Box):
         _diagonal_gain(law)
     if isinstance(law, GradientInversion):
         if not (law.perturbation is pert or law.perturbation == pert):
@@ -210,7 +211,7 @@ def kernel_parts(observer: ModifiedHighGainObserver) -> KernelParts:
                                    f"({type(law.M).__name__}) without sympy_form(g), its "
                                    "SymPy matrix in g's symbols")
             M = form(pert)
-        return KernelParts(code=3, perturbation=pert, theta_set=box, M=M)
+        return KernelParts(code=3, perturbation=pert, theta_set=theta_set, M=M)
     if not isinstance(law, IntermittentInversion):
         raise _unsupported(f"the update law {type(law).__name__}")
     code, ramp = 1, None
@@ -220,8 +221,8 @@ def kernel_parts(observer: ModifiedHighGainObserver) -> KernelParts:
         raise _unsupported("an excitation weight l other than smooth_ramp(low, high)")
     ts = as_theta_star(law.theta_star, pert)
     if ts is not None:
-        return KernelParts(code=code, perturbation=pert, theta_set=box, theta_star=ts, ramp=ramp,
-                           freeze=law.on_invalid == "freeze")
+        return KernelParts(code=code, perturbation=pert, theta_set=theta_set, theta_star=ts,
+                           ramp=ramp, freeze=law.on_invalid == "freeze")
     raise UnsupportedError(
         f"compile_observer: the θ* of {type(law).__name__} is a Python callable "
         f"({type(law.theta_star).__name__}), which cannot be compiled; build the law with a "

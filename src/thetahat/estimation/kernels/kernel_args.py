@@ -55,11 +55,12 @@ class LawArrays(NamedTuple):
     1–2) reads Γ = V diag(lam) Vᵀ as ``lam``, ``V``, ``VT`` with scratch ``ts``, ``err``; the
     gradient law (Propositions 3–4) reads ``Gamma`` with scratch ``g``, ``J``, ``Mt``, ``GM``,
     ``f``, ``K``, ``Z``, ``Ex``, ``T``, ``U``; the compiled kernel's projection onto a box
-    reads ``lower``, ``upper``, its projection onto a ball or an ellipsoid reads ``ell``
-    ((p + 1, p): the centre c, then Q) with the metric ``Gamma`` (Γ; I for the held law) and
-    the scratch ``pw`` ((p + 2, p + 1); :func:`~thetahat.estimation.kernels.set_projection.project_into`), and the inversion law's options ``opts``
-    = (ramp low, ramp high, l is the smooth ramp, on_invalid is "freeze"); the NumPy projection
-    reads ``Gamma_rows``, Γ per row (None: the law's own).
+    reads ``lower``, ``upper``, its projection onto a ball or an ellipsoid
+    (:func:`~thetahat.estimation.kernels.set_projection.project_into`) reads ``ell`` ((p + 1,
+    p): the centre c, then Q) with the metric ``Gamma`` (Γ; I for the held law) and the
+    scratch ``pw`` ((p + 2, p + 1)), and the inversion law's options ``opts`` = (ramp low,
+    ramp high, l is the smooth ramp, on_invalid is "freeze"); the NumPy projection reads
+    ``Gamma_rows``, Γ per row (None: the law's own).
     """
 
     Gamma: Any = None
