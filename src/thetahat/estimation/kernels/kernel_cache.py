@@ -38,6 +38,7 @@ from typing import Any
 import numpy as np
 
 from ...errors import FileAccessError, MissingExtraError, ThetahatError
+from ...safe_io import write_text
 
 __all__ = ["KernelSourceError", "cache_dir", "cached_njit", "kernel_module_source",
            "load_module"]
@@ -126,9 +127,7 @@ def load_module(source: str, prefix: str) -> types.ModuleType:
         return mod
     path = cache_dir() / f"{name}.py"
     if not path.exists() or path.read_text(encoding="utf-8") != source:
-        tmp = path.with_suffix(f".{os.getpid()}.tmp")
-        tmp.write_text(source, encoding="utf-8")
-        os.replace(tmp, path)
+        write_text(path, source)
     spec = importlib.util.spec_from_file_location(name, path)
     if spec is None or spec.loader is None:
         raise FileAccessError(f"cannot import the generated kernel module {path}.")
