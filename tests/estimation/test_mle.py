@@ -1,8 +1,9 @@
 """The MAP estimator (method "mle"): fits of all the data at sample counts, efficient on any model.
 
 Evidence, not hope: the schedule counts samples (the same at any sampling rate), the last fit
-is the MAP estimate of the whole record (an independent cold fit agrees), and on four shipped
-models other than LuGre the final estimate's RMSE over seeds is at the Cramér–Rao bound of the
+is the MAP estimate of the whole record (an independent cold fit agrees), and on six shipped
+models other than LuGre the final estimate's RMSE over seeds and the RMSE over the last half
+of the record (the EKF from the latest fit between fits) are at the Cramér–Rao bound of the
 scenario with x(0) unknown (the estimator does not know x(0)).
 """
 
@@ -28,7 +29,10 @@ SEEDS = 8
 #: RMSE over SEEDS seeds ÷ √CRLB: an efficient estimator gives 1; the RMSE of 8 draws has a
 #: relative standard deviation of ≈ 1/√16 = 25 %, so 1.6 is 2.4 of those above 1.
 EFFICIENCY_BOUND = 1.6
-MODELS = ("prop2", "prop3", "prop4", "two_inertia")
+#: Not actuator.toml: its simulator drives the plant with continuous sines while every
+#: estimator holds u linear between samples; at 10 kHz the 131 Hz component's interpolation
+#: error biases k₁ by about one standard error (RMSE ≈ 1.5–1.6 × the bound with 8 seeds).
+MODELS = ("prop2", "prop3", "prop4", "two_inertia", "heater", "spring_friction")
 
 
 def test_schedule_counts_samples_not_seconds():
@@ -70,28 +74,37 @@ def test_last_fit_is_the_map_of_the_record():
 
 
 @pytest.mark.parametrize("name", MODELS)
-def test_final_estimate_is_efficient(name):
+def test_estimate_is_efficient_at_the_end_and_over_the_last_half(name):
+    """The last row is the record's MAP; the rows between fits (the EKF from the latest fit)
+    are at the running bound too: RMSE over the last half ÷ √(mean bound there), as
+    benchmarks/bench_models.py measures it."""
     pytest.importorskip("numba", reason="32 MAP runs take minutes without the compiled "
                         "kernels (extra speed)")
     spec = load_model(EXAMPLES / f"{name}.toml")
     sc = spec.scenario
     lo, hi = spec.system.parameter_set.lower, spec.system.parameter_set.upper
-    err = []
-    var = None
+    err, half = [], []
+    var = var_half = None
     for seed in range(SEEDS):
         d = simulate_model(spec, seed)
         U, Y = np.asarray(d.u), np.asarray(d.y)
+        N = d.t.size
         if var is None:
             bound = thetahat.crlb(spec.system, d.t, U, theta=sc.theta, noise_std=sc.noise_std,
                                   x0=sc.x0, x0_known=False)
-            var = np.diag(np.asarray(bound.cov)[-1])
+            cov = np.diagonal(np.asarray(bound.cov), axis1=-2, axis2=-1)
+            var, var_half = cov[-1], cov[N // 2:].mean(axis=0)
         res = run_estimator(spec, d.t, U, Y, method="mle")
         TH = np.asarray(res.theta_hat)
         assert np.all(np.isfinite(TH))
         assert np.all((TH >= lo) & (TH <= hi))           # θ̂ ∈ Θ at every sample
         err.append(TH[-1] - sc.theta)
+        half.append(TH[N // 2:] - sc.theta)
     ratio = np.sqrt(np.mean(np.square(err), axis=0) / var)
+    ratio_half = np.sqrt(np.mean(np.square(np.concatenate(half)), axis=0) / var_half)
     assert np.all(ratio <= EFFICIENCY_BOUND), ratio
+    # the last half of one seed is one draw at most (its rows are correlated): the same bound
+    assert np.all(ratio_half <= EFFICIENCY_BOUND), ratio_half
 
 
 def _time_scaled_prop3(c: float) -> str:

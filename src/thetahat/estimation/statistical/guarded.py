@@ -39,8 +39,8 @@ from .stage2_set import stage2_set
 from .fit_worker import default_executor, discard_default_executor, fit_spec, run_fit, warm_up
 from .guard import (GUARD_C, GUARD_DWELL, GUARD_KAPPA, GUARD_RHO_MAX, make_guarded_loop,
                     progress_init)
-from .likelihood import unit_process_noise
-from .mle import FitResult, FitSchedule, MapEstimator, fit_record
+from .mle import (FitResult, FitSchedule, MapEstimator, fit_as_prior, fit_record,
+                  sample_interval)
 from ..kernels.model_kernel import H_RHO, jit
 from .noise_level import MIN_SAMPLES
 from ..protocol import Diagnostics, EstimateResult, missing_samples, phi_hat_from_model
@@ -439,17 +439,13 @@ class GuardedEstimator:
                 fit_at.append(k_next - 1)
                 if fit.consistent:
                     # the fit ends at this very sample: take (x, θ) and their joint covariance
-                    s[:n], s[n:] = fit.x_end, fit.theta
-                    P[:, :] = fit.cov_end
+                    # stage 2 carries the model error as the fit found it (none: q = 0)
+                    s_fit, P_fit, R, Q_x = fit_as_prior(sys_, fit, sample_interval(t_[:k_next]),
+                                                        self.q_x)
+                    s[:], P[:, :] = s_fit, P_fit
                     cfg[4 + p:4 + 2 * p] = fit.theta
                     cfg[4 + 2 * p:] = self.kappa * fit.theta_se
                     sigma = fit.noise_std
-                    R = np.diag(sigma ** 2)
-                    # stage 2 carries the model error as the fit found it (none: q = 0)
-                    Q_x = self.q_x * np.eye(n)
-                    if fit.process_noise > 0.0:
-                        h = float(np.median(np.diff(t_[:k_next])))
-                        Q_x = Q_x + fit.process_noise * unit_process_noise(sys_.A, sys_.E, h)
             if due and not by_samples:
                 j += 1
             k = k_next

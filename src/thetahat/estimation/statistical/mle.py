@@ -18,7 +18,10 @@ errors or after ``max_iter`` iterations.
 
 :class:`MapEstimator` (method "mle") fits all the data so far each time the information has
 grown by a factor (:func:`information_schedule`: counts of samples, never seconds), warm-started
-from the previous fit; its last fit is the MAP estimate of the whole record.
+from the previous fit; its last fit is the MAP estimate of the whole record. Between fits its
+estimate is the joint EKF started from the latest fit's posterior (:func:`fit_as_prior`: the
+fit is the arrival cost of the samples before it), so every row, not only the fits', follows
+the information of the data so far.
 
 :class:`FitSchedule` holds the fits' settings. By default (``times`` None) it fits on the same
 information schedule, all the data so far each time — offline and streaming alike; refitting
@@ -45,15 +48,15 @@ from numpy.typing import NDArray
 
 from ...errors import DimensionError
 from ...model.system import PerturbedLinearSystem
-from .ekf import resolve_noise_std, start_values, theta_prior_sd
-from .stage2_set import project_theta
+from .ekf import ekf_kernels, resolve_noise_std, start_values, theta_prior_sd
+from .stage2_set import project_theta, stage2_set
 from .noise_level import MIN_SAMPLES
 from ..kernels.model_kernel import H_RHO, ModelKernel, jit, model_kernel
 from ..protocol import (Diagnostics, EstimateResult, missing_samples, phi_hat_from_model,
                        stream_sample)
 
 __all__ = ["FitResult", "fit_map", "FitSchedule", "doubling_schedule", "information_schedule",
-           "first_fit_samples", "fit_record", "INFO_GROWTH", "MapDiagnostics", "MapEstimator",
+           "first_fit_samples", "fit_record", "fit_as_prior", "sample_interval", "INFO_GROWTH", "MapDiagnostics", "MapEstimator",
            "MapResult", "MapState", "STEP_TOL", "X_PRIOR_SD"]
 
 FloatArray = NDArray[np.float64]
@@ -598,6 +601,60 @@ def _with_process_noise(system: PerturbedLinearSystem, t: FloatArray, U: FloatAr
                      noise_std=sigma, n_meas=pf.n_meas, process_noise=pf.q)
 
 
+def fit_as_prior(system: PerturbedLinearSystem, fit: FitResult, h: float, q_x: float = 0.0
+                 ) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
+    """A fit as the joint EKF's state at the fit's last sample: (s, P, R, Q_x).
+
+    The fit's Gauss–Newton posterior N(col(x_end, θ), cov_end) summarises every sample of its
+    window (the arrival cost of the samples that follow), so an EKF started from it and fed
+    the later samples approximates the MAP estimate of all the data at each of them — the
+    estimate between two scheduled fits of :class:`MapEstimator` and stage 2's restart in
+    :class:`~thetahat.estimation.statistical.guarded.GuardedEstimator`.
+
+    Parameters
+    ----------
+    system : PerturbedLinearSystem
+    fit : FitResult
+    h : float
+        The sampling interval (> 0) over which the fit's process-noise intensity, if any,
+        becomes a covariance per sample.
+    q_x : float
+        Process-noise variance per sample on x added to the fit's own (default 0).
+
+    Returns
+    -------
+    s : ndarray (n + p,)
+        col(x̂, θ̂) at the fit's last sample.
+    P : ndarray (n + p, n + p)
+        Their joint covariance (C order: the compiled kernels update it in place).
+    R : ndarray (r, r)
+        diag(σ̂²) of the fit.
+    Q_x : ndarray (n, n)
+        q_x I plus the fit's process noise on φ over one sample (none: zero).
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from thetahat.models import prop3_monotone as prop3
+    >>> from thetahat.estimation.statistical.mle import MapEstimator, fit_as_prior
+    >>> sys_ = prop3.system()
+    >>> d = prop3.simulate(seed=0, t_end=2.0)
+    >>> fit = MapEstimator(system=sys_, compiled=False).run(d.t, d.u, d.y).diagnostics.fits[-1]
+    >>> s, P, R, Q = fit_as_prior(sys_, fit, 0.01)
+    >>> bool(np.allclose(s[sys_.n:], fit.theta)), P.shape, bool(np.all(Q == 0.0))
+    (True, (3, 3), True)
+    """
+    n = system.n
+    s = np.concatenate([fit.x_end, fit.theta]).astype(np.float64)
+    P = np.array(fit.cov_end, dtype=np.float64, order="C")
+    R = np.diag(np.asarray(fit.noise_std, dtype=np.float64) ** 2)
+    Q_x = q_x * np.eye(n)
+    if fit.process_noise > 0.0:
+        from .likelihood import unit_process_noise
+        Q_x = Q_x + fit.process_noise * unit_process_noise(system.A, system.E, h)
+    return s, P, R, Q_x
+
+
 @dataclass(frozen=True, slots=True, eq=False)
 class MapDiagnostics(Diagnostics):
     """What :class:`MapEstimator` reports beyond the common estimates (``result.diagnostics``).
@@ -659,7 +716,8 @@ class MapState:
     x_hat0, theta_hat0 : ndarray (n,), (p,)
         x̂(0) and θ̂(0) (θ̂(0) in Θ): the prior of the first fit.
     x_hat, theta_hat, theta_sd : ndarray (n,), (p,), (p,)
-        The estimates at the last sample stepped (x̂ predicted from the latest fit).
+        The estimates at the last sample stepped: before the first fit θ̂(0) and x̂ predicted
+        by the model, then the joint EKF continued from the latest fit (:func:`fit_as_prior`).
     k : int
         Samples stepped.
     elapsed : float
@@ -673,6 +731,9 @@ class MapState:
         The last step's dt.
     log : object or None
         The stream's samples (None before the first ``step``), shared by its states.
+    P, R, Q_x : ndarray or None
+        The EKF's covariance of col(x̂, θ̂), output-noise covariance and process noise on x
+        since the latest fit (None before the first fit).
     """
 
     x_hat0: FloatArray
@@ -687,6 +748,9 @@ class MapState:
     fit_samples: tuple[int, ...] = ()
     dt_prev: float = 0.0
     log: _MapLog | None = None
+    P: FloatArray | None = None
+    R: FloatArray | None = None
+    Q_x: FloatArray | None = None
 
     def __repr__(self) -> str:
         return (f"MapState(k={self.k}, theta_hat={self.theta_hat}, fits={len(self.fits)})")
@@ -700,7 +764,8 @@ class MapEstimator:
     exact sensitivities, O(N) per iteration, warm-started from the previous fit), at the sample
     counts of :func:`information_schedule` from :func:`first_fit_samples`, and the last fit
     takes the whole record: θ̂ at the end is the MAP estimate of the record, with no block
-    approximation, at any record length and sampling rate.
+    approximation, at any record length and sampling rate. Between fits the joint EKF runs
+    from the latest fit (:func:`fit_as_prior`), so the rows between fits are not the stale fit.
 
     Parameters
     ----------
@@ -813,9 +878,9 @@ class MapEstimator:
         :func:`information_schedule`'s; a given ``schedule`` fits at the last sample with
         elapsed time ≤ t_j (``dt`` says the next sample comes after t_j). These are the fits
         :meth:`run` makes, except its last: ``run`` also fits the whole record at its end,
-        which a stream does not have. Between fits x̂ is the model's prediction from the
-        latest fit. The fits run in the caller (a ``step`` that fits takes as long as the
-        fit).
+        which a stream does not have. Between fits the estimates are the joint EKF's, started
+        from the latest fit (:func:`fit_as_prior`). The fits run in the caller (a ``step``
+        that fits takes as long as the fit).
 
         Parameters
         ----------
@@ -841,7 +906,7 @@ class MapEstimator:
         DimensionError
             Wrong shapes or dt ≤ 0.
         NonFiniteError
-            NaN or inf in u, or inf in y.
+            NaN or inf in u, or inf in y; the EKF between fits diverged.
         """
         from ...errors import DimensionError
         sys_ = self.system
@@ -853,11 +918,17 @@ class MapEstimator:
                                  "stream (step each state once, in order).")
         elapsed = 0.0 if state.k == 0 else state.elapsed + state.dt_prev
         x, th, sd = state.x_hat, state.theta_hat, state.theta_sd
-        if state.k > 0:
+        P, R, Q_x = state.P, state.R, state.Q_x
+        h_rho = self._schedule().h_rho
+        if state.k > 0 and P is None:           # no fit yet: the model from θ̂(0)
             model = model_kernel(sys_, compiled=self.compiled)
             x = np.asarray(model.propagate(np.array(x), np.array(th), log.U[state.k - 1].copy(),
-                                           u_, state.dt_prev, self._schedule().h_rho, False,
+                                           u_, state.dt_prev, h_rho, False,
                                            np.empty((n, n)), np.empty((n, p))))
+        elif state.k > 0 and P is not None and R is not None and Q_x is not None:
+            x, th, sd, P = self._ekf_step(np.concatenate([x, th]), P, R, Q_x,
+                                          log.U[state.k - 1].copy(), u_, y_, state.dt_prev,
+                                          state.k)
         log.append(elapsed, u_, y_)
         sched = self._schedule()
         k1 = state.k + 1
@@ -879,14 +950,35 @@ class MapEstimator:
             fits.append(fit)
             ends.append(state.k)
             x, th, sd = fit.x_end, fit.theta, fit.theta_se
+            _, P, R, Q_x = fit_as_prior(sys_, fit, sample_interval(log.T[:k1]))
         return MapState(x_hat0=state.x_hat0, theta_hat0=state.theta_hat0, x_hat=np.array(x),
                         theta_hat=np.array(th), theta_sd=np.array(sd), k=state.k + 1,
                         elapsed=elapsed, j=j, fits=tuple(fits), fit_samples=tuple(ends),
-                        dt_prev=h, log=log)
+                        dt_prev=h, log=log, P=P, R=R, Q_x=Q_x)
+
+    def _ekf_step(self, s: FloatArray, P: FloatArray, R: FloatArray, Q_x: FloatArray,
+                  u0: FloatArray, u1: FloatArray, y: FloatArray, dt: float, k: int
+                  ) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
+        """One sample of the EKF between fits (what :meth:`run`'s segments compute)."""
+        from ...errors import NonFiniteError
+        sys_ = self.system
+        n, p = sys_.n, sys_.p
+        kern = ekf_kernels(sys_, compiled=self.compiled)
+        P = np.array(P, dtype=np.float64, order="C")
+        kern.predict(s, P, u0, u1, dt, self._schedule().h_rho, Q_x, np.empty((n, n)),
+                     np.empty((n, p)))
+        if np.all(np.isfinite(y)):
+            ts = stage2_set(sys_.require_parameter_set("the MAP estimator"))
+            kern.update(s, P, y, R, ts.lo, ts.hi, ts.ell)
+        if not np.all(np.isfinite(s)):
+            raise NonFiniteError(f"the MAP estimator's EKF between fits diverged at sample {k}; "
+                                 "check the model and noise_std.")
+        sd = np.sqrt(np.maximum(np.diag(P)[n:], 0.0))
+        return s[:n].copy(), s[n:].copy(), sd, P
 
     def run(self, t: Any, u: Any, y: Any, *, state0: MapState | None = None
             ) -> EstimateResult:
-        """Fit on the schedule over a record; θ̂ between fits is the latest fit's.
+        """Fit on the schedule over a record; between fits, the EKF continued from the latest.
 
         Parameters
         ----------
@@ -900,13 +992,18 @@ class MapEstimator:
         Returns
         -------
         EstimateResult
-            Row k: the latest fit's θ̂ and x̂ predicted from it; ``diagnostics`` is a
+            Row k: at a fit's last sample the fit's estimates; after it, the joint EKF's
+            started from the fit (:func:`fit_as_prior`: the fit is the arrival cost of the
+            samples before); before the first fit θ̂(0) and the model's x̂. The last row is
+            the MAP estimate of the whole record. ``diagnostics`` is a
             :class:`MapDiagnostics` (standard errors and the fits).
 
         Raises
         ------
         OptionError
             ``state0`` has been stepped (continue that stream with :meth:`step`).
+        NonFiniteError
+            The EKF between fits diverged.
         """
         from .ekf import as_record
         sys_ = self.system
@@ -937,9 +1034,8 @@ class MapEstimator:
                    else fit_record(sched, t_, U, Y, k1, prev, prior0, final=last))
             fits.append(fit)
             ends.append(k1 - 1)
-            TH[k1 - 1:] = fit.theta
-            SD[k1 - 1:] = fit.theta_se
-        X = self._predictions(t_, U, Y, st0, fits, ends)
+        X = self._first_predictions(t_, U, Y, st0, ends[0] + 1 if ends else N)
+        self._between_fits(t_, U, Y, fits, ends, X, TH, SD)
         return EstimateResult(t=t_, x_hat=X, theta_hat=TH,
                               phi_hat=phi_hat_from_model(sys_, U, Y, X, TH),
                               skipped=missing_samples(Y),
@@ -947,21 +1043,60 @@ class MapEstimator:
                                                          fit_samples=np.array(ends,
                                                                               dtype=np.int64)))
 
-    def _predictions(self, t: FloatArray, U: FloatArray, Y: FloatArray, st0: MapState,
-                     fits: list[FitResult], ends: list[int]) -> FloatArray:
-        """x̂ between fits: the model run from each fit's end state with its θ."""
+    def _first_predictions(self, t: FloatArray, U: FloatArray, Y: FloatArray,
+                           st0: MapState, k1: int) -> FloatArray:
+        """x̂ before the first fit (rows 0 … k1 − 1): the model run from x̂(0) with θ̂(0)."""
         sys_ = self.system
         n, p, N = sys_.n, sys_.p, t.shape[0]
         sweep = _sweep_for(model_kernel(sys_, compiled=self.compiled))
         X = np.empty((N, n))
-        starts = [0] + ends
-        anchors = [(st0.x_hat0, st0.theta_hat0)] + [(f.x_end, f.theta) for f in fits]
         A, b, T = np.empty((n + p, n + p)), np.empty(n + p), np.empty((n, n + p))
-        Rinv = np.ones(sys_.r)
-        for i, (k0, (x0, th)) in enumerate(zip(starts, anchors)):
-            k1 = starts[i + 1] + 1 if i + 1 < len(starts) else N
-            seg = np.empty((k1 - k0, n))
-            sweep(np.array(x0, dtype=np.float64), np.array(th, dtype=np.float64), U, Y, t, k0,
-                  k1, False, Rinv, self._schedule().h_rho, False, A, b, T, seg)
-            X[k0:k1] = seg
+        seg = np.empty((k1, n))
+        sweep(np.array(st0.x_hat0, dtype=np.float64), np.array(st0.theta_hat0, dtype=np.float64),
+              U, Y, t, 0, k1, False, np.ones(sys_.r), self._schedule().h_rho, False, A, b, T,
+              seg)
+        X[:k1] = seg
         return X
+
+    def _between_fits(self, t: FloatArray, U: FloatArray, Y: FloatArray,
+                      fits: list[FitResult], ends: list[int], X: FloatArray, TH: FloatArray,
+                      SD: FloatArray) -> None:
+        """Rows from each fit's last sample to the next fit's: the fit, then the EKF from it."""
+        from ...errors import NonFiniteError
+        sys_ = self.system
+        N = t.shape[0]
+        kern = ekf_kernels(sys_, compiled=self.compiled)
+        ts = stage2_set(sys_.require_parameter_set("the MAP estimator"))
+        nis = np.full(N, np.nan)
+        for i, (fit, e) in enumerate(zip(fits, ends)):
+            stop = ends[i + 1] if i + 1 < len(ends) else N
+            X[e], TH[e], SD[e] = fit.x_end, fit.theta, fit.theta_se
+            if e + 1 >= stop:
+                continue
+            s, P, R, Q_x = fit_as_prior(sys_, fit, sample_interval(t[:e + 1]))
+            bad = kern.loop(s, P, U, Y, t, e + 1, stop, R, ts.lo, ts.hi, ts.ell,
+                            self._schedule().h_rho, Q_x, X, TH, SD, nis)
+            if bad >= 0:
+                raise NonFiniteError(f"the MAP estimator's EKF between fits diverged at t[{bad}]"
+                                     f" = {t[bad]!r}; check the model and noise_std.")
+
+
+def sample_interval(t: FloatArray) -> float:
+    """The median spacing of ``t`` (the sampling interval of a uniform record; 0 for < 2).
+
+    Parameters
+    ----------
+    t : ndarray (N,)
+
+    Returns
+    -------
+    float
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from thetahat.estimation.statistical.mle import sample_interval
+    >>> sample_interval(np.array([0.0, 0.1, 0.2, 0.5]))
+    0.1
+    """
+    return float(np.median(np.diff(t))) if t.shape[0] > 1 else 0.0
