@@ -22,7 +22,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from ..errors import DesignError, DimensionError
-from ..estimation.paper.observer import HeldObserver, ModifiedHighGainObserver
+from ..estimation.paper.observer import ModifiedHighGainObserver
 from ..estimation.protocol import Estimator
 from ..spec import EstimatorSpec
 from .batch import check_seeds, monte_carlo
@@ -76,13 +76,17 @@ def run_observer(estimator: EstimatorSource, obs: Estimator, data: Any,
                  theta_hat0: FloatArray) -> RunMetrics:
     """Run ``obs`` on one record from θ̂(0) and measure it; a divergence error is recorded.
 
+    A paper observer runs on the fastest back end for the record
+    (:func:`~thetahat.estimation.kernels.compiled.runner`: the C printed from its formulas or
+    numba's kernel for a record of at least ``COMPILE_MIN_SAMPLES`` samples, else Python).
+
     Parameters
     ----------
     estimator : EstimatorSpec or callable
         What built ``obs``; a spec supplies its sample hold.
     obs : Estimator
-        From :func:`observer_for` (run through the estimator protocol; a spec's observer
-        with the spec's hold, :class:`~thetahat.estimation.paper.observer.HeldObserver`).
+        From :func:`observer_for` (run through the estimator protocol; a paper observer
+        with the spec's sample hold, on its fastest back end).
     data : PlantTrajectory or alike
         ``t``, ``u``, ``y`` and the true ``x``, ``theta`` (and optionally ``phi``).
     theta_hat0 : ndarray, shape (p,)
@@ -103,12 +107,15 @@ def run_observer(estimator: EstimatorSource, obs: Estimator, data: Any,
     >>> run_observer(spec, observer_for(spec, 1.0), data, np.array([0.5])).diverged
     False
     """
-    est = (HeldObserver(observer=obs, hold=estimator.hold)
-           if isinstance(estimator, EstimatorSpec) and isinstance(obs, ModifiedHighGainObserver)
-           else obs)
+    from ..estimation.kernels.compiled import runner
     try:
         with np.errstate(all="ignore"):            # an exploding state is the expected failure
-            res = est.run(data.t, data.u, data.y, state0=est.init(theta_hat0=theta_hat0))
+            if isinstance(obs, ModifiedHighGainObserver):
+                hold = estimator.hold if isinstance(estimator, EstimatorSpec) else "zoh"
+                res = runner(obs, data.t).run(data.t, data.u, data.y, hold=hold,
+                                              state0=obs.init(theta_hat0=theta_hat0))
+            else:
+                res = obs.run(data.t, data.u, data.y, state0=obs.init(theta_hat0=theta_hat0))
     except DIVERGENCE_ERRORS as exc:
         return failed_run(np.asarray(data.x).shape[1], exc)
     return run_metrics(data, res)

@@ -194,15 +194,19 @@ def _run_eps(estimator: EstimatorSource, observers: list[Any], records: list[Any
     The observers of one ε differ only in Γ, so :func:`~thetahat.estimation.kernels.batch_run.
     run_batch` runs all of them on all seeds at once. When that batch diverges (one exploding
     run stops it), or the observers are not :class:`ModifiedHighGainObserver` or the records
-    do not share one time grid, the runs are repeated one by one.
+    do not share one time grid, the runs are repeated one by one — as they are for records of
+    at least ``COMPILE_MIN_SAMPLES`` samples, each on its compiled form
+    (:func:`~thetahat.studies.sweep.run_observer`), which beats the NumPy batch there.
     """
     from ..estimation.kernels.batch_run import run_batch
+    from ..estimation.kernels.compiled import COMPILE_MIN_SAMPLES
     from ..estimation.paper.observer import ModifiedHighGainObserver
 
     pairs = [(o, d) for o in observers for d in records]
     t0 = np.asarray(records[0].t)
     hold = estimator.hold if isinstance(estimator, EstimatorSpec) else "zoh"
-    if all(isinstance(o, ModifiedHighGainObserver) for o in observers) and all(
+    if t0.size < COMPILE_MIN_SAMPLES and all(
+            isinstance(o, ModifiedHighGainObserver) for o in observers) and all(
             np.array_equal(np.asarray(d.t), t0) for d in records[1:]):
         state0 = np.stack([o.init(theta_hat0=th0) for o, _ in pairs])
         try:

@@ -30,10 +30,12 @@ from numpy.typing import NDArray
 from ..._validate import as_vector
 from ...errors import DimensionError, NonFiniteError, OptionError, ParameterSetError
 from ...errors import UnsupportedError
+from ...model.paramset import Box
 from ...model.system import PerturbedLinearSystem
 from ..kernels.model_kernel import H_RHO, ModelKernel, jit, model_kernel
 from .noise_level import MIN_SAMPLES, estimate_noise_std
-from .stage2_set import has_compiled_projection, project_kernel, stage2_set, theta_bounds
+from .stage2_set import (clip_kernel, has_compiled_projection, project_kernel, stage2_set,
+                         theta_bounds)
 from ..protocol import (Diagnostics, EstimateResult, missing_samples, phi_hat_from_model,
                        stream_sample)
 
@@ -197,7 +199,10 @@ def _make(model: ModelKernel, project: Callable[..., None]) -> EKFKernels:
         N = n + p
         x = s[:n].copy()
         th = s[n:].copy()
-        xn = prop(x, th, u0, u1, h, h_rho, True, Phi, Gam)
+        # a runtime True (n ≥ 1), not the literal: numba would compile a second
+        # specialisation of propagate for Literal[bool] (≈ 0.9 s of a first run) besides the
+        # one the MAP sweep and the likelihood use
+        xn = prop(x, th, u0, u1, h, h_rho, n > 0, Phi, Gam)
         # T = [[Φ, Γ], [0, I]], element by element: numba's slice assignment compiles its
         # string-formatting error path (≈ 3 s of a guarded run's first compilation)
         T = np.zeros((N, N))
@@ -347,8 +352,8 @@ def _make(model: ModelKernel, project: Callable[..., None]) -> EKFKernels:
 
 
 @functools.lru_cache(maxsize=16)
-def _cached(model: ModelKernel) -> EKFKernels:
-    return _make(model, jit(project_kernel, model.compiled))
+def _cached(model: ModelKernel, box: bool) -> EKFKernels:
+    return _make(model, jit(clip_kernel if box else project_kernel, model.compiled))
 
 
 @functools.lru_cache(maxsize=16)
@@ -406,7 +411,7 @@ def ekf_kernels(system: PerturbedLinearSystem, *, compiled: bool | None = None) 
     """
     theta_set = system.require_parameter_set("stage 2")
     if has_compiled_projection(theta_set):
-        return _cached(model_kernel(system, compiled=compiled))
+        return _cached(model_kernel(system, compiled=compiled), isinstance(theta_set, Box))
     if compiled:
         raise UnsupportedError(f"Θ = {theta_set!r} has no compiled projection (its P is a "
                                "Python callable); pass compiled=None or False, or give Θ as a "

@@ -204,7 +204,8 @@ def _make_filter(model: ModelKernel) -> Callable[..., int]:
         K = np.empty(n)
         for k in range(N):
             if k > 0:
-                x = prop(x, th, U[k - 1], U[k], tt[k] - tt[k - 1], h_rho, True, Phi, Gam)
+                # a runtime True (n ≥ 1): the EKF's and the sweep's specialisation of prop
+                x = prop(x, th, U[k - 1], U[k], tt[k] - tt[k - 1], h_rho, n > 0, Phi, Gam)
                 for i in range(n):
                     for j in range(n):
                         acc = 0.0

@@ -54,10 +54,10 @@ from numpy.typing import NDArray
 
 from ...errors import ParameterSetError
 from ...model.paramset import Ball, Box, ConvexSet, Ellipsoid, ParameterSet
-from ..kernels.set_projection import ELLIPSOID_MARGIN, ellipsoid_data, project_kernel
+from ..kernels.set_projection import ELLIPSOID_MARGIN, clip_kernel, ellipsoid_data, project_kernel
 
 __all__ = ["ELLIPSOID_MARGIN", "BOUNDARY_RTOL", "theta_bounds", "ellipsoid_data",
-           "project_kernel", "project_theta", "on_boundary", "has_compiled_projection",
+           "clip_kernel", "project_kernel", "project_theta", "on_boundary", "has_compiled_projection",
            "StageTwoSet", "stage2_set"]
 
 FloatArray = NDArray[np.float64]
