@@ -96,3 +96,27 @@ def test_emps_model_error_is_reported():
     assert rep.model_error and any("model error" in w for w in rep.warnings)
     # every parameter pinned to better than 2 % (published IDIM-LS: 0.11-1.4 %)
     assert rep.unpinned == () and np.all(rep.crlb_rel_sd < 0.02)
+
+
+def test_q_searched_on_the_head_of_a_long_record_is_the_whole_records(monkeypatch):
+    """record_bound searches q on the first Q_SEARCH_SAMPLES samples only: on the measured EMPS
+    record (a real model error) its first half gives the q̂ of the whole record to within the
+    search's own tolerance, and θ's covariance is still the whole record's."""
+    pytest.importorskip("numba", reason="the 24 841-sample filter passes take minutes without "
+                        "the compiled kernels (extra speed)")
+    import thetahat.estimation.statistical.likelihood as lk
+    from thetahat.estimation.statistical.noise_level import estimate_noise_std
+    from thetahat.models import emps
+    spec = load_model(EXAMPLES / "emps.toml")
+    rec = emps.load()
+    U, Y = np.asarray(rec.u).reshape(-1, 1), np.asarray(rec.y).reshape(-1, 1)
+    kw = dict(theta=emps.PUBLISHED.value, x_hat0=np.array([Y[0, 0], 0.0]),
+              x_sd=np.full(2, 10.0), noise_std=estimate_noise_std(Y))
+    q_all, cov_all = lk.record_bound(spec.system, rec.t, U, Y, **kw)
+    monkeypatch.setattr(lk, "Q_SEARCH_SAMPLES", rec.t.size // 2)
+    q_head, cov_head = lk.record_bound(spec.system, rec.t, U, Y, **kw)
+    assert q_all > 0.0 and q_head > 0.0                         # the model error shows in both
+    # two bounded searches, each to Q_XTOL decades: within 3 tolerances of each other
+    assert abs(np.log10(q_head / q_all)) <= 3 * lk.Q_XTOL
+    # the covariance is the whole record's at each q: a q within the tolerance moves it little
+    np.testing.assert_allclose(np.sqrt(np.diag(cov_head)), np.sqrt(np.diag(cov_all)), rtol=0.1)
