@@ -27,12 +27,7 @@ __all__ = ["Status", "MESSAGES", "status_constants"]
 class Status(IntEnum):
     """Status codes of the step in every back end (Python, numba, C).
 
-    Parameters
-    ----------
-    value : int
-        A code: ``Status(6)`` is ``Status.SINGULAR``.
-    kwds : dict
-        Passed on by Python's Enum machinery; not used.
+    ``Status(code)`` gives the member of an int code (``Status(6)`` is ``Status.SINGULAR``).
 
     Examples
     --------
