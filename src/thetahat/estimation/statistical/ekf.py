@@ -39,7 +39,8 @@ from .stage2_set import (clip_kernel, has_compiled_projection, project_kernel, s
 from ..protocol import (Diagnostics, EstimateResult, missing_samples, phi_hat_from_model,
                        stream_sample)
 
-__all__ = ["start_values", "EKFKernels", "ekf_kernels", "JointEKF", "EKFDiagnostics", "EKFResult", "EKFState",
+__all__ = ["start_values", "EKFKernels", "ekf_kernels", "ekf_sample", "sample_interval", "JointEKF",
+           "EKFDiagnostics", "EKFResult", "EKFState",
            "theta_box", "theta_prior_sd", "PRIOR_FRACTION"]
 
 FloatArray = NDArray[np.float64]
@@ -419,6 +420,56 @@ def ekf_kernels(system: PerturbedLinearSystem, *, compiled: bool | None = None) 
     return _cached_python_projection(model_kernel(system, compiled=False), theta_set)
 
 
+def ekf_sample(kernels: EKFKernels, system: PerturbedLinearSystem, s: FloatArray, P: FloatArray,
+               u0: FloatArray | None, u1: FloatArray, y: FloatArray, dt: float, h_rho: float,
+               Q_x: FloatArray, R: FloatArray | None, k: int) -> float:
+    """One sample of the joint EKF, in place: the ``step`` of every estimator that runs it.
+
+    Predicts s = col(x̂, θ̂) and P from the previous sample (input u0 → u1 over ``dt``; none when
+    ``u0`` is None: the first sample), then updates with ``y`` (none when y holds NaN or ``R``
+    is None: σ not known yet), θ̂ projected onto Θ. What :attr:`EKFKernels.loop` does for one
+    sample of a record.
+
+    Parameters
+    ----------
+    kernels : EKFKernels
+        :func:`ekf_kernels` of ``system``.
+    system : PerturbedLinearSystem
+    s : ndarray (n + p,)
+    P : ndarray (n + p, n + p)
+        C order; both overwritten.
+    u0 : ndarray (m,) or None
+    u1 : ndarray (m,)
+    y : ndarray (r,)
+    dt : float
+    h_rho : float
+    Q_x : ndarray (n, n)
+    R : ndarray (r, r) or None
+    k : int
+        The sample's index (named in the error).
+
+    Returns
+    -------
+    float
+        The update's normalised innovation squared ÷ r (NaN: no update).
+
+    Raises
+    ------
+    NonFiniteError
+        The filter diverged (s not finite).
+    """
+    n, p = Q_x.shape[0], s.shape[0] - Q_x.shape[0]
+    if u0 is not None:
+        kernels.predict(s, P, u0, u1, dt, h_rho, Q_x, np.empty((n, n)), np.empty((n, p)))
+    nis = math.nan
+    if R is not None and np.all(np.isfinite(y)):
+        ts = stage2_set(system.require_parameter_set("stage 2"))
+        nis = float(kernels.update(s, P, y, R, ts.lo, ts.hi, ts.ell))
+    if not np.all(np.isfinite(s)):
+        raise NonFiniteError(f"the EKF diverged at sample {k}; check the model and noise_std.")
+    return nis
+
+
 @dataclass(frozen=True, slots=True, eq=False)
 class EKFDiagnostics(Diagnostics):
     """What :meth:`JointEKF.run` reports beyond the common estimates (``result.diagnostics``).
@@ -610,25 +661,18 @@ class JointEKF:
         sys_ = self.system
         n, r = sys_.n, sys_.r
         u_, y_, h = stream_sample(sys_, u, y, dt)
-        k = self.kernels
         s = np.concatenate([state.x_hat, state.theta_hat])
         P = np.array(state.P, dtype=np.float64, order="C")
-        if state.k > 0 and state.u_prev is not None:
-            p = sys_.p
-            k.predict(s, P, np.array(state.u_prev, dtype=np.float64), u_, state.dt_prev,
-                      self.h_rho, self.q_x * np.eye(n), np.empty((n, n)), np.empty((n, p)))
         sigma, y_first = state.noise_std, state.y_first
         if sigma is None:
             y_first = np.vstack([np.zeros((0, r)) if y_first is None else y_first, y_[None]])
             if y_first.shape[0] >= MIN_SAMPLES:
                 sigma = resolve_noise_std(None, y_first)
-        nis = math.nan
-        if sigma is not None and np.all(np.isfinite(y_)):
-            ts = stage2_set(sys_.require_parameter_set("stage 2"))
-            nis = float(k.update(s, P, y_, np.diag(sigma ** 2), ts.lo, ts.hi, ts.ell))
-        if not np.all(np.isfinite(s)):
-            raise NonFiniteError(f"the EKF diverged at sample {state.k}; check the model and "
-                                 "noise_std.")
+        u0 = (np.array(state.u_prev, dtype=np.float64)
+              if state.k > 0 and state.u_prev is not None else None)
+        nis = ekf_sample(self.kernels, sys_, s, P, u0, u_, y_, state.dt_prev, self.h_rho,
+                         self.q_x * np.eye(n), None if sigma is None else np.diag(sigma ** 2),
+                         state.k)
         return EKFState(x_hat=s[:n], theta_hat=s[n:], P=P, k=state.k + 1, u_prev=u_, dt_prev=h,
                         noise_std=sigma, y_first=y_first, nis=nis)
 
@@ -699,6 +743,30 @@ class JointEKF:
 
     def __repr__(self) -> str:
         return f"JointEKF(n={self.system.n}, p={self.system.p}, compiled={self.kernels.model.compiled})"
+
+
+def sample_interval(t: FloatArray) -> float:
+    """The median spacing of ``t``: the sampling interval of a uniform record (1 with < 2).
+
+    What a per-sample covariance (process noise over one sample) and the process-noise
+    scale are taken over; the median keeps a few dropped samples from moving it.
+
+    Parameters
+    ----------
+    t : ndarray (N,)
+
+    Returns
+    -------
+    float
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from thetahat.estimation.statistical.ekf import sample_interval
+    >>> sample_interval(np.array([0.0, 0.1, 0.2, 0.5]))
+    0.1
+    """
+    return float(np.median(np.diff(t))) if t.shape[0] > 1 else 1.0
 
 
 def as_record(t: Any, u: Any, y: Any, m: int, r: int) -> tuple[FloatArray, FloatArray, FloatArray]:

@@ -34,13 +34,13 @@ from numpy.typing import NDArray
 from ...errors import (ArgumentTypeError, DimensionError, NonFiniteError, OptionError,
                       ThetahatWarning)
 from ...model.system import PerturbedLinearSystem
-from .ekf import (EKFKernels, JointEKF, as_record, ekf_kernels, resolve_noise_std, start_values)
+from .ekf import (EKFKernels, JointEKF, as_record, ekf_kernels, resolve_noise_std,
+                  sample_interval, start_values)
 from .stage2_set import stage2_set
 from .fit_worker import default_executor, discard_default_executor, fit_spec, run_fit, warm_up
 from .guard import (GUARD_C, GUARD_DWELL, GUARD_KAPPA, GUARD_RHO_MAX, make_guarded_loop,
                     progress_init)
-from .mle import (FitResult, FitSchedule, MapEstimator, fit_as_prior, fit_record,
-                  sample_interval)
+from .mle import FitResult, FitSchedule, MapEstimator, fit_as_prior, fit_record
 from ..kernels.model_kernel import H_RHO, jit
 from .noise_level import MIN_SAMPLES
 from ..protocol import Diagnostics, EstimateResult, missing_samples, phi_hat_from_model

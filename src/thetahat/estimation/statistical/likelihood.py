@@ -41,7 +41,7 @@ from scipy.optimize import least_squares, minimize_scalar
 from ...errors import NonFiniteError
 from ...model.system import PerturbedLinearSystem
 from ...model.paramset import Box, ParameterSet
-from .ekf import theta_box
+from .ekf import sample_interval, theta_box
 from .stage2_set import project_theta, theta_bounds
 from ..kernels.model_kernel import H_RHO, ModelKernel, jit, model_kernel
 
@@ -60,7 +60,8 @@ Q_XTOL = 0.1
 #: :func:`record_bound` searches q on at most this many samples (the record's first): q̂'s
 #: standard error from N innovations is ≈ √(2/N) relative, 0.0024 decade at 2¹⁶ — 40 times
 #: below :data:`Q_XTOL` — so a longer record only makes each of the search's ~16 filter
-#: passes longer (a 10⁶-sample log: 14 s of a 16 s trust report), not q̂ better.
+#: passes longer, not q̂ better (``thetahat estimate`` on a 10⁶-sample log,
+#: benchmarks/bench_estimate.py: 21.6 s with the whole record searched, 8.7 s with this).
 Q_SEARCH_SAMPLES = 2 ** 16
 #: Relative tolerance of the Gauss–Newton fit of θ (steps and cost).
 FIT_RTOL = 1e-6
@@ -405,7 +406,7 @@ def record_bound(system: PerturbedLinearSystem, t: FloatArray, U: FloatArray, Y:
     sigma = np.asarray(noise_std, dtype=np.float64)
     pb = _problem(system, t, U, Y, x_hat0, x_sd, sigma, h_rho, compiled)
     th = np.asarray(theta, dtype=np.float64)
-    h_med = float(np.median(np.diff(t))) if t.shape[0] > 1 else 1.0
+    h_med = sample_interval(t)
     k = Q_SEARCH_SAMPLES
     head = pb if t.shape[0] <= k else _problem(system, t[:k], U[:k], Y[:k], x_hat0, x_sd,
                                                sigma, h_rho, compiled)
@@ -510,7 +511,7 @@ def fit_process_noise(system: PerturbedLinearSystem, t: FloatArray, U: FloatArra
     theta_set = system.require_parameter_set("stage 2")
     sigma = np.asarray(noise_std, dtype=np.float64)
     pb = _problem(system, t, U, Y, x_hat0, x_sd, sigma, h_rho, compiled)
-    h_med = float(np.median(np.diff(t))) if t.shape[0] > 1 else 1.0
+    h_med = sample_interval(t)
     q0 = process_noise_scale(system, h_med, sigma)
     theta = project_theta(theta_set, np.asarray(theta0, dtype=np.float64))
     q_now = q0 if q is None else float(q)

@@ -48,7 +48,8 @@ from numpy.typing import NDArray
 
 from ...errors import DimensionError
 from ...model.system import PerturbedLinearSystem
-from .ekf import ekf_kernels, resolve_noise_std, start_values, theta_prior_sd
+from .ekf import (ekf_kernels, ekf_sample, resolve_noise_std, sample_interval, start_values,
+                  theta_prior_sd)
 from .stage2_set import project_theta, stage2_set
 from .noise_level import MIN_SAMPLES
 from ..kernels.model_kernel import H_RHO, ModelKernel, jit, model_kernel
@@ -56,7 +57,8 @@ from ..protocol import (Diagnostics, EstimateResult, missing_samples, phi_hat_fr
                        stream_sample)
 
 __all__ = ["FitResult", "fit_map", "FitSchedule", "doubling_schedule", "information_schedule",
-           "first_fit_samples", "fit_record", "fit_as_prior", "sample_interval", "INFO_GROWTH", "MapDiagnostics", "MapEstimator",
+           "first_fit_samples", "fit_record", "fit_as_prior", "INFO_GROWTH", "MapDiagnostics",
+           "MapEstimator",
            "MapResult", "MapState", "STEP_TOL", "X_PRIOR_SD"]
 
 FloatArray = NDArray[np.float64]
@@ -917,18 +919,6 @@ class MapEstimator:
             raise DimensionError("MapEstimator.step: this state is not the latest of its "
                                  "stream (step each state once, in order).")
         elapsed = 0.0 if state.k == 0 else state.elapsed + state.dt_prev
-        x, th, sd = state.x_hat, state.theta_hat, state.theta_sd
-        P, R, Q_x = state.P, state.R, state.Q_x
-        h_rho = self._schedule().h_rho
-        if state.k > 0 and P is None:           # no fit yet: the model from θ̂(0)
-            model = model_kernel(sys_, compiled=self.compiled)
-            x = np.asarray(model.propagate(np.array(x), np.array(th), log.U[state.k - 1].copy(),
-                                           u_, state.dt_prev, h_rho, False,
-                                           np.empty((n, n)), np.empty((n, p))))
-        elif state.k > 0 and P is not None and R is not None and Q_x is not None:
-            x, th, sd, P = self._ekf_step(np.concatenate([x, th]), P, R, Q_x,
-                                          log.U[state.k - 1].copy(), u_, y_, state.dt_prev,
-                                          state.k)
         log.append(elapsed, u_, y_)
         sched = self._schedule()
         k1 = state.k + 1
@@ -941,7 +931,9 @@ class MapEstimator:
             at = sched.sample_counts(self.growth)
             while at(j) <= k1:
                 due, j = due or at(j) == k1, j + 1
-        if due and k1 >= self._min_samples():
+        x, th, sd = state.x_hat, state.theta_hat, state.theta_sd
+        P, R, Q_x = state.P, state.R, state.Q_x
+        if due and k1 >= self._min_samples():   # a fit: its estimates replace this sample's
             prior0 = sched.initial_prior(state.x_hat0, state.theta_hat0)
             prev = fits[-1] if fits else None
             fit = (sched.fit(log.T[:k1], log.U[:k1], log.Y[:k1], k1, prev, prior0)
@@ -951,30 +943,22 @@ class MapEstimator:
             ends.append(state.k)
             x, th, sd = fit.x_end, fit.theta, fit.theta_se
             _, P, R, Q_x = fit_as_prior(sys_, fit, sample_interval(log.T[:k1]))
+        elif state.k > 0 and P is not None and Q_x is not None:    # the EKF from the latest fit
+            s_ = np.concatenate([x, th])
+            P = np.array(P, dtype=np.float64, order="C")
+            ekf_sample(ekf_kernels(sys_, compiled=self.compiled), sys_, s_, P,
+                       log.U[state.k - 1].copy(), u_, y_, state.dt_prev, sched.h_rho, Q_x, R,
+                       state.k)
+            x, th, sd = s_[:n], s_[n:], np.sqrt(np.maximum(np.diag(P)[n:], 0.0))
+        elif state.k > 0:                       # no fit yet: the model from θ̂(0)
+            model = model_kernel(sys_, compiled=self.compiled)
+            x = np.asarray(model.propagate(np.array(x), np.array(th), log.U[state.k - 1].copy(),
+                                           u_, state.dt_prev, sched.h_rho, False,
+                                           np.empty((n, n)), np.empty((n, p))))
         return MapState(x_hat0=state.x_hat0, theta_hat0=state.theta_hat0, x_hat=np.array(x),
                         theta_hat=np.array(th), theta_sd=np.array(sd), k=state.k + 1,
                         elapsed=elapsed, j=j, fits=tuple(fits), fit_samples=tuple(ends),
                         dt_prev=h, log=log, P=P, R=R, Q_x=Q_x)
-
-    def _ekf_step(self, s: FloatArray, P: FloatArray, R: FloatArray, Q_x: FloatArray,
-                  u0: FloatArray, u1: FloatArray, y: FloatArray, dt: float, k: int
-                  ) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
-        """One sample of the EKF between fits (what :meth:`run`'s segments compute)."""
-        from ...errors import NonFiniteError
-        sys_ = self.system
-        n, p = sys_.n, sys_.p
-        kern = ekf_kernels(sys_, compiled=self.compiled)
-        P = np.array(P, dtype=np.float64, order="C")
-        kern.predict(s, P, u0, u1, dt, self._schedule().h_rho, Q_x, np.empty((n, n)),
-                     np.empty((n, p)))
-        if np.all(np.isfinite(y)):
-            ts = stage2_set(sys_.require_parameter_set("the MAP estimator"))
-            kern.update(s, P, y, R, ts.lo, ts.hi, ts.ell)
-        if not np.all(np.isfinite(s)):
-            raise NonFiniteError(f"the MAP estimator's EKF between fits diverged at sample {k}; "
-                                 "check the model and noise_std.")
-        sd = np.sqrt(np.maximum(np.diag(P)[n:], 0.0))
-        return s[:n].copy(), s[n:].copy(), sd, P
 
     def run(self, t: Any, u: Any, y: Any, *, state0: MapState | None = None
             ) -> EstimateResult:
@@ -1077,26 +1061,6 @@ class MapEstimator:
             bad = kern.loop(s, P, U, Y, t, e + 1, stop, R, ts.lo, ts.hi, ts.ell,
                             self._schedule().h_rho, Q_x, X, TH, SD, nis)
             if bad >= 0:
-                raise NonFiniteError(f"the MAP estimator's EKF between fits diverged at t[{bad}]"
-                                     f" = {t[bad]!r}; check the model and noise_std.")
+                raise NonFiniteError(f"the EKF diverged at t[{bad}] = {t[bad]!r}; check the model "
+                                     "and noise_std.")
 
-
-def sample_interval(t: FloatArray) -> float:
-    """The median spacing of ``t`` (the sampling interval of a uniform record; 0 for < 2).
-
-    Parameters
-    ----------
-    t : ndarray (N,)
-
-    Returns
-    -------
-    float
-
-    Examples
-    --------
-    >>> import numpy as np
-    >>> from thetahat.estimation.statistical.mle import sample_interval
-    >>> sample_interval(np.array([0.0, 0.1, 0.2, 0.5]))
-    0.1
-    """
-    return float(np.median(np.diff(t))) if t.shape[0] > 1 else 0.0

@@ -37,7 +37,7 @@ from numpy.typing import NDArray
 
 from ...errors import ThetahatError
 from ...model.system import PerturbedLinearSystem
-from .ekf import theta_box
+from .ekf import sample_interval, theta_box
 from .stage2_set import BOUNDARY_RTOL, on_boundary
 from .likelihood import process_noise_scale, record_bound
 from ..kernels.model_kernel import H_RHO
@@ -196,7 +196,7 @@ def trust_report(system: PerturbedLinearSystem, t: FloatArray, U: FloatArray, Y:
     crlb_sd = np.full(th.shape[0], np.nan)
     q, q0 = 0.0, 1.0
     if t.shape[0] >= MIN_SAMPLES:
-        h_med = float(np.median(np.diff(t)))
+        h_med = sample_interval(t)
         q0 = process_noise_scale(system, h_med, sigma)
         x_sds = np.full(system.n, float(x_sd))
         try:
