@@ -53,7 +53,7 @@ def test_explicit_gamma_is_kept_and_inversion_laws_refuse_auto():
     assert np.allclose(spec.estimator.update_law.Gamma, 4.0 * np.eye(2))
     text = (EXAMPLES / "prop1.toml").read_text()
     text = text.replace("Gamma = 2.0", 'Gamma = "auto"')
-    with pytest.raises(ModelFileError, match="'auto' is for the gradient law"):
+    with pytest.raises(ModelFileError, match="'auto' is for the gradient and least-squares laws"):
         loads_model(text)
 
 

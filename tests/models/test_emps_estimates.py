@@ -27,12 +27,6 @@ OFFSET_TOL = 0.5
 #: A record that begins in motion: DATA_EMPS from this sample on, t restarted at 0; q(0) is
 #: 0.18 m from x̂₀ = 0, so the estimators start at x̂₀ + C⁺(y(0) − C x̂₀) (x_hat0_from_y).
 CUT = 9000
-#: The paper's method (constant-gain gradient law, Γ = "auto") ends at M −7.3 % on the whole
-#: record and −5.8 % on the cut one: issue 19's 3 % does not hold for it yet (strict: a fix
-#: shows up as XPASS and this mark must go).
-PAPER_OPEN = pytest.mark.xfail(strict=True, reason="the paper's constant-gain law fits the "
-                               "record's tail (docs/real-data-emps.md)")
-
 
 @pytest.fixture(scope="module")
 def record():
@@ -48,7 +42,7 @@ def assert_published(th):
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("method", ["mle", "guarded", pytest.param("paper", marks=PAPER_OPEN)])
+@pytest.mark.parametrize("method", ["mle", "guarded", "paper"])
 def test_record_that_begins_in_motion(record, method):
     spec, data = record
     t, u, y = data.t[CUT:] - data.t[CUT], data.u[CUT:], data.y[CUT:]
@@ -61,7 +55,7 @@ def test_record_that_begins_in_motion(record, method):
     assert np.all((res.theta_hat >= lo) & (res.theta_hat <= hi))
 
 
-@pytest.mark.parametrize("method", ["mle", "guarded", pytest.param("paper", marks=PAPER_OPEN)])
+@pytest.mark.parametrize("method", ["mle", "guarded", "paper"])
 def test_method_reproduces_the_published_table(record, method):
     spec, data = record
     with warnings.catch_warnings(record=True) as caught:

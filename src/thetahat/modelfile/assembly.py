@@ -216,8 +216,8 @@ def _refuse_auto_gamma(spec: ModelSpec) -> None:
     """``Gamma = "auto"`` is chosen on a record: refused where there is none."""
     if spec.estimator.gamma_auto:
         raise ModelFileError(
-            f"model file {spec.source}: [estimator] Gamma = 'auto' (the gradient law's default) "
-            "is chosen on a record, and there is none here: give Gamma in [estimator] (a "
+            f"model file {spec.source}: [estimator] Gamma = 'auto' (the default of the gradient "
+            "and least-squares laws) is chosen on a record, and there is none here: give Gamma in [estimator] (a "
             "number or a p × p matrix), or estimate with run_estimator / thetahat estimate, "
             "which choose it on the data.")
 
@@ -431,15 +431,16 @@ def start_x_hat(spec: ModelSpec, y: ArrayLike) -> FloatArray:
 
 def auto_gamma(spec: ModelSpec, t: ArrayLike, u: ArrayLike | None, y: ArrayLike, *,
                hold: Hold = "zoh") -> FloatArray:
-    """``Gamma = "auto"`` on a record: the gradient law's Γ from the record's information.
+    """``Gamma = "auto"`` on a record: the law's Γ (Γ₀) from the record's information.
 
     x̂ from a first pass of the file's observer with θ̂ held at θ̂₀, then
-    :func:`~thetahat.estimation.paper.auto_gain.information_gain` at θ̂₀.
+    :func:`~thetahat.estimation.paper.auto_gain.information_gain` at θ̂₀ with the law's κ
+    (:func:`~thetahat.estimation.paper.auto_gain.auto_kappa`).
 
     Parameters
     ----------
     spec : ModelSpec
-        With a gradient law.
+        With a gradient or least-squares law.
     t, u, y : array_like
         The record, as for :func:`run_estimator`.
     hold : {"zoh", "foh"}
@@ -466,7 +467,7 @@ def auto_gamma(spec: ModelSpec, t: ArrayLike, u: ArrayLike | None, y: ArrayLike,
     >>> G.shape, bool(G[0, 0] > 0)
     ((1, 1), True)
     """
-    from ..estimation.paper.auto_gain import information_gain
+    from ..estimation.paper.auto_gain import auto_kappa, information_gain
     from ..estimation.paper.law_base import ConstantLaw
     s = spec.system
     if s.perturbation is None or s.parameter_set is None:
@@ -484,7 +485,8 @@ def auto_gamma(spec: ModelSpec, t: ArrayLike, u: ArrayLike | None, y: ArrayLike,
     Y = np.asarray(y, dtype=np.float64).reshape(N, -1)
     return information_gain(s.perturbation, np.concatenate([U, Y], axis=1), first.x_hat,
                             np.asarray(th0, dtype=np.float64),
-                            float(first.t[-1] - first.t[0]))
+                            float(first.t[-1] - first.t[0]),
+                            kappa=auto_kappa(spec.estimator.update_law))
 
 
 def _check_theta_star(spec: ModelSpec, t: ArrayLike, u: ArrayLike | None, y: ArrayLike) -> None:

@@ -21,14 +21,16 @@ A model file (TOML, read with :mod:`tomllib`, or JSON with the same structure) h
     exists in the API only (:class:`~thetahat.model.paramset.ConvexSet`).
 ``[estimator]``
     ``law`` (required): ``"gradient"`` (:class:`~thetahat.estimation.paper.update_laws.
-    GradientInversion` with the default M = (∂g/∂θ)ᵀ, Propositions 3–4), ``"algebraic"``
+    GradientInversion` with the default M = (∂g/∂θ)ᵀ, Propositions 3–4), ``"least_squares"``
+    (:class:`~thetahat.estimation.paper.least_squares.FilteredLeastSquares`: the regressor
+    filtered like φ̂, a gain Γ(t) that shrinks as information grows), ``"algebraic"``
     (:class:`~thetahat.estimation.paper.update_laws.AlgebraicInversion`, Proposition 1) or
     ``"intermittent"`` (:class:`~thetahat.estimation.paper.update_laws.IntermittentInversion`,
     Proposition 2, with the excitation weight ``smooth_ramp(*excitation)`` of ‖φ̂‖).
     Optional: ``eps`` (default 1, Sec. VII), ``chain_poles`` (one list per chain; default
     −1, −2, …), ``b_poles``, ``Gamma`` (number, p × p or ``"auto"``; default ``"auto"`` for
-    the gradient law — :mod:`~thetahat.estimation.paper.auto_gain` — and 1 for the inversion
-    laws), ``theta_hat0``
+    the gradient and least-squares laws — :mod:`~thetahat.estimation.paper.auto_gain` — and
+    1 for the inversion laws), ``theta_hat0``
     (default: the centre of Θ), ``x_hat0`` (default 0: the prior of x̂(0)), ``x_hat0_from_y``
     (default true: every method starts at x̂(0) = x̂₀ + C⁺(y(0) − C x̂₀), the state nearest
     x̂₀ that fits the record's first sample, :func:`~thetahat.estimation.paper.initial_state.
@@ -95,6 +97,7 @@ from numpy.typing import ArrayLike, NDArray
 from .. import limits
 from ..data_mapping import DataMapping, parse_data_table
 from ..errors import InputLimitError, ModelFileError, ThetahatError
+from ..estimation.paper.least_squares import FilteredLeastSquares
 from ..estimation.paper.projection import as_gain
 from ..safe_io import read_text
 from ..estimation.paper.update_laws import (
@@ -110,13 +113,15 @@ from ..estimation.statistical.stage2_set import theta_bounds
 from ..model.perturbation import SymbolicPerturbation
 from ..model.system import PerturbedLinearSystem
 
-__all__ = ["ESTIMATION_METHODS", "EXAMPLE_MODEL", "EstimatorOptions", "LAWS", "ModelSpec",
+__all__ = ["AUTO_GAMMA_LAWS", "ESTIMATION_METHODS", "EXAMPLE_MODEL", "EstimatorOptions", "LAWS", "ModelSpec",
            "SCENARIO_METHODS", "ScenarioOptions", "SecondObserverOptions", "load_model",
            "loads_model"]
 
 FloatArray = NDArray[np.float64]
 
-LAWS = ("gradient", "algebraic", "intermittent")
+LAWS = ("gradient", "least_squares", "algebraic", "intermittent")
+#: The laws whose Γ defaults to ``"auto"`` (:mod:`~thetahat.estimation.paper.auto_gain`).
+AUTO_GAMMA_LAWS = ("gradient", "least_squares")
 _TOP_KEYS = ("name", "system", "perturbation", "parameter_set", "estimator", "scenario",
              "data")
 _SYSTEM_KEYS = ("A", "B", "C", "E")
@@ -369,7 +374,7 @@ class EstimatorOptions:
 
     Attributes
     ----------
-    law : {"gradient", "algebraic", "intermittent"}
+    law : {"gradient", "least_squares", "algebraic", "intermittent"}
     method : {"paper", "guarded", "mle", "ekf"}
         How :func:`~thetahat.modelfile.run_estimator` estimates (default "paper").
     update_law : UpdateLaw
@@ -390,8 +395,9 @@ class EstimatorOptions:
     x_hat0_from_y : bool
         Start x̂ at x̂₀ + C⁺(y(0) − C x̂₀) on a record (default True), else at x̂₀.
     gamma_auto : bool
-        ``Gamma = "auto"`` (the gradient law's default): Γ is chosen on the record by
-        :func:`~thetahat.estimation.paper.auto_gain.information_gain` when the estimator runs;
+        ``Gamma = "auto"`` (the gradient and least-squares laws' default): Γ is chosen on the
+        record by :func:`~thetahat.estimation.paper.auto_gain.information_gain` when the
+        estimator runs;
         ``update_law`` holds Γ = I until then.
     """
 
@@ -543,10 +549,10 @@ def _read_perturbation(sec: _Section) -> tuple[SymbolicPerturbation, dict[str, A
 def _read_gamma(sec: _Section, p: int, law: str) -> tuple[FloatArray, bool]:
     """(Γ, auto): ``"auto"`` (the default of the gradient law) is resolved on the record by
     :func:`~thetahat.estimation.paper.auto_gain.information_gain`; Γ = 1 stands in until then."""
-    G = sec.table.get("Gamma", "auto" if law == "gradient" else 1.0)
+    G = sec.table.get("Gamma", "auto" if law in AUTO_GAMMA_LAWS else 1.0)
     if G == "auto":
-        if law != "gradient":
-            raise sec.fail("Gamma", f"'auto' is for the gradient law (Propositions 3–4), whose "
+        if law not in AUTO_GAMMA_LAWS:
+            raise sec.fail("Gamma", f"'auto' is for the gradient and least-squares laws, whose "
                                     f"Γ must match the parameters' scales; the {law!r} law's Γ "
                                     "is a rate (1/s): give a positive number.")
         return np.eye(p), True
@@ -607,15 +613,20 @@ def _read_law(sec: _Section, pert: SymbolicPerturbation, theta_set: ParameterSet
     law = sec.require("law", f"one of {list(LAWS)}")
     if law not in LAWS:
         raise sec.fail("law", f"unknown law {_show(law)}; expected one of {list(LAWS)} "
-                              f"(Propositions 1–4).")
+                              f"(Sec. IV).")
     for key in ("theta_star", "excitation", "on_invalid"):
-        unused = law == "gradient" or (key == "excitation" and law != "intermittent")
+        unused = law in AUTO_GAMMA_LAWS or (key == "excitation" and law != "intermittent")
         if sec.has(key) and unused:
             raise sec.fail(key, f"not used by the {law!r} law; remove it.")
     Gamma, auto = _read_gamma(sec, theta_set.dim, law)
     if law == "gradient":
         try:
             return law, GradientInversion(pert, Gamma, theta_set), auto
+        except ThetahatError as exc:
+            raise sec.fail("law", str(exc)) from exc
+    if law == "least_squares":
+        try:
+            return law, FilteredLeastSquares(pert, Gamma, theta_set), auto
         except ThetahatError as exc:
             raise sec.fail("law", str(exc)) from exc
     on_invalid = sec.table.get("on_invalid", "raise")
@@ -861,7 +872,7 @@ def loads_model(text: str, *, syntax: str = "toml", source: str = "<string>") ->
     >>> loads_model(EXAMPLE_MODEL.replace('"gradient"', '"newton"'))
     Traceback (most recent call last):
     ...
-    thetahat.errors.ModelFileError: model file <string>: [estimator] law: unknown law 'newton'; expected one of ['gradient', 'algebraic', 'intermittent'] (Propositions 1–4).
+    thetahat.errors.ModelFileError: model file <string>: [estimator] law: unknown law 'newton'; expected one of ['gradient', 'least_squares', 'algebraic', 'intermittent'] (Sec. IV).
     """
     doc = _parse_text(text, syntax, source)
     top = _Section(source, "top level", doc)

@@ -16,6 +16,13 @@ scaled H (whose mean is 1): over a record of duration T the law makes κ time co
 (:data:`AUTO_KAPPA`), whatever the units, the sampling rate or the time scale of the process.
 A diagonal Γ keeps the Γ⁻¹-weighted projection onto a box a clip (and the compiled path).
 x̂ comes from a first pass of the observer with θ̂ held at θ̂₀.
+
+For the least-squares law (:class:`~thetahat.estimation.paper.least_squares.
+FilteredLeastSquares`) the same formula gives Γ₀, whose inverse (T/κ) diag(H) is the prior
+information on θ̂₀: with κ = :data:`PRIOR_KAPPA` the prior weighs as much as 1/κ of the
+record, so the record decides, while the first moments of the run (before the information has
+built up) stay near θ̂₀ instead of following the first noisy samples. :func:`auto_kappa`
+picks κ by law.
 """
 
 from __future__ import annotations
@@ -26,12 +33,37 @@ from numpy.typing import NDArray
 from ...errors import DimensionError, UpdateLawError
 from ...model.perturbation import Perturbation
 
-__all__ = ["AUTO_KAPPA", "information_gain"]
+__all__ = ["AUTO_KAPPA", "PRIOR_KAPPA", "auto_kappa", "information_gain"]
 
 FloatArray = NDArray[np.float64]
 
 #: Time constants of the (Jacobi-scaled) gradient law over the record.
 AUTO_KAPPA = 10.0
+#: The least-squares law's prior is worth 1/PRIOR_KAPPA of the record's information.
+PRIOR_KAPPA = 100.0
+
+
+def auto_kappa(law: object) -> float:
+    """κ of ``Gamma = "auto"`` for an update law: :data:`PRIOR_KAPPA` for the least-squares
+    law (a prior worth 1/κ of the record), :data:`AUTO_KAPPA` otherwise (κ time constants).
+
+    Parameters
+    ----------
+    law : UpdateLaw
+
+    Returns
+    -------
+    float
+
+    Examples
+    --------
+    >>> from thetahat.models import lugre
+    >>> from thetahat.estimation.paper.auto_gain import auto_kappa
+    >>> auto_kappa(lugre.estimator_spec().law)
+    10.0
+    """
+    from .least_squares import FilteredLeastSquares
+    return PRIOR_KAPPA if isinstance(law, FilteredLeastSquares) else AUTO_KAPPA
 
 
 def information_gain(perturbation: Perturbation, v: FloatArray, x_hat: FloatArray,

@@ -18,6 +18,7 @@ from numpy.typing import ArrayLike, NDArray
 from ..._validate import check_finite, positive_scalar
 from ...errors import DimensionError, ParameterSetError, UpdateLawError
 from ...model.paramset import Box, ParameterSet
+from ...model.system import PerturbedLinearSystem
 from ..kernels import law_formulas
 from ..kernels.kernel_args import LawArrays
 from ..kernels.law_formulas import LAW_FORMULAS
@@ -343,6 +344,28 @@ class UpdateLaw(ABC):
         else:
             th = self.step(v, x_hat, phi_hat, theta_hat, dt, Gamma=Gamma)
         return np.asarray(th, dtype=np.float64), state
+
+    def for_observer(self, system: PerturbedLinearSystem, K_x: FloatArray,
+                     K_phi: FloatArray) -> UpdateLaw:
+        """The law as the observer with gains (K_x, K_φ) runs it; this law itself here.
+
+        A law that depends on the observer's gains (the filtered regressor of
+        :class:`~thetahat.estimation.paper.least_squares.FilteredLeastSquares`) returns a copy
+        bound to them; :class:`~thetahat.estimation.paper.observer.ModifiedHighGainObserver`
+        calls it when it is built.
+
+        Parameters
+        ----------
+        system : PerturbedLinearSystem
+        K_x : ndarray, shape (n, r)
+        K_phi : ndarray, shape (k, r)
+
+        Returns
+        -------
+        UpdateLaw
+        """
+        del system, K_x, K_phi
+        return self
 
     def init(self, theta_hat0: ArrayLike | None = None) -> FloatArray:
         """Validated initial estimate θ̂(t₀) ∈ Θ, shape (..., p).

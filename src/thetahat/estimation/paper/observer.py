@@ -269,6 +269,7 @@ class ModifiedHighGainObserver:
                     f"second observer's system has (n, m, r, k, p) = "
                     f"{(s2.n, s2.m, s2.r, s2.k, s2.p)}; the observer's has {(n, m, r, k, p)}.")
         check_nan_policy(nan_policy)
+        update_law = update_law.for_observer(system, Kx, Kphi)
         layout = StateLayout(n=n, m=m, r=r, k=k, p=p, second=second is not None,
                              law_size=int(update_law.state_size))
         for name, val in (("system", system), ("K_x", Kx), ("K_phi", Kphi),
