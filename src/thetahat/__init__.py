@@ -35,8 +35,9 @@ if TYPE_CHECKING:                    # the real imports, for type checkers and I
     from .estimation.paper.projection import Projection, Saturation, saturate
     from .estimation.paper.redesign import SecondObserver
     from .estimation.paper.theta_star import ThetaStar
-    from .estimation.paper.update_laws import (AlgebraicInversion, ConstantLaw, GradientInversion,
-                                         IntermittentInversion, UpdateLaw, smooth_ramp)
+    from .estimation.paper.update_laws import (AlgebraicInversion, ConstantLaw,
+                                               FilteredLeastSquares, GradientInversion,
+                                               IntermittentInversion, UpdateLaw, smooth_ramp)
     from .fleet import FleetResult, estimate_many
     from .model.interop import from_state_space, to_state_space
     from .model.jacobian_check import JacobianCheck, check_jacobians
@@ -67,7 +68,8 @@ __all__ = [
     "BatchObserverResult", "FleetResult", "estimate_many", "TuneResult", "tune_eps_gamma", "CompiledObserver", "compile_observer", "run_batch",
     "EstimatorSpec", "SecondObserverSpec",
     "AlgebraicInversion", "Ball", "Box", "ConstantLaw", "ConvexSet", "Ellipsoid",
-    "ExcitationReport", "GradientInversion", "IntermittentInversion", "ModifiedHighGainObserver",
+    "ExcitationReport", "FilteredLeastSquares", "GradientInversion", "IntermittentInversion",
+    "ModifiedHighGainObserver",
     "MonotonicityReport", "ObserverEstimate", "ObserverResult", "ParameterSet", "Projection",
     "Saturation", "SecondObserver", "SweepResult", "UpdateLaw", "check_monotonicity",
     "eps_sweep", "excitation_report", "rmse", "saturate", "smooth_ramp", "time_to_within",
@@ -113,8 +115,9 @@ _EXPORTS: dict[str, tuple[str, ...]] = {
     "estimation.paper.projection": ("Projection", "Saturation", "saturate"),
     "estimation.paper.redesign": ("SecondObserver",),
     "estimation.paper.theta_star": ("ThetaStar",),
-    "estimation.paper.update_laws": ("AlgebraicInversion", "ConstantLaw", "GradientInversion",
-                               "IntermittentInversion", "UpdateLaw", "smooth_ramp"),
+    "estimation.paper.update_laws": ("AlgebraicInversion", "ConstantLaw", "FilteredLeastSquares",
+                                     "GradientInversion", "IntermittentInversion", "UpdateLaw",
+                                     "smooth_ramp"),
     "fleet": ("FleetResult", "estimate_many"),
     "model.interop": ("from_state_space", "to_state_space"),
     "model.jacobian_check": ("JacobianCheck", "check_jacobians"),

