@@ -42,6 +42,7 @@ from ...errors import NonFiniteError
 from ...model.system import PerturbedLinearSystem
 from ...model.paramset import Box, ParameterSet
 from .ekf import sample_interval, theta_box
+from .noise_level import mad_variance
 from .stage2_set import project_theta, theta_bounds
 from ..kernels.model_kernel import H_RHO, ModelKernel, jit, model_kernel
 
@@ -99,6 +100,12 @@ class ProcessNoiseFit:
     n_meas : int
         Scalar measurements used.
     noise_std : ndarray (r,)
+    core_cost : float
+        The normalised innovations' Gaussian-core variance
+        (:func:`~thetahat.estimation.statistical.noise_level.mad_variance`; ≈ 1 when the noise
+        model is right but for bursts the model leaves out).
+    burst_fraction : float
+        Fraction of the normalised innovations beyond ±:data:`HUBER_C` (0.27 % for Gaussian ones).
     """
 
     theta: FloatArray
@@ -111,6 +118,8 @@ class ProcessNoiseFit:
     cost: float
     n_meas: int
     noise_std: FloatArray
+    core_cost: float = math.nan
+    burst_fraction: float = math.nan
 
     @property
     def theta_se(self) -> FloatArray:
@@ -531,4 +540,6 @@ def fit_process_noise(system: PerturbedLinearSystem, t: FloatArray, U: FloatArra
                            nll=0.5 * float(np.sum(nu * nu + LS[pb.valid])),
                            x_end=xP[0].copy(), P_end=xP[1:].copy(),
                            cost=float(np.mean(nu * nu)) if n_meas else math.nan,
-                           n_meas=n_meas, noise_std=sigma)
+                           n_meas=n_meas, noise_std=sigma, core_cost=mad_variance(nu),
+                           burst_fraction=float(np.mean(np.abs(nu) > HUBER_C))
+                           if n_meas else math.nan)

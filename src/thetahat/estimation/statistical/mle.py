@@ -41,7 +41,7 @@ from __future__ import annotations
 import functools
 import math
 from dataclasses import dataclass, replace
-from typing import Any, Callable
+from typing import TYPE_CHECKING, Any, Callable
 
 import numpy as np
 from numpy.typing import NDArray
@@ -51,15 +51,18 @@ from ...model.system import PerturbedLinearSystem
 from .ekf import (ekf_kernels, ekf_sample, resolve_noise_std, sample_interval, start_values,
                   theta_prior_sd)
 from .stage2_set import project_theta, stage2_set
-from .noise_level import MIN_SAMPLES
+from .noise_level import MAD_VARIANCE_SD, MIN_SAMPLES
 from ..kernels.model_kernel import H_RHO, ModelKernel, jit, model_kernel
 from ..protocol import (Diagnostics, EstimateResult, missing_samples, phi_hat_from_model,
                        stream_sample)
 
+if TYPE_CHECKING:
+    from .likelihood import ProcessNoiseFit
+
 __all__ = ["FitResult", "fit_map", "FitSchedule", "doubling_schedule", "information_schedule",
            "first_fit_samples", "fit_record", "fit_as_prior", "INFO_GROWTH", "MapDiagnostics",
            "MapEstimator",
-           "MapResult", "MapState", "STEP_TOL", "X_PRIOR_SD"]
+           "MapResult", "MapState", "MAX_BURST_FRACTION", "STEP_TOL", "X_PRIOR_SD"]
 
 FloatArray = NDArray[np.float64]
 
@@ -69,6 +72,11 @@ STEP_TOL = 0.02
 X_PRIOR_SD = 10.0
 #: Halvings of the Gauss–Newton step before the fit gives up improving.
 MAX_HALVINGS = 10
+#: A fit with process noise is consistent with at most this fraction of its normalised
+#: innovations in bursts (beyond Huber's ±3; 0.27 % for Gaussian ones): a model error that
+#: comes and goes (an unmeasured force pulse, a slip) is what the Huber loss of that fit is
+#: for, while a wrong model, or a fit stuck far from its optimum, misses on most samples.
+MAX_BURST_FRACTION = 0.05
 
 
 @dataclass(frozen=True, slots=True, eq=False)
@@ -96,6 +104,10 @@ class FitResult:
         q of the fit's model: 0 for the output-error fit of :func:`fit_map`, the estimated
         intensity of the noise on φ for :func:`~thetahat.estimation.statistical.likelihood.fit_process_noise`
         (the model error the data revealed).
+    core_cost, burst_fraction : float
+        For the fit with process noise: the Gaussian-core variance of its normalised
+        innovations and the fraction of them beyond ±3
+        (:class:`~thetahat.estimation.statistical.likelihood.ProcessNoiseFit`); NaN otherwise.
     """
 
     k0: int
@@ -110,13 +122,48 @@ class FitResult:
     noise_std: FloatArray
     n_meas: int = 1
     process_noise: float = 0.0
+    core_cost: float = math.nan
+    burst_fraction: float = math.nan
 
     @property
     def consistent(self) -> bool:
-        """The cost per measurement is within 6 standard deviations of its χ² mean (1):
-        otherwise the fit is stuck or the model is wrong, and stage 2 does not take it."""
-        return bool(np.isfinite(self.cost) and self.cost <= 1.0 + 6.0 * math.sqrt(2.0 / max(
-            self.n_meas, 1)) and np.all(np.isfinite(self.cov_end)))
+        """The residuals are those of the noise model; otherwise the fit is stuck or the model
+        is wrong, and stage 2 does not take it.
+
+        Either the cost per measurement is within 6 standard deviations of its χ² mean (1),
+        or, for the fit with process noise (whose θ is fitted with Huber's loss, for records
+        with bursts the model leaves out), the innovations' Gaussian core is: its variance
+        within 6 standard deviations of 1 (:func:`~thetahat.estimation.statistical.noise_level.mad_variance`)
+        with at most :data:`MAX_BURST_FRACTION` of them beyond ±3. On EMPS's measured record
+        the final fit's mean square is 1.28 (a few force bursts) and its core 0.92.
+        """
+        if not (np.isfinite(self.cost) and np.all(np.isfinite(self.cov_end))):
+            return False
+        root_n = math.sqrt(max(self.n_meas, 1))
+        if self.cost <= 1.0 + 6.0 * math.sqrt(2.0) / root_n:
+            return True
+        return bool(self.core_cost <= 1.0 + 6.0 * MAD_VARIANCE_SD / root_n
+                    and self.burst_fraction <= MAX_BURST_FRACTION)
+
+    @classmethod
+    def of_process_noise(cls, pf: ProcessNoiseFit, k1: int, x_hat0: FloatArray,
+                         x_sd: FloatArray) -> FitResult:
+        """The fit of samples 0 … k1 − 1 with process noise on φ as a FitResult.
+
+        The covariances put the filter's x covariance (at the start: the prior N(x_hat0,
+        diag(x_sd²)); at the end: the filter's) beside θ's.
+        """
+        x_sd = np.asarray(x_sd, dtype=np.float64)
+        n, p = x_sd.shape[0], pf.theta.shape[0]
+        cov = np.zeros((n + p, n + p))
+        cov[:n, :n] = np.diag(x_sd ** 2)
+        cov[n:, n:] = pf.cov
+        cov_end = cov.copy()
+        cov_end[:n, :n] = pf.P_end
+        return cls(k0=0, k1=k1, x_start=np.array(x_hat0, dtype=np.float64), x_end=pf.x_end,
+                   theta=pf.theta, cov=cov, cov_end=cov_end, cost=pf.cost, iterations=0,
+                   noise_std=pf.noise_std, n_meas=pf.n_meas, process_noise=pf.q,
+                   core_cost=pf.core_cost, burst_fraction=pf.burst_fraction)
 
     @property
     def theta_se(self) -> FloatArray:
@@ -583,24 +630,14 @@ def _with_process_noise(system: PerturbedLinearSystem, t: FloatArray, U: FloatAr
                         compiled: bool | None) -> FitResult:
     """The fit of samples 0 … k1 − 1 by the likelihood with process noise on φ, as a FitResult.
 
-    ``q``: the intensity (None: estimated with θ). The covariances put the filter's x
-    covariance (at the start: the prior; at the end: the filter's) beside θ's.
+    ``q``: the intensity (None: estimated with θ).
     """
     from .likelihood import fit_process_noise
-    n = system.n
     sigma = resolve_noise_std(noise_std, Y[:k1])
     pf = fit_process_noise(system, t[:k1], U[:k1], Y[:k1], theta0=previous.theta,
                            x_hat0=x_hat0, x_sd=x_sd, noise_std=sigma, q=q,
                            max_nfev=60 if q is None else 20, h_rho=h_rho, compiled=compiled)
-    p = pf.theta.shape[0]
-    cov = np.zeros((n + p, n + p))
-    cov[:n, :n] = np.diag(x_sd ** 2)
-    cov[n:, n:] = pf.cov
-    cov_end = cov.copy()
-    cov_end[:n, :n] = pf.P_end
-    return FitResult(k0=0, k1=k1, x_start=np.array(x_hat0, dtype=np.float64), x_end=pf.x_end,
-                     theta=pf.theta, cov=cov, cov_end=cov_end, cost=pf.cost, iterations=0,
-                     noise_std=sigma, n_meas=pf.n_meas, process_noise=pf.q)
+    return FitResult.of_process_noise(pf, k1, x_hat0, x_sd)
 
 
 def fit_as_prior(system: PerturbedLinearSystem, fit: FitResult, h: float, q_x: float = 0.0

@@ -24,7 +24,7 @@ from numpy.typing import NDArray
 
 from ...errors import DimensionError
 
-__all__ = ["estimate_noise_std", "MIN_SAMPLES", "MAX_ORDER"]
+__all__ = ["estimate_noise_std", "mad_variance", "MIN_SAMPLES", "MAX_ORDER", "MAD_VARIANCE_SD"]
 
 #: Fewest samples from which σ̂ is computed (10 second differences).
 MIN_SAMPLES = 12
@@ -32,6 +32,38 @@ MIN_SAMPLES = 12
 #: time constant is gone by then; higher orders only add scatter).
 MAX_ORDER = 5
 _MAD_NORMAL = 0.6744897501960817
+#: Standard deviation × √N of :func:`mad_variance` on N unit-normal samples (the median's
+#: asymptotic variance: 2.33 by the delta method, and 2.33 measured over 2 000 draws of 10⁴).
+MAD_VARIANCE_SD = 2.33
+
+
+def mad_variance(v: Any) -> float:
+    """The variance of ``v``'s Gaussian core: (median|v| / 0.6745)² (NaN samples ignored).
+
+    Unlike the mean of v², a burst of outliers (a few per cent of the samples) moves it by
+    only a few per cent; for N unit-normal samples it is 1 ± :data:`MAD_VARIANCE_SD`/√N.
+
+    Parameters
+    ----------
+    v : array_like
+        Samples (e.g. normalised innovations), any shape.
+
+    Returns
+    -------
+    float
+        NaN when no sample is finite.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> v = np.random.default_rng(0).standard_normal(10_000)
+    >>> v[:200] = 50.0                       # 2 % of the samples in a burst
+    >>> bool(abs(mad_variance(v) - 1.0) < 0.1), bool(np.mean(v * v) > 40)
+    (True, True)
+    """
+    a = np.abs(np.asarray(v, dtype=np.float64).ravel())
+    a = a[np.isfinite(a)]
+    return float(np.median(a) / _MAD_NORMAL) ** 2 if a.size else math.nan
 
 
 def _sigma_of_order(y: NDArray[np.float64], order: int) -> tuple[float, int]:
