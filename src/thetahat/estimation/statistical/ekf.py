@@ -3,7 +3,11 @@
 The augmented state s = col(x, θ) with θ constant (no random walk) follows the sampled-data
 map of :mod:`~thetahat.estimation.kernels.model_kernel` (RK4 sub-steps, first-order hold on u):
 
-    x_{k+1} = F(x_k, θ, u_k, u_{k+1}),   θ_{k+1} = θ_k,   y_k = C x_k + e_k,  e_k ~ N(0, R),
+    x_{k+1} = F(x_k, θ, ũ_k, ũ_{k+1}),   θ_{k+1} = θ_k,   y_k = C x_k + e_k,  e_k ~ N(0, R),
+
+with ũ the input samples of :func:`~thetahat.estimation.statistical.input_hold.smooth_input`
+(u_k where the input is not resolved by its sampling; where it is, corrected so that the linear
+hold carries u's exact mean over each interval to O(h⁴); causal, so ``step`` and ``run`` agree)
 
 so the transition matrix is [[Φ, Γ], [0, I]] with the exact Jacobians Φ = ∂F/∂x, Γ = ∂F/∂θ.
 Prediction P ← T P Tᵀ + Q (Q = diag(Q_x, 0), Q_x the process noise on x over one sample); update with H = [C 0] in Joseph form
@@ -33,6 +37,7 @@ from ...errors import UnsupportedError
 from ...model.paramset import Box
 from ...model.system import PerturbedLinearSystem
 from ..kernels.model_kernel import H_RHO, ModelKernel, jit, model_kernel
+from .input_hold import InputHistory, smooth_input
 from .noise_level import MIN_SAMPLES, estimate_noise_std
 from .stage2_set import (clip_kernel, has_compiled_projection, project_kernel, stage2_set,
                          theta_bounds)
@@ -514,7 +519,10 @@ class EKFState:
     k : int
         Samples processed.
     u_prev : ndarray, shape (m,)
-        The last sample's input (the next prediction holds u linear from it).
+        The last sample's input ũ (the next prediction holds u linear from it).
+    u_history : InputHistory or None
+        The raw inputs the next samples' ũ need
+        (:func:`~thetahat.estimation.statistical.input_hold.smooth_input`).
     dt_prev : float
         Time from the last sample to the next one (the ``dt`` of the last ``step``).
     noise_std : ndarray, shape (r,), or None
@@ -532,6 +540,7 @@ class EKFState:
     k: int = 0
     u_prev: FloatArray | None = None
     dt_prev: float = 0.0
+    u_history: InputHistory | None = None
     noise_std: FloatArray | None = None
     y_first: FloatArray | None = None
     nis: float = math.nan
@@ -670,11 +679,12 @@ class JointEKF:
                 sigma = resolve_noise_std(None, y_first)
         u0 = (np.array(state.u_prev, dtype=np.float64)
               if state.k > 0 and state.u_prev is not None else None)
-        nis = ekf_sample(self.kernels, sys_, s, P, u0, u_, y_, state.dt_prev, self.h_rho,
+        ut, u_hist = smooth_input(u_[None], state.u_history)
+        nis = ekf_sample(self.kernels, sys_, s, P, u0, ut[0], y_, state.dt_prev, self.h_rho,
                          self.q_x * np.eye(n), None if sigma is None else np.diag(sigma ** 2),
                          state.k)
-        return EKFState(x_hat=s[:n], theta_hat=s[n:], P=P, k=state.k + 1, u_prev=u_, dt_prev=h,
-                        noise_std=sigma, y_first=y_first, nis=nis)
+        return EKFState(x_hat=s[:n], theta_hat=s[n:], P=P, k=state.k + 1, u_prev=ut[0],
+                        dt_prev=h, u_history=u_hist, noise_std=sigma, y_first=y_first, nis=nis)
 
     def run(self, t: Any, u: Any, y: Any, *, state0: EKFState | None = None,
             x_hat0: Any = None, theta_hat0: Any = None, P0: Any = None) -> EstimateResult:
@@ -725,13 +735,14 @@ class JointEKF:
             P = np.array(P0, dtype=np.float64).reshape(n + p, n + p)
         ts = stage2_set(sys_.require_parameter_set("stage 2"))
         k = self.kernels
+        Ut = np.ascontiguousarray(smooth_input(U, st.u_history)[0])
         if st.k > 0 and st.u_prev is not None:
-            k.predict(s, P, np.array(st.u_prev, dtype=np.float64), U[0].copy(), st.dt_prev,
+            k.predict(s, P, np.array(st.u_prev, dtype=np.float64), Ut[0].copy(), st.dt_prev,
                       self.h_rho, self.q_x * np.eye(n), np.empty((n, n)), np.empty((n, p)))
         N = t_.shape[0]
         X, TH, SD, NIS = (np.empty((N, n)), np.empty((N, p)), np.empty((N, p)),
                           np.full(N, np.nan))
-        bad = k.loop(s, P, U, Y, t_, 0, N, R, ts.lo, ts.hi, ts.ell, self.h_rho,
+        bad = k.loop(s, P, Ut, Y, t_, 0, N, R, ts.lo, ts.hi, ts.ell, self.h_rho,
                      self.q_x * np.eye(n), X, TH, SD, NIS)
         if bad >= 0:
             raise NonFiniteError(f"the EKF diverged at t[{bad}] = {t_[bad]!r}; check the model "

@@ -36,6 +36,7 @@ from ...errors import (ArgumentTypeError, DimensionError, NonFiniteError, Option
 from ...model.system import PerturbedLinearSystem
 from .ekf import (EKFKernels, JointEKF, as_record, ekf_kernels, resolve_noise_std,
                   sample_interval, start_values)
+from .input_hold import InputHistory, smooth_input
 from .stage2_set import stage2_set
 from .fit_worker import default_executor, discard_default_executor, fit_spec, run_fit, warm_up
 from .guard import (GUARD_C, GUARD_DWELL, GUARD_KAPPA, GUARD_RHO_MAX, make_guarded_loop,
@@ -368,6 +369,7 @@ class GuardedEstimator:
             raise OptionError("GuardedEstimator.run starts an experiment from init(); this "
                               "state0 has been stepped: continue its stream with step.")
         res1 = self.stage1.run(t_, U, Y, state0=st0.stage1)
+        Us = np.array(smooth_input(U)[0], order="C")    # stage 2's input samples ũ
         xs = res1.x_hat if res1.x_hat_refined is None else res1.x_hat_refined
         # writable C copies (the compiled loop's array type)
         thG = np.array(res1.theta_hat, dtype=np.float64, order="C")
@@ -425,16 +427,16 @@ class GuardedEstimator:
                     j += 1
                 k_fit = int(np.searchsorted(t_ - t_[0], sched.times(j) + 1e-12, side="right"))
             k_next = min(k_fit, N, k_next)
-            loop(s, P, P0, U, Y, t_, k, k_next, 0, R, lo, hi, ell, self.h_rho, Q_x, thG, xG,
+            loop(s, P, P0, Us, Y, t_, k, k_next, 0, R, lo, hi, ell, self.h_rho, Q_x, thG, xG,
                  pst, gst, cfg, out["TH"], out["TH2"], out["X2"], out["SD2"], out["BAND"],
                  CLIP, RESET, NIS)
             due = sched is not None and k_next == k_fit < N
             # (due implies sched and prior0 are set; the two tests are spelled out for mypy)
             if sched is not None and prior0 is not None and due and MIN_SAMPLES <= k_next:
                 prev = fits[-1] if fits else None
-                fit = (fit_record(sched, t_, U, Y, k_next, prev, prior0,
+                fit = (fit_record(sched, t_, Us, Y, k_next, prev, prior0,
                                   final=k_next == ks[-1]) if by_samples
-                       else sched.fit(t_, U, Y, k_next, prev, prior0))
+                       else sched.fit(t_, Us, Y, k_next, prev, prior0))
                 fits.append(fit)
                 fit_at.append(k_next - 1)
                 if fit.consistent:
@@ -501,10 +503,11 @@ class GuardedEstimator:
         xG = np.asarray(xs, dtype=np.float64).reshape(1, n)
         if k == 0:
             sh.configure(self, h)
-        sh.record(k, u_, y_, h)
+        ut, sh.u_history = smooth_input(u_.reshape(1, m), sh.u_history)   # stage 2's ũ
+        sh.record(k, ut[0], y_, h)
         sh.poll_fit()
         k0 = 0 if k == 0 else 1
-        U2 = np.vstack([sh.u_prev, u_]) if k else u_.reshape(1, m)
+        U2 = np.vstack([sh.u_prev, ut]) if k else ut.copy()
         Y2 = np.vstack([np.full(r, np.nan), y_]) if k else y_.reshape(1, r)
         tt = np.array([0.0, sh.dt_prev]) if k else np.zeros(1)
         TH2 = np.broadcast_to(thG, (2, p)).copy() if k else thG.copy()
@@ -520,7 +523,7 @@ class GuardedEstimator:
                      o["TH2"], o["X2"], o["SD2"], o["BAND"], clip, rst, nis)
         s1 = self.stage1.step(state.stage1, u_, y_, h)
         sh.refresh_sigma(k)
-        sh.u_prev, sh.dt_prev, sh.k = u_, h, k + 1
+        sh.u_prev, sh.dt_prev, sh.k = ut[0], h, k + 1
         sh.maybe_submit()
         return GuardedState(stage1=s1, x_hat0=state.x_hat0, theta_hat0=state.theta_hat0,
                             stream=sh, theta_hat=o["TH"][k0].copy(), x_hat=o["X2"][k0].copy(),
@@ -580,6 +583,7 @@ class _Stream:
         self.cfg = np.array([])
         self.pst = np.zeros((sys_.p, 6))
         self.u_prev = np.zeros(sys_.m)
+        self.u_history: InputHistory | None = None
         self.dt_prev = 0.0
         # the samples since the start of the current fit window: sample i is the stream's
         # sample base + i (a log in arrays, so that a fit's window is one copy at submission)

@@ -50,6 +50,7 @@ from ...errors import DimensionError
 from ...model.system import PerturbedLinearSystem
 from .ekf import (ekf_kernels, ekf_sample, resolve_noise_std, sample_interval, start_values,
                   theta_prior_sd)
+from .input_hold import InputHistory, smooth_input
 from .stage2_set import project_theta, stage2_set
 from .noise_level import MAD_VARIANCE_SD, MIN_SAMPLES
 from ..kernels.model_kernel import H_RHO, ModelKernel, jit, model_kernel
@@ -769,7 +770,10 @@ class MapState:
     dt_prev : float
         The last step's dt.
     log : object or None
-        The stream's samples (None before the first ``step``), shared by its states.
+        The stream's samples (None before the first ``step``), shared by its states; its
+        inputs are stage 2's ũ (:func:`~thetahat.estimation.statistical.input_hold.smooth_input`).
+    u_history : InputHistory or None
+        The raw inputs the next samples' ũ need.
     P, R, Q_x : ndarray or None
         The EKF's covariance of col(x̂, θ̂), output-noise covariance and process noise on x
         since the latest fit (None before the first fit).
@@ -787,6 +791,7 @@ class MapState:
     fit_samples: tuple[int, ...] = ()
     dt_prev: float = 0.0
     log: _MapLog | None = None
+    u_history: InputHistory | None = None
     P: FloatArray | None = None
     R: FloatArray | None = None
     Q_x: FloatArray | None = None
@@ -956,6 +961,8 @@ class MapEstimator:
             raise DimensionError("MapEstimator.step: this state is not the latest of its "
                                  "stream (step each state once, in order).")
         elapsed = 0.0 if state.k == 0 else state.elapsed + state.dt_prev
+        ut, u_hist = smooth_input(u_[None], state.u_history)
+        u_ = ut[0]
         log.append(elapsed, u_, y_)
         sched = self._schedule()
         k1 = state.k + 1
@@ -995,7 +1002,7 @@ class MapEstimator:
         return MapState(x_hat0=state.x_hat0, theta_hat0=state.theta_hat0, x_hat=np.array(x),
                         theta_hat=np.array(th), theta_sd=np.array(sd), k=state.k + 1,
                         elapsed=elapsed, j=j, fits=tuple(fits), fit_samples=tuple(ends),
-                        dt_prev=h, log=log, P=P, R=R, Q_x=Q_x)
+                        dt_prev=h, log=log, u_history=u_hist, P=P, R=R, Q_x=Q_x)
 
     def run(self, t: Any, u: Any, y: Any, *, state0: MapState | None = None
             ) -> EstimateResult:
@@ -1028,8 +1035,9 @@ class MapEstimator:
         """
         from .ekf import as_record
         sys_ = self.system
-        t_, U, Y = as_record(t, u, y, sys_.m, sys_.r)
-        U, Y = np.ascontiguousarray(U), np.ascontiguousarray(Y)
+        t_, U_raw, Y = as_record(t, u, y, sys_.m, sys_.r)
+        # stage 2's input samples ũ (the stream's: see step)
+        U, Y = np.ascontiguousarray(smooth_input(U_raw)[0]), np.ascontiguousarray(Y)
         st0 = self.init() if state0 is None else state0
         if st0.k:
             from ...errors import OptionError
@@ -1058,7 +1066,7 @@ class MapEstimator:
         X = self._first_predictions(t_, U, Y, st0, ends[0] + 1 if ends else N)
         self._between_fits(t_, U, Y, fits, ends, X, TH, SD)
         return EstimateResult(t=t_, x_hat=X, theta_hat=TH,
-                              phi_hat=phi_hat_from_model(sys_, U, Y, X, TH),
+                              phi_hat=phi_hat_from_model(sys_, U_raw, Y, X, TH),
                               skipped=missing_samples(Y),
                               diagnostics=MapDiagnostics(theta_sd=SD, fits=tuple(fits),
                                                          fit_samples=np.array(ends,

@@ -38,6 +38,7 @@ from numpy.typing import NDArray
 from ...errors import ThetahatError
 from ...model.system import PerturbedLinearSystem
 from .ekf import sample_interval, theta_box
+from .input_hold import smooth_input
 from .stage2_set import BOUNDARY_RTOL, on_boundary
 from .likelihood import process_noise_scale, record_bound
 from ..kernels.model_kernel import H_RHO
@@ -200,7 +201,8 @@ def trust_report(system: PerturbedLinearSystem, t: FloatArray, U: FloatArray, Y:
         q0 = process_noise_scale(system, h_med, sigma)
         x_sds = np.full(system.n, float(x_sd))
         try:
-            q, cov = record_bound(system, t, U, Y, theta=th, x_hat0=x_hat0, x_sd=x_sds,
+            q, cov = record_bound(system, t, np.ascontiguousarray(smooth_input(U)[0]), Y,
+                                  theta=th, x_hat0=x_hat0, x_sd=x_sds,
                                   noise_std=sigma, h_rho=h_rho, compiled=compiled)
             crlb_sd = np.sqrt(np.maximum(np.diag(cov), 0.0))
         except (ThetahatError, ArithmeticError, np.linalg.LinAlgError):
