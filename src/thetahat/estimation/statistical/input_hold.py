@@ -17,7 +17,7 @@ a record (``run``) computes — as the backward second difference D_k = u_k − 
     ũ_k = u_k − (2u_k − 5u_{k−1} + 4u_{k−2} − u_{k−3})/12          (k ≥ 3; ũ_k = u_k before).
 
 For a sinusoid of angular frequency ω this lowers the error of the interval mean from
-(ωh)²/24 to O((ωh)⁴) and stays below the linear hold's up to ωh ≈ 1.2; above, at frequencies
+(ωh)²/12 to O((ωh)⁴) and stays below the linear hold's up to ωh ≈ 1.2; above, at frequencies
 the samples do not resolve, it is worse. Whether u is a sampled smooth signal is decided per
 input channel from the samples so far: with ρ_k² = Σ_{j≤k} (Δ²u_j)² ÷ Σ_{j≤k} (Δu_j)²,
 sample k is corrected only while ρ_k < 1. A sinusoid has ρ = 2 sin(ωh/2), so ρ < 1 ⇔
@@ -92,7 +92,7 @@ def smooth_input(U: FloatArray, history: InputHistory | None = None
     >>> exact = (np.cos(w * t[:-1]) - np.cos(w * t[1:])) / (w * h)    # u's mean per interval
     >>> lin = np.abs((np.sin(w * t[:-1]) + np.sin(w * t[1:])) / 2 - exact)[10:].max()
     >>> new = np.abs((Ut[:-1, 0] + Ut[1:, 0]) / 2 - exact)[10:].max()
-    >>> bool(new < lin / 20)       # (ωh)²/24 against O((ωh)⁴): ωh = 0.126 here
+    >>> bool(new < lin / 20)       # (ωh)²/12 against O((ωh)⁴): ωh = 0.126 here
     True
     >>> step = np.repeat([0.0, 1.0], 10)[:, None]          # a step: ρ = √2, kept as sampled
     >>> bool(np.array_equal(smooth_input(step)[0], step))
