@@ -24,9 +24,12 @@ ROOT = Path(__file__).resolve().parents[2]
 #: The issue's acceptance: 3 % on M, Fv, Fc; 0.5 N on the offset.
 REL_TOL = 0.03
 OFFSET_TOL = 0.5
-#: A record that begins in motion: DATA_EMPS from this sample on, t restarted at 0; q(0) is
-#: 0.18 m from x̂₀ = 0, so the estimators start at x̂₀ + C⁺(y(0) − C x̂₀) (x_hat0_from_y).
-CUT = 9000
+#: Records that begin in motion: DATA_EMPS from these samples on, t restarted at 0; q(0) is
+#: 0.24 m and 0.23 m from x̂₀ = 0, so the estimators start at x̂₀ + C⁺(y(0) − C x̂₀)
+#: (x_hat0_from_y). Two stretches of the trajectory with their own information: a q searched
+#: on a short early window must not decide the later fits (mle.Q_SEARCH_GROWTH; with q kept
+#: from the first fit that needed one, mle ended at Fv +4.1 %, Fc −3.6 % from sample 3000 on).
+CUTS = (3000, 9000)
 
 @pytest.fixture(scope="module")
 def record():
@@ -52,10 +55,11 @@ def assert_final_fit_applies(res, N):
 
 
 @pytest.mark.slow
+@pytest.mark.parametrize("cut", CUTS)
 @pytest.mark.parametrize("method", ["mle", "guarded", "paper"])
-def test_record_that_begins_in_motion(record, method):
+def test_record_that_begins_in_motion(record, method, cut):
     spec, data = record
-    t, u, y = data.t[CUT:] - data.t[CUT], data.u[CUT:], data.y[CUT:]
+    t, u, y = data.t[cut:] - data.t[cut], data.u[cut:], data.y[cut:]
     assert abs(y[0, 0]) > 0.1                                       # m, far from C x̂₀ = 0
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
