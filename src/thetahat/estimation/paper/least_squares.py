@@ -24,7 +24,6 @@ paper's Propositions, whose laws use J itself: see the class's notes for what ca
 
 from __future__ import annotations
 
-from collections import OrderedDict
 from dataclasses import dataclass, field
 from typing import final
 
@@ -38,16 +37,13 @@ from ...model.jacobian_check import require_theta_dependence
 from ...model.paramset import ParameterSet
 from ...model.perturbation import Perturbation
 from ...model.system import PerturbedLinearSystem
+from ..kernels.discretize import PlanCache
 from .law_base import UpdateLaw, as_batch, finite_candidate
 from .projection import as_gain
 
 __all__ = ["ErrorFilter", "FilteredLeastSquares", "error_filter"]
 
 FloatArray = NDArray[np.float64]
-
-#: Discretisations (e^{L dt}, ∫e^{Ls}G ds) kept per step length: a regular record needs one,
-#: an irregular one reuses the last few.
-_CACHE_SIZE = 16
 
 
 @final
@@ -68,8 +64,10 @@ class ErrorFilter:
     L: FloatArray
     G: FloatArray
     H: FloatArray
-    _steps: OrderedDict[float, tuple[FloatArray, FloatArray]] = field(
-        default_factory=OrderedDict, init=False, repr=False)
+    _plans: PlanCache = field(init=False, repr=False)
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "_plans", PlanCache(self.L))
 
     def transfer(self, s: complex) -> NDArray[np.complex128]:
         """F(s) = H (sI − L)⁻¹ G, shape (k, k).
@@ -88,6 +86,9 @@ class ErrorFilter:
     def discrete(self, dt: float) -> tuple[FloatArray, FloatArray]:
         """(e^{L dt}, ∫₀^dt e^{Ls} ds G): the exact step with the input held over dt.
 
+        From the observer's cached φ-functions (:class:`~thetahat.estimation.kernels.discretize.PlanCache`):
+        ∫₀^dt e^{Ls} ds = dt φ₁(dt L) = Φ₁ and e^{L dt} = I + L Φ₁.
+
         Parameters
         ----------
         dt : float
@@ -98,18 +99,8 @@ class ErrorFilter:
         Ad : ndarray, shape (n + k, n + k)
         Bd : ndarray, shape (n + k, k)
         """
-        hit = self._steps.get(dt)
-        if hit is not None:
-            return hit
-        nk, k = self.G.shape
-        Z = np.zeros((nk + k, nk + k))
-        Z[:nk, :nk], Z[:nk, nk:] = self.L * dt, self.G * dt
-        Ex = scipy.linalg.expm(Z)
-        pair = (Ex[:nk, :nk], Ex[:nk, nk:])
-        self._steps[dt] = pair
-        while len(self._steps) > _CACHE_SIZE:
-            self._steps.popitem(last=False)
-        return pair
+        Phi1 = self._plans.get(positive_scalar("dt", dt)).Phi1
+        return np.eye(self.L.shape[0]) + self.L @ Phi1, Phi1 @ self.G
 
 
 def error_filter(system: PerturbedLinearSystem, K_x: ArrayLike, K_phi: ArrayLike
