@@ -291,6 +291,27 @@ def test_csv_input_dropout_is_refused_even_with_skip(tmp_path, spec):
         read_data(path, spec, nan_policy="skip")
 
 
+def test_library_output_over_an_input_is_refused_at_the_write(tmp_path, spec):
+    """The API, not only the CLI: write_estimates over the CSV that read_data read raises a
+    ThetahatError and leaves the input byte for byte; once the file has changed since, it is
+    no longer an input and may be written."""
+    from thetahat.datafile import write_estimates
+    path = tmp_path / "data.csv"
+    t = np.arange(50) * 0.01
+    np.savetxt(path, np.c_[t, np.sin(t), 0.1 * t], delimiter=",", header="t,u,y",
+               comments="")
+    before = path.read_bytes()
+    d = read_data(path, spec)
+    res = run_estimator(spec, d.t, d.u, d.y)
+    with pytest.raises(E.FileAccessError, match="read it as an input"):
+        write_estimates(path, res, spec)
+    assert path.read_bytes() == before
+    time.sleep(0.01)
+    path.write_text("edited\n", encoding="utf-8")        # a new file: not the input any more
+    write_estimates(path, res, spec)
+    assert path.read_text(encoding="utf-8").startswith("t,")
+
+
 def test_output_path_that_is_a_directory(tmp_path):
     with pytest.raises(E.ModelFileError, match="it is a directory"):
         check_writable(tmp_path)

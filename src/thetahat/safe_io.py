@@ -8,7 +8,10 @@ Outputs
     -f``, an exception) leaves the old output untouched and no partial file behind.
     :func:`check_writable` is called on every output path before any work: it refuses a
     directory, an unwritable place, a suffix the writer does not know, and a path that resolves
-    to one of the inputs (the same file, a symlink or hard link to it).
+    to one of the inputs (the same file, a symlink or hard link to it). :func:`atomic_path`
+    itself refuses to replace a file this process has read as an input (through
+    :func:`open_input` or :func:`check_regular`) and that has not changed since: a library
+    caller that passes an input as an output is stopped at the write, not only the CLI.
 Inputs
     :func:`open_input` opens a file without blocking, checks that it is a regular file (not a
     FIFO, a device such as ``/dev/zero``, or a symlink to one) and that its size is within the
@@ -42,6 +45,16 @@ def _kind(mode: int) -> str:
     return "not a regular file"
 
 
+#: The files this process has accepted as inputs, as (device, inode, mtime in ns, size):
+#: :func:`atomic_path` does not replace one of them (a file changed since it was read, or a
+#: new file on a reused inode, has another mtime and is not an input any more).
+_INPUTS: set[tuple[int, int, int, int]] = set()
+
+
+def _identity(st: os.stat_result) -> tuple[int, int, int, int]:
+    return st.st_dev, st.st_ino, st.st_mtime_ns, st.st_size
+
+
 def _check_stat(st: os.stat_result, path: Path, what: str, limit: int | None) -> None:
     if not stat.S_ISREG(st.st_mode):
         raise ModelFileError(f"cannot read {what} {path}: it is {_kind(st.st_mode)}; thetahat "
@@ -50,6 +63,7 @@ def _check_stat(st: os.stat_result, path: Path, what: str, limit: int | None) ->
         raise InputLimitError(f"cannot read {what} {path}: it has {st.st_size} bytes, more "
                               f"than the limit of {limit} bytes (thetahat.limits); raise the "
                               f"limit or split the file.")
+    _INPUTS.add(_identity(st))
 
 
 def check_regular(path: str | Path, what: str, limit: int | None = None) -> Path:
@@ -313,7 +327,8 @@ def atomic_path(path: str | Path) -> Iterator[Path]:
     Raises
     ------
     FileAccessError
-        The folder cannot be created, or the file cannot be written or renamed.
+        ``path`` is a file this process read as an input (unchanged since), or the folder
+        cannot be created, or the file cannot be written or renamed.
 
     Examples
     --------
@@ -326,6 +341,14 @@ def atomic_path(path: str | Path) -> Iterator[Path]:
     't,y\\n0,1\\n'
     """
     path = Path(path)
+    try:
+        existing = _identity(os.stat(path))
+    except OSError:
+        existing = None
+    if existing in _INPUTS:                     # FileAccessError is an OSError: raised here
+        raise FileAccessError(f"will not write {path}: this process read it as an input, "
+                              f"and an output never replaces an input; write the output to "
+                              f"another path.")
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
         tmp = _new_temporary(path)
