@@ -83,8 +83,7 @@ MAX_BURST_FRACTION = 0.05
 #: search (q̂'s relative standard error, ∝ 1/√samples, has halved), besides on the first fit
 #: with process noise and on the final one: a q searched on a short early window must not
 #: decide the fits of a long record (EMPS from sample 9000 on: the q of the first fit that
-#: needed one, on 34 samples, is 700× the whole record's; from sample 3000 on, mle ended 4 % off
-#: in Fv and Fc).
+#: needed one, on 34 samples, is 705× the whole record's; benchmarks/bench_emps.py --fits).
 Q_SEARCH_GROWTH = 4.0
 
 
@@ -148,7 +147,8 @@ class FitResult:
         with bursts the model leaves out), the innovations' Gaussian core is: its variance
         within 6 standard deviations of 1 (:func:`~thetahat.estimation.statistical.noise_level.mad_variance`)
         with at most :data:`MAX_BURST_FRACTION` of them beyond ±3. On EMPS's measured record
-        the final fit's mean square is 1.28 (a few force bursts) and its core 0.92.
+        from sample 9000 on the final fit's mean square is 1.29 (a few force bursts) and its
+        core 0.92 (benchmarks/bench_emps.py --fits).
         """
         if not (np.isfinite(self.cost) and np.all(np.isfinite(self.cov_end))):
             return False

@@ -32,8 +32,10 @@ MIN_SAMPLES = 12
 #: time constant is gone by then; higher orders only add scatter).
 MAX_ORDER = 5
 _MAD_NORMAL = 0.6744897501960817
-#: Standard deviation × √N of :func:`mad_variance` on N unit-normal samples (the median's
-#: asymptotic variance: 2.33 by the delta method, and 2.33 measured over 2 000 draws of 10⁴).
+#: Standard deviation × √N of :func:`mad_variance` on N unit-normal samples: the sample median
+#: of |v| has asymptotic sd 1/(2 f(m) √N), f the half-normal density at its median m = 0.6745,
+#: i.e. 1.166 m/√N; squaring doubles the relative spread: 2.33
+#: (tests/estimation/test_noise_level.py measures it).
 MAD_VARIANCE_SD = 2.33
 
 
