@@ -1,7 +1,8 @@
 """The two-stage estimators against the EKF, scenario by scenario, measured against the CRLB.
 
 Run:  .venv/bin/python benchmarks/bench_guarded.py [--seeds 20] [--t-end 20] [--jobs 2]
-      [--json out/bench_guarded.json] [--figure out/guarded_crlb.png]
+      [--model-seeds 8] [--no-models] [--json out/bench_guarded.json]
+      [--figure out/guarded_crlb.png]
 
 Scenarios (the robustness set of issue 12): nominal; θ̂(0) at both edges of Θ; a wrong x̂(0)
 = (3 rad/s, η_max); an overconfident EKF prior (sd 1e-3 on θ around θ̂(0) = 0.5; ours has no
@@ -22,6 +23,12 @@ duration. The figure has one panel per scenario: the RMS over seeds of θ̂ − 
 estimator against √CRLB(t) (the quantity the bound bounds). The (scenario, seed) cells run in
 ``--jobs`` forked processes (parallel.py; default: every core), each cell's estimators one
 after the other in its process.
+
+Then, unless ``--no-models``, the same estimators off LuGre: every shipped model file by paper,
+guarded, mle and ``thetahat.JointEKF(system=…).run`` through the user's entry points,
+``--model-seeds`` records each (bench_models.py: RMSE over the last half ÷ √CRLB with x(0)
+unknown, median t₁%, θ̂ ∈ Θ), and the measured EMPS record (bench_emps.py: θ̂'s deviation from
+the published table, wall time, where the bare EKF diverges).
 """
 
 from __future__ import annotations
@@ -340,6 +347,10 @@ def main(argv=None, log=print) -> dict:
     ap.add_argument("--no-cost", action="store_true")
     ap.add_argument("--jobs", type=int, default=parallel.default_jobs(),
                     help="worker processes over the (scenario, seed) cells (default: all cores)")
+    ap.add_argument("--model-seeds", type=int, default=8,
+                    help="seeds per shipped model file in the every-model table (bench_models.py)")
+    ap.add_argument("--no-models", action="store_true",
+                    help="only the LuGre scenarios: no every-model table, no EMPS record")
     ap.add_argument("--json", type=Path, default=None)
     ap.add_argument("--figure", type=Path, default=Path("out/guarded_crlb.png"))
     args = ap.parse_args(argv)
@@ -352,6 +363,13 @@ def main(argv=None, log=print) -> dict:
         out["cost"] = cost(log)
     if curves:
         figure(curves, args.seeds, args.figure, log)
+    if not args.no_models:
+        import bench_emps
+        import bench_models
+        log("\n=== every shipped model (bench_models.py)")
+        out["models"] = bench_models.main(["--seeds", str(args.model_seeds)])
+        log("\n=== the measured EMPS record (bench_emps.py)")
+        out["emps"] = bench_emps.main([])
     log(f"bench_guarded wall time {time.perf_counter() - wall0:.0f} s")
     if args.json:
         args.json.parent.mkdir(parents=True, exist_ok=True)

@@ -116,7 +116,8 @@ def main() -> None:
         import bench_guarded
         print("\n=== bench_guarded.py")
         payload["guarded_scenarios"] = bench_guarded.main(
-            ["--seeds", "20", "--figure", str(args.out.with_name("guarded_crlb.png")), *jobs])
+            ["--seeds", "20", "--figure", str(args.out.with_name("guarded_crlb.png")),
+             "--no-models", *jobs])
         import bench_models
         print("\n=== bench_models.py")
         payload["models"] = bench_models.main(["--seeds", "4"])

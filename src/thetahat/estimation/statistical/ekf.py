@@ -45,10 +45,16 @@ from ..protocol import (Diagnostics, EstimateResult, missing_samples, phi_hat_fr
                        stream_sample)
 
 __all__ = ["start_values", "EKFKernels", "ekf_kernels", "ekf_sample", "sample_interval", "JointEKF",
+           "divergence_error", "NIS_MODEL_ERROR",
            "EKFDiagnostics", "EKFResult", "EKFState",
            "theta_box", "theta_prior_sd", "PRIOR_FRACTION"]
 
 FloatArray = NDArray[np.float64]
+
+#: A median normalised innovation squared (NIS ÷ r, 1 for a model that fits) above this before
+#: a divergence is a model error, not bad luck: χ²_r/r has its median below 1 and a 99.9 %
+#: quantile below 11 for every r ≥ 1 (r = 1: 10.8).
+NIS_MODEL_ERROR = 11.0
 
 #: Prior standard deviation of θ as a fraction of Θ's width per component: θ's prior
 #: N(centre of Θ, (|Θ|/4)²) puts Θ's ends at 2 standard deviations.
@@ -745,8 +751,7 @@ class JointEKF:
         bad = k.loop(s, P, Ut, Y, t_, 0, N, R, ts.lo, ts.hi, ts.ell, self.h_rho,
                      self.q_x * np.eye(n), X, TH, SD, NIS)
         if bad >= 0:
-            raise NonFiniteError(f"the EKF diverged at t[{bad}] = {t_[bad]!r}; check the model "
-                                 "and noise_std.")
+            raise divergence_error(t_, bad, NIS, sys_.r)
         return EstimateResult(t=t_, x_hat=X, theta_hat=TH,
                               phi_hat=phi_hat_from_model(sys_, U, Y, X, TH),
                               skipped=missing_samples(Y),
@@ -754,6 +759,46 @@ class JointEKF:
 
     def __repr__(self) -> str:
         return f"JointEKF(n={self.system.n}, p={self.system.p}, compiled={self.kernels.model.compiled})"
+
+
+def divergence_error(t: FloatArray, bad: int, nis: FloatArray, r: int) -> NonFiniteError:
+    """The error for a joint EKF whose state became non-finite at sample ``bad``.
+
+    Parameters
+    ----------
+    t : ndarray (N,)
+    bad : int
+        The first sample with a non-finite state.
+    nis : ndarray (N,)
+        The normalised innovations squared of the samples before (NaN where none).
+    r : int
+        Outputs per sample (NIS's expectation).
+
+    Returns
+    -------
+    NonFiniteError
+        Says where, and — when the median NIS ÷ r before the divergence exceeds
+        :data:`NIS_MODEL_ERROR` — that the model taken as exact does not fit the record and
+        what to do about it.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from thetahat.estimation.statistical.ekf import divergence_error
+    >>> err = divergence_error(np.arange(5.0), 4, np.array([3e4, 2e4, 5e4, 4e4, np.nan]), 1)
+    >>> "does not fit" in str(err)
+    True
+    """
+    seen = np.asarray(nis[:bad], dtype=np.float64)
+    seen = seen[np.isfinite(seen)]
+    where = f"the EKF diverged at t[{bad}] = {float(t[bad]):.6g}"
+    if seen.size and float(np.median(seen)) / max(r, 1) > NIS_MODEL_ERROR:
+        return NonFiniteError(
+            f"{where}: its innovations before were {math.sqrt(np.median(seen) / max(r, 1)):.3g}"
+            " times their predicted size, so the model taken as exact (no process noise) does"
+            " not fit this record; give a process noise q_x > 0, or use method 'guarded' or"
+            " 'mle', which estimate it from the data.")
+    return NonFiniteError(f"{where}; check the model and noise_std.")
 
 
 def sample_interval(t: FloatArray) -> float:

@@ -48,8 +48,8 @@ from numpy.typing import NDArray
 
 from ...errors import DimensionError, NonFiniteError
 from ...model.system import PerturbedLinearSystem
-from .ekf import (ekf_kernels, ekf_sample, resolve_noise_std, sample_interval, start_values,
-                  theta_prior_sd)
+from .ekf import (divergence_error, ekf_kernels, ekf_sample, resolve_noise_std,
+                  sample_interval, start_values, theta_prior_sd)
 from .input_hold import InputHistory, smooth_input
 from .stage2_set import project_theta, stage2_set
 from .noise_level import MAD_VARIANCE_SD, MIN_SAMPLES
@@ -1115,7 +1115,6 @@ class MapEstimator:
                       fits: list[FitResult], ends: list[int], X: FloatArray, TH: FloatArray,
                       SD: FloatArray) -> None:
         """Rows from each fit's last sample to the next fit's: the fit, then the EKF from it."""
-        from ...errors import NonFiniteError
         sys_ = self.system
         N = t.shape[0]
         kern = ekf_kernels(sys_, compiled=self.compiled)
@@ -1130,6 +1129,5 @@ class MapEstimator:
             bad = kern.loop(s, P, U, Y, t, e + 1, stop, R, ts.lo, ts.hi, ts.ell,
                             self._schedule().h_rho, Q_x, X, TH, SD, nis)
             if bad >= 0:
-                raise NonFiniteError(f"the EKF diverged at t[{bad}] = {t[bad]!r}; check the model "
-                                     "and noise_std.")
+                raise divergence_error(t, bad, nis, sys_.r)
 
