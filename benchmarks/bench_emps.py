@@ -118,15 +118,15 @@ def joint_ekf(rec, ls_s: float, duration: float) -> dict:
 
 def output_error_fit(rec) -> dict:
     """The MAP fit of all the record with the model taken as exact (no process noise)."""
-    from thetahat.estimation.statistical.ekf import theta_prior_sd
-    from thetahat.estimation.statistical.mle import X_PRIOR_SD, fit_map
+    from thetahat.estimation.statistical.ekf import theta_prior_sd, x_prior_sd
+    from thetahat.estimation.statistical.mle import fit_map
     from thetahat.estimation.statistical.noise_level import estimate_noise_std
     from thetahat.modelfile import load_model
     from thetahat.models import emps
     from thetahat.models.emps_report import MODEL_FILE
     spec = load_model(MODEL_FILE)
     q0 = np.concatenate([spec.estimator.x_hat0, spec.estimator.theta_hat0])
-    sd = np.concatenate([np.full(spec.system.n, X_PRIOR_SD), theta_prior_sd(spec.system)])
+    sd = np.concatenate([x_prior_sd(spec.estimator.x_hat0), theta_prior_sd(spec.system)])
     fit = fit_map(spec.system, rec.t, rec.u, rec.y, k0=0, k1=rec.t.size, q_start=q0,
                   q_prior=q0, prior_info=np.diag(1.0 / sd ** 2),
                   noise_std=estimate_noise_std(rec.y), max_iter=40)

@@ -29,7 +29,7 @@ from dataclasses import dataclass
 from typing import Any, Callable
 
 import numpy as np
-from numpy.typing import NDArray
+from numpy.typing import ArrayLike, NDArray
 
 from ..._validate import as_vector
 from ...errors import DimensionError, NonFiniteError, OptionError, ParameterSetError
@@ -45,7 +45,7 @@ from ..protocol import (Diagnostics, EstimateResult, missing_samples, phi_hat_fr
                        stream_sample)
 
 __all__ = ["start_values", "EKFKernels", "ekf_kernels", "ekf_sample", "sample_interval", "JointEKF",
-           "divergence_error", "NIS_MODEL_ERROR",
+           "divergence_error", "NIS_MODEL_ERROR", "x_prior_sd", "X_PRIOR_SD",
            "EKFDiagnostics", "EKFResult", "EKFState",
            "theta_box", "theta_prior_sd", "PRIOR_FRACTION"]
 
@@ -152,6 +152,56 @@ def theta_prior_sd(system: PerturbedLinearSystem) -> FloatArray:
     """
     lo, hi = theta_box(system)
     return PRIOR_FRACTION * (hi - lo)
+
+
+#: Prior standard deviation of x(0) per unit of the start's magnitude max(1, max|x̂(0)ᵢ|):
+#: wide against the state (the data determine x(0)), in the state's own scale where the start
+#: gives one (x̂(0) from y(0), :func:`~thetahat.modelfile.start_x_hat`) — a heater started
+#: 300 K above its reference is not pulled to the reference by a prior of ± 10 K.
+X_PRIOR_SD = 10.0
+
+
+def x_prior_sd(x_hat0: ArrayLike, x_sd: ArrayLike | None = None) -> FloatArray:
+    """Prior standard deviation of x(0) around x̂(0): ``x_sd`` when given, else derived.
+
+    Parameters
+    ----------
+    x_hat0 : array_like (n,)
+        The prior mean x̂(0).
+    x_sd : float or array_like (n,), optional
+        Given standard deviations (used as they are). Default: :data:`X_PRIOR_SD` ×
+        max(1, max|x̂(0)ᵢ|) for every component.
+
+    Returns
+    -------
+    ndarray, shape (n,)
+        Positive and finite.
+
+    Raises
+    ------
+    OptionError
+        A given ``x_sd`` that is not positive and finite.
+    DimensionError
+        A given ``x_sd`` that is neither a number nor one per state.
+
+    Examples
+    --------
+    >>> from thetahat.estimation.statistical.ekf import x_prior_sd
+    >>> x_prior_sd([0.2, 0.0]).tolist(), x_prior_sd([300.0, 0.0]).tolist()
+    ([10.0, 10.0], [3000.0, 3000.0])
+    """
+    x0 = np.asarray(x_hat0, dtype=np.float64).reshape(-1)
+    if x_sd is None:
+        scale = max(1.0, float(np.max(np.abs(x0), initial=0.0)))
+        return np.full(x0.shape[0], X_PRIOR_SD * scale)
+    try:
+        sd = np.array(np.broadcast_to(np.asarray(x_sd, dtype=np.float64), x0.shape))
+    except ValueError:
+        raise DimensionError(f"x_sd must be a number or have {x0.shape[0]} entries (one per "
+                             f"state); got shape {np.shape(x_sd)}.") from None
+    if not np.all(np.isfinite(sd) & (sd > 0.0)):
+        raise OptionError(f"x_sd must be positive and finite; got {sd.tolist()}.")
+    return sd
 
 
 @dataclass(frozen=True, slots=True, eq=False)
@@ -571,7 +621,8 @@ class JointEKF:
     theta_sd : array_like (p,), optional
         Prior standard deviation of θ; default |Θ|/4.
     x_sd : float or array_like (n,), optional
-        Prior standard deviation of x(0); default 10 (wide: the data determine x quickly).
+        Prior standard deviation of x(0); default :func:`x_prior_sd` of x̂(0) (wide: the
+        data determine x quickly).
     q_x : float
         Process-noise variance per sample on x (default 0: the model is taken as exact).
     h_rho : float
@@ -599,7 +650,7 @@ class JointEKF:
     system: PerturbedLinearSystem
     noise_std: Any = None
     theta_sd: Any = None
-    x_sd: Any = 10.0
+    x_sd: Any = None
     q_x: float = 0.0
     h_rho: float = H_RHO
     compiled: bool | None = None
@@ -615,8 +666,8 @@ class JointEKF:
         x0, th0 = start_values(sys_, x_hat0, theta_hat0)
         th_sd = (theta_prior_sd(sys_) if self.theta_sd is None
                  else as_vector("theta_sd", self.theta_sd, p))
-        x_sd = np.broadcast_to(np.asarray(self.x_sd, dtype=np.float64), (n,))
-        return np.concatenate([x0, th0]), np.diag(np.concatenate([x_sd, th_sd]) ** 2)
+        return (np.concatenate([x0, th0]),
+                np.diag(np.concatenate([x_prior_sd(x0, self.x_sd), th_sd]) ** 2))
 
     def init(self, x_hat0: Any = None, theta_hat0: Any = None) -> EKFState:
         """The filter's state before the first sample: x̂₀, θ̂₀ and the prior covariance.

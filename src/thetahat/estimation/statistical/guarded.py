@@ -223,8 +223,9 @@ class GuardedEstimator:
         the information has grown by √2; one with ``times`` fits at those times, in seconds).
     use_fits : bool
         False: no re-anchoring (stage 2 = the EKF alone).
-    x_sd : float
-        Prior standard deviation of x(0) for stage 2.
+    x_sd : float or array_like (n,), optional
+        Prior standard deviation of x(0) for stage 2; default
+        :func:`~thetahat.estimation.statistical.ekf.x_prior_sd` of x̂(0).
     kappa, c, rho_max, dwell : float
         The guard's constants (see :mod:`~thetahat.estimation.statistical.guard`); ``dwell`` a fraction
         of the samples so far (default :data:`~thetahat.estimation.statistical.guard.GUARD_DWELL`).
@@ -260,7 +261,7 @@ class GuardedEstimator:
     noise_std: Any = None
     schedule: FitSchedule | None = field(default=None)
     use_fits: bool = True
-    x_sd: float = 10.0
+    x_sd: Any = None
     kappa: float = GUARD_KAPPA
     c: float = GUARD_C
     rho_max: float = GUARD_RHO_MAX

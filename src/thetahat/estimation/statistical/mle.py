@@ -48,8 +48,8 @@ from numpy.typing import NDArray
 
 from ...errors import DimensionError, NonFiniteError
 from ...model.system import PerturbedLinearSystem
-from .ekf import (divergence_error, ekf_kernels, ekf_sample, resolve_noise_std,
-                  sample_interval, start_values, theta_prior_sd)
+from .ekf import (X_PRIOR_SD, divergence_error, ekf_kernels, ekf_sample, resolve_noise_std,
+                  sample_interval, start_values, theta_prior_sd, x_prior_sd)
 from .input_hold import InputHistory, smooth_input
 from .stage2_set import project_theta, stage2_set
 from .noise_level import MAD_VARIANCE_SD, MIN_SAMPLES
@@ -70,8 +70,6 @@ FloatArray = NDArray[np.float64]
 
 #: The iteration stops once the θ step is below this many standard errors of θ.
 STEP_TOL = 0.02
-#: Default prior standard deviation of x(0) (wide: the data determine x(0)).
-X_PRIOR_SD = 10.0
 #: Halvings of the Gauss–Newton step before the fit gives up improving.
 MAX_HALVINGS = 10
 #: A fit with process noise is consistent with at most this fraction of its normalised
@@ -433,8 +431,9 @@ class FitSchedule:
     full_window : float
         With ``times``: fits at t ≤ ``full_window`` (s) refit all data; later ones use blocks
         with arrival cost (default inf: all data).
-    x_sd : float
-        Prior standard deviation of x(0).
+    x_sd : float or array_like (n,), optional
+        Prior standard deviation of x(0); default
+        :func:`~thetahat.estimation.statistical.ekf.x_prior_sd` of x̂(0).
     noise_std : optional
         σ; default estimated from the window's data.
     max_iter, first_max_iter : int
@@ -446,7 +445,7 @@ class FitSchedule:
     system: PerturbedLinearSystem
     times: Callable[[int], float] | None = None
     full_window: float = math.inf
-    x_sd: float = X_PRIOR_SD
+    x_sd: Any = None
     noise_std: Any = None
     max_iter: int = 6
     first_max_iter: int = 25
@@ -474,9 +473,8 @@ class FitSchedule:
 
     def initial_prior(self, x_hat0: FloatArray, theta_hat0: FloatArray
                       ) -> tuple[FloatArray, FloatArray]:
-        """(q̄, Π⁻¹) at t = 0: (x̂(0), θ̂(0)) with sd (x_sd, |Θ|/4)."""
-        n = self.system.n
-        sd = np.concatenate([np.full(n, float(self.x_sd)), theta_prior_sd(self.system)])
+        """(q̄, Π⁻¹) at t = 0: (x̂(0), θ̂(0)) with sd (:func:`~.ekf.x_prior_sd`, |Θ|/4)."""
+        sd = np.concatenate([x_prior_sd(x_hat0, self.x_sd), theta_prior_sd(self.system)])
         return np.concatenate([x_hat0, theta_hat0]), np.diag(1.0 / sd ** 2)
 
     def fit(self, t: FloatArray, U: FloatArray, Y: FloatArray, k1: int,
@@ -503,7 +501,7 @@ class FitSchedule:
             # and the data of the block determine it)
             _, info_th = _solve_scaled(previous.cov[n:, n:], np.zeros(self.system.p))
             info = np.zeros((n + self.system.p, n + self.system.p))
-            info[:n, :n] = np.eye(n) / float(self.x_sd) ** 2
+            info[:n, :n] = prior0[1][:n, :n]
             info[n:, n:] = info_th
             q_start = q_prior.copy()
         if not full and previous is not None and self.noise_std is None \
@@ -627,7 +625,7 @@ def fit_record(schedule: FitSchedule, t: FloatArray, U: FloatArray, Y: FloatArra
         ``process_noise`` > 0 when the model with process noise was taken.
     """
     n = schedule.system.n
-    x_hat0, x_sd = prior0[0][:n], np.full(n, float(schedule.x_sd))
+    x_hat0, x_sd = prior0[0][:n], 1.0 / np.sqrt(np.diagonal(prior0[1])[:n])
     q = previous.process_noise if previous is not None else 0.0
     q_window = previous.q_window if previous is not None else 0
     fit = schedule.fit(t, U, Y, k1, previous, prior0)

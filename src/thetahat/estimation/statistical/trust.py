@@ -33,11 +33,11 @@ from dataclasses import dataclass
 from typing import Sequence
 
 import numpy as np
-from numpy.typing import NDArray
+from numpy.typing import ArrayLike, NDArray
 
 from ...errors import ThetahatError
 from ...model.system import PerturbedLinearSystem
-from .ekf import sample_interval, theta_box
+from .ekf import sample_interval, theta_box, x_prior_sd
 from .input_hold import smooth_input
 from .stage2_set import BOUNDARY_RTOL, on_boundary
 from .likelihood import process_noise_scale, record_bound
@@ -147,7 +147,7 @@ class TrustReport:
 
 def trust_report(system: PerturbedLinearSystem, t: FloatArray, U: FloatArray, Y: FloatArray,
                  theta: FloatArray, names: Sequence[str], *, x_hat0: FloatArray,
-                 x_sd: float = 10.0, band: FloatArray | None = None,
+                 x_sd: ArrayLike | None = None, band: FloatArray | None = None,
                  noise_std: FloatArray | None = None, h_rho: float = H_RHO,
                  compiled: bool | None = None) -> TrustReport:
     """Check a final estimate θ̂ against its record (module docstring).
@@ -163,8 +163,10 @@ def trust_report(system: PerturbedLinearSystem, t: FloatArray, U: FloatArray, Y:
     names : sequence of str
         The p parameters' names.
     x_hat0 : ndarray (n,)
-        Prior mean of x(0) (its sd is ``x_sd``).
-    x_sd : float
+        Prior mean of x(0).
+    x_sd : float or array_like (n,), optional
+        Its standard deviation; default :func:`~thetahat.estimation.statistical.ekf.x_prior_sd`
+        of ``x_hat0``.
     band : ndarray (N, p), optional
         The guard's band δ over the run (guarded estimator).
     noise_std : ndarray (r,), optional
@@ -199,7 +201,7 @@ def trust_report(system: PerturbedLinearSystem, t: FloatArray, U: FloatArray, Y:
     if t.shape[0] >= MIN_SAMPLES:
         h_med = sample_interval(t)
         q0 = process_noise_scale(system, h_med, sigma)
-        x_sds = np.full(system.n, float(x_sd))
+        x_sds = x_prior_sd(x_hat0, x_sd)
         try:
             q, cov = record_bound(system, t, np.ascontiguousarray(smooth_input(U)[0]), Y,
                                   theta=th, x_hat0=x_hat0, x_sd=x_sds,
