@@ -107,6 +107,54 @@ def test_estimate_is_efficient_at_the_end_and_over_the_last_half(name):
     assert np.all(ratio_half <= EFFICIENCY_BOUND), ratio_half
 
 
+#: |final θ̂ of mle − the efficient one-step estimate| ÷ √CRLB(T): the difference of two
+#: estimators of the same data is an o(N^(−1/2)) remainder when the record is long enough for
+#: the bound's linearisation. Measured (2 seeds each): ≤ 0.004 on prop1, prop3, prop4, heater,
+#: actuator, spring_friction and lugre, 0.042 on prop2 (the prior from Θ); 0.1 is the issue's
+#: "≤ 1.1 × √CRLB" read per record.
+ONE_STEP_ATOL = 0.1
+#: The one-step estimate's standard error is the bound itself (its covariance is the inverse
+#: Fisher information of the discrete model thetahat.crlb computes); 2 % covers the RK4
+#: sub-steps and the arrival of ũ's correction after its third sample.
+SE_RTOL = 0.02
+#: Models whose record is long enough for the linearisation: two_inertia's √CRLB at the end is
+#: still 2 % of θ and its MAP lies 0.4–1.5 bounds from the one-step estimate (the curvature of
+#: the likelihood is not negligible there): its efficiency is shown over seeds above.
+ASYMPTOTIC = ("lugre", "prop1", "prop2", "prop3", "prop4", "heater", "actuator",
+              "spring_friction")
+
+
+@pytest.mark.parametrize("name", ASYMPTOTIC)
+def test_final_estimate_is_the_efficient_one(name):
+    """The MAP estimate of the record (mle's last θ̂) against an estimator whose covariance is
+    exactly the Cramér–Rao bound: one Gauss–Newton step from the true (x(0), θ) on the same
+    data (θ + F⁻¹ × score, no prior). Per record they agree to a small fraction of the bound,
+    so mle's RMSE over seeds is the bound's up to that fraction — without the seed-to-seed
+    scatter (25 % at 8 seeds) that limits the test above."""
+    pytest.importorskip("numba", reason="the MAP runs take minutes without the compiled "
+                        "kernels (extra speed)")
+    from thetahat.estimation.statistical.input_hold import smooth_input
+    spec = load_model(EXAMPLES / f"{name}.toml")
+    sc, sys_ = spec.scenario, spec.system
+    sigma = np.broadcast_to(np.asarray(sc.noise_std, dtype=np.float64), (sys_.r,)).copy()
+    for seed in range(2):
+        d = simulate_model(spec, seed)
+        U, Y, N = np.asarray(d.u), np.asarray(d.y), d.t.size
+        if seed == 0:
+            bound = thetahat.crlb(sys_, d.t, U, theta=sc.theta, noise_std=sc.noise_std,
+                                  x0=sc.x0, x0_known=False)
+            sd = np.sqrt(np.diagonal(np.asarray(bound.cov)[-1]))
+        truth = np.concatenate([np.asarray(d.x)[0], np.asarray(sc.theta, dtype=np.float64)])
+        one_step = fit_map(sys_, d.t, np.ascontiguousarray(smooth_input(U)[0]), Y, k0=0, k1=N,
+                           q_start=truth, q_prior=truth, prior_info=np.zeros((truth.size,) * 2),
+                           noise_std=sigma, max_iter=1)
+        assert np.all(np.abs(one_step.theta_se / sd - 1.0) < SE_RTOL), one_step.theta_se / sd
+        final = np.asarray(run_estimator(spec, d.t, U, Y, method="mle",
+                                         diagnose=False).theta_hat)[-1]
+        assert np.all(np.abs(final - one_step.theta) <= ONE_STEP_ATOL * sd), \
+            (final - one_step.theta) / sd
+
+
 def _time_scaled_prop3(c: float) -> str:
     """prop3 slowed down c times: ẋ = (A x + B u + E g)/c, the same g and Θ."""
     text = (EXAMPLES / "prop3.toml").read_text()
