@@ -119,7 +119,8 @@ ONE_STEP_ATOL = 0.1
 SE_RTOL = 0.02
 #: Models whose record is long enough for the linearisation: two_inertia's √CRLB at the end is
 #: still 2 % of θ and its MAP lies 0.4–1.5 bounds from the one-step estimate (the curvature of
-#: the likelihood is not negligible there): its efficiency is shown over seeds above.
+#: the likelihood is not negligible there): its efficiency is shown over seeds above
+#: (benchmarks/bench_models.py --seeds 48: 1.0 / 0.86 × √CRLB at the end).
 ASYMPTOTIC = ("lugre", "prop1", "prop2", "prop3", "prop4", "heater", "actuator",
               "spring_friction")
 
