@@ -152,3 +152,42 @@ def test_paper_stage1_guarded_from_the_edge_of_theta(data):
 def test_noise_level_estimate_matches_the_simulated_noise(data):
     # 1500 second differences: the MAD's relative sd is ~1.7/√1500 ≈ 4 %; 12 % is 3 sd
     assert estimate_noise_std(data.y)[0] == pytest.approx(0.02, rel=0.12)
+
+
+def test_failed_and_inconsistent_fits_are_counted_not_applied(data, monkeypatch):
+    """A fit that raises or comes back non-finite is ignored with a warning, one that fails its
+    consistency checks is kept out of stage 2; the diagnostics count both and the output keeps
+    its guarantee."""
+    from thetahat.errors import NonFiniteError, ThetahatWarning
+    from thetahat.estimation.statistical import guarded as guarded_module
+    real = guarded_module.fit_record
+    calls = []
+
+    def flaky(*args, **kwargs):
+        calls.append(args[4])                                  # k1
+        fit = real(*args, **kwargs)
+        if len(calls) == 3:
+            raise NonFiniteError("injected")
+        if len(calls) == 4:
+            return dataclasses.replace(fit, theta=np.full_like(fit.theta, np.nan))
+        if len(calls) == 5:                                    # far off and says so
+            bad = dataclasses.replace(fit, theta=np.full_like(fit.theta, LO), cost=50.0,
+                                      process_noise=0.0)
+            assert not bad.consistent
+            return bad
+        return fit
+
+    monkeypatch.setattr(guarded_module, "fit_record", flaky)
+    est = GuardedEstimator(stage1=ExponentialStage1(tau=0.1), system=lugre.system(),
+                           compiled=False)
+    with pytest.warns(ThetahatWarning, match="stage-2 fit was ignored") as rec:
+        res = est.run(data.t, data.u, data.y, state0=est.init(theta_hat0=[0.5]))
+    assert len([w for w in rec if "stage-2 fit was ignored" in str(w.message)]) == 2
+    d = res.diagnostics
+    assert d.fits_failed == 2 and len(d.fits) == len(calls) - 2
+    assert d.fits_rejected == 1 and "fits_rejected=1, fits_failed=2" in repr(d)
+    k_bad = calls[4] - 1                                       # where the bad fit came back
+    assert abs(d.theta_stage2[k_bad, 0] - LO) > 0.1 * (HI - LO)   # stage 2 did not take it
+    _guarantee_holds(res)
+    assert np.all(np.isfinite(res.theta_hat))
+    assert abs(res.theta_hat[-1, 0] - THETA) < 0.01 * THETA

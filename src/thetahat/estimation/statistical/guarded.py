@@ -32,7 +32,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ...errors import (ArgumentTypeError, DimensionError, NonFiniteError, OptionError,
-                      ThetahatWarning)
+                      ThetahatError, ThetahatWarning)
 from ...model.system import PerturbedLinearSystem
 from .ekf import (EKFKernels, JointEKF, as_record, ekf_kernels, resolve_noise_std,
                   sample_interval, start_values)
@@ -74,11 +74,15 @@ class GuardedDiagnostics(Diagnostics):
     nis : ndarray (N,)
         Windowed normalised innovation squared of stage 2 (≈ 1 when consistent).
     fits : tuple of FitResult
-        The MAP fits, in order.
+        The MAP fits that came back, in order; stage 2 took those that are consistent
+        (:attr:`FitResult.consistent`), the others are counted by :attr:`fits_rejected`.
     fit_samples : ndarray of int
-        The sample index after which each fit was applied.
+        The last sample of each fit's window (where a consistent one was applied).
     noise_std : ndarray (r,)
         The last σ used.
+    failures : tuple of str
+        Fits that raised or came back non-finite, one sentence each (ignored, with a
+        ThetahatWarning: stage 1 and the EKF go on).
     """
 
     theta_stage1: FloatArray
@@ -91,6 +95,17 @@ class GuardedDiagnostics(Diagnostics):
     fits: tuple[FitResult, ...]
     fit_samples: NDArray[np.int64]
     noise_std: FloatArray
+    failures: tuple[str, ...] = ()
+
+    @property
+    def fits_rejected(self) -> int:
+        """Fits that came back but failed their consistency checks (not applied)."""
+        return sum(1 for f in self.fits if not f.consistent)
+
+    @property
+    def fits_failed(self) -> int:
+        """Fits that raised or came back non-finite (ignored)."""
+        return len(self.failures)
 
     @property
     def disagreement(self) -> FloatArray:
@@ -120,6 +135,7 @@ class GuardedDiagnostics(Diagnostics):
     def __repr__(self) -> str:
         return (f"GuardedDiagnostics(resets={self.resets}, "
                 f"clipped={self.clipped_fraction:.3f}, fits={len(self.fits)}, "
+                f"fits_rejected={self.fits_rejected}, fits_failed={self.fits_failed}, "
                 f"noise_std={self.noise_std})")
 
 
@@ -316,6 +332,27 @@ class GuardedEstimator:
         return JointEKF(system=self.model, noise_std=self.noise_std, x_sd=self.x_sd,
                         compiled=self.compiled)
 
+    @staticmethod
+    def _fit_or_none(sched: FitSchedule, t: FloatArray, U: FloatArray, Y: FloatArray,
+                     k1: int, prev: FitResult | None, prior0: tuple[FloatArray, FloatArray],
+                     final: bool | None, failures: list[str]) -> FitResult | None:
+        """The fit due at k1 (``final`` None: a schedule with times), or None with the reason
+        appended to ``failures`` and a warning when it raised or came back non-finite."""
+        try:
+            fit = (sched.fit(t, U, Y, k1, prev, prior0) if final is None
+                   else fit_record(sched, t, U, Y, k1, prev, prior0, final=final))
+        except (ThetahatError, ArithmeticError, np.linalg.LinAlgError) as exc:
+            why = f"the fit of samples 0…{k1 - 1} raised {type(exc).__name__}: {exc}"
+        else:
+            if (np.all(np.isfinite(fit.theta)) and np.all(np.isfinite(fit.cov))
+                    and np.all(np.isfinite(fit.x_end))):
+                return fit
+            why = f"the fit of samples {fit.k0}…{fit.k1 - 1} came back non-finite"
+        failures.append(why)
+        warnings.warn(f"GuardedEstimator.run: a stage-2 fit was ignored: {why}. Stage 1 and "
+                      "the EKF go on.", ThetahatWarning, stacklevel=3)
+        return None
+
     def init(self, x_hat0: Any = None, theta_hat0: Any = None) -> GuardedState:
         """Initial state of both stages.
 
@@ -396,6 +433,7 @@ class GuardedEstimator:
         sched = self.fit_schedule
         fits: list[FitResult] = []
         fit_at: list[int] = []
+        failures: list[str] = []
         prior0 = (sched.initial_prior(st0.x_hat0, st0.theta_hat0) if sched else None)
         Q_x = self.q_x * np.eye(n)
         # the default fits: all the data so far, at the sample counts where the information
@@ -435,12 +473,12 @@ class GuardedEstimator:
             # (due implies sched and prior0 are set; the two tests are spelled out for mypy)
             if sched is not None and prior0 is not None and due and MIN_SAMPLES <= k_next:
                 prev = fits[-1] if fits else None
-                fit = (fit_record(sched, t_, Us, Y, k_next, prev, prior0,
-                                  final=k_next == ks[-1]) if by_samples
-                       else sched.fit(t_, Us, Y, k_next, prev, prior0))
-                fits.append(fit)
-                fit_at.append(k_next - 1)
-                if fit.consistent:
+                fit = self._fit_or_none(sched, t_, Us, Y, k_next, prev, prior0,
+                                        k_next == ks[-1] if by_samples else None, failures)
+                if fit is not None:
+                    fits.append(fit)
+                    fit_at.append(k_next - 1)
+                if fit is not None and fit.consistent:
                     # the fit ends at this very sample: take (x, θ) and their joint covariance
                     # stage 2 carries the model error as the fit found it (none: q = 0)
                     s_fit, P_fit, R, Q_x = fit_as_prior(sys_, fit, sample_interval(t_[:k_next]),
@@ -458,7 +496,8 @@ class GuardedEstimator:
         diag = GuardedDiagnostics(theta_stage1=thG, theta_stage2=out["TH2"], theta_sd=out["SD2"],
                                   band=out["BAND"], clipped=CLIP, reset=RESET, nis=NIS,
                                   fits=tuple(fits),
-                                  fit_samples=np.array(fit_at, dtype=np.int64), noise_std=sigma)
+                                  fit_samples=np.array(fit_at, dtype=np.int64), noise_std=sigma,
+                                  failures=tuple(failures))
         return EstimateResult(t=t_, x_hat=out["X2"], theta_hat=out["TH"],
                               phi_hat=phi_hat_from_model(sys_, U, Y, out["X2"], out["TH"]),
                               skipped=missing_samples(Y), diagnostics=diag)
