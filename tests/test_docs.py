@@ -51,7 +51,7 @@ def _signature(obj):
         return None
 
 
-@pytest.mark.parametrize("name, obj", list(_public_callables()), ids=lambda v: str(v)[:60])
+@pytest.mark.parametrize("name, obj", [pytest.param(n, o, id=n) for n, o in _public_callables()])
 def test_public_parameters_documented(name, obj):
     """numpydoc, parsed: every parameter has an entry in Parameters (classes: or Attributes),
     and a function that returns something has a Returns (or Yields) section."""
