@@ -87,20 +87,20 @@ def main(argv: list[str] | None = None) -> dict:
                            "vs_idim_ls": run.seconds / ls_s,
                            "theta_hat": run.theta_hat[-1].tolist()}
     assert tuple(r.method for r in done.runs) == METHODS
-    out["ekf"] = joint_ekf(rec, ls_s, duration)
-    out["output_error"] = output_error_fit(rec)
+    from thetahat.modelfile import load_model
+    from thetahat.models.emps_report import MODEL_FILE
+    spec = load_model(MODEL_FILE)
+    out["ekf"] = joint_ekf(spec, rec, ls_s, duration)
+    out["output_error"] = output_error_fit(spec, rec)
     return out
 
 
-def joint_ekf(rec, ls_s: float, duration: float) -> dict:
+def joint_ekf(spec, rec, ls_s: float, duration: float) -> dict:
     """``thetahat.JointEKF(system=…).run`` on the record, as a user calls it (defaults: the
     model taken as exact, q_x = 0; σ from the record): its θ̂ or the instant it diverges."""
     import thetahat
     from thetahat.errors import NonFiniteError
-    from thetahat.modelfile import load_model
     from thetahat.models import emps
-    from thetahat.models.emps_report import MODEL_FILE
-    spec = load_model(MODEL_FILE)
     ekf = thetahat.JointEKF(system=spec.system)
     t0 = time.perf_counter()
     try:
@@ -116,15 +116,12 @@ def joint_ekf(rec, ls_s: float, duration: float) -> dict:
     return {"seconds": s, "real_time_factor": s / duration, "theta_hat": th.tolist()}
 
 
-def output_error_fit(rec) -> dict:
+def output_error_fit(spec, rec) -> dict:
     """The MAP fit of all the record with the model taken as exact (no process noise)."""
     from thetahat.estimation.statistical.ekf import theta_prior_sd, x_prior_sd
     from thetahat.estimation.statistical.mle import fit_map
     from thetahat.estimation.statistical.noise_level import estimate_noise_std
-    from thetahat.modelfile import load_model
     from thetahat.models import emps
-    from thetahat.models.emps_report import MODEL_FILE
-    spec = load_model(MODEL_FILE)
     q0 = np.concatenate([spec.estimator.x_hat0, spec.estimator.theta_hat0])
     sd = np.concatenate([x_prior_sd(spec.estimator.x_hat0), theta_prior_sd(spec.system)])
     fit = fit_map(spec.system, rec.t, rec.u, rec.y, k0=0, k1=rec.t.size, q_start=q0,

@@ -842,10 +842,11 @@ def divergence_error(t: FloatArray, bad: int, nis: FloatArray, r: int) -> NonFin
     """
     seen = np.asarray(nis[:bad], dtype=np.float64)
     seen = seen[np.isfinite(seen)]
+    ratio = float(np.median(seen)) / max(r, 1) if seen.size else 0.0
     where = f"the EKF diverged at t[{bad}] = {float(t[bad]):.6g}"
-    if seen.size and float(np.median(seen)) / max(r, 1) > NIS_MODEL_ERROR:
+    if ratio > NIS_MODEL_ERROR:
         return NonFiniteError(
-            f"{where}: its innovations before were {math.sqrt(np.median(seen) / max(r, 1)):.3g}"
+            f"{where}: its innovations before were {math.sqrt(ratio):.3g}"
             " times their predicted size, so the model taken as exact (no process noise) does"
             " not fit this record; give a process noise q_x > 0, or use method 'guarded' or"
             " 'mle', which estimate it from the data.")

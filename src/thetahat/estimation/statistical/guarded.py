@@ -344,8 +344,7 @@ class GuardedEstimator:
         except (ThetahatError, ArithmeticError, np.linalg.LinAlgError) as exc:
             why = f"the fit of samples 0…{k1 - 1} raised {type(exc).__name__}: {exc}"
         else:
-            if (np.all(np.isfinite(fit.theta)) and np.all(np.isfinite(fit.cov))
-                    and np.all(np.isfinite(fit.x_end))):
+            if fit.finite:
                 return fit
             why = f"the fit of samples {fit.k0}…{fit.k1 - 1} came back non-finite"
         failures.append(why)
@@ -726,8 +725,7 @@ class _Stream:
             self._reject(f"it raised {type(exc).__name__}: {exc}")
             return
         fit = done.fit
-        if not (np.all(np.isfinite(fit.theta)) and np.all(np.isfinite(fit.cov))
-                and np.all(np.isfinite(fit.x_end))):
+        if not fit.finite:
             self._reject(f"non-finite result on samples {fit.k0}…{fit.k1 - 1}")
             return
         n = self._n

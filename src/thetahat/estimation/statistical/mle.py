@@ -136,6 +136,12 @@ class FitResult:
     q_window: int = 0
 
     @property
+    def finite(self) -> bool:
+        """θ, x at the window's end and the covariance are finite (a fit that may be used)."""
+        return bool(np.all(np.isfinite(self.theta)) and np.all(np.isfinite(self.cov))
+                    and np.all(np.isfinite(self.x_end)))
+
+    @property
     def consistent(self) -> bool:
         """The residuals are those of the noise model; otherwise the fit is stuck or the model
         is wrong, and stage 2 does not take it.
