@@ -28,9 +28,11 @@ demo: $(STAMP)
 test: $(STAMP)
 	$(BIN)/python -m pytest -q -n auto
 
-# Static types of the package (settings in pyproject.toml [tool.mypy]); CI runs it after the tests.
+# Static types of the package (settings in pyproject.toml [tool.mypy]) and the import contracts
+# ([tool.importlinter]: the layers point down); CI runs both after the tests.
 typecheck: $(STAMP)
 	$(BIN)/python -m mypy
+	$(BIN)/lint-imports
 
 test-all: $(STAMP)
 	$(BIN)/python -m pytest -q -n auto -m ""

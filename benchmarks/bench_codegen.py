@@ -40,7 +40,8 @@ from pathlib import Path
 
 import numpy as np
 
-from thetahat.codegen import generate_c, generate_c_from_model
+from thetahat.codegen import generate_c
+from thetahat.modelfile import generate_c_from_model
 from thetahat.codegen.loader import find_compiler, load_c
 from thetahat.models import lugre
 
@@ -161,7 +162,7 @@ def main(argv: list[str] | None = None) -> dict:
         arm = arm_sizes(tmp)
         ref = None
         try:
-            from thetahat.estimation.kernels.compiled import compile_observer
+            from thetahat.estimation.observer.compiled import compile_observer
             fast = compile_observer(obs, dt=1e-3)
             state0 = obs.init(theta_hat0=theta_hat0)
             fast.run(data.t[:10], U[:10], Y[:10], state0=state0)       # JIT outside timing

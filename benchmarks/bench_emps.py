@@ -139,9 +139,9 @@ def laws_and_eps(cut: int = 9000) -> dict:
     import re
     import warnings
 
-    from thetahat.datafile import read_data
+    from thetahat.io.datafile import read_data
     from thetahat.errors import ThetahatWarning
-    from thetahat.estimation.paper.least_squares import error_filter
+    from thetahat.estimation.observer.laws.least_squares import error_filter
     from thetahat.modelfile import build_estimator, loads_model, run_estimator
     from thetahat.models import emps
     from thetahat.models.emps_report import MODEL_FILE
@@ -178,7 +178,7 @@ def final_fits(cuts: tuple[int, ...] = (0, 3000, 9000)) -> dict:
     first q searched and the window it was searched on, and θ̂."""
     import warnings
 
-    from thetahat.datafile import read_data
+    from thetahat.io.datafile import read_data
     from thetahat.errors import ThetahatWarning
     from thetahat.estimation.statistical.noise_level import MAD_VARIANCE_SD
     from thetahat.modelfile import load_model, run_estimator

@@ -91,7 +91,7 @@ def _estimator(name: str, dt: float):
     key = (name, dt)
     if key not in _EST_CACHE:
         if name == "paper":
-            from thetahat.estimation.kernels.compiled import compile_observer
+            from thetahat.estimation.observer.compiled import compile_observer
             _EST_CACHE[key] = compile_observer(lugre.observer(), dt=dt)
         else:
             _EST_CACHE[key] = lugre.estimator(name, dt=dt)

@@ -408,7 +408,7 @@ BATCH_SIZE = 20
 
 def _fast_paths(obs, traj, s0, N: int, wall_ivp: float, log) -> dict:
     """The batch path (``run_batch`` over BATCH_SIZE seeds, same hold) and the compiled kernel."""
-    from thetahat.estimation.kernels.batch_run import run_batch
+    from thetahat.estimation.observer.batch_run import run_batch
     out: dict = {}
     trajs = [traj] + [_simulate(seed, t_end=float(traj.t[-1])) for seed in range(1, BATCH_SIZE)]
     U = np.stack([tr.u for tr in trajs])
@@ -422,7 +422,7 @@ def _fast_paths(obs, traj, s0, N: int, wall_ivp: float, log) -> dict:
     log(f"  batch path: run_batch over {BATCH_SIZE} seeds {steps_b:,.0f} observer-steps/s = "
         f"{steps_b / ivp_rate:,.0f}x the solve_ivp loop")
     try:
-        from thetahat.estimation.kernels.compiled import compile_observer
+        from thetahat.estimation.observer.compiled import compile_observer
     except ImportError:  # pragma: no cover - numba missing
         log("  compiled path: numba not installed (pip install 'thetahat[speed]')")
         return out

@@ -32,7 +32,7 @@ def estimator(method: str, back_end: str, dt: float):
     """The lugre estimator of ``method`` on ``back_end``, or None where it has none."""
     from thetahat.codegen.generate import supports_c
     from thetahat.codegen.native import NativeObserver, native_enabled
-    from thetahat.estimation.kernels.compiled import compile_observer
+    from thetahat.estimation.observer.compiled import compile_observer
     from thetahat.models import lugre
 
     os.environ["THETAHAT_C"] = "0" if back_end == "numba" else "1"

@@ -36,7 +36,7 @@ from pathlib import Path
 import numpy as np
 from scipy.integrate import solve_ivp
 
-from thetahat.estimation.kernels.compiled import compile_observer
+from thetahat.estimation.observer.compiled import compile_observer
 from thetahat.modelfile import EXAMPLE_MODEL, build_observer, loads_model
 
 #: True parameter of the stream.

@@ -55,12 +55,12 @@ def loop():
 obs.step(s0, tr.u[0], tr.y[0], dt)
 out["step"] = 1e6 * best(loop) / (N - 1)
 out["run"] = 1e6 * best(lambda: obs.run(tr.t, tr.u, tr.y, state0=s0)) / N
-from thetahat.estimation.kernels.batch_run import run_batch
+from thetahat.estimation.observer.batch_run import run_batch
 U = np.stack([t.u for t in trajs]); Y = np.stack([t.y for t in trajs])
 out["batch"] = 1e6 * best(lambda: run_batch(obs, tr.t, U, Y, state0=s0)) / (B * N)
 try:
     import numba  # noqa: F401
-    from thetahat.estimation.kernels.compiled import compile_observer
+    from thetahat.estimation.observer.compiled import compile_observer
 except ImportError:
     pass
 else:

@@ -16,11 +16,11 @@ import sympy as sp
 
 from thetahat import errors as E
 from thetahat.cli import main
-from thetahat.datafile import check_writable, read_data
+from thetahat.io.datafile import check_writable, read_data
 from thetahat.design.design_system import apply_design
 from thetahat.design.gains import high_gain, modified_high_gain
-from thetahat.estimation.paper.checks import check_theta_star
-from thetahat.estimation.paper.update_laws import AlgebraicInversion, GradientInversion
+from thetahat.estimation.observer.checks import check_theta_star
+from thetahat.estimation.observer.laws import AlgebraicInversion, GradientInversion
 from thetahat.model.paramset import Box
 from thetahat.model.parse import parse_expression, parse_perturbation
 from thetahat.model.perturbation import SymbolicPerturbation
@@ -295,7 +295,7 @@ def test_library_output_over_an_input_is_refused_at_the_write(tmp_path, spec):
     """The API, not only the CLI: write_estimates over the CSV that read_data read raises a
     ThetahatError and leaves the input byte for byte; once the file has changed since, it is
     no longer an input and may be written."""
-    from thetahat.datafile import write_estimates
+    from thetahat.io.datafile import write_estimates
     path = tmp_path / "data.csv"
     t = np.arange(50) * 0.01
     np.savetxt(path, np.c_[t, np.sin(t), 0.1 * t], delimiter=",", header="t,u,y",
@@ -463,7 +463,7 @@ def test_observer_refuses_unknown_hold():
 
 def test_compiled_observer_refuses_complex_y():
     pytest.importorskip("numba")
-    from thetahat.estimation.kernels.compiled import compile_observer
+    from thetahat.estimation.observer.compiled import compile_observer
 
     obs = _observer()
     dt = 0.01
@@ -525,7 +525,7 @@ def test_cli_help_documents_the_exit_codes(capsys):
 
 
 def test_run_batch_refuses_complex_y():
-    from thetahat.estimation.kernels.batch_run import run_batch
+    from thetahat.estimation.observer.batch_run import run_batch
 
     obs = _observer()
     t = np.arange(5) * 0.01
@@ -650,7 +650,7 @@ def test_plot_path_is_checked_before_the_work(tmp_path, files, capsys, name, plo
 
 def test_single_record_parquet_output_is_parquet(tmp_path, files):
     pq = pytest.importorskip("pyarrow.parquet")
-    from thetahat.datafile import estimate_columns
+    from thetahat.io.datafile import estimate_columns
 
     model, data, _ = files
     out = tmp_path / "e.parquet"

@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from thetahat.cli import main
-from thetahat.datafile import estimate_columns
+from thetahat.io.datafile import estimate_columns
 from thetahat.modelfile import build_observer, load_model, start_x_hat
 from thetahat.models import lugre
 
@@ -143,7 +143,7 @@ def test_demo_calls_the_lugre_report(monkeypatch, capsys):
 def test_estimate_method_guarded_writes_the_guarded_theta(tmp_path, lugre_csv, capsys,
                                                           monkeypatch):
     # numpy kernels (no numba compilation in the default suite); same numbers as compiled
-    import thetahat.estimation.kernels.model_kernel as mk
+    import thetahat.estimation.statistical.plant_kernel as mk
     monkeypatch.setattr(mk, "have_numba", lambda: False)
     csv_path, data = lugre_csv
     out = tmp_path / "est.csv"

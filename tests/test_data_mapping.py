@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 import scipy.io
 
-from thetahat.datafile import read_data
+from thetahat.io.datafile import read_data
 from thetahat.errors import ModelFileError, ThetahatError
 from thetahat.modelfile import EXAMPLE_MODEL, loads_model
 

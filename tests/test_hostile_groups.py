@@ -20,9 +20,9 @@ import sympy as sp
 from thetahat import errors as E
 from thetahat import limits
 from thetahat.cli import main
-from thetahat.datafile import read_data
+from thetahat.io.datafile import read_data
 from thetahat.design.gains import modified_high_gain
-from thetahat.estimation.paper.update_laws import AlgebraicInversion, GradientInversion
+from thetahat.estimation.observer.laws import AlgebraicInversion, GradientInversion
 from thetahat.model.paramset import Box
 from thetahat.model.parse import parse_perturbation
 from thetahat.model.perturbation import SymbolicPerturbation

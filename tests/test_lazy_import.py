@@ -11,12 +11,13 @@ import thetahat
 
 
 def test_import_loads_no_subpackage():
-    """A fresh interpreter: after ``import thetahat`` the only thetahat module is the package."""
+    """A fresh interpreter: after ``import thetahat`` the only thetahat modules are the package
+    and the one line that holds its version."""
     code = ("import sys, thetahat; "
             "print(sorted(m for m in sys.modules if m.startswith('thetahat')))")
     out = subprocess.run([sys.executable, "-c", code], check=True, capture_output=True,
                          text=True).stdout.strip()
-    assert out == "['thetahat']"
+    assert out == "['thetahat', 'thetahat._version']"
 
 
 @pytest.mark.parametrize("name", sorted(set(thetahat.__all__) - {"__version__"}))

@@ -12,8 +12,8 @@ import pytest
 
 from thetahat import simulate_plant
 from thetahat.errors import ModelFileError
-from thetahat.datafile import estimate_columns, read_data
-from thetahat.estimation.paper.initial_state import x_hat_from_output
+from thetahat.io.datafile import estimate_columns, read_data
+from thetahat.estimation.observer.initial_state import x_hat_from_output
 from thetahat.modelfile import (
     EXAMPLE_MODEL,
     analyze_model,

@@ -21,21 +21,21 @@ if TYPE_CHECKING:                    # the real imports, for type checkers and I
                          NotLeftInvertibleError, NotMinimumPhaseError, ParameterSetError,
                          ResourceLimitError, SimulationError, SymbolicTimeoutError, ThetahatError,
                          ThetahatWarning, UnstableDesignError, UpdateLawError)
-    from .estimation.kernels.batch_run import BatchObserverResult, run_batch
-    from .estimation.paper.checks import (ExcitationReport, MonotonicityReport, check_monotonicity,
+    from .estimation.observer.batch_run import BatchObserverResult, run_batch
+    from .estimation.observer.checks import (ExcitationReport, MonotonicityReport, check_monotonicity,
                                     excitation_report)
-    from .estimation.kernels.compiled import CompiledObserver, compile_observer
+    from .estimation.observer.compiled import CompiledObserver, compile_observer
     from .estimation.statistical.crlb import CRLBResult, crlb
     from .estimation.statistical.ekf import EKFDiagnostics, JointEKF
     from .estimation.statistical.guarded import GuardedDiagnostics, GuardedEstimator, GuardedResult
     from .estimation.statistical.mle import MapDiagnostics, MapEstimator
     from .estimation.protocol import EstimateResult, Estimator, ObserverDiagnostics
-    from .estimation.paper.observer import ModifiedHighGainObserver, ObserverEstimate, ObserverResult
-    from .estimation.kernels.plan import StepPlan
-    from .estimation.paper.projection import Projection, Saturation, saturate
-    from .estimation.paper.redesign import SecondObserver
-    from .estimation.paper.theta_star import ThetaStar
-    from .estimation.paper.update_laws import (AlgebraicInversion, ConstantLaw,
+    from .estimation.observer.observer import ModifiedHighGainObserver, ObserverEstimate, ObserverResult
+    from .estimation.observer.plan import StepPlan
+    from .estimation.observer.laws.projection import Projection, Saturation, saturate
+    from .estimation.observer.redesign import SecondObserver
+    from .estimation.observer.laws.theta_star import ThetaStar
+    from .estimation.observer.laws import (AlgebraicInversion, ConstantLaw,
                                                FilteredLeastSquares, GradientInversion,
                                                IntermittentInversion, UpdateLaw, smooth_ramp)
     from .fleet import FleetResult, estimate_many
@@ -59,7 +59,7 @@ if TYPE_CHECKING:                    # the real imports, for type checkers and I
     from .studies.sweep import SweepResult, eps_sweep
     from .studies.tune import TuneResult, tune_eps_gamma
 
-__version__ = "0.1.0"
+from ._version import __version__
 
 __all__ = [
     "Estimator", "EstimateResult", "ObserverDiagnostics", "GuardedDiagnostics", "MapDiagnostics",
@@ -101,21 +101,21 @@ _EXPORTS: dict[str, tuple[str, ...]] = {
                "NotMinimumPhaseError", "ParameterSetError", "ResourceLimitError",
                "SimulationError", "SymbolicTimeoutError", "ThetahatError", "ThetahatWarning",
                "UnstableDesignError", "UpdateLawError"),
-    "estimation.kernels.batch_run": ("BatchObserverResult", "run_batch"),
-    "estimation.paper.checks": ("ExcitationReport", "MonotonicityReport", "check_monotonicity",
+    "estimation.observer.batch_run": ("BatchObserverResult", "run_batch"),
+    "estimation.observer.checks": ("ExcitationReport", "MonotonicityReport", "check_monotonicity",
                           "excitation_report"),
-    "estimation.kernels.compiled": ("CompiledObserver", "compile_observer"),
+    "estimation.observer.compiled": ("CompiledObserver", "compile_observer"),
     "estimation.statistical.crlb": ("CRLBResult", "crlb"),
     "estimation.statistical.ekf": ("EKFDiagnostics", "JointEKF"),
     "estimation.statistical.guarded": ("GuardedDiagnostics", "GuardedEstimator", "GuardedResult"),
     "estimation.statistical.mle": ("MapDiagnostics", "MapEstimator"),
     "estimation.protocol": ("EstimateResult", "Estimator", "ObserverDiagnostics"),
-    "estimation.paper.observer": ("ModifiedHighGainObserver", "ObserverEstimate", "ObserverResult"),
-    "estimation.kernels.plan": ("StepPlan",),
-    "estimation.paper.projection": ("Projection", "Saturation", "saturate"),
-    "estimation.paper.redesign": ("SecondObserver",),
-    "estimation.paper.theta_star": ("ThetaStar",),
-    "estimation.paper.update_laws": ("AlgebraicInversion", "ConstantLaw", "FilteredLeastSquares",
+    "estimation.observer.observer": ("ModifiedHighGainObserver", "ObserverEstimate", "ObserverResult"),
+    "estimation.observer.plan": ("StepPlan",),
+    "estimation.observer.laws.projection": ("Projection", "Saturation", "saturate"),
+    "estimation.observer.redesign": ("SecondObserver",),
+    "estimation.observer.laws.theta_star": ("ThetaStar",),
+    "estimation.observer.laws": ("AlgebraicInversion", "ConstantLaw", "FilteredLeastSquares",
                                      "GradientInversion", "IntermittentInversion", "UpdateLaw",
                                      "smooth_ramp"),
     "fleet": ("FleetResult", "estimate_many"),

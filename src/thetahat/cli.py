@@ -38,7 +38,7 @@ from typing import Any
 # cores made a 4×4 expm 500× slower and the EMPS MAP fits 7.6 → 5.2 s of CPU (one run, loaded).
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
-from . import __version__  # noqa: E402
+from ._version import __version__  # noqa: E402
 from .errors import (NotLeftInvertibleError, NotMinimumPhaseError, OptionError, ThetahatError,
                      UnstableDesignError)
 
@@ -195,7 +195,7 @@ def _estimate(args: argparse.Namespace) -> int:
         return _estimate_fleet(args)
     import warnings
 
-    from .datafile import ESTIMATE_SUFFIXES, read_data, write_estimates
+    from .io.datafile import ESTIMATE_SUFFIXES, read_data, write_estimates
     from .modelfile import load_model, run_estimator, start_x_hat
     from .progress import reporter
     from .safe_io import atomic_path, check_writable, same_file
@@ -259,7 +259,7 @@ def _estimate_fleet(args: argparse.Namespace) -> int:
 
 
 def _codegen(args: argparse.Namespace) -> int:
-    from .codegen import generate_c_from_model
+    from .modelfile import generate_c_from_model
     from .safe_io import check_writable
 
     check_writable(Path(args.output) / "Makefile", inputs=[args.model])   # before any work

@@ -5,7 +5,7 @@ are independent, so :func:`estimate_many` hands them to :func:`thetahat.engine.r
 chunks (in this process, or on a Dask cluster); within a chunk, records with the same sampling
 instants run on the fastest back end installed: one by one on the C printed from the
 formulas (a C compiler) or numba's kernel (a group of at least ``COMPILE_MIN_SAMPLES``
-samples), else together through :func:`~thetahat.estimation.kernels.batch_run.run_batch` (NumPy; the
+samples), else together through :func:`~thetahat.estimation.observer.batch_run.run_batch` (NumPy; the
 results agree to rounding, 1e-9 relative). A record that
 cannot be read or estimated gets its reason in ``status`` and never stops the others.
 
@@ -43,11 +43,12 @@ import numpy as np
 from numpy.typing import NDArray
 
 from . import limits
-from .datafile import (DATA_SUFFIXES, DataRecord, read_data, read_parquet, write_parquet_table)
+from .io.datafile import DATA_SUFFIXES, read_data, read_parquet, write_parquet_table
+from .io.record import DataRecord
 from .engine import run_keyed
 from .errors import ArgumentTypeError, MissingExtraError, ModelFileError, OptionError
-from .estimation.kernels.batch_run import run_batch
-from .estimation.paper.records import check_nan_policy
+from .estimation.observer.batch_run import run_batch
+from .estimation.records import check_nan_policy
 from .estimation.statistical.stage2_set import theta_bounds
 from .modelfile import (ESTIMATION_METHODS, ModelSpec, build_observer, loads_model, start_x_hat,
                         run_estimator)
@@ -365,22 +366,11 @@ class _Stacked:
 
 
 def _group_runner(obs: Any, t: FloatArray, records: int) -> Any:
-    """What runs a group of records that share ``t``: the fastest back end installed.
-
-    The C printed from the formulas where a compiler exists and supports the observer (built
-    in under a second); else numba's kernel when the group holds at least
-    ``COMPILE_MIN_SAMPLES`` samples (its first compilation takes 20–60 s); else ``obs`` itself,
-    and the group runs as one NumPy batch (``run_batch``). A short group's non-uniform record
-    runs on ``obs``; numba missing is noted in one line (``runner``'s warning).
-    """
-    from .codegen.generate import supports_c
-    from .codegen.native import NativeObserver, native_enabled
-    from .estimation.kernels.compiled import COMPILE_MIN_SAMPLES, runner
-    big = records * t.size >= COMPILE_MIN_SAMPLES
-    if native_enabled() and supports_c(obs):
-        return NativeObserver(obs, (lambda: runner(obs, t, compiled=True)) if big
-                              else (lambda: obs))
-    return runner(obs, t, compiled=True) if big else obs
+    """What runs a group of records that share ``t``: the fastest back end installed for the
+    group's samples (:func:`~thetahat.estimation.drive.runner`); ``obs`` itself when none
+    takes it, and the group then runs as one NumPy batch (``run_batch``)."""
+    from .estimation.drive import runner
+    return runner(obs, t, samples=records * t.size)
 
 
 def _estimate_group(spec: ModelSpec, members: list[str],
@@ -431,7 +421,7 @@ def estimate_many(model: str | Path, data: str | Path | Iterable[str | Path], *,
         Model file (TOML or JSON), as for ``thetahat estimate``.
     data : str, Path or iterable of paths
         A directory (its .csv and .parquet files), a glob (``"logs/**/*.parquet"``) or a
-        list of files. Columns as for :func:`~thetahat.datafile.read_data`.
+        list of files. Columns as for :func:`~thetahat.io.datafile.read_data`.
     scheduler : None, str or dask.distributed.Client
         Where to run (:func:`thetahat.engine.run_keyed`): None here, or a Dask cluster.
     chunk_size : int, optional

@@ -24,15 +24,15 @@ from numpy.typing import ArrayLike
 from .design.design_system import apply_design
 from .design.gains import GainDesign, PoleSpec, check_eps, high_gain, modified_high_gain
 from .errors import DimensionError, ThetahatError, UpdateLawError
-from .estimation.paper.observer import ModifiedHighGainObserver
+from .estimation.observer.observer import ModifiedHighGainObserver
 from .estimation.protocol import EstimateResult
-from .estimation.paper.redesign import SecondObserver
-from .estimation.paper.update_laws import UpdateLaw
+from .estimation.observer.redesign import SecondObserver
+from .estimation.observer.laws import UpdateLaw
 from .model.system import PerturbedLinearSystem
 
 __all__ = ["HOLDS", "SECOND_DESIGN_NOTE", "EstimatorSpec", "SecondObserverSpec"]
 
-#: Sample holds of :meth:`~thetahat.estimation.paper.observer.ModifiedHighGainObserver.run`.
+#: Sample holds of :meth:`~thetahat.estimation.observer.observer.ModifiedHighGainObserver.run`.
 HOLDS = ("zoh", "foh")
 
 Hold = Literal["zoh", "foh"]
@@ -114,7 +114,7 @@ class EstimatorSpec:
         Sample hold used by :meth:`run`.
     nan_policy : {"raise", "skip"}, optional
         What the observer does with a NaN sample (see
-        :class:`~thetahat.estimation.paper.observer.ModifiedHighGainObserver`).
+        :class:`~thetahat.estimation.observer.observer.ModifiedHighGainObserver`).
     allow_nonminimum_phase : bool, optional
         Design and build even when Assumption 1 fails (zeros in the closed right half-plane)
         or when the gain leaves the true system unstable: only to study the failure.
@@ -261,7 +261,7 @@ class EstimatorSpec:
         Raises
         ------
         UpdateLawError
-            The law has no Γ (e.g. :class:`~thetahat.estimation.paper.update_laws.ConstantLaw`),
+            The law has no Γ (e.g. :class:`~thetahat.estimation.observer.laws.ConstantLaw`),
             or Γ is not symmetric positive definite.
 
         Examples
@@ -339,7 +339,7 @@ class EstimatorSpec:
             Initial θ̂, in Θ (default: the law's, the centre of Θ for a box).
         progress : callable, optional
             ``progress(done, total)`` called as samples are processed (see
-            :meth:`~thetahat.estimation.paper.observer.ModifiedHighGainObserver.run`).
+            :meth:`~thetahat.estimation.observer.observer.ModifiedHighGainObserver.run`).
 
         Returns
         -------

@@ -16,8 +16,8 @@ from thetahat.codegen.harness import C_FLAGS
 from thetahat.codegen.loader import find_compiler
 from thetahat.errors import UnsupportedError
 from thetahat.estimation.kernels import scalar_primitives
-from thetahat.estimation.kernels.scalar_backend import rewritten
-from thetahat.estimation.kernels.status import status_constants
+from thetahat.estimation.observer.kernel_source import rewritten
+from thetahat.estimation.status import status_constants
 
 #: A pivoted elimination printed as C against LAPACK's, relative to the solution's norm:
 #: rounding only (different pivot arithmetic order), 1e-12 is ~1e4 ulps on these

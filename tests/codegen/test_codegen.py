@@ -15,13 +15,14 @@ import numpy as np
 import pytest
 
 from thetahat import simulate_plant
-from thetahat.codegen import generate_c, generate_c_from_model
+from thetahat.codegen import generate_c
+from thetahat.modelfile import generate_c_from_model
 from thetahat.codegen.harness import C_FLAGS, estimate_columns
 from thetahat.codegen.loader import STATUS, build_harness, find_compiler, load_c
-from thetahat.datafile import estimate_columns as datafile_columns
+from thetahat.io.datafile import estimate_columns as datafile_columns
 from thetahat.errors import DimensionError, NonFiniteError, UnsupportedError, UpdateLawError
-from thetahat.estimation.paper.observer import ModifiedHighGainObserver
-from thetahat.estimation.paper.update_laws import IntermittentInversion
+from thetahat.estimation.observer.observer import ModifiedHighGainObserver
+from thetahat.estimation.observer.laws import IntermittentInversion
 from thetahat.model.paramset import Ball
 from thetahat.model.system import PerturbedLinearSystem
 from thetahat.modelfile import build_observer, load_model, run_estimator
@@ -428,8 +429,8 @@ def _toy(with_input: bool):
 
 @pytest.mark.parametrize("law_name", ["constant", "gradient", "algebraic_sympy", "no_input"])
 def test_mimo_laws_match_python(tmp_path, law_name):
-    from thetahat.estimation.paper.redesign import SecondObserver
-    from thetahat.estimation.paper.update_laws import (AlgebraicInversion, ConstantLaw,
+    from thetahat.estimation.observer.redesign import SecondObserver
+    from thetahat.estimation.observer.laws import (AlgebraicInversion, ConstantLaw,
                                                  GradientInversion)
 
     g, box, system = _toy(law_name != "no_input")
@@ -600,7 +601,7 @@ def test_harness_reads_what_estimate_reads(tmp_path, lugre_harness, lugre_data):
     """A UTF-8 byte-order mark, quoted fields, CRLF and a line longer than any buffer (an
     ignored text column of 100 000 characters): the same estimates as the plain file, and
     `thetahat estimate`'s reader accepts the file too."""
-    from thetahat.datafile import read_data
+    from thetahat.io.datafile import read_data
 
     d = lugre_data
     N = 300

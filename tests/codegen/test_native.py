@@ -133,7 +133,7 @@ def test_library_is_built_once_per_cache(monkeypatch, tmp_path):
 
 def test_runner_chooses_c_and_thetahat_c_0_turns_it_off(monkeypatch):
     from thetahat.codegen.native import NativeObserver
-    from thetahat.estimation.kernels.compiled import runner
+    from thetahat.estimation.drive import runner
     _, obs, t, *_ = case("prop1")
     assert isinstance(runner(obs, t, compiled=True), NativeObserver)
     monkeypatch.setenv("THETAHAT_C", "0")
@@ -146,7 +146,7 @@ def test_without_numba_the_c_runs_and_nothing_is_noted(monkeypatch):
     import warnings
 
     from thetahat.codegen.native import NativeObserver
-    from thetahat.estimation.kernels.compiled import runner
+    from thetahat.estimation.drive import runner
     spec, obs, t, u, y, s0 = case("prop1")
     monkeypatch.setitem(sys.modules, "numba", None)       # `import numba` now fails
     with warnings.catch_warnings():

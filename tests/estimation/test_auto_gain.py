@@ -1,4 +1,4 @@
-"""Gamma = "auto": the gradient law's Γ from the record's information (estimation.paper.auto_gain).
+"""Gamma = "auto": the gradient law's Γ from the record's information (estimation.observer.auto_gain).
 
 Evidence: the choice is invariant to the parameters' units (rescaling a parameter rescales its
 estimate exactly and changes nothing else), the default of the gradient law in model files is
@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from thetahat.errors import ModelFileError, UpdateLawError
-from thetahat.estimation.paper.auto_gain import information_gain
+from thetahat.estimation.observer.auto_gain import information_gain
 from thetahat.modelfile import loads_model, run_estimator, simulate_model
 from thetahat.model.parse import parse_perturbation
 

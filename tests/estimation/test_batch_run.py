@@ -10,9 +10,9 @@ import pytest
 import sympy as sp
 
 from thetahat.errors import DimensionError, NonFiniteError
-from thetahat.estimation.kernels.batch_run import BatchObserverResult, run_batch
-from thetahat.estimation.paper.observer import ModifiedHighGainObserver, ObserverResult
-from thetahat.estimation.paper.update_laws import ConstantLaw, GradientInversion
+from thetahat.estimation.observer.batch_run import BatchObserverResult, run_batch
+from thetahat.estimation.observer.observer import ModifiedHighGainObserver, ObserverResult
+from thetahat.estimation.observer.laws import ConstantLaw, GradientInversion
 from thetahat.model.paramset import Box
 from thetahat.model.perturbation import SymbolicPerturbation
 from thetahat.model.system import PerturbedLinearSystem

@@ -7,7 +7,7 @@ import pytest
 import sympy as sp
 
 from thetahat.errors import DimensionError, NonFiniteError
-from thetahat.estimation.paper.checks import check_monotonicity, excitation_report
+from thetahat.estimation.observer.checks import check_monotonicity, excitation_report
 from thetahat.model.paramset import Ball, Box
 from thetahat.model.perturbation import SymbolicPerturbation
 from thetahat.models import prop3_monotone, prop4_pe

@@ -1,4 +1,4 @@
-"""Tests of the compiled fast path (``thetahat.estimation.kernels.compiled``, optional extra ``speed``).
+"""Tests of the compiled fast path (``thetahat.estimation.observer.compiled``, optional extra ``speed``).
 
 The compiled kernel must compute what the Python observer computes: every test that compiles
 compares with ``ModifiedHighGainObserver.run``/``step`` on the same data. Kernels are cached on
@@ -18,10 +18,10 @@ import sympy as sp
 
 from thetahat.errors import (DimensionError, MissingExtraError, NonFiniteError, OptionError,
                              UpdateLawError)
-from thetahat.estimation.kernels.compiled import CompiledObserver, compile_observer
-from thetahat.estimation.paper.observer import ModifiedHighGainObserver
-from thetahat.estimation.paper.redesign import SecondObserver
-from thetahat.estimation.paper.update_laws import (AlgebraicInversion, ConstantLaw, GradientInversion,
+from thetahat.estimation.observer.compiled import CompiledObserver, compile_observer
+from thetahat.estimation.observer.observer import ModifiedHighGainObserver
+from thetahat.estimation.observer.redesign import SecondObserver
+from thetahat.estimation.observer.laws import (AlgebraicInversion, ConstantLaw, GradientInversion,
                                              IntermittentInversion, smooth_ramp)
 from thetahat.model.paramset import Ball, Box, ConvexSet
 from thetahat.model.perturbation import CallablePerturbation, SymbolicPerturbation
@@ -288,7 +288,7 @@ def test_from_perturbation_inverts_the_lugre_g():
 def test_kernel_arrays_are_the_named_tuples_every_binding_uses():
     """P, P2, LP of the kernel are kernel_args' named tuples, each field the plan's or the
     law's array of that name (the NumPy binding builds the same tuples by keyword)."""
-    from thetahat.estimation.kernels.compiled import kernel_arrays, kernel_parts
+    from thetahat.estimation.observer.compiled import kernel_arrays, kernel_parts
     from thetahat.estimation.kernels.kernel_args import LawArrays, PlanArrays, SecondArrays
     obs = lugre.observer()
     plan = obs.plan(DT)
@@ -308,8 +308,11 @@ def test_kernel_arrays_are_the_named_tuples_every_binding_uses():
 
 
 # --------------------------------------------------------------------------- the default path
-def test_runner_keeps_short_records_in_python():
-    from thetahat.estimation.kernels.compiled import COMPILE_MIN_SAMPLES, runner
+def test_runner_keeps_short_records_off_numba(monkeypatch):
+    """numba's first compilation is slow: a record below its min_samples stays in Python when
+    the C back end is off; compiled=False keeps every record there."""
+    from thetahat.estimation.drive import COMPILE_MIN_SAMPLES, runner
+    monkeypatch.setenv("THETAHAT_C", "0")
     obs = lugre.observer()
     assert runner(obs, np.arange(COMPILE_MIN_SAMPLES - 1) * DT) is obs
     assert runner(obs, np.arange(10 * COMPILE_MIN_SAMPLES) * DT, compiled=False) is obs
@@ -319,7 +322,7 @@ def test_runner_falls_back_with_a_one_line_note(monkeypatch):
     """An unsupported part, or numba missing: the observer itself, and a ThetahatWarning of
     one line naming why."""
     from thetahat.errors import ThetahatWarning
-    from thetahat.estimation.kernels.compiled import runner
+    from thetahat.estimation.drive import runner
     monkeypatch.setenv("THETAHAT_C", "0")     # the numba path (the C one: tests/codegen)
     t = np.arange(100) * DT
     obs = UNSUPPORTED["convex_set"][0]()

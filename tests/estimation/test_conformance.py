@@ -29,12 +29,12 @@ import pytest
 import scipy.signal
 
 from thetahat.errors import NonFiniteError
-from thetahat.estimation.kernels.batch_run import run_batch
-from thetahat.estimation.paper.observer import ModifiedHighGainObserver
-from thetahat.estimation.kernels.plan import linear_part
-from thetahat.estimation.paper.redesign import SecondObserver
-from thetahat.estimation.kernels.step import DIVERGENCE_BOUND
-from thetahat.estimation.paper.update_laws import (AlgebraicInversion, ConstantLaw, GradientInversion,
+from thetahat.estimation.observer.batch_run import run_batch
+from thetahat.estimation.observer.observer import ModifiedHighGainObserver
+from thetahat.estimation.observer.plan import linear_part
+from thetahat.estimation.observer.redesign import SecondObserver
+from thetahat.estimation.observer.step import DIVERGENCE_BOUND
+from thetahat.estimation.observer.laws import (AlgebraicInversion, ConstantLaw, GradientInversion,
                                              IntermittentInversion, UpdateLaw, smooth_ramp)
 from thetahat.model.paramset import Ball, Box
 from thetahat.models import lugre
@@ -126,7 +126,7 @@ def rel_err(a: np.ndarray, b: np.ndarray) -> float:
 
 def compiled(obs: ModifiedHighGainObserver):
     pytest.importorskip("numba")
-    from thetahat.estimation.kernels.compiled import compile_observer
+    from thetahat.estimation.observer.compiled import compile_observer
     return compile_observer(obs, dt=DT)
 
 
@@ -225,7 +225,7 @@ def errors_of_all_back_ends(obs, t, U, Y) -> dict[str, BaseException]:
              "batch": lambda: run_batch(obs, t, U[:1], Y[:1])}
     try:
         import numba  # noqa: F401
-        from thetahat.estimation.kernels.compiled import compile_observer
+        from thetahat.estimation.observer.compiled import compile_observer
         fast = compile_observer(obs, dt=DT)
         calls["compiled"] = lambda: fast.run(t, U[0], Y[0])
     except (ImportError, NotImplementedError):
@@ -418,7 +418,7 @@ def test_law_state_lives_in_the_observer_state_and_every_back_end_propagates_it(
     batch = run_batch(obs, t, U, Y)[0]
     assert rel_err(batch.theta_hat, res.theta_hat) <= AGREE_RTOL
     pytest.importorskip("numba")
-    from thetahat.estimation.kernels.compiled import compile_observer
+    from thetahat.estimation.observer.compiled import compile_observer
     with pytest.raises(NotImplementedError, match="law with a state"):
         compile_observer(obs, dt=DT)
 
@@ -538,8 +538,8 @@ def test_kernel_source_runs_a_user_m(hold):
 def _emitted_run(obs: ModifiedHighGainObserver, t, u, y, hold: str, s0) -> np.ndarray:
     """The states of the kernel's source run as plain Python (no numba: the kernel's text,
     with every argument the compiled observer passes)."""
-    from thetahat.estimation.kernels.compiled import kernel_arrays, kernel_parts, kernel_work, phi_table
-    from thetahat.estimation.kernels.scalar_backend import LAWS, kernel_source
+    from thetahat.estimation.observer.compiled import kernel_arrays, kernel_parts, kernel_work, phi_table
+    from thetahat.estimation.observer.kernel_source import LAWS, kernel_source
     parts = kernel_parts(obs)
     ts = parts.theta_star
     source = kernel_source(parts.perturbation, None if ts is None else ts.expr,

@@ -120,7 +120,7 @@ def test_a_singular_covariance_falls_back_to_a_point_of_theta():
 
 def test_the_compiled_kernel_agrees_with_python(rng):
     pytest.importorskip("numba")
-    from thetahat.estimation.kernels.model_kernel import jit
+    from thetahat.estimation.statistical.plant_kernel import jit
     fast = jit(project_kernel, True)
     ell = Ellipsoid([0.0, 1.0], np.array([[4.0, 1.0], [1.0, 1.0]]))
     st = stage2_set(ell)
@@ -331,8 +331,8 @@ def test_the_runner_compiles_a_ball_theta_with_numba_where_c_refuses(observer_ru
     from thetahat.codegen import generate_c
     from thetahat.codegen import native
     from thetahat.codegen.generate import supports_c
-    from thetahat.estimation.kernels.compiled import (COMPILE_MIN_SAMPLES, CompiledObserver,
-                                                      runner)
+    from thetahat.estimation.drive import COMPILE_MIN_SAMPLES, runner
+    from thetahat.estimation.observer.compiled import CompiledObserver
     obs = build_observer(_observer_spec("two_inertia", "ellipsoid"))
     assert not supports_c(obs)
     with pytest.raises(UnsupportedError, match="Θ must be a Box.*numba"):
@@ -350,7 +350,7 @@ def test_estimate_on_an_ellipsoid_file_runs_compiled_without_a_fallback_note(
     """``thetahat estimate`` on a model file with an ellipsoid Θ and a record long enough for
     the compiled path: no "runs in Python" note (the kernel is the one observer_runs built)."""
     from thetahat.cli import main
-    from thetahat.estimation.kernels.compiled import COMPILE_MIN_SAMPLES
+    from thetahat.estimation.drive import COMPILE_MIN_SAMPLES
     _, ellipsoid, _ = OBSERVER_SETS["two_inertia"]
     model = tmp_path / "ellipsoid.toml"
     model.write_text(_spec_text("two_inertia", ellipsoid))

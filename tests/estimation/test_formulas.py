@@ -18,14 +18,16 @@ import numpy as np
 import pytest
 import scipy.linalg
 
-from thetahat.estimation.kernels import formulas, law_formulas, scalar_primitives as sc
-from thetahat.estimation.kernels.compiled import kernel_arrays, kernel_parts, kernel_work, phi_table
-from thetahat.estimation.paper.observer import ModifiedHighGainObserver
+from thetahat.estimation.observer import formulas
+from thetahat.estimation.observer.laws import formulas as law_formulas
+from thetahat.estimation.kernels import scalar_primitives as sc
+from thetahat.estimation.observer.compiled import kernel_arrays, kernel_parts, kernel_work, phi_table
+from thetahat.estimation.observer.observer import ModifiedHighGainObserver
 from thetahat.estimation.kernels.primitives import (ARRAYS, NUMPY, NUMPY_ROW, PRIMITIVES, AliasingError,
                                             bind, check_aliasing)
-from thetahat.estimation.paper.redesign import SecondObserver
-from thetahat.estimation.kernels.scalar_backend import LAWS, kernel_source
-from thetahat.estimation.paper.update_laws import (AlgebraicInversion, ConstantLaw, GradientInversion,
+from thetahat.estimation.observer.redesign import SecondObserver
+from thetahat.estimation.observer.kernel_source import LAWS, kernel_source
+from thetahat.estimation.observer.laws import (AlgebraicInversion, ConstantLaw, GradientInversion,
                                              IntermittentInversion, smooth_ramp)
 from thetahat.model.paramset import Box
 from thetahat.models import lugre

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from thetahat.errors import DimensionError, ModelFileError
-from thetahat.estimation.paper.initial_state import output_pinv, x_hat_from_output
+from thetahat.estimation.observer.initial_state import output_pinv, x_hat_from_output
 from thetahat.modelfile import load_model, loads_model, run_estimator, start_x_hat
 from thetahat.modelfile.study import simulate_model
 

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from thetahat.estimation.kernels.kernel_cache import KernelSourceError, cached_njit
-from thetahat.estimation.kernels.model_kernel import jit, model_kernel
+from thetahat.estimation.statistical.plant_kernel import jit, model_kernel
 from thetahat.models import lugre
 
 numba = pytest.importorskip("numba")
@@ -74,7 +74,7 @@ def test_stage2_propagation_matches_the_python_kernels():
 
 SCRIPT = """
 import json, numpy as np
-from thetahat.estimation.kernels.model_kernel import model_kernel
+from thetahat.estimation.statistical.plant_kernel import model_kernel
 from thetahat.models import lugre
 k = model_kernel(lugre.system(), compiled=True)
 Phi, Gam = np.empty((2, 2)), np.empty((2, 1))

@@ -14,8 +14,8 @@ import pytest
 import scipy.signal
 
 from thetahat.errors import ModelFileError, ThetahatWarning, UpdateLawError
-from thetahat.estimation.paper.least_squares import FilteredLeastSquares, error_filter
-from thetahat.estimation.paper.update_laws import ConstantLaw
+from thetahat.estimation.observer.laws.least_squares import FilteredLeastSquares, error_filter
+from thetahat.estimation.observer.laws import ConstantLaw
 from thetahat.model.paramset import Ball
 from thetahat.modelfile import (auto_gamma, build_estimator, loads_model, simulate_model,
                                 start_x_hat)

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from thetahat.estimation.statistical.ekf import JointEKF
-from thetahat.estimation.kernels.model_kernel import model_kernel, spectral_radius_bound
+from thetahat.estimation.statistical.plant_kernel import model_kernel, spectral_radius_bound
 from thetahat.models import lugre
 
 #: Central differences with step 1e-6 (relative) of a smooth map: truncation ~1e-12 and

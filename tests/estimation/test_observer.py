@@ -14,14 +14,14 @@ from scipy.integrate import quad_vec, solve_ivp
 from scipy.signal import place_poles
 
 from thetahat.errors import DimensionError, NonFiniteError, ParameterSetError
-from thetahat.estimation.kernels.discretize import (
+from thetahat.estimation.observer.discretize import (
     PLAN_CACHE_SIZE,
     PlanCache,
     linearly_implicit_exponential_step,
     phi_plan,
 )
-from thetahat.estimation.paper.observer import ModifiedHighGainObserver, ObserverResult
-from thetahat.estimation.paper.update_laws import ConstantLaw, UpdateLaw
+from thetahat.estimation.observer.observer import ModifiedHighGainObserver, ObserverResult
+from thetahat.estimation.observer.laws import ConstantLaw, UpdateLaw
 from thetahat.model.paramset import Box
 from thetahat.model.perturbation import Perturbation
 from thetahat.model.system import PerturbedLinearSystem

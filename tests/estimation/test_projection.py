@@ -9,7 +9,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from thetahat.errors import DimensionError, NonFiniteError, UpdateLawError
-from thetahat.estimation.paper.projection import BOUNDARY_TOL, Projection, Saturation, saturate
+from thetahat.estimation.observer.laws.projection import BOUNDARY_TOL, Projection, Saturation, saturate
 from thetahat.model.paramset import Ball, Box, ConvexSet, Ellipsoid, ParameterSet
 
 #: The Lemma E.1 inequalities are exact in real arithmetic; the computed sides differ by

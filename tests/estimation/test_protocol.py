@@ -40,7 +40,7 @@ MAP_TOL = 1e-9
 
 def _compiled():
     pytest.importorskip("numba")
-    from thetahat.estimation.kernels.compiled import compile_observer
+    from thetahat.estimation.observer.compiled import compile_observer
     return compile_observer(lugre.observer(), dt=DT)
 
 
@@ -176,7 +176,7 @@ def test_compiled_step_refuses_another_dt(data):
 def test_cli_and_fleet_accept_every_method(method, tmp_path, monkeypatch, capsys):
     """``thetahat estimate --method m`` and ``estimate_many(method=m)`` run each method
     through the protocol and write θ̂ ∈ Θ; both agree with run_estimator."""
-    import thetahat.estimation.kernels.model_kernel as mk
+    import thetahat.estimation.statistical.plant_kernel as mk
     monkeypatch.setattr(mk, "have_numba", lambda: False)     # numpy kernels: no compilation
     from pathlib import Path
 

@@ -1,4 +1,4 @@
-"""Tests of the second observer of Sec. VI (thetahat.estimation.paper.redesign), alone and attached to
+"""Tests of the second observer of Sec. VI (thetahat.estimation.observer.redesign), alone and attached to
 the modified high-gain observer.
 
 The LuGre g of Sec. VIII is written out by hand (as in test_observer.py; candidates for a
@@ -14,9 +14,9 @@ import scipy.signal
 from scipy.integrate import solve_ivp
 
 from thetahat.errors import DimensionError, NonFiniteError
-from thetahat.estimation.paper.observer import ModifiedHighGainObserver
-from thetahat.estimation.paper.redesign import SecondObserver
-from thetahat.estimation.paper.update_laws import ConstantLaw, UpdateLaw
+from thetahat.estimation.observer.observer import ModifiedHighGainObserver
+from thetahat.estimation.observer.redesign import SecondObserver
+from thetahat.estimation.observer.laws import ConstantLaw, UpdateLaw
 from thetahat.model.paramset import Box
 from thetahat.model.system import PerturbedLinearSystem
 from motor_model import (ALPHA0, ALPHA2, A_MOTOR, B_MOTOR, C_MOTOR, E_MOTOR, J, SIGMA0,

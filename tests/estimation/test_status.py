@@ -16,13 +16,14 @@ from thetahat.codegen.c_values import Arr, Const
 from thetahat.codegen.harness import C_FLAGS
 from thetahat.codegen.loader import find_compiler
 from thetahat.errors import NonFiniteError, UpdateLawError
-from thetahat.estimation.kernels import formulas, scalar_primitives
-from thetahat.estimation.kernels.compiled import kernel_parts
-from thetahat.estimation.kernels.discretize import IMPLICITNESS
+from thetahat.estimation.observer import formulas
+from thetahat.estimation.kernels import scalar_primitives
+from thetahat.estimation.observer.compiled import kernel_parts
+from thetahat.estimation.observer.discretize import IMPLICITNESS
 from thetahat.estimation.kernels.primitives import NUMPY, NUMPY_ROW, bind
-from thetahat.estimation.kernels.scalar_backend import LAWS, kernel_source, rewritten
-from thetahat.estimation.kernels.status import MESSAGES, Status, status_constants
-from thetahat.estimation.kernels.step import divergence_error
+from thetahat.estimation.observer.kernel_source import LAWS, kernel_source, rewritten
+from thetahat.estimation.status import MESSAGES, Status, status_constants
+from thetahat.estimation.observer.step import divergence_error
 from thetahat.models import lugre
 
 Q = 2
@@ -132,7 +133,7 @@ def test_c_reports_a_singular_step(tmp_path):
 
 def test_every_binding_raises_the_same_error_for_a_failed_step():
     from thetahat.codegen.loader import CObserver
-    from thetahat.estimation.kernels.compiled import CompiledObserver
+    from thetahat.estimation.observer.compiled import CompiledObserver
     where = "in the step from t[3] = 0.003"
     expected = str(divergence_error(where))
     assert "singular" in expected and "t[3]" in expected

@@ -13,9 +13,9 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from thetahat.errors import DimensionError, NonFiniteError, ParameterSetError, UpdateLawError
-from thetahat.estimation.paper.checks import check_monotonicity, excitation_report
-from thetahat.estimation.paper.projection import Saturation
-from thetahat.estimation.paper.update_laws import (
+from thetahat.estimation.observer.checks import check_monotonicity, excitation_report
+from thetahat.estimation.observer.laws.projection import Saturation
+from thetahat.estimation.observer.laws import (
     AlgebraicInversion,
     ConstantLaw,
     GradientInversion,

@@ -153,7 +153,7 @@ def test_parquet_dropouts_under_skip(tmp_path):
 def test_method_is_not_ignored(fleet_dir, tmp_path):
     """Fleet rows of the guarded method are that method's run on each record (an
     independent call of run_estimator), not the paper observer's."""
-    from thetahat.datafile import read_data
+    from thetahat.io.datafile import read_data
     from thetahat.modelfile import load_model, run_estimator
 
     d = tmp_path / "two"

@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from thetahat.datafile import read_data
+from thetahat.io.datafile import read_data
 from thetahat.errors import ThetahatWarning
 from thetahat.modelfile import load_model, run_estimator
 from thetahat.models import emps

@@ -126,21 +126,30 @@ def test_worker_processes_give_the_same_grid(stable_grid):
 def test_long_records_run_each_pair_on_the_fastest_back_end(stable_grid, monkeypatch):
     """At COMPILE_MIN_SAMPLES samples and beyond, each (ε, Γ, seed) runs on its compiled form
     (the C of the formulas or numba), not in the NumPy batch: the same scores, to rounding."""
+    import dataclasses
+
     from thetahat.codegen.native import native_enabled
-    import thetahat.estimation.kernels.compiled as compiled
+    import thetahat.estimation.drive as drive
     if not native_enabled():
         pytest.importorskip("numba", reason="no C compiler and no numba: nothing compiled")
-    real, used = compiled.runner, []
+    real, used = drive.runner, []
 
     def spy(obs, t, **kw):
         fast = real(obs, t, **kw)
         used.append(fast is not obs)
         return fast
 
-    monkeypatch.setattr(compiled, "COMPILE_MIN_SAMPLES", 1000)   # the 4 000-sample records
-    monkeypatch.setattr(compiled, "runner", spy)
-    res = tune_eps_gamma(lugre.observer, SIM, eps_values=[1.0, 0.5], gammas=[1.0, 10.0],
-                         seeds=[1000], theta_hat0=THETA_HAT0)
+    monkeypatch.setattr(drive, "COMPILE_MIN_SAMPLES", 1000)      # the 4 000-sample records
+    monkeypatch.setattr(drive, "runner", spy)
+    numba = next((b for b in drive.backends() if b.name == "numba"), None)
+    if numba is not None:
+        drive.register(dataclasses.replace(numba, min_samples=1000))
+    try:
+        res = tune_eps_gamma(lugre.observer, SIM, eps_values=[1.0, 0.5], gammas=[1.0, 10.0],
+                             seeds=[1000], theta_hat0=THETA_HAT0)
+    finally:
+        if numba is not None:
+            drive.register(numba)
     assert len(used) == 4 and all(used)                        # 2 ε × 2 Γ × 1 seed, compiled
     # the compiled step is the NumPy step's formulas: agreement far below the scores' spread
     np.testing.assert_allclose(res.theta_rmse, stable_grid.theta_rmse, rtol=1e-6)

@@ -1,12 +1,17 @@
 """C code generation: the designed observer as dependency-free C99 for a controller.
 
-:func:`generate_c` turns a built :class:`~thetahat.estimation.paper.observer.ModifiedHighGainObserver`
+:func:`generate_c` turns a built :class:`~thetahat.estimation.observer.observer.ModifiedHighGainObserver`
 into ``<name>.h``/``<name>.c`` (the step at a fixed dt, no heap, caller-owned state), a CSV
-harness ``<name>_main.c`` and a ``Makefile``; ``thetahat codegen MODEL --dt … -o DIR`` does the
-same from a model file. :mod:`thetahat.codegen.loader` compiles the result with the system C
-compiler and loads it with ctypes (for tests and benchmarks).
+harness ``<name>_main.c`` and a ``Makefile``; :func:`thetahat.modelfile.generate_c_from_model`
+(``thetahat codegen MODEL --dt … -o DIR``) does the same from a model file.
+:mod:`thetahat.codegen.loader` compiles the result with the system C compiler and loads it with
+ctypes, and :mod:`thetahat.codegen.native` registers that C as the fastest back end of the
+observer's run (:mod:`thetahat.estimation.drive`).
+
+What it may import: :mod:`thetahat.estimation` (the observer and the formulas it prints), the
+model and the package's helpers. Never the model files, the studies or the command line.
 """
 
-from .generate import CCode, generate_c, generate_c_from_model, model_hash
+from .generate import CCode, generate_c, model_hash
 
-__all__ = ["CCode", "generate_c", "generate_c_from_model", "model_hash"]
+__all__ = ["CCode", "generate_c", "model_hash"]

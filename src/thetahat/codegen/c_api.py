@@ -12,13 +12,13 @@ import re
 from dataclasses import dataclass
 from string import Template
 
-from ..estimation.kernels.status import MESSAGES, Status
+from ..estimation.status import MESSAGES, Status
 from .c_derive import DerivedStep
 
 __all__ = ["STATUS", "CLayout", "header_source", "source_text"]
 
 #: Status codes of the generated functions (``<NAME>_OK``, ``<NAME>_ERR_…``), by name, with
-#: their message: derived from :class:`~thetahat.estimation.kernels.status.Status` (the codes the
+#: their message: derived from :class:`~thetahat.estimation.status.Status` (the codes the
 #: formulas return, so the step's status passes through unchanged).
 STATUS = {s.name.lower(): (int(s), MESSAGES[s]) for s in Status}
 
@@ -120,7 +120,7 @@ typedef struct {P}_state {{
 /* Start at theta_hat0 (in Theta) and x_hat0; NULL for the generated defaults. */
 int {P}_init({P}_state *s, const {P}_real_t theta_hat0[], const {P}_real_t x_hat0[]);
 /* x_hat <- x_hat + C^+ (y - C x_hat) with the first output sample y, after {P}_init: the state
- * nearest x_hat0 that fits y (thetahat.estimation.paper.initial_state); a y with a NaN keeps x_hat0. */
+ * nearest x_hat0 that fits y (thetahat.estimation.observer.initial_state); a y with a NaN keeps x_hat0. */
 int {P}_start_from_y({P}_state *s, const {P}_real_t y[]);
 {step_doc}
 int {P}_step({P}_state *s, const {P}_real_t u[], const {P}_real_t y[]{nxt});
@@ -362,6 +362,6 @@ typedef {P}_real_t real_t;
 /* ---- constants: matrices row-major, the discretisation for the fixed dt */
 {step.constants}
 /* ---- g, its Jacobians and theta*: SymPy's C99 printer after sympy.cse;
- * ---- the step: thetahat.estimation.kernels.formulas and law_formulas, printed by
+ * ---- the step: thetahat.estimation.observer.formulas and law_formulas, printed by
  *      thetahat.codegen.c_printer (specialised for this observer) */
 {step.functions}{api}"""

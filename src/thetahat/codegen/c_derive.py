@@ -1,11 +1,11 @@
 """The C step derived from the formulas: what :func:`~thetahat.codegen.generate_c` compiles.
 
 :func:`derived_step` prints, with :class:`~thetahat.codegen.c_printer.CUnit`, the step's
-formulas (:mod:`~thetahat.estimation.kernels.formulas`, :mod:`~thetahat.estimation.kernels.law_formulas`, the
-scalar primitives and the law's hooks of :mod:`~thetahat.estimation.kernels.scalar_backend`, all as
-:func:`~thetahat.estimation.kernels.scalar_backend.rewritten` gives them) specialised for one observer:
+formulas (:mod:`~thetahat.estimation.observer.formulas`, :mod:`~thetahat.estimation.observer.laws.formulas`, the
+scalar primitives and the law's hooks of :mod:`~thetahat.estimation.observer.kernel_source`, all as
+:func:`~thetahat.estimation.observer.kernel_source.rewritten` gives them) specialised for one observer:
 the dimensions, the hold, the second observer, the law's options and the step length are
-constants; the plan's matrices (:func:`~thetahat.estimation.kernels.compiled.kernel_arrays`, the
+constants; the plan's matrices (:func:`~thetahat.estimation.observer.compiled.kernel_arrays`, the
 numba kernel's data) are ``static const`` arrays; the arrays a formula writes are buffers on
 the stack of ``<name>_step``. g, its Jacobians and θ* are printed from SymPy
 (:mod:`.printing`). Around it a small C API (``<name>_init``, ``<name>_step``,
@@ -30,14 +30,16 @@ import numpy as np
 import sympy as sp
 
 from ..errors import UnsupportedError
-from ..estimation.kernels import formulas, law_formulas, scalar_primitives
-from ..estimation.kernels.compiled import KernelParts, kernel_arrays
-from ..estimation.kernels.discretize import IMPLICITNESS
-from ..estimation.kernels.formulas import DIVERGENCE_BOUND, WORK
-from ..estimation.paper.law_base import FAR
-from ..estimation.kernels.plan import StepPlan
-from ..estimation.kernels.scalar_backend import LAWS, law_source, rewritten
-from ..estimation.kernels.status import status_constants
+from ..estimation.observer import formulas
+from ..estimation.observer.laws import formulas as law_formulas
+from ..estimation.kernels import scalar_primitives
+from ..estimation.observer.compiled import KernelParts, kernel_arrays
+from ..estimation.observer.discretize import IMPLICITNESS
+from ..estimation.observer.formulas import DIVERGENCE_BOUND, WORK
+from ..estimation.observer.laws.base import FAR
+from ..estimation.observer.plan import StepPlan
+from ..estimation.observer.kernel_source import LAWS, law_source, rewritten
+from ..estimation.status import status_constants
 from ..model.perturbation import SymbolicPerturbation
 from .c_printer import CUnit
 from .c_values import Arr, Const, Scal, real_literal
@@ -229,7 +231,7 @@ def derived_step(parts: KernelParts, plan: StepPlan, *, prefix: str, real: str, 
     Parameters
     ----------
     parts : KernelParts
-        The observer's checked parts (:func:`~thetahat.estimation.kernels.compiled.kernel_parts`).
+        The observer's checked parts (:func:`~thetahat.estimation.observer.compiled.kernel_parts`).
     plan : StepPlan
         The observer's plan for the fixed step.
     prefix : str
@@ -438,7 +440,7 @@ def _print(functions: dict[str, ast.FunctionDef], constants: dict[str, Any],
                        const_count=count), unit.written_globals
 
 
-#: The work buffers as a named tuple of :data:`~thetahat.estimation.kernels.formulas.WORK`'s names.
+#: The work buffers as a named tuple of :data:`~thetahat.estimation.observer.formulas.WORK`'s names.
 _WORK_TUPLE = collections.namedtuple(  # type: ignore[misc]
     "_WORK_TUPLE", [name for name, _ in WORK])
 

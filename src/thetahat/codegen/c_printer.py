@@ -1,8 +1,8 @@
 """A C99 printer for the step's formulas: the restricted subset, specialised per call.
 
-The formulas of :mod:`~thetahat.estimation.kernels.formulas` and
-:mod:`~thetahat.estimation.kernels.law_formulas`, after the scalar back end's rewrite
-(:func:`~thetahat.estimation.kernels.scalar_backend.rewritten`: element primitives as syntax, block
+The formulas of :mod:`~thetahat.estimation.observer.formulas` and
+:mod:`~thetahat.estimation.observer.laws.formulas`, after the scalar back end's rewrite
+(:func:`~thetahat.estimation.observer.kernel_source.rewritten`: element primitives as syntax, block
 primitives expanded), are loops, subscripts, arithmetic, comparisons, ``if``/``while`` and calls
 of other formulas. :class:`CUnit` prints them as C, the way numba compiles them: each function
 is *specialised* for the arguments of a call (monomorphised), starting from the calls the

@@ -1,12 +1,12 @@
 """C99 code generation for a built observer: :func:`generate_c` and its result :class:`CCode`.
 
 The generated pair ``<name>.h``/``<name>.c`` implements the step of
-:class:`~thetahat.estimation.paper.observer.ModifiedHighGainObserver` — observer (3), the update law
+:class:`~thetahat.estimation.observer.observer.ModifiedHighGainObserver` — observer (3), the update law
 (8) with its projection onto Θ and excitation weight, and the second observer of Sec. VI — at a
 fixed step dt with a zero- or first-order hold, in ``float`` or ``double``, with no heap, no
 recursion and no global mutable state: the caller owns the state struct. The step is not
-written here: it is the formulas of :mod:`~thetahat.estimation.kernels.formulas` and
-:mod:`~thetahat.estimation.kernels.law_formulas` printed as C (:mod:`.c_printer`, :mod:`.c_derive`),
+written here: it is the formulas of :mod:`~thetahat.estimation.observer.formulas` and
+:mod:`~thetahat.estimation.observer.laws.formulas` printed as C (:mod:`.c_printer`, :mod:`.c_derive`),
 reading the data the numba kernel reads (``compiled.kernel_arrays`` of ``observer.plan(dt)``);
 g, ∂g/∂x, ∂g/∂θ, ∂g/∂y and θ* are printed from their SymPy expressions by SymPy's C99 printer
 with common-subexpression elimination (:mod:`.printing`); :mod:`.c_api` writes the interface.
@@ -26,21 +26,21 @@ import sympy as sp
 from numpy.typing import ArrayLike, NDArray
 
 from ..errors import ArgumentTypeError, FileAccessError, UnsupportedError
-from ..estimation.paper.observer import ModifiedHighGainObserver
-from ..estimation.paper.theta_star import ThetaStar
-from ..estimation.paper.update_laws import (INIT_RTOL, ConstantLaw, GradientInversion,
+from ..estimation.observer.observer import ModifiedHighGainObserver
+from ..estimation.observer.laws.theta_star import ThetaStar
+from ..estimation.observer.laws import (INIT_RTOL, ConstantLaw, GradientInversion,
                                       IntermittentInversion, SmoothRamp)
 from ..model.paramset import Box
 from ..model.perturbation import SymbolicPerturbation
-from ..estimation.kernels.compiled import KernelParts
+from ..estimation.observer.compiled import KernelParts
 from .c_api import CLayout, header_source, source_text
 from .c_derive import derived_step, inwards
 from ..safe_io import write_text
-from ..estimation.paper.initial_state import output_pinv
+from ..estimation.observer.initial_state import output_pinv
 from .harness import harness_source, makefile_source
 from .printing import REALS
 
-__all__ = ["CCode", "HOLDS", "generate_c", "generate_c_from_model", "model_hash", "supports_c"]
+__all__ = ["CCode", "HOLDS", "generate_c", "model_hash", "supports_c"]
 
 FloatArray = NDArray[np.float64]
 
@@ -320,8 +320,8 @@ def generate_c(observer: ModifiedHighGainObserver, *, dt: float, name: str = "ob
 
     Notes
     -----
-    The C step is the step's formulas (:mod:`~thetahat.estimation.kernels.formulas`,
-    :mod:`~thetahat.estimation.kernels.law_formulas`) printed as C for this observer
+    The C step is the step's formulas (:mod:`~thetahat.estimation.observer.formulas`,
+    :mod:`~thetahat.estimation.observer.laws.formulas`) printed as C for this observer
     (:mod:`.c_printer`, :mod:`.c_derive`): what ``observer.run`` computes, reading the
     ``observer.plan(dt)`` data the numba kernel reads. The state is committed only when it has
     not diverged (``formulas.within_bound``: its norm is finite and at most
@@ -340,7 +340,7 @@ def generate_c(observer: ModifiedHighGainObserver, *, dt: float, name: str = "ob
     >>> code.state_bytes                      # x̂ (2), z (1), θ̂ (1), x̂₂ (2) doubles
     48
     """
-    from .. import __version__
+    from .._version import __version__
 
     kind, law = _check(observer, hold, real)
     h = _step_length(dt, real)
@@ -424,64 +424,3 @@ def _banner(name: str, info: dict[str, str], what: str) -> str:
             f" *   policy:     {info['policy']}\n"
             f" *   real:       {info['real']}\n"
             f" *   thetahat:   {info['version']}\n */\n")
-
-
-def generate_c_from_model(path: str | Path, *, dt: float, eps: float | None = None,
-                          real: str = "double", name: str | None = None,
-                          nan_policy: str = "raise", hold: str = "zoh") -> CCode:
-    """:func:`generate_c` for the estimator of a model file (``thetahat codegen``).
-
-    Parameters
-    ----------
-    path : str or Path
-        Model file (.toml or .json).
-    dt : float
-        The fixed step length (s).
-    eps : float, optional
-        Overrides ``[estimator] eps``.
-    real : {"double", "float"}
-    name : str, optional
-        File stem and C prefix; default the model file's stem.
-    nan_policy : {"raise", "skip"}
-        A NaN output sample is refused, or predicted over.
-    hold : {"zoh", "foh"}
-        Sample hold.
-
-    Returns
-    -------
-    CCode
-        With the file's θ̂(0) and x̂(0) as defaults and the SHA-256 of the file's bytes in the
-        header.
-
-    Raises
-    ------
-    ModelFileError
-        The file cannot be read or is invalid.
-    UnsupportedError
-        A part of the estimator has no C form, or the file's ``[estimator] method`` is not
-        ``"paper"`` (the guarded and MAP estimators have no C form; the file is refused, never
-        generated as another method).
-
-    Examples
-    --------
-    >>> import tempfile, pathlib
-    >>> from thetahat.modelfile import EXAMPLE_MODEL
-    >>> path = pathlib.Path(tempfile.mkdtemp()) / "prop3.toml"
-    >>> _ = path.write_text(EXAMPLE_MODEL)
-    >>> generate_c_from_model(path, dt=0.01).name
-    'prop3'
-    """
-    from ..modelfile import build_observer, load_model
-
-    spec = load_model(path)
-    if spec.estimator.method != "paper":
-        raise UnsupportedError(
-            f"{path}: [estimator] method = {spec.estimator.method!r} has no C form; codegen "
-            "generates the paper's estimator only (method = \"paper\"). Set method = "
-            "\"paper\" in a copy of the file to generate the observer alone.")
-    digest = hashlib.sha256(Path(path).read_bytes()).hexdigest()
-    observer = build_observer(spec, eps=eps, nan_policy=nan_policy)
-    return generate_c(observer, dt=dt, name=name or Path(path).stem, real=real, hold=hold,
-                      theta_hat0=spec.estimator.theta_hat0, x_hat0=spec.estimator.x_hat0,
-                      eps=spec.estimator.eps if eps is None else eps, model_sha256=digest,
-                      title=spec.name, x_hat0_from_y=spec.estimator.x_hat0_from_y)

@@ -23,7 +23,7 @@ def estimate_columns(state_names: Sequence[str], k: int, parameter_names: Sequen
                      refined: bool) -> tuple[str, ...]:
     """Header of an estimates CSV: t, x_hat_<x>…, phi_hat_<i>…, theta_hat_<θ>…, x_hat_refined_<x>….
 
-    The same names as :func:`thetahat.datafile.estimate_columns` (a test checks it).
+    The same names as :func:`thetahat.io.datafile.estimate_columns` (a test checks it).
 
     Parameters
     ----------

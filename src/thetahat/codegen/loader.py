@@ -21,9 +21,9 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from ..errors import CCompilerError, DimensionError, NonFiniteError
-from ..estimation.paper.inversion import invalid_theta_star_error
-from ..estimation.kernels.status import MESSAGES, Status
-from ..estimation.kernels.step import divergence_error
+from ..estimation.observer.laws.inversion import invalid_theta_star_error
+from ..estimation.status import MESSAGES, Status
+from ..estimation.observer.step import divergence_error
 from ..safe_io import write_text
 from .c_api import STATUS as C_STATUS
 from .generate import CCode
@@ -220,7 +220,7 @@ def build_harness(code: CCode, directory: str | Path, *,
 
 @dataclass(frozen=True, slots=True, eq=False)
 class CRun:
-    """A record run in C: as :class:`~thetahat.estimation.paper.observer.ObserverResult`, plus status.
+    """A record run in C: as :class:`~thetahat.estimation.observer.observer.ObserverResult`, plus status.
 
     Attributes
     ----------
@@ -375,7 +375,7 @@ class CObserver:
 
     def raise_for(self, status: int, where: str) -> None:
         """Raise the Python observer's error for a status code (0: nothing): the one failure
-        behaviour of :mod:`thetahat.estimation.kernels.status`, as the NumPy and numba paths raise."""
+        behaviour of :mod:`thetahat.estimation.status`, as the NumPy and numba paths raise."""
         if status == Status.THETA_STAR:
             raise invalid_theta_star_error("the C observer's update law", 1)
         if status in (Status.DIVERGED, Status.SINGULAR):

@@ -35,16 +35,17 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ..errors import CCompilerError, FileAccessError, UnsupportedError
+from ..estimation.drive import Backend
 from ..estimation.kernels.kernel_cache import cache_dir
-from ..estimation.paper.observer import PROGRESS_EVERY
-from ..estimation.kernels.compiled import states_result
+from ..estimation.observer.observer import PROGRESS_EVERY
+from ..estimation.observer.compiled import states_result
 from ..estimation.protocol import EstimateResult
 from ..safe_io import atomic_path
-from .generate import CCode, generate_c
+from .generate import CCode, generate_c, supports_c
 from .harness import C_FLAGS
 from .loader import CObserver, build, find_compiler
 
-__all__ = ["NativeObserver", "native_enabled", "load_cached", "DT_RTOL"]
+__all__ = ["BACKEND", "NativeObserver", "native_enabled", "load_cached", "DT_RTOL"]
 
 #: Relative spread of a record's steps around their mean that the fixed-step C accepts.
 DT_RTOL = 1e-9
@@ -163,7 +164,7 @@ class NativeObserver:
         Parameters
         ----------
         state, u, y, dt
-            As :meth:`~thetahat.estimation.paper.observer.ModifiedHighGainObserver.step`.
+            As :meth:`~thetahat.estimation.observer.observer.ModifiedHighGainObserver.step`.
 
         Returns
         -------
@@ -177,7 +178,7 @@ class NativeObserver:
         Parameters
         ----------
         state, u, y
-            As :meth:`~thetahat.estimation.paper.observer.ModifiedHighGainObserver.estimate`.
+            As :meth:`~thetahat.estimation.observer.observer.ModifiedHighGainObserver.estimate`.
 
         Returns
         -------
@@ -211,7 +212,7 @@ class NativeObserver:
         Parameters
         ----------
         t, u, y, state0, hold, progress
-            As :meth:`~thetahat.estimation.paper.observer.ModifiedHighGainObserver.run`.
+            As :meth:`~thetahat.estimation.observer.observer.ModifiedHighGainObserver.run`.
 
         Returns
         -------
@@ -257,3 +258,19 @@ class NativeObserver:
 
     def __repr__(self) -> str:
         return f"NativeObserver(observer={self.observer!r})"
+
+
+def _native_backend(observer: Any, dt: float, fallback: Callable[[], Any]) -> NativeObserver | str:
+    """:data:`BACKEND`'s build: the C of the observer's formulas, or why it cannot be had."""
+    if not native_enabled():
+        return "no C compiler (set $CC) or THETAHAT_C=0"
+    if not supports_c(observer):
+        return "the C printer does not support a part of this observer"
+    return NativeObserver(observer, fallback)
+
+
+#: The generated C as a back end of :func:`thetahat.estimation.drive.runner` (registered under
+#: the entry-point group ``thetahat.backends``): first, and for records of any length, since it
+#: builds in under a second and runs as fast as numba's kernel; a record it cannot take
+#: (non-uniform steps, a nonzero status) goes to the next back end.
+BACKEND = Backend(name="c", rank=10, min_samples=0, build=_native_backend)

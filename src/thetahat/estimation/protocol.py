@@ -1,7 +1,7 @@
 """One interface for every estimator: :class:`Estimator`, and one result, :class:`EstimateResult`.
 
-The paper's observer (:class:`~thetahat.estimation.paper.observer.ModifiedHighGainObserver`), its
-compiled form (:class:`~thetahat.estimation.kernels.compiled.CompiledObserver`), the guarded two-stage
+The paper's observer (:class:`~thetahat.estimation.observer.observer.ModifiedHighGainObserver`), its
+compiled form (:class:`~thetahat.estimation.observer.compiled.CompiledObserver`), the guarded two-stage
 estimator (:class:`~thetahat.estimation.statistical.guarded.GuardedEstimator`), the MAP fits
 (:class:`~thetahat.estimation.statistical.mle.MapEstimator`) and the joint EKF
 (:class:`~thetahat.estimation.statistical.ekf.JointEKF`) all implement
@@ -24,7 +24,7 @@ This module imports nothing from the estimators (they import it).
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any, Protocol, runtime_checkable
+from typing import Any, Protocol, runtime_checkable
 
 import numpy as np
 from numpy.typing import NDArray
@@ -32,10 +32,7 @@ from numpy.typing import NDArray
 from ..errors import DimensionError, NonFiniteError
 from ..model.system import PerturbedLinearSystem
 
-if TYPE_CHECKING:
-    from .statistical.trust import TrustReport
-
-__all__ = ["Diagnostics", "EstimateResult", "Estimator", "ObserverDiagnostics",
+__all__ = ["Diagnostics", "EstimateResult", "Estimator", "ObserverDiagnostics", "Evidence",
            "missing_samples", "phi_hat_from_model", "stream_sample"]
 
 FloatArray = NDArray[np.float64]
@@ -67,6 +64,24 @@ class ObserverDiagnostics(Diagnostics):
     def __repr__(self) -> str:
         shape = None if self.x_hat_refined is None else self.x_hat_refined.shape
         return f"ObserverDiagnostics(x_hat_refined={shape})"
+
+
+@runtime_checkable
+class Evidence(Protocol):
+    """What a result says about itself: the type of :attr:`EstimateResult.trust`.
+
+    Implemented by :class:`~thetahat.estimation.statistical.trust.TrustReport`; declared here so
+    that the result type depends on no estimator.
+    """
+
+    @property
+    def warnings(self) -> tuple[str, ...]:
+        """The findings that make the result less than trustworthy, one sentence each."""
+        ...
+
+    def lines(self) -> list[str]:
+        """The report as lines of a summary."""
+        ...
 
 
 @dataclass(frozen=True, slots=True, eq=False)
@@ -107,7 +122,7 @@ class EstimateResult:
     phi_hat: FloatArray
     skipped: NDArray[np.bool_]
     diagnostics: Diagnostics
-    trust: TrustReport | None = None
+    trust: Evidence | None = None
 
     def __post_init__(self) -> None:
         for a in (self.t, self.x_hat, self.theta_hat, self.phi_hat, self.skipped):
@@ -156,8 +171,8 @@ class EstimateResult:
 class Estimator(Protocol):
     """What every estimator offers: ``init``, ``step`` and ``run`` over one explicit state.
 
-    Implemented by :class:`~thetahat.estimation.paper.observer.ModifiedHighGainObserver`,
-    :class:`~thetahat.estimation.kernels.compiled.CompiledObserver`,
+    Implemented by :class:`~thetahat.estimation.observer.observer.ModifiedHighGainObserver`,
+    :class:`~thetahat.estimation.observer.compiled.CompiledObserver`,
     :class:`~thetahat.estimation.statistical.guarded.GuardedEstimator`,
     :class:`~thetahat.estimation.statistical.mle.MapEstimator` and
     :class:`~thetahat.estimation.statistical.ekf.JointEKF`. ``isinstance(e, Estimator)`` checks that

@@ -13,7 +13,7 @@ A parameter set answers three questions for the update laws of Sec. IV:
 
 The functions P_j of the built-in sets are normalised so that P_j = -1 at the centre and
 P_j = 0 on the boundary; the boundary layer of the smooth projection (``layer`` in
-:class:`thetahat.estimation.paper.projection.Projection`) is measured in these units.
+:class:`thetahat.estimation.observer.laws.projection.Projection`) is measured in these units.
 """
 
 from __future__ import annotations

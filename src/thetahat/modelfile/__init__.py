@@ -3,11 +3,13 @@
 Split by job: :mod:`.schema` reads and validates a file into a :class:`ModelSpec` (the file
 format is documented there), :mod:`.assembly` builds and runs the estimator it describes (as an
 :class:`~thetahat.spec.EstimatorSpec`), :mod:`.report` analyses it (``thetahat analyze``) and
-:mod:`.study` simulates its ``[scenario]`` for ``thetahat sweep`` and ``thetahat tune``.
+:mod:`.study` simulates its ``[scenario]`` for ``thetahat sweep`` and ``thetahat tune``, and
+:mod:`.codegen` prints its observer as C (``thetahat codegen``).
 """
 
 from .assembly import (auto_gamma, build_estimator, build_observer, design_gains,
                        design_matrices, estimator_spec, run_estimator, start_x_hat)
+from .codegen import generate_c_from_model
 from .report import ModelAnalysis, analyze_model
 from .schema import (ESTIMATION_METHODS, EXAMPLE_MODEL, LAWS, EstimatorOptions, ModelSpec,
                      ScenarioOptions, SecondObserverOptions, load_model, loads_model)
@@ -17,5 +19,5 @@ __all__ = ["auto_gamma", "ESTIMATION_METHODS", "EXAMPLE_MODEL", "LAWS", "Estimat
            "ModelAnalysis",
            "ModelSpec", "ScenarioOptions", "SecondObserverOptions", "analyze_model",
            "build_estimator", "build_observer", "design_gains", "design_matrices",
-           "estimator_spec", "load_model",
+           "estimator_spec", "generate_c_from_model", "load_model",
            "loads_model", "run_estimator", "simulate_model", "start_x_hat", "study_simulator"]

@@ -21,9 +21,9 @@ from .._validate import as_samples, seconds_from_first
 from ..design.gains import GainDesign
 from ..errors import (ModelFileError, NotMinimumPhaseError, ThetahatError, ThetahatWarning,
                       UnstableDesignError)
-from ..estimation.paper.checks import check_theta_star
-from ..estimation.paper.initial_state import x_hat_from_output
-from ..estimation.paper.observer import HeldObserver, ModifiedHighGainObserver
+from ..estimation.observer.checks import check_theta_star
+from ..estimation.observer.initial_state import x_hat_from_output
+from ..estimation.observer.observer import HeldObserver, ModifiedHighGainObserver
 from ..estimation.protocol import EstimateResult, Estimator
 from ..model.system import PerturbedLinearSystem
 from ..spec import SECOND_DESIGN_NOTE, EstimatorSpec, Hold, SecondObserverSpec
@@ -324,7 +324,7 @@ def run_estimator(spec: ModelSpec, t: ArrayLike, u: ArrayLike | None, y: ArrayLi
     y : array_like, shape (N, r)
         Output samples.
     hold : {"zoh", "foh"}
-        Sample hold (see :meth:`~thetahat.estimation.paper.observer.ModifiedHighGainObserver.run`);
+        Sample hold (see :meth:`~thetahat.estimation.observer.observer.ModifiedHighGainObserver.run`);
         for the guarded estimator it applies to stage 1.
     nan_policy : {"raise", "skip"}
         What the observer does with a NaN sample (a dropout).
@@ -334,8 +334,8 @@ def run_estimator(spec: ModelSpec, t: ArrayLike, u: ArrayLike | None, y: ArrayLi
         The estimator (default: the file's ``[estimator] method``).
     compiled : bool, optional
         numba kernels (default: when installed; for the paper's observer, on records of at
-        least :data:`~thetahat.estimation.kernels.compiled.COMPILE_MIN_SAMPLES` samples, see
-        :func:`~thetahat.estimation.kernels.compiled.runner`). A part the kernel does not support
+        least :data:`~thetahat.estimation.drive.COMPILE_MIN_SAMPLES` samples, see
+        :func:`~thetahat.estimation.drive.runner`). A part the kernel does not support
         falls back to Python with a one-line ThetahatWarning.
     diagnose : bool
         Check the result (:func:`~thetahat.estimation.statistical.trust.trust_report`: the Cramér–Rao
@@ -398,7 +398,7 @@ def run_estimator(spec: ModelSpec, t: ArrayLike, u: ArrayLike | None, y: ArrayLi
 def start_x_hat(spec: ModelSpec, y: ArrayLike) -> FloatArray:
     """x̂(0) of a model file's estimators on a record: x̂₀ + C⁺(y(0) − C x̂₀), or x̂₀.
 
-    :func:`~thetahat.estimation.paper.initial_state.x_hat_from_output` of the first sample with the
+    :func:`~thetahat.estimation.observer.initial_state.x_hat_from_output` of the first sample with the
     file's ``x_hat0`` as the prior, unless the file sets ``x_hat0_from_y = false``. Every
     method, :func:`run_estimator`, ``thetahat estimate`` and ``fleet`` and the generated C
     harness start there.
@@ -434,8 +434,8 @@ def auto_gamma(spec: ModelSpec, t: ArrayLike, u: ArrayLike | None, y: ArrayLike,
     """``Gamma = "auto"`` on a record: the law's Γ (Γ₀) from the record's information.
 
     x̂ from a first pass of the file's observer with θ̂ held at θ̂₀, then
-    :func:`~thetahat.estimation.paper.auto_gain.information_gain` at θ̂₀ with the law's κ
-    (:func:`~thetahat.estimation.paper.auto_gain.auto_kappa`).
+    :func:`~thetahat.estimation.observer.auto_gain.information_gain` at θ̂₀ with the law's κ
+    (:func:`~thetahat.estimation.observer.auto_gain.auto_kappa`).
 
     Parameters
     ----------
@@ -467,8 +467,8 @@ def auto_gamma(spec: ModelSpec, t: ArrayLike, u: ArrayLike | None, y: ArrayLike,
     >>> G.shape, bool(G[0, 0] > 0)
     ((1, 1), True)
     """
-    from ..estimation.paper.auto_gain import auto_kappa, information_gain
-    from ..estimation.paper.law_base import ConstantLaw
+    from ..estimation.observer.auto_gain import auto_kappa, information_gain
+    from ..estimation.observer.laws.base import ConstantLaw
     s = spec.system
     if s.perturbation is None or s.parameter_set is None:
         raise ModelFileError(f"model file {spec.source}: Gamma = 'auto' needs the system's "
@@ -477,7 +477,7 @@ def auto_gamma(spec: ModelSpec, t: ArrayLike, u: ArrayLike | None, y: ArrayLike,
     est = estimator_spec(spec, hold=hold)
     held = dataclasses.replace(est, law=ConstantLaw(th0, s.parameter_set))
     obs = _build(held, spec, None)
-    from ..estimation.kernels.compiled import runner
+    from ..estimation.drive import runner
     first = runner(obs, t).run(t, u, y, hold=hold,
                                state0=obs.init(x_hat0=start_x_hat(spec, y), theta_hat0=th0))
     N = first.t.shape[0]

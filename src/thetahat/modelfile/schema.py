@@ -20,20 +20,20 @@ A model file (TOML, read with :mod:`tomllib`, or JSON with the same structure) h
     1/a² for a semi-axis a). A general convex set {P(θ) ≤ 0} needs a Python callable P and
     exists in the API only (:class:`~thetahat.model.paramset.ConvexSet`).
 ``[estimator]``
-    ``law`` (required): ``"gradient"`` (:class:`~thetahat.estimation.paper.update_laws.
+    ``law`` (required): ``"gradient"`` (:class:`~thetahat.estimation.observer.laws.
     GradientInversion` with the default M = (∂g/∂θ)ᵀ, Propositions 3–4), ``"least_squares"``
-    (:class:`~thetahat.estimation.paper.least_squares.FilteredLeastSquares`: the regressor
+    (:class:`~thetahat.estimation.observer.laws.least_squares.FilteredLeastSquares`: the regressor
     filtered like φ̂, a gain Γ(t) that shrinks as information grows), ``"algebraic"``
-    (:class:`~thetahat.estimation.paper.update_laws.AlgebraicInversion`, Proposition 1) or
-    ``"intermittent"`` (:class:`~thetahat.estimation.paper.update_laws.IntermittentInversion`,
+    (:class:`~thetahat.estimation.observer.laws.AlgebraicInversion`, Proposition 1) or
+    ``"intermittent"`` (:class:`~thetahat.estimation.observer.laws.IntermittentInversion`,
     Proposition 2, with the excitation weight ``smooth_ramp(*excitation)`` of ‖φ̂‖).
     Optional: ``eps`` (default 1, Sec. VII), ``chain_poles`` (one list per chain; default
     −1, −2, …), ``b_poles``, ``Gamma`` (number, p × p or ``"auto"``; default ``"auto"`` for
-    the gradient and least-squares laws — :mod:`~thetahat.estimation.paper.auto_gain` — and
+    the gradient and least-squares laws — :mod:`~thetahat.estimation.observer.auto_gain` — and
     1 for the inversion laws), ``theta_hat0``
     (default: the centre of Θ), ``x_hat0`` (default 0: the prior of x̂(0)), ``x_hat0_from_y``
     (default true: every method starts at x̂(0) = x̂₀ + C⁺(y(0) − C x̂₀), the state nearest
-    x̂₀ that fits the record's first sample, :func:`~thetahat.estimation.paper.initial_state.
+    x̂₀ that fits the record's first sample, :func:`~thetahat.estimation.observer.initial_state.
     x_hat_from_output`; false: at x̂₀), ``theta_star`` (algebraic and
     intermittent laws: θ*(v, x, φ) as a string or list of p strings, in the names of u, y, x
     and ``phi`` (k = 1) or ``phi1``, …, ``phik``; default: solved from g with SymPy),
@@ -67,12 +67,12 @@ A model file (TOML, read with :mod:`tomllib`, or JSON with the same structure) h
     and ``y``, each a name or ``{ column = "NAME", scale = 1.0, offset = 0.0 }`` (value =
     scale · raw + offset), a list of m (r) signals for several inputs (outputs); ``t`` may
     instead be ``{ rate = HZ }`` when the record has no time vector. See
-    :mod:`thetahat.data_mapping`.
+    :mod:`thetahat.io.mapping`.
 
 Unknown keys are errors (they are usually typos). Every problem is reported as a
 :class:`~thetahat.errors.ModelFileError` naming the file, the section and the key.
 
-Data files for :func:`thetahat.datafile.read_data` are CSV with a header row, Parquet or MATLAB
+Data files for :func:`thetahat.io.datafile.read_data` are CSV with a header row, Parquet or MATLAB
 (``.mat``, v4–v7) files. Without ``[data]``, they hold a column ``t`` (strictly increasing),
 one column per input, named as in ``[perturbation] u`` or ``u1``, ``u2``, … (``u`` also works
 when m = 1), and one per output, named as in ``[perturbation] y`` or ``y1``, … (``y`` when
@@ -95,12 +95,12 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from .. import limits
-from ..data_mapping import DataMapping, parse_data_table
+from ..io.mapping import DataMapping, parse_data_table
 from ..errors import InputLimitError, ModelFileError, ThetahatError
-from ..estimation.paper.least_squares import FilteredLeastSquares
-from ..estimation.paper.projection import as_gain
+from ..estimation.observer.laws.least_squares import FilteredLeastSquares
+from ..estimation.observer.laws.projection import as_gain
 from ..safe_io import read_text
-from ..estimation.paper.update_laws import (
+from ..estimation.observer.laws import (
     AlgebraicInversion,
     GradientInversion,
     IntermittentInversion,
@@ -120,7 +120,7 @@ __all__ = ["AUTO_GAMMA_LAWS", "ESTIMATION_METHODS", "EXAMPLE_MODEL", "EstimatorO
 FloatArray = NDArray[np.float64]
 
 LAWS = ("gradient", "least_squares", "algebraic", "intermittent")
-#: The laws whose Γ defaults to ``"auto"`` (:mod:`~thetahat.estimation.paper.auto_gain`).
+#: The laws whose Γ defaults to ``"auto"`` (:mod:`~thetahat.estimation.observer.auto_gain`).
 AUTO_GAMMA_LAWS = ("gradient", "least_squares")
 _TOP_KEYS = ("name", "system", "perturbation", "parameter_set", "estimator", "scenario",
              "data")
@@ -396,7 +396,7 @@ class EstimatorOptions:
         Start x̂ at x̂₀ + C⁺(y(0) − C x̂₀) on a record (default True), else at x̂₀.
     gamma_auto : bool
         ``Gamma = "auto"`` (the gradient and least-squares laws' default): Γ is chosen on the
-        record by :func:`~thetahat.estimation.paper.auto_gain.information_gain` when the
+        record by :func:`~thetahat.estimation.observer.auto_gain.information_gain` when the
         estimator runs;
         ``update_law`` holds Γ = I until then.
     """
@@ -548,7 +548,7 @@ def _read_perturbation(sec: _Section) -> tuple[SymbolicPerturbation, dict[str, A
 
 def _read_gamma(sec: _Section, p: int, law: str) -> tuple[FloatArray, bool]:
     """(Γ, auto): ``"auto"`` (the default of the gradient law) is resolved on the record by
-    :func:`~thetahat.estimation.paper.auto_gain.information_gain`; Γ = 1 stands in until then."""
+    :func:`~thetahat.estimation.observer.auto_gain.information_gain`; Γ = 1 stands in until then."""
     G = sec.table.get("Gamma", "auto" if law in AUTO_GAMMA_LAWS else 1.0)
     if G == "auto":
         if law not in AUTO_GAMMA_LAWS:

@@ -150,7 +150,7 @@ def load(path: str | Path | None = None) -> EmpsRecord:
     >>> record.t.size, record.u.shape, record.y.shape
     (24841, (24841, 1), (24841, 1))
     """
-    from ..matfile import read_mat_variables
+    from ..io.matfile import read_mat_variables
 
     path = DATA_FILE if path is None else Path(path)
     if not path.is_file():

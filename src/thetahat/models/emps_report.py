@@ -1,7 +1,7 @@
 """The EMPS benchmark end to end: estimate with every method, validate, compare, draw.
 
 Used by ``thetahat demo emps``. Reads ``examples/emps.toml`` and the record
-``examples/data/emps/DATA_EMPS.mat`` through the normal path (:func:`thetahat.datafile.read_data`
+``examples/data/emps/DATA_EMPS.mat`` through the normal path (:func:`thetahat.io.datafile.read_data`
 with the file's ``[data]`` table, :func:`thetahat.modelfile.run_estimator`), and for each method
 writes the estimates and prints its summary; then one table of θ̂ per method beside the
 published IDIM-LS values, the benchmark's closed-loop validation (eq. 11,
@@ -179,7 +179,7 @@ def report(*, out: Path | str = "out", methods: Sequence[str] = METHODS,
         The model file or the record is missing (an installed package without the
         repository's ``examples/``).
     """
-    from ..datafile import read_data, write_estimates
+    from ..io.datafile import read_data, write_estimates
     from ..modelfile import load_model, run_estimator
     from ..studies.metrics import estimate_summary
 

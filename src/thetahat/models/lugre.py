@@ -31,9 +31,9 @@ from numpy.typing import ArrayLike, NDArray
 from .._validate import as_vector, positive_scalar
 from ..design.gains import GainDesign, PoleSpec
 from ..errors import ArgumentTypeError, DimensionError, ParameterSetError, ThetahatWarning
-from ..estimation.paper.observer import ModifiedHighGainObserver
+from ..estimation.observer.observer import ModifiedHighGainObserver
 from ..estimation.protocol import Estimator
-from ..estimation.paper.theta_star import ThetaStar
+from ..estimation.observer.laws.theta_star import ThetaStar
 from ..model.paramset import Box
 from ..model.perturbation import SymbolicPerturbation
 from ..model.system import PerturbedLinearSystem
@@ -346,7 +346,7 @@ def theta_star(params: LuGreParameters = LuGreParameters()) -> ThetaStar:
 
     It solves φ̂ = g(v, x̂, θ) for θ; it is defined where φ̂ ≠ 0 (NaN where φ̂ = 0), and the
     paper uses it only where the excitation indicator l(v, x̂, φ̂) = 1, i.e. |φ̂| ≥ 1. The
-    :class:`~thetahat.estimation.paper.theta_star.ThetaStar` carries the SymPy expression (in the
+    :class:`~thetahat.estimation.observer.laws.theta_star.ThetaStar` carries the SymPy expression (in the
     symbols of :func:`perturbation` and ``phi``) and its numpy function, so the Python and the
     compiled paths evaluate the same formula.
 
@@ -567,7 +567,7 @@ def estimator_spec(eps: float = 1.0, *, Gamma: float = 1.0, eps2: float = 1.0,
     >>> [round(float(v), 4) for v in spec.design.K.ravel()]
     [6.0, -0.0042, 6.0075]
     """
-    from ..estimation.paper.update_laws import IntermittentInversion, smooth_ramp
+    from ..estimation.observer.laws import IntermittentInversion, smooth_ramp
 
     sys = system(params)
     law = IntermittentInversion(theta_star(params), smooth_ramp(*excitation), Gamma,
@@ -707,7 +707,7 @@ def estimator(method: str = "guarded", *, eps: float = 1.0, Gamma: float = 1.0,
     """
     from ..estimation.statistical.guarded import GuardedEstimator
     from ..estimation.statistical.mle import MapEstimator
-    from ..estimation.kernels.model_kernel import have_numba
+    from ..estimation.statistical.plant_kernel import have_numba
 
     if method not in METHODS:
         raise DimensionError(f"method must be one of {METHODS}; got {method!r}.")
@@ -721,13 +721,8 @@ def estimator(method: str = "guarded", *, eps: float = 1.0, Gamma: float = 1.0,
         return obs
     use = have_numba() if compiled is None else compiled
     stage1: Any = obs
-    if use:
-        from ..codegen.generate import supports_c
-        from ..codegen.native import NativeObserver, native_enabled
-        from ..estimation.kernels.compiled import compile_observer
-        if native_enabled() and supports_c(obs):     # the C of the formulas, numba behind it
-            stage1 = NativeObserver(obs, lambda: compile_observer(obs, dt=dt))
-        else:
-            stage1 = compile_observer(obs, dt=dt)
+    if use:                                  # the fastest back end for steps of dt
+        from ..estimation.drive import runner
+        stage1 = runner(obs, (0.0, dt), compiled=True)
     return GuardedEstimator(stage1=stage1, system=system(params), noise_std=noise_std,
                             compiled=compiled)

@@ -18,20 +18,24 @@ from pathlib import Path
 
 import numpy as np
 
-import thetahat as th
-from thetahat.models import lugre
-from thetahat.safe_io import atomic_path, write_text
-from thetahat.studies.metrics import rmse, time_to_within
+from . import lugre
+from ..design.design_system import apply_design
+from ..design.gains import extended_system
+from ..errors import IllConditionedWarning
+from ..structure.assumptions import check_assumption_1
+from ..structure.scb import scb
+from ..safe_io import atomic_path, write_text
+from ..studies.metrics import rmse, time_to_within
 
 
 def structure_report(params: lugre.LuGreParameters) -> None:
     for s1 in (params.sigma1, 0.0):
         lin = lugre.linear_part(params, sigma1=s1)
-        print(f"--- σ1 = {s1}: " + str(th.check_assumption_1(lin.A, lin.E, lin.C)).replace(
+        print(f"--- σ1 = {s1}: " + str(check_assumption_1(lin.A, lin.E, lin.C)).replace(
             "\n", "\n    "))
         with warnings.catch_warnings():
-            warnings.simplefilter("ignore", th.IllConditionedWarning)
-            print(f"    SCB of (4): {th.scb(*th.extended_system(lin.A, lin.E, lin.C))}")
+            warnings.simplefilter("ignore", IllConditionedWarning)
+            print(f"    SCB of (4): {scb(*extended_system(lin.A, lin.E, lin.C))}")
 
 
 def report(*, out: Path | str = "out", eps: float = 1.0, seed: int = 0, show: bool = False,
@@ -66,7 +70,7 @@ def report(*, out: Path | str = "out", eps: float = 1.0, seed: int = 0, show: bo
         structure_report(params)
     d1, d2 = lugre.designs(eps)
     lin = lugre.linear_part(params)
-    rep = th.apply_design(d1, lin.A, lin.E, lin.C)
+    rep = apply_design(d1, lin.A, lin.E, lin.C)
     say(f"K1 (first observer, ε = {eps:g}) = {np.round(d1.K.ravel(), 5).tolist()}")
     say(f"K2 (second observer, ε = 1)      = {np.round(d2.K.ravel(), 5).tolist()}")
     say(f"true error dynamics with K1: stable = {rep.stable}, "
@@ -115,7 +119,7 @@ def report(*, out: Path | str = "out", eps: float = 1.0, seed: int = 0, show: bo
     with atomic_path(out / "lugre_data.csv") as tmp:
         np.savetxt(tmp, np.c_[data.t, data.u, data.y], delimiter=",", header="t,u,y",
                    comments="", fmt="%.17g")
-    from thetahat.plotting import figure_1
+    from ..plotting import figure_1
     with atomic_path(out / "lugre.png") as tmp:
         figure_1(data.t, data.y, data.x, x2, data.theta, res.theta_hat,
                  x_hat_first=res.x_hat, path=tmp, show=show)

@@ -30,7 +30,7 @@ import numpy as np
 import sympy as sp
 from numpy.typing import ArrayLike, NDArray
 
-from ..estimation.paper.update_laws import AlgebraicInversion, IntermittentInversion
+from ..estimation.observer.laws import AlgebraicInversion, IntermittentInversion
 from ..model.paramset import Box
 from ..model.system import PerturbedLinearSystem
 from ._oscillator import oscillator, y

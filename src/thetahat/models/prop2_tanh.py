@@ -10,11 +10,11 @@ weight
 
     l(v, x̂, φ̂) = w(|y|; 0.2, 0.5) · (1 - w(|φ̂|; 0.9, 0.98)),
 
-with w the C¹ ramp of :func:`~thetahat.estimation.paper.update_laws.smooth_ramp`, is positive only
+with w the C¹ ramp of :func:`~thetahat.estimation.observer.laws.smooth_ramp`, is positive only
 where |y| > 0.2 and |φ̂| < 0.98, where θ* is unique and Lipschitz in φ̂ — so
 Proj(lΓ(θ* - θ̂)) also satisfies Assumption 4. The oscillating output passes through the
 informative band every half period, which gives ∫_t^(t+T) l dτ >= σ > 0 (check it with
-:func:`~thetahat.estimation.paper.checks.excitation_report`).
+:func:`~thetahat.estimation.observer.checks.excitation_report`).
 
 Examples
 --------
@@ -32,7 +32,7 @@ import numpy as np
 import sympy as sp
 from numpy.typing import ArrayLike, NDArray
 
-from ..estimation.paper.update_laws import IntermittentInversion, smooth_ramp
+from ..estimation.observer.laws import IntermittentInversion, smooth_ramp
 from ..model.paramset import Box
 from ..model.system import PerturbedLinearSystem
 from ._oscillator import oscillator, y

@@ -10,7 +10,7 @@ M ∂g/∂θ(θ₂) + ∂g/∂θ(θ₂)ᵀ Mᵀ = 2(2 + sin y)(1 + θ₂²) >= 2
 least like e^(-Γ t) with perfect x̂ and φ̂, without solving the cubic for θ. (The cubic can
 be inverted too — ``AlgebraicInversion.from_perturbation`` finds its real Cardano branch —
 but the gradient law needs no inverse at all, which is the point of Proposition 3.) Check
-(13) with :func:`~thetahat.estimation.paper.checks.check_monotonicity`.
+(13) with :func:`~thetahat.estimation.observer.checks.check_monotonicity`.
 
 Examples
 --------
@@ -31,7 +31,7 @@ import numpy as np
 import sympy as sp
 from numpy.typing import ArrayLike, NDArray
 
-from ..estimation.paper.update_laws import GradientInversion
+from ..estimation.observer.laws import GradientInversion
 from ..model.paramset import Box
 from ..model.perturbation import Perturbation
 from ..model.system import PerturbedLinearSystem

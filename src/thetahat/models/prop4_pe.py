@@ -8,7 +8,7 @@ Why Proposition 4 applies (and Proposition 3 does not): one scalar φ cannot det
 parameters at any instant. With ψ(v) = col(sin y, tanh u), ∂g/∂θ = ψᵀ and the default
 M = (∂g/∂θ)ᵀ = ψ, the matrix of (14) is 2ψψᵀ = 2S(v) with S = ψψᵀ positive semidefinite
 but singular. The multisine makes ψ(t) persistently exciting, ∫_t^(t+T) S dτ >= σI with
-σ > 0 (check with :func:`~thetahat.estimation.paper.checks.excitation_report`), and
+σ > 0 (check with :func:`~thetahat.estimation.observer.checks.excitation_report`), and
 ‖g(θ) - g(θ̂)‖ = |ψᵀθ̃| = (θ̃ᵀSθ̃)^(1/2) gives L_g = 1, so the gradient law
 θ̂̇ = Proj(Γψ(φ̂ - g(v, x̂, θ̂))) satisfies Assumption 3.
 
@@ -30,7 +30,7 @@ import numpy as np
 import sympy as sp
 from numpy.typing import ArrayLike, NDArray
 
-from ..estimation.paper.update_laws import GradientInversion
+from ..estimation.observer.laws import GradientInversion
 from ..model.paramset import Box
 from ..model.perturbation import Perturbation
 from ..model.system import PerturbedLinearSystem

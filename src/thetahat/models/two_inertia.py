@@ -57,8 +57,8 @@ from numpy.typing import ArrayLike, NDArray
 
 from .._validate import positive_scalar
 from ..design.gains import GainDesign, modified_high_gain
-from ..estimation.paper.observer import ModifiedHighGainObserver
-from ..estimation.paper.update_laws import GradientInversion
+from ..estimation.observer.observer import ModifiedHighGainObserver
+from ..estimation.observer.laws import GradientInversion
 from ..model.paramset import Box
 from ..model.perturbation import SymbolicPerturbation
 from ..model.system import PerturbedLinearSystem
@@ -203,7 +203,7 @@ LOAD_SPEED_RAMP = (0.2, 0.5)
 class LoadSpeedWeight:
     """M(v, x̂, θ̂) = diag(tanh(y₁/v_s), w(|ω̂_l|) tanh(ω̂_l/v_s)) of the Proposition 4 law.
 
-    w is :func:`~thetahat.estimation.paper.update_laws.smooth_ramp` over :data:`LOAD_SPEED_RAMP`.
+    w is :func:`~thetahat.estimation.observer.laws.smooth_ramp` over :data:`LOAD_SPEED_RAMP`.
     Called as ``M(v, x, theta)`` with v = col(u, y) (..., 3), x (..., 3) and θ (..., 2); returns
     shape (..., 2, 2).
 
@@ -230,7 +230,7 @@ class LoadSpeedWeight:
     ramp: tuple[float, float] = LOAD_SPEED_RAMP
 
     def __call__(self, v: ArrayLike, x: ArrayLike, theta: ArrayLike) -> FloatArray:
-        from ..estimation.paper.update_laws import smooth_ramp
+        from ..estimation.observer.laws import smooth_ramp
 
         v_, x_ = np.asarray(v, dtype=np.float64), np.asarray(x, dtype=np.float64)
         w = smooth_ramp(*self.ramp).weight(np.abs(x_[..., 2]))
@@ -279,7 +279,7 @@ def observer(eps: float = EPS, *, Gamma: float = GAMMA,
     -------
     ModifiedHighGainObserver
         On :func:`system` with K(ε) of :func:`design` (K_x (3, 2), K_φ (2, 2)) and the
-        :class:`~thetahat.estimation.paper.update_laws.GradientInversion` law on Θ.
+        :class:`~thetahat.estimation.observer.laws.GradientInversion` law on Θ.
 
     Examples
     --------

@@ -22,7 +22,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from ..errors import DesignError, DimensionError
-from ..estimation.paper.observer import ModifiedHighGainObserver
+from ..estimation.observer.observer import ModifiedHighGainObserver
 from ..estimation.protocol import Estimator
 from ..spec import EstimatorSpec
 from .batch import check_seeds, monte_carlo
@@ -77,7 +77,7 @@ def run_observer(estimator: EstimatorSource, obs: Estimator, data: Any,
     """Run ``obs`` on one record from θ̂(0) and measure it; a divergence error is recorded.
 
     A paper observer runs on the fastest back end for the record
-    (:func:`~thetahat.estimation.kernels.compiled.runner`: the C printed from its formulas or
+    (:func:`~thetahat.estimation.drive.runner`: the C printed from its formulas or
     numba's kernel for a record of at least ``COMPILE_MIN_SAMPLES`` samples, else Python).
 
     Parameters
@@ -107,7 +107,7 @@ def run_observer(estimator: EstimatorSource, obs: Estimator, data: Any,
     >>> run_observer(spec, observer_for(spec, 1.0), data, np.array([0.5])).diverged
     False
     """
-    from ..estimation.kernels.compiled import runner
+    from ..estimation.drive import runner
     try:
         with np.errstate(all="ignore"):            # an exploding state is the expected failure
             if isinstance(obs, ModifiedHighGainObserver):

@@ -191,16 +191,16 @@ def _run_eps(estimator: EstimatorSource, observers: list[Any], records: list[Any
              th0: FloatArray) -> list[RunMetrics]:
     """Runs of one ε: every Γ on every seed (Γ-major), vectorised when possible.
 
-    The observers of one ε differ only in Γ, so :func:`~thetahat.estimation.kernels.batch_run.
+    The observers of one ε differ only in Γ, so :func:`~thetahat.estimation.observer.batch_run.
     run_batch` runs all of them on all seeds at once. When that batch diverges (one exploding
     run stops it), or the observers are not :class:`ModifiedHighGainObserver` or the records
     do not share one time grid, the runs are repeated one by one — as they are for records of
     at least ``COMPILE_MIN_SAMPLES`` samples, each on its compiled form
     (:func:`~thetahat.studies.sweep.run_observer`), which beats the NumPy batch there.
     """
-    from ..estimation.kernels.batch_run import run_batch
-    from ..estimation.kernels.compiled import COMPILE_MIN_SAMPLES
-    from ..estimation.paper.observer import ModifiedHighGainObserver
+    from ..estimation.observer.batch_run import run_batch
+    from ..estimation.drive import COMPILE_MIN_SAMPLES
+    from ..estimation.observer.observer import ModifiedHighGainObserver
 
     pairs = [(o, d) for o in observers for d in records]
     t0 = np.asarray(records[0].t)
@@ -250,9 +250,9 @@ def tune_eps_gamma(estimator: EstimatorSource, simulate: Callable[[int], Any], *
         for the whole grid, its hold for every run), or a callable building the observer,
         e.g. :func:`thetahat.models.lugre.observer`: anything with
         ``init(theta_hat0=...)`` and ``run(t, u, y, state0=...)``. When it returns
-        :class:`~thetahat.estimation.paper.observer.ModifiedHighGainObserver` objects, the runs of
+        :class:`~thetahat.estimation.observer.observer.ModifiedHighGainObserver` objects, the runs of
         one ε (all Γ, all seeds) are vectorised with
-        :func:`~thetahat.estimation.kernels.batch_run.run_batch`.
+        :func:`~thetahat.estimation.observer.batch_run.run_batch`.
     simulate : callable ``simulate(seed)``
         Simulates the plant with that noise seed, returning ``t``, ``u``, ``y`` and the true
         ``x`` and ``theta`` (e.g. a ``functools.partial`` of :func:`thetahat.models.lugre.

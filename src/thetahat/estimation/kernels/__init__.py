@@ -1,15 +1,13 @@
-"""The step written once, and the back ends that run it.
+"""The mechanism under every back end: the primitives a step is written in, and compiled kernels.
 
-The step's formulas (:mod:`.formulas`, :mod:`.law_formulas`) over a small vocabulary of
-primitives, with the named argument tuples (:mod:`.kernel_args`); the NumPy binding
-(:mod:`.primitives`, :mod:`.step`, :mod:`.batch_run`), the scalar binding emitted as a numba
-module (:mod:`.scalar_primitives`, :mod:`.scalar_backend`, :mod:`.compiled`) with its on-disk
-cache (:mod:`.kernel_cache`), the stage-2 plant kernels (:mod:`.model_kernel`), and the
-observer's discretisation and plan (:mod:`.discretize`, :mod:`.plan`), and the one status
-enum every binding returns (:mod:`.status`). The C printer in
-:mod:`thetahat.codegen` reads the same formulas.
+The vocabulary of the step's formulas and its NumPy implementation (:mod:`.primitives`), the
+same vocabulary for one scalar row (:mod:`.scalar_primitives`), the named argument tuples of
+the formulas (:mod:`.kernel_args`), the projection onto a convex Θ as kernels
+(:mod:`.set_projection`) and the on-disk cache of printed numba modules (:mod:`.kernel_cache`).
+The observer (:mod:`thetahat.estimation.observer`), stage 2's plant kernels
+(:mod:`thetahat.estimation.statistical.plant_kernel`) and the C printer
+(:mod:`thetahat.codegen`) build on it.
 
-What it may import: :mod:`thetahat.model`, the package's helpers, and from
-:mod:`thetahat.estimation.paper` only the objects a binding binds (laws, θ*, the observer
-that a compiled kernel stands in for). Never the statistical estimators.
+What it may import: :mod:`thetahat.model`, the package's helpers and
+:mod:`thetahat.estimation.status`. Nothing above it.
 """

@@ -1,10 +1,10 @@
 """The argument tuples of the step's formulas, named: one definition for every binding.
 
-The formulas (:mod:`~thetahat.estimation.kernels.formulas`, :mod:`~thetahat.estimation.kernels.law_formulas`)
+The formulas (:mod:`~thetahat.estimation.observer.formulas`, :mod:`~thetahat.estimation.observer.laws.formulas`)
 take the plan's arrays and the law's arrays as tuples ``P``, ``P2`` and ``LP``. Every back end
 builds them as the named tuples below, by keyword — the NumPy binding
-(:mod:`~thetahat.estimation.kernels.step`, the laws' own steps), the compiled kernel
-(:mod:`~thetahat.estimation.kernels.compiled`; numba compiles named tuples like tuples, with their
+(:mod:`~thetahat.estimation.observer.step`, the laws' own steps), the compiled kernel
+(:mod:`~thetahat.estimation.observer.compiled`; numba compiles named tuples like tuples, with their
 field names) — so that a field means the same everywhere: ``LP.Gamma`` is Γ and ``LP.lower``
 Θ's lower bound in each, whatever else a binding fills in. A field a binding does not use is
 None.
@@ -18,7 +18,7 @@ __all__ = ["LawArrays", "PlanArrays", "SecondArrays"]
 
 
 class PlanArrays(NamedTuple):
-    """``P``: the observer's plan arrays for one step (:class:`~thetahat.estimation.kernels.plan.StepPlan`).
+    """``P``: the observer's plan arrays for one step (:class:`~thetahat.estimation.observer.plan.StepPlan`).
 
     Φ₁ and Φ₂ are those of this step: the corrected ones, or the prediction's over a missing
     sample.

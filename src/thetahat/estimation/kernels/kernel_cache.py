@@ -2,9 +2,9 @@
 
 numba caches a compiled function only when it is defined in a file, at module level, and its
 cache key is stable across processes. Two kinds of kernel in thetahat miss that: the stage-1
-observer kernel (generated source, see :mod:`~thetahat.estimation.kernels.compiled`) and the stage-2
+observer kernel (generated source, see :mod:`~thetahat.estimation.observer.compiled`) and the stage-2
 kernels of the guarded estimator, which are closures over other kernels and over the model's
-generated ``rhs_jac`` (:mod:`~thetahat.estimation.kernels.model_kernel`, ``ekf``, ``mle``, ``guard``,
+generated ``rhs_jac`` (:mod:`~thetahat.estimation.statistical.plant_kernel`, ``ekf``, ``mle``, ``guard``,
 ``crlb``); compiled afresh in every process they cost 10–20 s before the first sample.
 
 :func:`load_module` writes a source text to the cache directory under its content hash and

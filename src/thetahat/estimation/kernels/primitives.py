@@ -1,7 +1,7 @@
 """The vocabulary the step is written in, and its NumPy implementation (a leading batch axis).
 
-The formulas of one sample (:mod:`~thetahat.estimation.kernels.formulas`, the update laws'
-:mod:`~thetahat.estimation.kernels.law_formulas`) are plain Python functions whose free names are the
+The formulas of one sample (:mod:`~thetahat.estimation.observer.formulas`, the update laws'
+:mod:`~thetahat.estimation.observer.laws.formulas`) are plain Python functions whose free names are the
 *primitives* below, the model functions (g with its Jacobians, θ*) and the model's dimensions.
 A back end is a binding of those names:
 
@@ -9,7 +9,7 @@ A back end is a binding of those names:
   or B rows as ``(B, size)`` — and a matrix (a, b), (1, a, b) shared by the rows or (B, a, b)
   per row. ``get(a, i)`` is the column ``a[..., i]``, the products are (batched) ``matmul``,
   ``solve`` is LAPACK's, ``where`` is :func:`numpy.where`, ``any_`` reduces over the rows;
-* the scalar back end (:mod:`~thetahat.estimation.kernels.scalar_backend`): one row, every primitive a
+* the scalar back end (:mod:`~thetahat.estimation.observer.kernel_source`): one row, every primitive a
   loop over scalars, the whole emitted as the source of a numba module.
 
 :func:`bind` gives formula functions the globals of a back end: the same code objects run
@@ -62,7 +62,7 @@ from scipy.linalg.lapack import dgesv as _gesv
 
 from ...errors import ThetahatError
 from ...model.set_geometry import safe_norm
-from .status import Status
+from ..status import Status
 
 __all__ = ["ARRAYS", "NUMPY", "NUMPY_ROW", "PRIMITIVES", "AliasingError", "bind", "bound",
            "check_aliasing"]
@@ -156,7 +156,7 @@ def _eye_minus(M: FloatArray, q: int, c: float) -> None:
 
 
 def _solve(q: int, M: FloatArray, rhs: FloatArray) -> Any:
-    """rhs ← M⁻¹ rhs; the status (:class:`~thetahat.estimation.kernels.status.Status`) per row: a zero
+    """rhs ← M⁻¹ rhs; the status (:class:`~thetahat.estimation.status.Status`) per row: a zero
     pivot of LAPACK's LU (info > 0) is ``SINGULAR`` and leaves NaN in that row's rhs."""
     if M.ndim == 2:                     # one row: LAPACK's gesv (np.linalg.solve costs ~4 µs)
         _, _, x, info = _gesv(M, rhs)
@@ -318,7 +318,7 @@ def check_aliasing(fn: Callable[..., Any]) -> None:
     another of its arguments (the same expression twice; :data:`ARRAYS`).
 
     Run where the formulas are bound (:func:`bind`) and emitted
-    (:func:`~thetahat.estimation.kernels.scalar_backend.kernel_source`), so that every back end
+    (:func:`~thetahat.estimation.observer.kernel_source.kernel_source`), so that every back end
     computes the same thing.
 
     Parameters

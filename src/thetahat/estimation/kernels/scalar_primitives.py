@@ -1,11 +1,11 @@
 """The primitives of :mod:`~thetahat.estimation.kernels.primitives` for one row, as scalar loops.
 
-Plain Python in the subset numba compiles: :mod:`~thetahat.estimation.kernels.scalar_backend` emits
+Plain Python in the subset numba compiles: :mod:`~thetahat.estimation.observer.kernel_source` emits
 the source of these functions, under their primitive names, into the compiled observer's
 module, next to the formulas and the model functions. A vector is a 1-D array, a matrix a 2-D
 one, a boolean or a number is a Python scalar, and the reductions over the rows (``any_``,
 ``count_``) see one row. The module also holds the compiled path's loop (:func:`kernel_run`),
-which calls the formulas' :func:`~thetahat.estimation.kernels.formulas.advance`.
+which calls the formulas' :func:`~thetahat.estimation.observer.formulas.advance`.
 
 Without numba these functions run as they are (slowly): the tests compare them with the
 NumPy primitives one by one.
@@ -17,7 +17,7 @@ import math
 from collections.abc import Callable
 from typing import TYPE_CHECKING, Any
 
-from .status import Status
+from ..status import Status
 
 if TYPE_CHECKING:                    # the argument tuples (named; every binding builds them)
     from .kernel_args import LawArrays, PlanArrays, SecondArrays
@@ -28,7 +28,7 @@ __all__ = ["EXP_TINY_ARG", "SCALAR_PRIMITIVES"]
 #: under it); ``math.exp`` there takes libm's slow path, which the scalar ``exp`` avoids.
 EXP_TINY_ARG = -745.1332191019411
 
-#: The status codes the primitives return (:class:`~thetahat.estimation.kernels.status.Status`; the
+#: The status codes the primitives return (:class:`~thetahat.estimation.status.Status`; the
 #: emitted module defines them from the same enum).
 ST_OK = int(Status.OK)
 ST_DIVERGED = int(Status.DIVERGED)

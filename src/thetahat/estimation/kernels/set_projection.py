@@ -13,7 +13,7 @@ compiled without numba's reference counting; :func:`project_kernel` allocates it
 
 Written in numba's subset of Python, so that one definition serves every compiled kernel that
 projects onto Θ: the paper observer's (emitted into its generated module by
-:mod:`~thetahat.estimation.kernels.scalar_backend`, with M = Γ: the Γ⁻¹-weighted projection of
+:mod:`~thetahat.estimation.observer.kernel_source`, with M = Γ: the Γ⁻¹-weighted projection of
 the update laws) and stage 2's EKF, MAP fit and guard
 (:mod:`~thetahat.estimation.statistical.stage2_set`, with M a covariance). Θ is data: ``lo``,
 ``hi`` (p,) and ``ell`` (p + 1, p), row 0 the centre c and rows 1… Q (a ball is Q = I/R²).

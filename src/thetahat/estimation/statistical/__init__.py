@@ -9,5 +9,5 @@ onto any convex set (:mod:`.stage2_set`) — and the trust report (:mod:`.trust`
 
 What it may import: everything below it — :mod:`thetahat.model`, the package's helpers,
 :mod:`thetahat.estimation.protocol`, :mod:`thetahat.estimation.kernels` (model kernels) and
-:mod:`thetahat.estimation.paper` (stage 1 is the paper's observer).
+:mod:`thetahat.estimation.observer` (stage 1 is the paper's observer).
 """

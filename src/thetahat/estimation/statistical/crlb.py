@@ -8,7 +8,7 @@ the unknowns q (θ, or col(θ, x(0)) when x(0) is unknown) in the samples up to 
 and any unbiased estimator of θ from those data has covariance ≥ CRLB(t) = [I(t)⁻¹]_θθ (the
 θ block of the inverse, i.e. the inverse of the Schur complement when x(0) is unknown). The
 sensitivities solve the variational equations integrated with the model (eq. (1) with
-y = C x in g, from :mod:`~thetahat.estimation.kernels.model_kernel`):
+y = C x in g, from :mod:`~thetahat.estimation.statistical.plant_kernel`):
 
     Ṡ = F_x S + F_θ,  S(0) = 0;   Ṁ = F_x M,  M(0) = I   (S = ∂x/∂θ, M = ∂x/∂x(0)),
 
@@ -29,7 +29,7 @@ from ..._validate import as_vector
 from ...errors import DimensionError, SimulationError
 from ...model.system import PerturbedLinearSystem
 from .ekf import as_record
-from ..kernels.model_kernel import jit, model_kernel
+from .plant_kernel import jit, model_kernel
 
 __all__ = ["CRLBResult", "crlb", "CRLB_RTOL", "SINGULAR_RTOL"]
 

@@ -1,7 +1,7 @@
 """Stage 2's filter: an extended Kalman filter on col(x, θ) built from any thetahat model.
 
 The augmented state s = col(x, θ) with θ constant (no random walk) follows the sampled-data
-map of :mod:`~thetahat.estimation.kernels.model_kernel` (RK4 sub-steps, first-order hold on u):
+map of :mod:`~thetahat.estimation.statistical.plant_kernel` (RK4 sub-steps, first-order hold on u):
 
     x_{k+1} = F(x_k, θ, ũ_k, ũ_{k+1}),   θ_{k+1} = θ_k,   y_k = C x_k + e_k,  e_k ~ N(0, R),
 
@@ -36,7 +36,7 @@ from ...errors import DimensionError, NonFiniteError, OptionError, ParameterSetE
 from ...errors import UnsupportedError
 from ...model.paramset import Box
 from ...model.system import PerturbedLinearSystem
-from ..kernels.model_kernel import H_RHO, ModelKernel, jit, model_kernel
+from .plant_kernel import H_RHO, ModelKernel, jit, model_kernel
 from .input_hold import InputHistory, smooth_input
 from .noise_level import MIN_SAMPLES, estimate_noise_std
 from .stage2_set import (clip_kernel, has_compiled_projection, project_kernel, stage2_set,
@@ -436,7 +436,7 @@ def ekf_kernels(system: PerturbedLinearSystem, *, compiled: bool | None = None) 
     system : PerturbedLinearSystem
         The model of stage 2, with a
         :class:`~thetahat.model.perturbation.SymbolicPerturbation` (see
-        :func:`~thetahat.estimation.kernels.model_kernel.model_kernel`).
+        :func:`~thetahat.estimation.statistical.plant_kernel.model_kernel`).
     compiled : bool, optional
         Compile the kernels with numba; default (None): when numba is installed and Θ has a
         compiled projection (a Box, Ball or Ellipsoid). A
@@ -626,7 +626,7 @@ class JointEKF:
     q_x : float
         Process-noise variance per sample on x (default 0: the model is taken as exact).
     h_rho : float
-        RK4 sub-step bound (see :mod:`~thetahat.estimation.kernels.model_kernel`).
+        RK4 sub-step bound (see :mod:`~thetahat.estimation.statistical.plant_kernel`).
     compiled : bool, optional
         numba kernels (default: when installed).
 

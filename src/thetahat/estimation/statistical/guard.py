@@ -153,7 +153,7 @@ def make_guarded_loop(predict: Callable[..., None], update: Callable[..., float]
     jit : callable
         fn ↦ compiled fn, applied to :func:`progress_step` and to the loop: numba's
         ``njit`` when the kernels are compiled, the identity otherwise (one argument, unlike
-        :func:`~thetahat.estimation.kernels.model_kernel.jit`).
+        :func:`~thetahat.estimation.statistical.plant_kernel.jit`).
 
     Returns
     -------

@@ -42,7 +42,7 @@ from .fit_worker import default_executor, discard_default_executor, fit_spec, ru
 from .guard import (GUARD_C, GUARD_DWELL, GUARD_KAPPA, GUARD_RHO_MAX, make_guarded_loop,
                     progress_init)
 from .mle import FitResult, FitSchedule, MapEstimator, fit_as_prior, fit_record
-from ..kernels.model_kernel import H_RHO, jit
+from .plant_kernel import H_RHO, jit
 from .noise_level import MIN_SAMPLES
 from ..protocol import Diagnostics, EstimateResult, missing_samples, phi_hat_from_model
 
@@ -248,7 +248,7 @@ class GuardedEstimator:
     q_x : float
         Stage 2's process-noise variance per sample on x (default 0: the model is exact).
     h_rho : float
-        RK4 sub-step bound (see :mod:`~thetahat.estimation.kernels.model_kernel`).
+        RK4 sub-step bound (see :mod:`~thetahat.estimation.statistical.plant_kernel`).
     compiled : bool, optional
         numba kernels (default: when installed).
     fit_executor : concurrent.futures.Executor, optional

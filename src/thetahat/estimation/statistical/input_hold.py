@@ -1,7 +1,7 @@
 """Stage 2's input samples: a smooth input's samples corrected for the linear hold.
 
 Stage 2 propagates the model between samples with u held linear
-(:mod:`~thetahat.estimation.kernels.model_kernel`). When u is a smooth signal sampled at
+(:mod:`~thetahat.estimation.statistical.plant_kernel`). When u is a smooth signal sampled at
 spacing h, the linear interpolant of its samples has, over each interval, the mean
 (u_{k−1} + u_k)/2 = ū − h² ü/12 + O(h⁴) instead of the true mean ū: for a 131 Hz input at
 10 kHz a relative error of 6·10⁻⁴ per sample, a bias that long records resolve (the actuator

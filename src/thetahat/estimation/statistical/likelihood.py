@@ -16,7 +16,7 @@ R = diag(σ²). The likelihood of (θ, q) is that of the extended Kalman filter'
 
 Over a sample of length h, w adds q Q₁(h), Q₁(h) = ∫₀^h e^{Aτ} E Eᵀ e^{Aᵀτ} dτ (Van Loan's
 exponential, once per distinct sample length), to the covariance of x; x is propagated by the
-model's sampled-data map with its exact Jacobian (:mod:`~thetahat.estimation.kernels.model_kernel`);
+model's sampled-data map with its exact Jacobian (:mod:`~thetahat.estimation.statistical.plant_kernel`);
 the outputs update one at a time in Joseph form. θ is fitted by Gauss–Newton on the normalised
 innovations ε/√S (SciPy's trust-region least squares inside Θ's bounding box, then projected
 onto Θ, the Jacobian by
@@ -44,7 +44,7 @@ from ...model.paramset import Box, ParameterSet
 from .ekf import sample_interval, theta_box
 from .noise_level import mad_variance
 from .stage2_set import project_theta, theta_bounds
-from ..kernels.model_kernel import H_RHO, ModelKernel, jit, model_kernel
+from .plant_kernel import H_RHO, ModelKernel, jit, model_kernel
 
 __all__ = ["ProcessNoiseFit", "fit_process_noise", "process_noise_scale", "unit_process_noise",
            "record_bound", "fisher_covariance", "Q_DECADES", "Q_SEARCH_SAMPLES", "ALTERNATIONS"]

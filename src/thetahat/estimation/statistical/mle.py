@@ -4,7 +4,7 @@ On a window of samples k₀ … k₁ the fit minimises over q = col(x(t_{k₀}),
 
     J(q) = Σ_k ‖y_k − C x_k(q)‖²_{R⁻¹} + (q − q̄)ᵀ Π⁻¹ (q − q̄),
 
-x_k(q) from the sampled-data map of :mod:`~thetahat.estimation.kernels.model_kernel`, with the
+x_k(q) from the sampled-data map of :mod:`~thetahat.estimation.statistical.plant_kernel`, with the
 sensitivities ψ_k = C ∂x_k/∂q chained through the same map's exact Jacobians (Φ, Γ):
 (Σ ψᵀR⁻¹ψ + Π⁻¹) Δ = Σ ψᵀR⁻¹ r − Π⁻¹(q − q̄), solved after Jacobi scaling by a symmetric
 eigendecomposition (directions the data and the prior do not determine are left alone); the
@@ -53,7 +53,7 @@ from .ekf import (X_PRIOR_SD, divergence_error, ekf_kernels, ekf_sample, resolve
 from .input_hold import InputHistory, smooth_input
 from .stage2_set import project_theta, stage2_set
 from .noise_level import MAD_VARIANCE_SD, MIN_SAMPLES
-from ..kernels.model_kernel import H_RHO, ModelKernel, jit, model_kernel
+from .plant_kernel import H_RHO, ModelKernel, jit, model_kernel
 from ..protocol import (Diagnostics, EstimateResult, missing_samples, phi_hat_from_model,
                        stream_sample)
 

@@ -41,7 +41,7 @@ from .ekf import sample_interval, theta_box, x_prior_sd
 from .input_hold import smooth_input
 from .stage2_set import BOUNDARY_RTOL, on_boundary
 from .likelihood import process_noise_scale, record_bound
-from ..kernels.model_kernel import H_RHO
+from .plant_kernel import H_RHO
 from .noise_level import MIN_SAMPLES, estimate_noise_std
 
 __all__ = ["TrustReport", "trust_report", "UNPINNED_FRACTION", "BOUNDARY_RTOL",

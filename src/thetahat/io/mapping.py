@@ -14,9 +14,9 @@ name) and optionally ``scale`` (default 1) and ``offset`` (default 0), giving
 of ``[perturbation] u`` (likewise ``y`` with r > 1 outputs); one signal may also be given as a
 one-element list. ``t`` may instead be ``{ rate = 1000 }`` (Hz, optional ``start`` in s,
 default 0) for records without a time vector: t_k = start + k / rate. A signal that
-``[data]`` does not name keeps the default naming of :func:`thetahat.datafile.column_candidates`.
+``[data]`` does not name keeps the default naming of :func:`thetahat.io.record.column_candidates`.
 
-The mapping applies to CSV, Parquet and MATLAB (:mod:`thetahat.matfile`) files alike: a
+The mapping applies to CSV, Parquet and MATLAB (:mod:`thetahat.io.matfile`) files alike: a
 mapped variable must exist, be real and numeric, be a vector (a MATLAB row or column vector,
 or a column) with as many samples as the others, and be finite (an output may be NaN under
 ``nan_policy="skip"``); t must be strictly increasing. Each failure raises a
@@ -30,16 +30,14 @@ import math
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
 
-from .errors import ModelFileError
+from ..errors import ModelFileError
 
-if TYPE_CHECKING:                                     # imported lazily: datafile imports us
-    from .datafile import DataRecord
-    from .modelfile import ModelSpec
+from .record import MISSING_CELLS, DataRecord, RecordSpec, column_candidates
 
 __all__ = ["DataMapping", "Signal", "parse_data_table", "read_mapped"]
 
@@ -79,7 +77,7 @@ class Signal:
         Examples
         --------
         >>> import numpy as np
-        >>> from thetahat.data_mapping import Signal
+        >>> from thetahat.io.mapping import Signal
         >>> Signal("vir", scale=2.0, offset=1.0).apply(np.array([0.0, 1.0])).tolist()
         [1.0, 3.0]
         """
@@ -178,7 +176,7 @@ def parse_data_table(table: Any, input_names: Sequence[str], output_names: Seque
     Examples
     --------
     >>> from thetahat.errors import ModelFileError
-    >>> from thetahat.data_mapping import parse_data_table
+    >>> from thetahat.io.mapping import parse_data_table
     >>> m = parse_data_table({"t": "t", "u": {"column": "vir", "scale": 35.15}, "y": "qm"},
     ...                      ["tau"], ["q"], ModelFileError)
     >>> m.u
@@ -279,7 +277,6 @@ def _parquet_columns(path: Path) -> _Columns:
 def _csv_columns(path: Path, wanted: Sequence[str]) -> _Columns:
     """The wanted columns of a CSV file (header row; blank lines skipped), read cell by cell
     with messages naming the line; empty or NaN-like cells read as NaN (checked later)."""
-    from .datafile import MISSING_CELLS
 
     try:
         with path.open(newline="", encoding="utf-8-sig") as fh:
@@ -323,18 +320,18 @@ def _choose(columns: _Columns, signal: Signal | None, alternatives: list[str]) -
     return Signal(found[0])
 
 
-def read_mapped(path: str | Path, spec: ModelSpec, *, nan_policy: str = "raise") -> DataRecord:
+def read_mapped(path: str | Path, spec: RecordSpec, *, nan_policy: str = "raise") -> DataRecord:
     """Read a CSV, Parquet or MATLAB record through the model's ``[data]`` table.
 
     Without a ``[data]`` table (``spec.data is None``) the default names of
-    :func:`~thetahat.datafile.column_candidates` are used (t, the model's input and output
+    :func:`~thetahat.io.record.column_candidates` are used (t, the model's input and output
     names, ``u1``…, ``y1``…).
 
     Parameters
     ----------
     path : str or Path
         A ``.mat`` (MATLAB v4–v7), ``.parquet`` (needs pyarrow) or CSV file.
-    spec : ModelSpec
+    spec : RecordSpec
         The model; ``spec.data`` is its ``[data]`` table.
     nan_policy : {"raise", "skip"}
         ``"skip"`` keeps NaN outputs as dropouts; t and the inputs must always be finite.
@@ -350,14 +347,14 @@ def read_mapped(path: str | Path, spec: ModelSpec, *, nan_policy: str = "raise")
     ModelFileError
         A mapped or default variable is missing, not numeric, complex, not a vector, of a
         different length than the others, or not finite; t is not strictly increasing; the
-        file cannot be read (a MATLAB v7.3 file: see :func:`thetahat.matfile.read_mat_variables`).
+        file cannot be read (a MATLAB v7.3 file: see :func:`thetahat.io.matfile.read_mat_variables`).
 
     Examples
     --------
     >>> import tempfile, pathlib
     >>> import numpy as np, scipy.io
     >>> from thetahat.modelfile import EXAMPLE_MODEL, loads_model
-    >>> from thetahat.data_mapping import read_mapped
+    >>> from thetahat.io.mapping import read_mapped
     >>> spec = loads_model(EXAMPLE_MODEL + '[data]\\nu = {column = "volts", scale = 2.0}\\n'
     ...                    'y = {column = "pos_mm", scale = 1e-3}\\n')
     >>> path = pathlib.Path(tempfile.mkdtemp()) / "log.mat"
@@ -366,8 +363,7 @@ def read_mapped(path: str | Path, spec: ModelSpec, *, nan_policy: str = "raise")
     >>> record.u.ravel().tolist(), record.y.ravel().tolist()
     ([2.0, 4.0], [0.005, 0.007])
     """
-    from .datafile import DataRecord, column_candidates
-    from .estimation.paper.records import check_nan_policy
+    from ..estimation.records import check_nan_policy
 
     check_nan_policy(nan_policy)
     path = Path(path)

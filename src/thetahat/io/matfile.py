@@ -3,7 +3,7 @@
 MATLAB's v7.3 format is an HDF5 container that :func:`scipy.io.loadmat` cannot read; such a
 file is refused with a message saying how to convert it (``save(FILE, '-v7')`` in MATLAB, or
 an export to CSV). Which variables become t, u and y is decided by the model file's ``[data]``
-table (:mod:`thetahat.data_mapping`), not here.
+table (:mod:`thetahat.io.mapping`), not here.
 """
 
 from __future__ import annotations
@@ -13,7 +13,7 @@ from typing import Any
 
 import numpy as np
 
-from .errors import ModelFileError
+from ..errors import ModelFileError
 
 __all__ = ["MAT_SUFFIX", "describe_variables", "read_mat_variables"]
 
@@ -35,7 +35,7 @@ def read_mat_variables(path: str | Path) -> dict[str, Any]:
     """The variables of a MATLAB v4/v5/v7 file, by name, as SciPy reads them.
 
     The values are returned unchecked (numeric arrays, but also strings, cells, structs or
-    sparse matrices, whatever the file holds); :mod:`thetahat.data_mapping` checks the ones a
+    sparse matrices, whatever the file holds); :mod:`thetahat.io.mapping` checks the ones a
     model uses. SciPy's bookkeeping entries (``__header__``, ``__version__``,
     ``__globals__``) are left out.
 
@@ -61,7 +61,7 @@ def read_mat_variables(path: str | Path) -> dict[str, Any]:
     --------
     >>> import tempfile, pathlib
     >>> import numpy as np, scipy.io
-    >>> from thetahat.matfile import read_mat_variables
+    >>> from thetahat.io.matfile import read_mat_variables
     >>> path = pathlib.Path(tempfile.mkdtemp()) / "log.mat"
     >>> scipy.io.savemat(path, {"t": np.arange(3.0), "qm": np.zeros((3, 1))})
     >>> {k: v.shape for k, v in read_mat_variables(path).items()}
@@ -101,7 +101,7 @@ def describe_variables(variables: dict[str, Any]) -> str:
     Examples
     --------
     >>> import numpy as np
-    >>> from thetahat.matfile import describe_variables
+    >>> from thetahat.io.matfile import describe_variables
     >>> describe_variables({"qm": np.zeros((5, 1)), "name": np.array(["EMPS"])})
     "'qm' (5×1 float64), 'name' (1 <U4)"
     """

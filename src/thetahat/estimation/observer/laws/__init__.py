@@ -14,7 +14,7 @@ from __future__ import annotations
 from .gradient import GradientInversion
 from .inversion import (WEIGHT_TOL, AlgebraicInversion, IntermittentInversion, SmoothRamp,
                         invalid_theta_star_error, smooth_ramp)
-from .law_base import FAR, INIT_RTOL, ConstantLaw, UpdateLaw
+from .base import FAR, INIT_RTOL, ConstantLaw, UpdateLaw
 from .least_squares import FilteredLeastSquares
 
 __all__ = ["UpdateLaw", "ConstantLaw", "AlgebraicInversion", "IntermittentInversion",

@@ -13,21 +13,20 @@ import io
 import math
 import warnings
 from array import array
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
 
-from . import limits
-from .errors import MissingExtraError, ModelFileError
-from .estimation.paper.observer import ObserverResult
-from .estimation.paper.records import check_nan_policy
-from .modelfile import ModelSpec
-from .safe_io import atomic_path, check_regular, check_writable, open_input
+from .. import limits
+from ..errors import MissingExtraError, ModelFileError
+from ..estimation.protocol import EstimateResult
+from ..estimation.records import check_nan_policy
+from .record import MISSING_CELLS, DataRecord, RecordSpec, column_candidates
+from ..safe_io import atomic_path, check_regular, check_writable, open_input
 
-__all__ = ["DataRecord", "DATA_SUFFIXES", "ESTIMATE_SUFFIXES", "column_candidates", "read_data",
+__all__ = ["DATA_SUFFIXES", "ESTIMATE_SUFFIXES", "read_data",
            "read_csv", "read_parquet", "check_writable", "estimate_columns", "write_estimates",
            "write_parquet_table"]
 
@@ -39,82 +38,18 @@ ESTIMATE_SUFFIXES = (".csv", ".parquet")
 FloatArray = NDArray[np.float64]
 
 
-@dataclass(frozen=True, slots=True, repr=False)
-class DataRecord:
-    """Samples read by :func:`read_data`.
-
-    Attributes
-    ----------
-    t : ndarray, shape (N,)
-    u : ndarray, shape (N, m)
-    y : ndarray, shape (N, r)
-    columns : tuple of str
-        The CSV columns used, in the order t, u..., y....
-    source : str
-    """
-
-    t: FloatArray
-    u: FloatArray
-    y: FloatArray
-    columns: tuple[str, ...]
-    source: str
-
-    def __repr__(self) -> str:
-        return (f"DataRecord(N={self.t.size}, columns={list(self.columns)}, "
-                f"source={self.source!r})")
-
-
-def _aliases(names: tuple[str, ...], letter: str) -> list[list[str]]:
-    out = []
-    for i, name in enumerate(names):
-        alts = [name, f"{letter}{i + 1}"] + ([letter] if len(names) == 1 else [])
-        out.append(list(dict.fromkeys(alts)))
-    return out
-
-
-#: Cells read as a missing output sample under ``nan_policy="skip"`` (besides NaN itself).
-MISSING_CELLS = ("", "nan", "na", "n/a", "null", "none")
-
-
-def column_candidates(spec: ModelSpec) -> list[list[str]]:
-    """The accepted names of each data column: ``[["t"], [u names...]..., [y names...]...]``.
-
-    Each input may be named as in the model, ``u1``, ``u2``, … or ``u`` when m = 1; each output
-    likewise with ``y``. The first name found in a header is used.
-
-    Parameters
-    ----------
-    spec : ModelSpec
-        The model; its ``input_names`` and ``output_names`` give the column names.
-
-    Returns
-    -------
-    list of list of str
-        1 + m + r lists, in the order t, u₁ … u_m, y₁ … y_r: the accepted names of each
-        column, the model's name first.
-
-    Examples
-    --------
-    >>> from thetahat.modelfile import EXAMPLE_MODEL, loads_model
-    >>> from thetahat.datafile import column_candidates
-    >>> column_candidates(loads_model(EXAMPLE_MODEL))
-    [['t'], ['u', 'u1'], ['y', 'y1']]
-    """
-    return [["t"]] + _aliases(spec.input_names, "u") + _aliases(spec.output_names, "y")
-
-
-def read_data(path: str | Path, spec: ModelSpec, *, nan_policy: str = "raise") -> DataRecord:
+def read_data(path: str | Path, spec: RecordSpec, *, nan_policy: str = "raise") -> DataRecord:
     """Read a data record for a model's estimator: CSV, Parquet or MATLAB, by the suffix.
 
     Parameters
     ----------
     path : str or Path
-        A regular file: ``.mat`` (MATLAB v4–v7, :func:`thetahat.data_mapping.read_mapped`),
+        A regular file: ``.mat`` (MATLAB v4–v7, :func:`thetahat.io.mapping.read_mapped`),
         ``.parquet`` (needs pyarrow; :func:`read_parquet`), anything else is read as CSV
         (:func:`read_csv`). Columns: ``t``, the inputs and the outputs (see
         :func:`column_candidates`), or as the model's ``[data]`` table maps them (any format,
-        through :func:`thetahat.data_mapping.read_mapped`).
-    spec : ModelSpec
+        through :func:`thetahat.io.mapping.read_mapped`).
+    spec : RecordSpec
         The model whose estimator reads the record.
     nan_policy : {"raise", "skip"}
         ``"skip"`` reads missing or NaN output samples as NaN (dropouts); ``"raise"`` refuses
@@ -138,7 +73,7 @@ def read_data(path: str | Path, spec: ModelSpec, *, nan_policy: str = "raise") -
     --------
     >>> import tempfile, pathlib
     >>> from thetahat.modelfile import EXAMPLE_MODEL, loads_model
-    >>> from thetahat.datafile import read_data
+    >>> from thetahat.io.datafile import read_data
     >>> csv_path = pathlib.Path(tempfile.mkdtemp()) / "data.csv"
     >>> _ = csv_path.write_text("t,u,y\\n0,0,0.1\\n0.01,0.5,0.2\\n")
     >>> read_data(csv_path, loads_model(EXAMPLE_MODEL)).t.tolist()
@@ -147,14 +82,14 @@ def read_data(path: str | Path, spec: ModelSpec, *, nan_policy: str = "raise") -
     check_nan_policy(nan_policy)
     path = check_regular(path, "data file", limits.MAX_DATA_FILE_BYTES)   # every format
     if spec.data is not None or path.suffix.lower() == ".mat":
-        from .data_mapping import read_mapped          # a [data] table, or a MATLAB file
+        from .mapping import read_mapped          # a [data] table, or a MATLAB file
         return read_mapped(path, spec, nan_policy=nan_policy)
     if path.suffix.lower() == ".parquet":
         return read_parquet(path, spec, nan_policy=nan_policy)
     return read_csv(path, spec, nan_policy=nan_policy)
 
 
-def read_csv(path: str | Path, spec: ModelSpec, *, nan_policy: str = "raise") -> DataRecord:
+def read_csv(path: str | Path, spec: RecordSpec, *, nan_policy: str = "raise") -> DataRecord:
     """Read a CSV record (header row; columns t, inputs, outputs) for a model's estimator.
 
     Usually called through :func:`read_data`, which dispatches on the suffix.
@@ -171,7 +106,7 @@ def read_csv(path: str | Path, spec: ModelSpec, *, nan_policy: str = "raise") ->
         ignored; blank lines are skipped. A column name may appear only once, and only one of
         the accepted names of a column may be present. Cells are plain decimal numbers
         (``1_000`` is refused). At least two rows.
-    spec : ModelSpec
+    spec : RecordSpec
     nan_policy : {"raise", "skip"}
         ``"skip"`` reads empty or NaN output cells (measurement dropouts) as NaN, for the
         observer's ``nan_policy="skip"``; ``"raise"`` refuses them. Inputs and t must always
@@ -196,7 +131,7 @@ def read_csv(path: str | Path, spec: ModelSpec, *, nan_policy: str = "raise") ->
     --------
     >>> import tempfile, pathlib
     >>> from thetahat.modelfile import EXAMPLE_MODEL, loads_model
-    >>> from thetahat.datafile import read_csv
+    >>> from thetahat.io.datafile import read_csv
     >>> spec = loads_model(EXAMPLE_MODEL)
     >>> csv_path = pathlib.Path(tempfile.mkdtemp()) / "data.csv"
     >>> _ = csv_path.write_text("t,u,y\\n0,0,0.1\\n0.01,0.5,0.2\\n")
@@ -237,7 +172,7 @@ def _fast_columns(fh: Any, header_line: int, width: int,
     return np.ascontiguousarray(cols)
 
 
-def _header(path: Path, reader: Any, spec: ModelSpec) -> tuple[int, list[str], list[int]]:
+def _header(path: Path, reader: Any, spec: RecordSpec) -> tuple[int, list[str], list[int]]:
     """(line of the header, its names, the index of t, u..., y... in it)."""
     for line, row in enumerate(reader, start=1):
         if row and any(c.strip() for c in row):
@@ -251,7 +186,7 @@ def _header(path: Path, reader: Any, spec: ModelSpec) -> tuple[int, list[str], l
     return header_line, header, index
 
 
-def _find_columns(where: str, names: list[str], spec: ModelSpec) -> list[str]:
+def _find_columns(where: str, names: list[str], spec: RecordSpec) -> list[str]:
     """The column names of t, u..., y... in a header: each present once, one name per signal."""
     twice = sorted({h for h in names if h and names.count(h) > 1})
     if twice:
@@ -272,7 +207,7 @@ def _find_columns(where: str, names: list[str], spec: ModelSpec) -> list[str]:
     return cols
 
 
-def _read_rows(path: Path, fh: Any, spec: ModelSpec, nan_policy: str) -> DataRecord:
+def _read_rows(path: Path, fh: Any, spec: RecordSpec, nan_policy: str) -> DataRecord:
     header_line, header, index = _header(path, csv.reader(fh), spec)
     m = spec.system.m
     cols = tuple(header[j] for j in index)
@@ -350,13 +285,13 @@ def _cell(path: Path, line: int, column: str, text: str, *, output: bool,
     return value
 
 
-def estimate_columns(spec: ModelSpec, *, refined: bool) -> tuple[str, ...]:
+def estimate_columns(spec: RecordSpec, *, refined: bool) -> tuple[str, ...]:
     """Header of an estimates CSV: t, x_hat_<x>..., phi_hat_<i>..., theta_hat_<θ>...,
     and x_hat_refined_<x>... when ``refined``.
 
     Parameters
     ----------
-    spec : ModelSpec
+    spec : RecordSpec
     refined : bool
         Include the second observer's columns.
 
@@ -367,7 +302,7 @@ def estimate_columns(spec: ModelSpec, *, refined: bool) -> tuple[str, ...]:
     Examples
     --------
     >>> from thetahat.modelfile import EXAMPLE_MODEL, loads_model
-    >>> from thetahat.datafile import estimate_columns
+    >>> from thetahat.io.datafile import estimate_columns
     >>> estimate_columns(loads_model(EXAMPLE_MODEL), refined=False)
     ('t', 'x_hat_x1', 'x_hat_x2', 'phi_hat_1', 'theta_hat_theta')
     """
@@ -379,8 +314,8 @@ def estimate_columns(spec: ModelSpec, *, refined: bool) -> tuple[str, ...]:
     return tuple(cols)
 
 
-def write_estimates(path: str | Path, result: ObserverResult, spec: ModelSpec) -> None:
-    """Write an :class:`ObserverResult` as CSV or Parquet, by suffix (header
+def write_estimates(path: str | Path, result: EstimateResult, spec: RecordSpec) -> None:
+    """Write an :class:`~thetahat.estimation.protocol.EstimateResult` as CSV or Parquet, by suffix (header
     :func:`estimate_columns`), atomically: a failed write leaves an old file unchanged.
 
     CSV numbers are written with 17 significant digits, so reading the file back gives the
@@ -390,8 +325,8 @@ def write_estimates(path: str | Path, result: ObserverResult, spec: ModelSpec) -
     ----------
     path : str or Path
         Output file, ``.csv`` or ``.parquet`` (its folder is created).
-    result : ObserverResult
-    spec : ModelSpec
+    result : EstimateResult
+    spec : RecordSpec
         For the column names.
 
     Raises
@@ -445,7 +380,7 @@ def write_parquet_table(path: str | Path, columns: dict[str, Any]) -> None:
         pq.write_table(table, tmp)
 
 
-def read_parquet(path: str | Path, spec: ModelSpec, *, nan_policy: str = "raise") -> DataRecord:
+def read_parquet(path: str | Path, spec: RecordSpec, *, nan_policy: str = "raise") -> DataRecord:
     """Read a Parquet record with the columns of :func:`read_csv`.
 
     Parameters
@@ -456,7 +391,7 @@ def read_parquet(path: str | Path, spec: ModelSpec, *, nan_policy: str = "raise"
         finite (outputs may be NaN or null under ``nan_policy="skip"``), and t strictly
         increasing over at least two rows. A timestamp or duration column t is converted to
         seconds from the first sample; booleans, dates in u or y and non-numbers are refused.
-    spec : ModelSpec
+    spec : RecordSpec
         The model whose estimator reads the record (its input and output names).
     nan_policy : {"raise", "skip"}, optional
         ``"skip"`` keeps NaN outputs as dropouts for the observer's ``nan_policy="skip"``;

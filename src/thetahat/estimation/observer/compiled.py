@@ -1,6 +1,6 @@
 """A compiled fast path for the observer: one numba kernel per symbolic model (optional extra).
 
-:func:`compile_observer` turns a :class:`~thetahat.estimation.paper.observer.ModifiedHighGainObserver`
+:func:`compile_observer` turns a :class:`~thetahat.estimation.observer.observer.ModifiedHighGainObserver`
 whose parts are all symbolic or structured into a :class:`CompiledObserver` whose ``step`` and
 ``run`` execute the observer's step (eqs. (3), (8) and the second observer of Sec. VI) as
 machine code. Supported:
@@ -12,15 +12,15 @@ machine code. Supported:
   :class:`~thetahat.model.paramset.Ellipsoid` with any Γ (the Γ⁻¹-weighted projection of
   :func:`~thetahat.estimation.kernels.set_projection.project_into`; Θ's centre and shape are
   data, so one kernel serves every ball and ellipsoid of a model);
-* update laws: :class:`~thetahat.estimation.paper.update_laws.ConstantLaw`,
-  :class:`~thetahat.estimation.paper.update_laws.IntermittentInversion` (l ≡ 1, as built by
-  :func:`~thetahat.estimation.paper.update_laws.AlgebraicInversion`, or the weight of
-  :func:`~thetahat.estimation.paper.update_laws.smooth_ramp`) whose θ* has a SymPy form (a
-  :class:`~thetahat.estimation.paper.theta_star.ThetaStar` from ``from_perturbation`` or
+* update laws: :class:`~thetahat.estimation.observer.laws.ConstantLaw`,
+  :class:`~thetahat.estimation.observer.laws.IntermittentInversion` (l ≡ 1, as built by
+  :func:`~thetahat.estimation.observer.laws.AlgebraicInversion`, or the weight of
+  :func:`~thetahat.estimation.observer.laws.smooth_ramp`) whose θ* has a SymPy form (a
+  :class:`~thetahat.estimation.observer.laws.theta_star.ThetaStar` from ``from_perturbation`` or
   ``ThetaStar.from_expr``, or a model file's ``theta_star``), and
-  :class:`~thetahat.estimation.paper.update_laws.GradientInversion` with the default M = (∂g/∂θ)ᵀ;
+  :class:`~thetahat.estimation.observer.laws.GradientInversion` with the default M = (∂g/∂θ)ᵀ;
   none of them with a ``saturation``;
-* an attached :class:`~thetahat.estimation.paper.redesign.SecondObserver`;
+* an attached :class:`~thetahat.estimation.observer.redesign.SecondObserver`;
 * any sampling the Python ``run`` takes: irregular steps (the φ-matrices of each distinct step
   length, from the observer's cached plans), missing samples under ``nan_policy="skip"``
   (the prediction's φ-matrices), the zero- and first-order holds.
@@ -28,12 +28,12 @@ machine code. Supported:
 Everything else raises :class:`~thetahat.errors.UnsupportedError` (a NotImplementedError)
 naming the part; use the Python observer.
 
-The kernel is not a transcription: :mod:`~thetahat.estimation.kernels.scalar_backend` emits the
-step's formulas (:mod:`~thetahat.estimation.kernels.formulas`,
-:mod:`~thetahat.estimation.kernels.law_formulas`) as written, with the scalar primitives of one row
+The kernel is not a transcription: :mod:`~thetahat.estimation.observer.kernel_source` emits the
+step's formulas (:mod:`~thetahat.estimation.observer.formulas`,
+:mod:`~thetahat.estimation.observer.laws.formulas`) as written, with the scalar primitives of one row
 (:mod:`~thetahat.estimation.kernels.scalar_primitives`) and g, its Jacobians and θ* printed from their
 SymPy expressions; this module checks the observer's parts, lays its
-:class:`~thetahat.estimation.kernels.plan.StepPlan` out for the kernel (:func:`kernel_arrays`) and
+:class:`~thetahat.estimation.observer.plan.StepPlan` out for the kernel (:func:`kernel_arrays`) and
 calls it. The module is written to a cache directory (``$THETAHAT_CACHE_DIR``, default
 ``~/.cache/thetahat``, else a temporary directory) under a name that hashes its content, and
 compiled with ``numba.njit(cache=True)``: the first compilation of a model and law formula
@@ -63,26 +63,25 @@ from ...errors import (DimensionError, MissingExtraError, OptionError, ThetahatW
                       UnsupportedError)
 from ...model.paramset import Ball, Box, Ellipsoid
 from ...model.perturbation import SymbolicPerturbation
-from .kernel_cache import load_module
-from ..paper.observer import HOLDS, PROGRESS_EVERY, ModifiedHighGainObserver
+from ..kernels.kernel_cache import load_module
+from .observer import HOLDS, PROGRESS_EVERY, ModifiedHighGainObserver
+from ..drive import COMPILE_MIN_SAMPLES, Backend
 from ..protocol import EstimateResult, ObserverDiagnostics
 from ..results import ObserverEstimate
 from .formulas import WORK
-from .kernel_args import LawArrays, PlanArrays, SecondArrays
+from ..kernels.kernel_args import LawArrays, PlanArrays, SecondArrays
 from .plan import StateLayout, StepPlan
-from .scalar_backend import LAWS, kernel_source
-from .set_projection import ellipsoid_data
-from .status import Status
+from .kernel_source import LAWS, kernel_source
+from ..kernels.set_projection import ellipsoid_data
+from ..status import Status
 from .step import DIVERGENCE_BOUND, divergence_error
-from ..paper.inversion import gain_eigen
-from ..paper.theta_star import ThetaStar, as_theta_star
-if TYPE_CHECKING:
-    from ...codegen.native import NativeObserver
-from ..paper.update_laws import (ConstantLaw, GradientInversion, IntermittentInversion, SmoothRamp,
+from .laws.inversion import gain_eigen
+from .laws.theta_star import ThetaStar, as_theta_star
+from .laws import (ConstantLaw, GradientInversion, IntermittentInversion, SmoothRamp,
                           invalid_theta_star_error)
 
 __all__ = ["CompiledObserver", "KernelParts", "compile_observer", "kernel_arrays", "kernel_parts",
-           "kernel_work", "phi_table", "runner", "states_result", "COMPILE_MIN_SAMPLES"]
+           "kernel_work", "phi_table", "states_result", "BACKEND"]
 
 FloatArray = NDArray[np.float64]
 
@@ -99,7 +98,7 @@ def _require_numba() -> Any:
     except ImportError as exc:  # pragma: no cover - exercised only without numba
         raise MissingExtraError("compile_observer needs numba, the optional extra 'speed': "
                           "pip install 'thetahat[speed]'. Without it, use the observer's own "
-                          "run/step, or thetahat.estimation.kernels.batch_run.run_batch for many "
+                          "run/step, or thetahat.estimation.observer.batch_run.run_batch for many "
                           "runs.") from exc
     return numba
 
@@ -180,7 +179,7 @@ def kernel_parts(observer: ModifiedHighGainObserver) -> KernelParts:
     Examples
     --------
     >>> from thetahat.models import lugre
-    >>> from thetahat.estimation.kernels.compiled import kernel_parts
+    >>> from thetahat.estimation.observer.compiled import kernel_parts
     >>> kernel_parts(lugre.observer(1.0)).code      # the intermittent law with a smooth ramp
     2
     """
@@ -226,7 +225,7 @@ def kernel_parts(observer: ModifiedHighGainObserver) -> KernelParts:
     raise UnsupportedError(
         f"compile_observer: the θ* of {type(law).__name__} is a Python callable "
         f"({type(law.theta_star).__name__}), which cannot be compiled; build the law with a "
-        "ThetaStar (thetahat.estimation.paper.theta_star.ThetaStar.from_expr(expr, perturbation=g, "
+        "ThetaStar (thetahat.estimation.observer.laws.theta_star.ThetaStar.from_expr(expr, perturbation=g, "
         "phi=[...]) or from_perturbation), or give theta_star in the model file: both carry "
         "θ*'s SymPy form.")
 
@@ -414,7 +413,7 @@ class CompiledObserver:
         """Run over sampled records (the loop runs in machine code).
 
         The samples may be spaced irregularly: each step uses the φ-matrices of its own length
-        (one :class:`~thetahat.estimation.kernels.plan.StepPlan` per distinct length, as the Python
+        (one :class:`~thetahat.estimation.observer.plan.StepPlan` per distinct length, as the Python
         path), and missing samples (NaN in y under ``nan_policy="skip"``) are predicted over.
 
         Parameters
@@ -597,8 +596,8 @@ def kernel_arrays(parts: KernelParts, plan: StepPlan
     and (a second observer is attached, its g sees C x̂₂): what the kernel takes.
 
     The named tuples of :mod:`~thetahat.estimation.kernels.kernel_args` (the fields every binding
-    uses; see :mod:`~thetahat.estimation.kernels.formulas` and
-    :mod:`~thetahat.estimation.kernels.law_formulas`). Writable, C-contiguous copies: numba compiles
+    uses; see :mod:`~thetahat.estimation.observer.formulas` and
+    :mod:`~thetahat.estimation.observer.laws.formulas`). Writable, C-contiguous copies: numba compiles
     one specialisation per array type.
 
     Parameters
@@ -661,7 +660,7 @@ def kernel_work(lay: StateLayout) -> tuple[tuple[FloatArray, ...], tuple[FloatAr
     Returns
     -------
     W : tuple of ndarray
-        :data:`~thetahat.estimation.kernels.formulas.WORK`.
+        :data:`~thetahat.estimation.observer.formulas.WORK`.
     rows : tuple of ndarray
         (s, s⁺, u, y, u₁, y₁) of one sample (u₁, y₁: the end of a first-order-hold step).
     """
@@ -672,76 +671,21 @@ def kernel_work(lay: StateLayout) -> tuple[tuple[FloatArray, ...], tuple[FloatAr
                np.zeros(lay.r), np.zeros(max(lay.m, 1)), np.zeros(lay.r))
 
 
-#: Relative tolerance of ``step``'s ``dt`` against the compiled step length.
-DT_RTOL = 1e-9
-#: Below this many samples :func:`runner` keeps the observer in Python unless asked: a model's
-#: first compilation costs 20–40 s (later processes load it from the cache in < 1 s) and the
-#: Python step runs ≈ 3 000 samples/s, so a shorter record finishes sooner uncompiled.
-COMPILE_MIN_SAMPLES = 20_000
-
-
-def runner(observer: ModifiedHighGainObserver, t: Any, *, compiled: bool | None = None
-           ) -> ModifiedHighGainObserver | CompiledObserver | NativeObserver:
-    """What runs an observer over the record ``t``: its compiled form, or the observer itself.
-
-    Both have ``run(t, u, y, state0=, hold=, progress=)`` with the same results (to
-    rounding). The compiled form is chosen when ``compiled`` is True, or None (the default)
-    and ``t`` has at least :data:`COMPILE_MIN_SAMPLES` samples: with a C compiler, the C
-    printed from the formulas (:class:`~thetahat.codegen.native.NativeObserver`: built in
-    under a second, where numba's first compilation takes 20–60 s; a record it cannot take
-    runs on numba); else the numba kernel. It falls back to the observer
-    with a one-line :class:`~thetahat.errors.ThetahatWarning` when numba is missing or a part
-    of the observer is not supported (the note names it).
-
-    Parameters
-    ----------
-    observer : ModifiedHighGainObserver
-    t : array_like, shape (N,)
-        The record's sampling instants (its first step sets the compiled ``step``'s dt; ``run``
-        takes every step's own length).
-    compiled : bool, optional
-        True: compile whenever possible; False: never; None: for long records.
-
-    Returns
-    -------
-    ModifiedHighGainObserver or CompiledObserver or NativeObserver
-
-    Examples
-    --------
-    >>> import numpy as np
-    >>> from thetahat.models import lugre
-    >>> from thetahat.estimation.kernels.compiled import runner
-    >>> obs = lugre.observer()
-    >>> runner(obs, np.arange(100) * 1e-3) is obs       # short: Python, no compilation
-    True
-    """
-    try:
-        t_ = np.asarray(t, dtype=np.float64).reshape(-1)
-    except (TypeError, ValueError):        # not numbers: the observer's run says what is wrong
-        return observer
-    if compiled is False or (compiled is None and t_.size < COMPILE_MIN_SAMPLES):
-        return observer
-    steps = np.diff(t_[:2])
-    dt = float(steps[0]) if steps.size and np.isfinite(steps[0]) and steps[0] > 0 else 1.0
-    from ...codegen.generate import supports_c
-    from ...codegen.native import NativeObserver, native_enabled
-    if native_enabled() and supports_c(observer):    # the C of the formulas: < 1 s to build
-        return NativeObserver(observer, lambda: _numba_runner(observer, dt))
-    return _numba_runner(observer, dt)
-
-
-def _numba_runner(observer: ModifiedHighGainObserver, dt: float
-                  ) -> ModifiedHighGainObserver | CompiledObserver:
-    """The numba kernel of ``observer``, or the observer itself with a one-line note."""
+def _numba_backend(observer: ModifiedHighGainObserver, dt: float,
+                   fallback: Callable[[], Any]) -> CompiledObserver | str:
+    """:data:`BACKEND`'s build: the numba kernel of ``observer``, or why it cannot be had."""
     try:
         return compile_observer(observer, dt=dt)
     except MissingExtraError:
-        note = ("numba is not installed (pip install 'thetahat[speed]' for the compiled "
+        return ("numba is not installed (pip install 'thetahat[speed]' for the compiled "
                 "kernel)")
     except UnsupportedError as exc:
-        note = str(exc).split(" (supported:")[0].removeprefix("compile_observer: ")
-    warnings.warn(f"the observer runs in Python: {note}.", ThetahatWarning, stacklevel=2)
-    return observer
+        return str(exc).split(" (supported:")[0].removeprefix("compile_observer: ")
+
+
+#: The numba kernel as a back end of :func:`thetahat.estimation.drive.runner` (registered under
+#: the entry-point group ``thetahat.backends``); the C back end comes first when it can run.
+BACKEND = Backend(name="numba", rank=20, min_samples=COMPILE_MIN_SAMPLES, build=_numba_backend)
 
 
 def compile_observer(observer: ModifiedHighGainObserver, *, dt: float) -> CompiledObserver:
@@ -752,7 +696,7 @@ def compile_observer(observer: ModifiedHighGainObserver, *, dt: float) -> Compil
     observer : ModifiedHighGainObserver
         Observer (3) with update law (8) and optionally a second observer (Sec. VI); its parts
         must be of the supported kinds (see the module docstring). A law with a θ* needs its
-        SymPy form: a :class:`~thetahat.estimation.paper.theta_star.ThetaStar`, or a model file's.
+        SymPy form: a :class:`~thetahat.estimation.observer.laws.theta_star.ThetaStar`, or a model file's.
     dt : float
         The step length (s) > 0 of ``step``; ``run`` steps by its record's own spacing.
 
@@ -769,13 +713,13 @@ def compile_observer(observer: ModifiedHighGainObserver, *, dt: float) -> Compil
 
     Notes
     -----
-    The kernel is the step's formulas (:mod:`~thetahat.estimation.kernels.formulas`) compiled for one
-    row, reading the observer's :class:`~thetahat.estimation.kernels.plan.StepPlan` for ``dt``; it
+    The kernel is the step's formulas (:mod:`~thetahat.estimation.observer.formulas`) compiled for one
+    row, reading the observer's :class:`~thetahat.estimation.observer.plan.StepPlan` for ``dt``; it
     differs from the Python path only in the summation order of the small matrix products, a
     pivoted elimination in place of LAPACK's, a Taylor ``expm`` in place of SciPy's, and
     scalar code for g, its Jacobians and θ* (printed from the same SymPy expressions the
     Python path lambdifies). It applies the same divergence rule
-    (:data:`~thetahat.estimation.kernels.formulas.DIVERGENCE_BOUND`) and raises the same errors.
+    (:data:`~thetahat.estimation.observer.formulas.DIVERGENCE_BOUND`) and raises the same errors.
     Measured on a shared 2-core machine: ≈ 0.2 µs per sample inside ``run``, a few µs per
     call of ``step`` from Python (validation and dispatch dominate). The first compilation of
     a model takes 20–40 s; later ones load from the cache.
@@ -784,7 +728,7 @@ def compile_observer(observer: ModifiedHighGainObserver, *, dt: float) -> Compil
     --------
     >>> import numpy as np
     >>> from thetahat.models import lugre
-    >>> from thetahat.estimation.kernels.compiled import compile_observer
+    >>> from thetahat.estimation.observer.compiled import compile_observer
     >>> data = lugre.simulate(seed=0, t_end=0.5)
     >>> obs = lugre.observer()
     >>> try:

@@ -1,15 +1,15 @@
 """The observer's plan: its matrices, gains and discretisation caches, built once per (design, dt).
 
-A :class:`StepPlan` holds everything the step of :mod:`thetahat.estimation.kernels.step` needs that does
+A :class:`StepPlan` holds everything the step of :mod:`thetahat.estimation.observer.step` needs that does
 not change from sample to sample, for B observers at once (a leading *batch axis* of length B,
 or 1 when every row shares the same observer): the system matrices, the gains K_x, K_φ of (3),
 the constant part L of the observer's Jacobian, the φ-matrices Φ₁ = h φ₁(hL), Φ₂ = h² φ₂(hL) of
-the exponential step (:mod:`thetahat.estimation.kernels.discretize`) for the step length h — for the
+the exponential step (:mod:`thetahat.estimation.observer.discretize`) for the step length h — for the
 corrected step and for the prediction over a missing sample (K = 0) —, the same for the second
 observer of Sec. VI, and the per-row parameters of the update law (Γ).
 
 This is the stable public contract the back ends build on: the Python step, the batched
-:func:`~thetahat.estimation.kernels.batch_run.run_batch`, the compiled kernel and code generators read
+:func:`~thetahat.estimation.observer.batch_run.run_batch`, the compiled kernel and code generators read
 these fields and nothing private. Fields are read-only arrays; the layout of the observer state
 is ``col(x̂, z, θ̂[, x̂₂][, law state])`` with the offsets given by :attr:`StepPlan.offsets`.
 """
@@ -47,7 +47,7 @@ def _phi_or_nan(L: FloatArray, dt: float | None) -> PhiPlan:
 
 
 def dt_key(dt: float) -> float:
-    """Step lengths equal to :data:`~thetahat.estimation.kernels.discretize.DT_KEY_DIGITS` significant
+    """Step lengths equal to :data:`~thetahat.estimation.observer.discretize.DT_KEY_DIGITS` significant
     digits share one plan; this is the shared key (and the h the φ-matrices are computed for).
 
     Parameters
@@ -213,7 +213,7 @@ class SecondPlan:
             Step length; None builds the continuous-time plan (no φ-matrices: NaN-filled),
             which ``rhs`` reads.
         g_on_estimates : bool
-            As for :class:`~thetahat.estimation.paper.redesign.SecondObserver`.
+            As for :class:`~thetahat.estimation.observer.redesign.SecondObserver`.
         predict : bool
             Also compute the φ-matrices of the prediction over a missing sample.
 
@@ -248,7 +248,7 @@ class StepPlan:
 
     Arrays with a leading axis have length B (one observer per row) or 1 (shared by every
     row); the step broadcasts them. Build it with
-    :meth:`ModifiedHighGainObserver.plan <thetahat.estimation.paper.observer.ModifiedHighGainObserver.plan>`
+    :meth:`ModifiedHighGainObserver.plan <thetahat.estimation.observer.observer.ModifiedHighGainObserver.plan>`
     (cached per step length) and :func:`stack_plans` for a batch.
 
     Attributes

@@ -10,18 +10,18 @@ from typing import Any, final
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from ..._validate import positive_scalar
-from ...errors import DimensionError, UpdateLawError
-from ...model.jacobian_check import require_theta_dependence
-from ...model.paramset import ParameterSet
-from ...model.perturbation import Perturbation
-from .law_base import (FAR, UpdateLaw, apply_saturation, as_batch, broadcast_rows,
+from ...._validate import positive_scalar
+from ....errors import DimensionError, UpdateLawError
+from ....model.jacobian_check import require_theta_dependence
+from ....model.paramset import ParameterSet
+from ....model.perturbation import Perturbation
+from .base import (FAR, UpdateLaw, apply_saturation, as_batch, broadcast_rows,
                        check_law_options, project_rows)
-from ..kernels.kernel_args import LawArrays
-from ..kernels.law_formulas import LAW_FORMULAS
-from ..kernels.primitives import NUMPY, NUMPY_ROW, bound
+from ...kernels.kernel_args import LawArrays
+from .formulas import LAW_FORMULAS
+from ...kernels.primitives import NUMPY, NUMPY_ROW, bound
 from .projection import Projection, Saturation, as_gain
-from ..kernels.status import status_constants
+from ...status import status_constants
 
 __all__ = ["GradientInversion"]
 
@@ -66,8 +66,8 @@ class GradientInversion(UpdateLaw):
     Proposition 3 needs M(v, x, θ₁)∂g/∂θ(v, x, θ₂) + (…)ᵀ >= 2P > 0 on Θ × Θ (13); then
     V = ½θ̃ᵀΓ⁻¹θ̃ decays with V̇ <= -θ̃ᵀPθ̃ and ‖θ̃‖ at rate >= λ_min(P)λ_min(Γ). Proposition 4
     only needs >= 2S(v, x) >= 0 (14) with ∫ S persistently exciting. Check both with
-    :func:`thetahat.estimation.paper.checks.check_monotonicity` and
-    :func:`~thetahat.estimation.paper.checks.excitation_report`.
+    :func:`thetahat.estimation.observer.checks.check_monotonicity` and
+    :func:`~thetahat.estimation.observer.checks.excitation_report`.
 
     ``step`` uses the exponential (Rosenbrock) Euler method: with K = ΓM∂g/∂θ and
     f = ΓM(φ̂ - g) at θ̂, it integrates the linearisation θ̇ = f - K(θ - θ̂) exactly over dt
@@ -89,7 +89,7 @@ class GradientInversion(UpdateLaw):
     ...     def dg_dv(self, v, x, th): raise NotImplementedError
     ...     def dg_dx(self, v, x, th): raise NotImplementedError
     ...     def dg_dtheta(self, v, x, th): return v[..., 1:, None] + 0 * th[..., None]
-    >>> from thetahat.estimation.paper.update_laws import GradientInversion
+    >>> from thetahat.estimation.observer.laws import GradientInversion
     >>> law = GradientInversion(Lin(), 1.0, Box([-5.0], [5.0]))
     >>> law.rate([0.0, 2.0], [0.0], [2.0], [0.0]).tolist()  # Γ y (φ - θ̂ y)
     [4.0]
@@ -180,7 +180,7 @@ class GradientInversion(UpdateLaw):
              dt: float, *, Gamma: ArrayLike | None = None) -> FloatArray:
         """Exponential-Euler step of the linearised law, then the Γ⁻¹ projection; in Θ.
 
-        :func:`~thetahat.estimation.kernels.law_formulas.gradient_law` on NumPy arrays. ``Gamma``
+        :func:`~thetahat.estimation.observer.laws.formulas.gradient_law` on NumPy arrays. ``Gamma``
         (shape (..., p, p)) gives one Γ per batch row in place of the law's own.
         """
         dt = positive_scalar("dt", dt)

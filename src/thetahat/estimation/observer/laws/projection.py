@@ -20,9 +20,9 @@ import numpy as np
 import scipy.optimize
 from numpy.typing import ArrayLike, NDArray
 
-from ..._validate import readonly
-from ...errors import DimensionError, NonFiniteError, UpdateLawError
-from ...model.paramset import Box, ParameterSet
+from ...._validate import readonly
+from ....errors import DimensionError, NonFiniteError, UpdateLawError
+from ....model.paramset import Box, ParameterSet
 
 FloatArray = NDArray[np.float64]
 
@@ -117,7 +117,7 @@ class Projection:
     --------
     >>> import numpy as np
     >>> from thetahat.model.paramset import Box
-    >>> from thetahat.estimation.paper.projection import Projection
+    >>> from thetahat.estimation.observer.laws.projection import Projection
     >>> pr = Projection(Box([0.0, 0.0], [1.0, 1.0]))
     >>> pr.proj([1.0, 1.0], [1.0, 0.5]).tolist()  # at the face θ₁ = 1 the outward part is removed
     [0.0, 1.0]
@@ -265,7 +265,7 @@ def saturate(value: ArrayLike, box: Box, *, margin: float = 0.0) -> FloatArray:
     Examples
     --------
     >>> from thetahat.model.paramset import Box
-    >>> from thetahat.estimation.paper.projection import saturate
+    >>> from thetahat.estimation.observer.laws.projection import saturate
     >>> saturate([-3.0, 0.5, 3.0], Box([-1.0] * 3, [1.0] * 3)).tolist()
     [-1.0, 0.5, 1.0]
     """
@@ -300,7 +300,7 @@ class Saturation:
     Examples
     --------
     >>> from thetahat.model.paramset import Box
-    >>> from thetahat.estimation.paper.projection import Saturation
+    >>> from thetahat.estimation.observer.laws.projection import Saturation
     >>> sat = Saturation(phi_box=Box([-2.0], [2.0]))
     >>> x, phi = sat.apply([[0.0, 9.0]], [[5.0]])
     >>> phi.tolist()

@@ -17,12 +17,12 @@ import numpy as np
 import sympy as sp
 from numpy.typing import ArrayLike, NDArray
 
-from ... import limits
-from ...errors import DimensionError, UpdateLawError
-from ...model.paramset import ParameterSet
-from ...model.jacobian_check import require_theta_dependence
-from ...model.lambdify import lambdify_numpy
-from ...model.perturbation import Perturbation, SymbolicPerturbation
+from .... import limits
+from ....errors import DimensionError, UpdateLawError
+from ....model.paramset import ParameterSet
+from ....model.jacobian_check import require_theta_dependence
+from ....model.lambdify import lambdify_numpy
+from ....model.perturbation import Perturbation, SymbolicPerturbation
 
 __all__ = ["ThetaStar", "SOLVE_RTOL", "SOLVE_SAMPLES", "as_theta_star"]
 

@@ -31,14 +31,14 @@ import numpy as np
 import scipy.linalg
 from numpy.typing import ArrayLike, NDArray
 
-from ..._validate import positive_scalar
-from ...errors import DimensionError, UpdateLawError
-from ...model.jacobian_check import require_theta_dependence
-from ...model.paramset import ParameterSet
-from ...model.perturbation import Perturbation
-from ...model.system import PerturbedLinearSystem
-from ..kernels.discretize import PlanCache
-from .law_base import UpdateLaw, as_batch, finite_candidate
+from ...._validate import positive_scalar
+from ....errors import DimensionError, UpdateLawError
+from ....model.jacobian_check import require_theta_dependence
+from ....model.paramset import ParameterSet
+from ....model.perturbation import Perturbation
+from ....model.system import PerturbedLinearSystem
+from ..discretize import PlanCache
+from .base import UpdateLaw, as_batch, finite_candidate
 from .projection import as_gain
 
 __all__ = ["ErrorFilter", "FilteredLeastSquares", "error_filter"]
@@ -86,7 +86,7 @@ class ErrorFilter:
     def discrete(self, dt: float) -> tuple[FloatArray, FloatArray]:
         """(e^{L dt}, ∫₀^dt e^{Ls} ds G): the exact step with the input held over dt.
 
-        From the observer's cached φ-functions (:class:`~thetahat.estimation.kernels.discretize.PlanCache`):
+        From the observer's cached φ-functions (:class:`~thetahat.estimation.observer.discretize.PlanCache`):
         ∫₀^dt e^{Ls} ds = dt φ₁(dt L) = Φ₁ and e^{L dt} = I + L Φ₁.
 
         Parameters
@@ -130,7 +130,7 @@ def error_filter(system: PerturbedLinearSystem, K_x: ArrayLike, K_phi: ArrayLike
 
     >>> import numpy as np
     >>> from thetahat.model.system import PerturbedLinearSystem
-    >>> from thetahat.estimation.paper.least_squares import error_filter
+    >>> from thetahat.estimation.observer.laws.least_squares import error_filter
     >>> s = PerturbedLinearSystem(A=[[0, 1], [0, 0]], B=[[0], [0]], C=[[1, 0]], E=[[0], [1]])
     >>> F = error_filter(s, [[120.0], [4400.0]], [[48000.0]])   # poles −20, −40, −60
     >>> np.round(F.transfer(0.0).real, 12).tolist()
@@ -161,7 +161,7 @@ class FilteredLeastSquares(UpdateLaw):
 
     F is the observer's error filter (module doc): the law is bound to an observer's gains
     when the observer is built (:meth:`for_observer`, called by
-    :class:`~thetahat.estimation.paper.observer.ModifiedHighGainObserver`).
+    :class:`~thetahat.estimation.observer.observer.ModifiedHighGainObserver`).
 
     Parameters
     ----------
@@ -169,7 +169,7 @@ class FilteredLeastSquares(UpdateLaw):
         g and ∂g/∂θ.
     Gamma : float or array_like, shape (p, p)
         Γ₀ = Γ(0), symmetric positive definite; Γ₀⁻¹ is the prior information on θ̂₀
-        (``Gamma = "auto"`` in a model file: :mod:`~thetahat.estimation.paper.auto_gain`'s
+        (``Gamma = "auto"`` in a model file: :mod:`~thetahat.estimation.observer.auto_gain`'s
         Γ₀ with the prior worth 1/κ of the record, κ = ``PRIOR_KAPPA``).
     parameter_set : ParameterSet
         Θ; its dimension must equal the perturbation's p.
@@ -214,8 +214,8 @@ class FilteredLeastSquares(UpdateLaw):
     >>> from thetahat.model.parse import parse_perturbation
     >>> from thetahat.model.paramset import Box
     >>> from thetahat.model.system import PerturbedLinearSystem
-    >>> from thetahat.estimation.paper.observer import ModifiedHighGainObserver
-    >>> from thetahat.estimation.paper.least_squares import FilteredLeastSquares
+    >>> from thetahat.estimation.observer.observer import ModifiedHighGainObserver
+    >>> from thetahat.estimation.observer.laws.least_squares import FilteredLeastSquares
     >>> g = parse_perturbation("a*u", u=["u"], y=["y"], x=["x"], theta=["a"])
     >>> s = PerturbedLinearSystem(A=[[-1.0]], B=[[0.0]], C=[[1.0]], E=[[1.0]], perturbation=g)
     >>> law = FilteredLeastSquares(g, 1e4, Box([0.0], [5.0]))   # a weak prior on θ̂₀

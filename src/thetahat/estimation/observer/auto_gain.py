@@ -17,7 +17,7 @@ scaled H (whose mean is 1): over a record of duration T the law makes κ time co
 A diagonal Γ keeps the Γ⁻¹-weighted projection onto a box a clip (and the compiled path).
 x̂ comes from a first pass of the observer with θ̂ held at θ̂₀.
 
-For the least-squares law (:class:`~thetahat.estimation.paper.least_squares.
+For the least-squares law (:class:`~thetahat.estimation.observer.laws.least_squares.
 FilteredLeastSquares`) the same formula gives Γ₀, whose inverse (T/κ) diag(H) is the prior
 information on θ̂₀: with κ = :data:`PRIOR_KAPPA` the prior weighs as much as 1/κ of the
 record, so the record decides, while the first moments of the run (before the information has
@@ -58,11 +58,11 @@ def auto_kappa(law: object) -> float:
     Examples
     --------
     >>> from thetahat.models import lugre
-    >>> from thetahat.estimation.paper.auto_gain import auto_kappa
+    >>> from thetahat.estimation.observer.auto_gain import auto_kappa
     >>> auto_kappa(lugre.estimator_spec().law)
     10.0
     """
-    from .least_squares import FilteredLeastSquares
+    from .laws.least_squares import FilteredLeastSquares
     return PRIOR_KAPPA if isinstance(law, FilteredLeastSquares) else AUTO_KAPPA
 
 
@@ -103,7 +103,7 @@ def information_gain(perturbation: Perturbation, v: FloatArray, x_hat: FloatArra
     --------
     >>> import numpy as np
     >>> from thetahat.model.parse import parse_perturbation
-    >>> from thetahat.estimation.paper.auto_gain import information_gain
+    >>> from thetahat.estimation.observer.auto_gain import information_gain
     >>> g = parse_perturbation("a*y + b", u=[], y=["y"], x=["x"], theta=["a", "b"])
     >>> t = np.linspace(0.0, 10.0, 1001)
     >>> G = information_gain(g, np.sin(t)[:, None], np.zeros((t.size, 1)), np.zeros(2), 10.0)

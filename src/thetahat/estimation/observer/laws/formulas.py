@@ -1,25 +1,25 @@
 """The steps of the update laws of Propositions 1–4 and of the projection, written once.
 
-Like :mod:`~thetahat.estimation.kernels.formulas`, these are plain functions over the primitives of
+Like :mod:`~thetahat.estimation.observer.formulas`, these are plain functions over the primitives of
 :mod:`~thetahat.estimation.kernels.primitives`; the NumPy laws
-(:class:`~thetahat.estimation.paper.inversion.IntermittentInversion`,
-:class:`~thetahat.estimation.paper.gradient.GradientInversion`,
-:class:`~thetahat.estimation.paper.law_base.ConstantLaw`) run them bound to NumPy (their ``step``
+(:class:`~thetahat.estimation.observer.laws.inversion.IntermittentInversion`,
+:class:`~thetahat.estimation.observer.laws.gradient.GradientInversion`,
+:class:`~thetahat.estimation.observer.laws.base.ConstantLaw`) run them bound to NumPy (their ``step``
 validates the inputs, then calls the bound formula), and the compiled observer emits the same
 functions with the scalar primitives.
 
 A law's step has the signature ``law(LP, v, x, xo, phi, th, to, dt, thn, lsn)``: v, x̂ =
 x[xo:], φ̂, θ̂ = th[to:] and the step length in, θ̂⁺ (and the law state, none of the laws
 here has one) out; ``LP`` holds the law's arrays and scratch. It returns ``ST_OK`` (0), or
-``ST_THETA_STAR`` (:class:`~thetahat.estimation.kernels.status.Status`) when θ* is NaN or inf in some
+``ST_THETA_STAR`` (:class:`~thetahat.estimation.status.Status`) when θ* is NaN or inf in some
 row while the weight is positive (``on_invalid='raise'``).
 
 Free names a binding provides, besides the primitives: ``weight(LP, v, x, xo, phi)``
 (the excitation weight l, or 1), ``theta_star(v, x, xo, phi, ts)``, ``g_val``, ``dg_dtheta`` (as in
-:mod:`~thetahat.estimation.kernels.formulas`), ``m_matrix(v, x, xo, th, to, Mt)`` (a user's M of
+:mod:`~thetahat.estimation.observer.formulas`), ``m_matrix(v, x, xo, th, to, Mt)`` (a user's M of
 Proposition 3, with ``USER_M``), ``project(LP, thn)`` (the Γ⁻¹-weighted projection onto Θ in
 place; returns 0), ``freeze(LP)`` (``on_invalid == 'freeze'``), the constants ``NP``, ``NK``,
-``USER_M``, ``FAR`` (:data:`~thetahat.estimation.paper.law_base.FAR`) and ``ST_THETA_STAR``.
+``USER_M``, ``FAR`` (:data:`~thetahat.estimation.observer.laws.base.FAR`) and ``ST_THETA_STAR``.
 """
 
 from __future__ import annotations
@@ -28,7 +28,7 @@ from collections.abc import Callable
 from typing import TYPE_CHECKING, Any
 
 if TYPE_CHECKING:                    # the argument tuples (named; every binding builds them)
-    from .kernel_args import LawArrays
+    from ...kernels.kernel_args import LawArrays
 
 __all__ = ["LAW_FORMULAS", "finite_candidate", "gradient_law", "held_law", "inversion_law",
            "inversion_target", "smoothstep"]
@@ -71,7 +71,7 @@ ST_THETA_STAR: int
 def smoothstep(s: Any, low: float, high: float) -> Any:
     """0 for s <= low, 1 for s >= high, 3t² − 2t³ with t = (s − low)/(high − low) between.
 
-    The excitation weight of :func:`~thetahat.estimation.paper.inversion.smooth_ramp` (Remark 5).
+    The excitation weight of :func:`~thetahat.estimation.observer.laws.inversion.smooth_ramp` (Remark 5).
 
     Parameters
     ----------
@@ -106,7 +106,7 @@ def finite_candidate(p: int, cand: Any, th: Any, to: int) -> None:
 
 def held_law(LP: LawArrays, v: Any, x: Any, xo: int, phi: Any, th: Any, to: int,
              dt: float, thn: Any, lsn: Any) -> int:
-    """θ̂̇ = 0 (:class:`~thetahat.estimation.paper.law_base.ConstantLaw`): θ̂, projected onto Θ.
+    """θ̂̇ = 0 (:class:`~thetahat.estimation.observer.laws.base.ConstantLaw`): θ̂, projected onto Θ.
 
     Parameters
     ----------

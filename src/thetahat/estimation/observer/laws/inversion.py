@@ -14,18 +14,18 @@ from typing import Any, Literal, final
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from ..._validate import positive_scalar, readonly
-from ...errors import UpdateLawError
-from ...model.paramset import ParameterSet
-from ...model.perturbation import Perturbation
-from ...model.set_geometry import safe_norm
-from .law_base import (FAR, UpdateLaw, apply_saturation, as_batch, broadcast_rows,
+from ...._validate import positive_scalar, readonly
+from ....errors import UpdateLawError
+from ....model.paramset import ParameterSet
+from ....model.perturbation import Perturbation
+from ....model.set_geometry import safe_norm
+from .base import (FAR, UpdateLaw, apply_saturation, as_batch, broadcast_rows,
                        check_law_options, is_diagonal, project_rows)
-from ..kernels.kernel_args import LawArrays
-from ..kernels.law_formulas import LAW_FORMULAS, smoothstep
-from ..kernels.primitives import NUMPY, NUMPY_ROW, bind, bound
+from ...kernels.kernel_args import LawArrays
+from .formulas import LAW_FORMULAS, smoothstep
+from ...kernels.primitives import NUMPY, NUMPY_ROW, bind, bound
 from .projection import Projection, Saturation, as_gain
-from ..kernels.status import Status, status_constants
+from ...status import Status, status_constants
 from .theta_star import ThetaStar
 
 __all__ = ["AlgebraicInversion", "IntermittentInversion", "SmoothRamp", "WEIGHT_TOL",
@@ -95,7 +95,7 @@ def smooth_ramp(low: float, high: float) -> SmoothRamp:
 
     Examples
     --------
-    >>> from thetahat.estimation.paper.update_laws import smooth_ramp
+    >>> from thetahat.estimation.observer.laws import smooth_ramp
     >>> l = smooth_ramp(0.5, 1.0)
     >>> l([0.0], [0.0], [[0.2], [0.75], [3.0]]).tolist()
     [0.0, 0.5, 1.0]
@@ -120,7 +120,7 @@ def invalid_theta_star_error(owner: str, count: int | None) -> UpdateLawError:
         The law's name.
     count : int or None
         Number of points (batch rows) affected, when known (the formulas' status
-        :attr:`~thetahat.estimation.kernels.status.Status.THETA_STAR` does not count them).
+        :attr:`~thetahat.estimation.status.Status.THETA_STAR` does not count them).
 
     Returns
     -------
@@ -227,7 +227,7 @@ class IntermittentInversion(UpdateLaw):
     theta_star : ThetaStar or callable
         ``theta_star(v, x_hat, phi_hat)``, shape (..., p): the unique solution of
         φ = g(v, x, θ) wherever l > 0 (anything, NaN included, where l = 0). A
-        :class:`~thetahat.estimation.paper.theta_star.ThetaStar` carries its SymPy form too, which
+        :class:`~thetahat.estimation.observer.laws.theta_star.ThetaStar` carries its SymPy form too, which
         the compiled path needs.
     l : callable or None
         ``l(v, x_hat, phi_hat)`` with values in [0, 1], shape (...). :func:`smooth_ramp`
@@ -264,7 +264,7 @@ class IntermittentInversion(UpdateLaw):
     --------
     >>> import numpy as np
     >>> from thetahat.model.paramset import Box
-    >>> from thetahat.estimation.paper.update_laws import IntermittentInversion, smooth_ramp
+    >>> from thetahat.estimation.observer.laws import IntermittentInversion, smooth_ramp
     >>> law = IntermittentInversion(lambda v, x, phi: 1.0 / phi, smooth_ramp(0.5, 1.0), 1.0,
     ...                             Box([0.1], [5.0]))
     >>> law.rate([0.0, 0.0], [0.0, 0.0], [[0.0], [2.0]], [1.0]).tolist()  # l = 0, then l = 1
@@ -307,7 +307,7 @@ class IntermittentInversion(UpdateLaw):
                           on_invalid: OnInvalid = "raise",
                           seed: int = 0) -> IntermittentInversion:
         """Derive θ* by ``sympy.solve`` (:meth:`ThetaStar.solve
-        <thetahat.estimation.paper.theta_star.ThetaStar.solve>`); ``l=None`` is Proposition 1.
+        <thetahat.estimation.observer.laws.theta_star.ThetaStar.solve>`); ``l=None`` is Proposition 1.
 
         Parameters
         ----------
@@ -337,7 +337,7 @@ class IntermittentInversion(UpdateLaw):
              theta_hat: ArrayLike) -> FloatArray:
         """θ̂̇ = Proj(lΓ(θ* - θ̂)); shape (..., p).
 
-        θ* and l from :func:`~thetahat.estimation.kernels.law_formulas.inversion_target` on NumPy
+        θ* and l from :func:`~thetahat.estimation.observer.laws.formulas.inversion_target` on NumPy
         arrays (the step's own rule for an invalid θ*).
         """
         v_, x, phi, th, batch = as_batch(v, x_hat, phi_hat, theta_hat, self.parameter_set.dim)
@@ -357,7 +357,7 @@ class IntermittentInversion(UpdateLaw):
              dt: float, *, Gamma: ArrayLike | None = None) -> FloatArray:
         """Exact step θ* + e^(-lΓ dt)(θ̂ - θ*), then the Γ⁻¹-weighted projection; in Θ.
 
-        :func:`~thetahat.estimation.kernels.law_formulas.inversion_law` on NumPy arrays. ``Gamma``
+        :func:`~thetahat.estimation.observer.laws.formulas.inversion_law` on NumPy arrays. ``Gamma``
         (shape (..., p, p)) gives one Γ per batch row in place of the law's own.
         """
         dt = positive_scalar("dt", dt)
@@ -414,7 +414,7 @@ def AlgebraicInversion(theta_star: ThetaStar | ThetaStarFn, Gamma: ArrayLike,  #
     --------
     >>> import numpy as np
     >>> from thetahat.model.paramset import Box
-    >>> from thetahat.estimation.paper.update_laws import AlgebraicInversion
+    >>> from thetahat.estimation.observer.laws import AlgebraicInversion
     >>> law = AlgebraicInversion(lambda v, x, phi: np.arcsinh(phi), 2.0, Box([-2.0], [2.0]))
     >>> law.rate([0.0, 0.0], [0.0, 0.0], [np.sinh(0.5)], [0.0]).round(12).tolist()
     [1.0]

@@ -2,8 +2,8 @@
 ``advance`` with a law state and per-row Γ), :class:`ConstantLaw`, and the helpers every law
 shares (argument checks, finite candidates, the Γ⁻¹-weighted projection per row).
 
-The laws of Propositions 1–4 live in :mod:`~thetahat.estimation.paper.inversion` and
-:mod:`~thetahat.estimation.paper.gradient`; :mod:`~thetahat.estimation.paper.update_laws` gathers them all.
+The laws of Propositions 1–4 live in :mod:`~thetahat.estimation.observer.laws.inversion` and
+:mod:`~thetahat.estimation.observer.laws.gradient`; :mod:`~thetahat.estimation.observer.laws` gathers them all.
 """
 
 from __future__ import annotations
@@ -15,14 +15,14 @@ from typing import final
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from ..._validate import check_finite, positive_scalar
-from ...errors import DimensionError, ParameterSetError, UpdateLawError
-from ...model.paramset import Box, ParameterSet
-from ...model.system import PerturbedLinearSystem
-from ..kernels import law_formulas
-from ..kernels.kernel_args import LawArrays
-from ..kernels.law_formulas import LAW_FORMULAS
-from ..kernels.primitives import NUMPY, bind, bound
+from ...._validate import check_finite, positive_scalar
+from ....errors import DimensionError, ParameterSetError, UpdateLawError
+from ....model.paramset import Box, ParameterSet
+from ....model.system import PerturbedLinearSystem
+from . import formulas as law_formulas
+from ...kernels.kernel_args import LawArrays
+from .formulas import LAW_FORMULAS
+from ...kernels.primitives import NUMPY, bind, bound
 from .projection import Projection, Saturation
 
 __all__ = ["FAR", "INIT_RTOL", "ConstantLaw", "UpdateLaw", "apply_saturation", "as_batch",
@@ -350,8 +350,8 @@ class UpdateLaw(ABC):
         """The law as the observer with gains (K_x, K_φ) runs it; this law itself here.
 
         A law that depends on the observer's gains (the filtered regressor of
-        :class:`~thetahat.estimation.paper.least_squares.FilteredLeastSquares`) returns a copy
-        bound to them; :class:`~thetahat.estimation.paper.observer.ModifiedHighGainObserver`
+        :class:`~thetahat.estimation.observer.laws.least_squares.FilteredLeastSquares`) returns a copy
+        bound to them; :class:`~thetahat.estimation.observer.observer.ModifiedHighGainObserver`
         calls it when it is built.
 
         Parameters
@@ -418,7 +418,7 @@ class ConstantLaw(UpdateLaw):
     --------
     >>> import numpy as np
     >>> from thetahat.model.paramset import Box
-    >>> from thetahat.estimation.paper.update_laws import ConstantLaw
+    >>> from thetahat.estimation.observer.laws import ConstantLaw
     >>> law = ConstantLaw([0.3], Box([0.0], [1.0]))
     >>> law.init().tolist(), law.rate([0.0, 1.0], [0.0, 0.0], [2.0], [0.3]).tolist()
     ([0.3], [0.0])

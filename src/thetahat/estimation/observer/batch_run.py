@@ -1,11 +1,11 @@
 """Many observer runs at once: observer (3) with update law (8), vectorised over a batch axis.
 
 :func:`run_batch` advances B independent copies of a
-:class:`~thetahat.estimation.paper.observer.ModifiedHighGainObserver` over B records that share one
+:class:`~thetahat.estimation.observer.observer.ModifiedHighGainObserver` over B records that share one
 time grid — B noise seeds of a Monte-Carlo study, or B observers that differ only in their
 gains (an ε sweep) or their adaptation gain Γ. Each step is the step of
-:meth:`ModifiedHighGainObserver.run <thetahat.estimation.paper.observer.ModifiedHighGainObserver.run>`
-(the exponential, linearly implicit step of :mod:`thetahat.estimation.kernels.discretize`, the update
+:meth:`ModifiedHighGainObserver.run <thetahat.estimation.observer.observer.ModifiedHighGainObserver.run>`
+(the exponential, linearly implicit step of :mod:`thetahat.estimation.observer.discretize`, the update
 law's ``step``, z corrected by −∂g/∂θ Δθ̂, ZOH or FOH), written once for arrays with a leading
 batch axis: g, its Jacobians and the update laws already evaluate whole batches, the matrix
 products become batched ``matmul`` and the small linear solves one batched ``solve``. The
@@ -24,11 +24,11 @@ from numpy.typing import ArrayLike, NDArray
 
 from ..._validate import check_finite, readonly
 from ...errors import DimensionError, IndexOutOfRangeError, OptionError
-from ..paper.observer import HOLDS, ModifiedHighGainObserver
+from .observer import HOLDS, ModifiedHighGainObserver
 from ..protocol import EstimateResult, ObserverDiagnostics
 from .plan import StepPlan, dt_key, stack_plans
 from .step import integrate, readout
-from ..paper.update_laws import ConstantLaw, UpdateLaw
+from .laws import ConstantLaw, UpdateLaw
 
 __all__ = ["BatchObserverResult", "run_batch"]
 
@@ -235,12 +235,12 @@ def run_batch(observers: ModifiedHighGainObserver | Sequence[ModifiedHighGainObs
 
     Notes
     -----
-    The step is :func:`thetahat.estimation.kernels.step.advance` — the same function
+    The step is :func:`thetahat.estimation.observer.step.advance` — the same function
     :class:`ModifiedHighGainObserver` runs as the batch of one — over the observers'
-    :class:`~thetahat.estimation.kernels.plan.StepPlan` stacked along the batch axis, eqs. (3a)–(3c)
+    :class:`~thetahat.estimation.observer.plan.StepPlan` stacked along the batch axis, eqs. (3a)–(3c)
     and (8). Γ per row reaches the update law through its public ``advance(..., Gamma=)``.
     Runs whose sample is missing (``nan_policy="skip"``) are advanced separately for that
-    step. A run that diverges (:func:`~thetahat.estimation.kernels.step.diverged`) raises the same
+    step. A run that diverges (:func:`~thetahat.estimation.observer.step.diverged`) raises the same
     error, at the same sample, as its ``run``.
 
     **Throughput** (DC motor of Sec. VIII with the second observer, 1 kHz, shared 2-core
@@ -248,7 +248,7 @@ def run_batch(observers: ModifiedHighGainObserver | Sequence[ModifiedHighGainObs
     7·10⁴ for B = 20 and 3·10⁵ for B = 100, i.e. 50× a loop of ``run`` and 3700× a loop of
     ``scipy.integrate.solve_ivp(observer.rhs, method="LSODA")`` with a piecewise-constant
     input (80 steps per second). The compiled kernel of
-    :mod:`thetahat.estimation.kernels.compiled` runs one observer at about 3·10⁶ steps per second.
+    :mod:`thetahat.estimation.observer.compiled` runs one observer at about 3·10⁶ steps per second.
     ``benchmarks/bench_step.py`` measures the per-step cost of every path.
 
     Examples
@@ -257,7 +257,7 @@ def run_batch(observers: ModifiedHighGainObserver | Sequence[ModifiedHighGainObs
 
     >>> import numpy as np
     >>> from thetahat.models import lugre
-    >>> from thetahat.estimation.kernels.batch_run import run_batch
+    >>> from thetahat.estimation.observer.batch_run import run_batch
     >>> runs = [lugre.simulate(seed=s, t_end=0.5) for s in range(3)]
     >>> U = np.stack([r.u for r in runs]); Y = np.stack([r.y for r in runs])
     >>> obs = lugre.observer()

@@ -4,12 +4,13 @@ NaN against the observer's NaN policy (shared by ``run``, ``run_batch`` and the 
 
 from __future__ import annotations
 
+from typing import Protocol
+
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from ..._validate import as_samples, as_time_grid, check_finite
-from ...errors import DimensionError, NonFiniteError, OptionError
-from ..kernels.plan import StateLayout
+from .._validate import as_samples, as_time_grid, check_finite
+from ..errors import DimensionError, NonFiniteError, OptionError
 
 #: What an observer does with a NaN output sample: refuse it, or skip it (a prediction).
 NAN_POLICIES = ("raise", "skip")
@@ -33,7 +34,7 @@ def check_nan_policy(nan_policy: str) -> str:
 
     Examples
     --------
-    >>> from thetahat.estimation.paper.records import check_nan_policy
+    >>> from thetahat.estimation.records import check_nan_policy
     >>> check_nan_policy("skip")
     'skip'
     """
@@ -41,10 +42,24 @@ def check_nan_policy(nan_policy: str) -> str:
         raise OptionError(f"nan_policy must be one of {NAN_POLICIES}; got {nan_policy!r}.")
     return nan_policy
 
-__all__ = ["NAN_POLICIES", "as_record", "as_records", "check_nan_policy", "check_real",
-           "check_records"]
+__all__ = ["NAN_POLICIES", "Dimensions", "as_record", "as_records", "check_nan_policy",
+           "check_real", "check_records"]
 
 FloatArray = NDArray[np.float64]
+
+
+class Dimensions(Protocol):
+    """The dimensions a record is checked against (an observer's ``StateLayout`` has them)."""
+
+    @property
+    def m(self) -> int:
+        """Inputs."""
+        ...
+
+    @property
+    def r(self) -> int:
+        """Outputs."""
+        ...
 
 
 def check_real(name: str, a: ArrayLike) -> None:
@@ -151,15 +166,15 @@ def as_records(name: str, a: ArrayLike, B: int | None, N: int, width: int) -> Fl
     return np.ascontiguousarray(arr)
 
 
-def check_records(layout: StateLayout, nan_policy: str, t: ArrayLike, u: ArrayLike | None,
+def check_records(layout: Dimensions, nan_policy: str, t: ArrayLike, u: ArrayLike | None,
                   y: ArrayLike, batch: int | None = None
                   ) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray, NDArray[np.bool_]]:
     """Validate sampled records against the NaN policy (before anything is integrated).
 
     Parameters
     ----------
-    layout : StateLayout
-        The observer's dimensions.
+    layout : Dimensions
+        The observer's dimensions (m, r).
     nan_policy : {"raise", "skip"}
         The observer's NaN policy.
     t : array_like, shape (N,)
@@ -188,7 +203,7 @@ def check_records(layout: StateLayout, nan_policy: str, t: ArrayLike, u: ArrayLi
 
     Examples
     --------
-    >>> from thetahat.estimation.kernels.plan import StateLayout
+    >>> from thetahat.estimation.observer.plan import StateLayout
     >>> lay = StateLayout(n=2, m=1, r=1, k=1, p=1, second=False, law_size=0)
     >>> t, dts, U, Y, ok = check_records(lay, "skip", [0.0, 1.0], [0.0, 0.0],
     ...                                  [1.0, float("nan")])

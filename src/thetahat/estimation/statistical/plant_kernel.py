@@ -38,7 +38,7 @@ from sympy.printing.pycode import PythonCodePrinter
 from ...errors import DimensionError, FileAccessError, MissingExtraError
 from ...model.perturbation import SymbolicPerturbation
 from ...model.system import PerturbedLinearSystem
-from .kernel_cache import KernelSourceError, cached_njit
+from ..kernels.kernel_cache import KernelSourceError, cached_njit
 
 __all__ = ["ModelKernel", "model_kernel", "have_numba", "jit", "spectral_radius_bound"]
 
@@ -364,7 +364,7 @@ def model_kernel(system: PerturbedLinearSystem, *, compiled: bool | None = None)
     --------
     >>> import numpy as np
     >>> from thetahat.models import lugre
-    >>> from thetahat.estimation.kernels.model_kernel import model_kernel
+    >>> from thetahat.estimation.statistical.plant_kernel import model_kernel
     >>> kern = model_kernel(lugre.system(), compiled=False)
     >>> f, Fx, Ft = kern.jacobians([1.0, 1e-3], [0.0], [0.28])
     >>> Fx.shape, Ft.shape

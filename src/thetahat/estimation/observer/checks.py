@@ -23,7 +23,7 @@ from ..._validate import as_matrix, as_vector, check_finite, positive_scalar
 from ...errors import DimensionError, UpdateLawError
 from ...model.paramset import Box, ParameterSet
 from ...model.perturbation import Perturbation
-from .theta_star import ThetaStar
+from .laws.theta_star import ThetaStar
 
 FloatArray = NDArray[np.float64]
 
@@ -100,7 +100,7 @@ def check_monotonicity(perturbation: Perturbation,
         g and ∂g/∂θ.
     M : callable, optional
         ``M(v, x, theta)``, shape (..., p, k); default (∂g/∂θ)ᵀ, as in
-        :class:`~thetahat.estimation.paper.update_laws.GradientInversion`.
+        :class:`~thetahat.estimation.observer.laws.GradientInversion`.
     v_box : Box
         Box of v = col(u, y) values (dimension m + r), standing in for V.
     x_box : Box
@@ -127,7 +127,7 @@ def check_monotonicity(perturbation: Perturbation,
     >>> import numpy as np
     >>> from thetahat.model.paramset import Box
     >>> from thetahat.model.perturbation import Perturbation
-    >>> from thetahat.estimation.paper.checks import check_monotonicity
+    >>> from thetahat.estimation.observer.checks import check_monotonicity
     >>> class Cubic(Perturbation):
     ...     dims = (1, 0, 1, 1, 1)
     ...     def g(self, v, x, th): return th + th**3 / 3
@@ -256,7 +256,7 @@ def excitation_report(t: ArrayLike, l: ArrayLike | None = None,  # noqa: E741
     Examples
     --------
     >>> import numpy as np
-    >>> from thetahat.estimation.paper.checks import excitation_report
+    >>> from thetahat.estimation.observer.checks import excitation_report
     >>> t = np.linspace(0.0, 20.0, 2001)
     >>> rep = excitation_report(t, l=(np.sin(t) > 0).astype(float), window=2 * np.pi)
     >>> round(rep.sigma_l, 1)  # half of every period
@@ -328,7 +328,7 @@ def check_theta_star(theta_star: Callable[..., Any], perturbation: Perturbation,
     (a branch that misses Θ), and a denominator of θ* that
     changes sign between two samples (a pole crossed by the data, e.g. θ* = log(φ + 1)/y
     for g = exp(θ y) − 1 when y crosses 0); the last check needs θ* as a
-    :class:`~thetahat.estimation.paper.theta_star.ThetaStar` (derived by SymPy or read from a file).
+    :class:`~thetahat.estimation.observer.laws.theta_star.ThetaStar` (derived by SymPy or read from a file).
 
     Parameters
     ----------
@@ -354,8 +354,8 @@ def check_theta_star(theta_star: Callable[..., Any], perturbation: Perturbation,
     >>> import numpy as np
     >>> from thetahat.model.parse import parse_perturbation
     >>> from thetahat.model.paramset import Box
-    >>> from thetahat.estimation.paper.update_laws import AlgebraicInversion
-    >>> from thetahat.estimation.paper.checks import check_theta_star
+    >>> from thetahat.estimation.observer.laws import AlgebraicInversion
+    >>> from thetahat.estimation.observer.checks import check_theta_star
     >>> g = parse_perturbation("exp(theta*y) - 1", u=[], y=["y"], x=["x"], theta=["theta"])
     >>> Theta = Box([0.5], [2.0])
     >>> law = AlgebraicInversion.from_perturbation(g, Gamma=1.0, parameter_set=Theta)

@@ -1,15 +1,15 @@
 """One step of observer (3) with update law (8) and the second observer of Sec. VI: the NumPy
-back end of the formulas of :mod:`~thetahat.estimation.kernels.formulas`.
+back end of the formulas of :mod:`~thetahat.estimation.observer.formulas`.
 
 The formulas of one sample are written once, over primitives, in
-:mod:`~thetahat.estimation.kernels.formulas`; this module binds them to the NumPy primitives of
+:mod:`~thetahat.estimation.observer.formulas`; this module binds them to the NumPy primitives of
 :mod:`~thetahat.estimation.kernels.primitives` (a leading batch axis) and to the model's
 :class:`~thetahat.model.perturbation.Perturbation` and update law, and runs them over B rows at
 once: the streaming
-:meth:`~thetahat.estimation.paper.observer.ModifiedHighGainObserver.step` and
-:meth:`~thetahat.estimation.paper.observer.ModifiedHighGainObserver.run` are the batch of one,
-:func:`~thetahat.estimation.kernels.batch_run.run_batch` the batch of B; the constant data come from a
-:class:`~thetahat.estimation.kernels.plan.StepPlan`. What is NumPy-specific lives here: the choice of
+:meth:`~thetahat.estimation.observer.observer.ModifiedHighGainObserver.step` and
+:meth:`~thetahat.estimation.observer.observer.ModifiedHighGainObserver.run` are the batch of one,
+:func:`~thetahat.estimation.observer.batch_run.run_batch` the batch of B; the constant data come from a
+:class:`~thetahat.estimation.observer.plan.StepPlan`. What is NumPy-specific lives here: the choice of
 the plan per step length, the rows of a batch that miss a sample (predicted over, the NaN
 policy), the per-row report of a divergence, and the readout.
 """
@@ -29,12 +29,12 @@ from ...model.perturbation import Perturbation
 from . import formulas
 from .discretize import IMPLICITNESS
 from .formulas import DIVERGENCE_BOUND, WORK
-from ..paper.inversion import invalid_theta_star_error
-from .kernel_args import LawArrays, PlanArrays, SecondArrays
+from .laws.inversion import invalid_theta_star_error
+from ..kernels.kernel_args import LawArrays, PlanArrays, SecondArrays
 from .plan import SecondPlan, StateLayout, StepPlan
-from .primitives import NUMPY, NUMPY_ROW, bind, bound
-from .status import Status, status_constants
-from ..paper.update_laws import UpdateLaw
+from ..kernels.primitives import NUMPY, NUMPY_ROW, bind, bound
+from ..status import Status, status_constants
+from .laws import UpdateLaw
 
 __all__ = ["DIVERGENCE_BOUND", "advance", "diverged", "divergence_error", "integrate",
            "observer_forcing", "readout", "second_advance", "second_forcing"]
@@ -192,9 +192,9 @@ def observer_forcing(plan: StepPlan, pert: Perturbation, xz: FloatArray, th: Flo
                      ) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
     """Forcing F of (3a)–(3b) on (x̂, z) without the θ̂ term; returns (F, φ̂, ∂g/∂x, v).
 
-    :func:`formulas.observer_forcing <thetahat.estimation.kernels.formulas.observer_forcing>` on
+    :func:`formulas.observer_forcing <thetahat.estimation.observer.formulas.observer_forcing>` on
     NumPy arrays (for the continuous-time :meth:`rhs
-    <thetahat.estimation.paper.observer.ModifiedHighGainObserver.rhs>`).
+    <thetahat.estimation.observer.observer.ModifiedHighGainObserver.rhs>`).
 
     Parameters
     ----------
@@ -233,7 +233,7 @@ def second_forcing(plan: SecondPlan, pert: Perturbation, x2: FloatArray, u: Floa
                    ) -> tuple[FloatArray, FloatArray]:
     """F = A x̂₂ + B u + E g(v̄, x̂₂, θ̂) + K_x2 (y − C x̂₂) (Sec. VI); returns (F, v̄).
 
-    :func:`formulas.second_forcing <thetahat.estimation.kernels.formulas.second_forcing>` on NumPy
+    :func:`formulas.second_forcing <thetahat.estimation.observer.formulas.second_forcing>` on NumPy
     arrays.
 
     Parameters
@@ -283,7 +283,7 @@ def second_advance(plan: SecondPlan, pert: Perturbation, x2: FloatArray, u0: Flo
     """One step of the second observer alone (ZOH, or FOH to ``u1``, ``y1``); shape (..., n).
 
     The second observer's part of :func:`formulas.advance
-    <thetahat.estimation.kernels.formulas.advance>`.
+    <thetahat.estimation.observer.formulas.advance>`.
 
     Parameters
     ----------
@@ -318,7 +318,7 @@ def advance(plan: StepPlan, pert: Perturbation, law: UpdateLaw, s: FloatArray, u
             y0: FloatArray, dt: float, correct: bool, u1: FloatArray | None = None,
             y1: FloatArray | None = None) -> FloatArray:
     """One step of the whole estimator for B rows: :func:`formulas.advance
-    <thetahat.estimation.kernels.formulas.advance>` on NumPy arrays; shape (B, size).
+    <thetahat.estimation.observer.formulas.advance>` on NumPy arrays; shape (B, size).
 
     Rows whose φ̂ is not finite come back as NaN (the caller reports the divergence).
 

@@ -21,9 +21,9 @@ from numpy.typing import ArrayLike, NDArray
 from ..._validate import as_matrix, as_vector, positive_scalar
 from ...errors import DimensionError
 from ...model.system import PerturbedLinearSystem
-from ..kernels.discretize import PLAN_CACHE_SIZE
-from ..kernels.plan import SecondPlan, dt_key
-from ..kernels.step import second_advance, second_forcing
+from .discretize import PLAN_CACHE_SIZE
+from .plan import SecondPlan, dt_key
+from .step import second_advance, second_forcing
 
 __all__ = ["SecondObserver"]
 
@@ -53,7 +53,7 @@ class SecondObserver:
 
     Notes
     -----
-    Attach it to :class:`~thetahat.estimation.paper.observer.ModifiedHighGainObserver` through its
+    Attach it to :class:`~thetahat.estimation.observer.observer.ModifiedHighGainObserver` through its
     ``second`` keyword: the composite state is ``col(x̂, z, θ̂, x̂₂)`` and ``step``/``run``
     advance both observers, the second with the first's θ̂ at the start of each step (the
     cascade of Sec. VI). Used alone, ``rhs`` and ``step`` take θ̂ explicitly and raise
@@ -61,7 +61,7 @@ class SecondObserver:
     ``nan_policy`` governs, and during a skipped sample the second observer predicts too
     (y is replaced by ``C x̂₂``, no output injection, exact linear part ``A``).
 
-    The discretisation is that of :mod:`thetahat.estimation.kernels.discretize` with
+    The discretisation is that of :mod:`thetahat.estimation.observer.discretize` with
     ``L = A − K_x C`` and ``N = E ∂g/∂x`` (plus ``E ∂g/∂y C`` with ``g_on_estimates``), which
     here is the exact Jacobian, so the step is second order for held or interpolated samples.
 
@@ -128,7 +128,7 @@ class SecondObserver:
         return cls(system=system, K_x=design.K, g_on_estimates=g_on_estimates)
 
     def plan(self, dt: float | None, *, predict: bool = False) -> SecondPlan:
-        """The :class:`~thetahat.estimation.kernels.plan.SecondPlan` for step length dt (cached).
+        """The :class:`~thetahat.estimation.observer.plan.SecondPlan` for step length dt (cached).
 
         Parameters
         ----------

@@ -5,11 +5,11 @@ The functions here are the step's formulas, written once over the primitives of
 functions and a few constants; they hold no data and import nothing they call. Every back end
 runs these code objects:
 
-* the Python step and run (one row) and :func:`~thetahat.estimation.kernels.batch_run.run_batch`
-  (B rows) bind them to the NumPy primitives (:func:`~thetahat.estimation.kernels.step.advance`);
+* the Python step and run (one row) and :func:`~thetahat.estimation.observer.batch_run.run_batch`
+  (B rows) bind them to the NumPy primitives (:func:`~thetahat.estimation.observer.step.advance`);
 * the compiled observer emits their source, with the scalar primitives and the model functions
   printed from SymPy, as one numba module
-  (:mod:`~thetahat.estimation.kernels.scalar_backend`, :mod:`~thetahat.estimation.kernels.compiled`).
+  (:mod:`~thetahat.estimation.observer.kernel_source`, :mod:`~thetahat.estimation.observer.compiled`).
 
 Free names a binding provides:
 
@@ -19,17 +19,17 @@ Free names a binding provides:
 * ``law_step(LP, v, x, xo, phi, th, to, dt, thn, lsn)``: the update law's step into θ̂⁺
   (``thn``) and the law state (``lsn``, which holds the state at the start on entry); it
   returns 0, or 1 + the number of rows where θ* is invalid under ``on_invalid='raise'``
-  (:mod:`~thetahat.estimation.kernels.law_formulas`);
+  (:mod:`~thetahat.estimation.observer.laws.formulas`);
 * the dimensions ``NX, NU, NY, NK, NP`` and ``LS`` (law state length), the implicitness γ
   ``IMPLICITNESS``, the divergence bound ``BOUND_SQ`` (:data:`DIVERGENCE_BOUND` squared) and
-  the status codes ``ST_<NAME>`` of :class:`~thetahat.estimation.kernels.status.Status`.
+  the status codes ``ST_<NAME>`` of :class:`~thetahat.estimation.status.Status`.
 
 The state of a row is ``col(x̂, z, θ̂[, x̂₂][, law state])``. The plan tuples:
 ``P = (L, Bv, E, C, A, B, K_x, K_x C, Φ₁, Φ₂)`` with the φ-matrices of this step (corrected,
 or the prediction's over a missing sample), ``P2 = (A, B, C, E, K_x2, Φ₁, Φ₂)`` of the second
 observer, and the work buffers ``W`` (:data:`WORK`).
 
-Status codes of :func:`advance` (:class:`~thetahat.estimation.kernels.status.Status`): ``ST_OK``;
+Status codes of :func:`advance` (:class:`~thetahat.estimation.status.Status`): ``ST_OK``;
 ``ST_DIVERGED`` when φ̂ is not finite; ``ST_THETA_STAR`` when θ* is invalid (the law's);
 ``ST_SINGULAR`` when an implicit step's matrix is singular (``solve``'s status).
 """
@@ -40,7 +40,7 @@ from collections.abc import Callable
 from typing import TYPE_CHECKING, Any
 
 if TYPE_CHECKING:                    # the argument tuples (named; every binding builds them)
-    from .kernel_args import LawArrays, PlanArrays, SecondArrays
+    from ..kernels.kernel_args import LawArrays, PlanArrays, SecondArrays
 
 __all__ = ["DIVERGENCE_BOUND", "FORMULAS", "WORK", "advance", "implicit_step",
            "observer_forcing", "observer_jacobian", "second_forcing", "second_jacobian",
@@ -236,7 +236,7 @@ def implicit_step(q: int, Phi1: Any, Phi2: Any, F: Any, Fd: Any, foh: bool, Nm: 
                   so: int, out: Any, M: Any, rhs: Any) -> Any:
     """s⁺ = s + (I − γΦ₁N)⁻¹ (Φ₁F + Φ₂Ḟ) on the q entries at ``so`` (Ḟ only with ``foh``).
 
-    The exponential, linearly implicit step of :mod:`~thetahat.estimation.kernels.discretize`.
+    The exponential, linearly implicit step of :mod:`~thetahat.estimation.observer.discretize`.
 
     Parameters
     ----------

@@ -1,7 +1,7 @@
 """The one status enum of the observer step, shared by every back end.
 
-:class:`Status` is what the step's formulas return (:func:`~thetahat.estimation.kernels.formulas.
-advance`, the update laws of :mod:`~thetahat.estimation.kernels.law_formulas`, the ``solve``
+:class:`Status` is what the step's formulas return (:func:`~thetahat.estimation.observer.formulas.
+advance`, the update laws of :mod:`~thetahat.estimation.observer.laws.formulas`, the ``solve``
 primitive), bound to NumPy, compiled by numba and printed as C; the generated C header's
 ``<NAME>_OK`` / ``<NAME>_ERR_…`` codes and their messages are derived from it
 (:data:`thetahat.codegen.c_api.STATUS`), never copied by hand. The formulas read the codes as
@@ -11,10 +11,10 @@ One failure behaviour at the API boundary: a step that ends with a status other 
 :attr:`Status.OK` leaves the state unchanged and the run stops there with a
 :class:`~thetahat.errors.ThetahatError` that names the sample — a
 :class:`~thetahat.errors.NonFiniteError` for :attr:`Status.DIVERGED` and
-:attr:`Status.SINGULAR` (:func:`~thetahat.estimation.kernels.step.divergence_error`), an
+:attr:`Status.SINGULAR` (:func:`~thetahat.estimation.observer.step.divergence_error`), an
 :class:`~thetahat.errors.UpdateLawError` for :attr:`Status.THETA_STAR`. A singular implicit
 step is never an exception of NumPy's, nor ±inf that travels on. (A missing sample, NaN in y,
-is not a failure: ``nan_policy`` decides, see :mod:`~thetahat.estimation.paper.records`.)
+is not a failure: ``nan_policy`` decides, see :mod:`~thetahat.estimation.records`.)
 """
 
 from __future__ import annotations
@@ -31,7 +31,7 @@ class Status(IntEnum):
 
     Examples
     --------
-    >>> from thetahat.estimation.kernels.status import Status
+    >>> from thetahat.estimation.status import Status
     >>> int(Status.SINGULAR), Status(4).name
     (6, 'DIVERGED')
     """

@@ -16,7 +16,7 @@ $$
 
 One implementation serves three uses: ``rhs`` for ODE integrators, ``init``/``step`` for
 streaming, and ``run`` for logged sample arrays; the discrete step is that of
-:mod:`thetahat.estimation.kernels.step` over the observer's :meth:`~ModifiedHighGainObserver.plan`.
+:mod:`thetahat.estimation.observer.step` over the observer's :meth:`~ModifiedHighGainObserver.plan`.
 The state is always passed explicitly.
 """
 
@@ -37,15 +37,16 @@ from ...limits import check_allocation
 from ...model.perturbation import Perturbation
 from ...model.system import PerturbedLinearSystem
 from ...structure.assumptions import check_assumption_1
-from ..kernels.discretize import PLAN_CACHE_SIZE
-from ..kernels.plan import StateLayout, StepPlan, dt_key
-from .records import check_nan_policy, check_records
+from .discretize import PLAN_CACHE_SIZE
+from .plan import StateLayout, StepPlan, dt_key
+from ..records import check_nan_policy, check_records
 from .redesign import SecondObserver
+from ..drive import runner
 from ..protocol import EstimateResult, ObserverDiagnostics
 from ..results import ObserverEstimate, ObserverResult
-from ..kernels.step import (advance, diverged, divergence_error, integrate, observer_forcing, readout,
+from .step import (advance, diverged, divergence_error, integrate, observer_forcing, readout,
                    second_forcing)
-from .update_laws import UpdateLaw
+from .laws import UpdateLaw
 
 __all__ = ["HeldObserver", "ModifiedHighGainObserver", "ObserverEstimate", "ObserverResult"]
 
@@ -139,15 +140,15 @@ class ModifiedHighGainObserver:
     Notes
     -----
     **One step, several back ends.** ``step`` and ``run`` are the batch of one of
-    :func:`thetahat.estimation.kernels.step.advance`, which
-    :func:`~thetahat.estimation.kernels.batch_run.run_batch` runs for B rows; the matrices, gains and
+    :func:`thetahat.estimation.observer.step.advance`, which
+    :func:`~thetahat.estimation.observer.batch_run.run_batch` runs for B rows; the matrices, gains and
     φ-matrices come from the frozen :meth:`plan` (one per step length). The state is
     ``col(x̂, z, θ̂[, x̂₂][, law state])`` (:attr:`layout`). A step whose state norm exceeds
-    :data:`~thetahat.estimation.kernels.step.DIVERGENCE_BOUND` (or is NaN/inf) raises
+    :data:`~thetahat.estimation.observer.step.DIVERGENCE_BOUND` (or is NaN/inf) raises
     :class:`~thetahat.errors.NonFiniteError` naming the step, in every back end.
 
     **Discretisation.** ``step`` and ``run`` use the exponential, linearly implicit step of
-    :mod:`thetahat.estimation.kernels.discretize` on ``(x̂, z)`` with the constant part
+    :mod:`thetahat.estimation.observer.discretize` on ``(x̂, z)`` with the constant part
 
     $$
     L = \begin{bmatrix} A - K_x C & E \\ -K_\phi C & 0 \end{bmatrix}
@@ -206,7 +207,7 @@ class ModifiedHighGainObserver:
     >>> from thetahat.model.system import PerturbedLinearSystem
     >>> from thetahat.model.perturbation import CallablePerturbation
     >>> from thetahat.model.paramset import Box
-    >>> from thetahat.estimation.paper.update_laws import ConstantLaw
+    >>> from thetahat.estimation.observer.laws import ConstantLaw
     >>> zero = CallablePerturbation(g=lambda v, x, th: 0 * x, n=1, m=1, r=1, p=1, k=1)
     >>> plant = PerturbedLinearSystem(A=[[-1.0]], B=[[1.0]], C=[[1.0]], E=[[1.0]],
     ...                               perturbation=zero)
@@ -302,7 +303,7 @@ class ModifiedHighGainObserver:
         >>> from thetahat.model.system import PerturbedLinearSystem
         >>> from thetahat.model.perturbation import CallablePerturbation
         >>> from thetahat.model.paramset import Box
-        >>> from thetahat.estimation.paper.update_laws import ConstantLaw
+        >>> from thetahat.estimation.observer.laws import ConstantLaw
         >>> zero = CallablePerturbation(g=lambda v, x, th: 0 * x, n=1, m=1, r=1, p=1, k=1)
         >>> plant = PerturbedLinearSystem(A=[[-1]], B=[[1]], C=[[1]], E=[[1]],
         ...                               perturbation=zero)
@@ -322,11 +323,11 @@ class ModifiedHighGainObserver:
         return self.layout.size
 
     def plan(self, dt: float) -> StepPlan:
-        """The :class:`~thetahat.estimation.kernels.plan.StepPlan` of this observer for step length dt.
+        """The :class:`~thetahat.estimation.observer.plan.StepPlan` of this observer for step length dt.
 
         Computed once per step length (to 12 significant digits) and cached (with the
         prediction's φ-matrices only under ``nan_policy="skip"``); every back end
-        (``step``/``run``, :func:`~thetahat.estimation.kernels.batch_run.run_batch`, the compiled
+        (``step``/``run``, :func:`~thetahat.estimation.observer.batch_run.run_batch`, the compiled
         kernel) reads the observer's matrices, gains and φ-matrices from it.
 
         Parameters
@@ -448,7 +449,7 @@ class ModifiedHighGainObserver:
                                  NDArray[np.bool_]]:
         """Validate sampled records against the NaN policy (before anything is integrated).
 
-        :func:`~thetahat.estimation.paper.records.check_records` with this observer's layout and
+        :func:`~thetahat.estimation.records.check_records` with this observer's layout and
         ``nan_policy``.
 
         Parameters
@@ -724,7 +725,7 @@ class HeldObserver:
     progress : callable, optional
         ``progress(done, total)`` for :meth:`run`.
     compiled : bool, optional
-        Run on the compiled kernel (:func:`~thetahat.estimation.kernels.compiled.runner`: by default
+        Run on the compiled kernel (:func:`~thetahat.estimation.drive.runner`: by default
         for long records when numba is installed, with a plain fallback).
 
     Raises
@@ -802,7 +803,7 @@ class HeldObserver:
     def run(self, t: ArrayLike, u: ArrayLike | None, y: ArrayLike, *,
             state0: ArrayLike | None = None) -> EstimateResult:
         """:meth:`ModifiedHighGainObserver.run` with this hold and progress callback, on the
-        compiled kernel where :func:`~thetahat.estimation.kernels.compiled.runner` chooses it.
+        compiled kernel where :func:`~thetahat.estimation.drive.runner` chooses it.
 
         Parameters
         ----------
@@ -813,7 +814,6 @@ class HeldObserver:
         -------
         EstimateResult
         """
-        from ..kernels.compiled import runner          # (compiled imports this module)
         return runner(self.observer, t, compiled=self.compiled).run(
             t, u, y, hold=self.hold, state0=state0, progress=self.progress)
 

@@ -1,0 +1,78 @@
+"""C for the estimator a model file describes: ``thetahat codegen``.
+
+:func:`generate_c_from_model` reads a model file, builds the paper's observer it describes and
+prints it as C with :func:`~thetahat.codegen.generate.generate_c` (the file's θ̂(0) and x̂(0)
+as the defaults, the SHA-256 of its bytes in the header). It lives here, above both the model
+files and the code generator, so that :mod:`thetahat.codegen` never reads a model file.
+"""
+
+from __future__ import annotations
+
+import hashlib
+from pathlib import Path
+
+from ..codegen.generate import CCode, generate_c
+from ..errors import UnsupportedError
+from .assembly import build_observer
+from .schema import load_model
+
+__all__ = ["generate_c_from_model"]
+
+
+def generate_c_from_model(path: str | Path, *, dt: float, eps: float | None = None,
+                          real: str = "double", name: str | None = None,
+                          nan_policy: str = "raise", hold: str = "zoh") -> CCode:
+    """:func:`~thetahat.codegen.generate.generate_c` for the estimator of a model file (``thetahat codegen``).
+
+    Parameters
+    ----------
+    path : str or Path
+        Model file (.toml or .json).
+    dt : float
+        The fixed step length (s).
+    eps : float, optional
+        Overrides ``[estimator] eps``.
+    real : {"double", "float"}
+    name : str, optional
+        File stem and C prefix; default the model file's stem.
+    nan_policy : {"raise", "skip"}
+        A NaN output sample is refused, or predicted over.
+    hold : {"zoh", "foh"}
+        Sample hold.
+
+    Returns
+    -------
+    CCode
+        With the file's θ̂(0) and x̂(0) as defaults and the SHA-256 of the file's bytes in the
+        header.
+
+    Raises
+    ------
+    ModelFileError
+        The file cannot be read or is invalid.
+    UnsupportedError
+        A part of the estimator has no C form, or the file's ``[estimator] method`` is not
+        ``"paper"`` (the guarded and MAP estimators have no C form; the file is refused, never
+        generated as another method).
+
+    Examples
+    --------
+    >>> import tempfile, pathlib
+    >>> from thetahat.modelfile import EXAMPLE_MODEL
+    >>> path = pathlib.Path(tempfile.mkdtemp()) / "prop3.toml"
+    >>> _ = path.write_text(EXAMPLE_MODEL)
+    >>> generate_c_from_model(path, dt=0.01).name
+    'prop3'
+    """
+    spec = load_model(path)
+    if spec.estimator.method != "paper":
+        raise UnsupportedError(
+            f"{path}: [estimator] method = {spec.estimator.method!r} has no C form; codegen "
+            "generates the paper's estimator only (method = \"paper\"). Set method = "
+            "\"paper\" in a copy of the file to generate the observer alone.")
+    digest = hashlib.sha256(Path(path).read_bytes()).hexdigest()
+    observer = build_observer(spec, eps=eps, nan_policy=nan_policy)
+    return generate_c(observer, dt=dt, name=name or Path(path).stem, real=real, hold=hold,
+                      theta_hat0=spec.estimator.theta_hat0, x_hat0=spec.estimator.x_hat0,
+                      eps=spec.estimator.eps if eps is None else eps, model_sha256=digest,
+                      title=spec.name, x_hat0_from_y=spec.estimator.x_hat0_from_y)
