@@ -31,8 +31,10 @@ from numpy.typing import NDArray
 
 from ..errors import DimensionError, NonFiniteError
 from ..model.system import PerturbedLinearSystem
+from .status import Status, status_error
 
 __all__ = ["Diagnostics", "EstimateResult", "Estimator", "ObserverDiagnostics", "Evidence",
+           "SignalNames",
            "missing_samples", "phi_hat_from_model", "stream_sample"]
 
 FloatArray = NDArray[np.float64]
@@ -64,6 +66,28 @@ class ObserverDiagnostics(Diagnostics):
     def __repr__(self) -> str:
         shape = None if self.x_hat_refined is None else self.x_hat_refined.shape
         return f"ObserverDiagnostics(x_hat_refined={shape})"
+
+
+@dataclass(frozen=True, slots=True)
+class SignalNames:
+    """The names of a result's columns, as the model (file) gives them.
+
+    Attributes
+    ----------
+    states, parameters, inputs, outputs : tuple of str
+        One name per state, parameter, input and output.
+
+    Examples
+    --------
+    >>> SignalNames(states=("omega", "eta"), parameters=("theta",), inputs=("u",),
+    ...             outputs=("y",)).parameters
+    ('theta',)
+    """
+
+    states: tuple[str, ...]
+    parameters: tuple[str, ...]
+    inputs: tuple[str, ...]
+    outputs: tuple[str, ...]
 
 
 @runtime_checkable
@@ -104,6 +128,15 @@ class EstimateResult:
         Samples whose y held NaN (no output correction was made there).
     diagnostics : Diagnostics
         Per-method extras (e.g. ``result.diagnostics.resets`` of the guarded estimator).
+    status : Status
+        How the run ended (:class:`~thetahat.estimation.status.Status`): ``OK``, or, for a run
+        with ``throw=False`` that stopped, why (the rows from ``failed_at`` on are then NaN).
+    message : str
+        The sentence that says where the run stopped, why and what to do ("" when OK).
+    failed_at : int or None
+        The first sample the run could not process (None when OK).
+    names : SignalNames or None
+        The names of the states, parameters, inputs and outputs, when the model has them.
     trust : TrustReport or None
         What the estimate says about itself (:func:`~thetahat.estimation.statistical.trust.trust_report`:
         identifiability, Θ's boundary, the guard, the model error), when it was checked
@@ -123,11 +156,37 @@ class EstimateResult:
     skipped: NDArray[np.bool_]
     diagnostics: Diagnostics
     trust: Evidence | None = None
+    status: Status = Status.OK
+    message: str = ""
+    failed_at: int | None = None
+    names: SignalNames | None = None
 
     def __post_init__(self) -> None:
         for a in (self.t, self.x_hat, self.theta_hat, self.phi_hat, self.skipped):
             if a.flags.writeable:
                 a.setflags(write=False)
+
+    @property
+    def ok(self) -> bool:
+        """The run processed every sample (``status`` is ``OK``)."""
+        return self.status == Status.OK
+
+    def raise_for_status(self) -> EstimateResult:
+        """This result if its run ended well, else the run's error (with its fix) raised.
+
+        Returns
+        -------
+        EstimateResult
+            ``self``.
+
+        Raises
+        ------
+        ThetahatError
+            :func:`~thetahat.estimation.status.status_error` of ``status`` and ``message``.
+        """
+        if self.status != Status.OK:
+            raise status_error(self.status, self.message)
+        return self
 
     @property
     def x_hat_refined(self) -> FloatArray | None:
@@ -140,7 +199,9 @@ class EstimateResult:
         span = f"[{self.t[0]:.6g}, {self.t[-1]:.6g}]" if N else "[]"
         return (f"EstimateResult(N={N}, t={span}, x_hat={self.x_hat.shape}, "
                 f"theta_hat={self.theta_hat.shape}, phi_hat={self.phi_hat.shape}, "
-                f"skipped={int(self.skipped.sum())}, diagnostics={self.diagnostics!r})")
+                f"skipped={int(self.skipped.sum())}, "
+                + ("" if self.ok else f"status={self.status.name}, failed_at={self.failed_at}, ")
+                + f"diagnostics={self.diagnostics!r})")
 
     def to_dataframe(self, *, state_names: Any = None, parameter_names: Any = None) -> Any:
         """A :class:`pandas.DataFrame` indexed by t (:func:`thetahat.tables.result_to_dataframe`).

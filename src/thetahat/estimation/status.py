@@ -1,4 +1,4 @@
-"""The one status enum of the observer step, shared by every back end.
+"""The one status of every estimator and back end: how a step or a run ended, and its error.
 
 :class:`Status` is what the step's formulas return (:func:`~thetahat.estimation.observer.formulas.
 advance`, the update laws of :mod:`~thetahat.estimation.observer.laws.formulas`, the ``solve``
@@ -7,21 +7,28 @@ primitive), bound to NumPy, compiled by numba and printed as C; the generated C 
 (:data:`thetahat.codegen.c_api.STATUS`), never copied by hand. The formulas read the codes as
 the constants ``ST_<NAME>`` (:func:`status_constants`), which every binding provides.
 
-One failure behaviour at the API boundary: a step that ends with a status other than
-:attr:`Status.OK` leaves the state unchanged and the run stops there with a
-:class:`~thetahat.errors.ThetahatError` that names the sample — a
+One failure behaviour at the API boundary, for the observer, its compiled and C forms, the
+joint EKF, the MAP fits and the guarded estimator alike: a step that ends with a status other
+than :attr:`Status.OK` leaves the state unchanged and the run stops there. With ``throw=True``
+(the default of every ``run`` and of the command line) it raises the
+:class:`~thetahat.errors.ThetahatError` of :func:`status_error` — a
 :class:`~thetahat.errors.NonFiniteError` for :attr:`Status.DIVERGED` and
-:attr:`Status.SINGULAR` (:func:`~thetahat.estimation.observer.step.divergence_error`), an
-:class:`~thetahat.errors.UpdateLawError` for :attr:`Status.THETA_STAR`. A singular implicit
-step is never an exception of NumPy's, nor ±inf that travels on. (A missing sample, NaN in y,
-is not a failure: ``nan_policy`` decides, see :mod:`~thetahat.estimation.records`.)
+:attr:`Status.SINGULAR`, an :class:`~thetahat.errors.UpdateLawError` for
+:attr:`Status.THETA_STAR` — whose message names the sample and the fix; with ``throw=False`` it
+returns an :class:`~thetahat.estimation.protocol.EstimateResult` whose ``status`` is that
+status, whose ``message`` is that sentence and whose rows from ``failed_at`` on are NaN. A
+singular implicit step is never an exception of NumPy's, nor ±inf that travels on. (A missing
+sample, NaN in y, is not a failure: ``nan_policy`` decides, see
+:mod:`~thetahat.estimation.records`.)
 """
 
 from __future__ import annotations
 
 from enum import IntEnum
 
-__all__ = ["Status", "MESSAGES", "status_constants"]
+from ..errors import NonFiniteError, ParameterSetError, ThetahatError, UpdateLawError
+
+__all__ = ["Status", "MESSAGES", "status_constants", "status_error"]
 
 
 class Status(IntEnum):
@@ -84,3 +91,34 @@ def status_constants() -> dict[str, int]:
     3
     """
     return {f"ST_{s.name}": int(s) for s in Status}
+
+
+def status_error(status: Status, message: str | None = None) -> ThetahatError:
+    """The exception a failed step or run raises (``throw=True``): one type per status.
+
+    Parameters
+    ----------
+    status : Status
+        Not :attr:`Status.OK`.
+    message : str, optional
+        The full sentence: where, what, and what to do (default :data:`MESSAGES`' text).
+
+    Returns
+    -------
+    ThetahatError
+        :class:`~thetahat.errors.UpdateLawError` for :attr:`Status.THETA_STAR`,
+        :class:`~thetahat.errors.ParameterSetError` for :attr:`Status.INIT`,
+        :class:`~thetahat.errors.NonFiniteError` otherwise.
+
+    Examples
+    --------
+    >>> err = status_error(Status.SINGULAR)
+    >>> type(err).__name__, "decrease dt" in str(err)
+    ('NonFiniteError', True)
+    """
+    text = message or MESSAGES[Status(status)]
+    if status == Status.THETA_STAR:
+        return UpdateLawError(text)
+    if status == Status.INIT:
+        return ParameterSetError(text)
+    return NonFiniteError(text)
