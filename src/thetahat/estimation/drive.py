@@ -198,14 +198,18 @@ def runner(observer: Any, t: Any, *, compiled: bool | None = None,
     return _chain(observer, dt, every, [], True)
 
 
+def _fallback(observer: Any, dt: float, rest: tuple[Backend, ...], notes: list[str],
+              loud: bool) -> Callable[[], Any]:
+    """What a back end calls for a record it cannot take: the chain of the ones after it."""
+    return lambda: _chain(observer, dt, rest, notes, loud)
+
+
 def _chain(observer: Any, dt: float, rest: tuple[Backend, ...], notes: list[str],
            loud: bool) -> Any:
     """The first back end of ``rest`` that takes the observer, each with the next as its
     fallback; the observer itself (with a note when ``loud``) when none does."""
     for i, backend in enumerate(rest):
-        tail = rest[i + 1:]
-        got = backend.build(observer, dt,
-                            lambda tail=tail: _chain(observer, dt, tail, notes, loud))
+        got = backend.build(observer, dt, _fallback(observer, dt, rest[i + 1:], notes, loud))
         if not isinstance(got, str):
             return got
         notes.append(got)

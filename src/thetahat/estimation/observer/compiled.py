@@ -85,6 +85,9 @@ __all__ = ["CompiledObserver", "KernelParts", "compile_observer", "kernel_arrays
 
 FloatArray = NDArray[np.float64]
 
+#: Relative tolerance of ``step``'s ``dt`` against the compiled step length.
+DT_RTOL = 1e-9
+
 _SUPPORTED = ("supported: a SymbolicPerturbation g, a Box Θ with diagonal Γ or a Ball or "
               "Ellipsoid Θ, ConstantLaw, "
               "IntermittentInversion (l ≡ 1, i.e. AlgebraicInversion, or a smooth_ramp weight) "
