@@ -43,7 +43,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from . import limits
-from .io.datafile import DATA_SUFFIXES, read_data, read_parquet, write_parquet_table
+from .io.datafile import DATA_SUFFIXES, read_data, write_parquet_table
 from .io.record import DataRecord
 from .engine import run_keyed
 from .errors import ArgumentTypeError, MissingExtraError, ModelFileError, OptionError
@@ -58,7 +58,7 @@ from .studies.information import explain_nonfinite, stuck_parameters
 from .studies.metrics import time_to_within
 
 __all__ = ["DATA_SUFFIXES", "FleetResult", "RESULT_SUFFIXES", "SETTLE_BAND", "check_output",
-           "estimate_many", "fleet_files", "is_glob", "read_parquet"]
+           "estimate_many", "fleet_files", "is_glob"]
 
 FloatArray = NDArray[np.float64]
 
@@ -313,7 +313,8 @@ def _estimate_chunk(paths: list[str], *, model: tuple[str, str, str], hold: str,
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always")
             try:
-                records[p] = (read_data(p, spec, nan_policy=nan_policy), [str(w.message) for w in caught])
+                records[p] = (read_data(p, spec.layout, nan_policy=nan_policy),
+                              [str(w.message) for w in caught])
             except Exception as exc:       # a bad file is reported, never stops the others
                 out[p] = {"status": _failure(exc), "warnings": ""}
     if method != "paper":
