@@ -27,14 +27,14 @@ from ..estimation.records import check_nan_policy
 from ..safe_io import atomic_path, check_writable, open_input
 from .mapping import RecordLayout, Signal, select_columns
 from .record import DataRecord
-from .tables import Table, open_table
+from .tables import EXCEL_SUFFIXES, Table, open_table
 
 __all__ = ["DATA_SUFFIXES", "ESTIMATE_SUFFIXES", "read_data", "check_writable",
            "estimate_columns", "write_estimates", "write_parquet_table"]
 
 #: Record formats by suffix (case-insensitive): what a fleet's folder or glob takes as records.
 #: :func:`read_data` reads any other name as CSV.
-DATA_SUFFIXES = (".csv", ".parquet", ".mat")
+DATA_SUFFIXES = (".csv", ".parquet", ".mat") + EXCEL_SUFFIXES
 #: Formats :func:`write_estimates` writes (by suffix).
 ESTIMATE_SUFFIXES = (".csv", ".parquet")
 
@@ -58,7 +58,9 @@ def read_data(path: str | Path, layout: RecordLayout, *, nan_policy: str = "rais
     ----------
     path : str or Path
         A regular file: ``.mat`` (MATLAB v4–v7, :mod:`thetahat.io.matfile`), ``.parquet``
-        (needs pyarrow; also a Parquet file under another name), anything else CSV with a
+        (needs pyarrow; also a Parquet file under another name), ``.xlsx``, ``.xls`` and the
+        other workbooks of :data:`~thetahat.io.tables.EXCEL_SUFFIXES` (the first sheet; needs
+        python-calamine, else refused with "save as CSV"), anything else CSV with a
         header row (UTF-8, any line ending, separated by commas, semicolons or tabs, decimal
         commas when the separator is not a comma). Columns (or variables): ``t``, each input
         and each output under its name in the model, ``u1``…/``y1``… (``u``/``y`` for one),
@@ -90,7 +92,7 @@ def read_data(path: str | Path, layout: RecordLayout, *, nan_policy: str = "rais
     ResourceLimitError
         The declared record would not fit in memory.
     MissingExtraError
-        A Parquet file without pyarrow.
+        A Parquet file without pyarrow, or a workbook without python-calamine.
     OptionError
         Unknown ``nan_policy`` or ``delimiter``.
     ArgumentTypeError
@@ -99,8 +101,9 @@ def read_data(path: str | Path, layout: RecordLayout, *, nan_policy: str = "rais
     Warns
     -----
     ThetahatWarning
-        t steps by a whole number larger than the model's slowest time constant: t looks
-        like milliseconds or another unit, not seconds.
+        t holds whole numbers stepping by at least 1 and by at least half the model's
+        slowest time constant (fewer than two samples per time constant): t looks like
+        milliseconds or another unit, not seconds.
 
     Examples
     --------
@@ -125,7 +128,7 @@ def read_data(path: str | Path, layout: RecordLayout, *, nan_policy: str = "rais
                                  listing=table.listing())
         used = [s for s in signals if s is not None]
         raws = table.read([s.column for s in used])
-    return _record(table, layout, signals, raws, nan_policy)
+        return _record(table, layout, signals, raws, nan_policy)   # messages may read lines
 
 
 def _record(table: Table, layout: RecordLayout, signals: list[Signal | None],
@@ -195,7 +198,7 @@ def _scaled(table: Table, signal: Signal, raw: FloatArray, *, output: bool,
             k = int(np.argmax(mask))
             raise ModelFileError(
                 f"data file {table.path}, {table.position(k)}, {table.kind} {signal.column!r}: "
-                f"{signal.scale:g} × {raw[k]!r} + {signal.offset:g} {what}; check the "
+                f"{signal.scale!r} × {float(raw[k])!r} + {signal.offset:g} {what}; check the "
                 f"[data] table's scale for {signal.column!r} (it converts the file's unit to "
                 f"the model's).")
     return value
@@ -213,14 +216,15 @@ def _check_time(table: Table, signal: Signal | None, t: FloatArray,
                              f"{float(t[k - 1])!r}, {table.kind} {name!r}); t must be strictly "
                              f"increasing.")
     step = float(np.median(steps))
-    if time_scale is not None and step >= 1.0 and step > time_scale \
+    if time_scale is not None and step >= 1.0 and step >= time_scale / 2 \
             and np.all(t == np.round(t)):
         warnings.warn(
-            f"data file {table.path}: t steps by {step:g} (whole numbers), longer than the "
-            f"model's slowest time constant ({time_scale:.3g} s): is t in milliseconds or "
-            f"another unit? The estimator reads t in seconds; convert it with the model "
-            f"file's [data] table, e.g. t = {{ column = \"{name}\", scale = 1e-3 }}.",
-            ThetahatWarning, stacklevel=3)
+            f"data file {table.path}: t steps by {step:g} (whole numbers): fewer than two "
+            f"samples per time constant of the model (its slowest is {time_scale:.3g} s). Is "
+            f"t in milliseconds or another unit? The estimator reads t in seconds; convert it "
+            f"with the model file's [data] table, e.g. "
+            f"t = {{ column = \"{name}\", scale = 1e-3 }}.",
+            ThetahatWarning, stacklevel=4)
 
 
 def estimate_columns(layout: RecordLayout, *, refined: bool) -> tuple[str, ...]:

@@ -307,10 +307,11 @@ def _roles(layout: RecordLayout) -> list[str]:
             + [f"y ({n})" if layout.r > 1 else "y" for n in layout.output_names])
 
 
-def _data_line(role: str, names: Sequence[str]) -> str:
-    """The ``[data]`` line that maps ``role`` to a column of the file, for messages."""
+def _data_line(role: str, names: Sequence[str], taken: set[str]) -> str:
+    """The ``[data]`` line that maps ``role`` to a column of the file no signal takes yet,
+    for messages."""
     key = role.split(" ")[0]
-    example = next((n for n in names if n and n != "t"), "NAME")
+    example = next((n for n in names if n and n not in taken), "NAME")
     return f'{key} = "{example}"'
 
 
@@ -386,7 +387,7 @@ def select_columns(names: Sequence[str], layout: RecordLayout, where: str, *,
                     f"{where}: missing {kind} {' or '.join(repr(a) for a in alts)} (the "
                     f"{role} signal); the file has {shown}. If the file names it otherwise, "
                     f"map it in the model file's [data] table, e.g. add the line "
-                    f"'{_data_line(role, names)}' under [data].")
+                    f"'{_data_line(role, names, wanted)}' under [data].")
             if len(found) > 1:
                 raise ModelFileError(f"{where}: the {kind}s {found} name the same signal "
                                      f"({role}); keep one of them.")

@@ -1,4 +1,4 @@
-"""The files a record is read from, as named columns: CSV, Parquet and MATLAB.
+"""The files a record is read from, as named columns: CSV, Parquet, MATLAB and workbooks.
 
 :func:`open_table` looks at an open data file (its suffix and its first bytes) and returns a
 :class:`Table`: the names of its columns (or variables) and a way to read some of them as
@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import csv
 import io
+import itertools
 import math
 import warnings
 from array import array
@@ -26,7 +27,7 @@ from .. import limits
 from ..errors import InputLimitError, ModelFileError, ResourceLimitError
 from .record import MISSING_CELLS
 
-__all__ = ["CSV_DELIMITERS", "Table", "open_table"]
+__all__ = ["CSV_DELIMITERS", "EXCEL_SUFFIXES", "Table", "check_samples", "open_table"]
 
 FloatArray = NDArray[np.float64]
 
@@ -156,7 +157,14 @@ class CsvTable(Table):
     def position(self, k: int) -> str:
         if self._lines is not None:
             return f"line {self._lines[k]}"
-        return f"data row {k + 1}"
+        try:                        # read by the fast path: find the line (only for a message)
+            self._fh.seek(0)
+            reader = csv.reader(self._fh, delimiter=self.delimiter)
+            rows = (line for line, row in enumerate(reader, start=1)
+                    if line > self.header_line and row and any(c.strip() for c in row))
+            return f"line {next(itertools.islice(rows, k, None))}"
+        except (OSError, ValueError, csv.Error, StopIteration):
+            return f"data row {k + 1}"
 
     def read(self, names: Sequence[str]) -> list[FloatArray]:
         index = [self.names.index(n) for n in names]
@@ -392,6 +400,124 @@ class MatTable(Table):
 
 
 # ---------------------------------------------------------------------------------------------
+# Excel and OpenDocument workbooks
+# ---------------------------------------------------------------------------------------------
+
+#: Workbook suffixes, read through python-calamine (the ``data`` extra).
+EXCEL_SUFFIXES = (".xlsx", ".xlsm", ".xlsb", ".xls", ".ods")
+_ZIP_MAGIC = b"PK\x03\x04"
+_OLE_MAGIC = b"\xd0\xcf\x11\xe0"
+
+
+def _check_zip(path: Path, raw: IO[bytes]) -> None:
+    """Refuse a workbook whose parts declare more than the limits once decompressed."""
+    import zipfile
+
+    try:
+        with zipfile.ZipFile(raw) as archive:
+            expanded = sum(info.file_size for info in archive.infolist())
+    except (zipfile.BadZipFile, OSError, ValueError) as exc:
+        raise ModelFileError(f"cannot read data file {path} as a workbook: {exc}; save the "
+                             f"sheet as CSV.") from exc
+    finally:
+        raw.seek(0)
+    if expanded > limits.MAX_DECOMPRESSED_BYTES:
+        raise InputLimitError(f"data file {path}: the workbook's parts declare {expanded} "
+                              f"bytes once decompressed, more than the limit of "
+                              f"{limits.MAX_DECOMPRESSED_BYTES} (thetahat.limits."
+                              f"MAX_DECOMPRESSED_BYTES); save the sheet as CSV.")
+
+
+class ExcelTable(Table):
+    """The first sheet of an Excel (``.xlsx``, ``.xls``, …) or OpenDocument workbook, read by
+    python-calamine: its first non-empty row is the header. Number cells are read as numbers,
+    empty cells as missing samples, text that is a plain number as that number; booleans,
+    other text and dates are refused (a date or time t becomes seconds from its first
+    sample)."""
+
+    def __init__(self, path: Path, raw: IO[bytes], head: bytes) -> None:
+        try:
+            import python_calamine
+        except ImportError as exc:
+            from ..errors import MissingExtraError
+            raise MissingExtraError(
+                f"data file {path} is an Excel or OpenDocument workbook; reading it needs "
+                f"python-calamine (pip install 'thetahat[data]'), or save the sheet as CSV "
+                f"(Excel: File > Save As > 'CSV UTF-8').") from exc
+        if head.startswith(_ZIP_MAGIC):
+            _check_zip(path, raw)
+        try:
+            book = python_calamine.CalamineWorkbook.from_filelike(raw)
+            self.sheets = list(book.sheet_names)
+            rows = book.get_sheet_by_index(0).to_python(skip_empty_area=False)
+        except MemoryError as exc:
+            raise ResourceLimitError(f"reading data file {path} ran out of memory; save the "
+                                     f"sheet as CSV.") from exc
+        except Exception as exc:  # noqa: BLE001 - calamine's errors have no common base
+            raise ModelFileError(f"cannot read data file {path} as a workbook: "
+                                 f"{type(exc).__name__}: {exc}; save the sheet as CSV.") from exc
+        start = next((i for i, row in enumerate(rows) if any(c not in ("", None) for c in row)),
+                     None)
+        if start is None:
+            raise ModelFileError(f"data file {path}: the sheet {self.sheets[0]!r} is empty; "
+                                 f"expected a header row such as t, u, y.")
+        self._rows = [(i + 1, row) for i, row in enumerate(rows[start + 1:], start=start + 1)
+                      if any(c not in ("", None) for c in row)]
+        check_samples(path, len(self._rows), 1)
+        self._lines: list[int] = [i for i, _ in self._rows]
+        header = [str(c).strip() for c in rows[start]]
+        super().__init__(path, "column", header, f"data file {path}, sheet "
+                                                 f"{self.sheets[0]!r}, row {start + 1}")
+
+    def listing(self) -> str:
+        more = (f" (of the first sheet, {self.sheets[0]!r}; the workbook has "
+                f"{len(self.sheets)} sheets: move the record to the first)"
+                if len(self.sheets) > 1 else "")
+        return super().listing() + more
+
+    def position(self, k: int) -> str:
+        return f"row {self._lines[k]}"
+
+    def read(self, names: Sequence[str]) -> list[FloatArray]:
+        out = []
+        for n in names:
+            j = self.names.index(n)
+            cells = [row[j] if j < len(row) else "" for _, row in self._rows]
+            out.append(self._column(n, cells, is_t=n == names[0]))
+        return out
+
+    def _column(self, name: str, cells: list[Any], *, is_t: bool) -> FloatArray:
+        import datetime as dt
+
+        if is_t and cells and all(isinstance(c, (dt.datetime, dt.timedelta)) for c in cells):
+            first = cells[0]
+            return np.array([(c - first).total_seconds() for c in cells], dtype=np.float64)
+        values = np.empty(len(cells))
+        for k, cell in enumerate(cells):
+            if isinstance(cell, bool):
+                raise self.fail(name, f"{self.position(k)} holds a boolean ({cell}), not a "
+                                      f"number")
+            if isinstance(cell, (int, float)):
+                values[k] = cell
+            elif cell in ("", None) or (isinstance(cell, str)
+                                        and cell.strip().lower() in MISSING_CELLS):
+                values[k] = math.nan
+            elif isinstance(cell, str):
+                try:
+                    if "_" in cell:
+                        raise ValueError(cell)
+                    values[k] = float(cell)
+                except ValueError:
+                    raise self.fail(name, f"{self.position(k)} holds the text {cell!r}, not a "
+                                          f"number") from None
+            else:
+                raise self.fail(name, f"{self.position(k)} holds a date or time ({cell}), not "
+                                      f"a number" + (" (t must be in seconds, or dates in "
+                                                     "every row)" if is_t else ""))
+        return values
+
+
+# ---------------------------------------------------------------------------------------------
 # Which reader
 # ---------------------------------------------------------------------------------------------
 
@@ -400,8 +526,9 @@ _PARQUET_MAGIC = b"PAR1"
 
 
 def open_table(path: Path, raw: IO[bytes], *, delimiter: str | None = None) -> Table:
-    """The table of an open data file, by its suffix (``.mat``, ``.parquet``; anything else is
-    CSV) and its first bytes (a Parquet file under another name is read as Parquet).
+    """The table of an open data file, by its suffix (``.mat``, ``.parquet``, a workbook's
+    :data:`EXCEL_SUFFIXES`; anything else is CSV) and its first bytes (a Parquet file or a
+    workbook under another name is read as what it is).
 
     Parameters
     ----------
@@ -422,7 +549,8 @@ def open_table(path: Path, raw: IO[bytes], *, delimiter: str | None = None) -> T
     ModelFileError
         The file cannot be read as its format (the message names the file).
     MissingExtraError
-        A Parquet file without pyarrow.
+        A Parquet file without pyarrow, or a workbook without python-calamine (the message
+        says to save it as CSV).
     """
     suffix = path.suffix.lower()
     head = raw.read(8)
@@ -431,4 +559,6 @@ def open_table(path: Path, raw: IO[bytes], *, delimiter: str | None = None) -> T
         return MatTable(path, raw)
     if suffix == ".parquet" or head.startswith(_PARQUET_MAGIC):
         return ParquetTable(path, raw)
+    if suffix in EXCEL_SUFFIXES or head.startswith((_ZIP_MAGIC, _OLE_MAGIC)):
+        return ExcelTable(path, raw, head)
     return CsvTable(path, raw, delimiter)
