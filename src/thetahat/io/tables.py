@@ -10,10 +10,12 @@ every record gets (finite values, t increasing) are made once, by
 
 from __future__ import annotations
 
+import abc
 import csv
 import io
 import itertools
 import math
+import os
 import warnings
 from array import array
 from collections.abc import Sequence
@@ -35,13 +37,16 @@ FloatArray = NDArray[np.float64]
 #: semicolon (a European spreadsheet's export, whose decimals are commas) or a tab.
 CSV_DELIMITERS = (",", ";", "\t")
 _DELIMITER_NAMES = {",": "a comma", ";": "a semicolon", "\t": "a tab"}
+#: Largest CSV with decimal commas read by numpy's fast reader (its text is held twice, once
+#: with points); larger ones are read row by row.
+_DECIMAL_COMMA_FAST_BYTES = 256 << 20
 #: Copies of the read columns a reader may hold at once (the file's table, the float64
 #: columns, the record): the memory checked before a large record is read.
 _COPIES = 4
 
 
-class Table:
-    """A data file's columns (or variables) by name.
+class Table(abc.ABC):
+    """A data file's columns (or variables) by name (abstract: one subclass per format).
 
     Attributes
     ----------
@@ -60,9 +65,9 @@ class Table:
         """What the file has, for messages."""
         return ", ".join(repr(n) for n in self.names) if self.names else "(none)"
 
+    @abc.abstractmethod
     def read(self, names: Sequence[str]) -> list[FloatArray]:
         """The named columns as float64 vectors (missing cells as NaN)."""
-        raise NotImplementedError
 
     def position(self, k: int) -> str:
         """Where sample ``k`` (0-based) is in the file, for messages."""
@@ -182,12 +187,23 @@ class CsvTable(Table):
         increasing), which then gives the message with the line."""
         try:
             self._fh.seek(0)
+            source: Any = self._fh
+            skip = self.header_line
+            if self.delimiter != "," and self._size() <= _DECIMAL_COMMA_FAST_BYTES:
+                for _ in range(self.header_line):
+                    next(self._fh)
+                body = self._fh.read()
+                if "," in body:                         # decimal commas, and no point
+                    if "." in body:
+                        return None
+                    source, skip = io.StringIO(body.replace(",", ".")), 0
+                else:
+                    self._fh.seek(0)
             with warnings.catch_warnings():
                 warnings.simplefilter("ignore")
-                data = np.loadtxt(self._fh, delimiter=self.delimiter,
-                                  skiprows=self.header_line, dtype=np.float64, ndmin=2,
-                                  comments=None)
-        except (ValueError, OSError, UnicodeDecodeError):
+                data = np.loadtxt(source, delimiter=self.delimiter, skiprows=skip,
+                                  dtype=np.float64, ndmin=2, comments=None)
+        except (ValueError, OSError, UnicodeDecodeError, StopIteration):
             return None
         if data.shape[0] < 2 or data.shape[1] != len(self.names):
             return None
@@ -195,6 +211,12 @@ class CsvTable(Table):
         if not np.isfinite(cols).all() or not np.all(np.diff(cols[:, 0]) > 0):
             return None
         return cols
+
+    def _size(self) -> int:
+        try:
+            return os.fstat(self._raw.fileno()).st_size
+        except (OSError, AttributeError, ValueError):
+            return _DECIMAL_COMMA_FAST_BYTES + 1        # unknown: the row-by-row reader
 
     def _careful(self, index: list[int]) -> list[FloatArray]:
         self._fh.seek(0)
@@ -240,12 +262,9 @@ class CsvTable(Table):
             mark, number = ",", cell.replace(",", ".", 1) if cell.count(",") == 1 else cell
         elif "." in cell:
             mark = "."
-        try:
-            if "_" in number:
-                raise ValueError(number)            # float() reads 1_000 as 1000
-            return float(number), mark
-        except ValueError:
-            pass
+        value = _plain_float(number)
+        if value is not None:
+            return value, mark
         hint = (" (digit separators such as 1_000 are not accepted)" if "_" in cell else
                 " (t must be in seconds, not a date or time)" if column == "t" and
                 _is_datetime(cell) else
@@ -254,6 +273,17 @@ class CsvTable(Table):
                 else "")
         raise ModelFileError(f"data file {self.path}, line {line}, column {column!r}: "
                              f"{cell!r} is not a number{hint}.")
+
+
+def _plain_float(text: str) -> float | None:
+    """The number a cell writes in plain decimal notation, or None (``float`` would also read
+    ``1_000`` as 1000: digit separators are refused)."""
+    if "_" in text:
+        return None
+    try:
+        return float(text)
+    except ValueError:
+        return None
 
 
 def _is_datetime(text: str) -> bool:
@@ -503,13 +533,11 @@ class ExcelTable(Table):
                                         and cell.strip().lower() in MISSING_CELLS):
                 values[k] = math.nan
             elif isinstance(cell, str):
-                try:
-                    if "_" in cell:
-                        raise ValueError(cell)
-                    values[k] = float(cell)
-                except ValueError:
+                number = _plain_float(cell)
+                if number is None:
                     raise self.fail(name, f"{self.position(k)} holds the text {cell!r}, not a "
-                                          f"number") from None
+                                          f"number")
+                values[k] = number
             else:
                 raise self.fail(name, f"{self.position(k)} holds a date or time ({cell}), not "
                                       f"a number" + (" (t must be in seconds, or dates in "
