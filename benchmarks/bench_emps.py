@@ -147,7 +147,8 @@ def laws_and_eps(cut: int = 9000) -> dict:
     from thetahat.models.emps_report import MODEL_FILE
     text = MODEL_FILE.read_text()
     shipped = loads_model(text).estimator.eps
-    data = read_data(MODEL_FILE.parent / "data" / "emps" / "DATA_EMPS.mat", loads_model(text))
+    data = read_data(MODEL_FILE.parent / "data" / "emps" / "DATA_EMPS.mat",
+                     loads_model(text).layout)
     pub = emps.PUBLISHED.value
     out = {}
     for law in ("gradient", "least_squares"):
@@ -185,7 +186,7 @@ def final_fits(cuts: tuple[int, ...] = (0, 3000, 9000)) -> dict:
     from thetahat.models import emps
     from thetahat.models.emps_report import MODEL_FILE
     spec = load_model(MODEL_FILE)
-    data = read_data(MODEL_FILE.parent / "data" / "emps" / "DATA_EMPS.mat", spec)
+    data = read_data(MODEL_FILE.parent / "data" / "emps" / "DATA_EMPS.mat", spec.layout)
     pub = emps.PUBLISHED.value
     out = {}
     for k0 in cuts:

@@ -264,31 +264,31 @@ def test_csv_refuses(tmp_path, spec, text, words):
     path = tmp_path / "data.csv"
     path.write_text(text, encoding="utf-8")
     with pytest.raises(E.ModelFileError, match=re.escape(words)):
-        read_data(path, spec)
+        read_data(path, spec.layout)
 
 
 def test_csv_not_utf8(tmp_path, spec):
     path = tmp_path / "data.csv"
     path.write_bytes(b"t,u,y\n0,0,\xff\xfe\n")
     with pytest.raises(E.ModelFileError, match="cannot read data file"):
-        read_data(path, spec)
+        read_data(path, spec.layout)
 
 
 def test_csv_missing_file(tmp_path, spec):
     with pytest.raises(E.ModelFileError, match="cannot read data file"):
-        read_data(tmp_path / "nope.csv", spec)
+        read_data(tmp_path / "nope.csv", spec.layout)
 
 
 def test_csv_unknown_nan_policy(tmp_path, spec):
     with pytest.raises(E.OptionError, match="nan_policy must be one of"):
-        read_data(tmp_path / "x.csv", spec, nan_policy="drop")
+        read_data(tmp_path / "x.csv", spec.layout, nan_policy="drop")
 
 
 def test_csv_input_dropout_is_refused_even_with_skip(tmp_path, spec):
     path = tmp_path / "data.csv"
     path.write_text("t,u,y\n0,,0\n", encoding="utf-8")
-    with pytest.raises(E.ModelFileError, match="is not a number"):
-        read_data(path, spec, nan_policy="skip")
+    with pytest.raises(E.ModelFileError, match=r"line 2, column 'u': nan is not finite"):
+        read_data(path, spec.layout, nan_policy="skip")
 
 
 def test_library_output_over_an_input_is_refused_at_the_write(tmp_path, spec):
@@ -301,14 +301,14 @@ def test_library_output_over_an_input_is_refused_at_the_write(tmp_path, spec):
     np.savetxt(path, np.c_[t, np.sin(t), 0.1 * t], delimiter=",", header="t,u,y",
                comments="")
     before = path.read_bytes()
-    d = read_data(path, spec)
+    d = read_data(path, spec.layout)
     res = run_estimator(spec, d.t, d.u, d.y)
     with pytest.raises(E.FileAccessError, match="read it as an input"):
-        write_estimates(path, res, spec)
+        write_estimates(path, res, spec.layout)
     assert path.read_bytes() == before
     time.sleep(0.01)
     path.write_text("edited\n", encoding="utf-8")        # a new file: not the input any more
-    write_estimates(path, res, spec)
+    write_estimates(path, res, spec.layout)
     assert path.read_text(encoding="utf-8").startswith("t,")
 
 
@@ -656,7 +656,7 @@ def test_single_record_parquet_output_is_parquet(tmp_path, files):
     out = tmp_path / "e.parquet"
     assert main(["estimate", str(model), str(data), "-o", str(out), "--no-progress"]) == 0
     table = pq.read_table(out)
-    assert tuple(table.column_names) == estimate_columns(loads_model(EXAMPLE_MODEL),
+    assert tuple(table.column_names) == estimate_columns(loads_model(EXAMPLE_MODEL).layout,
                                                          refined=True)
     np.testing.assert_array_equal(table.column("t").to_numpy(), np.arange(200) * 0.01)
 
@@ -813,7 +813,7 @@ def test_model_file_size_limit(tmp_path, monkeypatch):
 def test_data_file_size_limit(tmp_path, spec, monkeypatch):
     monkeypatch.setattr(limits, "MAX_DATA_FILE_BYTES", 1000)
     with pytest.raises(E.InputLimitError, match="more than the limit of 1000 bytes"):
-        read_data(_record(tmp_path / "d.csv"), spec)
+        read_data(_record(tmp_path / "d.csv"), spec.layout)
 
 
 def test_check_regular_refuses_a_directory(tmp_path):
@@ -997,7 +997,7 @@ CSV_ROUND_TWO = [
 def test_csv_round_two_refuses(tmp_path, spec, text, words):
     path = _write(tmp_path, "d.csv", text)
     with pytest.raises(E.ModelFileError, match=re.escape(words)):
-        read_data(path, spec)
+        read_data(path, spec.layout)
 
 
 def _parquet(tmp_path, columns, name="d.parquet"):
@@ -1011,7 +1011,7 @@ def _parquet(tmp_path, columns, name="d.parquet"):
 def test_single_parquet_file_is_read(tmp_path, spec, capsys):
     t = np.arange(50) * 0.01
     path = _parquet(tmp_path, {"t": t, "u": np.sin(t), "y": 0.1 * np.cos(t)})
-    rec = read_data(path, spec)
+    rec = read_data(path, spec.layout)
     np.testing.assert_array_equal(rec.y.ravel(), 0.1 * np.cos(t))
     model = _write(tmp_path, "m.toml", EXAMPLE_MODEL)
     assert main(["estimate", str(model), str(path), "-o", str(tmp_path / "e.csv"),
@@ -1022,16 +1022,16 @@ def test_single_parquet_file_is_read(tmp_path, spec, capsys):
 def test_parquet_timestamp_t_is_seconds(tmp_path, spec):
     t = np.arange(50) * 0.01
     stamps = np.datetime64("2024-05-01T00:00:00", "ns") + (t * 1e9).astype("timedelta64[ns]")
-    rec = read_data(_parquet(tmp_path, {"t": stamps, "u": np.sin(t), "y": np.cos(t)}), spec)
+    rec = read_data(_parquet(tmp_path, {"t": stamps, "u": np.sin(t), "y": np.cos(t)}), spec.layout)
     np.testing.assert_allclose(rec.t, t, rtol=0, atol=1e-12)
 
 
 PARQUET_REFUSED = [
-    ("bool y", lambda t: {"t": t, "u": t, "y": t > 0.1}, "booleans and text"),
-    ("text u", lambda t: {"t": t, "u": [str(v) for v in t], "y": t}, "booleans and text"),
+    ("bool y", lambda t: {"t": t, "u": t, "y": t > 0.1}, "column 'y': holds booleans"),
+    ("text u", lambda t: {"t": t, "u": [str(v) for v in t], "y": t}, "column 'u': holds text"),
     ("timestamp y", lambda t: {"t": t, "u": t, "y": np.datetime64("2024-01-01", "ns")
-                               + np.arange(t.size).astype("timedelta64[s]")}, "dates or times"),
-    ("one row", lambda t: {"t": t[:1], "u": t[:1], "y": t[:1]}, "at least two rows"),
+                               + np.arange(t.size).astype("timedelta64[s]")}, "holds time stamps"),
+    ("one row", lambda t: {"t": t[:1], "u": t[:1], "y": t[:1]}, "at least two samples"),
 ]
 
 
@@ -1039,7 +1039,7 @@ PARQUET_REFUSED = [
 def test_parquet_refuses(tmp_path, spec, name, columns, words):
     path = _parquet(tmp_path, columns(np.arange(20) * 0.01))
     with pytest.raises(E.ModelFileError, match=re.escape(words)):
-        read_data(path, spec)
+        read_data(path, spec.layout)
 
 
 # --- brackets in paths are literal when the file exists ----------------------------------------

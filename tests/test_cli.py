@@ -56,7 +56,7 @@ def test_estimate_round_trips_with_the_api(tmp_path, lugre_csv, hold, capsys):
     assert f"wrote {out} ({data.t.size} rows)" in capsys.readouterr().out
     header = out.read_text().splitlines()[0].split(",")
     spec = load_model(LUGRE)
-    assert tuple(header) == estimate_columns(spec, refined=True)
+    assert tuple(header) == estimate_columns(spec.layout, refined=True)
     table = np.loadtxt(out, delimiter=",", skiprows=1)
     # the same arrays through the API (the CSV holds 17 significant digits: exact floats)
     t, u, y = (np.loadtxt(csv_path, delimiter=",", skiprows=1)[:, i] for i in range(3))
@@ -154,7 +154,7 @@ def test_estimate_method_guarded_writes_the_guarded_theta(tmp_path, lugre_csv, c
                  "--method", "guarded"]) == 0
     spec = load_model(LUGRE)
     header = out.read_text().splitlines()[0].split(",")
-    assert tuple(header) == estimate_columns(spec, refined=False)
+    assert tuple(header) == estimate_columns(spec.layout, refined=False)
     theta = np.loadtxt(out, delimiter=",", skiprows=1)[:, header.index("theta_hat_theta")]
     assert np.all((theta >= 0.05) & (theta <= 1.0))
     assert abs(theta[-1] - 0.28) < 0.01 * 0.28          # the paper's stage 1 alone: ~0.45

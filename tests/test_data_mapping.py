@@ -44,7 +44,7 @@ def test_mat_round_trip_with_scale_and_offset(tmp_path, orient):
     shaped["notes"] = np.array(["unused text is not an error"])
     path = tmp_path / "log.mat"
     scipy.io.savemat(path, shaped)
-    record = read_data(path, loads_model(MAPPED))
+    record = read_data(path, loads_model(MAPPED).layout)
     assert record.u.shape == (50, 1) and record.y.shape == (50, 1)
     assert record.columns == ("time", "volts", "pos_mm")
     _check(record, raw)
@@ -53,7 +53,7 @@ def test_mat_round_trip_with_scale_and_offset(tmp_path, orient):
 def test_mat_without_mapping_uses_default_names(tmp_path):
     path = tmp_path / "plain.mat"
     scipy.io.savemat(path, {"t": [0.0, 0.1, 0.2], "u": [1.0, 2.0, 3.0], "y": [4.0, 5.0, 6.0]})
-    record = read_data(path, loads_model(EXAMPLE_MODEL))
+    record = read_data(path, loads_model(EXAMPLE_MODEL).layout)
     assert record.y[:, 0].tolist() == [4.0, 5.0, 6.0]
 
 
@@ -62,7 +62,7 @@ def test_rate_instead_of_time_vector(tmp_path):
     path = tmp_path / "norate.mat"
     scipy.io.savemat(path, {"volts": raw["volts"], "pos_mm": raw["pos_mm"]})
     spec = loads_model(MAPPED.replace('t = "time"', "t = { rate = 1000, start = 2.0 }"))
-    record = read_data(path, spec)
+    record = read_data(path, spec.layout)
     np.testing.assert_allclose(record.t, 2.0 + np.arange(50) / 1000.0, rtol=EXACT)
     assert record.columns[0] == "rate=1000 Hz"
 
@@ -78,7 +78,7 @@ def test_mat_v73_is_refused_with_how_to_resave(tmp_path):
         with h5py.File(path, "w") as fh:
             fh["qm"] = np.zeros(5)
     with pytest.raises(ModelFileError, match=r"v7\.3.*-v7.*CSV"):
-        read_data(path, loads_model(MAPPED))
+        read_data(path, loads_model(MAPPED).layout)
 
 
 @pytest.mark.parametrize("bad, match", [
@@ -92,16 +92,17 @@ def test_bad_mat_variable_is_named(tmp_path, bad, match):
     path = tmp_path / "bad.mat"
     scipy.io.savemat(path, {**_record(), **bad})
     with pytest.raises(ModelFileError, match=match):
-        read_data(path, loads_model(MAPPED))
+        read_data(path, loads_model(MAPPED).layout)
 
 
 def test_unknown_variable_lists_the_available_ones(tmp_path):
     path = tmp_path / "log.mat"
     scipy.io.savemat(path, _record())
     spec = loads_model(MAPPED.replace('"pos_mm"', '"position"'))
-    with pytest.raises(ModelFileError, match=r"no variable 'position'; the file has "
-                                             r"'time' \(1×50 float64\), 'volts'"):
-        read_data(path, spec)
+    with pytest.raises(ModelFileError, match=r"no variable 'position' \(mapped to y by the "
+                                             r"model file's \[data\] table\); the file has "
+                                             r"'time' \(1×50 double\), 'volts'"):
+        read_data(path, spec.layout)
 
 
 def test_non_finite_input_and_non_increasing_t_are_named(tmp_path):
@@ -109,13 +110,13 @@ def test_non_finite_input_and_non_increasing_t_are_named(tmp_path):
     raw["volts"][7] = np.inf
     path = tmp_path / "inf.mat"
     scipy.io.savemat(path, raw)
-    with pytest.raises(ModelFileError, match=r"'volts'.*sample 7 is inf"):
-        read_data(path, loads_model(MAPPED))
+    with pytest.raises(ModelFileError, match=r"sample 7, variable 'volts': inf is not finite"):
+        read_data(path, loads_model(MAPPED).layout)
     raw = _record()
     raw["time"][10] = raw["time"][9]
     scipy.io.savemat(path, raw)
-    with pytest.raises(ModelFileError, match=r"'time'.*does not increase at sample 10"):
-        read_data(path, loads_model(MAPPED))
+    with pytest.raises(ModelFileError, match=r"sample 10: t = .* does not increase \(previous .*'time'"):
+        read_data(path, loads_model(MAPPED).layout)
 
 
 def test_csv_mapping(tmp_path):
@@ -124,11 +125,11 @@ def test_csv_mapping(tmp_path):
     cols = ["extra", "pos_mm", "time", "volts"]
     table = np.column_stack([np.zeros(50)] + [raw[c] for c in cols[1:]])
     np.savetxt(path, table, delimiter=",", header=",".join(cols), comments="", fmt="%.17g")
-    _check(read_data(path, loads_model(MAPPED)), raw)
+    _check(read_data(path, loads_model(MAPPED).layout), raw)
     bad = path.read_text().replace("\n0,", "\n0,oops,", 1).replace(",oops,", ",oops", 1)
     path.write_text(bad)
     with pytest.raises(ModelFileError, match=r"column 'pos_mm': 'oops.*' is not a number"):
-        read_data(path, loads_model(MAPPED))
+        read_data(path, loads_model(MAPPED).layout)
 
 
 def test_parquet_mapping(tmp_path):
@@ -137,10 +138,10 @@ def test_parquet_mapping(tmp_path):
     raw = _record()
     path = tmp_path / "log.parquet"
     pq.write_table(pa.table({**raw, "label": ["x"] * 50}), path)
-    _check(read_data(path, loads_model(MAPPED)), raw)
+    _check(read_data(path, loads_model(MAPPED).layout), raw)
     spec = loads_model(MAPPED.replace('"pos_mm"', '"label"'))
-    with pytest.raises(ModelFileError, match=r"column 'label'.*not numeric"):
-        read_data(path, spec)
+    with pytest.raises(ModelFileError, match=r"column 'label': holds text, not numbers"):
+        read_data(path, spec.layout)
 
 
 @pytest.mark.parametrize("table, match", [
@@ -174,7 +175,7 @@ def test_emps_model_file_reads_the_shipped_record():
     """examples/emps.toml's [data] maps DATA_EMPS.mat: u = 35.15 vir, y = qm."""
     spec = loads_model((ROOT / "examples" / "emps.toml").read_text(), source="emps.toml")
     path = ROOT / "examples" / "data" / "emps" / "DATA_EMPS.mat"
-    record = read_data(path, spec)
+    record = read_data(path, spec.layout)
     variables = scipy.io.loadmat(path)
     np.testing.assert_allclose(record.u[:, 0], 35.15 * variables["vir"].ravel(), rtol=EXACT)
     np.testing.assert_array_equal(record.y[:, 0], variables["qm"].ravel())
@@ -227,7 +228,7 @@ def test_list_of_signals_for_several_inputs(tmp_path):
     path = tmp_path / "two.mat"
     scipy.io.savemat(path, {"time": [0.0, 1.0], "a": [1.0, 2.0], "b": [3.0, 4.0],
                             "pos": [0.5, 0.6]})
-    record = read_data(path, spec)
+    record = read_data(path, spec.layout)
     assert record.u.tolist() == [[1.0, 6.0], [2.0, 8.0]]
     assert record.columns == ("time", "a", "b", "pos")
 
@@ -238,6 +239,6 @@ def test_output_dropouts_follow_the_nan_policy(tmp_path):
     path = tmp_path / "gap.mat"
     scipy.io.savemat(path, raw)
     spec = loads_model(MAPPED)
-    assert np.isnan(read_data(path, spec, nan_policy="skip").y[5, 0])
-    with pytest.raises(ModelFileError, match=r"'pos_mm'.*sample 5 is nan.*--nan-policy skip"):
-        read_data(path, spec)
+    assert np.isnan(read_data(path, spec.layout, nan_policy="skip").y[5, 0])
+    with pytest.raises(ModelFileError, match=r"sample 5, variable 'pos_mm': nan .*--nan-policy skip"):
+        read_data(path, spec.layout)

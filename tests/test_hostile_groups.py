@@ -268,12 +268,12 @@ def test_group5_cli_internal_error_has_no_traceback(monkeypatch, capsys, tmp_pat
 
 def test_group6_bom_crlf_and_dropouts(tmp_path, capsys):
     spec = loads_model(EXAMPLE_MODEL)
-    rec = read_data(_csv(tmp_path, bom=True, crlf=True), spec)
+    rec = read_data(_csv(tmp_path, bom=True, crlf=True), spec.layout)
     assert rec.t.size == 200 and rec.columns == ("t", "u", "y")
     path = _csv(tmp_path, dropouts=True, bom=True, crlf=True)
     with pytest.raises(E.ModelFileError, match="--nan-policy skip"):
-        read_data(path, spec)
-    rec = read_data(path, spec, nan_policy="skip")
+        read_data(path, spec.layout)
+    rec = read_data(path, spec.layout, nan_policy="skip")
     assert np.flatnonzero(np.isnan(rec.y[:, 0])).tolist() == [5, 9]
     model = tmp_path / "m.toml"
     model.write_text(EXAMPLE_MODEL, encoding="utf-8")
@@ -399,7 +399,7 @@ def test_long_input_csv_of_a_million_rows(tmp_path):
     spec = loads_model(EXAMPLE_MODEL)
     tracemalloc.start()
     try:
-        rec = read_data(path, spec)
+        rec = read_data(path, spec.layout)
         _, peak = tracemalloc.get_traced_memory()
     finally:
         tracemalloc.stop()

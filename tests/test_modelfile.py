@@ -216,19 +216,19 @@ def test_bad_data_files(tmp_path, lugre_spec, text, match):
     path = tmp_path / "data.csv"
     path.write_text(text)
     with pytest.raises(ModelFileError, match=match):
-        read_data(path, lugre_spec)
+        read_data(path, lugre_spec.layout)
 
 
 def test_data_columns_by_name_any_order(tmp_path, lugre_spec):
     path = tmp_path / "data.csv"
     path.write_text("y1,extra,t,u1\n0.5,x,0,1\n0.25,y,0.1,2\n")
-    rec = read_data(path, lugre_spec)
+    rec = read_data(path, lugre_spec.layout)
     assert rec.t.tolist() == [0.0, 0.1] and rec.u.ravel().tolist() == [1.0, 2.0]
     assert rec.y.ravel().tolist() == [0.5, 0.25] and rec.columns == ("t", "u1", "y1")
 
 
 def test_estimate_columns(lugre_spec):
-    cols = estimate_columns(lugre_spec, refined=True)
+    cols = estimate_columns(lugre_spec.layout, refined=True)
     assert cols == ("t", "x_hat_omega", "x_hat_eta", "phi_hat_1", "theta_hat_theta",
                     "x_hat_refined_omega", "x_hat_refined_eta")
     assert re.fullmatch(r"[\w,]+", ",".join(cols))

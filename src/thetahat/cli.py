@@ -211,7 +211,7 @@ def _estimate(args: argparse.Namespace) -> int:
                               f"the figure its own name.")
         _check_plot(args.plot, inputs)
     spec = load_model(args.model)
-    data = read_data(args.data, spec, nan_policy=args.nan_policy)
+    data = read_data(args.data, spec.layout, nan_policy=args.nan_policy)
     progress = None if args.no_progress else reporter("estimate")
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
@@ -223,7 +223,7 @@ def _estimate(args: argparse.Namespace) -> int:
             raise explain_nonfinite(exc, spec.system, data.t, data.u, data.y,
                                     start_x_hat(spec, data.y), spec.estimator.theta_hat0
                                     ) from exc
-    write_estimates(args.output, result, spec)                         # atomic
+    write_estimates(args.output, result, spec.layout)                  # atomic
     print(f"wrote {args.output} ({data.t.size} rows)")
     notes = [f"{w.category.__name__}: {w.message}" for w in caught]
     stuck = stuck_parameters(spec.system, data.u, data.y, result.x_hat, result.theta_hat,

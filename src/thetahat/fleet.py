@@ -29,10 +29,12 @@ Per record (a row of :class:`FleetResult`):
 
 from __future__ import annotations
 
+import fnmatch
 import functools
 import glob
 import math
 import os
+import re
 import warnings
 from collections.abc import Hashable, Iterable
 from dataclasses import dataclass
@@ -43,8 +45,9 @@ import numpy as np
 from numpy.typing import NDArray
 
 from . import limits
-from .io.datafile import DATA_SUFFIXES, read_data, read_parquet, write_parquet_table
+from .io.datafile import DATA_SUFFIXES, read_data, write_parquet_table
 from .io.record import DataRecord
+from .io.tables import CSV_DELIMITERS
 from .engine import run_keyed
 from .errors import ArgumentTypeError, MissingExtraError, ModelFileError, OptionError
 from .estimation.observer.batch_run import run_batch
@@ -58,7 +61,7 @@ from .studies.information import explain_nonfinite, stuck_parameters
 from .studies.metrics import time_to_within
 
 __all__ = ["DATA_SUFFIXES", "FleetResult", "RESULT_SUFFIXES", "SETTLE_BAND", "check_output",
-           "estimate_many", "fleet_files", "is_glob", "read_parquet"]
+           "estimate_many", "fleet_files", "is_glob"]
 
 FloatArray = NDArray[np.float64]
 
@@ -136,7 +139,8 @@ class FleetResult:
         """
         path = check_output(path, self.model, [r["file"] for r in self.rows])
         if path.suffix.lower() == ".parquet":
-            write_parquet_table(path, {c: [r[c] for r in self.rows] for c in self.columns})
+            write_parquet_table(path, {c: [_printable(r[c]) for r in self.rows]
+                                       for c in self.columns})
         else:
             with atomic_path(path) as tmp:
                 _write_csv(tmp, self)
@@ -147,6 +151,15 @@ class FleetResult:
                 f"failed={len(self.rows) - self.n_ok}, model={self.model!r})")
 
 
+def _printable(value: Any) -> Any:
+    """A string as valid UTF-8: the bytes of a file name that is not UTF-8 (which Python holds
+    as surrogate escapes) written as ``\\xNN`` (``backslashreplace``); other values as they
+    are."""
+    if not isinstance(value, str):
+        return value
+    return value.encode("utf-8", "surrogateescape").decode("utf-8", "backslashreplace")
+
+
 def _write_csv(path: Path, result: FleetResult) -> None:
     import csv
 
@@ -154,15 +167,15 @@ def _write_csv(path: Path, result: FleetResult) -> None:
         w = csv.writer(fh)
         w.writerow(result.columns)
         for r in result.rows:
-            w.writerow([repr(v) if isinstance(v, float) else v
+            w.writerow([repr(v) if isinstance(v, float) else _printable(v)
                         for v in (r[c] for c in result.columns)])
 
 
 def check_output(path: str | Path, model: str | Path, files: Iterable[str | Path],
                  data: str | Path | None = None) -> Path:
     """Check a fleet's results path before any work: a known suffix, writable, and neither the
-    model, nor a record, nor a new record-like file in the fleet's folder (the next run would
-    read it as a record).
+    model, nor a record, nor a file the fleet as given would take as a record (the next run
+    would read it): a record-like file in the fleet's folder, or a path its glob matches.
 
     Parameters
     ----------
@@ -173,7 +186,7 @@ def check_output(path: str | Path, model: str | Path, files: Iterable[str | Path
     files : iterable of str or Path
         The records.
     data : str or Path, optional
-        The fleet as given (a folder is checked for the last rule).
+        The fleet as given (a folder or a glob is checked for the last rule).
 
     Returns
     -------
@@ -183,28 +196,152 @@ def check_output(path: str | Path, model: str | Path, files: Iterable[str | Path
     ------
     ModelFileError
         The path is refused; the message says why.
+
+    Examples
+    --------
+    >>> import tempfile, pathlib
+    >>> from thetahat.fleet import check_output
+    >>> d = pathlib.Path(tempfile.mkdtemp())
+    >>> check_output(d / "out" / "results.csv", d / "m.toml", [], str(d / "logs" / "*.csv"))
+    PosixPath('...results.csv')
+    >>> check_output(d / "logs" / "results.csv", d / "m.toml", [], str(d / "logs" / "*.csv"))
+    Traceback (most recent call last):
+    ...
+    thetahat.errors.ModelFileError: cannot write ...: the fleet's glob ... matches it, ...
     """
     files = list(files)
     out = check_writable(path, inputs=[model, *files], suffixes=RESULT_SUFFIXES,
                          what="results")
-    if data is not None and isinstance(data, (str, Path)) and Path(data).is_dir() \
-            and same_file(out.parent, data):
-        raise ModelFileError(f"cannot write {out}: it lies in the fleet's folder {data}, where "
-                             f"the next run would read it as a record; write it elsewhere "
-                             f"(-o).")
+    if isinstance(data, (str, Path)):
+        if Path(data).is_dir() and same_file(out.parent, data):
+            raise ModelFileError(f"cannot write {out}: it lies in the fleet's folder {data}, "
+                                 f"where the next run would read it as a record; write it "
+                                 f"elsewhere (-o).")
+        if is_glob(data) and _matches(str(data), out):
+            raise ModelFileError(f"cannot write {out}: the fleet's glob {str(data)!r} matches "
+                                 f"it, so the next run would read it as a record; write it "
+                                 f"elsewhere (-o).")
+    return out
+
+
+def _is_record(path: Path) -> bool:
+    """The one inclusion rule of folders and globs: a file (or a link to one) whose name is
+    not hidden and whose suffix is a record format (:data:`DATA_SUFFIXES`)."""
+    return (not path.name.startswith(".") and path.suffix.lower() in DATA_SUFFIXES
+            and not path.is_dir())
+
+
+#: Names that mark a folder as one partitioned Parquet dataset (pyarrow, Spark, Dask).
+_DATASET_MARKERS = ("_metadata", "_common_metadata", "_SUCCESS")
+_PART = re.compile(r"^part[-._]\d+")
+
+
+def _dataset_reason(folder: Path) -> str | None:
+    """Why a folder looks like one partitioned Parquet dataset, or None."""
+    names = [e.name for e in folder.iterdir()]
+    marker = [n for n in names if n in _DATASET_MARKERS]
+    if marker:
+        return f"it has {marker[0]}"
+    hive = [n for n in names if "=" in n and (folder / n).is_dir()]
+    if hive:
+        return f"it has the partition folder {hive[0]}"
+    parts = [n for n in names if n.lower().endswith(".parquet")]
+    if len(parts) >= 2 and all(_PART.match(n) for n in parts):
+        return f"its Parquet files are parts ({parts[0]}, …)"
+    return None
+
+
+def _matches(pattern: str, path: Path) -> bool:
+    """Whether a glob pattern (``**`` for any folders) matches ``path`` (both made absolute)."""
+    pat = Path(os.path.abspath(pattern)).parts
+    target = Path(os.path.abspath(path)).parts
+
+    def match(i: int, j: int) -> bool:
+        if i == len(pat):
+            return j == len(target)
+        if pat[i] == "**":
+            return any(match(i + 1, k) for k in range(j, len(target) + 1))
+        return j < len(target) and fnmatch.fnmatchcase(target[j], pat[i]) and match(i + 1, j + 1)
+    return match(0, 0)
+
+
+def _walk(pattern: str) -> list[Path]:
+    """The files a glob with ``**`` matches, each folder entered once (a symlink loop is not
+    followed round), hidden names left out unless the pattern names them."""
+    parts = Path(pattern).parts
+    i = next((k for k, part in enumerate(parts) if glob.has_magic(part)), len(parts))
+    root = Path(*parts[:i]) if i else Path(".")
+    seen: set[tuple[int, int]] = set()
+    out: list[Path] = []
+
+    def entries(folder: Path, segment: str) -> list[Path]:
+        try:
+            names = sorted(os.listdir(folder))
+        except OSError:
+            return []
+        return [folder / n for n in names if fnmatch.fnmatchcase(n, segment)
+                and (segment.startswith(".") or not n.startswith("."))]
+
+    def visit(folder: Path, rest: tuple[str, ...]) -> None:
+        head, tail = rest[0], rest[1:]
+        if head == "**":
+            if tail:
+                visit(folder, tail)
+            else:
+                out.extend(e for e in entries(folder, "*") if not e.is_dir())
+            for sub in entries(folder, "*"):
+                try:
+                    st = sub.stat()
+                except OSError:
+                    continue
+                if sub.is_dir() and (st.st_dev, st.st_ino) not in seen:
+                    seen.add((st.st_dev, st.st_ino))
+                    visit(sub, rest)
+            return
+        for e in entries(folder, head):
+            if not tail:
+                out.append(e)
+            elif e.is_dir():
+                visit(e, tail)
+
+    try:
+        st = root.stat()
+    except OSError:
+        return []
+    seen.add((st.st_dev, st.st_ino))
+    if parts[i:]:
+        visit(root, parts[i:])
+    return out
+
+
+def _unique(paths: Iterable[Path]) -> list[Path]:
+    """The paths in order, each file once (two names of one file, by symlinks or hard links,
+    are one record)."""
+    out, seen = [], set()
+    for p in paths:
+        try:
+            st = p.stat()
+            key: Hashable = (st.st_dev, st.st_ino)
+        except OSError:
+            key = os.path.abspath(p)
+        if key not in seen:
+            seen.add(key)
+            out.append(p)
     return out
 
 
 def fleet_files(data: str | Path | Iterable[str | Path]) -> list[Path]:
-    """The records of a fleet: a directory (its .csv and .parquet files), a glob pattern, or
-    a list of paths; sorted by name (lists keep their order).
+    """The records of a fleet: a folder, a glob pattern, or a list of paths.
 
     Parameters
     ----------
     data : str, Path or iterable of str or Path
-        A directory (its files with a suffix in :data:`DATA_SUFFIXES`, not recursive), a glob
-        pattern (``**`` recurses; only files match), any other path as one file, or a list
-        of paths (taken as given, not checked).
+        A folder (not recursive), a glob pattern (``**`` recurses; each folder is entered once,
+        so a symlink loop is not followed round), any other path as one file, or a list of
+        paths (taken as given). A folder and a glob take the same files: names that are not
+        hidden, with a record suffix (:data:`DATA_SUFFIXES`: ``.csv``, ``.parquet``, ``.mat``),
+        sorted by name. Every list is de-duplicated: two names of one file (a symlink, a hard
+        link, a path given twice) are one record.
 
     Returns
     -------
@@ -214,35 +351,63 @@ def fleet_files(data: str | Path | Iterable[str | Path]) -> list[Path]:
     Raises
     ------
     ModelFileError
-        Nothing matches.
+        Nothing matches (the message says what was left out), or the folder is one
+        partitioned Parquet dataset (``_metadata``, ``key=value`` partition folders, ``part-0``
+        files), which is one record, not a fleet.
     ArgumentTypeError
         ``data`` is neither a path nor an iterable of paths.
 
     Notes
     -----
     A path that exists is taken literally, even with ``[`` or ``*`` in its name; only a path
-    that does not exist is read as a glob (:func:`is_glob`). Entries of a directory or a glob
+    that does not exist is read as a glob (:func:`is_glob`). Entries of a folder or a glob
     that are not regular files (a FIFO, a link to a device) are kept: reading them fails, and
     their row says why.
+
+    Examples
+    --------
+    >>> import tempfile, pathlib
+    >>> from thetahat.fleet import fleet_files
+    >>> d = pathlib.Path(tempfile.mkdtemp())
+    >>> for name in ("b.csv", "a.mat", ".a.csv.tmp.csv", "notes.txt"):
+    ...     _ = (d / name).write_text("")
+    >>> (d / "loop").symlink_to(d)
+    >>> [p.name for p in fleet_files(d)], [p.name for p in fleet_files(f"{d}/**/*")]
+    (['a.mat', 'b.csv'], ['a.mat', 'b.csv'])
     """
     if isinstance(data, (str, Path)):
         p = Path(data)
         if p.is_dir():
-            files = sorted(f for f in p.iterdir() if f.suffix.lower() in DATA_SUFFIXES)
+            reason = _dataset_reason(p)
+            if reason is not None:
+                raise ModelFileError(
+                    f"{p} looks like one partitioned Parquet dataset ({reason}), not a fleet "
+                    f"of records: thetahat reads one record per file. Combine the parts into "
+                    f"one file (pyarrow.parquet.write_table(pyarrow.dataset.dataset(DIR)."
+                    f"to_table(), 'record.parquet')), or, if each part is a record of its "
+                    f"own, move them out of the dataset.")
+            found = sorted(p.iterdir())
         elif is_glob(data):
-            files = sorted(Path(f) for f in glob.glob(str(data), recursive=True)
-                           if not Path(f).is_dir())
+            found = sorted(_walk(str(data)) if "**" in str(data)
+                           else (Path(f) for f in glob.glob(str(data))))
         else:
-            files = [p]
-    elif isinstance(data, Iterable) and not isinstance(data, bytes):
-        files = [Path(f) for f in _paths(data)]
-    else:
-        raise ArgumentTypeError(f"data must be a folder, a glob pattern or a list of paths; "
-                                f"got {type(data).__name__}.")
-    if not files:
-        raise ModelFileError(f"no data files in {data!s:.200}: expected a directory with .csv or "
-                             f".parquet files, or a glob such as 'logs/*.csv'.")
-    return files
+            return [p]
+        files = _unique(f for f in found if _is_record(f))
+        if not files:
+            left = [f.name for f in found][:5]
+            raise ModelFileError(
+                f"no data files in {data!s:.200}: expected a folder or a glob of "
+                f"{', '.join(DATA_SUFFIXES)} files"
+                + (f" (left out: {', '.join(left)}{', …' if len(found) > 5 else ''})"
+                   if left else "") + ", such as 'logs/*.csv'.")
+        return files
+    if isinstance(data, Iterable) and not isinstance(data, bytes):
+        files = _unique(Path(f) for f in _paths(data))
+        if not files:
+            raise ModelFileError("no data files: the list of records is empty.")
+        return files
+    raise ArgumentTypeError(f"data must be a folder, a glob pattern or a list of paths; "
+                            f"got {type(data).__name__}.")
 
 
 def is_glob(data: str | Path) -> bool:
@@ -303,7 +468,8 @@ def _failure(exc: BaseException) -> str:
 
 
 def _estimate_chunk(paths: list[str], *, model: tuple[str, str, str], hold: str,
-                    method: str, nan_policy: str) -> list[tuple[Hashable, dict[str, Any]]]:
+                    method: str, nan_policy: str,
+                    delimiter: str | None = None) -> list[tuple[Hashable, dict[str, Any]]]:
     """One task: read the records; the paper's observer runs records with equal sampling
     instants as one batch, the two-stage methods run record by record."""
     spec = _spec(*model)
@@ -313,7 +479,9 @@ def _estimate_chunk(paths: list[str], *, model: tuple[str, str, str], hold: str,
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always")
             try:
-                records[p] = (read_data(p, spec, nan_policy=nan_policy), [str(w.message) for w in caught])
+                records[p] = (read_data(p, spec.layout, nan_policy=nan_policy,
+                                        delimiter=delimiter),
+                              [str(w.message) for w in caught])
             except Exception as exc:       # a bad file is reported, never stops the others
                 out[p] = {"status": _failure(exc), "warnings": ""}
     if method != "paper":
@@ -412,7 +580,7 @@ def _estimate_group(spec: ModelSpec, members: list[str],
 def estimate_many(model: str | Path, data: str | Path | Iterable[str | Path], *,
                   scheduler: Any = None, chunk_size: int | None = None, hold: str = "zoh",
                   method: str | None = None, nan_policy: str = "raise",
-                  progress: bool = True) -> FleetResult:
+                  progress: bool = True, delimiter: str | None = None) -> FleetResult:
     """Run a model file's estimator on every record of a fleet; one row per record.
 
     Parameters
@@ -439,6 +607,8 @@ def estimate_many(model: str | Path, data: str | Path | Iterable[str | Path], *,
         ``"raise"``: such a record fails (its row says where).
     progress : bool
         Progress bar (tqdm) on long runs.
+    delimiter : {",", ";", "\\t"}, optional
+        The CSV separator of every record; default: detected from each header.
 
     Returns
     -------
@@ -452,7 +622,7 @@ def estimate_many(model: str | Path, data: str | Path | Iterable[str | Path], *,
     ArgumentTypeError
         ``model`` is not a path, or ``data`` is not a path, a pattern or a list of paths.
     OptionError
-        Unknown ``method`` or ``nan_policy``.
+        Unknown ``method``, ``nan_policy`` or ``delimiter``.
     EngineError
         The scheduler cannot be reached.
 
@@ -486,9 +656,12 @@ def estimate_many(model: str | Path, data: str | Path | Iterable[str | Path], *,
     if how not in ESTIMATION_METHODS:
         raise OptionError(f"method must be one of {list(ESTIMATION_METHODS)}; got {how!r}.")
     check_nan_policy(nan_policy)
+    if delimiter is not None and delimiter not in CSV_DELIMITERS:
+        raise OptionError(f"delimiter must be one of {list(CSV_DELIMITERS)}; got "
+                          f"{delimiter!r}.")
     files = [str(f) for f in fleet_files(data)]
     task = functools.partial(_estimate_chunk, model=(text, syntax, str(source)), hold=hold,
-                             method=how, nan_policy=nan_policy)
+                             method=how, nan_policy=nan_policy, delimiter=delimiter)
     results = run_keyed(task, files, files, scheduler=scheduler, chunk_size=chunk_size,
                         label="estimate", progress=progress)
     names = spec.parameter_names

@@ -27,6 +27,7 @@ from .errors import ResourceLimitError, SymbolicTimeoutError, UnsupportedError
 __all__ = ["MAX_EXPRESSION_CHARS", "MAX_EXPRESSION_DEPTH", "MAX_EXPONENT", "MAX_POWER_NESTING",
            "MAX_SYMBOLIC_DIM", "MAX_FILE_NESTING", "SYMBOLIC_TIME_BUDGET", "MEMORY_FRACTION",
            "MAX_MODEL_FILE_BYTES", "MAX_MATRIX_ENTRY", "MAX_DATA_FILE_BYTES",
+           "MAX_DATA_SAMPLES", "MAX_DECOMPRESSED_BYTES",
            "run_with_time_budget", "check_allocation", "available_memory"]
 
 T = TypeVar("T")
@@ -61,6 +62,14 @@ MAX_MODEL_FILE_BYTES: int = 1 << 20
 #: Largest data file (CSV or Parquet) read, in bytes (checked before reading): a 10⁷-sample
 #: record of t, u, y is about 0.6 GB of CSV text; split bigger logs or raise the limit.
 MAX_DATA_FILE_BYTES: int = 4 << 30
+#: Most samples of one record a reader takes (a Parquet file's row count is checked against it
+#: from the metadata, a MAT variable from its declared dimensions, before reading): 10⁸
+#: samples of t, u, y are 2.4 GB of float64, ten times the longest record the soak benchmark
+#: streams.
+MAX_DATA_SAMPLES: int = 100_000_000
+#: Largest size a compressed element of a MAT file may declare once decompressed (checked
+#: before decompressing; decompression stops there): a 10⁸-sample float64 signal is 0.8 GB.
+MAX_DECOMPRESSED_BYTES: int = 1 << 30
 
 
 def _child(conn: Any, fn: Callable[..., Any], args: tuple[Any, ...]) -> None:

@@ -25,10 +25,12 @@ import contextlib
 import io
 import os
 import secrets
+import signal
 import stat
+import threading
 from collections.abc import Iterable, Iterator
 from pathlib import Path
-from typing import IO
+from typing import IO, Any
 
 from .errors import FileAccessError, InputLimitError, ModelFileError
 
@@ -265,6 +267,11 @@ def check_writable(path: str | Path, *, inputs: Iterable[str | Path] = (),
     thetahat.errors.ModelFileError: cannot write /tmp/data.csv: it is an input of this run ...
     """
     path = Path(path)
+    name_max = _name_max(path.parent)
+    if len(os.fsencode(path.name)) > name_max:
+        raise ModelFileError(f"cannot write {what} {str(path)[:80]}…: its name has "
+                             f"{len(os.fsencode(path.name))} bytes, more than the "
+                             f"{name_max} the file system allows; choose a shorter name.")
     for source in inputs:
         if same_file(path, source):
             raise ModelFileError(f"cannot write {path}: it is an input of this run ({source}); "
@@ -292,6 +299,17 @@ def check_writable(path: str | Path, *, inputs: Iterable[str | Path] = (),
     return path
 
 
+def _name_max(folder: Path) -> int:
+    """The longest file name (bytes) the file system of ``folder`` (or of its nearest existing
+    parent) allows; 255 when unknown."""
+    while not folder.exists() and folder != folder.parent:
+        folder = folder.parent
+    try:
+        return int(os.pathconf(folder, "PC_NAME_MAX"))
+    except (OSError, ValueError, AttributeError):
+        return 255
+
+
 def _fsync_dir(folder: Path) -> None:
     try:
         fd = os.open(folder, os.O_RDONLY)
@@ -305,14 +323,71 @@ def _fsync_dir(folder: Path) -> None:
         os.close(fd)
 
 
+#: The temporary folders of the writes in progress (removed by :func:`_on_signal`).
+_TEMPORARIES: set[Path] = set()
+#: The handlers :func:`_on_signal` replaced, by signal number (restored when no write is left).
+_PREVIOUS: dict[int, Any] = {}
+#: Signals whose default action ends the process without running ``finally`` blocks.
+_CLEANUP_SIGNALS = tuple(getattr(signal, n) for n in ("SIGTERM", "SIGHUP") if hasattr(signal, n))
+
+
+def _remove(folder: Path) -> None:
+    with contextlib.suppress(OSError):
+        for entry in folder.iterdir():
+            entry.unlink()
+        folder.rmdir()
+
+
+def _on_signal(signum: int, frame: Any) -> None:
+    """SIGTERM or SIGHUP during a write: remove the temporary files, then do what the signal
+    would have done (the previous handler, or the default action: the process ends)."""
+    for folder in list(_TEMPORARIES):
+        _remove(folder)
+    _TEMPORARIES.clear()
+    previous = _PREVIOUS.pop(signum, signal.SIG_DFL)
+    signal.signal(signum, previous)
+    if callable(previous):
+        previous(signum, frame)
+    elif previous == signal.SIG_DFL:
+        os.kill(os.getpid(), signum)
+
+
+def _register(folder: Path) -> None:
+    _TEMPORARIES.add(folder)
+    if threading.current_thread() is not threading.main_thread():
+        return                      # handlers can be set from the main thread only
+    for sig in _CLEANUP_SIGNALS:
+        if sig in _PREVIOUS:
+            continue
+        current = signal.getsignal(sig)
+        if current == signal.SIG_IGN or current is None:
+            continue                # ignored (nohup) or set from C: leave it alone
+        _PREVIOUS[sig] = current
+        signal.signal(sig, _on_signal)
+
+
+def _unregister(folder: Path) -> None:
+    _TEMPORARIES.discard(folder)
+    if _TEMPORARIES or threading.current_thread() is not threading.main_thread():
+        return
+    for sig, previous in list(_PREVIOUS.items()):
+        if signal.getsignal(sig) is _on_signal:
+            signal.signal(sig, previous)
+        del _PREVIOUS[sig]
+
+
 @contextlib.contextmanager
 def atomic_path(path: str | Path) -> Iterator[Path]:
-    """A temporary path next to ``path`` to write to; on success it replaces ``path``.
+    """A temporary path to write ``path``'s content to; on success it replaces ``path``.
 
-    The temporary file keeps the output's suffix (writers that choose the format by suffix
-    still work). On leaving the block without an error the file is flushed to disk and renamed
-    over ``path`` (``os.replace``, atomic on POSIX); on an error it is removed and ``path`` is
-    left as it was. The folder is created when missing.
+    The temporary file has the output's own name (writers that choose the format by suffix
+    still work, and its name fits wherever the output's does), inside a new hidden folder
+    ``.thetahat-<hex>.tmp`` next to the output: no reader of records takes it (folders and
+    globs of a fleet skip hidden names and do not enter folders). On leaving the block without
+    an error the file is flushed to disk and renamed over ``path`` (``os.replace``, atomic on
+    POSIX); on an error, and on SIGTERM or SIGHUP during the block (a handler removes the
+    temporary folder, then lets the signal do what it would have done), the temporary folder
+    is removed and ``path`` is left as it was. The output's folder is created when missing.
 
     Parameters
     ----------
@@ -337,8 +412,10 @@ def atomic_path(path: str | Path) -> Iterator[Path]:
     >>> out = pathlib.Path(tempfile.mkdtemp()) / "table.csv"
     >>> with atomic_path(out) as tmp:
     ...     _ = tmp.write_text("t,y\\n0,1\\n")
-    >>> out.read_text()
-    't,y\\n0,1\\n'
+    ...     tmp.name == out.name and tmp.parent.name.startswith(".thetahat-")
+    True
+    >>> out.read_text(), sorted(p.name for p in out.parent.iterdir())
+    ('t,y\\n0,1\\n', ['table.csv'])
     """
     path = Path(path)
     try:
@@ -351,11 +428,15 @@ def atomic_path(path: str | Path) -> Iterator[Path]:
                               f"another path.")
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
-        tmp = _new_temporary(path)
+        folder = _new_temporary(path)
     except OSError as exc:
         raise FileAccessError(f"cannot write {path}: {exc}; choose a writable output "
                               f"path.") from exc
+    tmp = folder / path.name
+    _register(folder)
     try:
+        fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666)
+        os.close(fd)
         yield tmp
         with open(tmp, "rb+") as fh:
             os.fsync(fh.fileno())
@@ -367,21 +448,19 @@ def atomic_path(path: str | Path) -> Iterator[Path]:
         raise FileAccessError(f"cannot write {path}: {exc}; the previous content (if any) is "
                               f"unchanged.") from exc
     finally:
-        with contextlib.suppress(OSError):
-            tmp.unlink()
+        _remove(folder)
+        _unregister(folder)
 
 
 def _new_temporary(path: Path) -> Path:
-    """A new empty file next to ``path``, created with mode 0666 less the umask (as ``open``
-    would create ``path`` itself), keeping the suffix."""
+    """A new hidden folder next to ``path`` for its temporary file."""
     for _ in range(100):
-        tmp = path.with_name(f".{path.name}.{secrets.token_hex(6)}.tmp{path.suffix}")
+        folder = path.parent / f".thetahat-{secrets.token_hex(6)}.tmp"
         try:
-            fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666)
+            folder.mkdir(mode=0o700)
         except FileExistsError:
             continue
-        os.close(fd)
-        return tmp
+        return folder
     raise FileAccessError(f"cannot write {path}: no free temporary name in its folder.")
 
 

@@ -125,7 +125,7 @@ def test_lugre_harness_reproduces_python_estimate(tmp_path, lugre_data):
     code, table, header, err = run_harness(out / "lugre", csv)
     assert code == 0, err
     spec = load_model(LUGRE)
-    assert tuple(header.split(",")) == datafile_columns(spec, refined=True)
+    assert tuple(header.split(",")) == datafile_columns(spec.layout, refined=True)
     ref = run_estimator(spec, d.t[:N], d.u[:N], d.y[:N])
     expected = np.c_[ref.t, ref.x_hat, ref.phi_hat, ref.theta_hat, ref.x_hat_refined]
     assert table.shape == expected.shape
@@ -273,7 +273,8 @@ def test_harness_columns_are_those_of_thetahat_estimate():
         spec = load_model(path)
         for refined in (False, True):
             assert estimate_columns(spec.state_names, spec.system.k, spec.parameter_names,
-                                    refined=refined) == datafile_columns(spec, refined=refined)
+                                    refined=refined) == datafile_columns(spec.layout,
+                                                                         refined=refined)
 
 
 # --------------------------------------------------------------------------- NaN / overflow
@@ -613,7 +614,7 @@ def test_harness_reads_what_estimate_reads(tmp_path, lugre_harness, lugre_data):
     odd = tmp_path / "odd.csv"
     odd.write_bytes(b"\xef\xbb\xbf" + ('"t","u","y","comment"\r\n' + "\r\n".join(rows)
                                        + "\r\n").encode())
-    assert read_data(odd, load_model(LUGRE)).t.shape == (N,)        # estimate reads it
+    assert read_data(odd, load_model(LUGRE).layout).t.shape == (N,)   # estimate reads it
     rc, expected, head, err = run_harness(lugre_harness, plain)
     assert rc == 0, err
     rc, table, head_odd, err = run_harness(lugre_harness, odd)

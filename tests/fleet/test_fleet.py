@@ -144,7 +144,7 @@ def test_parquet_dropouts_under_skip(tmp_path):
     table = pq.read_table(tmp_path / "m01.parquet").to_pydict()
     table["y"][50] = float("nan")
     pq.write_table(pa.table(table), tmp_path / "m01.parquet")
-    assert "not finite" in estimate_many(MODEL, tmp_path, progress=False).failed[
+    assert "row 50, column 'y': nan is not finite" in estimate_many(MODEL, tmp_path, progress=False).failed[
         str(tmp_path / "m01.parquet")]
     res = estimate_many(MODEL, tmp_path, nan_policy="skip", progress=False)
     assert res.n_ok == 2 and abs(res.rows[1]["theta_hat_theta"] - true_theta(1)) <= THETA_ATOL
@@ -164,7 +164,7 @@ def test_method_is_not_ignored(fleet_dir, tmp_path):
     paper = estimate_many(MODEL, d, method="paper", progress=False)
     spec = load_model(MODEL)
     for row, p_row, name in zip(res.rows, paper.rows, ("m02.csv", "m09.csv")):
-        rec = read_data(d / name, spec)
+        rec = read_data(d / name, spec.layout)
         ref = run_estimator(spec, rec.t, rec.u, rec.y, method="guarded")
         assert row["theta_hat_theta"] == pytest.approx(float(ref.theta_hat[-1, 0]), rel=1e-9)
         assert row["theta_hat_theta"] != p_row["theta_hat_theta"]

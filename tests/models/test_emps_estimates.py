@@ -33,7 +33,7 @@ CUTS = (3000, 9000)
 @pytest.fixture(scope="module")
 def record():
     spec = load_model(ROOT / "examples" / "emps.toml")
-    data = read_data(ROOT / "examples" / "data" / "emps" / "DATA_EMPS.mat", spec)
+    data = read_data(ROOT / "examples" / "data" / "emps" / "DATA_EMPS.mat", spec.layout)
     return spec, data
 
 

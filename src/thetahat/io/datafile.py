@@ -1,18 +1,19 @@
-"""Data files for ``thetahat estimate``: read t, u, y from CSV or Parquet and write the
-estimates as CSV or Parquet.
+"""Data files: read a record (t, u, y) from CSV, Parquet or MATLAB, and write the estimates as
+CSV or Parquet.
 
-:func:`read_data` is the one reading entry point: it dispatches on the file's suffix. Only
-regular files are read, within :data:`thetahat.limits.MAX_DATA_FILE_BYTES`; outputs are written
-atomically (:mod:`thetahat.safe_io`).
+:func:`read_data` is the one reading entry point, for every format, with or without a
+``[data]`` table: :func:`~thetahat.io.tables.open_table` reads the file's columns (checking
+each cell for what it holds), :func:`~thetahat.io.mapping.select_columns` decides which are t,
+u and y, and :func:`read_data` then applies the mapping's scale and offset and makes the checks
+every record gets (finite values, t strictly increasing, at least two samples), in that order.
+Only regular files are read, within :data:`thetahat.limits.MAX_DATA_FILE_BYTES`; outputs are
+written atomically (:mod:`thetahat.safe_io`).
 """
 
 from __future__ import annotations
 
-import csv
-import io
 import math
 import warnings
-from array import array
 from pathlib import Path
 from typing import Any
 
@@ -20,278 +21,220 @@ import numpy as np
 from numpy.typing import NDArray
 
 from .. import limits
-from ..errors import MissingExtraError, ModelFileError
+from ..errors import ArgumentTypeError, MissingExtraError, ModelFileError, ThetahatWarning
 from ..estimation.protocol import EstimateResult
 from ..estimation.records import check_nan_policy
-from .record import MISSING_CELLS, DataRecord, RecordSpec, column_candidates
-from ..safe_io import atomic_path, check_regular, check_writable, open_input
+from ..safe_io import atomic_path, check_writable, open_input
+from .mapping import RecordLayout, Signal, select_columns
+from .record import DataRecord
+from .tables import EXCEL_SUFFIXES, Table, open_table
 
-__all__ = ["DATA_SUFFIXES", "ESTIMATE_SUFFIXES", "read_data",
-           "read_csv", "read_parquet", "check_writable", "estimate_columns", "write_estimates",
-           "write_parquet_table"]
+__all__ = ["DATA_SUFFIXES", "ESTIMATE_SUFFIXES", "read_data", "check_writable",
+           "estimate_columns", "write_estimates", "write_parquet_table"]
 
-#: Record formats :func:`read_data` reads (by suffix, case-insensitive).
-DATA_SUFFIXES = (".csv", ".parquet")
+#: Record formats by suffix (case-insensitive): what a fleet's folder or glob takes as records.
+#: :func:`read_data` reads any other name as CSV.
+DATA_SUFFIXES = (".csv", ".parquet", ".mat") + EXCEL_SUFFIXES
 #: Formats :func:`write_estimates` writes (by suffix).
 ESTIMATE_SUFFIXES = (".csv", ".parquet")
 
 FloatArray = NDArray[np.float64]
 
 
-def read_data(path: str | Path, spec: RecordSpec, *, nan_policy: str = "raise") -> DataRecord:
-    """Read a data record for a model's estimator: CSV, Parquet or MATLAB, by the suffix.
+def _check_layout(layout: Any) -> RecordLayout:
+    if isinstance(layout, RecordLayout):
+        return layout
+    hint = (" (a model spec: pass spec.layout)" if isinstance(getattr(layout, "layout", None),
+                                                               RecordLayout) else "")
+    raise ArgumentTypeError(f"layout must be a thetahat.io.mapping.RecordLayout{hint}; got "
+                            f"{type(layout).__name__}.")
+
+
+def read_data(path: str | Path, layout: RecordLayout, *, nan_policy: str = "raise",
+              delimiter: str | None = None) -> DataRecord:
+    """Read a record for a model's estimator: CSV, Parquet or MATLAB, by the suffix.
 
     Parameters
     ----------
     path : str or Path
-        A regular file: ``.mat`` (MATLAB v4–v7, :func:`thetahat.io.mapping.read_mapped`),
-        ``.parquet`` (needs pyarrow; :func:`read_parquet`), anything else is read as CSV
-        (:func:`read_csv`). Columns: ``t``, the inputs and the outputs (see
-        :func:`column_candidates`), or as the model's ``[data]`` table maps them (any format,
-        through :func:`thetahat.io.mapping.read_mapped`).
-    spec : RecordSpec
-        The model whose estimator reads the record.
+        A regular file: ``.mat`` (MATLAB v4–v7, :mod:`thetahat.io.matfile`), ``.parquet``
+        (needs pyarrow; also a Parquet file under another name), ``.xlsx``, ``.xls`` and the
+        other workbooks of :data:`~thetahat.io.tables.EXCEL_SUFFIXES` (the first sheet; needs
+        python-calamine, else refused with "save as CSV"), anything else CSV with a
+        header row (UTF-8, any line ending, separated by commas, semicolons or tabs, decimal
+        commas when the separator is not a comma). Columns (or variables): ``t``, each input
+        and each output under its name in the model, ``u1``…/``y1``… (``u``/``y`` for one),
+        or as the model's ``[data]`` table maps them (:mod:`thetahat.io.mapping`). Other
+        columns are ignored.
+    layout : RecordLayout
+        What the reader needs of the model (``spec.layout`` of a
+        :class:`~thetahat.modelfile.ModelSpec`): the names and the ``[data]`` mapping.
     nan_policy : {"raise", "skip"}
         ``"skip"`` reads missing or NaN output samples as NaN (dropouts); ``"raise"`` refuses
-        them.
+        them. t and the inputs must always be complete and finite.
+    delimiter : {",", ";", "\\t"}, optional
+        The CSV separator; default: detected from the header.
 
     Returns
     -------
     DataRecord
+        t, u and y in the model's units (the mapping's scale and offset applied).
 
     Raises
     ------
     ModelFileError
-        The file is not a regular file, cannot be read, or its content is invalid (the message
-        says where).
+        The file is not a regular file or cannot be read; a column is missing, given twice,
+        used twice or of the wrong kind (the message names it and what it holds); a value is
+        not a number, not finite, or over- or underflows once scaled (the message gives the
+        line, row or sample); t does not strictly increase; fewer than two samples.
     InputLimitError
-        The file is larger than :data:`thetahat.limits.MAX_DATA_FILE_BYTES`.
+        The file, its declared rows or a compressed element exceeds :mod:`thetahat.limits`.
+    ResourceLimitError
+        The declared record would not fit in memory.
+    MissingExtraError
+        A Parquet file without pyarrow, or a workbook without python-calamine.
     OptionError
-        Unknown ``nan_policy``.
+        Unknown ``nan_policy`` or ``delimiter``.
+    ArgumentTypeError
+        ``layout`` is not a :class:`~thetahat.io.mapping.RecordLayout`.
+
+    Warns
+    -----
+    ThetahatWarning
+        t holds whole numbers stepping by at least 1 and by at least half the model's
+        slowest time constant (fewer than two samples per time constant): t looks like
+        milliseconds or another unit, not seconds.
 
     Examples
     --------
     >>> import tempfile, pathlib
-    >>> from thetahat.modelfile import EXAMPLE_MODEL, loads_model
     >>> from thetahat.io.datafile import read_data
+    >>> from thetahat.io.mapping import RecordLayout
+    >>> layout = RecordLayout(input_names=("u",), output_names=("y",))
     >>> csv_path = pathlib.Path(tempfile.mkdtemp()) / "data.csv"
     >>> _ = csv_path.write_text("t,u,y\\n0,0,0.1\\n0.01,0.5,0.2\\n")
-    >>> read_data(csv_path, loads_model(EXAMPLE_MODEL)).t.tolist()
+    >>> read_data(csv_path, layout).t.tolist()
     [0.0, 0.01]
-    """
-    check_nan_policy(nan_policy)
-    path = check_regular(path, "data file", limits.MAX_DATA_FILE_BYTES)   # every format
-    if spec.data is not None or path.suffix.lower() == ".mat":
-        from .mapping import read_mapped          # a [data] table, or a MATLAB file
-        return read_mapped(path, spec, nan_policy=nan_policy)
-    if path.suffix.lower() == ".parquet":
-        return read_parquet(path, spec, nan_policy=nan_policy)
-    return read_csv(path, spec, nan_policy=nan_policy)
-
-
-def read_csv(path: str | Path, spec: RecordSpec, *, nan_policy: str = "raise") -> DataRecord:
-    """Read a CSV record (header row; columns t, inputs, outputs) for a model's estimator.
-
-    Usually called through :func:`read_data`, which dispatches on the suffix.
-
-    The file is read as UTF-8 (a byte-order mark, as Excel writes, is accepted), with any line
-    ending (LF, CRLF), row by row into float64 columns: memory is O(N) in the samples only.
-
-    Parameters
-    ----------
-    path : str or Path
-        CSV file with a header. Required columns: ``t``; each input under its name in the
-        model (``[perturbation] u``) or ``u1``, ``u2``, … (``u`` when m = 1); each output
-        under its name or ``y1``, … (``y`` when r = 1). Order is free; other columns are
-        ignored; blank lines are skipped. A column name may appear only once, and only one of
-        the accepted names of a column may be present. Cells are plain decimal numbers
-        (``1_000`` is refused). At least two rows.
-    spec : RecordSpec
-    nan_policy : {"raise", "skip"}
-        ``"skip"`` reads empty or NaN output cells (measurement dropouts) as NaN, for the
-        observer's ``nan_policy="skip"``; ``"raise"`` refuses them. Inputs and t must always
-        be finite.
-
-    Returns
-    -------
-    DataRecord
-
-    Raises
-    ------
-    ModelFileError
-        The file cannot be read or is not a regular file, a column is missing or given twice, a value is not a number or is NaN or
-        inf (the message gives the line and the column), a row has the wrong number of
-        fields, or t is not strictly increasing.
-    InputLimitError
-        The file is larger than :data:`thetahat.limits.MAX_DATA_FILE_BYTES`.
-    OptionError
-        Unknown ``nan_policy``.
-
-    Examples
-    --------
-    >>> import tempfile, pathlib
-    >>> from thetahat.modelfile import EXAMPLE_MODEL, loads_model
-    >>> from thetahat.io.datafile import read_csv
-    >>> spec = loads_model(EXAMPLE_MODEL)
-    >>> csv_path = pathlib.Path(tempfile.mkdtemp()) / "data.csv"
-    >>> _ = csv_path.write_text("t,u,y\\n0,0,0.1\\n0.01,0.5,0.2\\n")
-    >>> read_csv(csv_path, spec).y.ravel().tolist()
-    [0.1, 0.2]
-    >>> _ = csv_path.write_text("t,u,y\\r\\n0,0,0.1\\r\\n0.01,0.5,\\r\\n")   # a dropout
-    >>> read_csv(csv_path, spec, nan_policy="skip").y.ravel().tolist()
+    >>> _ = csv_path.write_text("t;u;y\\r\\n0;0;0,1\\r\\n0,01;0,5;\\r\\n")   # a dropout
+    >>> read_data(csv_path, layout, nan_policy="skip").y.ravel().tolist()
     [0.1, nan]
     """
     check_nan_policy(nan_policy)
+    layout = _check_layout(layout)
     path = Path(path)
     with open_input(path, "data file", limits.MAX_DATA_FILE_BYTES) as raw:
-        try:
-            fh = io.TextIOWrapper(raw, encoding="utf-8-sig", newline="")
-            return _read_rows(path, fh, spec, nan_policy)
-        except (OSError, UnicodeDecodeError, csv.Error) as exc:
-            raise ModelFileError(f"cannot read data file {path}: {exc}") from exc
+        table = open_table(path, raw, delimiter=delimiter)
+        signals = select_columns(table.names, layout, table.where, kind=table.kind,
+                                 listing=table.listing())
+        used = [s for s in signals if s is not None]
+        raws = table.read([s.column for s in used])
+        return _record(table, layout, signals, raws, nan_policy)   # messages may read lines
 
 
-def _fast_columns(fh: Any, header_line: int, width: int,
-                  index: list[int]) -> NDArray[np.float64] | None:
-    """The selected columns by numpy's C reader, or None when the file needs the careful
-    row-by-row reader (quoted or non-numeric cells, NaN, ragged rows, t not increasing, fewer
-    than two rows), which then gives the message with the line and the column."""
-    try:
-        fh.seek(0)
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore")
-            data = np.loadtxt(fh, delimiter=",", skiprows=header_line, dtype=np.float64,
-                              ndmin=2, comments=None)
-    except (ValueError, OSError, UnicodeDecodeError):
-        return None
-    if data.shape[0] < 2 or data.shape[1] != width:
-        return None
-    cols = data[:, index]
-    if not np.isfinite(cols).all() or not np.all(np.diff(cols[:, 0]) > 0):
-        return None
-    return np.ascontiguousarray(cols)
-
-
-def _header(path: Path, reader: Any, spec: RecordSpec) -> tuple[int, list[str], list[int]]:
-    """(line of the header, its names, the index of t, u..., y... in it)."""
-    for line, row in enumerate(reader, start=1):
-        if row and any(c.strip() for c in row):
-            header_line, header = line, [h.strip() for h in row]
-            break
+def _record(table: Table, layout: RecordLayout, signals: list[Signal | None],
+            raws: list[FloatArray], nan_policy: str) -> DataRecord:
+    """The checks every record gets, once the columns are read."""
+    used = [s for s in signals if s is not None]
+    N = raws[0].size
+    for s, raw in zip(used, raws):
+        if raw.size != N:
+            raise table.fail(s.column, f"{raw.size} samples, but {used[0].column!r} has {N}; "
+                                       f"every signal needs one value per sample")
+    m = layout.m
+    offset = 1 if signals[0] is not None else 0
+    values = []
+    for i, (s, raw) in enumerate(zip(used, raws)):
+        output = i - offset >= m
+        values.append(_scaled(table, s, raw, output=output, skip=nan_policy == "skip"))
+    if N < 2:                      # after the samples' own checks
+        what = "a header but no data rows" if N == 0 else "one data row"
+        raise ModelFileError(f"data file {table.path} has {N} sample(s) ({what}); an estimate "
+                             f"needs a record of at least two samples.")
+    mapping = layout.data
+    if signals[0] is None and mapping is not None and mapping.rate is not None:
+        with np.errstate(over="ignore"):
+            t = mapping.start + np.arange(N) / mapping.rate
+        if not np.all(np.isfinite(t)):
+            raise ModelFileError(f"data file {table.path}: t = start + k / rate overflows at "
+                                 f"{N} samples; check [data] t's rate and start.")
     else:
-        raise ModelFileError(f"data file {path} is empty; expected a header row such as "
-                             f"t,{','.join(spec.input_names + spec.output_names)}.")
-    cols = _find_columns(f"data file {path}, line {header_line}", header, spec)
-    index = [header.index(c) for c in cols]
-    return header_line, header, index
+        t = values.pop(0)
+    _check_time(table, signals[0], t, layout.time_scale)
+    used_names = (([f"rate={mapping.rate:g} Hz"] if signals[0] is None and mapping is not None
+                   else []) + [s.column for s in used])
+    u = np.column_stack(values[:m]) if m else np.zeros((N, 0))
+    y = np.column_stack(values[m:])
+    return DataRecord(t=np.ascontiguousarray(t, dtype=np.float64), u=u, y=y,
+                      columns=tuple(used_names), source=str(table.path))
 
 
-def _find_columns(where: str, names: list[str], spec: RecordSpec) -> list[str]:
-    """The column names of t, u..., y... in a header: each present once, one name per signal."""
-    twice = sorted({h for h in names if h and names.count(h) > 1})
-    if twice:
-        raise ModelFileError(f"{where}: the column(s) {twice} appear more than once in the "
-                             f"header; rename or drop the copies.")
-    cols = []
-    for alts in column_candidates(spec):
-        found = [h for h in alts if h in names]
-        if not found:
-            raise ModelFileError(
-                f"{where}: missing column {' or '.join(repr(a) for a in alts)} in the header "
-                f"({','.join(names)}); expected t, then the inputs {list(spec.input_names)} "
-                f"and the outputs {list(spec.output_names)}.")
-        if len(found) > 1:
-            raise ModelFileError(f"{where}: the columns {found} name the same signal; keep one "
-                                 f"of them.")
-        cols.append(found[0])
-    return cols
-
-
-def _read_rows(path: Path, fh: Any, spec: RecordSpec, nan_policy: str) -> DataRecord:
-    header_line, header, index = _header(path, csv.reader(fh), spec)
-    m = spec.system.m
-    cols = tuple(header[j] for j in index)
-    fast = _fast_columns(fh, header_line, len(header), index)
-    if fast is not None:
-        return DataRecord(t=fast[:, 0].copy(), u=fast[:, 1:1 + m].copy(),
-                          y=fast[:, 1 + m:].copy(), columns=cols, source=str(path))
-    fh.seek(0)
-    reader = csv.reader(fh)
-    for _ in range(header_line):
-        next(reader)
-    columns = [array("d") for _ in index]
-    lines = array("q")
-    for line, row in enumerate(reader, start=header_line + 1):
-        if not row or not any(c.strip() for c in row):
-            continue
-        if len(row) != len(header):
-            raise ModelFileError(f"data file {path}, line {line}: {len(row)} fields, but the "
-                                 f"header has {len(header)}.")
-        for c, j in enumerate(index):
-            columns[c].append(_cell(path, line, header[j], row[j], output=c > m,
-                                    skip=nan_policy == "skip"))
-        lines.append(line)
-    if not lines:
-        raise ModelFileError(f"data file {path} has a header but no data rows.")
-    if len(lines) < 2:
-        raise ModelFileError(f"data file {path} has one data row; an estimate needs a record "
-                             f"of at least two samples.")
-    data = np.column_stack([np.frombuffer(col, dtype=np.float64) for col in columns])
-    t = data[:, 0]
-    steps = np.diff(t)
-    if steps.size and not np.all(steps > 0):
-        r = int(np.argmax(steps <= 0)) + 1
-        raise ModelFileError(f"data file {path}, line {lines[r]}: t = {float(t[r])!r} does not "
-                             f"increase (previous t = {float(t[r - 1])!r}); t must be strictly "
-                             f"increasing.")
-    return DataRecord(t=t.copy(), u=data[:, 1:1 + m].copy(), y=data[:, 1 + m:].copy(),
-                      columns=cols, source=str(path))
-
-
-def _is_datetime(text: str) -> bool:
-    try:
-        np.datetime64(text)
-    except ValueError:
-        return False
-    return True
-
-
-def _cell(path: Path, line: int, column: str, text: str, *, output: bool,
-          skip: bool) -> float:
-    cell = text.strip()
-    if output and skip and cell.lower() in MISSING_CELLS:
-        return math.nan
-    try:
-        value = math.nan if "_" in cell else float(cell)   # float() reads 1_000 as 1000
-        ok = "_" not in cell
-    except ValueError:
-        ok = False
-    if not ok:
-        hint = (" (an empty output cell is a dropout: pass --nan-policy skip)"
-                if output and cell == "" else
-                " (digit separators such as 1_000 are not accepted)" if "_" in cell else
-                " (t must be in seconds, not a date or time)" if column == "t" and
-                _is_datetime(cell) else "")
-        raise ModelFileError(f"data file {path}, line {line}, column {column!r}: {cell!r} is "
-                             f"not a number{hint}.") from None
-    if math.isnan(value) and output and skip:
-        return value
-    if not math.isfinite(value):
-        hint = ("; a NaN output is a dropout: pass --nan-policy skip (nan_policy='skip') to "
-                "predict over it" if output and math.isnan(value) else
+def _scaled(table: Table, signal: Signal, raw: FloatArray, *, output: bool,
+            skip: bool) -> FloatArray:
+    """``scale · raw + offset``, after checking raw and before returning the result: every t
+    and input sample finite, outputs finite or (under skip) NaN, no overflow to inf and no
+    underflow of a nonzero sample to zero or a subnormal number."""
+    bad = ~np.isfinite(raw)
+    if output and skip:
+        bad &= ~np.isnan(raw)
+    if bad.any():
+        k = int(np.argmax(bad))
+        hint = ("; a missing or NaN output is a dropout: pass --nan-policy skip "
+                "(nan_policy='skip') to predict over it" if output and np.isnan(raw[k]) else
                 "; the estimator needs every t and input sample (remove or fill the row)")
-        raise ModelFileError(f"data file {path}, line {line}, column {column!r}: {cell} is "
-                             f"not finite{hint}.")
+        what = " (a missing or NaN sample)" if np.isnan(raw[k]) else ""
+        raise ModelFileError(f"data file {table.path}, {table.position(k)}, {table.kind} "
+                             f"{signal.column!r}: {float(raw[k])} is not finite{what}{hint}.")
+    if signal.scale == 1.0 and signal.offset == 0.0:
+        return raw
+    with np.errstate(over="ignore", under="ignore", invalid="ignore"):
+        value = signal.scale * raw + signal.offset
+    ok = np.isfinite(raw)
+    over = ok & ~np.isfinite(value)
+    tiny = np.finfo(np.float64).tiny
+    under = ok & (raw != 0) & (np.abs(value) < tiny) & (signal.offset == 0.0)
+    for mask, what in ((over, "overflows float64"), (under, "underflows to zero or a "
+                                                            "subnormal number")):
+        if mask.any():
+            k = int(np.argmax(mask))
+            raise ModelFileError(
+                f"data file {table.path}, {table.position(k)}, {table.kind} {signal.column!r}: "
+                f"{signal.scale!r} × {float(raw[k])!r} + {signal.offset:g} {what}; check the "
+                f"[data] table's scale for {signal.column!r} (it converts the file's unit to "
+                f"the model's).")
     return value
 
 
-def estimate_columns(spec: RecordSpec, *, refined: bool) -> tuple[str, ...]:
+def _check_time(table: Table, signal: Signal | None, t: FloatArray,
+                time_scale: float | None) -> None:
+    """t strictly increasing; a warning when its step looks like milliseconds."""
+    steps = np.diff(t)
+    name = signal.column if signal is not None else "t"
+    if not np.all(steps > 0):
+        k = int(np.argmax(~(steps > 0))) + 1
+        raise ModelFileError(f"data file {table.path}, {table.position(k)}: t = "
+                             f"{float(t[k])!r} does not increase (previous t = "
+                             f"{float(t[k - 1])!r}, {table.kind} {name!r}); t must be strictly "
+                             f"increasing.")
+    step = float(np.median(steps))
+    if time_scale is not None and step >= 1.0 and step >= time_scale / 2 \
+            and np.all(t == np.round(t)):
+        warnings.warn(
+            f"data file {table.path}: t steps by {step:g} (whole numbers): fewer than two "
+            f"samples per time constant of the model (its slowest is {time_scale:.3g} s). Is "
+            f"t in milliseconds or another unit? The estimator reads t in seconds; convert it "
+            f"with the model file's [data] table, e.g. "
+            f"t = {{ column = \"{name}\", scale = 1e-3 }}.",
+            ThetahatWarning, stacklevel=4)
+
+
+def estimate_columns(layout: RecordLayout, *, refined: bool) -> tuple[str, ...]:
     """Header of an estimates CSV: t, x_hat_<x>..., phi_hat_<i>..., theta_hat_<θ>...,
     and x_hat_refined_<x>... when ``refined``.
 
     Parameters
     ----------
-    spec : RecordSpec
+    layout : RecordLayout
+        The names of x and θ, and k.
     refined : bool
         Include the second observer's columns.
 
@@ -303,18 +246,19 @@ def estimate_columns(spec: RecordSpec, *, refined: bool) -> tuple[str, ...]:
     --------
     >>> from thetahat.modelfile import EXAMPLE_MODEL, loads_model
     >>> from thetahat.io.datafile import estimate_columns
-    >>> estimate_columns(loads_model(EXAMPLE_MODEL), refined=False)
+    >>> estimate_columns(loads_model(EXAMPLE_MODEL).layout, refined=False)
     ('t', 'x_hat_x1', 'x_hat_x2', 'phi_hat_1', 'theta_hat_theta')
     """
-    cols = ["t"] + [f"x_hat_{s}" for s in spec.state_names]
-    cols += [f"phi_hat_{i + 1}" for i in range(spec.system.k)]
-    cols += [f"theta_hat_{s}" for s in spec.parameter_names]
+    layout = _check_layout(layout)
+    cols = ["t"] + [f"x_hat_{s}" for s in layout.state_names]
+    cols += [f"phi_hat_{i + 1}" for i in range(layout.k)]
+    cols += [f"theta_hat_{s}" for s in layout.parameter_names]
     if refined:
-        cols += [f"x_hat_refined_{s}" for s in spec.state_names]
+        cols += [f"x_hat_refined_{s}" for s in layout.state_names]
     return tuple(cols)
 
 
-def write_estimates(path: str | Path, result: EstimateResult, spec: RecordSpec) -> None:
+def write_estimates(path: str | Path, result: EstimateResult, layout: RecordLayout) -> None:
     """Write an :class:`~thetahat.estimation.protocol.EstimateResult` as CSV or Parquet, by suffix (header
     :func:`estimate_columns`), atomically: a failed write leaves an old file unchanged.
 
@@ -326,7 +270,7 @@ def write_estimates(path: str | Path, result: EstimateResult, spec: RecordSpec) 
     path : str or Path
         Output file, ``.csv`` or ``.parquet`` (its folder is created).
     result : EstimateResult
-    spec : RecordSpec
+    layout : RecordLayout
         For the column names.
 
     Raises
@@ -342,7 +286,7 @@ def write_estimates(path: str | Path, result: EstimateResult, spec: RecordSpec) 
     parts = [result.t[:, None], result.x_hat, result.phi_hat, result.theta_hat]
     if result.x_hat_refined is not None:
         parts.append(result.x_hat_refined)
-    cols = estimate_columns(spec, refined=result.x_hat_refined is not None)
+    cols = estimate_columns(layout, refined=result.x_hat_refined is not None)
     table = np.hstack(parts)
     if path.suffix.lower() == ".parquet":
         write_parquet_table(path, {c: table[:, i] for i, c in enumerate(cols)})
@@ -378,91 +322,3 @@ def write_parquet_table(path: str | Path, columns: dict[str, Any]) -> None:
                       for c, v in columns.items()})
     with atomic_path(path) as tmp:
         pq.write_table(table, tmp)
-
-
-def read_parquet(path: str | Path, spec: RecordSpec, *, nan_policy: str = "raise") -> DataRecord:
-    """Read a Parquet record with the columns of :func:`read_csv`.
-
-    Parameters
-    ----------
-    path : str or Path
-        A regular Parquet file (needs pyarrow). Required columns as for :func:`read_csv`
-        (see :func:`column_candidates`); other columns are ignored. Every value must be
-        finite (outputs may be NaN or null under ``nan_policy="skip"``), and t strictly
-        increasing over at least two rows. A timestamp or duration column t is converted to
-        seconds from the first sample; booleans, dates in u or y and non-numbers are refused.
-    spec : RecordSpec
-        The model whose estimator reads the record (its input and output names).
-    nan_policy : {"raise", "skip"}, optional
-        ``"skip"`` keeps NaN outputs as dropouts for the observer's ``nan_policy="skip"``;
-        ``"raise"`` refuses them.
-
-    Returns
-    -------
-    DataRecord
-        ``t (N,)``, ``u (N, m)``, ``y (N, r)`` in float64, the columns used and the source.
-
-    Raises
-    ------
-    ModelFileError
-        pyarrow missing, not a regular file, unreadable file, a missing column, a column that
-        is not numeric, a non-finite value, or t not strictly increasing.
-    InputLimitError
-        The file is larger than :data:`thetahat.limits.MAX_DATA_FILE_BYTES`.
-    """
-    try:
-        import pyarrow.parquet as pq
-    except ImportError as exc:
-        raise ModelFileError("reading Parquet needs pyarrow: pip install 'thetahat[data]'"
-                             ) from exc
-    check_nan_policy(nan_policy)
-    path = Path(path)
-    with open_input(path, "data file", limits.MAX_DATA_FILE_BYTES) as fh:
-        try:
-            table = pq.read_table(fh)
-        except (OSError, ValueError) as exc:   # pyarrow's ArrowInvalid derives from ValueError
-            raise ModelFileError(f"cannot read data file {path}: {exc}") from exc
-    cols = _find_columns(f"data file {path}", table.column_names, spec)
-    data = np.column_stack([_parquet_column(path, table.column(c), c, is_t=i == 0)
-                            for i, c in enumerate(cols)])
-    m = spec.system.m
-    bad = ~np.isfinite(data)
-    if nan_policy == "skip":
-        bad[:, 1 + m:] &= ~np.isnan(data[:, 1 + m:])       # a NaN output is a dropout
-    if bad.any():
-        i, j = (int(a[0]) for a in np.nonzero(bad))
-        raise ModelFileError(f"data file {path}, row {i}, column {cols[j]!r}: {data[i, j]} is "
-                             "not finite; the estimator needs every sample (a NaN output is "
-                             "a dropout under nan_policy='skip').")
-    if data.shape[0] < 2 or not np.all(np.diff(data[:, 0]) > 0):
-        raise ModelFileError(f"data file {path}: t must be strictly increasing with at least "
-                             "two rows.")
-    return DataRecord(t=data[:, 0].copy(), u=data[:, 1:1 + m].copy(),
-                      y=data[:, 1 + m:].copy(), columns=tuple(cols), source=str(path))
-
-
-def _parquet_column(path: Path, column: Any, name: str, *, is_t: bool) -> FloatArray:
-    """One Parquet column as float64 (nulls as NaN); t in seconds from its first sample when
-    it holds timestamps or durations."""
-    import pyarrow as pa
-
-    kind = column.type
-    if pa.types.is_timestamp(kind) or pa.types.is_duration(kind) or pa.types.is_date(kind):
-        if not is_t:
-            raise ModelFileError(f"data file {path}, column {name!r}: holds dates or times "
-                                 f"({kind}); inputs and outputs must be numbers.")
-        stamps = np.asarray(column.to_numpy(), dtype="datetime64[ns]"
-                            if not pa.types.is_duration(kind) else "timedelta64[ns]")
-        if stamps.size == 0:
-            return np.zeros(0)
-        if np.isnat(stamps).any():
-            raise ModelFileError(f"data file {path}, column 't': a time stamp is missing.")
-        return (stamps - stamps[0]) / np.timedelta64(1, "ns") * 1e-9
-    if not (pa.types.is_integer(kind) or pa.types.is_floating(kind)
-            or pa.types.is_decimal(kind) or pa.types.is_null(kind)):
-        raise ModelFileError(f"data file {path}, column {name!r}: holds {kind} values; "
-                             f"expected numbers (booleans and text are not read as numbers).")
-    try:
-        return np.asarray(column.to_numpy(zero_copy_only=False), dtype=np.float64)
-    except (TypeError, ValueError, pa.ArrowException) as exc:
-        raise ModelFileError(f"data file {path}, column {name!r}: not numeric: {exc}") from exc

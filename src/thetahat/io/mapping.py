@@ -14,18 +14,17 @@ name) and optionally ``scale`` (default 1) and ``offset`` (default 0), giving
 of ``[perturbation] u`` (likewise ``y`` with r > 1 outputs); one signal may also be given as a
 one-element list. ``t`` may instead be ``{ rate = 1000 }`` (Hz, optional ``start`` in s,
 default 0) for records without a time vector: t_k = start + k / rate. A signal that
-``[data]`` does not name keeps the default naming of :func:`thetahat.io.record.column_candidates`.
+``[data]`` does not name keeps the default naming of :func:`column_candidates`.
 
-The mapping applies to CSV, Parquet and MATLAB (:mod:`thetahat.io.matfile`) files alike: a
-mapped variable must exist, be real and numeric, be a vector (a MATLAB row or column vector,
-or a column) with as many samples as the others, and be finite (an output may be NaN under
-``nan_policy="skip"``); t must be strictly increasing. Each failure raises a
-:class:`~thetahat.errors.ModelFileError` naming the variable and listing the ones the file has.
+The mapping is one step of the one reader (:func:`thetahat.io.datafile.read_data`), for CSV,
+Parquet and MATLAB files alike: :func:`select_columns` picks the columns (each used once, each
+present once), the file's cells are checked as for any record, and the scale and offset are
+applied *before* the checks of the values (finite, no overflow or underflow, t strictly
+increasing). :class:`RecordLayout` is all a reader needs of a model.
 """
 
 from __future__ import annotations
 
-import csv
 import math
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
@@ -35,11 +34,10 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from ..errors import ModelFileError
+from ..errors import ArgumentTypeError, ModelFileError
 
-from .record import MISSING_CELLS, DataRecord, RecordSpec, column_candidates
-
-__all__ = ["DataMapping", "Signal", "parse_data_table", "read_mapped"]
+__all__ = ["DataMapping", "RecordLayout", "Signal", "column_candidates", "parse_data_table",
+           "select_columns"]
 
 FloatArray = NDArray[np.float64]
 _SIGNAL_KEYS = ("column", "scale", "offset")
@@ -205,216 +203,202 @@ def parse_data_table(table: Any, input_names: Sequence[str], output_names: Seque
 
 
 # ---------------------------------------------------------------------------------------------
-# Columns of a file, by name
+# What a reader needs of a model, and which column is which signal
 # ---------------------------------------------------------------------------------------------
 
-class _Columns:
-    """A file's variables or columns: their names, and each one as a checked float vector."""
+@dataclass(frozen=True, slots=True)
+class RecordLayout:
+    """What the readers and writers need of a model: the names of its signals, the number of
+    components of φ, the ``[data]`` mapping and the model's slowest time constant.
 
-    def __init__(self, path: Path, kind: str, raw: Mapping[str, Any],
-                 fetch: Callable[[str], Any]) -> None:
-        self.path, self.kind, self.raw, self._fetch = path, kind, raw, fetch
+    A :class:`~thetahat.modelfile.ModelSpec` builds one (``spec.layout``); the readers import
+    nothing from the model files.
 
-    def listing(self) -> str:
-        if self.kind == "variable":
-            from .matfile import describe_variables
-            return describe_variables(dict(self.raw))
-        return ", ".join(repr(n) for n in self.raw)
+    Attributes
+    ----------
+    input_names, output_names : tuple of str
+        One name per input (m) and per output (r): the default column names.
+    state_names, parameter_names : tuple of str
+        The names of x and θ (the columns of the estimates a writer writes).
+    k : int
+        Components of φ.
+    data : DataMapping or None
+        The ``[data]`` table (None: the default column names).
+    time_scale : float or None
+        The model's slowest time constant in seconds (``1 / min |λ(A)|`` over the nonzero
+        eigenvalues), used to flag a time column that is not in seconds; None when unknown.
 
-    def fail(self, name: str, message: str) -> ModelFileError:
-        return ModelFileError(f"data file {self.path}, {self.kind} {name!r}: {message}; the "
-                              f"file has {self.listing()}.")
+    Examples
+    --------
+    >>> from thetahat.io.mapping import RecordLayout
+    >>> layout = RecordLayout(input_names=("u",), output_names=("y",))
+    >>> layout.m, layout.r
+    (1, 1)
+    """
 
-    def vector(self, name: str) -> FloatArray:
-        if name not in self.raw:
-            return _raise(ModelFileError(f"data file {self.path}: no {self.kind} {name!r}; "
-                                         f"the file has {self.listing()}."))
-        value = self._fetch(name)
-        arr = value if isinstance(value, np.ndarray) else np.asarray(value, dtype=object)
-        if arr.dtype.kind == "c":
-            raise self.fail(name, f"complex values ({arr.dtype}); the estimator needs real "
-                                  f"signals (map the real part to a variable of its own)")
-        if arr.dtype.kind not in "fiub":
-            raise self.fail(name, f"not numeric (a {arr.dtype} array: text, a cell array or "
-                                  f"a struct, or a ragged column)")
-        if arr.ndim > 2 or (arr.ndim == 2 and min(arr.shape) > 1):
-            raise self.fail(name, f"a {'×'.join(map(str, arr.shape))} array, not a vector; "
-                                  f"save each signal as a row or column vector")
-        return np.asarray(arr, dtype=np.float64).ravel()
+    input_names: tuple[str, ...]
+    output_names: tuple[str, ...]
+    state_names: tuple[str, ...] = ()
+    parameter_names: tuple[str, ...] = ()
+    k: int = 1
+    data: DataMapping | None = None
+    time_scale: float | None = None
 
+    def __post_init__(self) -> None:
+        for field in ("input_names", "output_names", "state_names", "parameter_names"):
+            names = getattr(self, field)
+            if not isinstance(names, tuple) or not all(isinstance(n, str) for n in names):
+                raise ArgumentTypeError(f"RecordLayout.{field} must be a tuple of str; got "
+                                        f"{names!r}.")
+        if not self.output_names:
+            raise ModelFileError("RecordLayout: a record needs at least one output name.")
+        if self.data is not None and (len(self.data.u), len(self.data.y)) != (self.m, self.r):
+            raise ModelFileError(f"RecordLayout: the [data] mapping has {len(self.data.u)} "
+                                 f"input(s) and {len(self.data.y)} output(s), the names "
+                                 f"{self.m} and {self.r}.")
 
-def _raise(exc: ModelFileError) -> FloatArray:
-    raise exc
+    @property
+    def m(self) -> int:
+        """Number of inputs."""
+        return len(self.input_names)
 
-
-def _mat_columns(path: Path) -> _Columns:
-    from .matfile import read_mat_variables
-
-    variables = read_mat_variables(path)
-    return _Columns(path, "variable", variables, variables.__getitem__)
-
-
-def _parquet_columns(path: Path) -> _Columns:
-    try:
-        import pyarrow.parquet as pq
-    except ImportError as exc:
-        raise ModelFileError("reading Parquet needs pyarrow: pip install 'thetahat[data]'"
-                             ) from exc
-    try:
-        table = pq.read_table(path)
-    except (OSError, ValueError) as exc:       # pyarrow's ArrowInvalid derives from ValueError
-        raise ModelFileError(f"cannot read data file {path}: {exc}") from exc
-
-    def fetch(name: str) -> Any:
-        try:
-            return np.asarray(table.column(name).to_numpy(zero_copy_only=False))
-        except (TypeError, ValueError) as exc:
-            raise ModelFileError(f"data file {path}, column {name!r}: cannot be read as "
-                                 f"numbers ({exc}).") from exc
-    return _Columns(path, "column", {n: None for n in table.column_names}, fetch)
+    @property
+    def r(self) -> int:
+        """Number of outputs."""
+        return len(self.output_names)
 
 
-def _csv_columns(path: Path, wanted: Sequence[str]) -> _Columns:
-    """The wanted columns of a CSV file (header row; blank lines skipped), read cell by cell
-    with messages naming the line; empty or NaN-like cells read as NaN (checked later)."""
-
-    try:
-        with path.open(newline="", encoding="utf-8-sig") as fh:
-            rows = (r for r in csv.reader(fh) if r and any(c.strip() for c in r))
-            header = [h.strip() for h in next(rows, [])]
-            if not header:
-                raise ModelFileError(f"data file {path} is empty; expected a header row.")
-            index = {n: header.index(n) for n in wanted if n in header}
-            values: dict[str, list[float]] = {n: [] for n in index}
-            for line, row in enumerate(rows, start=2):
-                if len(row) != len(header):
-                    raise ModelFileError(f"data file {path}, data row {line - 1}: {len(row)} "
-                                         f"fields, but the header has {len(header)}.")
-                for n, j in index.items():
-                    cell = row[j].strip()
-                    try:
-                        values[n].append(math.nan if cell.lower() in MISSING_CELLS
-                                         else float(cell))
-                    except ValueError:
-                        raise ModelFileError(f"data file {path}, data row {line - 1}, column "
-                                             f"{n!r}: {cell!r} is not a number.") from None
-    except (OSError, UnicodeDecodeError, csv.Error) as exc:
-        raise ModelFileError(f"cannot read data file {path}: {exc}") from exc
-    raw = {n: np.array(values[n]) if n in values else None for n in header}
-    return _Columns(path, "column", raw, raw.__getitem__)
+def _aliases(names: tuple[str, ...], letter: str) -> list[list[str]]:
+    out = []
+    for i, name in enumerate(names):
+        alts = [name, f"{letter}{i + 1}"] + ([letter] if len(names) == 1 else [])
+        out.append(list(dict.fromkeys(alts)))
+    return out
 
 
-# ---------------------------------------------------------------------------------------------
-# Reading a record through the mapping
-# ---------------------------------------------------------------------------------------------
+def column_candidates(layout: RecordLayout) -> list[list[str]]:
+    """The accepted names of each data column: ``[["t"], [u names...]..., [y names...]...]``.
 
-def _choose(columns: _Columns, signal: Signal | None, alternatives: list[str]) -> Signal:
-    if signal is not None:
-        return signal
-    found = [a for a in alternatives if a in columns.raw]
-    if not found:
-        raise ModelFileError(f"data file {columns.path}: no {columns.kind} "
-                             f"{' or '.join(repr(a) for a in alternatives)}; the file has "
-                             f"{columns.listing()}. Name the ones to use in the model file's "
-                             f"[data] table, e.g. y = \"qm\".")
-    return Signal(found[0])
-
-
-def read_mapped(path: str | Path, spec: RecordSpec, *, nan_policy: str = "raise") -> DataRecord:
-    """Read a CSV, Parquet or MATLAB record through the model's ``[data]`` table.
-
-    Without a ``[data]`` table (``spec.data is None``) the default names of
-    :func:`~thetahat.io.record.column_candidates` are used (t, the model's input and output
-    names, ``u1``…, ``y1``…).
+    Each input may be named as in the model, ``u1``, ``u2``, … or ``u`` when m = 1; each output
+    likewise with ``y``. Used for a signal the ``[data]`` table does not map.
 
     Parameters
     ----------
-    path : str or Path
-        A ``.mat`` (MATLAB v4–v7), ``.parquet`` (needs pyarrow) or CSV file.
-    spec : RecordSpec
-        The model; ``spec.data`` is its ``[data]`` table.
-    nan_policy : {"raise", "skip"}
-        ``"skip"`` keeps NaN outputs as dropouts; t and the inputs must always be finite.
+    layout : RecordLayout
 
     Returns
     -------
-    DataRecord
-        t, u and y in the model's units (scale and offset applied); ``columns`` names the
-        variables used (``rate=... Hz`` for a generated t).
+    list of list of str
+        1 + m + r lists, in the order t, u₁ … u_m, y₁ … y_r: the accepted names of each
+        column, the model's name first.
+
+    Examples
+    --------
+    >>> from thetahat.io.mapping import RecordLayout, column_candidates
+    >>> column_candidates(RecordLayout(input_names=("tau",), output_names=("q",)))
+    [['t'], ['tau', 'u1', 'u'], ['q', 'y1', 'y']]
+    """
+    return ([["t"]] + _aliases(layout.input_names, "u")
+            + _aliases(layout.output_names, "y"))
+
+
+def _roles(layout: RecordLayout) -> list[str]:
+    return (["t"] + [f"u ({n})" if layout.m > 1 else "u" for n in layout.input_names]
+            + [f"y ({n})" if layout.r > 1 else "y" for n in layout.output_names])
+
+
+def _data_line(role: str, names: Sequence[str], taken: set[str]) -> str:
+    """The ``[data]`` line that maps ``role`` to a column of the file no signal takes yet,
+    for messages."""
+    key = role.split(" ")[0]
+    example = next((n for n in names if n and n not in taken), "NAME")
+    return f'{key} = "{example}"'
+
+
+def select_columns(names: Sequence[str], layout: RecordLayout, where: str, *,
+                   kind: str = "column", listing: str | None = None) -> list[Signal | None]:
+    """Which of a file's columns (or variables) are t, u₁…u_m and y₁…y_r.
+
+    A signal mapped by ``[data]`` is taken by its name; the others by
+    :func:`column_candidates`. The first entry is None when ``[data]`` gives a ``rate``
+    instead of a time column.
+
+    Parameters
+    ----------
+    names : sequence of str
+        The file's column or variable names, in order.
+    layout : RecordLayout
+    where : str
+        Names the file (and line) in messages.
+    kind : {"column", "variable"}
+    listing : str, optional
+        What the file has, for messages (default: the names).
+
+    Returns
+    -------
+    list of (Signal or None)
+        1 + m + r signals, in the order t, u…, y….
 
     Raises
     ------
     ModelFileError
-        A mapped or default variable is missing, not numeric, complex, not a vector, of a
-        different length than the others, or not finite; t is not strictly increasing; the
-        file cannot be read (a MATLAB v7.3 file: see :func:`thetahat.io.matfile.read_mat_variables`).
+        A used name appears more than once in the file; a signal is missing (the message
+        shows the ``[data]`` line to add); two accepted names of one signal are both present;
+        one column is used for two signals.
 
     Examples
     --------
-    >>> import tempfile, pathlib
-    >>> import numpy as np, scipy.io
-    >>> from thetahat.modelfile import EXAMPLE_MODEL, loads_model
-    >>> from thetahat.io.mapping import read_mapped
-    >>> spec = loads_model(EXAMPLE_MODEL + '[data]\\nu = {column = "volts", scale = 2.0}\\n'
-    ...                    'y = {column = "pos_mm", scale = 1e-3}\\n')
-    >>> path = pathlib.Path(tempfile.mkdtemp()) / "log.mat"
-    >>> scipy.io.savemat(path, {"t": [0.0, 0.01], "volts": [1.0, 2.0], "pos_mm": [5.0, 7.0]})
-    >>> record = read_mapped(path, spec)
-    >>> record.u.ravel().tolist(), record.y.ravel().tolist()
-    ([2.0, 4.0], [0.005, 0.007])
+    >>> from thetahat.io.mapping import RecordLayout, select_columns
+    >>> layout = RecordLayout(input_names=("u",), output_names=("y",))
+    >>> [s.column for s in select_columns(["y", "t", "u"], layout, "data file d.csv")]
+    ['t', 'u', 'y']
+    >>> select_columns(["t", "u", "q"], layout, "data file d.csv")
+    Traceback (most recent call last):
+    ...
+    thetahat.errors.ModelFileError: data file d.csv: missing column 'y' or 'y1' ...
     """
-    from ..estimation.records import check_nan_policy
-
-    check_nan_policy(nan_policy)
-    path = Path(path)
-    mapping = spec.data if spec.data is not None else DataMapping(
-        t=None, rate=None, start=0.0, u=(None,) * spec.system.m, y=(None,) * spec.system.r)
-    alternatives = column_candidates(spec)
-    m = spec.system.m
-    suffix = path.suffix.lower()
-    if suffix == ".mat":
-        columns = _mat_columns(path)
-    elif suffix == ".parquet":
-        columns = _parquet_columns(path)
-    else:
-        named = [s.column for s in (mapping.t, *mapping.u, *mapping.y) if s is not None]
-        columns = _csv_columns(path, named + [a for alts in alternatives for a in alts])
-    signals = [_choose(columns, s, alts)
-               for s, alts in zip((*mapping.u, *mapping.y), alternatives[1:])]
-    t_signal = None if mapping.rate is not None else _choose(columns, mapping.t,
-                                                             alternatives[0])
-    data = [(s, columns.vector(s.column)) for s in
-            ([t_signal] if t_signal is not None else []) + signals]
-    N = data[0][1].size
-    for s, raw in data:
-        if raw.size != N:
-            raise columns.fail(s.column, f"{raw.size} samples, but {data[0][0].column!r} has "
-                                         f"{N}; every mapped signal needs one value per sample")
-    if N < 2:
-        raise ModelFileError(f"data file {path}: {N} sample(s); the estimator needs at least 2.")
-    for i, (s, raw) in enumerate(data):
-        output = i - (t_signal is not None) >= m
-        bad = ~np.isfinite(raw)
-        if output and nan_policy == "skip":
-            bad &= ~np.isnan(raw)
-        if bad.any():
-            k = int(np.argmax(bad))
-            hint = (" (a NaN output is a dropout: pass --nan-policy skip)" if output else
-                    "; the estimator needs every t and input sample")
-            raise columns.fail(s.column, f"sample {k} is {raw[k]}, not finite{hint}")
-    values = [s.apply(raw) for s, raw in data]
-    t = (mapping.start + np.arange(N) / mapping.rate if mapping.rate is not None
-         else values.pop(0))
-    steps = np.diff(t)
-    if not np.all(steps > 0):
-        k = int(np.argmax(~(steps > 0))) + 1
-        name = t_signal.column if t_signal is not None else "t"
-        raise ModelFileError(f"data file {path}, {columns.kind} {name!r}: t does not increase "
-                             f"at sample {k} (t = {t[k]!r} after {t[k - 1]!r}); t must be "
-                             f"strictly increasing.")
-    used = tuple([f"rate={mapping.rate:g} Hz"] if t_signal is None else []) + tuple(
-        s.column for s, _ in data)
-    u = np.column_stack(values[:m]) if m else np.zeros((N, 0))
-    y = np.column_stack(values[m:])
-    return DataRecord(t=np.ascontiguousarray(t, dtype=np.float64), u=u, y=y, columns=used,
-                      source=str(path))
+    mapping = layout.data
+    mapped: list[Signal | None] = ([mapping.t, *mapping.u, *mapping.y] if mapping is not None
+                                   else [None] * (1 + layout.m + layout.r))
+    rate = mapping is not None and mapping.rate is not None
+    shown = listing if listing is not None else ", ".join(repr(n) for n in names)
+    present = set(names)
+    wanted = {s.column for s in mapped if s is not None}
+    wanted |= {a for alts in column_candidates(layout) for a in alts}
+    twice = sorted({n for n in names if n in wanted and names.count(n) > 1})
+    if twice:
+        raise ModelFileError(f"{where}: the {kind}(s) {twice} appear more than once; rename "
+                             f"or drop the copies.")
+    out: list[Signal | None] = []
+    for i, (signal, alts, role) in enumerate(zip(mapped, column_candidates(layout),
+                                                 _roles(layout))):
+        if i == 0 and rate:
+            out.append(None)
+        elif signal is not None:
+            if signal.column not in present:
+                raise ModelFileError(f"{where}: no {kind} {signal.column!r} (mapped to {role} "
+                                     f"by the model file's [data] table); the file has "
+                                     f"{shown}.")
+            out.append(signal)
+        else:
+            found = [a for a in alts if a in present]
+            if not found:
+                raise ModelFileError(
+                    f"{where}: missing {kind} {' or '.join(repr(a) for a in alts)} (the "
+                    f"{role} signal); the file has {shown}. If the file names it otherwise, "
+                    f"map it in the model file's [data] table, e.g. add the line "
+                    f"'{_data_line(role, names, wanted)}' under [data].")
+            if len(found) > 1:
+                raise ModelFileError(f"{where}: the {kind}s {found} name the same signal "
+                                     f"({role}); keep one of them.")
+            out.append(Signal(found[0]))
+    used: dict[str, str] = {}
+    for signal, role in zip(out, _roles(layout)):
+        if signal is None:
+            continue
+        if signal.column in used:
+            raise ModelFileError(f"{where}: the {kind} {signal.column!r} is used for both "
+                                 f"{used[signal.column]} and {role}; each signal needs a "
+                                 f"{kind} of its own (check the [data] table).")
+        used[signal.column] = role
+    return out

@@ -1,63 +1,21 @@
-"""A record as read, and what a reader needs to know of the model to read one.
-
-:class:`DataRecord` holds t, u and y as read from a file; :class:`RecordSpec` is what a reader
-asks of the model — the names of its inputs, outputs, states and parameters, its dimensions
-and the optional ``[data]`` mapping (a :class:`~thetahat.modelfile.ModelSpec` has all of them;
-the readers import nothing from the model files).
-"""
+"""A record as read: :class:`DataRecord` holds t, u and y in the model's units, the columns used
+and the file they came from; :data:`MISSING_CELLS` are the cells read as a missing sample."""
 
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Protocol
 
 import numpy as np
 from numpy.typing import NDArray
 
-from ..model.system import PerturbedLinearSystem
-
-__all__ = ["DataRecord", "MISSING_CELLS", "RecordSpec", "column_candidates"]
+__all__ = ["DataRecord", "MISSING_CELLS"]
 
 FloatArray = NDArray[np.float64]
 
 
-class RecordSpec(Protocol):
-    """What the readers and writers read of a model (a ``ModelSpec`` has it)."""
-
-    @property
-    def system(self) -> PerturbedLinearSystem:
-        """The plant: its m, r, k."""
-        ...
-
-    @property
-    def input_names(self) -> tuple[str, ...]:
-        """One name per input."""
-        ...
-
-    @property
-    def output_names(self) -> tuple[str, ...]:
-        """One name per output."""
-        ...
-
-    @property
-    def state_names(self) -> tuple[str, ...]:
-        """One name per state."""
-        ...
-
-    @property
-    def parameter_names(self) -> tuple[str, ...]:
-        """One name per parameter."""
-        ...
-
-    @property
-    def data(self) -> object | None:
-        """The ``[data]`` mapping (:class:`~thetahat.io.mapping.DataMapping`), or None."""
-        ...
-
-
 @dataclass(frozen=True, slots=True, repr=False)
 class DataRecord:
-    """Samples read by :func:`read_data`.
+    """Samples read by :func:`~thetahat.io.datafile.read_data`.
 
     Attributes
     ----------
@@ -65,7 +23,8 @@ class DataRecord:
     u : ndarray, shape (N, m)
     y : ndarray, shape (N, r)
     columns : tuple of str
-        The CSV columns used, in the order t, u..., y....
+        The columns or variables used, in the order t, u..., y... (``rate=... Hz`` for a t
+        generated from ``[data] t = { rate = ... }``).
     source : str
     """
 
@@ -80,42 +39,5 @@ class DataRecord:
                 f"source={self.source!r})")
 
 
-def _aliases(names: tuple[str, ...], letter: str) -> list[list[str]]:
-    out = []
-    for i, name in enumerate(names):
-        alts = [name, f"{letter}{i + 1}"] + ([letter] if len(names) == 1 else [])
-        out.append(list(dict.fromkeys(alts)))
-    return out
-
-
 #: Cells read as a missing output sample under ``nan_policy="skip"`` (besides NaN itself).
 MISSING_CELLS = ("", "nan", "na", "n/a", "null", "none")
-
-
-def column_candidates(spec: RecordSpec) -> list[list[str]]:
-    """The accepted names of each data column: ``[["t"], [u names...]..., [y names...]...]``.
-
-    Each input may be named as in the model, ``u1``, ``u2``, … or ``u`` when m = 1; each output
-    likewise with ``y``. The first name found in a header is used.
-
-    Parameters
-    ----------
-    spec : RecordSpec
-        The model; its ``input_names`` and ``output_names`` give the column names.
-
-    Returns
-    -------
-    list of list of str
-        1 + m + r lists, in the order t, u₁ … u_m, y₁ … y_r: the accepted names of each
-        column, the model's name first.
-
-    Examples
-    --------
-    >>> from thetahat.modelfile import EXAMPLE_MODEL, loads_model
-    >>> from thetahat.io.record import column_candidates
-    >>> column_candidates(loads_model(EXAMPLE_MODEL))
-    [['t'], ['u', 'u1'], ['y', 'y1']]
-    """
-    return [["t"]] + _aliases(spec.input_names, "u") + _aliases(spec.output_names, "y")
-
-

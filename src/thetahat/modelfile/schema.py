@@ -95,7 +95,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from .. import limits
-from ..io.mapping import DataMapping, parse_data_table
+from ..io.mapping import DataMapping, RecordLayout, parse_data_table
 from ..errors import InputLimitError, ModelFileError, ThetahatError
 from ..estimation.observer.laws.least_squares import FilteredLeastSquares
 from ..estimation.observer.laws.projection import as_gain
@@ -499,6 +499,17 @@ class ModelSpec:
     estimator: EstimatorOptions
     scenario: ScenarioOptions
     data: DataMapping | None = None
+
+    @property
+    def layout(self) -> RecordLayout:
+        """What the data readers and writers need of this model (:mod:`thetahat.io`): the
+        names, k, the ``[data]`` table and the slowest time constant of A."""
+        eig = np.abs(np.linalg.eigvals(self.system.A))
+        eig = eig[eig > 1e-12 * max(1.0, float(eig.max(initial=0.0)))]
+        return RecordLayout(input_names=self.input_names, output_names=self.output_names,
+                            state_names=self.state_names, parameter_names=self.parameter_names,
+                            k=self.system.k, data=self.data,
+                            time_scale=1.0 / float(eig.min()) if eig.size else None)
 
     def __repr__(self) -> str:
         s = self.system

@@ -184,7 +184,7 @@ def report(*, out: Path | str = "out", methods: Sequence[str] = METHODS,
     from ..studies.metrics import estimate_summary
 
     spec = load_model(MODEL_FILE)
-    data = read_data(emps.DATA_FILE, spec)
+    data = read_data(emps.DATA_FILE, spec.layout)
     record = emps.load()
     Path(out).mkdir(parents=True, exist_ok=True)
     runs = []
@@ -195,7 +195,7 @@ def report(*, out: Path | str = "out", methods: Sequence[str] = METHODS,
             result = run_estimator(spec, data.t, data.u, data.y, method=method)
         seconds = time.perf_counter() - t0
         path = Path(out) / f"emps_{method}.csv"
-        write_estimates(path, result, spec)
+        write_estimates(path, result, spec.layout)
         notes = tuple(f"{w.category.__name__}: {w.message}" for w in caught)
         theta_hat = np.array(result.theta_hat, dtype=np.float64)
         runs.append(EmpsRun(method=method, t=np.asarray(result.t), theta_hat=theta_hat,
