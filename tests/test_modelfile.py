@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from thetahat import simulate_plant
-from thetahat.errors import ModelFileError
+from thetahat.errors import ModelFileError, OptionError
 from thetahat.io.datafile import estimate_columns, read_data
 from thetahat.estimation.observer.initial_state import x_hat_from_output
 from thetahat.modelfile import (
@@ -281,10 +281,78 @@ def test_prop3_file_with_the_two_stage_methods(method):
     assert np.all((res.theta_hat >= -2.0) & (res.theta_hat <= 2.0))
     # 1 % of θ: the data identify θ to ~1e-3 (the fits' standard error) within 3 s
     assert abs(res.theta_hat[-1, 0] - 1.2) < 0.01 * 1.2
-    with pytest.raises(ModelFileError, match="method must be one of"):
+    with pytest.raises(OptionError, match="unknown method 'newton'; expected one of"):
         run_estimator(spec, data.t, data.u, data.y, method="newton")
 
 
 def test_unknown_method_in_a_model_file():
     with pytest.raises(ModelFileError, match=r"\[estimator\] method: unknown method"):
         loads_model(EXAMPLE_MODEL.replace('law = "gradient"', 'method = "ukf"\nlaw = "gradient"'))
+
+
+# --- run_estimator diagnoses the run itself (what `thetahat estimate` prints, for any caller) --
+
+def _short_record(N: int = 200) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    t = np.arange(N) * 0.01
+    return t, np.sin(t)[:, None], 0.1 * np.cos(t)[:, None]
+
+
+def test_a_failed_run_names_g_undefined_on_the_data():
+    """g = sqrt(y − 10)·θ is NaN on every sample: the library's error says so, with the instant
+    (the command line only prints it)."""
+    from thetahat.errors import NonFiniteError
+    from thetahat.studies.information import explain_nonfinite
+
+    spec = loads_model(EXAMPLE_MODEL.replace('"(2 + sin(y))*(theta + theta**3/3)"',
+                                             '"sqrt(y - 10)*theta"'))
+    t, u, y = _short_record()
+    with pytest.raises(NonFiniteError, match=r"g is undefined \(NaN or inf\) at t = 0") as info:
+        run_estimator(spec, t, u, y)
+    err = info.value
+    assert str(err).count("g is undefined") == 1
+    # explaining it again (the fleet does) adds nothing
+    assert explain_nonfinite(err, spec.system, t, u, y, np.zeros(2), [0.0]) is err
+    with pytest.raises(Exception) as raw:                      # diagnose=False: as it failed
+        run_estimator(spec, t, u, y, diagnose=False)
+    assert "g is undefined" not in str(raw.value)
+
+
+def test_a_stuck_parameter_warns_from_the_library():
+    """g = √|θ|(2 + sin y) from θ̂(0) = 0: ∂g/∂θ vanishes there and θ̂ never moves; the run
+    warns with a ConvergenceWarning (and does not for an informative model)."""
+    from thetahat.errors import ConvergenceWarning
+
+    t, u, y = _short_record()
+    stuck = loads_model(EXAMPLE_MODEL.replace('"(2 + sin(y))*(theta + theta**3/3)"',
+                                              '"Abs(theta)**0.5*(2 + sin(y))"'))
+    with pytest.warns(ConvergenceWarning, match="no information reached the update law for "
+                                                "theta"):
+        run_estimator(stuck, t, u, y)
+    import warnings
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        run_estimator(loads_model(EXAMPLE_MODEL), t, u, y)
+    assert not [w for w in caught if issubclass(w.category, ConvergenceWarning)]
+
+
+@pytest.mark.parametrize("name", ["prop1.toml", "two_inertia.toml", "heater.toml"])
+def test_the_file_names_travel_with_the_result(name):
+    """res.names holds the file's names; the summary and the tables use them unasked."""
+    from thetahat.io.datafile import estimate_columns
+    from thetahat.modelfile import simulate_model
+    from thetahat.studies.metrics import estimate_summary
+    from thetahat.tables import result_columns
+
+    spec = load_model(EXAMPLES / name)
+    data = simulate_model(spec, seed=0, t_end=1.0)
+    res = run_estimator(spec, data.t, data.u, data.y, diagnose=False)
+    assert res.names == spec.signal_names
+    assert (res.names.states, res.names.parameters) == (spec.state_names, spec.parameter_names)
+    assert (res.names.inputs, res.names.outputs) == (spec.input_names, spec.output_names)
+    # the CSV's columns (its writer reads the spec) and the table's, from the result alone
+    columns = list(result_columns(res))
+    assert columns[-1] == "skipped"
+    assert ("t", *columns[:-1]) == estimate_columns(spec.layout, refined=res.x_hat_refined is not None)
+    summary = estimate_summary(res).splitlines()[0]
+    assert summary == "final theta_hat: " + ", ".join(
+        f"{n} = {v:.6g}" for n, v in zip(spec.parameter_names, res.theta_hat[-1]))

@@ -64,10 +64,10 @@ def test_scenario_defaults_and_values():
 @pytest.mark.parametrize("table, match", [
     ("theta = [3.0]", r"\[scenario\] theta: the true θ = \[3.0\] lies outside Θ"),
     ("fs = -1.0", r"\[scenario\] fs: expected a finite positive number"),
-    ("method = 'Euler'", r"\[scenario\] method: expected one of"),
+    ("method = 'Euler'", r"\[scenario\] method: unknown method 'Euler'; expected one of"),
     ("u_amplitudes = [1.0, 2.0]\nu_frequencies = [0.1]", r"u_frequencies: expected the shape"),
     ("noise = 0.1", r"\[scenario\]: unknown key\(s\) \['noise'\]"),
-    ("noise_std = -0.1", r"noise_std: expected a number >= 0"),
+    ("noise_std = -0.1", r"noise_std: expected a finite number >= 0; got -0.1"),
 ])
 def test_bad_scenarios_name_the_key(table, match):
     with pytest.raises(ModelFileError, match=match):

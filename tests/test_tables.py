@@ -1,5 +1,7 @@
 """ObserverResult as a DataFrame / xarray Dataset, and plot_result on any model."""
 
+import importlib.util
+
 import numpy as np
 import pytest
 
@@ -45,3 +47,31 @@ def test_plot_result_any_model(tmp_path):
     assert len(fig.axes) == 1 + 1 + 2                   # r + k + p panels
     lo, hi = fig.axes[-1].get_ylim()
     assert lo <= -2.0 and hi >= 2.0                     # Θ's bounds are drawn
+
+
+def test_the_tables_take_the_names_the_result_carries():
+    """A model file's run carries its names: the columns and coordinates use them unasked;
+    names given override them; a wrong count is refused."""
+    from pathlib import Path
+
+    from thetahat.errors import DimensionError
+    from thetahat.modelfile import load_model, run_estimator, simulate_model
+    from thetahat.tables import result_columns, result_names
+
+    spec = load_model(Path(__file__).resolve().parents[1] / "examples" / "two_inertia.toml")
+    data = simulate_model(spec, seed=0, t_end=0.2)
+    res = run_estimator(spec, data.t, data.u, data.y, diagnose=False)
+    cols = result_columns(res)
+    for i, n in enumerate(spec.parameter_names):
+        np.testing.assert_array_equal(cols[f"theta_hat_{n}"], res.theta_hat[:, i])
+    for i, n in enumerate(spec.state_names):
+        np.testing.assert_array_equal(cols[f"x_hat_{n}"], res.x_hat[:, i])
+    assert result_names(res, parameter_names=["a", "b"]) == (list(spec.state_names), ["a", "b"])
+    with pytest.raises(DimensionError, match="1 parameter names for 2 parameters"):
+        result_columns(res, parameter_names=["a"])
+    if importlib.util.find_spec("pandas") is not None:
+        assert list(res.to_dataframe().columns) == list(cols)
+    if importlib.util.find_spec("xarray") is not None:
+        ds = res.to_xarray()
+        assert list(ds["parameter"].values) == list(spec.parameter_names)
+        assert list(ds["state"].values) == list(spec.state_names)

@@ -25,7 +25,6 @@ error (a bug: please report it with the ``--debug`` traceback); 130 interrupted.
 from __future__ import annotations
 
 import argparse
-import functools
 import json
 import os
 import sys
@@ -58,11 +57,6 @@ EXIT_CODES = ("Exit codes: 0 success (analyze: Assumption 1 holds and the design
 #: Errors that mean "the model violates the theory", exit code 1.
 _CHECK_ERRORS = (NotMinimumPhaseError, NotLeftInvertibleError, UnstableDesignError)
 
-_LUGRE_STATES = ("omega", "eta")
-#: [scenario] keys that define the experiment (integrator settings are not announced).
-_SCENARIO_CHOICES = ("theta", "u_amplitudes", "u_frequencies", "noise_std", "t_end", "fs")
-
-
 #: Figure formats of ``--plot`` (Matplotlib's Agg backend).
 PLOT_SUFFIXES = (".png", ".pdf", ".svg", ".svgz", ".jpg", ".jpeg", ".eps", ".ps", ".tif",
                  ".tiff", ".webp", ".pgf")
@@ -86,48 +80,27 @@ def _check_plot(path: str, inputs: list[str]) -> None:
 
 
 def _demo(args: argparse.Namespace) -> int:
-    from .models.lugre_report import report
-    from .safe_io import check_writable
-
     if args.example == "emps":
         from .models.emps_report import report as emps_report
-        for method in ("paper", "guarded", "mle"):                     # before any work
-            check_writable(Path(args.out) / f"emps_{method}.csv")
-        check_writable(Path(args.out) / "emps.png")
         emps_report(out=args.out)
-        return EXIT_OK
-    for name in ("lugre.json", "lugre.png", "lugre_data.csv"):        # before any work
-        check_writable(Path(args.out) / name)
-
-    report(out=args.out, eps=args.eps, seed=args.seed, show=args.show)
+    else:
+        from .models.lugre_report import report
+        report(out=args.out, eps=args.eps, seed=args.seed, show=args.show)
     return EXIT_OK
 
 
-def _study(args: argparse.Namespace) -> tuple[Any, Any, Any, tuple[str, ...]]:
-    """(estimator spec, simulate(seed), θ̂(0), state labels) of MODEL, or of the LuGre example."""
+def _study(args: argparse.Namespace) -> Any:
+    """The :class:`~thetahat.modelfile.study.StudySetup` of MODEL, or of the LuGre example."""
     if args.model is None:
         from .models import lugre
+        return lugre.study_setup(t_end=args.t_end)
+    from .modelfile import load_model
+    from .modelfile.study import study_setup
 
-        t_end = 20.0 if args.t_end is None else args.t_end
-        return (lugre.estimator_spec(), functools.partial(lugre.simulate, t_end=t_end),
-                [lugre.Scenario().theta_hat0], _LUGRE_STATES)
-    from .modelfile import estimator_spec, load_model
-    from .modelfile.study import study_simulator
-
-    spec = load_model(args.model)
-    chosen = [k for k in _SCENARIO_CHOICES if k in spec.scenario.defaults]
-    if chosen:                  # the experiment itself was not given: say what was assumed
-        print(f"thetahat: note: {args.model} [scenario] gives no {', '.join(chosen)}; "
-              f"using {spec.scenario!r}", file=sys.stderr)
-    est, simulate = estimator_spec(spec), study_simulator(spec, t_end=args.t_end)
-    if spec.estimator.gamma_auto:       # Γ = "auto": chosen on the scenario's first record
-        import dataclasses
-
-        from .modelfile import auto_gamma
-        first = simulate(0)
-        est = dataclasses.replace(est, law=est.law_with_gamma(
-            auto_gamma(spec, first.t, first.u, first.y)))
-    return est, simulate, spec.estimator.theta_hat0, spec.state_names
+    setup = study_setup(load_model(args.model), t_end=args.t_end)
+    if setup.assumed:           # the experiment itself was not given: say what was assumed
+        print(f"thetahat: note: {setup.assumed}", file=sys.stderr)
+    return setup
 
 
 def _sweep(args: argparse.Namespace) -> int:
@@ -137,16 +110,16 @@ def _sweep(args: argparse.Namespace) -> int:
     out = Path(args.out)
     for name in ("sweep.json", "sweep.png"):                          # before any work
         check_writable(out / name, inputs=_inputs(args.model))
-    estimator, simulate, theta_hat0, labels = _study(args)
-    result = eps_sweep(estimator, simulate, args.eps, range(args.seeds),
-                       theta_hat0=theta_hat0, n_jobs=args.jobs, scheduler=args.scheduler)
-    print(result.table(labels))
+    setup = _study(args)
+    result = eps_sweep(setup.estimator, setup.simulate, args.eps, range(args.seeds),
+                       theta_hat0=setup.theta_hat0, n_jobs=args.jobs, scheduler=args.scheduler)
+    print(result.table(setup.state_names))
     write_text(out / "sweep.json", json.dumps(result.to_dict(), indent=2))
     written = [out / "sweep.json"]
     try:
         from .plotting import plot_sweep
         with atomic_path(out / "sweep.png") as tmp:
-            plot_sweep(result, tmp, state_labels=labels)
+            plot_sweep(result, tmp, state_labels=setup.state_names)
         written.append(out / "sweep.png")
     except ImportError as exc:
         print(f"thetahat: note: {exc}; sweep.png not written", file=sys.stderr)
@@ -159,11 +132,12 @@ def _tune(args: argparse.Namespace) -> int:
     from .studies.tune import tune_eps_gamma
 
     check_writable(Path(args.out) / "tune.json", inputs=_inputs(args.model))   # before work
-    estimator, simulate, theta_hat0, labels = _study(args)
-    result = tune_eps_gamma(estimator, simulate, eps_values=args.eps, gammas=args.gamma,
-                            seeds=args.seeds, theta_hat0=theta_hat0, criterion=args.criterion,
-                            n_jobs=args.jobs, scheduler=args.scheduler)
-    print(result.table(labels))
+    setup = _study(args)
+    result = tune_eps_gamma(setup.estimator, setup.simulate, eps_values=args.eps,
+                            gammas=args.gamma, seeds=args.seeds, theta_hat0=setup.theta_hat0,
+                            criterion=args.criterion, n_jobs=args.jobs,
+                            scheduler=args.scheduler)
+    print(result.table(setup.state_names))
     out = Path(args.out)
     write_text(out / "tune.json", json.dumps(result.to_dict(), indent=2))
     print(f"wrote {out / 'tune.json'}")
@@ -190,47 +164,44 @@ def _is_fleet(data: str) -> bool:
     return Path(data).is_dir() or is_glob(data)
 
 
-def _estimate(args: argparse.Namespace) -> int:
-    if _is_fleet(args.data):
-        return _estimate_fleet(args)
-    import warnings
+def _check_estimate_outputs(args: argparse.Namespace) -> None:
+    """-o and --plot, before any work."""
+    from .io.datafile import ESTIMATE_SUFFIXES
+    from .safe_io import check_writable, same_file
 
-    from .io.datafile import ESTIMATE_SUFFIXES, read_data, write_estimates
-    from .modelfile import load_model, run_estimator, start_x_hat
-    from .progress import reporter
-    from .safe_io import atomic_path, check_writable, same_file
-    from .studies.information import explain_nonfinite, stuck_parameters
-    from .studies.metrics import estimate_summary
-
-    args.output = args.output or "estimates.csv"
-    inputs = [args.model, args.data]                                   # before any work:
+    inputs = [args.model, args.data]
     check_writable(args.output, inputs=inputs, suffixes=ESTIMATE_SUFFIXES, what="estimates")
     if args.plot:
         if same_file(args.plot, args.output):
             raise OptionError(f"--plot {args.plot} is also the estimates output (-o); give "
                               f"the figure its own name.")
         _check_plot(args.plot, inputs)
+
+
+def _estimate(args: argparse.Namespace) -> int:
+    if _is_fleet(args.data):
+        return _estimate_fleet(args)
+    import warnings
+
+    from .io.datafile import read_data, write_estimates
+    from .modelfile import load_model, run_estimator
+    from .progress import reporter
+    from .safe_io import atomic_path
+    from .studies.metrics import estimate_summary
+
+    args.output = args.output or "estimates.csv"
+    _check_estimate_outputs(args)
     spec = load_model(args.model)
     data = read_data(args.data, spec.layout, nan_policy=args.nan_policy)
     progress = None if args.no_progress else reporter("estimate")
-    with warnings.catch_warnings(record=True) as caught:
+    with warnings.catch_warnings(record=True) as caught:       # shown in the summary
         warnings.simplefilter("always")
-        try:
-            result = run_estimator(spec, data.t, data.u, data.y, hold=args.hold,
-                                   nan_policy=args.nan_policy, progress=progress,
-                                   method=args.method)
-        except (ThetahatError, ArithmeticError, ValueError) as exc:     # LinAlgError too
-            raise explain_nonfinite(exc, spec.system, data.t, data.u, data.y,
-                                    start_x_hat(spec, data.y), spec.estimator.theta_hat0
-                                    ) from exc
-    write_estimates(args.output, result, spec.layout)                  # atomic
+        result = run_estimator(spec, data.t, data.u, data.y, hold=args.hold,
+                               nan_policy=args.nan_policy, progress=progress,
+                               method=args.method)
+    write_estimates(args.output, result, spec.layout)                         # atomic
     print(f"wrote {args.output} ({data.t.size} rows)")
-    notes = [f"{w.category.__name__}: {w.message}" for w in caught]
-    stuck = stuck_parameters(spec.system, data.u, data.y, result.x_hat, result.theta_hat,
-                             spec.parameter_names)
-    if stuck:
-        notes.append(f"ConvergenceWarning: {stuck}")
-    print(estimate_summary(result, spec.parameter_names, warnings=notes))
+    print(estimate_summary(result, warnings=caught))
     if args.plot:
         from .plotting import plot_result
         with atomic_path(args.plot) as tmp:
@@ -274,17 +245,14 @@ def _codegen(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
-def _parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
-        prog="thetahat",
-        description="State, perturbation and parameter estimation for linear systems with "
-                    "nonlinearly parameterized perturbations (Grip, Saberi & Johansen).",
-        epilog=EXIT_CODES)
-    parser.add_argument("--version", action="version", version=f"thetahat {__version__}")
-    parser.add_argument("--debug", action="store_true",
-                        help="show the full traceback of an error")
-    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+# ---------------------------------------------------------------------------------------------
+# The parser: one function per subcommand
+# ---------------------------------------------------------------------------------------------
 
+_Subparsers = Any      # argparse._SubParsersAction, private in argparse
+
+
+def _add_demo(sub: _Subparsers) -> None:
     demo = sub.add_parser("demo", help="run the paper's example end to end (Sec. VIII)",
                           description="Run an example: structure, design, estimation, the "
                                       "figure (out/lugre.png), a summary (out/lugre.json) and "
@@ -298,6 +266,22 @@ def _parser() -> argparse.ArgumentParser:
     demo.add_argument("--show", action="store_true", help="open the figure window")
     demo.set_defaults(run=_demo)
 
+
+def _add_study_options(parser: argparse.ArgumentParser, runs: str) -> None:
+    """The options sweep and tune share: MODEL, --t-end, --jobs, --scheduler, --out."""
+    parser.add_argument("model", nargs="?", default=None,
+                        help="model file (.toml or .json); default: the LuGre example")
+    parser.add_argument("--t-end", type=float, default=None,
+                        help="simulated time in s (default: the scenario's; LuGre: 20)")
+    parser.add_argument("--jobs", type=int, default=1,
+                        help=f"worker processes{' over the ε values' if runs == 'ε' else ''} "
+                             f"(default: 1; -1: all cores)")
+    parser.add_argument("--scheduler", metavar="tcp://HOST:PORT", default=None,
+                        help=f"run the {runs} on this Dask cluster")
+    parser.add_argument("--out", default="out", help="output folder (default: out)")
+
+
+def _add_sweep(sub: _Subparsers) -> None:
     sweep = sub.add_parser("sweep", help="ε sweep of a model file or the LuGre example "
                                          "(Sec. VII)",
                            description="Run the estimator of MODEL (default: the LuGre "
@@ -305,22 +289,16 @@ def _parser() -> argparse.ArgumentParser:
                                        "records simulated from the file's [scenario]; print "
                                        "the table and where it stops being stable; write "
                                        "out/sweep.json and out/sweep.png.")
-    sweep.add_argument("model", nargs="?", default=None,
-                       help="model file (.toml or .json); default: the LuGre example")
     sweep.add_argument("--eps", type=float, nargs="+", default=[1, 0.7, 0.5, 0.3, 0.2, 0.1],
                        help="ε values, starting at 1 and decreasing (default: 1 0.7 0.5 0.3 "
                             "0.2 0.1)")
     sweep.add_argument("--seeds", type=int, default=5,
                        help="number of noise seeds 0, 1, ... (default: 5)")
-    sweep.add_argument("--t-end", type=float, default=None,
-                       help="simulated time in s (default: the scenario's; LuGre: 20)")
-    sweep.add_argument("--jobs", type=int, default=1,
-                       help="worker processes (default: 1; -1: all cores)")
-    sweep.add_argument("--scheduler", metavar="tcp://HOST:PORT", default=None,
-                       help="run the ε × seeds runs on this Dask cluster")
-    sweep.add_argument("--out", default="out", help="output folder (default: out)")
+    _add_study_options(sweep, "ε × seeds runs")
     sweep.set_defaults(run=_sweep)
 
+
+def _add_tune(sub: _Subparsers) -> None:
     tune = sub.add_parser("tune", help="pick ε and Γ for a model file or the LuGre example "
                                        "(Sec. VII)",
                           description="Grid search over (ε, Γ) on tuning seeds, ε decreasing "
@@ -329,8 +307,6 @@ def _parser() -> argparse.ArgumentParser:
                                       "[scenario]: reject pairs that diverge, pick the "
                                       "smallest worst-case score; print the table and write "
                                       "out/tune.json.")
-    tune.add_argument("model", nargs="?", default=None,
-                      help="model file (.toml or .json); default: the LuGre example")
     tune.add_argument("--eps", type=float, nargs="+", default=[1, 0.7, 0.5, 0.3],
                       help="ε values, starting at 1 and decreasing (default: 1 0.7 0.5 0.3)")
     tune.add_argument("--gamma", type=float, nargs="+", default=[1, 3, 10, 30],
@@ -340,15 +316,11 @@ def _parser() -> argparse.ArgumentParser:
                       help="tuning noise seeds (default: 1000 1001)")
     tune.add_argument("--criterion", choices=["theta_rmse", "t_1pct"], default="theta_rmse",
                       help="score to minimise, worst over the seeds (default: theta_rmse)")
-    tune.add_argument("--t-end", type=float, default=None,
-                      help="simulated time in s (default: the scenario's; LuGre: 20)")
-    tune.add_argument("--jobs", type=int, default=1,
-                      help="worker processes over the ε values (default: 1; -1: all cores)")
-    tune.add_argument("--scheduler", metavar="tcp://HOST:PORT", default=None,
-                      help="run the ε values on this Dask cluster")
-    tune.add_argument("--out", default="out", help="output folder (default: out)")
+    _add_study_options(tune, "ε")
     tune.set_defaults(run=_tune)
 
+
+def _add_analyze(sub: _Subparsers) -> None:
     analyze = sub.add_parser("analyze", help="structural report of a model file",
                              description="Assumption 1, the SCB of the error system (4) (and "
                                          "of the design system), K(ε) and the closed-loop "
@@ -358,6 +330,10 @@ def _parser() -> argparse.ArgumentParser:
                                     "why); 2 for bad input (an unreadable or invalid file).")
     analyze.add_argument("model", help="model file (.toml or .json)")
     analyze.set_defaults(run=_analyze)
+
+
+def _add_estimate(sub: _Subparsers) -> None:
+    from .methods import ESTIMATION_METHODS, method_help
 
     estimate = sub.add_parser(
         "estimate", help="run a model file's estimator on a record or a fleet of records",
@@ -390,19 +366,20 @@ def _parser() -> argparse.ArgumentParser:
                           help="fleet: run on this Dask cluster (default: in this process)")
     estimate.add_argument("--chunk-size", type=int, default=None,
                           help="fleet: records per task (default: about 16 tasks)")
-    estimate.add_argument("--method", choices=["paper", "guarded", "mle", "ekf"], default=None,
-                          help="estimator: the paper's observer, the guarded two-stage "
-                               "estimator, offline MAP fits or the joint EKF (default: the "
-                               "model file's [estimator] method, else paper)")
+    estimate.add_argument("--method", choices=ESTIMATION_METHODS, default=None,
+                          help=f"estimator ({method_help()}; default: the model file's "
+                               f"[estimator] method, else {ESTIMATION_METHODS[0]})")
     estimate.set_defaults(run=_estimate)
 
+
+def _add_codegen(sub: _Subparsers) -> None:
     codegen = sub.add_parser(
         "codegen", help="generate the model file's estimator as C99",
         description="Generate a dependency-free C99 observer <name>.h/<name>.c (fixed dt, "
-                    "no heap; the paper's estimator, [estimator] method = paper), a CSV harness <name>_main.c and a Makefile "
-                    "(make -C DIR builds DIR/<name>, which reads the CSV layout of `thetahat "
-                    "estimate` and writes its columns). Prints the sizes of the state struct "
-                    "and of the constants.")
+                    "no heap; the paper's estimator, [estimator] method = paper), a CSV "
+                    "harness <name>_main.c and a Makefile (make -C DIR builds DIR/<name>, "
+                    "which reads the CSV layout of `thetahat estimate` and writes its "
+                    "columns). Prints the sizes of the state struct and of the constants.")
     codegen.add_argument("model", help="model file (.toml or .json)")
     codegen.add_argument("--dt", type=float, required=True, help="fixed step length in s")
     codegen.add_argument("--eps", type=float, default=None,
@@ -418,6 +395,20 @@ def _parser() -> argparse.ArgumentParser:
                          help="sample hold; foh: <name>_step also takes the next samples")
     codegen.add_argument("-o", "--output", required=True, help="output folder")
     codegen.set_defaults(run=_codegen)
+
+
+def _parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="thetahat",
+        description="State, perturbation and parameter estimation for linear systems with "
+                    "nonlinearly parameterized perturbations (Grip, Saberi & Johansen).",
+        epilog=EXIT_CODES)
+    parser.add_argument("--version", action="version", version=f"thetahat {__version__}")
+    parser.add_argument("--debug", action="store_true",
+                        help="show the full traceback of an error")
+    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+    for add in (_add_demo, _add_sweep, _add_tune, _add_analyze, _add_estimate, _add_codegen):
+        add(sub)
     return parser
 
 

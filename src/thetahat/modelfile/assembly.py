@@ -19,15 +19,17 @@ from numpy.typing import ArrayLike, NDArray
 
 from .._validate import as_samples, seconds_from_first
 from ..design.gains import GainDesign
-from ..errors import (ModelFileError, NotMinimumPhaseError, ThetahatError, ThetahatWarning,
-                      UnstableDesignError)
+from ..errors import (ConvergenceWarning, ModelFileError, NotMinimumPhaseError, ThetahatError,
+                      ThetahatWarning, UnstableDesignError)
 from ..estimation.observer.checks import check_theta_star
 from ..estimation.observer.initial_state import x_hat_from_output
 from ..estimation.observer.observer import HeldObserver, ModifiedHighGainObserver
 from ..estimation.protocol import EstimateResult, Estimator
+from ..methods import MethodInputs, get_method
 from ..model.system import PerturbedLinearSystem
 from ..spec import SECOND_DESIGN_NOTE, EstimatorSpec, Hold, SecondObserverSpec
-from .schema import ESTIMATION_METHODS, ModelSpec
+from ..studies.information import explain_nonfinite, stuck_parameters
+from .schema import ModelSpec
 
 if TYPE_CHECKING:
     from ..estimation.statistical.trust import TrustReport
@@ -36,9 +38,6 @@ __all__ = ["auto_gamma", "build_estimator", "build_observer", "design_gains",
            "design_matrices", "estimator_spec", "run_estimator", "start_x_hat"]
 
 FloatArray = NDArray[np.float64]
-
-#: The methods that run the paper's observer (with the law's θ*, checked on the record first).
-OBSERVER_METHODS = ("paper", "guarded")
 
 
 def design_matrices(spec: ModelSpec) -> tuple[FloatArray, FloatArray, FloatArray]:
@@ -243,9 +242,10 @@ def build_estimator(spec: ModelSpec, *, method: str | None = None, hold: Hold = 
     ----------
     spec : ModelSpec
         From :func:`~thetahat.modelfile.schema.load_model`.
-    method : {"paper", "guarded", "mle", "ekf"}, optional
-        The paper's observer (default: the file's ``[estimator] method``), the two-stage
-        guarded estimator (that observer as stage 1), the MAP fits or the joint EKF.
+    method : str, optional
+        One of :data:`thetahat.methods.ESTIMATION_METHODS` (default: the file's
+        ``[estimator] method``): the paper's observer, the two-stage guarded estimator (that
+        observer as stage 1), the MAP fits or the joint EKF.
     hold : {"zoh", "foh"}
         Sample hold of the observer's ``run`` (``step`` always holds the samples).
     nan_policy : {"raise", "skip"}
@@ -266,9 +266,11 @@ def build_estimator(spec: ModelSpec, *, method: str | None = None, hold: Hold = 
 
     Raises
     ------
+    OptionError
+        Unknown ``method``.
     ModelFileError
-        Unknown ``method``; or ``Gamma = "auto"`` in the file and no ``Gamma`` given (it is
-        chosen on a record: :func:`auto_gamma`).
+        ``Gamma = "auto"`` in the file and no ``Gamma`` given (it is chosen on a record:
+        :func:`auto_gamma`).
     NotMinimumPhaseError, UnstableDesignError
         As for :func:`build_observer` (the observer's methods).
 
@@ -277,28 +279,21 @@ def build_estimator(spec: ModelSpec, *, method: str | None = None, hold: Hold = 
     >>> from thetahat.modelfile import EXAMPLE_MODEL, build_estimator, loads_model
     >>> from thetahat.estimation.protocol import Estimator
     >>> spec = loads_model(EXAMPLE_MODEL)
-    >>> all(isinstance(build_estimator(spec, method=m), Estimator)
-    ...     for m in ("paper", "guarded", "mle", "ekf"))
+    >>> from thetahat.methods import ESTIMATION_METHODS
+    >>> all(isinstance(build_estimator(spec, method=m), Estimator) for m in ESTIMATION_METHODS)
     True
     """
-    how = spec.estimator.method if method is None else method
-    if how not in ESTIMATION_METHODS:
-        raise ModelFileError(f"method must be one of {list(ESTIMATION_METHODS)}; got {how!r}.")
-    if how == "mle":
-        from ..estimation.statistical.mle import MapEstimator
-        return MapEstimator(system=spec.system, compiled=compiled)
-    if how == "ekf":
-        from ..estimation.statistical.ekf import JointEKF
-        return JointEKF(system=spec.system, compiled=compiled)
-    if Gamma is None:
-        _refuse_auto_gamma(spec)
-    obs = HeldObserver(observer=_build(estimator_spec(spec, hold=hold, nan_policy=nan_policy),
-                                       spec, None, Gamma=Gamma), hold=hold, progress=progress,
-                       compiled=compiled)
-    if how == "paper":
-        return obs
-    from ..estimation.statistical.guarded import GuardedEstimator
-    return GuardedEstimator(stage1=obs, system=spec.system, compiled=compiled)
+    how = get_method(spec.estimator.method if method is None else method)
+
+    def observer() -> Estimator:
+        if Gamma is None:
+            _refuse_auto_gamma(spec)
+        return HeldObserver(observer=_build(estimator_spec(spec, hold=hold,
+                                                           nan_policy=nan_policy),
+                                            spec, None, Gamma=Gamma),
+                            hold=hold, progress=progress, compiled=compiled)
+
+    return how.build(MethodInputs(system=spec.system, observer=observer, compiled=compiled))
 
 
 def run_estimator(spec: ModelSpec, t: ArrayLike, u: ArrayLike | None, y: ArrayLike, *,
@@ -330,22 +325,28 @@ def run_estimator(spec: ModelSpec, t: ArrayLike, u: ArrayLike | None, y: ArrayLi
         What the observer does with a NaN sample (a dropout).
     progress : callable, optional
         ``progress(done, total)`` called as samples are processed (the observer's methods).
-    method : {"paper", "guarded", "mle", "ekf"}, optional
-        The estimator (default: the file's ``[estimator] method``).
+    method : str, optional
+        The estimator, one of :data:`thetahat.methods.ESTIMATION_METHODS` (default: the
+        file's ``[estimator] method``).
     compiled : bool, optional
         numba kernels (default: when installed; for the paper's observer, on records of at
         least :data:`~thetahat.estimation.drive.COMPILE_MIN_SAMPLES` samples, see
         :func:`~thetahat.estimation.drive.runner`). A part the kernel does not support
         falls back to Python with a one-line ThetahatWarning.
     diagnose : bool
-        Check the result (:func:`~thetahat.estimation.statistical.trust.trust_report`: the Cramér–Rao
-        standard deviation of each parameter on this record, Θ's boundary, the guard's band,
-        the model error) into ``result.trust``, and warn (:class:`~thetahat.errors.
-        ThetahatWarning`) of what makes it less than trustworthy.
+        Check the result (:func:`~thetahat.estimation.statistical.trust.trust_report`: the
+        Cramér–Rao standard deviation of each parameter on this record, Θ's boundary, the
+        guard's band, the model error) into ``result.trust``, and warn of what makes it less
+        than trustworthy (:class:`~thetahat.errors.ThetahatWarning`; a
+        :class:`~thetahat.errors.ConvergenceWarning` when no information reached the update
+        law for a parameter, :func:`~thetahat.studies.information.stuck_parameters`). A run
+        that fails is diagnosed too: the error names g undefined on the data, or the data's
+        scale (:func:`~thetahat.studies.information.explain_nonfinite`).
 
     Returns
     -------
     EstimateResult
+        With ``names``: the file's names of the states, parameters, inputs and outputs.
 
     Raises
     ------
@@ -354,7 +355,10 @@ def run_estimator(spec: ModelSpec, t: ArrayLike, u: ArrayLike | None, y: ArrayLi
         the message names the instants).
     NotMinimumPhaseError, UnstableDesignError
         As for :func:`build_observer`.
-    ModelFileError
+    NonFiniteError, SimulationError
+        The run failed numerically; the message says why when the data show it (g undefined
+        on the data, the data's scale).
+    OptionError
         Unknown ``method``.
 
     Examples
@@ -364,34 +368,42 @@ def run_estimator(spec: ModelSpec, t: ArrayLike, u: ArrayLike | None, y: ArrayLi
     >>> spec = loads_model(EXAMPLE_MODEL)
     >>> t = np.arange(0.0, 1.0, 0.01)
     >>> res = run_estimator(spec, t, np.sin(t)[:, None], np.zeros((t.size, 1)))
-    >>> res.theta_hat.shape
-    (100, 1)
+    >>> res.theta_hat.shape, res.names.states
+    ((100, 1), ('x1', 'x2'))
     """
-    how = spec.estimator.method if method is None else method
-    if how not in ESTIMATION_METHODS:
-        raise ModelFileError(f"method must be one of {list(ESTIMATION_METHODS)}; got {how!r}.")
+    how = get_method(spec.estimator.method if method is None else method)
     # every method sees the same samples: masked entries as NaN, dates as seconds, booleans,
     # text and dates in u or y refused
     t = as_samples("t", seconds_from_first("t", t))
     u = None if u is None else as_samples("u", u)
     y = as_samples("y", y)
-    gamma = None
-    if how in OBSERVER_METHODS:
-        _check_theta_star(spec, t, u, y)
-        if spec.estimator.gamma_auto:
-            gamma = auto_gamma(spec, t, u, y, hold=hold)
-    est = build_estimator(spec, method=how, hold=hold, nan_policy=nan_policy,
-                          compiled=compiled, progress=progress, Gamma=gamma)
     x0, th0 = start_x_hat(spec, y), spec.estimator.theta_hat0
-    result = est.run(t, u, y, state0=est.init(x_hat0=x0, theta_hat0=th0))
+    try:
+        gamma = None
+        if how.runs_observer:
+            _check_theta_star(spec, t, u, y)
+            if spec.estimator.gamma_auto:
+                gamma = auto_gamma(spec, t, u, y, hold=hold)
+        est = build_estimator(spec, method=how.name, hold=hold, nan_policy=nan_policy,
+                              compiled=compiled, progress=progress, Gamma=gamma)
+        result = est.run(t, u, y, state0=est.init(x_hat0=x0, theta_hat0=th0))
+    except (ThetahatError, ArithmeticError, ValueError) as exc:       # LinAlgError too
+        if not diagnose:
+            raise
+        err = explain_nonfinite(exc, spec.system, t, u, y, x0, th0)
+        if err is exc:
+            raise
+        raise err from exc
+    result = dataclasses.replace(result, names=spec.signal_names)
     if not diagnose:
         return result
-    from ..estimation.statistical.guarded import GuardedDiagnostics
-    d = result.diagnostics
-    band = d.band if isinstance(d, GuardedDiagnostics) else None
-    report = _trust(spec, result, u, y, band, compiled, x0)
+    report = _trust(spec, result, u, y, compiled, x0)
     for text in report.warnings:
         warnings.warn(text, ThetahatWarning, stacklevel=2)
+    stuck = stuck_parameters(spec.system, u, y, result.x_hat, result.theta_hat,
+                             spec.parameter_names)
+    if stuck:
+        warnings.warn(stuck, ConvergenceWarning, stacklevel=2)
     return dataclasses.replace(result, trust=report)
 
 
@@ -501,9 +513,13 @@ def _check_theta_star(spec: ModelSpec, t: ArrayLike, u: ArrayLike | None, y: Arr
 
 
 def _trust(spec: ModelSpec, result: EstimateResult, u: ArrayLike | None, y: ArrayLike,
-           band: FloatArray | None, compiled: bool | None, x0: FloatArray) -> TrustReport:
-    """The trust report of a run of the file's estimator on its record."""
+           compiled: bool | None, x0: FloatArray) -> TrustReport:
+    """The trust report of a run of the file's estimator on its record (with the guard's band
+    of a guarded run)."""
+    from ..estimation.statistical.guarded import GuardedDiagnostics
     from ..estimation.statistical.trust import trust_report
+    d = result.diagnostics
+    band = d.band if isinstance(d, GuardedDiagnostics) else None
     N = result.t.shape[0]
     U = np.zeros((N, 0)) if u is None else np.asarray(u, dtype=np.float64).reshape(N, -1)
     Y = np.asarray(y, dtype=np.float64).reshape(N, -1)

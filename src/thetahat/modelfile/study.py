@@ -4,15 +4,18 @@
 :class:`~thetahat.spec.EstimatorSpec` (:func:`~thetahat.modelfile.assembly.estimator_spec`)
 on records simulated by :func:`simulate_model` from the file's ``[scenario]``: the system (1)
 with the file's own g as the true perturbation, evaluated on the noise-free output C x, and
-white noise on y.
+white noise on y. :func:`study_setup` gathers what such a study runs: the spec (with
+``Gamma = "auto"`` chosen on the scenario's first record), the simulator, θ̂(0), the state
+names, and a sentence on the experiment assumed when ``[scenario]`` does not define it.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import cast
+from typing import Any, cast
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -21,11 +24,18 @@ from ..model.perturbation import Perturbation
 from ..simulation.noise import Seed, WhiteNoise
 from ..simulation.signals import Multisine
 from ..simulation.simulate import PlantTrajectory, simulate_plant
+from ..spec import EstimatorSpec
+from .assembly import auto_gamma, estimator_spec
 from .schema import ModelSpec
 
-__all__ = ["ModelPhi", "simulate_model", "study_simulator"]
+__all__ = ["EXPERIMENT_KEYS", "ModelPhi", "StudySetup", "simulate_model", "study_setup",
+           "study_simulator"]
 
 FloatArray = NDArray[np.float64]
+
+#: The ``[scenario]`` keys that define the experiment (a study says which it assumed; the
+#: integrator's settings are not announced).
+EXPERIMENT_KEYS = ("theta", "u_amplitudes", "u_frequencies", "noise_std", "t_end", "fs")
 
 
 @dataclass(frozen=True, slots=True, eq=False)
@@ -151,3 +161,76 @@ def study_simulator(spec: ModelSpec, *, t_end: float | None = None
     (101, 1)
     """
     return functools.partial(simulate_model, spec, t_end=t_end)
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class StudySetup:
+    """What an ε sweep or an (ε, Γ) search of a model runs (``thetahat sweep``/``tune``).
+
+    Attributes
+    ----------
+    estimator : EstimatorSpec
+        The estimator, built for every ε and Γ from one SCB.
+    simulate : callable
+        ``simulate(seed) -> PlantTrajectory``, picklable.
+    theta_hat0 : array_like, shape (p,)
+        θ̂(0) of every run.
+    state_names : tuple of str
+        The n state names (the tables' labels).
+    assumed : str or None
+        A sentence naming the experiment keys the model does not give and the scenario
+        assumed; None when it gives them all.
+    """
+
+    estimator: EstimatorSpec
+    simulate: Callable[[int], PlantTrajectory]
+    theta_hat0: Any
+    state_names: tuple[str, ...]
+    assumed: str | None = None
+
+    def __repr__(self) -> str:
+        return (f"StudySetup(estimator={self.estimator!r}, state_names={self.state_names}, "
+                f"assumed={self.assumed is not None})")
+
+
+def study_setup(spec: ModelSpec, *, t_end: float | None = None) -> StudySetup:
+    """What ``thetahat sweep MODEL`` and ``thetahat tune MODEL`` run.
+
+    Parameters
+    ----------
+    spec : ModelSpec
+        From :func:`~thetahat.modelfile.schema.load_model`.
+    t_end : float, optional
+        Overrides the scenario's duration (s).
+
+    Returns
+    -------
+    StudySetup
+        The file's :class:`~thetahat.spec.EstimatorSpec` (``Gamma = "auto"``: Γ chosen on
+        the scenario's first record, seed 0, by :func:`~thetahat.modelfile.auto_gamma`), the
+        simulator of :func:`study_simulator`, the file's θ̂(0) and state names, and which of
+        :data:`EXPERIMENT_KEYS` the file left to their defaults.
+
+    Raises
+    ------
+    ModelFileError, NotMinimumPhaseError, UnstableDesignError
+        As for :func:`~thetahat.modelfile.estimator_spec`.
+
+    Examples
+    --------
+    >>> from thetahat.modelfile import EXAMPLE_MODEL, loads_model
+    >>> from thetahat.modelfile.study import study_setup
+    >>> setup = study_setup(loads_model(EXAMPLE_MODEL), t_end=1.0)
+    >>> setup.state_names, setup.assumed.split(";")[0]
+    (('x1', 'x2'), '<string> [scenario] gives no theta, u_amplitudes, u_frequencies, noise_std, t_end, fs')
+    """
+    chosen = [k for k in EXPERIMENT_KEYS if k in spec.scenario.defaults]
+    assumed = (f"{spec.source} [scenario] gives no {', '.join(chosen)}; using "
+               f"{spec.scenario!r}" if chosen else None)
+    est, simulate = estimator_spec(spec), study_simulator(spec, t_end=t_end)
+    if spec.estimator.gamma_auto:       # Γ = "auto": chosen on the scenario's first record
+        first = simulate(0)
+        est = dataclasses.replace(est, law=est.law_with_gamma(
+            auto_gamma(spec, first.t, first.u, first.y)))
+    return StudySetup(estimator=est, simulate=simulate, theta_hat0=spec.estimator.theta_hat0,
+                      state_names=spec.state_names, assumed=assumed)

@@ -21,7 +21,7 @@ from typing import Sequence
 import numpy as np
 from numpy.typing import NDArray
 
-from ..safe_io import atomic_path
+from ..safe_io import atomic_path, check_writable
 from . import emps
 
 __all__ = ["MODEL_FILE", "METHODS", "EmpsRun", "EmpsReport", "report"]
@@ -164,8 +164,8 @@ def report(*, out: Path | str = "out", methods: Sequence[str] = METHODS,
     out : path
         Output folder (created); the estimates go to ``out/emps_<method>.csv``, the figure
         to ``out/emps.png``.
-    methods : sequence of {"paper", "guarded", "mle"}
-        The estimators, in the table's order.
+    methods : sequence of str
+        The estimators (names of :data:`thetahat.methods.METHODS`), in the table's order.
     verbose : bool
         Print each summary and the tables.
 
@@ -177,12 +177,15 @@ def report(*, out: Path | str = "out", methods: Sequence[str] = METHODS,
     ------
     ModelFileError
         The model file or the record is missing (an installed package without the
-        repository's ``examples/``).
+        repository's ``examples/``), or an output cannot be written (checked before any
+        work).
     """
     from ..io.datafile import read_data, write_estimates
     from ..modelfile import load_model, run_estimator
     from ..studies.metrics import estimate_summary
 
+    for name in [f"emps_{method}.csv" for method in methods] + ["emps.png"]:   # before work
+        check_writable(Path(out) / name)
     spec = load_model(MODEL_FILE)
     data = read_data(emps.DATA_FILE, spec.layout)
     record = emps.load()
@@ -204,7 +207,7 @@ def report(*, out: Path | str = "out", methods: Sequence[str] = METHODS,
         if verbose:
             print(f"EMPS (Janot, Gautier & Brunot 2019): {data.t.size} samples, "
                   f"{MODEL_FILE.name}, method {method}; wrote {path}")
-            print(estimate_summary(result, spec.parameter_names, warnings=notes))
+            print(estimate_summary(result, warnings=notes))
             print()
     figure = _figure(runs, record, Path(out) / "emps.png")
     done = EmpsReport(runs=tuple(runs), published=emps.validate(emps.PUBLISHED.value, record),

@@ -22,7 +22,7 @@ import dataclasses
 import functools
 import warnings
 from dataclasses import dataclass, field
-from typing import Any, cast
+from typing import TYPE_CHECKING, Any, cast
 
 import numpy as np
 import sympy as sp
@@ -34,6 +34,7 @@ from ..errors import ArgumentTypeError, DimensionError, ParameterSetError, Theta
 from ..estimation.observer.observer import ModifiedHighGainObserver
 from ..estimation.protocol import Estimator
 from ..estimation.observer.laws.theta_star import ThetaStar
+from ..methods import MethodInputs, get_method
 from ..model.paramset import Box
 from ..model.perturbation import SymbolicPerturbation
 from ..model.system import PerturbedLinearSystem
@@ -42,13 +43,15 @@ from ..simulation.signals import Multisine, Signal
 from ..simulation.simulate import PlantTrajectory, simulate_plant
 from ..spec import EstimatorSpec, SecondObserverSpec
 
+if TYPE_CHECKING:
+    from ..modelfile.study import StudySetup
+
 __all__ = [
     "LUGRE_ATOL",
     "LUGRE_METHOD",
     "LUGRE_RTOL",
     "LuGreParameters",
     "LuGrePhi",
-    "METHODS",
     "estimator",
     "Scenario",
     "design_system",
@@ -58,6 +61,7 @@ __all__ = [
     "observer",
     "perturbation",
     "simulate",
+    "study_setup",
     "system",
     "theta_star",
     "true_phi",
@@ -643,10 +647,6 @@ def designs(eps: float = 1.0, *, eps2: float = 1.0, params: LuGreParameters = Lu
     return spec.design, cast(GainDesign, spec.design2)       # second=True: always designed
 
 
-#: The estimation methods of :func:`estimator`.
-METHODS = ("paper", "guarded", "mle", "ekf")
-
-
 def estimator(method: str = "guarded", *, eps: float = 1.0, Gamma: float = 1.0,
               noise_std: float | None = None, params: LuGreParameters = LuGreParameters(),
               compiled: bool | None = None, dt: float = 1e-3) -> Estimator:
@@ -665,8 +665,9 @@ def estimator(method: str = "guarded", *, eps: float = 1.0, Gamma: float = 1.0,
 
     Parameters
     ----------
-    method : {"paper", "guarded", "mle", "ekf"}
-        The estimator (default ``"guarded"``).
+    method : str
+        The estimator, one of :data:`thetahat.methods.ESTIMATION_METHODS` (default
+        ``"guarded"``).
     eps, Gamma : float
         Stage 1's tuning: ε of the observer and Γ of the update law (the paper's: 1, 1);
         not used by ``"mle"``.
@@ -693,8 +694,8 @@ def estimator(method: str = "guarded", *, eps: float = 1.0, Gamma: float = 1.0,
 
     Raises
     ------
-    DimensionError
-        Unknown method.
+    OptionError
+        Unknown method (:func:`thetahat.methods.get_method`).
 
     Examples
     --------
@@ -705,24 +706,45 @@ def estimator(method: str = "guarded", *, eps: float = 1.0, Gamma: float = 1.0,
     >>> res.theta_hat.shape
     (201, 1)
     """
-    from ..estimation.statistical.guarded import GuardedEstimator
-    from ..estimation.statistical.mle import MapEstimator
-    from ..estimation.statistical.plant_kernel import have_numba
+    how = get_method(method)
 
-    if method not in METHODS:
-        raise DimensionError(f"method must be one of {METHODS}; got {method!r}.")
-    if method == "mle":
-        return MapEstimator(system=system(params), noise_std=noise_std, compiled=compiled)
-    if method == "ekf":
-        from ..estimation.statistical.ekf import JointEKF
-        return JointEKF(system=system(params), noise_std=noise_std, compiled=compiled)
-    obs = observer(eps, Gamma=Gamma, params=params)
-    if method == "paper":
-        return obs
-    use = have_numba() if compiled is None else compiled
-    stage1: Any = obs
-    if use:                                  # the fastest back end for steps of dt
+    def stage1() -> Estimator:                   # the fastest back end for steps of dt
         from ..estimation.drive import runner
-        stage1 = runner(obs, (0.0, dt), compiled=True)
-    return GuardedEstimator(stage1=stage1, system=system(params), noise_std=noise_std,
-                            compiled=compiled)
+        from ..estimation.statistical.plant_kernel import have_numba
+        obs = observer(eps, Gamma=Gamma, params=params)
+        use = have_numba() if compiled is None else compiled
+        return cast(Estimator, runner(obs, (0.0, dt), compiled=True)) if use else obs
+
+    return how.build(MethodInputs(
+        system=system(params), observer=lambda: observer(eps, Gamma=Gamma, params=params),
+        stage1=stage1, noise_std=noise_std, compiled=compiled))
+
+
+def study_setup(*, t_end: float | None = None) -> StudySetup:
+    """What ``thetahat sweep`` and ``thetahat tune`` run without a model file: the paper's
+    estimator on the default scenario.
+
+    Parameters
+    ----------
+    t_end : float, optional
+        Simulated time (s); default 20, the :class:`Scenario`'s.
+
+    Returns
+    -------
+    StudySetup
+        :func:`estimator_spec`, :func:`simulate` for ``t_end``, the scenario's θ̂(0) and the
+        state names ω, η.
+
+    Examples
+    --------
+    >>> from thetahat.models import lugre
+    >>> setup = lugre.study_setup(t_end=1.0)
+    >>> setup.state_names, float(setup.simulate(0).t[-1])
+    (('omega', 'eta'), 1.0)
+    """
+    from ..modelfile.study import StudySetup
+    return StudySetup(estimator=estimator_spec(),
+                      simulate=functools.partial(simulate, t_end=Scenario().t_end
+                                                 if t_end is None else t_end),
+                      theta_hat0=[Scenario().theta_hat0],
+                      state_names=tuple(str(s) for s in perturbation().x))

@@ -24,7 +24,7 @@ from ..design.gains import extended_system
 from ..errors import IllConditionedWarning
 from ..structure.assumptions import check_assumption_1
 from ..structure.scb import scb
-from ..safe_io import atomic_path, write_text
+from ..safe_io import atomic_path, check_writable, write_text
 from ..studies.metrics import rmse, time_to_within
 
 
@@ -36,6 +36,10 @@ def structure_report(params: lugre.LuGreParameters) -> None:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", IllConditionedWarning)
             print(f"    SCB of (4): {scb(*extended_system(lin.A, lin.E, lin.C))}")
+
+
+#: The files :func:`report` writes into its folder.
+OUTPUTS = ("lugre.json", "lugre.png", "lugre_data.csv")
 
 
 def report(*, out: Path | str = "out", eps: float = 1.0, seed: int = 0, show: bool = False,
@@ -62,9 +66,16 @@ def report(*, out: Path | str = "out", eps: float = 1.0, seed: int = 0, show: bo
         The content of ``lugre.json``: ``K1``, ``K2``, ``theta_hat_final``, ``t_5pct``,
         ``t_1pct``, ``rmse`` (ω̂, η̂ of both observers, over all samples and over t ≥ 10 s),
         ``wall_s``.
+
+    Raises
+    ------
+    ModelFileError
+        An output (:data:`OUTPUTS`) cannot be written (checked before any work).
     """
     say = print if verbose else (lambda *a, **k: None)
     out = Path(out)
+    for name in OUTPUTS:                                              # before any work
+        check_writable(out / name)
     params = lugre.LuGreParameters()
     if verbose:
         structure_report(params)

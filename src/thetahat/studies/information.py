@@ -173,6 +173,10 @@ def undefined_perturbation(system: Any, t: ArrayLike, u: ArrayLike | None, y: Ar
     return None
 
 
+#: The end of an explained numerical failure: what to check.
+_SCALE_ADVICE = "check that they are in the model's units and scale"
+
+
 def explain_nonfinite(exc: BaseException, system: Any, t: ArrayLike, u: ArrayLike | None,
                       y: ArrayLike, x_hat0: ArrayLike,
                       theta_hat0: ArrayLike | None = None) -> BaseException:
@@ -180,7 +184,8 @@ def explain_nonfinite(exc: BaseException, system: Any, t: ArrayLike, u: ArrayLik
     (:func:`undefined_perturbation`), a :class:`~thetahat.errors.NonFiniteError` naming that
     cause; a numerical failure outside thetahat's errors (``LinAlgError``, an overflow)
     becomes a :class:`~thetahat.errors.SimulationError` with the scale of the data; else
-    ``exc`` itself.
+    ``exc`` itself. An error it explained already is returned as it is (explaining twice adds
+    nothing).
 
     Parameters
     ----------
@@ -206,6 +211,8 @@ def explain_nonfinite(exc: BaseException, system: Any, t: ArrayLike, u: ArrayLik
     ...                         [0.0])
     >>> type(err).__name__, str(err)[:40]
     ('NonFiniteError', 'g is undefined (NaN or inf) at t = 0, wi')
+    >>> explain_nonfinite(err, sys, [0.0], None, [[1.0]], [0.0], [0.0]) is err
+    True
     """
     from ..errors import NonFiniteError, SimulationError, ThetahatError
 
@@ -214,6 +221,8 @@ def explain_nonfinite(exc: BaseException, system: Any, t: ArrayLike, u: ArrayLik
     except Exception:  # noqa: BLE001 - a diagnosis must never hide the original failure
         cause = None
     if cause is not None:
+        if cause in str(exc):                  # explained already (run_estimator, then fleet)
+            return exc
         return NonFiniteError(f"{cause} (the run then failed: {exc})")
     numeric = isinstance(exc, NonFiniteError)        # a diverged or singular step: a status
     if not numeric and (isinstance(exc, ThetahatError)
@@ -224,9 +233,10 @@ def explain_nonfinite(exc: BaseException, system: Any, t: ArrayLike, u: ArrayLik
                 (("u", np.asarray(u, dtype=np.float64) if u is not None else np.zeros(0)),
                  ("y", np.asarray(y, dtype=np.float64)))}
     if numeric:
+        if _SCALE_ADVICE in str(exc):          # explained already
+            return exc
         return NonFiniteError(f"{str(exc).rstrip('.')}; the data reach |u| = {size['u']:.3g} "
-                              f"and |y| = {size['y']:.3g}: check that they are in the model's "
-                              "units and scale.")
+                              f"and |y| = {size['y']:.3g}: {_SCALE_ADVICE}.")
     return SimulationError(f"the run failed numerically ({type(exc).__name__}: {exc}); the "
                            f"data reach |u| = {size['u']:.3g} and |y| = {size['y']:.3g}: "
                            f"check that they are in the model's units and scale (the "

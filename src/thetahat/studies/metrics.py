@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import warnings as _warnings
 from collections.abc import Sequence
 
 import numpy as np
@@ -10,8 +11,10 @@ from numpy.typing import ArrayLike, NDArray
 from .._validate import as_vector, positive_scalar
 from ..errors import DimensionError
 from ..estimation.protocol import EstimateResult
+from ..tables import result_names
 
-__all__ = ["DIVERGENCE_FACTOR", "diverged", "divergence_reason", "rmse", "time_to_within"]
+__all__ = ["DIVERGENCE_FACTOR", "diverged", "divergence_reason", "estimate_summary", "rmse",
+           "time_to_within"]
 
 FloatArray = NDArray[np.float64]
 
@@ -151,18 +154,21 @@ def divergence_reason(name: str, estimate: ArrayLike, scale: float) -> str | Non
 SETTLE_REL = 0.01
 
 
-def estimate_summary(result: EstimateResult, parameter_names: Sequence[str], *,
-                     warnings: Sequence[str] = ()) -> str:
+def estimate_summary(result: EstimateResult, parameter_names: Sequence[str] | None = None, *,
+                     warnings: Sequence[str | _warnings.WarningMessage] = ()) -> str:
     """A few lines on an estimate: final θ̂, when it settled, skipped samples, warnings.
 
     Parameters
     ----------
     result : EstimateResult
-        From any estimator's ``run`` (reads ``t``, ``theta_hat``, ``skipped`` and ``trust``).
-    parameter_names : sequence of str
-        Names of the p parameters.
-    warnings : sequence of str
-        Warnings raised during the run.
+        From any estimator's ``run`` (reads ``t``, ``theta_hat``, ``skipped``, ``trust`` and
+        ``names``).
+    parameter_names : sequence of str, optional
+        Names of the p parameters (default: the result's own, as
+        :func:`~thetahat.modelfile.run_estimator` sets them; else 1, 2, …).
+    warnings : sequence of str or warnings.WarningMessage
+        Warnings raised during the run: sentences, or as ``warnings.catch_warnings(record=True)``
+        records them (shown as ``Category: message``).
 
     Returns
     -------
@@ -193,7 +199,8 @@ def estimate_summary(result: EstimateResult, parameter_names: Sequence[str], *,
     inside = np.all(np.abs(th - final) <= band, axis=1)
     outside = np.flatnonzero(~inside)
     settle = t[0] if outside.size == 0 else t[min(outside[-1] + 1, t.size - 1)]
-    values = ", ".join(f"{n} = {v:.6g}" for n, v in zip(parameter_names, final))
+    names = result_names(result, parameter_names=parameter_names)[1]
+    values = ", ".join(f"{n} = {v:.6g}" for n, v in zip(names, final))
     settled = (f"settled (within {SETTLE_REL * 100:g} % of the final value) at t = "
                f"{settle:.6g} of [{t[0]:.6g}, {t[-1]:.6g}]" if t.size > 1 else
                "settled: not decided (a single sample has no course to settle)")
@@ -201,5 +208,7 @@ def estimate_summary(result: EstimateResult, parameter_names: Sequence[str], *,
              f"skipped samples (dropouts): {int(np.sum(result.skipped))}"]
     if result.trust is not None:                 # checked by run_estimator
         lines += result.trust.lines()
-    lines.append("warnings: " + ("none" if not warnings else "; ".join(dict.fromkeys(warnings))))
+    notes = [w if isinstance(w, str) else f"{w.category.__name__}: {w.message}"
+             for w in warnings]
+    lines.append("warnings: " + ("none" if not notes else "; ".join(dict.fromkeys(notes))))
     return "\n".join(lines)
