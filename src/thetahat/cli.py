@@ -192,7 +192,8 @@ def _estimate(args: argparse.Namespace) -> int:
     args.output = args.output or "estimates.csv"
     _check_estimate_outputs(args)
     spec = load_model(args.model)
-    data = read_data(args.data, spec.layout, nan_policy=args.nan_policy)
+    data = read_data(args.data, spec.layout, nan_policy=args.nan_policy,
+                     delimiter=_delimiter(args.delimiter))
     progress = None if args.no_progress else reporter("estimate")
     with warnings.catch_warnings(record=True) as caught:       # shown in the summary
         warnings.simplefilter("always")
@@ -220,7 +221,8 @@ def _estimate_fleet(args: argparse.Namespace) -> int:
     check_output(output, args.model, fleet_files(args.data), args.data)   # before any work
     result = estimate_many(args.model, args.data, scheduler=args.scheduler,
                            chunk_size=args.chunk_size, hold=args.hold, method=args.method,
-                           nan_policy=args.nan_policy, progress=not args.no_progress)
+                           nan_policy=args.nan_policy, progress=not args.no_progress,
+                           delimiter=_delimiter(args.delimiter))
     result.write(output)
     print(f"wrote {output} ({len(result.rows)} files: {result.n_ok} ok, "
           f"{len(result.rows) - result.n_ok} failed)")
@@ -332,6 +334,11 @@ def _add_analyze(sub: _Subparsers) -> None:
     analyze.set_defaults(run=_analyze)
 
 
+def _delimiter(choice: str | None) -> str | None:
+    """The --delimiter choice as the reader takes it ("tab" is a tab character)."""
+    return "\t" if choice == "tab" else choice
+
+
 def _add_estimate(sub: _Subparsers) -> None:
     from .methods import ESTIMATION_METHODS, method_help
 
@@ -357,6 +364,9 @@ def _add_estimate(sub: _Subparsers) -> None:
                           help="empty or NaN output cells (dropouts): refuse the file (raise, "
                                "default) or predict over them without output correction "
                                "(skip)")
+    estimate.add_argument("--delimiter", choices=[",", ";", "tab"], default=None,
+                          help="the CSV column separator (default: detected from the header; "
+                               "a European Excel export uses ';' and a decimal comma)")
     estimate.add_argument("--no-progress", action="store_true",
                           help="do not report progress on stderr")
     estimate.add_argument("--plot", metavar="FIG.png", default=None,
