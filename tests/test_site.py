@@ -124,14 +124,27 @@ def _source_formulas(page: Path) -> int:
     return len(SOURCE_MATH.findall(text))
 
 
-def test_built_site_has_no_raw_tex_and_no_math_script():
-    """Offline reading: no page loads a script to typeset math (MathJax, KaTeX) and none
-    shows TeX raw ($…$, \\(, \\[, \\begin{, .. math::) outside code."""
+def test_remote_assets_found():
+    """The offline check: scripts, stylesheets and images from another host are found; local
+    ones and plain links to other sites are not."""
+    offline = _hook("offline")
+    page = ('<script src="https://cdn.example/mathjax.js"></script><script src="js/x.js">'
+            '<link rel="stylesheet" href="//cdn.example/hl.css"><link href="css/a.css">'
+            '<img src="http://example.org/a.png"><a href="https://example.org">x</a>')
+    assert offline.remote_assets(page) == ["https://cdn.example/mathjax.js",
+                                           "//cdn.example/hl.css", "http://example.org/a.png"]
+
+
+def test_built_site_reads_offline_with_no_raw_tex():
+    """Offline reading: no page loads anything from another host (no MathJax or KaTeX, no
+    highlight.js), and none shows TeX raw ($…$, \\(, \\[, \\begin{, .. math::) outside
+    code."""
     eq = _hook("equations")
+    offline = _hook("offline")
     pages = _built_pages()
-    scripts = {name: re.findall(r'<script[^>]+src="([^"]*(?:mathjax|katex)[^"]*)"', html, re.I)
-               for name, html in pages.items()}
-    assert not any(scripts.values()), {k: v for k, v in scripts.items() if v}
+    remote = {name: offline.remote_assets(html) for name, html in pages.items()}
+    assert not any(remote.values()), {k: v for k, v in remote.items() if v}
+    assert (SITE / offline.HIGHLIGHT_CSS).is_file()
     raw = {name: eq.raw_tex(html) for name, html in pages.items()}
     assert not any(raw.values()), {k: v for k, v in raw.items() if v}
     left = [name for name, html in pages.items() if 'class="arithmatex"' in html]
