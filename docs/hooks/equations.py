@@ -16,7 +16,7 @@ Two corrections to latex2mathml 3.81, applied to the TeX before converting:
 
 Under ``strict`` a formula the converter rejects, a TeX command it does not know (it would pass
 through as ``\\name``) and TeX left raw on a page (``$…$``, ``\\(``, ``\\[``, ``\\begin{``,
-an reStructuredText ``.. math::``) fail the build: :func:`raw_tex` finds the last kind.
+a reStructuredText ``.. math::``) fail the build: :func:`raw_tex` finds the last kind.
 """
 
 from __future__ import annotations
