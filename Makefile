@@ -60,16 +60,20 @@ $(DOCS_STAMP): $(STAMP)
 	touch $(DOCS_STAMP)
 
 # The figures: docs/hooks/gallery.py runs the command of every entry of its GALLERY table (the
-# page gallery.md is generated from the same table). Then the tests that need the docs extra or
-# are slow (the tutorial's shell blocks, the roles of every docstring translated by griffe),
-# and the site. One BLAS thread: the examples step tiny matrices, where OpenBLAS's threads
-# only contend.
+# page gallery.md is generated from the same table); the benchmark's figure is drawn from the
+# results `make bench` stores in benchmarks/results/, not by rerunning it. Then the site, and
+# the tests that need the docs extra or are slow (the tutorial's shell blocks, the roles of
+# every docstring translated by griffe) or read the built site (tests/test_site.py: every
+# equation MathML, no raw TeX, the home page's table). One BLAS thread: the examples step tiny
+# matrices, where OpenBLAS's threads only contend.
 docs: $(DOCS_STAMP)
 	OPENBLAS_NUM_THREADS=1 $(BIN)/python docs/hooks/gallery.py
-	OPENBLAS_NUM_THREADS=1 $(BIN)/python -m pytest -q -p no:cacheprovider -m "" \
-	    tests/test_tutorial.py tests/test_docs.py -k "tutorial or role"
 	$(BIN)/python -m mkdocs build --strict --clean
+	OPENBLAS_NUM_THREADS=1 $(BIN)/python -m pytest -q -p no:cacheprovider -m "" \
+	    tests/test_tutorial.py tests/test_docs.py tests/test_site.py -k "tutorial or role or site"
 
+# Every benchmark (out/bench.json); also rewrites the stored results the site's figures are drawn
+# from (benchmarks/results/): commit them with the code they measured.
 bench: $(STAMP)
 	$(BIN)/python benchmarks/run_all.py
 

@@ -3,9 +3,9 @@
 The paper (Assumption 1, Lemma 1 and its proof in the Appendix) defines the invariant zeros of a
 triple (C, A, E) through the Rosenbrock system matrix
 
-.. math::
-
-    P(s) = \\begin{bmatrix} sI - A & -B \\\\ C & D \\end{bmatrix},
+$$
+P(s) = \\begin{bmatrix} sI - A & -B \\\\ C & D \\end{bmatrix},
+$$
 
 as the values of ``s`` where ``P(s)`` loses rank below its *normal rank* (its rank for almost
 every ``s``). Input and output decoupling zeros (uncontrollable or unobservable modes) are
@@ -334,7 +334,9 @@ def invariant_zeros(A: ArrayLike, B: ArrayLike, C: ArrayLike, D: ArrayLike | Non
     -----
     The zeros are the values ``s`` where the Rosenbrock system matrix
 
-    .. math:: P(s) = [[sI - A, -B], [C, D]]
+    $$
+    P(s) = \\begin{bmatrix} sI - A & -B \\\\ C & D \\end{bmatrix}
+    $$
 
     has rank below its normal rank, as in the proof of Lemma 1. They are computed with the
     staircase algorithm of Emami-Naeini & Van Dooren: SVD row compressions of D, column
