@@ -27,7 +27,7 @@ OFFSET_TOL = 0.5
 #: Records that begin in motion: DATA_EMPS from these samples on, t restarted at 0; q(0) is
 #: 0.24 m and 0.23 m from x̂₀ = 0, so the estimators start at x̂₀ + C⁺(y(0) − C x̂₀)
 #: (x_hat0_from_y). Two stretches of the trajectory with their own information: a q searched
-#: on a short early window must not decide the later fits (mle.Q_SEARCH_GROWTH).
+#: on a short early window must not decide the later fits (map_fit.Q_SEARCH_GROWTH).
 CUTS = (3000, 9000)
 
 @pytest.fixture(scope="module")
