@@ -105,7 +105,8 @@ def joint_ekf(spec, rec, ls_s: float, duration: float) -> dict:
     t0 = time.perf_counter()
     try:
         th = np.asarray(ekf.run(rec.t, rec.u, rec.y,
-                                theta_hat0=spec.estimator.theta_hat0).theta_hat)[-1]
+                                state0=ekf.init(theta_hat0=spec.estimator.theta_hat0)
+                                ).theta_hat)[-1]
     except NonFiniteError as exc:
         print(f"  {'ekf':<8} diverged: {exc}")
         return {"diverged": str(exc)}

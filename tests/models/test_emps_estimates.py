@@ -126,9 +126,10 @@ def test_joint_ekf_taken_as_exact_says_the_model_does_not_fit(record):
     spec, data = record
     U, Y = np.asarray(data.u), np.asarray(data.y)
     th0 = spec.estimator.theta_hat0
+    exact = thetahat.JointEKF(system=spec.system)
     with pytest.raises(NonFiniteError, match="does not fit this record.*q_x > 0"):
-        thetahat.JointEKF(system=spec.system).run(data.t, U, Y, theta_hat0=th0)
-    th = np.asarray(thetahat.JointEKF(system=spec.system, q_x=1e-8).run(
-        data.t, U, Y, theta_hat0=th0).theta_hat)
+        exact.run(data.t, U, Y, state0=exact.init(theta_hat0=th0))
+    noisy = thetahat.JointEKF(system=spec.system, q_x=1e-8)
+    th = np.asarray(noisy.run(data.t, U, Y, state0=noisy.init(theta_hat0=th0)).theta_hat)
     lo, hi = spec.system.parameter_set.lower, spec.system.parameter_set.upper
     assert np.all(np.isfinite(th)) and np.all((th >= lo) & (th <= hi))

@@ -14,7 +14,7 @@ on u), so the transition matrix is T = [[Φ, Γ], [0, I]] with the exact Jacobia
   semi-definite in floating point), then θ projected onto Θ in the P_θθ⁻¹-weighted norm (a
   box: a clip; any convex Θ, see :mod:`~thetahat.estimation.statistical.stage2_set`);
 * and the **loop** over a record's samples (:func:`loop_kernel`), which stops at the first
-  sample whose s is not finite (its index, reported by :func:`divergence_message`).
+  sample whose s or P's diagonal is not finite (its index, reported by :func:`divergence_message`).
 
 They are numba-compiled with the model kernel when numba is installed (:func:`ekf_kernels`),
 and shared by the joint EKF (:mod:`~thetahat.estimation.statistical.ekf`), the MAP estimator
@@ -64,7 +64,7 @@ class EKFKernels:
     θ is projected onto Θ = (lo, hi, ell), see
     :func:`~thetahat.estimation.statistical.stage2_set.project_kernel`); ``loop(s, P, U, Y, t, k0, k1, R,
     lo, hi, ell, h_rho, Q_x, X, TH, SD, NIS) -> status`` runs samples k0 … k1−1 and returns
-    −1, or the index where s became non-finite.
+    −1, or the index where s or P's diagonal became non-finite.
 
     Parameters
     ----------
@@ -332,7 +332,8 @@ def loop_kernel(predict: Callable[..., None], update: Callable[..., float]
         samples k0 … k1−1 (predict from sample k−1 when k > 0, then update unless y_k has a
         non-finite entry), writing x̂ into ``X`` (N, n), θ̂ into ``TH`` (N, p), √diag P_θθ
         into ``SD`` (N, p) and the NIS into ``NIS`` (N,; NaN where not updated); returns −1,
-        or the first sample index at which s became non-finite (its row is not written).
+        or the first sample index at which s or P's diagonal became non-finite (its row is
+        not written).
     """
 
     def loop(s, P, U, Y, tt, k0, k1, R, lo, hi, ell, h_rho, Q_x, X, TH, SD, NIS):
@@ -350,7 +351,7 @@ def loop_kernel(predict: Callable[..., None], update: Callable[..., float]
                     finite_y = False
             NIS[k] = update(s, P, Y[k], R, lo, hi, ell) if finite_y else np.nan
             for i in range(n + p):
-                if not math.isfinite(s[i]):
+                if not math.isfinite(s[i]) or not math.isfinite(P[i, i]):
                     return k
             for i in range(n):              # element by element: see predict_kernel
                 X[k, i] = s[i]
@@ -476,7 +477,7 @@ def ekf_sample(kernels: EKFKernels, system: PerturbedLinearSystem, s: FloatArray
     Raises
     ------
     NonFiniteError
-        The filter diverged (s not finite): the error of
+        The filter diverged (s or P's diagonal not finite): the error of
         :attr:`~thetahat.estimation.status.Status.DIVERGED`.
     """
     n, p = Q_x.shape[0], s.shape[0] - Q_x.shape[0]
@@ -486,7 +487,7 @@ def ekf_sample(kernels: EKFKernels, system: PerturbedLinearSystem, s: FloatArray
     if R is not None and np.all(np.isfinite(y)):
         ts = stage2_set(system.require_parameter_set("stage 2"))
         nis = float(kernels.update(s, P, y, R, ts.lo, ts.hi, ts.ell))
-    if not np.all(np.isfinite(s)):
+    if not (np.all(np.isfinite(s)) and np.all(np.isfinite(np.diagonal(P)))):
         raise status_error(Status.DIVERGED, f"the EKF diverged at sample {k}; check the model "
                            "and noise_std.")
     return nis

@@ -16,6 +16,7 @@ wing (``protocol``, ``records``, ``status``), and, in this room, ``common``, ``e
 
 from __future__ import annotations
 
+import bisect
 import math
 from dataclasses import dataclass, replace
 
@@ -385,6 +386,9 @@ class MapEstimator:
         stop = self._between_fits(t_, U, Y, fits, ends, X, TH, SD, stop)
         if stop is not None and throw:
             raise stop.error()
+        if stop is not None:                    # the fits the run reached
+            reached = bisect.bisect_left(ends, stop.at)
+            fits, ends = fits[:reached], ends[:reached]
         diag = MapDiagnostics(theta_sd=SD, fits=tuple(fits),
                               fit_samples=np.array(ends, dtype=np.int64))
         return stopped_result(t=t_, x_hat=X, theta_hat=TH,
