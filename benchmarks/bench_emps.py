@@ -105,7 +105,8 @@ def joint_ekf(spec, rec, ls_s: float, duration: float) -> dict:
     t0 = time.perf_counter()
     try:
         th = np.asarray(ekf.run(rec.t, rec.u, rec.y,
-                                theta_hat0=spec.estimator.theta_hat0).theta_hat)[-1]
+                                state0=ekf.init(theta_hat0=spec.estimator.theta_hat0)
+                                ).theta_hat)[-1]
     except NonFiniteError as exc:
         print(f"  {'ekf':<8} diverged: {exc}")
         return {"diverged": str(exc)}
@@ -118,8 +119,8 @@ def joint_ekf(spec, rec, ls_s: float, duration: float) -> dict:
 
 def output_error_fit(spec, rec) -> dict:
     """The MAP fit of all the record with the model taken as exact (no process noise)."""
-    from thetahat.estimation.statistical.ekf import theta_prior_sd, x_prior_sd
-    from thetahat.estimation.statistical.mle import fit_map
+    from thetahat.estimation.statistical.common import theta_prior_sd, x_prior_sd
+    from thetahat.estimation.statistical.map_fit import fit_map
     from thetahat.estimation.statistical.noise_level import estimate_noise_std
     from thetahat.models import emps
     q0 = np.concatenate([spec.estimator.x_hat0, spec.estimator.theta_hat0])

@@ -256,7 +256,7 @@ def cost(log) -> dict:
     best_e = best_g = math.inf
     for _ in range(3):
         t0 = time.perf_counter()
-        ekf.run(traj.t, traj.u, traj.y, theta_hat0=[0.5])
+        ekf.run(traj.t, traj.u, traj.y, state0=ekf.init(theta_hat0=[0.5]))
         best_e = min(best_e, time.perf_counter() - t0)
         t0 = time.perf_counter()
         res = est.run(traj.t, traj.u, traj.y, state0=st0)

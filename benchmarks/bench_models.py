@@ -7,7 +7,7 @@ heater (minutes, 10 Hz), actuator (milliseconds, 10 kHz), spring_friction (p = 3
 and ``--seeds`` records of its own ``[scenario]`` (``thetahat.modelfile.simulate_model``),
 each method through the user's entry points — ``run_estimator(spec, t, u, y, method=M)`` for
 paper, guarded and mle (default settings, no trust report), ``thetahat.JointEKF(system=…)
-.run(t, u, y, theta_hat0=…)`` for the EKF — from the file's θ̂(0):
+.run(t, u, y, state0=….init(theta_hat0=…))`` for the EKF — from the file's θ̂(0):
 
 * ``rmse/√crlb``: θ's RMSE over the last half pooled over seeds, per parameter, ÷ √(mean over
   the last half of the Cramér–Rao bound of the scenario's input and sampling with x(0)
@@ -43,8 +43,8 @@ def run_method(spec, method: str, d) -> np.ndarray:
     from thetahat.modelfile import run_estimator
     U, Y = np.asarray(d.u), np.asarray(d.y)
     if method == "ekf":
-        res = thetahat.JointEKF(system=spec.system).run(
-            d.t, U, Y, theta_hat0=spec.estimator.theta_hat0)
+        ekf = thetahat.JointEKF(system=spec.system)
+        res = ekf.run(d.t, U, Y, state0=ekf.init(theta_hat0=spec.estimator.theta_hat0))
         return np.asarray(res.theta_hat)
     return np.asarray(run_estimator(spec, d.t, U, Y, method=method, diagnose=False).theta_hat)
 

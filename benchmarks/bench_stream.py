@@ -42,7 +42,7 @@ from pathlib import Path
 import numpy as np
 
 from thetahat.estimation.statistical.guarded import GuardedEstimator
-from thetahat.estimation.statistical.mle import FitSchedule
+from thetahat.estimation.statistical.map_fit import FitSchedule
 from thetahat.models import lugre
 
 #: The busy schedule: a fit due every BUSY_EVERY seconds.

@@ -27,7 +27,7 @@ if TYPE_CHECKING:                    # the real imports, for type checkers and I
     from .estimation.observer.compiled import CompiledObserver, compile_observer
     from .estimation.statistical.crlb import CRLBResult, crlb
     from .estimation.statistical.ekf import EKFDiagnostics, JointEKF
-    from .estimation.statistical.guarded import GuardedDiagnostics, GuardedEstimator, GuardedResult
+    from .estimation.statistical.guarded import GuardedDiagnostics, GuardedEstimator
     from .estimation.statistical.mle import MapDiagnostics, MapEstimator
     from .estimation.protocol import EstimateResult, Estimator, ObserverDiagnostics
     from .estimation.observer.observer import ModifiedHighGainObserver, ObserverEstimate, ObserverResult
@@ -64,7 +64,7 @@ from ._version import __version__
 __all__ = [
     "Estimator", "EstimateResult", "ObserverDiagnostics", "GuardedDiagnostics", "MapDiagnostics",
     "EKFDiagnostics",
-    "CRLBResult", "crlb", "JointEKF", "GuardedEstimator", "GuardedResult", "MapEstimator",
+    "CRLBResult", "crlb", "JointEKF", "GuardedEstimator", "MapEstimator",
     "BatchObserverResult", "FleetResult", "estimate_many", "TuneResult", "tune_eps_gamma", "CompiledObserver", "compile_observer", "run_batch",
     "EstimatorSpec", "SecondObserverSpec",
     "AlgebraicInversion", "Ball", "Box", "ConstantLaw", "ConvexSet", "Ellipsoid",
@@ -107,7 +107,7 @@ _EXPORTS: dict[str, tuple[str, ...]] = {
     "estimation.observer.compiled": ("CompiledObserver", "compile_observer"),
     "estimation.statistical.crlb": ("CRLBResult", "crlb"),
     "estimation.statistical.ekf": ("EKFDiagnostics", "JointEKF"),
-    "estimation.statistical.guarded": ("GuardedDiagnostics", "GuardedEstimator", "GuardedResult"),
+    "estimation.statistical.guarded": ("GuardedDiagnostics", "GuardedEstimator"),
     "estimation.statistical.mle": ("MapDiagnostics", "MapEstimator"),
     "estimation.protocol": ("EstimateResult", "Estimator", "ObserverDiagnostics"),
     "estimation.observer.observer": ("ModifiedHighGainObserver", "ObserverEstimate", "ObserverResult"),

@@ -61,10 +61,10 @@ def test_bound_scales_with_the_noise_level(record, bound):
 
 def test_bound_equals_the_covariance_of_an_exact_ekf(record, bound):
     ekf = JointEKF(system=lugre.system(), noise_std=0.02, compiled=False)
-    s0, P0 = ekf.prior(x_hat0=[0.0, 0.0], theta_hat0=[P.alpha0])
-    P0[0, 0] = P0[1, 1] = 1e-18
-    res = ekf.run(record.t, record.u, record.y, x_hat0=[0.0, 0.0], theta_hat0=[P.alpha0],
-                  P0=P0)
+    st = ekf.init(x_hat0=[0.0, 0.0], theta_hat0=[P.alpha0])
+    P0 = st.P.copy()
+    P0[0, 0] = P0[1, 1] = 1e-18                  # x(0) known
+    res = ekf.run(record.t, record.u, record.y, state0=dataclasses.replace(st, P=P0))
     sd = res.diagnostics.theta_sd
     assert sd[-1, 0] / bound.std[-1, 0] == pytest.approx(1.0, abs=EKF_RATIO_TOL)
     assert bound.time_to(0.01, [P.alpha0]) < 1.0

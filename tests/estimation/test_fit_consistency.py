@@ -17,7 +17,7 @@ import numpy as np
 import pytest
 
 from thetahat.estimation.statistical.likelihood import fit_process_noise
-from thetahat.estimation.statistical.mle import FitResult
+from thetahat.estimation.statistical.map_fit import FitResult
 from thetahat.estimation.statistical.noise_level import MAD_VARIANCE_SD
 from thetahat.modelfile import load_model, simulate_model
 

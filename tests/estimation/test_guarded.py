@@ -14,6 +14,7 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
+from thetahat.estimation.protocol import EstimateResult, ObserverDiagnostics
 from thetahat.estimation.statistical.guarded import GuardedEstimator
 from thetahat.estimation.statistical.mle import MapEstimator
 from thetahat.estimation.statistical.noise_level import MIN_SAMPLES, estimate_noise_std
@@ -41,7 +42,9 @@ class ExponentialStage1:
     def run(self, t, u, y, state0):
         th = self._theta(np.asarray(t) - t[0], state0[1])[:, None]
         x = np.column_stack([np.asarray(y).reshape(-1), np.zeros(len(t))])
-        return SimpleNamespace(theta_hat=th, x_hat=x, x_hat_refined=None)
+        return EstimateResult(t=np.asarray(t), x_hat=x, theta_hat=th,
+                              phi_hat=np.zeros((len(t), 1)), skipped=np.zeros(len(t), bool),
+                              diagnostics=ObserverDiagnostics())
 
     def estimate(self, state, u, y):
         return SimpleNamespace(theta_hat=np.array([self._theta(state[0], state[1])]),

@@ -22,7 +22,7 @@ from test_guarded import HI, LO, THETA, ExponentialStage1
 from thetahat.errors import ThetahatWarning
 from thetahat.estimation.statistical import fit_worker
 from thetahat.estimation.statistical.guarded import GuardedEstimator
-from thetahat.estimation.statistical.mle import FitSchedule, doubling_schedule
+from thetahat.estimation.statistical.map_fit import FitSchedule, doubling_schedule
 from thetahat.models import lugre
 
 #: Upper bound on waiting for a released fit (never reached unless the fit is broken).

@@ -115,7 +115,7 @@ def _last_half_ratio(spec, run):
 
 @pytest.mark.parametrize("method", ["mle", "guarded"])
 def test_prior_of_x0_scales_with_the_start(method):
-    """The prior of x(0) is wide against the start's magnitude (ekf.x_prior_sd): a process
+    """The prior of x(0) is wide against the start's magnitude (common.x_prior_sd): a process
     that starts far from its reference in an unmeasured state is estimated at the bound."""
     spec = _hot_heater()
     ratio = _last_half_ratio(spec, lambda t, U, Y: run_estimator(spec, t, U, Y, method=method,
@@ -129,8 +129,8 @@ def test_an_absolute_prior_of_x0_misses_the_hot_start():
     default is for (measured 8.2 / 3.2)."""
     import dataclasses
 
-    from thetahat.estimation.statistical.ekf import X_PRIOR_SD
-    from thetahat.estimation.statistical.mle import FitSchedule
+    from thetahat.estimation.statistical.common import X_PRIOR_SD
+    from thetahat.estimation.statistical.map_fit import FitSchedule
     from thetahat.modelfile import build_estimator
     spec = _hot_heater()
     est = build_estimator(spec, method="mle")
@@ -144,7 +144,7 @@ def test_an_absolute_prior_of_x0_misses_the_hot_start():
 
 def test_x_prior_sd_given_or_derived():
     from thetahat.errors import OptionError
-    from thetahat.estimation.statistical.ekf import X_PRIOR_SD, x_prior_sd
+    from thetahat.estimation.statistical.common import X_PRIOR_SD, x_prior_sd
     assert np.array_equal(x_prior_sd(np.zeros(3)), np.full(3, X_PRIOR_SD))
     assert np.array_equal(x_prior_sd([0.5, -40.0]), np.full(2, 40.0 * X_PRIOR_SD))
     assert np.array_equal(x_prior_sd([0.5, -40.0], 2.0), [2.0, 2.0])      # given: as is

@@ -13,10 +13,11 @@ import numpy as np
 import pytest
 
 import thetahat
-from thetahat.estimation.statistical.ekf import theta_prior_sd
+from thetahat.estimation.statistical.common import theta_prior_sd
 from thetahat.errors import DimensionError
-from thetahat.estimation.statistical.mle import (MapEstimator, fit_map, first_fit_samples,
-                                     information_schedule)
+from thetahat.estimation.statistical.map_fit import (fit_map, first_fit_samples,
+                                                     information_schedule)
+from thetahat.estimation.statistical.mle import MapEstimator
 from thetahat.estimation.statistical.noise_level import MIN_SAMPLES
 from thetahat.modelfile import load_model, run_estimator, simulate_model
 
@@ -215,7 +216,7 @@ def test_blocks_too_short_for_a_noise_estimate_take_the_previous_one():
     2 s full window): the blocks are shorter than the noise estimate needs, and the fit keeps
     the previous fit's σ̂ instead of raising (the heater's `--method mle` DimensionError)."""
     pytest.importorskip("numba", reason="slow without the compiled kernels (extra speed)")
-    from thetahat.estimation.statistical.mle import FitSchedule
+    from thetahat.estimation.statistical.map_fit import FitSchedule
     spec = load_model(EXAMPLES / "heater.toml")
     d = simulate_model(spec, 5, t_end=10.0)
     sched = FitSchedule(system=spec.system, times=lambda j: 0.5 * (j + 1), full_window=2.0)

@@ -66,9 +66,8 @@ def test_spectral_radius_bound_is_an_upper_bound_and_tight_on_triangular_lugre()
 def test_compiled_kernels_agree_with_the_numpy_fallback():
     pytest.importorskip("numba")
     data = lugre.simulate(seed=2, t_end=0.5)
-    runs = [JointEKF(system=lugre.system(), compiled=c).run(data.t, data.u, data.y,
-                                                            theta_hat0=[1.0])
-            for c in (False, True)]
+    ekfs = [JointEKF(system=lugre.system(), compiled=c) for c in (False, True)]
+    runs = [e.run(data.t, data.u, data.y, state0=e.init(theta_hat0=[1.0])) for e in ekfs]
     np.testing.assert_allclose(runs[1].theta_hat, runs[0].theta_hat, rtol=0, atol=1e-10)
     est = [lugre.estimator("guarded", compiled=c) for c in (False, True)]
     res = [e.run(data.t, data.u, data.y, state0=e.init(theta_hat0=[1.0])) for e in est]

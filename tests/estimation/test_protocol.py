@@ -10,6 +10,9 @@ the default suite; the compiled observer is skipped without numba.
 
 from __future__ import annotations
 
+import dataclasses
+import inspect
+
 import numpy as np
 import pytest
 
@@ -142,14 +145,31 @@ def test_run_refuses_a_stepped_state(name, data):
         est.run(data.t, data.u, data.y, state0=st)
 
 
-def test_ekf_keeps_its_keyword_start(data):
-    """JointEKF(system=...).run(t, u, y, theta_hat0=...) is init(theta_hat0=...) then run."""
+@pytest.mark.parametrize("method", ["guarded", "mle", "ekf"])
+def test_statistical_estimators_keep_the_protocol_strictly(method):
+    """``run(t, u, y, *, state0, throw)`` and ``init(*, x_hat0, theta_hat0)``: the start of a
+    run is its state, nothing beside it, and init's arguments are named."""
+    est = FACTORIES[method]()
+    run = inspect.signature(est.run).parameters
+    assert list(run) == ["t", "u", "y", "state0", "throw"]
+    assert [p.kind for p in run.values()][3:] == [inspect.Parameter.KEYWORD_ONLY] * 2
+    init = inspect.signature(est.init).parameters
+    assert {n: p.kind for n, p in init.items()} == {
+        "x_hat0": inspect.Parameter.KEYWORD_ONLY, "theta_hat0": inspect.Parameter.KEYWORD_ONLY}
+
+
+def test_ekf_runs_from_a_state_of_ones_own(data):
+    """A prior covariance of one's own is a state of one's own: θ's prior variance 1e-18
+    keeps θ̂ at θ̂₀ (its update is ≤ 1e-9 × |θ̂₀| over the record), the default prior lets the
+    data move it by more than 0.1."""
     ekf = FACTORIES["ekf"]()
-    a = ekf.run(data.t, data.u, data.y, theta_hat0=[TH0])
-    b = ekf.run(data.t, data.u, data.y, state0=ekf.init(theta_hat0=[TH0]))
-    np.testing.assert_array_equal(a.theta_hat, b.theta_hat)
-    with pytest.raises(OptionError, match="not both"):
-        ekf.run(data.t, data.u, data.y, state0=ekf.init(), theta_hat0=[TH0])
+    st = ekf.init(theta_hat0=[TH0])
+    P0 = st.P.copy()
+    P0[2, 2] = 1e-18
+    held = ekf.run(data.t, data.u, data.y, state0=dataclasses.replace(st, P=P0))
+    free = ekf.run(data.t, data.u, data.y, state0=st)
+    assert np.max(np.abs(held.theta_hat[:, 0] - TH0)) < 1e-9 * TH0
+    assert abs(free.theta_hat[-1, 0] - TH0) > 0.1
 
 
 def test_ekf_step_waits_for_sigma_without_noise_std(data):

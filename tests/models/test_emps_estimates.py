@@ -27,7 +27,7 @@ OFFSET_TOL = 0.5
 #: Records that begin in motion: DATA_EMPS from these samples on, t restarted at 0; q(0) is
 #: 0.24 m and 0.23 m from x̂₀ = 0, so the estimators start at x̂₀ + C⁺(y(0) − C x̂₀)
 #: (x_hat0_from_y). Two stretches of the trajectory with their own information: a q searched
-#: on a short early window must not decide the later fits (mle.Q_SEARCH_GROWTH).
+#: on a short early window must not decide the later fits (map_fit.Q_SEARCH_GROWTH).
 CUTS = (3000, 9000)
 
 @pytest.fixture(scope="module")
@@ -126,9 +126,10 @@ def test_joint_ekf_taken_as_exact_says_the_model_does_not_fit(record):
     spec, data = record
     U, Y = np.asarray(data.u), np.asarray(data.y)
     th0 = spec.estimator.theta_hat0
+    exact = thetahat.JointEKF(system=spec.system)
     with pytest.raises(NonFiniteError, match="does not fit this record.*q_x > 0"):
-        thetahat.JointEKF(system=spec.system).run(data.t, U, Y, theta_hat0=th0)
-    th = np.asarray(thetahat.JointEKF(system=spec.system, q_x=1e-8).run(
-        data.t, U, Y, theta_hat0=th0).theta_hat)
+        exact.run(data.t, U, Y, state0=exact.init(theta_hat0=th0))
+    noisy = thetahat.JointEKF(system=spec.system, q_x=1e-8)
+    th = np.asarray(noisy.run(data.t, U, Y, state0=noisy.init(theta_hat0=th0)).theta_hat)
     lo, hi = spec.system.parameter_set.lower, spec.system.parameter_set.upper
     assert np.all(np.isfinite(th)) and np.all((th >= lo) & (th <= hi))

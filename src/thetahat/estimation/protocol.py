@@ -252,7 +252,7 @@ class Estimator(Protocol):
     ((101, 1), 'ObserverDiagnostics')
     """
 
-    def init(self, x_hat0: Any = None, theta_hat0: Any = None) -> Any:
+    def init(self, *, x_hat0: Any = None, theta_hat0: Any = None) -> Any:
         """The state at the first sample, from x̂₀ and θ̂₀ (θ̂₀ in Θ; defaults per method)."""
         ...
 
@@ -261,9 +261,11 @@ class Estimator(Protocol):
         next sample."""
         ...
 
-    def run(self, t: Any, u: Any, y: Any, *, state0: Any = None) -> EstimateResult:
+    def run(self, t: Any, u: Any, y: Any, *, state0: Any = None,
+            throw: bool = True) -> EstimateResult:
         """Estimates over a record (t (N,), u (N, m), y (N, r)) from ``state0`` (default
-        ``init()``)."""
+        ``init()``); a run that cannot go on raises its error (``throw=True``) or returns
+        its status, message and NaN rows from ``failed_at`` on (``throw=False``)."""
         ...
 
 

@@ -1,10 +1,19 @@
 """Sampled records checked once, before anything is integrated: shapes, real values, inf, and
-NaN against the observer's NaN policy (shared by ``run``, ``run_batch`` and the compiled path).
+NaN against the observer's NaN policy.
+
+One definition for every estimator: :func:`check_records` checks the records of the
+observer's ``run``, ``run_batch`` and compiled path; :func:`check_record` checks one record
+(t, u, y) for the statistical estimators (NaN in y marks a missing sample) with the same
+rules. :func:`as_signal` and :func:`as_signals` shape one signal (u or y) of one or of B
+records.
+
+What it may import: the package's helpers (``_validate``, ``errors``); nothing of the
+estimation wing (every estimator imports it).
 """
 
 from __future__ import annotations
 
-from typing import Protocol
+from typing import NamedTuple, Protocol
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -42,8 +51,8 @@ def check_nan_policy(nan_policy: str) -> str:
         raise OptionError(f"nan_policy must be one of {NAN_POLICIES}; got {nan_policy!r}.")
     return nan_policy
 
-__all__ = ["NAN_POLICIES", "Dimensions", "as_record", "as_records", "check_nan_policy",
-           "check_real", "check_records"]
+__all__ = ["NAN_POLICIES", "Dimensions", "RecordShape", "as_signal", "as_signals",
+           "check_nan_policy", "check_real", "check_record", "check_records"]
 
 FloatArray = NDArray[np.float64]
 
@@ -89,8 +98,23 @@ def check_real(name: str, a: ArrayLike) -> None:
                              "explicitly if that is what was measured.")
 
 
-def as_record(name: str, a: ArrayLike, N: int, width: int) -> FloatArray:
-    """One record of N samples as a C-contiguous (N, width) float64 array.
+class RecordShape(NamedTuple):
+    """The widths of a record's signals: m inputs and r outputs (a :class:`Dimensions`).
+
+    Attributes
+    ----------
+    m : int
+        Inputs.
+    r : int
+        Outputs.
+    """
+
+    m: int
+    r: int
+
+
+def as_signal(name: str, a: ArrayLike, N: int, width: int) -> FloatArray:
+    """One signal of a record, N samples, as a C-contiguous (N, width) float64 array.
 
     Parameters
     ----------
@@ -113,7 +137,7 @@ def as_record(name: str, a: ArrayLike, N: int, width: int) -> FloatArray:
 
     Examples
     --------
-    >>> as_record("y", [1.0, 2.0, 3.0], 3, 1).shape
+    >>> as_signal("y", [1.0, 2.0, 3.0], 3, 1).shape
     (3, 1)
     """
     arr = as_samples(name, a)
@@ -126,8 +150,8 @@ def as_record(name: str, a: ArrayLike, N: int, width: int) -> FloatArray:
     return np.ascontiguousarray(arr)
 
 
-def as_records(name: str, a: ArrayLike, B: int | None, N: int, width: int) -> FloatArray:
-    """B records of N samples as a C-contiguous (B, N, width) float64 array.
+def as_signals(name: str, a: ArrayLike, B: int | None, N: int, width: int) -> FloatArray:
+    """One signal of B records of N samples as a C-contiguous (B, N, width) float64 array.
 
     Parameters
     ----------
@@ -152,7 +176,7 @@ def as_records(name: str, a: ArrayLike, B: int | None, N: int, width: int) -> Fl
 
     Examples
     --------
-    >>> as_records("Y", [[1.0, 2.0], [3.0, 4.0]], None, 2, 1).shape
+    >>> as_signals("Y", [[1.0, 2.0], [3.0, 4.0]], None, 2, 1).shape
     (2, 2, 1)
     """
     arr = as_samples(name, a)
@@ -214,13 +238,13 @@ def check_records(layout: Dimensions, nan_policy: str, t: ArrayLike, u: ArrayLik
     t_, dts = as_time_grid(t)
     N = t_.shape[0]
     if batch is None:
-        Y = as_record("y", y, N, lay.r)[None]
-        U = as_record("u", np.zeros((N, 0)) if u is None else u, N, lay.m)[None]
+        Y = as_signal("y", y, N, lay.r)[None]
+        U = as_signal("u", np.zeros((N, 0)) if u is None else u, N, lay.m)[None]
         names = ("u", "y")
     else:
-        Y = as_records("Y", y, None if batch < 0 else batch, N, lay.r)
+        Y = as_signals("Y", y, None if batch < 0 else batch, N, lay.r)
         B = Y.shape[0]
-        U = as_records("U", np.zeros((B, N, 0)) if u is None else u, B, N, lay.m)
+        U = as_signals("U", np.zeros((B, N, 0)) if u is None else u, B, N, lay.m)
         names = ("U", "Y")
     check_finite(names[0], U)
     if np.isinf(Y).any():
@@ -234,3 +258,46 @@ def check_records(layout: Dimensions, nan_policy: str, t: ArrayLike, u: ArrayLik
                              "nan_policy='skip' to the observer to predict over missing "
                              "samples, or clean the data.")
     return t_, dts, U, Y, ok
+
+
+def check_record(t: ArrayLike, u: ArrayLike | None, y: ArrayLike, *, m: int, r: int
+                 ) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """One record for the statistical estimators: t (N ≥ 2), U (N, m), Y (N, r) checked.
+
+    The rules of :func:`check_records` with ``nan_policy="skip"`` (NaN in y marks a missing
+    sample; NaN or inf in t or u and inf in y are refused), and at least two samples (a
+    sampling interval).
+
+    Parameters
+    ----------
+    t : array_like, shape (N,)
+        Strictly increasing sampling instants (datetimes are taken as seconds from the first).
+    u : array_like, shape (N, m), or (N,) when m = 1
+        ``None`` when m = 0.
+    y : array_like, shape (N, r), or (N,) when r = 1
+    m, r : int
+        The model's inputs and outputs.
+
+    Returns
+    -------
+    t, U, Y : ndarray, shapes (N,), (N, m), (N, r)
+        Own writable C-contiguous float64 copies (the compiled kernels then see one array
+        type whatever the caller passes).
+
+    Raises
+    ------
+    DimensionError
+        Wrong shapes, fewer than 2 samples, or ``t`` not strictly increasing.
+    NonFiniteError
+        NaN or inf in t or u; inf in y.
+
+    Examples
+    --------
+    >>> t, U, Y = check_record([0.0, 0.1, 0.2], None, [1.0, float("nan"), 2.0], m=0, r=1)
+    >>> U.shape, Y.shape, bool(Y.flags.writeable)
+    ((3, 0), (3, 1), True)
+    """
+    t_, _, U, Y, _ = check_records(RecordShape(m=m, r=r), "skip", t, u, y)
+    if t_.shape[0] < 2:
+        raise DimensionError(f"t must hold at least 2 sampling instants; got {t_.shape[0]}.")
+    return np.array(t_), np.array(U[0]), np.array(Y[0])

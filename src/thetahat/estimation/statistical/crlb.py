@@ -14,6 +14,10 @@ y = C x in g, from :mod:`~thetahat.estimation.statistical.plant_kernel`):
 
 by ``scipy.integrate.solve_ivp`` (LSODA with the block-diagonal Jacobian), u interpolated
 linearly between its samples.
+
+What it may import: :mod:`thetahat.model`, the package's helpers, the record checks of
+:mod:`~thetahat.estimation.records`, and, in this room, only
+:mod:`~thetahat.estimation.statistical.plant_kernel`.
 """
 
 from __future__ import annotations
@@ -28,7 +32,7 @@ from scipy.integrate import solve_ivp
 from ..._validate import as_vector
 from ...errors import DimensionError, SimulationError
 from ...model.system import PerturbedLinearSystem
-from .ekf import as_record
+from ..records import check_record
 from .plant_kernel import jit, model_kernel
 
 __all__ = ["CRLBResult", "crlb", "CRLB_RTOL", "SINGULAR_RTOL"]
@@ -202,7 +206,7 @@ def crlb(system: PerturbedLinearSystem, t: Any, u: Any, *, theta: Any, noise_std
     True
     """
     n, m, r, p = system.n, system.m, system.r, system.p
-    t_, U, _ = as_record(t, u, np.zeros((np.size(t), r)), m, r)
+    t_, U, _ = check_record(t, u, np.zeros((np.size(t), r)), m=m, r=r)
     th = as_vector("theta", theta, p)
     x0_ = np.zeros(n) if x0 is None else as_vector("x0", x0, n)
     sigma = np.broadcast_to(np.asarray(noise_std, dtype=np.float64), (r,)).copy()

@@ -13,7 +13,7 @@ GIL-holding spans. The worker starts and compiles at the caller's priority, then
 the lowest (:data:`WORKER_NICE`), so that when a fit competes with the sample path for a core
 the scheduler favours the sample path.
 
-The worker rebuilds the :class:`~thetahat.estimation.statistical.mle.FitSchedule` from
+The worker rebuilds the :class:`~thetahat.estimation.statistical.map_fit.FitSchedule` from
 :func:`fit_spec` (everything but its clock ``times``, which the worker does not need) once per
 model and keeps it, with its compiled kernels; :func:`warm_up` compiles them before the first
 fit is due. Any :class:`concurrent.futures.Executor` can replace the default (a thread pool,
@@ -23,6 +23,9 @@ a Dask client's executor); the callables submitted are the module-level :func:`r
 The ``spawn`` start method imports the caller's ``__main__`` module again in the worker, as
 for every use of :mod:`multiprocessing`: a script that streams with fits must keep its
 top-level work under ``if __name__ == "__main__":``.
+
+What it may import: the standard library's process machinery, and, in this room,
+``common`` and ``map_fit`` (the fits it runs).
 """
 
 from __future__ import annotations
@@ -37,13 +40,12 @@ import pickle
 import threading
 import time
 from dataclasses import dataclass
-from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
 
-from .ekf import theta_box
-from .mle import FitResult, FitSchedule, fit_map, fit_record
+from .common import theta_box
+from .map_fit import FitResult, FitSchedule, fit_map, fit_record
 
 __all__ = ["TimedFit", "fit_spec", "run_fit", "warm_up", "default_executor",
            "discard_default_executor", "WORKER_NICE"]
@@ -101,7 +103,7 @@ def fit_spec(schedule: FitSchedule) -> bytes:
     Examples
     --------
     >>> from thetahat.models import lugre
-    >>> from thetahat.estimation.statistical.mle import FitSchedule
+    >>> from thetahat.estimation.statistical.map_fit import FitSchedule
     >>> from thetahat.estimation.statistical.fit_worker import fit_spec
     >>> spec = fit_spec(FitSchedule(system=lugre.system(), compiled=False))
     >>> isinstance(spec, bytes)
@@ -124,7 +126,7 @@ def run_fit(spec: bytes, t: FloatArray, U: FloatArray, Y: FloatArray, k1: int,
             base: int, by_samples: bool = False) -> TimedFit:
     """The fit of a stream's retained window (runs in the worker).
 
-    :func:`~thetahat.estimation.statistical.mle.fit_record` (all the data so far; output error, else with
+    :func:`~thetahat.estimation.statistical.map_fit.fit_record` (all the data so far; output error, else with
     process noise when that is consistent) for a schedule by sample counts, as the offline
     run fits; :meth:`FitSchedule.fit` (blocks with arrival cost) for one with times.
 

@@ -37,6 +37,12 @@ shows evidence (δ_G < |Θ|): then stage 2 disagrees with a settled stage 1 beyo
 uncertainty.
 The windowed normalised innovation squared (NIS ≈ 1 for a consistent filter) is reported as
 a consistency diagnostic.
+
+What lives here: the progress measure of stage 1 (:func:`progress_init`, :func:`progress_step`),
+the guard at one sample (:func:`band_kernel`), the reset (:func:`reset_stage2`) and the
+per-sample loop over the EKF kernels (:func:`make_guarded_loop`), all in numba's subset of
+Python. What it may import: NumPy and :mod:`math` only; the EKF kernels it runs are passed in
+(:mod:`~thetahat.estimation.statistical.guarded` builds the loop).
 """
 
 from __future__ import annotations
@@ -46,8 +52,8 @@ from typing import Any, Callable
 
 import numpy as np
 
-__all__ = ["progress_init", "progress_step", "make_guarded_loop", "GUARD_C", "GUARD_RHO_MAX",
-           "GUARD_KAPPA", "GUARD_DWELL", "NIS_WINDOW"]
+__all__ = ["progress_init", "progress_step", "band_kernel", "reset_stage2", "make_guarded_loop",
+           "GUARD_C", "GUARD_RHO_MAX", "GUARD_KAPPA", "GUARD_DWELL", "NIS_WINDOW"]
 
 #: Safety factor of δ_G on the extrapolated remaining movement of stage 1.
 GUARD_C = 2.0
@@ -137,6 +143,78 @@ def progress_step(st: np.ndarray, k: int, theta: np.ndarray, width: np.ndarray, 
             delta[i] = min(width[i], c * late / (1.0 - late / early))
 
 
+def band_kernel(project: Callable[..., None]) -> Callable[..., bool]:
+    """The guard at one sample: the band δ, stage 2's θ̂₂ clipped to it around θ̂_G, Π_Θ.
+
+    Parameters
+    ----------
+    project : callable
+        ``project(theta, M, lo, hi, ell)``, Π_Θ in place (``EKFKernels.project``; called
+        with M = I).
+
+    Returns
+    -------
+    callable
+        ``guard(s, P, k, thG, dG, cfg, lo, hi, ell, bad, eye, z, BAND) -> clipped``: per
+        component δ = max(δ_G, κ min(σ₂, σ₂ cap), |θ̂_G − θ_F| + κ s_F of the latest
+        consistent fit when ``cfg`` holds one), written into ``BAND[k]``; the guarded
+        θ̂ = Π_Θ(θ̂_G + clip(θ̂₂ − θ̂_G, −δ, δ)) into ``z`` (θ̂₂ − θ̂_G taken as 0 when stage 2
+        is ``bad``, not finite); returns whether a component was clipped. Not compiled
+        (:func:`make_guarded_loop` compiles it).
+    """
+
+    def guard(s, P, k, thG, dG, cfg, lo, hi, ell, bad, eye, z, BAND):
+        p = thG.shape[1]
+        n = s.shape[0] - p
+        with_fit = cfg.shape[0] >= 4 + 3 * p
+        clipped = False
+        for i in range(p):
+            d = s[n + i] - thG[k, i]
+            sd = math.sqrt(max(P[n + i, n + i], 0.0)) if not bad else 0.0
+            band = max(dG[i], cfg[0] * min(sd, cfg[4 + i]))
+            if with_fit and cfg[4 + 2 * p + i] >= 0.0:
+                band = max(band, abs(thG[k, i] - cfg[4 + p + i]) + cfg[4 + 2 * p + i])
+            if bad:
+                d = 0.0
+            if d > band:
+                d = band
+                clipped = True
+            elif d < -band:
+                d = -band
+                clipped = True
+            z[i] = thG[k, i] + d
+            BAND[k, i] = band
+        project(z, eye, lo, hi, ell)
+        return clipped
+
+    return guard
+
+
+def reset_stage2(s: np.ndarray, P: np.ndarray, P0: np.ndarray, k: int, xG: np.ndarray,
+                 thG: np.ndarray) -> None:
+    """Stage 2 reset from stage 1 at sample k: s = col(x̂_G, θ̂_G) and P = P0, in place.
+
+    Parameters
+    ----------
+    s : ndarray (n + p,)
+    P : ndarray (n + p, n + p)
+    P0 : ndarray (n + p, n + p)
+        The prior covariance.
+    k : int
+    xG, thG : ndarray (N, n), (N, p)
+        Stage 1's x̂ and θ̂_G.
+    """
+    n = xG.shape[1]
+    p = thG.shape[1]
+    for i in range(n):
+        s[i] = xG[k, i]
+    for i in range(p):
+        s[n + i] = thG[k, i]
+    for i in range(n + p):      # element by element: numba's slice assignment
+        for j in range(n + p):  # compiles its string-formatting error path
+            P[i, j] = P0[i, j]
+
+
 def make_guarded_loop(predict: Callable[..., None], update: Callable[..., float],
                       project: Callable[..., None], jit: Callable[..., Any]
                       ) -> Callable[..., int]:
@@ -146,13 +224,14 @@ def make_guarded_loop(predict: Callable[..., None], update: Callable[..., float]
     ----------
     predict, update : callable
         The EKF's time and measurement updates on col(x, θ), ``EKFKernels.predict`` and
-        ``EKFKernels.update`` of :mod:`~thetahat.estimation.statistical.ekf`.
+        ``EKFKernels.update`` of :mod:`~thetahat.estimation.statistical.ekf_kernels`.
     project : callable
         ``project(theta, M, lo, hi, ell)``, Π_Θ in place (``EKFKernels.project``); the guard
-        calls it with M = I.
+        calls it with M = I (:func:`band_kernel`).
     jit : callable
-        fn ↦ compiled fn, applied to :func:`progress_step` and to the loop: numba's
-        ``njit`` when the kernels are compiled, the identity otherwise (one argument, unlike
+        fn ↦ compiled fn, applied to :func:`progress_step`, :func:`band_kernel`'s guard,
+        :func:`reset_stage2` and the loop: numba's ``njit`` when the kernels are compiled, the
+        identity otherwise (one argument, unlike
         :func:`~thetahat.estimation.statistical.plant_kernel.jit`).
 
     Returns
@@ -169,13 +248,12 @@ def make_guarded_loop(predict: Callable[..., None], update: Callable[..., float]
         component…, κ s_F per component… of the latest consistent fit; κ s_F < 0: none).
     """
     prog = jit(progress_step)
+    guard = jit(band_kernel(project))
+    reset_to = jit(reset_stage2)
 
     def loop(s, P, P0, U, Y, tt, k0, k1, off, R, lo, hi, ell, h_rho, Q_x, thG, xG, pst, gst,
              cfg, TH, TH2, X2, SD2, BAND, CLIP, RESET, NIS):
-        """Samples k0 … k1−1 (absolute index k + off). ``gst`` = (dwell count, NIS average,
-        first update index);
-        ``cfg`` = (κ, c, ρ_max, dwell fraction, σ₂ cap per component…[, θ_F…, κ s_F…]);
-        returns the reset count."""
+        """Samples k0 … k1−1 (absolute index k + off); returns the reset count."""
         n = X2.shape[1]
         p = TH.shape[1]
         width = hi - lo
@@ -185,7 +263,6 @@ def make_guarded_loop(predict: Callable[..., None], update: Callable[..., float]
         eye = np.eye(p)
         z = np.empty(p)
         resets = 0
-        with_fit = cfg.shape[0] >= 4 + 3 * p
         for k in range(k0, k1):
             if k + off > 0:
                 predict(s, P, U[k - 1], U[k], tt[k] - tt[k - 1], h_rho, Q_x, Phi, Gam)
@@ -204,24 +281,7 @@ def make_guarded_loop(predict: Callable[..., None], update: Callable[..., float]
             for i in range(s.shape[0]):
                 if not math.isfinite(s[i]) or not math.isfinite(P[i, i]):
                     bad = True
-            clipped = False
-            for i in range(p):
-                d = s[n + i] - thG[k, i]
-                sd = math.sqrt(max(P[n + i, n + i], 0.0)) if not bad else 0.0
-                band = max(dG[i], cfg[0] * min(sd, cfg[4 + i]))
-                if with_fit and cfg[4 + 2 * p + i] >= 0.0:
-                    band = max(band, abs(thG[k, i] - cfg[4 + p + i]) + cfg[4 + 2 * p + i])
-                if bad:
-                    d = 0.0
-                if d > band:
-                    d = band
-                    clipped = True
-                elif d < -band:
-                    d = -band
-                    clipped = True
-                z[i] = thG[k, i] + d
-                BAND[k, i] = band
-            project(z, eye, lo, hi, ell)
+            clipped = guard(s, P, k, thG, dG, cfg, lo, hi, ell, bad, eye, z, BAND)
             for i in range(p):
                 TH[k, i] = z[i]
             gst[0] = gst[0] + 1.0 if clipped else 0.0
@@ -231,13 +291,7 @@ def make_guarded_loop(predict: Callable[..., None], update: Callable[..., float]
                     settled = False
             reset = bad or (gst[0] > cfg[3] * (k + off + 1) and settled)
             if reset:
-                for i in range(n):
-                    s[i] = xG[k, i]
-                for i in range(p):
-                    s[n + i] = thG[k, i]
-                for i in range(n + p):      # element by element: numba's slice assignment
-                    for j in range(n + p):  # compiles its string-formatting error path
-                        P[i, j] = P0[i, j]
+                reset_to(s, P, P0, k, xG, thG)
                 gst[0] = 0.0
                 resets += 1
             if math.isfinite(nis):

@@ -3,8 +3,8 @@
 * **Stage 1** — the paper's observer (3) with its update law, unchanged (an
   :class:`~thetahat.estimation.protocol.Estimator` whose states its ``estimate`` reads: the
   observer or its compiled form): Theorem 1's convergence from anywhere in Θ.
-* **Stage 2** — :class:`~thetahat.estimation.statistical.ekf.JointEKF`'s kernels on col(x, θ), re-anchored
-  at the times of a :class:`~thetahat.estimation.statistical.mle.FitSchedule` by the MAP fit of
+* **Stage 2** — the joint EKF's kernels on col(x, θ) (:mod:`~thetahat.estimation.statistical.ekf_kernels`), re-anchored
+  at the times of a :class:`~thetahat.estimation.statistical.map_fit.FitSchedule` by the MAP fit of
   (x(t₀), θ) (the EKF then takes θ and P_θθ from the fit, cross-covariances zeroed).
 * **The guard** of :mod:`~thetahat.estimation.statistical.guard`: the output keeps
   |θ̂ − θ| ≤ |θ̂_G − θ| + δ(t) and θ̂ ∈ Θ, with δ(t) built on evidence.
@@ -17,42 +17,50 @@ there), refined at :data:`SIGMA_SAMPLES` samples and refreshed by every fit from
 applied at the first ``step`` after they finish: a ``step`` never waits for a fit and shares
 no lock with it; a fit that crashes or returns non-finite values is ignored with a
 :class:`~thetahat.errors.ThetahatWarning` (:meth:`GuardedEstimator.stream_diagnostics`).
+
+A run fails only where stage 1 fails (stage 2 is reset from stage 1 when it is not finite):
+with ``throw=True`` stage 1's error is raised as stage 1 raises it; with ``throw=False`` the
+result carries stage 1's status and message and NaN rows from ``failed_at`` on
+(:mod:`~thetahat.estimation.status`).
+
+What it may import: :mod:`thetahat.model`, the package's errors, the bottom of the
+estimation wing (``protocol``, ``records``, ``status``), and every module of this room but the
+other estimators' (``ekf``, ``mle``, ``trust``, ``crlb``); stage 1 is handed in, not imported.
 """
 
 from __future__ import annotations
 
 import concurrent.futures
-import dataclasses
+import inspect
 import math
 import warnings
 from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
-from numpy.typing import NDArray
+from numpy.typing import ArrayLike, NDArray
 
 from ...errors import (ArgumentTypeError, DimensionError, NonFiniteError, OptionError,
                       ThetahatError, ThetahatWarning)
 from ...model.system import PerturbedLinearSystem
-from .ekf import (EKFKernels, JointEKF, as_record, ekf_kernels, resolve_noise_std,
-                  sample_interval, start_values)
-from .input_hold import InputHistory, smooth_input
-from .stage2_set import stage2_set
-from .fit_worker import default_executor, discard_default_executor, fit_spec, run_fit, warm_up
+from ..protocol import Diagnostics, EstimateResult, missing_samples
+from ..records import check_record
+from ..status import Status
+from .common import (RunStop, joint_prior, model_phi_hat, resolve_noise_std, sample_interval,
+                     start_values, stopped_result)
+from .ekf_kernels import EKFKernels, ekf_kernels
 from .guard import (GUARD_C, GUARD_DWELL, GUARD_KAPPA, GUARD_RHO_MAX, make_guarded_loop,
                     progress_init)
-from .mle import FitResult, FitSchedule, MapEstimator, fit_as_prior, fit_record
-from .plant_kernel import H_RHO, jit
+from .guarded_stream import SIGMA_SAMPLES, GuardedStream, StreamDiagnostics
+from .input_hold import smooth_input
+from .map_fit import FitResult, FitSchedule, fit_as_prior, fit_record
 from .noise_level import MIN_SAMPLES
-from ..protocol import Diagnostics, EstimateResult, missing_samples, phi_hat_from_model
+from .plant_kernel import H_RHO, jit
+from .stage2_set import stage2_set
 
-__all__ = ["GuardedDiagnostics", "GuardedEstimator", "GuardedResult", "GuardedState",
-           "StreamDiagnostics", "SIGMA_SAMPLES"]
+__all__ = ["GuardedDiagnostics", "GuardedEstimator", "GuardedState"]
 
 FloatArray = NDArray[np.float64]
-
-#: Samples after which σ̂ is re-estimated once before the first fit (when σ is not given).
-SIGMA_SAMPLES = 32
 
 
 @dataclass(frozen=True, slots=True, eq=False)
@@ -139,12 +147,6 @@ class GuardedDiagnostics(Diagnostics):
                 f"noise_std={self.noise_std})")
 
 
-#: The guarded estimator's former result name, kept importable (``thetahat.GuardedResult``):
-#: :meth:`GuardedEstimator.run` returns an
-#: :class:`~thetahat.estimation.protocol.EstimateResult` with :class:`GuardedDiagnostics`.
-GuardedResult = EstimateResult
-
-
 @dataclass(frozen=True, slots=True, eq=False)
 class GuardedState:
     """The state of :class:`GuardedEstimator` (from :meth:`~GuardedEstimator.init` or
@@ -156,9 +158,10 @@ class GuardedState:
         Stage 1's (the observer's) state.
     x_hat0, theta_hat0 : ndarray (n,), (p,)
         Stage 2's start values (θ̂₀ in Θ).
-    stream : object or None
+    stream : GuardedStream or None
         The stream's shared data log, stage 2's (s, P) and pending fit (None before the first
-        ``step``): states of one stream share it, so step each state once, in order.
+        ``step``; :mod:`~thetahat.estimation.statistical.guarded_stream`): states of one
+        stream share it, so step each state once, in order.
     theta_hat : ndarray (p,) or None
         The guarded θ̂ at the last sample stepped (None before the first ``step``).
     x_hat : ndarray (n,) or None
@@ -174,7 +177,7 @@ class GuardedState:
     stage1: Any
     x_hat0: FloatArray
     theta_hat0: FloatArray
-    stream: Any = None
+    stream: GuardedStream | None = None
     theta_hat: FloatArray | None = None
     x_hat: FloatArray | None = None
     theta_stage1: FloatArray | None = None
@@ -188,36 +191,6 @@ class GuardedState:
     def __repr__(self) -> str:
         return (f"GuardedState(theta_hat={self.theta_hat}, clipped={self.clipped}, "
                 f"reset={self.reset}, fits={self.fits})")
-
-
-@dataclass(frozen=True, slots=True, eq=False)
-class StreamDiagnostics:
-    """The fits of a streaming run so far (:meth:`GuardedEstimator.stream_diagnostics`).
-
-    Attributes
-    ----------
-    fits : tuple of FitResult
-        The fits that came back finite, in order (applied to stage 2 when consistent).
-    fit_samples : ndarray of int, shape (n_fits, 2)
-        Per fit: the last sample of its window and the sample whose ``step`` applied it (the
-        first ``step`` after the fit finished).
-    fit_seconds : ndarray, shape (n_fits,)
-        Wall time of each fit in the worker (s).
-    failures : tuple of str
-        Fits that crashed or returned non-finite values, ignored (one warning each).
-    pending : bool
-        A fit is running (a finished one is applied by the next ``step``).
-    """
-
-    fits: tuple[FitResult, ...]
-    fit_samples: NDArray[np.int64]
-    fit_seconds: FloatArray
-    failures: tuple[str, ...]
-    pending: bool
-
-    def __repr__(self) -> str:
-        return (f"StreamDiagnostics(fits={len(self.fits)}, failures={len(self.failures)}, "
-                f"pending={self.pending})")
 
 
 @dataclass(frozen=True, slots=True, eq=False)
@@ -241,7 +214,7 @@ class GuardedEstimator:
         False: no re-anchoring (stage 2 = the EKF alone).
     x_sd : float or array_like (n,), optional
         Prior standard deviation of x(0) for stage 2; default
-        :func:`~thetahat.estimation.statistical.ekf.x_prior_sd` of x̂(0).
+        :func:`~thetahat.estimation.statistical.common.x_prior_sd` of x̂(0).
     kappa, c, rho_max, dwell : float
         The guard's constants (see :mod:`~thetahat.estimation.statistical.guard`); ``dwell`` a fraction
         of the samples so far (default :data:`~thetahat.estimation.statistical.guard.GUARD_DWELL`).
@@ -274,10 +247,10 @@ class GuardedEstimator:
 
     stage1: Any
     system: PerturbedLinearSystem | None = None
-    noise_std: Any = None
+    noise_std: ArrayLike | None = None
     schedule: FitSchedule | None = field(default=None)
     use_fits: bool = True
-    x_sd: Any = None
+    x_sd: ArrayLike | None = None
     kappa: float = GUARD_KAPPA
     c: float = GUARD_C
     rho_max: float = GUARD_RHO_MAX
@@ -285,7 +258,7 @@ class GuardedEstimator:
     q_x: float = 0.0
     h_rho: float = H_RHO
     compiled: bool | None = None
-    fit_executor: Any = None
+    fit_executor: concurrent.futures.Executor | None = None
 
     def __post_init__(self) -> None:
         from ..protocol import Estimator
@@ -328,9 +301,10 @@ class GuardedEstimator:
                                                  lambda fn: jit(fn, compiled))
         return loop
 
-    def _ekf(self) -> JointEKF:
-        return JointEKF(system=self.model, noise_std=self.noise_std, x_sd=self.x_sd,
-                        compiled=self.compiled)
+    def _prior(self, x_hat0: FloatArray, theta_hat0: FloatArray
+               ) -> tuple[FloatArray, FloatArray]:
+        """Stage 2's (s0, P0) (:func:`~thetahat.estimation.statistical.common.joint_prior`)."""
+        return joint_prior(self.model, x_hat0, theta_hat0, x_sd=self.x_sd)
 
     @staticmethod
     def _fit_or_none(sched: FitSchedule, t: FloatArray, U: FloatArray, Y: FloatArray,
@@ -352,7 +326,8 @@ class GuardedEstimator:
                       "the EKF go on.", ThetahatWarning, stacklevel=3)
         return None
 
-    def init(self, x_hat0: Any = None, theta_hat0: Any = None) -> GuardedState:
+    def init(self, *, x_hat0: ArrayLike | None = None, theta_hat0: ArrayLike | None = None
+             ) -> GuardedState:
         """Initial state of both stages.
 
         Parameters
@@ -372,8 +347,8 @@ class GuardedEstimator:
         return GuardedState(stage1=s1, x_hat0=x0, theta_hat0=th0)
 
     # ------------------------------------------------------------------ offline
-    def run(self, t: Any, u: Any, y: Any, *, state0: GuardedState | None = None
-            ) -> EstimateResult:
+    def run(self, t: ArrayLike, u: ArrayLike | None, y: ArrayLike, *,
+            state0: GuardedState | None = None, throw: bool = True) -> EstimateResult:
         """Run both stages and the guard over a record.
 
         Parameters
@@ -384,6 +359,13 @@ class GuardedEstimator:
         state0 : GuardedState, optional
             From :meth:`init` (default ``init()``); a record starts a new experiment, so a
             state that has been stepped is refused.
+        throw : bool
+            What a failure of stage 1 does (:mod:`~thetahat.estimation.status`; stage 2 is
+            reset from stage 1 when it is not finite, and a failed fit is ignored): True
+            (default) raises stage 1's error; False returns the result with stage 1's
+            ``status`` and ``message`` and NaN rows from ``failed_at`` on (from a stage 1
+            whose ``run`` takes ``throw``; one that does not raises its errors; the guarded
+            output non-finite is :attr:`~thetahat.estimation.status.Status.DIVERGED`).
 
         Returns
         -------
@@ -395,114 +377,36 @@ class GuardedEstimator:
         ------
         OptionError
             ``state0`` has been stepped (continue that stream with :meth:`step`).
+        NonFiniteError
+            ``throw=True`` and stage 1 diverged (its own error, unchanged).
         """
         sys_ = self.model
-        n, m, r, p = sys_.n, sys_.m, sys_.r, sys_.p
-        t_, U, Y = as_record(t, u, y, m, r)
-        # writable C copies: the compiled kernels' specialisation that streaming uses too
-        U, Y = np.array(U, order="C"), np.array(Y, order="C")
+        t_, U, Y = check_record(t, u, y, m=sys_.m, r=sys_.r)
         st0 = self.init() if state0 is None else state0
         if st0.stream is not None:
             raise OptionError("GuardedEstimator.run starts an experiment from init(); this "
                               "state0 has been stepped: continue its stream with step.")
-        res1 = self.stage1.run(t_, U, Y, state0=st0.stage1)
-        Us = np.array(smooth_input(U)[0], order="C")    # stage 2's input samples ũ
-        xs = res1.x_hat if res1.x_hat_refined is None else res1.x_hat_refined
-        # writable C copies (the compiled loop's array type)
-        thG = np.array(res1.theta_hat, dtype=np.float64, order="C")
-        xG = np.array(xs, dtype=np.float64, order="C")
-        N = t_.shape[0]
-        estimate_sigma = self.noise_std is None
-        k_first = MIN_SAMPLES if estimate_sigma else 0
-        sigma = resolve_noise_std(self.noise_std, Y[:max(k_first, MIN_SAMPLES)])
-        R = np.diag(sigma ** 2)
-        s, P0 = self._ekf().prior(st0.x_hat0, st0.theta_hat0)
-        P = P0.copy()
-        ts = stage2_set(sys_.require_parameter_set("stage 2"))
-        lo, hi, ell = ts.lo, ts.hi, ts.ell
-        out = {name: np.empty((N, w)) for name, w in
-               (("TH", p), ("TH2", p), ("X2", n), ("SD2", p), ("BAND", p))}
-        CLIP, RESET, NIS = np.zeros(N, bool), np.zeros(N, bool), np.full(N, np.nan)
-        pst = progress_init(thG[0])
-        gst = np.array([0.0, 1.0, float(k_first)])
-        # (κ, c, ρ_max, dwell, σ₂ cap; θ_F, κ s_F of the latest consistent fit: none yet)
-        cfg = np.concatenate([[self.kappa, self.c, self.rho_max, self.dwell],
-                              np.sqrt(np.diag(P0)[n:]), np.zeros(p), np.full(p, -1.0)])
-        loop = self._loop()
-        sched = self.fit_schedule
-        fits: list[FitResult] = []
-        fit_at: list[int] = []
-        failures: list[str] = []
-        prior0 = (sched.initial_prior(st0.x_hat0, st0.theta_hat0) if sched else None)
-        Q_x = self.q_x * np.eye(n)
-        # the default fits: all the data so far, at the sample counts where the information
-        # has grown by INFO_GROWTH, the last on all samples but the last (whose output then
-        # follows it); a schedule with times keeps its times (seconds) and windows
-        by_samples = sched is not None and sched.times is None
-        ks: list[int] = []
-        if sched is not None and by_samples:
-            sched = replace(sched, full_window=math.inf)
-            ks = [k1 for k1 in MapEstimator(system=sys_, schedule=sched, noise_std=self.noise_std,
-                                            compiled=self.compiled).fit_samples(t_[:N - 1])
-                  if MIN_SAMPLES <= k1 < N]
-        k = 0
-        j = 0
-        while k < N:
-            k_next = N
-            if estimate_sigma:                  # σ̂ from MIN_SAMPLES, refined at 32
-                if k in (MIN_SAMPLES, SIGMA_SAMPLES):
-                    sigma = resolve_noise_std(None, Y[:k])
-                    R = np.diag(sigma ** 2)
-                if k < SIGMA_SAMPLES:
-                    k_next = MIN_SAMPLES if k < MIN_SAMPLES else SIGMA_SAMPLES
-            k_fit = N
-            if sched is not None and by_samples:
-                while j < len(ks) and ks[j] <= k:
-                    j += 1
-                k_fit = ks[j] if j < len(ks) else N
-            elif sched is not None and sched.times is not None:
-                while sched.times(j) <= t_[k] - t_[0]:
-                    j += 1
-                k_fit = int(np.searchsorted(t_ - t_[0], sched.times(j) + 1e-12, side="right"))
-            k_next = min(k_fit, N, k_next)
-            loop(s, P, P0, Us, Y, t_, k, k_next, 0, R, lo, hi, ell, self.h_rho, Q_x, thG, xG,
-                 pst, gst, cfg, out["TH"], out["TH2"], out["X2"], out["SD2"], out["BAND"],
-                 CLIP, RESET, NIS)
-            due = sched is not None and k_next == k_fit < N
-            # (due implies sched and prior0 are set; the two tests are spelled out for mypy)
-            if sched is not None and prior0 is not None and due and MIN_SAMPLES <= k_next:
-                prev = fits[-1] if fits else None
-                fit = self._fit_or_none(sched, t_, Us, Y, k_next, prev, prior0,
-                                        k_next == ks[-1] if by_samples else None, failures)
-                if fit is not None:
-                    fits.append(fit)
-                    fit_at.append(k_next - 1)
-                if fit is not None and fit.consistent:
-                    # the fit ends at this very sample: take (x, θ) and their joint covariance
-                    # stage 2 carries the model error as the fit found it (none: q = 0)
-                    s_fit, P_fit, R, Q_x = fit_as_prior(sys_, fit, sample_interval(t_[:k_next]),
-                                                        self.q_x)
-                    s[:], P[:, :] = s_fit, P_fit
-                    cfg[4 + p:4 + 2 * p] = fit.theta
-                    cfg[4 + 2 * p:] = self.kappa * fit.theta_se
-                    sigma = fit.noise_std
-            if due and not by_samples:
-                j += 1
-            k = k_next
-        if not np.all(np.isfinite(out["TH"])):
-            raise NonFiniteError("the guarded output became non-finite: stage 1 diverged "
-                                 "(check its gains and the data scaling).")
-        diag = GuardedDiagnostics(theta_stage1=thG, theta_stage2=out["TH2"], theta_sd=out["SD2"],
-                                  band=out["BAND"], clipped=CLIP, reset=RESET, nis=NIS,
-                                  fits=tuple(fits),
-                                  fit_samples=np.array(fit_at, dtype=np.int64), noise_std=sigma,
-                                  failures=tuple(failures))
-        return EstimateResult(t=t_, x_hat=out["X2"], theta_hat=out["TH"],
-                              phi_hat=phi_hat_from_model(sys_, U, Y, out["X2"], out["TH"]),
-                              skipped=missing_samples(Y), diagnostics=diag)
+        res1 = self._stage1_run(t_, U, Y, st0.stage1, throw)
+        run = _OfflineRun(self, t_, U, Y, res1, st0)
+        run.filter(t_.shape[0] if res1.failed_at is None else res1.failed_at)
+        stop = run.stop(res1)
+        if stop is not None and throw:
+            raise stop.error()
+        return run.result(stop)
+
+    def _stage1_run(self, t: FloatArray, U: FloatArray, Y: FloatArray, state0: Any,
+                    throw: bool) -> EstimateResult:
+        """Stage 1 over the record: with ``throw`` its error raised as stage 1 raises it;
+        without, its failure returned in its result. A stage 1 whose ``run`` does not take
+        ``throw`` (the protocol's keyword) is run with its default, so its errors are
+        raised whatever ``throw`` says."""
+        if throw or "throw" not in inspect.signature(self.stage1.run).parameters:
+            return self.stage1.run(t, U, Y, state0=state0)
+        return self.stage1.run(t, U, Y, state0=state0, throw=False)
 
     # ------------------------------------------------------------------ streaming
-    def step(self, state: GuardedState, u: Any, y: Any, dt: float) -> GuardedState:
+    def step(self, state: GuardedState, u: ArrayLike | None, y: ArrayLike, dt: float
+             ) -> GuardedState:
         """Process the current samples (u, y) and advance stage 1 by ``dt``; never waits.
 
         Parameters
@@ -534,14 +438,14 @@ class GuardedEstimator:
             raise DimensionError(f"dt must be finite and > 0; got {dt!r}.")
         if not np.all(np.isfinite(u_)):
             raise NonFiniteError("u contains NaN or inf; clean the input sample.")
-        sh = state.stream or _Stream.start(self, state)
+        sh = state.stream or self._start_stream(state)
         k = sh.k
         est1 = self.stage1.estimate(state.stage1, u_, y_)
         thG = np.asarray(est1.theta_hat, dtype=np.float64).reshape(1, p)
         xs = est1.x_hat_refined if est1.x_hat_refined is not None else est1.x_hat
         xG = np.asarray(xs, dtype=np.float64).reshape(1, n)
         if k == 0:
-            sh.configure(self, h)
+            sh.configure(self.kappa, self.c, self.rho_max, self.dwell)
         ut, sh.u_history = smooth_input(u_.reshape(1, m), sh.u_history)   # stage 2's ũ
         sh.record(k, ut[0], y_, h)
         sh.poll_fit()
@@ -587,191 +491,169 @@ class GuardedEstimator:
         if sh is None:
             return StreamDiagnostics(fits=(), fit_samples=np.zeros((0, 2), np.int64),
                                      fit_seconds=np.zeros(0), failures=(), pending=False)
-        return StreamDiagnostics(fits=tuple(sh.fits),
-                                 fit_samples=np.array(sh.fit_samples, np.int64).reshape(-1, 2),
-                                 fit_seconds=np.array(sh.fit_seconds), failures=tuple(sh.failures),
-                                 pending=sh.future is not None and not sh.future.done())
+        return sh.diagnostics()
+
+    def _start_stream(self, state: GuardedState) -> GuardedStream:
+        """The stream of a state that has not been stepped yet (its data log, stage 2 at its
+        prior, the fit worker started when fits run)."""
+        sched = self.fit_schedule
+        s0, P0 = self._prior(state.x_hat0, state.theta_hat0)
+        return GuardedStream.start(self.model, s0, P0, q_x=self.q_x, noise_std=self.noise_std,
+                                   schedule=sched,
+                                   prior0=(sched.initial_prior(state.x_hat0, state.theta_hat0)
+                                           if sched else None),
+                                   executor=self.fit_executor)
 
     def __repr__(self) -> str:
         return (f"GuardedEstimator(stage1={type(self.stage1).__name__}, n={self.model.n}, "
                 f"p={self.model.p}, fits={'on' if self.use_fits else 'off'})")
 
 
-_LOOPS: dict[Any, Any] = {}
+class _OfflineRun:
+    """Stage 2, the guard and the fits of :meth:`GuardedEstimator.run` over one record.
 
-#: Initial capacity (samples) of a stream's data log; it doubles when full.
-_LOG_CAPACITY = 1024
+    The record is run in segments: between σ's refreshes (at :data:`MIN_SAMPLES` and
+    :data:`SIGMA_SAMPLES` samples, when σ is estimated) and the scheduled fits, each applied
+    at the sample after its window; the arrays are written in place.
+    """
 
-
-class _Stream:
-    """The data log, stage 2's (s, P) and the pending fit of one streaming run."""
-
-    def __init__(self, est: GuardedEstimator, state: GuardedState) -> None:
+    def __init__(self, est: GuardedEstimator, t: FloatArray, U: FloatArray, Y: FloatArray,
+                 res1: EstimateResult, st0: GuardedState) -> None:
         sys_ = est.model
-        n = sys_.n
-        self.k = 0
-        self.s, self.P0 = est._ekf().prior(state.x_hat0, state.theta_hat0)
+        n, p, N = sys_.n, sys_.p, t.shape[0]
+        self.est, self.system, self.t, self.U, self.Y = est, sys_, t, U, Y
+        self.Us = np.array(smooth_input(U)[0], order="C")    # stage 2's input samples ũ
+        xs = res1.x_hat if res1.x_hat_refined is None else res1.x_hat_refined
+        # writable C copies (the compiled loop's array type)
+        self.thG = np.array(res1.theta_hat, dtype=np.float64, order="C")
+        self.xG = np.array(xs, dtype=np.float64, order="C")
+        self.estimate_sigma = est.noise_std is None
+        k_first = MIN_SAMPLES if self.estimate_sigma else 0
+        self.sigma = resolve_noise_std(est.noise_std, Y[:max(k_first, MIN_SAMPLES)])
+        self.R = np.diag(self.sigma ** 2)
+        self.s, self.P0 = est._prior(st0.x_hat0, st0.theta_hat0)
         self.P = self.P0.copy()
-        self.Q_x = est.q_x * np.eye(n)
-        ts = stage2_set(sys_.require_parameter_set("stage 2"))
-        self.lo, self.hi, self.ell = ts.lo, ts.hi, ts.ell
-        given = est.noise_std is not None
-        self.R = (np.diag(resolve_noise_std(est.noise_std, np.zeros((1, sys_.r))) ** 2)
-                  if given else np.eye(sys_.r))
-        self.gst = np.array([0.0, 1.0, 0.0 if given else float(MIN_SAMPLES)])
-        self.cfg = np.array([])
-        self.pst = np.zeros((sys_.p, 6))
-        self.u_prev = np.zeros(sys_.m)
-        self.u_history: InputHistory | None = None
-        self.dt_prev = 0.0
-        # the samples since the start of the current fit window: sample i is the stream's
-        # sample base + i (a log in arrays, so that a fit's window is one copy at submission)
-        self.T: FloatArray = np.empty(_LOG_CAPACITY)
-        self.U: FloatArray = np.empty((_LOG_CAPACITY, sys_.m))
-        self.Y: FloatArray = np.empty((_LOG_CAPACITY, sys_.r))
-        self.size = 0
-        self.base = 0
-        self.fits: list[FitResult] = []
-        self.fit_samples: list[tuple[int, int]] = []
-        self.fit_seconds: list[float] = []
-        self.failures: list[str] = []
-        self.future: concurrent.futures.Future[Any] | None = None
-        self.j = 0
-        self.sched = est.fit_schedule
-        self.prior0 = (self.sched.initial_prior(state.x_hat0, state.theta_hat0)
-                       if self.sched else None)
-        self.executor: concurrent.futures.Executor | None = None
-        self.spec = b""
-        self._n = n
-
-    @classmethod
-    def start(cls, est: GuardedEstimator, state: GuardedState) -> _Stream:
-        """A new stream; with fits, the worker starts compiling the fit kernels at once (the
-        first fit queues behind that warm-up; its errors, if any, come back with the fit)."""
-        sh = cls(est, state)
-        if sh.sched is not None:
-            sh.executor = (est.fit_executor if est.fit_executor is not None
-                           else default_executor())
-            sh.spec = fit_spec(sh.sched)
-            sh.submit(warm_up, sh.spec)
-            sh.future = None
-        return sh
-
-    def record(self, k: int, u: FloatArray, y: FloatArray, dt: float) -> None:
-        i = self.size
-        if i == self.T.shape[0]:
-            self._resize(2 * i)
-        self.T[i] = 0.0 if k == 0 else self.T[i - 1] + self.dt_prev
-        self.U[i] = u
-        self.Y[i] = y
-        self.size = i + 1
-
-    def _resize(self, capacity: int, cut: int = 0) -> None:
-        """New log arrays of ``capacity`` holding samples cut … size − 1 (never written in
-        place: a window handed to the executor stays intact)."""
-        keep = self.size - cut
-        T, U, Y = (np.empty((capacity,) + a.shape[1:]) for a in (self.T, self.U, self.Y))
-        T[:keep], U[:keep], Y[:keep] = self.T[cut:self.size], self.U[cut:self.size], \
-            self.Y[cut:self.size]
-        self.T, self.U, self.Y, self.size = T, U, Y, keep
-
-    def refresh_sigma(self, k: int) -> None:
-        """σ̂ from the samples so far, after sample k = MIN_SAMPLES − 1 and SIGMA_SAMPLES − 1
-        (as :meth:`GuardedEstimator.run` does), when σ is estimated."""
-        if k + 1 in (MIN_SAMPLES, SIGMA_SAMPLES) and self.gst[2] > 0:
-            self.R = np.diag(resolve_noise_std(None, self.Y[:self.size]) ** 2)
-
-    def configure(self, est: GuardedEstimator, dt: float) -> None:
-        n = self._n
-        p = self.P0.shape[0] - n
+        self.ts = stage2_set(sys_.require_parameter_set("stage 2"))
+        self.out = {name: np.empty((N, w)) for name, w in
+                    (("TH", p), ("TH2", p), ("X2", n), ("SD2", p), ("BAND", p))}
+        self.CLIP, self.RESET = np.zeros(N, bool), np.zeros(N, bool)
+        self.NIS = np.full(N, np.nan)
+        self.pst = progress_init(self.thG[0])
+        self.gst = np.array([0.0, 1.0, float(k_first)])
+        # (κ, c, ρ_max, dwell, σ₂ cap; θ_F, κ s_F of the latest consistent fit: none yet)
         self.cfg = np.concatenate([[est.kappa, est.c, est.rho_max, est.dwell],
                                    np.sqrt(np.diag(self.P0)[n:]), np.zeros(p), np.full(p, -1.0)])
+        self.Q_x = est.q_x * np.eye(n)
+        self.fits: list[FitResult] = []
+        self.fit_at: list[int] = []
+        self.failures: list[str] = []
+        sched = est.fit_schedule
+        self.prior0 = (sched.initial_prior(st0.x_hat0, st0.theta_hat0) if sched else None)
+        # the default fits: all the data so far, at the sample counts where the information
+        # has grown by INFO_GROWTH, the last on all samples but the last (whose output then
+        # follows it); a schedule with times keeps its times (seconds) and windows
+        self.by_samples = sched is not None and sched.times is None
+        self.ks: list[int] = []
+        if sched is not None and self.by_samples:
+            sched = replace(sched, full_window=math.inf)
+            least = 3 if est.noise_std is not None else MIN_SAMPLES
+            self.ks = [k1 for k1 in sched.fit_samples(t[:N - 1], least=least)
+                       if MIN_SAMPLES <= k1 < N]
+        self.sched = sched
 
-    def submit(self, fn: Any, *args: Any) -> None:
-        """Hand ``fn(*args)`` to the executor; a broken executor ends this stream's fits."""
-        if self.executor is None:               # (start sets it whenever fits run)
-            return
-        try:
-            self.future = self.executor.submit(fn, *args)
-        except (concurrent.futures.BrokenExecutor, RuntimeError) as exc:
-            self._broken(exc)
+    def filter(self, rows: int) -> None:
+        """Stage 2 and the guard over rows 0 … rows − 1 (those stage 1 gave), the fits applied
+        as they fall due."""
+        k = j = 0
+        while k < rows:
+            k_next = rows
+            if self.estimate_sigma:                  # σ̂ from MIN_SAMPLES, refined at 32
+                if k in (MIN_SAMPLES, SIGMA_SAMPLES):
+                    self.sigma = resolve_noise_std(None, self.Y[:k])
+                    self.R = np.diag(self.sigma ** 2)
+                if k < SIGMA_SAMPLES:
+                    k_next = MIN_SAMPLES if k < MIN_SAMPLES else SIGMA_SAMPLES
+            j, k_fit = self._next_fit(k, j)
+            k_next = min(k_fit, rows, k_next)
+            self._samples(k, k_next)
+            due = self.sched is not None and k_next == k_fit < rows
+            if due and MIN_SAMPLES <= k_next:
+                self._fit(k_next)
+            if due and not self.by_samples:
+                j += 1
+            k = k_next
 
-    def _broken(self, exc: BaseException) -> None:
-        self._reject(f"the fit worker failed ({type(exc).__name__}: {exc}); no more fits in "
-                     "this stream (a script that streams must keep its top-level code under "
-                     "`if __name__ == \"__main__\":` for the worker process to start)")
-        if self.executor is not None:
-            discard_default_executor(self.executor)
-        self.sched = None
-        self.future = None
+    def _next_fit(self, k: int, j: int) -> tuple[int, int]:
+        """(j, k₁): the next scheduled fit after sample k and the samples it covers (N: none)."""
+        t, sched = self.t, self.sched
+        N = t.shape[0]
+        if sched is None:
+            return j, N
+        times = sched.times
+        if times is None:                        # by samples
+            while j < len(self.ks) and self.ks[j] <= k:
+                j += 1
+            return j, self.ks[j] if j < len(self.ks) else N
+        while times(j) <= t[k] - t[0]:
+            j += 1
+        return j, int(np.searchsorted(t - t[0], times(j) + 1e-12, side="right"))
 
-    def _reject(self, why: str) -> None:
-        self.failures.append(why)
-        warnings.warn(f"GuardedEstimator.step: a stage-2 fit was ignored: {why}. Stage 1 and "
-                      "the EKF go on.", ThetahatWarning, stacklevel=4)
+    def _samples(self, k0: int, k1: int) -> None:
+        """The compiled loop over samples k0 … k1 − 1."""
+        o, ts, est = self.out, self.ts, self.est
+        est._loop()(self.s, self.P, self.P0, self.Us, self.Y, self.t, k0, k1, 0, self.R, ts.lo,
+                    ts.hi, ts.ell, est.h_rho, self.Q_x, self.thG, self.xG, self.pst, self.gst,
+                    self.cfg, o["TH"], o["TH2"], o["X2"], o["SD2"], o["BAND"], self.CLIP,
+                    self.RESET, self.NIS)
 
-    def poll_fit(self) -> None:
-        """Apply a finished fit (at the first step after it finished); never waits."""
-        f = self.future
-        if f is None or not f.done():
+    def _fit(self, k1: int) -> None:
+        """The fit due after sample k1 − 1; a consistent one re-anchors stage 2."""
+        sched, prior0, est = self.sched, self.prior0, self.est
+        if sched is None or prior0 is None:
             return
-        self.future = None
-        try:
-            done = f.result()
-        except concurrent.futures.BrokenExecutor as exc:
-            self._broken(exc)
+        prev = self.fits[-1] if self.fits else None
+        fit = est._fit_or_none(sched, self.t, self.Us, self.Y, k1, prev, prior0,
+                               k1 == self.ks[-1] if self.by_samples else None, self.failures)
+        if fit is None:
             return
-        except Exception as exc:                # a crashed fit is ignored, with a diagnostic
-            self._reject(f"it raised {type(exc).__name__}: {exc}")
-            return
-        fit = done.fit
-        if not fit.finite:
-            self._reject(f"non-finite result on samples {fit.k0}…{fit.k1 - 1}")
-            return
-        n = self._n
         self.fits.append(fit)
-        self.fit_samples.append((fit.k1 - 1, self.k))
-        self.fit_seconds.append(done.seconds)
-        if fit.consistent:                      # θ only: x has moved on since the fit
-            self.s[n:] = fit.theta
-            self.P[n:, :] = 0.0
-            self.P[:, n:] = 0.0
-            self.P[n:, n:] = fit.cov[n:, n:]
-            self.R = np.diag(fit.noise_std ** 2)
+        self.fit_at.append(k1 - 1)
+        if fit.consistent:
+            # the fit ends at this very sample: take (x, θ) and their joint covariance;
+            # stage 2 carries the model error as the fit found it (none: q = 0)
+            s_fit, P_fit, self.R, self.Q_x = fit_as_prior(self.system, fit,
+                                                          sample_interval(self.t[:k1]), est.q_x)
+            self.s[:], self.P[:, :] = s_fit, P_fit
             p = fit.theta.shape[0]
             self.cfg[4 + p:4 + 2 * p] = fit.theta
-            self.cfg[4 + 2 * p:] = self.cfg[0] * fit.theta_se
-        if fit.k0 > 0 or (self.sched is not None and self.T[fit.k1 - 1 - self.base]
-                          > self.sched.full_window):
-            self._trim(fit.k1 - 1)
+            self.cfg[4 + 2 * p:] = est.kappa * fit.theta_se
+            self.sigma = fit.noise_std
 
-    def _trim(self, new_base: int) -> None:
-        cut = new_base - self.base
-        if cut > 0:
-            self._resize(self.T.shape[0], cut)
-            self.base = new_base
+    def stop(self, res1: EstimateResult) -> RunStop | None:
+        """Where the run stopped: the guarded output non-finite, or stage 1's own failure."""
+        rows = self.t.shape[0] if res1.failed_at is None else res1.failed_at
+        bad = ~np.isfinite(self.out["TH"][:rows]).all(axis=1)
+        if bad.any():
+            return RunStop(Status.DIVERGED, "the guarded output became non-finite: stage 1 "
+                           "diverged (check its gains and the data scaling).",
+                           int(np.argmax(bad)))
+        if res1.failed_at is not None:
+            return RunStop(res1.status, res1.message, res1.failed_at)
+        return None
 
-    def maybe_submit(self) -> None:
-        sched, prior0 = self.sched, self.prior0       # prior0 is None exactly when sched is
-        if sched is None or prior0 is None or self.future is not None:
-            return
-        t_last = float(self.T[self.size - 1])
-        if self.k < MIN_SAMPLES:
-            return
-        if sched.times is None:                 # sample counts: the data so far, k_j of them
-            at = sched.sample_counts()
-            if self.k < at(self.j):
-                return
-            while at(self.j) <= self.k:
-                self.j += 1
-        else:                                   # the caller's times (s)
-            if t_last < sched.times(self.j) - 1e-12:
-                return
-            while sched.times(self.j) <= t_last + 1e-12:
-                self.j += 1
-        b, k1 = self.base, self.size
-        prev = self.fits[-1] if self.fits else None
-        if prev is not None:
-            prev = dataclasses.replace(prev, k0=max(prev.k0 - b, 0), k1=prev.k1 - b)
-        self.submit(run_fit, self.spec, self.T[:k1].copy(), self.U[:k1].copy(),
-                    self.Y[:k1].copy(), k1, prev, prior0, t_last, b, sched.times is None)
+    def result(self, stop: RunStop | None) -> EstimateResult:
+        """The estimates and :class:`GuardedDiagnostics` (NaN rows from ``stop.at`` on)."""
+        o = self.out
+        diag = GuardedDiagnostics(theta_stage1=self.thG, theta_stage2=o["TH2"],
+                                  theta_sd=o["SD2"], band=o["BAND"], clipped=self.CLIP,
+                                  reset=self.RESET, nis=self.NIS, fits=tuple(self.fits),
+                                  fit_samples=np.array(self.fit_at, dtype=np.int64),
+                                  noise_std=self.sigma, failures=tuple(self.failures))
+        return stopped_result(t=self.t, x_hat=o["X2"], theta_hat=o["TH"],
+                              phi_hat=model_phi_hat(self.system, self.U, self.Y, o["X2"],
+                                                    o["TH"], stop),
+                              skipped=missing_samples(self.Y), diagnostics=diag, stop=stop,
+                              blank=(self.thG, o["TH2"], o["SD2"], o["BAND"], self.NIS))
+
+
+_LOOPS: dict[Any, Any] = {}

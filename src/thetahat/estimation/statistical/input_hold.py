@@ -26,6 +26,8 @@ noise or a PRBS switching every sample √3, a staircase held over several sampl
 zero-order hold) ρ near √2 unless the steps are small against a smooth trend: those keep
 the linear hold. The formula assumes uniform sampling (differences of samples, not divided
 differences).
+
+What it may import: NumPy only (stage 2's estimators import it).
 """
 
 from __future__ import annotations

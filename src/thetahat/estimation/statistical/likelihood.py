@@ -2,7 +2,7 @@
 
 When the model is not exact — a real machine's friction is asymmetric, a plant has dynamics
 the model leaves out — a fit that trusts the model over the whole record (the output-error MAP
-:func:`~thetahat.estimation.statistical.mle.fit_map`) lets the model's error accumulate in x and pays for
+:func:`~thetahat.estimation.statistical.map_fit.fit_map`) lets the model's error accumulate in x and pays for
 it with a biased θ. The remedy is to say so in the model: the error enters where the
 perturbation enters,
 
@@ -24,6 +24,9 @@ differences of whole filter passes) and log q by a bounded one-dimensional searc
 alternately. The scale of q is the data's own: q₀ is the intensity whose one-sample effect on
 y equals the measurement noise, C q₀ Q₁(h) Cᵀ = σ², and q is searched over q₀·10^[−6, 6] and
 at 0 (the output-error model, which wins when the model is exact).
+
+What it may import: :mod:`thetahat.model`, the package's errors, SciPy, and, in this room,
+``common``, ``noise_level``, ``plant_kernel`` and ``stage2_set``.
 """
 
 from __future__ import annotations
@@ -41,7 +44,7 @@ from scipy.optimize import least_squares, minimize_scalar
 from ...errors import NonFiniteError
 from ...model.system import PerturbedLinearSystem
 from ...model.paramset import Box, ParameterSet
-from .ekf import sample_interval, theta_box
+from .common import sample_interval, theta_box
 from .noise_level import mad_variance
 from .stage2_set import project_theta, theta_bounds
 from .plant_kernel import H_RHO, ModelKernel, jit, model_kernel

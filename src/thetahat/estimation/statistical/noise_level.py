@@ -12,6 +12,9 @@ difference overstates σ. The o-th difference has noise variance C(2o, o) σ² a
 h^o y^(o), which falls geometrically with o for a smooth output; so σ̂_o is computed for
 o = 2, 3, … and the first o is taken after which σ̂ no longer falls by more than its own
 scatter (2/√M relative, M the number of differences), up to :data:`MAX_ORDER`.
+
+What it may import: NumPy and the package's errors; nothing of the estimation wing (every
+statistical estimator imports it).
 """
 
 from __future__ import annotations

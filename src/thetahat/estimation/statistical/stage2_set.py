@@ -35,6 +35,9 @@ The compiled kernels read Θ as data, ``lo, hi`` (p,) and ``ell`` (p + 1, p) (ro
 centre c, rows 1… Q; all zeros for a box): one compiled kernel serves boxes, balls and
 ellipsoids of any size.
 
+What it may import: :mod:`thetahat.model` (Θ), the package's errors and the projection
+kernels of :mod:`~thetahat.estimation.kernels.set_projection`; nothing of this room.
+
 References
 ----------
 D. Simon and T. L. Chia, "Kalman filtering with state equality constraints", IEEE Trans.

@@ -24,6 +24,10 @@ estimate θ̂ of a record against four questions and :class:`TrustReport` answer
 * **Is the model wrong?** When the likelihood prefers process noise on φ (q̂ > 0 at more than
   :data:`MODEL_ERROR_Q` times the data's own scale q₀), the model does not explain the record
   to the measurement noise: the estimate is the best symmetric fit of a model that errs.
+
+What it may import: :mod:`thetahat.model`, the package's errors, and, in this room,
+``common``, ``input_hold``, ``likelihood``, ``noise_level``, ``plant_kernel`` and
+``stage2_set``; the estimators' results reach it as arrays (it imports no estimator).
 """
 
 from __future__ import annotations
@@ -37,7 +41,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from ...errors import ThetahatError
 from ...model.system import PerturbedLinearSystem
-from .ekf import sample_interval, theta_box, x_prior_sd
+from .common import sample_interval, theta_box, x_prior_sd
 from .input_hold import smooth_input
 from .stage2_set import BOUNDARY_RTOL, on_boundary
 from .likelihood import process_noise_scale, record_bound
@@ -165,7 +169,7 @@ def trust_report(system: PerturbedLinearSystem, t: FloatArray, U: FloatArray, Y:
     x_hat0 : ndarray (n,)
         Prior mean of x(0).
     x_sd : float or array_like (n,), optional
-        Its standard deviation; default :func:`~thetahat.estimation.statistical.ekf.x_prior_sd`
+        Its standard deviation; default :func:`~thetahat.estimation.statistical.common.x_prior_sd`
         of ``x_hat0``.
     band : ndarray (N, p), optional
         The guard's band δ over the run (guarded estimator).

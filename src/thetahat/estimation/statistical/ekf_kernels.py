@@ -1,0 +1,537 @@
+"""The joint EKF's per-sample kernels on s = col(x, θ): predict, update, the loop, one sample.
+
+The augmented state s = col(x, θ) with θ constant (no random walk) follows the sampled-data
+map of :mod:`~thetahat.estimation.statistical.plant_kernel` (RK4 sub-steps, first-order hold
+on u), so the transition matrix is T = [[Φ, Γ], [0, I]] with the exact Jacobians Φ = ∂F/∂x,
+Γ = ∂F/∂θ. Each sample is
+
+* the **prediction** (:func:`predict_kernel`): s ← (F(x, θ, u₀, u₁), θ), P ← T P Tᵀ + Q with
+  Q = diag(Q_x, 0);
+* the **gain** (:func:`gain_kernel`): H = [C 0], S = H P Hᵀ + R factored by Cholesky,
+  K = P Hᵀ S⁻¹, the innovation ν and νᵀ S⁻¹ ν;
+* the **update** (:func:`update_kernel`): s ← s + K ν, P in Joseph form
+  P ← (I − K H) P (I − K H)ᵀ + K R Kᵀ (:func:`joseph_kernel`, which keeps P symmetric positive
+  semi-definite in floating point), then θ projected onto Θ in the P_θθ⁻¹-weighted norm (a
+  box: a clip; any convex Θ, see :mod:`~thetahat.estimation.statistical.stage2_set`);
+* and the **loop** over a record's samples (:func:`loop_kernel`), which stops at the first
+  sample whose s or P's diagonal is not finite (its index, reported by :func:`divergence_message`).
+
+They are numba-compiled with the model kernel when numba is installed (:func:`ekf_kernels`),
+and shared by the joint EKF (:mod:`~thetahat.estimation.statistical.ekf`), the MAP estimator
+between its fits (:mod:`~thetahat.estimation.statistical.mle`) and the guarded estimator's
+stage 2 (:mod:`~thetahat.estimation.statistical.guarded`).
+
+What it may import: :mod:`thetahat.model`, the package's errors, the bottom of the
+estimation wing (:mod:`~thetahat.estimation.status`), and, in this room,
+:mod:`~thetahat.estimation.statistical.plant_kernel` and
+:mod:`~thetahat.estimation.statistical.stage2_set`.
+"""
+
+from __future__ import annotations
+
+import functools
+import math
+from dataclasses import dataclass
+from typing import Any, Callable
+
+import numpy as np
+from numpy.typing import NDArray
+
+from ...errors import UnsupportedError
+from ...model.paramset import Box
+from ...model.system import PerturbedLinearSystem
+from ..status import Status, status_error
+from .plant_kernel import ModelKernel, jit, model_kernel
+from .stage2_set import clip_kernel, has_compiled_projection, project_kernel, stage2_set
+
+__all__ = ["EKFKernels", "NIS_MODEL_ERROR", "divergence_message", "ekf_kernels", "ekf_sample",
+           "gain_kernel", "joseph_kernel", "loop_kernel", "predict_kernel", "update_kernel"]
+
+FloatArray = NDArray[np.float64]
+
+#: A median normalised innovation squared (NIS ÷ r, 1 for a model that fits) above this before
+#: a divergence is a model error, not bad luck: χ²_r/r has its median below 1 and a 99.9 %
+#: quantile below 11 for every r ≥ 1 (r = 1: 10.8).
+NIS_MODEL_ERROR = 11.0
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class EKFKernels:
+    """The EKF's per-sample operations on (s, P) in place (compiled with the model kernel).
+
+    ``predict(s, P, u0, u1, h, h_rho, Q_x, Phi, Gam)`` and
+    ``update(s, P, y, R, lo, hi, ell) -> NIS`` (normalised innovation squared ÷ r, after which
+    θ is projected onto Θ = (lo, hi, ell), see
+    :func:`~thetahat.estimation.statistical.stage2_set.project_kernel`); ``loop(s, P, U, Y, t, k0, k1, R,
+    lo, hi, ell, h_rho, Q_x, X, TH, SD, NIS) -> status`` runs samples k0 … k1−1 and returns
+    −1, or the index where s or P's diagonal became non-finite.
+
+    Parameters
+    ----------
+    model : ModelKernel
+        The plant kernels (f, Φ, Γ and the RK4 sampled-data map) the EKF is built on; its
+        ``compiled`` flag says whether the operations below are numba-compiled.
+    predict : callable
+        ``predict(s, P, u0, u1, h, h_rho, Q_x, Phi, Gam) -> None``: the time update over one
+        sample of length ``h`` with u linear from ``u0`` to ``u1`` (:func:`predict_kernel`).
+    update : callable
+        ``update(s, P, y, R, lo, hi, ell) -> float``: the measurement update with y (r,) and
+        R (r, r), then θ projected onto Θ (:func:`update_kernel`); returns the normalised
+        innovation squared νᵀ S⁻¹ ν ÷ r (≈ 1 for a consistent filter).
+    loop : callable
+        ``loop(s, P, U, Y, t, k0, k1, R, lo, hi, ell, h_rho, Q_x, X, TH, SD, NIS) -> int``: the
+        filter over samples k0 … k1−1 (:func:`loop_kernel`); returns −1, or the first sample
+        index at which s became non-finite.
+    project : callable
+        ``project(theta, M, lo, hi, ell) -> None``: Π_Θ in place in the norm ‖·‖_{M⁻¹}
+        (:func:`~thetahat.estimation.statistical.stage2_set.project_kernel`, or a ConvexSet's Python
+        projection); the guard uses it with M = I.
+    """
+
+    model: ModelKernel
+    predict: Callable[..., None]
+    update: Callable[..., float]
+    loop: Callable[..., int]
+    project: Callable[..., None]
+
+
+def predict_kernel(propagate: Callable[..., Any]) -> Callable[..., None]:
+    """The time update over one sample, written over the model's ``propagate``.
+
+    Parameters
+    ----------
+    propagate : callable
+        :attr:`~thetahat.estimation.statistical.plant_kernel.ModelKernel.propagate`.
+
+    Returns
+    -------
+    callable
+        ``predict(s, P, u0, u1, h, h_rho, Q_x, Phi, Gam) -> None``: overwrites s = col(x, θ)
+        (shape (n + p,)) with (F(x, θ, u0, u1), θ) and P (shape (n + p, n + p)) with
+        T P Tᵀ + diag(Q_x, 0), T = [[Φ, Γ], [0, I]], Q_x (n, n); ``Phi`` (n, n) and ``Gam``
+        (n, p) are work arrays that receive Φ and Γ. Not compiled (see :func:`ekf_kernels`).
+    """
+    prop = propagate
+
+    def predict(s, P, u0, u1, h, h_rho, Q_x, Phi, Gam):
+        n = Phi.shape[0]
+        p = Gam.shape[1]
+        N = n + p
+        x = s[:n].copy()
+        th = s[n:].copy()
+        # a runtime True (n ≥ 1), not the literal: numba would compile a second
+        # specialisation of propagate for Literal[bool] (≈ 0.9 s of a first run) besides the
+        # one the MAP sweep and the likelihood use
+        xn = prop(x, th, u0, u1, h, h_rho, n > 0, Phi, Gam)
+        # T = [[Φ, Γ], [0, I]], element by element: numba's slice assignment compiles its
+        # string-formatting error path (≈ 3 s of a guarded run's first compilation)
+        T = np.zeros((N, N))
+        for i in range(n):
+            for j in range(n):
+                T[i, j] = Phi[i, j]
+            for j in range(p):
+                T[i, n + j] = Gam[i, j]
+        for i in range(n, N):
+            T[i, i] = 1.0
+        TP = np.zeros((N, N))
+        for i in range(N):
+            for j in range(N):
+                acc = 0.0
+                for k in range(N):
+                    acc += T[i, k] * P[k, j]
+                TP[i, j] = acc
+        for i in range(N):
+            for j in range(i, N):
+                acc = 0.0
+                for k in range(N):
+                    acc += TP[i, k] * T[j, k]
+                P[i, j] = acc
+                P[j, i] = acc
+        for i in range(n):
+            for j in range(n):
+                P[i, j] += Q_x[i, j]
+            s[i] = xn[i]
+
+    return predict
+
+
+def gain_kernel(C: FloatArray) -> Callable[..., tuple[FloatArray, FloatArray, float]]:
+    """The Kalman gain of the output map H = [C 0], with the innovation and its test value.
+
+    Parameters
+    ----------
+    C : ndarray (r, n)
+        The model's output matrix.
+
+    Returns
+    -------
+    callable
+        ``gain(s, P, y, R) -> (K, nu, nis)``: ν = y − C x, S = H P Hᵀ + R = L Lᵀ (Cholesky;
+        S is positive definite for R > 0), K = P Hᵀ S⁻¹ (n + p, r) and νᵀ S⁻¹ ν (not ÷ r).
+        Reads s and P only. Not compiled (see :func:`ekf_kernels`).
+    """
+
+    def gain(s, P, y, R):
+        N = P.shape[0]
+        r = C.shape[0]
+        n = C.shape[1]
+        PHt = np.zeros((N, r))
+        for i in range(N):
+            for j in range(r):
+                acc = 0.0
+                for k in range(n):
+                    acc += P[i, k] * C[j, k]
+                PHt[i, j] = acc
+        S = R.copy()
+        nu = y.copy()
+        for i in range(r):
+            for k in range(n):
+                nu[i] -= C[i, k] * s[k]
+            for j in range(r):
+                acc = 0.0
+                for k in range(n):
+                    acc += C[i, k] * PHt[k, j]
+                S[i, j] += acc
+        # Cholesky S = L Lᵀ (S is SPD: R > 0)
+        L = np.zeros((r, r))
+        for i in range(r):
+            for j in range(i + 1):
+                acc = S[i, j]
+                for k in range(j):
+                    acc -= L[i, k] * L[j, k]
+                if i == j:
+                    L[i, i] = math.sqrt(max(acc, 1e-300))
+                else:
+                    L[i, j] = acc / L[j, j]
+        # K = PHt S⁻¹ (row-wise solves), w = S⁻¹ ν
+        K = np.zeros((N, r))
+        for row in range(N):
+            z = PHt[row].copy()
+            for i in range(r):
+                for k in range(i):
+                    z[i] -= L[i, k] * z[k]
+                z[i] /= L[i, i]
+            for i in range(r - 1, -1, -1):
+                for k in range(i + 1, r):
+                    z[i] -= L[k, i] * z[k]
+                z[i] /= L[i, i]
+            for i in range(r):          # element by element: see predict_kernel
+                K[row, i] = z[i]
+        w = nu.copy()
+        for i in range(r):
+            for k in range(i):
+                w[i] -= L[i, k] * w[k]
+            w[i] /= L[i, i]
+        nis = 0.0
+        for i in range(r):
+            nis += w[i] * w[i]
+        return K, nu, nis
+
+    return gain
+
+
+def joseph_kernel(C: FloatArray) -> Callable[..., None]:
+    """The covariance update in Joseph form for H = [C 0].
+
+    Parameters
+    ----------
+    C : ndarray (r, n)
+
+    Returns
+    -------
+    callable
+        ``joseph(P, K, R) -> None``: P ← (I − K H) P (I − K H)ᵀ + K R Kᵀ in place (symmetric
+        by construction). Not compiled (see :func:`ekf_kernels`).
+    """
+
+    def joseph(P, K, R):
+        N = P.shape[0]
+        r = C.shape[0]
+        n = C.shape[1]
+        IKH = np.eye(N)
+        for i in range(N):
+            for j in range(n):
+                acc = 0.0
+                for k in range(r):
+                    acc += K[i, k] * C[k, j]
+                IKH[i, j] -= acc
+        A = np.zeros((N, N))
+        for i in range(N):
+            for j in range(N):
+                acc = 0.0
+                for k in range(N):
+                    acc += IKH[i, k] * P[k, j]
+                A[i, j] = acc
+        for i in range(N):
+            for j in range(i, N):
+                acc = 0.0
+                for k in range(N):
+                    acc += A[i, k] * IKH[j, k]
+                for a in range(r):
+                    for b in range(r):
+                        acc += K[i, a] * R[a, b] * K[j, b]
+                P[i, j] = acc
+                P[j, i] = acc
+
+    return joseph
+
+
+def update_kernel(gain: Callable[..., Any], joseph: Callable[..., None],
+                  project: Callable[..., None], n: int) -> Callable[..., float]:
+    """The measurement update: gain, state, Joseph-form covariance, then θ projected onto Θ.
+
+    Parameters
+    ----------
+    gain : callable
+        :func:`gain_kernel`'s (compiled like this one).
+    joseph : callable
+        :func:`joseph_kernel`'s.
+    project : callable
+        ``project(theta, M, lo, hi, ell)``: Π_Θ in place in the norm ‖·‖_{M⁻¹}.
+    n : int
+        States (the first n entries of s).
+
+    Returns
+    -------
+    callable
+        ``update(s, P, y, R, lo, hi, ell) -> float``: s and P updated in place; returns
+        νᵀ S⁻¹ ν ÷ r. Not compiled (see :func:`ekf_kernels`).
+    """
+
+    def update(s, P, y, R, lo, hi, ell):
+        K, nu, nis = gain(s, P, y, R)
+        N = P.shape[0]
+        r = nu.shape[0]
+        for i in range(N):
+            for j in range(r):
+                s[i] += K[i, j] * nu[j]
+        joseph(P, K, R)
+        p = lo.shape[0]
+        th = s[n:].copy()
+        project(th, P[n:, n:].copy(), lo, hi, ell)
+        for i in range(p):
+            s[n + i] = th[i]
+        return nis / r
+
+    return update
+
+
+def loop_kernel(predict: Callable[..., None], update: Callable[..., float]
+                ) -> Callable[..., int]:
+    """The filter over the samples of a record.
+
+    Parameters
+    ----------
+    predict, update : callable
+        :func:`predict_kernel`'s and :func:`update_kernel`'s (compiled like this one).
+
+    Returns
+    -------
+    callable
+        ``loop(s, P, U, Y, t, k0, k1, R, lo, hi, ell, h_rho, Q_x, X, TH, SD, NIS) -> int``:
+        samples k0 … k1−1 (predict from sample k−1 when k > 0, then update unless y_k has a
+        non-finite entry), writing x̂ into ``X`` (N, n), θ̂ into ``TH`` (N, p), √diag P_θθ
+        into ``SD`` (N, p) and the NIS into ``NIS`` (N,; NaN where not updated); returns −1,
+        or the first sample index at which s or P's diagonal became non-finite (its row is
+        not written).
+    """
+
+    def loop(s, P, U, Y, tt, k0, k1, R, lo, hi, ell, h_rho, Q_x, X, TH, SD, NIS):
+        """Samples k0 … k1−1 (predict from k−1 when k > 0, then update); -1 or the bad index."""
+        n = X.shape[1]
+        p = TH.shape[1]
+        Phi = np.empty((n, n))
+        Gam = np.empty((n, p))
+        for k in range(k0, k1):
+            if k > 0:
+                predict(s, P, U[k - 1], U[k], tt[k] - tt[k - 1], h_rho, Q_x, Phi, Gam)
+            finite_y = True
+            for j in range(Y.shape[1]):
+                if not math.isfinite(Y[k, j]):
+                    finite_y = False
+            NIS[k] = update(s, P, Y[k], R, lo, hi, ell) if finite_y else np.nan
+            for i in range(n + p):
+                if not math.isfinite(s[i]) or not math.isfinite(P[i, i]):
+                    return k
+            for i in range(n):              # element by element: see predict_kernel
+                X[k, i] = s[i]
+            for i in range(p):
+                TH[k, i] = s[n + i]
+                SD[k, i] = math.sqrt(max(P[n + i, n + i], 0.0))
+        return -1
+
+    return loop
+
+
+def _make(model: ModelKernel, project: Callable[..., None]) -> EKFKernels:
+    """The kernels of ``model``, compiled with it, over the projection ``project``."""
+    c = model.compiled
+    predict = jit(predict_kernel(model.propagate), c)
+    update = jit(update_kernel(jit(gain_kernel(model.C), c), jit(joseph_kernel(model.C), c),
+                               project, model.C.shape[1]), c)
+    return EKFKernels(model=model, predict=predict, update=update,
+                      loop=jit(loop_kernel(predict, update), c), project=project)
+
+
+@functools.lru_cache(maxsize=16)
+def _cached(model: ModelKernel, box: bool) -> EKFKernels:
+    return _make(model, jit(clip_kernel if box else project_kernel, model.compiled))
+
+
+@functools.lru_cache(maxsize=16)
+def _cached_python_projection(model: ModelKernel, theta_set: Any) -> EKFKernels:
+    st = stage2_set(theta_set)
+
+    def project(theta, M, lo, hi, ell):
+        st.project(theta, M)
+
+    return _make(model, project)
+
+
+def ekf_kernels(system: PerturbedLinearSystem, *, compiled: bool | None = None) -> EKFKernels:
+    """The EKF kernels of a model (built once per model kernel).
+
+    Parameters
+    ----------
+    system : PerturbedLinearSystem
+        The model of stage 2, with a
+        :class:`~thetahat.model.perturbation.SymbolicPerturbation` (see
+        :func:`~thetahat.estimation.statistical.plant_kernel.model_kernel`).
+    compiled : bool, optional
+        Compile the kernels with numba; default (None): when numba is installed and Θ has a
+        compiled projection (a Box, Ball or Ellipsoid). A
+        :class:`~thetahat.model.paramset.ConvexSet` Θ is projected in Python
+        (:mod:`~thetahat.estimation.statistical.stage2_set`), so its kernels run uncompiled.
+
+    Returns
+    -------
+    EKFKernels
+        ``predict``, ``update``, ``loop`` and ``project`` on col(x, θ) for this model; the
+        same object for the same model kernel (an LRU cache of 16). Θ itself is data
+        (``lo, hi, ell`` of :class:`~thetahat.estimation.statistical.stage2_set.StageTwoSet`).
+
+    Raises
+    ------
+    DimensionError
+        The perturbation is not symbolic.
+    MissingExtraError
+        ``compiled=True`` without numba.
+    UnsupportedError
+        ``compiled=True`` with a ConvexSet Θ.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from thetahat.models import lugre
+    >>> from thetahat.estimation.statistical.ekf_kernels import ekf_kernels
+    >>> k = ekf_kernels(lugre.system(), compiled=False)
+    >>> s, P = np.array([0.0, 0.0, 0.5]), np.diag([1.0, 1e-6, 0.05])
+    >>> nis = k.update(s, P, np.array([0.1]), np.array([[4e-4]]), np.array([0.05]),
+    ...                np.array([1.0]), np.zeros((2, 1)))
+    >>> bool(P[0, 0] < 4e-4)           # the measurement of ω shrank its variance below R
+    True
+    """
+    theta_set = system.require_parameter_set("stage 2")
+    if has_compiled_projection(theta_set):
+        return _cached(model_kernel(system, compiled=compiled), isinstance(theta_set, Box))
+    if compiled:
+        raise UnsupportedError(f"Θ = {theta_set!r} has no compiled projection (its P is a "
+                               "Python callable); pass compiled=None or False, or give Θ as a "
+                               "Box, Ball or Ellipsoid.")
+    return _cached_python_projection(model_kernel(system, compiled=False), theta_set)
+
+
+def ekf_sample(kernels: EKFKernels, system: PerturbedLinearSystem, s: FloatArray, P: FloatArray,
+               u0: FloatArray | None, u1: FloatArray, y: FloatArray, dt: float, h_rho: float,
+               Q_x: FloatArray, R: FloatArray | None, k: int) -> float:
+    """One sample of the joint EKF, in place: the ``step`` of every estimator that runs it.
+
+    Predicts s = col(x̂, θ̂) and P from the previous sample (input u0 → u1 over ``dt``; none when
+    ``u0`` is None: the first sample), then updates with ``y`` (none when y holds NaN or ``R``
+    is None: σ not known yet), θ̂ projected onto Θ. What :attr:`EKFKernels.loop` does for one
+    sample of a record.
+
+    Parameters
+    ----------
+    kernels : EKFKernels
+        :func:`ekf_kernels` of ``system``.
+    system : PerturbedLinearSystem
+    s : ndarray (n + p,)
+    P : ndarray (n + p, n + p)
+        C order; both overwritten.
+    u0 : ndarray (m,) or None
+    u1 : ndarray (m,)
+    y : ndarray (r,)
+    dt : float
+    h_rho : float
+    Q_x : ndarray (n, n)
+    R : ndarray (r, r) or None
+    k : int
+        The sample's index (named in the error).
+
+    Returns
+    -------
+    float
+        The update's normalised innovation squared ÷ r (NaN: no update).
+
+    Raises
+    ------
+    NonFiniteError
+        The filter diverged (s or P's diagonal not finite): the error of
+        :attr:`~thetahat.estimation.status.Status.DIVERGED`.
+    """
+    n, p = Q_x.shape[0], s.shape[0] - Q_x.shape[0]
+    if u0 is not None:
+        kernels.predict(s, P, u0, u1, dt, h_rho, Q_x, np.empty((n, n)), np.empty((n, p)))
+    nis = math.nan
+    if R is not None and np.all(np.isfinite(y)):
+        ts = stage2_set(system.require_parameter_set("stage 2"))
+        nis = float(kernels.update(s, P, y, R, ts.lo, ts.hi, ts.ell))
+    if not (np.all(np.isfinite(s)) and np.all(np.isfinite(np.diagonal(P)))):
+        raise status_error(Status.DIVERGED, f"the EKF diverged at sample {k}; check the model "
+                           "and noise_std.")
+    return nis
+
+
+def divergence_message(t: FloatArray, bad: int, nis: FloatArray, r: int) -> str:
+    """What to say of a joint EKF whose state became non-finite at sample ``bad``.
+
+    The message of the :attr:`~thetahat.estimation.status.Status.DIVERGED` status of
+    :meth:`~thetahat.estimation.statistical.ekf.JointEKF.run` and of the MAP estimator's
+    filter between its fits.
+
+    Parameters
+    ----------
+    t : ndarray (N,)
+    bad : int
+        The first sample with a non-finite state.
+    nis : ndarray (N,)
+        The normalised innovations squared of the samples before (NaN where none).
+    r : int
+        Outputs per sample (NIS's expectation).
+
+    Returns
+    -------
+    str
+        Says where, and — when the median NIS ÷ r before the divergence exceeds
+        :data:`NIS_MODEL_ERROR` — that the model taken as exact does not fit the record and
+        what to do about it.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from thetahat.estimation.statistical.ekf_kernels import divergence_message
+    >>> msg = divergence_message(np.arange(5.0), 4, np.array([3e4, 2e4, 5e4, 4e4, np.nan]), 1)
+    >>> "does not fit" in msg
+    True
+    """
+    seen = np.asarray(nis[:bad], dtype=np.float64)
+    seen = seen[np.isfinite(seen)]
+    ratio = float(np.median(seen)) / max(r, 1) if seen.size else 0.0
+    where = f"the EKF diverged at t[{bad}] = {float(t[bad]):.6g}"
+    if ratio > NIS_MODEL_ERROR:
+        return (f"{where}: its innovations before were {math.sqrt(ratio):.3g}"
+                " times their predicted size, so the model taken as exact (no process noise)"
+                " does not fit this record; give a process noise q_x > 0, or use method"
+                " 'guarded' or 'mle', which estimate it from the data.")
+    return f"{where}; check the model and noise_std."

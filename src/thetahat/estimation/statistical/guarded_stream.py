@@ -1,0 +1,297 @@
+"""The guarded estimator's stream: its data log, stage 2's (s, P) and the pending fit.
+
+A streaming :meth:`~thetahat.estimation.statistical.guarded.GuardedEstimator.step` keeps one
+:class:`GuardedStream`, shared by the states of that stream: the samples since the current
+fit window began (arrays that double when full, so that a fit's window is one copy at
+submission), stage 2's state and covariance, σ (refreshed as the guarded ``run`` refreshes
+it), the guard's constants, and the fit handed to the worker of
+:mod:`~thetahat.estimation.statistical.fit_worker` (applied at the first ``step`` after it
+finished: a ``step`` never waits for a fit). A fit that crashes or comes back non-finite is
+ignored with a :class:`~thetahat.errors.ThetahatWarning`; :class:`StreamDiagnostics` counts
+the fits.
+
+What it may import: the package's errors, and, in this room, ``common``, ``fit_worker``,
+``input_hold``, ``map_fit``, ``noise_level`` and ``stage2_set``; never the guarded estimator
+(which builds the stream from plain values).
+"""
+
+from __future__ import annotations
+
+import concurrent.futures
+import dataclasses
+import warnings
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from ...errors import ThetahatWarning
+from ...model.system import PerturbedLinearSystem
+from .common import resolve_noise_std
+from .fit_worker import default_executor, discard_default_executor, fit_spec, run_fit, warm_up
+from .input_hold import InputHistory
+from .map_fit import FitResult, FitSchedule
+from .noise_level import MIN_SAMPLES
+from .stage2_set import stage2_set
+
+__all__ = ["GuardedStream", "LOG_CAPACITY", "SIGMA_SAMPLES", "StreamDiagnostics"]
+
+FloatArray = NDArray[np.float64]
+
+#: Samples after which σ̂ is re-estimated once before the first fit (when σ is not given).
+SIGMA_SAMPLES = 32
+
+#: Initial capacity (samples) of a stream's data log; it doubles when full.
+LOG_CAPACITY = 1024
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class StreamDiagnostics:
+    """The fits of a streaming run so far (``GuardedEstimator.stream_diagnostics``).
+
+    Attributes
+    ----------
+    fits : tuple of FitResult
+        The fits that came back finite, in order (applied to stage 2 when consistent).
+    fit_samples : ndarray of int, shape (n_fits, 2)
+        Per fit: the last sample of its window and the sample whose ``step`` applied it (the
+        first ``step`` after the fit finished).
+    fit_seconds : ndarray, shape (n_fits,)
+        Wall time of each fit in the worker (s).
+    failures : tuple of str
+        Fits that crashed or returned non-finite values, ignored (one warning each).
+    pending : bool
+        A fit is running (a finished one is applied by the next ``step``).
+    """
+
+    fits: tuple[FitResult, ...]
+    fit_samples: NDArray[np.int64]
+    fit_seconds: FloatArray
+    failures: tuple[str, ...]
+    pending: bool
+
+    def __repr__(self) -> str:
+        return (f"StreamDiagnostics(fits={len(self.fits)}, failures={len(self.failures)}, "
+                f"pending={self.pending})")
+
+
+class GuardedStream:
+    """The data log, stage 2's (s, P) and the pending fit of one streaming run.
+
+    Parameters
+    ----------
+    system : PerturbedLinearSystem
+        Stage 2's model.
+    s0, P0 : ndarray (n + p,), (n + p, n + p)
+        Stage 2's prior (:func:`~thetahat.estimation.statistical.common.joint_prior`).
+    q_x : float
+        Stage 2's process-noise variance per sample on x.
+    noise_std : float or array_like (r,), optional
+        σ; None: estimated from the first samples.
+    schedule : FitSchedule or None
+        The fits (None: no fits).
+    prior0 : (ndarray, ndarray) or None
+        The first fit's prior (:meth:`~.map_fit.FitSchedule.initial_prior`; None without fits).
+    """
+
+    def __init__(self, system: PerturbedLinearSystem, s0: FloatArray, P0: FloatArray, *,
+                 q_x: float, noise_std: ArrayLike | None, schedule: FitSchedule | None,
+                 prior0: tuple[FloatArray, FloatArray] | None) -> None:
+        sys_ = system
+        n = sys_.n
+        self.k = 0
+        self.s, self.P0 = s0, P0
+        self.P = self.P0.copy()
+        self.Q_x = q_x * np.eye(n)
+        ts = stage2_set(sys_.require_parameter_set("stage 2"))
+        self.lo, self.hi, self.ell = ts.lo, ts.hi, ts.ell
+        given = noise_std is not None
+        self.R = (np.diag(resolve_noise_std(noise_std, np.zeros((1, sys_.r))) ** 2)
+                  if given else np.eye(sys_.r))
+        self.gst = np.array([0.0, 1.0, 0.0 if given else float(MIN_SAMPLES)])
+        self.cfg = np.array([])
+        self.pst = np.zeros((sys_.p, 6))
+        self.u_prev = np.zeros(sys_.m)
+        self.u_history: InputHistory | None = None
+        self.dt_prev = 0.0
+        # the samples since the start of the current fit window: sample i is the stream's
+        # sample base + i (a log in arrays, so that a fit's window is one copy at submission)
+        self.T: FloatArray = np.empty(LOG_CAPACITY)
+        self.U: FloatArray = np.empty((LOG_CAPACITY, sys_.m))
+        self.Y: FloatArray = np.empty((LOG_CAPACITY, sys_.r))
+        self.size = 0
+        self.base = 0
+        self.fits: list[FitResult] = []
+        self.fit_samples: list[tuple[int, int]] = []
+        self.fit_seconds: list[float] = []
+        self.failures: list[str] = []
+        self.future: concurrent.futures.Future[Any] | None = None
+        self.j = 0
+        self.sched = schedule
+        self.prior0 = prior0 if schedule else None
+        self.executor: concurrent.futures.Executor | None = None
+        self.spec = b""
+        self._n = n
+
+    @classmethod
+    def start(cls, system: PerturbedLinearSystem, s0: FloatArray, P0: FloatArray, *,
+              q_x: float, noise_std: ArrayLike | None, schedule: FitSchedule | None,
+              prior0: tuple[FloatArray, FloatArray] | None,
+              executor: concurrent.futures.Executor | None) -> GuardedStream:
+        """A new stream; with fits, the worker starts compiling the fit kernels at once (the
+        first fit queues behind that warm-up; its errors, if any, come back with the fit).
+
+        Parameters
+        ----------
+        system, s0, P0, q_x, noise_std, schedule, prior0
+            As the class's.
+        executor : concurrent.futures.Executor, optional
+            Where the fits run (default
+            :func:`~thetahat.estimation.statistical.fit_worker.default_executor`).
+
+        Returns
+        -------
+        GuardedStream
+        """
+        sh = cls(system, s0, P0, q_x=q_x, noise_std=noise_std, schedule=schedule,
+                 prior0=prior0)
+        if sh.sched is not None:
+            sh.executor = executor if executor is not None else default_executor()
+            sh.spec = fit_spec(sh.sched)
+            sh.submit(warm_up, sh.spec)
+            sh.future = None
+        return sh
+
+    def record(self, k: int, u: FloatArray, y: FloatArray, dt: float) -> None:
+        i = self.size
+        if i == self.T.shape[0]:
+            self._resize(2 * i)
+        self.T[i] = 0.0 if k == 0 else self.T[i - 1] + self.dt_prev
+        self.U[i] = u
+        self.Y[i] = y
+        self.size = i + 1
+
+    def _resize(self, capacity: int, cut: int = 0) -> None:
+        """New log arrays of ``capacity`` holding samples cut … size − 1 (never written in
+        place: a window handed to the executor stays intact)."""
+        keep = self.size - cut
+        T, U, Y = (np.empty((capacity,) + a.shape[1:]) for a in (self.T, self.U, self.Y))
+        T[:keep], U[:keep], Y[:keep] = self.T[cut:self.size], self.U[cut:self.size], \
+            self.Y[cut:self.size]
+        self.T, self.U, self.Y, self.size = T, U, Y, keep
+
+    def refresh_sigma(self, k: int) -> None:
+        """σ̂ from the samples so far, after sample k = MIN_SAMPLES − 1 and SIGMA_SAMPLES − 1
+        (as the guarded estimator's ``run`` does), when σ is estimated."""
+        if k + 1 in (MIN_SAMPLES, SIGMA_SAMPLES) and self.gst[2] > 0:
+            self.R = np.diag(resolve_noise_std(None, self.Y[:self.size]) ** 2)
+
+    def configure(self, kappa: float, c: float, rho_max: float, dwell: float) -> None:
+        """The guard's constants (κ, c, ρ_max, dwell, σ₂ cap; no fit yet) at the first step."""
+        n = self._n
+        p = self.P0.shape[0] - n
+        self.cfg = np.concatenate([[kappa, c, rho_max, dwell],
+                                   np.sqrt(np.diag(self.P0)[n:]), np.zeros(p), np.full(p, -1.0)])
+
+    def submit(self, fn: Any, *args: Any) -> None:
+        """Hand ``fn(*args)`` to the executor; a broken executor ends this stream's fits."""
+        if self.executor is None:               # (start sets it whenever fits run)
+            return
+        try:
+            self.future = self.executor.submit(fn, *args)
+        except (concurrent.futures.BrokenExecutor, RuntimeError) as exc:
+            self._broken(exc)
+
+    def _broken(self, exc: BaseException) -> None:
+        self._reject(f"the fit worker failed ({type(exc).__name__}: {exc}); no more fits in "
+                     "this stream (a script that streams must keep its top-level code under "
+                     "`if __name__ == \"__main__\":` for the worker process to start)")
+        if self.executor is not None:
+            discard_default_executor(self.executor)
+        self.sched = None
+        self.future = None
+
+    def _reject(self, why: str) -> None:
+        self.failures.append(why)
+        warnings.warn(f"GuardedEstimator.step: a stage-2 fit was ignored: {why}. Stage 1 and "
+                      "the EKF go on.", ThetahatWarning, stacklevel=4)
+
+    def poll_fit(self) -> None:
+        """Apply a finished fit (at the first step after it finished); never waits."""
+        f = self.future
+        if f is None or not f.done():
+            return
+        self.future = None
+        try:
+            done = f.result()
+        except concurrent.futures.BrokenExecutor as exc:
+            self._broken(exc)
+            return
+        except Exception as exc:                # a crashed fit is ignored, with a diagnostic
+            self._reject(f"it raised {type(exc).__name__}: {exc}")
+            return
+        fit = done.fit
+        if not fit.finite:
+            self._reject(f"non-finite result on samples {fit.k0}…{fit.k1 - 1}")
+            return
+        n = self._n
+        self.fits.append(fit)
+        self.fit_samples.append((fit.k1 - 1, self.k))
+        self.fit_seconds.append(done.seconds)
+        if fit.consistent:                      # θ only: x has moved on since the fit
+            self.s[n:] = fit.theta
+            self.P[n:, :] = 0.0
+            self.P[:, n:] = 0.0
+            self.P[n:, n:] = fit.cov[n:, n:]
+            self.R = np.diag(fit.noise_std ** 2)
+            p = fit.theta.shape[0]
+            self.cfg[4 + p:4 + 2 * p] = fit.theta
+            self.cfg[4 + 2 * p:] = self.cfg[0] * fit.theta_se
+        if fit.k0 > 0 or (self.sched is not None and self.T[fit.k1 - 1 - self.base]
+                          > self.sched.full_window):
+            self._trim(fit.k1 - 1)
+
+    def _trim(self, new_base: int) -> None:
+        cut = new_base - self.base
+        if cut > 0:
+            self._resize(self.T.shape[0], cut)
+            self.base = new_base
+
+    def maybe_submit(self) -> None:
+        sched, prior0 = self.sched, self.prior0       # prior0 is None exactly when sched is
+        if sched is None or prior0 is None or self.future is not None:
+            return
+        t_last = float(self.T[self.size - 1])
+        if self.k < MIN_SAMPLES:
+            return
+        if sched.times is None:                 # sample counts: the data so far, k_j of them
+            at = sched.sample_counts()
+            if self.k < at(self.j):
+                return
+            while at(self.j) <= self.k:
+                self.j += 1
+        else:                                   # the caller's times (s)
+            if t_last < sched.times(self.j) - 1e-12:
+                return
+            while sched.times(self.j) <= t_last + 1e-12:
+                self.j += 1
+        b, k1 = self.base, self.size
+        prev = self.fits[-1] if self.fits else None
+        if prev is not None:
+            prev = dataclasses.replace(prev, k0=max(prev.k0 - b, 0), k1=prev.k1 - b)
+        self.submit(run_fit, self.spec, self.T[:k1].copy(), self.U[:k1].copy(),
+                    self.Y[:k1].copy(), k1, prev, prior0, t_last, b, sched.times is None)
+
+    def diagnostics(self) -> StreamDiagnostics:
+        """The fits of this stream so far.
+
+        Returns
+        -------
+        StreamDiagnostics
+        """
+        return StreamDiagnostics(fits=tuple(self.fits),
+                                 fit_samples=np.array(self.fit_samples, np.int64).reshape(-1, 2),
+                                 fit_seconds=np.array(self.fit_seconds),
+                                 failures=tuple(self.failures),
+                                 pending=self.future is not None and not self.future.done())
