@@ -8,6 +8,10 @@
 
 Sampling can find a violation but never prove the condition; the reports say where the worst
 case was found so that it can be inspected.
+
+What lives here: those checks, :func:`check_theta_star` (θ* on a record, before estimation)
+and their reports. What it may import: the model, θ* of :mod:`.laws` and the package's
+helpers; never an observer.
 """
 
 from __future__ import annotations

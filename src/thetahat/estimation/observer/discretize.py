@@ -44,6 +44,9 @@ References
 M. Hochbruck and A. Ostermann, "Exponential integrators," Acta Numerica 19 (2010), 209–286,
 for the φ-functions and exponential Euler; E. Hairer and G. Wanner, *Solving Ordinary
 Differential Equations II*, Sec. IV.7, for linearly implicit (Rosenbrock/W-) methods.
+
+What lives here: the φ-functions (:func:`phi_plan`, :class:`PlanCache`) and the step above
+for one row and a batch. What it may import: NumPy, SciPy and the package's validation only.
 """
 
 from __future__ import annotations

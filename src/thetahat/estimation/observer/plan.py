@@ -12,6 +12,11 @@ This is the stable public contract the back ends build on: the Python step, the 
 :func:`~thetahat.estimation.observer.batch_run.run_batch`, the compiled kernel and code generators read
 these fields and nothing private. Fields are read-only arrays; the layout of the observer state
 is ``col(x̂, z, θ̂[, x̂₂][, law state])`` with the offsets given by :attr:`StepPlan.offsets`.
+
+What lives here: :class:`StepPlan`, :class:`SecondPlan`, :class:`StateLayout`, the observer's
+cache of plans by step length (:class:`StepPlans`), :func:`stack_plans` for a batch and
+:data:`DT_RTOL`. What it may import: :mod:`.discretize` and the package's helpers only (every
+back end imports it).
 """
 
 from __future__ import annotations
