@@ -423,6 +423,31 @@ def test_input_validation():
         obs.step(np.zeros(3), [0.0], [0.0], 1e-3)
 
 
+def test_run_options_are_the_observers():
+    """hold, progress and the back end are set on the observer (one name each, no run
+    keyword); with_run_options shares the estimator and its plans; init takes keywords only."""
+    obs = motor_observer(1.0)
+    foh = obs.with_run_options(hold="foh")
+    assert (obs.hold, foh.hold, foh.compiled) == ("zoh", "foh", False)
+    assert foh.update_law is obs.update_law and foh.plan(1e-3) is obs.plan(1e-3)
+    assert "hold='foh'" in repr(foh)
+    t = np.arange(300) * 1e-3
+    u, y = motor_input(t), np.sin(2 * np.pi * t)
+    seen: list[int] = []
+    reporting = foh.with_run_options(progress=lambda done, total: seen.append(done))
+    np.testing.assert_array_equal(reporting.run(t, u, y).x_hat, foh.run(t, u, y).x_hat)
+    assert seen == [0, t.size - 1] and foh.progress is None
+    assert not np.array_equal(foh.run(t, u, y).x_hat, obs.run(t, u, y).x_hat)   # FOH ≠ ZOH
+    with pytest.raises(ValueError, match="compiled"):
+        obs.with_run_options(compiled=1)
+    with pytest.raises(ValueError, match="hold"):
+        motor_observer(1.0, hold="cubic")
+    with pytest.raises(TypeError):
+        obs.init([0.1, 0.0])                               # x_hat0 by keyword only
+    with pytest.raises(TypeError):
+        obs.run(t, u, y, hold="foh")                       # the hold is the observer's
+
+
 def test_init_defaults_and_from_design():
     obs = motor_observer(1.0)
     s = obs.init()
@@ -478,7 +503,7 @@ def test_linearly_implicit_step_is_second_order_and_a_stable():
 
 # --------------------------------------------------------------------------- one status
 #: Shipped models (besides LuGre) whose observers every back end takes (C: a Box Θ).
-STATUS_MODELS = ("prop1", "prop2", "prop3", "two_inertia")
+STATUS_MODELS = ("prop1", "prop2", "two_inertia")
 #: Samples of each record: the unstable observer crosses DIVERGENCE_BOUND well inside it.
 STATUS_SAMPLES = 400
 #: Agreement of the rows before the failure, as the conformance matrix's AGREE_RTOL (rounding:
