@@ -111,11 +111,12 @@ def thetahat_available() -> bool:
 
 
 def _thetahat(traj, tuning: dict, x_hat0, theta_hat0: float) -> Estimate:
-    obs = lugre.observer(eps=tuning["eps"], Gamma=tuning["Gamma"])
+    obs = lugre.observer(eps=tuning["eps"], Gamma=tuning["Gamma"]).with_run_options(
+        hold=THETAHAT_HOLD)
     state0 = obs.init(x_hat0=np.asarray(x_hat0, float), theta_hat0=[theta_hat0])
     t0 = time.perf_counter()
     try:
-        res = obs.run(traj.t, traj.u, traj.y, state0=state0, hold=THETAHAT_HOLD)
+        res = obs.run(traj.t, traj.u, traj.y, state0=state0)
     except (ThetahatError, FloatingPointError, np.linalg.LinAlgError):
         n = traj.t.size
         return Estimate(np.full(n, np.nan), np.full((n, 2), np.nan),
@@ -365,11 +366,12 @@ def throughput(t_end: float, log) -> dict:
     if not thetahat_available():
         return empty
     traj = _simulate(0, t_end=t_end)
-    obs = lugre.observer(eps=THETAHAT_PAPER["eps"], Gamma=THETAHAT_PAPER["Gamma"])
+    obs = lugre.observer(eps=THETAHAT_PAPER["eps"], Gamma=THETAHAT_PAPER["Gamma"]
+                         ).with_run_options(hold=THETAHAT_HOLD)
     s0 = obs.init(theta_hat0=[NOMINAL.theta_hat0])
     t, V, N = traj.t, traj.v, traj.t.size
     t0 = time.perf_counter()
-    res = obs.run(t, traj.u, traj.y, state0=s0, hold=THETAHAT_HOLD)
+    res = obs.run(t, traj.u, traj.y, state0=s0)
     wall_run = time.perf_counter() - t0
     s = s0
     dt = float(t[1] - t[0])
@@ -414,7 +416,7 @@ def _fast_paths(obs, traj, s0, N: int, wall_ivp: float, log) -> dict:
     U = np.stack([tr.u for tr in trajs])
     Y = np.stack([tr.y for tr in trajs])
     t0 = time.perf_counter()
-    run_batch(obs, traj.t, U, Y, hold=THETAHAT_HOLD, state0=s0)
+    run_batch(obs, traj.t, U, Y, state0=s0)
     wall_b = time.perf_counter() - t0
     steps_b = BATCH_SIZE * N / wall_b
     ivp_rate = N / wall_ivp
@@ -427,7 +429,7 @@ def _fast_paths(obs, traj, s0, N: int, wall_ivp: float, log) -> dict:
         log("  compiled path: numba not installed (pip install 'thetahat[speed]')")
         return out
     dt = float(traj.t[1] - traj.t[0])
-    fast = compile_observer(obs, dt=dt)
+    fast = compile_observer(obs.with_run_options(hold="zoh"), dt=dt)
     fast.run(traj.t[:50], traj.u[:50], traj.y[:50], state0=s0)           # JIT warm-up
     best = np.inf
     for _ in range(3):

@@ -106,7 +106,7 @@ def stream_step(comp, state, u, y, N: int) -> tuple[np.ndarray, list[float]]:
     mem = []
     for i in range(N):
         j = i % period
-        state = comp.step(state, u[j], y[j])
+        state = comp.step(state, u[j], y[j], comp.dt)
         if i + 1 in marks:
             mem.append(rss_mb())
     return state, mem
@@ -118,7 +118,8 @@ def resume_state(obs, res, u_last: np.ndarray, y_last: np.ndarray) -> np.ndarray
     x_hat, theta_hat = res.x_hat[-1], res.theta_hat[-1]
     g = obs.system.perturbation.g(np.concatenate((u_last, y_last)), x_hat, theta_hat)
     x2 = None if res.x_hat_refined is None else res.x_hat_refined[-1]
-    return obs.init(x_hat, theta_hat, res.phi_hat[-1] - g, x_hat_refined0=x2)
+    return obs.init(x_hat0=x_hat, theta_hat0=theta_hat, z0=res.phi_hat[-1] - g,
+                    x_hat_refined0=x2)
 
 
 def stream_chunks(comp, obs, state, u, y, N: int, chunk: int) -> tuple[np.ndarray, list[float]]:
@@ -164,7 +165,7 @@ def main(argv: list[str] | None = None) -> dict:
     comp = compile_observer(obs, dt=DT)
     u, y = one_period(spec)
     s0 = comp.init(theta_hat0=spec.estimator.theta_hat0)
-    comp.step(s0, u[0], y[0])                           # compile before measuring
+    comp.step(s0, u[0], y[0], DT)                       # compile before measuring
     comp.run(np.arange(3) * DT, u[:3], y[:3], state0=s0)
     lay = obs.layout
     resumed = check_resumption(comp, obs, s0, u, y)

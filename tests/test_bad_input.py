@@ -458,7 +458,7 @@ def test_observer_refuses_complex_y():
 def test_observer_refuses_unknown_hold():
     obs = _observer()
     with pytest.raises(E.OptionError, match="hold must be one of"):
-        obs.run(np.arange(3.0), np.zeros(3), np.zeros(3), hold="cubic")
+        obs.with_run_options(hold="cubic")
 
 
 def test_compiled_observer_refuses_complex_y():

@@ -70,9 +70,9 @@ def test_estimate_round_trips_with_the_api(tmp_path, lugre_csv, hold, capsys):
     # and the plain NumPy observer: the command may run a compiled back end, which evaluates
     # the same formulas in another order of floating-point operations (8.7e-13 relative,
     # measured), hence a tolerance instead of equality
-    obs = build_observer(spec)
-    res = obs.run(t, u, y, hold=hold, state0=obs.init(x_hat0=start_x_hat(spec, y),
-                                                      theta_hat0=spec.estimator.theta_hat0))
+    obs = build_observer(spec).with_run_options(hold=hold)
+    res = obs.run(t, u, y, state0=obs.init(x_hat0=start_x_hat(spec, y),
+                                           theta_hat0=spec.estimator.theta_hat0))
     np.testing.assert_allclose(table, _columns(res), rtol=BACKEND_RTOL, atol=BACKEND_ATOL)
 
 

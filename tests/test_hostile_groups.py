@@ -364,7 +364,7 @@ def test_long_input_progress_lines_without_tqdm():
         calls.append((done, total))
         progress(done, total)
 
-    obs.run(t, np.sin(t), 0.1 * np.cos(t), progress=both)
+    obs.with_run_options(progress=both).run(t, np.sin(t), 0.1 * np.cos(t))
     assert calls[0] == (0, N - 1) and calls[-1] == (N - 1, N - 1)
     assert len(calls) >= N // 1_000                              # PROGRESS_EVERY = 1000
     assert out.getvalue().splitlines()[-1].startswith(f"thetahat: estimate: {N - 1}/{N - 1}")

@@ -111,7 +111,9 @@ def test_spec_runs_with_its_hold():
     data = _prop3_data(0, 1.0)
     for hold in ("zoh", "foh"):
         res = prop3_spec(hold=hold).run(data.t, data.u, data.y)
-        ref = prop3_spec().build().run(data.t, data.u, data.y, hold=hold)
+        built = prop3_spec(hold=hold).build()
+        assert built.hold == hold                         # the spec's hold is the observer's
+        ref = prop3_spec().build().with_run_options(hold=hold).run(data.t, data.u, data.y)
         np.testing.assert_array_equal(res.theta_hat, ref.theta_hat)
 
 

@@ -30,7 +30,7 @@ if TYPE_CHECKING:                    # the real imports, for type checkers and I
     from .estimation.statistical.guarded import GuardedDiagnostics, GuardedEstimator
     from .estimation.statistical.mle import MapDiagnostics, MapEstimator
     from .estimation.protocol import EstimateResult, Estimator, ObserverDiagnostics
-    from .estimation.observer.observer import ModifiedHighGainObserver, ObserverEstimate, ObserverResult
+    from .estimation.observer.observer import ModifiedHighGainObserver, ObserverEstimate
     from .estimation.observer.plan import StepPlan
     from .estimation.observer.laws.projection import Projection, Saturation, saturate
     from .estimation.observer.redesign import SecondObserver
@@ -70,7 +70,7 @@ __all__ = [
     "AlgebraicInversion", "Ball", "Box", "ConstantLaw", "ConvexSet", "Ellipsoid",
     "ExcitationReport", "FilteredLeastSquares", "GradientInversion", "IntermittentInversion",
     "ModifiedHighGainObserver",
-    "MonotonicityReport", "ObserverEstimate", "ObserverResult", "ParameterSet", "Projection",
+    "MonotonicityReport", "ObserverEstimate", "ParameterSet", "Projection",
     "Saturation", "SecondObserver", "SweepResult", "UpdateLaw", "check_monotonicity",
     "eps_sweep", "excitation_report", "rmse", "saturate", "smooth_ramp", "time_to_within",
     "AssumptionReport", "BatchResult", "ColoredNoise", "FromArray", "Multisine",
@@ -110,7 +110,7 @@ _EXPORTS: dict[str, tuple[str, ...]] = {
     "estimation.statistical.guarded": ("GuardedDiagnostics", "GuardedEstimator"),
     "estimation.statistical.mle": ("MapDiagnostics", "MapEstimator"),
     "estimation.protocol": ("EstimateResult", "Estimator", "ObserverDiagnostics"),
-    "estimation.observer.observer": ("ModifiedHighGainObserver", "ObserverEstimate", "ObserverResult"),
+    "estimation.observer.observer": ("ModifiedHighGainObserver", "ObserverEstimate"),
     "estimation.observer.plan": ("StepPlan",),
     "estimation.observer.laws.projection": ("Projection", "Saturation", "saturate"),
     "estimation.observer.redesign": ("SecondObserver",),

@@ -548,17 +548,17 @@ def _estimate_group(spec: ModelSpec, members: list[str],
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         try:
-            obs = build_observer(spec, nan_policy=nan_policy)
+            obs = build_observer(spec, nan_policy=nan_policy).with_run_options(hold=hold)
             s0s = [obs.init(x_hat0=start_x_hat(spec, records[p][0].y),
                             theta_hat0=spec.estimator.theta_hat0) for p in members]
             fast = _group_runner(obs, t, len(members))
             res: Any
             if fast is obs:
                 res = run_batch(obs, t, np.stack([records[p][0].u for p in members]),
-                                np.stack([records[p][0].y for p in members]), hold=hold,
+                                np.stack([records[p][0].y for p in members]),
                                 state0=np.stack(s0s))
             else:
-                runs = [fast.run(t, records[p][0].u, records[p][0].y, hold=hold, state0=s0)
+                runs = [fast.run(t, records[p][0].u, records[p][0].y, state0=s0)
                         for p, s0 in zip(members, s0s)]
                 res = _Stacked(x_hat=[r.x_hat for r in runs],
                                theta_hat=[r.theta_hat for r in runs])

@@ -292,7 +292,7 @@ class EstimatorSpec:
         Returns
         -------
         ModifiedHighGainObserver
-            With the second observer when the spec has one.
+            With the second observer when the spec has one, and the spec's hold.
 
         Raises
         ------
@@ -316,7 +316,7 @@ class EstimatorSpec:
                                     g_on_estimates=self.second.g_on_estimates)
         return ModifiedHighGainObserver(system=self.system, K_x=d1.K_x, K_phi=d1.K_phi,
                                         update_law=law, second=second,
-                                        nan_policy=self.nan_policy,
+                                        nan_policy=self.nan_policy, hold=self.hold,
                                         allow_nonminimum_phase=self.allow_nonminimum_phase)
 
     def run(self, t: ArrayLike, u: ArrayLike | None, y: ArrayLike, *,
@@ -353,9 +353,9 @@ class EstimatorSpec:
         >>> res.theta_hat.shape
         (501, 1)
         """
-        obs = self.build(eps, Gamma)
+        obs = self.build(eps, Gamma).with_run_options(progress=progress)
         state0 = obs.init(x_hat0=x_hat0, theta_hat0=theta_hat0)
-        return obs.run(t, u, y, hold=self.hold, state0=state0, progress=progress)
+        return obs.run(t, u, y, state0=state0)
 
     def __repr__(self) -> str:
         gamma = getattr(self.law, "Gamma", None)

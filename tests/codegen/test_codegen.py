@@ -20,7 +20,8 @@ from thetahat.modelfile import generate_c_from_model
 from thetahat.codegen.harness import C_FLAGS, estimate_columns
 from thetahat.codegen.loader import STATUS, build_harness, find_compiler, load_c
 from thetahat.io.datafile import estimate_columns as datafile_columns
-from thetahat.errors import DimensionError, NonFiniteError, UnsupportedError, UpdateLawError
+from thetahat.errors import (DimensionError, NonFiniteError, OptionError, UnsupportedError,
+                             UpdateLawError)
 from thetahat.estimation.observer.observer import ModifiedHighGainObserver
 from thetahat.estimation.observer.laws import IntermittentInversion
 from thetahat.model.paramset import Ball
@@ -304,11 +305,11 @@ def test_overflow_and_divergence_are_refused_like_python(lugre_c, x0, y):
     _, obs, c = lugre_c
     with np.errstate(all="ignore"), pytest.raises(NonFiniteError):
         obs.step(obs.init(x_hat0=x0, theta_hat0=[0.5]), [0.0], [y], 1e-3)
-    s = c.init([0.5], x0)
+    s = c.init(theta_hat0=[0.5], x_hat0=x0)
     before = s.copy()
     assert c.step(s, [0.0], [y]) == STATUS["diverged"]
     np.testing.assert_array_equal(s, before)
-    s_ok = c.init([0.5], [0.0, 1e-3])
+    s_ok = c.init(theta_hat0=[0.5], x_hat0=[0.0, 1e-3])
     assert c.step(s_ok, [0.0], [1.0]) == STATUS["ok"]                # a sane state steps
 
 
@@ -342,7 +343,7 @@ def test_invalid_theta_star_follows_on_invalid(tmp_path):
                                        update_law=law_p)
         c = load_c(generate_c(obs, dt=0.01, name=f"prop2_{policy}"), tmp_path / policy)
         s_py = obs.init(x_hat0=[0.5, 0.0], theta_hat0=[1.0], z0=[2.0])   # φ̂ = g + 2 > 1
-        s_c = c.init([1.0], [0.5, 0.0])
+        s_c = c.init(x_hat0=[0.5, 0.0], theta_hat0=[1.0])
         s_c[2] = 2.0
         if policy == "raise":
             with pytest.raises(UpdateLawError):
@@ -387,8 +388,8 @@ def test_harness_theta0_aliases_and_bad_input(tmp_path, lugre_data):
 def test_unsupported_parts_raise_codegen_error():
     spec = load_model(LUGRE)
     obs = build_observer(spec)
-    with pytest.raises(UnsupportedError, match="hold"):
-        generate_c(obs, dt=1e-3, hold="cubic")
+    with pytest.raises(OptionError, match="hold"):
+        obs.with_run_options(hold="cubic")
     from thetahat.models import prop1_sinh
     prop1 = build_observer(load_model(EXAMPLES / "prop1.toml"))
     callable_law = ModifiedHighGainObserver(system=prop1.system, K_x=prop1.K_x,
@@ -651,13 +652,13 @@ def test_command_line_nan_policy_skip_and_foh_follow_python(tmp_path, lugre_data
 def test_foh_step_takes_the_next_samples_and_matches_python(tmp_path):
     """``<name>_step(s, u, y, u_next, y_next)``: one first-order-hold step as the Python
     observer's run over two samples; the zero-order-hold signature is refused for it."""
-    obs = build_observer(load_model(LUGRE))
-    c = load_c(generate_c(obs, dt=1e-3, name="lugre_foh", hold="foh"), tmp_path)
-    s = c.init([0.5], [0.01, 1e-4])
+    obs = build_observer(load_model(LUGRE)).with_run_options(hold="foh")
+    c = load_c(generate_c(obs, dt=1e-3, name="lugre_foh"), tmp_path)
+    s = c.init(x_hat0=[0.01, 1e-4], theta_hat0=[0.5])
     t = np.array([0.0, 1e-3])
     u, y = np.array([[0.2], [0.3]]), np.array([[0.05], [0.07]])
     assert c.step(s, u[0], y[0], u[1], y[1]) == STATUS["ok"]
-    ref = obs.run(t, u, y, hold="foh", state0=obs.init(theta_hat0=[0.5], x_hat0=[0.01, 1e-4]))
+    ref = obs.run(t, u, y, state0=obs.init(theta_hat0=[0.5], x_hat0=[0.01, 1e-4]))
     np.testing.assert_allclose(s[:2], ref.x_hat[1], rtol=DOUBLE_RTOL)
     with pytest.raises(DimensionError, match="hold='foh'"):
         c.step(s, u[0], y[0])

@@ -57,10 +57,11 @@ def own_cache(tmp_path, monkeypatch):
 def test_c_run_equals_the_python_run(name, hold):
     from thetahat.codegen.native import NativeObserver
     spec, obs, t, u, y, s0 = case(name)
-    ref = obs.run(t, u, y, hold=hold, state0=s0)
+    obs = obs.with_run_options(hold=hold)
+    ref = obs.run(t, u, y, state0=s0)
     calls = []
-    res = NativeObserver(obs, never).run(t, u, y, hold=hold, state0=s0,
-                                         progress=lambda a, b: calls.append((a, b)))
+    reporting = obs.with_run_options(progress=lambda a, b: calls.append((a, b)))
+    res = NativeObserver(reporting, never).run(t, u, y, state0=s0)
     for field in ("x_hat", "phi_hat", "theta_hat"):
         assert rel_err(getattr(res, field), getattr(ref, field)) <= AGREE_RTOL, field
     assert (res.x_hat_refined is None) == (ref.x_hat_refined is None)
@@ -80,8 +81,8 @@ def test_progress_chunks_carry_the_state(monkeypatch):
     whole = native.NativeObserver(obs, never).run(t, u, y, state0=s0)
     monkeypatch.setattr(native, "PROGRESS_EVERY", 37)
     calls = []
-    cut = native.NativeObserver(obs, never).run(t, u, y, state0=s0,
-                                                progress=lambda a, b: calls.append(a))
+    reporting = obs.with_run_options(progress=lambda a, b: calls.append(a))
+    cut = native.NativeObserver(reporting, never).run(t, u, y, state0=s0)
     assert len(calls) > 10
     assert np.array_equal(cut.x_hat, whole.x_hat) and np.array_equal(cut.theta_hat,
                                                                      whole.theta_hat)
@@ -103,17 +104,30 @@ def test_irregular_record_runs_in_the_fallback():
     assert np.array_equal(res.theta_hat, ref.theta_hat)
 
 
-def test_a_failing_c_run_raises_the_observers_error():
-    """A nonzero C status hands the record to the fallback, which raises its own error."""
+def test_a_failing_c_run_reports_the_observers_status():
+    """A nonzero C status is the Status of its code, reported as the observer reports it: the
+    same error (``throw=True``), or the same status, message and ``failed_at`` with the rows
+    from there NaN (``throw=False``); the fallback is not asked."""
     from thetahat.codegen.native import NativeObserver
     from thetahat.errors import NonFiniteError
+    from thetahat.estimation.status import Status
     _, obs, t, u, y, s0 = case("prop1")
     y = y * 1e200                                        # the state leaves the bound
     with pytest.raises(NonFiniteError) as ref:
         obs.run(t, u, y, state0=s0)
     with pytest.raises(NonFiniteError) as got:
-        NativeObserver(obs, lambda: obs).run(t, u, y, state0=s0)
+        NativeObserver(obs, never).run(t, u, y, state0=s0)
     assert str(got.value) == str(ref.value)
+    want = obs.run(t, u, y, state0=s0, throw=False)
+    res = NativeObserver(obs, never).run(t, u, y, state0=s0, throw=False)
+    assert want.status == res.status == Status.DIVERGED and res.message == want.message
+    assert res.failed_at == want.failed_at and 0 < res.failed_at < t.size
+    assert np.isnan(res.theta_hat[res.failed_at:]).all()
+    assert np.isfinite(res.theta_hat[:res.failed_at]).all()
+    assert res.message == str(ref.value)
+    with pytest.raises(NonFiniteError) as again:
+        res.raise_for_status()
+    assert str(again.value) == str(ref.value)
 
 
 def test_library_is_built_once_per_cache(monkeypatch, tmp_path):

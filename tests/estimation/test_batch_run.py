@@ -11,12 +11,15 @@ import sympy as sp
 
 from thetahat.errors import DimensionError, NonFiniteError
 from thetahat.estimation.observer.batch_run import BatchObserverResult, run_batch
-from thetahat.estimation.observer.observer import ModifiedHighGainObserver, ObserverResult
+from thetahat.estimation.observer.observer import ModifiedHighGainObserver
+from thetahat.estimation.protocol import EstimateResult
+from thetahat.estimation.status import Status
 from thetahat.estimation.observer.laws import ConstantLaw, GradientInversion
 from thetahat.model.paramset import Box
 from thetahat.model.perturbation import SymbolicPerturbation
 from thetahat.model.system import PerturbedLinearSystem
 from thetahat.models import lugre
+from diverging import unstable_observer
 
 #: Agreement with a loop of ``run``, relative to each column's largest |value|. The batch step
 #: is the same formula; only the summation order of the small matrix products (batched matmul
@@ -31,7 +34,7 @@ def rel_err(a: np.ndarray, b: np.ndarray) -> float:
     return float(np.max(np.abs(a - b) / scale))
 
 
-def assert_matches(res: BatchObserverResult, refs: list[ObserverResult]) -> None:
+def assert_matches(res: BatchObserverResult, refs: list[EstimateResult]) -> None:
     assert len(res) == len(refs)
     for i, ref in enumerate(refs):
         for name in NAMES:
@@ -53,9 +56,9 @@ def motor_records():
 @pytest.mark.parametrize("hold", ["zoh", "foh"])
 def test_one_observer_many_records_matches_loop_of_run(motor_records, hold):
     t, U, Y = motor_records
-    obs = lugre.observer()
-    res = run_batch(obs, t, U, Y, hold=hold)
-    assert_matches(res, [obs.run(t, U[b], Y[b], hold=hold) for b in range(len(U))])
+    obs = lugre.observer().with_run_options(hold=hold)
+    res = run_batch(obs, t, U, Y)
+    assert_matches(res, [obs.run(t, U[b], Y[b]) for b in range(len(U))])
 
 
 def test_observers_differing_in_eps_and_gamma(motor_records):
@@ -101,10 +104,11 @@ def toy_records(B: int, N: int = 400) -> tuple[np.ndarray, np.ndarray, np.ndarra
 def test_gradient_laws_with_different_gamma_are_grouped():
     laws = [GradientInversion(TOY_G, np.diag(d), TOY_BOX) for d in ([0.5, 2.0], [3.0, 1.0])]
     obs = [ModifiedHighGainObserver(system=TOY, K_x=k * np.eye(2), K_phi=k * np.eye(2),
-                                    update_law=law) for k, law in zip((4.0, 6.0), laws)]
+                                    update_law=law, hold="foh")
+           for k, law in zip((4.0, 6.0), laws)]
     t, U, Y = toy_records(2)
-    res = run_batch(obs, t, U, Y, hold="foh")
-    assert_matches(res, [o.run(t, U[b], Y[b], hold="foh") for b, o in enumerate(obs)])
+    res = run_batch(obs, t, U, Y)
+    assert_matches(res, [o.run(t, U[b], Y[b]) for b, o in enumerate(obs)])
     assert TOY_BOX.contains(res.theta_hat).all()
 
 
@@ -117,8 +121,9 @@ def test_missing_samples_are_skipped_per_run():
     Y[0, 100:130, 1] = np.nan
     Y[2, 5, :] = np.nan
     for hold in ("zoh", "foh"):
-        res = run_batch(obs, t, U, Y, hold=hold)
-        assert_matches(res, [o.run(t, U[b], Y[b], hold=hold) for b, o in enumerate(obs)])
+        held = [o.with_run_options(hold=hold) for o in obs]
+        res = run_batch(held, t, U, Y)
+        assert_matches(res, [o.run(t, U[b], Y[b]) for b, o in enumerate(held)])
     assert res.skipped.sum() == 31 and res.skipped[2, 5]
 
 
@@ -131,6 +136,9 @@ def test_incompatible_observers_are_rejected(motor_records):
         run_batch([lugre.observer(), other_law], t, U[:2], Y[:2])
     with pytest.raises(DimensionError, match="second observer"):
         run_batch([lugre.observer(), lugre.observer(second=False)], t, U[:2], Y[:2])
+    with pytest.raises(DimensionError, match="in hold"):
+        run_batch([lugre.observer(), lugre.observer().with_run_options(hold="foh")], t,
+                  U[:2], Y[:2])
 
 
 def test_input_errors(motor_records):
@@ -140,8 +148,6 @@ def test_input_errors(motor_records):
         run_batch([obs, obs], t, U, Y)
     with pytest.raises(DimensionError, match="strictly increasing"):
         run_batch(obs, t[::-1], U, Y)
-    with pytest.raises(ValueError, match="hold"):
-        run_batch(obs, t, U, Y, hold="cubic")
     Yn = Y.copy()
     Yn[1, 7, 0] = np.nan
     with pytest.raises(NonFiniteError, match="run 1 at index 7"):
@@ -153,8 +159,35 @@ def test_input_errors(motor_records):
 def test_result_indexing_and_repr(motor_records):
     t, U, Y = motor_records
     res = run_batch(lugre.observer(second=False), t[:20], U[:, :20], Y[:, :20])
-    assert isinstance(res[-1], ObserverResult) and res[-1].x_hat_refined is None
+    assert isinstance(res[-1], EstimateResult) and res[-1].x_hat_refined is None
+    assert res.ok and res.status == (Status.OK,) * 3 and res[0].failed_at is None
     assert res.x_hat.shape == (3, 20, 2) and not res.x_hat.flags.writeable
     assert "B=3, N=20" in repr(res)
     with pytest.raises(IndexError):
         res[3]
+
+
+# --------------------------------------------------------------------------- one status
+def test_a_failed_run_stops_alone_with_throw_false(motor_records):
+    """Runs 0 and 2 converge, run 1 (unstable gains) diverges: with ``throw=False`` run 1
+    stops with the status, step and rows of its own ``run(throw=False)``, the others are as
+    if run alone; with ``throw=True`` the batch raises run 1's error."""
+    t, U, Y = motor_records
+    obs = [lugre.observer(eps=1.0), unstable_observer(lugre.observer(eps=1.0), 1e-3),
+           lugre.observer(eps=0.5)]
+    res = run_batch(obs, t, U, Y, throw=False)
+    alone = [o.run(t, U[b], Y[b], throw=False) for b, o in enumerate(obs)]
+    assert res.status == (Status.OK, Status.DIVERGED, Status.OK) and not res.ok
+    bad = alone[1]
+    assert bad.status == Status.DIVERGED and 0 < bad.failed_at < t.size
+    assert res.failed_at == (None, bad.failed_at, None)
+    assert res[1].message == bad.message.replace("in the step", "of run 1 in the step")
+    assert np.isnan(res.x_hat[1, bad.failed_at:]).all()
+    assert rel_err(res.x_hat[1, :bad.failed_at], bad.x_hat[:bad.failed_at]) <= BATCH_RTOL
+    assert_matches(BatchObserverResult(t=res.t, x_hat=res.x_hat[::2], phi_hat=res.phi_hat[::2],
+                                       theta_hat=res.theta_hat[::2],
+                                       x_hat_refined=res.x_hat_refined[::2],
+                                       skipped=res.skipped[::2]), alone[::2])
+    assert "stopped=1" in repr(res)
+    with pytest.raises(NonFiniteError, match=r"of run 1 in the step from t\[\d+\]"):
+        run_batch(obs, t, U, Y)

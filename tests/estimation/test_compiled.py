@@ -116,7 +116,7 @@ def test_motor_step_matches_python_step(motor):
     s_py = s_c = obs.init()
     for i in range(400):
         s_py = obs.step(s_py, data.u[i], data.y[i], DT)
-        s_c = fast.step(s_c, data.u[i], data.y[i])
+        s_c = fast.step(s_c, data.u[i], data.y[i], DT)
         assert np.allclose(s_c, s_py, rtol=AGREE_RTOL, atol=AGREE_RTOL * 1e-3), i
     assert isinstance(s_c, np.ndarray) and s_c.shape == (obs.state_size,)
 
@@ -184,15 +184,17 @@ def test_run_takes_the_records_own_spacing(motor):
 
 
 def test_foh_matches_python_run(motor):
-    data, obs, fast = motor
-    assert_agree(fast.run(data.t, data.u, data.y, hold="foh"),
-                 obs.run(data.t, data.u, data.y, hold="foh"))
+    data, obs, _ = motor
+    foh = obs.with_run_options(hold="foh")
+    assert_agree(compile_observer(foh, dt=DT).run(data.t, data.u, data.y),
+                 foh.run(data.t, data.u, data.y))
 
 
 def test_progress_is_reported_to_the_end(motor):
-    data, _, fast = motor
+    data, obs, _ = motor
     seen: list[tuple[int, int]] = []
-    fast.run(data.t, data.u, data.y, progress=lambda done, total: seen.append((done, total)))
+    reporting = obs.with_run_options(progress=lambda done, total: seen.append((done, total)))
+    compile_observer(reporting, dt=DT).run(data.t, data.u, data.y)
     N = data.t.size
     assert seen[0] == (0, N - 1) and seen[-1] == (N - 1, N - 1)
     assert [d for d, _ in seen] == sorted(d for d, _ in seen)
@@ -205,13 +207,17 @@ def test_run_rejects_nan_under_raise_and_bad_input(motor):
     with pytest.raises(NonFiniteError, match="NaN"):       # the observer's own NaN policy
         fast.run(data.t[:50], data.u[:50], y)
     with pytest.raises(NonFiniteError, match="NaN"):
-        fast.step(fast.init(), [0.0], [np.nan])
+        fast.step(fast.init(), [0.0], [np.nan], DT)
     with pytest.raises(NonFiniteError, match="state"):
-        fast.step(np.full(fast.state_size, np.nan), [0.0], [1.0])
+        fast.step(np.full(fast.state_size, np.nan), [0.0], [1.0], DT)
     with pytest.raises(DimensionError):
-        fast.step(fast.init(), [0.0], [1.0, 2.0])
-    with pytest.raises(OptionError, match="hold"):
-        fast.run(data.t, data.u, data.y, hold="cubic")
+        fast.step(fast.init(), [0.0], [1.0, 2.0], DT)
+    with pytest.raises(DimensionError, match="compiled observer steps dt"):
+        fast.step(fast.init(), [0.0], [1.0], 2 * DT)
+    with pytest.raises(TypeError):
+        fast.step(fast.init(), [0.0], [1.0])              # dt is required, as everywhere
+    with pytest.raises(TypeError):
+        fast.init([0.0, 0.0])                             # init takes keywords only
 
 
 def _callable_observer() -> ModifiedHighGainObserver:
@@ -288,7 +294,7 @@ def test_from_perturbation_inverts_the_lugre_g():
 def test_kernel_arrays_are_the_named_tuples_every_binding_uses():
     """P, P2, LP of the kernel are kernel_args' named tuples, each field the plan's or the
     law's array of that name (the NumPy binding builds the same tuples by keyword)."""
-    from thetahat.estimation.observer.compiled import kernel_arrays, kernel_parts
+    from thetahat.estimation.observer.kernel_data import kernel_arrays, kernel_parts
     from thetahat.estimation.kernels.kernel_args import LawArrays, PlanArrays, SecondArrays
     obs = lugre.observer()
     plan = obs.plan(DT)
@@ -336,3 +342,25 @@ def test_runner_falls_back_with_a_one_line_note(monkeypatch):
     obs = lugre.observer()
     with pytest.warns(ThetahatWarning, match=r"numba is not installed .*thetahat\[speed\]"):
         assert runner(obs, t, compiled=True) is obs
+
+
+def test_an_observer_built_compiled_runs_on_the_kernel(motor, monkeypatch):
+    """``compiled=True`` on the observer: its ``run`` goes through the one driver to numba's
+    kernel (the C back end off), with the observer's hold, and agrees with the NumPy run."""
+    from thetahat.estimation.observer import compiled as compiled_module
+    data, obs, _ = motor
+    monkeypatch.setenv("THETAHAT_C", "0")
+    calls: list[str] = []
+    kernel_run = compiled_module.CompiledObserver.run
+
+    def spy(self, *args, **kwargs):
+        calls.append(self.observer.hold)
+        return kernel_run(self, *args, **kwargs)
+
+    monkeypatch.setattr(compiled_module.CompiledObserver, "run", spy)
+    fast = obs.with_run_options(hold="foh", compiled=True)
+    assert_agree(fast.run(data.t, data.u, data.y),
+                 obs.with_run_options(hold="foh").run(data.t, data.u, data.y))
+    assert calls == ["foh"]
+    with pytest.raises(OptionError, match="compiled"):
+        obs.with_run_options(compiled="yes")

@@ -56,7 +56,7 @@ def _data(mod, t_end, noise, seed=0):
 
 def _observer(mod, sys, eps):
     d = modified_high_gain(sys.A, sys.E, sys.C, eps)
-    return ModifiedHighGainObserver.from_design(sys, d, mod.update_law())
+    return ModifiedHighGainObserver.from_design(sys, d, mod.update_law(), hold=HOLD)
 
 
 @pytest.mark.parametrize("mod, eps, t_end", CASES, ids=lambda v: getattr(v, "__name__", str(v)))
@@ -65,7 +65,7 @@ def test_noise_free_convergence_from_the_corners(mod, eps, t_end):
     obs = _observer(mod, sys, eps)
     box = mod.PARAMETER_SET
     for corner in _corners(box):
-        res = obs.run(data.t, data.u, data.y, hold=HOLD, state0=obs.init(theta_hat0=corner))
+        res = obs.run(data.t, data.u, data.y, state0=obs.init(theta_hat0=corner))
         assert np.all(box.contains(res.theta_hat)), "θ̂ left Θ"
         err = np.abs(res.theta_hat[-1] - mod.THETA) / np.abs(mod.THETA)
         assert np.all(err <= NOISE_FREE_RTOL), (mod.__name__, corner, res.theta_hat[-1])
@@ -77,7 +77,7 @@ def test_with_noise_bounded(mod, eps, t_end):
     obs = _observer(mod, sys, NOISY_EPS.get(mod.__name__.rsplit(".", 1)[-1], eps))
     box = mod.PARAMETER_SET
     width = np.asarray(box.upper) - np.asarray(box.lower)
-    res = obs.run(data.t, data.u, data.y, hold=HOLD, state0=obs.init(theta_hat0=box.lower))
+    res = obs.run(data.t, data.u, data.y, state0=obs.init(theta_hat0=box.lower))
     assert np.all(box.contains(res.theta_hat))
     tail = 3 * data.t.size // 4          # the last quarter: after convergence from the corner
     worst = np.max(np.abs(res.theta_hat[tail:] - mod.THETA) / width)

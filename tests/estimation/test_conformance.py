@@ -164,8 +164,8 @@ def c_observers(tmp_path_factory):
 
     if find_compiler() is None:
         pytest.skip("no C compiler (cc or $CC)")
-    codes = {config: generate_c(make_observer(config[0], "box", config[1], config[3]), dt=DT,
-                                hold=config[2], name=f"obs{i}")
+    codes = {config: generate_c(make_observer(config[0], "box", config[1], config[3])
+                                .with_run_options(hold=config[2]), dt=DT, name=f"obs{i}")
              for i, config in enumerate(C_CONFIGS)}
     lib = build_many(list(codes.values()), tmp_path_factory.mktemp("c"))
     return {config: CObserver(code, lib) for config, code in codes.items()}
@@ -191,9 +191,9 @@ def back_end(name: str, obs, hold: str, policy: str, t, U, Y, c_obs=None):
         assert res.status == 0, (res.status, res.index)
         return res.x_hat, res.theta_hat, res.x_hat_refined
     if name == "batch":
-        res = run_batch(obs, t, U, Y, hold=hold)[0]
+        res = run_batch(obs, t, U, Y)[0]
     else:
-        res = compiled(obs).run(t, U[0], Y[0], hold=hold)
+        res = compiled(obs).run(t, U[0], Y[0])
     return res.x_hat, res.theta_hat, res.x_hat_refined
 
 
@@ -201,9 +201,9 @@ def back_end(name: str, obs, hold: str, policy: str, t, U, Y, c_obs=None):
                          ids=["-".join(case) for case in CASES])
 def test_back_end_agrees_with_reference(law, theta_set, second, hold, policy, backend,
                                         request):
-    obs = make_observer(law, theta_set, second, policy)
+    obs = make_observer(law, theta_set, second, policy).with_run_options(hold=hold)
     t, U, Y = records(policy)
-    ref = obs.run(t, U[0], Y[0], hold=hold)
+    ref = obs.run(t, U[0], Y[0])
     c_obs = (request.getfixturevalue("c_observers")[(law, second, hold, policy)]
              if backend == "c" else None)
     x, th, x2 = back_end(backend, obs, hold, policy, t, U, Y, c_obs)
@@ -437,14 +437,15 @@ def test_generated_c_in_float_follows_the_reference(tmp_path):
 
     if find_compiler() is None:
         pytest.skip("no C compiler (cc or $CC)")
-    codes = {config: generate_c(make_observer(config[0], "box", config[1], config[3]), dt=DT,
-                                hold=config[2], name=f"f{i}", real="float")
+    codes = {config: generate_c(make_observer(config[0], "box", config[1], config[3])
+                                .with_run_options(hold=config[2]), dt=DT, name=f"f{i}",
+                                real="float")
              for i, config in enumerate(C_CONFIGS)}
     lib = build_many(list(codes.values()), tmp_path)
     for (law, second, hold, policy), code in codes.items():
         obs = make_observer(law, "box", second, policy)
         t, U, Y = records(policy)
-        ref = obs.run(t, U[0], Y[0], hold=hold)
+        ref = obs.with_run_options(hold=hold).run(t, U[0], Y[0])
         res = CObserver(code, lib).run(U[0], Y[0])
         assert res.status == 0
         assert rel_err(res.theta_hat.astype(float), ref.theta_hat) <= C_FLOAT_RTOL
@@ -527,7 +528,7 @@ def test_kernel_source_runs_a_user_m(hold):
     spec, _, t, u, y = model_file_case("two_inertia")
     obs = _user_m_observer()
     s0 = obs.init(theta_hat0=spec.estimator.theta_hat0)
-    ref = obs.run(t, u, y, hold=hold, state0=s0)
+    ref = obs.with_run_options(hold=hold).run(t, u, y, state0=s0)
     S = _emitted_run(obs, t, u, y, hold, s0)
     lay = obs.layout
     assert rel_err(S[:, lay.x], ref.x_hat) <= AGREE_RTOL
@@ -538,7 +539,8 @@ def test_kernel_source_runs_a_user_m(hold):
 def _emitted_run(obs: ModifiedHighGainObserver, t, u, y, hold: str, s0) -> np.ndarray:
     """The states of the kernel's source run as plain Python (no numba: the kernel's text,
     with every argument the compiled observer passes)."""
-    from thetahat.estimation.observer.compiled import kernel_arrays, kernel_parts, kernel_work, phi_table
+    from thetahat.estimation.observer.kernel_data import (kernel_arrays, kernel_parts,
+                                                          kernel_work, phi_table)
     from thetahat.estimation.observer.kernel_source import LAWS, kernel_source
     parts = kernel_parts(obs)
     ts = parts.theta_star
@@ -567,7 +569,7 @@ def test_kernel_source_runs_model_file_observers(name, hold):
     irregular steps and a gap of missing samples, both holds — equal to the Python run."""
     spec, obs, t, u, y = model_file_case(name)
     s0 = obs.init(x_hat0=spec.estimator.x_hat0, theta_hat0=spec.estimator.theta_hat0)
-    ref = obs.run(t, u, y, hold=hold, state0=s0)
+    ref = obs.with_run_options(hold=hold).run(t, u, y, state0=s0)
     S = _emitted_run(obs, t, u, y, hold, s0)
     lay = obs.layout
     assert rel_err(S[:, lay.x], ref.x_hat) <= AGREE_RTOL
@@ -596,10 +598,9 @@ def test_run_estimator_compiled_agrees_on_model_files(name):
 def test_compiled_user_m_agrees():
     """The numba kernel with a user's M (its first compilation: slow) equals the Python run."""
     spec, _, t, u, y = model_file_case("two_inertia")
-    obs = _user_m_observer()
-    fast = compiled(obs)
     for hold in HOLDS:
-        ref = obs.run(t, u, y, hold=hold)
-        res = fast.run(t, u, y, hold=hold)
+        obs = _user_m_observer().with_run_options(hold=hold)
+        ref = obs.run(t, u, y)
+        res = compiled(obs).run(t, u, y)
         assert rel_err(res.x_hat, ref.x_hat) <= AGREE_RTOL
         assert rel_err(res.theta_hat, ref.theta_hat) <= AGREE_RTOL

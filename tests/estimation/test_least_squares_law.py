@@ -54,8 +54,7 @@ def test_the_residual_is_the_filtered_regressor_times_the_error(name):
     d = simulate_model(spec, 0)
     s, th0 = spec.system, np.asarray(spec.estimator.theta_hat0)
     theta = np.asarray(spec.scenario.theta)
-    est = build_estimator(spec, method="paper", Gamma=np.eye(s.p))
-    obs = est.observer
+    obs = build_estimator(spec, method="paper", Gamma=np.eye(s.p))
     held = type(obs)(system=s, K_x=obs.K_x, K_phi=obs.K_phi,
                      update_law=ConstantLaw(th0, s.parameter_set),
                      second=obs.second)
@@ -108,7 +107,7 @@ def test_theta_hat_stays_in_a_box_and_a_ball_on_noisy_records(name):
     assert np.all((res.theta_hat >= lo) & (res.theta_hat <= hi))
     ball = Ball(0.5 * (lo + hi), 0.5 * float(np.min(hi - lo)))
     law = FilteredLeastSquares(spec.system.perturbation, np.eye(spec.system.p), ball)
-    obs = build_estimator(spec, method="paper", Gamma=np.eye(spec.system.p)).observer
+    obs = build_estimator(spec, method="paper", Gamma=np.eye(spec.system.p))
     ob = type(obs)(system=spec.system, K_x=obs.K_x, K_phi=obs.K_phi, update_law=law,
                    second=obs.second)
     th0 = ball.nearest(spec.estimator.theta_hat0)
@@ -127,7 +126,7 @@ def test_refusals():
         law.step(v[0], x[0], phi[0], th[0], 0.01)
     with pytest.raises(UpdateLawError, match="not bound"):
         law.advance(v, x, phi, th, law.init_state(th), 0.01)
-    obs = build_estimator(spec, method="paper", Gamma=np.eye(2)).observer
+    obs = build_estimator(spec, method="paper", Gamma=np.eye(2))
     bound = obs.update_law
     with pytest.raises(UpdateLawError, match="Γ₀"):
         bound.advance(v, x, phi, th, bound.init_state(th), 0.01, Gamma=np.eye(2)[None])

@@ -20,7 +20,8 @@ from thetahat.estimation.observer.discretize import (
     linearly_implicit_exponential_step,
     phi_plan,
 )
-from thetahat.estimation.observer.observer import ModifiedHighGainObserver, ObserverResult
+from thetahat.estimation.observer.observer import ModifiedHighGainObserver
+from thetahat.estimation.protocol import EstimateResult
 from thetahat.estimation.observer.laws import ConstantLaw, UpdateLaw
 from thetahat.model.paramset import Box
 from thetahat.model.perturbation import Perturbation
@@ -189,7 +190,7 @@ def test_zero_perturbation_is_exact_luenberger(rng, dims, hold):
     t = np.cumsum(rng.uniform(0.5e-2, 1.5e-2, 200)) - 0.01
     U, Y = rng.standard_normal((200, m)), rng.standard_normal((200, r))
     x0 = rng.standard_normal(n + k)
-    res = obs.run(t, U, Y, hold=hold, state0=np.concatenate([x0, [0.5]]))
+    res = obs.with_run_options(hold=hold).run(t, U, Y, state0=np.concatenate([x0, [0.5]]))
     ref = luenberger_reference(Ae, Be, Ce, K, t, U, Y, x0, foh=hold == "foh")
     np.testing.assert_allclose(res.x_hat, ref[:, :n], rtol=EXACT_RTOL, atol=EXACT_RTOL)
     np.testing.assert_allclose(res.phi_hat, ref[:, n:], rtol=EXACT_RTOL, atol=EXACT_RTOL)
@@ -231,7 +232,7 @@ def test_step_converges_to_solve_ivp_of_rhs():
             s = obs.step(s, V[i, :1], V[i, 1:], t[i + 1] - t[i])
             S.append(s)
         S = np.array(S)
-        foh = obs.run(t, V[:, 0], V[:, 1], hold="foh", state0=s0)
+        foh = obs.with_run_options(hold="foh").run(t, V[:, 0], V[:, 1], state0=s0)
         errors[dt] = (np.abs(S[:, :2] - ref[:, :2]).max(0), np.abs(S[:, 3] - ref[:, 3]).max(),
                       np.abs(foh.x_hat - ref[:, :2]).max(0))
     x_err, th_err, foh_err = errors[1e-4]
@@ -271,7 +272,8 @@ def test_run_equals_loop_of_step_and_theta_stays_in_set():
 def test_motor_converges_with_known_theta(motor10k, hold, bounds):
     t, u, x, phi = (a[::10] for a in motor10k)                 # 1 kHz
     obs = motor_observer(1.0)
-    res = obs.run(t, u, x[:, 0], hold=hold, state0=obs.init(x_hat0=[0.5, 0.0], z0=[1.0]))
+    res = obs.with_run_options(hold=hold).run(t, u, x[:, 0],
+                                              state0=obs.init(x_hat0=[0.5, 0.0], z0=[1.0]))
     late = t >= 1.5                                  # the z₀ error decays as e^{−6t}
     err = (np.abs(res.x_hat - x)[late].max(0), np.abs(res.phi_hat - phi)[late].max())
     early = np.abs(res.phi_hat - phi)[t < 0.05].max()
@@ -283,7 +285,7 @@ def test_foh_hold_reduces_state_error(motor10k):
     t, u, x, _ = (a[::10] for a in motor10k)
     obs = motor_observer(1.0)
     late = t >= 1.0
-    e = {h: np.abs(obs.run(t, u, x[:, 0], hold=h).x_hat - x)[late].max(0)
+    e = {h: np.abs(obs.with_run_options(hold=h).run(t, u, x[:, 0]).x_hat - x)[late].max(0)
          for h in ("zoh", "foh")}
     assert np.all(e["foh"] * 5 < e["zoh"])          # measured: 16× (ω), 10× (η) at 1 kHz
 
@@ -295,7 +297,8 @@ def test_transient_shortens_as_eps_decreases(motor10k):
     err = []
     for eps in (1.0, 0.5):
         obs = motor_observer(eps)
-        res = obs.run(t, u, x[:, 0], hold="foh", state0=obs.init(x_hat0=x[0], z0=[1.0]))
+        res = obs.with_run_options(hold="foh").run(t, u, x[:, 0],
+                                                   state0=obs.init(x_hat0=x[0], z0=[1.0]))
         err.append(np.abs(res.phi_hat - phi)[window].max())
     assert err[1] < err[0] / 5                       # e^{−6·0.4}/e^{−12·0.4} ≈ 11
 
@@ -309,7 +312,7 @@ def test_iss_gain_shrinks_as_eps_decreases(motor10k):
     rms = []
     for e in eps:
         obs = motor_observer(e, ConstantLaw([0.35], THETA_SET))
-        res = obs.run(t, u, x[:, 0], hold="foh")
+        res = obs.with_run_options(hold="foh").run(t, u, x[:, 0])
         rms.append(np.sqrt(np.mean((res.phi_hat - phi)[late] ** 2)))
     rms = np.array(rms)
     assert np.all(np.diff(rms) < 0)
@@ -366,7 +369,7 @@ def test_skip_predicts_without_correction(rng, hold):
     missing[[3, 10, 11, 12, 40]] = True
     Y[missing] = np.nan
     x0 = rng.standard_normal(3)
-    res = obs.run(t, U, Y, hold=hold, state0=np.concatenate([x0, [0.5]]))
+    res = obs.with_run_options(hold=hold).run(t, U, Y, state0=np.concatenate([x0, [0.5]]))
     np.testing.assert_array_equal(res.skipped, missing)
     if hold == "zoh":
         ref = luenberger_reference(Ae, Be, Ce, K, t, U, np.nan_to_num(Y), x0, skip=missing)
@@ -409,7 +412,7 @@ def test_input_validation():
         motor_observer(1.0, nan_policy="ignore")
     obs = motor_observer(1.0)
     with pytest.raises(ValueError, match="hold"):
-        obs.run(np.arange(3.0), np.zeros(3), np.zeros(3), hold="cubic")
+        obs.with_run_options(hold="cubic").run(np.arange(3.0), np.zeros(3), np.zeros(3))
     with pytest.raises(DimensionError, match="u must have shape"):
         obs.run(np.arange(3.0), np.zeros(4), np.zeros(3))
     with pytest.raises(ParameterSetError):
@@ -418,6 +421,31 @@ def test_input_validation():
         obs.step(obs.init(), [0.0], [0.0], 0.0)
     with pytest.raises(DimensionError, match="state"):
         obs.step(np.zeros(3), [0.0], [0.0], 1e-3)
+
+
+def test_run_options_are_the_observers():
+    """hold, progress and the back end are set on the observer (one name each, no run
+    keyword); with_run_options shares the estimator and its plans; init takes keywords only."""
+    obs = motor_observer(1.0)
+    foh = obs.with_run_options(hold="foh")
+    assert (obs.hold, foh.hold, foh.compiled) == ("zoh", "foh", False)
+    assert foh.update_law is obs.update_law and foh.plan(1e-3) is obs.plan(1e-3)
+    assert "hold='foh'" in repr(foh)
+    t = np.arange(300) * 1e-3
+    u, y = motor_input(t), np.sin(2 * np.pi * t)
+    seen: list[int] = []
+    reporting = foh.with_run_options(progress=lambda done, total: seen.append(done))
+    np.testing.assert_array_equal(reporting.run(t, u, y).x_hat, foh.run(t, u, y).x_hat)
+    assert seen == [0, t.size - 1] and foh.progress is None
+    assert not np.array_equal(foh.run(t, u, y).x_hat, obs.run(t, u, y).x_hat)   # FOH ≠ ZOH
+    with pytest.raises(ValueError, match="compiled"):
+        obs.with_run_options(compiled=1)
+    with pytest.raises(ValueError, match="hold"):
+        motor_observer(1.0, hold="cubic")
+    with pytest.raises(TypeError):
+        obs.init([0.1, 0.0])                               # x_hat0 by keyword only
+    with pytest.raises(TypeError):
+        obs.run(t, u, y, hold="foh")                       # the hold is the observer's
 
 
 def test_init_defaults_and_from_design():
@@ -433,7 +461,7 @@ def test_init_defaults_and_from_design():
     np.testing.assert_array_equal(other.K_phi, obs.K_phi)
     assert "ModifiedHighGainObserver(n=2" in repr(other)
     assert "N=3" in repr(other.run(np.arange(3) * 1e-3, np.zeros(3), np.zeros(3)))
-    assert isinstance(other.run(np.zeros(1), np.zeros(1), np.zeros(1)), ObserverResult)
+    assert isinstance(other.run(np.zeros(1), np.zeros(1), np.zeros(1)), EstimateResult)
 
 
 # --------------------------------------------------------------------------- discretisation
@@ -471,3 +499,83 @@ def test_linearly_implicit_step_is_second_order_and_a_stable():
     stiff = linearly_implicit_exponential_step(np.array([1.0]), np.array([-1e6]),
                                                np.array([[-1e6]]), plan)
     assert abs(stiff[0]) <= 1.0                            # no growth of a stiff stable mode
+
+
+# --------------------------------------------------------------------------- one status
+#: Shipped models (besides LuGre) whose observers every back end takes (C: a Box Θ).
+STATUS_MODELS = ("prop1", "prop2", "two_inertia")
+#: Samples of each record: the unstable observer crosses DIVERGENCE_BOUND well inside it.
+STATUS_SAMPLES = 400
+#: Agreement of the rows before the failure, as the conformance matrix's AGREE_RTOL (rounding:
+#: summation order, the kernels' own LU; the rows grow by e^0.6 per sample, relative rounding
+#: does not).
+STATUS_RTOL = 1e-9
+
+
+def _status_case(name: str):
+    """(spec, an observer of the file that diverges by construction, t, U (2, N, m),
+    Y (2, N, r), state0): two simulated records on one uniform grid."""
+    from thetahat.modelfile import build_observer, load_model, simulate_model
+    from pathlib import Path
+    from diverging import unstable_observer
+    spec = load_model(Path(__file__).resolve().parents[2] / "examples" / f"{name}.toml")
+    runs = [simulate_model(spec, seed) for seed in (0, 1)]
+    t = runs[0].t[:STATUS_SAMPLES]
+    U = np.stack([r.u.reshape(r.t.size, -1)[:STATUS_SAMPLES] for r in runs])
+    Y = np.stack([r.y.reshape(r.t.size, -1)[:STATUS_SAMPLES] for r in runs])
+    obs = unstable_observer(build_observer(spec), float(t[1] - t[0]))
+    s0 = obs.init(x_hat0=spec.estimator.x_hat0, theta_hat0=spec.estimator.theta_hat0)
+    return spec, obs, t, U, Y, s0
+
+
+def _failed_runs(obs, t, U, Y, s0) -> dict[str, EstimateResult]:
+    """Record 0 by every back end present, with ``throw=False``."""
+    from thetahat.codegen.loader import find_compiler
+    from thetahat.estimation.observer.batch_run import run_batch
+    out = {"python": obs.run(t, U[0], Y[0], state0=s0, throw=False),
+           "batch": run_batch(obs, t, U, Y, state0=s0, throw=False)[0]}
+    if find_compiler() is not None:
+        from thetahat.codegen.native import NativeObserver
+
+        def never():
+            raise AssertionError("the record should have run in C")
+        out["c"] = NativeObserver(obs, never).run(t, U[0], Y[0], state0=s0, throw=False)
+    try:
+        import numba  # noqa: F401
+    except ImportError:
+        return out
+    from thetahat.estimation.observer.compiled import compile_observer
+    out["numba"] = compile_observer(obs, dt=float(t[1] - t[0])).run(t, U[0], Y[0], state0=s0,
+                                                                    throw=False)
+    return out
+
+
+@pytest.mark.parametrize("name", STATUS_MODELS)
+def test_a_diverging_run_reports_one_status_in_every_back_end(name):
+    """An observer that diverges by construction, on a shipped model: with ``throw=False``
+    the Python run, the batch, numba's kernel and the C stop at the same ``failed_at`` with
+    the same status and message, the rows before it as computed (θ̂ in Θ) and NaN from it;
+    with ``throw=True`` the run raises that message as the status's error."""
+    from thetahat.estimation.status import Status
+    spec, obs, t, U, Y, s0 = _status_case(name)
+    runs = _failed_runs(obs, t, U, Y, s0)
+    ref = runs["python"]
+    assert ref.status == Status.DIVERGED and not ref.ok
+    k = ref.failed_at
+    assert 10 < k < t.size - 10                          # well inside the record
+    assert f"t[{k - 1}]" in ref.message and "decrease dt" in ref.message
+    for back_end, res in runs.items():
+        message = res.message.replace("of run 0 ", "")     # the batch names the run
+        assert (res.status, res.failed_at, message) == (ref.status, k, ref.message), back_end
+        for field in ("x_hat", "theta_hat", "phi_hat"):
+            a, b = getattr(res, field), getattr(ref, field)
+            assert np.isnan(a[k:]).all() and np.isfinite(a[:k]).all(), (back_end, field)
+            scale = np.abs(b[:k]).max(axis=0) + np.finfo(float).tiny
+            assert (np.abs(a[:k] - b[:k]) / scale).max() <= STATUS_RTOL, (back_end, field)
+        assert spec.system.parameter_set.contains(res.theta_hat[:k], tol=1e-12).all()
+    with pytest.raises(NonFiniteError) as err:
+        obs.run(t, U[0], Y[0], state0=s0)
+    assert str(err.value) == ref.message
+    with pytest.raises(NonFiniteError) as again:
+        ref.raise_for_status()
+    assert str(again.value) == ref.message

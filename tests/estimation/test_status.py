@@ -18,12 +18,12 @@ from thetahat.codegen.loader import find_compiler
 from thetahat.errors import NonFiniteError, UpdateLawError
 from thetahat.estimation.observer import formulas
 from thetahat.estimation.kernels import scalar_primitives
-from thetahat.estimation.observer.compiled import kernel_parts
+from thetahat.estimation.observer.kernel_data import kernel_parts
 from thetahat.estimation.observer.discretize import IMPLICITNESS
 from thetahat.estimation.kernels.primitives import NUMPY, NUMPY_ROW, bind
 from thetahat.estimation.observer.kernel_source import LAWS, kernel_source, rewritten
 from thetahat.estimation.status import MESSAGES, Status, status_constants
-from thetahat.estimation.observer.step import divergence_error
+from thetahat.estimation.observer.record_run import failure
 from thetahat.models import lugre
 
 Q = 2
@@ -132,16 +132,16 @@ def test_c_reports_a_singular_step(tmp_path):
 
 
 def test_every_binding_raises_the_same_error_for_a_failed_step():
-    from thetahat.codegen.loader import CObserver
-    from thetahat.estimation.observer.compiled import CompiledObserver
-    where = "in the step from t[3] = 0.003"
-    expected = str(divergence_error(where))
-    assert "singular" in expected and "t[3]" in expected
+    """The one description of a failed step that the NumPy, numba and C runs all build
+    (record_run.failure) from the status code and the step: a singular step and a divergence
+    read alike and name the step; an invalid θ* is the law's error."""
+    t = np.arange(5) * 1e-3
     for status in (Status.SINGULAR, Status.DIVERGED):
-        with pytest.raises(NonFiniteError) as c_err:
-            CObserver.raise_for(None, int(status), where)          # type: ignore[arg-type]
-        with pytest.raises(NonFiniteError) as nb_err:
-            CompiledObserver._raise(None, int(status), where)      # type: ignore[arg-type]
-        assert str(c_err.value) == str(nb_err.value) == expected
-    with pytest.raises(UpdateLawError, match="theta_star"):
-        CObserver.raise_for(None, int(Status.THETA_STAR), where)   # type: ignore[arg-type]
+        fail = failure(int(status), 3, t, "GradientInversion")
+        assert fail.status == status and fail.failed_at == 4
+        assert "singular" in fail.message and "t[3] = 0.003" in fail.message
+        with pytest.raises(NonFiniteError) as err:
+            raise fail.error()
+        assert str(err.value) == fail.message
+    with pytest.raises(UpdateLawError, match=r"theta_star.*t\[3\]"):
+        raise failure(int(Status.THETA_STAR), 3, t, "IntermittentInversion").error()

@@ -4,6 +4,10 @@ The step itself is printed from the formulas (:mod:`.c_derive`); this module wri
 controller calls: the state struct (the formulas' state row), ``<name>_init``,
 ``<name>_step``, ``<name>_phi_hat``, the accessors and ``<name>_error_message``, with the
 status codes of :data:`STATUS` (the one table the loader and the docs read).
+
+What lives here: :class:`CLayout`, :func:`header_source`, :func:`source_text` and
+:data:`STATUS`. What it may import: :mod:`thetahat.estimation.status` and the derived step of
+:mod:`.c_derive`.
 """
 
 from __future__ import annotations

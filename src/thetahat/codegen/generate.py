@@ -10,6 +10,19 @@ written here: it is the formulas of :mod:`~thetahat.estimation.observer.formulas
 reading the data the numba kernel reads (``compiled.kernel_arrays`` of ``observer.plan(dt)``);
 g, ∂g/∂x, ∂g/∂θ, ∂g/∂y and θ* are printed from their SymPy expressions by SymPy's C99 printer
 with common-subexpression elimination (:mod:`.printing`); :mod:`.c_api` writes the interface.
+
+The state is committed only when it has not diverged (``formulas.within_bound``: its norm is
+finite and at most ``DIVERGENCE_BOUND``, 1e18 in float); otherwise the step returns a status
+code (:data:`.c_api.STATUS`, the codes of :class:`~thetahat.estimation.status.Status`) and
+leaves the state unchanged — the C form of the status the Python step fails with. NaN in y
+follows ``nan_policy``, an invalid θ* ``on_invalid``. IEEE 754 arithmetic (C99 Annex F) is
+assumed, as on every target with an FPU; ``-ffast-math`` and ``-ffinite-math-only`` are
+refused.
+
+What lives here: :func:`generate_c`, its result :class:`CCode`, :func:`supports_c` and
+:func:`model_hash`. What it may import: the observer and the kernel data of
+:mod:`thetahat.estimation.observer` (never its back ends' run loops), the printers, interface
+and harness of this package, the model and the package's helpers.
 """
 
 from __future__ import annotations
@@ -26,27 +39,23 @@ import sympy as sp
 from numpy.typing import ArrayLike, NDArray
 
 from ..errors import ArgumentTypeError, FileAccessError, UnsupportedError
-from ..estimation.observer.observer import ModifiedHighGainObserver
-from ..estimation.observer.laws.theta_star import ThetaStar
+from ..estimation.observer.initial_state import output_pinv
+from ..estimation.observer.kernel_data import KernelParts
 from ..estimation.observer.laws import (INIT_RTOL, ConstantLaw, GradientInversion,
-                                      IntermittentInversion, SmoothRamp)
+                                        IntermittentInversion, SmoothRamp)
+from ..estimation.observer.laws.theta_star import ThetaStar
+from ..estimation.observer.observer import ModifiedHighGainObserver
 from ..model.paramset import Box
 from ..model.perturbation import SymbolicPerturbation
-from ..estimation.observer.compiled import KernelParts
+from ..safe_io import write_text
 from .c_api import CLayout, header_source, source_text
 from .c_derive import derived_step, inwards
-from ..safe_io import write_text
-from ..estimation.observer.initial_state import output_pinv
 from .harness import harness_source, makefile_source
 from .printing import REALS
 
-__all__ = ["CCode", "HOLDS", "generate_c", "model_hash", "supports_c"]
+__all__ = ["CCode", "generate_c", "model_hash", "supports_c"]
 
 FloatArray = NDArray[np.float64]
-
-#: Sample holds the generated step supports: with the first-order hold ``<name>_step`` also
-#: takes the next samples (the step interpolates to them), a delay of one sample.
-HOLDS = ("zoh", "foh")
 
 _LAWS: dict[type, str] = {ConstantLaw: "constant", IntermittentInversion: "intermittent",
          GradientInversion: "gradient"}
@@ -157,12 +166,10 @@ def _theta_star(law: Any, pert: SymbolicPerturbation
     return tuple(exprs), tuple(args)
 
 
-def _check(observer: Any, hold: str, real: str) -> tuple[str, Any]:
+def _check(observer: Any, real: str) -> tuple[str, Any]:
     if not isinstance(observer, ModifiedHighGainObserver):
         raise UnsupportedError(f"generate_c needs a ModifiedHighGainObserver; got "
                            f"{type(observer).__name__}.")
-    if hold not in HOLDS:
-        raise UnsupportedError(f"hold must be one of {HOLDS}; got {hold!r}.")
     if real not in REALS:
         raise UnsupportedError(f"real must be one of {REALS}; got {real!r}.")
     pert = observer.system.perturbation
@@ -223,7 +230,7 @@ def supports_c(observer: Any) -> bool:
     (True, False)
     """
     try:
-        _check(observer, "zoh", "double")
+        _check(observer, "double")
     except UnsupportedError:
         return False
     return True
@@ -273,7 +280,7 @@ def model_hash(observer: ModifiedHighGainObserver) -> str:
 
 
 def generate_c(observer: ModifiedHighGainObserver, *, dt: float, name: str = "observer",
-               real: str = "double", hold: str = "zoh", theta_hat0: ArrayLike | None = None,
+               real: str = "double", theta_hat0: ArrayLike | None = None,
                x_hat0: ArrayLike | None = None, eps: float | None = None,
                model_sha256: str | None = None, title: str | None = None,
                x_hat0_from_y: bool = False) -> CCode:
@@ -286,15 +293,14 @@ def generate_c(observer: ModifiedHighGainObserver, *, dt: float, name: str = "ob
         parts: a SymbolicPerturbation g; a Box Θ with diagonal Γ; ConstantLaw,
         AlgebraicInversion, IntermittentInversion (``smooth_ramp`` weight) with a θ* that has
         a SymPy form (from a model file or ``from_perturbation``), GradientInversion with the
-        default M; no saturation; ``nan_policy`` "raise" or "skip".
+        default M; no saturation; ``nan_policy`` "raise" or "skip"; its ``hold`` (with
+        "foh" ``<name>_step`` also takes the next samples).
     dt : float
         The fixed step length (s) > 0.
     name : str
         File stem and C prefix (made a C identifier).
     real : {"double", "float"}
         The C type of every number (``<name>_real_t``).
-    hold : {"zoh", "foh"}
-        Sample hold; with "foh" ``<name>_step`` also takes the next samples.
     theta_hat0, x_hat0 : array_like, optional
         Defaults compiled in for ``<name>_init(s, NULL, NULL)``: ``update_law.init()`` and 0.
     eps : float, optional
@@ -318,19 +324,6 @@ def generate_c(observer: ModifiedHighGainObserver, *, dt: float, name: str = "ob
     UnsupportedError
         A part of the observer has no C form (the message names it).
 
-    Notes
-    -----
-    The C step is the step's formulas (:mod:`~thetahat.estimation.observer.formulas`,
-    :mod:`~thetahat.estimation.observer.laws.formulas`) printed as C for this observer
-    (:mod:`.c_printer`, :mod:`.c_derive`): what ``observer.run`` computes, reading the
-    ``observer.plan(dt)`` data the numba kernel reads. The state is committed only when it has
-    not diverged (``formulas.within_bound``: its norm is finite and at most
-    ``DIVERGENCE_BOUND``, 1e18 in float); otherwise the step returns a status code
-    (:data:`.c_api.STATUS`) and leaves it unchanged — the C form of the NonFiniteError /
-    UpdateLawError the Python step raises. NaN in y follows ``nan_policy``, an invalid θ*
-    ``on_invalid``. IEEE 754 arithmetic (C99 Annex F) is assumed, as on every target with an
-    FPU; ``-ffast-math`` and ``-ffinite-math-only`` are refused.
-
     Examples
     --------
     >>> from thetahat.modelfile import EXAMPLE_MODEL, build_observer, loads_model
@@ -340,54 +333,75 @@ def generate_c(observer: ModifiedHighGainObserver, *, dt: float, name: str = "ob
     >>> code.state_bytes                      # x̂ (2), z (1), θ̂ (1), x̂₂ (2) doubles
     48
     """
-    from .._version import __version__
-
-    kind, law = _check(observer, hold, real)
+    kind, law = _check(observer, real)
+    hold = observer.hold
     h = _step_length(dt, real)
     prefix = _c_name(name)
-    sysm = observer.system
-    pert = cast(SymbolicPerturbation, sysm.perturbation)     # _check verified it
+    pert = cast(SymbolicPerturbation, observer.system.perturbation)     # _check verified it
     n, m, r, p, k = pert.dims
-    second = observer.second
     ts = _theta_star(law, pert) if kind in ("algebraic", "intermittent") else None
-    th0 = np.asarray(law.init(theta_hat0), dtype=np.float64).reshape(p)
-    x0 = np.zeros(n) if x_hat0 is None else np.asarray(x_hat0, dtype=np.float64).reshape(n)
-    code = {"constant": 0, "algebraic": 1, "intermittent": 2, "gradient": 3}[kind]
-    ramp = (float(law.l.low), float(law.l.high)) if kind == "intermittent" else None
-    parts = KernelParts(code=code, perturbation=pert, theta_set=cast(Box, law.parameter_set),
-                        ramp=ramp, freeze=getattr(law, "on_invalid", "") == "freeze")
-    lay = CLayout(prefix=prefix, real=real, dims=(n, m, r, k, p), second=second is not None,
-                  skip=observer.nan_policy == "skip", foh=hold == "foh")
-    box = cast(Box, parts.theta_set)
-    lower, upper = box.lower, box.upper
-    if real == "float":
-        lower, upper = inwards(lower, upper)
-    extra = {"THETA_LOWER": lower, "THETA_UPPER": upper, "THETA_HAT0": th0, "X_HAT0": x0,
-             "INIT_RTOL": INIT_RTOL, "OUT_C": sysm.C, "OUT_CPINV": output_pinv(sysm.C)}
-    step = derived_step(parts, observer.plan(h), prefix=prefix, real=real, foh=lay.foh,
-                        skip=lay.skip, dt=h, theta_star=ts, extra=extra)
-    word = 8 if real == "double" else 4
-    info = {
-        "model": title or "observer", "sha256": model_sha256 or model_hash(observer),
-        "eps": "not recorded" if eps is None else repr(float(eps)), "dt": repr(h),
-        "hold": hold, "law": type(law).__name__,
-        "policy": (f"y NaN -> {observer.nan_policy}"
-                   + (f"; theta* invalid -> {law.on_invalid}" if ts is not None else "")),
-        "second": "none" if second is None else
-        f"Sec. VI, g on {'estimates' if second.g_on_estimates else 'y'}",
-        "real": real, "version": __version__}
+    lay = CLayout(prefix=prefix, real=real, dims=(n, m, r, k, p),
+                  second=observer.second is not None, skip=observer.nan_policy == "skip",
+                  foh=hold == "foh")
+    step = _derive(observer, kind, law, lay, h, ts, theta_hat0, x_hat0)
+    info = _info(observer, law, h, hold, real, ts is not None, eps=eps,
+                 model_sha256=model_sha256, title=title)
     header = header_source(lay, _banner(f"{prefix}.h", info, "interface"))
     source = source_text(lay, _banner(f"{prefix}.c", info,
                                       "implementation (C99, <math.h> only, no heap)"), step)
     names = {"u": [s.name for s in pert.u], "y": [s.name for s in pert.y],
              "x": [s.name for s in pert.x], "theta": [s.name for s in pert.theta]}
+    word = 8 if real == "double" else 4
     return CCode(name=prefix, real=real, dt=h, header=header, source=source,
-                 main=harness_source(prefix, names, k, real, second is not None, h, lay.foh,
+                 main=harness_source(prefix, names, k, real, lay.second, h, lay.foh,
                                      start_from_y=x_hat0_from_y),
                  makefile=makefile_source(prefix), state_bytes=lay.size * word,
                  const_bytes=step.const_count * word,
                  sizes={"n": n, "m": m, "r": r, "k": k, "p": p, "state": lay.size},
                  hold=hold)
+
+
+def _derive(observer: ModifiedHighGainObserver, kind: str, law: Any, lay: CLayout, h: float,
+            ts: tuple[tuple[sp.Expr, ...], tuple[sp.Symbol, ...]] | None,
+            theta_hat0: ArrayLike | None, x_hat0: ArrayLike | None) -> Any:
+    """The step printed as C (:func:`~thetahat.codegen.c_derive.derived_step`) with the data
+    it reads: Θ's box (moved inwards in float), θ̂₀, x̂₀, C and C⁺."""
+    n, _, _, _, p = lay.dims
+    C = observer.system.C
+    th0 = np.asarray(law.init(theta_hat0), dtype=np.float64).reshape(p)
+    x0 = np.zeros(n) if x_hat0 is None else np.asarray(x_hat0, dtype=np.float64).reshape(n)
+    code = {"constant": 0, "algebraic": 1, "intermittent": 2, "gradient": 3}[kind]
+    ramp = (float(law.l.low), float(law.l.high)) if kind == "intermittent" else None
+    box = cast(Box, law.parameter_set)
+    parts = KernelParts(code=code, perturbation=cast(SymbolicPerturbation,
+                                                     observer.system.perturbation),
+                        theta_set=box, ramp=ramp,
+                        freeze=getattr(law, "on_invalid", "") == "freeze")
+    lower, upper = box.lower, box.upper
+    if lay.real == "float":
+        lower, upper = inwards(lower, upper)
+    extra = {"THETA_LOWER": lower, "THETA_UPPER": upper, "THETA_HAT0": th0, "X_HAT0": x0,
+             "INIT_RTOL": INIT_RTOL, "OUT_C": C, "OUT_CPINV": output_pinv(C)}
+    return derived_step(parts, observer.plan(h), prefix=lay.prefix, real=lay.real,
+                        foh=lay.foh, skip=lay.skip, dt=h, theta_star=ts, extra=extra)
+
+
+def _info(observer: ModifiedHighGainObserver, law: Any, h: float, hold: str, real: str,
+          theta_star: bool, *, eps: float | None, model_sha256: str | None,
+          title: str | None) -> dict[str, str]:
+    """What the banner of the generated files records."""
+    from .._version import __version__
+
+    second = observer.second
+    return {
+        "model": title or "observer", "sha256": model_sha256 or model_hash(observer),
+        "eps": "not recorded" if eps is None else repr(float(eps)), "dt": repr(h),
+        "hold": hold, "law": type(law).__name__,
+        "policy": (f"y NaN -> {observer.nan_policy}"
+                   + (f"; theta* invalid -> {law.on_invalid}" if theta_star else "")),
+        "second": "none" if second is None else
+        f"Sec. VI, g on {'estimates' if second.g_on_estimates else 'y'}",
+        "real": real, "version": __version__}
 
 
 def _step_length(dt: Any, real: str) -> float:

@@ -4,19 +4,23 @@ The harness reads the CSV layout ``thetahat estimate`` reads (a header row with 
 column per input and per output, named as in the model or ``u1``…/``y1``… — ``u``/``y`` when
 there is one; any order, other columns ignored) and writes the columns ``thetahat estimate``
 writes (:func:`estimate_columns`), one row per sample, streaming: it holds one line at a time and
-allocates nothing.
+allocates nothing. The samples must be spaced by dt to the relative accuracy
+:data:`~thetahat.estimation.observer.plan.DT_RTOL` (as for every fixed-step back end).
+
+What lives here: the harness's and the Makefile's text, and the compiler flags. What it may
+import: the observer's plan (for ``DT_RTOL``) and nothing else of the package.
 """
 
 from __future__ import annotations
 
 from collections.abc import Sequence
 
-__all__ = ["C_FLAGS", "DT_RTOL", "estimate_columns", "harness_source", "makefile_source"]
+from ..estimation.observer.plan import DT_RTOL
+
+__all__ = ["C_FLAGS", "estimate_columns", "harness_source", "makefile_source"]
 
 #: The flags the generated code is checked with, and the Makefile's default.
 C_FLAGS = ("-std=c99", "-Wall", "-Wextra", "-Werror", "-pedantic", "-O2")
-#: The samples must be spaced by dt to this relative accuracy (as for the compiled kernel).
-DT_RTOL = 1e-9
 
 
 def estimate_columns(state_names: Sequence[str], k: int, parameter_names: Sequence[str], *,

@@ -4,6 +4,11 @@
 a shared library with a small record-loop shim (:func:`load_c`), or as the harness executable
 (:func:`build_harness`, which also takes sanitizer flags). The shim is not part of the generated
 code: it only loops ``<name>_step`` over a record inside C so that a whole run costs one call.
+
+What lives here: the compiler calls, :class:`CObserver` (the generated observer through
+ctypes) and its record run :class:`CRun`, whose ``status`` is a
+:class:`~thetahat.estimation.status.Status`. What it may import: the generator and harness of
+this package, :mod:`thetahat.estimation.status`, :mod:`thetahat.safe_io` and the errors.
 """
 
 from __future__ import annotations
@@ -20,10 +25,8 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from ..errors import CCompilerError, DimensionError, NonFiniteError
-from ..estimation.observer.laws.inversion import invalid_theta_star_error
-from ..estimation.status import MESSAGES, Status
-from ..estimation.observer.step import divergence_error
+from ..errors import CCompilerError, DimensionError
+from ..estimation.status import Status, status_error
 from ..safe_io import write_text
 from .c_api import STATUS as C_STATUS
 from .generate import CCode
@@ -220,15 +223,17 @@ def build_harness(code: CCode, directory: str | Path, *,
 
 @dataclass(frozen=True, slots=True, eq=False)
 class CRun:
-    """A record run in C: as :class:`~thetahat.estimation.observer.observer.ObserverResult`, plus status.
+    """A record run in C: the estimates of an :class:`~thetahat.estimation.protocol.EstimateResult`
+    in the generated precision, and the status that ended the run.
 
     Attributes
     ----------
     x_hat, phi_hat, theta_hat : ndarray
         Shapes (N, n), (N, k), (N, p), in the generated precision.
     x_hat_refined : ndarray or None
-    status : int
-        0, or the code that stopped the run at row ``index``.
+    status : Status
+        ``OK``, or the status of the code that stopped the run at row ``index`` (rows after
+        it are zeros: not computed).
     index : int
     """
 
@@ -236,7 +241,7 @@ class CRun:
     phi_hat: NDArray[Any]
     theta_hat: NDArray[Any]
     x_hat_refined: NDArray[Any] | None
-    status: int
+    status: Status
     index: int
 
 
@@ -278,15 +283,36 @@ class CObserver:
                                    dtype=self.dtype)
         return arr
 
-    def init(self, theta_hat0: ArrayLike | None = None, x_hat0: ArrayLike | None = None
+    def init(self, *, x_hat0: ArrayLike | None = None, theta_hat0: ArrayLike | None = None
              ) -> NDArray[Any]:
-        """A new state from ``<name>_init``; raises NonFiniteError on a refused θ̂₀/x̂₀."""
+        """A new state from ``<name>_init(s, theta_hat0, x_hat0)`` (NULL: the compiled-in
+        defaults).
+
+        Parameters
+        ----------
+        x_hat0 : array_like, shape (n,), optional
+        theta_hat0 : array_like, shape (p,), optional
+            In Θ.
+
+        Returns
+        -------
+        ndarray, shape (state,)
+            In the generated precision.
+
+        Raises
+        ------
+        ParameterSetError
+            ``<name>_init`` refused θ̂₀ or x̂₀ (:attr:`Status.INIT
+            <thetahat.estimation.status.Status.INIT>`: θ̂₀ outside Θ, or not finite).
+        """
         s = np.zeros(self.code.sizes["state"], dtype=self.dtype)
         th, x0 = self._vec(theta_hat0, self.code.sizes["p"]), self._vec(x_hat0,
                                                                          self.code.sizes["n"])
         status = self._init(self._p(s), self._p(th), self._p(x0))
         if status != 0:
-            raise NonFiniteError(f"{self.code.name}_init refused θ̂₀/x̂₀ (status {status}).")
+            raise status_error(Status(status), f"{self.code.name}_init refused "
+                               f"theta_hat0 = {theta_hat0!r}, x_hat0 = {x_hat0!r}: "
+                               f"theta_hat0 must lie in Theta and both must be finite.")
         return s
 
     def step(self, state: NDArray[Any], u: ArrayLike | None, y: ArrayLike,
@@ -334,7 +360,7 @@ class CObserver:
         n, k, p = sz["n"], sz["k"], sz["p"]
         return CRun(x_hat=S[:, :n], phi_hat=PHI, theta_hat=S[:, n + k:n + k + p],
                     x_hat_refined=S[:, n + k + p:] if sz["state"] > n + k + p else None,
-                    status=status, index=index)
+                    status=Status(status), index=index)
 
     def run_rows(self, state: NDArray[Any], U: NDArray[Any], Y: NDArray[Any]
                  ) -> tuple[NDArray[Any], NDArray[Any], int, int]:
@@ -372,19 +398,6 @@ class CObserver:
         """N steps in one C call, nothing recorded (benchmarks); arrays in the C precision."""
         return int(self._steps(self._p(state), ctypes.c_long(Y.shape[0]), self._p(U),
                                self._p(Y)))
-
-    def raise_for(self, status: int, where: str) -> None:
-        """Raise the Python observer's error for a status code (0: nothing): the one failure
-        behaviour of :mod:`thetahat.estimation.status`, as the NumPy and numba paths raise."""
-        if status == Status.THETA_STAR:
-            raise invalid_theta_star_error("the C observer's update law", 1)
-        if status in (Status.DIVERGED, Status.SINGULAR):
-            raise divergence_error(where)
-        if status:
-            known = status in {int(code) for code in Status}
-            text = MESSAGES[Status(status)] if known else "unknown status"
-            raise NonFiniteError(f"the C observer refused the data {where} (status {status}: "
-                                 f"{text}).")
 
 
 def load_c(code: CCode, directory: str | Path, *, flags: Sequence[str] = C_FLAGS) -> CObserver:

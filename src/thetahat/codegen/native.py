@@ -10,16 +10,23 @@ rounding). :class:`NativeObserver` runs a record through that C, loaded with cty
   ``THETAHAT_C`` is not ``0``;
 * ``generate_c`` supports the observer;
 * the record is sampled uniformly (the C step has one step length compiled in): every step
-  within ``DT_RTOL`` of the record's mean spacing.
+  within :data:`~thetahat.estimation.observer.plan.DT_RTOL` of the record's mean spacing.
 
-Otherwise — and on any nonzero status of the C run, so that every error is the one the other
-back ends raise, with their message — it hands the record to its fallback (the numba kernel,
-or the observer itself).
+Otherwise it hands the record to its fallback (the numba kernel, or the observer itself). A
+nonzero status of the C run is the :class:`~thetahat.estimation.status.Status` of the same code
+(the header's codes are derived from it), reported as every back end reports a failed step
+(:func:`~thetahat.estimation.observer.record_run.failure`): raised with ``throw=True``, in the
+result with ``throw=False``.
 
 Built libraries are kept in :func:`~thetahat.estimation.kernels.kernel_cache.cache_dir` under the
 SHA-256 of the compiler's path, its flags and the generated sources (which are printed from the
 formulas and hold every number of the model), written atomically (:mod:`thetahat.safe_io`): a
 second process loads the library without compiling.
+
+What lives here: :class:`NativeObserver`, :func:`load_cached` and :data:`BACKEND`. What it may
+import: the generator and loader of this package, the observer's record loop and result
+(:mod:`thetahat.estimation.observer.record_run`), the kernel cache and
+:mod:`thetahat.estimation.drive`.
 """
 
 from __future__ import annotations
@@ -32,23 +39,21 @@ from collections.abc import Callable
 from typing import Any
 
 import numpy as np
-from numpy.typing import NDArray
+from numpy.typing import ArrayLike, NDArray
 
 from ..errors import CCompilerError, FileAccessError, UnsupportedError
 from ..estimation.drive import Backend
 from ..estimation.kernels.kernel_cache import cache_dir
-from ..estimation.observer.observer import PROGRESS_EVERY
-from ..estimation.observer.compiled import states_result
+from ..estimation.observer.observer import ModifiedHighGainObserver, ObserverEstimate
+from ..estimation.observer.plan import DT_RTOL
+from ..estimation.observer.record_run import PROGRESS_EVERY, Failure, failure, states_result
 from ..estimation.protocol import EstimateResult
 from ..safe_io import atomic_path
 from .generate import CCode, generate_c, supports_c
 from .harness import C_FLAGS
 from .loader import CObserver, build, find_compiler
 
-__all__ = ["BACKEND", "NativeObserver", "native_enabled", "load_cached", "DT_RTOL"]
-
-#: Relative spread of a record's steps around their mean that the fixed-step C accepts.
-DT_RTOL = 1e-9
+__all__ = ["BACKEND", "NativeObserver", "native_enabled", "load_cached"]
 
 
 def native_enabled() -> bool:
@@ -115,11 +120,12 @@ class NativeObserver:
     Parameters
     ----------
     observer : ModifiedHighGainObserver
-        The observer (one whose parts ``generate_c`` does not support runs in the fallback).
+        The observer (one whose parts ``generate_c`` does not support runs in the fallback);
+        its ``hold`` and ``progress`` are the runs'.
     fallback : callable
-        Returns what runs a record the C cannot take (non-uniform steps, a status): an
-        object with the observer's ``run(t, u, y, state0=, hold=, progress=)``; called at
-        most once, when first needed.
+        Returns what runs a record the C cannot take (non-uniform steps): an object with the
+        observer's ``run(t, u, y, *, state0=, throw=)``; called at most once, when first
+        needed.
 
     Examples
     --------
@@ -134,31 +140,36 @@ class NativeObserver:
     True
     """
 
-    def __init__(self, observer: Any, fallback: Callable[[], Any]) -> None:
+    def __init__(self, observer: ModifiedHighGainObserver, fallback: Callable[[], Any]) -> None:
         self.observer = observer
         self._fallback_of = fallback
         self._fallback: Any = None
-        self._loaded: dict[tuple[float, str], CObserver] = {}
+        self._loaded: dict[float, CObserver] = {}
 
-    def init(self, x_hat0: Any = None, theta_hat0: Any = None) -> NDArray[np.float64]:
+    def init(self, *, x_hat0: ArrayLike | None = None, theta_hat0: ArrayLike | None = None,
+             z0: ArrayLike | None = None,
+             x_hat_refined0: ArrayLike | None = None) -> NDArray[np.float64]:
         """The observer's initial state (see its ``init``).
 
         Parameters
         ----------
-        x_hat0, theta_hat0 : array_like, optional
+        x_hat0, theta_hat0, z0, x_hat_refined0 : array_like, optional
+            As for :meth:`~thetahat.estimation.observer.observer.ModifiedHighGainObserver.init`.
 
         Returns
         -------
         ndarray
         """
-        return np.asarray(self.observer.init(x_hat0, theta_hat0), dtype=np.float64)
+        return self.observer.init(x_hat0=x_hat0, theta_hat0=theta_hat0, z0=z0,
+                                  x_hat_refined0=x_hat_refined0)
 
     @property
     def system(self) -> Any:
         """The observer's system."""
         return self.observer.system
 
-    def step(self, state: Any, u: Any, y: Any, dt: float) -> NDArray[np.float64]:
+    def step(self, state: ArrayLike, u: ArrayLike | None, y: ArrayLike, dt: float
+             ) -> NDArray[np.float64]:
         """One step: the observer's own (one sample does not repay a library call).
 
         Parameters
@@ -170,9 +181,9 @@ class NativeObserver:
         -------
         ndarray
         """
-        return np.asarray(self.observer.step(state, u, y, dt), dtype=np.float64)
+        return self.observer.step(state, u, y, dt)
 
-    def estimate(self, state: Any, u: Any, y: Any) -> Any:
+    def estimate(self, state: ArrayLike, u: ArrayLike | None, y: ArrayLike) -> ObserverEstimate:
         """x̂, φ̂, θ̂ (and x̂₂) of a state: the observer's ``estimate``.
 
         Parameters
@@ -192,75 +203,88 @@ class NativeObserver:
         Returns
         -------
         object
-            With ``run(t, u, y, state0=, hold=, progress=)``.
+            With ``run(t, u, y, *, state0=, throw=)``.
         """
         if self._fallback is None:
             self._fallback = self._fallback_of()
         return self._fallback
 
-    def _c(self, dt: float, hold: str) -> CObserver:
-        key = (dt, hold)
-        if key not in self._loaded:
-            code = generate_c(self.observer, dt=dt, hold=hold, name="thetahat_observer")
-            self._loaded[key] = load_cached(code)
-        return self._loaded[key]
+    def _c(self, dt: float) -> CObserver:
+        if dt not in self._loaded:
+            code = generate_c(self.observer, dt=dt, name="thetahat_observer")
+            self._loaded[dt] = load_cached(code)
+        return self._loaded[dt]
 
-    def run(self, t: Any, u: Any, y: Any, *, state0: Any = None, hold: str = "zoh",
-            progress: Callable[[int, int], None] | None = None) -> EstimateResult:
+    def run(self, t: ArrayLike, u: ArrayLike | None, y: ArrayLike, *,
+            state0: ArrayLike | None = None, throw: bool = True) -> EstimateResult:
         """Run over a record: in C when its steps are uniform, else in the fallback.
 
         Parameters
         ----------
-        t, u, y, state0, hold, progress
-            As :meth:`~thetahat.estimation.observer.observer.ModifiedHighGainObserver.run`.
+        t, u, y, state0, throw
+            As :meth:`~thetahat.estimation.observer.observer.ModifiedHighGainObserver.run`
+            (with the observer's ``hold`` and ``progress``).
 
         Returns
         -------
         EstimateResult
-            As the observer's (to rounding: the C uses the mean step length).
+            As the observer's (to rounding: the C uses the mean step length); a step the C
+            refuses gives the status of its code, at the same ``failed_at``.
+
+        Raises
+        ------
+        NonFiniteError, UpdateLawError
+            With ``throw``: a failed step, as the observer's ``run`` raises it.
         """
         obs = self.observer
         lay = obs.layout
         t_, dts, U3, Y3, ok3 = obs.check_records(t, u, y)
         N = t_.shape[0]
-        dt = float((t_[-1] - t_[0]) / (N - 1)) if N > 1 else 0.0
-        uniform = (N > 1 and dt > 0.0 and hold in ("zoh", "foh")
-                   and float(np.max(np.abs(dts - dt))) <= DT_RTOL * dt)
-        c = None
-        if uniform:
-            try:
-                c = self._c(dt, hold)
-            except (UnsupportedError, CCompilerError, FileAccessError, OSError):
-                c = None
+        c = self._uniform_c(t_, dts)
         if c is None or c.code.sizes["state"] != lay.size:
-            return self.fallback().run(t, u, y, state0=state0, hold=hold, progress=progress)
+            return self.fallback().run(t, u, y, state0=state0, throw=throw)
         U = np.ascontiguousarray(U3[0] if lay.m else np.zeros((N, 1)), dtype=np.float64)
         Y = np.ascontiguousarray(Y3[0], dtype=np.float64)
         S = np.empty((N, lay.size))
         PHI = np.empty((N, lay.k))
         s = np.array(obs.init() if state0 is None else obs.check_state(state0),
                      dtype=np.float64)
+        progress = obs.progress
         step = PROGRESS_EVERY if progress is not None else N
+        fail: Failure | None = None
         for a in range(0, max(N - 1, 1), step):
             if progress is not None:
                 progress(a, N - 1)
             b = min(a + step, N - 1)
-            rows, phi, status, _ = c.run_rows(s, U[a:b + 1], Y[a:b + 1])
-            if status:             # the other back ends raise the matching error
-                return self.fallback().run(t, u, y, state0=state0, hold=hold,
-                                           progress=progress)
+            rows, phi, status, index = c.run_rows(s, U[a:b + 1], Y[a:b + 1])
             S[a:b + 1], PHI[a:b + 1] = rows, phi
+            if status:
+                fail = failure(status, a + index, t_, type(obs.update_law).__name__)
+                if throw:
+                    raise fail.error()
+                break
             s = np.array(rows[-1], dtype=np.float64)
-        if progress is not None:
+        if progress is not None and fail is None:
             progress(N - 1, N - 1)
+        return states_result(lay, t_, S, PHI, ok3[0], fail)
 
-        return states_result(lay, t_, S, PHI, ok3[0])
+    def _uniform_c(self, t: NDArray[np.float64], dts: NDArray[np.float64]) -> CObserver | None:
+        """The C of the record's one step length, or None (non-uniform steps, no C)."""
+        N = t.shape[0]
+        dt = float((t[-1] - t[0]) / (N - 1)) if N > 1 else 0.0
+        if not (N > 1 and dt > 0.0 and float(np.max(np.abs(dts - dt))) <= DT_RTOL * dt):
+            return None
+        try:
+            return self._c(dt)
+        except (UnsupportedError, CCompilerError, FileAccessError, OSError):
+            return None
 
     def __repr__(self) -> str:
         return f"NativeObserver(observer={self.observer!r})"
 
 
-def _native_backend(observer: Any, dt: float, fallback: Callable[[], Any]) -> NativeObserver | str:
+def _native_backend(observer: Any, dt: float, fallback: Callable[[], Any]
+                    ) -> NativeObserver | str:
     """:data:`BACKEND`'s build: the C of the observer's formulas, or why it cannot be had."""
     if not native_enabled():
         return "no C compiler (set $CC) or THETAHAT_C=0"
@@ -272,5 +296,5 @@ def _native_backend(observer: Any, dt: float, fallback: Callable[[], Any]) -> Na
 #: The generated C as a back end of :func:`thetahat.estimation.drive.runner` (registered under
 #: the entry-point group ``thetahat.backends``): first, and for records of any length, since it
 #: builds in under a second and runs as fast as numba's kernel; a record it cannot take
-#: (non-uniform steps, a nonzero status) goes to the next back end.
+#: (non-uniform steps) goes to the next back end.
 BACKEND = Backend(name="c", rank=10, min_samples=0, build=_native_backend)

@@ -14,7 +14,11 @@ Each registers a :class:`Backend` under the entry-point group :data:`ENTRY_POINT
 same way. :func:`runner` picks the fastest one that can take an observer and a record — by
 :attr:`Backend.rank`, falling back down the list when one declines (no compiler, numba
 missing, a part it does not support) — and says in one :class:`~thetahat.errors.ThetahatWarning`
-why a record it was asked to compile runs in Python.
+why a record it was asked to compile runs in Python. An observer built with ``compiled=None``
+or ``True`` asks it on every ``run``
+(:class:`~thetahat.estimation.observer.observer.ModifiedHighGainObserver`); every back end
+reads the observer's ``hold`` and ``progress`` and reports a failed step with the same
+:class:`~thetahat.estimation.status.Status`.
 
 What it may import: the package's errors only (it is the bottom of the estimation layers).
 """
@@ -64,9 +68,11 @@ class Backend:
         tens of seconds; the C builds in under one).
     build : callable
         ``build(observer, dt, fallback)`` → an object with the observer's ``init``, ``step``,
-        ``estimate`` and ``run(t, u, y, *, state0, hold, progress)``, or a ``str`` that says
-        why this back end cannot take the observer (it is then skipped). ``dt`` is the
-        record's first step; ``fallback()`` builds the next back end down the list.
+        ``estimate`` and ``run(t, u, y, *, state0, throw)`` (the hold and the progress
+        callback are the observer's), or a ``str`` that says why this back end cannot take
+        the observer (it is then skipped). ``observer`` runs in NumPy (``compiled=False``);
+        ``dt`` is the record's first step; ``fallback()`` builds the next back end down the
+        list.
     """
 
     name: str
@@ -154,8 +160,8 @@ def runner(observer: Any, t: Any, *, compiled: bool | None = None,
            samples: int | None = None) -> Any:
     """What runs ``observer`` over the record ``t``: the fastest back end that takes it.
 
-    Every back end has the observer's ``run(t, u, y, *, state0, hold, progress)`` and gives the
-    same results to rounding (the conformance tests). ``compiled`` True: the fastest registered
+    Every back end has the observer's ``run(t, u, y, *, state0, throw)`` and gives the same
+    results to rounding, and the same status when a step fails (the conformance tests). ``compiled`` True: the fastest registered
     back end that takes the observer; None (the default): the same among the back ends whose
     :attr:`Backend.min_samples` the work reaches; False: the observer itself. When every
     candidate declines, the observer runs in Python with a one-line
@@ -165,6 +171,7 @@ def runner(observer: Any, t: Any, *, compiled: bool | None = None,
     Parameters
     ----------
     observer : ModifiedHighGainObserver
+        One that runs in NumPy (``compiled=False``): the back ends fall back to it.
     t : array_like, shape (N,)
         The record's sampling instants.
     compiled : bool, optional

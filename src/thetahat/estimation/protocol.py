@@ -6,7 +6,7 @@ estimator (:class:`~thetahat.estimation.statistical.guarded.GuardedEstimator`), 
 (:class:`~thetahat.estimation.statistical.mle.MapEstimator`) and the joint EKF
 (:class:`~thetahat.estimation.statistical.ekf.JointEKF`) all implement
 
-* ``init(x_hat0=None, theta_hat0=None) -> state`` (θ̂₀ must lie in Θ),
+* ``init(*, x_hat0=None, theta_hat0=None) -> state`` (θ̂₀ must lie in Θ),
 * ``step(state, u, y, dt) -> state`` (process the samples at the current instant, the next
   one comes ``dt`` later), and
 * ``run(t, u, y, *, state0=None) -> EstimateResult`` (a logged record).

@@ -23,7 +23,7 @@ from ..errors import (ConvergenceWarning, ModelFileError, NotMinimumPhaseError, 
                       ThetahatWarning, UnstableDesignError)
 from ..estimation.observer.checks import check_theta_star
 from ..estimation.observer.initial_state import x_hat_from_output
-from ..estimation.observer.observer import HeldObserver, ModifiedHighGainObserver
+from ..estimation.observer.observer import ModifiedHighGainObserver
 from ..estimation.protocol import EstimateResult, Estimator
 from ..methods import MethodInputs, get_method
 from ..model.system import PerturbedLinearSystem
@@ -288,10 +288,8 @@ def build_estimator(spec: ModelSpec, *, method: str | None = None, hold: Hold = 
     def observer() -> Estimator:
         if Gamma is None:
             _refuse_auto_gamma(spec)
-        return HeldObserver(observer=_build(estimator_spec(spec, hold=hold,
-                                                           nan_policy=nan_policy),
-                                            spec, None, Gamma=Gamma),
-                            hold=hold, progress=progress, compiled=compiled)
+        return _build(estimator_spec(spec, hold=hold, nan_policy=nan_policy), spec, None,
+                      Gamma=Gamma).with_run_options(progress=progress, compiled=compiled)
 
     return how.build(MethodInputs(system=spec.system, observer=observer, compiled=compiled))
 
@@ -490,7 +488,7 @@ def auto_gamma(spec: ModelSpec, t: ArrayLike, u: ArrayLike | None, y: ArrayLike,
     held = dataclasses.replace(est, law=ConstantLaw(th0, s.parameter_set))
     obs = _build(held, spec, None)
     from ..estimation.drive import runner
-    first = runner(obs, t).run(t, u, y, hold=hold,
+    first = runner(obs, t).run(t, u, y,
                                state0=obs.init(x_hat0=start_x_hat(spec, y), theta_hat0=th0))
     N = first.t.shape[0]
     U = np.zeros((N, 0)) if u is None else np.asarray(u, dtype=np.float64).reshape(N, -1)

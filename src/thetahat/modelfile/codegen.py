@@ -72,7 +72,8 @@ def generate_c_from_model(path: str | Path, *, dt: float, eps: float | None = No
             "\"paper\" in a copy of the file to generate the observer alone.")
     digest = hashlib.sha256(Path(path).read_bytes()).hexdigest()
     observer = build_observer(spec, eps=eps, nan_policy=nan_policy)
-    return generate_c(observer, dt=dt, name=name or Path(path).stem, real=real, hold=hold,
+    return generate_c(observer.with_run_options(hold=hold), dt=dt, name=name or Path(path).stem,
+                      real=real,
                       theta_hat0=spec.estimator.theta_hat0, x_hat0=spec.estimator.x_hat0,
                       eps=spec.estimator.eps if eps is None else eps, model_sha256=digest,
                       title=spec.name, x_hat0_from_y=spec.estimator.x_hat0_from_y)

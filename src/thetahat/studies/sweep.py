@@ -111,8 +111,7 @@ def run_observer(estimator: EstimatorSource, obs: Estimator, data: Any,
     try:
         with np.errstate(all="ignore"):            # an exploding state is the expected failure
             if isinstance(obs, ModifiedHighGainObserver):
-                hold = estimator.hold if isinstance(estimator, EstimatorSpec) else "zoh"
-                res = runner(obs, data.t).run(data.t, data.u, data.y, hold=hold,
+                res = runner(obs, data.t).run(data.t, data.u, data.y,
                                               state0=obs.init(theta_hat0=theta_hat0))
             else:
                 res = obs.run(data.t, data.u, data.y, state0=obs.init(theta_hat0=theta_hat0))

@@ -31,7 +31,6 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from ..errors import DesignError, DimensionError
-from ..spec import EstimatorSpec
 from .batch import check_seeds, monte_carlo
 from .runs import DIVERGENCE_ERRORS, RunMetrics, format_number, run_metrics
 from .sweep import EstimatorSource, check_eps_values, observer_for, run_observer
@@ -204,7 +203,6 @@ def _run_eps(estimator: EstimatorSource, observers: list[Any], records: list[Any
 
     pairs = [(o, d) for o in observers for d in records]
     t0 = np.asarray(records[0].t)
-    hold = estimator.hold if isinstance(estimator, EstimatorSpec) else "zoh"
     if t0.size < COMPILE_MIN_SAMPLES and all(
             isinstance(o, ModifiedHighGainObserver) for o in observers) and all(
             np.array_equal(np.asarray(d.t), t0) for d in records[1:]):
@@ -212,7 +210,7 @@ def _run_eps(estimator: EstimatorSource, observers: list[Any], records: list[Any
         try:
             with np.errstate(all="ignore"):
                 res = run_batch([o for o, _ in pairs], t0, np.stack([d.u for _, d in pairs]),
-                                np.stack([d.y for _, d in pairs]), state0=state0, hold=hold)
+                                np.stack([d.y for _, d in pairs]), state0=state0)
         except DIVERGENCE_ERRORS:
             pass
         else:

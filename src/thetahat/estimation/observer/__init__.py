@@ -9,8 +9,10 @@ One room for everything the paper's method is made of:
 * the update laws of Sec. IV with the projection onto Θ and θ* (:mod:`.laws`);
 * one sample of (3), (8) and Sec. VI written once (:mod:`.formulas`, :mod:`.laws.formulas`),
   its discretisation and plan (:mod:`.discretize`, :mod:`.plan`), and the back ends that run
-  it: NumPy for one row (:mod:`.step`) and for a batch (:mod:`.batch_run`), the numba kernel
-  printed from the same formulas (:mod:`.kernel_source`, :mod:`.compiled`).
+  it: NumPy for one row (:mod:`.step`, the record loop, its status and result in
+  :mod:`.record_run`) and for a batch (:mod:`.batch_run`), the numba kernel printed from the
+  same formulas (:mod:`.kernel_source`, :mod:`.compiled`, the data it reads in
+  :mod:`.kernel_data`).
 
 What it may import: :mod:`thetahat.model`, :mod:`thetahat.structure`, the package's helpers
 (errors, limits, validation, safe_io), :mod:`thetahat.estimation.protocol`,

@@ -23,6 +23,9 @@ information on θ̂₀: with κ = :data:`PRIOR_KAPPA` the prior weighs as much a
 record, so the record decides, while the first moments of the run (before the information has
 built up) stay near θ̂₀ instead of following the first noisy samples. :func:`auto_kappa`
 picks κ by law.
+
+What lives here: :func:`information_gain`, :func:`auto_kappa` and their constants. What it may
+import: the model's perturbation and the package's errors only.
 """
 
 from __future__ import annotations

@@ -8,6 +8,10 @@
 
 Sampling can find a violation but never prove the condition; the reports say where the worst
 case was found so that it can be inspected.
+
+What lives here: those checks, :func:`check_theta_star` (θ* on a record, before estimation)
+and their reports. What it may import: the model, θ* of :mod:`.laws` and the package's
+helpers; never an observer.
 """
 
 from __future__ import annotations
@@ -86,6 +90,21 @@ class MonotonicityReport:
                 f"theta2={np.round(self.theta2, 4).tolist()})")
 
 
+def _check_sampling(perturbation: Perturbation, v_box: Box, x_box: Box,
+                    parameter_set: ParameterSet) -> None:
+    """The sampling boxes of :func:`check_monotonicity` fit the perturbation."""
+    if not isinstance(perturbation, Perturbation):
+        raise DimensionError(f"perturbation must be a thetahat Perturbation; got "
+                             f"{type(perturbation).__name__}.")
+    n, m, r, p, _ = perturbation.dims
+    for name, box, size in (("v_box", v_box, m + r), ("x_box", x_box, n)):
+        if not isinstance(box, Box) or box.dim != size:
+            raise DimensionError(f"{name} must be a Box of dimension {size}; got {box!r}.")
+    if not isinstance(parameter_set, ParameterSet) or parameter_set.dim != p:
+        raise DimensionError(f"parameter_set must be a ParameterSet of dimension {p}; got "
+                             f"{parameter_set!r}.")
+
+
 def check_monotonicity(perturbation: Perturbation,
                        M: Callable[[FloatArray, FloatArray, FloatArray], Any] | None = None, *,
                        v_box: Box, x_box: Box, parameter_set: ParameterSet,
@@ -140,16 +159,8 @@ def check_monotonicity(perturbation: Perturbation,
     >>> rep.holds, rep.worst_eigenvalue >= 2.0
     (True, True)
     """
-    if not isinstance(perturbation, Perturbation):
-        raise DimensionError(f"perturbation must be a thetahat Perturbation; got "
-                             f"{type(perturbation).__name__}.")
-    n, m, r, p, k = perturbation.dims
-    for name, box, size in (("v_box", v_box, m + r), ("x_box", x_box, n)):
-        if not isinstance(box, Box) or box.dim != size:
-            raise DimensionError(f"{name} must be a Box of dimension {size}; got {box!r}.")
-    if not isinstance(parameter_set, ParameterSet) or parameter_set.dim != p:
-        raise DimensionError(f"parameter_set must be a ParameterSet of dimension {p}; got "
-                             f"{parameter_set!r}.")
+    _check_sampling(perturbation, v_box, x_box, parameter_set)
+    _, _, _, p, k = perturbation.dims
     N = int(positive_scalar("n_samples", n_samples))
     rng = np.random.default_rng(seed)
     v = v_box.sample(rng, N)
@@ -366,7 +377,7 @@ def check_theta_star(theta_star: Callable[..., Any], perturbation: Perturbation,
     ...
     thetahat.errors.UpdateLawError: theta_star is singular on the data: its denominator ... at t = [0.39], ...
     """
-    n, m, r, p, k = perturbation.dims
+    n, m, r, _, _ = perturbation.dims
     t_ = as_vector("t", t)
     C_ = as_matrix("C", C, (r, n))
     Y = _record("y", y, t_.size, r)
@@ -387,30 +398,35 @@ def check_theta_star(theta_star: Callable[..., Any], perturbation: Perturbation,
     fix = ("Give theta_star explicitly with a form valid on the data, restrict Θ, or use the "
            "gradient law (Propositions 3–4).")
     for th in thetas:
-        with np.errstate(all="ignore"):
-            phi = np.asarray(perturbation.g(V, X, np.broadcast_to(th, (t_.size, p))),
-                             dtype=np.float64)
-            est = np.asarray(theta_star(V, X, phi), dtype=np.float64).reshape(t_.size, p)
-        with np.errstate(all="ignore"):
-            J = np.asarray(perturbation.dg_dtheta(V, X, np.broadcast_to(th, (t_.size, p))),
-                           dtype=np.float64).reshape(t_.size, -1)
-        # only where φ determines θ (∂g/∂θ ≠ 0): elsewhere no θ* can recover θ
-        usable = np.isfinite(phi).all(axis=1) & (np.abs(J) > 0).any(axis=1)
-        bad = usable & ~np.isfinite(est).all(axis=1)
-        if bad.any():
-            raise UpdateLawError(
-                f"theta_star is NaN or inf on the data at {_times(t_, np.flatnonzero(bad))} "
-                f"(θ = {np.round(th, 6).tolist()}): a singularity or branch cut of θ* lies on "
-                f"the range of the data. {fix}")
-        wrong = usable & (np.max(np.abs(est - th), axis=1) > THETA_STAR_RTOL * (
-            1.0 + np.max(np.abs(th))))
-        if wrong.any():
-            i = int(np.argmax(wrong))
-            raise UpdateLawError(
-                f"theta_star does not invert g on the data at {_times(t_, np.flatnonzero(wrong))}"
-                f": at t = {float(t_[i]):.6g} it returns {np.round(est[i], 6).tolist()} for θ = "
-                f"{np.round(th, 6).tolist()} ∈ Θ (a branch that misses Θ). {fix}")
+        _check_inverse(theta_star, perturbation, V, X, th, t_, fix)
     _check_poles(theta_star, V, X, perturbation, thetas[0], t_, fix)
+
+
+def _check_inverse(theta_star: Callable[..., Any], perturbation: Perturbation, V: FloatArray,
+                   X: FloatArray, th: FloatArray, t: FloatArray, fix: str) -> None:
+    """θ*(v, x, g(v, x, θ)) = θ at every sample where ∂g/∂θ ≠ 0, for one θ ∈ Θ."""
+    N, p = t.size, th.size
+    with np.errstate(all="ignore"):
+        phi = np.asarray(perturbation.g(V, X, np.broadcast_to(th, (N, p))), dtype=np.float64)
+        est = np.asarray(theta_star(V, X, phi), dtype=np.float64).reshape(N, p)
+        J = np.asarray(perturbation.dg_dtheta(V, X, np.broadcast_to(th, (N, p))),
+                       dtype=np.float64).reshape(N, -1)
+    # only where φ determines θ (∂g/∂θ ≠ 0): elsewhere no θ* can recover θ
+    usable = np.isfinite(phi).all(axis=1) & (np.abs(J) > 0).any(axis=1)
+    bad = usable & ~np.isfinite(est).all(axis=1)
+    if bad.any():
+        raise UpdateLawError(
+            f"theta_star is NaN or inf on the data at {_times(t, np.flatnonzero(bad))} "
+            f"(θ = {np.round(th, 6).tolist()}): a singularity or branch cut of θ* lies on "
+            f"the range of the data. {fix}")
+    wrong = usable & (np.max(np.abs(est - th), axis=1) > THETA_STAR_RTOL * (
+        1.0 + np.max(np.abs(th))))
+    if wrong.any():
+        i = int(np.argmax(wrong))
+        raise UpdateLawError(
+            f"theta_star does not invert g on the data at {_times(t, np.flatnonzero(wrong))}"
+            f": at t = {float(t[i]):.6g} it returns {np.round(est[i], 6).tolist()} for θ = "
+            f"{np.round(th, 6).tolist()} ∈ Θ (a branch that misses Θ). {fix}")
 
 
 def _check_poles(theta_star: Any, V: FloatArray, X: FloatArray, perturbation: Perturbation,

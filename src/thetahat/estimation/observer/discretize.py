@@ -23,11 +23,30 @@ Properties that follow directly from the formula:
   the exact solution ``s + hF + h²((L + N)F + Ḟ)/2`` to second order when N is the exact
   state-dependent Jacobian part and γ = 1/2; with an approximate N it is first order.
 
+**The observer (3).** The step runs on ``(x̂, z)`` with the constant part
+
+    L = [[A − K_x C, E], [−K_φ C, 0]]
+
+and the state-dependent part ``N = [[E ∂g/∂x, 0], [∂g/∂x K_x C, 0]]``, which in the
+coordinates ``(x̂, φ̂)`` is the linearisation ``∂d/∂(x̂, φ̂)`` of the paper's d, neglecting
+terms proportional to ỹ and θ̂̇ (they would need second derivatives of g). Hence g ≡ 0 gives the
+exactly discretised Luenberger observer of the extended system (2), the 1/ε scaling of the
+gains never limits the step length, and a stiff g is handled stably (LuGre: ∂g/∂η = σ0|y|/ζ
+≈ 3.5·10³ s⁻¹ at 3.8 rad/s, so holding g over a 1 ms sample, an explicit exponential Euler
+step, diverges). The step is second order in dt while ỹ and θ̂̇ are small and first order
+otherwise. On the DC motor of Sec. VIII it stayed stable for ε ∈ [0.01, 1] at 1 kHz,
+ε ∈ [0.001, 1] at 10 kHz and even at 100 Hz (ZOH errors ≈ 0.15 rad/s there); it diverged at
+ε = 0.001 and 1 kHz, where the terms left out of N (∂²g/∂x² K_x ỹ, with |K_x| ≈ 6/ε)
+dominate.
+
 References
 ----------
 M. Hochbruck and A. Ostermann, "Exponential integrators," Acta Numerica 19 (2010), 209–286,
 for the φ-functions and exponential Euler; E. Hairer and G. Wanner, *Solving Ordinary
 Differential Equations II*, Sec. IV.7, for linearly implicit (Rosenbrock/W-) methods.
+
+What lives here: the φ-functions (:func:`phi_plan`, :class:`PlanCache`) and the step above
+for one row and a batch. What it may import: NumPy, SciPy and the package's validation only.
 """
 
 from __future__ import annotations

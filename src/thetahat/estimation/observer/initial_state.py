@@ -9,6 +9,9 @@ that starts an estimator from a model file uses :func:`x_hat_from_output` (the C
 ``estimate``, ``fleet``, :func:`~thetahat.modelfile.run_estimator`), and the generated C
 harness applies the same correction, with the same C⁺ (:func:`output_pinv`), on its first
 sample.
+
+What lives here: :func:`x_hat_from_output` and :func:`output_pinv`. What it may import: NumPy
+and the package's validation only.
 """
 
 from __future__ import annotations

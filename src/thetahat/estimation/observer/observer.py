@@ -14,48 +14,49 @@ $$
 \end{aligned}
 $$
 
-One implementation serves three uses: ``rhs`` for ODE integrators, ``init``/``step`` for
-streaming, and ``run`` for logged sample arrays; the discrete step is that of
-:mod:`thetahat.estimation.observer.step` over the observer's :meth:`~ModifiedHighGainObserver.plan`.
-The state is always passed explicitly.
+What lives here: :class:`ModifiedHighGainObserver` — its construction and checks, its plan per
+step length, and its three uses: ``rhs`` for ODE integrators, ``init``/``step`` for streaming,
+``run`` for logged sample arrays — and :class:`ObserverEstimate`, what ``estimate`` reads from
+one state. The discrete step is that of :mod:`thetahat.estimation.observer.step` over the
+observer's :meth:`~ModifiedHighGainObserver.plan`; the loop of ``run`` over a record, its
+status and its result live in :mod:`thetahat.estimation.observer.record_run`, shared with the
+other back ends, which :func:`thetahat.estimation.drive.runner` chooses among. The state is
+always passed explicitly.
+
+What it may import: the rest of this room (plan, step, record_run, redesign, laws), the
+bottom of :mod:`thetahat.estimation` (protocol, records, drive, status), the model, the
+structure checks and the package's helpers; never :mod:`thetahat.codegen` or the statistical
+estimators.
 """
 
 from __future__ import annotations
 
 import math
-from collections import OrderedDict
 from dataclasses import dataclass
-from collections.abc import Callable
 from typing import Any
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from ..._validate import as_matrix, as_vector, check_finite, positive_scalar, readonly
-from ...errors import DimensionError, NonFiniteError, OptionError, UnsupportedError
+from ...errors import DimensionError, NonFiniteError, UnsupportedError
 from ...limits import check_allocation
-from ...model.perturbation import Perturbation
 from ...model.system import PerturbedLinearSystem
 from ...structure.assumptions import check_assumption_1
-from .discretize import PLAN_CACHE_SIZE
-from .plan import StateLayout, StepPlan, dt_key
-from ..records import check_nan_policy, check_records
-from .redesign import SecondObserver
 from ..drive import runner
-from ..protocol import EstimateResult, ObserverDiagnostics
-from ..results import ObserverEstimate, ObserverResult
-from .step import (advance, diverged, divergence_error, integrate, observer_forcing, readout,
-                   second_forcing)
+from ..protocol import EstimateResult
+from ..records import check_nan_policy, check_records
+from ..status import Status
 from .laws import UpdateLaw
+from .plan import StateLayout, StepPlan, StepPlans
+from .record_run import (Failure, Progress, check_compiled, check_hold, integrate_record,
+                         observer_result, step_error)
+from .redesign import SecondObserver
+from .step import advance, diverged, observer_forcing, second_forcing
 
-__all__ = ["HeldObserver", "ModifiedHighGainObserver", "ObserverEstimate", "ObserverResult"]
+__all__ = ["ModifiedHighGainObserver", "ObserverEstimate"]
 
 FloatArray = NDArray[np.float64]
-
-HOLDS = ("zoh", "foh")
-#: Samples between two calls of ``run``'s progress callback.
-PROGRESS_EVERY = 1_000
-
 
 def _vec(name: str, a: Any, size: int, *, finite: bool = True) -> FloatArray:
     """``as_vector`` with a fast path for float64 arrays of the right shape (hot loop)."""
@@ -69,26 +70,22 @@ def _vec(name: str, a: Any, size: int, *, finite: bool = True) -> FloatArray:
     return arr
 
 
-def _integrate_with_progress(plan_for: Callable[[float], StepPlan], pert: Perturbation,
-                             law: UpdateLaw,
-                             s0: FloatArray, t: FloatArray, dts: FloatArray, U: FloatArray,
-                             Y: FloatArray, ok: NDArray[np.bool_], foh: bool,
-                             progress: Callable[[int, int], None] | None) -> FloatArray:
-    """``integrate`` for one record, in pieces of PROGRESS_EVERY steps when a progress callback
-    is given (each piece starts from the last state of the previous one: the same steps)."""
-    if progress is None:
-        return integrate(plan_for, pert, law, s0[None], t, dts, U, Y, ok, foh)[0]
-    N = t.shape[0]
-    S = np.empty((N, s0.size))
-    S[0] = s0
-    for a in range(0, max(N - 1, 1), PROGRESS_EVERY):
-        progress(a, N - 1)
-        b = min(a + PROGRESS_EVERY, N - 1)
-        if b > a:
-            S[a:b + 1] = integrate(plan_for, pert, law, S[a][None], t[a:b + 1], dts[a:b],
-                                   U[:, a:b + 1], Y[:, a:b + 1], ok[:, a:b + 1], foh)[0]
-    progress(N - 1, N - 1)
-    return S
+@dataclass(frozen=True, slots=True, eq=False)
+class ObserverEstimate:
+    """Estimates read from one streaming state (:meth:`ModifiedHighGainObserver.estimate`).
+
+    Attributes
+    ----------
+    x_hat : ndarray, shape (n,)
+    phi_hat : ndarray, shape (k,)
+    theta_hat : ndarray, shape (p,)
+    x_hat_refined : ndarray, shape (n,), or None
+    """
+
+    x_hat: FloatArray
+    phi_hat: FloatArray
+    theta_hat: FloatArray
+    x_hat_refined: FloatArray | None
 
 
 @dataclass(frozen=True, slots=True, eq=False)
@@ -118,6 +115,21 @@ class ModifiedHighGainObserver:
         output injection vanishes and g sees the predicted output), θ̂ is frozen and z is
         constant. NaN is never propagated into the state. NaN in u, and inf anywhere, always
         raise.
+    hold : {"zoh", "foh"}, default "zoh"
+        How ``run`` treats the samples between two instants: held constant (``"zoh"``;
+        identical to a loop of :meth:`step`, which always holds them: it is causal) or
+        interpolated linearly to the next sample (``"foh"``; non-causal, one more evaluation
+        of g per step, a smaller error when the signals are smooth). See Notes.
+    progress : callable, optional
+        ``progress(done, total)``, called by ``run`` every
+        :data:`~thetahat.estimation.observer.record_run.PROGRESS_EVERY` samples and at the
+        end (e.g. :func:`thetahat.progress.reporter`).
+    compiled : {False, None, True}, default False
+        Where ``run`` runs: ``False``, the NumPy step here; ``None``, on the fastest back end
+        where it pays for the record (:func:`~thetahat.estimation.drive.runner`: the C, or
+        numba's kernel on long records); ``True``, on the fastest back end that takes the
+        observer. A back end that cannot take it leaves the record to the next one, down to
+        NumPy. Every back end gives the same estimates to rounding.
 
     Attributes
     ----------
@@ -135,7 +147,7 @@ class ModifiedHighGainObserver:
     NonFiniteError
         A gain holds NaN or inf.
     OptionError
-        Unknown ``nan_policy``.
+        Unknown ``nan_policy``, ``hold`` or ``compiled``.
 
     Notes
     -----
@@ -144,46 +156,21 @@ class ModifiedHighGainObserver:
     :func:`~thetahat.estimation.observer.batch_run.run_batch` runs for B rows; the matrices, gains and
     φ-matrices come from the frozen :meth:`plan` (one per step length). The state is
     ``col(x̂, z, θ̂[, x̂₂][, law state])`` (:attr:`layout`). A step whose state norm exceeds
-    :data:`~thetahat.estimation.observer.step.DIVERGENCE_BOUND` (or is NaN/inf) raises
-    :class:`~thetahat.errors.NonFiniteError` naming the step, in every back end.
+    :data:`~thetahat.estimation.observer.formulas.DIVERGENCE_BOUND` (or is NaN/inf) fails with
+    the same :class:`~thetahat.estimation.status.Status` and the same message naming the step
+    in every back end: ``step`` and ``run`` raise its :class:`~thetahat.errors.NonFiniteError`,
+    ``run(..., throw=False)`` returns it in the result.
 
     **Discretisation.** ``step`` and ``run`` use the exponential, linearly implicit step of
-    :mod:`thetahat.estimation.observer.discretize` on ``(x̂, z)`` with the constant part
+    :mod:`thetahat.estimation.observer.discretize` on ``(x̂, z)`` (its module docstring gives
+    the observer's constant part L, its state-dependent part N and what follows: g ≡ 0 is the
+    exactly discretised Luenberger observer of (2), the 1/ε scaling never limits the step
+    length, a stiff g is handled stably). θ̂ is advanced by ``update_law.advance`` (so it
+    stays in Θ) and z receives ``−∂g/∂θ Δθ̂``, the discrete form of the first term of (3b).
 
-    $$
-    L = \begin{bmatrix} A - K_x C & E \\ -K_\phi C & 0 \end{bmatrix}
-    $$
-
-    (its φ-functions computed once per step length and cached) and the state-dependent part
-    ``N = [[E ∂g/∂x, 0], [∂g/∂x K_x C, 0]]``, which in the coordinates ``(x̂, φ̂)`` is the
-    linearisation ``∂d/∂(x̂, φ̂)`` of the paper's d, neglecting terms proportional to ỹ and θ̂̇
-    (they would need second derivatives of g). Hence g ≡ 0 gives the exactly discretised
-    Luenberger observer of the extended system (2), the 1/ε scaling of the gains never limits
-    the step length, and a stiff g is handled stably (LuGre: ∂g/∂η = σ0|y|/ζ ≈ 3.5·10³ s⁻¹
-    at 3.8 rad/s, so holding g over a 1 ms sample, an explicit exponential Euler step,
-    diverges). θ̂ is advanced by ``update_law.advance`` (so it stays in Θ) and z receives
-    ``−∂g/∂θ Δθ̂``, the discrete form of the first term of (3b). The step is second order
-    in dt while ỹ and θ̂̇ are small and first order otherwise.
-
-    **Hold.** Samples are held constant over a sampling interval (``"zoh"``: causal, the only
-    choice for ``step``, identical to a loop of ``step``) or interpolated linearly to the next
-    sample (``"foh"``: ``run`` only, one more evaluation of g per step). A ZOH delays smooth
-    signals by half a sample, which dominates the error: on the DC motor of Sec. VIII
-    (θ known, ε = 1, noise-free) the largest errors after convergence were
-
-    ========  ======================  ======================  ======================
-    rate      hold                    |ω − ω̂| (rad/s)         |φ − φ̂| (N m)
-    ========  ======================  ======================  ======================
-    1 kHz     zoh                     1.1e-2                  1.3e-3
-    1 kHz     foh                     6.4e-4                  9.6e-5
-    10 kHz    zoh                     9.7e-4                  1.1e-4
-    10 kHz    foh                     9.4e-6                  9.7e-7
-    ========  ======================  ======================  ======================
-
-    (ω up to 3.8 rad/s, φ up to 3.8 N m). The step stayed stable on that example for
-    ε ∈ [0.01, 1] at 1 kHz, ε ∈ [0.001, 1] at 10 kHz and even at 100 Hz (ZOH errors ≈ 0.15
-    rad/s there); it diverged at ε = 0.001 and 1 kHz, where the terms left out of N
-    (∂²g/∂x² K_x ỹ, with |K_x| ≈ 6/ε) dominate.
+    **Hold.** ``hold`` chooses how ``run`` treats the samples between two instants; the
+    errors of each choice on the DC motor of Sec. VIII are tabulated in
+    :mod:`thetahat.estimation.observer.record_run`.
 
     ``v̇`` is never needed: z absorbs ∂g/∂v v̇ (Sec. III).
 
@@ -191,8 +178,9 @@ class ModifiedHighGainObserver:
     :class:`~thetahat.estimation.protocol.Estimator`: its state is the array above (not a
     wrapper object: ``rhs`` and ODE solvers integrate it as it is), ``run`` returns an
     :class:`~thetahat.estimation.protocol.EstimateResult` whose ``diagnostics`` is an
-    :class:`~thetahat.estimation.protocol.ObserverDiagnostics`, and :class:`HeldObserver`
-    binds a ``hold`` for code that takes any estimator.
+    :class:`~thetahat.estimation.protocol.ObserverDiagnostics`; the hold, the progress
+    callback and the back end are the observer's own (:meth:`with_run_options`), so code that
+    takes any estimator runs it as it was built.
 
     References
     ----------
@@ -238,12 +226,17 @@ class ModifiedHighGainObserver:
     update_law: UpdateLaw
     second: SecondObserver | None
     nan_policy: str
+    hold: str
+    progress: Progress | None
+    compiled: bool | None
     layout: StateLayout
-    _plans: OrderedDict[float | None, StepPlan]
+    _plans: StepPlans
 
     def __init__(self, *, system: PerturbedLinearSystem, K_x: Any, K_phi: Any,
                  update_law: UpdateLaw, second: SecondObserver | None = None,
-                 nan_policy: str = "raise", allow_nonminimum_phase: bool = False) -> None:
+                 nan_policy: str = "raise", hold: str = "zoh",
+                 progress: Progress | None = None, compiled: bool | None = False,
+                 allow_nonminimum_phase: bool = False) -> None:
         if not isinstance(system, PerturbedLinearSystem):
             raise DimensionError("system must be a PerturbedLinearSystem; got "
                                  f"{type(system).__name__}.")
@@ -270,25 +263,32 @@ class ModifiedHighGainObserver:
                     f"second observer's system has (n, m, r, k, p) = "
                     f"{(s2.n, s2.m, s2.r, s2.k, s2.p)}; the observer's has {(n, m, r, k, p)}.")
         check_nan_policy(nan_policy)
+        check_hold(hold)
+        check_compiled(compiled)
         update_law = update_law.for_observer(system, Kx, Kphi)
         layout = StateLayout(n=n, m=m, r=r, k=k, p=p, second=second is not None,
                              law_size=int(update_law.state_size))
+        plans = StepPlans(A=system.A, B=system.B, C=system.C, E=system.E, K_x=Kx, K_phi=Kphi,
+                          p=p, Gamma=update_law.gain, law_size=layout.law_size,
+                          second=None if second is None else second.plan,
+                          predict=nan_policy == "skip")
         for name, val in (("system", system), ("K_x", Kx), ("K_phi", Kphi),
                           ("update_law", update_law), ("second", second),
-                          ("nan_policy", nan_policy), ("layout", layout),
-                          ("_plans", OrderedDict())):
+                          ("nan_policy", nan_policy), ("hold", hold), ("progress", progress),
+                          ("compiled", compiled), ("layout", layout), ("_plans", plans)):
             object.__setattr__(self, name, val)
 
     @classmethod
     def from_design(cls, system: PerturbedLinearSystem, design: Any, update_law: UpdateLaw,
                     *, second: SecondObserver | None = None, nan_policy: str = "raise",
-                    allow_nonminimum_phase: bool = False) -> ModifiedHighGainObserver:
+                    hold: str = "zoh", allow_nonminimum_phase: bool = False
+                    ) -> ModifiedHighGainObserver:
         """Build from a gain design on the extended system (reads ``design.K_x``,
         ``design.K_phi``).
 
         Parameters
         ----------
-        system, update_law, second, nan_policy, allow_nonminimum_phase
+        system, update_law, second, nan_policy, hold, allow_nonminimum_phase
             As for the constructor.
         design : GainDesign
             Any object with attributes ``K_x`` (n, r) and ``K_phi`` (k, r).
@@ -313,7 +313,7 @@ class ModifiedHighGainObserver:
         array([[2.]])
         """
         return cls(system=system, K_x=design.K_x, K_phi=design.K_phi, update_law=update_law,
-                   second=second, nan_policy=nan_policy,
+                   second=second, nan_policy=nan_policy, hold=hold,
                    allow_nonminimum_phase=allow_nonminimum_phase)
 
     # ------------------------------------------------------------------ layout
@@ -346,38 +346,7 @@ class ModifiedHighGainObserver:
         >>> obs.plan(1e-3) is obs.plan(1e-3 * (1 + 1e-15))
         True
         """
-        if type(dt) is float:             # fast path: this very step length was seen
-            plan = self._plans.get(dt)
-            if plan is not None:
-                return plan
-        key = dt_key(dt)
-        plan = self._plans.get(key)
-        if plan is None:
-            sysm = self.system
-            predict = self.nan_policy == "skip"
-            plan = StepPlan.build(
-                A=sysm.A, B=sysm.B, C=sysm.C, E=sysm.E, K_x=self.K_x, K_phi=self.K_phi, dt=key,
-                p=self.layout.p,
-                second=None if self.second is None else self.second.plan(key, predict=predict),
-                Gamma=self.update_law.gain, law_size=self.layout.law_size, predict=predict)
-            self._plans[key] = plan
-        if type(dt) is float:
-            self._plans[dt] = plan
-        while len(self._plans) > PLAN_CACHE_SIZE:
-            self._plans.popitem(last=False)
-        return plan
-
-    def _continuous_plan(self) -> StepPlan:
-        """The plan without φ-matrices (``dt=None``) that ``rhs`` reads; cached."""
-        plan = self._plans.get(None)
-        if plan is None:
-            sysm = self.system
-            plan = StepPlan.build(
-                A=sysm.A, B=sysm.B, C=sysm.C, E=sysm.E, K_x=self.K_x, K_phi=self.K_phi, dt=None,
-                p=self.layout.p, second=None if self.second is None else self.second.plan(None),
-                Gamma=self.update_law.gain, law_size=self.layout.law_size, predict=False)
-            self._plans[None] = plan
-        return plan
+        return self._plans(dt)
 
     def _split(self, s: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray,
                                              FloatArray | None]:
@@ -524,7 +493,7 @@ class ModifiedHighGainObserver:
                                    "that is defined by its discrete step only; use step/run.")
         x, _, th, x2 = self._split(s)
         pert = self.system.require_perturbation("ModifiedHighGainObserver")
-        plan = self._continuous_plan()
+        plan = self._plans.continuous()
         F, phi, _, vv = observer_forcing(plan, pert, s[:lay.n + lay.k], th, u, y, correct)
         parts = [F]
         if correct:
@@ -539,8 +508,8 @@ class ModifiedHighGainObserver:
             parts.append(F2)
         return np.concatenate(parts)
 
-    def init(self, x_hat0: ArrayLike | None = None, theta_hat0: ArrayLike | None = None,
-             z0: ArrayLike | None = None, *,
+    def init(self, *, x_hat0: ArrayLike | None = None, theta_hat0: ArrayLike | None = None,
+             z0: ArrayLike | None = None,
              x_hat_refined0: ArrayLike | None = None) -> FloatArray:
         """Initial observer state col(x̂₀, z₀, θ̂₀[, x̂₂₀]).
 
@@ -614,7 +583,7 @@ class ModifiedHighGainObserver:
             nxt = advance(self.plan(h), self.system.require_perturbation("step"),
                           self.update_law, s, u_, y_, h, correct)
         if diverged(nxt):
-            raise divergence_error("in this step")
+            raise step_error(Status.DIVERGED, type(self.update_law).__name__)
         return nxt
 
     def estimate(self, state: ArrayLike, u: ArrayLike | None, y: ArrayLike) -> ObserverEstimate:
@@ -639,10 +608,55 @@ class ModifiedHighGainObserver:
                                 theta_hat=th.copy(),
                                 x_hat_refined=None if x2 is None else x2.copy())
 
-    def run(self, t: ArrayLike, u: ArrayLike | None, y: ArrayLike, *, hold: str = "zoh",
-            state0: ArrayLike | None = None,
-            progress: Callable[[int, int], None] | None = None) -> EstimateResult:
-        """Run the observer over sampled records (logged data).
+    def with_run_options(self, *, hold: str | None = None,
+                         progress: Progress | None | bool = False,
+                         compiled: bool | None | str = "keep") -> ModifiedHighGainObserver:
+        """This observer with another hold, progress callback or back end for ``run``.
+
+        The estimator itself (system, gains, law, second observer, NaN policy) and the plans
+        computed so far are shared.
+
+        Parameters
+        ----------
+        hold : {"zoh", "foh"}, optional
+            Default: unchanged.
+        progress : callable or None, optional
+            ``progress(done, total)``; None removes the callback. Default: unchanged.
+        compiled : {False, None, True}, optional
+            Default: unchanged.
+
+        Returns
+        -------
+        ModifiedHighGainObserver
+
+        Raises
+        ------
+        OptionError
+            Unknown ``hold`` or ``compiled``.
+
+        Examples
+        --------
+        >>> from thetahat.models import lugre
+        >>> obs = lugre.observer()
+        >>> foh = obs.with_run_options(hold="foh")
+        >>> foh.hold, obs.hold, foh.update_law is obs.update_law
+        ('foh', 'zoh', True)
+        """
+        new = object.__new__(type(self))
+        for name in ("system", "K_x", "K_phi", "update_law", "second", "nan_policy", "hold",
+                     "progress", "compiled", "layout", "_plans"):
+            object.__setattr__(new, name, getattr(self, name))
+        if hold is not None:
+            object.__setattr__(new, "hold", check_hold(hold))
+        if progress is not False:
+            object.__setattr__(new, "progress", progress)
+        if compiled != "keep":
+            object.__setattr__(new, "compiled", check_compiled(compiled))
+        return new
+
+    def run(self, t: ArrayLike, u: ArrayLike | None, y: ArrayLike, *,
+            state0: ArrayLike | None = None, throw: bool = True) -> EstimateResult:
+        """Run the observer over sampled records (logged data), with its ``hold``.
 
         Parameters
         ----------
@@ -652,15 +666,14 @@ class ModifiedHighGainObserver:
             Input samples (``None`` when m = 0).
         y : array_like, shape (N, r) or (N,) when r = 1
             Output samples; NaN handled per ``nan_policy`` (checked before integrating).
-        hold : {"zoh", "foh"}, default "zoh"
-            Between samples, hold the samples constant (``"zoh"``; identical to a loop of
-            :meth:`step`) or interpolate them linearly (``"foh"``; non-causal, one more
-            evaluation of g per step, smaller error when the signals are smooth).
         state0 : array_like, shape (state_size,), optional
             Initial state at ``t[0]``; default ``init()``.
-        progress : callable, optional
-            ``progress(done, total)``, called every ``PROGRESS_EVERY`` samples and at the end
-            (e.g. :func:`thetahat.progress.reporter`).
+        throw : bool, default True
+            What a failed step does (a state that diverges, a singular implicit step, an
+            invalid θ* under ``on_invalid='raise'``): True raises its error; False returns
+            the result with ``status`` and ``message`` saying why, ``failed_at`` the first
+            row not computed, and the rows from there NaN
+            (:mod:`~thetahat.estimation.observer.record_run`).
 
         Returns
         -------
@@ -675,12 +688,29 @@ class ModifiedHighGainObserver:
         DimensionError
             Wrong shapes, or ``t`` not strictly increasing.
         NonFiniteError
-            NaN or inf in t or u; inf in y; NaN in y under ``nan_policy="raise"``.
-        OptionError
-            Unknown ``hold``.
+            NaN or inf in t or u; inf in y; NaN in y under ``nan_policy="raise"``; with
+            ``throw``, the state diverged (the message names the step and the fix).
+        UpdateLawError
+            With ``throw``: θ* invalid where the weight is positive (``on_invalid='raise'``).
+
+        Examples
+        --------
+        Outputs scaled far beyond the model (× 1e200): the first step leaves every bound, and
+        with ``throw=False`` the run says so instead of raising.
+
+        >>> import numpy as np
+        >>> from thetahat.models import lugre
+        >>> data = lugre.simulate(seed=0, t_end=0.2)
+        >>> res = lugre.observer().run(data.t, data.u, 1e200 * data.y, throw=False)
+        >>> res.status.name, res.failed_at, "t[0]" in res.message
+        ('DIVERGED', 1, True)
+        >>> bool(np.isnan(res.x_hat[1:]).all())            # the rows it could not compute
+        True
         """
-        if hold not in HOLDS:
-            raise OptionError(f"hold must be one of {HOLDS}; got {hold!r}.")
+        if self.compiled is not False:
+            plain = self.with_run_options(compiled=False)
+            fast = runner(plain, t, compiled=self.compiled)
+            return fast.run(t, u, y, state0=state0, throw=throw)
         t_, dts, U, Y, ok = self.check_records(t, u, y)
         s0 = self.init() if state0 is None else self.check_state(state0)
         N = t_.shape[0]
@@ -688,15 +718,15 @@ class ModifiedHighGainObserver:
                          "samples", fix="run the record in pieces (pass the last state as "
                          "state0)")
         pert = self.system.require_perturbation("run")
-        S = _integrate_with_progress(self.plan, pert, self.update_law, s0, t_, dts, U, Y, ok,
-                                     hold == "foh", progress)
-        X, PHI, TH, X2 = readout(pert, self.system.C, S, U[0], Y[0], ok[0], self.layout)
-        skipped = ~ok[0]
-        skipped.setflags(write=False)
-        return EstimateResult(t=readonly(t_), x_hat=readonly(X), phi_hat=readonly(PHI),
-                              theta_hat=readonly(TH), skipped=skipped,
-                              diagnostics=ObserverDiagnostics(
-                                  x_hat_refined=None if X2 is None else readonly(X2)))
+        S = np.empty((N, s0.size))
+        S[0] = s0
+        fail: Failure | None = integrate_record(self.plan, pert, self.update_law, S, t_, dts,
+                                                U[0], Y[0], ok[0], self.hold == "foh",
+                                                self.progress)
+        if fail is not None and throw:
+            raise fail.error()
+        return observer_result(pert, self.system.C, self.layout, t_, S, U[0], Y[0], ok[0],
+                               fail)
 
     def __repr__(self) -> str:
         lay = self.layout
@@ -704,118 +734,6 @@ class ModifiedHighGainObserver:
                 f"p={lay.p}, "
                 f"update_law={type(self.update_law).__name__}, "
                 f"second={'None' if self.second is None else 'SecondObserver'}, "
-                f"nan_policy={self.nan_policy!r})")
+                f"nan_policy={self.nan_policy!r}, hold={self.hold!r}"
+                + ("" if self.compiled is False else f", compiled={self.compiled!r}") + ")")
 
-
-@dataclass(frozen=True, slots=True, eq=False)
-class HeldObserver:
-    """An observer with its ``run`` bound to a sample hold (and a progress callback).
-
-    The :class:`~thetahat.estimation.protocol.Estimator` protocol's ``run(t, u, y, *,
-    state0)`` has no ``hold``; an :class:`~thetahat.spec.EstimatorSpec` or a model file that
-    chooses ``"foh"`` hands this object to code that takes any estimator (studies, the
-    guarded estimator's stage 1, ``run_estimator``). ``init``, ``step`` and ``estimate`` are
-    the observer's (``step`` always holds the samples: it is causal).
-
-    Parameters
-    ----------
-    observer : ModifiedHighGainObserver
-    hold : {"zoh", "foh"}
-        The hold of :meth:`run` (see :meth:`ModifiedHighGainObserver.run`).
-    progress : callable, optional
-        ``progress(done, total)`` for :meth:`run`.
-    compiled : bool, optional
-        Run on the compiled kernel (:func:`~thetahat.estimation.drive.runner`: by default
-        for long records when numba is installed, with a plain fallback).
-
-    Raises
-    ------
-    OptionError
-        Unknown ``hold``.
-
-    Examples
-    --------
-    >>> from thetahat.models import lugre
-    >>> from thetahat.estimation.protocol import Estimator
-    >>> held = HeldObserver(observer=lugre.observer(), hold="foh")
-    >>> isinstance(held, Estimator), held.system is held.observer.system
-    (True, True)
-    """
-
-    observer: ModifiedHighGainObserver
-    hold: str = "zoh"
-    progress: Callable[[int, int], None] | None = None
-    compiled: bool | None = None
-
-    def __post_init__(self) -> None:
-        if self.hold not in HOLDS:
-            raise OptionError(f"hold must be one of {HOLDS}; got {self.hold!r}.")
-
-    @property
-    def system(self) -> PerturbedLinearSystem:
-        """The observer's plant model."""
-        return self.observer.system
-
-    def init(self, x_hat0: ArrayLike | None = None,
-             theta_hat0: ArrayLike | None = None) -> FloatArray:
-        """:meth:`ModifiedHighGainObserver.init`.
-
-        Parameters
-        ----------
-        x_hat0, theta_hat0 : array_like, optional
-            As there.
-
-        Returns
-        -------
-        ndarray, shape (state_size,)
-        """
-        return self.observer.init(x_hat0=x_hat0, theta_hat0=theta_hat0)
-
-    def step(self, state: ArrayLike, u: ArrayLike | None, y: ArrayLike,
-             dt: float) -> FloatArray:
-        """:meth:`ModifiedHighGainObserver.step` (zero-order hold).
-
-        Parameters
-        ----------
-        state, u, y, dt
-            As there.
-
-        Returns
-        -------
-        ndarray, shape (state_size,)
-        """
-        return self.observer.step(state, u, y, dt)
-
-    def estimate(self, state: ArrayLike, u: ArrayLike | None, y: ArrayLike) -> ObserverEstimate:
-        """:meth:`ModifiedHighGainObserver.estimate`.
-
-        Parameters
-        ----------
-        state, u, y
-            As there.
-
-        Returns
-        -------
-        ObserverEstimate
-        """
-        return self.observer.estimate(state, u, y)
-
-    def run(self, t: ArrayLike, u: ArrayLike | None, y: ArrayLike, *,
-            state0: ArrayLike | None = None) -> EstimateResult:
-        """:meth:`ModifiedHighGainObserver.run` with this hold and progress callback, on the
-        compiled kernel where :func:`~thetahat.estimation.drive.runner` chooses it.
-
-        Parameters
-        ----------
-        t, u, y, state0
-            As there.
-
-        Returns
-        -------
-        EstimateResult
-        """
-        return runner(self.observer, t, compiled=self.compiled).run(
-            t, u, y, hold=self.hold, state0=state0, progress=self.progress)
-
-    def __repr__(self) -> str:
-        return f"HeldObserver(hold={self.hold!r}, observer={self.observer!r})"

@@ -12,25 +12,37 @@ This is the stable public contract the back ends build on: the Python step, the 
 :func:`~thetahat.estimation.observer.batch_run.run_batch`, the compiled kernel and code generators read
 these fields and nothing private. Fields are read-only arrays; the layout of the observer state
 is ``col(x̂, z, θ̂[, x̂₂][, law state])`` with the offsets given by :attr:`StepPlan.offsets`.
+
+What lives here: :class:`StepPlan`, :class:`SecondPlan`, :class:`StateLayout`, the observer's
+cache of plans by step length (:class:`StepPlans`), :func:`stack_plans` for a batch and
+:data:`DT_RTOL`. What it may import: :mod:`.discretize` and the package's helpers only (every
+back end imports it).
 """
 
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping, Sequence
+from collections import OrderedDict
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
-from typing import TypeVar
+from typing import Any, TypeVar
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from ..._validate import positive_scalar, readonly
 from ...errors import DimensionError
-from .discretize import DT_KEY_DIGITS, PhiPlan, phi_plan
+from .discretize import DT_KEY_DIGITS, PLAN_CACHE_SIZE, PhiPlan, phi_plan
 
-__all__ = ["SecondPlan", "StateLayout", "StepPlan", "dt_key", "linear_part", "stack_plans"]
+__all__ = ["DT_RTOL", "SecondPlan", "StateLayout", "StepPlan", "StepPlans", "dt_key",
+           "linear_part", "stack_plans"]
 
 FloatArray = NDArray[np.float64]
+
+#: Relative spread of a record's steps around one step length that a back end compiled for a
+#: fixed step (the generated C, :meth:`CompiledObserver.step
+#: <thetahat.estimation.observer.compiled.CompiledObserver.step>`) accepts as that length.
+DT_RTOL = 1e-9
 
 
 def _frozen(a: ArrayLike) -> FloatArray:
@@ -457,3 +469,79 @@ def stack_plans(plans: Sequence[StepPlan]) -> StepPlan:
                                  "has; stack the plans of observers built alike.")
         fields["second"] = _replace(first.second, _stack(seconds, _SECOND_ROW_FIELDS))
     return _replace(first, fields)
+
+
+class StepPlans:
+    """The plans of one observer, one per step length, built on first use and kept.
+
+    Step lengths equal to :data:`~thetahat.estimation.observer.discretize.DT_KEY_DIGITS`
+    significant digits share a plan (:func:`dt_key`); at most
+    :data:`~thetahat.estimation.observer.discretize.PLAN_CACHE_SIZE` are kept, the oldest
+    dropped first. :meth:`ModifiedHighGainObserver.plan
+    <thetahat.estimation.observer.observer.ModifiedHighGainObserver.plan>` reads them.
+
+    Parameters
+    ----------
+    A, B, C, E : ndarray
+        System matrices of (1).
+    K_x, K_phi : ndarray, shapes (n, r), (k, r)
+        Gains of (3).
+    p : int
+        Number of parameters.
+    Gamma : ndarray, shape (p, p), or None
+        Γ of the update law.
+    law_size : int
+        Length of the update law's state.
+    second : callable, optional
+        ``second(dt, predict=...)`` → the :class:`SecondPlan` of an attached second observer
+        (``dt`` None: its continuous-time plan).
+    predict : bool
+        Also compute the φ-matrices of the prediction over missing samples.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> plans = StepPlans(A=np.zeros((1, 1)), B=np.zeros((1, 1)), C=np.eye(1), E=np.eye(1),
+    ...                   K_x=np.eye(1), K_phi=np.eye(1), p=1, Gamma=None, law_size=0)
+    >>> plans(1e-3) is plans(1e-3 * (1 + 1e-15)), plans.continuous().layout.size
+    (True, 3)
+    """
+
+    def __init__(self, *, A: FloatArray, B: FloatArray, C: FloatArray, E: FloatArray,
+                 K_x: FloatArray, K_phi: FloatArray, p: int, Gamma: FloatArray | None,
+                 law_size: int, second: Callable[..., SecondPlan] | None = None,
+                 predict: bool = False) -> None:
+        self._parts: dict[str, Any] = {"A": A, "B": B, "C": C, "E": E, "K_x": K_x, "K_phi": K_phi, "p": p,
+                       "Gamma": Gamma, "law_size": law_size}
+        self._second = second
+        self._predict = predict
+        self._plans: OrderedDict[float | None, StepPlan] = OrderedDict()
+
+    def _build(self, key: float | None) -> StepPlan:
+        predict = self._predict and key is not None
+        second = None if self._second is None else self._second(key, predict=predict)
+        return StepPlan.build(**self._parts, dt=key, second=second, predict=predict)
+
+    def __call__(self, dt: float) -> StepPlan:
+        """The plan for step length ``dt`` > 0."""
+        plans = self._plans
+        if type(dt) is float:             # fast path: this very step length was seen
+            plan = plans.get(dt)
+            if plan is not None:
+                return plan
+        key = dt_key(dt)
+        plan = plans.get(key)
+        if plan is None:
+            plan = plans[key] = self._build(key)
+        if type(dt) is float:
+            plans[dt] = plan
+        while len(plans) > PLAN_CACHE_SIZE:
+            plans.popitem(last=False)
+        return plan
+
+    def continuous(self) -> StepPlan:
+        """The plan without φ-matrices (``dt=None``) that ``rhs`` reads."""
+        plan = self._plans.get(None)
+        if plan is None:
+            plan = self._plans[None] = self._build(None)
+        return plan

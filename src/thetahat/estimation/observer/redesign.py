@@ -7,6 +7,10 @@ in Sec. VI; with ``g_on_estimates=True`` the output inside g is replaced by the 
 ``v̄ = col(u, C x̂₂)``, which is what Sec. VIII recommends for a noisy y ("implement
 g(v, x̂, θ̂) in the second observer using only the state estimates, and not the noisy
 output y"). Only a Lipschitz-like condition on g (not on d) is needed for this observer.
+
+What lives here: :class:`SecondObserver` (its plan per step length, its step and its
+right-hand side). What it may import: the plan and the step of this room, the model and the
+package's helpers; never the observer (3), which attaches it.
 """
 
 from __future__ import annotations

@@ -265,7 +265,7 @@ class GuardedEstimator:
         if not isinstance(self.stage1, Estimator):
             raise ArgumentTypeError(
                 f"stage1 must be an estimator with init, step and run (the paper's observer: "
-                f"a ModifiedHighGainObserver, its CompiledObserver or a HeldObserver); got "
+                f"a ModifiedHighGainObserver or its CompiledObserver); got "
                 f"{type(self.stage1).__name__}. For a model file use "
                 "thetahat.modelfile.build_estimator(spec, method='guarded').")
         if self.system is None and not isinstance(getattr(self.stage1, "system", None),
