@@ -39,7 +39,7 @@ class ExponentialStage1:
     def _theta(self, t, th0):
         return self.theta + (th0 - self.theta) * np.exp(-t / self.tau)
 
-    def run(self, t, u, y, state0):
+    def run(self, t, u, y, state0, throw=True):
         th = self._theta(np.asarray(t) - t[0], state0[1])[:, None]
         x = np.column_stack([np.asarray(y).reshape(-1), np.zeros(len(t))])
         return EstimateResult(t=np.asarray(t), x_hat=x, theta_hat=th,

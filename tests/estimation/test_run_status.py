@@ -17,7 +17,6 @@ absurd input:
 
 from __future__ import annotations
 
-import inspect
 from pathlib import Path
 
 import numpy as np
@@ -163,13 +162,6 @@ def test_the_guarded_estimator_returns_stage1s_failure(name):
                   <= res.diagnostics.band[:k] + 1e-12)          # the guard held there
 
 
-def _observer_reports_status() -> bool:
-    from thetahat.estimation.observer.observer import ModifiedHighGainObserver
-    return "throw" in inspect.signature(ModifiedHighGainObserver.run).parameters
-
-
-@pytest.mark.skipif(not _observer_reports_status(),
-                    reason="the paper's observer reports its status from its run's throw")
 @pytest.mark.parametrize("name", ["prop3", "actuator", "heater"])
 def test_the_guarded_estimator_returns_the_observers_failure(name):
     spec, t, U, Y = _record(name)

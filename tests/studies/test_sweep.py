@@ -38,7 +38,7 @@ class _StubObserver:
     def init(self, theta_hat0):
         return np.asarray(theta_hat0, dtype=float)
 
-    def run(self, t, u, y, state0):
+    def run(self, t, u, y, state0, throw=True):
         seed = int(y[0, 0])
         if seed in self.raises:
             raise NonFiniteError("the observer state became non-finite")

@@ -31,7 +31,6 @@ other estimators' (``ekf``, ``mle``, ``trust``, ``crlb``); stage 1 is handed in,
 from __future__ import annotations
 
 import concurrent.futures
-import inspect
 import math
 import warnings
 from dataclasses import dataclass, field, replace
@@ -363,8 +362,7 @@ class GuardedEstimator:
             What a failure of stage 1 does (:mod:`~thetahat.estimation.status`; stage 2 is
             reset from stage 1 when it is not finite, and a failed fit is ignored): True
             (default) raises stage 1's error; False returns the result with stage 1's
-            ``status`` and ``message`` and NaN rows from ``failed_at`` on (from a stage 1
-            whose ``run`` takes ``throw``; one that does not raises its errors; the guarded
+            ``status`` and ``message`` and NaN rows from ``failed_at`` on (the guarded
             output non-finite is :attr:`~thetahat.estimation.status.Status.DIVERGED`).
 
         Returns
@@ -397,12 +395,8 @@ class GuardedEstimator:
     def _stage1_run(self, t: FloatArray, U: FloatArray, Y: FloatArray, state0: Any,
                     throw: bool) -> EstimateResult:
         """Stage 1 over the record: with ``throw`` its error raised as stage 1 raises it;
-        without, its failure returned in its result. A stage 1 whose ``run`` does not take
-        ``throw`` (the protocol's keyword) is run with its default, so its errors are
-        raised whatever ``throw`` says."""
-        if throw or "throw" not in inspect.signature(self.stage1.run).parameters:
-            return self.stage1.run(t, U, Y, state0=state0)
-        return self.stage1.run(t, U, Y, state0=state0, throw=False)
+        without, its failure returned in its result (the protocol's ``throw``)."""
+        return self.stage1.run(t, U, Y, state0=state0, throw=throw)
 
     # ------------------------------------------------------------------ streaming
     def step(self, state: GuardedState, u: ArrayLike | None, y: ArrayLike, dt: float
