@@ -23,9 +23,9 @@ EXAMPLES = Path(__file__).resolve().parents[1] / "examples"
 #: Three shipped models besides LuGre, of different sizes (n, m, p) and laws.
 MODELS = ("prop1.toml", "two_inertia.toml", "heater.toml")
 
-#: The estimator type each method builds for a model file (the paper's observer is wrapped
-#: with its hold).
-TYPES = {"paper": "HeldObserver", "guarded": "GuardedEstimator", "mle": "MapEstimator",
+#: The estimator type each method builds for a model file (the paper's observer carries its
+#: hold itself).
+TYPES = {"paper": "ModifiedHighGainObserver", "guarded": "GuardedEstimator", "mle": "MapEstimator",
          "ekf": "JointEKF"}
 
 

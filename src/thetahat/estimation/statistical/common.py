@@ -361,10 +361,13 @@ def stopped_result(*, t: FloatArray, x_hat: FloatArray, theta_hat: FloatArray,
                    stop: RunStop | None, blank: Sequence[FloatArray] = ()) -> EstimateResult:
     """The result of a run: OK, or, when it stopped, its status, message and ``failed_at``.
 
-    When the run stopped, the rows of ``x_hat``, ``theta_hat``, ``phi_hat`` and of every array
-    in ``blank`` from ``stop.at`` on are set to NaN here (in place): nothing computed at or
-    after the sample the run could not process is read as an estimate; the rows before are
-    the run's.
+    An estimate that is not finite before the run's own stop (x̂ or θ̂ overflowing, or
+    φ̂ = g(v, x̂, θ̂) overflowing at finite x̂ and θ̂ — data far beyond the model's scale) stops
+    the run there too, as :attr:`~thetahat.estimation.status.Status.DIVERGED`: NaN or inf
+    never leaves a run unannounced. When the run stopped, the rows of ``x_hat``,
+    ``theta_hat``, ``phi_hat`` and of every array in ``blank`` from ``stop.at`` on are set to
+    NaN here (in place): nothing computed at or after the sample the run could not process is
+    read as an estimate; the rows before are the run's.
 
     Parameters
     ----------
@@ -390,6 +393,16 @@ def stopped_result(*, t: FloatArray, x_hat: FloatArray, theta_hat: FloatArray,
     >>> res.status.name, res.failed_at, res.theta_hat[:, 0].tolist()
     ('DIVERGED', 2, [1.0, 1.0, nan, nan])
     """
+    rows = t.shape[0] if stop is None else stop.at
+    with np.errstate(invalid="ignore"):
+        bad = ~(np.isfinite(x_hat[:rows]).all(axis=1) & np.isfinite(theta_hat[:rows]).all(axis=1)
+                & np.isfinite(phi_hat[:rows]).all(axis=1))
+    if bad.any():
+        k = int(np.argmax(bad))
+        stop = RunStop(Status.DIVERGED, f"the estimates are not finite from t[{k}] = "
+                       f"{float(t[k]):.6g} on (x̂, θ̂ or φ̂ = g(v, x̂, θ̂) overflows there): the "
+                       "data lie beyond what the model's arithmetic takes (rescale the units of "
+                       "u and y) or the run diverged.", k)
     if stop is None:
         return EstimateResult(t=t, x_hat=x_hat, theta_hat=theta_hat, phi_hat=phi_hat,
                               skipped=skipped, diagnostics=diagnostics)

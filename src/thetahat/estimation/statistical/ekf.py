@@ -326,13 +326,12 @@ class JointEKF:
                      self.h_rho, Q_x, X, TH, SD, NIS)
         stop = (None if bad < 0
                 else RunStop(Status.DIVERGED, divergence_message(t_, bad, NIS, sys_.r), bad))
-        if stop is not None and throw:
-            raise stop.error()
-        return stopped_result(t=t_, x_hat=X, theta_hat=TH,
-                              phi_hat=model_phi_hat(sys_, U, Y, X, TH, stop),
-                              skipped=missing_samples(Y),
-                              diagnostics=EKFDiagnostics(theta_sd=SD, nis=NIS, noise_std=sigma),
-                              stop=stop, blank=(SD, NIS))
+        res = stopped_result(t=t_, x_hat=X, theta_hat=TH,
+                             phi_hat=model_phi_hat(sys_, U, Y, X, TH, stop),
+                             skipped=missing_samples(Y),
+                             diagnostics=EKFDiagnostics(theta_sd=SD, nis=NIS, noise_std=sigma),
+                             stop=stop, blank=(SD, NIS))
+        return res.raise_for_status() if throw else res
 
     def __repr__(self) -> str:
         return (f"JointEKF(n={self.system.n}, p={self.system.p}, "

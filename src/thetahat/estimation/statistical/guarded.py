@@ -384,19 +384,11 @@ class GuardedEstimator:
         if st0.stream is not None:
             raise OptionError("GuardedEstimator.run starts an experiment from init(); this "
                               "state0 has been stepped: continue its stream with step.")
-        res1 = self._stage1_run(t_, U, Y, st0.stage1, throw)
+        res1 = self.stage1.run(t_, U, Y, state0=st0.stage1, throw=False)
         run = _OfflineRun(self, t_, U, Y, res1, st0)
         run.filter(t_.shape[0] if res1.failed_at is None else res1.failed_at)
-        stop = run.stop(res1)
-        if stop is not None and throw:
-            raise stop.error()
-        return run.result(stop)
-
-    def _stage1_run(self, t: FloatArray, U: FloatArray, Y: FloatArray, state0: Any,
-                    throw: bool) -> EstimateResult:
-        """Stage 1 over the record: with ``throw`` its error raised as stage 1 raises it;
-        without, its failure returned in its result (the protocol's ``throw``)."""
-        return self.stage1.run(t, U, Y, state0=state0, throw=throw)
+        res = run.result(run.stop(res1))
+        return res.raise_for_status() if throw else res
 
     # ------------------------------------------------------------------ streaming
     def step(self, state: GuardedState, u: ArrayLike | None, y: ArrayLike, dt: float

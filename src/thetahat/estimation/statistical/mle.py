@@ -384,17 +384,16 @@ class MapEstimator:
         X = self._first_predictions(t_, U, Y, st0, ends[0] + 1 if ends
                                     else N if stop is None else max(stop.at, 1))
         stop = self._between_fits(t_, U, Y, fits, ends, X, TH, SD, stop)
-        if stop is not None and throw:
-            raise stop.error()
         if stop is not None:                    # the fits the run reached
             reached = bisect.bisect_left(ends, stop.at)
             fits, ends = fits[:reached], ends[:reached]
         diag = MapDiagnostics(theta_sd=SD, fits=tuple(fits),
                               fit_samples=np.array(ends, dtype=np.int64))
-        return stopped_result(t=t_, x_hat=X, theta_hat=TH,
-                              phi_hat=model_phi_hat(sys_, U_raw, Y, X, TH, stop),
-                              skipped=missing_samples(Y), diagnostics=diag, stop=stop,
-                              blank=(SD,))
+        res = stopped_result(t=t_, x_hat=X, theta_hat=TH,
+                             phi_hat=model_phi_hat(sys_, U_raw, Y, X, TH, stop),
+                             skipped=missing_samples(Y), diagnostics=diag, stop=stop,
+                             blank=(SD,))
+        return res.raise_for_status() if throw else res
 
     def _fits(self, t: FloatArray, U: FloatArray, Y: FloatArray, st0: MapState, throw: bool
               ) -> tuple[list[FitResult], list[int], RunStop | None]:
