@@ -28,9 +28,10 @@ import argparse
 import json
 import os
 import sys
+import warnings
 from collections.abc import Sequence
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 # The command's own process: one BLAS thread unless the user asks for more (before NumPy loads
 # OpenBLAS). thetahat's matrices are small (n ≲ 10, p ≲ 10); BLAS threads spinning on busy
@@ -40,6 +41,11 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 from ._version import __version__  # noqa: E402
 from .errors import (NotLeftInvertibleError, NotMinimumPhaseError, OptionError, ThetahatError,
                      UnstableDesignError)
+
+if TYPE_CHECKING:
+    from .estimation.protocol import EstimateResult
+    from .io.record import DataRecord
+    from .progress import Stages
 
 EXIT_OK = 0
 EXIT_CHECK = 1
@@ -197,7 +203,7 @@ def _estimate(args: argparse.Namespace) -> int:
     plan = ESTIMATE_STAGES + (("plot",) if args.plot else ())
     with Stages(plan, mode=_progress_mode(args)) as stages:     # first line before the imports
         stages.stage("load model")
-        result, spec, data, caught = _estimate_one(args, stages)
+        result, data, caught = _estimate_one(args, stages)
     print(f"wrote {args.output} ({data.t.size} rows)")
     from .studies.metrics import estimate_summary
     print(estimate_summary(result, warnings=caught))
@@ -206,10 +212,9 @@ def _estimate(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
-def _estimate_one(args: argparse.Namespace, stages: Any) -> tuple[Any, Any, Any, list[Any]]:
+def _estimate_one(args: argparse.Namespace, stages: Stages
+                  ) -> tuple[EstimateResult, DataRecord, list[warnings.WarningMessage]]:
     """The stages of one record: load, read, estimate (with the trust report), write, plot."""
-    import warnings
-
     from .io.datafile import read_data, write_estimates
     from .modelfile import load_model, run_estimator
     from .safe_io import atomic_path
@@ -235,7 +240,7 @@ def _estimate_one(args: argparse.Namespace, stages: Any) -> tuple[Any, Any, Any,
         stages.stage("plot")
         with atomic_path(args.plot) as tmp:
             plot_result(result, spec, tmp, y=data.y)
-    return result, spec, data, caught
+    return result, data, caught
 
 
 def _estimate_fleet(args: argparse.Namespace) -> int:
