@@ -212,9 +212,9 @@ def report(model: str, sizes: tuple[int, ...], parse: dict[int, float],
         for n in sizes:
             row = rows.get(n, {"skipped": "not run"})
             if "s" not in row:
-                print(f"{method:<8} {n:>9,}  skipped: {row['skipped'].removeprefix('> ')}"
-                      if row["skipped"].startswith(">") else
-                      f"{method:<8} {n:>9,}  {row['skipped']}")
+                why = row["skipped"]
+                print(f"{method:<8} {n:>9,}  " + (f"skipped: {why}" if why.startswith(">")
+                                                  else why))
                 continue
             s = row["s"]
             vs_ekf = f"{s / ekf[n]:>7.1f}" if n in ekf else f"{'–':>7}"
