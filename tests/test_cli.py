@@ -169,3 +169,46 @@ def test_estimate_method_guarded_writes_the_guarded_theta(tmp_path, lugre_csv, c
     assert abs(theta[-1] - 0.28) < 0.01 * 0.28          # the paper's stage 1 alone: ~0.45
     assert main(["estimate", str(LUGRE), str(csv_path), "--method", "ukf"]) == 2
     assert "invalid choice: 'ukf'" in capsys.readouterr().err
+
+
+# --- progress, --quiet, and what an estimate imports -----------------------------------------
+
+@pytest.mark.parametrize("flags,lines", [([], 1), (["--no-progress"], 1), (["--quiet"], 0),
+                                         (["-q"], 0)])
+def test_estimate_off_a_terminal_writes_the_final_line_or_nothing(tmp_path, lugre_csv, capsys,
+                                                                  flags, lines):
+    csv_path, data = lugre_csv
+    out = tmp_path / "est.csv"
+    assert main(["estimate", str(LUGRE), str(csv_path), "-o", str(out), *flags]) == 0
+    captured = capsys.readouterr()
+    err = [line for line in captured.err.splitlines() if line]
+    assert len(err) == lines and "\r" not in captured.err
+    if lines:
+        assert err[0].startswith("thetahat: done in ")
+        for name in ("load model", "read", "estimate", "trust report", "write"):
+            assert f" {name} " in err[0]
+    assert f"wrote {out} ({data.t.size} rows)" in captured.out
+
+
+def test_the_parser_loads_no_numerical_library_and_an_estimate_no_signal_processing(
+        tmp_path, lugre_csv):
+    """The command's first line is drawn once the parser is built, so building it loads
+    neither SymPy nor SciPy; a whole estimate never loads scipy.signal or scipy.stats (1.4 s
+    of imports on a loaded machine, for coloured noise the estimate never draws)."""
+    csv_path, _ = lugre_csv
+    code = f"""if True:
+        import json, sys
+        import thetahat.cli as cli
+        cli._parser()
+        before = sorted(m for m in ("sympy", "scipy") if m in sys.modules)
+        code = cli.main(["estimate", {str(LUGRE)!r}, {str(csv_path)!r}, "-o",
+                         {str(tmp_path / "est.csv")!r}, "--quiet"])
+        after = sorted({{m.split(".")[1] for m in sys.modules
+                        if m.startswith(("scipy.signal", "scipy.stats"))}})
+        print(json.dumps([code, before, after, "sympy" in sys.modules]))
+    """
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                          timeout=300, check=True)
+    code_, before, after, sympy_loaded = json.loads(proc.stdout.strip().splitlines()[-1])
+    assert code_ == 0 and sympy_loaded              # the estimate ran (and parsed its model)
+    assert before == [] and after == []

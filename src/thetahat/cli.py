@@ -10,7 +10,7 @@ Subcommands::
                   [--t-end T] [--out out] [--jobs N] [--scheduler tcp://HOST:PORT]
     thetahat analyze MODEL
     thetahat estimate MODEL DATA.csv [-o estimates.csv] [--hold zoh|foh] [--nan-policy raise|skip]
-                      [--no-progress] [--method M] [--plot fig.png]
+                      [--no-progress | --quiet] [--method M] [--plot fig.png]
     thetahat estimate MODEL logs/ [-o results.csv|.parquet] [--scheduler tcp://HOST:PORT]
                       [--method M] [--nan-policy raise|skip]
     thetahat codegen MODEL --dt 1e-3 [--eps 1] [--real double|float] [--name NAME]
@@ -28,9 +28,10 @@ import argparse
 import json
 import os
 import sys
+import warnings
 from collections.abc import Sequence
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 # The command's own process: one BLAS thread unless the user asks for more (before NumPy loads
 # OpenBLAS). thetahat's matrices are small (n ≲ 10, p ≲ 10); BLAS threads spinning on busy
@@ -40,6 +41,11 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 from ._version import __version__  # noqa: E402
 from .errors import (NotLeftInvertibleError, NotMinimumPhaseError, OptionError, ThetahatError,
                      UnstableDesignError)
+
+if TYPE_CHECKING:
+    from .estimation.protocol import EstimateResult
+    from .io.record import DataRecord
+    from .progress import Stages
 
 EXIT_OK = 0
 EXIT_CHECK = 1
@@ -159,6 +165,8 @@ def _analyze(args: argparse.Namespace) -> int:
 
 
 def _is_fleet(data: str) -> bool:
+    if Path(data).is_file():        # one record: no need to import the fleet's machinery
+        return False
     from .fleet import is_glob
 
     return Path(data).is_dir() or is_glob(data)
@@ -178,37 +186,61 @@ def _check_estimate_outputs(args: argparse.Namespace) -> None:
         _check_plot(args.plot, inputs)
 
 
+#: The stages of ``thetahat estimate`` on one record, as its progress names them.
+ESTIMATE_STAGES = ("load model", "read", "estimate", "trust report", "write")
+
+
+def _progress_mode(args: argparse.Namespace) -> str:
+    """--quiet: nothing; --no-progress: the final line only; else live on a terminal."""
+    return "quiet" if args.quiet else "final" if args.no_progress else "auto"
+
+
 def _estimate(args: argparse.Namespace) -> int:
     if _is_fleet(args.data):
         return _estimate_fleet(args)
-    import warnings
+    from .progress import Stages
 
+    plan = ESTIMATE_STAGES + (("plot",) if args.plot else ())
+    with Stages(plan, mode=_progress_mode(args)) as stages:     # first line before the imports
+        stages.stage("load model")
+        result, data, caught = _estimate_one(args, stages)
+    print(f"wrote {args.output} ({data.t.size} rows)")
+    from .studies.metrics import estimate_summary
+    print(estimate_summary(result, warnings=caught))
+    if args.plot:
+        print(f"wrote {args.plot}")
+    return EXIT_OK
+
+
+def _estimate_one(args: argparse.Namespace, stages: Stages
+                  ) -> tuple[EstimateResult, DataRecord, list[warnings.WarningMessage]]:
+    """The stages of one record: load, read, estimate (with the trust report), write, plot."""
     from .io.datafile import read_data, write_estimates
     from .modelfile import load_model, run_estimator
-    from .progress import reporter
     from .safe_io import atomic_path
-    from .studies.metrics import estimate_summary
 
     args.output = args.output or "estimates.csv"
     _check_estimate_outputs(args)
     spec = load_model(args.model)
+    stages.stage("read")
     data = read_data(args.data, spec.layout, nan_policy=args.nan_policy,
                      delimiter=_delimiter(args.delimiter))
-    progress = None if args.no_progress else reporter("estimate")
+    stages.note(f"{data.t.size:,} rows")
+    stages.stage("estimate", total=data.t.size)
     with warnings.catch_warnings(record=True) as caught:       # shown in the summary
         warnings.simplefilter("always")
-        result = run_estimator(spec, data.t, data.u, data.y, hold=args.hold,
-                               nan_policy=args.nan_policy, progress=progress,
+        result = run_estimator(spec, data.t, data.u, data.y, hold=args.hold,   # names the
+                               nan_policy=args.nan_policy, progress=stages,    # trust report
                                method=args.method)
+    stages.stage("write")
+    stages.note(f"{data.t.size:,} rows to {args.output}")
     write_estimates(args.output, result, spec.layout)                         # atomic
-    print(f"wrote {args.output} ({data.t.size} rows)")
-    print(estimate_summary(result, warnings=caught))
     if args.plot:
         from .plotting import plot_result
+        stages.stage("plot")
         with atomic_path(args.plot) as tmp:
             plot_result(result, spec, tmp, y=data.y)
-        print(f"wrote {args.plot}")
-    return EXIT_OK
+    return result, data, caught
 
 
 def _estimate_fleet(args: argparse.Namespace) -> int:
@@ -221,7 +253,8 @@ def _estimate_fleet(args: argparse.Namespace) -> int:
     check_output(output, args.model, fleet_files(args.data), args.data)   # before any work
     result = estimate_many(args.model, args.data, scheduler=args.scheduler,
                            chunk_size=args.chunk_size, hold=args.hold, method=args.method,
-                           nan_policy=args.nan_policy, progress=not args.no_progress,
+                           nan_policy=args.nan_policy,
+                           progress=not (args.no_progress or args.quiet),
                            delimiter=_delimiter(args.delimiter))
     result.write(output)
     print(f"wrote {output} ({len(result.rows)} files: {result.n_ok} ok, "
@@ -368,7 +401,11 @@ def _add_estimate(sub: _Subparsers) -> None:
                           help="the CSV column separator (default: detected from the header; "
                                "a European Excel export uses ';' and a decimal comma)")
     estimate.add_argument("--no-progress", action="store_true",
-                          help="do not report progress on stderr")
+                          help="no progress lines on stderr, only the final line of times "
+                               "(as when stderr is not a terminal)")
+    estimate.add_argument("-q", "--quiet", action="store_true",
+                          help="nothing on stderr but warnings and errors: no progress, no "
+                               "final line")
     estimate.add_argument("--plot", metavar="FIG.png", default=None,
                           help="also write a figure of the estimates (one record; needs "
                                "matplotlib; " + ", ".join(PLOT_SUFFIXES) + ")")

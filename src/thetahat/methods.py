@@ -17,11 +17,13 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from .errors import OptionError, ThetahatError
-from .estimation.protocol import Estimator
-from .model.system import PerturbedLinearSystem
+
+if TYPE_CHECKING:       # annotations only: the command line's parser reads the names of the
+    from .estimation.protocol import Estimator     # methods without loading SymPy and SciPy
+    from .model.system import PerturbedLinearSystem
 
 __all__ = ["ESTIMATION_METHODS", "METHODS", "Method", "MethodInputs", "get_method",
            "method_help"]

@@ -27,8 +27,10 @@ from ..estimation.observer.observer import ModifiedHighGainObserver
 from ..estimation.protocol import EstimateResult, Estimator
 from ..methods import MethodInputs, get_method
 from ..model.system import PerturbedLinearSystem
+from ..progress import Stages
 from ..spec import SECOND_DESIGN_NOTE, EstimatorSpec, Hold, SecondObserverSpec
 from ..studies.information import explain_nonfinite, stuck_parameters
+from ..threads import one_blas_thread
 from .schema import ModelSpec
 
 if TYPE_CHECKING:
@@ -321,8 +323,10 @@ def run_estimator(spec: ModelSpec, t: ArrayLike, u: ArrayLike | None, y: ArrayLi
         for the guarded estimator it applies to stage 1.
     nan_policy : {"raise", "skip"}
         What the observer does with a NaN sample (a dropout).
-    progress : callable, optional
+    progress : callable or Stages, optional
         ``progress(done, total)`` called as samples are processed (the observer's methods).
+        A :class:`thetahat.progress.Stages` counts them in its current stage, and the trust
+        report (``diagnose``) is a stage of its own, ``"trust report"``.
     method : str, optional
         The estimator, one of :data:`thetahat.methods.ESTIMATION_METHODS` (default: the
         file's ``[estimator] method``).
@@ -345,6 +349,12 @@ def run_estimator(spec: ModelSpec, t: ArrayLike, u: ArrayLike | None, y: ArrayLi
     -------
     EstimateResult
         With ``names``: the file's names of the states, parameters, inputs and outputs.
+
+    Notes
+    -----
+    The run holds the BLAS libraries to one thread (:func:`thetahat.threads.one_blas_thread`,
+    with threadpoolctl when installed): thetahat's matrices are small, and BLAS threads
+    spinning on busy cores made the NumPy gradient law's per-sample ``expm`` 3–4× slower.
 
     Raises
     ------
@@ -369,6 +379,15 @@ def run_estimator(spec: ModelSpec, t: ArrayLike, u: ArrayLike | None, y: ArrayLi
     >>> res.theta_hat.shape, res.names.states
     ((100, 1), ('x1', 'x2'))
     """
+    with one_blas_thread():
+        return _run(spec, t, u, y, hold=hold, nan_policy=nan_policy, progress=progress,
+                    method=method, compiled=compiled, diagnose=diagnose)
+
+
+def _run(spec: ModelSpec, t: ArrayLike, u: ArrayLike | None, y: ArrayLike, *, hold: Hold,
+         nan_policy: str, progress: Callable[[int, int], None] | None, method: str | None,
+         compiled: bool | None, diagnose: bool) -> EstimateResult:
+    """:func:`run_estimator`'s work."""
     how = get_method(spec.estimator.method if method is None else method)
     # every method sees the same samples: masked entries as NaN, dates as seconds, booleans,
     # text and dates in u or y refused
@@ -395,13 +414,15 @@ def run_estimator(spec: ModelSpec, t: ArrayLike, u: ArrayLike | None, y: ArrayLi
     result = dataclasses.replace(result, names=spec.signal_names)
     if not diagnose:
         return result
+    if isinstance(progress, Stages):
+        progress.stage("trust report")
     report = _trust(spec, result, u, y, compiled, x0)
     for text in report.warnings:
-        warnings.warn(text, ThetahatWarning, stacklevel=2)
+        warnings.warn(text, ThetahatWarning, stacklevel=3)
     stuck = stuck_parameters(spec.system, u, y, result.x_hat, result.theta_hat,
                              spec.parameter_names)
     if stuck:
-        warnings.warn(stuck, ConvergenceWarning, stacklevel=2)
+        warnings.warn(stuck, ConvergenceWarning, stacklevel=3)
     return dataclasses.replace(result, trust=report)
 
 

@@ -14,7 +14,6 @@ from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
-from scipy import signal as sps
 
 from .._validate import as_vector, positive_scalar
 from ..errors import ArgumentTypeError, DimensionError
@@ -199,8 +198,10 @@ class ColoredNoise(NoiseModel):
         w = rng.standard_normal((n_samples, n_outputs))
         if n_samples == 0:
             return w
+        from scipy.signal import lfilter    # here: scipy.signal costs ~0.5 s to import (1.4 s
+                                            # loaded) and only coloured noise needs it
         e0 = s * w[0]
-        rest = sps.lfilter([np.sqrt(1.0 - a * a)], [1.0, -a], w[1:] * s, axis=0,
+        rest = lfilter([np.sqrt(1.0 - a * a)], [1.0, -a], w[1:] * s, axis=0,
                            zi=(a * e0)[None, :])[0]
         return np.vstack([e0[None, :], rest])
 
