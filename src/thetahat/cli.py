@@ -19,7 +19,9 @@ Subcommands::
 Exit codes (see ``EXIT_CODES``): 0 success; 1 the model fails the theory's checks (Assumption 1
 fails, or the design is unstable on the true system); 2 usage or input error (the message is
 printed as ``thetahat: error: ...``, without a traceback; ``--debug`` shows it); 3 internal
-error (a bug: please report it with the ``--debug`` traceback); 130 interrupted.
+error (a bug: please report it with the ``--debug`` traceback); 130 interrupted; 141 the
+reader of the output went away (``thetahat … | head``): quietly, as the shell reports coreutils
+killed by SIGPIPE (128 + 13).
 """
 
 from __future__ import annotations
@@ -46,13 +48,22 @@ EXIT_CHECK = 1
 EXIT_INPUT = 2
 EXIT_INTERNAL = 3
 EXIT_INTERRUPTED = 130
+#: The reader of the output closed the pipe (``thetahat estimate … | head``). coreutils leave
+#: SIGPIPE at its default and die of it, which the shell reports as 128 + 13 = 141 (and
+#: ``set -o pipefail`` as the pipeline's failure); Python ignores SIGPIPE (a write raises
+#: BrokenPipeError instead), so the command returns 141 itself, without a message or a
+#: traceback. Not 0: output was lost, and a step after the print (a sweep's JSON) did not run.
+#: SIGPIPE is not restored instead: it would also kill the process on a socket or a worker's
+#: pipe that closes (Dask, the guarded estimator's fit worker).
+EXIT_PIPE = 141
 
 #: The exit codes, as printed by ``thetahat --help``.
 EXIT_CODES = ("Exit codes: 0 success (analyze: Assumption 1 holds and the design is stable on "
               "the true system); 1 the model fails these checks (Assumption 1 fails, or the "
               "design is unstable on the true system); 2 usage or input error (bad file, bad "
               "option; the message says what to fix, --debug shows the traceback); 3 internal "
-              "error (please report it with the --debug output); 130 interrupted.")
+              "error (please report it with the --debug output); 130 interrupted; 141 the "
+              "output's reader went away (thetahat ... | head), as for coreutils.")
 
 #: Errors that mean "the model violates the theory", exit code 1.
 _CHECK_ERRORS = (NotMinimumPhaseError, NotLeftInvertibleError, UnstableDesignError)
@@ -334,6 +345,32 @@ def _add_analyze(sub: _Subparsers) -> None:
     analyze.set_defaults(run=_analyze)
 
 
+def _estimate_positionals(args: argparse.Namespace, usage_error: Any) -> None:
+    """MODEL, then DATA: a usage error that says which is which when one is missing or the two
+    are swapped (``usage_error`` is the subparser's ``error``, which exits 2)."""
+    from .io.datafile import DATA_SUFFIXES
+
+    def is_data(path: str) -> bool:
+        return Path(path).suffix.lower() in DATA_SUFFIXES or _is_fleet(path)
+
+    def is_model(path: str) -> bool:
+        return Path(path).suffix.lower() in (".toml", ".json")
+
+    if args.model is None:
+        usage_error("give the model file (.toml or .json), then the record (a CSV, Parquet, "
+                    "MATLAB or Excel file, or a directory of them): MODEL DATA.")
+    elif args.data is None and is_data(args.model):
+        usage_error(f"give the model file first (MODEL DATA): {args.model} looks like the "
+                    f"record, e.g. thetahat estimate model.toml {args.model}")
+    elif args.data is None:
+        usage_error(f"DATA is missing (MODEL DATA): after the model file {args.model}, give the "
+                    f"record to estimate from (a CSV, Parquet, MATLAB or Excel file, or a "
+                    f"directory of them).")
+    elif is_data(args.model) and is_model(args.data):
+        usage_error(f"the model file comes first (MODEL DATA): thetahat estimate {args.data} "
+                    f"{args.model}")
+
+
 def _delimiter(choice: str | None) -> str | None:
     """The --delimiter choice as the reader takes it ("tab" is a tab character)."""
     return "\t" if choice == "tab" else choice
@@ -344,6 +381,7 @@ def _add_estimate(sub: _Subparsers) -> None:
 
     estimate = sub.add_parser(
         "estimate", help="run a model file's estimator on a record or a fleet of records",
+        usage="%(prog)s MODEL DATA [options]",
         description="Run the estimator of MODEL on DATA (CSV with a header: a column t, one "
                     "column per input named as in the model or u1, u2, ... (u when there is "
                     "one), one per output named as in the model or y1, ... (y when there is "
@@ -352,9 +390,14 @@ def _add_estimate(sub: _Subparsers) -> None:
                     "per file with its status, the final theta_hat_*, their standard error, "
                     "settling time and warnings; a bad file is reported and never stops the "
                     "others.")
-    estimate.add_argument("model", help="model file (.toml or .json)")
-    estimate.add_argument("data", help="CSV data file, e.g. with columns t,u,y; or a fleet: a "
-                                       "directory or glob of CSV/Parquet files (quote it)")
+    # Both optional for argparse, checked after parsing (_estimate_positionals): its own
+    # "required: data" does not say that a lone data file means the model file was forgotten.
+    estimate.add_argument("model", metavar="MODEL", nargs="?", default=None,
+                          help="model file (.toml or .json): first")
+    estimate.add_argument("data", metavar="DATA", nargs="?", default=None,
+                          help="the record: a CSV, Parquet, MATLAB (.mat) or Excel file, e.g. "
+                               "with columns t,u,y; or a fleet: a directory or glob of them "
+                               "(quote it)")
     estimate.add_argument("-o", "--output", default=None,
                           help="output, .csv or .parquet (default: estimates.csv; for a fleet "
                                "results.csv: one row per file); never one of the inputs")
@@ -379,7 +422,8 @@ def _add_estimate(sub: _Subparsers) -> None:
     estimate.add_argument("--method", choices=ESTIMATION_METHODS, default=None,
                           help=f"estimator ({method_help()}; default: the model file's "
                                f"[estimator] method, else {ESTIMATION_METHODS[0]})")
-    estimate.set_defaults(run=_estimate)
+    estimate.set_defaults(run=_estimate,
+                          check=lambda args: _estimate_positionals(args, estimate.error))
 
 
 def _add_codegen(sub: _Subparsers) -> None:
@@ -439,10 +483,24 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser = _parser()
     try:
         args = parser.parse_args(argv)
+        check = getattr(args, "check", None)            # what argparse cannot say alone
+        if check is not None:
+            check(args)
     except SystemExit as exc:              # --help, --version, or a usage error (code 2)
         return int(exc.code or 0)
+    except BrokenPipeError:                # --help into a closed pipe
+        if _reader_gone():
+            return EXIT_PIPE
+        raise
     try:
-        return args.run(args)
+        code = args.run(args)
+        sys.stdout.flush()                 # a reader that went away shows here, not at exit
+        return code
+    except BrokenPipeError as exc:         # EPIPE: the output's reader, or another pipe?
+        if _reader_gone():
+            return EXIT_PIPE
+        _report(args, "error", exc)
+        return EXIT_INPUT
     except _CHECK_ERRORS as exc:
         _report(args, "check failed", exc)
         return EXIT_CHECK
@@ -464,3 +522,31 @@ def _report(args: argparse.Namespace, what: str, exc: BaseException) -> None:
 
         traceback.print_exception(exc, file=sys.stderr)
     print(f"thetahat: {what}: {exc}", file=sys.stderr)
+
+
+def _reader_gone() -> bool:
+    """Whether stdout or stderr is a pipe whose reader has closed it; those are then pointed at
+    the null device, so that nothing written later (at exit, by a worker) fails again.
+
+    A pipe with no reader polls as POLLERR (Linux, the BSDs); a file, a terminal or a pipe that
+    is still read does not. Without ``select.poll`` (Windows, which has no SIGPIPE either) the
+    error is reported as any other.
+    """
+    import select
+
+    if not hasattr(select, "poll"):
+        return False
+    gone = False
+    for stream in (sys.stdout, sys.stderr):
+        try:
+            fd = stream.fileno()
+        except (AttributeError, OSError, ValueError):      # replaced (pytest's capture)
+            continue
+        poller = select.poll()
+        poller.register(fd, select.POLLOUT)
+        if any(events & select.POLLERR for _, events in poller.poll(0)):
+            gone = True
+            null = os.open(os.devnull, os.O_WRONLY)
+            os.dup2(null, fd)
+            os.close(null)
+    return gone
