@@ -13,8 +13,9 @@ Subcommands::
                       [--no-progress] [--method M] [--plot fig.png]
     thetahat estimate MODEL logs/ [-o results.csv|.parquet] [--scheduler tcp://HOST:PORT]
                       [--method M] [--nan-policy raise|skip]
-    thetahat codegen MODEL --dt 1e-3 [--eps 1] [--real double|float] [--name NAME]
-                     [--nan-policy raise|skip] [--hold zoh|foh] -o DIR
+    thetahat codegen MODEL --dt 1e-3 [--eps 1] [--gamma G... | --data LOG]
+                     [--real double|float] [--name NAME] [--nan-policy raise|skip]
+                     [--hold zoh|foh] -o DIR
 
 Exit codes (see ``EXIT_CODES``): 0 success; 1 the model fails the theory's checks (Assumption 1
 fails, or the design is unstable on the true system); 2 usage or input error (the message is
@@ -195,7 +196,8 @@ def _estimate(args: argparse.Namespace) -> int:
     import warnings
 
     from .io.datafile import read_data, write_estimates
-    from .modelfile import load_model, run_estimator
+    from .methods import get_method
+    from .modelfile import load_model, resolve_gains, run_estimator
     from .progress import reporter
     from .safe_io import atomic_path
     from .studies.metrics import estimate_summary
@@ -208,11 +210,16 @@ def _estimate(args: argparse.Namespace) -> int:
     progress = None if args.no_progress else reporter("estimate")
     with warnings.catch_warnings(record=True) as caught:       # shown in the summary
         warnings.simplefilter("always")
+        gains = (resolve_gains(spec, data.t, data.u, data.y, hold=args.hold)
+                 if get_method(args.method or spec.estimator.method).runs_observer else None)
         result = run_estimator(spec, data.t, data.u, data.y, hold=args.hold,
                                nan_policy=args.nan_policy, progress=progress,
-                               method=args.method)
+                               method=args.method,
+                               Gamma=None if gains is None else gains.Gamma)
     write_estimates(args.output, result, spec.layout)                         # atomic
     print(f"wrote {args.output} ({data.t.size} rows)")
+    if gains is not None:                  # the Γ of "auto", for codegen --gamma
+        print(gains)
     print(estimate_summary(result, warnings=caught))
     if args.plot:
         from .plotting import plot_result
@@ -243,16 +250,29 @@ def _estimate_fleet(args: argparse.Namespace) -> int:
 
 
 def _codegen(args: argparse.Namespace) -> int:
-    from .modelfile import generate_c_from_model
+    from .modelfile import generate_c_from_model, load_model, resolve_gains
     from .safe_io import check_writable
 
-    check_writable(Path(args.output) / "Makefile", inputs=[args.model])   # before any work
-    code = generate_c_from_model(args.model, dt=args.dt, eps=args.eps, real=args.real,
-                                 name=args.name, nan_policy=args.nan_policy, hold=args.hold)
+    inputs = _inputs(args.model, args.data)
+    check_writable(Path(args.output) / "Makefile", inputs=inputs)         # before any work
+    if args.data is not None and args.gamma is not None:
+        raise OptionError("--gamma gives Γ and --data chooses it on a log: give one of them.")
+    spec = load_model(args.model)
+    record: tuple[Any, ...] = ()
+    if args.data is not None:
+        from .io.datafile import read_data
+        data = read_data(args.data, spec.layout, nan_policy=args.nan_policy,
+                         delimiter=_delimiter(args.delimiter))
+        record = (data.t, data.u, data.y)
+    gains = resolve_gains(spec, *record, eps=args.eps, Gamma=args.gamma, hold=args.hold)
+    code = generate_c_from_model(args.model, dt=args.dt, eps=gains.eps, Gamma=gains.Gamma,
+                                 real=args.real, name=args.name, nan_policy=args.nan_policy,
+                                 hold=args.hold)
     for name in code.files():
-        check_writable(Path(args.output) / name, inputs=[args.model])
+        check_writable(Path(args.output) / name, inputs=inputs)
     paths = code.write(args.output)
     print(code.summary())
+    print(gains)
     print("wrote " + ", ".join(str(p) for p in paths)
           + f"; build the harness with: make -C {args.output}")
     return EXIT_OK
@@ -438,6 +458,15 @@ def _add_codegen(sub: _Subparsers) -> None:
     codegen.add_argument("--dt", type=float, required=True, help="fixed step length in s")
     codegen.add_argument("--eps", type=float, default=None,
                          help="ε of the gain design (default: the model file's)")
+    codegen.add_argument("--gamma", type=float, nargs="+", default=None, metavar="G",
+                         help="Γ of the update law: one number (G·I) or one per parameter "
+                              "(the diagonal); default the model file's. For Gamma = "
+                              "\"auto\" give the Γ `thetahat estimate` printed, or --data")
+    codegen.add_argument("--data", metavar="LOG", default=None,
+                         help="choose Gamma = \"auto\" on this record, as `thetahat "
+                              "estimate` does (a CSV, Parquet, MATLAB or Excel file)")
+    codegen.add_argument("--delimiter", choices=[",", ";", "tab"], default=None,
+                         help="--data's CSV column separator (default: detected)")
     codegen.add_argument("--real", choices=["double", "float"], default="double",
                          help="C type of every number (default: double)")
     codegen.add_argument("--name", default=None,
