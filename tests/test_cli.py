@@ -123,8 +123,8 @@ def test_missing_data_column_exits_2(tmp_path, capsys):
 
 
 def test_usage_errors_exit_2(capsys):
-    assert main(["estimate", str(LUGRE)]) == 2                 # DATA missing (argparse)
-    assert "the following arguments are required: data" in capsys.readouterr().err
+    assert main(["estimate", str(LUGRE)]) == 2                 # DATA missing
+    assert "DATA is missing (MODEL DATA): after the model file" in capsys.readouterr().err
     assert main(["sweep", "--eps", "0.5", "0.3"]) == 2         # Sec. VII: start at 1
     assert "start at 1 and decrease" in _error(capsys)
 
@@ -212,3 +212,58 @@ def test_the_parser_loads_no_numerical_library_and_an_estimate_no_signal_process
     code_, before, after, sympy_loaded = json.loads(proc.stdout.strip().splitlines()[-1])
     assert code_ == 0 and sympy_loaded              # the estimate ran (and parsed its model)
     assert before == [] and after == []
+
+
+EMPS_MAT = EXAMPLES / "data" / "emps" / "DATA_EMPS.mat"
+
+
+@pytest.mark.parametrize("argv, says", [
+    # the model file forgotten: a lone record is named as the record, the model asked first
+    ([str(EMPS_MAT)], "give the model file first (MODEL DATA): " + str(EMPS_MAT)),
+    ([str(EXAMPLES / "data" / "emps")], "give the model file first"),      # a fleet's folder
+    ([str(EMPS_MAT), str(EXAMPLES / "emps.toml")],
+     f"the model file comes first (MODEL DATA): thetahat estimate {EXAMPLES / 'emps.toml'} "
+     f"{EMPS_MAT}"),
+    ([], "give the model file (.toml or .json), then the record"),
+])
+def test_estimate_says_which_argument_is_which(argv, says, capsys):
+    """What argparse alone said for each ("the following arguments are required: data") did
+    not say that the one file given was the record; exit 2 with the usage line."""
+    assert main(["estimate", *argv]) == 2
+    err = capsys.readouterr().err
+    assert says in err and "usage: thetahat estimate MODEL DATA" in err
+    assert "required" not in err
+
+
+def _closed_early(argv: list[str], cwd: Path) -> subprocess.CompletedProcess:
+    """Run ``thetahat ARGV`` with its stdout a pipe whose reader is gone before the first write
+    (what ``| head`` does once it has its lines; closing first makes it certain)."""
+    proc = subprocess.Popen([sys.executable, "-m", "thetahat", *argv], cwd=cwd,
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    proc.stdout.close()
+    _, err = proc.communicate(timeout=600)
+    return subprocess.CompletedProcess(proc.args, proc.returncode, None, err.decode())
+
+
+def test_a_closed_pipe_exits_quietly_with_141(tmp_path, lugre_csv):
+    """``thetahat … | head``: no message, no traceback, and the shell's status for coreutils
+    killed by SIGPIPE (128 + 13; `seq 1 1000000 | head -1` gives 141 in PIPESTATUS), not 2,
+    the bad-input code. The estimates were written before the summary's print met the pipe."""
+    from thetahat.cli import EXIT_PIPE
+    assert EXIT_PIPE == 128 + 13
+    done = _closed_early(["analyze", str(LUGRE)], tmp_path)
+    assert (done.returncode, done.stderr) == (EXIT_PIPE, "")
+    csv_path, data = lugre_csv
+    done = _closed_early(["estimate", str(LUGRE), str(csv_path), "-o", "est.csv",
+                          "--no-progress"], tmp_path)
+    assert (done.returncode, done.stderr) == (EXIT_PIPE, "")
+    assert len((tmp_path / "est.csv").read_text().splitlines()) == data.t.size + 1
+
+
+def test_a_broken_pipe_that_is_not_the_output_is_an_error(monkeypatch, capsys):
+    """EPIPE from another pipe (a worker's) is not the reader going away: exit 2 with it."""
+    def broken(args):
+        raise BrokenPipeError(32, "Broken pipe")
+    monkeypatch.setattr("thetahat.cli._analyze", broken)
+    assert main(["analyze", str(LUGRE)]) == 2
+    assert "Broken pipe" in _error(capsys)

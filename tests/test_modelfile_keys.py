@@ -110,10 +110,93 @@ def test_a_missing_required_key_says_what_is_expected():
         loads_model(EXAMPLE_MODEL.replace('law = "gradient"\n', ""))
 
 
-def test_the_format_page_names_every_key():
-    """The schema's module docstring (the format's page until it is generated from the
-    tables) names every key of every table."""
-    doc = schema.__doc__
-    missing = [f"[{t.section}] {k}" for t in K.TABLES for k in t.names()
-               if f"``{k}``" not in doc and f"[{k}]" not in doc and f"[estimator.{k}]" not in doc]
-    assert missing == []
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def _model_file_hook():
+    """docs/hooks/model_file.py, the hook that writes the reference page at each build."""
+    import importlib.util
+    path = ROOT / "docs" / "hooks" / "model_file.py"
+    spec = importlib.util.spec_from_file_location("docs_model_file_hook", path)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def _section_of(page: str, title: str) -> str:
+    """The part of the page from the heading ``## title`` to the next ``## ``."""
+    start = page.index(f"\n## {title}\n")
+    end = page.find("\n## ", start + 1)
+    return page[start:end if end > 0 else None]
+
+
+def test_the_reference_page_is_every_row_of_the_tables():
+    """docs/reference/model-file.md is generated from K.TABLES: under each section's heading,
+    a row per key with its type, its default as the loader uses it and its example."""
+    hook = _model_file_hook()
+    page = hook.page()
+    for table in K.TABLES:
+        part = _section_of(page, "Top level" if table.section == "top level"
+                           else f"`[{table.section}]`")
+        if table.form:
+            part = part[part.index(f"### {table.form[0].upper()}{table.form[1:]}\n"):]
+        for key in table.keys:
+            row = next((line for line in part.splitlines()
+                        if line.startswith(f"| `{key.key}` |")), None)
+            assert row is not None, (table.section, table.form, key.key)
+            cells = [c.strip() for c in row.strip("|").split(" | ")]
+            assert cells[1] == (key.type if not key.choices else
+                                "one of " + ", ".join(f'`"{c}"`' for c in key.choices))
+            if key.required:
+                assert cells[2] == "**required**"
+            elif key.literal:                                 # the loader's value, as TOML
+                assert tomllib.loads(f"v = {cells[2].strip('`')}")["v"] == key.default
+            assert cells[3] == f"`{key.example}`"
+    for name in K.TYPES:
+        assert f"\n| {name} | " in _section_of(page, "Types")
+
+
+def test_the_reference_page_follows_the_tables(monkeypatch):
+    """Change a row and the page changes: it is generated from the tables, not a copy."""
+    hook = _model_file_hook()
+    rows = tuple(dataclasses.replace(k, default=7.0) if k.key == "t_end" else k
+                 for k in K.SCENARIO.keys)
+    changed = tuple(dataclasses.replace(t, keys=rows) if t is K.SCENARIO else t
+                    for t in K.TABLES)
+    monkeypatch.setattr(K, "TABLES", changed)
+    assert "| `t_end` | positive number | `7.0` |" in hook.page()
+    monkeypatch.undo()
+    assert "| `t_end` | positive number | `20.0` |" in hook.page()
+
+
+def test_the_reference_page_is_in_the_site():
+    """The nav lists the generated page, and the hook that writes it runs in the build."""
+    config = (ROOT / "mkdocs.yml").read_text(encoding="utf-8")
+    assert _model_file_hook().PATH in config
+    assert "docs/hooks/model_file.py" in config
+
+
+def test_the_data_rows_are_the_keys_the_mapping_reads():
+    """[data]'s inline tables are read by thetahat.io.mapping (below the model files): the
+    keys it accepts, and the defaults it uses, are the rows of DATA_SIGNAL and DATA_RATE."""
+    from thetahat.io.mapping import Signal, parse_data_table
+
+    def refused(table):
+        with pytest.raises(ModelFileError) as info:
+            parse_data_table(table, ["u"], ["y"], ModelFileError)
+        return str(info.value)
+
+    signal = {k.key: tomllib.loads(f"v = {k.example}")["v"] for k in K.DATA_SIGNAL.keys}
+    parsed = parse_data_table({"u": signal}, ["u"], ["y"], ModelFileError).u[0]
+    assert parsed == Signal(**signal)
+    assert str(list(K.DATA_SIGNAL.names())) in refused({"u": {**signal, "gain": 2.0}})
+    bare = parse_data_table({"u": {"column": "a"}}, ["u"], ["y"], ModelFileError).u[0]
+    assert (bare.scale, bare.offset) == (K.DATA_SIGNAL["scale"].default,
+                                         K.DATA_SIGNAL["offset"].default)
+    rate = {k.key: tomllib.loads(f"v = {k.example}")["v"] for k in K.DATA_RATE.keys}
+    m = parse_data_table({"t": rate}, ["u"], ["y"], ModelFileError)
+    assert (m.rate, m.start) == (rate["rate"], rate["start"])
+    assert parse_data_table({"t": {"rate": 10.0}}, ["u"], ["y"],
+                            ModelFileError).start == K.DATA_RATE["start"].default
+    assert str(list(K.DATA_RATE.names())) in refused({"t": {**rate, "step": 0.1}})
+    assert str(list(K.DATA.names())) in refused({"x": "a"})

@@ -36,7 +36,9 @@ def test_shell_blocks_found():
     assert len(blocks) >= 7 and all(b.strip() for b in blocks)
     joined = "\n".join(blocks)
     for step in ("thetahat analyze", "thetahat estimate", "--method paper", "--method guarded",
-                 "thetahat codegen", "fleet"):
+                 "thetahat codegen", "fleet", "--data cart_log.csv", "--delimiter ';'",
+                 "cart_log.parquet", "cart_log.mat", "[data]", "scale = 0.001",
+                 "offset = -0.25", "t = { rate = 200.0 }"):
         assert step in joined, f"the tutorial no longer runs {step!r}"
 
 
@@ -49,6 +51,7 @@ def test_tutorial_commands_run(tmp_path):
     if shutil.which("cc") is None and not os.environ.get("CC"):
         pytest.skip("no C compiler for the codegen step")
     pytest.importorskip("numba")  # without it the guarded runs take minutes in Python
+    pytest.importorskip("pyarrow")  # section 8 writes and reads a Parquet log (the data extra)
     env = dict(os.environ)
     # `python` and `thetahat` are this interpreter's (the venv's), first on the path.
     env["PATH"] = os.pathsep.join([str(Path(sys.executable).parent), env.get("PATH", "")])
@@ -62,7 +65,8 @@ def test_tutorial_commands_run(tmp_path):
                                       f"{block}\n--- stdout\n{done.stdout}\n"
                                       f"--- stderr\n{done.stderr}")
     for name in ("cart.toml", "cart_log.csv", "est_paper.csv", "est_guarded.csv",
-                 "fleet_results.csv", "est_c.csv"):
+                 "fleet_results.csv", "est_c.csv", "est_auto_c.csv", "est_eu.csv",
+                 "est_parquet.csv", "est_mat.csv"):
         assert (tmp_path / name).is_file(), name
     rows = (tmp_path / "fleet_results.csv").read_text().splitlines()
     assert len(rows) == 4 and all(",ok," in r for r in rows[1:]), rows

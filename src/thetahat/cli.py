@@ -13,13 +13,16 @@ Subcommands::
                       [--no-progress | --quiet] [--method M] [--plot fig.png]
     thetahat estimate MODEL logs/ [-o results.csv|.parquet] [--scheduler tcp://HOST:PORT]
                       [--method M] [--nan-policy raise|skip]
-    thetahat codegen MODEL --dt 1e-3 [--eps 1] [--real double|float] [--name NAME]
-                     [--nan-policy raise|skip] [--hold zoh|foh] -o DIR
+    thetahat codegen MODEL --dt 1e-3 [--eps 1] [--gamma G... | --data LOG]
+                     [--real double|float] [--name NAME] [--nan-policy raise|skip]
+                     [--hold zoh|foh] -o DIR
 
 Exit codes (see ``EXIT_CODES``): 0 success; 1 the model fails the theory's checks (Assumption 1
 fails, or the design is unstable on the true system); 2 usage or input error (the message is
 printed as ``thetahat: error: ...``, without a traceback; ``--debug`` shows it); 3 internal
-error (a bug: please report it with the ``--debug`` traceback); 130 interrupted.
+error (a bug: please report it with the ``--debug`` traceback); 130 interrupted; 141 the
+reader of the output went away (``thetahat … | head``): quietly, as the shell reports coreutils
+killed by SIGPIPE (128 + 13).
 """
 
 from __future__ import annotations
@@ -45,6 +48,7 @@ from .errors import (NotLeftInvertibleError, NotMinimumPhaseError, OptionError, 
 if TYPE_CHECKING:
     from .estimation.protocol import EstimateResult
     from .io.record import DataRecord
+    from .modelfile.assembly import ObserverGains
     from .progress import Stages
 
 EXIT_OK = 0
@@ -52,13 +56,22 @@ EXIT_CHECK = 1
 EXIT_INPUT = 2
 EXIT_INTERNAL = 3
 EXIT_INTERRUPTED = 130
+#: The reader of the output closed the pipe (``thetahat estimate … | head``). coreutils leave
+#: SIGPIPE at its default and die of it, which the shell reports as 128 + 13 = 141 (and
+#: ``set -o pipefail`` as the pipeline's failure); Python ignores SIGPIPE (a write raises
+#: BrokenPipeError instead), so the command returns 141 itself, without a message or a
+#: traceback. Not 0: output was lost, and a step after the print (a sweep's JSON) did not run.
+#: SIGPIPE is not restored instead: it would also kill the process on a socket or a worker's
+#: pipe that closes (Dask, the guarded estimator's fit worker).
+EXIT_PIPE = 141
 
 #: The exit codes, as printed by ``thetahat --help``.
 EXIT_CODES = ("Exit codes: 0 success (analyze: Assumption 1 holds and the design is stable on "
               "the true system); 1 the model fails these checks (Assumption 1 fails, or the "
               "design is unstable on the true system); 2 usage or input error (bad file, bad "
               "option; the message says what to fix, --debug shows the traceback); 3 internal "
-              "error (please report it with the --debug output); 130 interrupted.")
+              "error (please report it with the --debug output); 130 interrupted; 141 the "
+              "output's reader went away (thetahat ... | head), as for coreutils.")
 
 #: Errors that mean "the model violates the theory", exit code 1.
 _CHECK_ERRORS = (NotMinimumPhaseError, NotLeftInvertibleError, UnstableDesignError)
@@ -203,8 +216,10 @@ def _estimate(args: argparse.Namespace) -> int:
     plan = ESTIMATE_STAGES + (("plot",) if args.plot else ())
     with Stages(plan, mode=_progress_mode(args)) as stages:     # first line before the imports
         stages.stage("load model")
-        result, data, caught = _estimate_one(args, stages)
+        result, data, caught, gains = _estimate_one(args, stages)
     print(f"wrote {args.output} ({data.t.size} rows)")
+    if gains is not None:                  # the Γ of "auto", for codegen --gamma
+        print(gains)
     from .studies.metrics import estimate_summary
     print(estimate_summary(result, warnings=caught))
     if args.plot:
@@ -213,10 +228,12 @@ def _estimate(args: argparse.Namespace) -> int:
 
 
 def _estimate_one(args: argparse.Namespace, stages: Stages
-                  ) -> tuple[EstimateResult, DataRecord, list[warnings.WarningMessage]]:
+                  ) -> tuple[EstimateResult, DataRecord, list[warnings.WarningMessage],
+                             ObserverGains | None]:
     """The stages of one record: load, read, estimate (with the trust report), write, plot."""
     from .io.datafile import read_data, write_estimates
-    from .modelfile import load_model, run_estimator
+    from .methods import get_method
+    from .modelfile import load_model, resolve_gains, run_estimator
     from .safe_io import atomic_path
 
     args.output = args.output or "estimates.csv"
@@ -229,9 +246,12 @@ def _estimate_one(args: argparse.Namespace, stages: Stages
     stages.stage("estimate", total=data.t.size)
     with warnings.catch_warnings(record=True) as caught:       # shown in the summary
         warnings.simplefilter("always")
+        gains = (resolve_gains(spec, data.t, data.u, data.y, hold=args.hold)
+                 if get_method(args.method or spec.estimator.method).runs_observer else None)
         result = run_estimator(spec, data.t, data.u, data.y, hold=args.hold,   # names the
                                nan_policy=args.nan_policy, progress=stages,    # trust report
-                               method=args.method)
+                               method=args.method,
+                               Gamma=None if gains is None else gains.Gamma)
     stages.stage("write")
     stages.note(f"{data.t.size:,} rows to {args.output}")
     write_estimates(args.output, result, spec.layout)                         # atomic
@@ -240,7 +260,7 @@ def _estimate_one(args: argparse.Namespace, stages: Stages
         stages.stage("plot")
         with atomic_path(args.plot) as tmp:
             plot_result(result, spec, tmp, y=data.y)
-    return result, data, caught
+    return result, data, caught, gains
 
 
 def _estimate_fleet(args: argparse.Namespace) -> int:
@@ -265,16 +285,29 @@ def _estimate_fleet(args: argparse.Namespace) -> int:
 
 
 def _codegen(args: argparse.Namespace) -> int:
-    from .modelfile import generate_c_from_model
+    from .modelfile import generate_c_from_model, load_model, resolve_gains
     from .safe_io import check_writable
 
-    check_writable(Path(args.output) / "Makefile", inputs=[args.model])   # before any work
-    code = generate_c_from_model(args.model, dt=args.dt, eps=args.eps, real=args.real,
-                                 name=args.name, nan_policy=args.nan_policy, hold=args.hold)
+    inputs = _inputs(args.model, args.data)
+    check_writable(Path(args.output) / "Makefile", inputs=inputs)         # before any work
+    if args.data is not None and args.gamma is not None:
+        raise OptionError("--gamma gives Γ and --data chooses it on a log: give one of them.")
+    spec = load_model(args.model)
+    record: tuple[Any, ...] = ()
+    if args.data is not None:
+        from .io.datafile import read_data
+        data = read_data(args.data, spec.layout, nan_policy=args.nan_policy,
+                         delimiter=_delimiter(args.delimiter))
+        record = (data.t, data.u, data.y)
+    gains = resolve_gains(spec, *record, eps=args.eps, Gamma=args.gamma, hold=args.hold)
+    code = generate_c_from_model(args.model, dt=args.dt, eps=gains.eps, Gamma=gains.Gamma,
+                                 real=args.real, name=args.name, nan_policy=args.nan_policy,
+                                 hold=args.hold)
     for name in code.files():
-        check_writable(Path(args.output) / name, inputs=[args.model])
+        check_writable(Path(args.output) / name, inputs=inputs)
     paths = code.write(args.output)
     print(code.summary())
+    print(gains)
     print("wrote " + ", ".join(str(p) for p in paths)
           + f"; build the harness with: make -C {args.output}")
     return EXIT_OK
@@ -367,6 +400,32 @@ def _add_analyze(sub: _Subparsers) -> None:
     analyze.set_defaults(run=_analyze)
 
 
+def _estimate_positionals(args: argparse.Namespace, usage_error: Any) -> None:
+    """MODEL, then DATA: a usage error that says which is which when one is missing or the two
+    are swapped (``usage_error`` is the subparser's ``error``, which exits 2)."""
+    from .io.datafile import DATA_SUFFIXES
+
+    def is_data(path: str) -> bool:
+        return Path(path).suffix.lower() in DATA_SUFFIXES or _is_fleet(path)
+
+    def is_model(path: str) -> bool:
+        return Path(path).suffix.lower() in (".toml", ".json")
+
+    if args.model is None:
+        usage_error("give the model file (.toml or .json), then the record (a CSV, Parquet, "
+                    "MATLAB or Excel file, or a directory of them): MODEL DATA.")
+    elif args.data is None and is_data(args.model):
+        usage_error(f"give the model file first (MODEL DATA): {args.model} looks like the "
+                    f"record, e.g. thetahat estimate model.toml {args.model}")
+    elif args.data is None:
+        usage_error(f"DATA is missing (MODEL DATA): after the model file {args.model}, give the "
+                    f"record to estimate from (a CSV, Parquet, MATLAB or Excel file, or a "
+                    f"directory of them).")
+    elif is_data(args.model) and is_model(args.data):
+        usage_error(f"the model file comes first (MODEL DATA): thetahat estimate {args.data} "
+                    f"{args.model}")
+
+
 def _delimiter(choice: str | None) -> str | None:
     """The --delimiter choice as the reader takes it ("tab" is a tab character)."""
     return "\t" if choice == "tab" else choice
@@ -377,6 +436,7 @@ def _add_estimate(sub: _Subparsers) -> None:
 
     estimate = sub.add_parser(
         "estimate", help="run a model file's estimator on a record or a fleet of records",
+        usage="%(prog)s MODEL DATA [options]",
         description="Run the estimator of MODEL on DATA (CSV with a header: a column t, one "
                     "column per input named as in the model or u1, u2, ... (u when there is "
                     "one), one per output named as in the model or y1, ... (y when there is "
@@ -385,9 +445,14 @@ def _add_estimate(sub: _Subparsers) -> None:
                     "per file with its status, the final theta_hat_*, their standard error, "
                     "settling time and warnings; a bad file is reported and never stops the "
                     "others.")
-    estimate.add_argument("model", help="model file (.toml or .json)")
-    estimate.add_argument("data", help="CSV data file, e.g. with columns t,u,y; or a fleet: a "
-                                       "directory or glob of CSV/Parquet files (quote it)")
+    # Both optional for argparse, checked after parsing (_estimate_positionals): its own
+    # "required: data" does not say that a lone data file means the model file was forgotten.
+    estimate.add_argument("model", metavar="MODEL", nargs="?", default=None,
+                          help="model file (.toml or .json): first")
+    estimate.add_argument("data", metavar="DATA", nargs="?", default=None,
+                          help="the record: a CSV, Parquet, MATLAB (.mat) or Excel file, e.g. "
+                               "with columns t,u,y; or a fleet: a directory or glob of them "
+                               "(quote it)")
     estimate.add_argument("-o", "--output", default=None,
                           help="output, .csv or .parquet (default: estimates.csv; for a fleet "
                                "results.csv: one row per file); never one of the inputs")
@@ -416,7 +481,8 @@ def _add_estimate(sub: _Subparsers) -> None:
     estimate.add_argument("--method", choices=ESTIMATION_METHODS, default=None,
                           help=f"estimator ({method_help()}; default: the model file's "
                                f"[estimator] method, else {ESTIMATION_METHODS[0]})")
-    estimate.set_defaults(run=_estimate)
+    estimate.set_defaults(run=_estimate,
+                          check=lambda args: _estimate_positionals(args, estimate.error))
 
 
 def _add_codegen(sub: _Subparsers) -> None:
@@ -431,6 +497,15 @@ def _add_codegen(sub: _Subparsers) -> None:
     codegen.add_argument("--dt", type=float, required=True, help="fixed step length in s")
     codegen.add_argument("--eps", type=float, default=None,
                          help="ε of the gain design (default: the model file's)")
+    codegen.add_argument("--gamma", type=float, nargs="+", default=None, metavar="G",
+                         help="Γ of the update law: one number (G·I) or one per parameter "
+                              "(the diagonal); default the model file's. For Gamma = "
+                              "\"auto\" give the Γ `thetahat estimate` printed, or --data")
+    codegen.add_argument("--data", metavar="LOG", default=None,
+                         help="choose Gamma = \"auto\" on this record, as `thetahat "
+                              "estimate` does (a CSV, Parquet, MATLAB or Excel file)")
+    codegen.add_argument("--delimiter", choices=[",", ";", "tab"], default=None,
+                         help="--data's CSV column separator (default: detected)")
     codegen.add_argument("--real", choices=["double", "float"], default="double",
                          help="C type of every number (default: double)")
     codegen.add_argument("--name", default=None,
@@ -476,10 +551,24 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser = _parser()
     try:
         args = parser.parse_args(argv)
+        check = getattr(args, "check", None)            # what argparse cannot say alone
+        if check is not None:
+            check(args)
     except SystemExit as exc:              # --help, --version, or a usage error (code 2)
         return int(exc.code or 0)
+    except BrokenPipeError:                # --help into a closed pipe
+        if _reader_gone():
+            return EXIT_PIPE
+        raise
     try:
-        return args.run(args)
+        code = args.run(args)
+        sys.stdout.flush()                 # a reader that went away shows here, not at exit
+        return code
+    except BrokenPipeError as exc:         # EPIPE: the output's reader, or another pipe?
+        if _reader_gone():
+            return EXIT_PIPE
+        _report(args, "error", exc)
+        return EXIT_INPUT
     except _CHECK_ERRORS as exc:
         _report(args, "check failed", exc)
         return EXIT_CHECK
@@ -501,3 +590,31 @@ def _report(args: argparse.Namespace, what: str, exc: BaseException) -> None:
 
         traceback.print_exception(exc, file=sys.stderr)
     print(f"thetahat: {what}: {exc}", file=sys.stderr)
+
+
+def _reader_gone() -> bool:
+    """Whether stdout or stderr is a pipe whose reader has closed it; those are then pointed at
+    the null device, so that nothing written later (at exit, by a worker) fails again.
+
+    A pipe with no reader polls as POLLERR (Linux, the BSDs); a file, a terminal or a pipe that
+    is still read does not. Without ``select.poll`` (Windows, which has no SIGPIPE either) the
+    error is reported as any other.
+    """
+    import select
+
+    if not hasattr(select, "poll"):
+        return False
+    gone = False
+    for stream in (sys.stdout, sys.stderr):
+        try:
+            fd = stream.fileno()
+        except (AttributeError, OSError, ValueError):      # replaced (pytest's capture)
+            continue
+        poller = select.poll()
+        poller.register(fd, select.POLLOUT)
+        if any(events & select.POLLERR for _, events in poller.poll(0)):
+            gone = True
+            null = os.open(os.devnull, os.O_WRONLY)
+            os.dup2(null, fd)
+            os.close(null)
+    return gone

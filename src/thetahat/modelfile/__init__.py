@@ -13,8 +13,9 @@ summary), :mod:`thetahat.methods`, :mod:`thetahat.spec` and everything below the
 the shipped models and the command line import it.
 """
 
-from .assembly import (auto_gamma, build_estimator, build_observer, design_gains,
-                       design_matrices, estimator_spec, run_estimator, start_x_hat)
+from .assembly import (ObserverGains, auto_gamma, build_estimator, build_observer,
+                       design_gains, design_matrices, estimator_spec, resolve_gains,
+                       run_estimator, start_x_hat)
 from .codegen import generate_c_from_model
 from .report import ModelAnalysis, analyze_model
 from ..methods import ESTIMATION_METHODS
@@ -24,7 +25,7 @@ from .schema import (EXAMPLE_MODEL, EstimatorOptions, ModelSpec, ScenarioOptions
 from .study import simulate_model, study_simulator
 
 __all__ = ["auto_gamma", "ESTIMATION_METHODS", "EXAMPLE_MODEL", "LAWS", "EstimatorOptions",
-           "ModelAnalysis",
+           "ModelAnalysis", "ObserverGains", "resolve_gains",
            "ModelSpec", "ScenarioOptions", "SecondObserverOptions", "analyze_model",
            "build_estimator", "build_observer", "design_gains", "design_matrices",
            "estimator_spec", "generate_c_from_model", "load_model",

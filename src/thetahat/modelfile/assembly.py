@@ -12,6 +12,7 @@ from __future__ import annotations
 import dataclasses
 import warnings
 from collections.abc import Callable
+from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -23,6 +24,7 @@ from ..errors import (ConvergenceWarning, ModelFileError, NotMinimumPhaseError, 
                       ThetahatWarning, UnstableDesignError)
 from ..estimation.observer.checks import check_theta_star
 from ..estimation.observer.initial_state import x_hat_from_output
+from ..estimation.observer.laws.projection import as_gain
 from ..estimation.observer.observer import ModifiedHighGainObserver
 from ..estimation.protocol import EstimateResult, Estimator
 from ..methods import MethodInputs, get_method
@@ -36,8 +38,9 @@ from .schema import ModelSpec
 if TYPE_CHECKING:
     from ..estimation.statistical.trust import TrustReport
 
-__all__ = ["auto_gamma", "build_estimator", "build_observer", "design_gains",
-           "design_matrices", "estimator_spec", "run_estimator", "start_x_hat"]
+__all__ = ["ObserverGains", "auto_gamma", "build_estimator", "build_observer", "design_gains",
+           "design_matrices", "estimator_spec", "resolve_gains", "run_estimator",
+           "start_x_hat"]
 
 FloatArray = NDArray[np.float64]
 
@@ -172,6 +175,7 @@ def design_gains(spec: ModelSpec, eps: float | None) -> tuple[GainDesign, GainDe
 
 
 def build_observer(spec: ModelSpec, *, eps: float | None = None,
+                   Gamma: ArrayLike | None = None,
                    nan_policy: str = "raise") -> ModifiedHighGainObserver:
     """The estimator of a model file: observer (3) with the file's update law (8).
 
@@ -186,6 +190,9 @@ def build_observer(spec: ModelSpec, *, eps: float | None = None,
         From :func:`load_model`.
     eps : float, optional
         Overrides ``spec.estimator.eps``.
+    Gamma : float or array_like, shape (p, p), optional
+        Γ of the update law in place of the file's; needed when the file says ``"auto"``
+        (:func:`resolve_gains` chooses it on a record, as :func:`run_estimator` does).
     nan_policy : {"raise", "skip"}, optional
         What the observer does with a NaN sample (a dropout).
 
@@ -199,8 +206,8 @@ def build_observer(spec: ModelSpec, *, eps: float | None = None,
     ------
     ModelFileError
         The gains cannot be designed (e.g. a wrong number of chain poles, Assumption 1
-        fails on the design system); the message names the keys. Or Γ is ``"auto"``, which
-        needs a record (:func:`run_estimator`).
+        fails on the design system); the message names the keys. Or Γ is ``"auto"`` and no
+        ``Gamma`` is given: it is chosen on a record (:func:`resolve_gains`).
 
     Examples
     --------
@@ -209,18 +216,161 @@ def build_observer(spec: ModelSpec, *, eps: float | None = None,
     >>> obs.K_x.shape, obs.K_phi.shape
     ((2, 1), (1, 1))
     """
-    _refuse_auto_gamma(spec)
-    return _build(estimator_spec(spec, nan_policy=nan_policy), spec, eps)
+    if Gamma is None:
+        _refuse_auto_gamma(spec)
+    else:
+        Gamma = resolve_gains(spec, Gamma=Gamma).Gamma
+    return _build(estimator_spec(spec, nan_policy=nan_policy), spec, eps, Gamma=Gamma)
 
 
 def _refuse_auto_gamma(spec: ModelSpec) -> None:
     """``Gamma = "auto"`` is chosen on a record: refused where there is none."""
     if spec.estimator.gamma_auto:
-        raise ModelFileError(
-            f"model file {spec.source}: [estimator] Gamma = 'auto' (the default of the gradient "
-            "and least-squares laws) is chosen on a record, and there is none here: give Gamma in [estimator] (a "
-            "number or a p × p matrix), or estimate with run_estimator / thetahat estimate, "
-            "which choose it on the data.")
+        raise _no_record(spec)
+
+
+def _no_record(spec: ModelSpec) -> ModelFileError:
+    return ModelFileError(
+            f"model file {spec.source}: [estimator] Gamma = 'auto' (the default of the "
+            "gradient and least-squares laws) is chosen on a record, and there is none here. "
+            "Choose it on your log as the estimate does (thetahat codegen --data LOG; "
+            "resolve_gains(spec, t, u, y)), give the Γ that thetahat estimate printed for it "
+            "(thetahat codegen --gamma G...; Gamma=), or set Gamma in [estimator] (a number "
+            "or a p × p matrix).")
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class ObserverGains:
+    """The ε and Γ a model file's observer runs with, resolved (:func:`resolve_gains`).
+
+    Attributes
+    ----------
+    eps : float
+        ε of K(ε): the file's ``[estimator] eps`` or the caller's.
+    Gamma : ndarray, shape (p, p)
+        Γ of the update law, symmetric positive definite (read-only).
+    source : {"file", "auto", "given"}
+        Where Γ came from: the file's number or matrix, ``Gamma = "auto"`` chosen on a record
+        (:func:`auto_gamma`), or the caller's (``thetahat codegen --gamma``).
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from thetahat.modelfile import ObserverGains
+    >>> g = ObserverGains(eps=0.025, Gamma=np.diag([1500.0, 2.5]), source="auto")
+    >>> print(g)
+    observer gains: eps = 0.025, Gamma = diag(1500, 2.5) ("auto", chosen on this record; for C: thetahat codegen MODEL --eps 0.025 --gamma 1500 2.5)
+    >>> g.options
+    '--eps 0.025 --gamma 1500 2.5'
+    """
+
+    eps: float
+    Gamma: FloatArray
+    source: str
+
+    def __post_init__(self) -> None:
+        if self.Gamma.flags.writeable:
+            self.Gamma.setflags(write=False)
+
+    @property
+    def options(self) -> str:
+        """The ``thetahat codegen`` options that build this observer (``--gamma`` takes Γ's
+        diagonal; a Γ with off-diagonal terms has no option, ``Gamma`` in the file then)."""
+        G = self.Gamma
+        eps = f"--eps {self.eps:.6g}"
+        if np.count_nonzero(G - np.diag(np.diag(G))):
+            return eps
+        d = np.diag(G)
+        diag = [d[0]] if np.all(d == d[0]) else list(d)
+        return eps + " --gamma " + " ".join(f"{g:.6g}" for g in diag)
+
+    def __str__(self) -> str:
+        G = self.Gamma
+        d = np.diag(G)
+        if np.count_nonzero(G - np.diag(d)):
+            shown = "[" + ", ".join("[" + ", ".join(f"{v:.6g}" for v in row) + "]"
+                                    for row in G) + "]"
+        elif np.all(d == d[0]):
+            shown = f"{d[0]:.6g}"
+        else:
+            shown = "diag(" + ", ".join(f"{v:.6g}" for v in d) + ")"
+        why = {"file": "the model file's", "given": "given",
+               "auto": f'"auto", chosen on this record; for C: thetahat codegen MODEL '
+                       f'{self.options}'}[self.source]
+        return f"observer gains: eps = {self.eps:.6g}, Gamma = {shown} ({why})"
+
+    def __repr__(self) -> str:
+        return (f"ObserverGains(eps={self.eps:.6g}, Gamma={np.round(self.Gamma, 6).tolist()}, "
+                f"source={self.source!r})")
+
+
+def resolve_gains(spec: ModelSpec, t: ArrayLike | None = None, u: ArrayLike | None = None,
+                  y: ArrayLike | None = None, *, eps: float | None = None,
+                  Gamma: ArrayLike | None = None, hold: Hold = "zoh") -> ObserverGains:
+    """The ε and Γ the file's observer runs with: ``Gamma = "auto"`` chosen on a record.
+
+    The one place where ``"auto"`` becomes a number: :func:`run_estimator` (``thetahat
+    estimate``, which prints the result) and ``thetahat codegen --data LOG`` call it, so a C
+    observer generated from the same log runs with the Γ the estimate used.
+
+    Parameters
+    ----------
+    spec : ModelSpec
+        From :func:`~thetahat.modelfile.schema.load_model`.
+    t, u, y : array_like, optional
+        A record, as for :func:`run_estimator`; needed only when the file says
+        ``Gamma = "auto"`` and no ``Gamma`` is given.
+    eps : float, optional
+        Overrides ``[estimator] eps`` (also for the first pass of ``"auto"``).
+    Gamma : float or array_like, optional
+        Γ itself, in place of the file's: a number (γI), p numbers (the diagonal) or a
+        p × p matrix.
+    hold : {"zoh", "foh"}
+        The sample hold of the first pass of ``"auto"``.
+
+    Returns
+    -------
+    ObserverGains
+
+    Raises
+    ------
+    ModelFileError
+        ``Gamma = "auto"`` with neither a record nor ``Gamma`` (the message says how to give
+        one).
+    UpdateLawError
+        ``Gamma`` is not positive definite or has the wrong size.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from thetahat.modelfile import EXAMPLE_MODEL, loads_model, resolve_gains
+    >>> spec = loads_model(EXAMPLE_MODEL)                 # Gamma = 2.0, eps = 0.5
+    >>> print(resolve_gains(spec))
+    observer gains: eps = 0.5, Gamma = 2 (the model file's)
+    >>> auto = loads_model(EXAMPLE_MODEL.replace("Gamma = 2.0", 'Gamma = "auto"'))
+    >>> t = np.arange(0.0, 5.0, 0.01)
+    >>> resolve_gains(auto, t, np.sin(t)[:, None], np.sin(t)[:, None]).source
+    'auto'
+    """
+    p = len(spec.parameter_names)
+    eps = spec.estimator.eps if eps is None else float(eps)
+    if Gamma is not None:
+        G = np.asarray(Gamma, dtype=np.float64)
+        if G.ndim == 1 and G.size == p and p > 1:
+            G = np.diag(G)
+        elif G.ndim == 1 and G.size == 1:
+            G = G.reshape(())
+        return ObserverGains(eps=eps, Gamma=as_gain("Gamma", G, p), source="given")
+    if not spec.estimator.gamma_auto:
+        law_gamma = getattr(spec.estimator.update_law, "Gamma", None)
+        G = np.eye(p) if law_gamma is None else np.array(law_gamma, dtype=np.float64)
+        return ObserverGains(eps=eps, Gamma=G, source="file")
+    if t is None or y is None:
+        raise _no_record(spec)
+    t = as_samples("t", seconds_from_first("t", t))
+    u = None if u is None else as_samples("u", u)
+    G = auto_gamma(spec, t, u, as_samples("y", y), hold=hold, eps=eps)
+    return ObserverGains(eps=eps, Gamma=G, source="auto")
 
 
 def _build(est: EstimatorSpec, spec: ModelSpec, eps: float | None,
@@ -300,7 +450,7 @@ def run_estimator(spec: ModelSpec, t: ArrayLike, u: ArrayLike | None, y: ArrayLi
                   hold: Hold = "zoh", nan_policy: str = "raise",
                   progress: Callable[[int, int], None] | None = None,
                   method: str | None = None, compiled: bool | None = None,
-                  diagnose: bool = True) -> EstimateResult:
+                  diagnose: bool = True, Gamma: ArrayLike | None = None) -> EstimateResult:
     """Run the file's estimator on sampled data, from the file's initial values.
 
     ``method`` (default: the file's ``[estimator] method``, else ``"paper"``) chooses the
@@ -344,6 +494,10 @@ def run_estimator(spec: ModelSpec, t: ArrayLike, u: ArrayLike | None, y: ArrayLi
         law for a parameter, :func:`~thetahat.studies.information.stuck_parameters`). A run
         that fails is diagnosed too: the error names g undefined on the data, or the data's
         scale (:func:`~thetahat.studies.information.explain_nonfinite`).
+    Gamma : float or array_like, optional
+        Γ of the observer's law in place of the file's (as for :func:`resolve_gains`; pass
+        ``resolve_gains(spec, t, u, y).Gamma`` to know the Γ of ``"auto"`` and run with it
+        without choosing it twice, as ``thetahat estimate`` does).
 
     Returns
     -------
@@ -381,12 +535,12 @@ def run_estimator(spec: ModelSpec, t: ArrayLike, u: ArrayLike | None, y: ArrayLi
     """
     with one_blas_thread():
         return _run(spec, t, u, y, hold=hold, nan_policy=nan_policy, progress=progress,
-                    method=method, compiled=compiled, diagnose=diagnose)
+                    method=method, compiled=compiled, diagnose=diagnose, Gamma=Gamma)
 
 
 def _run(spec: ModelSpec, t: ArrayLike, u: ArrayLike | None, y: ArrayLike, *, hold: Hold,
          nan_policy: str, progress: Callable[[int, int], None] | None, method: str | None,
-         compiled: bool | None, diagnose: bool) -> EstimateResult:
+         compiled: bool | None, diagnose: bool, Gamma: ArrayLike | None) -> EstimateResult:
     """:func:`run_estimator`'s work."""
     how = get_method(spec.estimator.method if method is None else method)
     # every method sees the same samples: masked entries as NaN, dates as seconds, booleans,
@@ -399,8 +553,8 @@ def _run(spec: ModelSpec, t: ArrayLike, u: ArrayLike | None, y: ArrayLike, *, ho
         gamma = None
         if how.runs_observer:
             _check_theta_star(spec, t, u, y)
-            if spec.estimator.gamma_auto:
-                gamma = auto_gamma(spec, t, u, y, hold=hold)
+            if Gamma is not None or spec.estimator.gamma_auto:
+                gamma = resolve_gains(spec, t, u, y, Gamma=Gamma, hold=hold).Gamma
         est = build_estimator(spec, method=how.name, hold=hold, nan_policy=nan_policy,
                               compiled=compiled, progress=progress, Gamma=gamma)
         result = est.run(t, u, y, state0=est.init(x_hat0=x0, theta_hat0=th0))
@@ -461,7 +615,7 @@ def start_x_hat(spec: ModelSpec, y: ArrayLike) -> FloatArray:
 
 
 def auto_gamma(spec: ModelSpec, t: ArrayLike, u: ArrayLike | None, y: ArrayLike, *,
-               hold: Hold = "zoh") -> FloatArray:
+               hold: Hold = "zoh", eps: float | None = None) -> FloatArray:
     """``Gamma = "auto"`` on a record: the law's Γ (Γ₀) from the record's information.
 
     x̂ from a first pass of the file's observer with θ̂ held at θ̂₀, then
@@ -475,6 +629,8 @@ def auto_gamma(spec: ModelSpec, t: ArrayLike, u: ArrayLike | None, y: ArrayLike,
     t, u, y : array_like
         The record, as for :func:`run_estimator`.
     hold : {"zoh", "foh"}
+    eps : float, optional
+        ε of the first pass's observer (default the file's).
 
     Returns
     -------
@@ -507,7 +663,7 @@ def auto_gamma(spec: ModelSpec, t: ArrayLike, u: ArrayLike | None, y: ArrayLike,
     th0 = spec.estimator.theta_hat0
     est = estimator_spec(spec, hold=hold)
     held = dataclasses.replace(est, law=ConstantLaw(th0, s.parameter_set))
-    obs = _build(held, spec, None)
+    obs = _build(held, spec, eps)
     from ..estimation.drive import runner
     first = runner(obs, t).run(t, u, y,
                                state0=obs.init(x_hat0=start_x_hat(spec, y), theta_hat0=th0))

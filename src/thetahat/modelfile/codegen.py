@@ -11,6 +11,8 @@ from __future__ import annotations
 import hashlib
 from pathlib import Path
 
+from numpy.typing import ArrayLike
+
 from ..codegen.generate import CCode, generate_c
 from ..errors import UnsupportedError
 from .assembly import build_observer
@@ -20,8 +22,9 @@ __all__ = ["generate_c_from_model"]
 
 
 def generate_c_from_model(path: str | Path, *, dt: float, eps: float | None = None,
-                          real: str = "double", name: str | None = None,
-                          nan_policy: str = "raise", hold: str = "zoh") -> CCode:
+                          Gamma: ArrayLike | None = None, real: str = "double",
+                          name: str | None = None, nan_policy: str = "raise",
+                          hold: str = "zoh") -> CCode:
     """:func:`~thetahat.codegen.generate.generate_c` for the estimator of a model file (``thetahat codegen``).
 
     Parameters
@@ -32,6 +35,11 @@ def generate_c_from_model(path: str | Path, *, dt: float, eps: float | None = No
         The fixed step length (s).
     eps : float, optional
         Overrides ``[estimator] eps``.
+    Gamma : float or array_like, optional
+        Γ of the update law in place of the file's: required when the file says
+        ``Gamma = "auto"``, which is chosen on a record. Give the Γ ``thetahat estimate``
+        printed, or choose it on the log with :func:`~thetahat.modelfile.resolve_gains`
+        (``thetahat codegen --data LOG``), as the estimate does.
     real : {"double", "float"}
     name : str, optional
         File stem and C prefix; default the model file's stem.
@@ -49,7 +57,8 @@ def generate_c_from_model(path: str | Path, *, dt: float, eps: float | None = No
     Raises
     ------
     ModelFileError
-        The file cannot be read or is invalid.
+        The file cannot be read or is invalid, or it says ``Gamma = "auto"`` and no ``Gamma``
+        is given.
     UnsupportedError
         A part of the estimator has no C form, or the file's ``[estimator] method`` is not
         ``"paper"`` (the guarded and MAP estimators have no C form; the file is refused, never
@@ -71,7 +80,7 @@ def generate_c_from_model(path: str | Path, *, dt: float, eps: float | None = No
             "generates the paper's estimator only (method = \"paper\"). Set method = "
             "\"paper\" in a copy of the file to generate the observer alone.")
     digest = hashlib.sha256(Path(path).read_bytes()).hexdigest()
-    observer = build_observer(spec, eps=eps, nan_policy=nan_policy)
+    observer = build_observer(spec, eps=eps, Gamma=Gamma, nan_policy=nan_policy)
     return generate_c(observer.with_run_options(hold=hold), dt=dt, name=name or Path(path).stem,
                       real=real,
                       theta_hat0=spec.estimator.theta_hat0, x_hat0=spec.estimator.x_hat0,

@@ -7,8 +7,12 @@ against these tables: a key that is not in its section's table is refused, a ``r
 must be given, a key that is absent takes the table's default, and the keys of type
 ``boolean``, ``choice`` and ``number`` are checked by their type alone. The readers of the
 other types (matrices, names, poles, …) take their sizes from the rest of the file and their
-requiredness and defaults from here. The reference of the model-file format is generated from
-:data:`TABLES`.
+requiredness and defaults from here. The inline tables of ``[data]`` (a signal,
+:data:`DATA_SIGNAL`, and a time base, :data:`DATA_RATE`) are read by
+:func:`thetahat.io.mapping.parse_data_table`, below the model files, whose keys and defaults
+the tests hold to these rows. The reference of the model-file format
+(docs/reference/model-file.md) is generated from :data:`TABLES` when the site is built
+(docs/hooks/model_file.py).
 
 A default is a value (the loader uses it), :data:`REQUIRED`, or a :class:`Derived` — a
 default computed from other keys or from the record, which the reader computes and the text
@@ -23,8 +27,8 @@ from typing import Any
 from ..errors import OptionError
 from ..methods import ESTIMATION_METHODS
 
-__all__ = ["AUTO_GAMMA_LAWS", "COLUMNS", "DATA", "Derived", "ESTIMATOR", "Key", "LAWS",
-           "PARAMETER_SET_BALL", "PARAMETER_SET_BOX", "PARAMETER_SET_ELLIPSOID",
+__all__ = ["AUTO_GAMMA_LAWS", "COLUMNS", "DATA", "DATA_RATE", "DATA_SIGNAL", "Derived",
+           "ESTIMATOR", "Key", "LAWS", "PARAMETER_SET_BALL", "PARAMETER_SET_BOX", "PARAMETER_SET_ELLIPSOID",
            "PERTURBATION", "REQUIRED", "SCENARIO", "SCENARIO_METHODS", "SECOND", "SYSTEM",
            "TABLES", "TOP", "TYPES", "Table"]
 
@@ -151,7 +155,10 @@ class Table:
     keys : tuple of Key
         Its rows.
     form : str, optional
-        Which form of the section (``[parameter_set]`` is a box, a ball or an ellipsoid).
+        Which form of the section (``[parameter_set]`` is a box, a ball or an ellipsoid;
+        a signal of ``[data]`` a name or a table).
+    note : str, optional
+        What a form is, in a sentence, for the reference.
 
     Examples
     --------
@@ -165,6 +172,7 @@ class Table:
     section: str
     keys: tuple[Key, ...]
     form: str = ""
+    note: str = ""
 
     def __post_init__(self) -> None:
         for k in self.keys:
@@ -238,18 +246,20 @@ _THETA_WHAT = "one number per parameter"
 PARAMETER_SET_BOX = Table("parameter_set", (
     Key("lower", "numbers", REQUIRED, "[-2.0]", f"The lower corner of the box ({_THETA_WHAT})."),
     Key("upper", "numbers", REQUIRED, "[2.0]", f"The upper corner of the box ({_THETA_WHAT})."),
-), form="box")
+), form="a box", note="Θ = {θ : lower ≤ θ ≤ upper}, componentwise.")
 PARAMETER_SET_BALL = Table("parameter_set", (
     Key("center", "numbers", REQUIRED, "[0.0, 0.0]", f"The centre ({_THETA_WHAT})."),
     Key("radius", "positive number", REQUIRED, "1.5",
         "The radius R: Θ = {θ : ‖θ − center‖ ≤ R}."),
-), form="ball")
+), form="a ball", note="Θ = {θ : ‖θ − center‖ ≤ radius}.")
 PARAMETER_SET_ELLIPSOID = Table("parameter_set", (
     Key("center", "numbers", REQUIRED, "[0.0, 0.0]", f"The centre ({_THETA_WHAT})."),
     Key("shape", "matrix", REQUIRED, "[[1.0, 0.0], [0.0, 4.0]]",
         "Q, p × p symmetric positive definite: Θ = {θ : (θ − center)ᵀ Q (θ − center) ≤ 1} "
         "(each eigenvalue is 1/a² for a semi-axis a)."),
-), form="ellipsoid")
+), form="an ellipsoid",
+   note="Θ = {θ : (θ − center)ᵀ Q (θ − center) ≤ 1}. A general convex set {P(θ) ≤ 0} needs a "
+        "Python callable P and exists in the API only (thetahat.model.paramset.ConvexSet).")
 
 _POLES_DEFAULT = Derived("−1, −2, … (thetahat.design.gains.high_gain)")
 ESTIMATOR = Table("estimator", (
@@ -266,7 +276,8 @@ ESTIMATOR = Table("estimator", (
     Key("Gamma", "gain", Derived('"auto" for the gradient and least-squares laws, 1 for the '
                                  'inversion laws'), "2.0",
         "Γ of the update law; \"auto\": chosen on the record from its information "
-        "(thetahat.estimation.observer.auto_gain)."),
+        "(thetahat.estimation.observer.auto_gain): `thetahat estimate` prints the Γ it "
+        "chose, and `thetahat codegen` takes it (--gamma) or chooses it on a log (--data)."),
     Key("theta_hat0", "numbers", Derived("the centre of Θ"), "[0.0]", "θ̂(0), in Θ."),
     Key("x_hat0", "numbers", Derived("0"), "[0.0, 0.0]", "The prior of x̂(0)."),
     Key("x_hat0_from_y", "boolean", True, "false",
@@ -319,14 +330,38 @@ SCENARIO = Table("scenario", (
 ))
 
 DATA = Table("data", (
-    Key("t", "signal", Derived("the column t"), '{ rate = 1000.0 }',
-        "The time vector, or { rate = HZ } when the record has none."),
+    Key("t", "signal", Derived("the column t"), '{ column = "time_ms", scale = 0.001 }',
+        "The time in seconds: a column (a signal; a scale turns ms into s), or a time base "
+        "{ rate = HZ, start = S } when the record has no time column."),
     Key("u", "signal", Derived("the inputs' names, or u1, u2, … (u when m = 1)"),
-        '{ column = "vir", scale = 35.15 }', "The m inputs (value = scale · raw + offset)."),
+        '{ column = "vir", scale = 35.15 }',
+        "The m inputs, in the order of [perturbation] u: one signal (m = 1) or a list of m."),
     Key("y", "signal", Derived("the outputs' names, or y1, y2, … (y when r = 1)"), '"qm"',
-        "The r outputs."),
+        "The r outputs, in the order of [perturbation] y: one signal (r = 1) or a list of r."),
 ))
+
+#: One signal of ``[data]`` written as a table: ``value = scale · raw + offset``
+#: (:class:`thetahat.io.mapping.Signal`; a bare name is ``{ column = NAME }``).
+DATA_SIGNAL = Table("data", (
+    Key("column", "string", REQUIRED, '"vir"',
+        "The variable (MATLAB) or column (CSV, Parquet, Excel) of the data file."),
+    Key("scale", "number", 1.0, "35.15",
+        "The factor to the model's units (not 0): value = scale · raw + offset."),
+    Key("offset", "number", 0.0, "-273.15", "Added after the scale."),
+), form="a signal as a table",
+   note="t, u and y (and each entry of a list of them) are each a name, \"qm\" (the same as "
+        "{ column = \"qm\" }), or a table of these keys.")
+
+#: ``[data] t`` as a time base, for a record without a time column:
+#: t_k = start + k / rate (:func:`thetahat.io.mapping.parse_data_table`).
+DATA_RATE = Table("data", (
+    Key("rate", "positive number", REQUIRED, "1000.0", "The sampling rate (Hz)."),
+    Key("start", "number", 0.0, "12.5", "t of the first sample (s)."),
+), form="a time base for t",
+   note="For a record without a time column: t = { rate = HZ }; the samples are at "
+        "t_k = start + k / rate.")
 
 #: Every table, in the order of a file.
 TABLES: tuple[Table, ...] = (TOP, SYSTEM, PERTURBATION, PARAMETER_SET_BOX, PARAMETER_SET_BALL,
-                             PARAMETER_SET_ELLIPSOID, ESTIMATOR, SECOND, SCENARIO, DATA)
+                             PARAMETER_SET_ELLIPSOID, ESTIMATOR, SECOND, SCENARIO, DATA,
+                             DATA_SIGNAL, DATA_RATE)

@@ -1,82 +1,25 @@
 """Model-file schema: reading and validating a model file into a :class:`ModelSpec`.
 
-A model file (TOML, read with :mod:`tomllib`, or JSON with the same structure) holds:
-
-``name`` (optional)
-    A title.
-``[system]``
-    ``A`` (n × n), ``B`` (n × m; ``[]`` when m = 0), ``C`` (r × n), ``E`` (n × k) as nested
-    lists of rows of numbers, eq. (1).
-``[perturbation]``
-    ``g``: φ = g(v, x, θ) as a string (k = 1) or a list of k strings, in the safe syntax of
-    :func:`~thetahat.model.parse.parse_perturbation` (never evaluated as code); ``u``, ``y``,
-    ``x``, ``theta``: the symbol names (lists of m, r, n and p names; a single name may be
-    given as a string); ``constants`` (optional table): named numbers used in the formulas.
-``[parameter_set]``
-    Θ, one of three convex sets (:mod:`thetahat.model.paramset`): a box, ``lower`` and
-    ``upper`` (p numbers each); a ball, ``center`` (p numbers) and ``radius`` (a number > 0),
-    {θ : ‖θ − center‖ ≤ radius}; or an ellipsoid, ``center`` and ``shape`` (a p × p symmetric
-    positive-definite Q), {θ : (θ − center)ᵀ Q (θ − center) ≤ 1} (each eigenvalue of Q is
-    1/a² for a semi-axis a). A general convex set {P(θ) ≤ 0} needs a Python callable P and
-    exists in the API only (:class:`~thetahat.model.paramset.ConvexSet`).
-``[estimator]``
-    ``law`` (required): ``"gradient"`` (:class:`~thetahat.estimation.observer.laws.
-    GradientInversion` with the default M = (∂g/∂θ)ᵀ, Propositions 3–4), ``"least_squares"``
-    (:class:`~thetahat.estimation.observer.laws.least_squares.FilteredLeastSquares`: the regressor
-    filtered like φ̂, a gain Γ(t) that shrinks as information grows), ``"algebraic"``
-    (:class:`~thetahat.estimation.observer.laws.AlgebraicInversion`, Proposition 1) or
-    ``"intermittent"`` (:class:`~thetahat.estimation.observer.laws.IntermittentInversion`,
-    Proposition 2, with the excitation weight ``smooth_ramp(*excitation)`` of ‖φ̂‖).
-    Optional: ``eps`` (default 1, Sec. VII), ``chain_poles`` (one list per chain; default
-    −1, −2, …), ``b_poles``, ``Gamma`` (number, p × p or ``"auto"``; default ``"auto"`` for
-    the gradient and least-squares laws — :mod:`~thetahat.estimation.observer.auto_gain` — and
-    1 for the inversion laws), ``theta_hat0``
-    (default: the centre of Θ), ``x_hat0`` (default 0: the prior of x̂(0)), ``x_hat0_from_y``
-    (default true: every method starts at x̂(0) = x̂₀ + C⁺(y(0) − C x̂₀), the state nearest
-    x̂₀ that fits the record's first sample, :func:`~thetahat.estimation.observer.initial_state.
-    x_hat_from_output`; false: at x̂₀), ``theta_star`` (algebraic and
-    intermittent laws: θ*(v, x, φ) as a string or list of p strings, in the names of u, y, x
-    and ``phi`` (k = 1) or ``phi1``, …, ``phik``; default: solved from g with SymPy),
-    ``excitation`` (intermittent law, required: ``[low, high]`` thresholds on ‖φ̂‖),
-    ``on_invalid`` (``"raise"`` or ``"freeze"``, default ``"raise"``), ``method`` (how to
-    estimate, one of :data:`thetahat.methods.METHODS`; default the first, the paper's
-    observer and law above), and ``A_design``,
-    ``E_design``: the matrices of a simplified design system on which the gains are designed
-    (Sec. VII–VIII; default: the true A and E); ``allow_nonminimum_phase`` (default false:
-    a model that violates Assumption 1 is refused; true designs anyway, to study the failure).
-``[estimator.second]`` (optional)
-    The second observer of Sec. VI: ``eps2`` (default 1), ``chain_poles``, ``b_poles``,
-    ``g_on_estimates`` (default false; true evaluates g on C x̂₂ instead of the noisy y, as in
-    Sec. VIII).
-``[scenario]`` (optional)
-    The simulated experiment of ``thetahat sweep`` and ``thetahat tune``
-    (:func:`~thetahat.modelfile.study.simulate_model`): the true ``theta`` (default: the
-    point half way from Θ's centre to its point nearest the upper corner of Θ's bounding box:
-    for a box, three quarters of the way from ``lower`` to ``upper``), ``x0``
-    (default 0), ``t_end`` (s, default 20), ``fs`` (Hz, default 100), ``noise_std`` (white
-    noise on y, default 0.01), the input as a sum of sines per channel, ``u_amplitudes`` and
-    ``u_frequencies`` (Hz) (a list of q numbers for every channel, or one list per channel;
-    default 1 sin(2π·0.1 t) + 0.5 sin(2π·0.3 t)), and the integrator ``method`` (default
-    ``"Radau"``), ``rtol`` (1e-8) and ``atol`` (a number or n numbers, 1e-10). The plant
-    is simulated with the file's g, evaluated on the noise-free output C x.
-
-``[data]`` (optional)
-    Which variables (MATLAB files) or columns (CSV, Parquet) of a data file are ``t``, ``u``
-    and ``y``, each a name or ``{ column = "NAME", scale = 1.0, offset = 0.0 }`` (value =
-    scale · raw + offset), a list of m (r) signals for several inputs (outputs); ``t`` may
-    instead be ``{ rate = HZ }`` when the record has no time vector. See
-    :mod:`thetahat.io.mapping`.
+A model file (TOML, read with :mod:`tomllib`, or JSON with the same structure) has the
+sections ``[system]`` (A, B, C, E of (1)), ``[perturbation]`` (g and the names),
+``[parameter_set]`` (Θ: a box, a ball or an ellipsoid), ``[estimator]`` (the gain design, the
+update law (8), the initial values, the method) with an optional ``[estimator.second]`` (the
+second observer of Sec. VI), and the optional ``[scenario]`` (the simulated experiment of
+``thetahat sweep`` and ``thetahat tune``) and ``[data]`` (which columns of a log are t, u and
+y, in what units: :mod:`thetahat.io.mapping`).
 
 Every key, with its type, default, an example and its meaning, is a row of the tables of
 :mod:`~thetahat.modelfile.keys`, which the loader validates against: unknown keys are errors
 (they are usually typos), and every problem is reported as a
-:class:`~thetahat.errors.ModelFileError` naming the file, the section and the key.
+:class:`~thetahat.errors.ModelFileError` naming the file, the section and the key. The
+reference of the format, the page reference/model-file.md of the documentation, is generated
+from those tables.
 
-Data files for :func:`thetahat.io.datafile.read_data` are CSV with a header row, Parquet or MATLAB
-(``.mat``, v4–v7) files. Without ``[data]``, they hold a column ``t`` (strictly increasing),
-one column per input, named as in ``[perturbation] u`` or ``u1``, ``u2``, … (``u`` also works
-when m = 1), and one per output, named as in ``[perturbation] y`` or ``y1``, … (``y`` when
-r = 1). Column order is free and other columns are ignored.
+Data files for :func:`thetahat.io.datafile.read_data` are CSV with a header row, Parquet,
+MATLAB (``.mat``, v4–v7) or Excel files. Without ``[data]``, they hold a column ``t``
+(strictly increasing), one column per input, named as in ``[perturbation] u`` or ``u1``,
+``u2``, … (``u`` also works when m = 1), and one per output, named as in ``[perturbation] y``
+or ``y1``, … (``y`` when r = 1). Column order is free and other columns are ignored.
 """
 
 from __future__ import annotations
