@@ -255,7 +255,7 @@ def test_a_closed_pipe_exits_quietly_with_141(tmp_path, lugre_csv):
     assert (done.returncode, done.stderr) == (EXIT_PIPE, "")
     csv_path, data = lugre_csv
     done = _closed_early(["estimate", str(LUGRE), str(csv_path), "-o", "est.csv",
-                          "--no-progress"], tmp_path)
+                          "--quiet"], tmp_path)
     assert (done.returncode, done.stderr) == (EXIT_PIPE, "")
     assert len((tmp_path / "est.csv").read_text().splitlines()) == data.t.size + 1
 
