@@ -20,7 +20,7 @@ from thetahat.io.datafile import check_writable, read_data
 from thetahat.design.design_system import apply_design
 from thetahat.design.gains import high_gain, modified_high_gain
 from thetahat.estimation.observer.checks import check_theta_star
-from thetahat.estimation.observer.laws import AlgebraicInversion, GradientInversion
+from thetahat.estimation.observer.laws import GradientInversion, algebraic_from_perturbation
 from thetahat.model.paramset import Box
 from thetahat.model.parse import parse_expression, parse_perturbation
 from thetahat.model.perturbation import SymbolicPerturbation
@@ -411,8 +411,8 @@ def test_gradient_law_refuses_g_without_theta():
 
 def test_algebraic_law_refuses_g_without_theta():
     with pytest.raises(E.UpdateLawError, match="does not depend on θ"):
-        AlgebraicInversion.from_perturbation(_pert("sin(y)"), Gamma=1.0,
-                                             parameter_set=Box([0.0], [1.0]))
+        algebraic_from_perturbation(_pert("sin(y)"), Gamma=1.0,
+                                    parameter_set=Box([0.0], [1.0]))
 
 
 def test_theta_star_branch_missing_theta():

@@ -16,7 +16,8 @@ from thetahat.codegen.harness import C_FLAGS
 from thetahat.codegen.loader import find_compiler
 from thetahat.errors import UnsupportedError
 from thetahat.estimation.kernels import scalar_primitives
-from thetahat.estimation.observer.kernel_source import rewritten
+from thetahat.estimation.kernels.printer import Program
+from thetahat.estimation.kernels.subset import definition
 from thetahat.estimation.status import status_constants
 
 #: A pivoted elimination printed as C against LAPACK's, relative to the solution's norm:
@@ -61,12 +62,13 @@ def test_constructs_outside_the_subset_are_refused():
 
 
 def test_printed_solve_agrees_with_lapack(tmp_path):
-    """scalar_primitives.solve, rewritten and printed for q = 5, compiled with the
-    acceptance's flags, solves random systems as numpy.linalg.solve does."""
+    """scalar_primitives.solve, printed for the scalar target and as C for q = 5, compiled
+    with the acceptance's flags, solves random systems as numpy.linalg.solve does."""
     if find_compiler() is None:
         pytest.skip("no C compiler (cc or $CC)")
     q = 5
-    unit = CUnit({"solve": rewritten(scalar_primitives.solve).body[0]},
+    program = Program({"solve": definition(scalar_primitives.solve)})
+    unit = CUnit({"solve": program.printed("solve", "scalar")},
                  {k: Const(v) for k, v in status_constants().items()},
                  lambda name, args: None, "double")
     fn = unit.call("solve", [Const(q), Arr("M", (q, q)), Arr("rhs", (q,))])

@@ -541,14 +541,14 @@ def _emitted_run(obs: ModifiedHighGainObserver, t, u, y, hold: str, s0) -> np.nd
     with every argument the compiled observer passes)."""
     from thetahat.estimation.observer.kernel_data import (kernel_arrays, kernel_parts,
                                                           kernel_work, phi_table)
+    from thetahat.estimation.kernels.kernel_cache import load_module
     from thetahat.estimation.observer.kernel_source import LAWS, kernel_source
     parts = kernel_parts(obs)
     ts = parts.theta_star
     source = kernel_source(parts.perturbation, None if ts is None else ts.expr,
                            None if ts is None else ts.arguments, LAWS[parts.code], numba=False,
                            M=parts.M, ellipsoid=parts.ellipsoid)
-    namespace: dict[str, object] = {"__name__": "thetahat_kernel_test"}
-    exec(compile(source, "<kernel>", "exec"), namespace)   # our generated text, no numba
+    kernel = load_module(source, "thetahat_kernel_test")    # the printed text, no numba
     t_, dts, U3, Y3, ok3 = obs.check_records(t, u, y)
     plan = obs.plan(float(dts[0]))
     P, P2, LP, flags = kernel_arrays(parts, plan)
@@ -556,8 +556,8 @@ def _emitted_run(obs: ModifiedHighGainObserver, t, u, y, hold: str, s0) -> np.nd
     plan_of, PH = phi_table(obs, dts, ok3[0, :-1])
     S, PHI = np.empty((t_.size, obs.state_size)), np.empty((t_.size, plan.layout.k))
     with np.errstate(all="ignore"):     # numba's error_model='numpy': NaN, not a warning
-        status, _ = namespace["kernel_run"](s0, U3[0], Y3[0], dts, ok3[0], plan_of, PH, P, P2,
-                                            LP, *flags, hold == "foh", W, rows, S, PHI)
+        status, _ = kernel.kernel_run(s0, U3[0], Y3[0], dts, ok3[0], plan_of, PH, P, P2, LP,
+                                      *flags, hold == "foh", W, rows, S, PHI)
     assert status == 0
     return S
 

@@ -1,4 +1,4 @@
-"""Stage-2 kernels through generated, disk-cached modules: same results, compiled once."""
+"""Stage-2 kernels through printed, disk-cached modules: same results, compiled once."""
 
 import json
 import os
@@ -8,7 +8,7 @@ import sys
 import numpy as np
 import pytest
 
-from thetahat.estimation.kernels.kernel_cache import KernelSourceError, cached_njit
+from thetahat.estimation.kernels.modules import KernelSourceError, cached_njit
 from thetahat.estimation.statistical.plant_kernel import jit, model_kernel
 from thetahat.models import lugre
 
@@ -34,7 +34,7 @@ def _affine(a, b, table):
 
 
 def test_a_closure_with_numbers_arrays_and_kernels_equals_its_python():
-    """The emitted module binds each free name to what the closure held (exact floats)."""
+    """The printed module binds each free name to what the closure held (exact floats)."""
     table = np.array([0.1, -2.5e-300, np.pi])
     fn = _affine(1.0 / 3.0, -7, table)
     out_py, out_nb = np.empty(3), np.empty(3)
@@ -93,3 +93,21 @@ def test_a_second_process_loads_the_machine_code(tmp_path):
             for _ in range(2)]
     assert runs[0]["misses"] >= 1
     assert runs[1] == {"hits": 1, "misses": 0}
+
+
+@pytest.mark.parametrize("compiled", [False, True])
+def test_the_plant_model_is_one_printed_module_from_the_cache(compiled):
+    """rhs_jac (printed by SymPy) and the RK4 kernels live in one module file written to the
+    cache directory under its content hash and imported from there (no exec of a string),
+    compiled or as plain Python."""
+    import inspect
+
+    from thetahat.estimation.kernels.kernel_cache import cache_dir
+    kern = model_kernel(lugre.system(), compiled=compiled)
+    fns = [getattr(f, "py_func", f) for f in (kern.rhs_jac, kern.propagate)]
+    files = {inspect.getsourcefile(f) for f in fns}
+    assert len(files) == 1
+    (path,) = files
+    assert os.path.dirname(path) == str(cache_dir())
+    assert os.path.basename(path).startswith("thetahat_plant_")
+    assert kern.source in open(path, encoding="utf-8").read()

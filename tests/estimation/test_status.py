@@ -16,14 +16,14 @@ from thetahat.codegen.c_values import Arr, Const
 from thetahat.codegen.harness import C_FLAGS
 from thetahat.codegen.loader import find_compiler
 from thetahat.errors import NonFiniteError, UpdateLawError
-from thetahat.estimation.observer import formulas
 from thetahat.estimation.kernels import scalar_primitives
 from thetahat.estimation.observer.kernel_data import kernel_parts
 from thetahat.estimation.observer.discretize import IMPLICITNESS
-from thetahat.estimation.kernels.primitives import NUMPY, NUMPY_ROW, bind
-from thetahat.estimation.observer.kernel_source import LAWS, kernel_source, rewritten
+from thetahat.estimation.kernels.modules import numpy_binding
+from thetahat.estimation.observer.kernel_source import LAWS, kernel_program, kernel_source
 from thetahat.estimation.status import MESSAGES, Status, status_constants
 from thetahat.estimation.observer.record_run import failure
+from thetahat.estimation.observer.step import program
 from thetahat.models import lugre
 
 Q = 2
@@ -34,16 +34,28 @@ SINGULAR_N = np.diag([2.0, 0.0])
 REGULAR_N = np.diag([1.0, 0.0])
 
 
+#: Positions of the arrays in :func:`_args` (the implicit step's parameters).
+OUT, M_AT = 8, 9
+
+
 def _args(N: np.ndarray) -> tuple:
+    """implicit_step(q, Φ₁, Φ₂, F, Ḟ, foh, N, s, out, M, rhs) for the NumPy targets."""
     F = np.array([1.0, 2.0])
-    return (Q, np.eye(Q), np.zeros((Q, Q)), F, np.zeros(Q), False, N.copy(), np.zeros(Q), 0,
+    return (Q, np.eye(Q), np.zeros((Q, Q)), F, np.zeros(Q), False, N.copy(), np.zeros(Q),
             np.zeros(Q), np.zeros((Q, Q)), np.zeros(Q))
 
 
+def _scalar_args(N: np.ndarray) -> tuple:
+    """The same for the scalar target, where s and out (views) come with their offsets."""
+    a = _args(N)
+    return (*a[:8], 0, a[8], 0, *a[9:])
+
+
 def _numpy_implicit_step(row: bool):
-    names = {**(NUMPY_ROW if row else NUMPY), "IMPLICITNESS": IMPLICITNESS,
-             **status_constants()}
-    return bind({"implicit_step": formulas.implicit_step}, names)["implicit_step"]
+    prog = program()
+    return numpy_binding(prog, ("status test", row), prog, ["implicit_step"],
+                         "row" if row else "batch",
+                         lambda: {"IMPLICITNESS": IMPLICITNESS})["implicit_step"]
 
 
 def test_the_c_header_codes_are_the_enum():
@@ -60,14 +72,14 @@ def test_numpy_row_and_batch_report_a_singular_step():
     assert step(*a) == Status.SINGULAR
     b = _args(REGULAR_N)
     assert step(*b) == Status.OK
-    np.testing.assert_allclose(b[9], [2.0, 2.0])            # (I − ½N)⁻¹ F = [1/0.5, 2]
+    np.testing.assert_allclose(b[OUT], [2.0, 2.0])          # (I − ½N)⁻¹ F = [1/0.5, 2]
     batch = _numpy_implicit_step(False)
     rows = [_args(SINGULAR_N), _args(REGULAR_N)]
     stacked = [np.stack([r[i] for r in rows]) if isinstance(rows[0][i], np.ndarray)
                else rows[0][i] for i in range(len(rows[0]))]
     status = batch(*stacked)
     assert status.tolist() == [Status.SINGULAR, Status.OK]  # per row, no LinAlgError
-    np.testing.assert_allclose(stacked[9][1], [2.0, 2.0])
+    np.testing.assert_allclose(stacked[OUT][1], [2.0, 2.0])
 
 
 def test_python_scalar_primitives_report_a_singular_step():
@@ -83,20 +95,18 @@ def test_numba_reports_a_singular_step():
     source = kernel_source(parts.perturbation, None if ts is None else ts.expr,
                            None if ts is None else ts.arguments, LAWS[parts.code], numba=True)
     mod = load_module(source, "thetahat_status_test")
-    # implicit_step alone (compiled on this first call; it calls mv, mm, eye_minus, solve)
-    assert mod.implicit_step(*_args(SINGULAR_N)) == Status.SINGULAR
-    b = _args(REGULAR_N)
+    # implicit_step alone (compiled on this first call; its blocks are loops, it calls solve)
+    assert mod.implicit_step(*_scalar_args(SINGULAR_N)) == Status.SINGULAR
+    b = _scalar_args(REGULAR_N)
     assert mod.implicit_step(*b) == Status.OK
-    np.testing.assert_allclose(b[9], [2.0, 2.0])
+    np.testing.assert_allclose(b[OUT + 1], [2.0, 2.0])      # after s and its offset
 
 
 def test_c_reports_a_singular_step(tmp_path):
     if find_compiler() is None:
         pytest.skip("no C compiler (cc or $CC)")
-    names = ("implicit_step", "mv", "mm", "eye_minus", "solve", "copy", "axpy")
-    functions = {name: rewritten(getattr(formulas, name, None)
-                                 or scalar_primitives.SCALAR_PRIMITIVES[name]).body[0]
-                 for name in names}
+    prog = kernel_program("held_law")
+    functions = {name: prog.printed(name, "scalar") for name in ("implicit_step", "solve")}
     for fn in functions.values():
         assert isinstance(fn, ast.FunctionDef)
     constants = {"IMPLICITNESS": Const(IMPLICITNESS),
@@ -108,7 +118,7 @@ def test_c_reports_a_singular_step(tmp_path):
                                        Arr("Phi2", arrays["Phi2"]), Arr("F", arrays["F"]),
                                        Arr("Fd", arrays["Fd"]), Const(False),
                                        Arr("Nm", arrays["Nm"]), Arr("s", arrays["s"]),
-                                       Const(0), Arr("out", arrays["out"]),
+                                       Const(0), Arr("out", arrays["out"]), Const(0),
                                        Arr("M", arrays["M"]), Arr("rhs", arrays["rhs"])])
     params = ", ".join(f"real_t {a}[]" for a in call.args)
     src = tmp_path / "step.c"
@@ -124,7 +134,7 @@ def test_c_reports_a_singular_step(tmp_path):
     for N, want in ((SINGULAR_N, Status.SINGULAR), (REGULAR_N, Status.OK)):
         a = _args(N)
         values = {"Phi1": a[1], "Phi2": a[2], "F": a[3], "Fd": a[4], "Nm": a[6], "s": a[7],
-                  "out": a[9], "M": a[10], "rhs": a[11]}
+                  "out": a[OUT], "M": a[M_AT], "rhs": a[M_AT + 1]}
         bufs = {k: np.ascontiguousarray(v, dtype=np.float64) for k, v in values.items()}
         assert run(*(bufs[name].ctypes.data_as(ptr) for name in call.args)) == want
         if want == Status.OK:

@@ -17,6 +17,7 @@ from thetahat.estimation.observer.checks import check_monotonicity, excitation_r
 from thetahat.estimation.observer.laws.projection import Saturation
 from thetahat.estimation.observer.laws import (
     AlgebraicInversion,
+    algebraic_from_perturbation,
     ConstantLaw,
     GradientInversion,
     IntermittentInversion,
@@ -334,10 +335,11 @@ def test_theta_star_derived_with_sympy_matches_the_closed_form():
     rng = np.random.default_rng(8)
     v = rng.normal(size=(50, 2))
     x = rng.normal(size=(50, 2))
-    for mod, cls, extra in ((prop1_sinh, AlgebraicInversion, ()),
-                            (prop2_tanh, IntermittentInversion, (prop2_tanh.excitation_weight,))):
-        law = cls.from_perturbation(mod.system().perturbation, *extra, Gamma=1.0,
-                                    parameter_set=mod.PARAMETER_SET)
+    derive = {prop1_sinh: algebraic_from_perturbation,
+              prop2_tanh: lambda g, **kw: IntermittentInversion.from_perturbation(
+                  g, prop2_tanh.excitation_weight, **kw)}
+    for mod, build in derive.items():
+        law = build(mod.system().perturbation, Gamma=1.0, parameter_set=mod.PARAMETER_SET)
         phi = mod.system().perturbation.g(v, x, mod.THETA)
         assert np.allclose(law.theta_star(v, x, phi), mod.theta_star(v, x, phi), rtol=1e-10)
 
@@ -349,20 +351,20 @@ def _scalar(expr, theta):
 def test_sympy_inverse_must_be_unique_on_theta():
     th = sp.Symbol("th")
     with pytest.raises(UpdateLawError, match="not unique"):  # asin and π - asin on [0, 3]
-        AlgebraicInversion.from_perturbation(_scalar(sp.sin(th), th), Gamma=1.0,
-                                             parameter_set=Box([0.0], [3.0]))
+        algebraic_from_perturbation(_scalar(sp.sin(th), th), Gamma=1.0,
+                                    parameter_set=Box([0.0], [3.0]))
     with pytest.raises(UpdateLawError, match="not unique"):  # ±√φ on [-1, 1]
-        AlgebraicInversion.from_perturbation(_scalar(th**2, th), Gamma=1.0,
-                                             parameter_set=Box([-1.0], [1.0]))
-    law = AlgebraicInversion.from_perturbation(_scalar(th**2, th), Gamma=1.0,
-                                               parameter_set=Box([0.1], [1.0]))
+        algebraic_from_perturbation(_scalar(th**2, th), Gamma=1.0,
+                                    parameter_set=Box([-1.0], [1.0]))
+    law = algebraic_from_perturbation(_scalar(th**2, th), Gamma=1.0,
+                                      parameter_set=Box([0.1], [1.0]))
     assert law.theta_star(np.zeros(2), np.zeros(1), np.array([0.25]))[0] == pytest.approx(0.5)
     with pytest.raises(UpdateLawError, match="leaves some parameters free"):
-        AlgebraicInversion.from_perturbation(prop4_pe.system().perturbation, Gamma=1.0,
-                                             parameter_set=prop4_pe.PARAMETER_SET)
+        algebraic_from_perturbation(prop4_pe.system().perturbation, Gamma=1.0,
+                                    parameter_set=prop4_pe.PARAMETER_SET)
     with pytest.raises(UpdateLawError, match="needs a SymbolicPerturbation"):
-        AlgebraicInversion.from_perturbation(object(), Gamma=1.0,  # type: ignore[arg-type]
-                                             parameter_set=Box([0.0], [1.0]))
+        algebraic_from_perturbation(object(), Gamma=1.0,  # type: ignore[arg-type]
+                                    parameter_set=Box([0.0], [1.0]))
 
 
 # --------------------------------------------------------------------------- errors

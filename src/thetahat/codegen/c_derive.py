@@ -1,9 +1,10 @@
 """The C step derived from the formulas: what :func:`~thetahat.codegen.generate_c` compiles.
 
 :func:`derived_step` prints, with :class:`~thetahat.codegen.c_printer.CUnit`, the step's
-formulas (:mod:`~thetahat.estimation.observer.formulas`, :mod:`~thetahat.estimation.observer.laws.formulas`, the
-scalar primitives and the law's hooks of :mod:`~thetahat.estimation.observer.kernel_source`, all as
-:func:`~thetahat.estimation.observer.kernel_source.rewritten` gives them) specialised for one observer:
+formulas (:mod:`~thetahat.estimation.observer.formulas`,
+:mod:`~thetahat.estimation.observer.laws.formulas`, the scalar functions of the vocabulary and
+the law's hooks: the program of :func:`~thetahat.estimation.observer.kernel_source.kernel_program`,
+printed for the ``"scalar"`` target as the numba kernel is) specialised for one observer:
 the dimensions, the hold, the second observer, the law's options and the step length are
 constants; the plan's matrices (:func:`~thetahat.estimation.observer.compiled.kernel_arrays`, the
 numba kernel's data) are ``static const`` arrays; the arrays a formula writes are buffers on
@@ -19,9 +20,6 @@ only its own branch.
 from __future__ import annotations
 
 import ast
-import collections
-import functools
-import textwrap
 from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
@@ -30,22 +28,22 @@ import numpy as np
 import sympy as sp
 
 from ..errors import UnsupportedError
-from ..estimation.observer import formulas
-from ..estimation.observer.laws import formulas as law_formulas
 from ..estimation.kernels import scalar_primitives
+from ..estimation.kernels.kernel_args import SHAPES, WorkArrays, dimensions
 from ..estimation.observer.compiled import KernelParts, kernel_arrays
 from ..estimation.observer.discretize import IMPLICITNESS
-from ..estimation.observer.formulas import DIVERGENCE_BOUND, WORK
+from ..estimation.observer.formulas import DIVERGENCE_BOUND
 from ..estimation.observer.laws.base import FAR
 from ..estimation.observer.plan import StepPlan
-from ..estimation.observer.kernel_source import LAWS, law_source, rewritten
+from ..estimation.observer.kernel_source import LAWS, kernel_program
 from ..estimation.status import status_constants
 from ..model.perturbation import SymbolicPerturbation
 from .c_printer import CUnit
 from .c_values import Arr, Const, Scal, real_literal
 from .printing import c_function
 
-__all__ = ["BOUND_FLOAT", "FAR_FLOAT", "DerivedStep", "derived_step", "inwards", "readout"]
+__all__ = ["BOUND_FLOAT", "FAR_FLOAT", "DerivedStep", "derived_step", "inwards",
+           "printed_functions"]
 
 #: |θ̂| clip before the projection in float (law_base.FAR is 1e300 in double): below FLT_MAX,
 #: so that the constant converts without overflow.
@@ -61,45 +59,6 @@ _SCRATCH: dict[str, frozenset[str]] = {}
 #: Names of the plan tuples' arrays in the generated C (formulas' module docstring).
 _P_NAMES = ("L", "BV", "E", "C", "A", "B", "KX", "KXC", "PHI1", "PHI2")
 _P2_NAMES = ("A", "B", "C", "E", "KX", "PHI1", "PHI2")
-
-# Names of the formulas' subset the driver reads (bound by the printer).
-copy: Any
-mv: Any
-g_val: Any
-phi_hat: Any
-NU: int
-NY: int
-NX: int
-NK: int
-
-
-def readout(C: Any, s: Any, u: Any, y: Any, correct: bool, v: Any, g: Any, phi: Any) -> None:
-    """φ̂ = g(v, x̂, θ̂) + z at a sample, v = col(u, y), or col(u, C x̂) when y is missing.
-
-    What ``run`` records per sample (``step.readout``); the C API's ``<name>_phi_hat``, in
-    the formulas' subset.
-
-    Parameters
-    ----------
-    C : array
-        C of (1).
-    s : array
-        The state row.
-    u, y : array
-        The samples.
-    correct : bool
-        y is present.
-    v, g, phi : array
-        Scratch v and g; output φ̂.
-    """
-    copy(NU, u, 0, v, 0)
-    if correct:
-        copy(NY, y, 0, v, NU)
-    else:
-        mv(C, NY, NX, s, 0, v, NU, 0)
-    g_val(v, s, 0, s, NX + NK, g)
-    phi_hat(g, s, phi)
-
 
 @dataclass(frozen=True)
 class DerivedStep:
@@ -129,31 +88,35 @@ class DerivedStep:
     const_count: int
 
 
-@functools.cache
-def _module_functions() -> dict[str, ast.FunctionDef]:
-    """The rewritten formulas, scalar primitives and the driver, by name (read-only)."""
-    out: dict[str, ast.FunctionDef] = {}
-    for table in (scalar_primitives.SCALAR_PRIMITIVES, law_formulas.LAW_FORMULAS,
-                  formulas.FORMULAS, {"readout": readout}):
-        for name, fn in table.items():
-            node = rewritten(fn).body[0]
-            assert isinstance(node, ast.FunctionDef)
-            out[name] = node
+#: The formulas the C API calls: the step, the divergence rule and φ̂ at a sample.
+_ROOTS = ("advance", "within_bound", "readout")
+
+
+def printed_functions(law: str) -> dict[str, ast.FunctionDef]:
+    """The functions of the C step of a law formula, printed for the scalar target, by name
+    (``law_step``: the law formula).
+
+    Parameters
+    ----------
+    law : str
+        A value of :data:`~thetahat.estimation.observer.kernel_source.LAWS`.
+
+    Returns
+    -------
+    dict of str to ast.FunctionDef
+        Read-only trees (shared with every caller).
+
+    Examples
+    --------
+    >>> fns = printed_functions("held_law")
+    >>> fns["law_step"] is fns["held_law"], [a.arg for a in fns["implicit_step"].args.args][7:]
+    (True, ['s', 's_at', 'out', 'out_at', 'M', 'rhs'])
+    """
+    program = kernel_program(law)
+    out = {name: program.printed(name, "scalar")
+           for name in program.closure([*_ROOTS, *scalar_primitives.SCALAR_PRIMITIVES])}
+    out["law_step"] = out[law]
     return out
-
-
-def _hooks(law: str) -> tuple[dict[str, ast.FunctionDef], str]:
-    """The law's hooks (weight, freeze, project, m_matrix) and the law formula's name."""
-    tree = ast.parse(textwrap.dedent(law_source(law, "")))
-    hooks: dict[str, ast.FunctionDef] = {}
-    alias = law
-    for node in tree.body:
-        if isinstance(node, ast.FunctionDef):
-            hooks[node.name] = node
-        elif (isinstance(node, ast.Assign) and isinstance(node.value, ast.Name)
-              and isinstance(node.targets[0], ast.Name) and node.targets[0].id == "law_step"):
-            alias = node.value.id
-    return hooks, alias
 
 
 #: Model functions: C name, input arrays (by argument position, offset position) and the
@@ -306,21 +269,19 @@ def derived_step(parts: KernelParts, plan: StepPlan, *, prefix: str, real: str, 
     ts = theta_star
     far = FAR if real == "double" else FAR_FLOAT
     bound = DIVERGENCE_BOUND if real == "double" else BOUND_FLOAT
-    dims = {"NX": n, "NU": m, "NY": r, "NK": k, "NP": p, "LS": 0, "NV": m + r, "NQ": n + k,
-            "NP1": p + 1, "LS1": 1}
+    dims = dimensions(n, m, r, k, p, 0)
     constants: dict[str, Any] = {name: Const(v) for name, v in dims.items()}
     constants.update({"IMPLICITNESS": Const(IMPLICITNESS, "IMPLICITNESS"),
                       "FAR": Const(far, "THETAHAT_FAR"),
                       "EXP_TINY_ARG": Const(scalar_primitives.EXP_TINY_ARG, "EXP_TINY_ARG"),
                       "BOUND_SQ": Const(bound * bound, "BOUND_SQ"), "USER_M": Const(False)})
     constants.update({name: Const(code) for name, code in status_constants().items()})
-    hooks, law_fn = _hooks(law)
-    functions = {**_module_functions(), **hooks}          # a copy: the cache stays
+    functions = printed_functions(law)
     size = lay.size
     scratch = set(_SCRATCH.get(law, ()))
     for _ in range(2):
         step, written = _print(functions, constants, data, scratch, plans, lp_names, options,
-                               opts_at, law_fn, set(extra), kinds=kinds,
+                               opts_at, set(extra), kinds=kinds,
                           pert=parts.perturbation, ts=ts, prefix=prefix,
                           real=real, foh=foh, dt=dt,
                           skip=skip, second=second, on_est=on_est, size=size,
@@ -339,8 +300,7 @@ def derived_step(parts: KernelParts, plan: StepPlan, *, prefix: str, real: str, 
 
 def _print(functions: dict[str, ast.FunctionDef], constants: dict[str, Any],
            data: dict[str, Any], scratch: set[str], plans: dict[bool, Any],
-           lp_names: list[str | None], options: Any, opts_at: int, law_fn: str,
-           extra: set[str], *,
+           lp_names: list[str | None], options: Any, opts_at: int, extra: set[str], *,
            kinds: tuple[type, type, type], pert: SymbolicPerturbation, ts: Any, prefix: str,
            real: str, foh: bool,
            dt: float, skip: bool,
@@ -369,13 +329,13 @@ def _print(functions: dict[str, ast.FunctionDef], constants: dict[str, Any],
         return name, texts
 
     unit = CUnit(functions, constants, model, real)
-    unit.functions["law_step"] = functions[law_fn]
     lp: list[Any] = [None if name is None else arr(name) for name in lp_names]
     if options is not None:
         lp[opts_at] = options
     LP = _like(kinds[2], lp)
-    W: tuple[Any, ...] = _WORK_TUPLE(*(Arr(f"w_{name}", tuple(dims[d] for d in shape))
-                                       for name, shape in WORK))
+    shapes = SHAPES["WorkArrays"]
+    W = WorkArrays(*(Arr(f"w_{name}", tuple(dims[d] for d in shapes[name]))
+                     for name in WorkArrays._fields))
     nub = max(dims["NU"], 1)
     s, nxt = Arr("s", (size,)), Arr("next", (size,))
     u0, y0 = Arr("u0", (nub,)), Arr("y0", (dims["NY"],))
@@ -438,11 +398,6 @@ def _print(functions: dict[str, ast.FunctionDef], constants: dict[str, Any],
                        step_buffers=step_buffers, step_calls=step_calls,
                        phi_buffers=phi_buffers, phi_calls=phi_calls,
                        const_count=count), unit.written_globals
-
-
-#: The work buffers as a named tuple of :data:`~thetahat.estimation.observer.formulas.WORK`'s names.
-_WORK_TUPLE = collections.namedtuple(  # type: ignore[misc]
-    "_WORK_TUPLE", [name for name, _ in WORK])
 
 
 def _like(kind: type, items: Sequence[Any]) -> tuple[Any, ...]:

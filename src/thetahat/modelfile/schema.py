@@ -38,6 +38,7 @@ from ..io.mapping import DataMapping, RecordLayout, parse_data_table
 from ..errors import InputLimitError, ModelFileError, ThetahatError
 from ..estimation.observer.laws import (
     AlgebraicInversion,
+    algebraic_from_perturbation,
     GradientInversion,
     IntermittentInversion,
     UpdateLaw,
@@ -403,9 +404,8 @@ def _read_law(sec: Section, pert: SymbolicPerturbation, theta_set: ParameterSet,
         if theta_star is None:
             opts: dict[str, Any] = {"Gamma": Gamma, "parameter_set": theta_set,
                                     "on_invalid": on_invalid}
-            built = (AlgebraicInversion.from_perturbation(  # type: ignore[attr-defined]
-                pert, **opts) if law == "algebraic"
-                else IntermittentInversion.from_perturbation(pert, ramp, **opts))
+            built = (algebraic_from_perturbation(pert, **opts) if law == "algebraic"
+                     else IntermittentInversion.from_perturbation(pert, ramp, **opts))
         elif law == "algebraic":
             built = AlgebraicInversion(theta_star, Gamma, theta_set, on_invalid=on_invalid)
         else:

@@ -8,7 +8,7 @@ constant M = 1 condition (13) holds with P = 1:
 M ∂g/∂θ(θ₂) + ∂g/∂θ(θ₂)ᵀ Mᵀ = 2(2 + sin y)(1 + θ₂²) >= 2. The gradient-type law
 θ̂̇ = Proj(Γ(φ̂ - g(v, x̂, θ̂))) then gives V̇ <= -‖θ̃‖² for V = ½θ̃ᵀΓ⁻¹θ̃, i.e. ‖θ̃‖ decays at
 least like e^(-Γ t) with perfect x̂ and φ̂, without solving the cubic for θ. (The cubic can
-be inverted too — ``AlgebraicInversion.from_perturbation`` finds its real Cardano branch —
+be inverted too — ``algebraic_from_perturbation`` finds its real Cardano branch —
 but the gradient law needs no inverse at all, which is the point of Proposition 3.) Check
 (13) with :func:`~thetahat.estimation.observer.checks.check_monotonicity`.
 

@@ -1,12 +1,25 @@
-"""The mechanism under every back end: the primitives a step is written in, and compiled kernels.
+"""The mechanism under every back end: one printer from the formulas to NumPy, numba and C.
 
-The vocabulary of the step's formulas and its NumPy implementation (:mod:`.primitives`), the
-same vocabulary for one scalar row (:mod:`.scalar_primitives`), the named argument tuples of
-the formulas (:mod:`.kernel_args`), the projection onto a convex Θ as kernels
-(:mod:`.set_projection`) and the on-disk cache of printed numba modules (:mod:`.kernel_cache`).
-The observer (:mod:`thetahat.estimation.observer`), stage 2's plant kernels
-(:mod:`thetahat.estimation.statistical.plant_kernel`) and the C printer
-(:mod:`thetahat.codegen`) build on it.
+The step's formulas are written once, in a small subset of Python over named blocks
+(:mod:`.subset`: views such as ``x_hat = s[0:NX]``, block statements such as
+``F_x[:] = P.A @ x_hat + P.B @ u + P.E @ g``, element statements, the vocabulary of
+:mod:`.primitives`). One printer (:class:`.printer.Program`) resolves the views and blocks at
+print time for three targets, and every piece of generated Python is a module file printed
+from syntax trees and imported from the cache (:mod:`.modules`, :mod:`.kernel_cache`):
+
+* NumPy: the formulas printed for one row (``"row"``) or for rows along a leading axis
+  (``"batch"``) into a module whose ``bind(**names)`` closes them over the model functions and
+  the law's hooks (:func:`.modules.numpy_binding`);
+* numba: the formulas printed as scalar loops (``"scalar"``), with the scalar functions of
+  :mod:`.scalar_primitives` and the model printed from SymPy, into one module compiled with
+  ``numba.njit(cache=True)`` (:mod:`thetahat.estimation.observer.kernel_source`);
+* C: the same scalar print, specialised per call and written as C99 by
+  :mod:`thetahat.codegen.c_printer`.
+
+Stage 2's kernels use the same writer: the plant model (``rhs_jac`` from SymPy with the RK4
+kernels) is one printed module, and a kernel closure is printed with its free names bound
+(:func:`.modules.cached_njit`). The named argument tuples of the formulas and their shapes are
+in :mod:`.kernel_args`, the projection onto a convex Θ as kernels in :mod:`.set_projection`.
 
 What it may import: :mod:`thetahat.model`, the package's helpers and
 :mod:`thetahat.estimation.status`. Nothing above it.

@@ -1,20 +1,29 @@
-"""The argument tuples of the step's formulas, named: one definition for every binding.
+"""The argument tuples of the step's formulas, named and with their shapes: one definition.
 
-The formulas (:mod:`~thetahat.estimation.observer.formulas`, :mod:`~thetahat.estimation.observer.laws.formulas`)
-take the plan's arrays and the law's arrays as tuples ``P``, ``P2`` and ``LP``. Every back end
-builds them as the named tuples below, by keyword — the NumPy binding
-(:mod:`~thetahat.estimation.observer.step`, the laws' own steps), the compiled kernel
-(:mod:`~thetahat.estimation.observer.compiled`; numba compiles named tuples like tuples, with their
-field names) — so that a field means the same everywhere: ``LP.Gamma`` is Γ and ``LP.lower``
-Θ's lower bound in each, whatever else a binding fills in. A field a binding does not use is
-None.
+The formulas (:mod:`~thetahat.estimation.observer.formulas`,
+:mod:`~thetahat.estimation.observer.laws.formulas`) take the plan's arrays, the law's arrays and
+their work buffers as tuples ``P``, ``P2``, ``LP`` and ``W``. Every back end builds them as the
+named tuples below, by keyword — the NumPy binding (:mod:`~thetahat.estimation.observer.step`,
+the laws' own steps), the compiled kernel (:mod:`~thetahat.estimation.observer.compiled`; numba
+compiles named tuples like tuples, with their field names) and the C printer — so that a field
+means the same everywhere: ``LP.Gamma`` is Γ and ``LP.lower`` Θ's lower bound in each, whatever
+else a binding fills in. A field a binding does not use is None.
+
+:data:`SHAPES` gives each field's shape for one row, in the dimensions of the formulas (``NX``,
+``NU``, ``NY``, ``NK``, ``NP``, ``NV`` = NU + NY, ``NQ`` = NX + NK, ``NP1`` = NP + 1, ``LS1``
+= max(LS, 1)): the printers read it to size the blocks of a formula
+(:mod:`~thetahat.estimation.kernels.subset`), :func:`work_arrays` to allocate ``W``.
 """
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from typing import Any, NamedTuple
 
-__all__ = ["LawArrays", "PlanArrays", "SecondArrays"]
+import numpy as np
+
+__all__ = ["LawArrays", "PlanArrays", "SHAPES", "SecondArrays", "WorkArrays", "dimensions",
+           "work_arrays"]
 
 
 class PlanArrays(NamedTuple):
@@ -85,3 +94,113 @@ class LawArrays(NamedTuple):
     Gamma_rows: Any = None
     ell: Any = None
     pw: Any = None
+
+
+class WorkArrays(NamedTuple):
+    """``W``: the work buffers of one step (:func:`~thetahat.estimation.observer.formulas.advance`).
+
+    The observer's v, g, ∂g/∂x, ∂g/∂y, ∂g/∂θ, the forcing F and its rate, N, the implicit
+    step's matrix and right-hand side, φ̂, scratch of lengths r and n, z's correction, Δθ̂, θ̂⁺
+    and the law state; then the same for the second observer (suffix 2).
+    """
+
+    v: Any
+    g: Any
+    Gx: Any
+    Gy: Any
+    Gth: Any
+    F: Any
+    Fd: Any
+    Nm: Any
+    M: Any
+    rhs: Any
+    phi: Any
+    wr: Any
+    wn: Any
+    zc: Any
+    dth: Any
+    thn: Any
+    lsn: Any
+    v2: Any
+    g2: Any
+    Gx2: Any
+    Gy2: Any
+    F2: Any
+    Fd2: Any
+    N2: Any
+    M2: Any
+    rhs2: Any
+    w2: Any
+
+
+#: The shape of each field of one row, by tuple type and field (fields a printer never sizes
+#: are left out).
+SHAPES: Mapping[str, Mapping[str, tuple[str, ...]]] = {
+    "PlanArrays": {"L": ("NQ", "NQ"), "Bv": ("NQ", "NV"), "E": ("NX", "NK"), "C": ("NY", "NX"),
+                   "A": ("NX", "NX"), "B": ("NX", "NU"), "K_x": ("NX", "NY"),
+                   "KxC": ("NX", "NX"), "Phi1": ("NQ", "NQ"), "Phi2": ("NQ", "NQ")},
+    "SecondArrays": {"A": ("NX", "NX"), "B": ("NX", "NU"), "C": ("NY", "NX"),
+                     "E": ("NX", "NK"), "K_x": ("NX", "NY"), "Phi1": ("NX", "NX"),
+                     "Phi2": ("NX", "NX")},
+    "LawArrays": {"Gamma": ("NP", "NP"), "lam": ("NP",), "V": ("NP", "NP"),
+                  "VT": ("NP", "NP"), "ts": ("NP",), "err": ("NP",), "g": ("NK",),
+                  "J": ("NK", "NP"), "Mt": ("NP", "NK"), "GM": ("NP", "NK"), "f": ("NP",),
+                  "K": ("NP", "NP"), "Z": ("NP1", "NP1"), "Ex": ("NP1", "NP1"),
+                  "T": ("NP1", "NP1"), "U": ("NP1", "NP1"), "lower": ("NP",),
+                  "upper": ("NP",)},
+    "WorkArrays": {"v": ("NV",), "g": ("NK",), "Gx": ("NK", "NX"), "Gy": ("NK", "NY"),
+                   "Gth": ("NK", "NP"), "F": ("NQ",), "Fd": ("NQ",), "Nm": ("NQ", "NQ"),
+                   "M": ("NQ", "NQ"), "rhs": ("NQ",), "phi": ("NK",), "wr": ("NY",),
+                   "wn": ("NX",), "zc": ("NK",), "dth": ("NP",), "thn": ("NP",),
+                   "lsn": ("LS1",), "v2": ("NV",), "g2": ("NK",), "Gx2": ("NK", "NX"),
+                   "Gy2": ("NK", "NY"), "F2": ("NX",), "Fd2": ("NX",), "N2": ("NX", "NX"),
+                   "M2": ("NX", "NX"), "rhs2": ("NX",), "w2": ("NY",)},
+}
+
+
+def dimensions(n: int, m: int, r: int, k: int, p: int, law_size: int) -> dict[str, int]:
+    """The formulas' dimensions by name (module docstring) for a model and a law state.
+
+    Parameters
+    ----------
+    n, m, r, k, p : int
+        Dimensions of x, u, y, φ and θ.
+    law_size : int
+        Length of the update law's state.
+
+    Returns
+    -------
+    dict of str to int
+
+    Examples
+    --------
+    >>> dimensions(2, 1, 1, 1, 1, 0)["NQ"], dimensions(2, 1, 1, 1, 1, 0)["LS1"]
+    (3, 1)
+    """
+    return {"NX": n, "NU": m, "NY": r, "NK": k, "NP": p, "LS": law_size, "NV": m + r,
+            "NQ": n + k, "NP1": p + 1, "LS1": max(law_size, 1)}
+
+
+def work_arrays(dims: Mapping[str, int], lead: tuple[int, ...] = ()) -> WorkArrays:
+    """Zeroed work buffers ``W`` for rows of shape ``lead`` (one row: ``()``).
+
+    Parameters
+    ----------
+    dims : mapping of str to int
+        :func:`dimensions`.
+    lead : tuple of int
+        The batch shape.
+
+    Returns
+    -------
+    WorkArrays
+
+    Examples
+    --------
+    >>> W = work_arrays(dimensions(2, 1, 1, 1, 1, 0), (4,))
+    >>> W.Gx.shape, W.lsn.shape
+    ((4, 1, 2), (4, 1))
+    """
+    shapes = SHAPES["WorkArrays"]
+    return WorkArrays(*(np.zeros(lead + tuple(dims[d] for d in shapes[name]))
+                        for name in WorkArrays._fields))

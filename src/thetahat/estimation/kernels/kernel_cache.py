@@ -1,58 +1,37 @@
-"""Generated numba kernels on disk: compiled once per machine, not once per process.
+"""The cache of printed modules: written once per content, imported from disk, compiled once.
 
 numba caches a compiled function only when it is defined in a file, at module level, and its
-cache key is stable across processes. Two kinds of kernel in thetahat miss that: the stage-1
-observer kernel (generated source, see :mod:`~thetahat.estimation.observer.compiled`) and the stage-2
-kernels of the guarded estimator, which are closures over other kernels and over the model's
-generated ``rhs_jac`` (:mod:`~thetahat.estimation.statistical.plant_kernel`, ``ekf``, ``mle``, ``guard``,
-``crlb``); compiled afresh in every process they cost 10–20 s before the first sample.
+cache key is stable across processes. Every module thetahat prints (the formulas for NumPy
+and for numba, stage 2's plant model and kernels; :mod:`~thetahat.estimation.kernels.modules`)
+is written by :func:`load_module` to the cache directory under the hash of its text and
+imported from there (``importlib``'s ``module_from_spec`` of that file): the observer's numba
+kernel and stage 2's kernels compile once per machine instead of once per process (10–60 s
+before the first sample otherwise).
 
-:func:`load_module` writes a source text to the cache directory under its content hash and
-imports it. :func:`cached_njit` turns a kernel and everything it calls into such a module:
-each function's source (from :mod:`inspect`) is emitted at module level under a unique name,
-its free names (closure cells, module globals) bound to what they hold — another kernel
-(emitted the same way, or imported from the module that already holds it), a number, a
-NumPy array (exact ``repr`` of every float) or one of the modules ``math``/``numpy`` — and
-every function is decorated ``numba.njit(nogil=True, cache=True)``. The text is the kernel's
-exact definition, so the compiled code is the same as ``numba.njit(fn)``'s; what cannot be
-emitted that way raises :class:`KernelSourceError` and the caller compiles in memory.
+:func:`register` remembers which module a printed dispatcher lives in, so that a kernel
+printed later that calls it imports it instead of printing it again (:func:`origin`).
 """
 
 from __future__ import annotations
 
-import ast
-import builtins
 import hashlib
+import importlib.metadata
 import importlib.util
-import inspect
-import math
 import os
 import sys
 import tempfile
-import textwrap
 import types
-from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-import numpy as np
-
-from ...errors import FileAccessError, MissingExtraError, ThetahatError
+from ...errors import FileAccessError
 from ...safe_io import write_text
 
-__all__ = ["KernelSourceError", "cache_dir", "cached_njit", "kernel_module_source",
-           "load_module"]
-
-#: Modules a kernel may use by name, with the import line that binds them.
-_MODULES = {id(math): ("math", "import math"), id(np): ("np", "import numpy as np")}
+__all__ = ["cache_dir", "load_module", "origin", "register"]
 
 _loaded: dict[str, types.ModuleType] = {}
-#: id of a dispatcher made by :func:`cached_njit` -> (module name, function name, dispatcher).
+#: id of a printed dispatcher -> (module name, function name, dispatcher).
 _origin: dict[int, tuple[str, str, Any]] = {}
-
-
-class KernelSourceError(ThetahatError, ValueError):
-    """A kernel cannot be written out as module source (the caller compiles it in memory)."""
 
 
 def cache_dir() -> Path:
@@ -115,11 +94,7 @@ def load_module(source: str, prefix: str) -> types.ModuleType:
     >>> load_module("ANSWER = 42\\n", "thetahat_doc").ANSWER
     42
     """
-    try:
-        import numba
-        version = numba.__version__
-    except ImportError:
-        version = "-"
+    version = _numba_version() if "numba" in source else "-"
     digest = hashlib.sha256(f"{version}\n{source}".encode()).hexdigest()[:24]
     name = f"{prefix}_{digest}"
     mod = _loaded.get(name)
@@ -138,177 +113,49 @@ def load_module(source: str, prefix: str) -> types.ModuleType:
     return mod
 
 
-def _literal(value: Any) -> str | None:
-    """Exact source of a number or a numeric array, or None."""
-    if isinstance(value, (bool, np.bool_)):
-        return repr(bool(value))
-    if isinstance(value, (int, np.integer)):
-        return repr(int(value))
-    if isinstance(value, (float, np.floating)):
-        v = float(value)
-        return repr(v) if math.isfinite(v) else f"float({repr(v)!r})"
-    if isinstance(value, np.ndarray) and value.dtype.kind in "biuf":
-        flat = ", ".join(_literal(v) or "" for v in value.ravel().tolist())
-        return (f"np.array([{flat}], dtype=np.{value.dtype.name})"
-                f".reshape({tuple(value.shape)!r})")
-    return None
-
-
-class _Writer:
-    """Collects the module text of one kernel and its dependencies."""
-
-    def __init__(self) -> None:
-        self.imports: dict[str, None] = {}
-        self.constants: list[str] = []
-        self.functions: list[str] = []
-        self.names: dict[int, str] = {}
-
-    def value(self, ident: str, value: Any) -> str:
-        """The module-level name bound to ``value`` (emitting what it needs)."""
-        if id(value) in _MODULES:
-            alias, line = _MODULES[id(value)]
-            self.imports[line] = None
-            return alias
-        known = _origin.get(id(value))
-        if known is not None and known[2] is value:
-            module, name, _ = known
-            self.imports[f"from {module} import {name}"] = None
-            return name
-        if callable(value) and not isinstance(value, type):
-            return self.function(value)
-        text = _literal(value)
-        if text is None:
-            raise KernelSourceError(f"{ident!r} holds a {type(value).__name__}")
-        if isinstance(value, np.ndarray):
-            self.imports["import numpy as np"] = None
-        name = f"{ident}_k{len(self.constants)}"
-        self.constants.append(f"{name} = {text}")
-        return name
-
-    def function(self, fn: Any) -> str:
-        py = getattr(fn, "py_func", fn)
-        if not isinstance(py, types.FunctionType):
-            raise KernelSourceError(f"{fn!r} is not a Python function")
-        if id(py) in self.names:
-            return self.names[id(py)]
-        try:
-            tree = ast.parse(textwrap.dedent(inspect.getsource(py)))
-        except (OSError, TypeError, SyntaxError) as exc:
-            raise KernelSourceError(f"no source for {py.__name__}: {exc}") from exc
-        node = tree.body[0]
-        if not isinstance(node, ast.FunctionDef):
-            raise KernelSourceError(f"{py.__name__} is not a plain function definition")
-        name = f"{py.__name__}_f{len(self.names)}"
-        self.names[id(py)] = name
-        args = node.args
-        for a in [*args.posonlyargs, *args.args, *args.kwonlyargs, args.vararg, args.kwarg]:
-            if a is not None:
-                a.annotation = None                # annotations are not code
-        node.returns = None
-        code = py.__code__
-        local = set(code.co_varnames) | set(code.co_cellvars)
-        cells = dict(zip(code.co_freevars, (c.cell_contents for c in py.__closure__ or ())))
-        rename: dict[str, str] = {}
-        for sub in ast.walk(node):
-            if isinstance(sub, ast.FunctionDef | ast.Lambda) and sub is not node:
-                raise KernelSourceError(f"{py.__name__} defines a nested function")
-            if not isinstance(sub, ast.Name) or sub.id in local or sub.id in rename:
-                continue
-            if sub.id in cells:
-                rename[sub.id] = self.value(sub.id, cells[sub.id])
-            elif sub.id in py.__globals__:
-                rename[sub.id] = self.value(sub.id, py.__globals__[sub.id])
-            elif not hasattr(builtins, sub.id):
-                raise KernelSourceError(f"{py.__name__}: unknown name {sub.id!r}")
-        for sub in ast.walk(node):
-            if isinstance(sub, ast.Name) and sub.id in rename:
-                sub.id = rename[sub.id]
-        node.decorator_list = []
-        node.name = name
-        self.functions.append("@numba.njit(nogil=True, cache=True)\n" + ast.unparse(node))
-        return name
-
-    def source(self) -> str:
-        head = ["# Generated by thetahat.estimation.kernels.kernel_cache: do not edit.",
-                "import numba", *self.imports]
-        return "\n".join(head + [""] + self.constants + [""]
-                         + ["\n\n" + f for f in self.functions]) + "\n"
-
-
-def kernel_module_source(fn: Callable[..., Any]) -> tuple[str, str]:
-    """The module text :func:`cached_njit` compiles: ``fn`` and every kernel it calls.
-
-    Parameters
-    ----------
-    fn : callable
-        As for :func:`cached_njit`.
-
-    Returns
-    -------
-    source : str
-        Python source; each function decorated ``numba.njit(nogil=True, cache=True)``.
-    entry : str
-        The name ``fn`` has in it.
-
-    Raises
-    ------
-    KernelSourceError
-        As for :func:`cached_njit`.
-
-    Examples
-    --------
-    >>> from thetahat.estimation.kernels.kernel_cache import kernel_module_source
-    >>> def double(x):
-    ...     return 2.0 * x
-    >>> source, entry = kernel_module_source(double)
-    >>> entry, f"def {entry}(x):" in source
-    ('double_f0', True)
-    """
-    writer = _Writer()
-    entry = writer.function(fn)
-    return writer.source(), entry
-
-
-def cached_njit(fn: Callable[..., Any]) -> Any:
-    """``numba.njit(fn, nogil=True)``, compiled once per machine through a cached module.
-
-    Parameters
-    ----------
-    fn : callable
-        A kernel in numba's subset of Python: a function (or closure, or numba dispatcher)
-        whose free names are other such kernels, numbers, numeric arrays, ``math`` or ``np``.
-
-    Returns
-    -------
-    numba dispatcher
-        The function of the generated module (``cache=True``: later processes load its
-        machine code from disk).
-
-    Raises
-    ------
-    KernelSourceError
-        ``fn`` or a kernel it calls cannot be written as module source (no source, a free
-        name of another kind, a nested function).
-    MissingExtraError
-        numba is not installed (the extra ``speed``).
-
-    Examples
-    --------
-    >>> from thetahat.estimation.kernels.kernel_cache import cached_njit
-    >>> def scale(k):
-    ...     def times(x):
-    ...         return k * x
-    ...     return times
-    >>> cached_njit(scale(3.0))(2.0)
-    6.0
-    """
+def _numba_version() -> str:
+    """numba's version (part of a numba module's key: its machine code depends on it)."""
     try:
-        import numba  # noqa: F401
-    except ImportError as exc:
-        raise MissingExtraError("compiled kernels need numba: pip install 'thetahat[speed]'"
-                                ) from exc
-    source, entry = kernel_module_source(fn)
-    mod = load_module(source, "thetahat_stage2")
-    out = getattr(mod, entry)
-    _origin[id(out)] = (mod.__name__, entry, out)
-    return out
+        return importlib.metadata.version("numba")
+    except importlib.metadata.PackageNotFoundError:
+        return "-"
+
+
+def register(fn: Any, module: str, name: str) -> None:
+    """Remember that ``fn`` is ``name`` in the printed module ``module``.
+
+    Parameters
+    ----------
+    fn : object
+        A function of a module from :func:`load_module`.
+    module, name : str
+
+    Examples
+    --------
+    >>> mod = load_module("def f():\\n    return 1\\n", "thetahat_doc")
+    >>> register(mod.f, mod.__name__, "f"); origin(mod.f) == (mod.__name__, "f")
+    True
+    """
+    _origin[id(fn)] = (module, name, fn)
+
+
+def origin(fn: Any) -> tuple[str, str] | None:
+    """(module, name) of a registered function, else None.
+
+    Parameters
+    ----------
+    fn : object
+
+    Returns
+    -------
+    tuple of str or None
+
+    Examples
+    --------
+    >>> origin(len) is None
+    True
+    """
+    known = _origin.get(id(fn))
+    if known is None or known[2] is not fn:
+        return None
+    return known[0], known[1]

@@ -1,14 +1,17 @@
-"""The primitives of :mod:`~thetahat.estimation.kernels.primitives` for one row, as scalar loops.
+"""The scalar side of the vocabulary (one row), and the compiled observer's loop.
 
-Plain Python in the subset numba compiles: :mod:`~thetahat.estimation.observer.kernel_source` emits
-the source of these functions, under their primitive names, into the compiled observer's
-module, next to the formulas and the model functions. A vector is a 1-D array, a matrix a 2-D
-one, a boolean or a number is a Python scalar, and the reductions over the rows (``any_``,
-``count_``) see one row. The module also holds the compiled path's loop (:func:`kernel_run`),
-which calls the formulas' :func:`~thetahat.estimation.observer.formulas.advance`.
+The formulas printed for the ``"scalar"`` target (:mod:`~thetahat.estimation.kernels.subset`)
+write most of the vocabulary of :mod:`~thetahat.estimation.kernels.primitives` as syntax and
+their blocks as loops; what stays a call is defined here, in plain Python in the subset numba
+compiles: the pivoted elimination ``solve``, the Taylor ``expm``, an ``exp`` without libm's
+slow underflow path, ``isnan``, ``norm`` and ``sumsq`` (the length first). The module also
+holds the compiled path's loop (:func:`kernel_run`), which calls the formulas'
+:func:`~thetahat.estimation.observer.formulas.advance`. The numba module of
+:mod:`~thetahat.estimation.observer.kernel_source` and the C of :mod:`thetahat.codegen` are
+printed from these definitions.
 
 Without numba these functions run as they are (slowly): the tests compare them with the
-NumPy primitives one by one.
+NumPy side one by one.
 """
 
 from __future__ import annotations
@@ -20,7 +23,7 @@ from typing import TYPE_CHECKING, Any
 from ..status import Status
 
 if TYPE_CHECKING:                    # the argument tuples (named; every binding builds them)
-    from .kernel_args import LawArrays, PlanArrays, SecondArrays
+    from .kernel_args import LawArrays, PlanArrays, SecondArrays, WorkArrays
 
 __all__ = ["EXP_TINY_ARG", "SCALAR_PRIMITIVES"]
 
@@ -37,85 +40,11 @@ ST_SINGULAR = int(Status.SINGULAR)
 # Names of the emitted module (declared for the type checker; never assigned here).
 advance: Callable[..., int]
 within_bound: Callable[..., bool]
-g_val: Callable[..., Any]
-phi_hat: Callable[..., None]
+readout: Callable[..., None]
 NX: int
 NU: int
 NY: int
 NK: int
-
-
-def get(a: Any, i: int) -> Any:
-    return a[i]
-
-
-def put(a: Any, i: int, val: Any) -> None:
-    a[i] = val
-
-
-def get2(M: Any, i: int, j: int) -> Any:
-    return M[i, j]
-
-
-def put2(M: Any, i: int, j: int, val: Any) -> None:
-    M[i, j] = val
-
-
-def copy(n: int, a: Any, ao: int, out: Any, oo: int) -> None:
-    for i in range(n):
-        out[oo + i] = a[ao + i]
-
-
-def axpy(n: int, c: float, a: Any, ao: int, out: Any, oo: int) -> None:
-    for i in range(n):
-        out[oo + i] += c * a[ao + i]
-
-
-def fill(M: Any, val: float) -> None:
-    flat = M.reshape(M.size)
-    for i in range(M.size):
-        flat[i] = val
-
-
-def mv(M: Any, a: int, b: int, x: Any, xo: int, out: Any, oo: int, acc: int) -> None:
-    for i in range(a):
-        t = 0.0
-        for j in range(b):
-            t += M[i, j] * x[xo + j]
-        if acc == 0:
-            out[oo + i] = t
-        elif acc > 0:
-            out[oo + i] += t
-        else:
-            out[oo + i] -= t
-
-
-def mm(A: Any, B: Any, a: int, c: int, b: int, out: Any, ro: int, co: int, acc: int) -> None:
-    for i in range(a):
-        for j in range(b):
-            t = 0.0
-            for l in range(c):  # noqa: E741
-                t += A[i, l] * B[l, j]
-            if acc == 0:
-                out[ro + i, co + j] = t
-            else:
-                out[ro + i, co + j] += t
-
-
-def mmt(A: Any, B: Any, a: int, c: int, b: int, out: Any) -> None:
-    for i in range(a):
-        for j in range(b):
-            t = 0.0
-            for l in range(c):  # noqa: E741
-                t += A[i, l] * B[j, l]
-            out[i, j] = t
-
-
-def eye_minus(M: Any, q: int, c: float) -> None:
-    for i in range(q):
-        for j in range(q):
-            M[i, j] = -c * M[i, j]
-        M[i, i] += 1.0
 
 
 def solve(q: int, M: Any, rhs: Any) -> int:
@@ -191,18 +120,6 @@ def expm(q: int, Z: Any, E: Any, T: Any, U: Any) -> None:
                 E[i, j] = U[i, j]
 
 
-def where(c: bool, a: Any, b: Any) -> Any:
-    return a if c else b
-
-
-def clip(a: float, lo: float, hi: float) -> float:
-    return min(max(a, lo), hi)
-
-
-def maximum(a: float, b: float) -> float:
-    return max(a, b)
-
-
 def exp(a: float) -> float:
     # math.exp, without libm's slow underflow path (errno) below EXP_TINY_ARG: the clamp is
     # branch-free, so the compiled code never calls exp with an underflowing argument
@@ -212,15 +129,7 @@ def exp(a: float) -> float:
     return 0.0 if a < EXP_TINY_ARG else a       # NaN stays NaN
 
 
-def sqrt(a: float) -> float:
-    return math.sqrt(a)
-
-
-def absolute(a: float) -> float:
-    return abs(a)
-
-
-def norm(a: Any, n: int) -> float:
+def norm(n: int, a: Any) -> float:
     big = 0.0
     for i in range(n):
         big = max(big, abs(a[i]))
@@ -231,69 +140,40 @@ def norm(a: Any, n: int) -> float:
     return big * math.sqrt(t)
 
 
-def isfinite(a: float) -> bool:
-    return math.isfinite(a)
-
-
 def isnan(a: float) -> bool:
     return a != a
 
 
-def not_(a: bool) -> bool:
-    return not a
-
-
-def and_(a: bool, b: bool) -> bool:
-    return a and b
-
-
-def or_(a: bool, b: bool) -> bool:
-    return a or b
-
-
-def any_(b: bool) -> bool:
-    return b
-
-
-def count_(b: bool) -> int:
-    return 1 if b else 0
-
-
-def sumsq(a: Any, n: int) -> float:
+def sumsq(n: int, a: Any) -> float:
     t = 0.0
     for i in range(n):
         t += a[i] * a[i]
     return t
 
 
-#: The primitives, by name (see :data:`~thetahat.estimation.kernels.primitives.PRIMITIVES`).
+#: The scalar functions of the vocabulary, by name.
 SCALAR_PRIMITIVES: dict[str, Callable[..., Any]] = {
-    fn.__name__: fn for fn in (
-        get, put, get2, put2, copy, axpy, fill, mv, mm, mmt, eye_minus, solve, expm, where,
-        clip, maximum, exp, sqrt, absolute, norm, isfinite, isnan, not_, and_, or_, any_,
-        count_, sumsq)}
+    fn.__name__: fn for fn in (solve, expm, exp, isnan, norm, sumsq)}
 
 
 def load_phis(PH: tuple[Any, ...], j: int, P: PlanArrays, P2: SecondArrays,
               second: bool) -> None:
     """Φ₁, Φ₂ of the observer (and of the second observer) of table entry ``j`` into P, P2."""
     Phi1, Phi2, Phi1s, Phi2s = PH[0], PH[1], PH[2], PH[3]
-    Q1, Q2 = P.Phi1, P.Phi2
     for a in range(NX + NK):
         for b in range(NX + NK):
-            Q1[a, b] = Phi1[j, a, b]
-            Q2[a, b] = Phi2[j, a, b]
+            P.Phi1[a, b] = Phi1[j, a, b]
+            P.Phi2[a, b] = Phi2[j, a, b]
     if second:
-        R1, R2 = P2.Phi1, P2.Phi2
         for a in range(NX):
             for b in range(NX):
-                R1[a, b] = Phi1s[j, a, b]
-                R2[a, b] = Phi2s[j, a, b]
+                P2.Phi1[a, b] = Phi1s[j, a, b]
+                P2.Phi2[a, b] = Phi2s[j, a, b]
 
 
 def kernel_run(s0: Any, U: Any, Y: Any, dts: Any, ok: Any, plan_of: Any, PH: tuple[Any, ...],
                P: PlanArrays, P2: SecondArrays, LP: LawArrays, second: bool,
-               on_estimates: bool, foh: bool, W: tuple[Any, ...], rows: tuple[Any, ...], S: Any,
+               on_estimates: bool, foh: bool, W: WorkArrays, rows: tuple[Any, ...], S: Any,
                PHI: Any) -> tuple[int, int]:
     """The states S and φ̂ = g + z (PHI) over a record; (status, failing step).
 
@@ -306,7 +186,6 @@ def kernel_run(s0: Any, U: Any, Y: Any, dts: Any, ok: Any, plan_of: Any, PH: tup
     """
     N, size = S.shape
     s, out, u, y, u1, y1 = rows
-    C = P.C
     for j in range(size):
         s[j] = s0[j]
         S[0, j] = s0[j]
@@ -326,9 +205,8 @@ def kernel_run(s0: Any, U: Any, Y: Any, dts: Any, ok: Any, plan_of: Any, PH: tup
             y1[j] = Y[held, j]
         status = advance(P, P2, LP, s, u, y, u1, y1, dts[i], correct, foh, second,
                          on_estimates, out, W)
-        phi = W[10]
         for a in range(NK):
-            PHI[i, a] = phi[a]
+            PHI[i, a] = W.phi[a]
         if status != 0:
             return status, i
         if not within_bound(out, size):
@@ -336,20 +214,11 @@ def kernel_run(s0: Any, U: Any, Y: Any, dts: Any, ok: Any, plan_of: Any, PH: tup
         for j in range(size):
             S[i + 1, j] = out[j]
         s, out = out, s
-    v, g = W[0], W[1]
     for j in range(NU):
-        v[j] = U[N - 1, j]
+        u[j] = U[N - 1, j]
     for j in range(NY):
-        if ok[N - 1]:
-            v[NU + j] = Y[N - 1, j]
-        else:                                       # a missing last sample: y ← C x̂
-            t = 0.0
-            for c in range(NX):
-                t += C[j, c] * s[c]
-            v[NU + j] = t
-    phi = W[10]
-    g_val(v, s, 0, s, NX + NK, g)
-    phi_hat(g, s, phi)
+        y[j] = Y[N - 1, j]
+    readout(P.C, s, u, y, ok[N - 1], W.v, W.g, W.phi)     # y ← C x̂ if the last is missing
     for a in range(NK):
-        PHI[N - 1, a] = phi[a]
+        PHI[N - 1, a] = W.phi[a]
     return 0, 0

@@ -365,11 +365,11 @@ def check_theta_star(theta_star: Callable[..., Any], perturbation: Perturbation,
     >>> import numpy as np
     >>> from thetahat.model.parse import parse_perturbation
     >>> from thetahat.model.paramset import Box
-    >>> from thetahat.estimation.observer.laws import AlgebraicInversion
+    >>> from thetahat.estimation.observer.laws import algebraic_from_perturbation
     >>> from thetahat.estimation.observer.checks import check_theta_star
     >>> g = parse_perturbation("exp(theta*y) - 1", u=[], y=["y"], x=["x"], theta=["theta"])
     >>> Theta = Box([0.5], [2.0])
-    >>> law = AlgebraicInversion.from_perturbation(g, Gamma=1.0, parameter_set=Theta)
+    >>> law = algebraic_from_perturbation(g, Gamma=1.0, parameter_set=Theta)
     >>> t = np.linspace(0.0, 1.0, 101)
     >>> check_theta_star(law.theta_star, g, Theta, [[1.0]], t, None, 1.0 + t)  # y > 0: fine
     >>> check_theta_star(law.theta_star, g, Theta, [[1.0]], t, None, np.cos(4 * t))

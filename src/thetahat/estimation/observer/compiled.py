@@ -28,10 +28,11 @@ machine code. Supported:
 Everything else raises :class:`~thetahat.errors.UnsupportedError` (a NotImplementedError)
 naming the part; use the Python observer.
 
-The kernel is not a transcription: :mod:`~thetahat.estimation.observer.kernel_source` emits the
+The kernel is not a transcription: :mod:`~thetahat.estimation.observer.kernel_source` prints the
 step's formulas (:mod:`~thetahat.estimation.observer.formulas`,
-:mod:`~thetahat.estimation.observer.laws.formulas`) as written, with the scalar primitives of one row
-(:mod:`~thetahat.estimation.kernels.scalar_primitives`) and g, its Jacobians and θ* printed from their
+:mod:`~thetahat.estimation.observer.laws.formulas`) as scalar loops of one row
+(:class:`~thetahat.estimation.kernels.printer.Program`), with the scalar functions of
+:mod:`~thetahat.estimation.kernels.scalar_primitives` and g, its Jacobians and θ* printed from their
 SymPy expressions; :mod:`~thetahat.estimation.observer.kernel_data` checks the observer's parts
 and lays its :class:`~thetahat.estimation.observer.plan.StepPlan` out for the kernel, and this
 module calls it. The module is written to a cache directory (``$THETAHAT_CACHE_DIR``, default
@@ -66,7 +67,7 @@ from numpy.typing import ArrayLike, NDArray
 from ..._validate import as_vector, positive_scalar
 from ...errors import DimensionError, MissingExtraError, UnsupportedError
 from ..drive import COMPILE_MIN_SAMPLES, Backend
-from ..kernels.kernel_args import LawArrays, PlanArrays, SecondArrays
+from ..kernels.kernel_args import LawArrays, PlanArrays, SecondArrays, WorkArrays
 from ..kernels.kernel_cache import load_module
 from ..protocol import EstimateResult
 from ..status import Status
@@ -357,7 +358,7 @@ class CompiledObserver:
 _threads = threading.local()
 
 
-def _scratch(lay: StateLayout) -> tuple[tuple[FloatArray, ...], tuple[FloatArray, ...],
+def _scratch(lay: StateLayout) -> tuple[WorkArrays, tuple[FloatArray, ...],
                                         tuple[FloatArray, ...]]:
     """:func:`kernel_work` of this thread and its buffers of the φ-matrices (Φ₁, Φ₂ and the
     second observer's) of the current step (scratch only: nothing is carried between

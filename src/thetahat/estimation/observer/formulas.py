@@ -1,33 +1,37 @@
 """One sample of observer (3), update law (8) and the second observer of Sec. VI: the definition.
 
-The functions here are the step's formulas, written once over the primitives of
-:mod:`~thetahat.estimation.kernels.primitives` (``get``, ``mv``, ``solve``, ``where``, …), the model
-functions and a few constants; they hold no data and import nothing they call. Every back end
-runs these code objects:
+The functions here are the step's formulas, written once in the formulas' language
+(:mod:`~thetahat.estimation.kernels.subset`): named blocks of the state and of the work
+buffers (x̂ = ``s[0:NX]``, z, θ̂, the u and y parts of v), the plan's matrices by name
+(``P.A``, ``P.E``, ``P.K_x``, …) and block statements that read like the paper's equations
+(``F_x[:] = P.A @ x_hat + P.B @ u + P.E @ g + P.E @ z``). They hold no data and import nothing
+they call. Every back end is printed from them (:class:`~thetahat.estimation.kernels.subset.Program`):
 
 * the Python step and run (one row) and :func:`~thetahat.estimation.observer.batch_run.run_batch`
-  (B rows) bind them to the NumPy primitives (:func:`~thetahat.estimation.observer.step.advance`);
-* the compiled observer emits their source, with the scalar primitives and the model functions
-  printed from SymPy, as one numba module
-  (:mod:`~thetahat.estimation.observer.kernel_source`, :mod:`~thetahat.estimation.observer.compiled`).
+  (B rows) run them printed for NumPy (:func:`~thetahat.estimation.observer.step.advance`);
+* the compiled observer runs them printed as scalar loops, with the model functions printed
+  from SymPy, in one numba module (:mod:`~thetahat.estimation.observer.kernel_source`,
+  :mod:`~thetahat.estimation.observer.compiled`);
+* :func:`thetahat.codegen.generate_c` prints the same scalar loops as C.
 
 Free names a binding provides:
 
-* the model functions ``g_dx(v, x, xo, th, to, g, Gx)`` (g and ∂g/∂x at v, x̂ = x[xo:],
-  θ̂ = th[to:]), ``g_val(v, x, xo, th, to, g)``, ``dg_dy(v, x, xo, th, to, Gy)`` (the y columns
-  of ∂g/∂v), ``dg_dtheta(v, x, xo, th, to, Gth)``;
-* ``law_step(LP, v, x, xo, phi, th, to, dt, thn, lsn)``: the update law's step into θ̂⁺
-  (``thn``) and the law state (``lsn``, which holds the state at the start on entry); it
-  returns 0, or 1 + the number of rows where θ* is invalid under ``on_invalid='raise'``
+* the model functions ``g_dx(v, x, th, g, Gx)`` (g and ∂g/∂x at v, x̂ = ``x``, θ̂ = ``th``),
+  ``g_val(v, x, th, g)``, ``dg_dy(v, x, th, Gy)`` (the y columns of ∂g/∂v) and
+  ``dg_dtheta(v, x, th, Gth)``;
+* ``law_step(LP, v, x, phi, th, dt, thn, lsn)``: the update law's step into θ̂⁺ (``thn``) and
+  the law state (``lsn``, which holds the state at the start on entry); it returns 0, or
+  ``ST_THETA_STAR`` where θ* is invalid under ``on_invalid='raise'``
   (:mod:`~thetahat.estimation.observer.laws.formulas`);
-* the dimensions ``NX, NU, NY, NK, NP`` and ``LS`` (law state length), the implicitness γ
-  ``IMPLICITNESS``, the divergence bound ``BOUND_SQ`` (:data:`DIVERGENCE_BOUND` squared) and
-  the status codes ``ST_<NAME>`` of :class:`~thetahat.estimation.status.Status`.
+* the dimensions ``NX, NU, NY, NK, NP``, ``NV`` = NU + NY, ``NQ`` = NX + NK and ``LS`` (law
+  state length), the implicitness γ ``IMPLICITNESS``, the divergence bound ``BOUND_SQ``
+  (:data:`DIVERGENCE_BOUND` squared) and the status codes ``ST_<NAME>`` of
+  :class:`~thetahat.estimation.status.Status`.
 
-The state of a row is ``col(x̂, z, θ̂[, x̂₂][, law state])``. The plan tuples:
-``P = (L, Bv, E, C, A, B, K_x, K_x C, Φ₁, Φ₂)`` with the φ-matrices of this step (corrected,
-or the prediction's over a missing sample), ``P2 = (A, B, C, E, K_x2, Φ₁, Φ₂)`` of the second
-observer, and the work buffers ``W`` (:data:`WORK`).
+The state of a row is ``s = col(x̂, z, θ̂[, x̂₂][, law state])``. The tuples of
+:mod:`~thetahat.estimation.kernels.kernel_args`: ``P`` (the observer's plan arrays with the
+φ-matrices of this step: corrected, or the prediction's over a missing sample), ``P2`` (the
+second observer's), ``LP`` (the law's) and the work buffers ``W``.
 
 Status codes of :func:`advance` (:class:`~thetahat.estimation.status.Status`): ``ST_OK``;
 ``ST_DIVERGED`` when φ̂ is not finite; ``ST_THETA_STAR`` when θ* is invalid (the law's);
@@ -40,12 +44,11 @@ from collections.abc import Callable
 from typing import TYPE_CHECKING, Any
 
 if TYPE_CHECKING:                    # the argument tuples (named; every binding builds them)
-    from ..kernels.kernel_args import LawArrays, PlanArrays, SecondArrays
+    from ..kernels.kernel_args import LawArrays, PlanArrays, SecondArrays, WorkArrays
 
-__all__ = ["DIVERGENCE_BOUND", "FORMULAS", "WORK", "advance", "implicit_step",
-           "observer_forcing", "observer_jacobian", "second_forcing", "second_jacobian",
-           "phi_hat", "second_step",
-           "within_bound"]
+__all__ = ["CALLS", "DIVERGENCE_BOUND", "FORMULAS", "VIEWED", "advance", "implicit_step", "observer_forcing",
+           "observer_jacobian", "phi_hat", "readout", "second_forcing", "second_jacobian",
+           "second_step", "within_bound"]
 
 #: A row of the state has diverged when its Euclidean norm exceeds this (or is not finite).
 #: No observer quantity of a sensibly scaled problem comes near it, and its square (1e200)
@@ -53,26 +56,18 @@ __all__ = ["DIVERGENCE_BOUND", "FORMULAS", "WORK", "advance", "implicit_step",
 #: them report a divergence at the same sample.
 DIVERGENCE_BOUND = 1e100
 
-#: The work buffers of :func:`advance`, in order, with their shapes in the dimensions (one
-#: row; a back end adds its batch axis).
-WORK = (("v", ("NV",)), ("g", ("NK",)), ("Gx", ("NK", "NX")), ("Gy", ("NK", "NY")),
-        ("Gth", ("NK", "NP")), ("F", ("NQ",)), ("Fd", ("NQ",)), ("Nm", ("NQ", "NQ")),
-        ("M", ("NQ", "NQ")), ("rhs", ("NQ",)), ("phi", ("NK",)), ("wr", ("NY",)),
-        ("wn", ("NX",)), ("zc", ("NK",)), ("dth", ("NP",)), ("thn", ("NP",)),
-        ("lsn", ("LS1",)), ("v2", ("NV",)), ("g2", ("NK",)), ("Gx2", ("NK", "NX")),
-        ("Gy2", ("NK", "NY")), ("F2", ("NX",)), ("Fd2", ("NX",)), ("N2", ("NX", "NX")),
-        ("M2", ("NX", "NX")), ("rhs2", ("NX",)), ("w2", ("NY",)))
+#: The functions the formulas call that a binding provides, with their parameters
+#: (module docstring).
+CALLS = {"g_dx": ("v", "x", "th", "g", "Gx"), "g_val": ("v", "x", "th", "g"),
+         "dg_dy": ("v", "x", "th", "Gy"), "dg_dtheta": ("v", "x", "th", "Gth"),
+         "law_step": ("LP", "v", "x", "phi", "th", "dt", "thn", "lsn")}
+#: The parameters of those functions (and of the laws' hooks) that take a view of the state:
+#: x̂ and θ̂ (an array and an offset in the scalar code).
+VIEWED = frozenset({"x", "th"})
 
 # Names bound by a back end (declared for the type checker; never assigned here).
 Prim = Callable[..., Any]
-get: Prim
-put: Prim
-copy: Prim
-axpy: Prim
-fill: Prim
-mv: Prim
-mm: Prim
-eye_minus: Prim
+eye: Prim
 solve: Prim
 where: Prim
 isfinite: Prim
@@ -81,6 +76,7 @@ or_: Prim
 any_: Prim
 sumsq: Prim
 g_dx: Prim
+g_val: Prim
 dg_dy: Prim
 dg_dtheta: Prim
 law_step: Prim
@@ -89,6 +85,8 @@ NU: int
 NY: int
 NK: int
 NP: int
+NV: int
+NQ: int
 LS: int
 IMPLICITNESS: float
 BOUND_SQ: float
@@ -107,41 +105,46 @@ def observer_forcing(P: PlanArrays, s: Any, u: Any, y: Any, correct: bool, v: An
 
     Parameters
     ----------
-    P : tuple
-        The observer's plan arrays (module docstring).
+    P : PlanArrays
+        The observer's plan arrays.
     s : array
-        State rows.
-    u, y : array
-        Samples.
+        A state row.
+    u : array, shape (NU,)
+    y : array, shape (NY,)
+        The samples.
     correct : bool
         The sample y is present.
-    v, g, Gx, F, wr, wn : array
-        Outputs v, g, ∂g/∂x, F; scratch of lengths r and n.
+    v : array, shape (NV,)
+        Output: v = col(u, y).
+    g : array, shape (NK,)
+        Output: g(v, x̂, θ̂).
+    Gx : array, shape (NK, NX)
+        Output: ∂g/∂x.
+    F : array, shape (NQ,)
+        Output: the forcing.
+    wr : array, shape (NY,)
+        Scratch: ỹ.
+    wn : array, shape (NX,)
+        Scratch: K_x ỹ.
     """
-    L, Bv, E, C, A, Bm, Kx = P.L, P.Bv, P.E, P.C, P.A, P.B, P.K_x
-    n, k, m, r = NX, NK, NU, NY
-    q = n + k
-    copy(m, u, 0, v, 0)
+    x_hat, z, theta_hat, xz = s[0:NX], s[NX:NX + NK], s[NQ:NQ + NP], s[0:NQ]
+    v_u, v_y = v[0:NU], v[NU:NU + NY]
+    F_x, F_z = F[0:NX], F[NX:NX + NK]
+    v_u[:] = u
     if correct:
-        copy(r, y, 0, v, m)
+        v_y[:] = y
     else:
-        mv(C, r, n, s, 0, v, m, 0)                  # y ← C x̂
-    g_dx(v, s, 0, s, q, g, Gx)
+        v_y[:] = P.C @ x_hat                                 # y ← C x̂
+    g_dx(v, x_hat, theta_hat, g, Gx)
     if correct:
-        mv(L, q, q, s, 0, F, 0, 0)
-        mv(Bv, q, m + r, v, 0, F, 0, 1)
-        mv(E, n, k, g, 0, F, 0, 1)
-        copy(r, v, m, wr, 0)
-        mv(C, r, n, s, 0, wr, 0, -1)                # ỹ = y − C x̂
-        mv(Kx, n, r, wr, 0, wn, 0, 0)
-        mv(Gx, k, n, wn, 0, F, n, -1)
+        F[:] = P.L @ xz + P.Bv @ v
+        F_x += P.E @ g
+        wr[:] = v_y - P.C @ x_hat                            # ỹ = y − C x̂
+        wn[:] = P.K_x @ wr
+        F_z -= Gx @ wn                                       # − ∂g/∂x K_x ỹ
     else:
-        mv(A, n, n, s, 0, F, 0, 0)
-        mv(Bm, n, m, u, 0, F, 0, 1)
-        mv(E, n, k, g, 0, F, 0, 1)
-        mv(E, n, k, s, n, F, 0, 1)                  # E φ̂ = E (g + z)
-        for a in range(k):
-            put(F, n + a, 0.0)
+        F_x[:] = P.A @ x_hat + P.B @ u + P.E @ g + P.E @ z   # A x̂ + B u + E (g + z)
+        F_z[:] = 0.0
 
 
 def observer_jacobian(P: PlanArrays, s: Any, v: Any, correct: bool, Gx: Any, Gy: Any,
@@ -153,25 +156,28 @@ def observer_jacobian(P: PlanArrays, s: Any, v: Any, correct: bool, Gx: Any, Gy:
 
     Parameters
     ----------
-    P : tuple
-    s, v : array
-        State rows and the v of :func:`observer_forcing`.
+    P : PlanArrays
+    s : array
+        A state row.
+    v : array, shape (NV,)
+        The v of :func:`observer_forcing`.
     correct : bool
-    Gx, Gy : array
-        ∂g/∂x (input) and scratch for ∂g/∂y.
-    Nm : array
-        Output N.
+    Gx : array, shape (NK, NX)
+        ∂g/∂x (input).
+    Gy : array, shape (NK, NY)
+        Scratch for ∂g/∂y.
+    Nm : array, shape (NQ, NQ)
+        Output: N.
     """
-    E, C, KxC = P.E, P.C, P.KxC
-    n, k, r = NX, NK, NY
-    fill(Nm, 0.0)
+    x_hat, theta_hat = s[0:NX], s[NQ:NQ + NP]
+    Nm[:] = 0.0
     if correct:
-        mm(E, Gx, n, k, n, Nm, 0, 0, 0)
-        mm(Gx, KxC, k, n, n, Nm, n, 0, 0)
+        Nm[0:NX, 0:NX] = P.E @ Gx
+        Nm[NX:NX + NK, 0:NX] = Gx @ P.KxC
     else:
-        dg_dy(v, s, 0, s, n + k, Gy)
-        mm(Gy, C, k, r, n, Gx, 0, 0, 1)
-        mm(E, Gx, n, k, n, Nm, 0, 0, 0)
+        dg_dy(v, x_hat, theta_hat, Gy)
+        Gx += Gy @ P.C
+        Nm[0:NX, 0:NX] = P.E @ Gx
 
 
 def second_forcing(P2: SecondArrays, s: Any, u: Any, y: Any, correct: bool,
@@ -183,31 +189,36 @@ def second_forcing(P2: SecondArrays, s: Any, u: Any, y: Any, correct: bool,
 
     Parameters
     ----------
-    P2 : tuple
+    P2 : SecondArrays
         The second observer's plan arrays.
     s : array
-        State rows (x̂₂ after θ̂).
-    u, y : array
+        A state row (x̂₂ after θ̂).
+    u : array, shape (NU,)
+    y : array, shape (NY,)
     correct, on_estimates : bool
-    v2, g2, Gx2, F2, w2 : array
-        Outputs v̄, g, ∂g/∂x, F; scratch of length r.
+    v2 : array, shape (NV,)
+        Output: v̄.
+    g2 : array, shape (NK,)
+        Output: g(v̄, x̂₂, θ̂).
+    Gx2 : array, shape (NK, NX)
+        Output: ∂g/∂x.
+    F2 : array, shape (NX,)
+        Output: F.
+    w2 : array, shape (NY,)
+        Scratch: y − C x̂₂.
     """
-    A, Bm, C, E, K2 = P2.A, P2.B, P2.C, P2.E, P2.K_x
-    n, k, m, r = NX, NK, NU, NY
-    o2 = n + k + NP
-    copy(m, u, 0, v2, 0)
+    theta_hat, x2 = s[NQ:NQ + NP], s[NQ + NP:NQ + NP + NX]
+    v_u, v_y = v2[0:NU], v2[NU:NU + NY]
+    v_u[:] = u
     if on_estimates or not correct:
-        mv(C, r, n, s, o2, v2, m, 0)
+        v_y[:] = P2.C @ x2
     else:
-        copy(r, y, 0, v2, m)
-    g_dx(v2, s, o2, s, n + k, g2, Gx2)
-    mv(A, n, n, s, o2, F2, 0, 0)
-    mv(Bm, n, m, u, 0, F2, 0, 1)
-    mv(E, n, k, g2, 0, F2, 0, 1)
+        v_y[:] = y
+    g_dx(v2, x2, theta_hat, g2, Gx2)
+    F2[:] = P2.A @ x2 + P2.B @ u + P2.E @ g2
     if correct:
-        copy(r, y, 0, w2, 0)
-        mv(C, r, n, s, o2, w2, 0, -1)
-        mv(K2, n, r, w2, 0, F2, 0, 1)
+        w2[:] = y - P2.C @ x2
+        F2 += P2.K_x @ w2
 
 
 def second_jacobian(P2: SecondArrays, s: Any, v2: Any, correct: bool, on_estimates: bool,
@@ -216,43 +227,46 @@ def second_jacobian(P2: SecondArrays, s: Any, v2: Any, correct: bool, on_estimat
 
     Parameters
     ----------
-    P2 : tuple
-    s, v2 : array
+    P2 : SecondArrays
+    s : array
+        A state row.
+    v2 : array, shape (NV,)
     correct, on_estimates : bool
-    Gx2, Gy2 : array
-        ∂g/∂x (input, overwritten) and scratch.
-    N2 : array
+    Gx2 : array, shape (NK, NX)
+        ∂g/∂x (input, overwritten).
+    Gy2 : array, shape (NK, NY)
+        Scratch.
+    N2 : array, shape (NX, NX)
         Output.
     """
-    C, E = P2.C, P2.E
-    n, k, r = NX, NK, NY
+    theta_hat, x2 = s[NQ:NQ + NP], s[NQ + NP:NQ + NP + NX]
     if on_estimates or not correct:
-        dg_dy(v2, s, n + k + NP, s, n + k, Gy2)
-        mm(Gy2, C, k, r, n, Gx2, 0, 0, 1)
-    mm(E, Gx2, n, k, n, N2, 0, 0, 0)
+        dg_dy(v2, x2, theta_hat, Gy2)
+        Gx2 += Gy2 @ P2.C
+    N2[:] = P2.E @ Gx2
 
 
 def implicit_step(q: int, Phi1: Any, Phi2: Any, F: Any, Fd: Any, foh: bool, Nm: Any, s: Any,
-                  so: int, out: Any, M: Any, rhs: Any) -> Any:
-    """s⁺ = s + (I − γΦ₁N)⁻¹ (Φ₁F + Φ₂Ḟ) on the q entries at ``so`` (Ḟ only with ``foh``).
+                  out: Any, M: Any, rhs: Any) -> Any:
+    """s⁺ = s + (I − γΦ₁N)⁻¹ (Φ₁F + Φ₂Ḟ) on a block of q entries (Ḟ only with ``foh``).
 
     The exponential, linearly implicit step of :mod:`~thetahat.estimation.observer.discretize`.
 
     Parameters
     ----------
     q : int
-    Phi1, Phi2 : array
+    Phi1, Phi2 : array, shape (q, q)
         h φ₁(hL), h² φ₂(hL).
-    F, Fd : array
+    F, Fd : array, shape (q,)
         Forcing and its rate over the step.
     foh : bool
-    Nm : array
+    Nm : array, shape (q, q)
         State-dependent Jacobian part N.
-    s, out : array
-        Rows before and after the step.
-    so : int
-        Offset of the q entries in the rows.
-    M, rhs : array
+    s, out : array, shape (q,)
+        The block before and after the step.
+    M : array, shape (q, q)
+        Scratch.
+    rhs : array, shape (q,)
         Scratch.
 
     Returns
@@ -261,25 +275,23 @@ def implicit_step(q: int, Phi1: Any, Phi2: Any, F: Any, Fd: Any, foh: bool, Nm: 
         ``solve``'s status (per row in a batch): ``ST_OK``, or ``ST_SINGULAR`` when
         I − γΦ₁N is singular (``out`` is then not meaningful).
     """
-    mv(Phi1, q, q, F, 0, rhs, 0, 0)
+    rhs[:] = Phi1 @ F
     if foh:
-        mv(Phi2, q, q, Fd, 0, rhs, 0, 1)
-    mm(Phi1, Nm, q, q, q, M, 0, 0, 0)
-    eye_minus(M, q, IMPLICITNESS)
-    status = solve(q, M, rhs)
-    copy(q, s, so, out, so)
-    axpy(q, 1.0, rhs, 0, out, so)
+        rhs += Phi2 @ Fd
+    M[:] = eye(q) - IMPLICITNESS * (Phi1 @ Nm)
+    status = solve(M, rhs)
+    out[:] = s + rhs
     return status
 
 
 def second_step(P2: SecondArrays, s: Any, u0: Any, y0: Any, u1: Any, y1: Any, dt: float,
-                correct: bool, foh: bool, on_estimates: bool, out: Any, W: tuple[Any, ...]
+                correct: bool, foh: bool, on_estimates: bool, out: Any, W: WorkArrays
                 ) -> Any:
     """x̂₂ of the second observer (Sec. VI) from ``s`` into ``out``, driven by θ̂ of ``s``.
 
     Parameters
     ----------
-    P2 : tuple
+    P2 : SecondArrays
         The second observer's plan arrays.
     s, out : array
         State rows before and after the step (only x̂₂ is written).
@@ -287,35 +299,71 @@ def second_step(P2: SecondArrays, s: Any, u0: Any, y0: Any, u1: Any, y1: Any, dt
         Samples at the start and (``foh``) at the end of the step.
     dt : float
     correct, foh, on_estimates : bool
-    W : tuple
-        Work buffers (:data:`WORK`).
+    W : WorkArrays
+        Work buffers.
 
     Returns
     -------
     int or array of int
         The implicit step's status (:func:`implicit_step`).
     """
-    v2, g2, Gx2, Gy2, F2, Fd2, N2, M2, rhs2, w2 = W[17:]
-    n = NX
-    second_forcing(P2, s, u0, y0, correct, on_estimates, v2, g2, Gx2, F2, w2)
-    second_jacobian(P2, s, v2, correct, on_estimates, Gx2, Gy2, N2)
+    x2, x2_next = s[NQ + NP:NQ + NP + NX], out[NQ + NP:NQ + NP + NX]
+    second_forcing(P2, s, u0, y0, correct, on_estimates, W.v2, W.g2, W.Gx2, W.F2, W.w2)
+    second_jacobian(P2, s, W.v2, correct, on_estimates, W.Gx2, W.Gy2, W.N2)
     if foh:
-        second_forcing(P2, s, u1, y1, correct, on_estimates, v2, g2, Gx2, Fd2, w2)
-        for i in range(n):
-            put(Fd2, i, (get(Fd2, i) - get(F2, i)) / dt)
-    return implicit_step(n, P2.Phi1, P2.Phi2, F2, Fd2, foh, N2, s, n + NK + NP, out, M2,
-                         rhs2)
+        second_forcing(P2, s, u1, y1, correct, on_estimates, W.v2, W.g2, W.Gx2, W.Fd2, W.w2)
+        W.Fd2[:] = (W.Fd2 - W.F2) / dt
+    return implicit_step(NX, P2.Phi1, P2.Phi2, W.F2, W.Fd2, foh, W.N2, x2, x2_next, W.M2,
+                         W.rhs2)
 
 
 def phi_hat(g: Any, s: Any, phi: Any) -> None:
-    """φ̂ = g(v, x̂, θ̂) + z (3c) into ``phi``, from g and the state rows ``s``.
+    """φ̂ = g(v, x̂, θ̂) + z (3c) into ``phi``, from g and the state row ``s``.
 
     Parameters
     ----------
-    g, s, phi : array
+    g : array, shape (NK,)
+    s : array
+        A state row.
+    phi : array, shape (NK,)
+        Output.
     """
-    copy(NK, g, 0, phi, 0)
-    axpy(NK, 1.0, s, NX, phi, 0)
+    phi[:] = g + s[NX:NX + NK]
+
+
+def readout(C: Any, s: Any, u: Any, y: Any, correct: bool, v: Any, g: Any, phi: Any) -> None:
+    """φ̂ = g(v, x̂, θ̂) + z at a sample, v = col(u, y), or col(u, C x̂) when y is missing.
+
+    What a run records at its last sample (the compiled loop) and the C API's
+    ``<name>_phi_hat``.
+
+    Parameters
+    ----------
+    C : array, shape (NY, NX)
+        C of (1).
+    s : array
+        The state row.
+    u : array, shape (NU,)
+    y : array, shape (NY,)
+        The samples.
+    correct : bool
+        y is present.
+    v : array, shape (NV,)
+        Scratch: v.
+    g : array, shape (NK,)
+        Scratch: g.
+    phi : array, shape (NK,)
+        Output: φ̂.
+    """
+    x_hat, theta_hat = s[0:NX], s[NQ:NQ + NP]
+    v_u, v_y = v[0:NU], v[NU:NU + NY]
+    v_u[:] = u
+    if correct:
+        v_y[:] = y
+    else:
+        v_y[:] = C @ x_hat
+    g_val(v, x_hat, theta_hat, g)
+    phi_hat(g, s, phi)
 
 
 def within_bound(s: Any, size: int) -> Any:
@@ -323,19 +371,19 @@ def within_bound(s: Any, size: int) -> Any:
 
     Parameters
     ----------
-    s : array
+    s : array, shape (size,)
     size : int
 
     Returns
     -------
     bool or array of bool
     """
-    return sumsq(s, size) <= BOUND_SQ
+    return sumsq(s) <= BOUND_SQ
 
 
 def advance(P: PlanArrays, P2: SecondArrays, LP: LawArrays, s: Any, u0: Any,
             y0: Any, u1: Any, y1: Any, dt: float, correct: bool, foh: bool, second: bool,
-            on_estimates: bool, out: Any, W: tuple[Any, ...]) -> int:
+            on_estimates: bool, out: Any, W: WorkArrays) -> int:
     """One step of the whole estimator from ``s`` into ``out``: (3a)–(3c), (8), Sec. VI.
 
     Over a missing sample (``correct`` False) the observers predict (y ← C x̂, no injection)
@@ -343,12 +391,13 @@ def advance(P: PlanArrays, P2: SecondArrays, LP: LawArrays, s: Any, u0: Any,
 
     Parameters
     ----------
-    P, P2 : tuple
+    P : PlanArrays
+    P2 : SecondArrays
         Plan arrays of the observer and of the second observer (module docstring).
-    LP : tuple
+    LP : LawArrays
         What ``law_step`` takes (the back end's).
     s : array
-        State rows at the start of the step.
+        State row at the start of the step.
     u0, y0, u1, y1 : array
         Samples at the start and (``foh``) at the end of the step.
     dt : float
@@ -356,63 +405,64 @@ def advance(P: PlanArrays, P2: SecondArrays, LP: LawArrays, s: Any, u0: Any,
         The sample is present; first-order hold; a second observer is attached; its g sees
         C x̂₂.
     out : array
-        State rows after the step.
-    W : tuple
-        Work buffers (:data:`WORK`).
+        State row after the step.
+    W : WorkArrays
+        Work buffers.
 
     Returns
     -------
     int
         The status (module docstring).
     """
-    v, g, Gx, Gy, Gth, F, Fd, Nm, M, rhs, phi, wr, wn, zc, dth, thn, lsn = W[:17]
-    n, k, p = NX, NK, NP
-    q = n + k
-    observer_forcing(P, s, u0, y0, correct, v, g, Gx, F, wr, wn)
-    phi_hat(g, s, phi)
+    x_hat, theta_hat, xz = s[0:NX], s[NQ:NQ + NP], s[0:NQ]
+    xz_next, theta_next = out[0:NQ], out[NQ:NQ + NP]
+    at = NQ + NP + (NX if second else 0)                     # where the law state starts
+    law_state, law_next = s[at:at + LS], out[at:at + LS]
+    F, Fd, phi, thn, dth, zc = W.F, W.Fd, W.phi, W.thn, W.dth, W.zc
+    observer_forcing(P, s, u0, y0, correct, W.v, W.g, W.Gx, F, W.wr, W.wn)
+    phi_hat(W.g, s, phi)
     bad = False
-    for a in range(k):
-        bad = or_(bad, not_(isfinite(get(phi, a))))
+    for a in range(NK):
+        bad = or_(bad, not_(isfinite(phi[a])))
     if any_(bad):
         return ST_DIVERGED
-    copy(p, s, q, thn, 0)
-    copy(LS, s, q + p + (n if second else 0), lsn, 0)
-    fill(zc, 0.0)
+    thn[:] = theta_hat
+    W.lsn[0:LS] = law_state
+    zc[:] = 0.0
     if correct:
-        status = law_step(LP, v, s, 0, phi, s, q, dt, thn, lsn)
+        status = law_step(LP, W.v, x_hat, phi, theta_hat, dt, thn, W.lsn)
         if status != 0:
             return status
         moving = False
-        for i in range(p):
-            put(dth, i, get(thn, i) - get(s, q + i))
-            moving = or_(moving, get(dth, i) != 0.0)
-        if any_(moving):                            # skip ∂g/∂θ while θ̂ rests
-            dg_dtheta(v, s, 0, s, q, Gth)
-            mv(Gth, k, p, dth, 0, zc, 0, 0)
-            for a in range(k):                      # −∂g/∂θ Δθ̂/dt: (3b)'s θ̂̇ term
-                put(zc, a, where(moving, get(zc, a), 0.0) / -dt)
-    observer_jacobian(P, s, v, correct, Gx, Gy, Nm)
+        for i in range(NP):
+            dth[i] = thn[i] - theta_hat[i]
+            moving = or_(moving, dth[i] != 0.0)
+        if any_(moving):                                     # skip ∂g/∂θ while θ̂ rests
+            dg_dtheta(W.v, x_hat, theta_hat, W.Gth)
+            zc[:] = W.Gth @ dth
+            for a in range(NK):                              # −∂g/∂θ Δθ̂/dt: (3b)'s θ̂̇ term
+                zc[a] = where(moving, zc[a], 0.0) / -dt
+    observer_jacobian(P, s, W.v, correct, W.Gx, W.Gy, W.Nm)
     if foh:
-        observer_forcing(P, s, u1, y1, correct, v, g, Gx, Fd, wr, wn)
-        for i in range(q):
-            put(Fd, i, (get(Fd, i) - get(F, i)) / dt)
-    axpy(k, 1.0, zc, 0, F, n)
+        observer_forcing(P, s, u1, y1, correct, W.v, W.g, W.Gx, Fd, W.wr, W.wn)
+        Fd[:] = (Fd - F) / dt
+    F_z = F[NX:NX + NK]
+    F_z += zc
     if second:
         solved2 = second_step(P2, s, u0, y0, u1, y1, dt, correct, foh, on_estimates, out, W)
         if any_(solved2 != ST_OK):
             return ST_SINGULAR
-    solved = implicit_step(q, P.Phi1, P.Phi2, F, Fd, foh, Nm, s, 0, out, M, rhs)
+    solved = implicit_step(NQ, P.Phi1, P.Phi2, F, Fd, foh, W.Nm, xz, xz_next, W.M, W.rhs)
     if any_(solved != ST_OK):
         return ST_SINGULAR
-    copy(p, thn, 0, out, q)
-    copy(LS, lsn, 0, out, q + p + (n if second else 0))
+    theta_next[:] = thn
+    law_next[:] = W.lsn[0:LS]
     return ST_OK
 
 
-#: The formulas a back end binds, by name.
+#: The formulas a back end prints, by name.
 FORMULAS: dict[str, Callable[..., Any]] = {
     "observer_forcing": observer_forcing, "observer_jacobian": observer_jacobian,
     "second_forcing": second_forcing, "second_jacobian": second_jacobian,
     "implicit_step": implicit_step, "second_step": second_step, "phi_hat": phi_hat,
-    "within_bound": within_bound,
-    "advance": advance}
+    "readout": readout, "within_bound": within_bound, "advance": advance}

@@ -24,9 +24,9 @@ from numpy.typing import NDArray
 from ...errors import UnsupportedError
 from ...model.paramset import Ball, Box, Ellipsoid
 from ...model.perturbation import SymbolicPerturbation
-from ..kernels.kernel_args import LawArrays, PlanArrays, SecondArrays
+from ..kernels.kernel_args import (LawArrays, PlanArrays, SecondArrays, WorkArrays, dimensions,
+                                   work_arrays)
 from ..kernels.set_projection import ellipsoid_data
-from .formulas import WORK
 from .laws import ConstantLaw, GradientInversion, IntermittentInversion, SmoothRamp
 from .laws.inversion import gain_eigen
 from .laws.theta_star import ThetaStar, as_theta_star
@@ -296,7 +296,7 @@ def kernel_arrays(parts: KernelParts, plan: StepPlan
     return P, P2, LP, (sec is not None, sec is not None and sec.g_on_estimates)
 
 
-def kernel_work(lay: StateLayout) -> tuple[tuple[FloatArray, ...], tuple[FloatArray, ...]]:
+def kernel_work(lay: StateLayout) -> tuple[WorkArrays, tuple[FloatArray, ...]]:
     """Scratch of the kernel: the formulas' work buffers and the rows (s, s⁺, u, y).
 
     Parameters
@@ -305,13 +305,11 @@ def kernel_work(lay: StateLayout) -> tuple[tuple[FloatArray, ...], tuple[FloatAr
 
     Returns
     -------
-    W : tuple of ndarray
-        :data:`~thetahat.estimation.observer.formulas.WORK`.
+    W : WorkArrays
+        The formulas' work buffers (:func:`~thetahat.estimation.kernels.kernel_args.work_arrays`).
     rows : tuple of ndarray
         (s, s⁺, u, y, u₁, y₁) of one sample (u₁, y₁: the end of a first-order-hold step).
     """
-    dims = {"NX": lay.n, "NY": lay.r, "NK": lay.k, "NP": lay.p, "NV": lay.m + lay.r,
-            "NQ": lay.n + lay.k, "LS1": max(lay.law_size, 1)}
-    W = tuple(np.zeros(tuple(dims[d] for d in shape)) for _, shape in WORK)
+    W = work_arrays(dimensions(lay.n, lay.m, lay.r, lay.k, lay.p, lay.law_size))
     return W, (np.zeros(lay.size), np.zeros(lay.size), np.zeros(max(lay.m, 1)),
                np.zeros(lay.r), np.zeros(max(lay.m, 1)), np.zeros(lay.r))

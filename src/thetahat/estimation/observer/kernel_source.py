@@ -1,27 +1,27 @@
-"""The scalar back end: the step's formulas emitted, with scalar primitives, as a numba module.
+"""The scalar back end: the step's formulas printed, as scalar loops, into a numba module.
 
-:func:`kernel_source` writes one module per model and configuration: the source of the
-formulas of :mod:`~thetahat.estimation.observer.formulas` and
-:mod:`~thetahat.estimation.observer.laws.formulas` exactly as written there (``inspect.getsource``), the
-scalar primitives of :mod:`~thetahat.estimation.kernels.scalar_primitives` under their primitive
-names, the model functions g, ∂g/∂x, ∂g/∂y, ∂g/∂θ and θ* printed from their SymPy expressions
-(with common subexpressions computed once), the law's hooks (its weight, the projection onto
-Θ: a clip for a box with a diagonal Γ, the Γ⁻¹-weighted projection of
-:mod:`~thetahat.estimation.kernels.set_projection` for a ball or an ellipsoid) and the dimensions as constants. Every function is
-``numba.njit``-compiled with ``cache=True`` and inlined into the loops
-(:func:`~thetahat.estimation.kernels.scalar_primitives.kernel_run`), so that the compiled step is the
-formulas' step, specialised to one row. :mod:`~thetahat.estimation.observer.compiled` loads the
-module through :func:`~thetahat.estimation.kernels.kernel_cache.load_module`.
+:func:`kernel_source` writes one module per model and configuration: the formulas of
+:mod:`~thetahat.estimation.observer.formulas` and :mod:`~thetahat.estimation.observer.laws.formulas`
+printed for the ``"scalar"`` target of :class:`~thetahat.estimation.kernels.subset.Program`
+(block statements as loops, views as offsets, the vocabulary as syntax or the scalar
+functions of :mod:`~thetahat.estimation.kernels.scalar_primitives`), the model functions g,
+∂g/∂x, ∂g/∂y, ∂g/∂θ and θ* printed from their SymPy expressions (with common subexpressions
+computed once), the law's hooks (:func:`law_hooks`: its weight, the projection onto Θ — a
+clip for a box with a diagonal Γ, the Γ⁻¹-weighted projection of
+:mod:`~thetahat.estimation.kernels.set_projection` for a ball or an ellipsoid) and the
+dimensions as constants. Every function is ``numba.njit``-compiled with ``cache=True`` and the
+formulas are inlined into the loop (:func:`~thetahat.estimation.kernels.scalar_primitives.kernel_run`),
+so that the compiled step is the formulas' step, specialised to one row.
+:mod:`~thetahat.estimation.observer.compiled` loads the module through
+:func:`~thetahat.estimation.kernels.kernel_cache.load_module`; :mod:`thetahat.codegen` prints
+the same program (:func:`kernel_program`) as C.
 """
 
 from __future__ import annotations
 
-import ast
-import copy as copy_module
-import inspect
+import functools
 import re
-import textwrap
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from typing import Any
 
 import sympy as sp
@@ -35,22 +35,23 @@ from ..kernels import scalar_primitives
 from .discretize import IMPLICITNESS
 from .formulas import DIVERGENCE_BOUND
 from .laws.base import FAR
-from ..kernels.kernel_cache import kernel_module_source
-from ..kernels.primitives import check_aliasing
+from ..kernels.modules import ModuleText
 from ..kernels.set_projection import OBSERVER_MARGIN, project_into
+from ..kernels.printer import Program
+from ..kernels.subset import External, definition, definitions
 from ..status import status_constants
 
-__all__ = ["INLINE_FROM", "LAWS", "formula_decorator", "kernel_source", "law_source",
-           "model_source", "rewritten"]
+__all__ = ["INLINE_FROM", "LAWS", "formula_decorator", "kernel_program", "kernel_source",
+           "law_hooks", "model_source"]
 
 #: The law formulas the compiled path supports, by code (see ``compiled.KernelParts``).
 LAWS = {0: "held_law", 1: "inversion_law", 2: "inversion_law", 3: "gradient_law"}
 
 #: numba options. ``_nrt=False``: no reference counting (the kernels allocate nothing; the
-#: counting of ~30 array variables per sample took 40 % of the time). The primitives are written
-#: into the formulas as syntax (:class:`_Syntax`); the model functions and the few expression
-#: primitives left (exp, norm, sumsq) stay calls (inlining them too tripled the compile time
-#: and gained nothing measurable).
+#: counting of ~30 array variables per sample took 40 % of the time). The blocks are printed
+#: into the formulas as loops; the model functions and the scalar functions of the vocabulary
+#: (exp, norm, sumsq, expm; not solve, whose call per step cost ~60 % of the LuGre step) stay
+#: separate (inlining them too tripled the compile time and gained nothing measurable).
 _INLINE = "@njit(cache=True, error_model='numpy', _nrt=False)"
 
 #: numba from which the formulas are inlined into the loop (:func:`formula_decorator`).
@@ -88,6 +89,7 @@ def formula_decorator(version: str) -> str:
         return "@njit(cache=True, error_model='numpy', inline='always', _nrt=False)"
     return _INLINE
 
+
 class _Printer(PythonCodePrinter):
     """Python printer for numba: ``math`` functions (exp: the primitive), and no partially
     printed code."""
@@ -114,7 +116,7 @@ def _function(name: str, params: str, inputs: Sequence[tuple[str, Sequence[sp.Sy
               outputs: Sequence[tuple[str, sp.Matrix, bool]]) -> str:
     """Source of ``def name(params)`` computing ``outputs`` from ``inputs`` (one row).
 
-    ``inputs`` pairs an element template such as ``"x[xo + {}]"`` with the symbols at its
+    ``inputs`` pairs an element template such as ``"x[x_at + {}]"`` with the symbols at its
     positions 0, 1, …; ``outputs`` holds (array, matrix, is a vector): entries are written as
     ``array[i]`` or ``array[i, j]``. Common subexpressions are computed once.
     """
@@ -146,9 +148,15 @@ def _function(name: str, params: str, inputs: Sequence[tuple[str, Sequence[sp.Sy
     return "\n".join(lines) + "\n"
 
 
+#: The parameters of a printed model function before its outputs: x̂ and θ̂ are views (an
+#: array and an offset, :class:`~thetahat.estimation.kernels.subset.Program`).
+_MODEL_PARAMS = "v, x, x_at, th, th_at"
+
+
 def _model_inputs(pert: SymbolicPerturbation) -> list[tuple[str, Sequence[sp.Symbol]]]:
-    """Where the model functions read g's symbols: v = col(u, y), x̂ = x[xo:], θ̂ = th[to:]."""
-    return [("v[{}]", (*pert.u, *pert.y)), ("x[xo + {}]", pert.x), ("th[to + {}]", pert.theta)]
+    """Where the model functions read g's symbols: v = col(u, y), x̂ = x[x_at:], θ̂ = th[th_at:]."""
+    return [("v[{}]", (*pert.u, *pert.y)), ("x[x_at + {}]", pert.x),
+            ("th[th_at + {}]", pert.theta)]
 
 
 def model_source(pert: SymbolicPerturbation, theta_star: tuple[sp.Expr, ...] | None,
@@ -167,17 +175,18 @@ def model_source(pert: SymbolicPerturbation, theta_star: tuple[sp.Expr, ...] | N
     -------
     str
         Source with the signatures of :mod:`~thetahat.estimation.observer.formulas` and
-        :mod:`~thetahat.estimation.observer.laws.formulas` (``theta_star(v, x, xo, phi, ts)``).
+        :mod:`~thetahat.estimation.observer.laws.formulas` in the scalar target (x̂ and θ̂ an
+        array and an offset: ``theta_star(v, x, x_at, phi, ts)``).
 
     Examples
     --------
     >>> from thetahat.models import lugre
     >>> src = model_source(lugre.perturbation(), None, None)
-    >>> "def g_dx(v, x, xo, th, to, g, Gx):" in src
+    >>> "def g_dx(v, x, x_at, th, th_at, g, Gx):" in src
     True
     """
     n, m, r, _, _ = pert.dims
-    params = "v, x, xo, th, to"
+    params = _MODEL_PARAMS
     ins = _model_inputs(pert)
     g = sp.Matrix(pert.expr)
     Gv = pert.jacobian("v")
@@ -189,179 +198,28 @@ def model_source(pert: SymbolicPerturbation, theta_star: tuple[sp.Expr, ...] | N
                   [("Gth", pert.jacobian("theta"), False)]),
         _function("dg_dy", params + ", Gy", ins, [("Gy", Gv[:, m:m + r], False)]),
     ]
-    ts_params = "v, x, xo, phi, ts"
+    ts_params = "v, x, x_at, phi, ts"
     if theta_star is None:
         parts.append(f"{_INLINE}\ndef theta_star({ts_params}):\n"
                      "    for j in range(NP):\n        ts[j] = math.nan\n    return 0\n")
     else:
         a = ts_args or ()
-        ins = [("v[{}]", a[:m + r]), ("x[xo + {}]", a[m + r:m + r + n]),
+        ins = [("v[{}]", a[:m + r]), ("x[x_at + {}]", a[m + r:m + r + n]),
                ("phi[{}]", a[m + r + n:])]
         parts.append(_function("theta_star", ts_params, ins,
                                [("ts", sp.Matrix(theta_star), True)]))
     return "\n\n".join(parts)
 
 
-#: Block primitives expanded in place where a formula calls them as a statement (then the
-#: dimensions are constants there and the loops unroll); ``expm`` (the gradient law's, once
-#: per sample) stays a call: expanding it costs ~15 s of compile time for no measurable gain;
-#: ``solve`` stays a call because it returns a status (a zero pivot is ``ST_SINGULAR``).
-_EXPANDED = ("copy", "axpy", "fill", "mv", "mm", "mmt", "eye_minus")
-
-
-def _body(name: str) -> tuple[list[str], list[ast.stmt]]:
-    """Parameters and body statements of a scalar primitive (docstring dropped)."""
-    fn = ast.parse(textwrap.dedent(inspect.getsource(
-        scalar_primitives.SCALAR_PRIMITIVES[name]))).body[0]
-    assert isinstance(fn, ast.FunctionDef)
-    body = [st for st in fn.body
-            if not (isinstance(st, ast.Expr) and isinstance(st.value, ast.Constant))]
-    return [a.arg for a in fn.args.args], body
-
-
-class _Substitute(ast.NodeTransformer):
-    """Parameters → argument expressions, locals → fresh names (one expansion)."""
-
-    def __init__(self, args: dict[str, ast.expr], suffix: str) -> None:
-        self.args, self.suffix = args, suffix
-
-    def visit_Name(self, node: ast.Name) -> Any:
-        if node.id in self.args:
-            if not isinstance(node.ctx, ast.Load):
-                raise UnsupportedError(f"scalar primitive assigns its parameter {node.id}")
-            return copy_module.deepcopy(self.args[node.id])
-        if node.id in _GLOBAL_NAMES:
-            return node
-        return ast.Name(f"{node.id}{self.suffix}", node.ctx)
-
-
-#: Names a primitive's body may use that are not its locals.
-_GLOBAL_NAMES = frozenset({"range", "abs", "min", "max", "math", "True", "False", "None"})
-
-
-def _expand(name: str, args: Sequence[ast.expr], count: int) -> list[ast.stmt]:
-    """The statements of primitive ``name`` applied to ``args`` (its locals renamed apart)."""
-    params, body = _body(name)
-    sub = _Substitute(dict(zip(params, args)), f"__{name}{count}")
-    return [sub.visit(copy_module.deepcopy(st)) for st in body]
-
-
-class _Syntax(ast.NodeTransformer):
-    """The primitives of one row written into the formula (their scalar definitions inlined).
-
-    Element primitives become syntax: ``get(a, i)`` → ``a[i]``, ``put(a, i, v)`` →
-    ``a[i] = v``, ``where(c, a, b)`` → ``a if c else b``, ``clip(a, lo, hi)`` →
-    ``min(max(a, lo), hi)``, … exactly what :mod:`~thetahat.estimation.kernels.scalar_primitives`
-    defines them as. The block primitives used as statements (``mv``, ``mm``, ``solve``, …) are
-    expanded in place: their body, with the arguments substituted for the parameters and
-    their locals renamed apart (:func:`_expand`). The compiled step then has no call per
-    primitive, and numba need not inline them (which multiplies the compile time).
-    """
-
-    def __init__(self) -> None:
-        self.expansions = 0
-
-    def visit_Expr(self, node: ast.Expr) -> Any:
-        self.generic_visit(node)
-        call = node.value
-        if isinstance(call, ast.Call) and isinstance(call.func, ast.Name):
-            name, args = call.func.id, call.args
-            if name in _EXPANDED:
-                self.expansions += 1
-                return _expand(name, args, self.expansions)
-            if name == "put":
-                return ast.Assign(targets=[ast.Subscript(args[0], args[1], ast.Store())],
-                                  value=args[2], lineno=node.lineno)
-            if name == "put2":
-                index = ast.Tuple([args[1], args[2]], ast.Load())
-                return ast.Assign(targets=[ast.Subscript(args[0], index, ast.Store())],
-                                  value=args[3], lineno=node.lineno)
-        return node
-
-    def visit_Call(self, node: ast.Call) -> Any:
-        self.generic_visit(node)
-        if not isinstance(node.func, ast.Name):
-            return node
-        name, a = node.func.id, node.args
-        if name == "get":
-            return ast.Subscript(a[0], a[1], ast.Load())
-        if name == "get2":
-            return ast.Subscript(a[0], ast.Tuple([a[1], a[2]], ast.Load()), ast.Load())
-        if name == "where":
-            return ast.IfExp(a[0], a[1], a[2])
-        if name == "clip":
-            return _call("min", _call("max", a[0], a[1]), a[2])
-        if name in ("maximum", "absolute"):
-            return _call({"maximum": "max", "absolute": "abs"}[name], *a)
-        if name in ("sqrt", "isfinite"):
-            return ast.Call(ast.Attribute(ast.Name("math", ast.Load()), name, ast.Load()),
-                            list(a), [])
-        if name == "not_":
-            return ast.UnaryOp(ast.Not(), a[0])
-        if name in ("and_", "or_"):
-            return ast.BoolOp(ast.And() if name == "and_" else ast.Or(), list(a))
-        if name == "any_":
-            return a[0]
-        if name == "count_":
-            return ast.IfExp(a[0], ast.Constant(1), ast.Constant(0))
-        return node
-
-
-def _call(name: str, *args: ast.expr) -> ast.Call:
-    return ast.Call(ast.Name(name, ast.Load()), list(args), [])
-
-
-def rewritten(fn: Any) -> ast.Module:
-    """A formula's (or scalar primitive's) source as the scalar back end emits it: the element
-    primitives as syntax, the block primitives expanded in place (:class:`_Syntax`).
-
-    The other printers of the formulas (the C of :mod:`thetahat.codegen`) start from this tree.
-
-    Parameters
-    ----------
-    fn : function
-        A function of :mod:`~thetahat.estimation.observer.formulas`,
-        :mod:`~thetahat.estimation.observer.laws.formulas` or
-        :mod:`~thetahat.estimation.kernels.scalar_primitives`.
-
-    Returns
-    -------
-    ast.Module
-        Holding the one function definition.
-
-    Examples
-    --------
-    >>> import ast
-    >>> ast.unparse(rewritten(formulas.phi_hat)).splitlines()[-1].strip()
-    'phi[0 + i__axpy2] += 1.0 * s[NX + i__axpy2]'
-    """
-    tree = ast.parse(textwrap.dedent(inspect.getsource(fn)))
-    return ast.fix_missing_locations(_Syntax().visit(tree))
-
-
-def _source(fn: Any, name: str | None = None, decorator: str = _INLINE) -> str:
-    """A function's source at module level, decorated, optionally renamed, with the element
-    primitives as syntax (:class:`_Syntax`)."""
-    text = ast.unparse(rewritten(fn))
-    if name is not None and name != fn.__name__:
-        text = text.replace(f"def {fn.__name__}(", f"def {name}(", 1)
-    return f"{decorator}\n{text}\n"
-
-
-def law_source(law: str, form: str, user_m: bool = False,
-               ellipsoid: str | None = None) -> str:
-    """law_step and the hooks weight, freeze, project (and a stub m_matrix without a user's
-    M) for one law formula.
+def law_hooks(law: str, project_into: str | None = None) -> str:
+    """The law's hooks ``weight``, ``freeze``, ``project`` and a stub ``m_matrix`` (used when
+    the kernel has no user's M) for one law formula, in the formulas' language.
 
     Parameters
     ----------
     law : str
         A value of :data:`LAWS`.
-    form : str
-        The decorator line of each hook (empty for plain Python).
-    user_m : bool
-        The kernel has a user's M (m_matrix printed from its SymPy form); else a stub.
-    ellipsoid : str, optional
+    project_into : str, optional
         Θ is a ball or an ellipsoid: the name the module gives
         :func:`~thetahat.estimation.kernels.set_projection.project_into`, which ``project``
         calls with the metric M = ``LP.Gamma`` (the Γ⁻¹-weighted projection), Θ from
@@ -372,30 +230,82 @@ def law_source(law: str, form: str, user_m: bool = False,
     Returns
     -------
     str
-        Python source in the formulas' subset; Θ and the inversion law's options are
-        read from ``LP.lower``, ``LP.upper`` (``LP.Gamma``, ``LP.ell``) and ``LP.opts``
-        (:class:`~thetahat.estimation.kernels.kernel_args.LawArrays`).
+        Source in the formulas' language (:mod:`~thetahat.estimation.kernels.subset`); Θ and
+        the inversion law's options are read from ``LP.lower``, ``LP.upper`` (``LP.Gamma``,
+        ``LP.ell``) and ``LP.opts`` (:class:`~thetahat.estimation.kernels.kernel_args.LawArrays`).
 
     Examples
     --------
-    >>> "law_step = held_law" in law_source("held_law", "")
+    >>> "def project(LP, thn):" in law_hooks("held_law")
     True
     """
-    opts = "LP.opts"
-    weight = (f"    if {opts}[2] != 0.0:\n"
-              f"        return smoothstep(norm(phi, NK), {opts}[0], {opts}[1])\n"
-              "    return 1.0\n") if law == "inversion_law" else "    return 1.0\n"
-    freeze = f"{opts}[3] != 0.0" if law == "inversion_law" else "False"
-    project = ("    lo, hi = LP.lower, LP.upper\n"
-               "    for i in range(NP):\n        thn[i] = min(max(thn[i], lo[i]), hi[i])\n"
-               if ellipsoid is None else
-               f"    {ellipsoid}(thn, LP.Gamma, LP.lower, LP.upper, LP.ell, LP.pw, "
+    ramp = law == "inversion_law"
+    weight = ("    if LP.opts[2] != 0.0:\n"
+              "        return smoothstep(norm(phi), LP.opts[0], LP.opts[1])\n"
+              "    return 1.0\n") if ramp else "    return 1.0\n"
+    project = ("    for i in range(NP):\n"
+               "        thn[i] = clip(thn[i], LP.lower[i], LP.upper[i])\n"
+               if project_into is None else
+               f"    {project_into}(thn, LP.Gamma, LP.lower, LP.upper, LP.ell, LP.pw, "
                f"{OBSERVER_MARGIN!r})\n")
-    stub = "" if user_m else f"{form}\ndef m_matrix(v, x, xo, th, to, Mt):\n    return 0\n\n\n"
-    return (f"{form}\ndef weight(LP, v, x, xo, phi):\n{weight}\n\n"
-            f"{form}\ndef freeze(LP):\n    return {freeze}\n\n\n"
-            f"{form}\ndef project(LP, thn):\n" + project + "    return 0\n\n\n"
-            + stub + f"law_step = {law}\n")
+    return (_hook("weight", "LP, v, x, phi", "x : array\nphi : array, shape (NK,)", weight)
+            + _hook("freeze", "LP", "", f"    return {'LP.opts[3] != 0.0' if ramp else 'False'}\n")
+            + _hook("project", "LP, thn", "thn : array, shape (NP,)", project + "    return 0\n")
+            + _hook("m_matrix", "v, x, th, Mt", "x, th : array", "    return 0\n"))
+
+
+def _hook(name: str, params: str, declared: str, body: str) -> str:
+    doc = ""
+    if declared:
+        lines = "\n".join(f"    {line}" for line in declared.splitlines())
+        doc = f'    """\n    Parameters\n    ----------\n{lines}\n    """\n'
+    return f"def {name}({params}):\n{doc}{body}\n\n"
+
+
+#: The model functions the printed kernel defines from SymPy, with their parameters.
+_MODEL_CALLS = {**{name: params for name, params in formulas.CALLS.items()
+                   if name != "law_step"},
+                "theta_star": law_formulas.HOOKS["theta_star"],
+                "m_matrix": law_formulas.HOOKS["m_matrix"]}
+
+
+@functools.cache
+def kernel_program(law: str, user_m: bool = False, project_into: str | None = None) -> Program:
+    """The formulas of the compiled step for one law formula, as one program: the observer's
+    and the law's formulas, the law's hooks (:func:`law_hooks`), the scalar functions of the
+    vocabulary and the loop, with g, its Jacobians and θ* (and a user's M) defined by the
+    printed model (:func:`model_source`).
+
+    Parameters
+    ----------
+    law : str
+        A value of :data:`LAWS`.
+    user_m : bool
+        ``m_matrix`` is printed from a user's M (else the hooks' stub).
+    project_into : str, optional
+        As for :func:`law_hooks`.
+
+    Returns
+    -------
+    Program
+        ``law_step`` calls the law formula.
+
+    Examples
+    --------
+    >>> kernel_program("held_law").closure(["kernel_run"])[-1]
+    'kernel_run'
+    """
+    sources: dict[str, Callable[..., Any]] = {
+        **scalar_primitives.SCALAR_PRIMITIVES, **law_formulas.LAW_FORMULAS, **formulas.FORMULAS,
+        "load_phis": scalar_primitives.load_phis, "kernel_run": scalar_primitives.kernel_run}
+    functions = {name: definition(fn) for name, fn in sources.items()}
+    hooks = definitions(law_hooks(law, project_into), "thetahat.estimation.observer.kernel_source")
+    if user_m:
+        del hooks["m_matrix"]
+    functions.update(hooks)
+    model = {name: External(params, frozenset(params) & formulas.VIEWED)
+             for name, params in _MODEL_CALLS.items() if name != "m_matrix" or user_m}
+    return Program(functions, model, {"law_step": law})
 
 
 def kernel_source(pert: SymbolicPerturbation, theta_star: tuple[sp.Expr, ...] | None,
@@ -425,49 +335,42 @@ def kernel_source(pert: SymbolicPerturbation, theta_star: tuple[sp.Expr, ...] | 
     Returns
     -------
     str
-        A module defining ``kernel_run`` (:mod:`~thetahat.estimation.kernels.scalar_primitives`).
+        A module defining ``kernel_run`` (:mod:`~thetahat.estimation.kernels.scalar_primitives`)
+        and every formula it calls, printed for the scalar target
+        (:meth:`~thetahat.estimation.kernels.subset.Program.printed`).
     """
     n, m, r, p, k = pert.dims
-    for fn in (*law_formulas.LAW_FORMULAS.values(), *formulas.FORMULAS.values()):
-        check_aliasing(fn)
     form = formula_decorator(_numba_version())
-    header = [
-        '"""Generated by thetahat.estimation.observer.kernel_source; do not edit (content-addressed).',
-        "",
-        "The formulas are thetahat.estimation.observer.formulas and law_formulas, verbatim.", '"""',
-        "from __future__ import annotations", "",
-        "import math", "", "import numpy as np", "from numba import njit", "",
-        f"NX, NU, NY, NK, NP = {n}, {m}, {r}, {k}, {p}",
-        "NV, NQ, NP1, LS, LS1 = NU + NY, NX + NK, NP + 1, 0, 1",
-        f"IMPLICITNESS = {IMPLICITNESS!r}", f"FAR = {FAR!r}",
-        f"EXP_TINY_ARG = {scalar_primitives.EXP_TINY_ARG!r}",
-        f"BOUND_SQ = {DIVERGENCE_BOUND ** 2!r}",
-        *(f"{name} = {code}" for name, code in status_constants().items()),
-        f"USER_M = {M is not None}"]
-    parts = ["\n".join(header)]
-    # solve returns a status, so it is not expanded in place (_EXPANDED): numba inlines it
-    # like the formulas instead (a call per step costs ~60 % of the LuGre step)
-    parts += [_source(fn, name, form if name == "solve" else _INLINE)
-              for name, fn in scalar_primitives.SCALAR_PRIMITIVES.items()]
-    parts.append(model_source(pert, theta_star, ts_args))
+    text = ModuleText("Printed by thetahat.estimation.observer.kernel_source from the formulas "
+                      "of thetahat.estimation.observer; do not edit (content-addressed).",
+                      _INLINE)
+    text.import_line("import math")
+    text.import_line("from numba import njit")
+    for name, value in (("NX", n), ("NU", m), ("NY", r), ("NK", k), ("NP", p), ("NV", m + r),
+                        ("NQ", n + k), ("NP1", p + 1), ("LS", 0), ("LS1", 1),
+                        ("IMPLICITNESS", IMPLICITNESS), ("FAR", FAR),
+                        ("EXP_TINY_ARG", scalar_primitives.EXP_TINY_ARG),
+                        ("BOUND_SQ", DIVERGENCE_BOUND ** 2), *status_constants().items(),
+                        ("USER_M", M is not None)):
+        text.constant(name, repr(value))
+    entry = text.closure(project_into) if ellipsoid else None   # its one definition
+    text.text(model_source(pert, theta_star, ts_args))
     if M is not None:
-        parts.append(_function("m_matrix", "v, x, xo, th, to, Mt", _model_inputs(pert),
-                               [("Mt", sp.Matrix(M), False)]))
-    parts += [_source(fn, None, form) for fn in law_formulas.LAW_FORMULAS.values()]
-    parts += [_source(fn, None, form) for fn in formulas.FORMULAS.values()]
-    entry = None
-    if ellipsoid:                    # the one definition of the projection, emitted verbatim
-        text, entry = kernel_module_source(project_into)
-        parts.append(text)
-    parts.append(law_source(law, form, M is not None, entry))
-    parts += [_source(fn, decorator=_INLINE)
-              for fn in (scalar_primitives.load_phis, scalar_primitives.kernel_run)]
-    text = "\n\n".join(parts) + "\n"
+        text.text(_function("m_matrix", _MODEL_PARAMS + ", Mt", _model_inputs(pert),
+                            [("Mt", sp.Matrix(M), False)]))
+    program = kernel_program(law, M is not None, entry)
+    inlined = {*law_formulas.LAW_FORMULAS, *formulas.FORMULAS, "solve", "weight", "freeze",
+               "project", "m_matrix"}
+    # the scalar functions first: the model functions call exp too
+    for name in program.closure([*scalar_primitives.SCALAR_PRIMITIVES, "kernel_run"]):
+        text.function(program.printed(name, "scalar"), form if name in inlined else None)
+    text.text(f"law_step = {law}")
+    source = text.source()
     if not numba:
-        text = "\n".join(line for line in text.splitlines()
-                         if not line.startswith(("@njit(", "from numba import", "@numba.",
-                                                  "import numba"))) + "\n"
-    return text
+        source = "\n".join(line for line in source.splitlines()
+                           if not line.startswith(("@njit(", "from numba import", "@numba.",
+                                                    "import numba"))) + "\n"
+    return source
 
 
 def _numba_version() -> str:

@@ -1,11 +1,10 @@
 """One step of observer (3) with update law (8) and the second observer of Sec. VI: the NumPy
 back end of the formulas of :mod:`~thetahat.estimation.observer.formulas`.
 
-The formulas of one sample are written once, over primitives, in
-:mod:`~thetahat.estimation.observer.formulas`; this module binds them to the NumPy primitives of
-:mod:`~thetahat.estimation.kernels.primitives` (a leading batch axis) and to the model's
-:class:`~thetahat.model.perturbation.Perturbation` and update law, and runs them over B rows at
-once: the streaming
+The formulas of one sample are written once in :mod:`~thetahat.estimation.observer.formulas`;
+this module runs them printed for NumPy (:func:`~thetahat.estimation.kernels.modules.numpy_binding`:
+one row, or B rows on a leading axis), bound to the model's
+:class:`~thetahat.model.perturbation.Perturbation` and update law: the streaming
 :meth:`~thetahat.estimation.observer.observer.ModifiedHighGainObserver.step` and
 :meth:`~thetahat.estimation.observer.observer.ModifiedHighGainObserver.run` are the batch of one,
 :func:`~thetahat.estimation.observer.batch_run.run_batch` the batch of B; the constant data come from a
@@ -16,6 +15,7 @@ policy), the per-row report of a divergence, and the readout.
 
 from __future__ import annotations
 
+import functools
 import threading
 from collections import OrderedDict
 from collections.abc import Callable
@@ -28,65 +28,89 @@ from ...errors import NonFiniteError, UnsupportedError
 from ...model.perturbation import Perturbation
 from . import formulas
 from .discretize import IMPLICITNESS
-from .formulas import DIVERGENCE_BOUND, WORK
+from .formulas import DIVERGENCE_BOUND
 from .laws.inversion import invalid_theta_star_error
-from ..kernels.kernel_args import LawArrays, PlanArrays, SecondArrays
+from ..kernels.kernel_args import (LawArrays, PlanArrays, SecondArrays, WorkArrays, dimensions,
+                                   work_arrays)
+from ..kernels.modules import numpy_binding
+from ..kernels.printer import Program
+from ..kernels.subset import External, definition
 from .plan import SecondPlan, StateLayout, StepPlan
-from ..kernels.primitives import NUMPY, NUMPY_ROW, bind, bound
 from ..status import Status, status_constants
 from .laws import UpdateLaw
 
 __all__ = ["DIVERGENCE_BOUND", "advance", "diverged", "divergence_error", "integrate",
-           "observer_forcing", "readout", "second_advance", "second_forcing"]
+           "observer_forcing", "program", "readout", "second_advance", "second_forcing"]
 
 FloatArray = NDArray[np.float64]
 
 _scratch = threading.local()
-#: The divergence rule on NumPy rows (:func:`formulas.within_bound`).
-_within_bound = bind({"within_bound": formulas.within_bound},
-                     {**NUMPY, "BOUND_SQ": DIVERGENCE_BOUND ** 2})["within_bound"]
 
 
-def _model_functions(pert: Perturbation, lay: StateLayout) -> dict[str, Any]:
-    """The model functions of the formulas, evaluated by the perturbation's NumPy methods."""
-    n, m, p = lay.n, lay.m, lay.p
+@functools.cache
+def program() -> Program:
+    """The observer's formulas (:data:`formulas.FORMULAS <thetahat.estimation.observer.formulas.FORMULAS>`)
+    as one program, the model functions and the law's step provided by the binding.
 
-    def g_dx(v: FloatArray, x: FloatArray, xo: int, th: FloatArray, to: int, g: FloatArray,
+    Returns
+    -------
+    Program
+
+    Examples
+    --------
+    >>> sorted(program().viewed["implicit_step"])
+    ['out', 's']
+    """
+    calls = {name: External(params, frozenset(params) & formulas.VIEWED)
+             for name, params in formulas.CALLS.items()}
+    return Program({name: definition(fn) for name, fn in formulas.FORMULAS.items()}, calls)
+
+
+@functools.cache
+def _within_bound() -> Callable[..., Any]:
+    """The divergence rule on NumPy rows (:func:`formulas.within_bound`)."""
+    prog = program()
+    within: Callable[..., Any] = numpy_binding(
+        prog, "within_bound", prog, ["within_bound"], "batch",
+        lambda: {"BOUND_SQ": DIVERGENCE_BOUND ** 2})["within_bound"]
+    return within
+
+
+def _model_functions(pert: Perturbation) -> dict[str, Any]:
+    """The model functions of the formulas, evaluated by the perturbation's NumPy methods
+    (x̂ and θ̂ arrive as views of the state)."""
+    def g_dx(v: FloatArray, x: FloatArray, th: FloatArray, g: FloatArray,
              Gx: FloatArray) -> None:
-        xs, ts = x[..., xo:xo + n], th[..., to:to + p]
-        g[...] = pert.g(v, xs, ts)
-        Gx[...] = pert.dg_dx(v, xs, ts)
+        g[...] = pert.g(v, x, th)
+        Gx[...] = pert.dg_dx(v, x, th)
 
-    def g_val(v: FloatArray, x: FloatArray, xo: int, th: FloatArray, to: int,
-              g: FloatArray) -> None:
-        g[...] = pert.g(v, x[..., xo:xo + n], th[..., to:to + p])
+    def g_val(v: FloatArray, x: FloatArray, th: FloatArray, g: FloatArray) -> None:
+        g[...] = pert.g(v, x, th)
 
-    def dg_dy(v: FloatArray, x: FloatArray, xo: int, th: FloatArray, to: int,
-              Gy: FloatArray) -> None:
-        Gy[...] = np.asarray(pert.dg_dv(v, x[..., xo:xo + n], th[..., to:to + p]))[..., m:]
+    def dg_dy(v: FloatArray, x: FloatArray, th: FloatArray, Gy: FloatArray) -> None:
+        m = pert.dims[1]
+        Gy[...] = np.asarray(pert.dg_dv(v, x, th))[..., m:]
 
-    def dg_dtheta(v: FloatArray, x: FloatArray, xo: int, th: FloatArray, to: int,
-                  Gth: FloatArray) -> None:
-        Gth[...] = pert.dg_dtheta(v, x[..., xo:xo + n], th[..., to:to + p])
+    def dg_dtheta(v: FloatArray, x: FloatArray, th: FloatArray, Gth: FloatArray) -> None:
+        Gth[...] = pert.dg_dtheta(v, x, th)
 
     return {"g_dx": g_dx, "g_val": g_val, "dg_dy": dg_dy, "dg_dtheta": dg_dtheta}
 
 
 def _law_function(law: UpdateLaw, lay: StateLayout) -> Callable[..., int]:
     """``law_step`` of the formulas: the law's :meth:`~UpdateLaw.advance` (one Γ per row)."""
-    n, p = lay.n, lay.p
+    size = lay.law_size
 
-    def law_step(LP: LawArrays, v: FloatArray, xs: FloatArray, xo: int,
-                 phi: FloatArray, ths: FloatArray, to: int, dt: float, thn: FloatArray,
-                 lsn: FloatArray) -> int:
+    def law_step(LP: LawArrays, v: FloatArray, x: FloatArray, phi: FloatArray,
+                 th: FloatArray, dt: float, thn: FloatArray, lsn: FloatArray) -> int:
         G = LP.Gamma_rows
-        x, th = xs[..., xo:xo + n], ths[..., to:to + p]
+        state = lsn[..., :size]
         if G is None:
-            th1, ls1 = law.advance(v, x, phi, th, lsn, dt)
+            th1, ls1 = law.advance(v, x, phi, th, state, dt)
         else:
-            th1, ls1 = law.advance(v, x, phi, th, lsn, dt, Gamma=G)
+            th1, ls1 = law.advance(v, x, phi, th, state, dt, Gamma=G)
         thn[...] = th1
-        lsn[...] = ls1
+        lsn[..., :size] = ls1
         return 0
 
     return law_step
@@ -94,36 +118,40 @@ def _law_function(law: UpdateLaw, lay: StateLayout) -> Callable[..., int]:
 
 def _constants(lay: StateLayout) -> dict[str, Any]:
     """The dimensions and constants the formulas read."""
-    return {"NX": lay.n, "NU": lay.m, "NY": lay.r, "NK": lay.k, "NP": lay.p,
-            "LS": lay.law_size, "IMPLICITNESS": IMPLICITNESS,
-            "BOUND_SQ": DIVERGENCE_BOUND ** 2, **status_constants()}
+    return {**dimensions(lay.n, lay.m, lay.r, lay.k, lay.p, lay.law_size),
+            "IMPLICITNESS": IMPLICITNESS, "BOUND_SQ": DIVERGENCE_BOUND ** 2,
+            **status_constants()}
+
+
+#: What the formulas are printed for without a law (the forcing of ``rhs``, Sec. VI alone),
+#: and with one.
+_ROOTS = {False: ("observer_forcing", "second_forcing", "second_step"), True: ("advance",)}
 
 
 def _binding(pert: Perturbation, law: UpdateLaw | None, lay: StateLayout, row: bool
              ) -> dict[str, Any]:
-    """The formulas bound to NumPy (for one row, or a batch), the perturbation and the law
-    (kept while in use)."""
+    """The formulas printed for NumPy (one row, or a batch) and bound to the perturbation
+    and the law (kept while in use)."""
     def names() -> dict[str, Any]:
-        out: dict[str, Any] = {**(NUMPY_ROW if row else NUMPY), **_model_functions(pert, lay),
-                               **_constants(lay)}
-        if law is not None:       # the namespace holds the law: its id stays unique
+        out: dict[str, Any] = {**_model_functions(pert), **_constants(lay)}
+        if law is not None:       # the binding holds the law: its id stays unique
             out["law_step"] = _law_function(law, lay)
         return out
 
-    return bound(pert, (id(law), lay, row), formulas.FORMULAS, names)
+    prog = program()
+    return numpy_binding(pert, (id(law), lay, row), prog, _ROOTS[law is not None],
+                         "row" if row else "batch", names)
 
 
-def _work(lay: StateLayout, lead: tuple[int, ...]) -> tuple[FloatArray, ...]:
+def _work(lay: StateLayout, lead: tuple[int, ...]) -> WorkArrays:
     """Scratch buffers of :func:`formulas.advance` for rows of shape ``lead`` (per thread)."""
-    cache: dict[Any, tuple[FloatArray, ...]] | None = getattr(_scratch, "work", None)
+    cache: dict[Any, WorkArrays] | None = getattr(_scratch, "work", None)
     if cache is None:
         cache = _scratch.work = {}
     key = (lay.n, lay.m, lay.r, lay.k, lay.p, lay.law_size, lead)
     W = cache.get(key)
     if W is None:
-        dims = {"NX": lay.n, "NY": lay.r, "NK": lay.k, "NP": lay.p, "NV": lay.m + lay.r,
-                "NQ": lay.n + lay.k, "LS1": lay.law_size}
-        W = tuple(np.zeros(lead + tuple(dims[d] for d in shape)) for _, shape in WORK)
+        W = work_arrays(dimensions(lay.n, lay.m, lay.r, lay.k, lay.p, lay.law_size), lead)
         if len(cache) > 32:
             cache.clear()
         cache[key] = W
@@ -375,8 +403,7 @@ def advance(plan: StepPlan, pert: Perturbation, law: UpdateLaw, s: FloatArray, u
                              y0[i:i + 1], dt, correct, None if u1 is None else u1[i:i + 1],
                              None if y1 is None else y1[i:i + 1])[0]
         return out
-    phi = W[10]
-    finite = np.isfinite(phi).all(axis=-1)
+    finite = np.isfinite(W.phi).all(axis=-1)
     out = np.full_like(s, np.nan)
     good = np.flatnonzero(finite)
     if good.size:
@@ -404,11 +431,12 @@ def diverged(s: FloatArray) -> NDArray[np.bool_]:
     [False, True, True]
     """
     with np.errstate(over="ignore", invalid="ignore"):
+        within = _within_bound()
         if s.ndim == 1:
-            return np.array(not _within_bound(s, s.shape[-1]))
-        if _within_bound(s.reshape(-1), s.size):   # every row is fine: one dot product decides
+            return np.array(not within(s, s.shape[-1]))
+        if within(s.reshape(-1), s.size):          # every row is fine: one dot product decides
             return np.zeros(s.shape[0], dtype=bool)
-        return ~_within_bound(s, s.shape[-1])
+        return ~within(s, s.shape[-1])
 
 
 def divergence_error(where: str) -> NonFiniteError:

@@ -10,8 +10,11 @@ x_k → x_{k+1} with its exact derivatives Φ = ∂x_{k+1}/∂x_k and Γ = ∂x_
 variational equations of the discrete map). :func:`model_kernel` derives all of them once
 from a :class:`~thetahat.model.system.PerturbedLinearSystem` whose perturbation is a
 :class:`~thetahat.model.perturbation.SymbolicPerturbation`: SymPy differentiates, common
-subexpressions are eliminated and SymPy's Python printer writes the scalar code; with numba
-installed (extra ``speed``) the code is compiled, otherwise it runs as plain Python.
+subexpressions are eliminated and SymPy's Python printer writes the scalar code of
+``rhs_jac``, which is printed with the RK4 kernels of this module (:func:`stage_jac`,
+:func:`propagate`, :func:`spectral_radius_bound`) into one module, imported from the cache of
+printed modules (:mod:`~thetahat.estimation.kernels.modules`); with numba installed (extra
+``speed``) its functions are compiled (once per machine), otherwise they run as plain Python.
 
 The sampled-data map is classical RK4 with u interpolated linearly between the samples
 (first-order hold) and a number of sub-steps chosen per sample from the spectral radius ρ of
@@ -24,8 +27,6 @@ those of the computed trajectory.
 
 from __future__ import annotations
 
-import hashlib
-import linecache
 import math
 from dataclasses import dataclass
 from typing import Any, Callable
@@ -38,9 +39,11 @@ from sympy.printing.pycode import PythonCodePrinter
 from ...errors import DimensionError, FileAccessError, MissingExtraError
 from ...model.perturbation import SymbolicPerturbation
 from ...model.system import PerturbedLinearSystem
-from ..kernels.kernel_cache import KernelSourceError, cached_njit
+from ..kernels.kernel_cache import load_module, register
+from ..kernels.modules import KernelSourceError, ModuleText, cached_njit
 
-__all__ = ["ModelKernel", "model_kernel", "have_numba", "jit", "spectral_radius_bound"]
+__all__ = ["ModelKernel", "model_kernel", "have_numba", "jit", "propagate",
+           "spectral_radius_bound", "stage_jac"]
 
 FloatArray = NDArray[np.float64]
 
@@ -79,9 +82,9 @@ def jit(fn: Callable[..., Any], compiled: bool) -> Callable[..., Any]:
     -------
     callable
         The compiled dispatcher (releasing the GIL, so a fit on a worker thread runs
-        alongside the caller), or ``fn``. It comes from a generated module cached on disk
-        (:func:`~thetahat.estimation.kernels.kernel_cache.cached_njit`), so later processes load the
-        machine code instead of compiling; a kernel that cannot be written out that way is
+        alongside the caller), or ``fn``. It comes from a printed module cached on disk
+        (:func:`~thetahat.estimation.kernels.modules.cached_njit`), so later processes load the
+        machine code instead of compiling; a kernel that cannot be printed that way is
         compiled in memory.
     """
     if not compiled:
@@ -186,101 +189,166 @@ def spectral_radius_bound(F: FloatArray) -> float:
     return rho
 
 
-def _make_propagate(rhs_jac: Callable[..., None], compiled: bool) -> Callable[..., Any]:
-    radius = jit(spectral_radius_bound, compiled)
+# Names of the printed plant module (declared for the type checker; never assigned here).
+rhs_jac: Callable[..., None]
 
-    def stage_jac(Fx, Ft, Phi, Gam, Dx_prev, Dt_prev, c, Dx, Dt):
-        """Dx = Fx (Φ + c Dx_prev), Dt = Fx (Γ + c Dt_prev) + Ft (c = 0: no previous stage);
-        Dt's columns only (none: Φ alone)."""
-        n = Fx.shape[0]
-        p = Dt.shape[1]
+
+def stage_jac(Fx: Any, Ft: Any, Phi: Any, Gam: Any, Dx_prev: Any, Dt_prev: Any, c: float,
+              Dx: Any, Dt: Any) -> None:
+    """One RK4 stage of the variational equations: Dx = Fx (Φ + c Dx_prev),
+    Dt = Fx (Γ + c Dt_prev) + Ft (c = 0: no previous stage); Dt's columns only (none: Φ alone).
+
+    Parameters
+    ----------
+    Fx : ndarray, shape (n, n)
+    Ft : ndarray, shape (n, p)
+        ∂f/∂x and ∂f/∂θ at the stage.
+    Phi : ndarray, shape (n, n)
+    Gam : ndarray, shape (n, pg)
+        Φ and Γ at the start of the sub-step.
+    Dx_prev : ndarray, shape (n, n)
+    Dt_prev : ndarray, shape (n, pg)
+        The previous stage's derivatives.
+    c : float
+        The stage's weight of the previous stage (0, dt/2 or dt).
+    Dx : ndarray, shape (n, n)
+    Dt : ndarray, shape (n, pg)
+        Output.
+    """
+    n = Fx.shape[0]
+    p = Dt.shape[1]
+    for i in range(n):
+        for j in range(n):
+            s = 0.0
+            for k in range(n):
+                s += Fx[i, k] * (Phi[k, j] + c * Dx_prev[k, j])
+            Dx[i, j] = s
+        for j in range(p):
+            s = Ft[i, j]
+            for k in range(n):
+                s += Fx[i, k] * (Gam[k, j] + c * Dt_prev[k, j])
+            Dt[i, j] = s
+
+
+def propagate(x: Any, th: Any, u0: Any, u1: Any, h: float, h_rho: float, want_jac: bool,
+              Phi: Any, Gam: Any) -> Any:
+    """x(t + h) by RK4 sub-steps, u linear from u0 to u1; Φ, Γ in place if ``want_jac``.
+
+    Runs in the printed plant module, where ``rhs_jac`` is the model's
+    (:attr:`ModelKernel.propagate`).
+
+    Parameters
+    ----------
+    x : ndarray, shape (n,)
+    th : ndarray, shape (p,)
+    u0, u1 : ndarray, shape (m,)
+        Inputs at the start and the end of the sample.
+    h : float
+        The sample's length.
+    h_rho : float
+        Bound on h ρ per sub-step (``H_RHO``).
+    want_jac : bool
+    Phi : ndarray, shape (n, n)
+    Gam : ndarray, shape (n, pg)
+        Output: Φ = ∂x_next/∂x and Γ's first pg columns (pg = 0: Φ alone).
+
+    Returns
+    -------
+    ndarray, shape (n,)
+        x_next.
+    """
+    n = x.shape[0]
+    p = th.shape[0]
+    pg = Gam.shape[1]
+    m = u0.shape[0]
+    Fx = np.empty((n, n))
+    Ft = np.empty((n, p))
+    k1 = np.empty(n)
+    k2 = np.empty(n)
+    k3 = np.empty(n)
+    k4 = np.empty(n)
+    xs = np.empty(n)
+    ua = np.empty(m)
+    rhs_jac(x, u0, th, k1, Fx, Ft)
+    ratio = h * spectral_radius_bound(Fx) / h_rho
+    ns = int(math.ceil(ratio)) if ratio < 500.0 else 500
+    ns = max(ns, 1)
+    dt = h / ns
+    xa = x.copy()
+    D1x = np.zeros((n, n))
+    D2x = np.zeros((n, n))
+    D3x = np.zeros((n, n))
+    D4x = np.zeros((n, n))
+    D1t = np.zeros((n, pg))
+    D2t = np.zeros((n, pg))
+    D3t = np.zeros((n, pg))
+    D4t = np.zeros((n, pg))
+    if want_jac:
         for i in range(n):
             for j in range(n):
-                s = 0.0
-                for k in range(n):
-                    s += Fx[i, k] * (Phi[k, j] + c * Dx_prev[k, j])
-                Dx[i, j] = s
-            for j in range(p):
-                s = Ft[i, j]
-                for k in range(n):
-                    s += Fx[i, k] * (Gam[k, j] + c * Dt_prev[k, j])
-                Dt[i, j] = s
-
-    stage = jit(stage_jac, compiled)
-
-    def propagate(x, th, u0, u1, h, h_rho, want_jac, Phi, Gam):  # noqa: PLR0913
-        """x(t + h) by RK4 sub-steps, u linear from u0 to u1; Φ, Γ in place if want_jac
-        (Γ's columns only: a Gam of shape (n, 0) asks for Φ alone)."""
-        n = x.shape[0]
-        p = th.shape[0]
-        pg = Gam.shape[1]
-        m = u0.shape[0]
-        Fx = np.empty((n, n))
-        Ft = np.empty((n, p))
-        k1 = np.empty(n)
-        k2 = np.empty(n)
-        k3 = np.empty(n)
-        k4 = np.empty(n)
-        xs = np.empty(n)
-        ua = np.empty(m)
-        rhs_jac(x, u0, th, k1, Fx, Ft)
-        ratio = h * radius(Fx) / h_rho
-        ns = int(math.ceil(ratio)) if ratio < 500.0 else 500
-        ns = max(ns, 1)
-        dt = h / ns
-        xa = x.copy()
-        D1x = np.zeros((n, n))
-        D2x = np.zeros((n, n))
-        D3x = np.zeros((n, n))
-        D4x = np.zeros((n, n))
-        D1t = np.zeros((n, pg))
-        D2t = np.zeros((n, pg))
-        D3t = np.zeros((n, pg))
-        D4t = np.zeros((n, pg))
+                Phi[i, j] = 1.0 if i == j else 0.0
+            for j in range(pg):
+                Gam[i, j] = 0.0
+    for s in range(ns):
+        a = s / ns
+        for j in range(m):
+            ua[j] = u0[j] + a * (u1[j] - u0[j])
+        rhs_jac(xa, ua, th, k1, Fx, Ft)
         if want_jac:
+            stage_jac(Fx, Ft, Phi, Gam, D1x, D1t, 0.0, D1x, D1t)
+        for j in range(m):
+            ua[j] = u0[j] + (a + 0.5 / ns) * (u1[j] - u0[j])
+        for i in range(n):
+            xs[i] = xa[i] + 0.5 * dt * k1[i]
+        rhs_jac(xs, ua, th, k2, Fx, Ft)
+        if want_jac:
+            stage_jac(Fx, Ft, Phi, Gam, D1x, D1t, 0.5 * dt, D2x, D2t)
+        for i in range(n):
+            xs[i] = xa[i] + 0.5 * dt * k2[i]
+        rhs_jac(xs, ua, th, k3, Fx, Ft)
+        if want_jac:
+            stage_jac(Fx, Ft, Phi, Gam, D2x, D2t, 0.5 * dt, D3x, D3t)
+        for j in range(m):
+            ua[j] = u0[j] + (a + 1.0 / ns) * (u1[j] - u0[j])
+        for i in range(n):
+            xs[i] = xa[i] + dt * k3[i]
+        rhs_jac(xs, ua, th, k4, Fx, Ft)
+        if want_jac:
+            stage_jac(Fx, Ft, Phi, Gam, D3x, D3t, dt, D4x, D4t)
             for i in range(n):
                 for j in range(n):
-                    Phi[i, j] = 1.0 if i == j else 0.0
+                    Phi[i, j] += dt / 6.0 * (D1x[i, j] + 2.0 * D2x[i, j] + 2.0 * D3x[i, j]
+                                             + D4x[i, j])
                 for j in range(pg):
-                    Gam[i, j] = 0.0
-        for s in range(ns):
-            a = s / ns
-            for j in range(m):
-                ua[j] = u0[j] + a * (u1[j] - u0[j])
-            rhs_jac(xa, ua, th, k1, Fx, Ft)
-            if want_jac:
-                stage(Fx, Ft, Phi, Gam, D1x, D1t, 0.0, D1x, D1t)
-            for j in range(m):
-                ua[j] = u0[j] + (a + 0.5 / ns) * (u1[j] - u0[j])
-            for i in range(n):
-                xs[i] = xa[i] + 0.5 * dt * k1[i]
-            rhs_jac(xs, ua, th, k2, Fx, Ft)
-            if want_jac:
-                stage(Fx, Ft, Phi, Gam, D1x, D1t, 0.5 * dt, D2x, D2t)
-            for i in range(n):
-                xs[i] = xa[i] + 0.5 * dt * k2[i]
-            rhs_jac(xs, ua, th, k3, Fx, Ft)
-            if want_jac:
-                stage(Fx, Ft, Phi, Gam, D2x, D2t, 0.5 * dt, D3x, D3t)
-            for j in range(m):
-                ua[j] = u0[j] + (a + 1.0 / ns) * (u1[j] - u0[j])
-            for i in range(n):
-                xs[i] = xa[i] + dt * k3[i]
-            rhs_jac(xs, ua, th, k4, Fx, Ft)
-            if want_jac:
-                stage(Fx, Ft, Phi, Gam, D3x, D3t, dt, D4x, D4t)
-                for i in range(n):
-                    for j in range(n):
-                        Phi[i, j] += dt / 6.0 * (D1x[i, j] + 2.0 * D2x[i, j] + 2.0 * D3x[i, j]
-                                                 + D4x[i, j])
-                    for j in range(pg):
-                        Gam[i, j] += dt / 6.0 * (D1t[i, j] + 2.0 * D2t[i, j] + 2.0 * D3t[i, j]
-                                                 + D4t[i, j])
-            for i in range(n):
-                xa[i] += dt / 6.0 * (k1[i] + 2.0 * k2[i] + 2.0 * k3[i] + k4[i])
-        return xa
+                    Gam[i, j] += dt / 6.0 * (D1t[i, j] + 2.0 * D2t[i, j] + 2.0 * D3t[i, j]
+                                             + D4t[i, j])
+        for i in range(n):
+            xa[i] += dt / 6.0 * (k1[i] + 2.0 * k2[i] + 2.0 * k3[i] + k4[i])
+    return xa
 
-    return jit(propagate, compiled)
+
+#: The decorator of the printed plant module's functions when compiled.
+_NJIT = "@numba.njit(nogil=True, cache=True)"
+
+
+def _plant_module(source: str, compiled: bool) -> Any:
+    """The printed plant module: ``rhs_jac`` (``source``) and the RK4 kernels, compiled or
+    plain Python, imported from the cache."""
+    text = ModuleText("Printed by thetahat.estimation.statistical.plant_kernel: the plant "
+                      "model of one system; do not edit (content-addressed).",
+                      _NJIT if compiled else None)
+    text.import_line("import math")
+    text.import_line("import numpy as np")
+    if compiled:
+        text.import_line("import numba")
+    text.text(((_NJIT + "\n") if compiled else "") + source)
+    for fn in (spectral_radius_bound, stage_jac, propagate):
+        text.definition(fn)
+    mod = load_module(text.source(), "thetahat_plant")
+    if compiled:
+        for name in ("rhs_jac", "propagate"):
+            register(getattr(mod, name), mod.__name__, name)
+    return mod
 
 
 @dataclass(frozen=True, slots=True, eq=False)
@@ -387,15 +455,9 @@ def model_kernel(system: PerturbedLinearSystem, *, compiled: bool | None = None)
     hit = _CACHE.get(key)
     if hit is not None:
         return hit
-    namespace: dict[str, Any] = {"math": math}
-    # the source is ours (SymPy's printer on the model's expressions), never user text; it is
-    # registered with linecache so that kernel_cache can write it into a cached module
-    filename = f"<thetahat stage-2 model {hashlib.sha256(source.encode()).hexdigest()[:16]}>"
-    linecache.cache[filename] = (len(source), None, source.splitlines(True), filename)
-    exec(compile(source, filename, "exec"), namespace)  # noqa: S102
-    rhs_jac = jit(namespace["rhs_jac"], use)
+    mod = _plant_module(source, use)
     kern = ModelKernel(n=system.n, m=system.m, r=system.r, p=system.p,
-                       C=C, compiled=use, rhs_jac=rhs_jac,
-                       propagate=_make_propagate(rhs_jac, use), source=source)
+                       C=C, compiled=use, rhs_jac=mod.rhs_jac, propagate=mod.propagate,
+                       source=source)
     _CACHE[key] = kern
     return kern

@@ -13,10 +13,11 @@ from __future__ import annotations
 
 from .gradient import GradientInversion
 from .inversion import (WEIGHT_TOL, AlgebraicInversion, IntermittentInversion, SmoothRamp,
-                        invalid_theta_star_error, smooth_ramp)
+                        algebraic_from_perturbation, invalid_theta_star_error, smooth_ramp)
 from .base import FAR, INIT_RTOL, ConstantLaw, UpdateLaw
 from .least_squares import FilteredLeastSquares
 
-__all__ = ["UpdateLaw", "ConstantLaw", "AlgebraicInversion", "IntermittentInversion",
+__all__ = ["UpdateLaw", "ConstantLaw", "AlgebraicInversion", "algebraic_from_perturbation",
+           "IntermittentInversion",
            "GradientInversion", "FilteredLeastSquares", "SmoothRamp", "invalid_theta_star_error", "smooth_ramp",
            "FAR", "INIT_RTOL", "WEIGHT_TOL"]

@@ -8,9 +8,11 @@ The laws of Propositions 1–4 live in :mod:`~thetahat.estimation.observer.laws.
 
 from __future__ import annotations
 
+import functools
 from abc import ABC, abstractmethod
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import final
+from typing import Any, final
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -19,15 +21,17 @@ from ...._validate import check_finite, positive_scalar
 from ....errors import DimensionError, ParameterSetError, UpdateLawError
 from ....model.paramset import Box, ParameterSet
 from ....model.system import PerturbedLinearSystem
+from .. import formulas
 from . import formulas as law_formulas
 from ...kernels.kernel_args import LawArrays
-from .formulas import LAW_FORMULAS
-from ...kernels.primitives import NUMPY, bind, bound
+from ...kernels.modules import numpy_binding
+from ...kernels.printer import Program
+from ...kernels.subset import External, definition
 from .projection import Projection, Saturation
 
 __all__ = ["FAR", "INIT_RTOL", "ConstantLaw", "UpdateLaw", "apply_saturation", "as_batch",
            "broadcast_rows", "check_law_options", "finite_candidate", "is_diagonal",
-           "project_rows"]
+           "law_binding", "law_program", "project_rows"]
 
 FloatArray = NDArray[np.float64]
 
@@ -39,9 +43,52 @@ INIT_RTOL = 1e-12
 #: finite.
 FAR = 1e300
 
-#: :func:`law_formulas.finite_candidate` on NumPy arrays.
-_finite_candidate = bind({"finite_candidate": law_formulas.finite_candidate},
-                         {**NUMPY, "FAR": FAR})["finite_candidate"]
+
+
+@functools.cache
+def law_program() -> Program:
+    """The law formulas (:data:`~thetahat.estimation.observer.laws.formulas.LAW_FORMULAS`) as
+    one program, their hooks provided by the binding.
+
+    Returns
+    -------
+    Program
+
+    Examples
+    --------
+    >>> law_program().closure(["held_law"])
+    ['held_law']
+    """
+    hooks = {name: External(params, frozenset(params) & formulas.VIEWED)
+             for name, params in law_formulas.HOOKS.items()}
+    return Program({name: definition(fn) for name, fn in law_formulas.LAW_FORMULAS.items()},
+                   hooks)
+
+
+def law_binding(owner: object, key: Any, roots: tuple[str, ...], row: bool,
+                names: Callable[[], dict[str, Any]]) -> dict[str, Any]:
+    """Law formulas ``roots`` printed for NumPy (one row or a batch), bound to ``names()``
+    once per ``(owner, key, row)`` (:func:`~thetahat.estimation.kernels.modules.numpy_binding`).
+
+    Parameters
+    ----------
+    owner : object
+        The law (kept alive with the binding).
+    key : hashable
+    roots : tuple of str
+        Names of :data:`~thetahat.estimation.observer.laws.formulas.LAW_FORMULAS`.
+    row : bool
+        One row (vectors of shape (p,)), else rows on a leading axis.
+    names : callable
+        The hooks and constants.
+
+    Returns
+    -------
+    dict of str to function
+    """
+    prog = law_program()
+    return numpy_binding(owner, (key, roots, row), prog, roots, "row" if row else "batch",
+                         names)
 
 
 def as_batch(v: ArrayLike, x_hat: ArrayLike, phi_hat: ArrayLike, theta_hat: ArrayLike,
@@ -133,7 +180,10 @@ def finite_candidate(cand: FloatArray, fallback: FloatArray) -> FloatArray:
     [1.0, 1e+300]
     """
     out = np.array(cand, dtype=np.float64, copy=True)
-    _finite_candidate(out.shape[-1], out, np.broadcast_to(fallback, out.shape), 0)
+    p = out.shape[-1]
+    fn = law_binding(law_program(), p, ("finite_candidate",), False,
+                     lambda: {"NP": p, "FAR": FAR})["finite_candidate"]
+    fn(out, np.broadcast_to(fallback, out.shape))
     return out
 
 
@@ -451,8 +501,8 @@ class ConstantLaw(UpdateLaw):
         positive_scalar("dt", dt)
         v_, x, phi, th, batch = as_batch(v, x_hat, phi_hat, theta_hat, self.parameter_set.dim)
         thn = np.empty(batch + th.shape[-1:])
-        env = bound(self, None, LAW_FORMULAS, lambda: _held_names(self))
-        env["held_law"](LawArrays(), v_, x, 0, phi, np.broadcast_to(th, thn.shape), 0, dt, thn, None)
+        env = law_binding(self, None, ("held_law",), False, lambda: _held_names(self))
+        env["held_law"](LawArrays(), v_, x, phi, np.broadcast_to(th, thn.shape), dt, thn, None)
         return thn
 
     def init(self, theta_hat0: ArrayLike | None = None) -> FloatArray:
@@ -460,10 +510,10 @@ class ConstantLaw(UpdateLaw):
         return UpdateLaw.init(self, self.theta if theta_hat0 is None else theta_hat0)
 
 
-def _held_names(law: ConstantLaw) -> dict[str, object]:
-    """The NumPy namespace of :func:`law_formulas.held_law` for one law."""
+def _held_names(law: ConstantLaw) -> dict[str, Any]:
+    """The hooks of :func:`law_formulas.held_law` for one law."""
     def project(LP: LawArrays, thn: FloatArray) -> int:
         thn[...] = law.parameter_set.nearest(thn)
         return 0
 
-    return {**NUMPY, "project": project, "NP": law.parameter_set.dim}
+    return {"project": project, "NP": law.parameter_set.dim}

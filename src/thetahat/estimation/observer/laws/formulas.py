@@ -1,22 +1,23 @@
 """The steps of the update laws of Propositions 1–4 and of the projection, written once.
 
-Like :mod:`~thetahat.estimation.observer.formulas`, these are plain functions over the primitives of
-:mod:`~thetahat.estimation.kernels.primitives`; the NumPy laws
+Like :mod:`~thetahat.estimation.observer.formulas`, these are plain functions in the formulas'
+language (:mod:`~thetahat.estimation.kernels.subset`); the NumPy laws
 (:class:`~thetahat.estimation.observer.laws.inversion.IntermittentInversion`,
 :class:`~thetahat.estimation.observer.laws.gradient.GradientInversion`,
-:class:`~thetahat.estimation.observer.laws.base.ConstantLaw`) run them bound to NumPy (their ``step``
-validates the inputs, then calls the bound formula), and the compiled observer emits the same
-functions with the scalar primitives.
+:class:`~thetahat.estimation.observer.laws.base.ConstantLaw`) run them printed for NumPy (their
+``step`` validates the inputs, then calls the printed formula), and the compiled observer and
+the C run them printed as scalar loops.
 
-A law's step has the signature ``law(LP, v, x, xo, phi, th, to, dt, thn, lsn)``: v, x̂ =
-x[xo:], φ̂, θ̂ = th[to:] and the step length in, θ̂⁺ (and the law state, none of the laws
-here has one) out; ``LP`` holds the law's arrays and scratch. It returns ``ST_OK`` (0), or
-``ST_THETA_STAR`` (:class:`~thetahat.estimation.status.Status`) when θ* is NaN or inf in some
-row while the weight is positive (``on_invalid='raise'``).
+A law's step has the signature ``law(LP, v, x, phi, th, dt, thn, lsn)``: v, x̂, φ̂, θ̂ and the
+step length in, θ̂⁺ (and the law state, none of the laws here has one) out; ``LP``
+(:class:`~thetahat.estimation.kernels.kernel_args.LawArrays`) holds the law's arrays and
+scratch. It returns ``ST_OK`` (0), or ``ST_THETA_STAR``
+(:class:`~thetahat.estimation.status.Status`) when θ* is NaN or inf in some row while the
+weight is positive (``on_invalid='raise'``).
 
-Free names a binding provides, besides the primitives: ``weight(LP, v, x, xo, phi)``
-(the excitation weight l, or 1), ``theta_star(v, x, xo, phi, ts)``, ``g_val``, ``dg_dtheta`` (as in
-:mod:`~thetahat.estimation.observer.formulas`), ``m_matrix(v, x, xo, th, to, Mt)`` (a user's M of
+Free names a binding provides, besides the vocabulary: ``weight(LP, v, x, phi)`` (the
+excitation weight l, or 1), ``theta_star(v, x, phi, ts)``, ``g_val``, ``dg_dtheta`` (as in
+:mod:`~thetahat.estimation.observer.formulas`), ``m_matrix(v, x, th, Mt)`` (a user's M of
 Proposition 3, with ``USER_M``), ``project(LP, thn)`` (the Γ⁻¹-weighted projection onto Θ in
 place; returns 0), ``freeze(LP)`` (``on_invalid == 'freeze'``), the constants ``NP``, ``NK``,
 ``USER_M``, ``FAR`` (:data:`~thetahat.estimation.observer.laws.base.FAR`) and ``ST_THETA_STAR``.
@@ -30,20 +31,18 @@ from typing import TYPE_CHECKING, Any
 if TYPE_CHECKING:                    # the argument tuples (named; every binding builds them)
     from ...kernels.kernel_args import LawArrays
 
-__all__ = ["LAW_FORMULAS", "finite_candidate", "gradient_law", "held_law", "inversion_law",
+__all__ = ["HOOKS", "LAW_FORMULAS", "finite_candidate", "gradient_law", "held_law", "inversion_law",
            "inversion_target", "smoothstep"]
+
+#: The functions the law formulas call that a binding provides, with their parameters
+#: (module docstring); ``x`` and ``th`` take views of the state
+#: (:data:`~thetahat.estimation.observer.formulas.VIEWED`).
+HOOKS = {"weight": ("LP", "v", "x", "phi"), "theta_star": ("v", "x", "phi", "ts"),
+         "g_val": ("v", "x", "th", "g"), "dg_dtheta": ("v", "x", "th", "Gth"),
+         "m_matrix": ("v", "x", "th", "Mt"), "project": ("LP", "thn"), "freeze": ("LP",)}
 
 # Names bound by a back end (declared for the type checker; never assigned here).
 Prim = Callable[..., Any]
-get: Prim
-put: Prim
-get2: Prim
-put2: Prim
-copy: Prim
-fill: Prim
-mv: Prim
-mm: Prim
-mmt: Prim
 expm: Prim
 where: Prim
 clip: Prim
@@ -60,9 +59,9 @@ g_val: Prim
 dg_dtheta: Prim
 m_matrix: Prim
 project: Prim
+freeze: Prim
 NP: int
 NK: int
-freeze: Prim
 USER_M: bool
 FAR: float
 ST_THETA_STAR: int
@@ -71,7 +70,8 @@ ST_THETA_STAR: int
 def smoothstep(s: Any, low: float, high: float) -> Any:
     """0 for s <= low, 1 for s >= high, 3t² − 2t³ with t = (s − low)/(high − low) between.
 
-    The excitation weight of :func:`~thetahat.estimation.observer.laws.inversion.smooth_ramp` (Remark 5).
+    The excitation weight of :func:`~thetahat.estimation.observer.laws.inversion.smooth_ramp`
+    (Remark 5).
 
     Parameters
     ----------
@@ -86,48 +86,53 @@ def smoothstep(s: Any, low: float, high: float) -> Any:
     return t * t * (3.0 - 2.0 * t)
 
 
-def finite_candidate(p: int, cand: Any, th: Any, to: int) -> None:
-    """In place: NaN entries of ``cand`` → θ̂ (th[to:]), ±inf and huge values → ±FAR.
+def finite_candidate(cand: Any, th: Any) -> None:
+    """In place: NaN entries of ``cand`` → θ̂, ±inf and huge values → ±FAR.
 
     So that the projection can handle every candidate.
 
     Parameters
     ----------
-    p : int
-    cand : array
+    cand : array, shape (NP,)
         Candidate θ before the projection (overwritten).
-    th : array
-    to : int
+    th : array, shape (NP,)
+        θ̂.
     """
-    for i in range(p):
-        c = get(cand, i)
-        put(cand, i, clip(where(isnan(c), get(th, to + i), c), -FAR, FAR))
+    for i in range(NP):
+        c = cand[i]
+        cand[i] = clip(where(isnan(c), th[i], c), -FAR, FAR)
 
 
-def held_law(LP: LawArrays, v: Any, x: Any, xo: int, phi: Any, th: Any, to: int,
-             dt: float, thn: Any, lsn: Any) -> int:
-    """θ̂̇ = 0 (:class:`~thetahat.estimation.observer.laws.base.ConstantLaw`): θ̂, projected onto Θ.
+def held_law(LP: LawArrays, v: Any, x: Any, phi: Any, th: Any, dt: float, thn: Any,
+             lsn: Any) -> int:
+    """θ̂̇ = 0 (:class:`~thetahat.estimation.observer.laws.base.ConstantLaw`): θ̂, projected
+    onto Θ.
 
     Parameters
     ----------
-    LP : tuple
+    LP : LawArrays
         What ``project`` reads.
-    v, x, phi, th : array
-    xo, to : int
+    v : array, shape (NV,)
+    x : array, shape (NX,)
+    phi : array, shape (NK,)
+    th : array, shape (NP,)
+        v, x̂, φ̂, θ̂.
     dt : float
-    thn, lsn : array
-        θ̂⁺ and the law state (unused).
+    thn : array, shape (NP,)
+        Output: θ̂⁺.
+    lsn : array
+        The law state (unused).
 
     Returns
     -------
     int
     """
-    copy(NP, th, to, thn, 0)
+    thn[:] = th
     return project(LP, thn)
 
 
-def inversion_target(LP: LawArrays, v: Any, x: Any, xo: int, phi: Any, th: Any,
-                     to: int, ts: Any) -> tuple[int, Any]:
+def inversion_target(LP: LawArrays, v: Any, x: Any, phi: Any, th: Any, ts: Any
+                     ) -> tuple[int, Any]:
     """The target of Propositions 1–2 and the weight: θ* into ``ts``, θ̂ where l = 0.
 
     θ* may be NaN or inf where l = 0. Where l > 0 but θ* is not finite, ``freeze`` sets l = 0
@@ -135,11 +140,13 @@ def inversion_target(LP: LawArrays, v: Any, x: Any, xo: int, phi: Any, th: Any,
 
     Parameters
     ----------
-    LP : tuple
+    LP : LawArrays
         What the hooks read.
-    v, x, phi, th : array
-    xo, to : int
-    ts : array
+    v : array, shape (NV,)
+    x : array, shape (NX,)
+    phi : array, shape (NK,)
+    th : array, shape (NP,)
+    ts : array, shape (NP,)
         Output: the target.
 
     Returns
@@ -149,23 +156,23 @@ def inversion_target(LP: LawArrays, v: Any, x: Any, xo: int, phi: Any, th: Any,
     lw : float or array
         The weight l (0 on those rows with ``freeze``).
     """
-    lw = weight(LP, v, x, xo, phi)
-    theta_star(v, x, xo, phi, ts)
+    lw = weight(LP, v, x, phi)
+    theta_star(v, x, phi, ts)
     invalid = False
     for i in range(NP):
-        invalid = or_(invalid, not_(isfinite(get(ts, i))))
+        invalid = or_(invalid, not_(isfinite(ts[i])))
     invalid = and_(invalid, lw > 0.0)
     nbad = count_(invalid)
     if nbad > 0 and freeze(LP):
         lw = where(invalid, 0.0, lw)
     active = lw > 0.0
     for i in range(NP):
-        put(ts, i, where(active, get(ts, i), get(th, to + i)))
+        ts[i] = where(active, ts[i], th[i])
     return nbad, lw
 
 
-def inversion_law(LP: LawArrays, v: Any, x: Any, xo: int, phi: Any, th: Any, to: int,
-                  dt: float, thn: Any, lsn: Any) -> int:
+def inversion_law(LP: LawArrays, v: Any, x: Any, phi: Any, th: Any, dt: float, thn: Any,
+                  lsn: Any) -> int:
     """Propositions 1–2: the exact flow of θ̇ = lΓ(θ* − θ) over dt, then the projection.
 
     With l and θ* held over the step, θ̂⁺ = θ* − V e^(−l dt Λ) Vᵀ (θ* − θ̂) for Γ = V Λ Vᵀ; θ* is
@@ -174,37 +181,39 @@ def inversion_law(LP: LawArrays, v: Any, x: Any, xo: int, phi: Any, th: Any, to:
 
     Parameters
     ----------
-    LP : tuple
-        (Λ, V, Vᵀ, θ* scratch, scratch, …): the eigen-decomposition of Γ (one per row or shared)
-        and what ``project`` reads.
-    v, x, phi, th : array
-    xo, to : int
+    LP : LawArrays
+        Λ (``lam``), V, Vᵀ (one per row or shared), the scratch ``ts``, ``err`` and what
+        ``project`` reads.
+    v : array, shape (NV,)
+    x : array, shape (NX,)
+    phi : array, shape (NK,)
+    th : array, shape (NP,)
     dt : float
-    thn, lsn : array
+    thn : array, shape (NP,)
+        Output: θ̂⁺.
+    lsn : array
+        The law state (unused).
 
     Returns
     -------
     int
     """
     lam, V, VT, ts, err = LP.lam, LP.V, LP.VT, LP.ts, LP.err
-    p = NP
-    nbad, lw = inversion_target(LP, v, x, xo, phi, th, to, ts)
+    nbad, lw = inversion_target(LP, v, x, phi, th, ts)
     if nbad > 0 and not freeze(LP):
         return ST_THETA_STAR
-    for i in range(p):
-        put(err, i, get(ts, i) - get(th, to + i))
-    mv(VT, p, p, err, 0, thn, 0, 0)                 # Vᵀ (θ* − θ̂)
-    for i in range(p):
-        put(err, i, exp(-lw * dt * get(lam, i)) * get(thn, i))
-    mv(V, p, p, err, 0, thn, 0, 0)
-    for i in range(p):
-        put(thn, i, get(ts, i) - get(thn, i))
-    finite_candidate(p, thn, th, to)
+    err[:] = ts - th                                 # θ* − θ̂
+    thn[:] = VT @ err                                # Vᵀ (θ* − θ̂)
+    for i in range(NP):
+        err[i] = exp(-lw * dt * lam[i]) * thn[i]
+    thn[:] = V @ err
+    thn[:] = ts - thn                                # θ* − V e^(−l dt Λ) Vᵀ (θ* − θ̂)
+    finite_candidate(thn, th)
     return project(LP, thn)
 
 
-def gradient_law(LP: LawArrays, v: Any, x: Any, xo: int, phi: Any, th: Any, to: int,
-                 dt: float, thn: Any, lsn: Any) -> int:
+def gradient_law(LP: LawArrays, v: Any, x: Any, phi: Any, th: Any, dt: float, thn: Any,
+                 lsn: Any) -> int:
     """Propositions 3–4: exponential Euler on θ̇ = ΓM(φ̂ − g(v, x̂, θ)), then the projection.
 
     With K = ΓM ∂g/∂θ and f = ΓM(φ̂ − g) at θ̂ the linearisation θ̇ = f − K(θ − θ̂) is integrated
@@ -213,55 +222,57 @@ def gradient_law(LP: LawArrays, v: Any, x: Any, xo: int, phi: Any, th: Any, to: 
 
     Parameters
     ----------
-    LP : tuple
-        (Γ, g, ∂g/∂θ, M, ΓM, f, K, Z, e^Z, scratch, scratch, …): Γ (one per row or shared),
-        scratch, and what ``project`` reads.
-    v, x, phi, th : array
-    xo, to : int
+    LP : LawArrays
+        Γ (one per row or shared), the scratch ``g``, ``J``, ``Mt``, ``GM``, ``f``, ``K``,
+        ``Z``, ``Ex``, ``T``, ``U`` and what ``project`` reads.
+    v : array, shape (NV,)
+    x : array, shape (NX,)
+    phi : array, shape (NK,)
+    th : array, shape (NP,)
     dt : float
-    thn, lsn : array
+    thn : array, shape (NP,)
+        Output: θ̂⁺.
+    lsn : array
+        The law state (unused).
 
     Returns
     -------
     int
     """
-    Gam, g, J, Mt, GM, f, K = LP.Gamma, LP.g, LP.J, LP.Mt, LP.GM, LP.f, LP.K
-    Z, Ex, T, U = LP.Z, LP.Ex, LP.T, LP.U
-    p, k = NP, NK
-    g_val(v, x, xo, th, to, g)
-    dg_dtheta(v, x, xo, th, to, J)
+    Gam, g, J, Mt, GM, f, K, Z, Ex = LP.Gamma, LP.g, LP.J, LP.Mt, LP.GM, LP.f, LP.K, LP.Z, LP.Ex
+    g_val(v, x, th, g)
+    dg_dtheta(v, x, th, J)
     if USER_M:
-        m_matrix(v, x, xo, th, to, Mt)
-        mm(Gam, Mt, p, p, k, GM, 0, 0, 0)
+        m_matrix(v, x, th, Mt)
+        GM[:] = Gam @ Mt
     else:
-        mmt(Gam, J, p, p, k, GM)                    # ΓM with M = (∂g/∂θ)ᵀ
-    for a in range(k):
-        put(g, a, get(phi, a) - get(g, a))          # φ̂ − g
-    mv(GM, p, k, g, 0, f, 0, 0)
-    mm(GM, J, p, k, p, K, 0, 0, 0)
-    fill(Z, 0.0)
+        GM[:] = Gam @ J.T                            # ΓM with M = (∂g/∂θ)ᵀ
+    g[:] = phi - g                                   # φ̂ − g
+    f[:] = GM @ g
+    K[:] = GM @ J
+    Z[:] = 0.0
     ok = True
-    for a in range(p):
-        for c in range(p):
-            put2(Z, a, c, -dt * get2(K, a, c))
-            ok = and_(ok, isfinite(get2(Z, a, c)))
-        put2(Z, a, p, dt * get(f, a))
-        ok = and_(ok, isfinite(get2(Z, a, p)))
-    for a in range(p):
-        for c in range(p + 1):
-            put2(Z, a, c, where(ok, get2(Z, a, c), 0.0))
-    expm(p + 1, Z, Ex, T, U)
-    for a in range(p):
-        ok = and_(ok, isfinite(get2(Ex, a, p)))
-    for a in range(p):
-        fa = get(f, a)
+    for a in range(NP):
+        for c in range(NP):
+            Z[a, c] = -dt * K[a, c]
+            ok = and_(ok, isfinite(Z[a, c]))
+        Z[a, NP] = dt * f[a]
+        ok = and_(ok, isfinite(Z[a, NP]))
+    for a in range(NP):
+        for c in range(NP + 1):
+            Z[a, c] = where(ok, Z[a, c], 0.0)
+    expm(Z, Ex, LP.T, LP.U)
+    for a in range(NP):
+        ok = and_(ok, isfinite(Ex[a, NP]))
+    for a in range(NP):
+        fa = f[a]
         euler = where(isfinite(fa), dt * fa, where(fa > 0.0, FAR, where(fa < 0.0, -FAR, 0.0)))
-        put(thn, a, get(th, to + a) + where(ok, get2(Ex, a, p), euler))
-    finite_candidate(p, thn, th, to)
+        thn[a] = th[a] + where(ok, Ex[a, NP], euler)
+    finite_candidate(thn, th)
     return project(LP, thn)
 
 
-#: The law formulas a back end binds, by name.
+#: The law formulas a back end prints, by name.
 LAW_FORMULAS: dict[str, Callable[..., Any]] = {
     "smoothstep": smoothstep, "finite_candidate": finite_candidate, "held_law": held_law,
     "inversion_target": inversion_target, "inversion_law": inversion_law,

@@ -3,7 +3,7 @@ exponential (Rosenbrock) Euler method."""
 
 from __future__ import annotations
 
-from collections.abc import Callable, Mapping
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any, final
 
@@ -16,10 +16,8 @@ from ....model.jacobian_check import require_theta_dependence
 from ....model.paramset import ParameterSet
 from ....model.perturbation import Perturbation
 from .base import (FAR, UpdateLaw, apply_saturation, as_batch, broadcast_rows,
-                       check_law_options, project_rows)
+                       check_law_options, project_rows, law_binding)
 from ...kernels.kernel_args import LawArrays
-from .formulas import LAW_FORMULAS
-from ...kernels.primitives import NUMPY, NUMPY_ROW, bound
 from .projection import Projection, Saturation, as_gain
 from ...status import status_constants
 
@@ -194,32 +192,28 @@ class GradientInversion(UpdateLaw):
                        K=np.empty(batch + (p, p)), Z=np.empty(batch + (p + 1, p + 1)),
                        Ex=np.empty(batch + (p + 1, p + 1)), Gamma_rows=G)
         thn = np.empty(batch + (p,))
-        env = bound(self, batch == (), LAW_FORMULAS,
-                    lambda: _gradient_names(self, NUMPY_ROW if batch == () else NUMPY))
+        env = law_binding(self, None, ("gradient_law",), batch == (),
+                          lambda: _gradient_names(self))
         with np.errstate(over="ignore", invalid="ignore"):
-            env["gradient_law"](LP, args[0], args[1], 0, args[2], args[3], 0, dt, thn, None)
+            env["gradient_law"](LP, args[0], args[1], args[2], args[3], dt, thn, None)
         return thn
 
 
-def _gradient_names(law: GradientInversion, prims: Mapping[str, Any]) -> dict[str, Any]:
-    """The NumPy namespace (``prims``: one row or a batch) of
-    :func:`law_formulas.gradient_law` for one law."""
+def _gradient_names(law: GradientInversion) -> dict[str, Any]:
+    """The hooks of :func:`law_formulas.gradient_law` for one law."""
     pert = law.perturbation
     _, _, _, p, k = pert.dims
 
-    def g_val(v: FloatArray, x: FloatArray, xo: int, th: FloatArray, to: int,
-              g: FloatArray) -> None:
+    def g_val(v: FloatArray, x: FloatArray, th: FloatArray, g: FloatArray) -> None:
         g[...] = pert.g(v, x, th)
 
-    def dg_dtheta(v: FloatArray, x: FloatArray, xo: int, th: FloatArray, to: int,
-                  J: FloatArray) -> None:
+    def dg_dtheta(v: FloatArray, x: FloatArray, th: FloatArray, J: FloatArray) -> None:
         J[...] = pert.dg_dtheta(v, x, th)
 
     M = law.M if law.M is not None else (            # only called with a user's M
         lambda v, x, th: np.swapaxes(pert.dg_dtheta(v, x, th), -1, -2))
 
-    def m_matrix(v: FloatArray, x: FloatArray, xo: int, th: FloatArray, to: int,
-                 Mt: FloatArray) -> None:
+    def m_matrix(v: FloatArray, x: FloatArray, th: FloatArray, Mt: FloatArray) -> None:
         Mm = np.asarray(M(v, x, th), dtype=np.float64)
         if Mm.shape[-2:] != (p, k):
             raise UpdateLawError(f"GradientInversion: M must return shape (..., {p}, {k}); "
@@ -230,6 +224,6 @@ def _gradient_names(law: GradientInversion, prims: Mapping[str, Any]) -> dict[st
         thn[...] = project_rows(law._proj, thn, LP.Gamma_rows)
         return 0
 
-    return {**prims, "g_val": g_val, "dg_dtheta": dg_dtheta, "m_matrix": m_matrix,
+    return {"g_val": g_val, "dg_dtheta": dg_dtheta, "m_matrix": m_matrix,
             "project": project, "NP": p, "NK": k, "USER_M": law.M is not None, "FAR": FAR,
             **status_constants()}

@@ -2,12 +2,12 @@
 
 :class:`IntermittentInversion` with an excitation weight l (Proposition 2, :func:`smooth_ramp`
 for the Lipschitz l of Remark 5), and :func:`AlgebraicInversion`, the same law with l ≡ 1
-(Proposition 1).
+(Proposition 1), with θ* given or derived by SymPy (:func:`algebraic_from_perturbation`).
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable, Mapping
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any, Literal, final
 
@@ -20,24 +20,20 @@ from ....model.paramset import ParameterSet
 from ....model.perturbation import Perturbation
 from ....model.set_geometry import safe_norm
 from .base import (FAR, UpdateLaw, apply_saturation, as_batch, broadcast_rows,
-                       check_law_options, is_diagonal, project_rows)
+                       check_law_options, is_diagonal, law_binding, law_program, project_rows)
 from ...kernels.kernel_args import LawArrays
-from .formulas import LAW_FORMULAS, smoothstep
-from ...kernels.primitives import NUMPY, NUMPY_ROW, bind, bound
 from .projection import Projection, Saturation, as_gain
 from ...status import Status, status_constants
 from .theta_star import ThetaStar
 
 __all__ = ["AlgebraicInversion", "IntermittentInversion", "SmoothRamp", "WEIGHT_TOL",
-           "gain_eigen", "invalid_theta_star_error", "smooth_ramp"]
+           "algebraic_from_perturbation", "gain_eigen", "invalid_theta_star_error",
+           "smooth_ramp"]
 
 FloatArray = NDArray[np.float64]
 ThetaStarFn = Callable[[FloatArray, FloatArray, FloatArray], Any]
 Weight = Callable[[FloatArray, FloatArray, FloatArray], Any]
 OnInvalid = Literal["raise", "freeze"]
-
-#: :func:`law_formulas.smoothstep` on NumPy arrays.
-_smoothstep = bind({"smoothstep": smoothstep}, NUMPY)["smoothstep"]
 
 #: Values of an excitation weight l within this distance outside [0, 1] are rounding and
 #: clipped; larger excursions are an error in the user's l.
@@ -61,7 +57,8 @@ class SmoothRamp:
 
     def weight(self, s: ArrayLike) -> FloatArray:
         """0 for s <= low, 1 for s >= high, 3t² - 2t³ with t = (s - low)/(high - low) between."""
-        return np.asarray(_smoothstep(np.asarray(s, dtype=np.float64), self.low, self.high))
+        step = law_binding(law_program(), None, ("smoothstep",), False, dict)["smoothstep"]
+        return np.asarray(step(np.asarray(s, dtype=np.float64), self.low, self.high))
 
     def __call__(self, v: ArrayLike, x_hat: ArrayLike, phi_hat: ArrayLike) -> FloatArray:
         """l(v, x̂, φ̂) = weight(‖φ̂‖); shape (...)."""
@@ -187,29 +184,30 @@ def gain_eigen(Gamma: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray]:
     return lam, V, np.swapaxes(V, -1, -2).copy()
 
 
-def _inversion_names(law: IntermittentInversion, prims: Mapping[str, Any]) -> dict[str, Any]:
-    """The NumPy namespace (``prims``: one row or a batch) of
-    :func:`law_formulas.inversion_law` for one law."""
+def _inversion_names(law: IntermittentInversion) -> dict[str, Any]:
+    """The hooks of :func:`law_formulas.inversion_law` for one law."""
     owner = "IntermittentInversion"
     p = law.parameter_set.dim
 
-    def weight(LP: LawArrays, v: FloatArray, x: FloatArray, xo: int,
-               phi: FloatArray) -> Any:
+    def weight(LP: LawArrays, v: FloatArray, x: FloatArray, phi: FloatArray) -> Any:
         if law.l is None:
             return 1.0
         return _checked_weight(law.l, owner, v, x, phi, phi.shape[:-1])
 
-    def theta_star(v: FloatArray, x: FloatArray, xo: int, phi: FloatArray,
-                   ts: FloatArray) -> None:
+    def theta_star(v: FloatArray, x: FloatArray, phi: FloatArray, ts: FloatArray) -> None:
         ts[...] = _checked_theta_star(law.theta_star, owner, v, x, phi, phi.shape[:-1], p)
 
     def project(LP: LawArrays, thn: FloatArray) -> int:
         thn[...] = project_rows(law._proj, thn, LP.Gamma_rows)
         return 0
 
-    return {**prims, "weight": weight, "theta_star": theta_star, "project": project,
+    return {"weight": weight, "theta_star": theta_star, "project": project,
             "freeze": lambda LP: law.on_invalid == "freeze", "NP": p, "FAR": FAR,
             **status_constants()}
+
+
+#: The law formulas an IntermittentInversion runs (``rate``, ``step``).
+_ROOTS = ("inversion_target", "inversion_law")
 
 
 @final
@@ -344,9 +342,8 @@ class IntermittentInversion(UpdateLaw):
         x, phi = apply_saturation(self.saturation, x, phi)
         args = broadcast_rows(batch, v_, x, phi, th)
         target = np.empty(batch + th.shape[-1:])
-        env = bound(self, batch == (), LAW_FORMULAS,
-                    lambda: _inversion_names(self, NUMPY_ROW if batch == () else NUMPY))
-        nbad, lw = env["inversion_target"]((), args[0], args[1], 0, args[2], args[3], 0,
+        env = law_binding(self, None, _ROOTS, batch == (), lambda: _inversion_names(self))
+        nbad, lw = env["inversion_target"](LawArrays(), args[0], args[1], args[2], args[3],
                                            target)
         if nbad and self.on_invalid == "raise":
             raise invalid_theta_star_error("IntermittentInversion", nbad)
@@ -369,12 +366,11 @@ class IntermittentInversion(UpdateLaw):
                       else gain_eigen(G))
         args = broadcast_rows(batch, v_, x, phi, th)
         thn = np.empty(batch + (p,))
-        env = bound(self, batch == (), LAW_FORMULAS,
-                    lambda: _inversion_names(self, NUMPY_ROW if batch == () else NUMPY))
+        env = law_binding(self, None, _ROOTS, batch == (), lambda: _inversion_names(self))
         with np.errstate(over="ignore", invalid="ignore"):
             LP = LawArrays(lam=lam, V=V, VT=VT, ts=np.empty_like(thn), err=np.empty_like(thn),
                            Gamma_rows=G)
-            status = env["inversion_law"](LP, args[0], args[1], 0, args[2], args[3], 0, dt, thn,
+            status = env["inversion_law"](LP, args[0], args[1], args[2], args[3], dt, thn,
                                           None)
         if status == Status.THETA_STAR:
             raise invalid_theta_star_error("IntermittentInversion", None)
@@ -388,7 +384,7 @@ def AlgebraicInversion(theta_star: ThetaStar | ThetaStarFn, Gamma: ArrayLike,  #
     """Proposition 1, θ̂̇ = Proj(Γ(θ*(v, x̂, φ̂) - θ̂)): :class:`IntermittentInversion` with l ≡ 1.
 
     A named constructor: the law it returns is an ``IntermittentInversion`` whose ``l`` is
-    None. ``AlgebraicInversion.from_perturbation(...)`` derives θ* with SymPy.
+    None. :func:`algebraic_from_perturbation` derives θ* with SymPy.
 
     Parameters
     ----------
@@ -425,11 +421,42 @@ def AlgebraicInversion(theta_star: ThetaStar | ThetaStarFn, Gamma: ArrayLike,  #
                                  layer=layer, on_invalid=on_invalid)
 
 
-def _algebraic_from_perturbation(perturbation: Perturbation, **options: Any
-                                 ) -> IntermittentInversion:
-    """Proposition 1 with θ* by ``sympy.solve``: :meth:`IntermittentInversion.from_perturbation`
-    with l ≡ 1 (same keywords)."""
-    return IntermittentInversion.from_perturbation(perturbation, None, **options)
+def algebraic_from_perturbation(perturbation: Perturbation, *, Gamma: ArrayLike,
+                                parameter_set: ParameterSet,
+                                saturation: Saturation | None = None, layer: float = 0.0,
+                                on_invalid: OnInvalid = "raise",
+                                seed: int = 0) -> IntermittentInversion:
+    """Proposition 1 with θ* derived by ``sympy.solve``: :func:`AlgebraicInversion` of
+    :meth:`IntermittentInversion.from_perturbation` (l ≡ 1).
 
+    Parameters
+    ----------
+    perturbation : SymbolicPerturbation
+        g, whose inversion φ = g(v, x, θ) in θ gives θ*.
+    Gamma, parameter_set, saturation, layer, on_invalid, seed
+        As for :meth:`IntermittentInversion.from_perturbation`.
 
-AlgebraicInversion.from_perturbation = _algebraic_from_perturbation  # type: ignore[attr-defined]
+    Returns
+    -------
+    IntermittentInversion
+        With ``l`` None.
+
+    Raises
+    ------
+    UpdateLawError
+        SymPy cannot solve, or not exactly one branch inverts g.
+
+    Examples
+    --------
+    >>> import sympy as sp
+    >>> from thetahat.model.paramset import Box
+    >>> from thetahat.model.perturbation import SymbolicPerturbation
+    >>> y, x, th = sp.symbols("y x theta")
+    >>> g = SymbolicPerturbation.from_sympy(th * y, u=[], y=[y], x=[x], theta=[th])
+    >>> law = algebraic_from_perturbation(g, Gamma=1.0, parameter_set=Box([0.5], [2.0]))
+    >>> law.l is None
+    True
+    """
+    return IntermittentInversion.from_perturbation(
+        perturbation, None, Gamma=Gamma, parameter_set=parameter_set, saturation=saturation,
+        layer=layer, on_invalid=on_invalid, seed=seed)
