@@ -1,10 +1,10 @@
 """A C99 printer for the step's formulas: the restricted subset, specialised per call.
 
 The formulas of :mod:`~thetahat.estimation.observer.formulas` and
-:mod:`~thetahat.estimation.observer.laws.formulas`, after the scalar back end's rewrite
-(:func:`~thetahat.estimation.observer.kernel_source.rewritten`: element primitives as syntax, block
-primitives expanded), are loops, subscripts, arithmetic, comparisons, ``if``/``while`` and calls
-of other formulas. :class:`CUnit` prints them as C, the way numba compiles them: each function
+:mod:`~thetahat.estimation.observer.laws.formulas`, printed for the ``"scalar"`` target
+(:meth:`~thetahat.estimation.kernels.printer.Program.printed`: blocks as loops, views as
+offsets, the vocabulary as syntax), are loops, subscripts, arithmetic, comparisons,
+``if``/``while`` and calls of other formulas — the same print the numba kernel compiles. :class:`CUnit` prints them as C, the way numba compiles them: each function
 is *specialised* for the arguments of a call (monomorphised), starting from the calls the
 generated step makes (:meth:`CUnit.call`).
 
@@ -64,7 +64,7 @@ class CUnit:
     Parameters
     ----------
     functions : mapping of str to ast.FunctionDef
-        The rewritten formulas, hooks and scalar primitives by name.
+        The formulas, hooks and scalar functions printed for the scalar target, by name.
     constants : mapping of str to Const
         The names the formulas read as constants (NX, …, BOUND_SQ, FAR, …).
     model : callable

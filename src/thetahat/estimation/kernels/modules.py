@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import ast
 import builtins
+import inspect
 import math
 import threading
 import types
@@ -342,7 +343,7 @@ def numpy_binding(owner: object, key: Hashable, program: Program, roots: Sequenc
     owner : object
         What the names close over (a perturbation, a law); kept alive with the binding.
     key : hashable
-        Distinguishes bindings of one owner.
+        Distinguishes bindings of one owner (besides the program, the roots and the target).
     program : Program
         Kept for the life of the process (a module-level one).
     roots : sequence of str
@@ -367,7 +368,7 @@ def numpy_binding(owner: object, key: Hashable, program: Program, roots: Sequenc
     >>> fns["phi_hat"](np.array([2.0]), np.array([0.0, 0.5]), phi); phi.tolist()
     [2.5]
     """
-    k = (id(owner), key)
+    k = (id(owner), (key, id(program), tuple(roots), target))
     with _lock:
         hit = _bound.get(k)
         if hit is not None and hit[0] is owner:
@@ -375,8 +376,7 @@ def numpy_binding(owner: object, key: Hashable, program: Program, roots: Sequenc
             return hit[1]
     bind = _factory(program, tuple(roots), target)
     given = names()
-    code = bind.__code__
-    wanted = code.co_varnames[code.co_argcount:code.co_argcount + code.co_kwonlyargcount]
+    wanted = list(inspect.signature(bind).parameters)
     missing = sorted(set(wanted) - set(given))
     if missing:
         raise ThetahatError(f"the NumPy binding of {', '.join(roots)} lacks {missing}")
