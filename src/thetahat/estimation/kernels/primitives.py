@@ -22,7 +22,7 @@ name                       scalar (numba, C)            NumPy (one row | rows on
 ``expm(Z, E, T, U)``       scalar ``expm`` (Taylor)     :func:`expm` (SciPy's)
 ``norm(a)``                scalar ``norm(n, a)``        :func:`norm`
 ``sumsq(a)``               scalar ``sumsq(n, a)``       :func:`sumsq_row` | :func:`sumsq_rows`
-``eye(q)`` (in a block)    ``1.0 if i == j else 0.0``   ``np.eye(q)``
+``eye(q)`` (in a block)    ``1.0 if i == j else 0.0``   :func:`identity`
 ``A @ x``, ``A @ B``       loops                        ``@`` | :func:`product`, :func:`matmul`
 =========================  ===========================  =================================
 
@@ -33,6 +33,7 @@ row). The scalar functions live in :mod:`~thetahat.estimation.kernels.scalar_pri
 
 from __future__ import annotations
 
+import functools
 from typing import Any
 
 import numpy as np
@@ -43,8 +44,8 @@ from scipy.linalg.lapack import dgesv as _gesv
 from ...model.set_geometry import safe_norm
 from ..status import Status
 
-__all__ = ["VOCABULARY", "any_rows", "clip", "count_rows", "expm", "matmul", "norm", "product",
-           "solve_row", "solve_rows", "sumsq_row", "sumsq_rows", "transpose"]
+__all__ = ["VOCABULARY", "any_rows", "clip", "count_rows", "expm", "identity", "matmul", "norm",
+           "product", "solve_row", "solve_rows", "sumsq_row", "sumsq_rows", "transpose"]
 
 FloatArray = NDArray[np.float64]
 
@@ -77,6 +78,28 @@ def product(M: FloatArray, x: FloatArray) -> FloatArray:
     if x.ndim == 1:
         return M @ x
     return np.matmul(M, x[..., None])[..., 0]
+
+
+@functools.cache
+def identity(q: int) -> FloatArray:
+    """The identity of size q (one read-only array per q: no allocation per step).
+
+    Parameters
+    ----------
+    q : int
+
+    Returns
+    -------
+    ndarray, shape (q, q)
+
+    Examples
+    --------
+    >>> identity(2).tolist(), identity(2) is identity(2)
+    ([[1.0, 0.0], [0.0, 1.0]], True)
+    """
+    out = np.eye(q)
+    out.setflags(write=False)
+    return out
 
 
 def matmul(A: FloatArray, B: FloatArray) -> FloatArray:

@@ -552,7 +552,7 @@ class _Printer:
             return ast.UnaryOp(ast.USub(), self.numpy_block(node.operand, rank))
         if (isinstance(node, ast.Call) and isinstance(node.func, ast.Name)
                 and node.func.id == "eye"):
-            return _call(_attr("np", "eye"), *(self.expr(a) for a in node.args))
+            return _call("identity", *(self.expr(a) for a in node.args))
         if self.array(node) is not None:
             return self.numpy_array(node)
         return self.expr(node)
