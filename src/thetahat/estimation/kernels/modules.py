@@ -5,7 +5,7 @@ as a module file written under its content hash
 (:func:`~thetahat.estimation.kernels.kernel_cache.load_module`); none is executed from a
 string, and no function is rebuilt from another's code object.
 
-* :func:`numpy_binding`: the formulas of a :class:`~thetahat.estimation.kernels.subset.Program`
+* :func:`numpy_binding`: the formulas of a :class:`~thetahat.estimation.kernels.printer.Program`
   printed for NumPy (``"row"`` or ``"batch"``) as a module with one function, ``bind``, whose
   keyword parameters are the names the formulas read (the model functions, the law's hooks,
   the dimensions); ``bind(**names)`` returns the formulas closed over them. One module per

@@ -5,7 +5,7 @@ The functions here are the step's formulas, written once in the formulas' langua
 buffers (x̂ = ``s[0:NX]``, z, θ̂, the u and y parts of v), the plan's matrices by name
 (``P.A``, ``P.E``, ``P.K_x``, …) and block statements that read like the paper's equations
 (``F_x[:] = P.A @ x_hat + P.B @ u + P.E @ g + P.E @ z``). They hold no data and import nothing
-they call. Every back end is printed from them (:class:`~thetahat.estimation.kernels.subset.Program`):
+they call. Every back end is printed from them (:class:`~thetahat.estimation.kernels.printer.Program`):
 
 * the Python step and run (one row) and :func:`~thetahat.estimation.observer.batch_run.run_batch`
   (B rows) run them printed for NumPy (:func:`~thetahat.estimation.observer.step.advance`);

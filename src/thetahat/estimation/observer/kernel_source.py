@@ -2,7 +2,7 @@
 
 :func:`kernel_source` writes one module per model and configuration: the formulas of
 :mod:`~thetahat.estimation.observer.formulas` and :mod:`~thetahat.estimation.observer.laws.formulas`
-printed for the ``"scalar"`` target of :class:`~thetahat.estimation.kernels.subset.Program`
+printed for the ``"scalar"`` target of :class:`~thetahat.estimation.kernels.printer.Program`
 (block statements as loops, views as offsets, the vocabulary as syntax or the scalar
 functions of :mod:`~thetahat.estimation.kernels.scalar_primitives`), the model functions g,
 ∂g/∂x, ∂g/∂y, ∂g/∂θ and θ* printed from their SymPy expressions (with common subexpressions
@@ -149,7 +149,7 @@ def _function(name: str, params: str, inputs: Sequence[tuple[str, Sequence[sp.Sy
 
 
 #: The parameters of a printed model function before its outputs: x̂ and θ̂ are views (an
-#: array and an offset, :class:`~thetahat.estimation.kernels.subset.Program`).
+#: array and an offset, :class:`~thetahat.estimation.kernels.printer.Program`).
 _MODEL_PARAMS = "v, x, x_at, th, th_at"
 
 
@@ -337,7 +337,7 @@ def kernel_source(pert: SymbolicPerturbation, theta_star: tuple[sp.Expr, ...] | 
     str
         A module defining ``kernel_run`` (:mod:`~thetahat.estimation.kernels.scalar_primitives`)
         and every formula it calls, printed for the scalar target
-        (:meth:`~thetahat.estimation.kernels.subset.Program.printed`).
+        (:meth:`~thetahat.estimation.kernels.printer.Program.printed`).
     """
     n, m, r, p, k = pert.dims
     form = formula_decorator(_numba_version())
