@@ -31,8 +31,8 @@ from thetahat.estimation.kernels.modules import ModuleText, numpy_binding
 from thetahat.estimation.kernels.printer import Program
 from thetahat.estimation.kernels.subset import AliasingError, definition
 from thetahat.estimation.observer import formulas
-from thetahat.estimation.observer.compiled import (kernel_arrays, kernel_parts, kernel_work,
-                                                   phi_table)
+from thetahat.estimation.observer.kernel_data import (kernel_arrays, kernel_parts, kernel_work,
+                                                      phi_table)
 from thetahat.estimation.observer.kernel_source import LAWS, kernel_program, kernel_source
 from thetahat.estimation.observer.laws import (AlgebraicInversion, ConstantLaw, GradientInversion,
                                              IntermittentInversion, smooth_ramp)

@@ -6,7 +6,7 @@ formulas (:mod:`~thetahat.estimation.observer.formulas`,
 the law's hooks: the program of :func:`~thetahat.estimation.observer.kernel_source.kernel_program`,
 printed for the ``"scalar"`` target as the numba kernel is) specialised for one observer:
 the dimensions, the hold, the second observer, the law's options and the step length are
-constants; the plan's matrices (:func:`~thetahat.estimation.observer.compiled.kernel_arrays`, the
+constants; the plan's matrices (:func:`~thetahat.estimation.observer.kernel_data.kernel_arrays`, the
 numba kernel's data) are ``static const`` arrays; the arrays a formula writes are buffers on
 the stack of ``<name>_step``. g, its Jacobians and θ* are printed from SymPy
 (:mod:`.printing`). Around it a small C API (``<name>_init``, ``<name>_step``,
@@ -30,7 +30,7 @@ import sympy as sp
 from ..errors import UnsupportedError
 from ..estimation.kernels import scalar_primitives
 from ..estimation.kernels.kernel_args import SHAPES, WorkArrays, dimensions
-from ..estimation.observer.compiled import KernelParts, kernel_arrays
+from ..estimation.observer.kernel_data import KernelParts, kernel_arrays
 from ..estimation.observer.discretize import IMPLICITNESS
 from ..estimation.observer.formulas import DIVERGENCE_BOUND
 from ..estimation.observer.laws.base import FAR
@@ -194,7 +194,7 @@ def derived_step(parts: KernelParts, plan: StepPlan, *, prefix: str, real: str, 
     Parameters
     ----------
     parts : KernelParts
-        The observer's checked parts (:func:`~thetahat.estimation.observer.compiled.kernel_parts`).
+        The observer's checked parts (:func:`~thetahat.estimation.observer.kernel_data.kernel_parts`).
     plan : StepPlan
         The observer's plan for the fixed step.
     prefix : str
