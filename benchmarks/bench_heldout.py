@@ -42,6 +42,8 @@ its largest as singular, in the parameters' own units: on the CSTR (k_ref ~ 2e-3
 UA ~ 600 W/K) it reports an infinite bound although the problem is well posed. The bound is
 then recomputed by ``thetahat.crlb`` on the model reparametrised as θ = diag(|θ*|) θ'
 (:func:`scaled_bound`), and the row says so.
+
+The first full run (4 seeds, before any fix) is kept in benchmarks/results/heldout_baseline.txt.
 """
 
 from __future__ import annotations
