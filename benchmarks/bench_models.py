@@ -49,12 +49,38 @@ def run_method(spec, method: str, d) -> np.ndarray:
     return np.asarray(run_estimator(spec, d.t, U, Y, method=method, diagnose=False).theta_hat)
 
 
+def bound(spec, d) -> tuple[np.ndarray, np.ndarray]:
+    """The Cramér–Rao bound of θ on record ``d`` of the file's scenario, x(0) unknown:
+    its mean over the last half and its value at the end, per parameter ((p,) each)."""
+    import thetahat
+    sc = spec.scenario
+    b = thetahat.crlb(spec.system, d.t, np.asarray(d.u), theta=sc.theta,
+                      noise_std=sc.noise_std, x0=sc.x0, x0_known=False)
+    diag = np.diagonal(np.asarray(b.cov), axis1=-2, axis2=-1)
+    return np.mean(diag[d.t.size // 2:], axis=0), diag[-1]
+
+
+def efficiency(errs: list[np.ndarray], var: np.ndarray, var_end: np.ndarray
+               ) -> tuple[np.ndarray, np.ndarray]:
+    """RMSE ÷ √CRLB per parameter, pooled over records: over the last half (``errs``: each
+    record's θ̂ − θ on its last half) and of the last sample alone."""
+    ratio = np.sqrt(np.mean(np.concatenate(errs) ** 2, axis=0) / var)
+    final = np.sqrt(np.mean(np.array([e[-1] for e in errs]) ** 2, axis=0) / var_end)
+    return ratio, final
+
+
+def settling(t1: list[float]) -> tuple[float, int]:
+    """The median over records of the time to 1 % (inf unless every record settles) and how
+    many settled."""
+    reached = [x for x in t1 if math.isfinite(x)]
+    return (float(np.median(t1)) if len(reached) == len(t1) else math.inf), len(reached)
+
+
 def main(argv: list[str] | None = None) -> dict:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--seeds", type=int, default=4)
     ap.add_argument("--models", nargs="*", default=list(MODELS))
     args = ap.parse_args(argv)
-    import thetahat
     from thetahat.modelfile import load_model, simulate_model
     from thetahat.studies.metrics import time_to_within
 
@@ -74,10 +100,7 @@ def main(argv: list[str] | None = None) -> dict:
             d = simulate_model(spec, seed)
             N = d.t.size
             if var is None:
-                b = thetahat.crlb(spec.system, d.t, np.asarray(d.u), theta=sc.theta,
-                                  noise_std=sc.noise_std, x0=sc.x0, x0_known=False)
-                diag = np.diagonal(np.asarray(b.cov), axis1=-2, axis2=-1)
-                var, var_end = np.mean(diag[N // 2:], axis=0), diag[-1]
+                var, var_end = bound(spec, d)
             for m in METHODS:
                 t0 = time.perf_counter()
                 with warnings.catch_warnings():
@@ -89,13 +112,11 @@ def main(argv: list[str] | None = None) -> dict:
                 t1[m].append(time_to_within(d.t, th, sc.theta, 0.01))
         row = {}
         for m in METHODS:
-            ratio = np.sqrt(np.mean(np.concatenate(errs[m]) ** 2, axis=0) / var)
-            final = np.sqrt(np.mean(np.array([e[-1] for e in errs[m]]) ** 2, axis=0) / var_end)
-            reached = [x for x in t1[m] if math.isfinite(x)]
-            med = float(np.median(t1[m])) if len(reached) == len(t1[m]) else math.inf
+            ratio, final = efficiency(errs[m], var, var_end)
+            med, reached = settling(t1[m])
             row[m] = {"rmse_over_crlb": ratio.tolist(), "final_over_crlb": final.tolist(),
                       "t_1pct": med,
-                      "t_1pct_reached": len(reached), "in_Theta": inside[m],
+                      "t_1pct_reached": reached, "in_Theta": inside[m],
                       "seconds": seconds[m]}
         out[name] = row
         cells = "  ".join(
