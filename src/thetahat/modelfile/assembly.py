@@ -453,7 +453,7 @@ def run_estimator(spec: ModelSpec, t: ArrayLike, u: ArrayLike | None, y: ArrayLi
                   diagnose: bool = True, Gamma: ArrayLike | None = None) -> EstimateResult:
     """Run the file's estimator on sampled data, from the file's initial values.
 
-    ``method`` (default: the file's ``[estimator] method``, else ``"paper"``) chooses the
+    ``method`` (default: the file's ``[estimator] method``, else ``"guarded"``) chooses the
     paper's observer, the guarded two-stage estimator (that observer as stage 1), the
     offline MAP fits or the joint EKF (:func:`build_estimator`); every one returns an
     :class:`~thetahat.estimation.protocol.EstimateResult` with its own ``diagnostics``.

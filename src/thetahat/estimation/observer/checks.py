@@ -559,7 +559,7 @@ class LawConditionReport:
                        f"∂g/∂{name} keeps its sign, or use method guarded or mle)")
         ex = self.excitation
         if ex is not None and not self.exciting:
-            where = ex.t_S if ex.sigma_S is not None else ex.t_l
+            where = float((ex.t_S if ex.sigma_S is not None else ex.t_l) or 0.0)
             what = ("λ_min of the scaled information (∂g/∂θ)ᵀ∂g/∂θ" if ex.sigma_S is not None
                     else "the excitation weight l (Prop. 2)")
             out.append(f"the excitation the update law needs (Props. 2–4) is missing over "
