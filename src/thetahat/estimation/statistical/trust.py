@@ -108,9 +108,10 @@ SETTLE_TAIL = 0.25
 #: over that tail (:func:`tail_movement`; a fit on a growing record drifts by well under one).
 SETTLE_SDS = 2.0
 #: At an inconsistent θ̂ the process noise q̂ found there absorbs θ̂'s own error (and inflates
-#: the bound): q is searched again at the one-step θ, up to this many times, and the test and
+#: the bound): q is searched again at the one-step θ, up to this many times (each costs one q
+#: search on the head and p + 1 passes over the record: bounded at one), and the test and
 #: the bound are recomputed at θ̂ with the smaller q (the data's noise, not θ̂'s error).
-Q_REFINEMENTS = 2
+Q_REFINEMENTS = 1
 #: A refined q replaces the last one only when smaller by at least this factor.
 Q_REFINE_FACTOR = 0.3
 
