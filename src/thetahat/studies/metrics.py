@@ -191,11 +191,11 @@ def estimate_summary(result: EstimateResult, parameter_names: Sequence[str] | No
     >>> from thetahat.studies.metrics import estimate_summary
     >>> z = np.zeros((3, 1))
     >>> res = EstimateResult(t=np.array([0.0, 1.0, 2.0]), x_hat=z, phi_hat=z,
-    ...                      theta_hat=np.array([[0.0], [0.9], [1.0]]),
+    ...                      theta_hat=np.array([[0.0], [1.0], [1.0]]),
     ...                      skipped=np.zeros(3, bool), diagnostics=ObserverDiagnostics())
     >>> print(estimate_summary(res, ["theta"]))
     final theta_hat: theta = 1
-    settled (within 1 % of the final value) at t = 2 of [0, 2]
+    settled (within 1 % of the final value) at t = 1 of [0, 2]
     skipped samples (dropouts): 0
     warnings: none
     """

@@ -348,7 +348,7 @@ def tail_movement(t: FloatArray, theta_path: FloatArray, sd: FloatArray) -> Floa
     >>> t = np.linspace(0.0, 1.0, 101)
     >>> path = np.stack([1.0 + 0.0 * t, 1.0 - np.exp(-2 * t)], axis=1)
     >>> tail_movement(t, path, np.array([0.01, 0.01])).round(1).tolist()
-    [0.0, 2.8]
+    [0.0, 4.5]
     """
     start = t[-1] - SETTLE_TAIL * (t[-1] - t[0])
     tail = theta_path[t >= start]
