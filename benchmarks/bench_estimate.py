@@ -47,7 +47,7 @@ def cli_wall(data: Path, out: Path, env: dict[str, str]) -> tuple[float, str]:
     """The command's wall time and its final line (the time of each stage)."""
     t0 = time.perf_counter()
     proc = subprocess.run([sys.executable, "-m", "thetahat", "estimate", str(MODEL), str(data),
-                           "-o", str(out)], env=env, check=True, stdout=subprocess.DEVNULL,
+                           "-o", str(out), "--method", "paper"], env=env, check=True, stdout=subprocess.DEVNULL,
                           stderr=subprocess.PIPE, text=True)
     final = [line for line in proc.stderr.splitlines() if line.startswith("thetahat: done")]
     return time.perf_counter() - t0, final[-1] if final else ""
@@ -72,11 +72,12 @@ def main(argv: list[str] | None = None) -> dict:
         first, _ = cli_wall(data, out, env)
         warm, stages = cli_wall(data, out, env)
     t0 = time.perf_counter()
-    fast = run_estimator(spec, t, u[:, None], y[:, None], compiled=True)
+    fast = run_estimator(spec, t, u[:, None], y[:, None], compiled=True, method="paper")
     fast_s = time.perf_counter() - t0
     n_py = min(args.python_samples, args.samples)
     t0 = time.perf_counter()
-    slow = run_estimator(spec, t[:n_py], u[:n_py, None], y[:n_py, None], compiled=False)
+    slow = run_estimator(spec, t[:n_py], u[:n_py, None], y[:n_py, None], compiled=False,
+                         method="paper")
     python_s = time.perf_counter() - t0
     agree = float(np.max(np.abs(fast.theta_hat[:n_py] - slow.theta_hat)))
     per_fast, per_py = fast_s / args.samples, python_s / n_py

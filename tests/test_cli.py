@@ -56,7 +56,8 @@ def lugre_csv(tmp_path_factory) -> tuple[Path, lugre.PlantTrajectory]:
 def test_estimate_round_trips_with_the_api(tmp_path, lugre_csv, hold, capsys):
     csv_path, data = lugre_csv
     out = tmp_path / "est.csv"
-    assert main(["estimate", str(LUGRE), str(csv_path), "-o", str(out), "--hold", hold]) == 0
+    assert main(["estimate", str(LUGRE), str(csv_path), "-o", str(out), "--hold", hold,
+                 "--method", "paper"]) == 0
     assert f"wrote {out} ({data.t.size} rows)" in capsys.readouterr().out
     header = out.read_text().splitlines()[0].split(",")
     spec = load_model(LUGRE)
@@ -65,7 +66,8 @@ def test_estimate_round_trips_with_the_api(tmp_path, lugre_csv, hold, capsys):
     # the same arrays through the API (the CSV holds 17 significant digits: exact floats)
     t, u, y = (np.loadtxt(csv_path, delimiter=",", skiprows=1)[:, i] for i in range(3))
     np.testing.assert_array_equal(t, data.t)
-    api = run_estimator(spec, t, u, y, hold=hold, diagnose=False)    # what the command runs
+    api = run_estimator(spec, t, u, y, hold=hold, diagnose=False,    # what the command runs
+                        method="paper")
     np.testing.assert_array_equal(table, _columns(api))
     # and the plain NumPy observer: the command may run a compiled back end, which evaluates
     # the same formulas in another order of floating-point operations (8.7e-13 relative,

@@ -58,7 +58,7 @@ def _lugre_doc() -> dict:
 # ------------------------------------------------------------------ the shipped examples
 def test_lugre_file_builds_the_papers_observer(lugre_spec):
     data = lugre.simulate(seed=3, t_end=1.5)
-    ours = run_estimator(lugre_spec, data.t, data.u, data.y)
+    ours = run_estimator(lugre_spec, data.t, data.u, data.y, method="paper")
     ref_obs = lugre.observer()
     x0 = x_hat_from_output(ref_obs.system.C, data.y[0])   # the file's start: x̂₀ = 0 + C⁺y(0)
     ref = ref_obs.run(data.t, data.u, data.y, state0=ref_obs.init(x_hat0=x0, theta_hat0=[0.5]))
@@ -327,11 +327,11 @@ def test_a_stuck_parameter_warns_from_the_library():
                                               '"Abs(theta)**0.5*(2 + sin(y))"'))
     with pytest.warns(ConvergenceWarning, match="no information reached the update law for "
                                                 "theta"):
-        run_estimator(stuck, t, u, y)
+        run_estimator(stuck, t, u, y, method="paper")           # the law's own information
     import warnings
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
-        run_estimator(loads_model(EXAMPLE_MODEL), t, u, y)
+        run_estimator(loads_model(EXAMPLE_MODEL), t, u, y, method="paper")
     assert not [w for w in caught if issubclass(w.category, ConvergenceWarning)]
 
 
@@ -345,7 +345,7 @@ def test_the_file_names_travel_with_the_result(name):
 
     spec = load_model(EXAMPLES / name)
     data = simulate_model(spec, seed=0, t_end=1.0)
-    res = run_estimator(spec, data.t, data.u, data.y, diagnose=False)
+    res = run_estimator(spec, data.t, data.u, data.y, diagnose=False, method="paper")
     assert res.names == spec.signal_names
     assert (res.names.states, res.names.parameters) == (spec.state_names, spec.parameter_names)
     assert (res.names.inputs, res.names.outputs) == (spec.input_names, spec.output_names)

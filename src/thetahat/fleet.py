@@ -598,7 +598,7 @@ def estimate_many(model: str | Path, data: str | Path | Iterable[str | Path], *,
     hold : {"zoh", "foh"}
         Sample hold between samples.
     method : {"paper", "guarded", "mle", "ekf"}, optional
-        The estimator (default: the file's ``[estimator] method``, else ``"paper"``), as for
+        The estimator (default: the file's ``[estimator] method``, else ``"guarded"``), as for
         :func:`~thetahat.modelfile.assembly.run_estimator`. The paper's observer runs the
         records that share their sampling instants as one batch; the two-stage methods run
         record by record.

@@ -116,3 +116,74 @@ def test_excitation_report_validates():
         excitation_report(t, S=np.ones((11, 2)), window=0.5)
     with pytest.raises(NonFiniteError):
         excitation_report(t, l=np.full(11, np.nan), window=0.5)
+
+
+# ------------------------------------------------------------- the law's conditions along a run
+def _stribeck_run(t_end=10.0):
+    """The newcomer's Stribeck model (examples/stribeck.toml) along a synthetic run: the mass
+    oscillates at 0.05 m/s amplitude, θ̂ held at the true (F_c, F_s, v_s) = (1, 1.5, 0.02)."""
+    from pathlib import Path
+    from thetahat.modelfile import load_model
+    spec = load_model(Path(__file__).resolve().parents[2] / "examples" / "stribeck.toml")
+    t = np.linspace(0.0, t_end, 2001)
+    vel = 0.05 * np.sin(2 * np.pi * 0.5 * t)
+    pos = -0.05 / (np.pi) * np.cos(2 * np.pi * 0.5 * t)
+    X = np.column_stack([pos, vel])
+    V = np.column_stack([np.sin(t), pos])                       # col(u, y)
+    TH = np.tile([1.0, 1.5, 0.02], (t.size, 1))
+    return spec, t, V, X, TH
+
+
+def test_stribeck_fails_14_for_v_s_and_names_the_velocity():
+    """∂g/∂v_s = (F_s − F_c)·2v²/v_s³·e^{−(v/v_s)²}·tanh(v/ε_v): its sign follows v, and flips
+    with F_s − F_c, which the file's Θ lets change sign: (14) fails for v_s (and only for
+    v_s: ∂g/∂F_c and ∂g/∂F_s follow sign(v) alone, whatever θ)."""
+    from thetahat.estimation.observer.checks import law_conditions_on_record
+    spec, t, V, X, TH = _stribeck_run()
+    s = spec.system
+    rep = law_conditions_on_record(s.perturbation, t, V, X, TH, s.parameter_set,
+                                   law=spec.estimator.update_law, names=spec.parameter_names,
+                                   signal_names=("u", "y", "x", "v"))
+    assert rep.failing == ("v_s",)
+    assert rep.sign_with[2] == "v"
+    w = rep.warnings[0]
+    assert "condition (14)" in w and "v_s" in w and "its sign follows v" in w
+    lo = s.parameter_set.lower
+    F_c, F_s = rep.witness[2][0], rep.witness[2][1]
+    assert F_s < F_c and np.all(rep.witness[2] >= lo)          # a point of Θ with F_s < F_c
+
+
+@pytest.mark.parametrize("name", ["prop4", "heater", "actuator"])
+def test_linear_in_theta_models_meet_14_along_their_scenario(name):
+    """g linear in θ (prop4: θ1 sin y + θ2 tanh u; the heater; the actuator): ∂g/∂θ does not
+    depend on θ, so every diagonal entry of (14) is (∂g/∂θᵢ)² ≥ 0 and the scenario's input
+    excites every quarter of the record."""
+    from pathlib import Path
+    from thetahat.estimation.observer.checks import law_conditions_on_record
+    from thetahat.modelfile import load_model, simulate_model
+    spec = load_model(Path(__file__).resolve().parents[2] / "examples" / f"{name}.toml")
+    s = spec.system
+    d = simulate_model(spec, 0)
+    N = d.t.size
+    TH = np.tile(spec.scenario.theta, (N, 1))
+    rep = law_conditions_on_record(s.perturbation, d.t, np.column_stack([d.u, d.y]), d.x, TH,
+                                   s.parameter_set, law=spec.estimator.update_law)
+    assert rep.proposition == "(14)" and rep.failing == () and rep.exciting
+    assert rep.warnings == ()
+
+
+def test_a_quiet_quarter_is_reported_as_missing_excitation():
+    """prop4 with u ≡ 0 and y ≡ 0 over the last 30 % of the run: ∂g/∂θ = (sin y, tanh u)
+    vanishes there, and a whole window of a quarter of the record has no excitation."""
+    from thetahat.estimation.observer.checks import law_conditions_on_record
+    g = prop4_pe.system().perturbation
+    t = np.linspace(0.0, 20.0, 2001)
+    quiet = t > 14.0
+    V = np.column_stack([np.where(quiet, 0.0, np.sin(1.3 * t)), np.where(quiet, 0.0, np.cos(t))])
+    X = np.column_stack([V[:, 1], np.zeros_like(t)])
+    TH = np.tile(prop4_pe.THETA, (t.size, 1))
+    rep = law_conditions_on_record(g, t, V, X, TH, prop4_pe.PARAMETER_SET,
+                                   law=prop4_pe.update_law(1.0))
+    assert not rep.exciting and rep.failing == ()
+    assert any("excitation the update law needs" in w for w in rep.warnings)
+    assert rep.excitation.t_S >= 13.99                 # the window lies in the quiet part

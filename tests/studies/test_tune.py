@@ -153,3 +153,44 @@ def test_long_records_run_each_pair_on_the_fastest_back_end(stable_grid, monkeyp
     assert len(used) == 4 and all(used)                        # 2 ε × 2 Γ × 1 seed, compiled
     # the compiled step is the NumPy step's formulas: agreement far below the scores' spread
     np.testing.assert_allclose(res.theta_rmse, stable_grid.theta_rmse, rtol=1e-6)
+
+
+def test_no_pair_that_converged_means_no_choice_and_a_warning(capsys, tmp_path):
+    """Γ = 1 on the 4 s LuGre record: θ̂ never settles within 1 % of θ (t_1% = inf on every
+    pair), so none is chosen — not the smallest RMSE among failures — a ThetahatWarning says
+    so, and the command exits with status 2."""
+    from thetahat.errors import ThetahatWarning
+    with pytest.warns(ThetahatWarning, match="no \\(eps, Gamma\\) pair converged"):
+        res = tune_eps_gamma(lugre.observer, SIM, eps_values=[1.0, 0.5], gammas=[1.0],
+                             seeds=[1000], theta_hat0=THETA_HAT0)
+    assert np.isinf(res.t_1pct).all() and not res.rejected.any()       # the premise
+    assert not res.converged.any()
+    assert res.best_eps is None and res.best_Gamma is None
+    assert "none is chosen" in res.verdict() and "<- chosen" not in res.table()
+    assert main(["tune", "--eps", "1", "0.5", "--gamma", "1", "--seeds", "1000",
+                 "--t-end", str(T_END), "--out", str(tmp_path / "o")]) == 2
+    assert "no (eps, Gamma) pair converged" in capsys.readouterr().err
+
+
+def test_a_pair_that_did_not_settle_is_never_chosen(stable_grid):
+    """Among the stable grid's pairs only those whose θ̂ settled on every seed are candidates:
+    the choice has a finite t_1%."""
+    i, j = stable_grid.eps.index(stable_grid.best_eps), stable_grid.Gamma.index(
+        stable_grid.best_Gamma)
+    assert stable_grid.converged[i, j] and np.isfinite(stable_grid.t_1pct[i, j]).all()
+
+
+@pytest.mark.slow
+def test_tune_on_the_newcomers_stribeck_model_picks_nothing():
+    """examples/stribeck.toml (θ = (F_c, F_s, v_s)), 2 s of its scenario: no (ε, Γ) settles
+    within 1 %, and tune says so instead of choosing (the issue: it chose ε = 1, Γ = 30)."""
+    from pathlib import Path
+    from thetahat.errors import ThetahatWarning
+    from thetahat.modelfile import load_model
+    from thetahat.modelfile.study import study_setup
+    spec = load_model(Path(__file__).resolve().parents[2] / "examples" / "stribeck.toml")
+    setup = study_setup(spec, t_end=2.0)
+    with pytest.warns(ThetahatWarning, match="no \\(eps, Gamma\\) pair converged"):
+        res = tune_eps_gamma(setup.estimator, setup.simulate, eps_values=[1.0],
+                             gammas=[30.0], seeds=[1000], theta_hat0=setup.theta_hat0)
+    assert res.best_eps is None and not res.converged.any()

@@ -453,7 +453,7 @@ def run_estimator(spec: ModelSpec, t: ArrayLike, u: ArrayLike | None, y: ArrayLi
                   diagnose: bool = True, Gamma: ArrayLike | None = None) -> EstimateResult:
     """Run the file's estimator on sampled data, from the file's initial values.
 
-    ``method`` (default: the file's ``[estimator] method``, else ``"paper"``) chooses the
+    ``method`` (default: the file's ``[estimator] method``, else ``"guarded"``) chooses the
     paper's observer, the guarded two-stage estimator (that observer as stage 1), the
     offline MAP fits or the joint EKF (:func:`build_estimator`); every one returns an
     :class:`~thetahat.estimation.protocol.EstimateResult` with its own ``diagnostics``.
@@ -689,15 +689,30 @@ def _check_theta_star(spec: ModelSpec, t: ArrayLike, u: ArrayLike | None, y: Arr
 
 def _trust(spec: ModelSpec, result: EstimateResult, u: ArrayLike | None, y: ArrayLike,
            compiled: bool | None, x0: FloatArray) -> TrustReport:
-    """The trust report of a run of the file's estimator on its record (with the guard's band
-    of a guarded run)."""
+    """The trust report of a run of the file's estimator on its record: the guard's band of a
+    guarded run, the σ the estimator used, θ̂'s path, and for the paper's observer (NumPy,
+    compiled or C: one result type) the law's conditions along the run."""
+    from ..estimation.protocol import ObserverDiagnostics
     from ..estimation.statistical.guarded import GuardedDiagnostics
     from ..estimation.statistical.trust import trust_report
     d = result.diagnostics
     band = d.band if isinstance(d, GuardedDiagnostics) else None
+    sigma = getattr(d, "noise_std", None)
     N = result.t.shape[0]
     U = np.zeros((N, 0)) if u is None else np.asarray(u, dtype=np.float64).reshape(N, -1)
     Y = np.asarray(y, dtype=np.float64).reshape(N, -1)
-    return trust_report(spec.system, result.t, np.ascontiguousarray(U),
-                        np.ascontiguousarray(Y), result.theta_hat[-1], spec.parameter_names,
-                        x_hat0=x0, band=band, compiled=compiled)
+    conditions = None
+    s = spec.system
+    if isinstance(d, ObserverDiagnostics) and s.perturbation is not None \
+            and s.parameter_set is not None:
+        from ..estimation.observer.checks import law_conditions_on_record
+        names = spec.signal_names
+        conditions = law_conditions_on_record(
+            s.perturbation, result.t, np.concatenate([U, Y], axis=1), result.x_hat,
+            result.theta_hat, s.parameter_set, law=spec.estimator.update_law,
+            names=spec.parameter_names,
+            signal_names=names.inputs + names.outputs + names.states)
+    return trust_report(s, result.t, np.ascontiguousarray(U), np.ascontiguousarray(Y),
+                        result.theta_hat[-1], spec.parameter_names, x_hat0=x0, band=band,
+                        noise_std=sigma, compiled=compiled, theta_path=result.theta_hat,
+                        law_conditions=conditions)

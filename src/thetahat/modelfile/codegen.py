@@ -60,9 +60,11 @@ def generate_c_from_model(path: str | Path, *, dt: float, eps: float | None = No
         The file cannot be read or is invalid, or it says ``Gamma = "auto"`` and no ``Gamma``
         is given.
     UnsupportedError
-        A part of the estimator has no C form, or the file's ``[estimator] method`` is not
-        ``"paper"`` (the guarded and MAP estimators have no C form; the file is refused, never
-        generated as another method).
+        A part of the estimator has no C form, or the file's ``[estimator] method`` names
+        another method than ``"paper"`` (the guarded and MAP estimators have no C form; the
+        file is refused, never generated as another method). A file that names no method
+        (the default, guarded, for ``thetahat estimate``) generates the paper's observer:
+        the one estimator with a C form.
 
     Examples
     --------
@@ -74,7 +76,7 @@ def generate_c_from_model(path: str | Path, *, dt: float, eps: float | None = No
     'prop3'
     """
     spec = load_model(path)
-    if spec.estimator.method != "paper":
+    if spec.estimator.method_given and spec.estimator.method != "paper":
         raise UnsupportedError(
             f"{path}: [estimator] method = {spec.estimator.method!r} has no C form; codegen "
             "generates the paper's estimator only (method = \"paper\"). Set method = "

@@ -51,6 +51,7 @@ from ..estimation.statistical.stage2_set import theta_bounds
 from ..model.paramset import Ball, Box, Ellipsoid, ParameterSet
 from ..model.parse import parse_perturbation
 from ..model.perturbation import SymbolicPerturbation
+from ..methods import DEFAULT_METHOD
 from ..model.system import PerturbedLinearSystem
 from ..safe_io import read_text
 from . import keys as K
@@ -99,7 +100,8 @@ class EstimatorOptions:
     law : {"gradient", "least_squares", "algebraic", "intermittent"}
     method : str
         How :func:`~thetahat.modelfile.run_estimator` estimates: one of
-        :data:`thetahat.methods.ESTIMATION_METHODS` (default the first, "paper").
+        :data:`thetahat.methods.ESTIMATION_METHODS` (default
+        :data:`thetahat.methods.DEFAULT_METHOD`, "guarded").
     update_law : UpdateLaw
         The law, built and validated.
     eps : float
@@ -117,6 +119,9 @@ class EstimatorOptions:
         Design even when Assumption 1 fails (the explicit opt-out; default False).
     x_hat0_from_y : bool
         Start x̂ at x̂₀ + C⁺(y(0) − C x̂₀) on a record (default True), else at x̂₀.
+    method_given : bool
+        The file names its ``method`` (``thetahat codegen`` refuses a file that names one
+        without a C form; a file that names none gets the paper's observer there).
     gamma_auto : bool
         ``Gamma = "auto"`` (the gradient and least-squares laws' default): Γ is chosen on the
         record by :func:`~thetahat.estimation.observer.auto_gain.information_gain` when the
@@ -135,12 +140,13 @@ class EstimatorOptions:
     E_design: FloatArray | None
     second: SecondObserverOptions | None
     allow_nonminimum_phase: bool = False
-    method: str = "paper"
+    method: str = DEFAULT_METHOD
     gamma_auto: bool = False
     x_hat0_from_y: bool = True
+    method_given: bool = False
 
     def __repr__(self) -> str:
-        method = "" if self.method == "paper" else f"method={self.method!r}, "
+        method = "" if self.method == DEFAULT_METHOD else f"method={self.method!r}, "
         return (f"EstimatorOptions(law={self.law!r}, {method}eps={self.eps:g}, "
                 f"theta_hat0={self.theta_hat0.tolist()}, "
                 f"design_system={self.A_design is not None or self.E_design is not None}, "
@@ -454,7 +460,8 @@ def _read_estimator(sec: Section, system: PerturbedLinearSystem, pert: SymbolicP
                             chain_poles=sec.poles("chain_poles"), b_poles=sec.poles("b_poles"),
                             theta_hat0=theta_hat0, x_hat0=x_hat0, A_design=A_d, E_design=E_d,
                             second=second, allow_nonminimum_phase=allow_nmp,
-                            method=method, gamma_auto=gamma_auto, x_hat0_from_y=from_y)
+                            method=method, gamma_auto=gamma_auto, x_hat0_from_y=from_y,
+                            method_given=sec.has("method"))
 
 
 def _scenario_input(sec: Section, m: int) -> tuple[FloatArray, FloatArray]:

@@ -11,6 +11,7 @@ from numpy.typing import ArrayLike, NDArray
 from .._validate import as_vector, positive_scalar
 from ..errors import DimensionError
 from ..estimation.protocol import EstimateResult
+from ..estimation.statistical.trust import SETTLE_TAIL
 from ..tables import result_names
 
 __all__ = ["DIVERGENCE_FACTOR", "diverged", "divergence_reason", "estimate_summary", "rmse",
@@ -152,6 +153,9 @@ def divergence_reason(name: str, estimate: ArrayLike, scale: float) -> str | Non
 
 #: Band of :func:`estimate_summary`'s settling time: θ̂ within 1 % of its final value.
 SETTLE_REL = 0.01
+# θ̂ has settled only if it stayed in that band over at least the last SETTLE_TAIL of the
+# record (the trust report's tail): a θ̂ that enters the band at t = 29.99 of a 30 s record
+# has not settled, it has stopped.
 
 
 def estimate_summary(result: EstimateResult, parameter_names: Sequence[str] | None = None, *,
@@ -175,7 +179,10 @@ def estimate_summary(result: EstimateResult, parameter_names: Sequence[str] | No
     str
         The summary ``thetahat estimate`` prints. The settling time is the first time after
         which every θ̂ component stays within ``SETTLE_REL`` (1 %) of its final value (an
-        absolute band of 1e-12 for a final value 0).
+        absolute band of 1e-12 for a final value 0); when that leaves less than the last
+        ``SETTLE_TAIL`` of the record, the summary says "NOT settled". The trust report's
+        findings (``result.trust.warnings``) are listed with the warnings even when they
+        were not caught.
 
     Examples
     --------
@@ -184,11 +191,11 @@ def estimate_summary(result: EstimateResult, parameter_names: Sequence[str] | No
     >>> from thetahat.studies.metrics import estimate_summary
     >>> z = np.zeros((3, 1))
     >>> res = EstimateResult(t=np.array([0.0, 1.0, 2.0]), x_hat=z, phi_hat=z,
-    ...                      theta_hat=np.array([[0.0], [0.9], [1.0]]),
+    ...                      theta_hat=np.array([[0.0], [1.0], [1.0]]),
     ...                      skipped=np.zeros(3, bool), diagnostics=ObserverDiagnostics())
     >>> print(estimate_summary(res, ["theta"]))
     final theta_hat: theta = 1
-    settled (within 1 % of the final value) at t = 2 of [0, 2]
+    settled (within 1 % of the final value) at t = 1 of [0, 2]
     skipped samples (dropouts): 0
     warnings: none
     """
@@ -201,14 +208,24 @@ def estimate_summary(result: EstimateResult, parameter_names: Sequence[str] | No
     settle = t[0] if outside.size == 0 else t[min(outside[-1] + 1, t.size - 1)]
     names = result_names(result, parameter_names=parameter_names)[1]
     values = ", ".join(f"{n} = {v:.6g}" for n, v in zip(names, final))
-    settled = (f"settled (within {SETTLE_REL * 100:g} % of the final value) at t = "
-               f"{settle:.6g} of [{t[0]:.6g}, {t[-1]:.6g}]" if t.size > 1 else
-               "settled: not decided (a single sample has no course to settle)")
+    late = t.size > 1 and settle > t[-1] - SETTLE_TAIL * (t[-1] - t[0])
+    if t.size <= 1:
+        settled = "settled: not decided (a single sample has no course to settle)"
+    elif late:
+        settled = (f"NOT settled: θ̂ stays within {SETTLE_REL * 100:g} % of its final value "
+                   f"only from t = {settle:.6g} of [{t[0]:.6g}, {t[-1]:.6g}], less than the "
+                   f"last {100 * SETTLE_TAIL:g} % of the record")
+    else:
+        settled = (f"settled (within {SETTLE_REL * 100:g} % of the final value) at t = "
+                   f"{settle:.6g} of [{t[0]:.6g}, {t[-1]:.6g}]")
     lines = [f"final theta_hat: {values}", settled,
              f"skipped samples (dropouts): {int(np.sum(result.skipped))}"]
     if result.trust is not None:                 # checked by run_estimator
         lines += result.trust.lines()
     notes = [w if isinstance(w, str) else f"{w.category.__name__}: {w.message}"
              for w in warnings]
+    if result.trust is not None:                 # its findings, whether caught or not
+        shown = " ".join(notes)
+        notes += [f"ThetahatWarning: {w}" for w in result.trust.warnings if w not in shown]
     lines.append("warnings: " + ("none" if not notes else "; ".join(dict.fromkeys(notes))))
     return "\n".join(lines)

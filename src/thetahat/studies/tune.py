@@ -3,9 +3,11 @@
 Sec. VII tunes the observer "by starting with ε = 1 and decreasing ε in small decrements until
 satisfactory performance is achieved". :func:`tune_eps_gamma` automates that procedure for the
 pair (ε, Γ): for every ε (1 first, then decreasing) and every adaptation gain Γ it runs the
-observer on a few tuning seeds, rejects the pairs for which some run diverged, and picks the
-pair with the smallest score (by default the worst θ RMSE over the seeds, second half of the
-record).
+observer on a few tuning seeds, rejects the pairs for which some run diverged or whose θ̂ did
+not settle within 1 % of θ on every seed, and picks among the others the pair with the
+smallest score (by default the worst θ RMSE over the seeds, second half of the record). When
+no pair converges it says so and picks none: a pick it cannot stand behind would be taken for
+a tuning.
 
 Γ is the gain of the update law of Proposition 2, u_θ = Proj(l Γ (θ* − θ̂)): a larger Γ pulls
 θ̂ faster towards the algebraic inverse θ* while the excitation indicator l is on, at the
@@ -23,6 +25,7 @@ import functools
 import itertools
 import math
 import time
+import warnings
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass
 from typing import Any
@@ -30,7 +33,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from ..errors import DesignError, DimensionError
+from ..errors import DesignError, DimensionError, ThetahatWarning
 from .batch import check_seeds, monte_carlo
 from .runs import DIVERGENCE_ERRORS, RunMetrics, format_number, run_metrics
 from .sweep import EstimatorSource, check_eps_values, observer_for, run_observer
@@ -69,8 +72,10 @@ class TuneResult:
     score : ndarray, shape (n_eps, n_Gamma)
         The worst ``criterion`` over the seeds; ``inf`` for a rejected (diverged) pair.
     best_eps, best_Gamma : float or None
-        The chosen pair: among scores within ``rel_tol`` of the smallest, the larger ε, then
-        the smaller Γ; None when every pair diverged.
+        The chosen pair: among the pairs that converged (:attr:`converged`: θ̂ settled within
+        1 % of θ on every seed), the scores within ``rel_tol`` of the smallest, the larger
+        ε, then the smaller Γ; None when no pair converged (a ThetahatWarning says so, and
+        :meth:`verdict` why) — a pair that did not converge is never chosen.
     errors : tuple of str
         Every diverged run, with its ε, Γ and seed, and how it diverged: the error that
         stopped it, or the estimate that became non-finite or left ``DIVERGENCE_FACTOR``
@@ -98,16 +103,31 @@ class TuneResult:
         """Pairs with at least one diverged seed; shape (n_eps, n_Gamma)."""
         return np.asarray(self.diverged.any(axis=2), dtype=np.bool_)
 
+    @property
+    def converged(self) -> NDArray[np.bool_]:
+        """Pairs whose θ̂ settled within 1 % of θ (t_1 % finite) on every seed and never
+        diverged: the pairs that meet the criterion a choice needs; shape (n_eps, n_Gamma)."""
+        with np.errstate(invalid="ignore"):
+            settled = np.all(np.isfinite(self.t_1pct), axis=2)
+        return np.asarray(settled & ~self.rejected, dtype=np.bool_)
+
     def verdict(self) -> str:
-        """One sentence: the chosen pair and its score, or that every pair diverged."""
+        """One sentence: the chosen pair and its score, or why none was chosen."""
         if self.best_eps is None:
-            return ("no (eps, Gamma) pair was stable on every seed; try larger eps "
-                    "(eps = 1 first, Sec. VII) or other Gamma.")
+            if self.rejected.all():
+                return ("no (eps, Gamma) pair was stable on every seed; try larger eps "
+                        "(eps = 1 first, Sec. VII) or other Gamma.")
+            return (f"no (eps, Gamma) pair converged: on none of the {self.score.size} "
+                    f"pairs did θ̂ settle within 1 % of θ on every seed (t_1% = inf), so "
+                    "none is chosen. The law may not converge on this model and scenario: "
+                    "check its conditions (thetahat estimate --method paper reports them), "
+                    "try a longer record, other Gamma, or method guarded or mle.")
         i, j = self.eps.index(self.best_eps), self.Gamma.index(self.best_Gamma)
         return (f"chosen: eps = {self.best_eps:g}, Gamma = {self.best_Gamma:g} "
                 f"({self.criterion} = {self.score[i, j]:.3g}, worst over "
                 f"{len(self.seeds)} seed(s)); {int(self.rejected.sum())} of "
-                f"{self.score.size} pair(s) rejected as diverged.")
+                f"{self.score.size} pair(s) rejected as diverged, "
+                f"{int((~self.converged & ~self.rejected).sum())} as not settled within 1 %.")
 
     def table(self, state_labels: Sequence[str] | None = None) -> str:
         """One line per (ε, Γ): stable seeds, worst θ RMSE, t_1 %, state RMSE; then the choice.
@@ -142,7 +162,7 @@ class TuneResult:
             cells += [f"{'-' if bad else fmt(float(np.max(self.x_rmse[i, j, :, c])), '.2e'):>14}"
                       for c in range(n)]
             mark = " <- chosen" if (e == self.best_eps and g == self.best_Gamma) else (
-                " diverged" if bad else "")
+                " diverged" if bad else ("" if self.converged[i, j] else " not settled"))
             lines.append(" ".join(cells) + mark)
         lines.append(self.verdict())
         lines += [f"  run stopped: {err if len(err) <= 100 else err[:97] + '...'}"
@@ -293,6 +313,11 @@ def tune_eps_gamma(estimator: EstimatorSource, simulate: Callable[[int], Any], *
     DimensionError
         Empty or negative seeds.
 
+    Warns
+    -----
+    ThetahatWarning
+        No pair converged: none is chosen (the message is :meth:`TuneResult.verdict`).
+
     Notes
     -----
     Γ scales the update law of Proposition 2, u_θ = Proj(l Γ (θ* − θ̂)); any Γ > 0 keeps
@@ -342,22 +367,24 @@ def tune_eps_gamma(estimator: EstimatorSource, simulate: Callable[[int], Any], *
     with np.errstate(invalid="ignore"):
         score = np.where(rejected, np.inf, np.max(metrics[criterion], axis=2))
     score = np.where(np.isnan(score), np.inf, score)
+    converged = ~rejected & np.all(np.isfinite(metrics["t_1pct"]), axis=2)
     best_eps = best_gam = None
-    if not rejected.all():
-        if np.isfinite(score).any():
-            # near-ties (within rel_tol of the best) go to the larger ε, then the smaller Γ:
-            # decrease ε only while it clearly helps (Sec. VII)
-            near = score <= np.min(score) * (1.0 + rel_tol)
-            flat = int(np.flatnonzero(near.ravel())[0])
-        else:                                                        # none settled
-            flat = int(np.flatnonzero(~rejected.ravel())[0])
-        i, j = np.unravel_index(flat, score.shape)
+    if converged.any():
+        # only pairs that met the criterion (settled on every seed) are candidates; near-ties
+        # (within rel_tol of the best) go to the larger ε, then the smaller Γ: decrease ε
+        # only while it clearly helps (Sec. VII)
+        cand = np.where(converged, score, np.inf)
+        near = cand <= np.min(cand) * (1.0 + rel_tol)
+        i, j = np.unravel_index(int(np.flatnonzero(near.ravel())[0]), score.shape)
         best_eps, best_gam = eps[i], gam[j]
     labels = itertools.product(eps, gam, seeds_)
     errors = tuple(f"eps={e:g}, Gamma={g:g}, seed={s}: {r.error}"
                    for (e, g, s), r in zip(labels, runs) if r.error is not None)
-    return TuneResult(eps=eps, Gamma=gam, seeds=seeds_, criterion=criterion, diverged=div,
-                      theta_rmse=metrics["theta_rmse"], t_1pct=metrics["t_1pct"],
-                      x_rmse=np.array([r.x_rmse for r in runs]).reshape(shape + (n,)),
-                      score=score, best_eps=best_eps, best_Gamma=best_gam, errors=errors,
-                      wall_time=time.perf_counter() - start)
+    result = TuneResult(eps=eps, Gamma=gam, seeds=seeds_, criterion=criterion, diverged=div,
+                        theta_rmse=metrics["theta_rmse"], t_1pct=metrics["t_1pct"],
+                        x_rmse=np.array([r.x_rmse for r in runs]).reshape(shape + (n,)),
+                        score=score, best_eps=best_eps, best_Gamma=best_gam, errors=errors,
+                        wall_time=time.perf_counter() - start)
+    if best_eps is None:
+        warnings.warn(result.verdict(), ThetahatWarning, stacklevel=2)
+    return result

@@ -9,6 +9,10 @@
 Sampling can find a violation but never prove the condition; the reports say where the worst
 case was found so that it can be inspected.
 
+* :func:`law_conditions_on_record` samples the diagonal of (14) and the excitation along a
+  run of the observer, with the run's own (v, x̂, θ̂): did the law's conditions hold where it
+  ran? (The trust report's check of the paper's method.)
+
 What lives here: those checks, :func:`check_theta_star` (θ* on a record, before estimation)
 and their reports. What it may import: the model, θ* of :mod:`.laws` and the package's
 helpers; never an observer.
@@ -31,8 +35,8 @@ from .laws.theta_star import ThetaStar
 
 FloatArray = NDArray[np.float64]
 
-__all__ = ["MonotonicityReport", "ExcitationReport", "check_monotonicity", "excitation_report",
-           "check_theta_star"]
+__all__ = ["MonotonicityReport", "ExcitationReport", "LawConditionReport", "check_monotonicity",
+           "excitation_report", "check_theta_star", "law_conditions_on_record"]
 
 #: Eigenvalues of the sampled symmetric matrices above -EIG_ATOL count as >= 0 in the (14) check:
 #: eigvalsh of an exactly PSD matrix returns about -1e-16 times its norm; 1e-12 leaves room for
@@ -455,3 +459,263 @@ def _check_poles(theta_star: Any, V: FloatArray, X: FloatArray, perturbation: Pe
                 f"theta_star is singular on the data: its denominator {den} (θ* = {expr}) "
                 f"vanishes between samples at {_times(t, cross)}, where θ* has a pole and "
                 f"the estimate would be driven by noise. {fix}")
+
+
+#: Points of Θ drawn as θ₂ of (14) at every sample of :func:`law_conditions_on_record` (with
+#: θ₂ = θ̂ at the sample itself and at the run's end).
+RECORD_THETAS = 8
+#: Samples of the run at which :func:`law_conditions_on_record` evaluates (evenly spaced; the
+#: check costs O(RECORD_SAMPLES · RECORD_THETAS), whatever the record's length).
+RECORD_SAMPLES = 4096
+#: A parameter fails (14) when its diagonal entry is negative on more than this fraction of
+#: the samples (a few samples at a zero crossing of a smoothed sign are rounding, not a
+#: failure of the law).
+CONDITION_FRACTION = 0.02
+#: A signal "drives" the sign of ∂g/∂θᵢ when the two signs agree (or disagree) on at least this
+#: fraction of the samples where both are non-zero.
+SIGN_AGREEMENT = 0.95
+#: The excitation of Props. 2–4 is checked over windows of this fraction of the record.
+EXCITATION_WINDOW = 0.25
+#: A window whose scaled information λ_min(∫ S dt) is below this fraction of the window's
+#: length has no excitation in some direction (the scaled S has mean trace p per unit time).
+EXCITATION_RTOL = 1e-4
+
+
+@final
+@dataclass(frozen=True, slots=True, eq=False)
+class LawConditionReport:
+    """The update law's conditions sampled along a run (:func:`law_conditions_on_record`).
+
+    Attributes
+    ----------
+    names : tuple of str
+        The parameters' names.
+    proposition : str
+        ``"(14)"`` for the gradient and least-squares laws (Props. 3–4), ``"l"`` for the
+        intermittent inversion (Prop. 2), ``""`` when the law has no condition to sample.
+    fail_fraction : ndarray (p,)
+        Per parameter, the fraction of the samples at which the diagonal entry
+        2 Mᵢ(v, x̂, θ̂) ∂g/∂θᵢ(v, x̂, θ₂) of (14) is negative for some θ₂ drawn from Θ (or θ̂
+        at the run's end): there no S ≥ 0 satisfies (14).
+    at_estimate : ndarray (p,)
+        The same with θ₂ = θ̂ at the sample (a sign of Mᵢ ∂g/∂θᵢ that changes along the record
+        itself, not only across Θ).
+    sign_with : tuple of str
+        Per parameter, the signal whose sign ∂g/∂θᵢ(v, x̂, θ̂) follows ('' if none does).
+    witness : ndarray (p, p)
+        Per parameter, a θ₂ ∈ Θ at which its entry was negative (NaN rows where none was).
+    excitation : ExcitationReport or None
+        Persistency of excitation along the run: of the Jacobi-scaled (∂g/∂θ)ᵀ∂g/∂θ at θ̂
+        (Props. 3–4) or of l (Prop. 2), over windows of :data:`EXCITATION_WINDOW` of the record.
+    n_samples : int
+    """
+
+    names: tuple[str, ...]
+    proposition: str
+    fail_fraction: FloatArray
+    at_estimate: FloatArray
+    sign_with: tuple[str, ...]
+    witness: FloatArray
+    excitation: ExcitationReport | None
+    n_samples: int
+
+    @property
+    def failing(self) -> tuple[str, ...]:
+        """Parameters whose (14) entry fails on more than :data:`CONDITION_FRACTION`."""
+        return tuple(n for n, f in zip(self.names, self.fail_fraction)
+                     if f > CONDITION_FRACTION)
+
+    @property
+    def exciting(self) -> bool:
+        """Every window of the record carries excitation in every direction."""
+        ex = self.excitation
+        if ex is None:
+            return True
+        sig = ex.sigma_S if ex.sigma_S is not None else ex.sigma_l
+        return sig is None or sig > EXCITATION_RTOL * ex.window
+
+    @property
+    def warnings(self) -> tuple[str, ...]:
+        """One sentence per failed condition, with what to do."""
+        out = []
+        for i, name in enumerate(self.names):
+            f = self.fail_fraction[i]
+            if not f > CONDITION_FRACTION:
+                continue
+            follows = (f" (its sign follows {self.sign_with[i]})"
+                       if self.sign_with[i] and self.sign_with[i] != "the data" else "")
+            if self.at_estimate[i] > CONDITION_FRACTION:
+                why = (f"M·∂g/∂{name} is negative at θ̂ itself on "
+                       f"{100 * self.at_estimate[i]:.0f} % of the samples{follows}")
+            elif np.all(np.isfinite(self.witness[i])):
+                shown = ", ".join(f"{n} = {v:.3g}" for n, v in zip(self.names, self.witness[i]))
+                why = (f"∂g/∂{name}{follows} has opposite signs at θ̂ and at points of Θ "
+                       f"such as ({shown})")
+            else:
+                why = f"M·∂g/∂{name} changes sign between θ̂ and the run's final θ̂{follows}"
+            out.append(f"the update law's condition (14) (Props. 3–4) fails for {name} on "
+                       f"{100 * f:.0f} % of the samples of this run: {why}; the "
+                       "paper's convergence guarantee does not hold here (restrict Θ to where "
+                       f"∂g/∂{name} keeps its sign, or use method guarded or mle)")
+        ex = self.excitation
+        if ex is not None and not self.exciting:
+            where = float((ex.t_S if ex.sigma_S is not None else ex.t_l) or 0.0)
+            what = ("λ_min of the scaled information (∂g/∂θ)ᵀ∂g/∂θ" if ex.sigma_S is not None
+                    else "the excitation weight l (Prop. 2)")
+            out.append(f"the excitation the update law needs (Props. 2–4) is missing over "
+                       f"[{where:.6g}, {where + ex.window:.6g}]: {what} integrates to almost "
+                       "nothing there (other excitation, or a record whose input moves every "
+                       "parameter throughout)")
+        return tuple(out)
+
+    def __repr__(self) -> str:
+        return (f"LawConditionReport({self.proposition or 'no condition'}: failing="
+                f"{list(self.failing)}, exciting={self.exciting}, n_samples={self.n_samples})")
+
+
+def _sign_driver(J_i: FloatArray, signals: FloatArray, labels: tuple[str, ...]) -> str:
+    """The signal whose sign ∂g/∂θᵢ follows on ≥ SIGN_AGREEMENT of the samples, or ''."""
+    s = np.sign(J_i)
+    if not (np.any(s > 0) and np.any(s < 0)):
+        return ""
+    for j, label in enumerate(labels):
+        z = np.sign(signals[:, j])
+        both = (s != 0) & (z != 0)
+        if both.sum() < 10:
+            continue
+        agree = float(np.mean(s[both] == z[both]))
+        if max(agree, 1.0 - agree) >= SIGN_AGREEMENT:
+            return label
+    return "the data"
+
+
+def law_conditions_on_record(perturbation: Perturbation, t: ArrayLike, v: ArrayLike,
+                             x_hat: ArrayLike, theta_hat: ArrayLike,
+                             parameter_set: ParameterSet, *, law: object,
+                             names: tuple[str, ...] | None = None,
+                             signal_names: tuple[str, ...] | None = None,
+                             seed: int = 0) -> LawConditionReport:
+    """The conditions of Props. 2–4 along a run of the observer: where did they hold?
+
+    At :data:`RECORD_SAMPLES` samples of the run (evenly spaced), with the run's own
+    (v, x̂, θ̂): for the gradient law (Props. 3–4, M = ``law.M`` or (∂g/∂θ)ᵀ) and the
+    least-squares law (M = (∂g/∂θ)ᵀ on the filtered regressor; its condition is read on the
+    unfiltered one), the diagonal entries 2 Mᵢ(v, x̂, θ̂) ∂g/∂θᵢ(v, x̂, θ₂) of (14) for θ₂ = θ̂
+    at the sample, θ̂ at the run's end and :data:`RECORD_THETAS` points of Θ — a negative one
+    means no S ≥ 0 satisfies (14) there (the proofs of Props. 3–4 take θ₂ between θ̂ and θ);
+    and the persistency of excitation of the Jacobi-scaled (∂g/∂θ)ᵀ∂g/∂θ at θ̂ over windows of
+    :data:`EXCITATION_WINDOW` of the record. For the intermittent inversion (Prop. 2): the
+    excitation of its weight l(v, x̂, φ̂ = g(v, x̂, θ̂)). Cost: O(RECORD_SAMPLES · RECORD_THETAS)
+    evaluations of ∂g/∂θ, whatever N.
+
+    Parameters
+    ----------
+    perturbation : Perturbation
+    t : array_like (N,)
+    v : array_like (N, m + r)
+        col(u, y) of the run (rows with NaN are left out).
+    x_hat, theta_hat : array_like (N, n), (N, p)
+        The run's estimates.
+    parameter_set : ParameterSet
+        Θ.
+    law : UpdateLaw
+        The run's law (its ``M``, or ``l`` for Prop. 2, is read).
+    names : tuple of str, optional
+        The parameters' names.
+    signal_names : tuple of str, optional
+        Names of the columns of v followed by those of x̂ (to say what a sign follows).
+    seed : int
+        Seed of the points of Θ.
+
+    Returns
+    -------
+    LawConditionReport
+
+    Examples
+    --------
+    g = θ tanh(v/0.01) with Θ = [−1, 1]: ∂g/∂θ = tanh(v/0.01) changes sign across Θ? No —
+    it does not depend on θ, so (14) holds with S = (∂g/∂θ)²:
+
+    >>> import numpy as np
+    >>> from thetahat.model.parse import parse_perturbation
+    >>> from thetahat.model.paramset import Box
+    >>> from thetahat.estimation.observer.laws import GradientInversion
+    >>> from thetahat.estimation.observer.checks import law_conditions_on_record
+    >>> g = parse_perturbation("th*tanh(y/0.01)", u=[], y=["y"], x=["x"], theta=["th"])
+    >>> law = GradientInversion(g, Gamma=1.0, parameter_set=Box([-1.0], [1.0]))
+    >>> t = np.linspace(0.0, 10.0, 1001)
+    >>> rep = law_conditions_on_record(g, t, np.sin(t)[:, None], np.zeros((1001, 1)),
+    ...                                np.full((1001, 1), 0.5), Box([-1.0], [1.0]), law=law)
+    >>> rep.failing, rep.exciting
+    ((), True)
+    """
+    n, m, r, p, k = perturbation.dims
+    t_ = as_vector("t", t)
+    N = t_.size
+    V = _record("v", v, N, m + r)
+    X = _record("x_hat", x_hat, N, n)
+    TH = _record("theta_hat", theta_hat, N, p)
+    names_ = tuple(names) if names is not None else tuple(f"theta{i + 1}" for i in range(p))
+    labels = (tuple(signal_names) if signal_names is not None
+              else tuple(f"v{i + 1}" for i in range(m + r)) + tuple(f"x{i + 1}"
+                                                                   for i in range(n)))
+    ok = np.isfinite(V).all(axis=1) & np.isfinite(X).all(axis=1) & np.isfinite(TH).all(axis=1)
+    idx_all = np.flatnonzero(ok)
+    empty = LawConditionReport(names_, "", np.zeros(p), np.zeros(p), ("",) * p,
+                               np.full((p, p), np.nan), None, 0)
+    if idx_all.size < 2:
+        return empty
+    weight = getattr(law, "l", None)
+    is_inversion = hasattr(law, "theta_star")
+    if is_inversion:
+        if weight is None:
+            return empty
+        with np.errstate(all="ignore"):
+            phi = np.asarray(perturbation.g(V[ok], X[ok], TH[ok]), dtype=np.float64)
+            lw = np.broadcast_to(np.asarray(weight(V[ok], X[ok], phi), dtype=np.float64),
+                                 (idx_all.size,))
+        ex = _excitation(t_[ok], np.nan_to_num(lw), None)
+        return LawConditionReport(names_, "l", np.zeros(p), np.zeros(p), ("",) * p,
+                                  np.full((p, p), np.nan), ex, int(idx_all.size))
+    idx = idx_all[np.unique(np.linspace(0, idx_all.size - 1, min(RECORD_SAMPLES, idx_all.size))
+                            .astype(np.int64))]
+    Vs, Xs, T1 = V[idx], X[idx], TH[idx]
+    S = idx.size
+    M_fn = getattr(law, "M", None)
+    with np.errstate(all="ignore"):
+        J1 = np.broadcast_to(np.asarray(perturbation.dg_dtheta(Vs, Xs, T1), dtype=np.float64),
+                             (S, k, p))
+        M1 = (np.swapaxes(J1, -1, -2) if M_fn is None
+              else np.broadcast_to(np.asarray(M_fn(Vs, Xs, T1), dtype=np.float64), (S, p, k)))
+        rng = np.random.default_rng(seed)
+        thetas = np.vstack([TH[idx_all[-1]][None, :], parameter_set.sample(rng, RECORD_THETAS)])
+        at_est = np.einsum("spk,skp->sp", M1, J1) < 0
+        fails = at_est.copy()
+        witness = np.full((p, p), np.nan)
+        for th2 in thetas:
+            J2 = np.broadcast_to(np.asarray(perturbation.dg_dtheta(
+                Vs, Xs, np.broadcast_to(th2, (S, p))), dtype=np.float64), (S, k, p))
+            neg = np.einsum("spk,skp->sp", M1, J2) < 0
+            for i in np.flatnonzero(np.isnan(witness[:, 0]) & (neg.mean(axis=0)
+                                                               > CONDITION_FRACTION)):
+                witness[i] = th2
+            fails |= neg
+    sign_with = tuple(_sign_driver(J1[:, :, i].sum(axis=1), np.concatenate([Vs, Xs], axis=1),
+                                   labels) if fails[:, i].mean() > CONDITION_FRACTION else ""
+                      for i in range(p))
+    Jn = np.nan_to_num(J1)
+    info = np.einsum("ski,skj->sij", Jn, Jn)
+    d = np.sqrt(np.maximum(np.mean(np.diagonal(info, axis1=1, axis2=2), axis=0), 1e-300))
+    ex = _excitation(t_[idx], None, info / np.outer(d, d))
+    return LawConditionReport(names_, "(14)", fails.mean(axis=0), at_est.mean(axis=0),
+                              sign_with, witness, ex, int(S))
+
+
+def _excitation(t: FloatArray, l: FloatArray | None,  # noqa: E741
+                S: FloatArray | None) -> ExcitationReport | None:
+    """:func:`excitation_report` over windows of EXCITATION_WINDOW of the span (None when
+    the run is too short to have one)."""
+    span = float(t[-1] - t[0])
+    if not span > 0 or t.size < 4:
+        return None
+    return excitation_report(t, l=l, S=S, window=EXCITATION_WINDOW * span)

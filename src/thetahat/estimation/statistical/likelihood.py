@@ -34,7 +34,7 @@ from __future__ import annotations
 import functools
 import math
 from dataclasses import dataclass
-from typing import Callable
+from typing import Callable, NamedTuple
 
 import numpy as np
 from numpy.typing import NDArray
@@ -49,8 +49,9 @@ from .noise_level import mad_variance
 from .stage2_set import project_theta, theta_bounds
 from .plant_kernel import H_RHO, ModelKernel, jit, model_kernel
 
-__all__ = ["ProcessNoiseFit", "fit_process_noise", "process_noise_scale", "unit_process_noise",
-           "record_bound", "fisher_covariance", "Q_DECADES", "Q_SEARCH_SAMPLES", "ALTERNATIONS"]
+__all__ = ["ProcessNoiseFit", "RecordEvidence", "fit_process_noise", "process_noise_scale",
+           "unit_process_noise", "record_bound", "record_evidence", "process_noise_at",
+           "fisher_covariance", "Q_DECADES", "Q_SEARCH_SAMPLES", "ALTERNATIONS"]
 
 FloatArray = NDArray[np.float64]
 
@@ -426,6 +427,106 @@ def record_bound(system: PerturbedLinearSystem, t: FloatArray, U: FloatArray, Y:
     return q, _covariance(pb, th, q, *theta_box(system))
 
 
+def process_noise_at(system: PerturbedLinearSystem, t: FloatArray, U: FloatArray,
+                     Y: FloatArray, *, theta: FloatArray, x_hat0: FloatArray,
+                     x_sd: FloatArray, noise_std: FloatArray, h_rho: float = H_RHO,
+                     compiled: bool | None = None) -> float:
+    """q̂ at a fixed θ: the bounded search of :func:`record_bound`, on the record's first
+    :data:`Q_SEARCH_SAMPLES` samples (0 when the output-error model has the larger likelihood).
+
+    Parameters
+    ----------
+    system, t, U, Y, theta, x_hat0, x_sd, noise_std, h_rho, compiled
+        As for :func:`record_bound`.
+
+    Returns
+    -------
+    float
+    """
+    sigma = np.asarray(noise_std, dtype=np.float64)
+    k = Q_SEARCH_SAMPLES
+    n = min(t.shape[0], k)
+    head = _problem(system, t[:n], U[:n], Y[:n], x_hat0, x_sd, sigma, h_rho, compiled)
+    return _search_q(head, np.asarray(theta, dtype=np.float64),
+                     process_noise_scale(system, sample_interval(t), sigma))
+
+
+class RecordEvidence(NamedTuple):
+    """What one linearisation of the innovations at a fixed θ says (:func:`record_evidence`).
+
+    Attributes
+    ----------
+    q : float
+        q̂ ≥ 0 at θ, as :func:`record_bound` searches it.
+    cov : ndarray (p, p)
+        The Cramér–Rao covariance (JᵀJ)⁺ at (θ, q̂), as :func:`record_bound` returns it.
+    step : ndarray (p,)
+        The Gauss–Newton step δ = −(JᵀJ)⁺ Jᵀ ν from θ (least squares of J δ = −ν): where one
+        linearisation of the innovations ν puts the maximum of the likelihood, θ + δ.
+    score : float
+        Rao's score statistic νᵀ J (JᵀJ)⁺ Jᵀ ν = δᵀ (JᵀJ) δ: χ² with p degrees of freedom
+        when θ is the true value and the model holds.
+    cost : float
+        The mean squared normalised innovation at θ (≈ 1 when the noise model is right).
+    """
+
+    q: float
+    cov: FloatArray
+    step: FloatArray
+    score: float
+    cost: float
+
+
+def record_evidence(system: PerturbedLinearSystem, t: FloatArray, U: FloatArray, Y: FloatArray,
+                    *, theta: FloatArray, x_hat0: FloatArray, x_sd: FloatArray,
+                    noise_std: FloatArray, q: float | None = None, h_rho: float = H_RHO,
+                    compiled: bool | None = None) -> RecordEvidence:
+    """:func:`record_bound` with the score of the innovations at θ: is θ where the data put it?
+
+    The same filter passes as :func:`record_bound` (the q search on the first
+    :data:`Q_SEARCH_SAMPLES` samples, then p + 1 passes over the record for the Jacobian J of
+    the normalised innovations ν): the gradient Jᵀν and the Gauss–Newton information JᵀJ of
+    −log L at θ come with them, hence Rao's score test and the one-step θ + δ at no cost.
+
+    Parameters
+    ----------
+    system, t, U, Y, theta, x_hat0, x_sd, noise_std, h_rho, compiled
+        As for :func:`record_bound`.
+    q : float, optional
+        The intensity of the process noise; default: searched at θ
+        (:func:`process_noise_at`).
+
+    Returns
+    -------
+    RecordEvidence
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from thetahat.models import prop3_monotone
+    >>> from thetahat.estimation.statistical.likelihood import record_evidence
+    >>> d = prop3_monotone.simulate(seed=0, t_end=10.0)          # θ = 1.2
+    >>> ev = record_evidence(prop3_monotone.system(), d.t, np.asarray(d.u), np.asarray(d.y),
+    ...                      theta=np.array([1.5]), x_hat0=np.zeros(2), x_sd=np.full(2, 10.0),
+    ...                      noise_std=np.array([0.01]), compiled=False)
+    >>> bool(ev.score > 100), bool(abs(1.5 + ev.step[0] - 1.2) < 0.05)
+    (True, True)
+    """
+    sigma = np.asarray(noise_std, dtype=np.float64)
+    pb = _problem(system, t, U, Y, x_hat0, x_sd, sigma, h_rho, compiled)
+    th = np.asarray(theta, dtype=np.float64)
+    if q is None:
+        q = process_noise_at(system, t, U, Y, theta=th, x_hat0=x_hat0, x_sd=x_sd,
+                             noise_std=sigma, h_rho=h_rho, compiled=compiled)
+    r0, J = _jacobian(pb, th, q, *theta_box(system))
+    cov = _inverse_information(J)
+    d = np.sqrt(np.maximum(np.einsum("ij,ij->j", J, J), 1e-300))
+    step = np.linalg.lstsq(J / d, -r0, rcond=None)[0] / d     # Jacobi-scaled least squares
+    fitted = J @ step
+    return RecordEvidence(q=float(q), cov=cov, step=step, score=float(fitted @ fitted),
+                          cost=float(np.mean(r0 * r0)) if r0.size else math.nan)
+
+
 def fisher_covariance(system: PerturbedLinearSystem, t: FloatArray, U: FloatArray,
                       Y: FloatArray, *, theta: FloatArray, q: float, x_hat0: FloatArray,
                       x_sd: FloatArray, noise_std: FloatArray, h_rho: float = H_RHO,
@@ -460,6 +561,13 @@ def fisher_covariance(system: PerturbedLinearSystem, t: FloatArray, U: FloatArra
 
 def _covariance(pb: _Problem, th: FloatArray, q: float, lo: FloatArray, hi: FloatArray
                 ) -> FloatArray:
+    return _inverse_information(_jacobian(pb, th, q, lo, hi)[1])
+
+
+def _jacobian(pb: _Problem, th: FloatArray, q: float, lo: FloatArray, hi: FloatArray
+              ) -> tuple[FloatArray, FloatArray]:
+    """The normalised innovations at θ and their Jacobian, by forward differences (p + 1
+    filter passes)."""
     r0 = pb.residuals(th, q)
     J = np.empty((r0.shape[0], th.shape[0]))
     for i in range(th.shape[0]):
@@ -469,7 +577,7 @@ def _covariance(pb: _Problem, th: FloatArray, q: float, lo: FloatArray, hi: Floa
         tp = th.copy()
         tp[i] += step
         J[:, i] = (pb.residuals(tp, q) - r0) / step
-    return _inverse_information(J)
+    return r0, J
 
 
 def fit_process_noise(system: PerturbedLinearSystem, t: FloatArray, U: FloatArray,

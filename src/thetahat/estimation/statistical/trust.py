@@ -25,31 +25,60 @@ estimate θ̂ of a record against four questions and :class:`TrustReport` answer
   :data:`MODEL_ERROR_Q` times the data's own scale q₀), the model does not explain the record
   to the measurement noise: the estimate is the best symmetric fit of a model that errs.
 
-What it may import: :mod:`thetahat.model`, the package's errors, and, in this room,
-``common``, ``input_hold``, ``likelihood``, ``noise_level``, ``plant_kernel`` and
-``stage2_set``; the estimators' results reach it as arrays (it imports no estimator).
+  The scale is that of the measurement noise σ̂ estimated from the record, at least
+  :data:`NOISE_FLOOR` of the output's spread: σ̂ ≈ 0 (a noise-free record) would make the
+  rounding of the model's discretisation a "model error" of 10⁵ × a scale of 10⁻¹⁵⁰.
+* **Is θ̂ where the data put it?** (every method; the check the paper's method needs most.)
+  Rao's score test at θ̂ with the gradient and the Gauss–Newton information of the same
+  innovations likelihood that gives the bound
+  (:func:`~thetahat.estimation.statistical.likelihood.record_evidence`, no extra filter
+  pass): the statistic δᵀIδ, δ the Gauss–Newton step from θ̂, is χ²_p when θ̂ is the true
+  θ, and a fit's θ̂ makes it ≈ 0. Above the χ²_p quantile at 1 − :data:`CONSISTENCY_ALPHA`
+  the estimate is not consistent with the record; the report gives θ̂ + δ (projected onto Θ),
+  where one step puts the data's preference. The score test rather than the likelihood ratio
+  against a fit: it needs no fit (the paper's method would otherwise pay for the MAP fits it
+  avoids), and its ingredients are those of the bound.
+* **Has θ̂ settled?** The drift of each component of θ̂ over the last :data:`SETTLE_TAIL` of
+  the record (:func:`tail_movement`), in its Cramér–Rao standard deviations: above
+  :data:`SETTLE_SDS`, the estimate is still on its way when the record ends.
+* **Did the law's conditions hold along the run?** For the paper's observer, (14) and the
+  excitation of Props. 2–4 sampled along the run's own (v, x̂, θ̂)
+  (:func:`~thetahat.estimation.observer.checks.law_conditions_on_record`, computed by the
+  caller and carried here).
+
+What it may import: :mod:`thetahat.model`, the package's errors, the observer's checks (their
+report's type), and, in this room, ``common``, ``input_hold``, ``likelihood``,
+``noise_level``, ``plant_kernel`` and ``stage2_set``; the estimators' results reach it as
+arrays (it imports no estimator).
 """
 
 from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Sequence
+from typing import TYPE_CHECKING, Sequence
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
+from scipy.special import gammaincinv
 
 from ...errors import ThetahatError
 from ...model.system import PerturbedLinearSystem
 from .common import sample_interval, theta_box, x_prior_sd
 from .input_hold import smooth_input
-from .stage2_set import BOUNDARY_RTOL, on_boundary
-from .likelihood import process_noise_scale, record_bound
+from .stage2_set import BOUNDARY_RTOL, on_boundary, project_theta
+from .likelihood import (RecordEvidence, process_noise_at, process_noise_scale,
+                         record_evidence)
 from .plant_kernel import H_RHO
 from .noise_level import MIN_SAMPLES, estimate_noise_std
 
+if TYPE_CHECKING:
+    from ..observer.checks import LawConditionReport
+
 __all__ = ["TrustReport", "trust_report", "UNPINNED_FRACTION", "BOUNDARY_RTOL",
-           "EMPTY_GUARD_FRACTION", "MODEL_ERROR_Q"]
+           "EMPTY_GUARD_FRACTION", "MODEL_ERROR_Q", "NOISE_FLOOR",
+           "CONSISTENCY_ALPHA",
+           "SETTLE_TAIL", "SETTLE_SDS", "chi2_limit", "report_noise_std", "tail_movement"]
 
 FloatArray = NDArray[np.float64]
 
@@ -61,6 +90,44 @@ EMPTY_GUARD_FRACTION = 0.5
 #: q̂ / q₀ above this: the model error shows (q₀ is the intensity whose effect on y over one
 #: sample equals the measurement noise; well below it, process noise is invisible in the data).
 MODEL_ERROR_Q = 1e-2
+#: σ of the report is at least this fraction of each output's spread (its standard deviation
+#: over the record): a noise-free record's σ̂ ≈ 0 (estimate_noise_std gives 0, or the
+#: integrator's roughness, 1e-11 to 3e-7 of the spread on the shipped scenarios) made the
+#: scale q₀ 10⁻¹⁵⁰ and a q̂ of 1e-142 "8.6e5 × the measurement noise's scale". The floor is
+#: below the finest real record we hold (the EMPS encoder, σ̂ = 2e-7 of the spread, whose
+#: model error must still show), so on a noise-free record the model's own discretisation
+#: error (1e-6 to 1e-5 of the spread) can still be reported as a model error: it is one, at
+#: that resolution.
+NOISE_FLOOR = 1e-7
+#: The score test's level: θ̂ is inconsistent with the record when its statistic exceeds the
+#: χ²_p quantile at 1 − CONSISTENCY_ALPHA (a true θ passes 999 records in 1000).
+CONSISTENCY_ALPHA = 1e-3
+#: The settling check looks at the last SETTLE_TAIL of the record's duration.
+SETTLE_TAIL = 0.25
+#: θ̂ has not settled when a component drifts by more than SETTLE_SDS of its Cramér–Rao sd
+#: over that tail (:func:`tail_movement`; a fit on a growing record drifts by well under one).
+SETTLE_SDS = 2.0
+#: At an inconsistent θ̂ the process noise q̂ found there absorbs θ̂'s own error (and inflates
+#: the bound): q is searched again at the one-step θ, up to this many times (each costs one q
+#: search on the head and p + 1 passes over the record: bounded at one), and the test and
+#: the bound are recomputed at θ̂ with the smaller q (the data's noise, not θ̂'s error).
+Q_REFINEMENTS = 1
+#: A refined q replaces the last one only when smaller by at least this factor.
+Q_REFINE_FACTOR = 0.3
+
+
+def chi2_limit(p: int) -> float:
+    """The χ²_p quantile at 1 − :data:`CONSISTENCY_ALPHA`: 2 P⁻¹(p/2, 1 − α), P the
+    regularised lower incomplete gamma function (scipy.special; scipy.stats costs the
+    command line a second of imports for this one number).
+
+    Examples
+    --------
+    >>> from thetahat.estimation.statistical.trust import chi2_limit
+    >>> round(chi2_limit(1), 2), round(chi2_limit(3), 2)
+    (10.83, 16.27)
+    """
+    return float(2.0 * gammaincinv(0.5 * p, 1.0 - CONSISTENCY_ALPHA))
 
 
 @dataclass(frozen=True, slots=True, eq=False)
@@ -84,9 +151,23 @@ class TrustReport:
     empty_guard : ndarray (p,) or None
         Fraction of the run with the guard's band at Θ's full width (guarded estimator only).
     process_noise : float
-        q̂ at θ̂ (0: the model explains the record to the measurement noise).
+        q̂ (0: the model explains the record to the measurement noise): searched at θ̂, and at
+        the one-step θ when θ̂ fails the score test (then the smaller: at an inconsistent θ̂,
+        the data's noise rather than θ̂'s own error).
     process_noise_scale : float
         q₀, the data's own scale of q.
+    score : float
+        Rao's score statistic at θ̂ (NaN when not computed).
+    one_step : ndarray (p,) or None
+        θ̂ + δ, the Gauss–Newton step of the innovations likelihood from θ̂, projected onto Θ:
+        where the data put θ after one linearisation.
+    tail_sds : ndarray (p,) or None
+        Drift of each θ̂ component over the last :data:`SETTLE_TAIL` of the record, in its
+        Cramér–Rao sd (:func:`tail_movement`; None without the run's path).
+    law_conditions : LawConditionReport or None
+        The paper's law's conditions along the run (observer methods only).
+    noise_floored : bool
+        σ̂ was below :data:`NOISE_FLOOR` of an output's spread and was raised to it.
     """
 
     names: tuple[str, ...]
@@ -97,11 +178,27 @@ class TrustReport:
     empty_guard: FloatArray | None
     process_noise: float
     process_noise_scale: float
+    score: float = math.nan
+    one_step: FloatArray | None = None
+    tail_sds: FloatArray | None = None
+    law_conditions: LawConditionReport | None = None
+    noise_floored: bool = False
 
     @property
     def model_error(self) -> bool:
         """The likelihood prefers process noise on φ well above the data's own scale."""
         return self.process_noise > MODEL_ERROR_Q * self.process_noise_scale
+
+    @property
+    def consistent(self) -> bool:
+        """θ̂ passes the score test (True when it was not computed)."""
+        p = self.theta.shape[0]
+        return not (self.score > chi2_limit(p))
+
+    @property
+    def settled(self) -> bool:
+        """No component of θ̂ moved more than SETTLE_SDS sd over the record's last part."""
+        return self.tail_sds is None or not np.any(self.tail_sds > SETTLE_SDS)
 
     @property
     def crlb_rel_sd(self) -> FloatArray:
@@ -112,7 +209,7 @@ class TrustReport:
     @property
     def warnings(self) -> tuple[str, ...]:
         """The findings that make the result less than trustworthy, one sentence each."""
-        out = []
+        out = list(self._consistency_warnings())
         if self.unpinned:
             out.append(f"the record does not pin {', '.join(self.unpinned)}: its Cramér–Rao "
                        f"standard deviation is at least {UNPINNED_FRACTION:g} of Θ's width "
@@ -132,28 +229,143 @@ class TrustReport:
             ratio = self.process_noise / self.process_noise_scale
             out.append(f"model error: at θ̂ the model explains the record only with process "
                        f"noise on φ (q̂ = {self.process_noise:.3g}, {ratio:.3g} × the "
-                       "measurement noise's scale): the model errs, or θ̂ is not yet where the "
-                       "data put it")
+                       "measurement noise's scale): the model errs (an effect it leaves out, "
+                       "a wrong structure), and θ̂ is its best symmetric fit, not a truth")
+        if self.law_conditions is not None:
+            out += self.law_conditions.warnings
         return tuple(out)
 
+    def _consistency_warnings(self) -> list[str]:
+        out = []
+        if not self.consistent:
+            with np.errstate(divide="ignore", invalid="ignore"):
+                z = np.abs(self.one_step - self.theta) / self.crlb_sd \
+                    if self.one_step is not None else np.full_like(self.theta, np.nan)
+            far = [f"{n} by {v:.3g} sd" for n, v in zip(self.names, z) if v > 1.0]
+            prefer = ("" if self.one_step is None else "; the data prefer θ ≈ (" + ", ".join(
+                f"{n} = {v:.4g}" for n, v in zip(self.names, self.one_step)) + ") (one "
+                "Gauss–Newton step)")
+            out.append(f"θ̂ is not where the data put it: {math.sqrt(self.score):.3g} standard "
+                       f"errors away (score test, χ²_{self.theta.shape[0]} = {self.score:.3g}"
+                       f"{', ' + ', '.join(far) if far else ''}){prefer}; use method guarded "
+                       "or mle, or a longer record")
+        if not self.settled and self.tail_sds is not None:
+            moved = [f"{n} by {v:.3g} sd" for n, v in zip(self.names, self.tail_sds)
+                     if v > SETTLE_SDS]
+            out.append(f"θ̂ has not settled: over the last {100 * SETTLE_TAIL:.0f} % of the "
+                       f"record it still drifted ({', '.join(moved)} of its Cramér–Rao sd); the "
+                       "estimate is on its way when the record ends (a longer record, other "
+                       "excitation, or method guarded or mle, which use the whole record)")
+        return out
+
     def lines(self) -> list[str]:
-        """Summary lines: the relative Cramér–Rao standard deviation per parameter."""
+        """Summary lines: the relative Cramér–Rao standard deviation per parameter, and the
+        checks that were made."""
         rel = self.crlb_rel_sd
         parts = [f"{n} {100 * r:.2g} %" if math.isfinite(r) else f"{n} n/a"
                  for n, r in zip(self.names, rel)]
-        return ["Cramér–Rao relative sd on this record: " + ", ".join(parts)]
+        out = ["Cramér–Rao relative sd on this record: " + ", ".join(parts)
+               + (f" (σ̂ below {NOISE_FLOOR:g} of the output's spread: judged at that "
+                  "floor)" if self.noise_floored else "")]
+        if math.isfinite(self.score):
+            p = self.theta.shape[0]
+            verdict = ("consistent with the record" if self.consistent
+                       else "NOT consistent with the record")
+            out.append(f"score test at θ̂: χ²_{p} = {self.score:.3g} (limit "
+                       f"{chi2_limit(p):.3g}): {verdict}")
+        if self.law_conditions is not None and self.law_conditions.proposition:
+            lc = self.law_conditions
+            cond = ("held on the samples" if not lc.failing and lc.exciting
+                    else "FAILED (see the warnings)")
+            out.append(f"the law's conditions along the run ({lc.proposition}, excitation): "
+                       f"{cond}")
+        return out
 
     def __repr__(self) -> str:
         return (f"TrustReport(crlb_rel_sd={np.round(self.crlb_rel_sd, 4).tolist()}, "
                 f"unpinned={list(self.unpinned)}, on_boundary={list(self.on_boundary)}, "
-                f"model_error={self.model_error})")
+                f"model_error={self.model_error}, consistent={self.consistent}, "
+                f"settled={self.settled})")
+
+
+def report_noise_std(Y: FloatArray, noise_std: ArrayLike | None) -> tuple[FloatArray, bool]:
+    """σ of the report: the given or estimated σ̂, at least :data:`NOISE_FLOOR` of each
+    output's spread.
+
+    Parameters
+    ----------
+    Y : ndarray (N, r)
+        The outputs (NaN: missing).
+    noise_std : array_like (r,), optional
+        The estimator's σ (estimated from ``Y`` when None).
+
+    Returns
+    -------
+    sigma : ndarray (r,)
+        Finite and > 0.
+    floored : bool
+        Some σ̂ was below the floor and was raised to it.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from thetahat.estimation.statistical.trust import report_noise_std
+    >>> t = np.linspace(0.0, 10.0, 1001)
+    >>> sigma, floored = report_noise_std(np.sin(t)[:, None], None)      # noise-free
+    >>> floored, bool(abs(sigma[0] / (1e-7 * np.std(np.sin(t))) - 1) < 1e-9)
+    (True, True)
+    """
+    r = Y.shape[1]
+    sigma = (estimate_noise_std(Y) if noise_std is None
+             else np.broadcast_to(np.asarray(noise_std, dtype=np.float64), (r,)).copy())
+    with np.errstate(invalid="ignore"):
+        spread = np.nanstd(Y, axis=0) if Y.shape[0] else np.zeros(r)
+    floor = NOISE_FLOOR * np.where(np.isfinite(spread) & (spread > 0), spread, 1.0)
+    low = ~(sigma >= floor)
+    return np.where(low, floor, sigma), bool(np.any(low))
+
+
+def tail_movement(t: FloatArray, theta_path: FloatArray, sd: FloatArray) -> FloatArray:
+    """θ̂'s drift over the last SETTLE_TAIL of the record, in sd: the median over the tail's
+    second half minus that over its first half (an estimate that jitters about its value
+    drifts by little; one still on its way, by its whole remaining path). NaN where the sd
+    is not finite and > 0.
+
+    Parameters
+    ----------
+    t : ndarray (N,)
+    theta_path : ndarray (N, p)
+    sd : ndarray (p,)
+
+    Returns
+    -------
+    ndarray (p,)
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from thetahat.estimation.statistical.trust import tail_movement
+    >>> t = np.linspace(0.0, 1.0, 101)
+    >>> path = np.stack([1.0 + 0.0 * t, 1.0 - np.exp(-2 * t)], axis=1)
+    >>> tail_movement(t, path, np.array([0.01, 0.01])).round(1).tolist()
+    [0.0, 4.5]
+    """
+    start = t[-1] - SETTLE_TAIL * (t[-1] - t[0])
+    tail = theta_path[t >= start]
+    half = tail.shape[0] // 2
+    if half == 0:
+        return np.full(theta_path.shape[1], np.nan)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        moved = np.abs(np.median(tail[half:], axis=0) - np.median(tail[:half], axis=0)) / sd
+    return np.where(np.isfinite(sd) & (sd > 0), moved, np.nan)
 
 
 def trust_report(system: PerturbedLinearSystem, t: FloatArray, U: FloatArray, Y: FloatArray,
                  theta: FloatArray, names: Sequence[str], *, x_hat0: FloatArray,
                  x_sd: ArrayLike | None = None, band: FloatArray | None = None,
                  noise_std: FloatArray | None = None, h_rho: float = H_RHO,
-                 compiled: bool | None = None) -> TrustReport:
+                 compiled: bool | None = None, theta_path: FloatArray | None = None,
+                 law_conditions: LawConditionReport | None = None) -> TrustReport:
     """Check a final estimate θ̂ against its record (module docstring).
 
     Parameters
@@ -174,9 +386,14 @@ def trust_report(system: PerturbedLinearSystem, t: FloatArray, U: FloatArray, Y:
     band : ndarray (N, p), optional
         The guard's band δ over the run (guarded estimator).
     noise_std : ndarray (r,), optional
-        Default: estimated from y.
+        The estimator's σ (default: estimated from y); floored by :func:`report_noise_std`.
     h_rho : float
     compiled : bool, optional
+    theta_path : ndarray (N, p), optional
+        θ̂ over the run: its movement over the last part of the record is checked.
+    law_conditions : LawConditionReport, optional
+        The law's conditions along the run
+        (:func:`~thetahat.estimation.observer.checks.law_conditions_on_record`).
 
     Returns
     -------
@@ -187,42 +404,81 @@ def trust_report(system: PerturbedLinearSystem, t: FloatArray, U: FloatArray, Y:
     >>> import numpy as np
     >>> from thetahat.models import prop3_monotone
     >>> from thetahat.estimation.statistical.trust import trust_report
-    >>> d = prop3_monotone.simulate(seed=0, t_end=10.0)
+    >>> d = prop3_monotone.simulate(seed=0, t_end=10.0)                  # θ = 1.2
     >>> rep = trust_report(prop3_monotone.system(), d.t, np.asarray(d.u), np.asarray(d.y),
     ...                    np.array([1.2]), ["theta"], x_hat0=np.zeros(2), compiled=False)
-    >>> rep.unpinned, rep.on_boundary, rep.model_error
-    ((), (), False)
+    >>> rep.unpinned, rep.on_boundary, rep.model_error, rep.consistent
+    ((), (), False, True)
+    >>> off = trust_report(prop3_monotone.system(), d.t, np.asarray(d.u), np.asarray(d.y),
+    ...                    np.array([1.5]), ["theta"], x_hat0=np.zeros(2), compiled=False)
+    >>> off.consistent, bool(abs(off.one_step[0] - 1.2) < 0.05)
+    (False, True)
     """
     lo, hi = theta_box(system)
     width = hi - lo
+    theta_set = system.require_parameter_set("trust_report")
     th = np.asarray(theta, dtype=np.float64)
-    sigma = (estimate_noise_std(Y) if noise_std is None
-             else np.asarray(noise_std, dtype=np.float64))
-    sigma = np.where(sigma > 0, sigma, np.finfo(float).tiny ** 0.25)
+    sigma, floored = report_noise_std(Y, noise_std)
     names_ = tuple(str(n) for n in names)
     crlb_sd = np.full(th.shape[0], np.nan)
-    q, q0 = 0.0, 1.0
+    q, q0, score, one_step = 0.0, 1.0, math.nan, None
     if t.shape[0] >= MIN_SAMPLES:
-        h_med = sample_interval(t)
-        q0 = process_noise_scale(system, h_med, sigma)
-        x_sds = x_prior_sd(x_hat0, x_sd)
+        q0 = process_noise_scale(system, sample_interval(t), sigma)
         try:
-            q, cov = record_bound(system, t, np.ascontiguousarray(smooth_input(U)[0]), Y,
-                                  theta=th, x_hat0=x_hat0, x_sd=x_sds,
-                                  noise_std=sigma, h_rho=h_rho, compiled=compiled)
-            crlb_sd = np.sqrt(np.maximum(np.diag(cov), 0.0))
+            ev = _evidence(system, t, np.ascontiguousarray(smooth_input(U)[0]), Y, th,
+                           x_hat0=x_hat0, x_sd=x_prior_sd(x_hat0, x_sd), noise_std=sigma,
+                           h_rho=h_rho, compiled=compiled)
+            q = ev.q
+            crlb_sd = np.sqrt(np.maximum(np.diag(ev.cov), 0.0))
+            if np.all(np.isfinite(ev.step)):
+                score = ev.score
+                one_step = project_theta(theta_set, th + ev.step)
         except (ThetahatError, ArithmeticError, np.linalg.LinAlgError):
             # the model cannot be evaluated along the record at θ̂ (e.g. g not differentiable
             # there): the bound is unknown (n/a in the summary) and the estimate stands
             q = 0.0
     unpinned = tuple(n for n, sd, w in zip(names_, crlb_sd, width)
                      if not np.isnan(sd) and not (sd < UNPINNED_FRACTION * w))
-    flags = on_boundary(system.require_parameter_set("trust_report"), th)
+    flags = on_boundary(theta_set, th)
     on_bnd = tuple(n for n, flag in zip(names_, flags) if flag)
     empty = None
     if band is not None:
         B = np.asarray(band, dtype=np.float64).reshape(-1, th.shape[0])
         empty = np.mean(B >= (1.0 - 1e-9) * width, axis=0)
+    tail = None
+    if theta_path is not None and t.shape[0] > 1:
+        tail = tail_movement(t, np.asarray(theta_path, dtype=np.float64).reshape(
+            t.shape[0], -1), crlb_sd)
     return TrustReport(names=names_, theta=th.copy(), crlb_sd=crlb_sd, unpinned=unpinned,
                        on_boundary=on_bnd, empty_guard=empty, process_noise=float(q),
-                       process_noise_scale=float(q0))
+                       process_noise_scale=float(q0), score=float(score), one_step=one_step,
+                       tail_sds=tail, law_conditions=law_conditions, noise_floored=floored)
+
+
+def _evidence(system: PerturbedLinearSystem, t: FloatArray, U: FloatArray, Y: FloatArray,
+              theta: FloatArray, *, x_hat0: FloatArray, x_sd: FloatArray,
+              noise_std: FloatArray, h_rho: float, compiled: bool | None) -> RecordEvidence:
+    """The score and the bound at θ̂ with the q the data support (module docstring): q
+    searched at θ̂, and again at the one-step θ while θ̂ fails the test (Q_REFINEMENTS)."""
+    theta_set = system.require_parameter_set("trust_report")
+
+    def q_at(th: FloatArray) -> float:
+        return process_noise_at(system, t, U, Y, theta=th, x_hat0=x_hat0, x_sd=x_sd,
+                                noise_std=noise_std, h_rho=h_rho, compiled=compiled)
+
+    def evidence(q: float) -> RecordEvidence:
+        return record_evidence(system, t, U, Y, theta=theta, x_hat0=x_hat0, x_sd=x_sd,
+                               noise_std=noise_std, q=q, h_rho=h_rho, compiled=compiled)
+
+    q = q_at(theta)
+    ev = evidence(q)
+    limit = chi2_limit(theta.shape[0])
+    for _ in range(Q_REFINEMENTS):
+        if not (q > 0 and ev.score > limit and np.all(np.isfinite(ev.step))):
+            break
+        q_new = q_at(project_theta(theta_set, theta + ev.step))
+        if not q_new < Q_REFINE_FACTOR * q:
+            break
+        q = q_new
+        ev = evidence(q)
+    return ev
