@@ -509,7 +509,8 @@ def _add_codegen(sub: _Subparsers) -> None:
     codegen.add_argument("--real", choices=["double", "float"], default="double",
                          help="C type of every number (default: double)")
     codegen.add_argument("--name", default=None,
-                         help="file stem and C prefix (default: the model file's stem)")
+                         help="file stem and C prefix, a C identifier (default: the model "
+                              "file's stem made one)")
     codegen.add_argument("--nan-policy", choices=["raise", "skip"], default="raise",
                          help="a NaN output sample: refused (raise, default), or predicted "
                               "over (skip)")

@@ -8,14 +8,16 @@ allocates nothing. The samples must be spaced by dt to the relative accuracy
 :data:`~thetahat.estimation.observer.plan.DT_RTOL` (as for every fixed-step back end).
 
 What lives here: the harness's and the Makefile's text, and the compiler flags. What it may
-import: the observer's plan (for ``DT_RTOL``) and nothing else of the package.
+import: the observer's plan (for ``DT_RTOL``) and the text rules of :mod:`.c_text`.
 """
 
 from __future__ import annotations
 
+import re
 from collections.abc import Sequence
 
 from ..estimation.observer.plan import DT_RTOL
+from .c_text import comment_text, string_content, string_literal
 
 __all__ = ["C_FLAGS", "estimate_columns", "harness_source", "makefile_source"]
 
@@ -64,7 +66,7 @@ def _aliases(names: Sequence[str], letter: str) -> list[list[str]]:
 
 
 def _c_strings(items: Sequence[str]) -> str:
-    return ", ".join('"' + s.replace("\\", "\\\\").replace('"', '\\"') + '"' for s in items)
+    return ", ".join(string_literal(s) for s in items)
 
 
 _MAIN = r"""/* @P@_main.c -- CSV harness of the generated observer @P@ (thetahat codegen).
@@ -339,8 +341,8 @@ int main(int argc, char **argv)
             }
             for (i = 1; i < NCOLS; ++i) {
                 if (cols[i] < 0) {
-                    return fail(path, lineno, i <= @PU@_NU ? "missing input column (@INPUTS@)"
-                                                           : "missing output column (@OUTPUTS@)");
+                    return fail(path, lineno, i <= @PU@_NU ? "missing input column (@INPUTS_S@)"
+                                                           : "missing output column (@OUTPUTS_S@)");
                 }
             }
             for (i = 0; i < (int)(sizeof COLUMNS / sizeof COLUMNS[0]); ++i) {
@@ -476,19 +478,23 @@ def harness_source(prefix: str, names: dict[str, list[str]], k: int, real: str, 
     print_second = ("    for (i = 0; i < @PU@_NX; ++i) {\n"
                     "        printf(\",%.@DIGITS@g\", (double)@P@_x_hat_refined(s)[i]);\n"
                     "    }\n" if second else "")
-    text = _MAIN.replace("@PRINT_SECOND@", print_second)
-    for key, value in (("@ALIASES@", alias_text),
-                       ("@COLUMNS@", _c_strings(cols)),
-                       ("@INPUTS@", ", ".join(names["u"]) or "none"),
-                       ("@OUTPUTS@", ", ".join(names["y"])),
-                       ("@THETA_EXAMPLE@", ",".join("0.5" for _ in names["theta"])),
-                       ("@DT_RTOL@", repr(DT_RTOL)), ("@DT@", repr(float(dt))),
-                       ("@DIGITS@", "17" if real == "double" else "9"),
-                       ("@FOH@", "1" if foh else "0"),
-                       ("@START@", "1" if start_from_y else "0"),
-                       ("@PU@", prefix.upper()), ("@P@", prefix)):
-        text = text.replace(key, value)
-    return text
+    inputs, outputs = ", ".join(names["u"]) or "none", ", ".join(names["y"])
+    values = {"PRINT_SECOND": print_second, "ALIASES": alias_text, "COLUMNS": _c_strings(cols),
+              "INPUTS": comment_text(inputs), "OUTPUTS": comment_text(outputs),
+              "INPUTS_S": string_content(inputs), "OUTPUTS_S": string_content(outputs),
+              "THETA_EXAMPLE": ",".join("0.5" for _ in names["theta"]),
+              "DT_RTOL": repr(DT_RTOL), "DT": repr(float(dt)),
+              "DIGITS": "17" if real == "double" else "9", "FOH": "1" if foh else "0",
+              "START": "1" if start_from_y else "0", "PU": prefix.upper(), "P": prefix}
+    # one pass: a value is never read again for placeholders (print_second's own are
+    # substituted by a second pass over that text alone)
+    values["PRINT_SECOND"] = _fill(print_second, values)
+    return _fill(_MAIN, values)
+
+
+def _fill(template: str, values: dict[str, str]) -> str:
+    """``template`` with each ``@KEY@`` replaced by ``values[KEY]``, in one pass."""
+    return re.sub(r"@([A-Z_]+)@", lambda m: values[m.group(1)], template)
 
 
 def makefile_source(prefix: str) -> str:
