@@ -112,7 +112,7 @@ def test_a_failing_c_run_reports_the_observers_status():
     from thetahat.errors import NonFiniteError
     from thetahat.estimation.status import Status
     _, obs, t, u, y, s0 = case("prop1")
-    y = y * 1e200                                        # the state leaves the bound
+    y = y * 1e100           # the state leaves the bound (1e200 is refused: limits)
     with pytest.raises(NonFiniteError) as ref:
         obs.run(t, u, y, state0=s0)
     with pytest.raises(NonFiniteError) as got:
