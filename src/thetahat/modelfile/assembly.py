@@ -387,7 +387,8 @@ def _build(est: EstimatorSpec, spec: ModelSpec, eps: float | None,
 def build_estimator(spec: ModelSpec, *, method: str | None = None, hold: Hold = "zoh",
                     nan_policy: str = "raise", compiled: bool | None = None,
                     progress: Callable[[int, int], None] | None = None,
-                    Gamma: FloatArray | None = None) -> Estimator:
+                    Gamma: FloatArray | None = None, noise_std: ArrayLike | None = None
+                    ) -> Estimator:
     """The estimator a model file describes, by method, behind the one estimator protocol.
 
     Parameters
@@ -409,6 +410,9 @@ def build_estimator(spec: ModelSpec, *, method: str | None = None, hold: Hold = 
     Gamma : ndarray (p, p), optional
         The observer's Γ in place of the file's (:func:`run_estimator` passes the Γ of
         ``Gamma = "auto"``, computed on the record).
+    noise_std : float or array_like (r,), optional
+        σ of the output noise for the statistical methods (default: estimated from the data,
+        which needs 12 samples).
 
     Returns
     -------
@@ -443,14 +447,16 @@ def build_estimator(spec: ModelSpec, *, method: str | None = None, hold: Hold = 
         return _build(estimator_spec(spec, hold=hold, nan_policy=nan_policy), spec, None,
                       Gamma=Gamma).with_run_options(progress=progress, compiled=compiled)
 
-    return how.build(MethodInputs(system=spec.system, observer=observer, compiled=compiled))
+    return how.build(MethodInputs(system=spec.system, observer=observer, compiled=compiled,
+                                  noise_std=noise_std))
 
 
 def run_estimator(spec: ModelSpec, t: ArrayLike, u: ArrayLike | None, y: ArrayLike, *,
                   hold: Hold = "zoh", nan_policy: str = "raise",
                   progress: Callable[[int, int], None] | None = None,
                   method: str | None = None, compiled: bool | None = None,
-                  diagnose: bool = True, Gamma: ArrayLike | None = None) -> EstimateResult:
+                  diagnose: bool = True, Gamma: ArrayLike | None = None,
+                  noise_std: ArrayLike | None = None) -> EstimateResult:
     """Run the file's estimator on sampled data, from the file's initial values.
 
     ``method`` (default: the file's ``[estimator] method``, else ``"paper"``) chooses the
@@ -498,6 +504,10 @@ def run_estimator(spec: ModelSpec, t: ArrayLike, u: ArrayLike | None, y: ArrayLi
         Γ of the observer's law in place of the file's (as for :func:`resolve_gains`; pass
         ``resolve_gains(spec, t, u, y).Gamma`` to know the Γ of ``"auto"`` and run with it
         without choosing it twice, as ``thetahat estimate`` does).
+    noise_std : float or array_like (r,), optional
+        σ of the output noise, for the statistical methods and the trust report (default:
+        estimated from the record, which needs 12 samples; ``thetahat estimate
+        --noise-std``).
 
     Returns
     -------
@@ -549,6 +559,9 @@ def _run(spec: ModelSpec, t: ArrayLike, u: ArrayLike | None, y: ArrayLike, *, ho
     u = None if u is None else as_samples("u", u)
     y = as_samples("y", y)
     x0, th0 = start_x_hat(spec, y), spec.estimator.theta_hat0
+    if noise_std is not None:           # checked once (finite, > 0, one or r values)
+        from ..estimation.statistical.common import resolve_noise_std
+        noise_std = resolve_noise_std(noise_std, np.zeros((1, spec.system.r)))
     try:
         gamma = None
         if how.runs_observer:
@@ -556,7 +569,8 @@ def _run(spec: ModelSpec, t: ArrayLike, u: ArrayLike | None, y: ArrayLike, *, ho
             if Gamma is not None or spec.estimator.gamma_auto:
                 gamma = resolve_gains(spec, t, u, y, Gamma=Gamma, hold=hold).Gamma
         est = build_estimator(spec, method=how.name, hold=hold, nan_policy=nan_policy,
-                              compiled=compiled, progress=progress, Gamma=gamma)
+                              compiled=compiled, progress=progress, Gamma=gamma,
+                              noise_std=noise_std)
         result = est.run(t, u, y, state0=est.init(x_hat0=x0, theta_hat0=th0))
     except (ThetahatError, ArithmeticError, ValueError) as exc:       # LinAlgError too
         if not diagnose:
@@ -570,7 +584,7 @@ def _run(spec: ModelSpec, t: ArrayLike, u: ArrayLike | None, y: ArrayLike, *, ho
         return result
     if isinstance(progress, Stages):
         progress.stage("trust report")
-    report = _trust(spec, result, u, y, compiled, x0)
+    report = _trust(spec, result, u, y, compiled, x0, noise_std)
     for text in report.warnings:
         warnings.warn(text, ThetahatWarning, stacklevel=3)
     stuck = stuck_parameters(spec.system, u, y, result.x_hat, result.theta_hat,
@@ -688,7 +702,7 @@ def _check_theta_star(spec: ModelSpec, t: ArrayLike, u: ArrayLike | None, y: Arr
 
 
 def _trust(spec: ModelSpec, result: EstimateResult, u: ArrayLike | None, y: ArrayLike,
-           compiled: bool | None, x0: FloatArray) -> TrustReport:
+           compiled: bool | None, x0: FloatArray, noise_std: ArrayLike | None) -> TrustReport:
     """The trust report of a run of the file's estimator on its record (with the guard's band
     of a guarded run)."""
     from ..estimation.statistical.guarded import GuardedDiagnostics
@@ -698,6 +712,8 @@ def _trust(spec: ModelSpec, result: EstimateResult, u: ArrayLike | None, y: Arra
     N = result.t.shape[0]
     U = np.zeros((N, 0)) if u is None else np.asarray(u, dtype=np.float64).reshape(N, -1)
     Y = np.asarray(y, dtype=np.float64).reshape(N, -1)
+    sigma = (None if noise_std is None
+             else np.broadcast_to(np.asarray(noise_std, dtype=np.float64), (spec.system.r,)))
     return trust_report(spec.system, result.t, np.ascontiguousarray(U),
                         np.ascontiguousarray(Y), result.theta_hat[-1], spec.parameter_names,
-                        x_hat0=x0, band=band, compiled=compiled)
+                        x_hat0=x0, band=band, compiled=compiled, noise_std=sigma)
