@@ -691,13 +691,13 @@ class ModifiedHighGainObserver:
 
         Examples
         --------
-        Outputs scaled far beyond the model (× 1e200): the first step leaves every bound, and
+        Outputs scaled far beyond the model (× 1e100): the first step leaves every bound, and
         with ``throw=False`` the run says so instead of raising.
 
         >>> import numpy as np
         >>> from thetahat.models import lugre
         >>> data = lugre.simulate(seed=0, t_end=0.2)
-        >>> res = lugre.observer().run(data.t, data.u, 1e200 * data.y, throw=False)
+        >>> res = lugre.observer().run(data.t, data.u, 1e100 * data.y, throw=False)
         >>> res.status.name, res.failed_at, "t[0]" in res.message
         ('DIVERGED', 1, True)
         >>> bool(np.isnan(res.x_hat[1:]).all())            # the rows it could not compute
