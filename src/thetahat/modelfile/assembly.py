@@ -545,12 +545,14 @@ def run_estimator(spec: ModelSpec, t: ArrayLike, u: ArrayLike | None, y: ArrayLi
     """
     with one_blas_thread():
         return _run(spec, t, u, y, hold=hold, nan_policy=nan_policy, progress=progress,
-                    method=method, compiled=compiled, diagnose=diagnose, Gamma=Gamma)
+                    method=method, compiled=compiled, diagnose=diagnose, Gamma=Gamma,
+                    noise_std=noise_std)
 
 
 def _run(spec: ModelSpec, t: ArrayLike, u: ArrayLike | None, y: ArrayLike, *, hold: Hold,
          nan_policy: str, progress: Callable[[int, int], None] | None, method: str | None,
-         compiled: bool | None, diagnose: bool, Gamma: ArrayLike | None) -> EstimateResult:
+         compiled: bool | None, diagnose: bool, Gamma: ArrayLike | None,
+         noise_std: ArrayLike | None) -> EstimateResult:
     """:func:`run_estimator`'s work."""
     how = get_method(spec.estimator.method if method is None else method)
     # every method sees the same samples: masked entries as NaN, dates as seconds, booleans,
