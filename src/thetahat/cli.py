@@ -11,6 +11,7 @@ Subcommands::
     thetahat analyze MODEL
     thetahat estimate MODEL DATA.csv [-o estimates.csv] [--hold zoh|foh] [--nan-policy raise|skip]
                       [--no-progress | --quiet] [--method M] [--plot fig.png]
+                      [--noise-std SIGMA]
     thetahat estimate MODEL logs/ [-o results.csv|.parquet] [--scheduler tcp://HOST:PORT]
                       [--method M] [--nan-policy raise|skip]
     thetahat codegen MODEL --dt 1e-3 [--eps 1] [--gamma G... | --data LOG]
@@ -251,7 +252,8 @@ def _estimate_one(args: argparse.Namespace, stages: Stages
         result = run_estimator(spec, data.t, data.u, data.y, hold=args.hold,   # names the
                                nan_policy=args.nan_policy, progress=stages,    # trust report
                                method=args.method,
-                               Gamma=None if gains is None else gains.Gamma)
+                               Gamma=None if gains is None else gains.Gamma,
+                               noise_std=args.noise_std)
     stages.stage("write")
     stages.note(f"{data.t.size:,} rows to {args.output}")
     write_estimates(args.output, result, spec.layout)                         # atomic
@@ -275,7 +277,7 @@ def _estimate_fleet(args: argparse.Namespace) -> int:
                            chunk_size=args.chunk_size, hold=args.hold, method=args.method,
                            nan_policy=args.nan_policy,
                            progress=not (args.no_progress or args.quiet),
-                           delimiter=_delimiter(args.delimiter))
+                           delimiter=_delimiter(args.delimiter), noise_std=args.noise_std)
     result.write(output)
     print(f"wrote {output} ({len(result.rows)} files: {result.n_ok} ok, "
           f"{len(result.rows) - result.n_ok} failed)")
@@ -481,8 +483,25 @@ def _add_estimate(sub: _Subparsers) -> None:
     estimate.add_argument("--method", choices=ESTIMATION_METHODS, default=None,
                           help=f"estimator ({method_help()}; default: the model file's "
                                f"[estimator] method, else {ESTIMATION_METHODS[0]})")
+    estimate.add_argument("--noise-std", metavar="SIGMA[,SIGMA...]", type=_noise_std,
+                          default=None,
+                          help="standard deviation of the output noise, one for every output "
+                               "or one per output (default: estimated from the record, which "
+                               "needs 12 samples; give it for shorter records)")
     estimate.set_defaults(run=_estimate,
                           check=lambda args: _estimate_positionals(args, estimate.error))
+
+
+def _noise_std(text: str) -> list[float]:
+    """--noise-std: one or more comma-separated numbers, finite and > 0."""
+    try:
+        values = [float(v) for v in text.split(",")]
+    except ValueError:
+        values = []
+    if not values or not all(0.0 < v < float("inf") for v in values):
+        raise argparse.ArgumentTypeError(f"expected numbers > 0 separated by commas (e.g. "
+                                         f"0.01, or 0.01,0.02 for two outputs); got {text!r}")
+    return values
 
 
 def _add_codegen(sub: _Subparsers) -> None:
@@ -509,7 +528,8 @@ def _add_codegen(sub: _Subparsers) -> None:
     codegen.add_argument("--real", choices=["double", "float"], default="double",
                          help="C type of every number (default: double)")
     codegen.add_argument("--name", default=None,
-                         help="file stem and C prefix (default: the model file's stem)")
+                         help="file stem and C prefix, a C identifier (default: the model "
+                              "file's stem made one)")
     codegen.add_argument("--nan-policy", choices=["raise", "skip"], default="raise",
                          help="a NaN output sample: refused (raise, default), or predicted "
                               "over (skip)")

@@ -13,6 +13,7 @@ from numpy.typing import ArrayLike
 __all__ = [
     "ThetahatError",
     "DimensionError",
+    "StateError",
     "NonFiniteError",
     "NotLeftInvertibleError",
     "NotMinimumPhaseError",
@@ -45,6 +46,12 @@ class ThetahatError(Exception):
 
 class DimensionError(ThetahatError, ValueError):
     """An array has the wrong shape; the message names it and the expected shape."""
+
+
+class StateError(DimensionError):
+    """A state handed to an estimator's ``step`` or ``run`` that it cannot continue: not its
+    state type, made for another model (other dimensions), or of a stream it did not start or
+    not the stream's latest (the message says which, and to start from ``init()``)."""
 
 
 class NonFiniteError(ThetahatError, ValueError):

@@ -450,9 +450,12 @@ def _summary(spec: ModelSpec, t: FloatArray, theta_hat: FloatArray) -> dict[str,
     lower, upper = theta_bounds(spec.system.require_parameter_set("the fleet summary"))   # Θ's bounding box (any set)
     half_width = (upper - lower) / 2
     N = t.size
-    tail = theta_hat[N - max(SE_BATCHES, int(TAIL_FRACTION * N)):]
-    means = np.array([b.mean(axis=0) for b in np.array_split(tail, SE_BATCHES)])
-    se = means.std(axis=0, ddof=1) / math.sqrt(SE_BATCHES)
+    tail = theta_hat[max(N - max(SE_BATCHES, int(TAIL_FRACTION * N)), 0):]
+    if tail.shape[0] < SE_BATCHES:          # a record too short for batch means: no error bar
+        se = np.full(theta_hat.shape[1], np.nan)
+    else:
+        means = np.array([b.mean(axis=0) for b in np.array_split(tail, SE_BATCHES)])
+        se = means.std(axis=0, ddof=1) / math.sqrt(SE_BATCHES)
     for i, name in enumerate(spec.parameter_names):
         final = float(theta_hat[-1, i])
         row[f"theta_hat_{name}"] = final
@@ -468,8 +471,8 @@ def _failure(exc: BaseException) -> str:
 
 
 def _estimate_chunk(paths: list[str], *, model: tuple[str, str, str], hold: str,
-                    method: str, nan_policy: str,
-                    delimiter: str | None = None) -> list[tuple[Hashable, dict[str, Any]]]:
+                    method: str, nan_policy: str, delimiter: str | None = None,
+                    noise_std: Any = None) -> list[tuple[Hashable, dict[str, Any]]]:
     """One task: read the records; the paper's observer runs records with equal sampling
     instants as one batch, the two-stage methods run record by record."""
     spec = _spec(*model)
@@ -486,7 +489,7 @@ def _estimate_chunk(paths: list[str], *, model: tuple[str, str, str], hold: str,
                 out[p] = {"status": _failure(exc), "warnings": ""}
     if method != "paper":
         for p in records:
-            _estimate_one(spec, p, records[p], hold, method, nan_policy, out)
+            _estimate_one(spec, p, records[p], hold, method, nan_policy, out, noise_std)
         return [(p, out[p]) for p in paths]
     groups: dict[bytes, list[str]] = {}
     for p, (rec, _) in records.items():
@@ -497,13 +500,14 @@ def _estimate_chunk(paths: list[str], *, model: tuple[str, str, str], hold: str,
 
 
 def _estimate_one(spec: ModelSpec, path: str, record: tuple[DataRecord, list[str]], hold: str,
-                  method: str, nan_policy: str, out: dict[str, dict[str, Any]]) -> None:
+                  method: str, nan_policy: str, out: dict[str, dict[str, Any]],
+                  noise_std: Any = None) -> None:
     rec, read_warnings = record
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         try:
             res = run_estimator(spec, rec.t, rec.u, rec.y, hold=cast(Hold, hold),
-                                nan_policy=nan_policy, method=method)
+                                nan_policy=nan_policy, method=method, noise_std=noise_std)
         except Exception as exc:           # a record that fails is reported, never stops others
             out[path] = {"status": _failure(_explain(exc, spec, rec)),
                          "warnings": "; ".join(read_warnings)}
@@ -580,7 +584,8 @@ def _estimate_group(spec: ModelSpec, members: list[str],
 def estimate_many(model: str | Path, data: str | Path | Iterable[str | Path], *,
                   scheduler: Any = None, chunk_size: int | None = None, hold: str = "zoh",
                   method: str | None = None, nan_policy: str = "raise",
-                  progress: bool = True, delimiter: str | None = None) -> FleetResult:
+                  progress: bool = True, delimiter: str | None = None,
+                  noise_std: Any = None) -> FleetResult:
     """Run a model file's estimator on every record of a fleet; one row per record.
 
     Parameters
@@ -609,6 +614,9 @@ def estimate_many(model: str | Path, data: str | Path | Iterable[str | Path], *,
         Progress bar (tqdm) on long runs.
     delimiter : {",", ";", "\\t"}, optional
         The CSV separator of every record; default: detected from each header.
+    noise_std : float or array_like (r,), optional
+        σ of the output noise for the statistical methods (default: estimated from each
+        record, which needs 12 samples; ``thetahat estimate --noise-std``).
 
     Returns
     -------
@@ -661,7 +669,8 @@ def estimate_many(model: str | Path, data: str | Path | Iterable[str | Path], *,
                           f"{delimiter!r}.")
     files = [str(f) for f in fleet_files(data)]
     task = functools.partial(_estimate_chunk, model=(text, syntax, str(source)), hold=hold,
-                             method=how, nan_policy=nan_policy, delimiter=delimiter)
+                             method=how, nan_policy=nan_policy, delimiter=delimiter,
+                             noise_std=noise_std)
     results = run_keyed(task, files, files, scheduler=scheduler, chunk_size=chunk_size,
                         label="estimate", progress=progress)
     names = spec.parameter_names

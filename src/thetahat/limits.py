@@ -27,7 +27,8 @@ from .errors import ResourceLimitError, SymbolicTimeoutError, UnsupportedError
 __all__ = ["MAX_EXPRESSION_CHARS", "MAX_EXPRESSION_DEPTH", "MAX_EXPONENT", "MAX_POWER_NESTING",
            "MAX_SYMBOLIC_DIM", "MAX_FILE_NESTING", "SYMBOLIC_TIME_BUDGET", "MEMORY_FRACTION",
            "MAX_MODEL_FILE_BYTES", "MAX_MATRIX_ENTRY", "MAX_DATA_FILE_BYTES",
-           "MAX_DATA_SAMPLES", "MAX_DECOMPRESSED_BYTES",
+           "MAX_DATA_SAMPLES", "MAX_DECOMPRESSED_BYTES", "MAX_SIGNAL_MAGNITUDE",
+           "MIN_SIGNAL_MAGNITUDE",
            "run_with_time_budget", "check_allocation", "available_memory"]
 
 T = TypeVar("T")
@@ -56,6 +57,15 @@ MEMORY_FRACTION: float = 0.5
 #: products of up to three entries (C A E, Rosenbrock pencils), which overflow float64
 #: (1.8e308) beyond 1e100; rescale the units (time, states) instead.
 MAX_MATRIX_ENTRY: float = 1e100
+#: Largest |value| of a sample of t, u or y, and of a step length dt, that an estimator takes:
+#: the estimators square their signals (covariances, ‖y‖², g's polynomials, exp(A dt)), and
+#: the square of 1e150 is 1e300, a normal float64 (the largest is 1.8e308) with little room
+#: to spare; data beyond it are in the wrong unit: rescale them.
+MAX_SIGNAL_MAGNITUDE: float = 1e150
+#: Smallest |value| of a nonzero sample of u or y, and of a step length dt: its square, 1e-300,
+#: is still a normal float64 (the smallest is 2.2e-308); a signal below it computes in
+#: subnormal numbers, or as 0, and a fit of it is singular: rescale the unit.
+MIN_SIGNAL_MAGNITUDE: float = 1e-150
 #: Largest model file read, in bytes (checked before reading): model files hold a few small
 #: matrices and short formulas (the examples have under 4 kB).
 MAX_MODEL_FILE_BYTES: int = 1 << 20

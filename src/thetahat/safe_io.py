@@ -6,6 +6,8 @@ Outputs
     :func:`write_text` write into a temporary file in the output's own folder, flush and
     ``fsync`` it, and ``os.replace`` it over the output: a failure (a full disk, ``ulimit
     -f``, an exception) leaves the old output untouched and no partial file behind.
+    :func:`write_texts` writes a set of files that belong together (the generated C): every
+    one is written and flushed first, then all are renamed, so a full disk replaces none.
     :func:`check_writable` is called on every output path before any work: it refuses a
     directory, an unwritable place, a suffix the writer does not know, and a path that resolves
     to one of the inputs (the same file, a symlink or hard link to it). :func:`atomic_path`
@@ -34,8 +36,8 @@ from typing import IO, Any
 
 from .errors import FileAccessError, InputLimitError, ModelFileError
 
-__all__ = ["atomic_path", "write_text", "check_writable", "check_regular", "open_input",
-           "read_text", "same_file"]
+__all__ = ["atomic_path", "write_text", "write_texts", "check_writable", "check_regular",
+           "open_input", "read_text", "same_file"]
 
 
 def _kind(mode: int) -> str:
@@ -493,3 +495,87 @@ def write_text(path: str | Path, text: str) -> Path:
         with open(tmp, "w", encoding="utf-8", newline="") as fh:
             fh.write(text)
     return path
+
+
+def write_texts(files: dict[Path, str]) -> tuple[Path, ...]:
+    """Write several text files (UTF-8) as one set: all written first, then all renamed.
+
+    Every file is written and ``fsync``-ed into a temporary folder next to it (as
+    :func:`atomic_path`) before any is renamed over its output, so a failure while writing (a
+    full disk, ``ulimit -f``) replaces none of them. The renames follow; should one fail (a
+    folder made read-only meanwhile), the error says which files were replaced and which kept
+    their previous content.
+
+    Parameters
+    ----------
+    files : dict
+        Output path → text.
+
+    Returns
+    -------
+    tuple of Path
+        The outputs, in the order given.
+
+    Raises
+    ------
+    FileAccessError
+        An output is a file this process read as an input, or a file cannot be written or
+        renamed; the message says what was replaced (nothing, when the writing failed).
+
+    Examples
+    --------
+    >>> import tempfile, pathlib
+    >>> from thetahat.safe_io import write_texts
+    >>> out = pathlib.Path(tempfile.mkdtemp())
+    >>> [p.name for p in write_texts({out / "a.h": "int a;\\n", out / "a.c": "int b;\\n"})]
+    ['a.h', 'a.c']
+    """
+    paths = [Path(p) for p in files]
+    for path in paths:
+        try:
+            existing: tuple[int, int, int, int] | None = _identity(os.stat(path))
+        except OSError:
+            existing = None
+        if existing in _INPUTS:
+            raise FileAccessError(f"will not write {path}: this process read it as an input, "
+                                  f"and an output never replaces an input; write the output "
+                                  f"to another folder.")
+    folders: dict[Path, Path] = {}
+    replaced: list[Path] = []
+    try:
+        try:
+            temporaries = []
+            for path, text in zip(paths, files.values()):
+                if path.parent not in folders:
+                    path.parent.mkdir(parents=True, exist_ok=True)
+                    folders[path.parent] = _new_temporary(path)
+                    _register(folders[path.parent])
+                tmp = folders[path.parent] / path.name
+                with open(tmp, "x", encoding="utf-8", newline="") as fh:
+                    fh.write(text)
+                    fh.flush()
+                    os.fsync(fh.fileno())
+                if path.exists():               # keep the mode of the file replaced
+                    os.chmod(tmp, os.stat(path).st_mode & 0o7777)
+                temporaries.append(tmp)
+        except OSError as exc:
+            raise FileAccessError(f"cannot write {path}: {exc}; none of the "
+                                  f"{len(paths)} files was replaced (their previous content, "
+                                  f"if any, is unchanged).") from exc
+        for path, tmp in zip(paths, temporaries):
+            try:
+                os.replace(tmp, path)
+            except OSError as exc:
+                kept = [str(p) for p in paths[len(replaced):]]
+                done = ", ".join(str(p) for p in replaced) or "none"
+                raise FileAccessError(f"cannot rename the new {path} into place: {exc}; "
+                                      f"replaced: {done}; previous content kept: "
+                                      f"{', '.join(kept)}. Write them again.") from exc
+            replaced.append(path)
+        for folder in folders:
+            _fsync_dir(folder)
+    finally:
+        for folder in folders.values():
+            _remove(folder)
+            _unregister(folder)
+    return tuple(paths)

@@ -112,7 +112,7 @@ def test_a_failing_c_run_reports_the_observers_status():
     from thetahat.errors import NonFiniteError
     from thetahat.estimation.status import Status
     _, obs, t, u, y, s0 = case("prop1")
-    y = y * 1e200                                        # the state leaves the bound
+    y = y * 1e100           # the state leaves the bound (1e200 is refused: limits)
     with pytest.raises(NonFiniteError) as ref:
         obs.run(t, u, y, state0=s0)
     with pytest.raises(NonFiniteError) as got:
@@ -131,16 +131,20 @@ def test_a_failing_c_run_reports_the_observers_status():
 
 
 def test_library_is_built_once_per_cache(monkeypatch, tmp_path):
-    """A second observer of the same model loads the cached library: the compiler is not run."""
+    """A second observer of the same model loads the cached library: the compiler is not run
+    (the process's own table of loaded libraries emptied: what a new process finds)."""
     import thetahat.codegen.native as native
+    import thetahat.codegen.native_cache as native_cache
     _, obs, t, u, y, s0 = case("prop2")
+    monkeypatch.setattr(native_cache, "_loaded", {})       # loaded by an earlier test
     first = native.NativeObserver(obs, never).run(t, u, y, state0=s0)
     libs = list((tmp_path / "cache").glob("thetahat_c_*.so"))
-    assert len(libs) == 1
+    assert len(libs) == 1 and len(list((tmp_path / "cache").glob("thetahat_c_*.json"))) == 1
 
     def no_build(*args, **kwargs):
         raise AssertionError("compiled again")
-    monkeypatch.setattr(native, "build", no_build)
+    monkeypatch.setattr(native_cache, "build", no_build)
+    monkeypatch.setattr(native_cache, "_loaded", {})
     again = native.NativeObserver(obs, never).run(t, u, y, state0=s0)
     assert np.array_equal(first.theta_hat, again.theta_hat)
 

@@ -6,8 +6,8 @@ controller calls: the state struct (the formulas' state row), ``<name>_init``,
 status codes of :data:`STATUS` (the one table the loader and the docs read).
 
 What lives here: :class:`CLayout`, :func:`header_source`, :func:`source_text` and
-:data:`STATUS`. What it may import: :mod:`thetahat.estimation.status` and the derived step of
-:mod:`.c_derive`.
+:data:`STATUS`. What it may import: :mod:`thetahat.estimation.status`, the derived step of
+:mod:`.c_derive` and the text rules of :mod:`.c_text`.
 """
 
 from __future__ import annotations
@@ -18,6 +18,7 @@ from string import Template
 
 from ..estimation.status import MESSAGES, Status
 from .c_derive import DerivedStep
+from .c_text import string_literal
 
 __all__ = ["STATUS", "CLayout", "header_source", "source_text"]
 
@@ -326,7 +327,7 @@ def source_text(lay: CLayout, banner: str, step: DerivedStep) -> str:
     suffix = "" if lay.real == "double" else "f"
     messages = "".join(
         f"    case {PU}_{'OK' if key == 'ok' else 'ERR_' + key.upper()}:\n"
-        f"        return \"{text}\";\n" for key, (_, text) in STATUS.items())
+        f"        return {string_literal(text)};\n" for key, (_, text) in STATUS.items())
     access = (f"\nconst real_t *{P}_x_hat_refined(const {P}_state *s)\n{{\n"
               "    return s->s + NX + NK + NP;\n}\n" if lay.second else "")
     step_decl, step_copy = _copies(step.step_calls, lay.foh)

@@ -29,7 +29,6 @@ from __future__ import annotations
 
 import hashlib
 import math
-import re
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, cast
@@ -38,7 +37,7 @@ import numpy as np
 import sympy as sp
 from numpy.typing import ArrayLike, NDArray
 
-from ..errors import ArgumentTypeError, FileAccessError, UnsupportedError
+from ..errors import FileAccessError, UnsupportedError
 from ..estimation.observer.initial_state import output_pinv
 from ..estimation.observer.kernel_data import KernelParts
 from ..estimation.observer.laws import (INIT_RTOL, ConstantLaw, GradientInversion,
@@ -47,8 +46,9 @@ from ..estimation.observer.laws.theta_star import ThetaStar
 from ..estimation.observer.observer import ModifiedHighGainObserver
 from ..model.paramset import Box
 from ..model.perturbation import SymbolicPerturbation
-from ..safe_io import write_text
+from ..safe_io import write_texts
 from .c_api import CLayout, header_source, source_text
+from .c_text import check_c_name, comment_text, name_collisions, refuse_collisions
 from .c_derive import derived_step, inwards
 from .harness import harness_source, makefile_source
 from .printing import REALS
@@ -104,24 +104,22 @@ class CCode:
                 f"{self.name}_main.c": self.main, "Makefile": self.makefile}
 
     def write(self, directory: str | Path) -> tuple[Path, ...]:
-        """Write the four files into ``directory`` (created), each atomically; returns their
-        paths.
+        """Write the four files into ``directory`` (created) as one set: all four are written
+        and flushed to temporary files first, then renamed into place
+        (:func:`~thetahat.safe_io.write_texts`); returns their paths.
 
         Raises
         ------
         FileAccessError
-            The directory or a file cannot be written.
+            The directory or a file cannot be written: nothing was replaced (or, should a
+            rename fail, the message lists what was).
         """
         out = Path(directory)
-        paths = []
         try:
-            out.mkdir(parents=True, exist_ok=True)
-            for fname, text in self.files().items():
-                paths.append(write_text(out / fname, text))          # atomic, each file
+            return write_texts({out / fname: text for fname, text in self.files().items()})
         except OSError as exc:
-            raise FileAccessError(f"cannot write the generated C into {out}: {exc}; choose a "
+            raise FileAccessError(f"cannot write the generated C into {out}: {exc} Choose a "
                                   "writable folder with -o.") from exc
-        return tuple(paths)
 
     def summary(self) -> str:
         """One line per size, as ``thetahat codegen`` prints them."""
@@ -136,16 +134,6 @@ class CCode:
     def __repr__(self) -> str:
         return (f"CCode(name={self.name!r}, real={self.real!r}, dt={self.dt!r}, "
                 f"state_bytes={self.state_bytes}, const_bytes={self.const_bytes})")
-
-
-def _c_name(name: str) -> str:
-    if not isinstance(name, str):
-        raise ArgumentTypeError(f"name must be a string (the C identifier's stem, e.g. "
-                                f"'lugre'); got {type(name).__name__}.")
-    ident = re.sub(r"\W", "_", name.strip(), flags=re.ASCII).lower()
-    if not ident or ident[0].isdigit():
-        ident = "obs_" + ident
-    return ident
 
 
 def _theta_star(law: Any, pert: SymbolicPerturbation
@@ -298,7 +286,10 @@ def generate_c(observer: ModifiedHighGainObserver, *, dt: float, name: str = "ob
     dt : float
         The fixed step length (s) > 0.
     name : str
-        File stem and C prefix (made a C identifier).
+        File stem and C prefix: a C identifier that the generated code may use as a prefix
+        (:func:`~thetahat.codegen.c_text.check_c_name`: ASCII, starting with a letter, at most
+        24 characters, no ``__``, no keyword or reserved name, and no identifier of the
+        generated code's own starting with ``<name>_``).
     real : {"double", "float"}
         The C type of every number (``<name>_real_t``).
     theta_hat0, x_hat0 : array_like, optional
@@ -309,7 +300,8 @@ def generate_c(observer: ModifiedHighGainObserver, *, dt: float, name: str = "ob
         Hash recorded in the header (default :func:`model_hash` of the observer; the command
         line passes the model file's).
     title : str, optional
-        Model title for the header comment.
+        Model title for the header comment (made safe for a comment:
+        :func:`~thetahat.codegen.c_text.comment_text`).
     x_hat0_from_y : bool
         The harness starts x̂ at x̂₀ + C⁺(y(0) − C x̂₀) (``<name>_start_from_y`` on its first
         sample), as :func:`~thetahat.modelfile.start_x_hat` does for a model file's estimators;
@@ -323,6 +315,8 @@ def generate_c(observer: ModifiedHighGainObserver, *, dt: float, name: str = "ob
     ------
     UnsupportedError
         A part of the observer has no C form (the message names it).
+    OptionError
+        ``name`` cannot name generated C (the message says why and names one that can).
 
     Examples
     --------
@@ -333,10 +327,10 @@ def generate_c(observer: ModifiedHighGainObserver, *, dt: float, name: str = "ob
     >>> code.state_bytes                      # x̂ (2), z (1), θ̂ (1), x̂₂ (2) doubles
     48
     """
+    prefix = check_c_name(name)
     kind, law = _check(observer, real)
     hold = observer.hold
     h = _step_length(dt, real)
-    prefix = _c_name(name)
     pert = cast(SymbolicPerturbation, observer.system.perturbation)     # _check verified it
     n, m, r, p, k = pert.dims
     ts = _theta_star(law, pert) if kind in ("algebraic", "intermittent") else None
@@ -352,9 +346,10 @@ def generate_c(observer: ModifiedHighGainObserver, *, dt: float, name: str = "ob
     names = {"u": [s.name for s in pert.u], "y": [s.name for s in pert.y],
              "x": [s.name for s in pert.x], "theta": [s.name for s in pert.theta]}
     word = 8 if real == "double" else 4
-    return CCode(name=prefix, real=real, dt=h, header=header, source=source,
-                 main=harness_source(prefix, names, k, real, lay.second, h, lay.foh,
-                                     start_from_y=x_hat0_from_y),
+    main = harness_source(prefix, names, k, real, lay.second, h, lay.foh,
+                          start_from_y=x_hat0_from_y)
+    refuse_collisions(prefix, name_collisions(prefix, header, [source, main]))
+    return CCode(name=prefix, real=real, dt=h, header=header, source=source, main=main,
                  makefile=makefile_source(prefix), state_bytes=lay.size * word,
                  const_bytes=step.const_count * word,
                  sizes={"n": n, "m": m, "r": r, "k": k, "p": p, "state": lay.size},
@@ -423,6 +418,8 @@ def _step_length(dt: Any, real: str) -> float:
 
 
 def _banner(name: str, info: dict[str, str], what: str) -> str:
+    """The comment at the top of a generated file: every value made safe for a comment."""
+    info = {key: comment_text(value) for key, value in info.items()}
     return (f"/* {name} -- {what}\n"
             f" * Generated by thetahat {info['version']} (thetahat codegen); do not edit.\n *\n"
             " * The modified high-gain observer (3) with update law (8) of Grip, Saberi &\n"

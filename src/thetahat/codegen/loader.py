@@ -33,7 +33,7 @@ from .generate import CCode
 from .harness import C_FLAGS
 
 __all__ = ["CObserver", "CRun", "build", "build_harness", "build_many", "find_compiler", "load_c",
-           "STATUS"]
+           "shim_source", "STATUS"]
 
 #: Status codes of the generated functions (``<NAME>_OK``…), by name (:data:`.c_api.STATUS`).
 STATUS = {name: code for name, (code, _) in C_STATUS.items()}
@@ -125,16 +125,38 @@ def _compiler() -> str:
     return cc
 
 
+def shim_source(code: CCode) -> str:
+    """The record-loop shim ``<name>_shim.c`` compiled with ``code`` into a shared library.
+
+    Parameters
+    ----------
+    code : CCode
+
+    Returns
+    -------
+    str
+
+    Examples
+    --------
+    >>> from thetahat.modelfile import EXAMPLE_MODEL, build_observer, loads_model
+    >>> from thetahat.codegen import generate_c
+    >>> code = generate_c(build_observer(loads_model(EXAMPLE_MODEL)), dt=0.01, name="prop3")
+    >>> "int prop3_run_record(" in shim_source(code)
+    True
+    """
+    P = code.name
+    foh = code.hold == "foh"
+    nxt = ", U + (i + 1) * NUB, Y + (i + 1) * @PU@_NY" if foh else ""
+    return (_SHIM.replace("@NEXT@", nxt).replace("@FOH@", "1" if foh else "0")
+            .replace("@NS@", str(code.sizes["state"])).replace("@PU@", P.upper())
+            .replace("@P@", P))
+
+
 def _write_with_shim(code: CCode, out: Path) -> list[str]:
     """Write ``code`` and its record-loop shim into ``out``; the two C files' names."""
     code.write(out)
     P = code.name
-    foh = code.hold == "foh"
-    nxt = ", U + (i + 1) * NUB, Y + (i + 1) * @PU@_NY" if foh else ""
-    shim = (_SHIM.replace("@NEXT@", nxt).replace("@FOH@", "1" if foh else "0")
-            .replace("@NS@", str(code.sizes["state"])).replace("@PU@", P.upper())
-            .replace("@P@", P))
-    write_text(out / f"{P}_shim.c", shim)
+    write_text(out / f"{P}_shim.c", shim_source(code))
     return [f"{P}.c", f"{P}_shim.c"]
 
 
@@ -255,16 +277,17 @@ class CObserver:
     ----------
     code : CCode
         The generated sources.
-    library : Path
-        The shared library built from them by :func:`build`.
+    library : Path or ctypes.CDLL
+        The shared library built from them by :func:`build`, or that library already loaded
+        (:func:`~thetahat.codegen.native_cache.cached_library`).
     """
 
-    def __init__(self, code: CCode, library: Path) -> None:
+    def __init__(self, code: CCode, library: Path | ctypes.CDLL) -> None:
         self.code = code
         self.dtype = np.float64 if code.real == "double" else np.float32
         ctype = ctypes.c_double if code.real == "double" else ctypes.c_float
         self._ptr = ctypes.POINTER(ctype)
-        self._lib = ctypes.CDLL(str(library))
+        self._lib = library if isinstance(library, ctypes.CDLL) else ctypes.CDLL(str(library))
         P = code.name
         self._init = getattr(self._lib, f"{P}_init")
         self._step = getattr(self._lib, f"{P}_step")

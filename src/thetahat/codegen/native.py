@@ -18,10 +18,11 @@ nonzero status of the C run is the :class:`~thetahat.estimation.status.Status` o
 (:func:`~thetahat.estimation.observer.record_run.failure`): raised with ``throw=True``, in the
 result with ``throw=False``.
 
-Built libraries are kept in :func:`~thetahat.estimation.kernels.kernel_cache.cache_dir` under the
-SHA-256 of the compiler's path, its flags and the generated sources (which are printed from the
-formulas and hold every number of the model), written atomically (:mod:`thetahat.safe_io`): a
-second process loads the library without compiling.
+Built libraries are kept in :func:`~thetahat.estimation.kernels.kernel_cache.cache_dir`, each
+with a manifest of its key (the generated sources, which are printed from the formulas and hold
+every number of the model, the compiler, its flags, thetahat's version) and its SHA-256: a
+second process loads the library without compiling, after checking it
+(:mod:`~thetahat.codegen.native_cache`: a damaged or foreign entry is rebuilt, never loaded).
 
 What lives here: :class:`NativeObserver`, :func:`load_cached` and :data:`BACKEND`. What it may
 import: the generator and loader of this package, the observer's record loop and result
@@ -31,10 +32,7 @@ import: the generator and loader of this package, the observer's record loop and
 
 from __future__ import annotations
 
-import hashlib
 import os
-import shutil
-import tempfile
 from collections.abc import Callable
 from typing import Any
 
@@ -48,10 +46,9 @@ from ..estimation.observer.observer import ModifiedHighGainObserver, ObserverEst
 from ..estimation.observer.plan import DT_RTOL
 from ..estimation.observer.record_run import PROGRESS_EVERY, Failure, failure, states_result
 from ..estimation.protocol import EstimateResult
-from ..safe_io import atomic_path
 from .generate import CCode, generate_c, supports_c
-from .harness import C_FLAGS
-from .loader import CObserver, build, find_compiler
+from .loader import CObserver, find_compiler
+from .native_cache import cached_library
 
 __all__ = ["BACKEND", "NativeObserver", "native_enabled", "load_cached"]
 
@@ -72,7 +69,8 @@ def native_enabled() -> bool:
 
 
 def load_cached(code: CCode) -> CObserver:
-    """Load ``code``'s shared library from the kernel cache, building it there first if needed.
+    """Load ``code``'s shared library from the cache, verified, building it first if needed
+    (:func:`~thetahat.codegen.native_cache.cached_library`).
 
     Parameters
     ----------
@@ -86,9 +84,13 @@ def load_cached(code: CCode) -> CObserver:
     Raises
     ------
     CCompilerError
-        No compiler, or it failed.
-    FileAccessError
-        The cache cannot be written.
+        No compiler, or it failed, or its library failed to load in a child process.
+
+    Warns
+    -----
+    ThetahatWarning
+        One line: a damaged or foreign cache entry was discarded and rebuilt, or the cache
+        could not be written (the library then runs from memory).
 
     Examples
     --------
@@ -98,20 +100,7 @@ def load_cached(code: CCode) -> CObserver:
     >>> obs is None or obs.step(obs.init(), [0.0], [0.1]) == 0
     True
     """
-    cc = find_compiler()
-    if cc is None:
-        raise CCompilerError("no C compiler found: install one (e.g. gcc) or set CC.")
-    h = hashlib.sha256()
-    for part in (cc, " ".join(C_FLAGS), code.hold, code.header, code.source):
-        h.update(part.encode())
-        h.update(b"\0")
-    lib = cache_dir() / f"thetahat_c_{code.name}_{h.hexdigest()[:24]}.so"
-    if not lib.is_file():
-        with tempfile.TemporaryDirectory(dir=cache_dir()) as tmp:
-            built = build(code, tmp)
-            with atomic_path(lib) as dest:
-                shutil.copyfile(built, dest)
-    return CObserver(code, lib)
+    return CObserver(code, cached_library(code))
 
 
 class NativeObserver:

@@ -29,12 +29,14 @@ from typing import Any, Protocol, runtime_checkable
 import numpy as np
 from numpy.typing import NDArray
 
-from ..errors import DimensionError, NonFiniteError
+from .._validate import as_vector, positive_scalar
+from ..errors import DimensionError, NonFiniteError, StateError
 from ..model.system import PerturbedLinearSystem
+from .records import Dimensions, check_magnitude
 from .status import Status, status_error
 
 __all__ = ["Diagnostics", "EstimateResult", "Estimator", "ObserverDiagnostics", "Evidence",
-           "SignalNames",
+           "SignalNames", "check_sample", "check_state", "check_step_length",
            "missing_samples", "phi_hat_from_model", "stream_sample"]
 
 FloatArray = NDArray[np.float64]
@@ -269,13 +271,100 @@ class Estimator(Protocol):
         ...
 
 
-def stream_sample(system: PerturbedLinearSystem, u: Any, y: Any,
-                  dt: float) -> tuple[FloatArray, FloatArray, float]:
-    """The samples of one ``step`` checked: own float64 copies of u (m,) and y (r,), and dt.
+def check_sample(dims: Dimensions, u: Any, y: Any) -> tuple[FloatArray, FloatArray]:
+    """The samples of one instant checked: own float64 copies of u (m,) and y (r,).
+
+    The one definition of what ``step`` accepts, for every estimator: the shapes of the
+    model, u finite, y finite or NaN (a missing sample; what that means is the estimator's
+    NaN policy), and the magnitudes of
+    :func:`~thetahat.estimation.records.check_magnitude`.
 
     Parameters
     ----------
-    system : PerturbedLinearSystem
+    dims : Dimensions
+        Gives m and r (a :class:`~thetahat.model.system.PerturbedLinearSystem` or an
+        observer's layout).
+    u : array_like (m,)
+        ``None`` when m = 0.
+    y : array_like (r,)
+
+    Returns
+    -------
+    u, y : ndarray, shapes (m,), (r,)
+        Writable copies (one array type for the compiled kernels).
+
+    Raises
+    ------
+    DimensionError
+        Not numbers, or the wrong shapes.
+    NonFiniteError
+        NaN or inf in u, or inf in y.
+    InputLimitError
+        A magnitude float64 arithmetic of a model cannot take (rescale the unit).
+
+    Examples
+    --------
+    >>> from thetahat.models import lugre
+    >>> u, y = check_sample(lugre.system(), [1.0], [float("nan")])
+    >>> u.shape, y.shape
+    ((1,), (1,))
+    """
+    m, r = dims.m, dims.r
+    if y is None or (u is None and m > 0):
+        which = "y" if y is None else "u"
+        raise DimensionError(f"{which} must be a sample ({r if which == 'y' else m} values); "
+                             f"got None.")
+    u_ = np.zeros(0) if u is None else np.array(as_vector("u", u, m, finite=False))
+    y_ = np.array(as_vector("y", y, r, finite=False))
+    if not np.all(np.isfinite(u_)):
+        raise NonFiniteError("u contains NaN or inf; clean the input sample.")
+    if np.isinf(y_).any():
+        raise NonFiniteError("y contains inf; only NaN marks a missing sample.")
+    check_magnitude("u", u_)
+    check_magnitude("y", y_)
+    return u_, y_
+
+
+def check_step_length(dt: Any) -> float:
+    """``dt`` as a float: a real number, finite, > 0 and within the magnitudes of
+    :func:`~thetahat.estimation.records.check_magnitude` (the one definition of a step length
+    for every estimator's ``step``).
+
+    Parameters
+    ----------
+    dt : float
+
+    Returns
+    -------
+    float
+
+    Raises
+    ------
+    DimensionError
+        Not a real number, or ≤ 0.
+    NonFiniteError
+        NaN or inf.
+    InputLimitError
+        Below 1e-150 s or above 1e150 s (rescale the time unit).
+
+    Examples
+    --------
+    >>> check_step_length(1e-3)
+    0.001
+    """
+    h = positive_scalar("dt", dt)
+    check_magnitude("dt", [h])
+    return h
+
+
+def stream_sample(dims: Dimensions, u: Any, y: Any,
+                  dt: Any) -> tuple[FloatArray, FloatArray, float]:
+    """The samples of one ``step`` and its step length, checked: :func:`check_sample` and
+    :func:`check_step_length`.
+
+    Parameters
+    ----------
+    dims : Dimensions
         Gives m and r.
     u : array_like (m,)
         ``None`` when m = 0; must be finite.
@@ -293,9 +382,11 @@ def stream_sample(system: PerturbedLinearSystem, u: Any, y: Any,
     Raises
     ------
     DimensionError
-        Wrong shapes, or dt not finite and > 0.
+        Wrong shapes, or dt not a real number > 0.
     NonFiniteError
-        NaN or inf in u, or inf in y.
+        NaN or inf in u, inf in y, or dt not finite.
+    InputLimitError
+        A magnitude float64 arithmetic of a model cannot take.
 
     Examples
     --------
@@ -304,20 +395,81 @@ def stream_sample(system: PerturbedLinearSystem, u: Any, y: Any,
     >>> u.shape, y.shape, h
     ((1,), (1,), 0.001)
     """
-    m, r = system.m, system.r
-    u_ = np.zeros(0) if u is None else np.array(u, dtype=np.float64).reshape(-1)
-    y_ = np.array(y, dtype=np.float64).reshape(-1)
-    if u_.shape != (m,) or y_.shape != (r,):
-        raise DimensionError(f"u and y must have shapes ({m},) and ({r},); got {u_.shape} "
-                             f"and {y_.shape}.")
-    h = float(dt)
-    if not (h > 0 and np.isfinite(h)):
-        raise DimensionError(f"dt must be finite and > 0; got {dt!r}.")
-    if not np.all(np.isfinite(u_)):
-        raise NonFiniteError("u contains NaN or inf; clean the input sample.")
-    if np.isinf(y_).any():
-        raise NonFiniteError("y contains inf; only NaN marks a missing sample.")
-    return u_, y_, h
+    u_, y_ = check_sample(dims, u, y)
+    return u_, y_, check_step_length(dt)
+
+
+def _describe(state: Any) -> str:
+    """What a state that was refused is, for a message."""
+    if state is None:
+        return "None"
+    shape = getattr(state, "shape", None)
+    return type(state).__name__ + ("" if shape is None else f" of shape {shape}")
+
+
+def check_state(who: str, state: Any, kind: type | None,
+                shapes: dict[str, tuple[int, ...]]) -> Any:
+    """A state handed to ``who``'s ``step`` or ``run``, checked to be one it can continue.
+
+    The one definition for every estimator. A state belongs to a *model*, not to an estimator
+    instance: any estimator of the same model (the same dimensions) continues it, as it would
+    continue from explicit start values. What a state of another model with the same
+    dimensions holds cannot be told from its numbers; a stream (the guarded and MAP
+    estimators' shared log) is checked further by its estimator.
+
+    Parameters
+    ----------
+    who : str
+        The estimator, for the message ("JointEKF.step").
+    state : object
+    kind : type or None
+        The state's class; None: a state that is a float vector (the observers').
+    shapes : dict
+        Attribute → shape the model gives it (None attributes are not checked); for a vector
+        state, ``{"state": (size,)}``.
+
+    Returns
+    -------
+    object
+        ``state``; for a vector state, a float64 vector.
+
+    Raises
+    ------
+    StateError
+        Another type, or another model's dimensions; the message says to start from
+        ``init()``.
+
+    Examples
+    --------
+    >>> check_state("obs.step", [0.0, 1.0], None, {"state": (2,)}).tolist()
+    [0.0, 1.0]
+    >>> check_state("obs.step", None, None, {"state": (2,)})
+    Traceback (most recent call last):
+    ...
+    thetahat.errors.StateError: obs.step: the state must be a float vector of length 2 ...
+    """
+    fix = f"pass a state from {who.split('.')[0]}.init() or .step() of this model"
+    if kind is None:
+        (size,) = shapes["state"]
+        try:
+            if state is None or isinstance(state, (str, bytes)):
+                raise DimensionError("not numbers")
+            return as_vector("state", state, size, finite=False)
+        except DimensionError as exc:
+            raise StateError(f"{who}: the state must be a float vector of length {size} (this "
+                             f"model's); got {_describe(state)} ({exc}). {fix[0].upper()}"
+                             f"{fix[1:]}.") from exc
+    if not isinstance(state, kind):
+        raise StateError(f"{who}: the state must be of type {kind.__name__}; got "
+                         f"{_describe(state)}. "
+                         f"{fix[0].upper()}{fix[1:]}.")
+    for name, shape in shapes.items():
+        value = getattr(state, name, None)
+        if value is not None and np.shape(value) != shape:
+            raise StateError(f"{who}: the state's {name} has shape {np.shape(value)}, this "
+                             f"model's {shape}: the state was made for another model. "
+                             f"{fix[0].upper()}{fix[1:]}.")
+    return state
 
 
 def missing_samples(Y: FloatArray) -> NDArray[np.bool_]:

@@ -19,7 +19,8 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from .._validate import as_samples, as_time_grid, check_finite
-from ..errors import DimensionError, NonFiniteError, OptionError
+from ..errors import DimensionError, InputLimitError, NonFiniteError, OptionError
+from ..limits import MAX_SIGNAL_MAGNITUDE, MIN_SIGNAL_MAGNITUDE
 
 #: What an observer does with a NaN output sample: refuse it, or skip it (a prediction).
 NAN_POLICIES = ("raise", "skip")
@@ -52,7 +53,7 @@ def check_nan_policy(nan_policy: str) -> str:
     return nan_policy
 
 __all__ = ["NAN_POLICIES", "Dimensions", "RecordShape", "as_signal", "as_signals",
-           "check_nan_policy", "check_real", "check_record", "check_records"]
+           "check_magnitude", "check_nan_policy", "check_real", "check_record", "check_records"]
 
 FloatArray = NDArray[np.float64]
 
@@ -96,6 +97,66 @@ def check_real(name: str, a: ArrayLike) -> None:
     if np.iscomplexobj(a):
         raise DimensionError(f"{name} must be real; got complex samples. Pass the real part "
                              "explicitly if that is what was measured.")
+
+
+def check_magnitude(name: str, a: ArrayLike, *, small: bool = True) -> None:
+    """Refuse samples whose magnitude float64 arithmetic of a model cannot take.
+
+    Every finite sample must have |value| ≤ :data:`~thetahat.limits.MAX_SIGNAL_MAGNITUDE`
+    (1e150) and, when ``small``, be 0 or have |value| ≥
+    :data:`~thetahat.limits.MIN_SIGNAL_MAGNITUDE` (1e-150): the estimators square their
+    signals, and those squares must stay normal float64 numbers. NaN and inf are left to the
+    finiteness checks. One definition for records (:func:`check_records`), samples and step
+    lengths (:func:`~thetahat.estimation.protocol.check_sample`,
+    :func:`~thetahat.estimation.protocol.check_step_length`).
+
+    Parameters
+    ----------
+    name : str
+        The signal, for the message ("y", "t", "dt").
+    a : array_like
+    small : bool
+        Also refuse nonzero values below the smallest magnitude.
+
+    Raises
+    ------
+    InputLimitError
+        A value beyond a bound; the message names the value, the bound and the fix (rescale
+        the unit).
+
+    Examples
+    --------
+    >>> check_magnitude("y", [0.0, 1e-3, 2.5e6])
+    >>> check_magnitude("y", [1.0, 3e-301])
+    Traceback (most recent call last):
+    ...
+    thetahat.errors.InputLimitError: y: a value of magnitude 3e-301, below 1e-150 ...
+    """
+    arr = np.asarray(a, dtype=np.float64)
+    if arr.size <= 16:                      # a sample of step: plain floats are faster
+        mags = [abs(v) for v in arr.ravel().tolist()]
+        big = max((v for v in mags if v != float("inf")), default=0.0)
+        tiny = min((v for v in mags if v > 0.0), default=float("inf")) if small else 1.0
+    else:
+        mags_a = np.abs(arr[np.isfinite(arr)])
+        big = float(mags_a.max(initial=0.0))
+        pos = mags_a[mags_a > 0.0]
+        tiny = float(pos.min(initial=np.inf)) if small else 1.0
+    if big > MAX_SIGNAL_MAGNITUDE:
+        where, bound, limit = "above", MAX_SIGNAL_MAGNITUDE, "MAX_SIGNAL_MAGNITUDE"
+        value = big
+    elif tiny < MIN_SIGNAL_MAGNITUDE:
+        where, bound, limit = "below", MIN_SIGNAL_MAGNITUDE, "MIN_SIGNAL_MAGNITUDE"
+        value = tiny
+    else:
+        return
+    column = "t" if name in ("dt", "the steps of t") else name
+    raise InputLimitError(
+        f"{name}: a value of magnitude {value:.3g}, {where} {bound:g} "
+        f"(thetahat.limits.{limit}): the estimators square their signals, and float64 cannot "
+        f"hold the result. Rescale {name} to a unit in which it is of order 1 (a model file's "
+        f"[data] scale does it, e.g. {column[:1].lower()} = {{ column = \"{column}\", scale "
+        f"= 1e-3 }}), and the model with it.")
 
 
 class RecordShape(NamedTuple):
@@ -224,6 +285,9 @@ def check_records(layout: Dimensions, nan_policy: str, t: ArrayLike, u: ArrayLik
         Wrong shapes, or ``t`` not strictly increasing.
     NonFiniteError
         NaN or inf in t or u; inf in y; NaN in y under ``nan_policy="raise"``.
+    InputLimitError
+        |t|, a step of t, or a nonzero |u| or |y| beyond the magnitudes of
+        :func:`check_magnitude`.
 
     Examples
     --------
@@ -247,6 +311,10 @@ def check_records(layout: Dimensions, nan_policy: str, t: ArrayLike, u: ArrayLik
         U = as_signals("U", np.zeros((B, N, 0)) if u is None else u, B, N, lay.m)
         names = ("U", "Y")
     check_finite(names[0], U)
+    check_magnitude("t", t_, small=False)
+    check_magnitude("the steps of t", dts)
+    check_magnitude(names[0], U)
+    check_magnitude(names[1], Y)
     if np.isinf(Y).any():
         raise NonFiniteError(f"{names[1]} contains inf; only NaN marks a missing sample.")
     ok = np.asarray(np.isfinite(Y).all(axis=2), dtype=np.bool_)

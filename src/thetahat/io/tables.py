@@ -277,8 +277,9 @@ class CsvTable(Table):
 
 def _plain_float(text: str) -> float | None:
     """The number a cell writes in plain decimal notation, or None (``float`` would also read
-    ``1_000`` as 1000: digit separators are refused)."""
-    if "_" in text:
+    ``1_000`` as 1000 and the full-width ``１`` or Arabic-Indic ``١`` as 1: digit separators
+    and non-ASCII digits are refused, as the generated C harness refuses them)."""
+    if "_" in text or not text.isascii():
         return None
     try:
         return float(text)

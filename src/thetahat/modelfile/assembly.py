@@ -387,7 +387,8 @@ def _build(est: EstimatorSpec, spec: ModelSpec, eps: float | None,
 def build_estimator(spec: ModelSpec, *, method: str | None = None, hold: Hold = "zoh",
                     nan_policy: str = "raise", compiled: bool | None = None,
                     progress: Callable[[int, int], None] | None = None,
-                    Gamma: FloatArray | None = None) -> Estimator:
+                    Gamma: FloatArray | None = None, noise_std: ArrayLike | None = None
+                    ) -> Estimator:
     """The estimator a model file describes, by method, behind the one estimator protocol.
 
     Parameters
@@ -409,6 +410,9 @@ def build_estimator(spec: ModelSpec, *, method: str | None = None, hold: Hold = 
     Gamma : ndarray (p, p), optional
         The observer's Γ in place of the file's (:func:`run_estimator` passes the Γ of
         ``Gamma = "auto"``, computed on the record).
+    noise_std : float or array_like (r,), optional
+        σ of the output noise for the statistical methods (default: estimated from the data,
+        which needs 12 samples).
 
     Returns
     -------
@@ -443,14 +447,16 @@ def build_estimator(spec: ModelSpec, *, method: str | None = None, hold: Hold = 
         return _build(estimator_spec(spec, hold=hold, nan_policy=nan_policy), spec, None,
                       Gamma=Gamma).with_run_options(progress=progress, compiled=compiled)
 
-    return how.build(MethodInputs(system=spec.system, observer=observer, compiled=compiled))
+    return how.build(MethodInputs(system=spec.system, observer=observer, compiled=compiled,
+                                  noise_std=noise_std))
 
 
 def run_estimator(spec: ModelSpec, t: ArrayLike, u: ArrayLike | None, y: ArrayLike, *,
                   hold: Hold = "zoh", nan_policy: str = "raise",
                   progress: Callable[[int, int], None] | None = None,
                   method: str | None = None, compiled: bool | None = None,
-                  diagnose: bool = True, Gamma: ArrayLike | None = None) -> EstimateResult:
+                  diagnose: bool = True, Gamma: ArrayLike | None = None,
+                  noise_std: ArrayLike | None = None) -> EstimateResult:
     """Run the file's estimator on sampled data, from the file's initial values.
 
     ``method`` (default: the file's ``[estimator] method``, else ``"guarded"``) chooses the
@@ -498,6 +504,10 @@ def run_estimator(spec: ModelSpec, t: ArrayLike, u: ArrayLike | None, y: ArrayLi
         Γ of the observer's law in place of the file's (as for :func:`resolve_gains`; pass
         ``resolve_gains(spec, t, u, y).Gamma`` to know the Γ of ``"auto"`` and run with it
         without choosing it twice, as ``thetahat estimate`` does).
+    noise_std : float or array_like (r,), optional
+        σ of the output noise, for the statistical methods and the trust report (default:
+        estimated from the record, which needs 12 samples; ``thetahat estimate
+        --noise-std``).
 
     Returns
     -------
@@ -535,12 +545,14 @@ def run_estimator(spec: ModelSpec, t: ArrayLike, u: ArrayLike | None, y: ArrayLi
     """
     with one_blas_thread():
         return _run(spec, t, u, y, hold=hold, nan_policy=nan_policy, progress=progress,
-                    method=method, compiled=compiled, diagnose=diagnose, Gamma=Gamma)
+                    method=method, compiled=compiled, diagnose=diagnose, Gamma=Gamma,
+                    noise_std=noise_std)
 
 
 def _run(spec: ModelSpec, t: ArrayLike, u: ArrayLike | None, y: ArrayLike, *, hold: Hold,
          nan_policy: str, progress: Callable[[int, int], None] | None, method: str | None,
-         compiled: bool | None, diagnose: bool, Gamma: ArrayLike | None) -> EstimateResult:
+         compiled: bool | None, diagnose: bool, Gamma: ArrayLike | None,
+         noise_std: ArrayLike | None) -> EstimateResult:
     """:func:`run_estimator`'s work."""
     how = get_method(spec.estimator.method if method is None else method)
     # every method sees the same samples: masked entries as NaN, dates as seconds, booleans,
@@ -549,6 +561,9 @@ def _run(spec: ModelSpec, t: ArrayLike, u: ArrayLike | None, y: ArrayLike, *, ho
     u = None if u is None else as_samples("u", u)
     y = as_samples("y", y)
     x0, th0 = start_x_hat(spec, y), spec.estimator.theta_hat0
+    if noise_std is not None:           # checked once (finite, > 0, one or r values)
+        from ..estimation.statistical.common import resolve_noise_std
+        noise_std = resolve_noise_std(noise_std, np.zeros((1, spec.system.r)))
     try:
         gamma = None
         if how.runs_observer:
@@ -556,7 +571,8 @@ def _run(spec: ModelSpec, t: ArrayLike, u: ArrayLike | None, y: ArrayLike, *, ho
             if Gamma is not None or spec.estimator.gamma_auto:
                 gamma = resolve_gains(spec, t, u, y, Gamma=Gamma, hold=hold).Gamma
         est = build_estimator(spec, method=how.name, hold=hold, nan_policy=nan_policy,
-                              compiled=compiled, progress=progress, Gamma=gamma)
+                              compiled=compiled, progress=progress, Gamma=gamma,
+                              noise_std=noise_std)
         result = est.run(t, u, y, state0=est.init(x_hat0=x0, theta_hat0=th0))
     except (ThetahatError, ArithmeticError, ValueError) as exc:       # LinAlgError too
         if not diagnose:
@@ -570,7 +586,7 @@ def _run(spec: ModelSpec, t: ArrayLike, u: ArrayLike | None, y: ArrayLike, *, ho
         return result
     if isinstance(progress, Stages):
         progress.stage("trust report")
-    report = _trust(spec, result, u, y, compiled, x0)
+    report = _trust(spec, result, u, y, compiled, x0, noise_std)
     for text in report.warnings:
         warnings.warn(text, ThetahatWarning, stacklevel=3)
     stuck = stuck_parameters(spec.system, u, y, result.x_hat, result.theta_hat,
@@ -688,16 +704,19 @@ def _check_theta_star(spec: ModelSpec, t: ArrayLike, u: ArrayLike | None, y: Arr
 
 
 def _trust(spec: ModelSpec, result: EstimateResult, u: ArrayLike | None, y: ArrayLike,
-           compiled: bool | None, x0: FloatArray) -> TrustReport:
+           compiled: bool | None, x0: FloatArray, noise_std: ArrayLike | None) -> TrustReport:
     """The trust report of a run of the file's estimator on its record: the guard's band of a
-    guarded run, the σ the estimator used, θ̂'s path, and for the paper's observer (NumPy,
-    compiled or C: one result type) the law's conditions along the run."""
+    guarded run, the σ given by the user (else the one the estimator used), θ̂'s path, and for
+    the paper's observer (NumPy, compiled or C: one result type) the law's conditions along
+    the run."""
     from ..estimation.protocol import ObserverDiagnostics
     from ..estimation.statistical.guarded import GuardedDiagnostics
     from ..estimation.statistical.trust import trust_report
     d = result.diagnostics
     band = d.band if isinstance(d, GuardedDiagnostics) else None
     sigma = getattr(d, "noise_std", None)
+    if noise_std is not None:
+        sigma = np.broadcast_to(np.asarray(noise_std, dtype=np.float64), (spec.system.r,))
     N = result.t.shape[0]
     U = np.zeros((N, 0)) if u is None else np.asarray(u, dtype=np.float64).reshape(N, -1)
     Y = np.asarray(y, dtype=np.float64).reshape(N, -1)

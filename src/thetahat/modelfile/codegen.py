@@ -13,8 +13,9 @@ from pathlib import Path
 
 from numpy.typing import ArrayLike
 
+from ..codegen.c_text import name_from_stem, name_problem, suggest_name
 from ..codegen.generate import CCode, generate_c
-from ..errors import UnsupportedError
+from ..errors import OptionError, UnsupportedError
 from .assembly import build_observer
 from .schema import load_model
 
@@ -42,7 +43,10 @@ def generate_c_from_model(path: str | Path, *, dt: float, eps: float | None = No
         (``thetahat codegen --data LOG``), as the estimate does.
     real : {"double", "float"}
     name : str, optional
-        File stem and C prefix; default the model file's stem.
+        File stem and C prefix (a C identifier the generated code can use:
+        :func:`~thetahat.codegen.c_text.check_c_name`); default the model file's stem made
+        one (:func:`~thetahat.codegen.c_text.name_from_stem`: ``two-mass.toml`` gives
+        ``two_mass``).
     nan_policy : {"raise", "skip"}
         A NaN output sample is refused, or predicted over.
     hold : {"zoh", "foh"}
@@ -59,6 +63,9 @@ def generate_c_from_model(path: str | Path, *, dt: float, eps: float | None = No
     ModelFileError
         The file cannot be read or is invalid, or it says ``Gamma = "auto"`` and no ``Gamma``
         is given.
+    OptionError
+        ``name`` (or the one made from the file's name) cannot name generated C: the message
+        says why and names one that can.
     UnsupportedError
         A part of the estimator has no C form, or the file's ``[estimator] method`` names
         another method than ``"paper"`` (the guarded and MAP estimators have no C form; the
@@ -81,9 +88,16 @@ def generate_c_from_model(path: str | Path, *, dt: float, eps: float | None = No
             f"{path}: [estimator] method = {spec.estimator.method!r} has no C form; codegen "
             "generates the paper's estimator only (method = \"paper\"). Set method = "
             "\"paper\" in a copy of the file to generate the observer alone.")
+    if name is None:
+        name = name_from_stem(Path(path).stem)
+        problem = name_problem(name)
+        if problem is not None:
+            raise OptionError(f"{path}: no C name was given and the one made from the file's "
+                              f"name, {name!r}, cannot be used: {problem}; pass one with "
+                              f"--name (name= in Python), e.g. {suggest_name(name)!r}.")
     digest = hashlib.sha256(Path(path).read_bytes()).hexdigest()
     observer = build_observer(spec, eps=eps, Gamma=Gamma, nan_policy=nan_policy)
-    return generate_c(observer.with_run_options(hold=hold), dt=dt, name=name or Path(path).stem,
+    return generate_c(observer.with_run_options(hold=hold), dt=dt, name=name,
                       real=real,
                       theta_hat0=spec.estimator.theta_hat0, x_hat0=spec.estimator.x_hat0,
                       eps=spec.estimator.eps if eps is None else eps, model_sha256=digest,

@@ -69,7 +69,8 @@ from ...errors import DimensionError, MissingExtraError, UnsupportedError
 from ..drive import COMPILE_MIN_SAMPLES, Backend
 from ..kernels.kernel_args import LawArrays, PlanArrays, SecondArrays, WorkArrays
 from ..kernels.kernel_cache import load_module
-from ..protocol import EstimateResult
+from ..protocol import EstimateResult, check_step_length
+from ..records import check_magnitude
 from ..status import Status
 from .formulas import DIVERGENCE_BOUND
 from .kernel_data import (KernelParts, kernel_arrays, kernel_parts, kernel_work, phi_table,
@@ -229,15 +230,19 @@ class CompiledObserver:
         UpdateLawError
             θ* invalid where l > 0 and ``on_invalid='raise'``.
         """
-        if not abs(positive_scalar("dt", dt) - self.dt) <= DT_RTOL * self.dt:
+        if not abs(check_step_length(dt) - self.dt) <= DT_RTOL * self.dt:
             raise DimensionError(f"the compiled observer steps dt = {self.dt!r}; got dt = "
                                  f"{dt!r}. Compile again with compile_observer(observer, "
                                  "dt=...), or use the observer's own step.")
         obs = self.observer
         lay = obs.layout
+        if not (type(state) is np.ndarray and state.shape == (lay.size,)):
+            state = obs.check_state(state)          # the protocol's check and message
         s = _as_input("state", state, lay.size)
         u_ = _as_input("u", np.empty(0) if u is None else u, lay.m)
         y_ = _as_input("y", y, lay.r)
+        check_magnitude("u", u_)
+        check_magnitude("y", y_)
         present = bool(np.isfinite(y_).all())
         if not present:
             obs.check_samples(u, y)              # raises under nan_policy="raise"

@@ -277,14 +277,22 @@ def resolve_noise_std(noise_std: ArrayLike | None, Y: FloatArray) -> FloatArray:
     r = Y.shape[1]
     if noise_std is None:
         if Y.shape[0] < MIN_SAMPLES:
-            raise DimensionError(f"noise_std cannot be estimated from {Y.shape[0]} samples "
-                                 f"(need {MIN_SAMPLES}); pass noise_std.")
+            raise DimensionError(f"the output noise level σ cannot be estimated from "
+                                 f"{Y.shape[0]} samples (it needs {MIN_SAMPLES}): give it "
+                                 f"(noise_std=σ in Python; thetahat estimate --noise-std σ), "
+                                 f"or use a record of at least {MIN_SAMPLES} samples.")
         sigma = estimate_noise_std(Y)
     else:
-        sigma = np.broadcast_to(np.asarray(noise_std, dtype=np.float64), (r,)).copy()
+        try:
+            sigma = np.broadcast_to(np.asarray(noise_std, dtype=np.float64), (r,)).copy()
+        except (TypeError, ValueError) as exc:
+            raise DimensionError(f"noise_std (--noise-std) must be one number, or one per "
+                                 f"output ({r}); got "
+                                 f"{noise_std!r}.") from exc
     if not np.all(np.isfinite(sigma)) or np.any(sigma <= 0):
         raise DimensionError(f"the noise level must be finite and > 0; got σ = {sigma} (noise-"
-                             "free data: pass a small noise_std, e.g. 1e-6 of the signal).")
+                             "free data: give a small one, e.g. 1e-6 of the signal: "
+                             "noise_std= in Python, --noise-std on the command line).")
     return sigma
 
 

@@ -30,12 +30,14 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from ...model.system import PerturbedLinearSystem
-from ..protocol import Diagnostics, EstimateResult, missing_samples, stream_sample
+from ..protocol import (Diagnostics, EstimateResult, check_state, missing_samples,
+                        stream_sample)
 from ..records import check_record
 from ..status import Status
 from .common import (RunStop, joint_prior, model_phi_hat, resolve_noise_std, stopped_result)
@@ -223,8 +225,18 @@ class JointEKF:
         return EKFState(x_hat=s[:n], theta_hat=s[n:], P=P, noise_std=sigma,
                         y_first=np.zeros((0, self.system.r)))
 
+    def _check_state(self, state: Any) -> EKFState:
+        """``state`` if it is an :class:`EKFState` of this model (:func:`check_state`)."""
+        n, m, r, p = self.system.n, self.system.m, self.system.r, self.system.p
+        return check_state("JointEKF", state, EKFState,
+                           {"x_hat": (n,), "theta_hat": (p,), "P": (n + p, n + p),
+                            "u_prev": (m,), "noise_std": (r,)})
+
     def step(self, state: EKFState, u: ArrayLike | None, y: ArrayLike, dt: float) -> EKFState:
         """Process the samples of one instant: predict from the previous one, then update.
+
+        The state is a value: stepping one state twice gives the same next state twice (no
+        stream is shared between states), and any JointEKF of the same model may step it.
 
         Parameters
         ----------
@@ -247,13 +259,18 @@ class JointEKF:
 
         Raises
         ------
+        StateError
+            Not an :class:`EKFState` of this model.
         DimensionError
             Wrong shapes or dt ≤ 0.
         NonFiniteError
             NaN or inf in u, inf in y, or the filter diverged.
+        InputLimitError
+            u, y or dt of a magnitude float64 arithmetic cannot take (rescale the unit).
         """
         sys_ = self.system
         n, r = sys_.n, sys_.r
+        state = self._check_state(state)
         u_, y_, h = stream_sample(sys_, u, y, dt)
         s = np.concatenate([state.x_hat, state.theta_hat])
         P = np.array(state.P, dtype=np.float64, order="C")
@@ -307,7 +324,7 @@ class JointEKF:
         sys_ = self.system
         n, p = sys_.n, sys_.p
         t_, U, Y = check_record(t, u, y, m=sys_.m, r=sys_.r)
-        st = self.init() if state0 is None else state0
+        st = self.init() if state0 is None else self._check_state(state0)
         sigma = (st.noise_std if st.noise_std is not None
                  else resolve_noise_std(self.noise_std, Y))
         s = np.concatenate([st.x_hat, st.theta_hat])

@@ -40,9 +40,9 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from ...errors import (ArgumentTypeError, DimensionError, NonFiniteError, OptionError,
-                      ThetahatError, ThetahatWarning)
+                      StateError, ThetahatError, ThetahatWarning)
 from ...model.system import PerturbedLinearSystem
-from ..protocol import Diagnostics, EstimateResult, missing_samples
+from ..protocol import Diagnostics, EstimateResult, check_state, missing_samples, stream_sample
 from ..records import check_record
 from ..status import Status
 from .common import (RunStop, joint_prior, model_phi_hat, resolve_noise_std, sample_interval,
@@ -171,6 +171,8 @@ class GuardedState:
         The guard clipped stage 2 / reset it from stage 1 there.
     fits, fits_failed : int
         Fits back so far / ignored (see :meth:`GuardedEstimator.stream_diagnostics`).
+    k : int
+        Samples stepped (a state whose stream has moved on is refused).
     """
 
     stage1: Any
@@ -186,6 +188,7 @@ class GuardedState:
     reset: bool = False
     fits: int = 0
     fits_failed: int = 0
+    k: int = 0
 
     def __repr__(self) -> str:
         return (f"GuardedState(theta_hat={self.theta_hat}, clipped={self.clipped}, "
@@ -380,7 +383,7 @@ class GuardedEstimator:
         """
         sys_ = self.model
         t_, U, Y = check_record(t, u, y, m=sys_.m, r=sys_.r)
-        st0 = self.init() if state0 is None else state0
+        st0 = self.init() if state0 is None else self._check_state(state0)
         if st0.stream is not None:
             raise OptionError("GuardedEstimator.run starts an experiment from init(); this "
                               "state0 has been stepped: continue its stream with step.")
@@ -416,15 +419,22 @@ class GuardedEstimator:
         """
         sys_ = self.model
         n, m, r, p = sys_.n, sys_.m, sys_.r, sys_.p
+        state = self._check_state(state)
         # own, writable copies (a read-only view would need its own compiled specialisation)
-        u_ = np.zeros(0) if u is None else np.array(u, dtype=np.float64).reshape(m)
-        y_ = np.array(y, dtype=np.float64).reshape(r)
-        h = float(dt)
-        if not h > 0 or not np.isfinite(h):
-            raise DimensionError(f"dt must be finite and > 0; got {dt!r}.")
-        if not np.all(np.isfinite(u_)):
-            raise NonFiniteError("u contains NaN or inf; clean the input sample.")
-        sh = state.stream or self._start_stream(state)
+        u_, y_, h = stream_sample(sys_, u, y, dt)
+        sh = state.stream
+        if sh is None:
+            sh = self._start_stream(state)
+        elif sh.owner is not self:
+            raise StateError("GuardedEstimator.step: this state's stream was started by "
+                             "another GuardedEstimator (its log, guard and fits are that "
+                             "estimator's); step it with that one, or start a stream of this "
+                             "one from init().")
+        elif sh.k != state.k:
+            raise StateError(f"GuardedEstimator.step: this state is not the latest of its "
+                             f"stream (it has {state.k} samples, its stream {sh.k}: it was "
+                             f"stepped already); step each state once, in order, from "
+                             f"init().")
         k = sh.k
         est1 = self.stage1.estimate(state.stage1, u_, y_)
         thG = np.asarray(est1.theta_hat, dtype=np.float64).reshape(1, p)
@@ -459,7 +469,7 @@ class GuardedEstimator:
                             theta_stage1=thG[0].copy(), theta_stage2=o["TH2"][k0].copy(),
                             band=o["BAND"][k0].copy(), clipped=bool(clip[k0]),
                             reset=bool(rst[k0]), fits=len(sh.fits),
-                            fits_failed=len(sh.failures))
+                            fits_failed=len(sh.failures), k=k + 1)
 
     def stream_diagnostics(self, state: GuardedState) -> StreamDiagnostics:
         """The fits of the stream that ``state`` belongs to (from :meth:`step`).
@@ -484,11 +494,21 @@ class GuardedEstimator:
         prior, the fit worker started when fits run)."""
         sched = self.fit_schedule
         s0, P0 = self._prior(state.x_hat0, state.theta_hat0)
-        return GuardedStream.start(self.model, s0, P0, q_x=self.q_x, noise_std=self.noise_std,
-                                   schedule=sched,
-                                   prior0=(sched.initial_prior(state.x_hat0, state.theta_hat0)
-                                           if sched else None),
-                                   executor=self.fit_executor)
+        stream = GuardedStream.start(self.model, s0, P0, q_x=self.q_x,
+                                     noise_std=self.noise_std, schedule=sched,
+                                     prior0=(sched.initial_prior(state.x_hat0,
+                                                                 state.theta_hat0)
+                                             if sched else None),
+                                     executor=self.fit_executor)
+        stream.owner = self
+        return stream
+
+    def _check_state(self, state: Any) -> GuardedState:
+        """``state`` if it is a :class:`GuardedState` of this model (:func:`check_state`)."""
+        n, p = self.model.n, self.model.p
+        return check_state("GuardedEstimator", state, GuardedState,
+                           {"x_hat0": (n,), "theta_hat0": (p,), "theta_hat": (p,),
+                            "x_hat": (n,)})
 
     def __repr__(self) -> str:
         return (f"GuardedEstimator(stage1={type(self.stage1).__name__}, n={self.model.n}, "

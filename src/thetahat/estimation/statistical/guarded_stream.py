@@ -100,6 +100,7 @@ class GuardedStream:
                  prior0: tuple[FloatArray, FloatArray] | None) -> None:
         sys_ = system
         n = sys_.n
+        self.owner: Any = None              # the estimator that started the stream
         self.k = 0
         self.s, self.P0 = s0, P0
         self.P = self.P0.copy()

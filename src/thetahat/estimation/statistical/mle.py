@@ -19,13 +19,15 @@ from __future__ import annotations
 import bisect
 import math
 from dataclasses import dataclass, replace
+from typing import Any
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from ...errors import DimensionError, NonFiniteError, OptionError
+from ...errors import NonFiniteError, OptionError, StateError
 from ...model.system import PerturbedLinearSystem
-from ..protocol import Diagnostics, EstimateResult, missing_samples, stream_sample
+from ..protocol import (Diagnostics, EstimateResult, check_state, missing_samples,
+                        stream_sample)
 from ..records import check_record
 from ..status import Status
 from .common import (RunStop, model_phi_hat, sample_interval, start_values, stopped_result,
@@ -74,7 +76,8 @@ class MapDiagnostics(Diagnostics):
 class _MapLog:
     """The samples of one MAP stream (arrays that double when full; shared by its states)."""
 
-    def __init__(self, m: int, r: int) -> None:
+    def __init__(self, m: int, r: int, owner: Any) -> None:
+        self.owner = owner                  # the estimator that started the stream
         self.T: FloatArray = np.empty(256)
         self.U: FloatArray = np.empty((256, m))
         self.Y: FloatArray = np.empty((256, r))
@@ -243,6 +246,14 @@ class MapEstimator:
         return MapState(x_hat0=x0, theta_hat0=th0, x_hat=x0, theta_hat=th0,
                         theta_sd=theta_prior_sd(self.system))
 
+    def _check_state(self, state: Any) -> MapState:
+        """``state`` if it is a :class:`MapState` of this model (:func:`check_state`)."""
+        n, r, p = self.system.n, self.system.r, self.system.p
+        return check_state("MapEstimator", state, MapState,
+                           {"x_hat0": (n,), "theta_hat0": (p,), "x_hat": (n,),
+                            "theta_hat": (p,), "theta_sd": (p,), "P": (n + p, n + p),
+                            "R": (r, r), "Q_x": (n, n)})
+
     def step(self, state: MapState, u: ArrayLike | None, y: ArrayLike, dt: float) -> MapState:
         """Append the samples of one instant and run the fits whose window ends here.
 
@@ -275,18 +286,30 @@ class MapEstimator:
 
         Raises
         ------
+        StateError
+            Not a :class:`MapState` of this model; a state of another estimator's stream; a
+            state stepped already (not the latest of its stream).
         DimensionError
             Wrong shapes or dt ≤ 0.
         NonFiniteError
             NaN or inf in u, or inf in y; the EKF between fits diverged.
+        InputLimitError
+            u, y or dt of a magnitude float64 arithmetic cannot take (rescale the unit).
         """
         sys_ = self.system
         n, m, r, p = sys_.n, sys_.m, sys_.r, sys_.p
+        state = self._check_state(state)
         u_, y_, h = stream_sample(sys_, u, y, dt)
-        log = _MapLog(m, r) if state.log is None else state.log
+        log = _MapLog(m, r, self) if state.log is None else state.log
+        if log.owner is not self:
+            raise StateError("MapEstimator.step: this state's stream was started by another "
+                             "MapEstimator (its log and fits are that estimator's); step it "
+                             "with that one, or start a stream of this one from init().")
         if log.size != state.k:
-            raise DimensionError("MapEstimator.step: this state is not the latest of its "
-                                 "stream (step each state once, in order).")
+            raise StateError(f"MapEstimator.step: this state is not the latest of its stream "
+                             f"(it has {state.k} samples, its stream {log.size}: it was "
+                             f"stepped already); step each state once, in order, from "
+                             f"init().")
         elapsed = 0.0 if state.k == 0 else state.elapsed + state.dt_prev
         ut, u_hist = smooth_input(u_[None], state.u_history)
         u_ = ut[0]
@@ -371,7 +394,7 @@ class MapEstimator:
         sys_ = self.system
         t_, U_raw, Y = check_record(t, u, y, m=sys_.m, r=sys_.r)
         U = np.ascontiguousarray(smooth_input(U_raw)[0])   # stage 2's ũ (the stream's: step)
-        st0 = self.init() if state0 is None else state0
+        st0 = self.init() if state0 is None else self._check_state(state0)
         if st0.k:
             raise OptionError("MapEstimator.run starts an experiment from init(); this state0 "
                               "has been stepped: continue its stream with step.")

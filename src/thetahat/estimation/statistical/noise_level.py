@@ -116,9 +116,10 @@ def estimate_noise_std(y: Any) -> NDArray[np.float64]:
     if Y.ndim == 1:
         Y = Y[:, None]
     if Y.ndim != 2 or Y.shape[0] < MIN_SAMPLES:
-        raise DimensionError(f"estimate_noise_std needs y of shape (N, r) with N >= "
-                             f"{MIN_SAMPLES}; got {np.shape(y)}. Pass noise_std explicitly "
-                             "for shorter records.")
+        raise DimensionError(f"the output noise level σ is estimated from y of shape (N, r) "
+                             f"with N >= {MIN_SAMPLES}; got {np.shape(y)}: give σ (noise_std=σ "
+                             f"in Python; thetahat estimate --noise-std σ), or use a record of "
+                             f"at least {MIN_SAMPLES} samples.")
     out = np.empty(Y.shape[1])
     for j in range(Y.shape[1]):
         sigma, M = _sigma_of_order(Y[:, j], 2)
