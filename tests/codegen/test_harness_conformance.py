@@ -181,7 +181,9 @@ CASES = [
 
 
 def outcome_cli(model: Path, data: Path, out: Path) -> tuple[int, np.ndarray | None]:
-    rc = main(["estimate", str(model), str(data), "-o", str(out), "--no-progress"])
+    # the harness is the paper's observer: the CLI runs the same method (its default is guarded)
+    rc = main(["estimate", str(model), str(data), "--method", "paper", "-o", str(out),
+               "--no-progress"])
     assert rc in (0, 2), f"thetahat estimate exited {rc}"
     return rc, (np.loadtxt(out, delimiter=",", skiprows=1, ndmin=2) if rc == 0 else None)
 
