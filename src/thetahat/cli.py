@@ -4,6 +4,7 @@ Subcommands::
 
     thetahat demo lugre [--out out] [--eps 1] [--seed 0] [--show]
     thetahat demo emps [--out out]
+    thetahat demo silverbox [--out out]
     thetahat sweep [MODEL] [--eps 1 0.7 0.5 0.3 0.2 0.1] [--seeds 5] [--t-end T] [--out out]
                    [--jobs N] [--scheduler tcp://HOST:PORT]
     thetahat tune [MODEL] [--eps 1 0.7 0.5 0.3] [--gamma 1 3 10 30] [--seeds 1000 1001]
@@ -11,7 +12,7 @@ Subcommands::
     thetahat analyze MODEL
     thetahat estimate MODEL DATA.csv [-o estimates.csv] [--hold zoh|foh] [--nan-policy raise|skip]
                       [--no-progress | --quiet] [--method M] [--plot fig.png]
-                      [--noise-std SIGMA]
+                      [--noise-std SIGMA] [--samples NAME|START:STOP|all]
     thetahat estimate MODEL logs/ [-o results.csv|.parquet] [--scheduler tcp://HOST:PORT]
                       [--method M] [--nan-policy raise|skip]
     thetahat codegen MODEL --dt 1e-3 [--eps 1] [--gamma G... | --data LOG]
@@ -103,6 +104,9 @@ def _demo(args: argparse.Namespace) -> int:
     if args.example == "emps":
         from .models.emps_report import report as emps_report
         emps_report(out=args.out)
+    elif args.example == "silverbox":
+        from .models.silverbox_report import report as silverbox_report
+        silverbox_report(out=args.out)
     else:
         from .models.lugre_report import report
         report(out=args.out, eps=args.eps, seed=args.seed, show=args.show)
@@ -242,8 +246,9 @@ def _estimate_one(args: argparse.Namespace, stages: Stages
     spec = load_model(args.model)
     stages.stage("read")
     data = read_data(args.data, spec.layout, nan_policy=args.nan_policy,
-                     delimiter=_delimiter(args.delimiter))
-    stages.note(f"{data.t.size:,} rows")
+                     delimiter=_delimiter(args.delimiter), samples=args.samples)
+    stages.note(f"{data.t.size:,} rows" + ("" if data.samples is None else
+                                          f" (samples [{data.samples[0]}, {data.samples[1]}))"))
     stages.stage("estimate", total=data.t.size)
     with warnings.catch_warnings(record=True) as caught:       # shown in the summary
         warnings.simplefilter("always")
@@ -272,6 +277,9 @@ def _estimate_fleet(args: argparse.Namespace) -> int:
     if args.plot:
         raise OptionError("--plot draws one record; it is not available for a fleet (drop "
                           "--plot, or estimate one file).")
+    if args.samples is not None:
+        raise OptionError("--samples chooses samples of one record; for a fleet, give the "
+                          "model file's [data] samples (it applies to every record).")
     check_output(output, args.model, fleet_files(args.data), args.data)   # before any work
     result = estimate_many(args.model, args.data, scheduler=args.scheduler,
                            chunk_size=args.chunk_size, hold=args.hold, method=args.method,
@@ -327,8 +335,9 @@ def _add_demo(sub: _Subparsers) -> None:
                           description="Run an example: structure, design, estimation, the "
                                       "figure (out/lugre.png), a summary (out/lugre.json) and "
                                       "the data (out/lugre_data.csv: t,u,y).")
-    demo.add_argument("example", choices=["lugre", "emps"],
-                      help="the example to run (emps: the measured EMPS benchmark)")
+    demo.add_argument("example", choices=["lugre", "emps", "silverbox"],
+                      help="the example to run (emps: the measured EMPS benchmark; "
+                           "silverbox: the measured Silverbox benchmark)")
     demo.add_argument("--out", default="out", help="output folder (default: out)")
     demo.add_argument("--eps", type=float, default=1.0, help="ε of the first observer "
                                                              "(default: 1)")
@@ -464,6 +473,11 @@ def _add_estimate(sub: _Subparsers) -> None:
                           help="empty or NaN output cells (dropouts): refuse the file (raise, "
                                "default) or predict over them without output correction "
                                "(skip)")
+    estimate.add_argument("--samples", metavar="NAME|START:STOP|all", default=None,
+                          help="the samples to estimate from: a segment of the model file's "
+                               "[data.segments] by name, START:STOP (0-based, STOP excluded; "
+                               "either may be left out) or all (default: the file's [data] "
+                               "samples, else all); one record only")
     estimate.add_argument("--delimiter", choices=[",", ";", "tab"], default=None,
                           help="the CSV column separator (default: detected from the header; "
                                "a European Excel export uses ';' and a decimal comma)")

@@ -27,7 +27,7 @@ from ..errors import (ArgumentTypeError, DimensionError, MissingExtraError, Mode
 from ..estimation.protocol import EstimateResult
 from ..estimation.records import check_nan_policy
 from ..safe_io import atomic_path, check_writable, open_input
-from .mapping import RecordLayout, Signal, select_columns
+from .mapping import RecordLayout, Signal, select_columns, select_samples
 from .record import DataRecord
 from .tables import EXCEL_SUFFIXES, Table, open_table
 
@@ -53,7 +53,8 @@ def _check_layout(layout: Any) -> RecordLayout:
 
 
 def read_data(path: str | Path, layout: RecordLayout, *, nan_policy: str = "raise",
-              delimiter: str | None = None) -> DataRecord:
+              delimiter: str | None = None,
+              samples: str | tuple[int, int] | None = None) -> DataRecord:
     """Read a record for a model's estimator: CSV, Parquet or MATLAB, by the suffix.
 
     Parameters
@@ -76,11 +77,17 @@ def read_data(path: str | Path, layout: RecordLayout, *, nan_policy: str = "rais
         them. t and the inputs must always be complete and finite.
     delimiter : {",", ";", "\\t"}, optional
         The CSV separator; default: detected from the header.
+    samples : str or (int, int), optional
+        Which samples to return (:func:`~thetahat.io.mapping.select_samples`): a segment of
+        the model file's ``[data.segments]`` by name, ``"START:STOP"``, (start, stop) or
+        ``"all"``; default: the ``[data]`` table's ``samples`` (else all). Every sample of
+        the file is checked either way.
 
     Returns
     -------
     DataRecord
-        t, u and y in the model's units (the mapping's scale and offset applied).
+        t, u and y in the model's units (the mapping's scale and offset applied), over the
+        samples chosen (t as in the file).
 
     Raises
     ------
@@ -88,7 +95,8 @@ def read_data(path: str | Path, layout: RecordLayout, *, nan_policy: str = "rais
         The file is not a regular file or cannot be read; a column is missing, given twice,
         used twice or of the wrong kind (the message names it and what it holds); a value is
         not a number, not finite, or over- or underflows once scaled (the message gives the
-        line, row or sample); t does not strictly increase; fewer than two samples.
+        line, row or sample); t does not strictly increase; fewer than two samples; samples
+        names no segment or goes beyond the record.
     InputLimitError
         The file, its declared rows or a compressed element exceeds :mod:`thetahat.limits`.
     ResourceLimitError
@@ -130,7 +138,10 @@ def read_data(path: str | Path, layout: RecordLayout, *, nan_policy: str = "rais
                                  listing=table.listing())
         used = [s for s in signals if s is not None]
         raws = table.read([s.column for s in used])
-        return _record(table, layout, signals, raws, nan_policy)   # messages may read lines
+        record = _record(table, layout, signals, raws, nan_policy)   # messages read lines
+    start, stop = select_samples(layout.data, record.t.size, samples,
+                                 where=f"data file {path}")
+    return record.segment(start, stop)
 
 
 def _record(table: Table, layout: RecordLayout, signals: list[Signal | None],

@@ -16,6 +16,20 @@ one-element list. ``t`` may instead be ``{ rate = 1000 }`` (Hz, optional ``start
 default 0) for records without a time vector: t_k = start + k / rate. A signal that
 ``[data]`` does not name keeps the default naming of :func:`column_candidates`.
 
+Which samples to estimate from: engineers hold a test segment back. ``[data.segments]`` names
+segments of the record, each ``[start, stop]`` (0-based sample indices, half-open: the samples
+start, start + 1, …, stop − 1), and ``samples`` says which ones the estimators read: a
+segment's name, a ``[start, stop]`` pair, or ``"all"`` (the default)::
+
+    [data]
+    samples = "train"
+    [data.segments]
+    train = [40650, 105712]
+    test = [105712, 127400]
+
+:func:`select_samples` resolves the choice (the command line's ``--samples`` overrides the
+file's); :func:`~thetahat.io.datafile.read_data` returns the chosen samples, t as in the file.
+
 The mapping is one step of the one reader (:func:`thetahat.io.datafile.read_data`), for CSV,
 Parquet and MATLAB files alike: :func:`select_columns` picks the columns (each used once, each
 present once), the file's cells are checked as for any record, and the scale and offset are
@@ -36,13 +50,15 @@ from numpy.typing import NDArray
 
 from ..errors import ArgumentTypeError, ModelFileError
 
-__all__ = ["DataMapping", "RecordLayout", "Signal", "column_candidates", "parse_data_table",
-           "select_columns"]
+__all__ = ["ALL_SAMPLES", "DataMapping", "RecordLayout", "Signal", "column_candidates",
+           "parse_data_table", "select_columns", "select_samples"]
 
 FloatArray = NDArray[np.float64]
 _SIGNAL_KEYS = ("column", "scale", "offset")
 _RATE_KEYS = ("rate", "start")
-_DATA_KEYS = ("t", "u", "y")
+_DATA_KEYS = ("t", "u", "y", "samples", "segments")
+#: The choice of ``samples`` that reads every sample of the record (the default).
+ALL_SAMPLES = "all"
 
 
 @dataclass(frozen=True, slots=True)
@@ -98,6 +114,11 @@ class DataMapping:
         t of the first sample when ``rate`` is given (s).
     u, y : tuple of (Signal or None)
         One entry per input (m) and per output (r); None keeps the default column names.
+    segments : tuple of (str, int, int)
+        The named segments ``(name, start, stop)`` of ``[data.segments]``, in the file's
+        order (0-based, half-open).
+    samples : str or (int, int)
+        The samples the estimators read: a segment's name, (start, stop), or "all".
     """
 
     t: Signal | None
@@ -105,6 +126,32 @@ class DataMapping:
     start: float
     u: tuple[Signal | None, ...]
     y: tuple[Signal | None, ...]
+    segments: tuple[tuple[str, int, int], ...] = ()
+    samples: str | tuple[int, int] = ALL_SAMPLES
+
+    def segment(self, name: str) -> tuple[int, int]:
+        """(start, stop) of a named segment.
+
+        Parameters
+        ----------
+        name : str
+
+        Returns
+        -------
+        (int, int)
+
+        Raises
+        ------
+        ModelFileError
+            No segment of that name (the message lists them).
+        """
+        for label, start, stop in self.segments:
+            if label == name:
+                return start, stop
+        known = [label for label, _, _ in self.segments]
+        raise ModelFileError(f"no segment {name!r} in the model file's [data.segments]; it "
+                             f"names {known or 'none'} (or give samples as START:STOP, or "
+                             f"{ALL_SAMPLES!r}).")
 
 
 def _number(value: Any, where: str, fail: Callable[[str], ModelFileError], *,
@@ -197,9 +244,122 @@ def parse_data_table(table: Any, input_names: Sequence[str], output_names: Seque
         start = _number(t_value.get("start", 0.0), "t start (s)", fail)
     elif t_value is not None:
         t_signal = _signal(t_value, "t", fail)
+    segments = _segments(table.get("segments", {}), fail)
+    samples = _samples(table.get("samples", ALL_SAMPLES), "samples", fail)
+    if isinstance(samples, str) and samples != ALL_SAMPLES \
+            and samples not in [name for name, _, _ in segments]:
+        raise fail(f"samples = {samples!r} names no segment of [data.segments] "
+                   f"({[name for name, _, _ in segments] or 'none given'}); give one of "
+                   f"them, [START, STOP] or {ALL_SAMPLES!r}.")
     return DataMapping(t=t_signal, rate=rate, start=start,
                        u=_signals(table.get("u"), input_names, "u", fail),
-                       y=_signals(table.get("y"), output_names, "y", fail))
+                       y=_signals(table.get("y"), output_names, "y", fail),
+                       segments=segments, samples=samples)
+
+
+def _pair(value: Any, where: str, fail: Callable[[str], ModelFileError]) -> tuple[int, int]:
+    """[start, stop]: two whole numbers, 0 <= start < stop."""
+    ok = (isinstance(value, (list, tuple)) and len(value) == 2
+          and all(isinstance(v, int) and not isinstance(v, bool) for v in value))
+    if not ok or not 0 <= value[0] < value[1]:
+        raise fail(f"{where}: expected [START, STOP], two whole numbers with 0 <= START < STOP "
+                   f"(0-based sample indices, STOP excluded); got {value!r}.")
+    return int(value[0]), int(value[1])
+
+
+def _segments(value: Any, fail: Callable[[str], ModelFileError]
+              ) -> tuple[tuple[str, int, int], ...]:
+    if not isinstance(value, Mapping):
+        raise fail(f"segments: expected a table of names to [START, STOP], e.g. "
+                   f"[data.segments] train = [0, 5000]; got {value!r}.")
+    out = []
+    for name, pair in value.items():
+        if name == ALL_SAMPLES:
+            raise fail(f"segments: {ALL_SAMPLES!r} means the whole record; give the segment "
+                       f"another name.")
+        out.append((str(name), *_pair(pair, f"segments.{name}", fail)))
+    return tuple(out)
+
+
+def _samples(value: Any, where: str, fail: Callable[[str], ModelFileError]
+             ) -> str | tuple[int, int]:
+    if isinstance(value, str) and value:
+        return value
+    if isinstance(value, (list, tuple)):
+        return _pair(value, where, fail)
+    raise fail(f"{where}: expected a segment's name, [START, STOP] or {ALL_SAMPLES!r}; got "
+               f"{value!r}.")
+
+
+def select_samples(mapping: DataMapping | None, N: int,
+                   choice: str | tuple[int, int] | None = None, *,
+                   where: str = "the record") -> tuple[int, int]:
+    """Which samples of a record of N samples to read: (start, stop), 0-based, half-open.
+
+    Parameters
+    ----------
+    mapping : DataMapping or None
+        The model file's ``[data]`` (its ``samples`` and ``segments``); None: no table.
+    N : int
+        The record's number of samples.
+    choice : str or (int, int), optional
+        Overrides the file's ``samples``: a segment's name, ``"START:STOP"`` (either may be
+        left out: ``"1000:"``), (start, stop), or "all". Default: the file's ``samples``.
+    where : str
+        Names the record in messages.
+
+    Returns
+    -------
+    (int, int)
+
+    Raises
+    ------
+    ModelFileError
+        An unknown segment, a malformed ``START:STOP``, or a segment beyond the record's N
+        samples or of fewer than two samples.
+
+    Examples
+    --------
+    >>> from thetahat.errors import ModelFileError
+    >>> from thetahat.io.mapping import parse_data_table, select_samples
+    >>> m = parse_data_table({"samples": "train", "segments": {"train": [10, 60]}},
+    ...                      ["u"], ["y"], ModelFileError)
+    >>> select_samples(m, 100), select_samples(m, 100, "all"), select_samples(m, 100, "50:")
+    ((10, 60), (0, 100), (50, 100))
+    >>> select_samples(m, 40)
+    Traceback (most recent call last):
+    ...
+    thetahat.errors.ModelFileError: the record: samples 'train' = [10, 60) go beyond its 40 samples; ...
+    """
+    if choice is None:
+        choice = ALL_SAMPLES if mapping is None else mapping.samples
+    label = repr(choice)
+    if isinstance(choice, str) and choice != ALL_SAMPLES and ":" in choice:
+        head, _, tail = choice.partition(":")
+        try:
+            start = int(head) if head.strip() else 0
+            stop = int(tail) if tail.strip() else N
+        except ValueError:
+            raise ModelFileError(f"samples {choice!r}: expected START:STOP, two whole numbers "
+                                 f"(0-based, STOP excluded; either may be left out), a "
+                                 f"segment's name or {ALL_SAMPLES!r}.") from None
+    elif isinstance(choice, str):
+        if choice == ALL_SAMPLES:
+            return 0, N
+        if mapping is None:
+            raise ModelFileError(f"samples {choice!r}: the model file has no [data.segments] "
+                                 f"to name; give START:STOP or {ALL_SAMPLES!r}.")
+        start, stop = mapping.segment(choice)
+    else:
+        start, stop = (int(v) for v in choice)
+    if not 0 <= start < stop or stop - start < 2:
+        raise ModelFileError(f"{where}: samples {label} = [{start}, {stop}): expected "
+                             f"0 <= START < STOP with at least two samples.")
+    if stop > N:
+        raise ModelFileError(f"{where}: samples {label} = [{start}, {stop}) go beyond its {N} "
+                             f"samples; check [data.segments] (0-based, STOP excluded) or "
+                             f"the record.")
+    return start, stop
 
 
 # ---------------------------------------------------------------------------------------------

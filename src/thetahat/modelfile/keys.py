@@ -65,6 +65,9 @@ TYPES: dict[str, str] = {
     "sines": "a list of numbers (every input), or one list per input",
     "signal": "a column name, {column = NAME, scale = 1.0, offset = 0.0}, or a list of them "
               "(one per input or output)",
+    "samples": "a segment's name, [START, STOP] (0-based sample indices, STOP excluded) or "
+               "\"all\"",
+    "segments": "a table of names to [START, STOP] (0-based sample indices, STOP excluded)",
 }
 
 
@@ -338,6 +341,13 @@ DATA = Table("data", (
         "The m inputs, in the order of [perturbation] u: one signal (m = 1) or a list of m."),
     Key("y", "signal", Derived("the outputs' names, or y1, y2, … (y when r = 1)"), '"qm"',
         "The r outputs, in the order of [perturbation] y: one signal (r = 1) or a list of r."),
+    Key("samples", "samples", "all", '"train"',
+        "The samples the estimators read (thetahat.io.mapping.select_samples): a segment of "
+        "[data.segments] by name, [START, STOP], or \"all\"; `thetahat estimate --samples` "
+        "overrides it. t keeps the file's values."),
+    Key("segments", "segments", {}, '{ train = [0, 5000], test = [5000, 8000] }',
+        "Named segments of the record, [START, STOP] each (0-based, STOP excluded): the "
+        "training and test splits (thetahat.studies.validation scores θ̂ on the test ones)."),
 ))
 
 #: One signal of ``[data]`` written as a table: ``value = scale · raw + offset``
