@@ -643,7 +643,8 @@ def estimate_many(model: str | Path, data: str | Path | Iterable[str | Path], *,
     >>> d = pathlib.Path(tempfile.mkdtemp())
     >>> _ = (d / "model.toml").write_text(EXAMPLE_MODEL)
     >>> t = np.arange(0.0, 2.0, 0.01)
-    >>> np.savetxt(d / "a.csv", np.c_[t, np.sin(t), 0 * t], delimiter=",", header="t,u,y",
+    >>> noise = 1e-3 * np.random.default_rng(0).standard_normal(t.size)
+    >>> np.savetxt(d / "a.csv", np.c_[t, np.sin(t), noise], delimiter=",", header="t,u,y",
     ...            comments="")
     >>> _ = (d / "b.csv").write_text("t,u,y\\n0,1,oops\\n")
     >>> res = estimate_many(d / "model.toml", [d / "a.csv", d / "b.csv"])

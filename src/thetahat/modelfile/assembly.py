@@ -539,7 +539,8 @@ def run_estimator(spec: ModelSpec, t: ArrayLike, u: ArrayLike | None, y: ArrayLi
     >>> from thetahat.modelfile import EXAMPLE_MODEL, loads_model, run_estimator
     >>> spec = loads_model(EXAMPLE_MODEL)
     >>> t = np.arange(0.0, 1.0, 0.01)
-    >>> res = run_estimator(spec, t, np.sin(t)[:, None], np.zeros((t.size, 1)))
+    >>> y = 1e-3 * np.random.default_rng(0).standard_normal((t.size, 1))   # noise only
+    >>> res = run_estimator(spec, t, np.sin(t)[:, None], y)
     >>> res.theta_hat.shape, res.names.states
     ((100, 1), ('x1', 'x2'))
     """

@@ -121,6 +121,16 @@ def chi2_limit(p: int) -> float:
     regularised lower incomplete gamma function (scipy.special; scipy.stats costs the
     command line a second of imports for this one number).
 
+    Parameters
+    ----------
+    p : int
+        The degrees of freedom (the number of parameters tested).
+
+    Returns
+    -------
+    float
+        The quantile: a score above it is evidence against θ̂ at level α.
+
     Examples
     --------
     >>> from thetahat.estimation.statistical.trust import chi2_limit
