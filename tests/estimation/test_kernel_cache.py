@@ -8,78 +8,94 @@ import sys
 import numpy as np
 import pytest
 
-from thetahat.estimation.kernels.modules import KernelSourceError, cached_njit
-from thetahat.estimation.statistical.plant_kernel import jit, model_kernel
+from thetahat.estimation.kernels.kernel_cache import load_module
+from thetahat.estimation.kernels.modules import KernelSourceError, ModuleText
+from thetahat.estimation.statistical.plant_kernel import (Propagation, model_kernel,
+                                                          printed_kernels)
 from thetahat.models import lugre
 
 numba = pytest.importorskip("numba")
 
-
-def _affine(a, b, table):
-    def inner(x):
-        return a * x + b
-
-    def outer(x, out):
-        for i in range(out.shape[0]):
-            out[i] = inner(x) + table[i]
-        return math_floor_free(out)
-
-    def math_floor_free(out):
-        s = 0.0
-        for v in out:
-            s += v
-        return s
-
-    return outer
+#: A module-level kernel and the names it leaves free (bound when printed).
+SCALE: float
+TABLE: np.ndarray
 
 
-def test_a_closure_with_numbers_arrays_and_kernels_equals_its_python():
-    """The printed module binds each free name to what the closure held (exact floats)."""
+def _inner(x):
+    return SCALE * x - 7
+
+
+def _outer(x, out):
+    for i in range(out.shape[0]):
+        out[i] = _inner(x) + TABLE[i]
+    s = 0.0
+    for v in out:
+        s += v
+    return s
+
+
+def test_a_bound_kernel_with_numbers_and_arrays_equals_its_python():
+    """The printed module binds each free name to what the caller provides (exact floats),
+    prints the functions it calls beside it, and numba compiles the same operations."""
     table = np.array([0.1, -2.5e-300, np.pi])
-    fn = _affine(1.0 / 3.0, -7, table)
+    mod, (name,) = printed_kernels("thetahat_doc_test", "Test.", [_outer],
+                                   {"SCALE": 1.0 / 3.0, "TABLE": table}, True)
     out_py, out_nb = np.empty(3), np.empty(3)
-    s_py = fn(0.7, out_py)
-    s_nb = cached_njit(fn)(0.7, out_nb)
+    expect = [1.0 / 3.0 * 0.7 - 7 + v for v in table]
+    s_nb = getattr(mod, name)(0.7, out_nb)
+    py = getattr(getattr(mod, name), "py_func")
+    s_py = py(0.7, out_py)
     np.testing.assert_array_equal(out_nb, out_py)       # same operations, no reassociation
+    np.testing.assert_array_equal(out_py, expect)
     assert s_nb == s_py
 
 
-def test_what_cannot_be_written_out_falls_back_to_memory():
-    lookup = {"k": 2.0}
+def _closure(k):
+    def times(x):
+        return k * x
+    return times
 
-    def uses_a_dict(x):
-        return x * 2.0 if lookup else x
 
+def test_closures_and_unknown_names_are_refused():
+    """Kernels are module-level functions: a closure (the mechanism that read code objects and
+    cells is gone) and a name that is neither provided nor global are refused."""
+    with pytest.raises(KernelSourceError, match="closure"):
+        ModuleText("Doc.").bound(_closure(2.0))
+    with pytest.raises(KernelSourceError, match="unknown name 'SCALE'"):
+        ModuleText("Doc.").bound(_inner)
     with pytest.raises(KernelSourceError, match="dict"):
-        cached_njit(uses_a_dict)
-    assert jit(lambda x: 2.0 * x, True)(3.0) == 6.0       # a lambda: compiled in memory
+        ModuleText("Doc.").bound(_inner, None, {"SCALE": {"k": 2.0}})
+    assert load_module(ModuleText("Doc.").source(), "thetahat_doc_test").__doc__ == "Doc."
 
 
 def test_stage2_propagation_matches_the_python_kernels():
     """LuGre's RK4 map and its Jacobians, compiled through the cache vs plain Python: the
     same arithmetic up to numba's contraction of a·b + c (1e-12 relative, margin 1e3 over
-    the 1e-15 seen)."""
+    the 1e-15 seen), for every hold."""
     sys_ = lugre.system()
     fast, slow = model_kernel(sys_, compiled=True), model_kernel(sys_, compiled=False)
     x, th = np.array([0.8, 2e-4]), np.array([0.28])
-    u0, u1 = np.array([1.0]), np.array([1.05])
-    outs = []
-    for k in (fast, slow):
-        Phi, Gam = np.empty((2, 2)), np.empty((2, 1))
-        xn = k.propagate(x, th, u0, u1, 1e-3, 2.0, True, Phi, Gam)
-        outs.append((xn, Phi, Gam))
-    for a, b in zip(*outs):
-        np.testing.assert_allclose(a, b, rtol=1e-12, atol=1e-300)
+    U = np.array([[0.9], [1.0], [1.05], [1.2]])
+    for hold in ("zoh", "foh", "bandlimited"):
+        outs = []
+        for k in (fast, slow):
+            pc, WT = Propagation(hold=hold).arrays()
+            Phi, Gam = np.empty((2, 2)), np.empty((2, 1))
+            xn = k.propagate(x, th, U, 1, 1e-3, pc, WT, True, Phi, Gam)
+            outs.append((xn, Phi, Gam))
+        for a, b in zip(*outs):
+            np.testing.assert_allclose(a, b, rtol=1e-12, atol=1e-300)
 
 
 SCRIPT = """
 import json, numpy as np
-from thetahat.estimation.statistical.plant_kernel import model_kernel
+from thetahat.estimation.statistical.plant_kernel import Propagation, model_kernel
 from thetahat.models import lugre
 k = model_kernel(lugre.system(), compiled=True)
 Phi, Gam = np.empty((2, 2)), np.empty((2, 1))
-k.propagate(np.array([0.8, 2e-4]), np.array([0.28]), np.array([1.0]), np.array([1.0]),
-            1e-3, 2.0, True, Phi, Gam)
+pc, WT = Propagation(hold="foh").arrays()
+k.propagate(np.array([0.8, 2e-4]), np.array([0.28]), np.array([[1.0], [1.0]]), 0, 1e-3, pc,
+            WT, True, Phi, Gam)
 st = k.propagate.stats
 print(json.dumps({"hits": sum(st.cache_hits.values()), "misses": sum(st.cache_misses.values())}))
 """

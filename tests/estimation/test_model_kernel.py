@@ -7,7 +7,8 @@ import numpy as np
 import pytest
 
 from thetahat.estimation.statistical.ekf import JointEKF
-from thetahat.estimation.statistical.plant_kernel import model_kernel, spectral_radius_bound
+from thetahat.estimation.statistical.plant_kernel import (Propagation, model_kernel,
+                                                          spectral_radius_bound)
 from thetahat.models import lugre
 
 #: Central differences with step 1e-6 (relative) of a smooth map: truncation ~1e-12 and
@@ -34,13 +35,14 @@ def test_f_is_the_system_with_y_equal_to_C_x(kern):
 @pytest.mark.parametrize("x", [[1.5, 1e-3], [-0.4, -5e-4], [0.003, 2e-4]])
 def test_rk4_map_jacobians_match_central_differences(kern, x):
     x = np.array(x)
-    th, u0, u1 = np.array([0.28]), np.array([0.2]), np.array([0.25])
+    th, U = np.array([0.28]), np.array([[0.2], [0.25]])
+    pc, WT = Propagation(hold="foh").arrays()
     Phi, Gam = np.empty((2, 2)), np.empty((2, 1))
-    kern.propagate(x, th, u0, u1, 1e-3, 2.0, True, Phi, Gam)
+    kern.propagate(x, th, U, 0, 1e-3, pc, WT, True, Phi, Gam)
     scratch = (np.empty((2, 2)), np.empty((2, 1)))
 
     def F(xx, tt):
-        return kern.propagate(np.array(xx), np.array(tt), u0, u1, 1e-3, 2.0, False, *scratch)
+        return kern.propagate(np.array(xx), np.array(tt), U, 0, 1e-3, pc, WT, False, *scratch)
 
     for j, h in enumerate(1e-6 * np.maximum(np.abs(x), [1e-3, 1e-6])):
         e = np.zeros(2)

@@ -14,9 +14,11 @@ string, and no function is rebuilt from another's code object.
   function a printed tree (the numba kernel of
   :mod:`~thetahat.estimation.observer.kernel_source`, stage 2's plant model of
   :mod:`~thetahat.estimation.statistical.plant_kernel`).
-* :func:`cached_njit`: a kernel written in numba's subset — a function or a closure over other
-  kernels, numbers and arrays — printed with its free names bound (:meth:`ModuleText.closure`),
-  compiled once per machine (numba's ``cache=True``).
+* :meth:`ModuleText.bound`: a module-level function written in numba's subset printed with
+  its free names bound — the functions it calls printed beside it, a kernel of another printed
+  module imported from there, numbers and arrays as exact literals, and the names the caller
+  provides (stage 2's kernels over one model's printed plant model, the projection onto Θ of
+  the observer's kernel); compiled once per machine (numba's ``cache=True``) when decorated.
 """
 
 from __future__ import annotations
@@ -39,7 +41,7 @@ from .kernel_cache import load_module, origin, register
 from .printer import Program
 from .subset import source_tree
 
-__all__ = ["KernelSourceError", "ModuleText", "cached_njit", "numpy_binding", "numpy_source"]
+__all__ = ["KernelSourceError", "ModuleText", "numpy_binding", "numpy_source"]
 
 #: Modules a kernel may use by name, with the import line that binds them.
 _MODULES = {id(math): ("math", "import math"), id(np): ("np", "import numpy as np")}
@@ -100,6 +102,7 @@ class ModuleText:
         self.constants: list[str] = []
         self.functions: list[str] = []
         self.names: dict[int, str] = {}
+        self.values: dict[tuple[str, int], tuple[Any, str]] = {}
 
     def import_line(self, line: str) -> None:
         """Add an import (once)."""
@@ -128,9 +131,18 @@ class ModuleText:
         head = [f"'''{self.doc}'''", *self.imports, *self.constants]
         return "\n".join(head) + "".join(f"\n\n\n{f}" for f in self.functions) + "\n"
 
-    # ------------------------------------------------------------------ closures
-    def value(self, ident: str, value: Any) -> str:
-        """The module-level name bound to ``value`` (emitting what it needs)."""
+    # ------------------------------------------------------------------ bound functions
+    def value(self, ident: str, value: Any, decorator: str | None = None,
+              provided: Mapping[str, Any] | None = None) -> str:
+        """The module-level name bound to ``value`` (emitting what it needs).
+
+        A module (``math``, ``np``) is imported; a function printed in another module
+        (registered, :func:`~thetahat.estimation.kernels.kernel_cache.origin`) is imported from
+        it; a thetahat function is printed (:meth:`bound`); a number or a numeric array
+        becomes a constant; a string is a name the module defines itself (used as it is).
+        """
+        if isinstance(value, str):
+            return value
         if id(value) in _MODULES:
             alias, line = _MODULES[id(value)]
             self.import_line(line)
@@ -141,7 +153,10 @@ class ModuleText:
             self.import_line(f"from {module} import {name}")
             return name
         if callable(value) and not isinstance(value, type):
-            return self.closure(value)
+            return self.bound(value, decorator, provided)
+        seen = self.values.get((ident, id(value)))
+        if seen is not None and seen[0] is value:
+            return seen[1]
         text = _literal(value)
         if text is None:
             raise KernelSourceError(f"{ident!r} holds a {type(value).__name__}")
@@ -149,46 +164,58 @@ class ModuleText:
             self.import_line("import numpy as np")
         name = f"{ident}_k{len(self.constants)}"
         self.constant(name, text)
+        self.values[(ident, id(value))] = (value, name)
         return name
 
-    def closure(self, fn: Any) -> str:
-        """Print ``fn`` (a function, closure or numba dispatcher) and every kernel it calls,
-        each free name bound to what it holds; returns its name in the module.
+    def bound(self, fn: Any, decorator: str | None = None,
+              provided: Mapping[str, Any] | None = None) -> str:
+        """Print the module-level function ``fn`` and every function it calls, each free name
+        bound to what it names; returns its name in the module.
+
+        A free name is looked up in ``provided`` first (what this module gives the function:
+        another printed module's kernel, an array, or a name the module defines), then in the
+        globals of the function's own module; each value is emitted by :meth:`value`. Every
+        function printed gets ``decorator`` (``"@numba.njit(...)"`` imports numba; None: plain
+        Python). The same function printed twice is one definition.
 
         Raises
         ------
         KernelSourceError
-            No source, a nested function, or a free name of another kind.
+            No source, a closure or a nested function, or a free name of another kind.
         """
         py = getattr(fn, "py_func", fn)
         if not isinstance(py, types.FunctionType):
             raise KernelSourceError(f"{fn!r} is not a Python function")
         if id(py) in self.names:
             return self.names[id(py)]
+        if py.__closure__:
+            raise KernelSourceError(f"{py.__name__} is a closure: kernels are module-level "
+                                    "functions whose free names are bound when printed")
         try:
             node = _bare(source_tree(py))
         except (OSError, TypeError, SyntaxError, ThetahatError) as exc:
             raise KernelSourceError(f"no source for {py.__name__}: {exc}") from exc
         name = f"{py.__name__}_f{len(self.names)}"
         self.names[id(py)] = name
-        code = py.__code__
-        local = set(code.co_varnames) | set(code.co_cellvars)
-        cells = dict(zip(code.co_freevars, (c.cell_contents for c in py.__closure__ or ())))
+        given = provided or {}
+        local = set(py.__code__.co_varnames) | set(py.__code__.co_cellvars)
         rename: dict[str, str] = {}
         for sub in ast.walk(node):
             if isinstance(sub, ast.FunctionDef | ast.Lambda) and sub is not node:
                 raise KernelSourceError(f"{py.__name__} defines a nested function")
             if not isinstance(sub, ast.Name) or sub.id in local or sub.id in rename:
                 continue
-            if sub.id in cells:
-                rename[sub.id] = self.value(sub.id, cells[sub.id])
+            if sub.id in given:
+                rename[sub.id] = self.value(sub.id, given[sub.id], decorator, provided)
             elif sub.id in py.__globals__:
-                rename[sub.id] = self.value(sub.id, py.__globals__[sub.id])
+                rename[sub.id] = self.value(sub.id, py.__globals__[sub.id], decorator,
+                                            provided)
             elif not hasattr(builtins, sub.id):
                 raise KernelSourceError(f"{py.__name__}: unknown name {sub.id!r}")
         printed = _renamed(node, rename, name)
-        self.function(printed, "@numba.njit(nogil=True, cache=True)")
-        self.import_line("import numba")
+        self.function(printed, decorator or "")
+        if decorator is not None and decorator.startswith("@numba."):
+            self.import_line("import numba")
         return name
 
 
@@ -223,51 +250,6 @@ def _renamed(node: ast.FunctionDef, rename: Mapping[str, str], name: str) -> ast
     assert isinstance(new, ast.FunctionDef)
     new.name = name
     return ast.fix_missing_locations(new)
-
-
-def cached_njit(fn: Callable[..., Any]) -> Any:
-    """``numba.njit(fn, nogil=True)``, compiled once per machine through a printed module.
-
-    Parameters
-    ----------
-    fn : callable
-        A kernel in numba's subset of Python: a function (or closure, or numba dispatcher)
-        whose free names are other such kernels, numbers, numeric arrays, ``math`` or ``np``.
-
-    Returns
-    -------
-    numba dispatcher
-        The function of the printed module (``cache=True``: later processes load its
-        machine code from disk).
-
-    Raises
-    ------
-    KernelSourceError
-        ``fn`` or a kernel it calls cannot be printed (no source, a free name of another
-        kind, a nested function).
-    MissingExtraError
-        numba is not installed (the extra ``speed``).
-
-    Examples
-    --------
-    >>> def scale(k):
-    ...     def times(x):
-    ...         return k * x
-    ...     return times
-    >>> cached_njit(scale(3.0))(2.0)
-    6.0
-    """
-    try:
-        import numba  # noqa: F401
-    except ImportError as exc:
-        raise MissingExtraError("compiled kernels need numba: pip install 'thetahat[speed]'"
-                                ) from exc
-    text = ModuleText("Printed by thetahat.estimation.kernels.modules: do not edit.")
-    entry = text.closure(fn)
-    mod = load_module(text.source(), "thetahat_stage2")
-    out = getattr(mod, entry)
-    register(out, mod.__name__, entry)
-    return out
 
 
 # ------------------------------------------------------------------------------ NumPy

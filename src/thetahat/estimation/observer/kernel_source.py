@@ -353,7 +353,8 @@ def kernel_source(pert: SymbolicPerturbation, theta_star: tuple[sp.Expr, ...] | 
                         ("BOUND_SQ", DIVERGENCE_BOUND ** 2), *status_constants().items(),
                         ("USER_M", M is not None)):
         text.constant(name, repr(value))
-    entry = text.closure(project_into) if ellipsoid else None   # its one definition
+    entry = (text.bound(project_into, "@numba.njit(nogil=True, cache=True)") if ellipsoid
+             else None)                                            # its one definition
     text.text(model_source(pert, theta_star, ts_args))
     if M is not None:
         text.text(_function("m_matrix", _MODEL_PARAMS + ", Mt", _model_inputs(pert),

@@ -7,40 +7,43 @@ the unknowns q (θ, or col(θ, x(0)) when x(0) is unknown) in the samples up to 
 
 and any unbiased estimator of θ from those data has covariance ≥ CRLB(t) = [I(t)⁻¹]_θθ (the
 θ block of the inverse, i.e. the inverse of the Schur complement when x(0) is unknown). The
-sensitivities solve the variational equations integrated with the model (eq. (1) with
-y = C x in g, from :mod:`~thetahat.estimation.statistical.plant_kernel`):
+trajectory and its sensitivities S_k = ∂x_k/∂q are those of the sampled-data map every
+estimator of stage 2 uses (:mod:`~thetahat.estimation.statistical.plant_kernel`: RK4 sub-steps,
+u between the samples as the hold reconstructs it), chained through the map's exact
+Jacobians,
 
-    Ṡ = F_x S + F_θ,  S(0) = 0;   Ṁ = F_x M,  M(0) = I   (S = ∂x/∂θ, M = ∂x/∂x(0)),
+    S_{k+1} = Φ_k S_k + [Γ_k  0],   S_0 = [0  I₀]   (I₀ the columns of x(0), when unknown),
 
-by ``scipy.integrate.solve_ivp`` (LSODA with the block-diagonal Jacobian), u interpolated
-linearly between its samples.
+with the sub-steps chosen so that the trajectory is accurate to a tenth of a standard error
+(:func:`~thetahat.estimation.statistical.plant_kernel.choose_substeps`): the bound is the
+information of the model the fits fit, under the same hold.
 
 What it may import: :mod:`thetahat.model`, the package's helpers, the record checks of
-:mod:`~thetahat.estimation.records`, and, in this room, only
-:mod:`~thetahat.estimation.statistical.plant_kernel`.
+:mod:`~thetahat.estimation.records`, and, in this room, :mod:`~thetahat.estimation.statistical.plant_kernel`
+and :mod:`~thetahat.estimation.statistical.input_hold`.
 """
 
 from __future__ import annotations
 
+import functools
+import math
 from dataclasses import dataclass
-from typing import Any, cast
+from typing import Any, Callable
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy.integrate import solve_ivp
 
 from ..._validate import as_vector
 from ...errors import DimensionError, SimulationError
 from ...model.system import PerturbedLinearSystem
 from ..records import check_record
-from .plant_kernel import jit, model_kernel
+from .input_hold import stage2_samples
+from .plant_kernel import ModelKernel, Propagation, choose_substeps, model_kernel, printed_kernels
 
-__all__ = ["CRLBResult", "crlb", "CRLB_RTOL", "SINGULAR_RTOL"]
+__all__ = ["CRLBResult", "crlb", "SINGULAR_RTOL", "sensitivities"]
 
 FloatArray = NDArray[np.float64]
 
-#: Relative tolerance of the sensitivity integration (the LuGre plant's own, rtol 1e-9).
-CRLB_RTOL = 1e-9
 #: An information matrix whose smallest eigenvalue is below this fraction of its largest is
 #: treated as singular (the bound is infinite there: the data do not yet identify q).
 SINGULAR_RTOL = 1e-12
@@ -95,70 +98,58 @@ class CRLBResult:
                 f"std[-1]={self.std[-1]}, x0_known={self.x0_known})")
 
 
-def _make_rhs(rhs_jac: Any, compiled: bool) -> Any:
-    def rhs(tt, z, t, U, slopes, theta, n, p, nq):
-        """col(ẋ, Ṡ[:, 0], …, Ṡ[:, nq−1]) with u linear between samples."""
-        i = np.searchsorted(t, tt, side="right") - 1
-        i = min(max(i, 0), t.shape[0] - 2)
-        u = U[i] + (tt - t[i]) * slopes[i]
-        f = np.empty(n)
-        Fx = np.empty((n, n))
-        Ft = np.empty((n, p))
-        rhs_jac(z[:n].copy(), u, theta, f, Fx, Ft)
-        out = np.empty(z.shape[0])
-        for a in range(n):      # element by element: numba's array-into-slice assignment
-            out[a] = f[a]       # compiles a string-formatting error path (≈ 2 s)
-        for q in range(nq):
-            col = z[n + q * n:n + (q + 1) * n]
-            for a in range(n):
-                acc = Ft[a, q] if q < p else 0.0
-                for b in range(n):
-                    acc += Fx[a, b] * col[b]
-                out[n + q * n + a] = acc
-        return out
-
-    return jit(rhs, compiled)
+# Names of the printed module (declared for the type checker; bound when printed).
+propagate: Callable[..., Any]
 
 
-def _integrate(system: PerturbedLinearSystem, t: FloatArray, U: FloatArray, theta: FloatArray,
-               x0: FloatArray, with_m: bool, rtol: float, atol: float,
-               compiled: bool | None) -> FloatArray:
-    """Z (N, n + n·nq): x and the columns of S = ∂x/∂q, q = θ or col(θ, x(0))."""
-    kern = model_kernel(system, compiled=compiled)
-    n, p = system.n, system.p
-    nq = p + (n if with_m else 0)
-    rhs = _make_rhs(kern.rhs_jac, kern.compiled) if kern not in _RHS else _RHS[kern]
-    _RHS[kern] = rhs
-    slopes = np.diff(U, axis=0) / np.diff(t)[:, None]
-    Fx, Ft, f = np.empty((n, n)), np.empty((n, p)), np.empty(n)
-    eye = np.eye(1 + nq)
-    Uc = np.ascontiguousarray(U)
+def sensitivities(x0: Any, th: Any, U: Any, tt: Any, pc: Any, WT: Any, S0: Any, X: Any,
+                  SENS: Any) -> int:
+    """The trajectory X (N, n) and S_k = ∂x_k/∂q into SENS (N, n, nq) from x(t_0) = x0 and
+    S_0 = S0 (n, nq; columns 0 … p − 1 for θ), by the model's ``propagate``; returns −1, or
+    the first sample that is not finite."""
+    n = x0.shape[0]
+    p = th.shape[0]
+    nq = S0.shape[1]
+    N = tt.shape[0]
+    x = x0.copy()
+    S = S0.copy()
+    Sn = np.empty((n, nq))
+    Phi = np.empty((n, n))
+    Gam = np.empty((n, p))
+    for k in range(N):
+        if k > 0:
+            x = propagate(x, th, U, k - 1, tt[k] - tt[k - 1], pc, WT, n > 0, Phi, Gam)
+            for i in range(n):
+                for j in range(nq):
+                    acc = Gam[i, j] if j < p else 0.0
+                    for a in range(n):
+                        acc += Phi[i, a] * S[a, j]
+                    Sn[i, j] = acc
+            for i in range(n):
+                for j in range(nq):
+                    S[i, j] = Sn[i, j]
+        for i in range(n):
+            if not math.isfinite(x[i]):
+                return k
+            X[k, i] = x[i]
+            for j in range(nq):
+                SENS[k, i, j] = S[i, j]
+    return -1
 
-    def jac(tt: float, z: FloatArray, *_: Any) -> FloatArray:
-        i = min(max(int(np.searchsorted(t, tt, side="right")) - 1, 0), t.shape[0] - 2)
-        kern.rhs_jac(z[:n].copy(), U[i] + (tt - t[i]) * slopes[i], theta, f, Fx, Ft)
-        # block diagonal, the second-derivative couplings left out: LSODA uses the Jacobian
-        # in its Newton iteration only, so the approximation costs iterations, not accuracy
-        return cast(FloatArray, np.kron(eye, Fx))      # float64 inputs: float64 result
 
-    S0 = np.zeros((nq, n))                      # row q = column q of S
-    if with_m:
-        S0[p:, :] = np.eye(n)
-    z0 = np.concatenate([x0, S0.ravel()])
-    sol = solve_ivp(rhs, (t[0], t[-1]), z0, method="LSODA", t_eval=t, jac=jac, rtol=rtol,
-                    atol=atol, args=(t, Uc, slopes, theta, n, p, nq))
-    if not sol.success or sol.y.shape[1] != t.shape[0]:
-        raise SimulationError(f"the sensitivity integration failed: {sol.message}. Check the "
-                              "input record and θ (the model may be unstable there).")
-    return sol.y.T
-
-
-_RHS: dict[Any, Any] = {}
+@functools.lru_cache(maxsize=16)
+def _kernel(model: ModelKernel) -> Callable[..., int]:
+    mod, (name,) = printed_kernels(
+        "thetahat_crlb", "Printed by thetahat.estimation.statistical.crlb: the sensitivities "
+        "of one model; do not edit (content-addressed).", [sensitivities],
+        {"propagate": model.propagate}, model.compiled)
+    fn: Callable[..., int] = getattr(mod, name)
+    return fn
 
 
 def crlb(system: PerturbedLinearSystem, t: Any, u: Any, *, theta: Any, noise_std: Any,
-         x0: Any = None, x0_known: bool = True, rtol: float = CRLB_RTOL,
-         atol: float = 1e-12, compiled: bool | None = None) -> CRLBResult:
+         x0: Any = None, x0_known: bool = True, hold: str = "foh",
+         substeps: int | None = None, compiled: bool | None = None) -> CRLBResult:
     """The Cramér–Rao lower bound of θ on an experiment, as a function of time.
 
     Parameters
@@ -168,7 +159,7 @@ def crlb(system: PerturbedLinearSystem, t: Any, u: Any, *, theta: Any, noise_std
     t : array_like, shape (N,)
         Sampling instants of the experiment.
     u : array_like, shape (N, m) or (N,)
-        The input record (linear between samples).
+        The input record.
     theta : array_like, shape (p,)
         The true θ at which the bound is evaluated.
     noise_std : float or array_like (r,)
@@ -177,10 +168,15 @@ def crlb(system: PerturbedLinearSystem, t: Any, u: Any, *, theta: Any, noise_std
         Initial state (default zeros).
     x0_known : bool
         If False, x(0) is estimated as well and the bound is the θ block of the joint one.
-    rtol, atol : float
-        Tolerances of the sensitivity integration.
+    hold : {"zoh", "foh", "bandlimited"}
+        u between the samples (:mod:`~thetahat.estimation.hold`; stage 2's ``"foh"``:
+        :func:`~thetahat.estimation.statistical.input_hold.stage2_samples`).
+    substeps : int, optional
+        The RK4 sub-steps' accuracy floor; default: chosen at θ from x0 so that the
+        trajectory is accurate to a tenth of a standard error at this σ
+        (:func:`~thetahat.estimation.statistical.plant_kernel.choose_substeps`).
     compiled : bool, optional
-        numba kernels for the right-hand side (default: when installed).
+        numba kernels (default: when installed).
 
     Returns
     -------
@@ -191,7 +187,7 @@ def crlb(system: PerturbedLinearSystem, t: Any, u: Any, *, theta: Any, noise_std
     DimensionError
         Wrong shapes, σ ≤ 0, or a non-symbolic perturbation.
     SimulationError
-        The integration failed.
+        The model's trajectory is not finite.
 
     Examples
     --------
@@ -212,10 +208,23 @@ def crlb(system: PerturbedLinearSystem, t: Any, u: Any, *, theta: Any, noise_std
     sigma = np.broadcast_to(np.asarray(noise_std, dtype=np.float64), (r,)).copy()
     if not np.all(np.isfinite(sigma)) or np.any(sigma <= 0):
         raise DimensionError(f"noise_std must be finite and > 0; got {sigma}.")
-    Z = _integrate(system, t_, U, th, x0_, not x0_known, rtol, atol, compiled)
+    kern = model_kernel(system, compiled=compiled)
+    Us = stage2_samples(U, hold)[0]
+    if substeps is None:
+        Y0 = np.full((t_.shape[0], r), np.nan)
+        substeps = choose_substeps(kern, t_, Us, Y0, th, x0_, sigma, hold=hold)
+    pc, WT = Propagation(hold=hold, substeps=substeps).arrays()
     nq = p + (0 if x0_known else n)
-    X = Z[:, :n]
-    S = Z[:, n:].reshape(-1, nq, n).transpose(0, 2, 1)
+    S0 = np.zeros((n, nq))
+    if not x0_known:
+        S0[:, p:] = np.eye(n)
+    N = t_.shape[0]
+    X, S = np.empty((N, n)), np.empty((N, n, nq))
+    bad = _kernel(kern)(x0_, th, Us, t_, pc, WT, S0, X, S)
+    if bad >= 0:
+        raise SimulationError(f"the model's trajectory is not finite from t[{bad}] = "
+                              f"{float(t_[bad]):.6g} on: check the input record and θ (the "
+                              "model may be unstable there).")
     C = np.asarray(system.C, dtype=np.float64)
     psi = np.einsum("rn,knq->krq", C, S)
     w = psi / sigma[None, :, None]

@@ -2,13 +2,18 @@
 
 :class:`JointEKF` runs the kernels of :mod:`~thetahat.estimation.statistical.ekf_kernels` —
 the sampled-data map of :mod:`~thetahat.estimation.statistical.plant_kernel` (RK4 sub-steps,
-first-order hold on u) with θ constant:
+u between the samples as the ``hold`` reconstructs it) with θ constant:
 
-    x_{k+1} = F(x_k, θ, ũ_k, ũ_{k+1}),   θ_{k+1} = θ_k,   y_k = C x_k + e_k,  e_k ~ N(0, R),
+    x_{k+1} = F_k(x_k, θ, u),   θ_{k+1} = θ_k,   y_k = C x_k + e_k,  e_k ~ N(0, R).
 
-with ũ the input samples of :func:`~thetahat.estimation.statistical.input_hold.smooth_input`
-(u_k where the input is not resolved by its sampling; where it is, corrected so that the linear
-hold carries u's exact mean over each interval to O(h⁴); causal, so ``step`` and ``run`` agree).
+The hold is ``"foh"`` unless told (:mod:`~thetahat.estimation.hold`): u linear between the
+samples ũ of :func:`~thetahat.estimation.statistical.input_hold.smooth_input` (u_k where the
+input is not resolved by its sampling; where it is, corrected so that the linear hold carries
+u's exact mean over each interval to O(h⁴); causal, so ``step`` and ``run`` agree);
+``"zoh"`` for an input held by a DAC; ``"bandlimited"`` for a band-limited input (``run``
+only). The RK4 sub-steps of a record are chosen by
+:func:`~thetahat.estimation.statistical.plant_kernel.choose_substeps` at the start values
+unless given.
 Prediction P ← T P Tᵀ + Q (Q = diag(Q_x, 0), Q_x the process noise on x over one sample),
 update in Joseph form, then θ projected onto Θ in the P_θθ⁻¹-weighted norm (a box: a clip;
 any convex Θ, see :mod:`~thetahat.estimation.statistical.stage2_set`). R = σ² I with σ given
@@ -42,9 +47,9 @@ from ..records import check_record
 from ..status import Status
 from .common import (RunStop, joint_prior, model_phi_hat, resolve_noise_std, stopped_result)
 from .ekf_kernels import EKFKernels, divergence_message, ekf_kernels, ekf_sample
-from .input_hold import InputHistory, smooth_input
+from .input_hold import InputHistory, stage2_samples, streamable
 from .noise_level import MIN_SAMPLES
-from .plant_kernel import H_RHO
+from .plant_kernel import H_RHO, Propagation, choose_substeps
 from .stage2_set import stage2_set
 
 __all__ = ["EKFDiagnostics", "EKFState", "JointEKF"]
@@ -65,11 +70,14 @@ class EKFDiagnostics(Diagnostics):
         no update was made).
     noise_std : ndarray, shape (r,)
         σ used for R.
+    substeps : int
+        The RK4 sub-steps' accuracy floor the run propagated with.
     """
 
     theta_sd: FloatArray
     nis: FloatArray
     noise_std: FloatArray
+    substeps: int = 1
 
     def __repr__(self) -> str:
         return (f"EKFDiagnostics(theta_sd[-1]={self.theta_sd[-1]}, "
@@ -143,6 +151,13 @@ class JointEKF:
         determine x quickly).
     q_x : float
         Process-noise variance per sample on x (default 0: the model is taken as exact).
+    hold : {"zoh", "foh", "bandlimited"}
+        u between the samples (:mod:`~thetahat.estimation.hold`; default ``"foh"``,
+        ``"bandlimited"`` for :meth:`run` only).
+    substeps : int, optional
+        The RK4 sub-steps' accuracy floor; default: chosen per record at the start values
+        (:func:`~thetahat.estimation.statistical.plant_kernel.choose_substeps`; 1 in
+        :meth:`step`, which has no record).
     h_rho : float
         RK4 sub-step bound (see :mod:`~thetahat.estimation.statistical.plant_kernel`).
     compiled : bool, optional
@@ -171,8 +186,13 @@ class JointEKF:
     theta_sd: ArrayLike | None = None
     x_sd: ArrayLike | None = None
     q_x: float = 0.0
+    hold: str = "foh"
+    substeps: int | None = None
     h_rho: float = H_RHO
     compiled: bool | None = None
+
+    def __post_init__(self) -> None:
+        Propagation(hold=self.hold, substeps=self.substeps or 1, h_rho=self.h_rho)
 
     @property
     def kernels(self) -> EKFKernels:
@@ -281,8 +301,11 @@ class JointEKF:
                 sigma = resolve_noise_std(None, y_first)
         u0 = (np.array(state.u_prev, dtype=np.float64)
               if state.k > 0 and state.u_prev is not None else None)
-        ut, u_hist = smooth_input(u_[None], state.u_history)
-        nis = ekf_sample(self.kernels, sys_, s, P, u0, ut[0], y_, state.dt_prev, self.h_rho,
+        ut, u_hist = stage2_samples(u_[None], streamable(self.hold, "JointEKF"),
+                                    state.u_history)
+        nis = ekf_sample(self.kernels, sys_, s, P, u0, ut[0], y_, state.dt_prev,
+                         Propagation(hold=self.hold, substeps=self.substeps or 1,
+                                     h_rho=self.h_rho),
                          self.q_x * np.eye(n), None if sigma is None else np.diag(sigma ** 2),
                          state.k)
         return EKFState(x_hat=s[:n], theta_hat=s[n:], P=P, k=state.k + 1, u_prev=ut[0],
@@ -332,24 +355,29 @@ class JointEKF:
         ts = stage2_set(sys_.require_parameter_set("stage 2"))
         k = self.kernels
         Q_x = self.q_x * np.eye(n)
-        Ut = np.ascontiguousarray(smooth_input(U, st.u_history)[0])
+        Ut = stage2_samples(U, self.hold, st.u_history)[0]
+        nsub = self.substeps or choose_substeps(k.model, t_, Ut, Y, st.theta_hat, st.x_hat,
+                                                sigma, hold=self.hold, h_rho=self.h_rho)
+        pc, WT = Propagation(hold=self.hold, substeps=nsub, h_rho=self.h_rho).arrays()
         if st.k > 0 and st.u_prev is not None:
-            k.predict(s, P, np.array(st.u_prev, dtype=np.float64), Ut[0].copy(), st.dt_prev,
-                      self.h_rho, Q_x, np.empty((n, n)), np.empty((n, p)))
+            U2 = np.ascontiguousarray(np.stack([st.u_prev, Ut[0]]), dtype=np.float64)
+            k.predict(s, P, U2, 0, st.dt_prev, pc, WT, Q_x, np.empty((n, n)),
+                      np.empty((n, p)))
         N = t_.shape[0]
         X, TH, SD, NIS = (np.empty((N, n)), np.empty((N, p)), np.empty((N, p)),
                           np.full(N, np.nan))
         bad = k.loop(s, P, Ut, Y, t_, 0, N, np.diag(sigma ** 2), ts.lo, ts.hi, ts.ell,
-                     self.h_rho, Q_x, X, TH, SD, NIS)
+                     pc, WT, Q_x, X, TH, SD, NIS)
         stop = (None if bad < 0
                 else RunStop(Status.DIVERGED, divergence_message(t_, bad, NIS, sys_.r), bad))
         res = stopped_result(t=t_, x_hat=X, theta_hat=TH,
                              phi_hat=model_phi_hat(sys_, U, Y, X, TH, stop),
                              skipped=missing_samples(Y),
-                             diagnostics=EKFDiagnostics(theta_sd=SD, nis=NIS, noise_std=sigma),
+                             diagnostics=EKFDiagnostics(theta_sd=SD, nis=NIS, noise_std=sigma,
+                                                        substeps=nsub),
                              stop=stop, blank=(SD, NIS))
         return res.raise_for_status() if throw else res
 
     def __repr__(self) -> str:
-        return (f"JointEKF(n={self.system.n}, p={self.system.p}, "
+        return (f"JointEKF(n={self.system.n}, p={self.system.p}, hold={self.hold!r}, "
                 f"compiled={self.kernels.model.compiled})")

@@ -193,7 +193,7 @@ def warm_up(spec: bytes) -> float:
     t = np.array([0.0, 1e-3, 2e-3])
     fit_map(sys_, t, np.zeros((3, m)), np.zeros((3, r)), k0=0, k1=3, q_start=q,
             q_prior=q.copy(), prior_info=np.eye(n + p), noise_std=np.ones(r), max_iter=1,
-            h_rho=sched.h_rho, compiled=sched.compiled)
+            hold=sched.hold, substeps=1, h_rho=sched.h_rho, compiled=sched.compiled)
     return time.perf_counter() - t0
 
 

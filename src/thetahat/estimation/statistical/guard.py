@@ -39,10 +39,11 @@ The windowed normalised innovation squared (NIS ≈ 1 for a consistent filter) i
 a consistency diagnostic.
 
 What lives here: the progress measure of stage 1 (:func:`progress_init`, :func:`progress_step`),
-the guard at one sample (:func:`band_kernel`), the reset (:func:`reset_stage2`) and the
-per-sample loop over the EKF kernels (:func:`make_guarded_loop`), all in numba's subset of
-Python. What it may import: NumPy and :mod:`math` only; the EKF kernels it runs are passed in
-(:mod:`~thetahat.estimation.statistical.guarded` builds the loop).
+the guard at one sample (:func:`band`), the reset (:func:`reset_stage2`) and the per-sample
+loop over the EKF kernels (:func:`guarded_loop`), all module-level functions in numba's
+subset of Python. What it may import: NumPy and :mod:`math` only; the EKF kernels the loop
+calls (``predict``, ``update``, ``project``) are bound when
+:mod:`~thetahat.estimation.statistical.guarded` prints it over them.
 """
 
 from __future__ import annotations
@@ -52,7 +53,7 @@ from typing import Any, Callable
 
 import numpy as np
 
-__all__ = ["progress_init", "progress_step", "band_kernel", "reset_stage2", "make_guarded_loop",
+__all__ = ["progress_init", "progress_step", "band", "reset_stage2", "guarded_loop",
            "GUARD_C", "GUARD_RHO_MAX", "GUARD_KAPPA", "GUARD_DWELL", "NIS_WINDOW"]
 
 #: Safety factor of δ_G on the extrapolated remaining movement of stage 1.
@@ -143,51 +144,45 @@ def progress_step(st: np.ndarray, k: int, theta: np.ndarray, width: np.ndarray, 
             delta[i] = min(width[i], c * late / (1.0 - late / early))
 
 
-def band_kernel(project: Callable[..., None]) -> Callable[..., bool]:
+# Names of the printed guard module (declared for the type checker; bound when printed:
+# the EKF's time and measurement updates and Π_Θ of ekf_kernels.EKFKernels).
+predict: Callable[..., None]
+update: Callable[..., float]
+project: Callable[..., None]
+
+
+def band(s: Any, P: Any, k: int, thG: Any, dG: Any, cfg: Any, lo: Any, hi: Any, ell: Any,
+         bad: bool, eye: Any, z: Any, BAND: Any) -> bool:
     """The guard at one sample: the band δ, stage 2's θ̂₂ clipped to it around θ̂_G, Π_Θ.
 
-    Parameters
-    ----------
-    project : callable
-        ``project(theta, M, lo, hi, ell)``, Π_Θ in place (``EKFKernels.project``; called
-        with M = I).
-
-    Returns
-    -------
-    callable
-        ``guard(s, P, k, thG, dG, cfg, lo, hi, ell, bad, eye, z, BAND) -> clipped``: per
-        component δ = max(δ_G, κ min(σ₂, σ₂ cap), |θ̂_G − θ_F| + κ s_F of the latest
-        consistent fit when ``cfg`` holds one), written into ``BAND[k]``; the guarded
-        θ̂ = Π_Θ(θ̂_G + clip(θ̂₂ − θ̂_G, −δ, δ)) into ``z`` (θ̂₂ − θ̂_G taken as 0 when stage 2
-        is ``bad``, not finite); returns whether a component was clipped. Not compiled
-        (:func:`make_guarded_loop` compiles it).
+    Per component δ = max(δ_G, κ min(σ₂, σ₂ cap), |θ̂_G − θ_F| + κ s_F of the latest
+    consistent fit when ``cfg`` holds one), written into ``BAND[k]``; the guarded
+    θ̂ = Π_Θ(θ̂_G + clip(θ̂₂ − θ̂_G, −δ, δ)) into ``z`` (θ̂₂ − θ̂_G taken as 0 when stage 2 is
+    ``bad``, not finite; Π_Θ the printed module's ``project`` with M = I); returns whether a
+    component was clipped.
     """
-
-    def guard(s, P, k, thG, dG, cfg, lo, hi, ell, bad, eye, z, BAND):
-        p = thG.shape[1]
-        n = s.shape[0] - p
-        with_fit = cfg.shape[0] >= 4 + 3 * p
-        clipped = False
-        for i in range(p):
-            d = s[n + i] - thG[k, i]
-            sd = math.sqrt(max(P[n + i, n + i], 0.0)) if not bad else 0.0
-            band = max(dG[i], cfg[0] * min(sd, cfg[4 + i]))
-            if with_fit and cfg[4 + 2 * p + i] >= 0.0:
-                band = max(band, abs(thG[k, i] - cfg[4 + p + i]) + cfg[4 + 2 * p + i])
-            if bad:
-                d = 0.0
-            if d > band:
-                d = band
-                clipped = True
-            elif d < -band:
-                d = -band
-                clipped = True
-            z[i] = thG[k, i] + d
-            BAND[k, i] = band
-        project(z, eye, lo, hi, ell)
-        return clipped
-
-    return guard
+    p = thG.shape[1]
+    n = s.shape[0] - p
+    with_fit = cfg.shape[0] >= 4 + 3 * p
+    clipped = False
+    for i in range(p):
+        d = s[n + i] - thG[k, i]
+        sd = math.sqrt(max(P[n + i, n + i], 0.0)) if not bad else 0.0
+        width = max(dG[i], cfg[0] * min(sd, cfg[4 + i]))
+        if with_fit and cfg[4 + 2 * p + i] >= 0.0:
+            width = max(width, abs(thG[k, i] - cfg[4 + p + i]) + cfg[4 + 2 * p + i])
+        if bad:
+            d = 0.0
+        if d > width:
+            d = width
+            clipped = True
+        elif d < -width:
+            d = -width
+            clipped = True
+        z[i] = thG[k, i] + d
+        BAND[k, i] = width
+    project(z, eye, lo, hi, ell)
+    return clipped
 
 
 def reset_stage2(s: np.ndarray, P: np.ndarray, P0: np.ndarray, k: int, xG: np.ndarray,
@@ -215,95 +210,70 @@ def reset_stage2(s: np.ndarray, P: np.ndarray, P0: np.ndarray, k: int, xG: np.nd
             P[i, j] = P0[i, j]
 
 
-def make_guarded_loop(predict: Callable[..., None], update: Callable[..., float],
-                      project: Callable[..., None], jit: Callable[..., Any]
-                      ) -> Callable[..., int]:
-    """The per-sample loop of the guarded estimator over EKF kernels (compiled with them).
+def guarded_loop(s: Any, P: Any, P0: Any, U: Any, Y: Any, tt: Any, k0: int, k1: int,
+                 off: int, R: Any, lo: Any, hi: Any, ell: Any, pc: Any, WT: Any, Q_x: Any,
+                 thG: Any, xG: Any, pst: Any, gst: Any, cfg: Any, TH: Any, TH2: Any, X2: Any,
+                 SD2: Any, BAND: Any, CLIP: Any, RESET: Any, NIS: Any) -> int:
+    """The per-sample loop of the guarded estimator over the EKF's kernels.
 
-    Parameters
-    ----------
-    predict, update : callable
-        The EKF's time and measurement updates on col(x, θ), ``EKFKernels.predict`` and
-        ``EKFKernels.update`` of :mod:`~thetahat.estimation.statistical.ekf_kernels`.
-    project : callable
-        ``project(theta, M, lo, hi, ell)``, Π_Θ in place (``EKFKernels.project``); the guard
-        calls it with M = I (:func:`band_kernel`).
-    jit : callable
-        fn ↦ compiled fn, applied to :func:`progress_step`, :func:`band_kernel`'s guard,
-        :func:`reset_stage2` and the loop: numba's ``njit`` when the kernels are compiled, the
-        identity otherwise (one argument, unlike
-        :func:`~thetahat.estimation.statistical.plant_kernel.jit`).
-
-    Returns
-    -------
-    callable
-        ``loop(s, P, P0, U, Y, tt, k0, k1, off, R, lo, hi, ell, h_rho, Q_x, thG, xG, pst, gst,
-        cfg, TH, TH2, X2, SD2, BAND, CLIP, RESET, NIS) -> int``: runs stage 2 over samples
-        k0 … k1−1 (absolute index k + ``off``) against stage 1's θ̂_G ``thG`` and x̂ ``xG``,
-        writes the guarded θ̂ (``TH``), stage 2's θ̂₂, x̂₂ and σ₂ (``TH2``, ``X2``, ``SD2``),
-        the band δ (``BAND``), the clip and reset flags and the windowed NIS, updates the
-        progress state ``pst``, ``gst`` = (dwell count, NIS average, first update index) and
-        returns the number of resets of stage 2 to stage 1. ``cfg`` = (κ, c, ρ_max, dwell as a
-        fraction of the samples so far, σ₂ cap per component…, and optionally θ_F per
-        component…, κ s_F per component… of the latest consistent fit; κ s_F < 0: none).
+    Runs stage 2 over samples k0 … k1−1 (absolute index k + ``off``; the EKF's ``predict``
+    over the interval from sample k − 1 of ``U`` with u held as ``pc, WT`` say, then its
+    ``update``) against stage 1's θ̂_G ``thG`` and x̂ ``xG``, writes the guarded θ̂
+    (``TH``), stage 2's θ̂₂, x̂₂ and σ₂ (``TH2``, ``X2``, ``SD2``), the band δ (``BAND``), the
+    clip and reset flags and the windowed NIS, updates the progress state ``pst``, ``gst`` =
+    (dwell count, NIS average, first update index) and returns the number of resets of stage
+    2 to stage 1. ``cfg`` = (κ, c, ρ_max, dwell as a fraction of the samples so far, σ₂ cap
+    per component…, and optionally θ_F per component…, κ s_F per component… of the latest
+    consistent fit; κ s_F < 0: none).
     """
-    prog = jit(progress_step)
-    guard = jit(band_kernel(project))
-    reset_to = jit(reset_stage2)
-
-    def loop(s, P, P0, U, Y, tt, k0, k1, off, R, lo, hi, ell, h_rho, Q_x, thG, xG, pst, gst,
-             cfg, TH, TH2, X2, SD2, BAND, CLIP, RESET, NIS):
-        """Samples k0 … k1−1 (absolute index k + off); returns the reset count."""
-        n = X2.shape[1]
-        p = TH.shape[1]
-        width = hi - lo
-        Phi = np.empty((n, n))
-        Gam = np.empty((n, p))
-        dG = np.empty(p)
-        eye = np.eye(p)
-        z = np.empty(p)
-        resets = 0
-        for k in range(k0, k1):
-            if k + off > 0:
-                predict(s, P, U[k - 1], U[k], tt[k] - tt[k - 1], h_rho, Q_x, Phi, Gam)
-                prog(pst, k + off, thG[k], width, cfg[1], cfg[2], dG)
-            else:
-                for i in range(p):
-                    dG[i] = width[i]
-            nis = np.nan
-            finite_y = True
-            for j in range(Y.shape[1]):
-                if not math.isfinite(Y[k, j]):
-                    finite_y = False
-            if finite_y and k + off >= gst[2]:
-                nis = update(s, P, Y[k], R, lo, hi, ell)
-            bad = False
-            for i in range(s.shape[0]):
-                if not math.isfinite(s[i]) or not math.isfinite(P[i, i]):
-                    bad = True
-            clipped = guard(s, P, k, thG, dG, cfg, lo, hi, ell, bad, eye, z, BAND)
+    n = X2.shape[1]
+    p = TH.shape[1]
+    width = hi - lo
+    Phi = np.empty((n, n))
+    Gam = np.empty((n, p))
+    dG = np.empty(p)
+    eye = np.eye(p)
+    z = np.empty(p)
+    resets = 0
+    for k in range(k0, k1):
+        if k + off > 0:
+            predict(s, P, U, k - 1, tt[k] - tt[k - 1], pc, WT, Q_x, Phi, Gam)
+            progress_step(pst, k + off, thG[k], width, cfg[1], cfg[2], dG)
+        else:
             for i in range(p):
-                TH[k, i] = z[i]
-            gst[0] = gst[0] + 1.0 if clipped else 0.0
-            settled = True
-            for i in range(p):
-                if dG[i] >= width[i]:
-                    settled = False
-            reset = bad or (gst[0] > cfg[3] * (k + off + 1) and settled)
-            if reset:
-                reset_to(s, P, P0, k, xG, thG)
-                gst[0] = 0.0
-                resets += 1
-            if math.isfinite(nis):
-                gst[1] += (nis - gst[1]) / NIS_WINDOW
-            for i in range(n):
-                X2[k, i] = s[i]
-            for i in range(p):
-                TH2[k, i] = s[n + i]
-                SD2[k, i] = math.sqrt(max(P[n + i, n + i], 0.0))
-            CLIP[k] = clipped
-            RESET[k] = reset
-            NIS[k] = gst[1]
-        return resets
-
-    return jit(loop)
+                dG[i] = width[i]
+        nis = np.nan
+        finite_y = True
+        for j in range(Y.shape[1]):
+            if not math.isfinite(Y[k, j]):
+                finite_y = False
+        if finite_y and k + off >= gst[2]:
+            nis = update(s, P, Y[k], R, lo, hi, ell)
+        bad = False
+        for i in range(s.shape[0]):
+            if not math.isfinite(s[i]) or not math.isfinite(P[i, i]):
+                bad = True
+        clipped = band(s, P, k, thG, dG, cfg, lo, hi, ell, bad, eye, z, BAND)
+        for i in range(p):
+            TH[k, i] = z[i]
+        gst[0] = gst[0] + 1.0 if clipped else 0.0
+        settled = True
+        for i in range(p):
+            if dG[i] >= width[i]:
+                settled = False
+        reset = bad or (gst[0] > cfg[3] * (k + off + 1) and settled)
+        if reset:
+            reset_stage2(s, P, P0, k, xG, thG)
+            gst[0] = 0.0
+            resets += 1
+        if math.isfinite(nis):
+            gst[1] += (nis - gst[1]) / NIS_WINDOW
+        for i in range(n):
+            X2[k, i] = s[i]
+        for i in range(p):
+            TH2[k, i] = s[n + i]
+            SD2[k, i] = math.sqrt(max(P[n + i, n + i], 0.0))
+        CLIP[k] = clipped
+        RESET[k] = reset
+        NIS[k] = gst[1]
+    return resets

@@ -48,13 +48,13 @@ from ..status import Status
 from .common import (RunStop, joint_prior, model_phi_hat, resolve_noise_std, sample_interval,
                      start_values, stopped_result)
 from .ekf_kernels import EKFKernels, ekf_kernels
-from .guard import (GUARD_C, GUARD_DWELL, GUARD_KAPPA, GUARD_RHO_MAX, make_guarded_loop,
+from .guard import (GUARD_C, GUARD_DWELL, GUARD_KAPPA, GUARD_RHO_MAX, guarded_loop,
                     progress_init)
 from .guarded_stream import SIGMA_SAMPLES, GuardedStream, StreamDiagnostics
-from .input_hold import smooth_input
+from .input_hold import stage2_samples, streamable
 from .map_fit import FitResult, FitSchedule, fit_as_prior, fit_record
 from .noise_level import MIN_SAMPLES
-from .plant_kernel import H_RHO, jit
+from .plant_kernel import H_RHO, Propagation, choose_substeps, printed_kernels
 from .stage2_set import stage2_set
 
 __all__ = ["GuardedDiagnostics", "GuardedEstimator", "GuardedState"]
@@ -82,7 +82,9 @@ class GuardedDiagnostics(Diagnostics):
         Windowed normalised innovation squared of stage 2 (≈ 1 when consistent).
     fits : tuple of FitResult
         The MAP fits that came back, in order; stage 2 took those that are consistent
-        (:attr:`FitResult.consistent`), the others are counted by :attr:`fits_rejected`.
+        (:attr:`FitResult.consistent`) and fitted (:meth:`FitResult.rejection`: converged,
+        standard errors not grown by orders of magnitude); ``rejected`` says why the others
+        were not.
     fit_samples : ndarray of int
         The last sample of each fit's window (where a consistent one was applied).
     noise_std : ndarray (r,)
@@ -90,6 +92,10 @@ class GuardedDiagnostics(Diagnostics):
     failures : tuple of str
         Fits that raised or came back non-finite, one sentence each (ignored, with a
         ThetahatWarning: stage 1 and the EKF go on).
+    rejected : tuple of str
+        The fits that came back but were not applied, one sentence each.
+    substeps : int
+        The RK4 sub-steps' accuracy floor stage 2 ran with at the end.
     """
 
     theta_stage1: FloatArray
@@ -103,11 +109,13 @@ class GuardedDiagnostics(Diagnostics):
     fit_samples: NDArray[np.int64]
     noise_std: FloatArray
     failures: tuple[str, ...] = ()
+    rejected: tuple[str, ...] = ()
+    substeps: int = 1
 
     @property
     def fits_rejected(self) -> int:
-        """Fits that came back but failed their consistency checks (not applied)."""
-        return sum(1 for f in self.fits if not f.consistent)
+        """Fits that came back but were not applied (``rejected`` says why)."""
+        return len(self.rejected)
 
     @property
     def fits_failed(self) -> int:
@@ -222,6 +230,14 @@ class GuardedEstimator:
         of the samples so far (default :data:`~thetahat.estimation.statistical.guard.GUARD_DWELL`).
     q_x : float
         Stage 2's process-noise variance per sample on x (default 0: the model is exact).
+    hold : {"zoh", "foh", "bandlimited"}
+        Stage 2's u between the samples (:mod:`~thetahat.estimation.hold`; default ``"foh"``;
+        ``"bandlimited"`` for :meth:`run` only); stage 1's is its own (a model file gives
+        both the file's).
+    substeps : int, optional
+        Stage 2's RK4 sub-steps' accuracy floor; default: chosen per record at the start
+        values (:func:`~thetahat.estimation.statistical.plant_kernel.choose_substeps`; in
+        :meth:`step`, by each fit on its window).
     h_rho : float
         RK4 sub-step bound (see :mod:`~thetahat.estimation.statistical.plant_kernel`).
     compiled : bool, optional
@@ -258,6 +274,8 @@ class GuardedEstimator:
     rho_max: float = GUARD_RHO_MAX
     dwell: float = GUARD_DWELL
     q_x: float = 0.0
+    hold: str = "foh"
+    substeps: int | None = None
     h_rho: float = H_RHO
     compiled: bool | None = None
     fit_executor: concurrent.futures.Executor | None = None
@@ -274,6 +292,7 @@ class GuardedEstimator:
                                                   PerturbedLinearSystem):
             raise ArgumentTypeError("stage 2 needs a model: give system=, or a stage1 with a "
                                     "PerturbedLinearSystem as its system.")
+        Propagation(hold=self.hold, substeps=self.substeps or 1, h_rho=self.h_rho)
 
     # ------------------------------------------------------------------ parts
     @property
@@ -290,17 +309,18 @@ class GuardedEstimator:
         if not self.use_fits:
             return None
         if self.schedule is not None:
-            return self.schedule
+            return replace(self.schedule, hold=self.hold,
+                           substeps=self.substeps if self.substeps is not None
+                           else self.schedule.substeps)
         return FitSchedule(system=self.model, x_sd=self.x_sd, noise_std=self.noise_std,
+                           hold=self.hold, substeps=self.substeps, h_rho=self.h_rho,
                            compiled=self.compiled)
 
     def _loop(self) -> Any:
         k = self.kernels
         loop = _LOOPS.get(k)
         if loop is None:
-            compiled = k.model.compiled
-            loop = _LOOPS[k] = make_guarded_loop(k.predict, k.update, k.project,
-                                                 lambda fn: jit(fn, compiled))
+            loop = _LOOPS[k] = _guard_loop(k)
         return loop
 
     def _prior(self, x_hat0: FloatArray, theta_hat0: FloatArray
@@ -442,7 +462,9 @@ class GuardedEstimator:
         xG = np.asarray(xs, dtype=np.float64).reshape(1, n)
         if k == 0:
             sh.configure(self.kappa, self.c, self.rho_max, self.dwell)
-        ut, sh.u_history = smooth_input(u_.reshape(1, m), sh.u_history)   # stage 2's ũ
+        ut, sh.u_history = stage2_samples(u_.reshape(1, m),               # stage 2's samples
+                                          streamable(self.hold, "GuardedEstimator"),
+                                          sh.u_history)
         sh.record(k, ut[0], y_, h)
         sh.poll_fit()
         k0 = 0 if k == 0 else 1
@@ -458,7 +480,7 @@ class GuardedEstimator:
         if k == 0:
             sh.pst = progress_init(thG[0])
         self._loop()(sh.s, sh.P, sh.P0, U2, Y2, tt, k0, k0 + 1, k - k0, sh.R, sh.lo, sh.hi,
-                     sh.ell, self.h_rho, sh.Q_x, TH2, XG2, sh.pst, sh.gst, sh.cfg, o["TH"],
+                     sh.ell, sh.pc, sh.WT, sh.Q_x, TH2, XG2, sh.pst, sh.gst, sh.cfg, o["TH"],
                      o["TH2"], o["X2"], o["SD2"], o["BAND"], clip, rst, nis)
         s1 = self.stage1.step(state.stage1, u_, y_, h)
         sh.refresh_sigma(k)
@@ -499,7 +521,9 @@ class GuardedEstimator:
                                      prior0=(sched.initial_prior(state.x_hat0,
                                                                  state.theta_hat0)
                                              if sched else None),
-                                     executor=self.fit_executor)
+                                     executor=self.fit_executor,
+                                     hold=streamable(self.hold, "GuardedEstimator"),
+                                     h_rho=self.h_rho)
         stream.owner = self
         return stream
 
@@ -528,7 +552,7 @@ class _OfflineRun:
         sys_ = est.model
         n, p, N = sys_.n, sys_.p, t.shape[0]
         self.est, self.system, self.t, self.U, self.Y = est, sys_, t, U, Y
-        self.Us = np.array(smooth_input(U)[0], order="C")    # stage 2's input samples ũ
+        self.Us = stage2_samples(U, est.hold)[0]              # stage 2's input samples
         xs = res1.x_hat if res1.x_hat_refined is None else res1.x_hat_refined
         # writable C copies (the compiled loop's array type)
         self.thG = np.array(res1.theta_hat, dtype=np.float64, order="C")
@@ -553,7 +577,14 @@ class _OfflineRun:
         self.fits: list[FitResult] = []
         self.fit_at: list[int] = []
         self.failures: list[str] = []
+        self.rejected: list[str] = []
+        self.applied: FitResult | None = None
+        self.substeps = est.substeps or self._choose_substeps(st0)
+        self.pc, self.WT = Propagation(hold=est.hold, substeps=self.substeps,
+                                       h_rho=est.h_rho).arrays()
         sched = est.fit_schedule
+        if sched is not None:
+            sched = replace(sched, substeps=self.substeps)
         self.prior0 = (sched.initial_prior(st0.x_hat0, st0.theta_hat0) if sched else None)
         # the default fits: all the data so far, at the sample counts where the information
         # has grown by INFO_GROWTH, the last on all samples but the last (whose output then
@@ -566,6 +597,15 @@ class _OfflineRun:
             self.ks = [k1 for k1 in sched.fit_samples(t[:N - 1], least=least)
                        if MIN_SAMPLES <= k1 < N]
         self.sched = sched
+
+    def _choose_substeps(self, st0: GuardedState) -> int:
+        """The record's sub-steps at the start values (1 when σ cannot be had yet)."""
+        est = self.est
+        if est.noise_std is None and self.Y.shape[0] < MIN_SAMPLES:
+            return 1
+        sigma = resolve_noise_std(est.noise_std, self.Y)
+        return choose_substeps(est.kernels.model, self.t, self.Us, self.Y, st0.theta_hat0,
+                               st0.x_hat0, sigma, hold=est.hold, h_rho=est.h_rho)
 
     def filter(self, rows: int) -> None:
         """Stage 2 and the guard over rows 0 … rows − 1 (those stage 1 gave), the fits applied
@@ -608,12 +648,13 @@ class _OfflineRun:
         """The compiled loop over samples k0 … k1 − 1."""
         o, ts, est = self.out, self.ts, self.est
         est._loop()(self.s, self.P, self.P0, self.Us, self.Y, self.t, k0, k1, 0, self.R, ts.lo,
-                    ts.hi, ts.ell, est.h_rho, self.Q_x, self.thG, self.xG, self.pst, self.gst,
-                    self.cfg, o["TH"], o["TH2"], o["X2"], o["SD2"], o["BAND"], self.CLIP,
-                    self.RESET, self.NIS)
+                    ts.hi, ts.ell, self.pc, self.WT, self.Q_x, self.thG, self.xG, self.pst,
+                    self.gst, self.cfg, o["TH"], o["TH2"], o["X2"], o["SD2"], o["BAND"],
+                    self.CLIP, self.RESET, self.NIS)
 
     def _fit(self, k1: int) -> None:
-        """The fit due after sample k1 − 1; a consistent one re-anchors stage 2."""
+        """The fit due after sample k1 − 1; a consistent one that fitted re-anchors stage 2
+        (:meth:`FitResult.rejection`: never a fit that did not converge)."""
         sched, prior0, est = self.sched, self.prior0, self.est
         if sched is None or prior0 is None:
             return
@@ -624,7 +665,17 @@ class _OfflineRun:
             return
         self.fits.append(fit)
         self.fit_at.append(k1 - 1)
-        if fit.consistent:
+        why = (fit.rejection(self.applied) if fit.consistent
+               else f"the fit of samples {fit.k0}…{fit.k1 - 1} is not consistent with the "
+                    f"noise (cost {fit.cost:.3g} per measurement)")
+        if why is not None:
+            self.rejected.append(why)
+        else:
+            self.applied = fit
+            if fit.substeps != self.substeps:   # the final fit found more were needed
+                self.substeps = fit.substeps
+                self.pc, self.WT = Propagation(hold=est.hold, substeps=fit.substeps,
+                                               h_rho=est.h_rho).arrays()
             # the fit ends at this very sample: take (x, θ) and their joint covariance;
             # stage 2 carries the model error as the fit found it (none: q = 0)
             s_fit, P_fit, self.R, self.Q_x = fit_as_prior(self.system, fit,
@@ -654,7 +705,8 @@ class _OfflineRun:
                                   theta_sd=o["SD2"], band=o["BAND"], clipped=self.CLIP,
                                   reset=self.RESET, nis=self.NIS, fits=tuple(self.fits),
                                   fit_samples=np.array(self.fit_at, dtype=np.int64),
-                                  noise_std=self.sigma, failures=tuple(self.failures))
+                                  noise_std=self.sigma, failures=tuple(self.failures),
+                                  rejected=tuple(self.rejected), substeps=self.substeps)
         return stopped_result(t=self.t, x_hat=o["X2"], theta_hat=o["TH"],
                               phi_hat=model_phi_hat(self.system, self.U, self.Y, o["X2"],
                                                     o["TH"], stop),
@@ -663,3 +715,22 @@ class _OfflineRun:
 
 
 _LOOPS: dict[Any, Any] = {}
+
+
+def _guard_loop(k: EKFKernels) -> Any:
+    """:func:`~thetahat.estimation.statistical.guard.guarded_loop` printed over the EKF's
+    kernels (their module's ``predict``, ``update`` and ``project``; a ConvexSet's, whose
+    kernels run uncompiled in a module instance of their own, assigned into one of its own)."""
+    names = {"predict": k.predict, "update": k.update, "project": k.project}
+    doc = ("Printed by thetahat.estimation.statistical.guarded: the guard's loop over one "
+           "model's EKF; do not edit (content-addressed).")
+    if k.printed:
+        mod, (name,) = printed_kernels("thetahat_guard", doc, [guarded_loop], names,
+                                       k.model.compiled)
+    else:
+        mod, (name,) = printed_kernels("thetahat_guard", doc, [guarded_loop],
+                                       {key: key for key in names}, False,
+                                       constants={key: "None" for key in names}, fresh=True)
+        for key, fn in names.items():
+            setattr(mod, key, fn)
+    return getattr(mod, name)

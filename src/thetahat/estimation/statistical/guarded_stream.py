@@ -11,7 +11,8 @@ ignored with a :class:`~thetahat.errors.ThetahatWarning`; :class:`StreamDiagnost
 the fits.
 
 What it may import: the package's errors, and, in this room, ``common``, ``fit_worker``,
-``input_hold``, ``map_fit``, ``noise_level`` and ``stage2_set``; never the guarded estimator
+``input_hold``, ``map_fit``, ``noise_level``, ``plant_kernel`` and ``stage2_set``; never the
+guarded estimator
 (which builds the stream from plain values).
 """
 
@@ -33,6 +34,7 @@ from .fit_worker import default_executor, discard_default_executor, fit_spec, ru
 from .input_hold import InputHistory
 from .map_fit import FitResult, FitSchedule
 from .noise_level import MIN_SAMPLES
+from .plant_kernel import H_RHO, Propagation
 from .stage2_set import stage2_set
 
 __all__ = ["GuardedStream", "LOG_CAPACITY", "SIGMA_SAMPLES", "StreamDiagnostics"]
@@ -63,6 +65,9 @@ class StreamDiagnostics:
         Fits that crashed or returned non-finite values, ignored (one warning each).
     pending : bool
         A fit is running (a finished one is applied by the next ``step``).
+    rejected : tuple of str
+        The fits that came back but were not applied (not consistent with the noise, or
+        :meth:`~.map_fit.FitResult.rejection`), one sentence each.
     """
 
     fits: tuple[FitResult, ...]
@@ -70,6 +75,12 @@ class StreamDiagnostics:
     fit_seconds: FloatArray
     failures: tuple[str, ...]
     pending: bool
+    rejected: tuple[str, ...] = ()
+
+    @property
+    def fits_rejected(self) -> int:
+        """Fits that came back but were not applied."""
+        return len(self.rejected)
 
     def __repr__(self) -> str:
         return (f"StreamDiagnostics(fits={len(self.fits)}, failures={len(self.failures)}, "
@@ -93,11 +104,16 @@ class GuardedStream:
         The fits (None: no fits).
     prior0 : (ndarray, ndarray) or None
         The first fit's prior (:meth:`~.map_fit.FitSchedule.initial_prior`; None without fits).
+    hold : str
+        Stage 2's hold (not ``"bandlimited"``: a stream has no later samples).
+    h_rho : float
+        The RK4 sub-steps' stability bound.
     """
 
     def __init__(self, system: PerturbedLinearSystem, s0: FloatArray, P0: FloatArray, *,
                  q_x: float, noise_std: ArrayLike | None, schedule: FitSchedule | None,
-                 prior0: tuple[FloatArray, FloatArray] | None) -> None:
+                 prior0: tuple[FloatArray, FloatArray] | None, hold: str = "foh",
+                 h_rho: float = H_RHO) -> None:
         sys_ = system
         n = sys_.n
         self.owner: Any = None              # the estimator that started the stream
@@ -113,6 +129,10 @@ class GuardedStream:
         self.gst = np.array([0.0, 1.0, 0.0 if given else float(MIN_SAMPLES)])
         self.cfg = np.array([])
         self.pst = np.zeros((sys_.p, 6))
+        self.hold = hold
+        self.pc, self.WT = Propagation(hold=hold, substeps=1 if schedule is None or
+                                       schedule.substeps is None else schedule.substeps,
+                                       h_rho=h_rho).arrays()
         self.u_prev = np.zeros(sys_.m)
         self.u_history: InputHistory | None = None
         self.dt_prev = 0.0
@@ -124,6 +144,8 @@ class GuardedStream:
         self.size = 0
         self.base = 0
         self.fits: list[FitResult] = []
+        self.applied: FitResult | None = None
+        self.rejected: list[str] = []
         self.fit_samples: list[tuple[int, int]] = []
         self.fit_seconds: list[float] = []
         self.failures: list[str] = []
@@ -139,13 +161,14 @@ class GuardedStream:
     def start(cls, system: PerturbedLinearSystem, s0: FloatArray, P0: FloatArray, *,
               q_x: float, noise_std: ArrayLike | None, schedule: FitSchedule | None,
               prior0: tuple[FloatArray, FloatArray] | None,
-              executor: concurrent.futures.Executor | None) -> GuardedStream:
+              executor: concurrent.futures.Executor | None, hold: str = "foh",
+              h_rho: float = H_RHO) -> GuardedStream:
         """A new stream; with fits, the worker starts compiling the fit kernels at once (the
         first fit queues behind that warm-up; its errors, if any, come back with the fit).
 
         Parameters
         ----------
-        system, s0, P0, q_x, noise_std, schedule, prior0
+        system, s0, P0, q_x, noise_std, schedule, prior0, hold, h_rho
             As the class's.
         executor : concurrent.futures.Executor, optional
             Where the fits run (default
@@ -156,7 +179,7 @@ class GuardedStream:
         GuardedStream
         """
         sh = cls(system, s0, P0, q_x=q_x, noise_std=noise_std, schedule=schedule,
-                 prior0=prior0)
+                 prior0=prior0, hold=hold, h_rho=h_rho)
         if sh.sched is not None:
             sh.executor = executor if executor is not None else default_executor()
             sh.spec = fit_spec(sh.sched)
@@ -240,7 +263,15 @@ class GuardedStream:
         self.fits.append(fit)
         self.fit_samples.append((fit.k1 - 1, self.k))
         self.fit_seconds.append(done.seconds)
-        if fit.consistent:                      # θ only: x has moved on since the fit
+        why = (fit.rejection(self.applied) if fit.consistent
+               else f"the fit of samples {fit.k0}…{fit.k1 - 1} is not consistent with the "
+                    f"noise (cost {fit.cost:.3g} per measurement)")
+        if why is not None:
+            self.rejected.append(why)
+        else:                                   # θ only: x has moved on since the fit
+            self.applied = fit
+            self.pc, self.WT = Propagation(hold=self.hold, substeps=fit.substeps,
+                                           h_rho=float(self.pc[0])).arrays()
             self.s[n:] = fit.theta
             self.P[n:, :] = 0.0
             self.P[:, n:] = 0.0
@@ -295,4 +326,5 @@ class GuardedStream:
                                  fit_samples=np.array(self.fit_samples, np.int64).reshape(-1, 2),
                                  fit_seconds=np.array(self.fit_seconds),
                                  failures=tuple(self.failures),
-                                 pending=self.future is not None and not self.future.done())
+                                 pending=self.future is not None and not self.future.done(),
+                                 rejected=tuple(self.rejected))

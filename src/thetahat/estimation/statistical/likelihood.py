@@ -34,7 +34,7 @@ from __future__ import annotations
 import functools
 import math
 from dataclasses import dataclass
-from typing import Callable, NamedTuple
+from typing import Any, Callable, NamedTuple
 
 import numpy as np
 from numpy.typing import NDArray
@@ -47,7 +47,8 @@ from ...model.paramset import Box, ParameterSet
 from .common import sample_interval, theta_box
 from .noise_level import mad_variance
 from .stage2_set import project_theta, theta_bounds
-from .plant_kernel import H_RHO, ModelKernel, jit, model_kernel
+from .plant_kernel import (H_RHO, ModelKernel, Propagation, choose_substeps, model_kernel,
+                           printed_kernels)
 
 __all__ = ["ProcessNoiseFit", "RecordEvidence", "fit_process_noise", "process_noise_scale",
            "unit_process_noise", "record_bound", "record_evidence", "process_noise_at",
@@ -110,6 +111,12 @@ class ProcessNoiseFit:
         model is right but for bursts the model leaves out).
     burst_fraction : float
         Fraction of the normalised innovations beyond ±:data:`HUBER_C` (0.27 % for Gaussian ones).
+    iterations : int
+        Filter passes of the final fit of θ (SciPy's evaluations).
+    step_se : float
+        The Gauss–Newton step of Huber's loss still to go at θ, in standard errors.
+    substeps : int
+        The RK4 sub-steps' accuracy floor of the filter.
     """
 
     theta: FloatArray
@@ -124,6 +131,9 @@ class ProcessNoiseFit:
     noise_std: FloatArray
     core_cost: float = math.nan
     burst_fraction: float = math.nan
+    iterations: int = 0
+    step_se: float = 0.0
+    substeps: int = 1
 
     @property
     def theta_se(self) -> FloatArray:
@@ -203,89 +213,98 @@ def process_noise_scale(system: PerturbedLinearSystem, h: float, noise_std: Floa
     return float(np.mean(np.asarray(noise_std)[ok] ** 2 / c[ok]))
 
 
-def _make_filter(model: ModelKernel) -> Callable[..., int]:
-    prop = model.propagate
-    C = model.C
+# Names of the printed filter module (declared for the type checker; bound when printed).
+propagate: Callable[..., Any]
+C_OUT: FloatArray
 
-    def innovations(x0, P0, th, U, Y, tt, Rdiag, Qs, qidx, q, h_rho, NU, LS, xP):
-        """EKF on x with θ fixed: normalised innovations NU and log S (LS) per sample and
-        output (0 where y is missing); the last x and P into xP[0], xP[1:]. Returns −1, or the
-        first sample at which the filter is not finite."""
-        n = x0.shape[0]
-        r = C.shape[0]
-        N = tt.shape[0]
-        x = x0.copy()
-        P = P0.copy()
-        Phi = np.empty((n, n))
-        Gam = np.empty((n, 0))          # the filter needs Φ only: Γ's columns are skipped
-        T = np.empty((n, n))
-        PC = np.empty(n)
-        K = np.empty(n)
-        for k in range(N):
-            if k > 0:
-                # a runtime True (n ≥ 1): the EKF's and the sweep's specialisation of prop
-                x = prop(x, th, U[k - 1], U[k], tt[k] - tt[k - 1], h_rho, n > 0, Phi, Gam)
-                for i in range(n):
-                    for j in range(n):
-                        acc = 0.0
-                        for a in range(n):
-                            acc += Phi[i, a] * P[a, j]
-                        T[i, j] = acc
-                for i in range(n):
-                    for j in range(i, n):
-                        acc = q * Qs[qidx[k], i, j]
-                        for a in range(n):
-                            acc += T[i, a] * Phi[j, a]
-                        P[i, j] = acc
-                        P[j, i] = acc
-            for i in range(r):
-                yi = Y[k, i]
-                if not math.isfinite(yi):
-                    NU[k, i] = 0.0
-                    LS[k, i] = 0.0
-                    continue
-                e = yi
-                for a in range(n):
-                    e -= C[i, a] * x[a]
-                s = Rdiag[i]
-                for a in range(n):
+
+def innovations(x0: Any, P0: Any, th: Any, U: Any, Y: Any, tt: Any, Rdiag: Any, Qs: Any,
+                qidx: Any, q: float, pc: Any, WT: Any, NU: Any, LS: Any, xP: Any) -> int:
+    """The EKF on x with θ fixed: normalised innovations and log S per sample and output.
+
+    x propagated by the model's ``propagate`` (u held as ``pc, WT`` say) with P ← Φ P Φᵀ +
+    q Qs[qidx[k]], the outputs updated one at a time in Joseph form; NU (N, r) receives
+    ε/√S and LS (N, r) log S (0 where y is missing); the last x and P go into xP[0], xP[1:].
+    Returns −1, or the first sample at which the filter is not finite.
+    """
+    n = x0.shape[0]
+    r = C_OUT.shape[0]
+    N = tt.shape[0]
+    x = x0.copy()
+    P = P0.copy()
+    Phi = np.empty((n, n))
+    Gam = np.empty((n, 0))          # the filter needs Φ only: Γ's columns are skipped
+    T = np.empty((n, n))
+    PC = np.empty(n)
+    K = np.empty(n)
+    for k in range(N):
+        if k > 0:
+            # a runtime True (n ≥ 1): the EKF's and the sweep's specialisation of propagate
+            x = propagate(x, th, U, k - 1, tt[k] - tt[k - 1], pc, WT, n > 0, Phi, Gam)
+            for i in range(n):
+                for j in range(n):
                     acc = 0.0
-                    for b in range(n):
-                        acc += P[a, b] * C[i, b]
-                    PC[a] = acc
-                    s += C[i, a] * acc
-                if not (s > 0.0 and math.isfinite(s) and math.isfinite(e)):
-                    return k
-                NU[k, i] = e / math.sqrt(s)
-                LS[k, i] = math.log(s)
-                for a in range(n):
-                    K[a] = PC[a] / s
-                    x[a] += K[a] * e
-                # Joseph form: P ← (I − K c) P (I − K c)ᵀ + K R Kᵀ, c = C[i]
-                for a in range(n):
-                    for b in range(n):
-                        acc = P[a, b] - K[a] * PC[b]
-                        T[a, b] = acc
-                for a in range(n):
-                    for b in range(a, n):
-                        acc = T[a, b]
-                        for c_ in range(n):
-                            acc -= T[a, c_] * C[i, c_] * K[b]
-                        acc += K[a] * Rdiag[i] * K[b]
-                        P[a, b] = acc
-                        P[b, a] = acc
-        for a in range(n):
-            xP[0, a] = x[a]
-            for b in range(n):
-                xP[1 + a, b] = P[a, b]
-        return -1
-
-    return jit(innovations, model.compiled)
+                    for a in range(n):
+                        acc += Phi[i, a] * P[a, j]
+                    T[i, j] = acc
+            for i in range(n):
+                for j in range(i, n):
+                    acc = q * Qs[qidx[k], i, j]
+                    for a in range(n):
+                        acc += T[i, a] * Phi[j, a]
+                    P[i, j] = acc
+                    P[j, i] = acc
+        for i in range(r):
+            yi = Y[k, i]
+            if not math.isfinite(yi):
+                NU[k, i] = 0.0
+                LS[k, i] = 0.0
+                continue
+            e = yi
+            for a in range(n):
+                e -= C_OUT[i, a] * x[a]
+            s = Rdiag[i]
+            for a in range(n):
+                acc = 0.0
+                for b in range(n):
+                    acc += P[a, b] * C_OUT[i, b]
+                PC[a] = acc
+                s += C_OUT[i, a] * acc
+            if not (s > 0.0 and math.isfinite(s) and math.isfinite(e)):
+                return k
+            NU[k, i] = e / math.sqrt(s)
+            LS[k, i] = math.log(s)
+            for a in range(n):
+                K[a] = PC[a] / s
+                x[a] += K[a] * e
+            # Joseph form: P ← (I − K c) P (I − K c)ᵀ + K R Kᵀ, c = C[i]
+            for a in range(n):
+                for b in range(n):
+                    acc = P[a, b] - K[a] * PC[b]
+                    T[a, b] = acc
+            for a in range(n):
+                for b in range(a, n):
+                    acc = T[a, b]
+                    for c_ in range(n):
+                        acc -= T[a, c_] * C_OUT[i, c_] * K[b]
+                    acc += K[a] * Rdiag[i] * K[b]
+                    P[a, b] = acc
+                    P[b, a] = acc
+    for a in range(n):
+        xP[0, a] = x[a]
+        for b in range(n):
+            xP[1 + a, b] = P[a, b]
+    return -1
 
 
 @functools.lru_cache(maxsize=16)
 def _filter_for(model: ModelKernel) -> Callable[..., int]:
-    return _make_filter(model)
+    mod, (name,) = printed_kernels(
+        "thetahat_innovations", "Printed by thetahat.estimation.statistical.likelihood: the "
+        "innovations filter of one model; do not edit (content-addressed).", [innovations],
+        {"propagate": model.propagate, "C_OUT": model.C}, model.compiled)
+    fn: Callable[..., int] = getattr(mod, name)
+    return fn
 
 
 @dataclass(frozen=True, slots=True, eq=False)
@@ -301,15 +320,16 @@ class _Problem:
     Rdiag: FloatArray
     Qs: FloatArray
     qidx: NDArray[np.int64]
-    h_rho: float
+    prop: Propagation
     run: Callable[..., int]
     valid: NDArray[np.bool_]
 
     def filter(self, theta: FloatArray, q: float) -> tuple[FloatArray, FloatArray, FloatArray]:
         N, r, n = self.t.shape[0], self.Y.shape[1], self.x0.shape[0]
         NU, LS, xP = np.empty((N, r)), np.empty((N, r)), np.empty((n + 1, n))
+        pc, WT = self.prop.arrays()
         bad = self.run(self.x0, self.P0, np.array(theta, dtype=np.float64), self.U, self.Y,
-                       self.t, self.Rdiag, self.Qs, self.qidx, float(q), self.h_rho, NU, LS, xP)
+                       self.t, self.Rdiag, self.Qs, self.qidx, float(q), pc, WT, NU, LS, xP)
         if bad >= 0:
             NU[bad:] = np.nan
         return NU, LS, xP
@@ -328,7 +348,7 @@ class _Problem:
 
 
 def _problem(system: PerturbedLinearSystem, t: FloatArray, U: FloatArray, Y: FloatArray,
-             x0: FloatArray, x_sd: FloatArray, noise_std: FloatArray, h_rho: float,
+             x0: FloatArray, x_sd: FloatArray, noise_std: FloatArray, prop: Propagation,
              compiled: bool | None) -> _Problem:
     model = model_kernel(system, compiled=compiled)
     h = np.diff(t)
@@ -344,12 +364,25 @@ def _problem(system: PerturbedLinearSystem, t: FloatArray, U: FloatArray, Y: Flo
                     U=np.ascontiguousarray(U), Y=np.ascontiguousarray(Y),
                     x0=np.array(x0, dtype=np.float64), P0=np.diag(np.asarray(x_sd) ** 2),
                     Rdiag=np.asarray(noise_std, dtype=np.float64) ** 2,
-                    Qs=np.ascontiguousarray(Qs), qidx=qidx, h_rho=h_rho,
+                    Qs=np.ascontiguousarray(Qs), qidx=qidx, prop=prop,
                     run=_filter_for(model), valid=valid)
 
 
+def _propagation(system: PerturbedLinearSystem, t: FloatArray, U: FloatArray, Y: FloatArray,
+                 theta: FloatArray, x0: FloatArray, noise_std: FloatArray, hold: str,
+                 substeps: int | None, h_rho: float, compiled: bool | None) -> Propagation:
+    """The hold and the sub-steps (given, or chosen at θ from x0 on the record)."""
+    if substeps is None:
+        substeps = choose_substeps(model_kernel(system, compiled=compiled),
+                                   np.asarray(t, dtype=np.float64), np.asarray(U, np.float64),
+                                   np.asarray(Y, np.float64), np.asarray(theta, np.float64),
+                                   np.asarray(x0, np.float64), noise_std, hold=hold,
+                                   h_rho=h_rho)
+    return Propagation(hold=hold, substeps=substeps, h_rho=h_rho)
+
+
 def _fit_theta(pb: _Problem, theta0: FloatArray, q: float, theta_set: ParameterSet,
-               max_nfev: int) -> tuple[FloatArray, FloatArray]:
+               max_nfev: int) -> tuple[FloatArray, FloatArray, int, float]:
     """Least squares of θ within Θ's bounding box, then projected onto Θ (exact for a box; for
     another convex Θ the projection is in the norm of the fit's own information JᵀJ)."""
     lo, hi = theta_bounds(theta_set)
@@ -360,9 +393,24 @@ def _fit_theta(pb: _Problem, theta0: FloatArray, q: float, theta_set: ParameterS
                         ftol=FIT_RTOL, loss="huber", f_scale=HUBER_C)
     theta = np.asarray(sol.x, dtype=np.float64)
     J = np.asarray(sol.jac, dtype=np.float64)
+    cov = _inverse_information(J)
     if not isinstance(theta_set, Box):
-        theta = project_theta(theta_set, theta, _inverse_information(J))
-    return theta, J
+        theta = project_theta(theta_set, theta, cov)
+    return theta, J, int(sol.nfev), _step_to_go(J, np.asarray(sol.fun), theta, cov, lo, hi)
+
+
+def _step_to_go(J: FloatArray, res: FloatArray, theta: FloatArray, cov: FloatArray,
+                lo: FloatArray, hi: FloatArray) -> float:
+    """The Gauss–Newton step of Huber's loss still to go at θ (weights min(1, c/|ε|)),
+    clipped to Θ's box, in standard errors of θ (its largest component)."""
+    w = np.minimum(1.0, HUBER_C / np.maximum(np.abs(res), 1e-300))
+    Jw = J * w[:, None]
+    delta = -np.linalg.lstsq(Jw.T @ J, Jw.T @ res, rcond=None)[0]
+    move = np.clip(theta + delta, lo, hi) - theta
+    se = np.sqrt(np.maximum(np.diag(cov), 1e-300))
+    with np.errstate(invalid="ignore"):
+        ratio = np.where(np.isfinite(se), np.abs(move) / se, 0.0)
+    return float(np.max(ratio, initial=0.0))
 
 
 def _search_q(pb: _Problem, theta: FloatArray, q0: float) -> float:
@@ -392,7 +440,8 @@ def _inverse_information(J: FloatArray) -> FloatArray:
 
 def record_bound(system: PerturbedLinearSystem, t: FloatArray, U: FloatArray, Y: FloatArray,
                  *, theta: FloatArray, x_hat0: FloatArray, x_sd: FloatArray,
-                 noise_std: FloatArray, h_rho: float = H_RHO, compiled: bool | None = None
+                 noise_std: FloatArray, hold: str = "foh", substeps: int | None = None,
+                 h_rho: float = H_RHO, compiled: bool | None = None
                  ) -> tuple[float, FloatArray]:
     """At a fixed θ: the process-noise intensity q the record supports, and θ's Cramér–Rao
     covariance with it (one filter set-up for both).
@@ -405,6 +454,9 @@ def record_bound(system: PerturbedLinearSystem, t: FloatArray, U: FloatArray, Y:
     x_hat0, x_sd : ndarray (n,)
         Prior mean and standard deviation of x(t₀).
     noise_std : ndarray (r,)
+    hold : {"zoh", "foh", "bandlimited"}
+    substeps : int, optional
+        Default: chosen at θ (:func:`~thetahat.estimation.statistical.plant_kernel.choose_substeps`).
     h_rho : float
     compiled : bool, optional
 
@@ -417,26 +469,28 @@ def record_bound(system: PerturbedLinearSystem, t: FloatArray, U: FloatArray, Y:
         As :func:`fisher_covariance` at (θ, q̂), on the whole record.
     """
     sigma = np.asarray(noise_std, dtype=np.float64)
-    pb = _problem(system, t, U, Y, x_hat0, x_sd, sigma, h_rho, compiled)
     th = np.asarray(theta, dtype=np.float64)
+    prop = _propagation(system, t, U, Y, th, x_hat0, sigma, hold, substeps, h_rho, compiled)
+    pb = _problem(system, t, U, Y, x_hat0, x_sd, sigma, prop, compiled)
     h_med = sample_interval(t)
     k = Q_SEARCH_SAMPLES
     head = pb if t.shape[0] <= k else _problem(system, t[:k], U[:k], Y[:k], x_hat0, x_sd,
-                                               sigma, h_rho, compiled)
+                                               sigma, prop, compiled)
     q = _search_q(head, th, process_noise_scale(system, h_med, sigma))
     return q, _covariance(pb, th, q, *theta_box(system))
 
 
 def process_noise_at(system: PerturbedLinearSystem, t: FloatArray, U: FloatArray,
                      Y: FloatArray, *, theta: FloatArray, x_hat0: FloatArray,
-                     x_sd: FloatArray, noise_std: FloatArray, h_rho: float = H_RHO,
+                     x_sd: FloatArray, noise_std: FloatArray, hold: str = "foh",
+                     substeps: int | None = None, h_rho: float = H_RHO,
                      compiled: bool | None = None) -> float:
     """q̂ at a fixed θ: the bounded search of :func:`record_bound`, on the record's first
     :data:`Q_SEARCH_SAMPLES` samples (0 when the output-error model has the larger likelihood).
 
     Parameters
     ----------
-    system, t, U, Y, theta, x_hat0, x_sd, noise_std, h_rho, compiled
+    system, t, U, Y, theta, x_hat0, x_sd, noise_std, hold, substeps, h_rho, compiled
         As for :func:`record_bound`.
 
     Returns
@@ -444,11 +498,11 @@ def process_noise_at(system: PerturbedLinearSystem, t: FloatArray, U: FloatArray
     float
     """
     sigma = np.asarray(noise_std, dtype=np.float64)
-    k = Q_SEARCH_SAMPLES
-    n = min(t.shape[0], k)
-    head = _problem(system, t[:n], U[:n], Y[:n], x_hat0, x_sd, sigma, h_rho, compiled)
-    return _search_q(head, np.asarray(theta, dtype=np.float64),
-                     process_noise_scale(system, sample_interval(t), sigma))
+    th = np.asarray(theta, dtype=np.float64)
+    prop = _propagation(system, t, U, Y, th, x_hat0, sigma, hold, substeps, h_rho, compiled)
+    n = min(t.shape[0], Q_SEARCH_SAMPLES)
+    head = _problem(system, t[:n], U[:n], Y[:n], x_hat0, x_sd, sigma, prop, compiled)
+    return _search_q(head, th, process_noise_scale(system, sample_interval(t), sigma))
 
 
 class RecordEvidence(NamedTuple):
@@ -479,7 +533,8 @@ class RecordEvidence(NamedTuple):
 
 def record_evidence(system: PerturbedLinearSystem, t: FloatArray, U: FloatArray, Y: FloatArray,
                     *, theta: FloatArray, x_hat0: FloatArray, x_sd: FloatArray,
-                    noise_std: FloatArray, q: float | None = None, h_rho: float = H_RHO,
+                    noise_std: FloatArray, q: float | None = None, hold: str = "foh",
+                    substeps: int | None = None, h_rho: float = H_RHO,
                     compiled: bool | None = None) -> RecordEvidence:
     """:func:`record_bound` with the score of the innovations at θ: is θ where the data put it?
 
@@ -490,8 +545,9 @@ def record_evidence(system: PerturbedLinearSystem, t: FloatArray, U: FloatArray,
 
     Parameters
     ----------
-    system, t, U, Y, theta, x_hat0, x_sd, noise_std, h_rho, compiled
-        As for :func:`record_bound`.
+    system, t, U, Y, theta, x_hat0, x_sd, noise_std, hold, substeps, h_rho, compiled
+        As for :func:`record_bound` (the sub-steps, when not given, are chosen once at θ and
+        serve the q search and the Jacobian alike).
     q : float, optional
         The intensity of the process noise; default: searched at θ
         (:func:`process_noise_at`).
@@ -514,11 +570,13 @@ def record_evidence(system: PerturbedLinearSystem, t: FloatArray, U: FloatArray,
     (True, True)
     """
     sigma = np.asarray(noise_std, dtype=np.float64)
-    pb = _problem(system, t, U, Y, x_hat0, x_sd, sigma, h_rho, compiled)
     th = np.asarray(theta, dtype=np.float64)
+    prop = _propagation(system, t, U, Y, th, x_hat0, sigma, hold, substeps, h_rho, compiled)
+    pb = _problem(system, t, U, Y, x_hat0, x_sd, sigma, prop, compiled)
     if q is None:
         q = process_noise_at(system, t, U, Y, theta=th, x_hat0=x_hat0, x_sd=x_sd,
-                             noise_std=sigma, h_rho=h_rho, compiled=compiled)
+                             noise_std=sigma, hold=hold, substeps=prop.substeps, h_rho=h_rho,
+                             compiled=compiled)
     r0, J = _jacobian(pb, th, q, *theta_box(system))
     cov = _inverse_information(J)
     d = np.sqrt(np.maximum(np.einsum("ij,ij->j", J, J), 1e-300))
@@ -530,7 +588,8 @@ def record_evidence(system: PerturbedLinearSystem, t: FloatArray, U: FloatArray,
 
 def fisher_covariance(system: PerturbedLinearSystem, t: FloatArray, U: FloatArray,
                       Y: FloatArray, *, theta: FloatArray, q: float, x_hat0: FloatArray,
-                      x_sd: FloatArray, noise_std: FloatArray, h_rho: float = H_RHO,
+                      x_sd: FloatArray, noise_std: FloatArray, hold: str = "foh",
+                      substeps: int | None = None, h_rho: float = H_RHO,
                       compiled: bool | None = None) -> FloatArray:
     """The Cramér–Rao covariance of θ on a record: the inverse Fisher information at θ.
 
@@ -548,6 +607,9 @@ def fisher_covariance(system: PerturbedLinearSystem, t: FloatArray, U: FloatArra
         Process-noise intensity (0: the output-error model).
     x_hat0, x_sd : ndarray (n,)
     noise_std : ndarray (r,)
+    hold : {"zoh", "foh", "bandlimited"}
+    substeps : int, optional
+        Default: chosen at θ (:func:`~thetahat.estimation.statistical.plant_kernel.choose_substeps`).
     h_rho : float
     compiled : bool, optional
 
@@ -555,8 +617,10 @@ def fisher_covariance(system: PerturbedLinearSystem, t: FloatArray, U: FloatArra
     -------
     ndarray (p, p)
     """
-    pb = _problem(system, t, U, Y, x_hat0, x_sd, np.asarray(noise_std, dtype=np.float64),
-                  h_rho, compiled)
+    sigma = np.asarray(noise_std, dtype=np.float64)
+    prop = _propagation(system, t, U, Y, np.asarray(theta, dtype=np.float64), x_hat0, sigma,
+                        hold, substeps, h_rho, compiled)
+    pb = _problem(system, t, U, Y, x_hat0, x_sd, sigma, prop, compiled)
     return _covariance(pb, np.asarray(theta, dtype=np.float64), q, *theta_box(system))
 
 
@@ -584,8 +648,8 @@ def _jacobian(pb: _Problem, th: FloatArray, q: float, lo: FloatArray, hi: FloatA
 def fit_process_noise(system: PerturbedLinearSystem, t: FloatArray, U: FloatArray,
                       Y: FloatArray, *, theta0: FloatArray, x_hat0: FloatArray,
                       x_sd: FloatArray, noise_std: FloatArray, q: float | None = None,
-                      max_nfev: int = 60, h_rho: float = H_RHO,
-                      compiled: bool | None = None) -> ProcessNoiseFit:
+                      max_nfev: int = 60, hold: str = "foh", substeps: int | None = None,
+                      h_rho: float = H_RHO, compiled: bool | None = None) -> ProcessNoiseFit:
     """Maximum-likelihood θ and q of the model with process noise on φ (module docstring).
 
     Parameters
@@ -604,6 +668,12 @@ def fit_process_noise(system: PerturbedLinearSystem, t: FloatArray, U: FloatArra
         The intensity; default: estimated with θ.
     max_nfev : int
         Filter passes per Gauss–Newton fit of θ (each costs p + 1 with the differences).
+    hold : {"zoh", "foh", "bandlimited"}
+        u between the samples (:mod:`~thetahat.estimation.hold`); U holds the samples it
+        reconstructs from (:func:`~thetahat.estimation.statistical.input_hold.stage2_samples`).
+    substeps : int, optional
+        The RK4 sub-steps' accuracy floor; default: chosen at θ₀ on the record
+        (:func:`~thetahat.estimation.statistical.plant_kernel.choose_substeps`).
     h_rho : float
     compiled : bool, optional
 
@@ -631,16 +701,17 @@ def fit_process_noise(system: PerturbedLinearSystem, t: FloatArray, U: FloatArra
     """
     theta_set = system.require_parameter_set("stage 2")
     sigma = np.asarray(noise_std, dtype=np.float64)
-    pb = _problem(system, t, U, Y, x_hat0, x_sd, sigma, h_rho, compiled)
+    theta = project_theta(theta_set, np.asarray(theta0, dtype=np.float64))
+    prop = _propagation(system, t, U, Y, theta, x_hat0, sigma, hold, substeps, h_rho, compiled)
+    pb = _problem(system, t, U, Y, x_hat0, x_sd, sigma, prop, compiled)
     h_med = sample_interval(t)
     q0 = process_noise_scale(system, h_med, sigma)
-    theta = project_theta(theta_set, np.asarray(theta0, dtype=np.float64))
     q_now = q0 if q is None else float(q)
     if q is None:
         for _ in range(ALTERNATIONS):
-            theta, _ = _fit_theta(pb, theta, q_now, theta_set, max_nfev)
+            theta = _fit_theta(pb, theta, q_now, theta_set, max_nfev)[0]
             q_now = _search_q(pb, theta, q0)
-    theta, J = _fit_theta(pb, theta, q_now, theta_set, max_nfev)
+    theta, J, nfev, step_se = _fit_theta(pb, theta, q_now, theta_set, max_nfev)
     NU, LS, xP = pb.filter(theta, q_now)
     nu = NU[pb.valid]
     if not np.all(np.isfinite(nu)):
@@ -654,4 +725,5 @@ def fit_process_noise(system: PerturbedLinearSystem, t: FloatArray, U: FloatArra
                            cost=float(np.mean(nu * nu)) if n_meas else math.nan,
                            n_meas=n_meas, noise_std=sigma, core_cost=mad_variance(nu),
                            burst_fraction=float(np.mean(np.abs(nu) > HUBER_C))
-                           if n_meas else math.nan)
+                           if n_meas else math.nan, iterations=nfev, step_se=step_se,
+                           substeps=pb.prop.substeps)

@@ -43,7 +43,6 @@ process noise, imported where it is used: it brings SciPy's optimisers).
 
 from __future__ import annotations
 
-import functools
 import math
 from dataclasses import dataclass, replace
 from typing import TYPE_CHECKING, Callable
@@ -55,15 +54,17 @@ from ...errors import DimensionError, NonFiniteError
 from ...model.system import PerturbedLinearSystem
 from .common import resolve_noise_std, theta_prior_sd, x_prior_sd
 from .noise_level import MAD_VARIANCE_SD, MIN_SAMPLES
-from .plant_kernel import H_RHO, ModelKernel, jit, model_kernel
+from .plant_kernel import H_RHO, Propagation, choose_substeps, model_kernel
+from .sweep import sweep_kernel
+from ..hold import check_hold
 from .stage2_set import project_theta
 
 if TYPE_CHECKING:
     from .likelihood import ProcessNoiseFit
 
 __all__ = ["FitResult", "FitSchedule", "INFO_GROWTH", "MAX_BURST_FRACTION", "MAX_HALVINGS",
-           "Q_SEARCH_GROWTH", "STEP_TOL", "doubling_schedule", "first_fit_samples",
-           "fit_as_prior", "fit_map", "fit_record", "information_schedule", "sweep_kernel"]
+           "Q_SEARCH_GROWTH", "REJECT_SE_GROWTH", "REJECT_STEP_SE", "STEP_TOL", "doubling_schedule", "first_fit_samples",
+           "fit_as_prior", "fit_map", "fit_record", "information_schedule"]
 
 FloatArray = NDArray[np.float64]
 
@@ -71,6 +72,15 @@ FloatArray = NDArray[np.float64]
 STEP_TOL = 0.02
 #: Halvings of the Gauss–Newton step before the fit gives up improving.
 MAX_HALVINGS = 10
+#: A fit that stopped this many standard errors (or more) short of its optimum — the
+#: Gauss–Newton step still to go at its result — is not applied (:meth:`FitResult.rejection`):
+#: fifty times :data:`STEP_TOL`, far from the tolerance, and the size of the scatter it would
+#: add to an efficient estimate.
+REJECT_STEP_SE = 1.0
+#: A fit whose standard error of a parameter is more than this many times the previous
+#: applied fit's is not applied: two orders of magnitude (more data never does that; the
+#: cylinder's fit at sample 125 749 that was applied had 1e4).
+REJECT_SE_GROWTH = 100.0
 #: A fit with process noise is consistent with at most this fraction of its normalised
 #: innovations in bursts (beyond Huber's ±3; 0.27 % for Gaussian ones): a model error that
 #: comes and goes (an unmeasured force pulse, a slip) is what the Huber loss of that fit is
@@ -116,6 +126,12 @@ class FitResult:
     q_window : int
         For the fit with process noise: the samples of the window on which q was last searched
         (:func:`fit_record`); 0 otherwise.
+    step_se : float
+        The Gauss–Newton step still to go at the returned point (projected onto Θ), in
+        standard errors of θ (its largest component): below :data:`STEP_TOL` when the fit
+        converged; inf when no step was computed.
+    substeps : int
+        The RK4 sub-steps' accuracy floor the fit propagated with.
     """
 
     k0: int
@@ -133,6 +149,8 @@ class FitResult:
     core_cost: float = math.nan
     burst_fraction: float = math.nan
     q_window: int = 0
+    step_se: float = 0.0
+    substeps: int = 1
 
     @property
     def finite(self) -> bool:
@@ -161,6 +179,42 @@ class FitResult:
         return bool(self.core_cost <= 1.0 + 6.0 * MAD_VARIANCE_SD / root_n
                     and self.burst_fraction <= MAX_BURST_FRACTION)
 
+    def rejection(self, previous: FitResult | None = None) -> str | None:
+        """Why this fit must not be applied, or None: a fit that did not fit is never applied.
+
+        A fit is rejected when it is not finite, when it stopped at least
+        :data:`REJECT_STEP_SE` standard errors short of its optimum (its own Gauss–Newton step
+        still to go: it stalled, or hit its iteration limit far from the tolerance), or when a
+        standard error of θ grew more than :data:`REJECT_SE_GROWTH` times against
+        ``previous``, the last fit applied (a fit of more data has smaller standard errors;
+        growth by orders of magnitude is a fit that lost the optimum, whatever its cost says).
+
+        Parameters
+        ----------
+        previous : FitResult, optional
+            The last fit applied.
+
+        Returns
+        -------
+        str or None
+            One sentence naming the samples, the check and the numbers.
+        """
+        where = f"the fit of samples {self.k0}…{self.k1 - 1}"
+        if not self.finite:
+            return f"{where} came back non-finite"
+        if not self.step_se <= REJECT_STEP_SE:
+            return (f"{where} stopped {self.step_se:.3g} standard errors short of its optimum "
+                    f"after {self.iterations} iteration(s) (it did not converge)")
+        if previous is not None and previous.finite:
+            old, new = previous.theta_se, self.theta_se
+            ok = (old > 0) & np.isfinite(old)
+            if np.any(ok) and np.any(new[ok] > REJECT_SE_GROWTH * old[ok]):
+                ratio = float(np.max(new[ok] / old[ok]))
+                return (f"{where} has standard errors up to {ratio:.3g} times the previous "
+                        f"fit's (of samples {previous.k0}…{previous.k1 - 1}): it lost the "
+                        "optimum")
+        return None
+
     @classmethod
     def of_process_noise(cls, pf: ProcessNoiseFit, k1: int, x_hat0: FloatArray,
                          x_sd: FloatArray) -> FitResult:
@@ -177,9 +231,11 @@ class FitResult:
         cov_end = cov.copy()
         cov_end[:n, :n] = pf.P_end
         return cls(k0=0, k1=k1, x_start=np.array(x_hat0, dtype=np.float64), x_end=pf.x_end,
-                   theta=pf.theta, cov=cov, cov_end=cov_end, cost=pf.cost, iterations=0,
-                   noise_std=pf.noise_std, n_meas=pf.n_meas, process_noise=pf.q,
-                   core_cost=pf.core_cost, burst_fraction=pf.burst_fraction)
+                   theta=pf.theta, cov=cov, cov_end=cov_end, cost=pf.cost,
+                   iterations=pf.iterations, noise_std=pf.noise_std, n_meas=pf.n_meas,
+                   process_noise=pf.q, core_cost=pf.core_cost,
+                   burst_fraction=pf.burst_fraction, step_se=pf.step_se,
+                   substeps=pf.substeps)
 
     @property
     def theta_se(self) -> FloatArray:
@@ -190,104 +246,6 @@ class FitResult:
     def __repr__(self) -> str:
         return (f"FitResult(samples {self.k0}…{self.k1 - 1}, theta={self.theta}, "
                 f"se={self.theta_se}, cost={self.cost:.3g}, iterations={self.iterations})")
-
-
-def _make_sweep(model: ModelKernel) -> Callable[..., float]:
-    prop = model.propagate
-    C = model.C
-
-    def sweep(x0, th, U, Y, tt, k0, k1, skip0, Rinv, h_rho, want, A, b, T, X):
-        """Data cost over k0…k1−1 (k0 itself not if skip0) from x(k0) = x0; with want: A = Σψᵀ R⁻¹ψ, b = Σψᵀ R⁻¹ r,
-        T = ∂x_{k1−1}/∂q; X receives the trajectory."""
-        n = x0.shape[0]
-        p = th.shape[0]
-        r = C.shape[0]
-        nq = n + p
-        x = x0.copy()
-        S = np.zeros((n, nq))
-        for i in range(n):
-            S[i, i] = 1.0
-        Phi = np.empty((n, n))
-        Gam = np.empty((n, p))
-        Sn = np.empty((n, nq))
-        psi = np.empty((r, nq))
-        res = np.empty(r)
-        if want:
-            A[:, :] = 0.0
-            b[:] = 0.0
-        J = 0.0
-        for k in range(k0, k1):
-            if k > k0:
-                x = prop(x, th, U[k - 1], U[k], tt[k] - tt[k - 1], h_rho, want, Phi, Gam)
-                if want:
-                    for i in range(n):
-                        for j in range(nq):
-                            acc = Gam[i, j - n] if j >= n else 0.0
-                            for a in range(n):
-                                acc += Phi[i, a] * S[a, j]
-                            Sn[i, j] = acc
-                    for i in range(n):      # element by element: numba's array-into-slice
-                        for j in range(nq):  # assignment compiles a string-formatting path
-                            S[i, j] = Sn[i, j]
-            for i in range(n):
-                X[k - k0, i] = x[i]
-            ok = True
-            for i in range(r):
-                acc = Y[k, i]
-                for a in range(n):
-                    acc -= C[i, a] * x[a]
-                res[i] = acc
-                if not math.isfinite(acc):
-                    ok = False
-            if not ok or (skip0 and k == k0):
-                continue
-            for i in range(r):
-                J += res[i] * res[i] * Rinv[i]
-            if want:
-                for i in range(r):
-                    for j in range(nq):
-                        acc = 0.0
-                        for a in range(n):
-                            acc += C[i, a] * S[a, j]
-                        psi[i, j] = acc
-                for j in range(nq):
-                    for i in range(r):
-                        b[j] += psi[i, j] * Rinv[i] * res[i]
-                    for l in range(j, nq):
-                        acc = 0.0
-                        for i in range(r):
-                            acc += psi[i, j] * Rinv[i] * psi[i, l]
-                        A[j, l] += acc
-        if want:
-            for j in range(nq):
-                for l in range(j):
-                    A[j, l] = A[l, j]
-            for i in range(n):
-                for j in range(nq):
-                    T[i, j] = S[i, j]
-        return J
-
-    return jit(sweep, model.compiled)
-
-
-@functools.lru_cache(maxsize=16)
-def sweep_kernel(model: ModelKernel) -> Callable[..., float]:
-    """The fit's pass over a window: the data cost, its Gauss–Newton terms and the trajectory.
-
-    Parameters
-    ----------
-    model : ModelKernel
-        The plant kernels (compiled with them; built once per model kernel).
-
-    Returns
-    -------
-    callable
-        ``sweep(x0, th, U, Y, t, k0, k1, skip0, Rinv, h_rho, want, A, b, T, X) -> J``: the
-        data cost Σ ‖y_k − C x_k‖²_{R⁻¹} over samples k0 … k1−1 (k0 left out when ``skip0``)
-        from x(t_{k0}) = x0 at θ = th; with ``want`` also A = Σ ψᵀ R⁻¹ ψ, b = Σ ψᵀ R⁻¹ r and
-        T = ∂x_{k1−1}/∂q; X (k1 − k0, n) receives the trajectory.
-    """
-    return _make_sweep(model)
 
 
 def _solve_scaled(M: FloatArray, g: FloatArray) -> tuple[FloatArray, FloatArray]:
@@ -304,7 +262,7 @@ def _solve_scaled(M: FloatArray, g: FloatArray) -> tuple[FloatArray, FloatArray]
 def fit_map(system: PerturbedLinearSystem, t: FloatArray, U: FloatArray, Y: FloatArray, *,
             k0: int, k1: int, q_start: FloatArray, q_prior: FloatArray,
             prior_info: FloatArray, noise_std: FloatArray, max_iter: int = 6,
-            skip_first: bool = False,
+            skip_first: bool = False, hold: str = "foh", substeps: int | None = None,
             h_rho: float = H_RHO, compiled: bool | None = None) -> FitResult:
     """One Gauss–Newton MAP fit of q = col(x(t_{k0}), θ) on samples k0 … k1 − 1.
 
@@ -312,7 +270,9 @@ def fit_map(system: PerturbedLinearSystem, t: FloatArray, U: FloatArray, Y: Floa
     ----------
     system : PerturbedLinearSystem
     t, U, Y : ndarray, shapes (N,), (N, m), (N, r)
-        The record (validated by the caller); NaN in Y marks missing samples.
+        The record (validated by the caller); U the samples stage 2 reconstructs u from
+        (:func:`~thetahat.estimation.statistical.input_hold.stage2_samples`); NaN in Y marks
+        missing samples.
     k0, k1 : int
         The window.
     q_start : ndarray (n + p,)
@@ -323,12 +283,19 @@ def fit_map(system: PerturbedLinearSystem, t: FloatArray, U: FloatArray, Y: Floa
     max_iter : int
     skip_first : bool
         Leave y_{k0} out (it is already summarised by the arrival cost).
+    hold : {"zoh", "foh", "bandlimited"}
+        u between the samples (:mod:`~thetahat.estimation.hold`).
+    substeps : int, optional
+        The RK4 sub-steps' accuracy floor; default: chosen on the window at ``q_start``
+        (:func:`~thetahat.estimation.statistical.plant_kernel.choose_substeps`).
     h_rho : float
     compiled : bool, optional
 
     Returns
     -------
     FitResult
+        With ``step_se``: the Gauss–Newton step still to go at the returned point, in standard
+        errors of θ (below :data:`STEP_TOL` when the fit converged).
 
     Examples
     --------
@@ -342,11 +309,11 @@ def fit_map(system: PerturbedLinearSystem, t: FloatArray, U: FloatArray, Y: Floa
     ...               q_prior=np.array([0.0, 0.0, 0.5]),
     ...               prior_info=np.diag([1e-2, 1e-2, 1 / 0.2375 ** 2]),
     ...               noise_std=np.array([0.02]), max_iter=20, compiled=False)
-    >>> bool(abs(fit.theta[0] - 0.28) < 3 * fit.theta_se[0] + 1e-3)
-    True
+    >>> bool(abs(fit.theta[0] - 0.28) < 3 * fit.theta_se[0] + 1e-3), fit.step_se < STEP_TOL
+    (True, True)
     """
     model = model_kernel(system, compiled=compiled)
-    sweep = sweep_kernel(model)
+    sw = sweep_kernel(model)
     n, p = system.n, system.p
     nq = n + p
     theta_set = system.require_parameter_set("stage 2")
@@ -354,10 +321,16 @@ def fit_map(system: PerturbedLinearSystem, t: FloatArray, U: FloatArray, Y: Floa
     A, b, T = np.empty((nq, nq)), np.empty(nq), np.empty((n, nq))
     X = np.empty((k1 - k0, n))
     tt = np.ascontiguousarray(t, dtype=np.float64)
+    Uc = np.ascontiguousarray(U, dtype=np.float64)
+    if substeps is None:
+        substeps = choose_substeps(model, tt[k0:k1], Uc[k0:k1], Y[k0:k1], q_start[n:],
+                                   q_start[:n], noise_std, hold=hold, h_rho=h_rho)
+    pc, WT = Propagation(hold=hold, substeps=substeps, h_rho=h_rho).arrays()
 
     def total(q: FloatArray, want: bool) -> float:
         d = q - q_prior
-        Jd = sweep(q[:n].copy(), q[n:].copy(), U, Y, tt, k0, k1, skip_first, Rinv, h_rho, want, A, b, T, X)
+        Jd = sw(q[:n].copy(), q[n:].copy(), Uc, Y, tt, k0, k1, skip_first, Rinv, pc, WT, want,
+                A, b, T, X)
         return Jd + float(d @ prior_info @ d)
 
     q = q_start.copy()
@@ -365,6 +338,7 @@ def fit_map(system: PerturbedLinearSystem, t: FloatArray, U: FloatArray, Y: Floa
     iterations = 0
     J = total(q, True)
     Minv = np.zeros((nq, nq))
+    at_q = True                                 # X holds q's trajectory (not a trial's)
     for it in range(max_iter):
         iterations = it + 1
         M = A + prior_info
@@ -376,6 +350,7 @@ def fit_map(system: PerturbedLinearSystem, t: FloatArray, U: FloatArray, Y: Floa
             q_new = q + step * delta
             q_new[n:] = project_theta(theta_set, q_new[n:], Minv[n:, n:])
             J_new = total(q_new, False)
+            at_q = False
             if math.isfinite(J_new) and J_new <= J:
                 accepted = True
                 break
@@ -385,10 +360,17 @@ def fit_map(system: PerturbedLinearSystem, t: FloatArray, U: FloatArray, Y: Floa
         moved = np.abs(q_new[n:] - q[n:])
         q = q_new
         J = total(q, True)                      # A, b, T, X at the new point
+        at_q = True
         if np.all(moved < STEP_TOL * se):
             break
+    if not at_q:
+        J = total(q, True)
     M = A + prior_info
-    _, Minv = _solve_scaled(M, b)
+    delta, Minv = _solve_scaled(M, b - prior_info @ (q - q_prior))
+    se = np.sqrt(np.maximum(np.diag(Minv)[n:], 1e-300))
+    # the step still to go, projected onto Θ (a fit that ends on Θ's face has converged there)
+    th_next = project_theta(theta_set, q[n:] + delta[n:], Minv[n:, n:])
+    step_se = float(np.max(np.abs(th_next - q[n:]) / se, initial=0.0))
     x_end = X[-1].copy()
     Tq = np.zeros((nq, nq))
     Tq[:n] = T
@@ -398,7 +380,7 @@ def fit_map(system: PerturbedLinearSystem, t: FloatArray, U: FloatArray, Y: Floa
     return FitResult(k0=k0, k1=k1, x_start=q[:n].copy(), x_end=x_end, theta=q[n:].copy(),
                      cov=Minv, cov_end=0.5 * (cov_end + cov_end.T),
                      cost=float(J) / n_meas, iterations=iterations, noise_std=noise_std,
-                     n_meas=n_meas)
+                     n_meas=n_meas, step_se=step_se, substeps=int(substeps))
 
 
 def doubling_schedule(first: float, cap: float = math.inf) -> Callable[[int], float]:
@@ -458,6 +440,12 @@ class FitSchedule:
         σ; default estimated from the window's data.
     max_iter, first_max_iter : int
         Gauss–Newton iterations (the first fit starts cold and may need more).
+    hold : {"zoh", "foh", "bandlimited"}
+        u between the samples (:mod:`~thetahat.estimation.hold`; default ``"foh"``).
+    substeps : int, optional
+        The RK4 sub-steps' accuracy floor of the record (the estimators choose it once per
+        record, :func:`~thetahat.estimation.statistical.plant_kernel.choose_substeps`);
+        default None: each fit chooses on its own window.
     h_rho : float
     compiled : bool, optional
     """
@@ -469,8 +457,13 @@ class FitSchedule:
     noise_std: ArrayLike | None = None
     max_iter: int = 6
     first_max_iter: int = 25
+    hold: str = "foh"
+    substeps: int | None = None
     h_rho: float = H_RHO
     compiled: bool | None = None
+
+    def __post_init__(self) -> None:
+        check_hold(self.hold)
 
     def sample_counts(self, growth: float | None = None) -> Callable[[int], int]:
         """The fits' sample counts when ``times`` is None: j ↦ k_j.
@@ -579,7 +572,8 @@ class FitSchedule:
         return fit_map(self.system, t, U, Y, k0=k0, k1=k1, q_start=q_start, q_prior=q_prior,
                        prior_info=info, noise_std=sigma, skip_first=not full,
                        max_iter=self.first_max_iter if previous is None else self.max_iter,
-                       h_rho=self.h_rho, compiled=self.compiled)
+                       hold=self.hold, substeps=self.substeps, h_rho=self.h_rho,
+                       compiled=self.compiled)
 
 
 #: Growth of the information between consecutive fits of :func:`information_schedule`.
@@ -696,14 +690,20 @@ def fit_record(schedule: FitSchedule, t: FloatArray, U: FloatArray, Y: FloatArra
     q = previous.process_noise if previous is not None else 0.0
     q_window = previous.q_window if previous is not None else 0
     fit = schedule.fit(t, U, Y, k1, previous, prior0)
+    if final and schedule.substeps is not None and fit.finite:
+        # the record's sub-steps were chosen at the start values: check them at the estimate
+        n = choose_substeps(model_kernel(schedule.system, compiled=schedule.compiled),
+                            t[:k1], U[:k1], Y[:k1], fit.theta, fit.x_start, fit.noise_std,
+                            hold=schedule.hold, h_rho=schedule.h_rho)
+        if n > schedule.substeps:
+            return fit_record(replace(schedule, substeps=n), t, U, Y, k1, fit, prior0,
+                              final=True)
     if fit.consistent:
         return fit
     search = final or q == 0.0 or k1 >= Q_SEARCH_GROWTH * q_window
 
     def with_q(q_fixed: float | None) -> FitResult:
-        return _with_process_noise(schedule.system, t, U, Y, k1, fit, x_hat0, x_sd,
-                                   schedule.noise_std, q=q_fixed, h_rho=schedule.h_rho,
-                                   compiled=schedule.compiled)
+        return _with_process_noise(schedule, t, U, Y, k1, fit, x_hat0, x_sd, q=q_fixed)
     try:
         alt = with_q(None if search else q)
     except NonFiniteError:
@@ -714,19 +714,19 @@ def fit_record(schedule: FitSchedule, t: FloatArray, U: FloatArray, Y: FloatArra
     return alt if alt.consistent or alt.cost < fit.cost else fit
 
 
-def _with_process_noise(system: PerturbedLinearSystem, t: FloatArray, U: FloatArray,
-                        Y: FloatArray, k1: int, previous: FitResult, x_hat0: FloatArray,
-                        x_sd: FloatArray, noise_std: ArrayLike | None, *, q: float | None, h_rho: float,
-                        compiled: bool | None) -> FitResult:
-    """The fit of samples 0 … k1 − 1 by the likelihood with process noise on φ, as a FitResult.
-
-    ``q``: the intensity (None: estimated with θ).
-    """
+def _with_process_noise(schedule: FitSchedule, t: FloatArray, U: FloatArray, Y: FloatArray,
+                        k1: int, previous: FitResult, x_hat0: FloatArray, x_sd: FloatArray, *,
+                        q: float | None) -> FitResult:
+    """The fit of samples 0 … k1 − 1 by the likelihood with process noise on φ, as a FitResult
+    (the output-error fit ``previous``'s sub-steps). ``q``: the intensity (None: estimated
+    with θ)."""
     from .likelihood import fit_process_noise
-    sigma = resolve_noise_std(noise_std, Y[:k1])
-    pf = fit_process_noise(system, t[:k1], U[:k1], Y[:k1], theta0=previous.theta,
+    sigma = resolve_noise_std(schedule.noise_std, Y[:k1])
+    pf = fit_process_noise(schedule.system, t[:k1], U[:k1], Y[:k1], theta0=previous.theta,
                            x_hat0=x_hat0, x_sd=x_sd, noise_std=sigma, q=q,
-                           max_nfev=60 if q is None else 20, h_rho=h_rho, compiled=compiled)
+                           max_nfev=60 if q is None else 20, hold=schedule.hold,
+                           substeps=previous.substeps, h_rho=schedule.h_rho,
+                           compiled=schedule.compiled)
     return FitResult.of_process_noise(pf, k1, x_hat0, x_sd)
 
 

@@ -8,6 +8,15 @@ latest fit's posterior (:func:`~.map_fit.fit_as_prior`: the fit is the arrival c
 samples before it), so every row, not only the fits', follows the information of the data so
 far. A run stops where the EKF between fits diverges or a fit fails
 (:mod:`~thetahat.estimation.status`: raised with ``throw=True``, returned with ``throw=False``).
+A fit that did not fit — it stopped a standard error or more short of its
+optimum, or its standard errors grew by orders of magnitude against the previous fit's
+(:meth:`~.map_fit.FitResult.rejection`) — is never applied: it is counted in
+``fits_rejected`` with its reason, and the estimate goes on from the last fit applied.
+
+The input between the samples is the ``hold``'s (:mod:`~thetahat.estimation.hold`; default
+``"foh"``), and the RK4 sub-steps of a record are chosen once, at the start values
+(:func:`~thetahat.estimation.statistical.plant_kernel.choose_substeps`), for the fits and the
+EKF between them alike (the final fit checks them at its estimate).
 
 What it may import: :mod:`thetahat.model`, the package's errors, the bottom of the estimation
 wing (``protocol``, ``records``, ``status``), and, in this room, ``common``, ``ekf_kernels``,
@@ -30,14 +39,15 @@ from ..protocol import (Diagnostics, EstimateResult, check_state, missing_sample
                         stream_sample)
 from ..records import check_record
 from ..status import Status
-from .common import (RunStop, model_phi_hat, sample_interval, start_values, stopped_result,
-                     theta_prior_sd)
+from .common import (RunStop, model_phi_hat, resolve_noise_std, sample_interval, start_values,
+                     stopped_result, theta_prior_sd)
 from .ekf_kernels import divergence_message, ekf_kernels, ekf_sample
-from .input_hold import InputHistory, smooth_input
-from .map_fit import (INFO_GROWTH, FitResult, FitSchedule, fit_as_prior, fit_record,
-                      sweep_kernel)
+from ..hold import check_hold
+from .input_hold import InputHistory, stage2_samples, streamable
+from .map_fit import INFO_GROWTH, FitResult, FitSchedule, fit_as_prior, fit_record
 from .noise_level import MIN_SAMPLES
-from .plant_kernel import model_kernel
+from .plant_kernel import Propagation, choose_substeps, model_kernel
+from .sweep import sweep_kernel
 from .stage2_set import stage2_set
 
 __all__ = ["MapDiagnostics", "MapEstimator", "MapState", "fit_stop"]
@@ -56,11 +66,23 @@ class MapDiagnostics(Diagnostics):
     fits : tuple of FitResult
     fit_samples : ndarray of int
         The sample at which each fit's window ends.
+    rejected : tuple of str
+        The fits not applied, one sentence each (:meth:`~.map_fit.FitResult.rejection`);
+        ``fits`` holds the fits applied.
+    substeps : int
+        The RK4 sub-steps' accuracy floor of the run.
     """
 
     theta_sd: FloatArray
     fits: tuple[FitResult, ...]
     fit_samples: NDArray[np.int64]
+    rejected: tuple[str, ...] = ()
+    substeps: int = 1
+
+    @property
+    def fits_rejected(self) -> int:
+        """Fits that came back but were not applied (``rejected`` says why)."""
+        return len(self.rejected)
 
     @property
     def fit_cost(self) -> FloatArray:
@@ -68,7 +90,7 @@ class MapDiagnostics(Diagnostics):
         return np.array([f.cost for f in self.fits])
 
     def __repr__(self) -> str:
-        return (f"MapDiagnostics(fits={len(self.fits)}, "
+        return (f"MapDiagnostics(fits={len(self.fits)}, fits_rejected={self.fits_rejected}, "
                 f"fit_samples={self.fit_samples.tolist()[:8]}"
                 f"{'…' if len(self.fits) > 8 else ''})")
 
@@ -123,6 +145,10 @@ class MapState:
     P, R, Q_x : ndarray or None
         The EKF's covariance of col(x̂, θ̂), output-noise covariance and process noise on x
         since the latest fit (None before the first fit).
+    rejected : tuple of str
+        The stream's fits not applied, one sentence each.
+    substeps : int
+        The RK4 sub-steps' accuracy floor of the latest fit applied (1 before).
     """
 
     x_hat0: FloatArray
@@ -141,6 +167,8 @@ class MapState:
     P: FloatArray | None = None
     R: FloatArray | None = None
     Q_x: FloatArray | None = None
+    rejected: tuple[str, ...] = ()
+    substeps: int = 1
 
     def __repr__(self) -> str:
         return (f"MapState(k={self.k}, theta_hat={self.theta_hat}, fits={len(self.fits)})")
@@ -169,6 +197,12 @@ class MapEstimator:
     compiled : bool, optional
     growth : float
         Information growth between fits of the default schedule (default √2).
+    hold : {"zoh", "foh", "bandlimited"}
+        u between the samples (:mod:`~thetahat.estimation.hold`; ``"bandlimited"`` for
+        :meth:`run` only).
+    substeps : int, optional
+        The RK4 sub-steps' accuracy floor; default: chosen per record (module docstring; in
+        :meth:`step`, by each fit on its window).
 
     Notes
     -----
@@ -192,6 +226,11 @@ class MapEstimator:
     noise_std: ArrayLike | None = None
     compiled: bool | None = None
     growth: float = INFO_GROWTH
+    hold: str = "foh"
+    substeps: int | None = None
+
+    def __post_init__(self) -> None:
+        check_hold(self.hold)
 
     @property
     def _by_times(self) -> bool:
@@ -200,9 +239,25 @@ class MapEstimator:
 
     def _schedule(self) -> FitSchedule:
         if self.schedule is not None:
-            return self.schedule
+            return replace(self.schedule, hold=self.hold,
+                           substeps=self.substeps if self.substeps is not None
+                           else self.schedule.substeps)
         return FitSchedule(system=self.system, full_window=math.inf, noise_std=self.noise_std,
-                           compiled=self.compiled)
+                           hold=self.hold, substeps=self.substeps, compiled=self.compiled)
+
+    def _record_schedule(self, t: FloatArray, U: FloatArray, Y: FloatArray, st0: MapState
+                         ) -> FitSchedule:
+        """The schedule of one record, with its sub-steps chosen at the start values."""
+        sched = self._schedule()
+        if sched.substeps is not None:
+            return sched
+        if self.noise_std is None and t.shape[0] < MIN_SAMPLES:
+            return replace(sched, substeps=1)
+        sigma = resolve_noise_std(self.noise_std, Y)
+        n = choose_substeps(model_kernel(self.system, compiled=self.compiled), t, U, Y,
+                            st0.theta_hat0, st0.x_hat0, sigma, hold=self.hold,
+                            h_rho=sched.h_rho)
+        return replace(sched, substeps=n)
 
     def fit_samples(self, t: FloatArray) -> list[int]:
         """The sample counts k₁ at which :meth:`run` fits (window 0 … k₁ − 1) on record ``t``.
@@ -311,7 +366,8 @@ class MapEstimator:
                              f"stepped already); step each state once, in order, from "
                              f"init().")
         elapsed = 0.0 if state.k == 0 else state.elapsed + state.dt_prev
-        ut, u_hist = smooth_input(u_[None], state.u_history)
+        ut, u_hist = stage2_samples(u_[None], streamable(self.hold, "MapEstimator"),
+                                    state.u_history)
         u_ = ut[0]
         log.append(elapsed, u_, y_)
         sched = self._schedule()
@@ -327,32 +383,46 @@ class MapEstimator:
                 due, j = due or at(j) == k1, j + 1
         x, th, sd = state.x_hat, state.theta_hat, state.theta_sd
         P, R, Q_x = state.P, state.R, state.Q_x
+        rejected, nsub = list(state.rejected), state.substeps
+        fitted = False
         if due and k1 >= self._min_samples():   # a fit: its estimates replace this sample's
             prior0 = sched.initial_prior(state.x_hat0, state.theta_hat0)
             prev = fits[-1] if fits else None
             fit = (sched.fit(log.T[:k1], log.U[:k1], log.Y[:k1], k1, prev, prior0)
                    if self._by_times
                    else fit_record(sched, log.T[:k1], log.U[:k1], log.Y[:k1], k1, prev, prior0))
-            fits.append(fit)
-            ends.append(state.k)
-            x, th, sd = fit.x_end, fit.theta, fit.theta_se
-            _, P, R, Q_x = fit_as_prior(sys_, fit, sample_interval(log.T[:k1]))
+            why = fit.rejection(prev)
+            if why is None:
+                fits.append(fit)
+                ends.append(state.k)
+                x, th, sd = fit.x_end, fit.theta, fit.theta_se
+                _, P, R, Q_x = fit_as_prior(sys_, fit, sample_interval(log.T[:k1]))
+                nsub = fit.substeps
+            else:
+                rejected.append(why)
+            fitted = why is None
+        prop = Propagation(hold=self.hold, substeps=nsub, h_rho=sched.h_rho)
+        if fitted:
+            pass                                # the fit's estimates
         elif state.k > 0 and P is not None and Q_x is not None:    # the EKF from the latest fit
             s_ = np.concatenate([x, th])
             P = np.array(P, dtype=np.float64, order="C")
             ekf_sample(ekf_kernels(sys_, compiled=self.compiled), sys_, s_, P,
-                       log.U[state.k - 1].copy(), u_, y_, state.dt_prev, sched.h_rho, Q_x, R,
+                       log.U[state.k - 1].copy(), u_, y_, state.dt_prev, prop, Q_x, R,
                        state.k)
             x, th, sd = s_[:n], s_[n:], np.sqrt(np.maximum(np.diag(P)[n:], 0.0))
         elif state.k > 0:                       # no fit yet: the model from θ̂(0)
             model = model_kernel(sys_, compiled=self.compiled)
-            x = np.asarray(model.propagate(np.array(x), np.array(th), log.U[state.k - 1].copy(),
-                                           u_, state.dt_prev, sched.h_rho, False,
-                                           np.empty((n, n)), np.empty((n, p))))
+            pc, WT = prop.arrays()
+            U2 = np.ascontiguousarray(np.stack([log.U[state.k - 1], u_]), dtype=np.float64)
+            x = np.asarray(model.propagate(np.array(x), np.array(th), U2, 0, state.dt_prev,
+                                           pc, WT, n < 0, np.empty((n, n)),
+                                           np.empty((n, p))))
         return MapState(x_hat0=state.x_hat0, theta_hat0=state.theta_hat0, x_hat=np.array(x),
                         theta_hat=np.array(th), theta_sd=np.array(sd), k=state.k + 1,
                         elapsed=elapsed, j=j, fits=tuple(fits), fit_samples=tuple(ends),
-                        dt_prev=h, log=log, u_history=u_hist, P=P, R=R, Q_x=Q_x)
+                        dt_prev=h, log=log, u_history=u_hist, P=P, R=R, Q_x=Q_x,
+                        rejected=tuple(rejected), substeps=nsub)
 
     def run(self, t: ArrayLike, u: ArrayLike | None, y: ArrayLike, *,
             state0: MapState | None = None, throw: bool = True) -> EstimateResult:
@@ -393,39 +463,45 @@ class MapEstimator:
         """
         sys_ = self.system
         t_, U_raw, Y = check_record(t, u, y, m=sys_.m, r=sys_.r)
-        U = np.ascontiguousarray(smooth_input(U_raw)[0])   # stage 2's ũ (the stream's: step)
+        U = stage2_samples(U_raw, self.hold)[0]       # stage 2's samples (the stream's: step)
         st0 = self.init() if state0 is None else self._check_state(state0)
         if st0.k:
             raise OptionError("MapEstimator.run starts an experiment from init(); this state0 "
                               "has been stepped: continue its stream with step.")
         N, p = t_.shape[0], sys_.p
-        fits, ends, stop = self._fits(t_, U, Y, st0, throw)
+        sched = self._record_schedule(t_, U, Y, st0)
+        fits, ends, rejected, stop = self._fits(sched, t_, U, Y, st0, throw)
         TH = np.empty((N, p))
         SD = np.empty((N, p))
         TH[:] = st0.theta_hat0
         SD[:] = theta_prior_sd(sys_)
-        X = self._first_predictions(t_, U, Y, st0, ends[0] + 1 if ends
+        X = self._first_predictions(sched, t_, U, Y, st0, ends[0] + 1 if ends
                                     else N if stop is None else max(stop.at, 1))
-        stop = self._between_fits(t_, U, Y, fits, ends, X, TH, SD, stop)
+        stop = self._between_fits(sched, t_, U, Y, fits, ends, X, TH, SD, stop)
         if stop is not None:                    # the fits the run reached
             reached = bisect.bisect_left(ends, stop.at)
             fits, ends = fits[:reached], ends[:reached]
         diag = MapDiagnostics(theta_sd=SD, fits=tuple(fits),
-                              fit_samples=np.array(ends, dtype=np.int64))
+                              fit_samples=np.array(ends, dtype=np.int64),
+                              rejected=tuple(rejected),
+                              substeps=max([sched.substeps or 1]
+                                           + [f.substeps for f in fits]))
         res = stopped_result(t=t_, x_hat=X, theta_hat=TH,
                              phi_hat=model_phi_hat(sys_, U_raw, Y, X, TH, stop),
                              skipped=missing_samples(Y), diagnostics=diag, stop=stop,
                              blank=(SD,))
         return res.raise_for_status() if throw else res
 
-    def _fits(self, t: FloatArray, U: FloatArray, Y: FloatArray, st0: MapState, throw: bool
-              ) -> tuple[list[FitResult], list[int], RunStop | None]:
-        """The scheduled fits of a record, in order, until one fails: (fits, their last
-        samples, the failure or None). With ``throw`` a fit's error is raised at once."""
-        sched = self._schedule()
+    def _fits(self, sched: FitSchedule, t: FloatArray, U: FloatArray, Y: FloatArray,
+              st0: MapState, throw: bool
+              ) -> tuple[list[FitResult], list[int], list[str], RunStop | None]:
+        """The scheduled fits of a record, in order, until one fails: (the fits applied,
+        their last samples, why the others were not, the failure or None). With ``throw`` a
+        fit's error is raised at once."""
         prior0 = sched.initial_prior(st0.x_hat0, st0.theta_hat0)
         fits: list[FitResult] = []
         ends: list[int] = []
+        rejected: list[str] = []
         ks = self.fit_samples(t)
         for i, k1 in enumerate(ks):
             prev = fits[-1] if fits else None
@@ -450,13 +526,17 @@ class MapEstimator:
             if stop is not None:
                 if throw:
                     raise stop.error()
-                return fits, ends, stop
+                return fits, ends, rejected, stop
+            why = fit.rejection(prev)
+            if why is not None:
+                rejected.append(why)
+                continue
             fits.append(fit)
             ends.append(k1 - 1)
-        return fits, ends, None
+        return fits, ends, rejected, None
 
-    def _first_predictions(self, t: FloatArray, U: FloatArray, Y: FloatArray,
-                           st0: MapState, k1: int) -> FloatArray:
+    def _first_predictions(self, sched: FitSchedule, t: FloatArray, U: FloatArray,
+                           Y: FloatArray, st0: MapState, k1: int) -> FloatArray:
         """x̂ before the first fit (rows 0 … k1 − 1): the model run from x̂(0) with θ̂(0)."""
         sys_ = self.system
         n, p, N = sys_.n, sys_.p, t.shape[0]
@@ -464,13 +544,14 @@ class MapEstimator:
         X = np.empty((N, n))
         A, b, T = np.empty((n + p, n + p)), np.empty(n + p), np.empty((n, n + p))
         seg = np.empty((k1, n))
+        pc, WT = Propagation(hold=sched.hold, substeps=sched.substeps or 1,
+                             h_rho=sched.h_rho).arrays()
         sweep(np.array(st0.x_hat0, dtype=np.float64), np.array(st0.theta_hat0, dtype=np.float64),
-              U, Y, t, 0, k1, False, np.ones(sys_.r), self._schedule().h_rho, False, A, b, T,
-              seg)
+              U, Y, t, 0, k1, False, np.ones(sys_.r), pc, WT, False, A, b, T, seg)
         X[:k1] = seg
         return X
 
-    def _between_fits(self, t: FloatArray, U: FloatArray, Y: FloatArray,
+    def _between_fits(self, sched: FitSchedule, t: FloatArray, U: FloatArray, Y: FloatArray,
                       fits: list[FitResult], ends: list[int], X: FloatArray, TH: FloatArray,
                       SD: FloatArray, stop: RunStop | None) -> RunStop | None:
         """Rows from each fit's last sample to the next fit's: the fit, then the EKF from it
@@ -486,8 +567,10 @@ class MapEstimator:
             if e + 1 >= end:
                 continue
             s, P, R, Q_x = fit_as_prior(sys_, fit, sample_interval(t[:e + 1]))
-            bad = kern.loop(s, P, U, Y, t, e + 1, end, R, ts.lo, ts.hi, ts.ell,
-                            self._schedule().h_rho, Q_x, X, TH, SD, nis)
+            pc, WT = Propagation(hold=sched.hold, substeps=fit.substeps,
+                                 h_rho=sched.h_rho).arrays()
+            bad = kern.loop(s, P, U, Y, t, e + 1, end, R, ts.lo, ts.hi, ts.ell, pc, WT, Q_x,
+                            X, TH, SD, nis)
             if bad >= 0:
                 return RunStop(Status.DIVERGED, divergence_message(t, bad, nis, sys_.r), bad)
         return stop

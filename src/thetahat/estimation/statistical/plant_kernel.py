@@ -1,7 +1,8 @@
 """The plant model of stage 2 as scalar code: f, ∂f/∂x, ∂f/∂θ and the sampled-data map (RK4).
 
-Stage 2 of the guarded estimator (the EKF, the maximum-likelihood fit) and the Cramér–Rao
-bound all need the *plant* model of eq. (1) with y = C x substituted into the perturbation,
+Stage 2 of the guarded estimator (the EKF, the MAP fits, the likelihood with process noise),
+the Cramér–Rao bound, the trust report and the free-run simulation all need the *plant* model
+of eq. (1) with y = C x substituted into the perturbation,
 
     ẋ = f(x, u, θ) = A x + B u + E g(col(u, C x), x, θ),
 
@@ -11,24 +12,55 @@ variational equations of the discrete map). :func:`model_kernel` derives all of 
 from a :class:`~thetahat.model.system.PerturbedLinearSystem` whose perturbation is a
 :class:`~thetahat.model.perturbation.SymbolicPerturbation`: SymPy differentiates, common
 subexpressions are eliminated and SymPy's Python printer writes the scalar code of
-``rhs_jac``, which is printed with the RK4 kernels of this module (:func:`stage_jac`,
-:func:`propagate`, :func:`spectral_radius_bound`) into one module, imported from the cache of
-printed modules (:mod:`~thetahat.estimation.kernels.modules`); with numba installed (extra
-``speed``) its functions are compiled (once per machine), otherwise they run as plain Python.
+``rhs_jac``, which is printed with the kernels of this module (:func:`propagate`,
+:func:`free_run` and what they call) into one module
+(:meth:`~thetahat.estimation.kernels.modules.ModuleText.bound`), imported from the cache of
+printed modules; with numba installed (extra ``speed``) its functions are compiled (once per
+machine), otherwise they run as plain Python. The kernels of the EKF, the fits, the
+likelihood, the bound and the guard are printed the same way into modules of their own that
+import this one's (:func:`printed_kernels`).
 
-The sampled-data map is classical RK4 with u interpolated linearly between the samples
-(first-order hold) and a number of sub-steps chosen per sample from the spectral radius ρ of
-F_x at the start of the sample, n = ceil(h ρ / ``h_rho``) (RK4 is stable for h ρ ≤ 2.78 on
-the real axis; ``h_rho = 2`` keeps a margin and follows the stiffness of models such as
-LuGre's, where ρ ranges over 3e2 … 2e4 s⁻¹). Differentiating the RK4 stages gives the exact
-Jacobian of the map actually used, so the EKF's linearisation and the fit's sensitivities are
-those of the computed trajectory.
+**The sampled-data map** is classical RK4 over n sub-steps of each sample, with u between the
+samples as the hold reconstructs it (:mod:`~thetahat.estimation.hold`: zero-order, linear or
+band-limited; at the sub-step nodes a = s/n, (s + ½)/n of the interval). Differentiating the
+RK4 stages gives the exact Jacobian of the map actually used, so the EKF's linearisation and
+the fit's sensitivities are those of the computed trajectory. The number of sub-steps of a
+sample is the larger of two:
+
+* **stability**: ceil(h ρ / ``h_rho``) with ρ the spectral radius of F_x at the start of the
+  sample (RK4 is stable for h ρ ≤ 2.78 on the real axis; ``h_rho`` = :data:`H_RHO` = 2 keeps
+  a margin and follows the stiffness of models such as LuGre's, where ρ ranges over
+  3e2 … 2e4 s⁻¹);
+* **accuracy**: the record's own floor ``substeps`` (:class:`Propagation`), chosen by
+  :func:`choose_substeps` so that the output trajectory is accurate to the data's noise level.
+
+**Accurate to the noise level.** A systematic error e_k in the model's outputs biases a fit of
+N samples by at most ‖e‖_{R⁻¹} = (Σ_k e_kᵀ R⁻¹ e_k)^½ of its standard errors in any
+direction (the bias is the projection of the whitened error on the span of the whitened
+sensitivities, and the standard error of any linear combination of θ is 1 in those
+coordinates). :func:`choose_substeps` runs the model free from the start values (a MAP fit's
+trajectory) with n and 2n sub-steps per sample, n = 1, 2, 4, …, over the first
+:data:`ACCURACY_SAMPLES` samples, and takes the first n at which ‖y_n − y_{2n}‖_{R⁻¹}, scaled
+to the whole record (× √(N / samples compared)), is at most :data:`ACCURACY` = 0.1: the
+trajectory's discretisation error (≈ y_n − y_{2n} for RK4, whose error falls 16-fold per
+doubling) then moves θ̂ by at most a tenth of a standard error. A record at a high rate keeps
+n = 1 (the stability choice alone, as before); a lightly damped resonance at 9 samples per
+period takes 8–16 (the error of one RK4 step is ∝ (ωh)⁵). The stretch compared ends where the
+free run leaves ten times the data's range around it (a run that diverges from wrong start
+values says nothing about the trajectories a fit visits).
+
+What it may import: the model, SymPy, the hold (:mod:`~thetahat.estimation.hold`) and the
+printed modules' machinery (:mod:`~thetahat.estimation.kernels`); nothing of this room.
 """
 
 from __future__ import annotations
 
+import importlib.util
 import math
+import sys
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
+from types import ModuleType
 from typing import Any, Callable
 
 import numpy as np
@@ -36,13 +68,16 @@ import sympy as sp
 from numpy.typing import NDArray
 from sympy.printing.pycode import PythonCodePrinter
 
-from ...errors import DimensionError, FileAccessError, MissingExtraError
+from ...errors import DimensionError, FileAccessError, MissingExtraError, OptionError
 from ...model.perturbation import SymbolicPerturbation
 from ...model.system import PerturbedLinearSystem
+from ..hold import KAISER_BETA, check_hold, half_width, hold_code, hold_weights
 from ..kernels.kernel_cache import load_module, register
-from ..kernels.modules import KernelSourceError, ModuleText, cached_njit
+from ..kernels.modules import ModuleText
 
-__all__ = ["ModelKernel", "model_kernel", "have_numba", "jit", "propagate",
+__all__ = ["ACCURACY", "ACCURACY_SAMPLES", "H_RHO", "MAX_ACCURATE_SUBSTEPS", "MAX_SUBSTEPS",
+           "ModelKernel", "Propagation", "TABLE_SUBSTEPS", "choose_substeps", "free_run",
+           "have_numba", "held_input", "model_kernel", "printed_kernels", "propagate",
            "spectral_radius_bound", "stage_jac"]
 
 FloatArray = NDArray[np.float64]
@@ -51,6 +86,19 @@ FloatArray = NDArray[np.float64]
 H_RHO = 2.0
 #: Largest number of RK4 sub-steps per sample.
 MAX_SUBSTEPS = 500
+#: The band-limited hold's taps are tabulated per sample for sub-step counts up to this.
+TABLE_SUBSTEPS = 64
+#: The discretisation error allowed, in standard errors of θ̂ (module docstring).
+ACCURACY = 0.1
+#: :func:`choose_substeps` doubles the sub-steps up to this floor.
+MAX_ACCURATE_SUBSTEPS = 64
+#: :func:`choose_substeps` compares the free runs over at most this many samples.
+ACCURACY_SAMPLES = 4096
+#: The free run is compared while it stays within this many times the data's range of it.
+RANGE_FACTOR = 10.0
+#: The decorator of the printed kernels when compiled (nogil: a fit on a worker thread runs
+#: alongside the caller).
+NJIT = "@numba.njit(nogil=True, cache=True)"
 
 
 def have_numba() -> bool:
@@ -68,32 +116,57 @@ def have_numba() -> bool:
     return True
 
 
-def jit(fn: Callable[..., Any], compiled: bool) -> Callable[..., Any]:
-    """``numba.njit(fn, nogil=True)`` when ``compiled``, else ``fn`` unchanged (the fallback).
+@dataclass(frozen=True, slots=True)
+class Propagation:
+    """How stage 2 propagates the model between two samples: the hold and the sub-steps.
 
     Parameters
     ----------
-    fn : callable
-        A scalar-loop kernel written in numba's subset of Python.
-    compiled : bool
-        Compile with numba (which must be installed); False returns ``fn`` itself.
+    hold : {"zoh", "foh", "bandlimited"}
+        u between the samples (:mod:`~thetahat.estimation.hold`). Stage 2's ``"foh"`` is
+        linear between the samples ũ of
+        :func:`~thetahat.estimation.statistical.input_hold.stage2_samples` (u corrected where
+        it is a sampled smooth signal).
+    substeps : int
+        The accuracy floor of RK4 sub-steps per sample (:func:`choose_substeps`), 1 …
+        :data:`MAX_SUBSTEPS`.
+    h_rho : float
+        Bound on h ρ per sub-step (:data:`H_RHO`): the stability floor.
 
-    Returns
-    -------
-    callable
-        The compiled dispatcher (releasing the GIL, so a fit on a worker thread runs
-        alongside the caller), or ``fn``. It comes from a printed module cached on disk
-        (:func:`~thetahat.estimation.kernels.modules.cached_njit`), so later processes load the
-        machine code instead of compiling; a kernel that cannot be printed that way is
-        compiled in memory.
+    Examples
+    --------
+    >>> pc, WT = Propagation(hold="bandlimited", substeps=4).arrays()
+    >>> pc.tolist()[:3], WT.shape
+    ([2.0, 4.0, 2.0], (129, 32))
     """
-    if not compiled:
-        return fn
-    try:
-        return cached_njit(fn)
-    except (KernelSourceError, FileAccessError):
-        import numba
-        return numba.njit(fn, nogil=True)     # a fit on a worker thread does not hold the GIL
+
+    hold: str = "foh"
+    substeps: int = 1
+    h_rho: float = H_RHO
+
+    def __post_init__(self) -> None:
+        check_hold(self.hold)
+        if not (isinstance(self.substeps, (int, np.integer))
+                and 1 <= self.substeps <= MAX_SUBSTEPS):
+            raise OptionError(f"substeps must be an integer in 1 … {MAX_SUBSTEPS}; got "
+                              f"{self.substeps!r}.")
+        if not (math.isfinite(self.h_rho) and self.h_rho > 0.0):
+            raise OptionError(f"h_rho must be finite and > 0; got {self.h_rho!r}.")
+
+    def arrays(self) -> tuple[FloatArray, FloatArray]:
+        """(pc, WT): what the kernels read, new for each run (WT is the run's taps table).
+
+        Returns
+        -------
+        pc : ndarray, shape (5,)
+            (h_rho, substeps, hold code, Kaiser β, sub-steps tabulated in WT (0: none)).
+        WT : ndarray, shape (2 · TABLE_SUBSTEPS + 1, 2L)
+            The band-limited hold's taps at the fractions i / (2n) of the interval.
+        """
+        pc = np.array([self.h_rho, float(self.substeps), float(hold_code(self.hold)),
+                       KAISER_BETA, 0.0])
+        L = half_width(self.hold)
+        return pc, np.zeros((2 * TABLE_SUBSTEPS + 1, 2 * L))
 
 
 def _plant_expressions(system: PerturbedLinearSystem) -> tuple[list[sp.Symbol], list[sp.Symbol],
@@ -163,6 +236,12 @@ def spectral_radius_bound(F: FloatArray) -> float:
     float
         The bound ρ ≥ ρ(F) (0 for n = 0), which sets the number of RK4 sub-steps
         ceil(h ρ / ``h_rho``).
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> bool(spectral_radius_bound(np.array([[0.0, 1.0], [-4.0, 0.0]])) >= 2.0)
+    True
     """
     n = F.shape[0]
     B = F.copy()
@@ -189,8 +268,9 @@ def spectral_radius_bound(F: FloatArray) -> float:
     return rho
 
 
-# Names of the printed plant module (declared for the type checker; never assigned here).
+# Names of the printed plant module (declared for the type checker; bound when printed).
 rhs_jac: Callable[..., None]
+C_OUT: FloatArray
 
 
 def stage_jac(Fx: Any, Ft: Any, Phi: Any, Gam: Any, Dx_prev: Any, Dt_prev: Any, c: float,
@@ -230,9 +310,63 @@ def stage_jac(Fx: Any, Ft: Any, Phi: Any, Gam: Any, Dx_prev: Any, Dt_prev: Any, 
             Dt[i, j] = s
 
 
-def propagate(x: Any, th: Any, u0: Any, u1: Any, h: float, h_rho: float, want_jac: bool,
+def held_input(U: Any, k: int, code: int, a: float, beta: float, WT: Any, i: int, tab: bool,
+               w: Any, ua: Any) -> None:
+    """u at the fraction ``a`` of the interval from sample k to k + 1, as the hold has it.
+
+    Parameters
+    ----------
+    U : ndarray, shape (N, m)
+        The samples (past the record's ends: its first and last, as
+        :func:`~thetahat.estimation.hold.reconstruct`).
+    k : int
+    code : int
+        :func:`~thetahat.estimation.hold.hold_code`.
+    a : float
+        The fraction, in [0, 1].
+    beta : float
+        Kaiser's β (band-limited hold).
+    WT : ndarray, shape (·, 2L)
+        The band-limited taps at the fractions i / (2n) when ``tab``.
+    i : int
+        The row of ``WT`` at ``a``.
+    tab : bool
+        ``WT[i]`` holds the taps at ``a``; else they are computed into ``w``.
+    w : ndarray, shape (2L,)
+        Scratch.
+    ua : ndarray, shape (m,)
+        Output.
+    """
+    N = U.shape[0]
+    m = U.shape[1]
+    k1 = k + 1 if k + 1 < N else N - 1
+    if code == 0:
+        for j in range(m):
+            ua[j] = U[k, j]
+        return
+    if code == 1:
+        for j in range(m):
+            ua[j] = U[k, j] + a * (U[k1, j] - U[k, j])
+        return
+    if tab:
+        for c in range(w.shape[0]):
+            w[c] = WT[i, c]
+    else:
+        hold_weights(code, a, beta, w)
+    L = w.shape[0] // 2
+    for j in range(m):
+        acc = 0.0
+        for c in range(w.shape[0]):
+            r = k + c - L + 1
+            r = 0 if r < 0 else (N - 1 if r > N - 1 else r)
+            acc += w[c] * U[r, j]
+        ua[j] = acc
+
+
+def propagate(x: Any, th: Any, U: Any, k: int, h: float, pc: Any, WT: Any, want_jac: bool,
               Phi: Any, Gam: Any) -> Any:
-    """x(t + h) by RK4 sub-steps, u linear from u0 to u1; Φ, Γ in place if ``want_jac``.
+    """x(t_{k+1}) from x(t_k) by RK4 sub-steps, u held between samples k and k + 1 as ``pc``
+    says; Φ, Γ in place if ``want_jac``.
 
     Runs in the printed plant module, where ``rhs_jac`` is the model's
     (:attr:`ModelKernel.propagate`).
@@ -241,12 +375,15 @@ def propagate(x: Any, th: Any, u0: Any, u1: Any, h: float, h_rho: float, want_ja
     ----------
     x : ndarray, shape (n,)
     th : ndarray, shape (p,)
-    u0, u1 : ndarray, shape (m,)
-        Inputs at the start and the end of the sample.
+    U : ndarray, shape (N, m)
+        The input samples (rows k − L + 1 … k + L are read, L of the hold).
+    k : int
+        The interval's first sample.
     h : float
-        The sample's length.
-    h_rho : float
-        Bound on h ρ per sub-step (``H_RHO``).
+        The interval's length.
+    pc, WT : ndarray
+        :meth:`Propagation.arrays` (``pc[4]`` and ``WT`` are the run's taps table, updated
+        here when the sub-step count changes).
     want_jac : bool
     Phi : ndarray, shape (n, n)
     Gam : ndarray, shape (n, pg)
@@ -260,7 +397,8 @@ def propagate(x: Any, th: Any, u0: Any, u1: Any, h: float, h_rho: float, want_ja
     n = x.shape[0]
     p = th.shape[0]
     pg = Gam.shape[1]
-    m = u0.shape[0]
+    m = U.shape[1]
+    code = int(pc[2])
     Fx = np.empty((n, n))
     Ft = np.empty((n, p))
     k1 = np.empty(n)
@@ -269,10 +407,19 @@ def propagate(x: Any, th: Any, u0: Any, u1: Any, h: float, h_rho: float, want_ja
     k4 = np.empty(n)
     xs = np.empty(n)
     ua = np.empty(m)
-    rhs_jac(x, u0, th, k1, Fx, Ft)
-    ratio = h * spectral_radius_bound(Fx) / h_rho
-    ns = int(math.ceil(ratio)) if ratio < 500.0 else 500
-    ns = max(ns, 1)
+    w = np.empty(WT.shape[1])
+    for j in range(m):
+        ua[j] = U[k, j]
+    rhs_jac(x, ua, th, k1, Fx, Ft)
+    ratio = h * spectral_radius_bound(Fx) / pc[0]
+    ns = int(math.ceil(ratio)) if ratio < MAX_SUBSTEPS else MAX_SUBSTEPS
+    ns = max(ns, int(pc[1]), 1)
+    ns = min(ns, MAX_SUBSTEPS)
+    tab = code == 2 and ns <= TABLE_SUBSTEPS
+    if tab and pc[4] != ns:
+        for i in range(2 * ns + 1):
+            hold_weights(code, i / (2.0 * ns), pc[3], WT[i])
+        pc[4] = ns
     dt = h / ns
     xa = x.copy()
     D1x = np.zeros((n, n))
@@ -291,13 +438,11 @@ def propagate(x: Any, th: Any, u0: Any, u1: Any, h: float, h_rho: float, want_ja
                 Gam[i, j] = 0.0
     for s in range(ns):
         a = s / ns
-        for j in range(m):
-            ua[j] = u0[j] + a * (u1[j] - u0[j])
+        held_input(U, k, code, a, pc[3], WT, 2 * s, tab, w, ua)
         rhs_jac(xa, ua, th, k1, Fx, Ft)
         if want_jac:
             stage_jac(Fx, Ft, Phi, Gam, D1x, D1t, 0.0, D1x, D1t)
-        for j in range(m):
-            ua[j] = u0[j] + (a + 0.5 / ns) * (u1[j] - u0[j])
+        held_input(U, k, code, a + 0.5 / ns, pc[3], WT, 2 * s + 1, tab, w, ua)
         for i in range(n):
             xs[i] = xa[i] + 0.5 * dt * k1[i]
         rhs_jac(xs, ua, th, k2, Fx, Ft)
@@ -308,8 +453,7 @@ def propagate(x: Any, th: Any, u0: Any, u1: Any, h: float, h_rho: float, want_ja
         rhs_jac(xs, ua, th, k3, Fx, Ft)
         if want_jac:
             stage_jac(Fx, Ft, Phi, Gam, D2x, D2t, 0.5 * dt, D3x, D3t)
-        for j in range(m):
-            ua[j] = u0[j] + (a + 1.0 / ns) * (u1[j] - u0[j])
+        held_input(U, k, code, a + 1.0 / ns, pc[3], WT, 2 * s + 2, tab, w, ua)
         for i in range(n):
             xs[i] = xa[i] + dt * k3[i]
         rhs_jac(xs, ua, th, k4, Fx, Ft)
@@ -327,28 +471,116 @@ def propagate(x: Any, th: Any, u0: Any, u1: Any, h: float, h_rho: float, want_ja
     return xa
 
 
-#: The decorator of the printed plant module's functions when compiled.
-_NJIT = "@numba.njit(nogil=True, cache=True)"
+def free_run(x0: Any, th: Any, U: Any, tt: Any, k0: int, k1: int, pc: Any, WT: Any,
+             Y: Any, X: Any) -> int:
+    """The model run free from x(t_{k0}) = x0 over samples k0 … k1 − 1: X[k − k0] = x_k,
+    Y[k − k0] = C x_k.
+
+    Parameters
+    ----------
+    x0 : ndarray, shape (n,)
+    th : ndarray, shape (p,)
+    U : ndarray, shape (N, m)
+    tt : ndarray, shape (N,)
+    k0, k1 : int
+    pc, WT : ndarray
+        :meth:`Propagation.arrays`.
+    Y : ndarray, shape (k1 − k0, r)
+    X : ndarray, shape (k1 − k0, n)
+        Output.
+
+    Returns
+    -------
+    int
+        The rows written before the state stopped being finite (k1 − k0: all).
+    """
+    n = x0.shape[0]
+    r = C_OUT.shape[0]
+    x = x0.copy()
+    Phi = np.empty((n, n))
+    Gam = np.empty((n, 0))
+    for k in range(k0, k1):
+        if k > k0:
+            x = propagate(x, th, U, k - 1, tt[k] - tt[k - 1], pc, WT, n < 0, Phi, Gam)
+        ok = True
+        for i in range(n):
+            if not math.isfinite(x[i]):
+                ok = False
+        if not ok:
+            return k - k0
+        for i in range(n):
+            X[k - k0, i] = x[i]
+        for i in range(r):
+            acc = 0.0
+            for a in range(n):
+                acc += C_OUT[i, a] * x[a]
+            Y[k - k0, i] = acc
+    return k1 - k0
 
 
-def _plant_module(source: str, compiled: bool) -> Any:
-    """The printed plant module: ``rhs_jac`` (``source``) and the RK4 kernels, compiled or
-    plain Python, imported from the cache."""
-    text = ModuleText("Printed by thetahat.estimation.statistical.plant_kernel: the plant "
-                      "model of one system; do not edit (content-addressed).",
-                      _NJIT if compiled else None)
-    text.import_line("import math")
-    text.import_line("import numpy as np")
-    if compiled:
-        text.import_line("import numba")
-    text.text(((_NJIT + "\n") if compiled else "") + source)
-    for fn in (spectral_radius_bound, stage_jac, propagate):
-        text.definition(fn)
-    mod = load_module(text.source(), "thetahat_plant")
-    if compiled:
-        for name in ("rhs_jac", "propagate"):
-            register(getattr(mod, name), mod.__name__, name)
-    return mod
+def printed_kernels(prefix: str, doc: str, functions: Sequence[Callable[..., Any]],
+                    provided: Mapping[str, Any], compiled: bool, *,
+                    constants: Mapping[str, str] | None = None, text: str | None = None,
+                    fresh: bool = False) -> tuple[ModuleType, list[str]]:
+    """One printed module of stage-2 kernels: ``functions`` and what they call, free names bound.
+
+    Parameters
+    ----------
+    prefix : str
+        The module name's start (``<prefix>_<hash>``).
+    doc : str
+        Its docstring.
+    functions : sequence of function
+        Module-level kernels (numba's subset of Python) to print
+        (:meth:`~thetahat.estimation.kernels.modules.ModuleText.bound`).
+    provided : mapping
+        Free names bound by the caller: a kernel of another printed module (imported from
+        it), an array or number (a constant), or a string (a name the module defines).
+    compiled : bool
+        Decorate with :data:`NJIT` (numba installed) or print plain Python.
+    constants : mapping of str to str, optional
+        Module-level ``name = text`` lines (before the functions).
+    text : str, optional
+        Source printed elsewhere (SymPy's ``rhs_jac``), put before the functions.
+    fresh : bool
+        Import a new instance of the module (its globals the caller's to assign), not the
+        shared one.
+
+    Returns
+    -------
+    module, list of str
+        The module and the printed name of each of ``functions``, in order (each registered,
+        so a module printed later that calls it imports it from here).
+    """
+    decorator = NJIT if compiled else None
+    mt = ModuleText(doc, decorator)
+    mt.import_line("import math")
+    mt.import_line("import numpy as np")
+    for name, value in (constants or {}).items():
+        mt.constant(name, value)
+    if text is not None:
+        mt.text(((NJIT + "\n") if compiled else "") + text)
+        if compiled:
+            mt.import_line("import numba")
+    names = [mt.bound(fn, decorator, provided) for fn in functions]
+    mod = load_module(mt.source(), prefix)
+    if fresh:
+        mod = _fresh(mod)
+    for name in names:
+        register(getattr(mod, name), mod.__name__, name)
+    return mod, names
+
+
+def _fresh(mod: ModuleType) -> ModuleType:
+    """A new instance of a printed module, imported from its file (its globals its own)."""
+    path = getattr(mod, "__file__", None)
+    spec = None if path is None else importlib.util.spec_from_file_location(
+        f"{mod.__name__}_own{len(sys.modules)}", path)
+    if spec is None or spec.loader is None:
+        raise FileAccessError(f"cannot import the printed module {mod.__name__} again.")
+    new = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(new)
+    return new
 
 
 @dataclass(frozen=True, slots=True, eq=False)
@@ -366,10 +598,15 @@ class ModelKernel:
         ``rhs_jac(x (n,), u (m,), th (p,), f (n,), Fx (n, n), Ft (n, p))``: writes
         f(x, u, θ), ∂f/∂x and ∂f/∂θ in place.
     propagate : callable
-        ``propagate(x, th, u0, u1, h, h_rho, want_jac, Phi (n, n), Gam (n, p)) -> x_next``:
-        the RK4 map over one sample (first-order hold on u) and, when ``want_jac``, its exact
-        Jacobians Φ = ∂x_next/∂x, Γ = ∂x_next/∂θ written into ``Phi``, ``Gam`` (a ``Gam``
-        of shape (n, 0): Φ alone, a third of the work when p = 2n).
+        ``propagate(x, th, U, k, h, pc, WT, want_jac, Phi (n, n), Gam (n, p)) -> x_next``:
+        :func:`propagate`, the RK4 map over the interval from sample k (u held as
+        :class:`Propagation` says) and, when ``want_jac``, its exact Jacobians Φ, Γ written
+        into ``Phi``, ``Gam`` (a ``Gam`` of shape (n, 0): Φ alone, a third of the work when
+        p = 2n).
+    free_run : callable
+        ``free_run(x0, th, U, t, k0, k1, pc, WT, Y, X) -> rows``: :func:`free_run`.
+    module : module
+        The printed module (other kernels import ``propagate`` from it).
     source : str
         The generated code of ``rhs_jac``.
     """
@@ -382,6 +619,8 @@ class ModelKernel:
     compiled: bool
     rhs_jac: Callable[..., None]
     propagate: Callable[..., FloatArray]
+    free_run: Callable[..., int]
+    module: ModuleType
     source: str
 
     def f(self, x: Any, u: Any, theta: Any) -> FloatArray:
@@ -455,9 +694,97 @@ def model_kernel(system: PerturbedLinearSystem, *, compiled: bool | None = None)
     hit = _CACHE.get(key)
     if hit is not None:
         return hit
-    mod = _plant_module(source, use)
-    kern = ModelKernel(n=system.n, m=system.m, r=system.r, p=system.p,
-                       C=C, compiled=use, rhs_jac=mod.rhs_jac, propagate=mod.propagate,
-                       source=source)
+    mod, (prop, run) = printed_kernels(
+        "thetahat_plant", "Printed by thetahat.estimation.statistical.plant_kernel: the plant "
+        "model of one system; do not edit (content-addressed).", [propagate, free_run],
+        {"rhs_jac": "rhs_jac", "C_OUT": C}, use, text=source)
+    kern = ModelKernel(n=system.n, m=system.m, r=system.r, p=system.p, C=C, compiled=use,
+                       rhs_jac=mod.rhs_jac, propagate=getattr(mod, prop),
+                       free_run=getattr(mod, run), module=mod, source=source)
     _CACHE[key] = kern
     return kern
+
+
+def choose_substeps(kern: ModelKernel, t: FloatArray, U: FloatArray, Y: FloatArray,
+                    theta: FloatArray, x0: FloatArray, noise_std: FloatArray, *,
+                    hold: str = "foh", h_rho: float = H_RHO, target: float = ACCURACY,
+                    samples: int | None = None) -> int:
+    """The accuracy floor of RK4 sub-steps of a record: output error ≤ ``target`` standard errors.
+
+    The model is run free from ``x0`` at ``theta`` over the first :data:`ACCURACY_SAMPLES`
+    samples with n and 2n sub-steps per sample (n = 1, 2, 4, … up to
+    :data:`MAX_ACCURATE_SUBSTEPS`); the first n with
+    ‖y_n − y_{2n}‖_{R⁻¹} · √(N / samples compared) ≤ ``target`` is returned (module
+    docstring), the comparison ending where either run leaves :data:`RANGE_FACTOR` times the
+    data's range around it or stops being finite.
+
+    Parameters
+    ----------
+    kern : ModelKernel
+    t, U, Y : ndarray, shapes (N,), (N, m), (N, r)
+        The record (U: stage 2's samples, as the estimators propagate them; NaN in Y allowed).
+    theta : ndarray (p,)
+    x0 : ndarray (n,)
+    noise_std : ndarray (r,)
+        σ per output, > 0.
+    hold : str
+    h_rho : float
+    target : float
+        The error allowed in standard errors of θ̂ (:data:`ACCURACY`).
+    samples : int, optional
+        The record length the error is scaled to (default N).
+
+    Returns
+    -------
+    int
+        1 … :data:`MAX_ACCURATE_SUBSTEPS` (1: the stability choice alone suffices; also when
+        fewer than 2 samples can be compared).
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from thetahat.models import lugre
+    >>> d = lugre.simulate(seed=0, t_end=0.3)
+    >>> kern = model_kernel(lugre.system(), compiled=False)
+    >>> choose_substeps(kern, d.t, np.asarray(d.u), np.asarray(d.y), np.array([0.28]),
+    ...                 np.zeros(2), np.array([0.02]))
+    1
+    """
+    N = t.shape[0]
+    total = N if samples is None else int(samples)
+    K = min(N, ACCURACY_SAMPLES)
+    if K < 2:
+        return 1
+    r = kern.r
+    tt = np.ascontiguousarray(t, dtype=np.float64)
+    Uc = np.ascontiguousarray(U, dtype=np.float64)
+    th = np.array(theta, dtype=np.float64)
+    x = np.array(x0, dtype=np.float64)
+    scale = np.asarray(noise_std, dtype=np.float64).reshape(r)
+    seen = Y[:K][np.isfinite(Y[:K]).all(axis=1)] if Y.shape[1] else np.zeros((0, r))
+    centre = (np.median(seen, axis=0) if seen.shape[0] else np.zeros(r))
+    spread = (RANGE_FACTOR * (np.ptp(seen, axis=0) + scale) if seen.shape[0]
+              else np.full(r, np.inf))
+
+    def run(n: int) -> FloatArray:
+        Yn = np.full((K, r), np.nan)
+        pc, WT = Propagation(hold=hold, substeps=n, h_rho=h_rho).arrays()
+        kern.free_run(x.copy(), th, Uc, tt, 0, K, pc, WT, Yn, np.empty((K, kern.n)))
+        return Yn
+
+    n = 1
+    coarse = run(n)
+    while n < MAX_ACCURATE_SUBSTEPS:
+        fine = run(2 * n)
+        inside = (np.isfinite(coarse) & np.isfinite(fine)
+                  & (np.abs(coarse - centre) <= spread) & (np.abs(fine - centre) <= spread))
+        good = np.all(inside, axis=1)
+        stop = int(np.argmin(good)) if not good.all() else K
+        if stop < 2:
+            return n
+        e = (coarse[:stop] - fine[:stop]) / scale
+        err = math.sqrt(float(np.sum(e * e)) * total / stop)
+        if err <= target:
+            return n
+        n, coarse = 2 * n, fine
+    return n

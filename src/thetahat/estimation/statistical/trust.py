@@ -65,11 +65,11 @@ from scipy.special import gammaincinv
 from ...errors import ThetahatError
 from ...model.system import PerturbedLinearSystem
 from .common import sample_interval, theta_box, x_prior_sd
-from .input_hold import smooth_input
+from .input_hold import stage2_samples
 from .stage2_set import BOUNDARY_RTOL, on_boundary, project_theta
 from .likelihood import (RecordEvidence, process_noise_at, process_noise_scale,
                          record_evidence)
-from .plant_kernel import H_RHO
+from .plant_kernel import H_RHO, choose_substeps, model_kernel
 from .noise_level import MIN_SAMPLES, estimate_noise_std
 
 if TYPE_CHECKING:
@@ -373,7 +373,8 @@ def tail_movement(t: FloatArray, theta_path: FloatArray, sd: FloatArray) -> Floa
 def trust_report(system: PerturbedLinearSystem, t: FloatArray, U: FloatArray, Y: FloatArray,
                  theta: FloatArray, names: Sequence[str], *, x_hat0: FloatArray,
                  x_sd: ArrayLike | None = None, band: FloatArray | None = None,
-                 noise_std: FloatArray | None = None, h_rho: float = H_RHO,
+                 noise_std: FloatArray | None = None, hold: str = "foh",
+                 substeps: int | None = None, h_rho: float = H_RHO,
                  compiled: bool | None = None, theta_path: FloatArray | None = None,
                  law_conditions: LawConditionReport | None = None) -> TrustReport:
     """Check a final estimate θ̂ against its record (module docstring).
@@ -397,6 +398,11 @@ def trust_report(system: PerturbedLinearSystem, t: FloatArray, U: FloatArray, Y:
         The guard's band δ over the run (guarded estimator).
     noise_std : ndarray (r,), optional
         The estimator's σ (default: estimated from y); floored by :func:`report_noise_std`.
+    hold : {"zoh", "foh", "bandlimited"}
+        u between the samples, as the estimate used it (:mod:`~thetahat.estimation.hold`).
+    substeps : int, optional
+        The RK4 sub-steps' accuracy floor of the estimate's run (its diagnostics'
+        ``substeps``); default: chosen at θ̂.
     h_rho : float
     compiled : bool, optional
     theta_path : ndarray (N, p), optional
@@ -435,9 +441,9 @@ def trust_report(system: PerturbedLinearSystem, t: FloatArray, U: FloatArray, Y:
     if t.shape[0] >= MIN_SAMPLES:
         q0 = process_noise_scale(system, sample_interval(t), sigma)
         try:
-            ev = _evidence(system, t, np.ascontiguousarray(smooth_input(U)[0]), Y, th,
-                           x_hat0=x_hat0, x_sd=x_prior_sd(x_hat0, x_sd), noise_std=sigma,
-                           h_rho=h_rho, compiled=compiled)
+            ev = _evidence(system, t, np.ascontiguousarray(stage2_samples(U, hold)[0]), Y,
+                           th, x_hat0=x_hat0, x_sd=x_prior_sd(x_hat0, x_sd), noise_std=sigma,
+                           hold=hold, substeps=substeps, h_rho=h_rho, compiled=compiled)
             q = ev.q
             crlb_sd = np.sqrt(np.maximum(np.diag(ev.cov), 0.0))
             if np.all(np.isfinite(ev.step)):
@@ -467,18 +473,25 @@ def trust_report(system: PerturbedLinearSystem, t: FloatArray, U: FloatArray, Y:
 
 def _evidence(system: PerturbedLinearSystem, t: FloatArray, U: FloatArray, Y: FloatArray,
               theta: FloatArray, *, x_hat0: FloatArray, x_sd: FloatArray,
-              noise_std: FloatArray, h_rho: float, compiled: bool | None) -> RecordEvidence:
+              noise_std: FloatArray, hold: str, substeps: int | None, h_rho: float,
+              compiled: bool | None) -> RecordEvidence:
     """The score and the bound at θ̂ with the q the data support (module docstring): q
-    searched at θ̂, and again at the one-step θ while θ̂ fails the test (Q_REFINEMENTS)."""
+    searched at θ̂, and again at the one-step θ while θ̂ fails the test (Q_REFINEMENTS).
+    The sub-steps (when not given) are chosen once, at θ̂, for every filter pass."""
     theta_set = system.require_parameter_set("trust_report")
+    if substeps is None:
+        substeps = choose_substeps(model_kernel(system, compiled=compiled), t, U, Y, theta,
+                                   x_hat0, noise_std, hold=hold, h_rho=h_rho)
 
     def q_at(th: FloatArray) -> float:
         return process_noise_at(system, t, U, Y, theta=th, x_hat0=x_hat0, x_sd=x_sd,
-                                noise_std=noise_std, h_rho=h_rho, compiled=compiled)
+                                noise_std=noise_std, hold=hold, substeps=substeps,
+                                h_rho=h_rho, compiled=compiled)
 
     def evidence(q: float) -> RecordEvidence:
         return record_evidence(system, t, U, Y, theta=theta, x_hat0=x_hat0, x_sd=x_sd,
-                               noise_std=noise_std, q=q, h_rho=h_rho, compiled=compiled)
+                               noise_std=noise_std, q=q, hold=hold, substeps=substeps,
+                               h_rho=h_rho, compiled=compiled)
 
     q = q_at(theta)
     ev = evidence(q)
