@@ -27,7 +27,6 @@ if TYPE_CHECKING:                    # the real imports, for type checkers and I
     from .estimation.observer.compiled import CompiledObserver, compile_observer
     from .estimation.statistical.crlb import CRLBResult, crlb
     from .estimation.statistical.ekf import EKFDiagnostics, JointEKF
-    from .estimation.statistical.free_run import SimulatedOutput, simulate_output
     from .estimation.statistical.guarded import GuardedDiagnostics, GuardedEstimator
     from .estimation.statistical.mle import MapDiagnostics, MapEstimator
     from .estimation.protocol import EstimateResult, Estimator, ObserverDiagnostics
@@ -66,7 +65,6 @@ __all__ = [
     "Estimator", "EstimateResult", "ObserverDiagnostics", "GuardedDiagnostics", "MapDiagnostics",
     "EKFDiagnostics",
     "CRLBResult", "crlb", "JointEKF", "GuardedEstimator", "MapEstimator",
-    "SimulatedOutput", "simulate_output",
     "BatchObserverResult", "FleetResult", "estimate_many", "TuneResult", "tune_eps_gamma", "CompiledObserver", "compile_observer", "run_batch",
     "EstimatorSpec", "SecondObserverSpec",
     "AlgebraicInversion", "Ball", "Box", "ConstantLaw", "ConvexSet", "Ellipsoid",
@@ -109,7 +107,6 @@ _EXPORTS: dict[str, tuple[str, ...]] = {
     "estimation.observer.compiled": ("CompiledObserver", "compile_observer"),
     "estimation.statistical.crlb": ("CRLBResult", "crlb"),
     "estimation.statistical.ekf": ("EKFDiagnostics", "JointEKF"),
-    "estimation.statistical.free_run": ("SimulatedOutput", "simulate_output"),
     "estimation.statistical.guarded": ("GuardedDiagnostics", "GuardedEstimator"),
     "estimation.statistical.mle": ("MapDiagnostics", "MapEstimator"),
     "estimation.protocol": ("EstimateResult", "Estimator", "ObserverDiagnostics"),

@@ -4,7 +4,7 @@ Every estimator integrates the model between two samples, so every one needs u (
 observer v = col(u, y)) *between* them. The hold says what it is; one definition serves the
 paper's observer, the joint EKF, the MAP fits, the likelihood with process noise, the
 Cramér–Rao bound, the trust report and the free-run simulation
-(:func:`~thetahat.estimation.statistical.free_run.simulate_output`):
+(:func:`thetahat.studies.free_run.simulate_output`):
 
 * ``"zoh"`` — zero-order hold: u(t_k + a h) = u_k for a ∈ [0, 1) (a DAC holding its output);
 * ``"foh"`` — first-order hold: u linear between u_k and u_{k+1};

@@ -1,26 +1,28 @@
 """Free-run simulation: the model (1) with θ driven by a record's inputs alone.
 
 :func:`simulate_output` integrates ẋ = A x + B u + E g(col(u, C x), x, θ) over a record and
-returns ŷ = C x at the samples. Between the samples the input is reconstructed by the
-``hold`` (:data:`HOLDS`), a modelling choice that a lightly damped resonance near the Nyquist
-frequency makes visible: ``"zoh"`` holds each sample until the next; ``"foh"`` interpolates
-linearly; ``"bandlimited"`` is the band-limited (sinc) interpolation of the samples — what a
-signal sampled without aliasing is — computed by ``scipy.signal.resample_poly`` (Kaiser
-window, :data:`BANDLIMITED_WINDOW`). Each sample interval is cut into ``substeps`` classical
-RK4 steps on stage 2's plant model
-(:attr:`~thetahat.estimation.statistical.plant_kernel.ModelKernel.rhs_jac`), each reading the
-reconstructed input at its start, midpoint and end (:func:`input_path`), so that the input is
-integrated to RK4's own order whatever the hold. Without ``substeps`` they are doubled from
+returns ŷ = C x at the samples. Between the samples the input is what the ``hold``
+reconstructs (:mod:`thetahat.estimation.hold`, the one definition every estimator uses):
+``"zoh"`` holds each sample until the next; ``"foh"`` interpolates linearly; ``"bandlimited"``
+is the band-limited (windowed-sinc) interpolation of the samples — what a signal sampled
+without aliasing is — a modelling choice that a lightly damped resonance near the Nyquist
+frequency makes visible. The samples are reconstructed as given (stage 2's estimators hand
+theirs ũ through :func:`~thetahat.estimation.statistical.input_hold.stage2_samples` first).
+
+The map between two samples is stage 2's own
+(:func:`~thetahat.estimation.statistical.plant_kernel.propagate`: classical RK4 sub-steps
+reading the held input at each sub-step's start, midpoint and end, with the exact Jacobians
+Φ, Γ of the map): a free run here is the trajectory an estimator's fit computes with the same
+hold and the same sub-steps. ``substeps`` is the floor of sub-steps per sample (the stability
+choice ceil(h ρ / h_rho) may take more). Without it, the floor is doubled from
 :data:`FIRST_SUBSTEPS` until two simulations agree to ``rtol`` (:func:`converged_substeps`):
 the simulation is then accurate to well below any measurement noise. :class:`FreeRun` is a
-record bound to a model, which also gives the sensitivities ∂ŷ/∂x(0) and ∂ŷ/∂θ (the
-variational equations of the same RK4, with the plant kernel's
-:func:`~thetahat.estimation.statistical.plant_kernel.stage_jac`) for the fits of
+record bound to a model, which also gives the sensitivities ∂ŷ/∂x(0) and ∂ŷ/∂θ (Φ and Γ of
+each sample chained, printed with the model's kernels) for the fits of
 :mod:`thetahat.studies.validation`.
 
-Written on stage 2's plant kernel, whose own ``propagate`` holds the input linear over a
-sample (which the band-limited reconstruction is not). What it may import: the model, the
-estimation wing's plant kernel, the package's validation and errors.
+What it may import: the model, the estimation wing's hold and plant kernel, the package's
+validation and errors.
 """
 
 from __future__ import annotations
@@ -29,23 +31,23 @@ import functools
 import math
 import warnings
 from dataclasses import dataclass
-from typing import Callable
+from typing import Any, Callable
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from .._validate import as_samples, as_vector
 from ..errors import ConvergenceWarning, DimensionError, NonFiniteError, OptionError
-from ..estimation.statistical.plant_kernel import ModelKernel, jit, model_kernel, stage_jac
+from ..estimation.hold import HOLDS, check_hold, reconstruct
+from ..estimation.statistical.plant_kernel import (H_RHO, ModelKernel, Propagation,
+                                                   model_kernel, printed_kernels)
 from ..model.system import PerturbedLinearSystem
 
-__all__ = ["BANDLIMITED_WINDOW", "DEFAULT_RTOL", "FIRST_SUBSTEPS", "FreeRun", "HOLDS",
-           "MAX_SUBSTEPS", "converged_substeps", "input_path", "simulate_output"]
+__all__ = ["DEFAULT_RTOL", "FIRST_SUBSTEPS", "FreeRun", "MAX_SUBSTEPS", "converged_substeps",
+           "input_path", "simulate_output", "trajectory"]
 
 FloatArray = NDArray[np.float64]
 
-#: The reconstructions of the input between samples.
-HOLDS = ("zoh", "foh", "bandlimited")
 #: Sub-steps per sample at which :func:`converged_substeps` starts doubling.
 FIRST_SUBSTEPS = 2
 #: The most sub-steps per sample :func:`converged_substeps` tries (RK4 converges as S⁻⁴: a
@@ -55,26 +57,25 @@ MAX_SUBSTEPS = 64
 #: Two simulations agree when the RMS of their difference is at most this fraction of the RMS
 #: of the output: 1e-4 of a 50 mV signal is 5 µV, far below any instrument's noise.
 DEFAULT_RTOL = 1e-4
-#: ``scipy.signal.resample_poly``'s window for the band-limited reconstruction: β = 8 puts the
-#: stop band near −80 dB.
-BANDLIMITED_WINDOW = ("kaiser", 8.0)
-#: Samples mirrored (odd reflection) at each end of the input before the band-limited
-#: reconstruction, more than the interpolation filter's half-length (10 samples), so that the
-#: record's ends are not read as jumps to zero.
-BANDLIMITED_PAD = 16
 #: Uniform sampling for the band-limited reconstruction: steps within this relative spread.
 UNIFORM_RTOL = 1e-6
 
 
 def _check_hold(hold: str) -> str:
-    if hold not in HOLDS:
-        raise OptionError(f"hold: expected one of {list(HOLDS)}; got {hold!r}.")
-    return hold
+    try:
+        return check_hold(hold)
+    except OptionError:
+        raise OptionError(f"hold: expected one of {list(HOLDS)}; got {hold!r}.") from None
 
 
 def input_path(t: ArrayLike, u: ArrayLike, hold: str, substeps: int
                ) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
     """The input at the three points where each RK4 sub-step reads it, and the sub-steps' lengths.
+
+    The hold's reconstruction (:func:`~thetahat.estimation.hold.reconstruct`) at the fractions
+    s/S, (s + ½)/S and (s + 1)/S of each interval: what
+    :func:`~thetahat.estimation.statistical.plant_kernel.propagate` reads with S sub-steps
+    (for an independent integrator to be driven by the same input).
 
     Parameters
     ----------
@@ -99,8 +100,6 @@ def input_path(t: ArrayLike, u: ArrayLike, hold: str, substeps: int
     ------
     OptionError
         Unknown hold, or ``substeps`` < 1.
-    DimensionError
-        "bandlimited" on a record that is not uniformly sampled.
 
     Examples
     --------
@@ -118,137 +117,91 @@ def input_path(t: ArrayLike, u: ArrayLike, hold: str, substeps: int
     S = int(substeps)
     t = as_vector("t", t)
     U = np.asarray(u, dtype=np.float64).reshape(t.size, -1)
-    N, m = U.shape
-    steps = np.diff(t)
-    DT = np.repeat(steps / S, S)
-    if hold == "zoh":
-        UA = np.repeat(U[:-1], S, axis=0)
-        return UA, UA.copy(), UA.copy(), DT
-    if hold == "foh":
-        a = (np.arange(2 * S + 1) / (2 * S))[None, :, None]
-        grid = U[:-1, None, :] + a * (U[1:, None, :] - U[:-1, None, :])   # (N−1, 2S+1, m)
-    else:
-        if N > 1 and np.ptp(steps) > UNIFORM_RTOL * float(np.median(steps)):
-            raise DimensionError("hold='bandlimited' needs a uniformly sampled record (the "
-                                 "band-limited interpolation is defined on a uniform grid); "
-                                 "t's steps range over "
-                                 f"[{steps.min():.6g}, {steps.max():.6g}]. Use 'foh' or "
-                                 "'zoh', or resample the record first.")
-        fine = _bandlimited(U, 2 * S)                              # ((N − 1)·2S + 1, m)
-        grid = np.concatenate([fine[:-1].reshape(N - 1, 2 * S, m), fine[2 * S::2 * S, None]],
-                              axis=1)                              # (N−1, 2S+1, m)
-    return (np.ascontiguousarray(grid[:, 0:-1:2].reshape(-1, m)),
-            np.ascontiguousarray(grid[:, 1::2].reshape(-1, m)),
-            np.ascontiguousarray(grid[:, 2::2].reshape(-1, m)), DT)
-
-
-def _bandlimited(U: FloatArray, L: int) -> FloatArray:
-    """The band-limited interpolation of U's columns on L points per sample (the samples
-    themselves kept: the interpolation filter is zero at multiples of L)."""
-    from scipy.signal import resample_poly
     N = U.shape[0]
-    if L == 1 or N < 2:
-        return U.copy()
-    P = min(BANDLIMITED_PAD, N - 1)
-    padded = np.pad(U, ((P, P), (0, 0)), mode="reflect", reflect_type="odd")
-    fine = resample_poly(padded, L, 1, axis=0, window=BANDLIMITED_WINDOW)
-    return np.ascontiguousarray(fine[P * L:P * L + (N - 1) * L + 1])
+    DT = np.repeat(np.diff(t) / S, S)
+    k = np.repeat(np.arange(N - 1), S)
+    s = np.tile(np.arange(S, dtype=np.float64), N - 1)
+    parts = tuple(np.ascontiguousarray(reconstruct(U, hold, k, np.minimum((s + c) / S, 1.0)))
+                  for c in (0.0, 0.5, 1.0))
+    return parts[0], parts[1], parts[2], DT
 
 
-def _make_free_run(model: ModelKernel) -> Callable[..., int]:
-    rhs = model.rhs_jac
-    stage = stage_jac
-    C = model.C
+# Names of the printed trajectory module (declared for the type checker; bound when printed).
+propagate: Callable[..., Any]
+C_OUT: FloatArray
 
-    def free_run(x0, th, UA, UM, UB, DT, per, want, Y, SX, ST):
-        """x from x0 by RK4 sub-steps (per of them per sample) with the input at each
-        sub-step's start, midpoint and end; y = C x at each sample into Y; with want,
-        ∂y/∂x(0) into SX and ∂y/∂θ into ST (the variational equations of the same RK4).
-        Returns −1, or the first sample at which x is not finite."""
-        n = x0.shape[0]
-        p = th.shape[0]
-        r = C.shape[0]
-        N = Y.shape[0]
-        pj = p if want else 0
-        x = x0.copy()
-        xs = np.empty(n)
-        k1 = np.empty(n)
-        k2 = np.empty(n)
-        k3 = np.empty(n)
-        k4 = np.empty(n)
-        Fx = np.empty((n, n))
-        Ft = np.empty((n, p))
-        Jx = np.zeros((n, n))
-        Jt = np.zeros((n, pj))
-        D1x = np.zeros((n, n))
-        D2x = np.zeros((n, n))
-        D3x = np.zeros((n, n))
-        D4x = np.zeros((n, n))
-        D1t = np.zeros((n, pj))
-        D2t = np.zeros((n, pj))
-        D3t = np.zeros((n, pj))
-        D4t = np.zeros((n, pj))
-        for i in range(n):
-            Jx[i, i] = 1.0
-        for k in range(N):
-            if k > 0:
-                for j in range(per):
-                    s = (k - 1) * per + j
-                    dt = DT[s]
-                    rhs(x, UA[s], th, k1, Fx, Ft)
-                    if want:
-                        stage(Fx, Ft, Jx, Jt, D1x, D1t, 0.0, D1x, D1t)
-                    for i in range(n):
-                        xs[i] = x[i] + 0.5 * dt * k1[i]
-                    rhs(xs, UM[s], th, k2, Fx, Ft)
-                    if want:
-                        stage(Fx, Ft, Jx, Jt, D1x, D1t, 0.5 * dt, D2x, D2t)
-                    for i in range(n):
-                        xs[i] = x[i] + 0.5 * dt * k2[i]
-                    rhs(xs, UM[s], th, k3, Fx, Ft)
-                    if want:
-                        stage(Fx, Ft, Jx, Jt, D2x, D2t, 0.5 * dt, D3x, D3t)
-                    for i in range(n):
-                        xs[i] = x[i] + dt * k3[i]
-                    rhs(xs, UB[s], th, k4, Fx, Ft)
-                    if want:
-                        stage(Fx, Ft, Jx, Jt, D3x, D3t, dt, D4x, D4t)
+
+def trajectory(x0: Any, th: Any, U: Any, tt: Any, pc: Any, WT: Any, want: bool, Y: Any,
+               SX: Any, ST: Any) -> int:
+    """ŷ = C x at each sample from x(t₀) = x0 by the model's ``propagate`` (u held as
+    ``pc, WT`` say); with ``want`` also ∂ŷ/∂x(0) into SX (N, r, n) and ∂ŷ/∂θ into ST (N, r, p)
+    (Φ and Γ of each sample chained: J_x ← Φ J_x, J_θ ← Φ J_θ + Γ). Printed over one model's
+    plant kernels (:func:`_trajectory_for`). Returns −1, or the first sample at which x is not
+    finite."""
+    n = x0.shape[0]
+    p = th.shape[0]
+    r = C_OUT.shape[0]
+    N = Y.shape[0]
+    pj = p if want else 0
+    x = x0.copy()
+    Phi = np.empty((n, n))
+    Gam = np.empty((n, pj))
+    Jx = np.zeros((n, n))
+    Jt = np.zeros((n, pj))
+    Tx = np.empty((n, n))
+    Tt = np.empty((n, pj))
+    for i in range(n):
+        Jx[i, i] = 1.0
+    for k in range(N):
+        if k > 0:
+            x = propagate(x, th, U, k - 1, tt[k] - tt[k - 1], pc, WT, want, Phi, Gam)
+            if want:
+                for i in range(n):
+                    for j in range(n):
+                        acc = 0.0
                         for a in range(n):
-                            for b in range(n):
-                                Jx[a, b] += dt / 6.0 * (D1x[a, b] + 2.0 * D2x[a, b]
-                                                        + 2.0 * D3x[a, b] + D4x[a, b])
-                            for b in range(pj):
-                                Jt[a, b] += dt / 6.0 * (D1t[a, b] + 2.0 * D2t[a, b]
-                                                        + 2.0 * D3t[a, b] + D4t[a, b])
-                    for i in range(n):
-                        x[i] += dt / 6.0 * (k1[i] + 2.0 * k2[i] + 2.0 * k3[i] + k4[i])
+                            acc += Phi[i, a] * Jx[a, j]
+                        Tx[i, j] = acc
+                    for j in range(pj):
+                        acc = Gam[i, j]
+                        for a in range(n):
+                            acc += Phi[i, a] * Jt[a, j]
+                        Tt[i, j] = acc
+                for i in range(n):
+                    for j in range(n):
+                        Jx[i, j] = Tx[i, j]
+                    for j in range(pj):
+                        Jt[i, j] = Tt[i, j]
+        for a in range(n):
+            if not math.isfinite(x[a]):
+                return k
+        for i in range(r):
+            acc = 0.0
             for a in range(n):
-                if not math.isfinite(x[a]):
-                    return k
-            for i in range(r):
-                acc = 0.0
-                for a in range(n):
-                    acc += C[i, a] * x[a]
-                Y[k, i] = acc
-                if want:
-                    for b in range(n):
-                        acc = 0.0
-                        for a in range(n):
-                            acc += C[i, a] * Jx[a, b]
-                        SX[k, i, b] = acc
-                    for b in range(p):
-                        acc = 0.0
-                        for a in range(n):
-                            acc += C[i, a] * Jt[a, b]
-                        ST[k, i, b] = acc
-        return -1
-
-    return jit(free_run, model.compiled)
+                acc += C_OUT[i, a] * x[a]
+            Y[k, i] = acc
+            if want:
+                for b in range(n):
+                    acc = 0.0
+                    for a in range(n):
+                        acc += C_OUT[i, a] * Jx[a, b]
+                    SX[k, i, b] = acc
+                for b in range(p):
+                    acc = 0.0
+                    for a in range(n):
+                        acc += C_OUT[i, a] * Jt[a, b]
+                    ST[k, i, b] = acc
+    return -1
 
 
 @functools.lru_cache(maxsize=16)
-def _free_run_for(model: ModelKernel) -> Callable[..., int]:
-    return _make_free_run(model)
+def _trajectory_for(model: ModelKernel) -> Callable[..., int]:
+    mod, (name,) = printed_kernels(
+        "thetahat_trajectory", "Printed by thetahat.studies.free_run: the free run with its "
+        "sensitivities of one model; do not edit (content-addressed).", [trajectory],
+        {"propagate": model.propagate, "C_OUT": model.C}, model.compiled)
+    fn: Callable[..., int] = getattr(mod, name)
+    return fn
 
 
 @dataclass(frozen=True, slots=True, eq=False)
@@ -318,6 +271,13 @@ class FreeRun:
             raise DimensionError(f"u: expected shape ({t.size}, {m}) (one row per sample, one "
                                  f"column per input); got "
                                  f"{None if u is None else np.shape(u)}.")
+        steps = np.diff(t)
+        if hold == "bandlimited" and np.ptp(steps) > UNIFORM_RTOL * float(np.median(steps)):
+            raise DimensionError("hold='bandlimited' needs a uniformly sampled record (the "
+                                 "band-limited interpolation is defined on a uniform grid); "
+                                 "t's steps range over "
+                                 f"[{steps.min():.6g}, {steps.max():.6g}]. Use 'foh' or "
+                                 "'zoh', or resample the record first.")
         if not np.all(np.isfinite(U)):
             raise NonFiniteError("u holds NaN or inf; a free-run simulation needs every input "
                                  "sample.")
@@ -338,7 +298,7 @@ class FreeRun:
         theta : ndarray, shape (p,)
         x0 : ndarray, shape (n,)
         substeps : int
-            RK4 steps per sample interval.
+            RK4 steps per sample interval (the floor: the stability choice may take more).
         want : bool
             Also the sensitivities.
         stop : int, optional
@@ -357,13 +317,14 @@ class FreeRun:
             The state is not finite at some sample (named).
         """
         N = self.t.size if stop is None else stop
-        UA, UM, UB, DT = input_path(self.t[:N], self.U[:N], self.hold, substeps)
         r, n, p = self.model.r, self.model.n, self.model.p
         Y = np.empty((N, r))
         SX = np.empty((N, r, n) if want else (0, r, n))
         ST = np.empty((N, r, p) if want else (0, r, p))
-        bad = _free_run_for(self.model)(x0, theta, UA, UM, UB, DT, int(substeps), want,
-                                        Y, SX, ST)
+        pc, WT = Propagation(hold=self.hold, substeps=int(substeps), h_rho=H_RHO).arrays()
+        bad = _trajectory_for(self.model)(np.ascontiguousarray(x0, dtype=np.float64),
+                                          np.ascontiguousarray(theta, dtype=np.float64),
+                                          self.U[:N], self.t[:N], pc, WT, want, Y, SX, ST)
         if bad >= 0:
             raise NonFiniteError(f"the free-run simulation with θ = {theta.tolist()} is not "
                                  f"finite at sample {bad} (t = {self.t[bad]:.6g}): the model "
