@@ -120,8 +120,10 @@ def test_a_singular_covariance_falls_back_to_a_point_of_theta():
 
 def test_the_compiled_kernel_agrees_with_python(rng):
     pytest.importorskip("numba")
-    from thetahat.estimation.statistical.plant_kernel import jit
-    fast = jit(project_kernel, True)
+    from thetahat.estimation.statistical.plant_kernel import printed_kernels
+    mod, (name,) = printed_kernels("thetahat_test_projection", "The projection compiled "
+                                   "alone (tests).", [project_kernel], {}, True)
+    fast = getattr(mod, name)
     ell = Ellipsoid([0.0, 1.0], np.array([[4.0, 1.0], [1.0, 1.0]]))
     st = stage2_set(ell)
     for _ in range(10):

@@ -18,10 +18,11 @@ choice ceil(h ρ / h_rho) may take more). Without it, the floor is doubled from
 :data:`FIRST_SUBSTEPS` until two simulations agree to ``rtol`` (:func:`converged_substeps`):
 the simulation is then accurate to well below any measurement noise. :class:`FreeRun` is a
 record bound to a model, which also gives the sensitivities ∂ŷ/∂x(0) and ∂ŷ/∂θ (Φ and Γ of
-each sample chained, printed with the model's kernels) for the fits of
+each sample chained by the Cramér–Rao bound's own kernel,
+:func:`~thetahat.estimation.statistical.crlb.sensitivities`) for the fits of
 :mod:`thetahat.studies.validation`.
 
-What it may import: the model, the estimation wing's hold and plant kernel, the package's
+What it may import: the model, the estimation wing's hold, plant kernel and CRLB kernel, the package's
 validation and errors.
 """
 
@@ -39,12 +40,12 @@ from numpy.typing import ArrayLike, NDArray
 from .._validate import as_samples, as_vector
 from ..errors import ConvergenceWarning, DimensionError, NonFiniteError, OptionError
 from ..estimation.hold import HOLDS, check_hold, reconstruct
-from ..estimation.statistical.plant_kernel import (H_RHO, ModelKernel, Propagation,
-                                                   model_kernel, printed_kernels)
+from ..estimation.statistical.crlb import sensitivity_kernel
+from ..estimation.statistical.plant_kernel import H_RHO, ModelKernel, Propagation, model_kernel
 from ..model.system import PerturbedLinearSystem
 
 __all__ = ["DEFAULT_RTOL", "FIRST_SUBSTEPS", "FreeRun", "MAX_SUBSTEPS", "converged_substeps",
-           "input_path", "simulate_output", "trajectory"]
+           "input_path", "simulate_output"]
 
 FloatArray = NDArray[np.float64]
 
@@ -124,84 +125,6 @@ def input_path(t: ArrayLike, u: ArrayLike, hold: str, substeps: int
     parts = tuple(np.ascontiguousarray(reconstruct(U, hold, k, np.minimum((s + c) / S, 1.0)))
                   for c in (0.0, 0.5, 1.0))
     return parts[0], parts[1], parts[2], DT
-
-
-# Names of the printed trajectory module (declared for the type checker; bound when printed).
-propagate: Callable[..., Any]
-C_OUT: FloatArray
-
-
-def trajectory(x0: Any, th: Any, U: Any, tt: Any, pc: Any, WT: Any, want: bool, Y: Any,
-               SX: Any, ST: Any) -> int:
-    """ŷ = C x at each sample from x(t₀) = x0 by the model's ``propagate`` (u held as
-    ``pc, WT`` say); with ``want`` also ∂ŷ/∂x(0) into SX (N, r, n) and ∂ŷ/∂θ into ST (N, r, p)
-    (Φ and Γ of each sample chained: J_x ← Φ J_x, J_θ ← Φ J_θ + Γ). Printed over one model's
-    plant kernels (:func:`_trajectory_for`). Returns −1, or the first sample at which x is not
-    finite."""
-    n = x0.shape[0]
-    p = th.shape[0]
-    r = C_OUT.shape[0]
-    N = Y.shape[0]
-    pj = p if want else 0
-    x = x0.copy()
-    Phi = np.empty((n, n))
-    Gam = np.empty((n, pj))
-    Jx = np.zeros((n, n))
-    Jt = np.zeros((n, pj))
-    Tx = np.empty((n, n))
-    Tt = np.empty((n, pj))
-    for i in range(n):
-        Jx[i, i] = 1.0
-    for k in range(N):
-        if k > 0:
-            x = propagate(x, th, U, k - 1, tt[k] - tt[k - 1], pc, WT, want, Phi, Gam)
-            if want:
-                for i in range(n):
-                    for j in range(n):
-                        acc = 0.0
-                        for a in range(n):
-                            acc += Phi[i, a] * Jx[a, j]
-                        Tx[i, j] = acc
-                    for j in range(pj):
-                        acc = Gam[i, j]
-                        for a in range(n):
-                            acc += Phi[i, a] * Jt[a, j]
-                        Tt[i, j] = acc
-                for i in range(n):
-                    for j in range(n):
-                        Jx[i, j] = Tx[i, j]
-                    for j in range(pj):
-                        Jt[i, j] = Tt[i, j]
-        for a in range(n):
-            if not math.isfinite(x[a]):
-                return k
-        for i in range(r):
-            acc = 0.0
-            for a in range(n):
-                acc += C_OUT[i, a] * x[a]
-            Y[k, i] = acc
-            if want:
-                for b in range(n):
-                    acc = 0.0
-                    for a in range(n):
-                        acc += C_OUT[i, a] * Jx[a, b]
-                    SX[k, i, b] = acc
-                for b in range(p):
-                    acc = 0.0
-                    for a in range(n):
-                        acc += C_OUT[i, a] * Jt[a, b]
-                    ST[k, i, b] = acc
-    return -1
-
-
-@functools.lru_cache(maxsize=16)
-def _trajectory_for(model: ModelKernel) -> Callable[..., int]:
-    mod, (name,) = printed_kernels(
-        "thetahat_trajectory", "Printed by thetahat.studies.free_run: the free run with its "
-        "sensitivities of one model; do not edit (content-addressed).", [trajectory],
-        {"propagate": model.propagate, "C_OUT": model.C}, model.compiled)
-    fn: Callable[..., int] = getattr(mod, name)
-    return fn
 
 
 @dataclass(frozen=True, slots=True, eq=False)
@@ -318,13 +241,26 @@ class FreeRun:
         """
         N = self.t.size if stop is None else stop
         r, n, p = self.model.r, self.model.n, self.model.p
-        Y = np.empty((N, r))
-        SX = np.empty((N, r, n) if want else (0, r, n))
-        ST = np.empty((N, r, p) if want else (0, r, p))
+        C = self.model.C
         pc, WT = Propagation(hold=self.hold, substeps=int(substeps), h_rho=H_RHO).arrays()
-        bad = _trajectory_for(self.model)(np.ascontiguousarray(x0, dtype=np.float64),
-                                          np.ascontiguousarray(theta, dtype=np.float64),
-                                          self.U[:N], self.t[:N], pc, WT, want, Y, SX, ST)
+        x0_ = np.ascontiguousarray(x0, dtype=np.float64)
+        th = np.ascontiguousarray(theta, dtype=np.float64)
+        X = np.empty((N, n))
+        if want:                 # S = ∂x/∂(θ, x(0)), columns θ first (crlb.sensitivities)
+            S0 = np.concatenate([np.zeros((n, p)), np.eye(n)], axis=1)
+            S = np.empty((N, n, p + n))
+            bad = sensitivity_kernel(self.model)(x0_, th, self.U[:N], self.t[:N], pc, WT, S0,
+                                                 X, S)
+            done = N if bad < 0 else bad
+            CS = np.einsum("rn,knq->krq", C, S[:done])
+            SX, ST = CS[:, :, p:], CS[:, :, :p]
+            Y = X[:done] @ C.T
+        else:
+            Y = np.empty((N, r))
+            done = int(self.model.free_run(x0_, th, self.U[:N], self.t[:N], 0, N, pc, WT, Y,
+                                           X))
+            bad = -1 if done == N else done
+            SX, ST = np.empty((0, r, n)), np.empty((0, r, p))
         if bad >= 0:
             raise NonFiniteError(f"the free-run simulation with θ = {theta.tolist()} is not "
                                  f"finite at sample {bad} (t = {self.t[bad]:.6g}): the model "

@@ -17,8 +17,8 @@ from syntax trees and imported from the cache (:mod:`.modules`, :mod:`.kernel_ca
   :mod:`thetahat.codegen.c_printer`.
 
 Stage 2's kernels use the same writer: the plant model (``rhs_jac`` from SymPy with the RK4
-kernels) is one printed module, and a kernel closure is printed with its free names bound
-(:func:`.modules.cached_njit`). The named argument tuples of the formulas and their shapes are
+kernels) is one printed module, and every other stage-2 kernel is a module-level function
+printed with its free names bound (:meth:`.modules.ModuleText.bound`). The named argument tuples of the formulas and their shapes are
 in :mod:`.kernel_args`, the projection onto a convex Θ as kernels in :mod:`.set_projection`.
 
 What it may import: :mod:`thetahat.model`, the package's helpers and

@@ -40,7 +40,7 @@ from ..records import check_record
 from .input_hold import stage2_samples
 from .plant_kernel import ModelKernel, Propagation, choose_substeps, model_kernel, printed_kernels
 
-__all__ = ["CRLBResult", "crlb", "SINGULAR_RTOL", "sensitivities"]
+__all__ = ["CRLBResult", "crlb", "SINGULAR_RTOL", "sensitivities", "sensitivity_kernel"]
 
 FloatArray = NDArray[np.float64]
 
@@ -138,7 +138,31 @@ def sensitivities(x0: Any, th: Any, U: Any, tt: Any, pc: Any, WT: Any, S0: Any, 
 
 
 @functools.lru_cache(maxsize=16)
-def _kernel(model: ModelKernel) -> Callable[..., int]:
+def sensitivity_kernel(model: ModelKernel) -> Callable[..., int]:
+    """:func:`sensitivities` printed over a model's plant kernels (built once per model kernel;
+    the free run's sensitivities of :mod:`thetahat.studies.free_run` run it too).
+
+    Parameters
+    ----------
+    model : ModelKernel
+
+    Returns
+    -------
+    callable
+        ``sensitivities(x0, th, U, t, pc, WT, S0, X, SENS) -> −1 or the first bad sample``.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from thetahat.models import lugre
+    >>> from thetahat.estimation.statistical.plant_kernel import Propagation, model_kernel
+    >>> run = sensitivity_kernel(model_kernel(lugre.system(), compiled=False))
+    >>> t = np.arange(5) * 1e-3
+    >>> X, S = np.empty((5, 2)), np.empty((5, 2, 1))
+    >>> pc, WT = Propagation().arrays()
+    >>> run(np.zeros(2), np.array([0.28]), np.ones((5, 1)), t, pc, WT, np.zeros((2, 1)), X, S)
+    -1
+    """
     mod, (name,) = printed_kernels(
         "thetahat_crlb", "Printed by thetahat.estimation.statistical.crlb: the sensitivities "
         "of one model; do not edit (content-addressed).", [sensitivities],
@@ -220,7 +244,7 @@ def crlb(system: PerturbedLinearSystem, t: Any, u: Any, *, theta: Any, noise_std
         S0[:, p:] = np.eye(n)
     N = t_.shape[0]
     X, S = np.empty((N, n)), np.empty((N, n, nq))
-    bad = _kernel(kern)(x0_, th, Us, t_, pc, WT, S0, X, S)
+    bad = sensitivity_kernel(kern)(x0_, th, Us, t_, pc, WT, S0, X, S)
     if bad >= 0:
         raise SimulationError(f"the model's trajectory is not finite from t[{bad}] = "
                               f"{float(t_[bad]):.6g} on: check the input record and θ (the "

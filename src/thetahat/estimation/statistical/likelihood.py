@@ -391,22 +391,27 @@ def _fit_theta(pb: _Problem, theta0: FloatArray, q: float, theta_set: ParameterS
     sol = least_squares(lambda th: pb.residuals(th, q), inner, bounds=(lo, hi),
                         x_scale=width, method="trf", max_nfev=max_nfev, xtol=FIT_RTOL,
                         ftol=FIT_RTOL, loss="huber", f_scale=HUBER_C)
-    theta = np.asarray(sol.x, dtype=np.float64)
+    box_theta = np.asarray(sol.x, dtype=np.float64)
     J = np.asarray(sol.jac, dtype=np.float64)
     cov = _inverse_information(J)
-    if not isinstance(theta_set, Box):
-        theta = project_theta(theta_set, theta, cov)
-    return theta, J, int(sol.nfev), _step_to_go(J, np.asarray(sol.fun), theta, cov, lo, hi)
+    theta = (box_theta if isinstance(theta_set, Box)
+             else project_theta(theta_set, box_theta, cov))
+    return theta, J, int(sol.nfev), _step_to_go(J, np.asarray(sol.fun), box_theta, theta,
+                                                 cov, theta_set)
 
 
-def _step_to_go(J: FloatArray, res: FloatArray, theta: FloatArray, cov: FloatArray,
-                lo: FloatArray, hi: FloatArray) -> float:
-    """The Gauss–Newton step of Huber's loss still to go at θ (weights min(1, c/|ε|)),
-    clipped to Θ's box, in standard errors of θ (its largest component)."""
+def _step_to_go(J: FloatArray, res: FloatArray, box_theta: FloatArray, theta: FloatArray,
+                cov: FloatArray, theta_set: ParameterSet) -> float:
+    """The Gauss–Newton step of Huber's loss still to go (weights min(1, c/|ε|)) from the
+    box's solution ``box_theta`` (where J and the residuals are), projected onto Θ, measured
+    from the returned θ (Π_Θ of the box's solution): a fit that ends on Θ's face has
+    converged there. In standard errors of θ (its largest component)."""
     w = np.minimum(1.0, HUBER_C / np.maximum(np.abs(res), 1e-300))
     Jw = J * w[:, None]
     delta = -np.linalg.lstsq(Jw.T @ J, Jw.T @ res, rcond=None)[0]
-    move = np.clip(theta + delta, lo, hi) - theta
+    if not np.all(np.isfinite(delta)):
+        return math.inf
+    move = project_theta(theta_set, box_theta + delta, cov) - theta
     se = np.sqrt(np.maximum(np.diag(cov), 1e-300))
     with np.errstate(invalid="ignore"):
         ratio = np.where(np.isfinite(se), np.abs(move) / se, 0.0)

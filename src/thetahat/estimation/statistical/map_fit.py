@@ -63,7 +63,7 @@ if TYPE_CHECKING:
     from .likelihood import ProcessNoiseFit
 
 __all__ = ["FitResult", "FitSchedule", "INFO_GROWTH", "MAX_BURST_FRACTION", "MAX_HALVINGS",
-           "Q_SEARCH_GROWTH", "REJECT_SE_GROWTH", "REJECT_STEP_SE", "STEP_TOL", "doubling_schedule", "first_fit_samples",
+           "Q_SEARCH_GROWTH", "REJECT_SE_GROWTH", "STEP_TOL", "doubling_schedule", "first_fit_samples",
            "fit_as_prior", "fit_map", "fit_record", "information_schedule"]
 
 FloatArray = NDArray[np.float64]
@@ -72,11 +72,6 @@ FloatArray = NDArray[np.float64]
 STEP_TOL = 0.02
 #: Halvings of the Gauss–Newton step before the fit gives up improving.
 MAX_HALVINGS = 10
-#: A fit that stopped this many standard errors (or more) short of its optimum — the
-#: Gauss–Newton step still to go at its result — is not applied (:meth:`FitResult.rejection`):
-#: fifty times :data:`STEP_TOL`, far from the tolerance, and the size of the scatter it would
-#: add to an efficient estimate.
-REJECT_STEP_SE = 1.0
 #: A fit whose standard error of a parameter is more than this many times the previous
 #: applied fit's is not applied: two orders of magnitude (more data never does that; the
 #: cylinder's fit at sample 125 749 that was applied had 1e4).
@@ -182,9 +177,7 @@ class FitResult:
     def rejection(self, previous: FitResult | None = None) -> str | None:
         """Why this fit must not be applied, or None: a fit that did not fit is never applied.
 
-        A fit is rejected when it is not finite, when it stopped at least
-        :data:`REJECT_STEP_SE` standard errors short of its optimum (its own Gauss–Newton step
-        still to go: it stalled, or hit its iteration limit far from the tolerance), or when a
+        A fit is rejected when it is not finite, or when a
         standard error of θ grew more than :data:`REJECT_SE_GROWTH` times against
         ``previous``, the last fit applied (a fit of more data has smaller standard errors;
         growth by orders of magnitude is a fit that lost the optimum, whatever its cost says).
@@ -202,9 +195,6 @@ class FitResult:
         where = f"the fit of samples {self.k0}…{self.k1 - 1}"
         if not self.finite:
             return f"{where} came back non-finite"
-        if not self.step_se <= REJECT_STEP_SE:
-            return (f"{where} stopped {self.step_se:.3g} standard errors short of its optimum "
-                    f"after {self.iterations} iteration(s) (it did not converge)")
         if previous is not None and previous.finite:
             old, new = previous.theta_se, self.theta_se
             ok = (old > 0) & np.isfinite(old)

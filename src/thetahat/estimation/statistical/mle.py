@@ -8,10 +8,6 @@ latest fit's posterior (:func:`~.map_fit.fit_as_prior`: the fit is the arrival c
 samples before it), so every row, not only the fits', follows the information of the data so
 far. A run stops where the EKF between fits diverges or a fit fails
 (:mod:`~thetahat.estimation.status`: raised with ``throw=True``, returned with ``throw=False``).
-A fit that did not fit — it stopped a standard error or more short of its
-optimum, or its standard errors grew by orders of magnitude against the previous fit's
-(:meth:`~.map_fit.FitResult.rejection`) — is never applied: it is counted in
-``fits_rejected`` with its reason, and the estimate goes on from the last fit applied.
 
 The input between the samples is the ``hold``'s (:mod:`~thetahat.estimation.hold`; default
 ``"foh"``), and the RK4 sub-steps of a record are chosen once, at the start values
@@ -66,9 +62,6 @@ class MapDiagnostics(Diagnostics):
     fits : tuple of FitResult
     fit_samples : ndarray of int
         The sample at which each fit's window ends.
-    rejected : tuple of str
-        The fits not applied, one sentence each (:meth:`~.map_fit.FitResult.rejection`);
-        ``fits`` holds the fits applied.
     substeps : int
         The RK4 sub-steps' accuracy floor of the run.
     """
@@ -76,13 +69,7 @@ class MapDiagnostics(Diagnostics):
     theta_sd: FloatArray
     fits: tuple[FitResult, ...]
     fit_samples: NDArray[np.int64]
-    rejected: tuple[str, ...] = ()
     substeps: int = 1
-
-    @property
-    def fits_rejected(self) -> int:
-        """Fits that came back but were not applied (``rejected`` says why)."""
-        return len(self.rejected)
 
     @property
     def fit_cost(self) -> FloatArray:
@@ -90,7 +77,7 @@ class MapDiagnostics(Diagnostics):
         return np.array([f.cost for f in self.fits])
 
     def __repr__(self) -> str:
-        return (f"MapDiagnostics(fits={len(self.fits)}, fits_rejected={self.fits_rejected}, "
+        return (f"MapDiagnostics(fits={len(self.fits)}, "
                 f"fit_samples={self.fit_samples.tolist()[:8]}"
                 f"{'…' if len(self.fits) > 8 else ''})")
 
@@ -145,8 +132,6 @@ class MapState:
     P, R, Q_x : ndarray or None
         The EKF's covariance of col(x̂, θ̂), output-noise covariance and process noise on x
         since the latest fit (None before the first fit).
-    rejected : tuple of str
-        The stream's fits not applied, one sentence each.
     substeps : int
         The RK4 sub-steps' accuracy floor of the latest fit applied (1 before).
     """
@@ -167,7 +152,6 @@ class MapState:
     P: FloatArray | None = None
     R: FloatArray | None = None
     Q_x: FloatArray | None = None
-    rejected: tuple[str, ...] = ()
     substeps: int = 1
 
     def __repr__(self) -> str:
@@ -383,7 +367,7 @@ class MapEstimator:
                 due, j = due or at(j) == k1, j + 1
         x, th, sd = state.x_hat, state.theta_hat, state.theta_sd
         P, R, Q_x = state.P, state.R, state.Q_x
-        rejected, nsub = list(state.rejected), state.substeps
+        nsub = state.substeps
         fitted = False
         if due and k1 >= self._min_samples():   # a fit: its estimates replace this sample's
             prior0 = sched.initial_prior(state.x_hat0, state.theta_hat0)
@@ -391,16 +375,12 @@ class MapEstimator:
             fit = (sched.fit(log.T[:k1], log.U[:k1], log.Y[:k1], k1, prev, prior0)
                    if self._by_times
                    else fit_record(sched, log.T[:k1], log.U[:k1], log.Y[:k1], k1, prev, prior0))
-            why = fit.rejection(prev)
-            if why is None:
-                fits.append(fit)
-                ends.append(state.k)
-                x, th, sd = fit.x_end, fit.theta, fit.theta_se
-                _, P, R, Q_x = fit_as_prior(sys_, fit, sample_interval(log.T[:k1]))
-                nsub = fit.substeps
-            else:
-                rejected.append(why)
-            fitted = why is None
+            fits.append(fit)
+            ends.append(state.k)
+            x, th, sd = fit.x_end, fit.theta, fit.theta_se
+            _, P, R, Q_x = fit_as_prior(sys_, fit, sample_interval(log.T[:k1]))
+            nsub = fit.substeps
+            fitted = True
         prop = Propagation(hold=self.hold, substeps=nsub, h_rho=sched.h_rho)
         if fitted:
             pass                                # the fit's estimates
@@ -422,7 +402,7 @@ class MapEstimator:
                         theta_hat=np.array(th), theta_sd=np.array(sd), k=state.k + 1,
                         elapsed=elapsed, j=j, fits=tuple(fits), fit_samples=tuple(ends),
                         dt_prev=h, log=log, u_history=u_hist, P=P, R=R, Q_x=Q_x,
-                        rejected=tuple(rejected), substeps=nsub)
+                        substeps=nsub)
 
     def run(self, t: ArrayLike, u: ArrayLike | None, y: ArrayLike, *,
             state0: MapState | None = None, throw: bool = True) -> EstimateResult:
@@ -470,7 +450,9 @@ class MapEstimator:
                               "has been stepped: continue its stream with step.")
         N, p = t_.shape[0], sys_.p
         sched = self._record_schedule(t_, U, Y, st0)
-        fits, ends, rejected, stop = self._fits(sched, t_, U, Y, st0, throw)
+        # the fits' failure is raised (throw) only once the EKF between the fits before it
+        # has run: the run stops at its first failure, whichever it is
+        fits, ends, stop = self._fits(sched, t_, U, Y, st0, False)
         TH = np.empty((N, p))
         SD = np.empty((N, p))
         TH[:] = st0.theta_hat0
@@ -483,7 +465,6 @@ class MapEstimator:
             fits, ends = fits[:reached], ends[:reached]
         diag = MapDiagnostics(theta_sd=SD, fits=tuple(fits),
                               fit_samples=np.array(ends, dtype=np.int64),
-                              rejected=tuple(rejected),
                               substeps=max([sched.substeps or 1]
                                            + [f.substeps for f in fits]))
         res = stopped_result(t=t_, x_hat=X, theta_hat=TH,
@@ -494,14 +475,12 @@ class MapEstimator:
 
     def _fits(self, sched: FitSchedule, t: FloatArray, U: FloatArray, Y: FloatArray,
               st0: MapState, throw: bool
-              ) -> tuple[list[FitResult], list[int], list[str], RunStop | None]:
-        """The scheduled fits of a record, in order, until one fails: (the fits applied,
-        their last samples, why the others were not, the failure or None). With ``throw`` a
-        fit's error is raised at once."""
+              ) -> tuple[list[FitResult], list[int], RunStop | None]:
+        """The scheduled fits of a record, in order, until one fails: (the fits, their last
+        samples, the failure or None). With ``throw`` a fit's error is raised at once."""
         prior0 = sched.initial_prior(st0.x_hat0, st0.theta_hat0)
         fits: list[FitResult] = []
         ends: list[int] = []
-        rejected: list[str] = []
         ks = self.fit_samples(t)
         for i, k1 in enumerate(ks):
             prev = fits[-1] if fits else None
@@ -526,14 +505,10 @@ class MapEstimator:
             if stop is not None:
                 if throw:
                     raise stop.error()
-                return fits, ends, rejected, stop
-            why = fit.rejection(prev)
-            if why is not None:
-                rejected.append(why)
-                continue
+                return fits, ends, stop
             fits.append(fit)
             ends.append(k1 - 1)
-        return fits, ends, rejected, None
+        return fits, ends, None
 
     def _first_predictions(self, sched: FitSchedule, t: FloatArray, U: FloatArray,
                            Y: FloatArray, st0: MapState, k1: int) -> FloatArray:
