@@ -22,8 +22,8 @@ each sample chained by the Cramér–Rao bound's own kernel,
 :func:`~thetahat.estimation.statistical.crlb.sensitivities`) for the fits of
 :mod:`thetahat.studies.validation`.
 
-What it may import: the model, the estimation wing's hold, plant kernel and CRLB kernel, the package's
-validation and errors.
+What it may import: the model, the estimation wing's hold, plant kernel and CRLB kernel, the
+package's validation and errors.
 """
 
 from __future__ import annotations
