@@ -65,7 +65,7 @@ def test_the_band_limited_error_bound_is_what_the_docstring_states():
     err = np.abs(np.einsum("aj,ajw->aw", W, phase) - 1.0).max()
     assert err <= BANDLIMITED_ERROR
     assert err > 0.1 * BANDLIMITED_ERROR
-    # the linear hold at the Silverbox's resonance (ω h = 0.7) misses by (ω h)²/8 ≈ 6 % at
+    # the linear hold at the Silverbox's resonance (ω h = 0.7) misses by 1 − cos(ωh/2) ≈ 6 % at
     # mid-interval (the docstring's comparison)
     lin = weight_table("foh", [0.5])[0] @ np.exp(1j * 0.7 * (np.array([0, 1]) - 0.5))
     assert abs(lin - 1.0) == pytest.approx(1 - np.cos(0.35), rel=1e-12)

@@ -2,8 +2,8 @@
 
 Every estimator integrates the model between two samples, so every one needs u (and the
 observer v = col(u, y)) *between* them. The hold says what it is; one definition serves the
-paper's observer, the joint EKF, the MAP fits, the likelihood with process noise, the
-Cramér–Rao bound, the trust report and the free-run simulation
+joint EKF, the MAP fits, the likelihood with process noise, the Cramér–Rao bound, the trust
+report and the free-run simulation
 (:func:`thetahat.studies.free_run.simulate_output`):
 
 * ``"zoh"`` — zero-order hold: u(t_k + a h) = u_k for a ∈ [0, 1) (a DAC holding its output);
@@ -16,8 +16,8 @@ Cramér–Rao bound, the trust report and the free-run simulation
   reproduced at every fraction a of the interval within a relative
   :data:`BANDLIMITED_ERROR` (the largest |Σ_j w_j(a) e^{iω(j − a)} − 1| over a ∈ [0, 1] and
   ω ≤ 0.8π, computed on a grid of 65 × 400 points; tests/estimation/test_hold.py). For
-  comparison the linear hold's error there is (ωh)²/8 at mid-interval: 4 % at ω h = 0.7
-  (the Silverbox's resonance, 9 samples per period), 79 % at 0.8π.
+  comparison the linear hold's error there is 1 − cos(ωh/2) ≈ (ωh)²/8 at mid-interval: 6 % at
+  ω h = 0.7 (the Silverbox's resonance, 9 samples per period), 69 % at 0.8π.
 
 The three are one formula: at the fraction a of the interval from sample k to k + 1,
 
@@ -31,11 +31,13 @@ the index (exact for uniform sampling, an approximation for jittered instants), 
 first-order holds are exact on any grid. The band-limited hold reads L samples *after* the
 interval: it is for records (``run``), not streams (``step`` refuses it).
 
-The paper's observer takes v's value and slope over each step (its exponential integrator is
-exact for a forcing linear in time); for every hold it takes the straight line closest to the
-hold's reconstruction over the step in the mean-square sense (:func:`step_lines`) — for the
+An integrator exact for a forcing linear in time over each step (the paper's observer's
+exponential integrator is one) needs one straight line per step: :func:`step_lines` gives the
+line closest to the hold's reconstruction over the step in the mean-square sense — for the
 zero- and first-order holds the reconstruction itself; for the band-limited one the line with
-the band-limited signal's mean and first moment over the step.
+the band-limited signal's mean and first moment over the step. (The paper's observer takes
+``"zoh"`` and ``"foh"`` through its own ``run(hold=…)``; the band-limited lines are not yet
+wired into it.)
 
 What it may import: NumPy and :mod:`math`; nothing of the estimation wing (every room uses it).
 """
