@@ -18,8 +18,8 @@ from syntax trees and imported from the cache (:mod:`.modules`, :mod:`.kernel_ca
 
 Stage 2's kernels use the same writer: the plant model (``rhs_jac`` from SymPy with the RK4
 kernels) is one printed module, and every other stage-2 kernel is a module-level function
-printed with its free names bound (:meth:`.modules.ModuleText.bound`). The named argument tuples of the formulas and their shapes are
-in :mod:`.kernel_args`, the projection onto a convex Θ as kernels in :mod:`.set_projection`.
+printed with its free names bound (:meth:`.modules.ModuleText.bound`). The named argument
+tuples of the formulas and their shapes are in :mod:`.kernel_args`, the projection onto a convex Θ as kernels in :mod:`.set_projection`.
 
 What it may import: :mod:`thetahat.model`, the package's helpers and
 :mod:`thetahat.estimation.status`. Nothing above it.
