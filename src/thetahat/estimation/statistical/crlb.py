@@ -106,7 +106,25 @@ def sensitivities(x0: Any, th: Any, U: Any, tt: Any, pc: Any, WT: Any, S0: Any, 
                   SENS: Any) -> int:
     """The trajectory X (N, n) and S_k = ∂x_k/∂q into SENS (N, n, nq) from x(t_0) = x0 and
     S_0 = S0 (n, nq; columns 0 … p − 1 for θ), by the model's ``propagate``; returns −1, or
-    the first sample that is not finite."""
+    the first sample that is not finite.
+
+    Parameters
+    ----------
+    x0 : ndarray, shape (n,)
+    th : ndarray, shape (p,)
+    U : ndarray, shape (N, m)
+    tt : ndarray, shape (N,)
+    pc, WT : ndarray
+        :meth:`~thetahat.estimation.statistical.plant_kernel.Propagation.arrays`.
+    S0 : ndarray, shape (n, nq)
+    X : ndarray, shape (N, n)
+    SENS : ndarray, shape (N, n, nq)
+        Output.
+
+    Returns
+    -------
+    int
+    """
     n = x0.shape[0]
     p = th.shape[0]
     nq = S0.shape[1]

@@ -92,6 +92,10 @@ class EKFKernels:
         ``project(theta, M, lo, hi, ell) -> None``: Π_Θ in place in the norm ‖·‖_{M⁻¹}
         (:func:`~thetahat.estimation.statistical.stage2_set.project_kernel` or its clip for a
         box, or a ConvexSet's Python projection); the guard uses it with M = I.
+    printed : bool
+        The projection is printed with the operations (compiled with them when the model's
+        kernels are); False for a ConvexSet's Python projection (the operations then run as
+        plain Python, calling it).
     """
 
     model: ModelKernel
@@ -117,6 +121,23 @@ def ekf_predict(s: Any, P: Any, U: Any, k: int, h: float, pc: Any, WT: Any, Q_x:
     module, u held as ``pc, WT`` say), and P (shape (n + p, n + p)) with T P Tᵀ + diag(Q_x,
     0), T = [[Φ, Γ], [0, I]], Q_x (n, n); ``Phi`` (n, n) and ``Gam`` (n, p) are work arrays
     that receive Φ and Γ.
+        Parameters
+    ----------
+    s : ndarray, shape (n + p,)
+    P : ndarray, shape (n + p, n + p)
+        Updated in place.
+    U : ndarray, shape (N, m)
+        Stage 2's input samples.
+    k : int
+        The interval's first sample.
+    h : float
+        The interval's length.
+    pc, WT : ndarray
+        :meth:`~thetahat.estimation.statistical.plant_kernel.Propagation.arrays`.
+    Q_x : ndarray, shape (n, n)
+    Phi : ndarray, shape (n, n)
+    Gam : ndarray, shape (n, p)
+        Work arrays (receive Φ and Γ).
     """
     n = Phi.shape[0]
     p = Gam.shape[1]
@@ -163,6 +184,19 @@ def ekf_gain(s: Any, P: Any, y: Any, R: Any) -> tuple[Any, Any, float]:
     ν = y − C x, S = H P Hᵀ + R = L Lᵀ (Cholesky; S is positive definite for R > 0),
     K = P Hᵀ S⁻¹ (n + p, r) and νᵀ S⁻¹ ν (not ÷ r), returned as (K, ν, νᵀS⁻¹ν); reads s
     and P only. C is the printed module's ``C_OUT``.
+        Parameters
+    ----------
+    s : ndarray, shape (n + p,)
+    P : ndarray, shape (n + p, n + p)
+    y : ndarray, shape (r,)
+    R : ndarray, shape (r, r)
+
+    Returns
+    -------
+    K : ndarray, shape (n + p, r)
+    nu : ndarray, shape (r,)
+    nis : float
+        νᵀ S⁻¹ ν.
     """
     N = P.shape[0]
     r = C_OUT.shape[0]
@@ -222,7 +256,15 @@ def ekf_gain(s: Any, P: Any, y: Any, R: Any) -> tuple[Any, Any, float]:
 
 def ekf_joseph(P: Any, K: Any, R: Any) -> None:
     """The covariance update in Joseph form for H = [C 0]: P ← (I − K H) P (I − K H)ᵀ + K R Kᵀ
-    in place (symmetric by construction)."""
+    in place (symmetric by construction).
+
+    Parameters
+    ----------
+    P : ndarray, shape (n + p, n + p)
+        Updated in place.
+    K : ndarray, shape (n + p, r)
+    R : ndarray, shape (r, r)
+    """
     N = P.shape[0]
     r = C_OUT.shape[0]
     n = C_OUT.shape[1]
@@ -254,7 +296,25 @@ def ekf_joseph(P: Any, K: Any, R: Any) -> None:
 
 def ekf_update(s: Any, P: Any, y: Any, R: Any, lo: Any, hi: Any, ell: Any) -> float:
     """The measurement update: gain, state, Joseph-form covariance, then θ projected onto Θ
-    (``project`` of the printed module, in the norm of P_θθ); returns νᵀ S⁻¹ ν ÷ r."""
+    (``project`` of the printed module, in the norm of P_θθ); returns νᵀ S⁻¹ ν ÷ r.
+
+    Parameters
+    ----------
+    s : ndarray, shape (n + p,)
+    P : ndarray, shape (n + p, n + p)
+        Updated in place.
+    y : ndarray, shape (r,)
+    R : ndarray, shape (r, r)
+    lo, hi : ndarray, shape (p,)
+        Θ's bounding box.
+    ell : ndarray
+        Θ's ellipsoid data (:mod:`~thetahat.estimation.kernels.set_projection`).
+
+    Returns
+    -------
+    float
+        νᵀ S⁻¹ ν ÷ r.
+    """
     K, nu, nis = ekf_gain(s, P, y, R)
     N = P.shape[0]
     r = nu.shape[0]
@@ -281,6 +341,26 @@ def ekf_loop(s: Any, P: Any, U: Any, Y: Any, tt: Any, k0: int, k1: int, R: Any, 
     (N, p), √diag P_θθ into ``SD`` (N, p) and the NIS into ``NIS`` (N,; NaN where not
     updated); returns −1, or the first sample index at which s or P's diagonal became
     non-finite (its row is not written).
+        Parameters
+    ----------
+    s : ndarray, shape (n + p,)
+    P : ndarray, shape (n + p, n + p)
+        The state and covariance at sample k0, updated in place.
+    U, Y : ndarray, shapes (N, m), (N, r)
+    tt : ndarray, shape (N,)
+    k0, k1 : int
+    R : ndarray, shape (r, r)
+    lo, hi, ell : ndarray
+        Θ (as :func:`ekf_update`).
+    pc, WT : ndarray
+        :meth:`~thetahat.estimation.statistical.plant_kernel.Propagation.arrays`.
+    Q_x : ndarray, shape (n, n)
+    X, TH, SD, NIS : ndarray
+        Output rows (above).
+
+    Returns
+    -------
+    int
     """
     n = X.shape[1]
     p = TH.shape[1]

@@ -160,6 +160,28 @@ def band(s: Any, P: Any, k: int, thG: Any, dG: Any, cfg: Any, lo: Any, hi: Any, 
     θ̂ = Π_Θ(θ̂_G + clip(θ̂₂ − θ̂_G, −δ, δ)) into ``z`` (θ̂₂ − θ̂_G taken as 0 when stage 2 is
     ``bad``, not finite; Π_Θ the printed module's ``project`` with M = I); returns whether a
     component was clipped.
+        Parameters
+    ----------
+    s : ndarray, shape (n + p,)
+    P : ndarray, shape (n + p, n + p)
+        Stage 2's state and covariance.
+    k : int
+    thG, dG : ndarray, shapes (N, p), (p,)
+        Stage 1's θ̂_G and its band δ_G.
+    cfg : ndarray
+        The guard's configuration (:func:`guarded_loop`).
+    lo, hi, ell : ndarray
+        Θ.
+    bad : bool
+        Stage 2 is not finite.
+    eye, z : ndarray, shapes (p, p), (p,)
+        Work arrays (``z`` receives the guarded θ̂).
+    BAND : ndarray, shape (N, p)
+        Output.
+
+    Returns
+    -------
+    bool
     """
     p = thG.shape[1]
     n = s.shape[0] - p
@@ -225,6 +247,26 @@ def guarded_loop(s: Any, P: Any, P0: Any, U: Any, Y: Any, tt: Any, k0: int, k1: 
     2 to stage 1. ``cfg`` = (κ, c, ρ_max, dwell as a fraction of the samples so far, σ₂ cap
     per component…, and optionally θ_F per component…, κ s_F per component… of the latest
     consistent fit; κ s_F < 0: none).
+        Parameters
+    ----------
+    s, P, P0 : ndarray
+        Stage 2's state, covariance and the covariance a reset restarts from.
+    U, Y, tt : ndarray
+        The record.
+    k0, k1, off : int
+        The samples run and the offset of their absolute index.
+    R, lo, hi, ell, pc, WT, Q_x : ndarray
+        As for :func:`~thetahat.estimation.statistical.ekf_kernels.ekf_loop`.
+    thG, xG : ndarray
+        Stage 1's θ̂_G and x̂.
+    pst, gst, cfg : ndarray
+        The progress state, the guard's state and configuration (above).
+    TH, TH2, X2, SD2, BAND, CLIP, RESET, NIS : ndarray
+        Output rows (above).
+
+    Returns
+    -------
+    int
     """
     n = X2.shape[1]
     p = TH.shape[1]

@@ -42,6 +42,26 @@ def sweep(x0: Any, th: Any, U: Any, Y: Any, tt: Any, k0: int, k1: int, skip0: bo
     ``pc, WT`` say); with ``want`` also A = Σ ψᵀ R⁻¹ ψ, b = Σ ψᵀ R⁻¹ r and T = ∂x_{k1−1}/∂q
     (ψ_k = C ∂x_k/∂q, q = col(x0, θ), chained through the map's exact Jacobians); X
     (k1 − k0, n) receives the trajectory.
+        Parameters
+    ----------
+    x0 : ndarray, shape (n,)
+    th : ndarray, shape (p,)
+    U, Y : ndarray, shapes (N, m), (N, r)
+    tt : ndarray, shape (N,)
+    k0, k1 : int
+    skip0 : bool
+    Rinv : ndarray, shape (r,)
+        1/σ² per output.
+    pc, WT : ndarray
+        :meth:`~thetahat.estimation.statistical.plant_kernel.Propagation.arrays`.
+    want : bool
+    A, b, T, X : ndarray, shapes (n + p, n + p), (n + p,), (n, n + p), (k1 − k0, n)
+        Output.
+
+    Returns
+    -------
+    float
+        The data cost.
     """
     n = x0.shape[0]
     p = th.shape[0]
