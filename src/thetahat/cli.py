@@ -12,7 +12,7 @@ Subcommands::
     thetahat analyze MODEL
     thetahat estimate MODEL DATA.csv [-o estimates.csv] [--hold zoh|foh] [--nan-policy raise|skip]
                       [--no-progress | --quiet] [--method M] [--plot fig.png]
-                      [--noise-std SIGMA] [--samples NAME|START:STOP|all]
+                      [--noise-std SIGMA] [--samples NAME|START:STOP|all] [--summary RUN.json]
     thetahat estimate MODEL logs/ [-o results.csv|.parquet] [--scheduler tcp://HOST:PORT]
                       [--method M] [--nan-policy raise|skip]
     thetahat codegen MODEL --dt 1e-3 [--eps 1] [--gamma G... | --data LOG]
@@ -202,6 +202,8 @@ def _check_estimate_outputs(args: argparse.Namespace) -> None:
             raise OptionError(f"--plot {args.plot} is also the estimates output (-o); give "
                               f"the figure its own name.")
         _check_plot(args.plot, inputs)
+    if args.summary:           # .json: never the estimates (.csv/.parquet) or the figure
+        check_writable(args.summary, inputs=inputs, suffixes=(".json",), what="summary")
 
 
 #: The stages of ``thetahat estimate`` on one record, as its progress names them.
@@ -229,7 +231,32 @@ def _estimate(args: argparse.Namespace) -> int:
     print(estimate_summary(result, warnings=caught))
     if args.plot:
         print(f"wrote {args.plot}")
+    if args.summary:
+        _write_summary(args, result, caught, gains)
+        print(f"wrote {args.summary}")
     return EXIT_OK
+
+
+def _write_summary(args: argparse.Namespace, result: EstimateResult,
+                   caught: list[warnings.WarningMessage], gains: ObserverGains | None) -> None:
+    """--summary: the printed summary as JSON, with what the run resolved (ε, Γ)."""
+    import numpy as np
+
+    from .methods import get_method
+    from .modelfile import load_model
+    from .safe_io import write_text
+    from .studies.metrics import estimate_record
+
+    method = args.method or load_model(args.model).estimator.method
+    context: dict[str, object] = {
+        "thetahat": __version__, "model": str(args.model), "data": str(args.data),
+        "output": str(args.output), "method": get_method(method).name, "hold": args.hold,
+        "samples_option": args.samples}
+    if gains is not None:                      # what `thetahat codegen --eps/--gamma` takes
+        context.update(eps=float(gains.eps), Gamma=np.asarray(gains.Gamma).tolist(),
+                       gains_source=gains.source)
+    record = estimate_record(result, warnings=caught, context=context)
+    write_text(args.summary, json.dumps(record, indent=2, ensure_ascii=False) + "\n")
 
 
 def _estimate_one(args: argparse.Namespace, stages: Stages
@@ -277,6 +304,9 @@ def _estimate_fleet(args: argparse.Namespace) -> int:
     if args.plot:
         raise OptionError("--plot draws one record; it is not available for a fleet (drop "
                           "--plot, or estimate one file).")
+    if args.summary:
+        raise OptionError("--summary describes one record; a fleet's results file (-o) "
+                          "already holds one row per record.")
     if args.samples is not None:
         raise OptionError("--samples chooses samples of one record; for a fleet, give the "
                           "model file's [data] samples (it applies to every record).")
@@ -487,6 +517,10 @@ def _add_estimate(sub: _Subparsers) -> None:
     estimate.add_argument("-q", "--quiet", action="store_true",
                           help="nothing on stderr but warnings and errors: no progress, no "
                                "final line")
+    estimate.add_argument("--summary", metavar="RUN.json", default=None,
+                          help="also write the summary as JSON: θ̂ and its Cramér–Rao sd, "
+                               "settling, status, the trust report, warnings, the method and "
+                               "the ε and Γ the observer ran with (one record)")
     estimate.add_argument("--plot", metavar="FIG.png", default=None,
                           help="also write a figure of the estimates (one record; needs "
                                "matplotlib; " + ", ".join(PLOT_SUFFIXES) + ")")
