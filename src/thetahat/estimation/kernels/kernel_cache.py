@@ -6,7 +6,11 @@ and for numba, stage 2's plant model and kernels; :mod:`~thetahat.estimation.ker
 is written by :func:`load_module` to the cache directory under the hash of its text and
 imported from there (``importlib``'s ``module_from_spec`` of that file): the observer's numba
 kernel and stage 2's kernels compile once per machine instead of once per process (10–60 s
-before the first sample otherwise).
+before the first sample otherwise). Nothing there is trusted: a module file is compared with
+the text its name hashes (rewritten when it differs) and that checked text is executed, never
+the file or a ``.pyc``; numba's cache files load only when
+:mod:`~thetahat.estimation.kernels.numba_cache` recorded them; a cache that cannot be written
+leaves the module compiled in memory (one :class:`~thetahat.errors.ThetahatWarning` line).
 
 :func:`register` remembers which module a printed dispatcher lives in, so that a kernel
 printed later that calls it imports it instead of printing it again (:func:`origin`).
@@ -94,6 +98,13 @@ def load_module(source: str, prefix: str) -> types.ModuleType:
     Returns
     -------
     module
+
+    Warns
+    -----
+    ThetahatWarning
+        One line: the module's file was rewritten (its text differed), numba cache files of it
+        that thetahat did not record were deleted, or the cache cannot be written (the module
+        then runs compiled in memory; said once per process).
 
     Examples
     --------

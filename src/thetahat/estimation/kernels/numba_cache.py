@@ -12,7 +12,8 @@ So :func:`guard` keeps, per printed module and cache folder, a manifest
 by the process right after numba saved them (a wrapper around the dispatcher's cache's
 ``save_overload``). Before the module's first call, every ``.nbi``/``.nbc`` file of the module
 that the manifest does not list with its hash is deleted (never read as a pickle), and numba
-compiles again. Should loading still fail (a wrapper around ``load_overload``), the module's
+compiles again (with a warning when the module has a manifest; without one the files are a
+former version's, deleted silently). Should loading still fail (a wrapper around ``load_overload``), the module's
 files are deleted and numba compiles: a cache can cost a compile, never a result or the
 process. A file numba cannot write (a full disk, a read-only folder) leaves the function
 compiled in memory. Each case gives one :class:`~thetahat.errors.ThetahatWarning` line.
@@ -152,7 +153,10 @@ def _write_manifest(folder: Path, module: str, files: dict[str, str]) -> None:
 
 def _purge_unrecorded(folder: Path, module: str) -> int:
     """Delete the module's numba files that the manifest does not list with their hash; the
-    number deleted. Remembers the others as trusted."""
+    number deleted when the module has a manifest (without one, the files are those of a
+    thetahat before this check, or of a process that stopped before recording: deleted
+    without a word). Remembers the others as trusted."""
+    had_manifest = os.path.lexists(manifest_path(folder, module))
     recorded = _recorded(folder, module)
     trusted: dict[str, str] = {}
     dropped = 0
@@ -164,7 +168,7 @@ def _purge_unrecorded(folder: Path, module: str) -> int:
             _remove(path)
             dropped += 1
     _trusted[(str(folder), module)] = trusted
-    return dropped
+    return dropped if had_manifest else 0
 
 
 def _warn_once(module: str, kind: str, message: str) -> None:
@@ -284,4 +288,4 @@ def guard(mod: types.ModuleType) -> str | None:
         return None
     where = ", ".join(str(f) for f in folders.values())
     return (f"deleted {dropped} numba cache file(s) of {module} in {where} that thetahat did "
-            "not record (damaged, foreign or older); numba compiles them again")
+            "not record (damaged or foreign); numba compiles them again")
