@@ -15,6 +15,8 @@ import numpy as np
 import pytest
 
 from thetahat.estimation.statistical.guarded import GuardedEstimator
+from thetahat.estimation.statistical.mle import MapEstimator
+from thetahat.estimation.status import Status
 from thetahat.modelfile import build_observer, load_model, run_estimator, simulate_model
 from thetahat.progress import Stages
 
@@ -23,7 +25,7 @@ SRC = Path(__file__).resolve().parents[2] / "src"
 #: Seconds of each model's scenario: 2 000–5 000 samples, enough for ~15 fits on the default
 #: schedule (√2 growth of the information), short enough for a test (a few s per run).
 T_END = {"lugre": 2.0, "spring_friction": 5.0, "heater": 200.0, "prop1": 20.0}
-METHODS = ("guarded", "mle")
+METHODS_THAT_FIT = ("guarded", "mle")
 
 
 @pytest.fixture(scope="module")
@@ -54,7 +56,7 @@ def _check_calls(calls: list[tuple[int, int]]) -> int:
     return total
 
 
-@pytest.mark.parametrize("method", METHODS)
+@pytest.mark.parametrize("method", METHODS_THAT_FIT)
 @pytest.mark.parametrize("name", sorted(T_END))
 def test_fit_progress_counts_the_fits_and_leaves_the_estimates_alone(records, name, method):
     spec, d = records[name]
@@ -73,11 +75,41 @@ def test_fit_progress_counts_the_fits_and_leaves_the_estimates_alone(records, na
     assert np.array_equal(with_cb.x_hat, without.x_hat)
 
 
+#: σ whose 1/σ² overflows: the first MAP fit's information cannot be decomposed (SINGULAR;
+#: tests/estimation/test_run_status.py); an output scale that overflows the observer (stage 1).
+UNDERFLOWING_SIGMA = 1e-300
+HUGE_SCALE = 1e100
+
+
+@pytest.mark.filterwarnings("ignore::thetahat.errors.ThetahatWarning")
+@pytest.mark.parametrize("name", sorted(T_END))
+def test_a_run_that_stops_early_still_ends_at_its_total(records, name):
+    spec, d = records[name]
+    kw = dict(x_hat0=spec.estimator.x_hat0, theta_hat0=spec.estimator.theta_hat0)
+    mle = MapEstimator(system=spec.system, noise_std=UNDERFLOWING_SIGMA)
+    calls: list[tuple[int, int]] = []
+    with np.errstate(all="ignore"):
+        res = mle.run(d.t, d.u, d.y, state0=mle.init(**kw), throw=False,
+                      fit_progress=lambda done, total: calls.append((done, total)))
+    assert res.status == Status.SINGULAR and res.diagnostics.fits == ()
+    total = len(mle.fit_samples(d.t))
+    assert calls == [(0, total), (total, total)]        # the first fit failed: jump to total
+    # the guarded run on the rows its stage 1 gave before it overflowed: the fits placed on
+    # those rows, announced and counted as on a whole record
+    est = GuardedEstimator(stage1=build_observer(spec), system=spec.system)
+    calls = []
+    with np.errstate(all="ignore"):
+        res = est.run(d.t, d.u, d.y * HUGE_SCALE, state0=est.init(**kw), throw=False,
+                      fit_progress=lambda done, total: calls.append((done, total)))
+    assert res.status == Status.DIVERGED
+    assert _check_calls(calls) == len(res.diagnostics.fits) + res.diagnostics.fits_failed
+
+
 class _Stop(Exception):
     """A user's callback that stops the run (not a ThetahatError: nothing may rewrap it)."""
 
 
-@pytest.mark.parametrize("method", METHODS)
+@pytest.mark.parametrize("method", METHODS_THAT_FIT)
 @pytest.mark.parametrize("error", [_Stop("enough"), KeyboardInterrupt()])
 def test_an_exception_of_the_callback_ends_the_run_unchanged(records, method, error):
     spec, d = records["lugre"]
@@ -92,6 +124,11 @@ def test_an_exception_of_the_callback_ends_the_run_unchanged(records, method, er
         _run(spec, d, method, stop_at_two)
     assert caught.value is error
     assert [dd for dd, _ in calls] == [0, 1, 2]             # no fit after it raised
+
+
+def test_the_methods_that_fit_are_guarded_and_mle():
+    from thetahat.methods import METHODS
+    assert {m.name for m in METHODS if m.fits} == set(METHODS_THAT_FIT)
 
 
 def test_guarded_without_fits_reports_none(records):
