@@ -83,7 +83,8 @@ class Method:
         It runs the paper's observer, so the law's θ* is checked on the record first and
         ``Gamma = "auto"`` is chosen on it (:func:`~thetahat.modelfile.run_estimator`).
     fits : bool
-        Its ``run`` makes MAP fits and takes ``fit_progress`` (:data:`thetahat.progress.FitProgress`).
+        Its ``run`` makes MAP fits and takes ``fit_progress``
+        (:data:`thetahat.progress.FitProgress`).
 
     Examples
     --------
