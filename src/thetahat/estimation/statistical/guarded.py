@@ -582,10 +582,10 @@ class _OfflineRun:
     def filter(self, rows: int, fit_progress: FitProgress | None = None) -> None:
         """Stage 2 and the guard over rows 0 … rows − 1 (those stage 1 gave), the fits applied
         as they fall due; ``fit_progress(done, total)`` before the first and after each."""
-        total = sum(fit for _, _, fit in self._segments(rows)) if fit_progress else 0
-        if fit_progress is not None:
+        done = total = 0
+        if fit_progress is not None:            # the schedule's fits, counted in advance
+            total = sum(fit for _, _, fit in self._segments(rows))
             fit_progress(0, total)
-        done = 0
         for k, k_next, fit in self._segments(rows):
             if self.estimate_sigma and k in (MIN_SAMPLES, SIGMA_SAMPLES):   # σ̂ from
                 self.sigma = resolve_noise_std(None, self.Y[:k])   # MIN_SAMPLES, refined
