@@ -210,6 +210,12 @@ def _check_estimate_outputs(args: argparse.Namespace) -> None:
 ESTIMATE_STAGES = ("load model", "read", "estimate", "trust report", "write")
 
 
+def _with_fits(plan: tuple[str, ...]) -> tuple[str, ...]:
+    """``plan`` with the stage "fits" after "estimate" (the methods that fit)."""
+    at = plan.index("estimate") + 1
+    return plan[:at] + ("fits",) + plan[at:]
+
+
 def _progress_mode(args: argparse.Namespace) -> str:
     """--quiet: nothing; --no-progress: the final line only; else live on a terminal."""
     return "quiet" if args.quiet else "final" if args.no_progress else "auto"
@@ -271,6 +277,9 @@ def _estimate_one(args: argparse.Namespace, stages: Stages
     args.output = args.output or "estimates.csv"
     _check_estimate_outputs(args)
     spec = load_model(args.model)
+    how = get_method(args.method or spec.estimator.method)
+    if how.fits:                        # run_estimator counts them in a stage of their own
+        stages.plan = _with_fits(stages.plan)
     stages.stage("read")
     data = read_data(args.data, spec.layout, nan_policy=args.nan_policy,
                      delimiter=_delimiter(args.delimiter), samples=args.samples)
@@ -280,7 +289,7 @@ def _estimate_one(args: argparse.Namespace, stages: Stages
     with warnings.catch_warnings(record=True) as caught:       # shown in the summary
         warnings.simplefilter("always")
         gains = (resolve_gains(spec, data.t, data.u, data.y, hold=args.hold)
-                 if get_method(args.method or spec.estimator.method).runs_observer else None)
+                 if how.runs_observer else None)
         result = run_estimator(spec, data.t, data.u, data.y, hold=args.hold,   # names the
                                nan_policy=args.nan_policy, progress=stages,    # trust report
                                method=args.method,

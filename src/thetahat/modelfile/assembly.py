@@ -13,7 +13,7 @@ import dataclasses
 import warnings
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -29,7 +29,7 @@ from ..estimation.observer.observer import ModifiedHighGainObserver
 from ..estimation.protocol import EstimateResult, Estimator
 from ..methods import MethodInputs, get_method
 from ..model.system import PerturbedLinearSystem
-from ..progress import Stages
+from ..progress import FitProgress, Stages
 from ..spec import SECOND_DESIGN_NOTE, EstimatorSpec, Hold, SecondObserverSpec
 from ..studies.information import explain_nonfinite, stuck_parameters
 from ..threads import one_blas_thread
@@ -456,7 +456,8 @@ def run_estimator(spec: ModelSpec, t: ArrayLike, u: ArrayLike | None, y: ArrayLi
                   progress: Callable[[int, int], None] | None = None,
                   method: str | None = None, compiled: bool | None = None,
                   diagnose: bool = True, Gamma: ArrayLike | None = None,
-                  noise_std: ArrayLike | None = None) -> EstimateResult:
+                  noise_std: ArrayLike | None = None,
+                  fit_progress: FitProgress | None = None) -> EstimateResult:
     """Run the file's estimator on sampled data, from the file's initial values.
 
     ``method`` (default: the file's ``[estimator] method``, else ``"guarded"``) chooses the
@@ -482,7 +483,9 @@ def run_estimator(spec: ModelSpec, t: ArrayLike, u: ArrayLike | None, y: ArrayLi
     progress : callable or Stages, optional
         ``progress(done, total)`` called as samples are processed (the observer's methods).
         A :class:`thetahat.progress.Stages` counts them in its current stage, and the trust
-        report (``diagnose``) is a stage of its own, ``"trust report"``.
+        report (``diagnose``) is a stage of its own, ``"trust report"``; so are the fits of
+        ``"guarded"`` and ``"mle"``, ``"fits"`` (:meth:`~thetahat.progress.Stages.fit_stage`),
+        unless ``fit_progress`` is given.
     method : str, optional
         The estimator, one of :data:`thetahat.methods.ESTIMATION_METHODS` (default: the
         file's ``[estimator] method``).
@@ -508,6 +511,11 @@ def run_estimator(spec: ModelSpec, t: ArrayLike, u: ArrayLike | None, y: ArrayLi
         σ of the output noise, for the statistical methods and the trust report (default:
         estimated from the record, which needs 12 samples; ``thetahat estimate
         --noise-std``).
+    fit_progress : callable, optional
+        ``fit_progress(done, total)`` (:data:`thetahat.progress.FitProgress`) for the methods
+        that fit (``"guarded"``, ``"mle"``: their ``run``'s keyword, called before the first
+        fit and after each, ``total`` known in advance, the last call ``(total, total)``);
+        the other methods make no fits and never call it. Its exceptions propagate unchanged.
 
     Returns
     -------
@@ -547,15 +555,17 @@ def run_estimator(spec: ModelSpec, t: ArrayLike, u: ArrayLike | None, y: ArrayLi
     with one_blas_thread():
         return _run(spec, t, u, y, hold=hold, nan_policy=nan_policy, progress=progress,
                     method=method, compiled=compiled, diagnose=diagnose, Gamma=Gamma,
-                    noise_std=noise_std)
+                    noise_std=noise_std, fit_progress=fit_progress)
 
 
 def _run(spec: ModelSpec, t: ArrayLike, u: ArrayLike | None, y: ArrayLike, *, hold: Hold,
          nan_policy: str, progress: Callable[[int, int], None] | None, method: str | None,
          compiled: bool | None, diagnose: bool, Gamma: ArrayLike | None,
-         noise_std: ArrayLike | None) -> EstimateResult:
+         noise_std: ArrayLike | None, fit_progress: FitProgress | None) -> EstimateResult:
     """:func:`run_estimator`'s work."""
     how = get_method(spec.estimator.method if method is None else method)
+    if fit_progress is None and isinstance(progress, Stages):
+        fit_progress = progress.fit_stage("fits")
     # every method sees the same samples: masked entries as NaN, dates as seconds, booleans,
     # text and dates in u or y refused
     t = as_samples("t", seconds_from_first("t", t))
@@ -574,7 +584,12 @@ def _run(spec: ModelSpec, t: ArrayLike, u: ArrayLike | None, y: ArrayLike, *, ho
         est = build_estimator(spec, method=how.name, hold=hold, nan_policy=nan_policy,
                               compiled=compiled, progress=progress, Gamma=gamma,
                               noise_std=noise_std)
-        result = est.run(t, u, y, state0=est.init(x_hat0=x0, theta_hat0=th0))
+        state0 = est.init(x_hat0=x0, theta_hat0=th0)
+        if how.fits and fit_progress is not None:   # guarded's and mle's run take it
+            fitting: Any = est
+            result = fitting.run(t, u, y, state0=state0, fit_progress=fit_progress)
+        else:
+            result = est.run(t, u, y, state0=state0)
     except (ThetahatError, ArithmeticError, ValueError) as exc:       # LinAlgError too
         if not diagnose:
             raise
