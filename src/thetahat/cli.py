@@ -288,7 +288,8 @@ def _estimate_one(args: argparse.Namespace, stages: Stages
     stages.stage("estimate", total=data.t.size)
     with warnings.catch_warnings(record=True) as caught:       # shown in the summary
         warnings.simplefilter("always")
-        gains = (resolve_gains(spec, data.t, data.u, data.y, hold=args.hold)
+        gains = (resolve_gains(spec, data.t, data.u, data.y, hold=args.hold,
+                               nan_policy=args.nan_policy)
                  if how.runs_observer else None)
         result = run_estimator(spec, data.t, data.u, data.y, hold=args.hold,   # names the
                                nan_policy=args.nan_policy, progress=stages,    # trust report
@@ -348,7 +349,8 @@ def _codegen(args: argparse.Namespace) -> int:
         data = read_data(args.data, spec.layout, nan_policy=args.nan_policy,
                          delimiter=_delimiter(args.delimiter))
         record = (data.t, data.u, data.y)
-    gains = resolve_gains(spec, *record, eps=args.eps, Gamma=args.gamma, hold=args.hold)
+    gains = resolve_gains(spec, *record, eps=args.eps, Gamma=args.gamma, hold=args.hold,
+                          nan_policy=args.nan_policy)
     code = generate_c_from_model(args.model, dt=args.dt, eps=gains.eps, Gamma=gains.Gamma,
                                  real=args.real, name=args.name, nan_policy=args.nan_policy,
                                  hold=args.hold)

@@ -306,7 +306,8 @@ class ObserverGains:
 
 def resolve_gains(spec: ModelSpec, t: ArrayLike | None = None, u: ArrayLike | None = None,
                   y: ArrayLike | None = None, *, eps: float | None = None,
-                  Gamma: ArrayLike | None = None, hold: Hold = "zoh") -> ObserverGains:
+                  Gamma: ArrayLike | None = None, hold: Hold = "zoh",
+                  nan_policy: str = "raise") -> ObserverGains:
     """The ε and Γ the file's observer runs with: ``Gamma = "auto"`` chosen on a record.
 
     The one place where ``"auto"`` becomes a number: :func:`run_estimator` (``thetahat
@@ -327,6 +328,9 @@ def resolve_gains(spec: ModelSpec, t: ArrayLike | None = None, u: ArrayLike | No
         p × p matrix.
     hold : {"zoh", "foh"}
         The sample hold of the first pass of ``"auto"``.
+    nan_policy : {"raise", "skip"}
+        Missing outputs in the record of ``"auto"``: refused, or predicted over by the first
+        pass (as the run that follows does) and left out of the information.
 
     Returns
     -------
@@ -369,7 +373,7 @@ def resolve_gains(spec: ModelSpec, t: ArrayLike | None = None, u: ArrayLike | No
         raise _no_record(spec)
     t = as_samples("t", seconds_from_first("t", t))
     u = None if u is None else as_samples("u", u)
-    G = auto_gamma(spec, t, u, as_samples("y", y), hold=hold, eps=eps)
+    G = auto_gamma(spec, t, u, as_samples("y", y), hold=hold, eps=eps, nan_policy=nan_policy)
     return ObserverGains(eps=eps, Gamma=G, source="auto")
 
 
@@ -580,7 +584,8 @@ def _run(spec: ModelSpec, t: ArrayLike, u: ArrayLike | None, y: ArrayLike, *, ho
         if how.runs_observer:
             _check_theta_star(spec, t, u, y)
             if Gamma is not None or spec.estimator.gamma_auto:
-                gamma = resolve_gains(spec, t, u, y, Gamma=Gamma, hold=hold).Gamma
+                gamma = resolve_gains(spec, t, u, y, Gamma=Gamma, hold=hold,
+                                      nan_policy=nan_policy).Gamma
         est = build_estimator(spec, method=how.name, hold=hold, nan_policy=nan_policy,
                               compiled=compiled, progress=progress, Gamma=gamma,
                               noise_std=noise_std)
@@ -647,7 +652,8 @@ def start_x_hat(spec: ModelSpec, y: ArrayLike) -> FloatArray:
 
 
 def auto_gamma(spec: ModelSpec, t: ArrayLike, u: ArrayLike | None, y: ArrayLike, *,
-               hold: Hold = "zoh", eps: float | None = None) -> FloatArray:
+               hold: Hold = "zoh", eps: float | None = None,
+               nan_policy: str = "raise") -> FloatArray:
     """``Gamma = "auto"`` on a record: the law's Γ (Γ₀) from the record's information.
 
     x̂ from a first pass of the file's observer with θ̂ held at θ̂₀, then
@@ -663,6 +669,9 @@ def auto_gamma(spec: ModelSpec, t: ArrayLike, u: ArrayLike | None, y: ArrayLike,
     hold : {"zoh", "foh"}
     eps : float, optional
         ε of the first pass's observer (default the file's).
+    nan_policy : {"raise", "skip"}
+        As for :func:`run_estimator`: with ``"skip"`` the first pass predicts over missing
+        outputs and their samples are left out of the information.
 
     Returns
     -------
@@ -693,7 +702,7 @@ def auto_gamma(spec: ModelSpec, t: ArrayLike, u: ArrayLike | None, y: ArrayLike,
         raise ModelFileError(f"model file {spec.source}: Gamma = 'auto' needs the system's "
                              "perturbation and parameter set; the model has none.")
     th0 = spec.estimator.theta_hat0
-    est = estimator_spec(spec, hold=hold)
+    est = estimator_spec(spec, hold=hold, nan_policy=nan_policy)
     held = dataclasses.replace(est, law=ConstantLaw(th0, s.parameter_set))
     obs = _build(held, spec, eps)
     from ..estimation.drive import runner
@@ -701,7 +710,7 @@ def auto_gamma(spec: ModelSpec, t: ArrayLike, u: ArrayLike | None, y: ArrayLike,
                                state0=obs.init(x_hat0=start_x_hat(spec, y), theta_hat0=th0))
     N = first.t.shape[0]
     U = np.zeros((N, 0)) if u is None else np.asarray(u, dtype=np.float64).reshape(N, -1)
-    Y = np.asarray(y, dtype=np.float64).reshape(N, -1)
+    Y = np.asarray(y, dtype=np.float64).reshape(N, -1)     # NaN rows: left out (skip)
     return information_gain(s.perturbation, np.concatenate([U, Y], axis=1), first.x_hat,
                             np.asarray(th0, dtype=np.float64),
                             float(first.t[-1] - first.t[0]),
