@@ -654,7 +654,8 @@ def test_single_record_parquet_output_is_parquet(tmp_path, files):
 
     model, data, _ = files
     out = tmp_path / "e.parquet"
-    assert main(["estimate", str(model), str(data), "-o", str(out), "--no-progress"]) == 0
+    assert main(["estimate", str(model), str(data), "-o", str(out), "--no-progress",
+                 "--method", "paper"]) == 0                       # the observer's columns
     table = pq.read_table(out)
     assert tuple(table.column_names) == estimate_columns(loads_model(EXAMPLE_MODEL).layout,
                                                          refined=True)
@@ -940,7 +941,7 @@ T_API = np.arange(200) * 0.01
 def _api_run(y, **kw):
     spec_ = loads_model(EXAMPLE_MODEL)
     t = kw.pop("t", T_API)
-    return run_estimator(spec_, t, np.sin(T_API), y, **kw)
+    return run_estimator(spec_, t, np.sin(T_API), y, method="paper", **kw)
 
 
 def test_masked_y_is_refused_under_raise():
@@ -1130,7 +1131,7 @@ def test_stuck_estimate_is_reported(tmp_path, capsys):
                                               'g = "Abs(theta)**0.5*(2 + sin(y))"'))
     data = _record(tmp_path / "d.csv")
     assert main(["estimate", str(model), str(data), "-o", str(tmp_path / "e.csv"),
-                 "--no-progress"]) == 0
+                 "--no-progress", "--method", "paper"]) == 0              # the law's check
     assert "no information reached the update law for theta" in capsys.readouterr().out
 
 
@@ -1138,7 +1139,7 @@ def test_informative_run_is_not_reported_stuck(tmp_path, capsys):
     model = _write(tmp_path, "m.toml", EXAMPLE_MODEL)
     data = _record(tmp_path / "d.csv")
     assert main(["estimate", str(model), str(data), "-o", str(tmp_path / "e.csv"),
-                 "--no-progress"]) == 0
+                 "--no-progress", "--method", "paper"]) == 0
     assert "no information" not in capsys.readouterr().out
 
 
@@ -1148,7 +1149,7 @@ def test_fleet_row_reports_a_stuck_estimate(tmp_path):
     d = tmp_path / "f"
     d.mkdir()
     _record(d / "a.csv")
-    res = estimate_many(model, d, progress=False)
+    res = estimate_many(model, d, progress=False, method="paper")
     assert res.n_ok == 1 and "no information" in res.rows[0]["warnings"]
 
 
@@ -1182,7 +1183,8 @@ def test_cli_y_of_1e30_is_a_one_line_error(tmp_path, capsys):
     np.savetxt(data, np.c_[t, np.sin(t), np.where(t > 0, 1e30, 0.0)], delimiter=",",
                header="t,u,y", comments="")
     out = tmp_path / "e.csv"
-    assert main(["estimate", str(lugre_model), str(data), "-o", str(out), "--no-progress"]) == 2
+    assert main(["estimate", str(lugre_model), str(data), "-o", str(out), "--no-progress",
+                 "--method", "paper"]) == 2
     err = capsys.readouterr().err
     assert "|y| = 1e+30" in err and "internal error" not in err and not out.exists()
 

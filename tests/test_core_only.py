@@ -51,7 +51,7 @@ SCRIPT = textwrap.dedent("""
 
     spec = loads_model(EXAMPLE_MODEL)
     t = np.arange(0.0, 1.0, 0.01)
-    out = run_estimator(spec, t, np.sin(t)[:, None], np.zeros((t.size, 1)))
+    out = run_estimator(spec, t, np.sin(t)[:, None], np.zeros((t.size, 1)), method="paper")
     assert out.theta_hat.shape == (100, 1)
 
     # the two-stage estimator and the bound fall back to numpy kernels without numba

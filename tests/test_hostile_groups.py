@@ -414,7 +414,9 @@ def test_cli_estimate_prints_a_summary(tmp_path, capsys):
     assert main(["estimate", str(model), str(_csv(tmp_path, N=1_500)), "-o", str(out)]) == 0
     captured = capsys.readouterr()
     assert "final theta_hat: theta = " in captured.out
-    assert "settled (within 1 % of the final value) at t = " in captured.out
+    assert ("settled (within 1 % of the final value) at t = " in captured.out
+            or "NOT settled: θ̂ stays within 1 % of its final value only from t = "
+            in captured.out)                              # either verdict, with its time
     assert "warnings: " in captured.out
     assert "estimate" in captured.err                        # progress went to stderr
     assert os.path.getsize(out) > 0

@@ -35,7 +35,8 @@ def test_the_registry_is_one_ordered_list_of_distinct_methods():
     assert set(ESTIMATION_METHODS) == set(TYPES)
     for m in METHODS:
         assert get_method(m.name) is m and m.description and m.description in method_help()
-    assert [m.name for m in METHODS if m.runs_observer] == ["paper", "guarded"]
+    assert [m.name for m in METHODS if m.runs_observer] == ["guarded", "paper"]
+    assert ESTIMATION_METHODS[0] == "guarded"        # the default: guaranteed and efficient
 
 
 def _literal_name_lists(path: Path) -> list[int]:
@@ -107,7 +108,7 @@ def test_an_unknown_method_is_refused_by_every_reader():
                  lambda: build_estimator(spec, method="ukf"),
                  lambda: get_method("ukf")):
         with pytest.raises(OptionError, match=r"unknown method 'ukf'; expected one of \["
-                                              r"'paper', 'guarded', 'mle', 'ekf'\]"):
+                                              r"'guarded', 'paper', 'mle', 'ekf'\]"):
             call()
     with pytest.raises(ModelFileError, match=r"\[estimator\] method: unknown method 'ukf'"):
         loads_model(EXAMPLE_MODEL.replace('law = "gradient"', 'method = "ukf"\nlaw = "gradient"'))

@@ -32,8 +32,9 @@ MODELS = ["lugre", "prop3", "heater", "two_inertia"]
 #: Seconds of each model's scenario simulated for the command-line tests: a few thousand
 #: samples, enough for every stage to run, few enough for a test.
 T_END = {"lugre": 3.0, "prop3": 20.0, "heater": 400.0, "two_inertia": 20.0}
-#: The stages `thetahat estimate` names, in order.
-STAGE_NAMES = ("load model", "read", "estimate", "trust report", "write")
+#: The stages `thetahat estimate` names, in order, with the default method ("guarded": its
+#: fits are a stage of their own; the plan names them once the model file is loaded).
+STAGE_NAMES = ("load model", "read", "estimate", "fits", "trust report", "write")
 
 _ANSI = re.compile(r"\x1b\[[0-9;]*[A-Za-z]")
 
@@ -206,10 +207,12 @@ def test_estimate_in_a_terminal_names_its_stages_from_the_start(tmp_path, record
     # the first thing drawn, before the model is loaded (the numerical libraries' imports):
     # how soon is benchmarks/bench_estimate.py's to print (a time is no test's to assert)
     assert first is not None
-    assert raw.startswith("\rthetahat: [1/5] load model")
+    assert raw.startswith("\rthetahat: [1/5] load model")     # the method is not known yet
     screen = _screen(raw)
-    assert [line.split(" · ")[0] for line in screen[:5]] == [
-        f"thetahat: [{k}/5] {name}" for k, name in enumerate(STAGE_NAMES, 1)]
+    assert [line.split(" · ")[0] for line in screen[:6]] == [
+        f"thetahat: [{k}/6] {name}" for k, name in enumerate(STAGE_NAMES, 1)]
+    # the fits' stage ends with the count of the fits made (> 0 on these records)
+    assert re.fullmatch(r"[1-9]\d* fits", screen[3].split(" · ")[1])
     rows = sum(1 for _ in records[model].open()) - 1
     assert screen[1].split(" · ")[1] == f"{rows:,} rows"
     assert screen[-1].startswith("thetahat: done in ")

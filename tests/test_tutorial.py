@@ -38,7 +38,8 @@ def test_shell_blocks_found():
     for step in ("thetahat analyze", "thetahat estimate", "--method paper", "--method guarded",
                  "thetahat codegen", "fleet", "--data cart_log.csv", "--delimiter ';'",
                  "cart_log.parquet", "cart_log.mat", "[data]", "scale = 0.001",
-                 "offset = -0.25", "t = { rate = 200.0 }"):
+                 "offset = -0.25", "t = { rate = 200.0 }", "[data.segments]",
+                 "--samples train", "--summary train.json", "validate_free_run"):
         assert step in joined, f"the tutorial no longer runs {step!r}"
 
 
@@ -66,7 +67,7 @@ def test_tutorial_commands_run(tmp_path):
                                       f"--- stderr\n{done.stderr}")
     for name in ("cart.toml", "cart_log.csv", "est_paper.csv", "est_guarded.csv",
                  "fleet_results.csv", "est_c.csv", "est_auto_c.csv", "est_eu.csv",
-                 "est_parquet.csv", "est_mat.csv"):
+                 "est_parquet.csv", "est_mat.csv", "est_train.csv", "train.json"):
         assert (tmp_path / name).is_file(), name
     rows = (tmp_path / "fleet_results.csv").read_text().splitlines()
     assert len(rows) == 4 and all(",ok," in r for r in rows[1:]), rows

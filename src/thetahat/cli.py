@@ -12,7 +12,7 @@ Subcommands::
     thetahat analyze MODEL
     thetahat estimate MODEL DATA.csv [-o estimates.csv] [--hold zoh|foh] [--nan-policy raise|skip]
                       [--no-progress | --quiet] [--method M] [--plot fig.png]
-                      [--noise-std SIGMA] [--samples NAME|START:STOP|all]
+                      [--noise-std SIGMA] [--samples NAME|START:STOP|all] [--summary RUN.json]
     thetahat estimate MODEL logs/ [-o results.csv|.parquet] [--scheduler tcp://HOST:PORT]
                       [--method M] [--nan-policy raise|skip]
     thetahat codegen MODEL --dt 1e-3 [--eps 1] [--gamma G... | --data LOG]
@@ -202,10 +202,18 @@ def _check_estimate_outputs(args: argparse.Namespace) -> None:
             raise OptionError(f"--plot {args.plot} is also the estimates output (-o); give "
                               f"the figure its own name.")
         _check_plot(args.plot, inputs)
+    if args.summary:           # .json: never the estimates (.csv/.parquet) or the figure
+        check_writable(args.summary, inputs=inputs, suffixes=(".json",), what="summary")
 
 
 #: The stages of ``thetahat estimate`` on one record, as its progress names them.
 ESTIMATE_STAGES = ("load model", "read", "estimate", "trust report", "write")
+
+
+def _with_fits(plan: tuple[str, ...]) -> tuple[str, ...]:
+    """``plan`` with the stage "fits" after "estimate" (the methods that fit)."""
+    at = plan.index("estimate") + 1
+    return plan[:at] + ("fits",) + plan[at:]
 
 
 def _progress_mode(args: argparse.Namespace) -> str:
@@ -229,7 +237,32 @@ def _estimate(args: argparse.Namespace) -> int:
     print(estimate_summary(result, warnings=caught))
     if args.plot:
         print(f"wrote {args.plot}")
+    if args.summary:
+        _write_summary(args, result, caught, gains)
+        print(f"wrote {args.summary}")
     return EXIT_OK
+
+
+def _write_summary(args: argparse.Namespace, result: EstimateResult,
+                   caught: list[warnings.WarningMessage], gains: ObserverGains | None) -> None:
+    """--summary: the printed summary as JSON, with what the run resolved (ε, Γ)."""
+    import numpy as np
+
+    from .methods import get_method
+    from .modelfile import load_model
+    from .safe_io import write_text
+    from .studies.metrics import estimate_record
+
+    method = args.method or load_model(args.model).estimator.method
+    context: dict[str, object] = {
+        "thetahat": __version__, "model": str(args.model), "data": str(args.data),
+        "output": str(args.output), "method": get_method(method).name, "hold": args.hold,
+        "samples_option": args.samples}
+    if gains is not None:                      # what `thetahat codegen --eps/--gamma` takes
+        context.update(eps=float(gains.eps), Gamma=np.asarray(gains.Gamma).tolist(),
+                       gains_source=gains.source)
+    record = estimate_record(result, warnings=caught, context=context)
+    write_text(args.summary, json.dumps(record, indent=2, ensure_ascii=False) + "\n")
 
 
 def _estimate_one(args: argparse.Namespace, stages: Stages
@@ -244,6 +277,9 @@ def _estimate_one(args: argparse.Namespace, stages: Stages
     args.output = args.output or "estimates.csv"
     _check_estimate_outputs(args)
     spec = load_model(args.model)
+    how = get_method(args.method or spec.estimator.method)
+    if how.fits:                        # run_estimator counts them in a stage of their own
+        stages.plan = _with_fits(stages.plan)
     stages.stage("read")
     data = read_data(args.data, spec.layout, nan_policy=args.nan_policy,
                      delimiter=_delimiter(args.delimiter), samples=args.samples)
@@ -252,8 +288,9 @@ def _estimate_one(args: argparse.Namespace, stages: Stages
     stages.stage("estimate", total=data.t.size)
     with warnings.catch_warnings(record=True) as caught:       # shown in the summary
         warnings.simplefilter("always")
-        gains = (resolve_gains(spec, data.t, data.u, data.y, hold=args.hold)
-                 if get_method(args.method or spec.estimator.method).runs_observer else None)
+        gains = (resolve_gains(spec, data.t, data.u, data.y, hold=args.hold,
+                               nan_policy=args.nan_policy)
+                 if how.runs_observer else None)
         result = run_estimator(spec, data.t, data.u, data.y, hold=args.hold,   # names the
                                nan_policy=args.nan_policy, progress=stages,    # trust report
                                method=args.method,
@@ -277,6 +314,9 @@ def _estimate_fleet(args: argparse.Namespace) -> int:
     if args.plot:
         raise OptionError("--plot draws one record; it is not available for a fleet (drop "
                           "--plot, or estimate one file).")
+    if args.summary:
+        raise OptionError("--summary describes one record; a fleet's results file (-o) "
+                          "already holds one row per record.")
     if args.samples is not None:
         raise OptionError("--samples chooses samples of one record; for a fleet, give the "
                           "model file's [data] samples (it applies to every record).")
@@ -309,7 +349,8 @@ def _codegen(args: argparse.Namespace) -> int:
         data = read_data(args.data, spec.layout, nan_policy=args.nan_policy,
                          delimiter=_delimiter(args.delimiter))
         record = (data.t, data.u, data.y)
-    gains = resolve_gains(spec, *record, eps=args.eps, Gamma=args.gamma, hold=args.hold)
+    gains = resolve_gains(spec, *record, eps=args.eps, Gamma=args.gamma, hold=args.hold,
+                          nan_policy=args.nan_policy)
     code = generate_c_from_model(args.model, dt=args.dt, eps=gains.eps, Gamma=gains.Gamma,
                                  real=args.real, name=args.name, nan_policy=args.nan_policy,
                                  hold=args.hold)
@@ -487,6 +528,10 @@ def _add_estimate(sub: _Subparsers) -> None:
     estimate.add_argument("-q", "--quiet", action="store_true",
                           help="nothing on stderr but warnings and errors: no progress, no "
                                "final line")
+    estimate.add_argument("--summary", metavar="RUN.json", default=None,
+                          help="also write the summary as JSON: θ̂ and its Cramér–Rao sd, "
+                               "settling, status, the trust report, warnings, the method and "
+                               "the ε and Γ the observer ran with (one record)")
     estimate.add_argument("--plot", metavar="FIG.png", default=None,
                           help="also write a figure of the estimates (one record; needs "
                                "matplotlib; " + ", ".join(PLOT_SUFFIXES) + ")")

@@ -82,6 +82,9 @@ class Method:
     runs_observer : bool
         It runs the paper's observer, so the law's θ* is checked on the record first and
         ``Gamma = "auto"`` is chosen on it (:func:`~thetahat.modelfile.run_estimator`).
+    fits : bool
+        Its ``run`` makes MAP fits and takes ``fit_progress``
+        (:data:`thetahat.progress.FitProgress`).
 
     Examples
     --------
@@ -94,6 +97,7 @@ class Method:
     description: str
     build: Callable[[MethodInputs], Estimator]
     runs_observer: bool
+    fits: bool = False
 
     def __repr__(self) -> str:
         return f"Method({self.name!r}: {self.description})"
@@ -126,12 +130,12 @@ def _ekf(inputs: MethodInputs) -> Estimator:
 METHODS: tuple[Method, ...] = (
     Method("guarded", "the two-stage guarded estimator: the paper's observer guarding an EKF "
                       "re-anchored by MAP fits (the default: guaranteed and efficient)",
-           _guarded, runs_observer=True),
+           _guarded, runs_observer=True, fits=True),
     Method("paper", "the paper's observer (3) with its update law (8), as printed (its "
                     "guarantee needs the law's conditions, Props. 1-4, on the record)",
            _paper, runs_observer=True),
     Method("mle", "MAP fits of (x(0), θ) on a dense schedule (offline)", _mle,
-           runs_observer=False),
+           runs_observer=False, fits=True),
     Method("ekf", "the joint EKF on col(x, θ) alone", _ekf, runs_observer=False),
 )
 

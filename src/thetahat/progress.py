@@ -19,10 +19,14 @@ The callbacks the estimators take, both ``callback(done, total)``:
   observer's ``run`` calls it every ``PROGRESS_EVERY`` samples and at the end). A
   :class:`Stages` is such a callback: it counts the samples of its current stage.
 * **fits**, :data:`FitProgress` ``fit_progress(done, total)`` — called by a statistical
-  estimator after each fit (a MAP fit of ``"mle"``'s schedule, a re-anchoring fit of
-  ``"guarded"``'s stage 2): ``done`` fits finished, ``total`` planned so far (it may grow as a
-  schedule is extended; 0 when unknown). :meth:`Stages.fits` is such a callback; the live line
-  then shows the fits and estimates the time left from them.
+  estimator's ``run`` (``"mle"``'s MAP fits, ``"guarded"``'s re-anchoring fits) with
+  ``(0, total)`` before its first fit and ``(done, total)`` after each: ``total`` the fits its
+  schedule places on the record, known in advance and constant within a run (0: none),
+  ``done`` increasing to ``total``; an estimator whose total could not be known in advance
+  would pass 0 (the line then shows the fits done, with no share or time left).
+  :meth:`Stages.fits` is such a callback, and :meth:`Stages.fit_stage` makes one that counts
+  them in a stage of their own; the live line then shows the fits and estimates the time left
+  from them.
 
 :func:`reporter` is the plain sample callback for library code (a tqdm bar or lines).
 
@@ -55,7 +59,8 @@ MODES = ("auto", "live", "final", "quiet")
 
 #: ``progress(done, total)``: ``done`` of ``total`` samples processed.
 SampleProgress = Callable[[int, int], None]
-#: ``fit_progress(done, total)``: ``done`` fits finished of ``total`` planned (0: unknown).
+#: ``fit_progress(done, total)``: ``done`` fits finished of ``total`` planned (0: none, or
+#: unknown).
 FitProgress = Callable[[int, int], None]
 
 
@@ -132,7 +137,8 @@ class Stages:
     error, writes the line of totals (:meth:`finish`); with an error, a live line is ended so
     that the error message starts a line of its own, and no totals are written. The object
     itself is the estimators' ``progress(done, total)`` callback (samples of the current
-    stage), and :meth:`fits` their ``fit_progress(done, total)``.
+    stage), :meth:`fits` their ``fit_progress(done, total)`` (fits of the current stage) and
+    :meth:`fit_stage` one that counts the fits in a stage of their own.
 
     Examples
     --------
@@ -201,6 +207,20 @@ class Stages:
         stage = self._current
         if stage is not None:
             stage.fits_done, stage.fits_total = done, total
+
+    def fit_stage(self, name: str = "fits") -> FitProgress:
+        """A ``fit_progress(done, total)`` callback whose first call starts stage ``name``
+        (ending the current one: e.g. the samples of stage 1) and whose calls count its fits
+        (:meth:`fits`)."""
+        started = False
+
+        def fit_progress(done: int, total: int) -> None:
+            nonlocal started
+            if not started:
+                started = True
+                self.stage(name, unit="fits")
+            self.fits(done, total)
+        return fit_progress
 
     def note(self, text: str) -> None:
         """Add ``text`` to the current stage's line (e.g. what was read)."""

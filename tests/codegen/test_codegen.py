@@ -127,7 +127,7 @@ def test_lugre_harness_reproduces_python_estimate(tmp_path, lugre_data):
     assert code == 0, err
     spec = load_model(LUGRE)
     assert tuple(header.split(",")) == datafile_columns(spec.layout, refined=True)
-    ref = run_estimator(spec, d.t[:N], d.u[:N], d.y[:N])
+    ref = run_estimator(spec, d.t[:N], d.u[:N], d.y[:N], method="paper")
     expected = np.c_[ref.t, ref.x_hat, ref.phi_hat, ref.theta_hat, ref.x_hat_refined]
     assert table.shape == expected.shape
     assert rel_err(table, expected) <= DOUBLE_RTOL
@@ -156,7 +156,7 @@ def test_proposition_examples_match_python(tmp_path, prop):
     code = generate_c_from_model(EXAMPLES / f"{prop}.toml", dt=0.01)
     res = load_c(code, tmp_path).run(data.u, data.y)
     assert res.status == 0
-    ref = run_estimator(spec, data.t, data.u, data.y)
+    ref = run_estimator(spec, data.t, data.u, data.y, method="paper")
     assert_agree(res, ref, DOUBLE_RTOL)
     assert np.all(np.ptp(ref.theta_hat, axis=0) > 0.1)   # every parameter is estimated
 
@@ -196,7 +196,7 @@ def test_sanitizers_pass_and_agree(tmp_path, model, real, lugre_data):
                         flags=flags)
     code, table, _, err = run_harness(exe, write_csv(tmp_path / "d.csv", t, u, y))
     assert code == 0 and "runtime error" not in err and "Sanitizer" not in err, err
-    ref = run_estimator(spec, t, u, y)
+    ref = run_estimator(spec, t, u, y, method="paper")
     n, k, p = spec.system.n, spec.system.k, spec.system.p
     assert rel_err(table[:, 1:1 + n], ref.x_hat) <= (DOUBLE_RTOL if real == "double"
                                                      else FLOAT_RTOL)
@@ -644,7 +644,7 @@ def test_command_line_nan_policy_skip_and_foh_follow_python(tmp_path, lugre_data
         assert subprocess.run(["make", "-C", str(out)], capture_output=True).returncode == 0
         rc, table, _, err = run_harness(out / "lugre", csv)
         assert rc == 0, err
-        ref = run_estimator(spec, d.t[:N], d.u[:N], y, nan_policy="skip", hold=hold)
+        ref = run_estimator(spec, d.t[:N], d.u[:N], y, nan_policy="skip", hold=hold, method="paper")
         expected = np.c_[ref.t, ref.x_hat, ref.phi_hat, ref.theta_hat, ref.x_hat_refined]
         assert rel_err(table, expected) <= DOUBLE_RTOL, hold
 
@@ -677,7 +677,7 @@ def test_harness_starts_from_the_first_sample_as_python(tmp_path):
     exe = build_harness(generate_c_from_model(path, dt=0.01), tmp_path / "c")
     code, table, _, err = run_harness(exe, write_csv(tmp_path / "d.csv", t, u, y))
     assert code == 0, err
-    ref = run_estimator(spec, t, u, y, diagnose=False)
+    ref = run_estimator(spec, t, u, y, diagnose=False, method="paper")
     assert table[0, 1] == pytest.approx(y[0, 0], rel=1e-15) and abs(y[0, 0]) > 3.0
     expected = np.c_[ref.t, ref.x_hat, ref.phi_hat, ref.theta_hat, ref.x_hat_refined]
     assert rel_err(table, expected) <= DOUBLE_RTOL

@@ -109,6 +109,11 @@ class Evidence(Protocol):
         """The report as lines of a summary."""
         ...
 
+    @property
+    def crlb_sd(self) -> NDArray[np.float64]:
+        """The Cramér–Rao standard deviation of each parameter on the record."""
+        ...
+
 
 @dataclass(frozen=True, slots=True, eq=False)
 class EstimateResult:

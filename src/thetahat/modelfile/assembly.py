@@ -13,7 +13,7 @@ import dataclasses
 import warnings
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -29,7 +29,7 @@ from ..estimation.observer.observer import ModifiedHighGainObserver
 from ..estimation.protocol import EstimateResult, Estimator
 from ..methods import MethodInputs, get_method
 from ..model.system import PerturbedLinearSystem
-from ..progress import Stages
+from ..progress import FitProgress, Stages
 from ..spec import SECOND_DESIGN_NOTE, EstimatorSpec, Hold, SecondObserverSpec
 from ..studies.information import explain_nonfinite, stuck_parameters
 from ..threads import one_blas_thread
@@ -306,7 +306,8 @@ class ObserverGains:
 
 def resolve_gains(spec: ModelSpec, t: ArrayLike | None = None, u: ArrayLike | None = None,
                   y: ArrayLike | None = None, *, eps: float | None = None,
-                  Gamma: ArrayLike | None = None, hold: Hold = "zoh") -> ObserverGains:
+                  Gamma: ArrayLike | None = None, hold: Hold = "zoh",
+                  nan_policy: str = "raise") -> ObserverGains:
     """The ε and Γ the file's observer runs with: ``Gamma = "auto"`` chosen on a record.
 
     The one place where ``"auto"`` becomes a number: :func:`run_estimator` (``thetahat
@@ -327,6 +328,9 @@ def resolve_gains(spec: ModelSpec, t: ArrayLike | None = None, u: ArrayLike | No
         p × p matrix.
     hold : {"zoh", "foh"}
         The sample hold of the first pass of ``"auto"``.
+    nan_policy : {"raise", "skip"}
+        Missing outputs in the record of ``"auto"``: refused, or predicted over by the first
+        pass (as the run that follows does) and left out of the information.
 
     Returns
     -------
@@ -369,7 +373,7 @@ def resolve_gains(spec: ModelSpec, t: ArrayLike | None = None, u: ArrayLike | No
         raise _no_record(spec)
     t = as_samples("t", seconds_from_first("t", t))
     u = None if u is None else as_samples("u", u)
-    G = auto_gamma(spec, t, u, as_samples("y", y), hold=hold, eps=eps)
+    G = auto_gamma(spec, t, u, as_samples("y", y), hold=hold, eps=eps, nan_policy=nan_policy)
     return ObserverGains(eps=eps, Gamma=G, source="auto")
 
 
@@ -456,7 +460,8 @@ def run_estimator(spec: ModelSpec, t: ArrayLike, u: ArrayLike | None, y: ArrayLi
                   progress: Callable[[int, int], None] | None = None,
                   method: str | None = None, compiled: bool | None = None,
                   diagnose: bool = True, Gamma: ArrayLike | None = None,
-                  noise_std: ArrayLike | None = None) -> EstimateResult:
+                  noise_std: ArrayLike | None = None,
+                  fit_progress: FitProgress | None = None) -> EstimateResult:
     """Run the file's estimator on sampled data, from the file's initial values.
 
     ``method`` (default: the file's ``[estimator] method``, else ``"guarded"``) chooses the
@@ -482,7 +487,9 @@ def run_estimator(spec: ModelSpec, t: ArrayLike, u: ArrayLike | None, y: ArrayLi
     progress : callable or Stages, optional
         ``progress(done, total)`` called as samples are processed (the observer's methods).
         A :class:`thetahat.progress.Stages` counts them in its current stage, and the trust
-        report (``diagnose``) is a stage of its own, ``"trust report"``.
+        report (``diagnose``) is a stage of its own, ``"trust report"``; so are the fits of
+        ``"guarded"`` and ``"mle"``, ``"fits"`` (:meth:`~thetahat.progress.Stages.fit_stage`),
+        unless ``fit_progress`` is given.
     method : str, optional
         The estimator, one of :data:`thetahat.methods.ESTIMATION_METHODS` (default: the
         file's ``[estimator] method``).
@@ -508,6 +515,11 @@ def run_estimator(spec: ModelSpec, t: ArrayLike, u: ArrayLike | None, y: ArrayLi
         σ of the output noise, for the statistical methods and the trust report (default:
         estimated from the record, which needs 12 samples; ``thetahat estimate
         --noise-std``).
+    fit_progress : callable, optional
+        ``fit_progress(done, total)`` (:data:`thetahat.progress.FitProgress`) for the methods
+        that fit (``"guarded"``, ``"mle"``: their ``run``'s keyword, called before the first
+        fit and after each, ``total`` known in advance, the last call ``(total, total)``);
+        the other methods make no fits and never call it. Its exceptions propagate unchanged.
 
     Returns
     -------
@@ -547,15 +559,17 @@ def run_estimator(spec: ModelSpec, t: ArrayLike, u: ArrayLike | None, y: ArrayLi
     with one_blas_thread():
         return _run(spec, t, u, y, hold=hold, nan_policy=nan_policy, progress=progress,
                     method=method, compiled=compiled, diagnose=diagnose, Gamma=Gamma,
-                    noise_std=noise_std)
+                    noise_std=noise_std, fit_progress=fit_progress)
 
 
 def _run(spec: ModelSpec, t: ArrayLike, u: ArrayLike | None, y: ArrayLike, *, hold: Hold,
          nan_policy: str, progress: Callable[[int, int], None] | None, method: str | None,
          compiled: bool | None, diagnose: bool, Gamma: ArrayLike | None,
-         noise_std: ArrayLike | None) -> EstimateResult:
+         noise_std: ArrayLike | None, fit_progress: FitProgress | None) -> EstimateResult:
     """:func:`run_estimator`'s work."""
     how = get_method(spec.estimator.method if method is None else method)
+    if fit_progress is None and isinstance(progress, Stages):
+        fit_progress = progress.fit_stage("fits")
     # every method sees the same samples: masked entries as NaN, dates as seconds, booleans,
     # text and dates in u or y refused
     t = as_samples("t", seconds_from_first("t", t))
@@ -570,11 +584,17 @@ def _run(spec: ModelSpec, t: ArrayLike, u: ArrayLike | None, y: ArrayLike, *, ho
         if how.runs_observer:
             _check_theta_star(spec, t, u, y)
             if Gamma is not None or spec.estimator.gamma_auto:
-                gamma = resolve_gains(spec, t, u, y, Gamma=Gamma, hold=hold).Gamma
+                gamma = resolve_gains(spec, t, u, y, Gamma=Gamma, hold=hold,
+                                      nan_policy=nan_policy).Gamma
         est = build_estimator(spec, method=how.name, hold=hold, nan_policy=nan_policy,
                               compiled=compiled, progress=progress, Gamma=gamma,
                               noise_std=noise_std)
-        result = est.run(t, u, y, state0=est.init(x_hat0=x0, theta_hat0=th0))
+        state0 = est.init(x_hat0=x0, theta_hat0=th0)
+        if how.fits and fit_progress is not None:   # guarded's and mle's run take it
+            fitting: Any = est
+            result = fitting.run(t, u, y, state0=state0, fit_progress=fit_progress)
+        else:
+            result = est.run(t, u, y, state0=state0)
     except (ThetahatError, ArithmeticError, ValueError) as exc:       # LinAlgError too
         if not diagnose:
             raise
@@ -632,7 +652,8 @@ def start_x_hat(spec: ModelSpec, y: ArrayLike) -> FloatArray:
 
 
 def auto_gamma(spec: ModelSpec, t: ArrayLike, u: ArrayLike | None, y: ArrayLike, *,
-               hold: Hold = "zoh", eps: float | None = None) -> FloatArray:
+               hold: Hold = "zoh", eps: float | None = None,
+               nan_policy: str = "raise") -> FloatArray:
     """``Gamma = "auto"`` on a record: the law's Γ (Γ₀) from the record's information.
 
     x̂ from a first pass of the file's observer with θ̂ held at θ̂₀, then
@@ -648,6 +669,9 @@ def auto_gamma(spec: ModelSpec, t: ArrayLike, u: ArrayLike | None, y: ArrayLike,
     hold : {"zoh", "foh"}
     eps : float, optional
         ε of the first pass's observer (default the file's).
+    nan_policy : {"raise", "skip"}
+        As for :func:`run_estimator`: with ``"skip"`` the first pass predicts over missing
+        outputs and their samples are left out of the information.
 
     Returns
     -------
@@ -678,7 +702,7 @@ def auto_gamma(spec: ModelSpec, t: ArrayLike, u: ArrayLike | None, y: ArrayLike,
         raise ModelFileError(f"model file {spec.source}: Gamma = 'auto' needs the system's "
                              "perturbation and parameter set; the model has none.")
     th0 = spec.estimator.theta_hat0
-    est = estimator_spec(spec, hold=hold)
+    est = estimator_spec(spec, hold=hold, nan_policy=nan_policy)
     held = dataclasses.replace(est, law=ConstantLaw(th0, s.parameter_set))
     obs = _build(held, spec, eps)
     from ..estimation.drive import runner
@@ -686,7 +710,7 @@ def auto_gamma(spec: ModelSpec, t: ArrayLike, u: ArrayLike | None, y: ArrayLike,
                                state0=obs.init(x_hat0=start_x_hat(spec, y), theta_hat0=th0))
     N = first.t.shape[0]
     U = np.zeros((N, 0)) if u is None else np.asarray(u, dtype=np.float64).reshape(N, -1)
-    Y = np.asarray(y, dtype=np.float64).reshape(N, -1)
+    Y = np.asarray(y, dtype=np.float64).reshape(N, -1)     # NaN rows: left out (skip)
     return information_gain(s.perturbation, np.concatenate([U, Y], axis=1), first.x_hat,
                             np.asarray(th0, dtype=np.float64),
                             float(first.t[-1] - first.t[0]),

@@ -25,6 +25,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ..io.record import DataRecord
+from ..methods import ESTIMATION_METHODS
 from ..modelfile import ModelSpec
 from ..safe_io import atomic_path, check_writable
 from ..spec import Hold
@@ -33,8 +34,9 @@ from . import silverbox
 
 __all__ = ["METHODS", "REFERENCE_HOLDS", "SilverboxReport", "SilverboxRun", "report"]
 
-#: The methods the demo runs, in its table's order (the joint EKF for reference).
-METHODS = ("paper", "guarded", "mle", "ekf")
+#: The methods the demo runs, in its table's order: every method of the registry (the joint EKF
+#: for reference).
+METHODS = ESTIMATION_METHODS
 #: The input reconstructions of the output-error references.
 REFERENCE_HOLDS = ("foh", "bandlimited")
 #: The demo's hold: the one every method and the validation use (stage 2 and the observer

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import warnings as _warnings
 from collections.abc import Sequence
+from typing import Any
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -14,8 +15,8 @@ from ..estimation.protocol import EstimateResult
 from ..estimation.statistical.trust import SETTLE_TAIL
 from ..tables import result_names
 
-__all__ = ["DIVERGENCE_FACTOR", "diverged", "divergence_reason", "estimate_summary", "rmse",
-           "time_to_within"]
+__all__ = ["DIVERGENCE_FACTOR", "diverged", "divergence_reason", "estimate_record",
+           "estimate_summary", "rmse", "settling", "time_to_within"]
 
 FloatArray = NDArray[np.float64]
 
@@ -200,15 +201,10 @@ def estimate_summary(result: EstimateResult, parameter_names: Sequence[str] | No
     warnings: none
     """
     t = np.asarray(result.t, dtype=float)
-    th = np.asarray(result.theta_hat, dtype=float).reshape(t.size, -1)
-    final = th[-1]
-    band = np.maximum(SETTLE_REL * np.abs(final), 1e-12)
-    inside = np.all(np.abs(th - final) <= band, axis=1)
-    outside = np.flatnonzero(~inside)
-    settle = t[0] if outside.size == 0 else t[min(outside[-1] + 1, t.size - 1)]
+    final = np.asarray(result.theta_hat, dtype=float).reshape(t.size, -1)[-1]
+    settle, late = settling(result)
     names = result_names(result, parameter_names=parameter_names)[1]
     values = ", ".join(f"{n} = {v:.6g}" for n, v in zip(names, final))
-    late = t.size > 1 and settle > t[-1] - SETTLE_TAIL * (t[-1] - t[0])
     if t.size <= 1:
         settled = "settled: not decided (a single sample has no course to settle)"
     elif late:
@@ -222,10 +218,116 @@ def estimate_summary(result: EstimateResult, parameter_names: Sequence[str] | No
              f"skipped samples (dropouts): {int(np.sum(result.skipped))}"]
     if result.trust is not None:                 # checked by run_estimator
         lines += result.trust.lines()
+    notes = _notes(result, warnings)
+    lines.append("warnings: " + ("none" if not notes else "; ".join(notes)))
+    return "\n".join(lines)
+
+
+def settling(result: EstimateResult) -> tuple[float, bool]:
+    """When θ̂ settled: the first time after which every component stays within
+    :data:`SETTLE_REL` of its final value, and whether that leaves less than the last
+    :data:`~thetahat.estimation.statistical.trust.SETTLE_TAIL` of the record.
+
+    Parameters
+    ----------
+    result : EstimateResult
+        Reads ``t`` and ``theta_hat``.
+
+    Returns
+    -------
+    (float, bool)
+        The settling time, and True when it is too late to call θ̂ settled.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from thetahat.estimation.protocol import EstimateResult, ObserverDiagnostics
+    >>> from thetahat.studies.metrics import settling
+    >>> z = np.zeros((5, 1))
+    >>> res = EstimateResult(t=np.arange(5.0), x_hat=z, phi_hat=z,
+    ...                      theta_hat=np.array([[0.0], [1.0], [1.0], [1.0], [1.0]]),
+    ...                      skipped=np.zeros(5, bool), diagnostics=ObserverDiagnostics())
+    >>> settling(res)
+    (1.0, False)
+    """
+    t = np.asarray(result.t, dtype=float)
+    th = np.asarray(result.theta_hat, dtype=float).reshape(t.size, -1)
+    final = th[-1]
+    band = np.maximum(SETTLE_REL * np.abs(final), 1e-12)
+    inside = np.all(np.abs(th - final) <= band, axis=1)
+    outside = np.flatnonzero(~inside)
+    settle = t[0] if outside.size == 0 else t[min(outside[-1] + 1, t.size - 1)]
+    late = bool(t.size > 1 and settle > t[-1] - SETTLE_TAIL * (t[-1] - t[0]))
+    return float(settle), late
+
+
+def _notes(result: EstimateResult,
+           warnings: Sequence[str | _warnings.WarningMessage]) -> list[str]:
+    """The run's warnings and the trust report's findings, each once, in order."""
     notes = [w if isinstance(w, str) else f"{w.category.__name__}: {w.message}"
              for w in warnings]
     if result.trust is not None:                 # its findings, whether caught or not
         shown = " ".join(notes)
         notes += [f"ThetahatWarning: {w}" for w in result.trust.warnings if w not in shown]
-    lines.append("warnings: " + ("none" if not notes else "; ".join(dict.fromkeys(notes))))
-    return "\n".join(lines)
+    return list(dict.fromkeys(notes))
+
+
+def _number(v: float) -> float | str:
+    """A float for JSON: inf and NaN as the strings "inf", "-inf", "nan" (JSON has none)."""
+    v = float(v)
+    return v if np.isfinite(v) else ("nan" if np.isnan(v) else ("inf" if v > 0 else "-inf"))
+
+
+def estimate_record(result: EstimateResult, parameter_names: Sequence[str] | None = None, *,
+                    warnings: Sequence[str | _warnings.WarningMessage] = (),
+                    context: dict[str, Any] | None = None) -> dict[str, Any]:
+    """The summary of :func:`estimate_summary` as data: what ``thetahat estimate --summary``
+    writes as JSON, for a script, a report or ``thetahat codegen --gamma``.
+
+    Parameters
+    ----------
+    result : EstimateResult
+        From any estimator's ``run``.
+    parameter_names : sequence of str, optional
+        As for :func:`estimate_summary`.
+    warnings : sequence of str or warnings.WarningMessage
+        As for :func:`estimate_summary`.
+    context : dict, optional
+        Entries put first (the CLI's: model and data files, method, hold, ε and Γ).
+
+    Returns
+    -------
+    dict
+        JSON-ready: ``theta_hat`` (name → final value), ``crlb_sd`` (name → Cramér–Rao sd, when
+        the result has a trust report), ``settled_at``, ``settled`` (False: "NOT settled"),
+        ``samples``, ``skipped``, ``status``, ``trust`` (the report's lines), ``warnings``; inf
+        and NaN as strings.
+
+    Examples
+    --------
+    >>> import json
+    >>> import numpy as np
+    >>> from thetahat.estimation.protocol import EstimateResult, ObserverDiagnostics
+    >>> from thetahat.studies.metrics import estimate_record
+    >>> z = np.zeros((3, 1))
+    >>> res = EstimateResult(t=np.array([0.0, 1.0, 2.0]), x_hat=z, phi_hat=z,
+    ...                      theta_hat=np.array([[0.0], [1.0], [1.0]]),
+    ...                      skipped=np.zeros(3, bool), diagnostics=ObserverDiagnostics())
+    >>> rec = estimate_record(res, ["theta"])
+    >>> rec["theta_hat"], rec["settled"], json.loads(json.dumps(rec))["warnings"]
+    ({'theta': 1.0}, True, [])
+    """
+    t = np.asarray(result.t, dtype=float)
+    final = np.asarray(result.theta_hat, dtype=float).reshape(t.size, -1)[-1]
+    names = result_names(result, parameter_names=parameter_names)[1]
+    settle, late = settling(result)
+    out: dict[str, Any] = dict(context or {})
+    out["theta_hat"] = {n: _number(v) for n, v in zip(names, final)}
+    if result.trust is not None:
+        out["crlb_sd"] = {n: _number(v) for n, v in zip(names, result.trust.crlb_sd)}
+    out.update(settled_at=_number(settle), settled=bool(t.size > 1 and not late),
+               samples=int(t.size), skipped=int(np.sum(result.skipped)),
+               status=result.status.name,
+               trust=[] if result.trust is None else list(result.trust.lines()),
+               warnings=_notes(result, warnings))
+    return out

@@ -6,7 +6,11 @@ and for numba, stage 2's plant model and kernels; :mod:`~thetahat.estimation.ker
 is written by :func:`load_module` to the cache directory under the hash of its text and
 imported from there (``importlib``'s ``module_from_spec`` of that file): the observer's numba
 kernel and stage 2's kernels compile once per machine instead of once per process (10–60 s
-before the first sample otherwise).
+before the first sample otherwise). Nothing there is trusted: a module file is compared with
+the text its name hashes (rewritten when it differs) and that checked text is executed, never
+the file or a ``.pyc``; numba's cache files load only when
+:mod:`~thetahat.estimation.kernels.numba_cache` recorded them; a cache that cannot be written
+leaves the module compiled in memory (one :class:`~thetahat.errors.ThetahatWarning` line).
 
 :func:`register` remembers which module a printed dispatcher lives in, so that a kernel
 printed later that calls it imports it instead of printing it again (:func:`origin`).
@@ -18,18 +22,25 @@ import hashlib
 import importlib.metadata
 import importlib.util
 import os
+import stat
 import sys
 import tempfile
 import types
+import warnings
 from pathlib import Path
 from typing import Any
 
-from ...errors import FileAccessError
+from ...errors import FileAccessError, ThetahatWarning
 from ...safe_io import write_text
+from .numba_cache import guard
 
 __all__ = ["cache_dir", "load_module", "origin", "register"]
 
 _loaded: dict[str, types.ModuleType] = {}
+#: Largest printed module read back from the cache (the largest kernels are ~1 MB).
+_MAX_MODULE_BYTES = 64 * 2**20
+#: The note of the first printed module that ran from memory in this process (said once).
+_memory_noted: list[str] = []
 #: id of a printed dispatcher -> (module name, function name, dispatcher).
 _origin: dict[int, tuple[str, str, Any]] = {}
 
@@ -88,6 +99,13 @@ def load_module(source: str, prefix: str) -> types.ModuleType:
     -------
     module
 
+    Warns
+    -----
+    ThetahatWarning
+        One line: the module's file was rewritten (its text differed), numba cache files of it
+        that thetahat did not record were deleted, or the cache cannot be written (the module
+        then runs compiled in memory; said once per process).
+
     Examples
     --------
     >>> from thetahat.estimation.kernels.kernel_cache import load_module
@@ -100,17 +118,85 @@ def load_module(source: str, prefix: str) -> types.ModuleType:
     mod = _loaded.get(name)
     if mod is not None:
         return mod
-    path = cache_dir() / f"{name}.py"
-    if not path.exists() or path.read_text(encoding="utf-8") != source:
-        write_text(path, source)
+    notes: list[str] = []
+    path = _written(name, source, notes)
+    if path is None:                     # no cache: numba compiles in memory
+        path = Path(tempfile.gettempdir()) / f"{name}.py"
+        source = source.replace("cache=True", "cache=False")
     spec = importlib.util.spec_from_file_location(name, path)
-    if spec is None or spec.loader is None:
+    if spec is None:
         raise FileAccessError(f"cannot import the generated kernel module {path}.")
     mod = importlib.util.module_from_spec(spec)
     sys.modules[name] = mod
-    spec.loader.exec_module(mod)
+    # The checked text is executed, not the file (nor a bytecode file next to it).
+    exec(compile(source, str(path), "exec"), mod.__dict__)  # thetahat's own text
+    if "cache=True" in source:
+        dropped = guard(mod)
+        if dropped:
+            notes.append(dropped)
     _loaded[name] = mod
+    if notes:
+        warnings.warn("; ".join(notes) + ".", ThetahatWarning, stacklevel=2)
     return mod
+
+
+def _written(name: str, source: str, notes: list[str]) -> Path | None:
+    """The module's file in the cache, checked against ``source`` (the text its name hashes)
+    and rewritten when it differs; None (with a note) when the cache cannot be written."""
+    try:
+        folder = cache_dir()
+    except FileAccessError as exc:
+        _memory_note(notes,f"no cache for the printed module {name} ({exc}); it runs compiled in "
+                     "memory and is compiled again by the next process")
+        return None
+    path = folder / f"{name}.py"
+    old = _read_text(path)
+    if old == source:
+        return path
+    try:
+        if os.path.lexists(path) and (path.is_dir() and not path.is_symlink()):
+            os.rmdir(path)
+        write_text(path, source)
+    except OSError as exc:
+        cause = exc.__cause__ if isinstance(exc.__cause__, OSError) else exc
+        _memory_note(notes, f"cannot write the printed module {path} ({cause.strerror or cause}); "
+                     "it runs compiled in memory and is compiled again by the next process "
+                     "(free space, or set THETAHAT_CACHE_DIR to a writable folder)")
+        return None
+    if old is not None:
+        notes.append(f"rewrote the printed module {path}: its text was not the one its name "
+                     "hashes (damaged or edited)")
+    return path
+
+
+def _memory_note(notes: list[str], note: str) -> None:
+    """Add ``note`` unless a module already ran from memory in this process (a cache that
+    cannot be written is said once)."""
+    if not _memory_noted:
+        _memory_noted.append(note)
+        notes.append(note)
+
+
+def _read_text(path: Path) -> str | None:
+    """The UTF-8 text of a regular file (never blocks on a FIFO), else None; a file that
+    exists but is not a readable module is returned as ``""`` (it differs from any module)."""
+    if not os.path.lexists(path):
+        return None
+    flags = os.O_RDONLY | getattr(os, "O_NONBLOCK", 0) | getattr(os, "O_NOFOLLOW", 0)
+    try:
+        fd = os.open(path, flags)
+    except OSError:
+        return ""
+    try:
+        if not stat.S_ISREG(os.fstat(fd).st_mode):
+            return ""
+        with os.fdopen(os.dup(fd), "rb") as fh:
+            data = fh.read(_MAX_MODULE_BYTES + 1)
+        return data.decode("utf-8") if len(data) <= _MAX_MODULE_BYTES else ""
+    except (OSError, UnicodeDecodeError):
+        return ""
+    finally:
+        os.close(fd)
 
 
 def _numba_version() -> str:

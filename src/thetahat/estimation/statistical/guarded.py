@@ -33,6 +33,7 @@ from __future__ import annotations
 import concurrent.futures
 import math
 import warnings
+from collections.abc import Iterator
 from dataclasses import dataclass, field, replace
 from typing import Any
 
@@ -42,6 +43,7 @@ from numpy.typing import ArrayLike, NDArray
 from ...errors import (ArgumentTypeError, DimensionError, NonFiniteError, OptionError,
                       StateError, ThetahatError, ThetahatWarning)
 from ...model.system import PerturbedLinearSystem
+from ...progress import FitProgress
 from ..protocol import Diagnostics, EstimateResult, check_state, missing_samples, stream_sample
 from ..records import check_record
 from ..status import Status
@@ -370,7 +372,8 @@ class GuardedEstimator:
 
     # ------------------------------------------------------------------ offline
     def run(self, t: ArrayLike, u: ArrayLike | None, y: ArrayLike, *,
-            state0: GuardedState | None = None, throw: bool = True) -> EstimateResult:
+            state0: GuardedState | None = None, throw: bool = True,
+            fit_progress: FitProgress | None = None) -> EstimateResult:
         """Run both stages and the guard over a record.
 
         Parameters
@@ -387,6 +390,15 @@ class GuardedEstimator:
             (default) raises stage 1's error; False returns the result with stage 1's
             ``status`` and ``message`` and NaN rows from ``failed_at`` on (the guarded
             output non-finite is :attr:`~thetahat.estimation.status.Status.DIVERGED`).
+        fit_progress : callable, optional
+            ``fit_progress(done, total)`` (:data:`thetahat.progress.FitProgress`), called in
+            the caller's thread once stage 1 has run: ``(0, total)`` before stage 2, then
+            after each re-anchoring fit (applied, rejected or failed alike) ``(done,
+            total)``. ``total`` is the number of fits the schedule places on the samples
+            stage 1 gave, known before the first (0 without fits: ``use_fits=False`` or a
+            record too short for one); the last call is ``(total, total)``. An exception it
+            raises (a ``KeyboardInterrupt`` too) ends the run and propagates unchanged. It
+            does not change the estimates.
 
         Returns
         -------
@@ -409,7 +421,7 @@ class GuardedEstimator:
                               "state0 has been stepped: continue its stream with step.")
         res1 = self.stage1.run(t_, U, Y, state0=st0.stage1, throw=False)
         run = _OfflineRun(self, t_, U, Y, res1, st0)
-        run.filter(t_.shape[0] if res1.failed_at is None else res1.failed_at)
+        run.filter(t_.shape[0] if res1.failed_at is None else res1.failed_at, fit_progress)
         res = run.result(run.stop(res1))
         return res.raise_for_status() if throw else res
 
@@ -607,24 +619,37 @@ class _OfflineRun:
         return choose_substeps(est.kernels.model, self.t, self.Us, self.Y, st0.theta_hat0,
                                st0.x_hat0, sigma, hold=est.hold, h_rho=est.h_rho)
 
-    def filter(self, rows: int) -> None:
+    def filter(self, rows: int, fit_progress: FitProgress | None = None) -> None:
         """Stage 2 and the guard over rows 0 … rows − 1 (those stage 1 gave), the fits applied
-        as they fall due."""
+        as they fall due; ``fit_progress(done, total)`` before the first and after each."""
+        done = total = 0
+        if fit_progress is not None:            # the schedule's fits, counted in advance
+            total = sum(fit for _, _, fit in self._segments(rows))
+            fit_progress(0, total)
+        for k, k_next, fit in self._segments(rows):
+            if self.estimate_sigma and k in (MIN_SAMPLES, SIGMA_SAMPLES):   # σ̂ from
+                self.sigma = resolve_noise_std(None, self.Y[:k])   # MIN_SAMPLES, refined
+                self.R = np.diag(self.sigma ** 2)                  # at SIGMA_SAMPLES
+            self._samples(k, k_next)
+            if fit:
+                self._fit(k_next)
+                done += 1
+                if fit_progress is not None:     # outside _fit: the callback's errors pass
+                    fit_progress(done, total)
+
+    def _segments(self, rows: int) -> Iterator[tuple[int, int, bool]]:
+        """(k, k_next, fit): stage 2 runs samples k … k_next − 1, then (fit) the fit due
+        there; the segments end at σ's refreshes and at the scheduled fits. A pure walk of
+        the schedule: :meth:`filter` follows it, and counts its fits in advance."""
         k = j = 0
         while k < rows:
             k_next = rows
-            if self.estimate_sigma:                  # σ̂ from MIN_SAMPLES, refined at 32
-                if k in (MIN_SAMPLES, SIGMA_SAMPLES):
-                    self.sigma = resolve_noise_std(None, self.Y[:k])
-                    self.R = np.diag(self.sigma ** 2)
-                if k < SIGMA_SAMPLES:
-                    k_next = MIN_SAMPLES if k < MIN_SAMPLES else SIGMA_SAMPLES
+            if self.estimate_sigma and k < SIGMA_SAMPLES:
+                k_next = MIN_SAMPLES if k < MIN_SAMPLES else SIGMA_SAMPLES
             j, k_fit = self._next_fit(k, j)
             k_next = min(k_fit, rows, k_next)
-            self._samples(k, k_next)
             due = self.sched is not None and k_next == k_fit < rows
-            if due and MIN_SAMPLES <= k_next:
-                self._fit(k_next)
+            yield k, k_next, due and MIN_SAMPLES <= k_next and self.prior0 is not None
             if due and not self.by_samples:
                 j += 1
             k = k_next

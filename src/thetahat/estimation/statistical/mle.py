@@ -31,6 +31,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from ...errors import NonFiniteError, OptionError, StateError
 from ...model.system import PerturbedLinearSystem
+from ...progress import FitProgress
 from ..protocol import (Diagnostics, EstimateResult, check_state, missing_samples,
                         stream_sample)
 from ..records import check_record
@@ -405,7 +406,8 @@ class MapEstimator:
                         substeps=nsub)
 
     def run(self, t: ArrayLike, u: ArrayLike | None, y: ArrayLike, *,
-            state0: MapState | None = None, throw: bool = True) -> EstimateResult:
+            state0: MapState | None = None, throw: bool = True,
+            fit_progress: FitProgress | None = None) -> EstimateResult:
         """Fit on the schedule over a record; between fits, the EKF continued from the latest.
 
         Parameters
@@ -424,6 +426,15 @@ class MapEstimator:
             :attr:`~thetahat.estimation.status.Status.SINGULAR` (a fit's information could
             not be decomposed), its ``message`` and NaN rows from ``failed_at`` on (a failed
             fit: from the last sample of its window).
+        fit_progress : callable, optional
+            ``fit_progress(done, total)`` (:data:`thetahat.progress.FitProgress`), called in
+            the caller's thread: ``(0, total)`` before the first fit, then ``(done, total)``
+            after each. ``total`` is the number of scheduled fits (:meth:`fit_samples` on
+            ``t``), known before the first; the last call is ``(total, total)``, also when a
+            fit fails and ``throw`` is False (the run stops there). The fits are not equal
+            work: by default each takes all the data so far, so the last ones are the
+            longest. An exception it raises (a ``KeyboardInterrupt`` too) ends the run and
+            propagates unchanged. It does not change the estimates.
 
         Returns
         -------
@@ -452,7 +463,7 @@ class MapEstimator:
         sched = self._record_schedule(t_, U, Y, st0)
         # the fits' failure is raised (throw) only once the EKF between the fits before it
         # has run: the run stops at its first failure, whichever it is
-        fits, ends, stop = self._fits(sched, t_, U, Y, st0, False)
+        fits, ends, stop = self._fits(sched, t_, U, Y, st0, False, fit_progress)
         TH = np.empty((N, p))
         SD = np.empty((N, p))
         TH[:] = st0.theta_hat0
@@ -474,14 +485,17 @@ class MapEstimator:
         return res.raise_for_status() if throw else res
 
     def _fits(self, sched: FitSchedule, t: FloatArray, U: FloatArray, Y: FloatArray,
-              st0: MapState, throw: bool
+              st0: MapState, throw: bool, fit_progress: FitProgress | None = None
               ) -> tuple[list[FitResult], list[int], RunStop | None]:
-        """The scheduled fits of a record, in order, until one fails: (the fits, their last
-        samples, the failure or None). With ``throw`` a fit's error is raised at once."""
+        """The scheduled fits of a record, in order, until one fails: (fits, their last
+        samples, the failure or None). With ``throw`` a fit's error is raised at once.
+        ``fit_progress(done, total)`` before the first fit and after each (see :meth:`run`)."""
         prior0 = sched.initial_prior(st0.x_hat0, st0.theta_hat0)
         fits: list[FitResult] = []
         ends: list[int] = []
         ks = self.fit_samples(t)
+        if fit_progress is not None:
+            fit_progress(0, len(ks))
         for i, k1 in enumerate(ks):
             prev = fits[-1] if fits else None
             last = i == len(ks) - 1
@@ -505,9 +519,13 @@ class MapEstimator:
             if stop is not None:
                 if throw:
                     raise stop.error()
+                if fit_progress is not None:    # the run stops here: no fit is left
+                    fit_progress(len(ks), len(ks))
                 return fits, ends, stop
             fits.append(fit)
             ends.append(k1 - 1)
+            if fit_progress is not None:
+                fit_progress(i + 1, len(ks))
         return fits, ends, None
 
     def _first_predictions(self, sched: FitSchedule, t: FloatArray, U: FloatArray,
