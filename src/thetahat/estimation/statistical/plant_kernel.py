@@ -27,6 +27,8 @@ those of the computed trajectory.
 
 from __future__ import annotations
 
+import functools
+
 import math
 from dataclasses import dataclass
 from typing import Any, Callable
@@ -68,15 +70,26 @@ def have_numba() -> bool:
     return True
 
 
+def _ieee(fn: Callable[..., Any]) -> Callable[..., Any]:
+    """``fn`` with NumPy's floating-point warnings off, as numba's arithmetic has them."""
+    @functools.wraps(fn)
+    def ieee(*args: Any) -> Any:
+        with np.errstate(all="ignore"):
+            return fn(*args)
+    return ieee
+
+
 def jit(fn: Callable[..., Any], compiled: bool) -> Callable[..., Any]:
-    """``numba.njit(fn, nogil=True)`` when ``compiled``, else ``fn`` unchanged (the fallback).
+    """``numba.njit(fn, nogil=True)`` when ``compiled``, else ``fn`` with IEEE arithmetic.
 
     Parameters
     ----------
     fn : callable
         A scalar-loop kernel written in numba's subset of Python.
     compiled : bool
-        Compile with numba (which must be installed); False returns ``fn`` itself.
+        Compile with numba (which must be installed); False returns ``fn`` run under
+        ``np.errstate(all="ignore")``: an overflow gives inf as in the compiled kernel, which
+        the loops check and report as a status, instead of a NumPy warning per operation.
 
     Returns
     -------
@@ -88,7 +101,7 @@ def jit(fn: Callable[..., Any], compiled: bool) -> Callable[..., Any]:
         compiled in memory.
     """
     if not compiled:
-        return fn
+        return _ieee(fn)
     try:
         return cached_njit(fn)
     except (KernelSourceError, FileAccessError):
