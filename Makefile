@@ -23,8 +23,8 @@ $(STAMP): pyproject.toml $(LOCK) | $(BIN)/python
 demo: $(STAMP)
 	$(BIN)/python examples/lugre_demo.py --no-show
 
-# The suite runs on every core (pytest-xdist; -n auto): 3.7 min on 2 cores with a warm kernel
-# cache, against 6.2 min on one.
+# The suite runs on every core (pytest-xdist; -n auto): under 10 min on 2 cores with a warm
+# kernel cache (8 min 57 s for 3,164 tests in the last CI run).
 test: $(STAMP)
 	$(BIN)/python -m pytest -q -n auto
 

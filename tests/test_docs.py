@@ -97,7 +97,8 @@ def test_numpydoc_reader_finds_sections_and_entries():
 
 
 #: Modules whose examples need an optional extra: their doctests skip without it.
-EXAMPLES_NEED = {"thetahat.plotting": "matplotlib", "thetahat.estimation.kernels.kernel_cache": "numba"}
+EXAMPLES_NEED = {"thetahat.plotting": "matplotlib", "thetahat.estimation.kernels.kernel_cache": "numba",
+                 "thetahat.estimation.kernels.modules": "numba"}
 
 
 @pytest.mark.parametrize("modname", sorted(_modules()))

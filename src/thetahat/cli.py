@@ -248,15 +248,12 @@ def _write_summary(args: argparse.Namespace, result: EstimateResult,
     """--summary: the printed summary as JSON, with what the run resolved (ε, Γ)."""
     import numpy as np
 
-    from .methods import get_method
-    from .modelfile import load_model
     from .safe_io import write_text
     from .studies.metrics import estimate_record
 
-    method = args.method or load_model(args.model).estimator.method
     context: dict[str, object] = {
         "thetahat": __version__, "model": str(args.model), "data": str(args.data),
-        "output": str(args.output), "method": get_method(method).name, "hold": args.hold,
+        "output": str(args.output), "method": args.method, "hold": args.hold,
         "samples_option": args.samples}
     if gains is not None:                      # what `thetahat codegen --eps/--gamma` takes
         context.update(eps=float(gains.eps), Gamma=np.asarray(gains.Gamma).tolist(),
@@ -278,6 +275,7 @@ def _estimate_one(args: argparse.Namespace, stages: Stages
     _check_estimate_outputs(args)
     spec = load_model(args.model)
     how = get_method(args.method or spec.estimator.method)
+    args.method = how.name                  # resolved once: the run and --summary name it
     if how.fits:                        # run_estimator counts them in a stage of their own
         stages.plan = _with_fits(stages.plan)
     stages.stage("read")

@@ -1,7 +1,7 @@
 """Issue 37, numba's cache and the printed modules: no cache content may crash the process,
 change a result or be loaded unverified (thetahat.estimation.kernels.numba_cache).
 
-A child process compiles two small kernels through :func:`cached_njit` (two gradient laws,
+A child process compiles two small printed kernels through :func:`load_module` (two gradient laws,
 θ̂' = γ φ (y − φ θ̂), over the same record; each kernel is a printed module whose function has
 the same name, so one's numba files fit the other's names). Every case damages a copy of that
 cache, then runs the child again and checks: exit 0, each θ̂ equal to the clean run's, at most
@@ -36,7 +36,7 @@ import errno, json, os, sys, warnings
 import numpy as np
 from thetahat.errors import ThetahatWarning
 import thetahat.estimation.kernels.kernel_cache as kc
-from thetahat.estimation.kernels.modules import cached_njit
+from thetahat.estimation.kernels.kernel_cache import load_module
 
 fault = sys.argv[1]
 if fault in ("enospc", "erofs"):          # every write to the cache fails
@@ -53,29 +53,21 @@ if fault == "nocache":
         raise kc.FileAccessError("thetahat found no writable directory (test)")
     kc.cache_dir = no_cache
 
-def gradient_law(gamma):
-    def run(phi, y):
-        theta = 0.0
-        for i in range(phi.shape[0]):
-            theta += gamma * phi[i] * (y[i] - phi[i] * theta)
-        return theta
-    return run
-
-def halved_law(gamma):
-    def run(phi, y):
-        theta = 0.0
-        for i in range(phi.shape[0]):
-            theta += 0.5 * gamma * phi[i] * (y[i] - phi[i] * theta)
-        return theta
-    return run
+def law(gain):
+    # θ̂' = gain φ (y − φ θ̂), a printed module's compiled ``run`` (the same name in both)
+    source = ("'a test kernel'\nimport numba\n\n\n@numba.njit(nogil=True, cache=True)\n"
+              "def run(phi, y):\n    theta = 0.0\n    for i in range(phi.shape[0]):\n"
+              f"        theta += {gain!r} * phi[i] * (y[i] - phi[i] * theta)\n"
+              "    return theta\n")
+    return load_module(source, "thetahat_nbtest").run
 
 t = np.linspace(0.0, 1.0, 201)    # short: the two laws have not converged
 phi = np.sin(t) + 1.5
 y = 2.0 * phi
 with warnings.catch_warnings(record=True) as caught:
     warnings.simplefilter("always")
-    f = cached_njit(gradient_law(0.01))
-    g = cached_njit(halved_law(0.01))
+    f = law(0.01)
+    g = law(0.005)
     theta = [f(phi, y), g(phi, y)]
 print(json.dumps({
     "theta": theta,
@@ -195,7 +187,7 @@ def numba_files_lost(cache: Path, f: str) -> None:
 
 
 def modules_lost(cache: Path, f: str) -> None:
-    for path in cache.glob("thetahat_stage2_*.py"):
+    for path in cache.glob("thetahat_nbtest_*.py"):
         path.unlink()
 
 

@@ -148,11 +148,16 @@ def test_run_refuses_a_stepped_state(name, data):
 @pytest.mark.parametrize("method", ["guarded", "mle", "ekf"])
 def test_statistical_estimators_keep_the_protocol_strictly(method):
     """``run(t, u, y, *, state0, throw)`` and ``init(*, x_hat0, theta_hat0)``: the start of a
-    run is its state, nothing beside it, and init's arguments are named."""
+    run is its state, nothing beside it, and init's arguments are named. The estimators that
+    fit (guarded, mle) also take ``fit_progress``, keyword-only and None by default: a report
+    on the run, not an input of it."""
     est = FACTORIES[method]()
     run = inspect.signature(est.run).parameters
-    assert list(run) == ["t", "u", "y", "state0", "throw"]
-    assert [p.kind for p in run.values()][3:] == [inspect.Parameter.KEYWORD_ONLY] * 2
+    extra = ["fit_progress"] if method in ("guarded", "mle") else []
+    assert list(run) == ["t", "u", "y", "state0", "throw"] + extra
+    kinds = [p.kind for p in run.values()][3:]
+    assert kinds == [inspect.Parameter.KEYWORD_ONLY] * (2 + len(extra))
+    assert all(run[n].default is None for n in extra)
     init = inspect.signature(est.init).parameters
     assert {n: p.kind for n, p in init.items()} == {
         "x_hat0": inspect.Parameter.KEYWORD_ONLY, "theta_hat0": inspect.Parameter.KEYWORD_ONLY}

@@ -13,9 +13,9 @@ by the process right after numba saved them (a wrapper around the dispatcher's c
 ``save_overload``). Before the module's first call, every ``.nbi``/``.nbc`` file of the module
 that the manifest does not list with its hash is deleted (never read as a pickle), and numba
 compiles again (with a warning when the module has a manifest; without one the files are a
-former version's, deleted silently). Should loading still fail (a wrapper around ``load_overload``), the module's
-files are deleted and numba compiles: a cache can cost a compile, never a result or the
-process. A file numba cannot write (a full disk, a read-only folder) leaves the function
+former version's, deleted silently). Should loading still fail (a wrapper around
+``load_overload``), the module's files are deleted and numba compiles: a cache can cost a
+compile, never a result or the process. A file numba cannot write (a full disk, a read-only folder) leaves the function
 compiled in memory. Each case gives one :class:`~thetahat.errors.ThetahatWarning` line.
 
 What it does not protect against is the same as for the C cache

@@ -1,4 +1,4 @@
-"""Exponential, linearly implicit discretisation of the stiff observer equations.
+r"""Exponential, linearly implicit discretisation of the stiff observer equations.
 
 The observers of Secs. III and VI are ODEs ``ṡ = F(s, v)`` whose Jacobian splits into a constant
 part ``L`` (the linear observer: ``A − K C`` and friends, stiff through the 1/ε scaling of
@@ -25,7 +25,9 @@ Properties that follow directly from the formula:
 
 **The observer (3).** The step runs on ``(x̂, z)`` with the constant part
 
-    L = [[A − K_x C, E], [−K_φ C, 0]]
+$$
+L = \begin{bmatrix} A - K_x C & E \\ -K_\phi C & 0 \end{bmatrix}
+$$
 
 and the state-dependent part ``N = [[E ∂g/∂x, 0], [∂g/∂x K_x C, 0]]``, which in the
 coordinates ``(x̂, φ̂)`` is the linearisation ``∂d/∂(x̂, φ̂)`` of the paper's d, neglecting

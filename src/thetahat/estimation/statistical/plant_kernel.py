@@ -55,6 +55,7 @@ printed modules' machinery (:mod:`~thetahat.estimation.kernels`); nothing of thi
 
 from __future__ import annotations
 
+import functools
 import importlib.util
 import math
 import sys
@@ -518,6 +519,21 @@ def free_run(x0: Any, th: Any, U: Any, tt: Any, k0: int, k1: int, pc: Any, WT: A
     return k1 - k0
 
 
+def _ieee(fn: Callable[..., Any]) -> Callable[..., Any]:
+    """``fn`` with NumPy's floating-point warnings off, as numba's arithmetic has them.
+
+    A plain-Python kernel (numba absent) then gives inf or nan on an overflow, as the compiled
+    one does, which the loops check and report as a status, instead of a NumPy warning per
+    operation.
+    """
+    @functools.wraps(fn)
+    def ieee(*args: Any) -> Any:
+        with np.errstate(all="ignore"):
+            return fn(*args)
+    ieee.ieee = True  # type: ignore[attr-defined]
+    return ieee
+
+
 def printed_kernels(prefix: str, doc: str, functions: Sequence[Callable[..., Any]],
                     provided: Mapping[str, Any], compiled: bool, *,
                     constants: Mapping[str, str] | None = None, text: str | None = None,
@@ -567,6 +583,8 @@ def printed_kernels(prefix: str, doc: str, functions: Sequence[Callable[..., Any
     if fresh:
         mod = _fresh(mod)
     for name in names:
+        if not compiled and not getattr(getattr(mod, name), "ieee", False):
+            setattr(mod, name, _ieee(getattr(mod, name)))
         register(getattr(mod, name), mod.__name__, name)
     return mod, names
 
