@@ -10,7 +10,7 @@ Subcommands::
     thetahat tune [MODEL] [--eps 1 0.7 0.5 0.3] [--gamma 1 3 10 30] [--seeds 1000 1001]
                   [--t-end T] [--out out] [--jobs N] [--scheduler tcp://HOST:PORT]
     thetahat analyze MODEL
-    thetahat estimate MODEL DATA.csv [-o estimates.csv] [--hold zoh|foh] [--nan-policy raise|skip]
+    thetahat estimate MODEL DATA.csv [-o estimates.csv] [--hold zoh|foh|bandlimited] [--nan-policy raise|skip]
                       [--no-progress | --quiet] [--method M] [--plot fig.png]
                       [--noise-std SIGMA] [--samples NAME|START:STOP|all] [--summary RUN.json]
     thetahat estimate MODEL logs/ [-o results.csv|.parquet] [--scheduler tcp://HOST:PORT]
@@ -268,7 +268,7 @@ def _estimate_one(args: argparse.Namespace, stages: Stages
     """The stages of one record: load, read, estimate (with the trust report), write, plot."""
     from .io.datafile import read_data, write_estimates
     from .methods import get_method
-    from .modelfile import load_model, resolve_gains, run_estimator
+    from .modelfile import load_model, resolve_gains, run_estimator, split_hold
     from .safe_io import atomic_path
 
     args.output = args.output or "estimates.csv"
@@ -276,6 +276,7 @@ def _estimate_one(args: argparse.Namespace, stages: Stages
     spec = load_model(args.model)
     how = get_method(args.method or spec.estimator.method)
     args.method = how.name                  # resolved once: the run and --summary name it
+    split_hold(args.hold, how.name)         # a hold the method cannot take: refused first
     if how.fits:                        # run_estimator counts them in a stage of their own
         stages.plan = _with_fits(stages.plan)
     stages.stage("read")
@@ -506,8 +507,11 @@ def _add_estimate(sub: _Subparsers) -> None:
     estimate.add_argument("-o", "--output", default=None,
                           help="output, .csv or .parquet (default: estimates.csv; for a fleet "
                                "results.csv: one row per file); never one of the inputs")
-    estimate.add_argument("--hold", choices=["zoh", "foh"], default="zoh",
-                          help="sample hold between samples (default: zoh)")
+    estimate.add_argument("--hold", choices=["zoh", "foh", "bandlimited"], default=None,
+                          help="u between the samples, for every method: zoh (held), foh "
+                               "(linear) or bandlimited (the band-limited signal through "
+                               "the samples; not the paper's method). Default: the observer "
+                               "holds, the statistical methods take u linear")
     estimate.add_argument("--nan-policy", choices=["raise", "skip"], default="raise",
                           help="empty or NaN output cells (dropouts): refuse the file (raise, "
                                "default) or predict over them without output correction "

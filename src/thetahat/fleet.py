@@ -39,7 +39,7 @@ import warnings
 from collections.abc import Hashable, Iterable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, cast
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -53,10 +53,9 @@ from .errors import ArgumentTypeError, MissingExtraError, ModelFileError, Option
 from .estimation.observer.batch_run import run_batch
 from .estimation.records import check_nan_policy
 from .estimation.statistical.stage2_set import theta_bounds
-from .modelfile import (ESTIMATION_METHODS, ModelSpec, build_observer, loads_model, start_x_hat,
-                        run_estimator)
+from .modelfile import (ESTIMATION_METHODS, ModelSpec, build_observer, loads_model,
+                        run_estimator, split_hold, start_x_hat)
 from .safe_io import atomic_path, check_writable, read_text, same_file
-from .spec import Hold
 from .studies.information import explain_nonfinite, stuck_parameters
 from .studies.metrics import time_to_within
 
@@ -470,7 +469,7 @@ def _failure(exc: BaseException) -> str:
     return f"{type(exc).__name__}: {exc}".replace("\n", " ")
 
 
-def _estimate_chunk(paths: list[str], *, model: tuple[str, str, str], hold: str,
+def _estimate_chunk(paths: list[str], *, model: tuple[str, str, str], hold: str | None,
                     method: str, nan_policy: str, delimiter: str | None = None,
                     noise_std: Any = None) -> list[tuple[Hashable, dict[str, Any]]]:
     """One task: read the records; the paper's observer runs records with equal sampling
@@ -499,14 +498,15 @@ def _estimate_chunk(paths: list[str], *, model: tuple[str, str, str], hold: str,
     return [(p, out[p]) for p in paths]
 
 
-def _estimate_one(spec: ModelSpec, path: str, record: tuple[DataRecord, list[str]], hold: str,
+def _estimate_one(spec: ModelSpec, path: str, record: tuple[DataRecord, list[str]],
+                  hold: str | None,
                   method: str, nan_policy: str, out: dict[str, dict[str, Any]],
                   noise_std: Any = None) -> None:
     rec, read_warnings = record
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         try:
-            res = run_estimator(spec, rec.t, rec.u, rec.y, hold=cast(Hold, hold),
+            res = run_estimator(spec, rec.t, rec.u, rec.y, hold=hold,
                                 nan_policy=nan_policy, method=method, noise_std=noise_std)
         except Exception as exc:           # a record that fails is reported, never stops others
             out[path] = {"status": _failure(_explain(exc, spec, rec)),
@@ -546,13 +546,14 @@ def _group_runner(obs: Any, t: FloatArray, records: int) -> Any:
 
 
 def _estimate_group(spec: ModelSpec, members: list[str],
-                    records: dict[str, tuple[DataRecord, list[str]]], hold: str,
+                    records: dict[str, tuple[DataRecord, list[str]]], hold: str | None,
                     nan_policy: str, out: dict[str, dict[str, Any]]) -> None:
     t = records[members[0]][0].t
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         try:
-            obs = build_observer(spec, nan_policy=nan_policy).with_run_options(hold=hold)
+            obs = build_observer(spec, nan_policy=nan_policy).with_run_options(
+                hold=split_hold(hold, "paper")[0])
             s0s = [obs.init(x_hat0=start_x_hat(spec, records[p][0].y),
                             theta_hat0=spec.estimator.theta_hat0) for p in members]
             fast = _group_runner(obs, t, len(members))
@@ -582,7 +583,8 @@ def _estimate_group(spec: ModelSpec, members: list[str],
 
 
 def estimate_many(model: str | Path, data: str | Path | Iterable[str | Path], *,
-                  scheduler: Any = None, chunk_size: int | None = None, hold: str = "zoh",
+                  scheduler: Any = None, chunk_size: int | None = None,
+                  hold: str | None = None,
                   method: str | None = None, nan_policy: str = "raise",
                   progress: bool = True, delimiter: str | None = None,
                   noise_std: Any = None) -> FleetResult:
@@ -600,8 +602,9 @@ def estimate_many(model: str | Path, data: str | Path | Iterable[str | Path], *,
     chunk_size : int, optional
         Records per task (default: about 16 tasks). Results do not depend on it beyond
         rounding (records that share their sampling instants run as one batch).
-    hold : {"zoh", "foh"}
-        Sample hold between samples.
+    hold : {"zoh", "foh", "bandlimited"}, optional
+        u between the samples, for every method
+        (:func:`~thetahat.modelfile.assembly.split_hold`; default: each method's own).
     method : {"paper", "guarded", "mle", "ekf"}, optional
         The estimator (default: the file's ``[estimator] method``, else ``"guarded"``), as for
         :func:`~thetahat.modelfile.assembly.run_estimator`. The paper's observer runs the
@@ -665,6 +668,7 @@ def estimate_many(model: str | Path, data: str | Path | Iterable[str | Path], *,
     if how not in ESTIMATION_METHODS:
         raise OptionError(f"method must be one of {list(ESTIMATION_METHODS)}; got {how!r}.")
     check_nan_policy(nan_policy)
+    split_hold(hold, how)                          # a hold the method cannot take: refused
     if delimiter is not None and delimiter not in CSV_DELIMITERS:
         raise OptionError(f"delimiter must be one of {list(CSV_DELIMITERS)}; got "
                           f"{delimiter!r}.")

@@ -48,6 +48,10 @@ class MethodInputs:
         σ of the output noise for the statistical methods (default: estimated from the data).
     compiled : bool, optional
         numba kernels for the statistical methods (default: when installed).
+    hold : {"zoh", "foh", "bandlimited"}, optional
+        u between the samples for the statistical methods (the guarded estimator's stage 2,
+        the MAP fits, the joint EKF; :mod:`thetahat.estimation.hold`); default: each one's
+        own (``"foh"``). The observer's hold is in ``observer``.
 
     Examples
     --------
@@ -65,6 +69,12 @@ class MethodInputs:
     stage1: Callable[[], Estimator] | None = None
     noise_std: Any = None
     compiled: bool | None = None
+    hold: str | None = None
+
+    def stage2(self) -> dict[str, Any]:
+        """The keywords every statistical estimator takes from these inputs."""
+        given = {"noise_std": self.noise_std, "compiled": self.compiled}
+        return given if self.hold is None else {**given, "hold": self.hold}
 
 
 @dataclass(frozen=True, slots=True)
@@ -110,19 +120,17 @@ def _paper(inputs: MethodInputs) -> Estimator:
 def _guarded(inputs: MethodInputs) -> Estimator:
     from .estimation.statistical.guarded import GuardedEstimator
     stage1 = (inputs.observer if inputs.stage1 is None else inputs.stage1)()
-    return GuardedEstimator(stage1=stage1, system=inputs.system, noise_std=inputs.noise_std,
-                            compiled=inputs.compiled)
+    return GuardedEstimator(stage1=stage1, system=inputs.system, **inputs.stage2())
 
 
 def _mle(inputs: MethodInputs) -> Estimator:
     from .estimation.statistical.mle import MapEstimator
-    return MapEstimator(system=inputs.system, noise_std=inputs.noise_std,
-                        compiled=inputs.compiled)
+    return MapEstimator(system=inputs.system, **inputs.stage2())
 
 
 def _ekf(inputs: MethodInputs) -> Estimator:
     from .estimation.statistical.ekf import JointEKF
-    return JointEKF(system=inputs.system, noise_std=inputs.noise_std, compiled=inputs.compiled)
+    return JointEKF(system=inputs.system, **inputs.stage2())
 
 
 #: The estimation methods, in the order the command line and the docs list them; the first is

@@ -20,8 +20,9 @@ from numpy.typing import ArrayLike, NDArray
 
 from .._validate import as_samples, seconds_from_first
 from ..design.gains import GainDesign
-from ..errors import (ConvergenceWarning, ModelFileError, NotMinimumPhaseError, ThetahatError,
-                      ThetahatWarning, UnstableDesignError)
+from ..errors import (ConvergenceWarning, ModelFileError, NotMinimumPhaseError, OptionError,
+                      ThetahatError, ThetahatWarning, UnstableDesignError)
+from ..estimation.hold import check_hold
 from ..estimation.observer.checks import check_theta_star
 from ..estimation.observer.initial_state import x_hat_from_output
 from ..estimation.observer.laws.projection import as_gain
@@ -40,7 +41,7 @@ if TYPE_CHECKING:
 
 __all__ = ["ObserverGains", "auto_gamma", "build_estimator", "build_observer", "design_gains",
            "design_matrices", "estimator_spec", "resolve_gains", "run_estimator",
-           "start_x_hat"]
+           "split_hold", "start_x_hat"]
 
 FloatArray = NDArray[np.float64]
 
@@ -306,7 +307,7 @@ class ObserverGains:
 
 def resolve_gains(spec: ModelSpec, t: ArrayLike | None = None, u: ArrayLike | None = None,
                   y: ArrayLike | None = None, *, eps: float | None = None,
-                  Gamma: ArrayLike | None = None, hold: Hold = "zoh",
+                  Gamma: ArrayLike | None = None, hold: str | None = None,
                   nan_policy: str = "raise") -> ObserverGains:
     """The ε and Γ the file's observer runs with: ``Gamma = "auto"`` chosen on a record.
 
@@ -326,8 +327,9 @@ def resolve_gains(spec: ModelSpec, t: ArrayLike | None = None, u: ArrayLike | No
     Gamma : float or array_like, optional
         Γ itself, in place of the file's: a number (γI), p numbers (the diagonal) or a
         p × p matrix.
-    hold : {"zoh", "foh"}
-        The sample hold of the first pass of ``"auto"``.
+    hold : {"zoh", "foh", "bandlimited"}, optional
+        The run's hold; the first pass of ``"auto"`` takes the observer's
+        (:func:`split_hold`).
     nan_policy : {"raise", "skip"}
         Missing outputs in the record of ``"auto"``: refused, or predicted over by the first
         pass (as the run that follows does) and left out of the information.
@@ -373,7 +375,8 @@ def resolve_gains(spec: ModelSpec, t: ArrayLike | None = None, u: ArrayLike | No
         raise _no_record(spec)
     t = as_samples("t", seconds_from_first("t", t))
     u = None if u is None else as_samples("u", u)
-    G = auto_gamma(spec, t, u, as_samples("y", y), hold=hold, eps=eps, nan_policy=nan_policy)
+    G = auto_gamma(spec, t, u, as_samples("y", y), hold=split_hold(hold, "guarded")[0], eps=eps,
+                   nan_policy=nan_policy)
     return ObserverGains(eps=eps, Gamma=G, source="auto")
 
 
@@ -388,7 +391,51 @@ def _build(est: EstimatorSpec, spec: ModelSpec, eps: float | None,
             zeros=exc.zeros) from exc
 
 
-def build_estimator(spec: ModelSpec, *, method: str | None = None, hold: Hold = "zoh",
+def split_hold(hold: str | None, method: str) -> tuple[Hold, str | None]:
+    """The observer's hold and the statistical methods' hold of a run's ``hold``.
+
+    ``None`` leaves each its default: the observer holds the samples (``"zoh"``), the
+    statistical methods take u linear between them (their ``"foh"``). ``"zoh"`` or ``"foh"``
+    is every method's. ``"bandlimited"`` (:mod:`thetahat.estimation.hold`) reaches the
+    statistical methods; the guarded estimator's stage 1 (the guard) then takes ``"foh"``,
+    and the paper's observer refuses it (its exponential integrator takes the zero- and
+    first-order holds only).
+
+    Parameters
+    ----------
+    hold : {"zoh", "foh", "bandlimited"} or None
+    method : str
+        The method the run uses (:data:`thetahat.methods.ESTIMATION_METHODS`).
+
+    Returns
+    -------
+    (str, str or None)
+        The observer's ``"zoh"`` or ``"foh"``; the statistical methods' hold (None: theirs).
+
+    Raises
+    ------
+    OptionError
+        An unknown hold, or ``"bandlimited"`` with the paper's method.
+
+    Examples
+    --------
+    >>> from thetahat.modelfile.assembly import split_hold
+    >>> split_hold(None, "guarded"), split_hold("bandlimited", "mle")
+    (('zoh', None), ('foh', 'bandlimited'))
+    """
+    if hold is None:
+        return "zoh", None
+    check_hold(hold)
+    if hold == "bandlimited":
+        if method == "paper":
+            raise OptionError("hold 'bandlimited' reaches the statistical methods (guarded, "
+                              "mle, ekf); the paper's observer takes 'zoh' or 'foh': choose "
+                              "one of those or another method.")
+        return "foh", "bandlimited"
+    return ("zoh" if hold == "zoh" else "foh"), hold
+
+
+def build_estimator(spec: ModelSpec, *, method: str | None = None, hold: str | None = None,
                     nan_policy: str = "raise", compiled: bool | None = None,
                     progress: Callable[[int, int], None] | None = None,
                     Gamma: FloatArray | None = None, noise_std: ArrayLike | None = None
@@ -403,8 +450,9 @@ def build_estimator(spec: ModelSpec, *, method: str | None = None, hold: Hold = 
         One of :data:`thetahat.methods.ESTIMATION_METHODS` (default: the file's
         ``[estimator] method``): the paper's observer, the two-stage guarded estimator (that
         observer as stage 1), the MAP fits or the joint EKF.
-    hold : {"zoh", "foh"}
-        Sample hold of the observer's ``run`` (``step`` always holds the samples).
+    hold : {"zoh", "foh", "bandlimited"}, optional
+        u between the samples (:func:`split_hold`): default, the observer holds the samples
+        (its ``step`` always does) and the statistical methods take u linear between them.
     nan_policy : {"raise", "skip"}
         What the observer does with a NaN sample (a dropout).
     compiled : bool, optional
@@ -444,19 +492,20 @@ def build_estimator(spec: ModelSpec, *, method: str | None = None, hold: Hold = 
     True
     """
     how = get_method(spec.estimator.method if method is None else method)
+    observer_hold, stage2_hold = split_hold(hold, how.name)
 
     def observer() -> Estimator:
         if Gamma is None:
             _refuse_auto_gamma(spec)
-        return _build(estimator_spec(spec, hold=hold, nan_policy=nan_policy), spec, None,
-                      Gamma=Gamma).with_run_options(progress=progress, compiled=compiled)
+        return _build(estimator_spec(spec, hold=observer_hold, nan_policy=nan_policy), spec,
+                      None, Gamma=Gamma).with_run_options(progress=progress, compiled=compiled)
 
     return how.build(MethodInputs(system=spec.system, observer=observer, compiled=compiled,
-                                  noise_std=noise_std))
+                                  noise_std=noise_std, hold=stage2_hold))
 
 
 def run_estimator(spec: ModelSpec, t: ArrayLike, u: ArrayLike | None, y: ArrayLike, *,
-                  hold: Hold = "zoh", nan_policy: str = "raise",
+                  hold: str | None = None, nan_policy: str = "raise",
                   progress: Callable[[int, int], None] | None = None,
                   method: str | None = None, compiled: bool | None = None,
                   diagnose: bool = True, Gamma: ArrayLike | None = None,
@@ -479,9 +528,10 @@ def run_estimator(spec: ModelSpec, t: ArrayLike, u: ArrayLike | None, y: ArrayLi
         Input samples.
     y : array_like, shape (N, r)
         Output samples.
-    hold : {"zoh", "foh"}
-        Sample hold (see :meth:`~thetahat.estimation.observer.observer.ModifiedHighGainObserver.run`);
-        for the guarded estimator it applies to stage 1.
+    hold : {"zoh", "foh", "bandlimited"}, optional
+        u between the samples, for every method (:func:`split_hold`; the trust report takes
+        the statistical methods' one). Default: the observer holds the samples, the
+        statistical methods take u linear between them.
     nan_policy : {"raise", "skip"}
         What the observer does with a NaN sample (a dropout).
     progress : callable or Stages, optional
@@ -562,12 +612,14 @@ def run_estimator(spec: ModelSpec, t: ArrayLike, u: ArrayLike | None, y: ArrayLi
                     noise_std=noise_std, fit_progress=fit_progress)
 
 
-def _run(spec: ModelSpec, t: ArrayLike, u: ArrayLike | None, y: ArrayLike, *, hold: Hold,
+def _run(spec: ModelSpec, t: ArrayLike, u: ArrayLike | None, y: ArrayLike, *,
+         hold: str | None,
          nan_policy: str, progress: Callable[[int, int], None] | None, method: str | None,
          compiled: bool | None, diagnose: bool, Gamma: ArrayLike | None,
          noise_std: ArrayLike | None, fit_progress: FitProgress | None) -> EstimateResult:
     """:func:`run_estimator`'s work."""
     how = get_method(spec.estimator.method if method is None else method)
+    observer_hold, stage2_hold = split_hold(hold, how.name)
     if fit_progress is None and isinstance(progress, Stages):
         fit_progress = progress.fit_stage("fits")
     # every method sees the same samples: masked entries as NaN, dates as seconds, booleans,
@@ -584,7 +636,7 @@ def _run(spec: ModelSpec, t: ArrayLike, u: ArrayLike | None, y: ArrayLike, *, ho
         if how.runs_observer:
             _check_theta_star(spec, t, u, y)
             if Gamma is not None or spec.estimator.gamma_auto:
-                gamma = resolve_gains(spec, t, u, y, Gamma=Gamma, hold=hold,
+                gamma = resolve_gains(spec, t, u, y, Gamma=Gamma, hold=observer_hold,
                                       nan_policy=nan_policy).Gamma
         est = build_estimator(spec, method=how.name, hold=hold, nan_policy=nan_policy,
                               compiled=compiled, progress=progress, Gamma=gamma,
@@ -607,7 +659,7 @@ def _run(spec: ModelSpec, t: ArrayLike, u: ArrayLike | None, y: ArrayLike, *, ho
         return result
     if isinstance(progress, Stages):
         progress.stage("trust report")
-    report = _trust(spec, result, u, y, compiled, x0, noise_std)
+    report = _trust(spec, result, u, y, compiled, x0, noise_std, stage2_hold or "foh")
     for text in report.warnings:
         warnings.warn(text, ThetahatWarning, stacklevel=3)
     stuck = stuck_parameters(spec.system, u, y, result.x_hat, result.theta_hat,
@@ -729,7 +781,8 @@ def _check_theta_star(spec: ModelSpec, t: ArrayLike, u: ArrayLike | None, y: Arr
 
 
 def _trust(spec: ModelSpec, result: EstimateResult, u: ArrayLike | None, y: ArrayLike,
-           compiled: bool | None, x0: FloatArray, noise_std: ArrayLike | None) -> TrustReport:
+           compiled: bool | None, x0: FloatArray, noise_std: ArrayLike | None,
+           hold: str) -> TrustReport:
     """The trust report of a run of the file's estimator on its record: the guard's band of a
     guarded run, the σ given by the user (else the one the estimator used), θ̂'s path, and for
     the paper's observer (NumPy, compiled or C: one result type) the law's conditions along
@@ -759,4 +812,4 @@ def _trust(spec: ModelSpec, result: EstimateResult, u: ArrayLike | None, y: Arra
     return trust_report(s, result.t, np.ascontiguousarray(U), np.ascontiguousarray(Y),
                         result.theta_hat[-1], spec.parameter_names, x_hat0=x0, band=band,
                         noise_std=sigma, compiled=compiled, theta_path=result.theta_hat,
-                        law_conditions=conditions)
+                        law_conditions=conditions, hold=hold)
