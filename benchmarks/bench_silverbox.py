@@ -1,7 +1,8 @@
 """Each method on the Silverbox training split, validated on the test splits, against the
 output-error fit of the same model.
 
-Run:  nice -n 10 .venv/bin/python benchmarks/bench_silverbox.py [--train N] [--stage2-h-rho R]
+Run:  nice -n 10 .venv/bin/python benchmarks/bench_silverbox.py [--train N] [--hold H]
+      [--methods M ...] [--stage2-h-rho R]
 
 The shipped model file (examples/silverbox.toml) on the Silverbox record (Wigren & Schoukens
 2013; 131 072 samples at 610.35 Hz) through ``thetahat.models.silverbox_report`` (the path of
@@ -64,6 +65,10 @@ def main(argv: list[str] | None = None) -> dict:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--train", type=int, default=None,
                     help="estimate from the first N training samples only")
+    ap.add_argument("--hold", choices=["zoh", "foh", "bandlimited"], default="foh",
+                    help="the methods' hold and their validation's (default foh)")
+    ap.add_argument("--methods", nargs="+", default=None,
+                    help="a subset of the methods (default: all)")
     ap.add_argument("--stage2-h-rho", type=float, default=None,
                     help="also mle with stage 2's sub-steps at h ρ ≤ this")
     args = ap.parse_args(argv)
@@ -72,11 +77,12 @@ def main(argv: list[str] | None = None) -> dict:
 
     with tempfile.TemporaryDirectory() as tmp, warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        report(out=tmp, methods=METHODS, references=(), train_samples=1000,
+        methods = tuple(args.methods or METHODS)
+        report(out=tmp, methods=methods, references=(), train_samples=1000, hold=args.hold,
                verbose=False)                                        # warm-up: kernels
         t0 = time.perf_counter()
-        done = report(out=tmp, methods=METHODS, references=("zoh", "foh", "bandlimited"),
-                      train_samples=args.train, verbose=False)
+        done = report(out=tmp, methods=methods, references=("zoh", "foh", "bandlimited"),
+                      train_samples=args.train, hold=args.hold, verbose=False)
         total = time.perf_counter() - t0
     print(f"Silverbox (Wigren & Schoukens 2013), {total:.0f} s in all")
     print(done.table())
