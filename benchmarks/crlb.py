@@ -120,10 +120,10 @@ def crlb(scenario: Scenario | None = None, **overrides) -> CRLBResult:
                       noise_std=sc.noise_std, theta=sc.theta)
 
 
-def finite_difference_check(scenario: Scenario | None = None, rel_step: float = FD_REL_STEP,
-                            **overrides) -> tuple[float, float]:
-    """(max |S − S_fd|, max |S|): S = ∂ω/∂θ from the sensitivity equations against central
-    differences of ``lugre.simulate`` (noise-free) at θ ± rel_step·θ."""
+def sensitivity_pair(scenario: Scenario | None = None, rel_step: float = FD_REL_STEP,
+                     **overrides) -> tuple[np.ndarray, np.ndarray]:
+    """(S, S_fd): S = ∂ω/∂θ on the sampling grid from :func:`thetahat.crlb`, S_fd the central
+    differences of ``lugre.simulate`` (noise-free, LSODA) at θ ± rel_step·θ."""
     sc = _scenario(scenario, overrides)
     d = rel_step * sc.theta
 
@@ -133,6 +133,13 @@ def finite_difference_check(scenario: Scenario | None = None, rel_step: float = 
 
     s_fd = (omega(sc.theta + d) - omega(sc.theta - d)) / (2 * d)
     _, _, S = output_sensitivity(sc)
+    return S, s_fd
+
+
+def finite_difference_check(scenario: Scenario | None = None, rel_step: float = FD_REL_STEP,
+                            **overrides) -> tuple[float, float]:
+    """(max |S − S_fd|, max |S|) of :func:`sensitivity_pair`."""
+    S, s_fd = sensitivity_pair(scenario, rel_step, **overrides)
     return float(np.max(np.abs(S - s_fd))), float(np.max(np.abs(S)))
 
 

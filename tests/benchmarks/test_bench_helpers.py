@@ -21,9 +21,15 @@ JACOBIAN_TOL = 1e-7
 #: Open-loop 2 s run of the filters' RK4 model against the plant's LSODA solution: measured
 #: max |Δω| 2.9e-4 rad/s over 20 s (at velocity reversals); 1e-3 is 20x below the noise σ.
 OPEN_LOOP_OMEGA_TOL = 1e-3
-#: Sensitivity equations against central differences (step 1e-4 θ) on 2 s: measured relative
-#: gap 5e-5 on 20 s, dominated by the O(δθ²) truncation near reversals; 5e-4 leaves margin.
-SENSITIVITY_REL_TOL = 5e-4
+#: The bound's sensitivities (the sampled map's, RK4 sub-steps chosen for accuracy at the
+#: noise level, u linear between samples) against central differences (step 1e-4 θ) of the
+#: LSODA simulation on 2 s: measured RMS gap 0.27 % of the RMS sensitivity — the gap sits at
+#: the two velocity reversals (t ≈ 1.0 and 1.74 s, up to 7 % of max |S| at one sample), where
+#: g's |ω| has a kink that a fixed sub-step straddles; 1 % leaves margin.
+SENSITIVITY_RMS_TOL = 0.01
+#: What the bound is for: √CRLB from S against √CRLB from S_fd: measured 6e-5 relative;
+#: 1e-3 leaves margin and is far below any efficiency ratio we report (two digits).
+SENSITIVITY_SD_TOL = 1e-3
 #: √(P_θθ / CRLB) of the exact-model EKF: measured 0.997 at 2 s and 0.9998 at 20 s (the gap is
 #: the early linearisation along the estimate rather than the truth); 1 % leaves margin.
 EKF_CRLB_TOL = 0.01
@@ -108,8 +114,10 @@ def test_peer_filters_converge_and_keep_theta_in_Theta(run):
 
 def test_crlb_sensitivity_matches_finite_differences_and_bound_decreases():
     sc = lugre.Scenario(t_end=2.0)
-    err, scale = crlb.finite_difference_check(sc)
-    assert err / scale < SENSITIVITY_REL_TOL
+    S, s_fd = crlb.sensitivity_pair(sc)
+    assert np.sqrt(np.mean((S - s_fd) ** 2)) < SENSITIVITY_RMS_TOL * np.sqrt(np.mean(s_fd ** 2))
+    assert np.sqrt(np.sum(S ** 2) / np.sum(s_fd ** 2)) == pytest.approx(1.0,
+                                                                       abs=SENSITIVITY_SD_TOL)
     res = crlb.crlb(sc)
     finite = np.isfinite(res.var_t)
     assert np.all(np.diff(res.var_t[finite]) <= 0)

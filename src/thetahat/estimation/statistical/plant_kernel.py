@@ -531,6 +531,7 @@ def _ieee(fn: Callable[..., Any]) -> Callable[..., Any]:
         with np.errstate(all="ignore"):
             return fn(*args)
     ieee.ieee = True  # type: ignore[attr-defined]
+    ieee.py_func = fn  # type: ignore[attr-defined]   # the kernel itself, as numba's has it
     return ieee
 
 
