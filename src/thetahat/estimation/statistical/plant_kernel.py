@@ -78,7 +78,8 @@ from ..kernels.modules import ModuleText
 
 __all__ = ["ACCURACY", "ACCURACY_SAMPLES", "H_RHO", "MAX_ACCURATE_SUBSTEPS", "MAX_SUBSTEPS",
            "ModelKernel", "Propagation", "TABLE_SUBSTEPS", "choose_substeps", "free_run",
-           "have_numba", "held_input", "model_kernel", "printed_kernels", "propagate",
+           "have_numba", "held_input", "model_kernel", "plant_jacobians", "printed_kernels",
+           "propagate",
            "spectral_radius_bound", "stage_jac"]
 
 FloatArray = NDArray[np.float64]
@@ -194,20 +195,37 @@ def _plant_expressions(system: PerturbedLinearSystem) -> tuple[list[sp.Symbol], 
     return xs, us, ts, f
 
 
+def plant_jacobians(system: PerturbedLinearSystem) -> tuple[list[sp.Symbol], list[sp.Symbol],
+                                                             list[sp.Symbol], sp.Matrix,
+                                                             sp.Matrix, sp.Matrix]:
+    """(x, u, θ symbols, f, ∂f/∂x, ∂f/∂θ): the SymPy forms every printer of ``rhs_jac`` prints.
+
+    ``DiracDelta`` terms (of sign′(z), from d|z|/dz = sign(z)) are dropped: a.e. derivatives.
+    """
+    xs, us, ts, f = _plant_expressions(system)
+    Fx = f.jacobian(xs).replace(sp.DiracDelta, lambda *a: sp.S.Zero)
+    Ft = (f.jacobian(ts) if ts else sp.zeros(len(xs), 0)).replace(sp.DiracDelta,
+                                                                   lambda *a: sp.S.Zero)
+    return xs, us, ts, f, Fx, Ft
+
+
+class _ExactPrinter(PythonCodePrinter):
+    """SymPy's Python printer with every float literal exact (``repr``: 17 digits, not 15):
+    the constants the numba kernels compute with are the model's, as in the generated C."""
+
+    def _print_Float(self, expr: sp.Float) -> str:
+        return repr(float(expr))
+
+
 def _generate_source(system: PerturbedLinearSystem) -> str:
     """Python source of ``rhs_jac(x, u, th, f, Fx, Ft)`` writing f, ∂f/∂x, ∂f/∂θ in place."""
-    xs, us, ts, f = _plant_expressions(system)
-    Fx = f.jacobian(xs)
-    Ft = f.jacobian(ts) if ts else sp.zeros(len(xs), 0)
-    # d|z|/dz = sign(z) and DiracDelta terms of sign'(z) are dropped (a.e. derivatives)
-    Fx = Fx.replace(sp.DiracDelta, lambda *a: sp.S.Zero)
-    Ft = Ft.replace(sp.DiracDelta, lambda *a: sp.S.Zero)
+    xs, us, ts, f, Fx, Ft = plant_jacobians(system)
     entries: list[tuple[str, tuple[int, ...], Any]] = [
         ("f", (i,), f[i]) for i in range(f.rows)]
     entries += [("Fx", (i, j), Fx[i, j]) for i in range(Fx.rows) for j in range(Fx.cols)]
     entries += [("Ft", (i, j), Ft[i, j]) for i in range(Ft.rows) for j in range(Ft.cols)]
     temps, reduced = sp.cse([e for _, _, e in entries], symbols=sp.numbered_symbols("c_"))
-    printer = PythonCodePrinter({"fully_qualified_modules": True, "standard": "python3"})
+    printer = _ExactPrinter({"fully_qualified_modules": True, "standard": "python3"})
     lines = ["def rhs_jac(x, u, th, f, Fx, Ft):"]
     lines += [f"    {s.name} = x[{i}]" for i, s in enumerate(xs)]
     lines += [f"    {s.name} = u[{i}]" for i, s in enumerate(us)]
