@@ -227,8 +227,10 @@ def prune(body: list[str], names: Iterable[str]) -> tuple[list[str], set[str]]:
 
     Examples
     --------
-    >>> prune(["    a = (real_t)s / ns;", "    b = 2.0;", "    c[0] = b;"], ["a", "b", "c"])
-    ([], {'a', 'b', 'c'})
+    >>> body, dead = prune(["    a = (real_t)s / ns;", "    b = 2.0;", "    c[0] = b;",
+    ...                     "    f_g(c);"], ["a", "b", "c"])
+    >>> body, sorted(dead)
+    (['    b = 2.0;', '    c[0] = b;', '    f_g(c);'], ['a'])
     """
     removed: set[str] = set()
     pending = set(names)

@@ -32,7 +32,7 @@ def analysis(fdef: ast.FunctionDef) -> tuple[dict[str, int], bool]:
 
     Examples
     --------
-    >>> analysis(ast.parse("def f(a):\n    b = 1\n    b += a\n    return b").body[0])
+    >>> analysis(ast.parse("def f(a):\\n    b = 1\\n    b += a\\n    return b").body[0])
     ({'b': 3}, False)
     """
     assigned: dict[str, int] = {}
