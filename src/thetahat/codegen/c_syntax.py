@@ -30,6 +30,15 @@ def analysis(fdef: ast.FunctionDef) -> tuple[dict[str, int], bool]:
     """How often each name of ``fdef`` is assigned (a loop or an update counts twice), and
     whether the function returns tuples.
 
+    Parameters
+    ----------
+    fdef : ast.FunctionDef
+
+    Returns
+    -------
+    assigned : dict of str to int
+    returns_tuple : bool
+
     Examples
     --------
     >>> analysis(ast.parse("def f(a):\\n    b = 1\\n    b += a\\n    return b").body[0])
@@ -54,6 +63,14 @@ def analysis(fdef: ast.FunctionDef) -> tuple[dict[str, int], bool]:
 
 def identifiers(text: str) -> list[str]:
     """The C identifiers (and keywords) of ``text``, in order.
+
+    Parameters
+    ----------
+    text : str
+
+    Returns
+    -------
+    list of str
 
     Examples
     --------

@@ -9,7 +9,7 @@ Joseph update, θ̂ clipped to Θ) — with the C printer of the observer's form
 length, the hold and the sub-steps' floor are fixed when the C is printed, every work array
 is a fixed-size local (no heap, nothing from libc but ``<math.h>``). The model's f, ∂f/∂x and
 ∂f/∂θ are the SymPy forms the Python kernels print
-(:func:`~thetahat.estimation.statistical.plant_kernel.plant_jacobians`), printed by SymPy's C99
+(:func:`~thetahat.estimation.statistical.plant_forms.plant_jacobians`), printed by SymPy's C99
 printer (:func:`~thetahat.codegen.printing.c_function`).
 
 The C keeps what :meth:`JointEKF.step <thetahat.estimation.statistical.ekf.JointEKF.step>`
@@ -39,6 +39,7 @@ from ..estimation.kernels.subset import source_tree
 from ..estimation.statistical import ekf_kernels as ek
 from ..estimation.statistical import plant_kernel as pk
 from ..estimation.statistical.ekf import JointEKF
+from ..estimation.statistical.plant_forms import plant_jacobians
 from ..estimation.statistical.stage2_set import clip_kernel, stage2_set
 from ..model.paramset import Box
 from ..safe_io import write_texts
@@ -225,7 +226,7 @@ def generate_ekf_c(ekf: JointEKF, *, dt: float, name: str = "ekf",
         glob["THETA_LO"], glob["THETA_HI"], glob["THETA_ELL"]])
     if unit.written_globals:
         raise UnsupportedError(f"the EKF kernels write {sorted(unit.written_globals)}")
-    xs, us, ts, f, Fx, Ft = pk.plant_jacobians(sys_)
+    xs, us, ts, f, Fx, Ft = plant_jacobians(sys_)
     rhs = c_function("rhs_jac", [("x", xs), ("u", us), ("th", ts)],
                      [("f", f), ("Fx", Fx), ("Ft", Ft)], "double")
     kernels = unit.source()

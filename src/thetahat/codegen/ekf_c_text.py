@@ -19,6 +19,19 @@ __all__ = ["ekf_header", "ekf_main", "ekf_source"]
 def ekf_header(name: str, banner: str, sizes: dict[str, Any]) -> str:
     """``<name>.h``: sizes, status codes, the state and the two functions.
 
+    Parameters
+    ----------
+    name : str
+        The C prefix.
+    banner : str
+        The files' opening comment.
+    sizes : dict
+        n, m, r, p.
+
+    Returns
+    -------
+    str
+
     Examples
     --------
     >>> "int e_step(e_state *st" in ekf_header("e", "", {"n": 2, "m": 1, "r": 1, "p": 1})
@@ -149,6 +162,19 @@ def ekf_main(name: str, banner: str, sizes: dict[str, Any]) -> str:
     """``<name>_main.c``: ``<name> DATA.csv`` reads rows ``t,u_1…u_m,y_1…y_r`` after a header
     line and writes ``t,x_hat_1…,theta_hat_1…`` rows to stdout; exit 1 on a bad row or
     file, 2 on a refused sample or a divergence (the row named on stderr).
+
+    Parameters
+    ----------
+    name : str
+        The C prefix.
+    banner : str
+        The files' opening comment.
+    sizes : dict
+        n, m, r, p.
+
+    Returns
+    -------
+    str
 
     Examples
     --------
