@@ -18,6 +18,7 @@ Subcommands::
     thetahat codegen MODEL --dt 1e-3 [--eps 1] [--gamma G... | --data LOG]
                      [--real double|float] [--name NAME] [--nan-policy raise|skip]
                      [--hold zoh|foh] -o DIR
+    thetahat codegen MODEL --method ekf --dt 1e-3 (--noise-std S | --data LOG) -o DIR
 
 Exit codes (see ``EXIT_CODES``): 0 success; 1 the model fails the theory's checks (Assumption 1
 fails, or the design is unstable on the true system); 2 usage or input error (the message is

@@ -114,8 +114,8 @@ class EKFCode:
         N = s["n"] + s["p"]
         return (f"{self.name}: joint EKF, n={s['n']} m={s['m']} r={s['r']} p={s['p']}, "
                 f"dt={self.dt!r}, hold={s['hold']}, RK4 sub-steps >= {s['substeps']}\n"
-                f"  sizeof({self.name}_state) = {8 * (N + N * N + max(s['m'], 1)) + 8}"
-                " bytes (s, P, u_prev, k)")
+                f"  {self.name}_state: {N + N * N + max(s['m'], 1)} x double (s, P, u_prev) "
+                "and a long (k)")
 
     def __repr__(self) -> str:
         return f"EKFCode(name={self.name!r}, dt={self.dt!r}, sizes={self.sizes})"
