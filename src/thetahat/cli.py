@@ -18,6 +18,7 @@ Subcommands::
     thetahat codegen MODEL --dt 1e-3 [--eps 1] [--gamma G... | --data LOG]
                      [--real double|float] [--name NAME] [--nan-policy raise|skip]
                      [--hold zoh|foh] -o DIR
+    thetahat codegen MODEL --method ekf --dt 1e-3 (--noise-std S | --data LOG) -o DIR
 
 Exit codes (see ``EXIT_CODES``): 0 success; 1 the model fails the theory's checks (Assumption 1
 fails, or the design is unstable on the true system); 2 usage or input error (the message is
@@ -339,6 +340,10 @@ def _codegen(args: argparse.Namespace) -> int:
 
     inputs = _inputs(args.model, args.data)
     check_writable(Path(args.output) / "Makefile", inputs=inputs)         # before any work
+    if args.method == "ekf":
+        return _codegen_ekf(args, inputs)
+    if args.noise_std is not None:
+        raise OptionError("--noise-std is the EKF's σ: give it with --method ekf.")
     if args.data is not None and args.gamma is not None:
         raise OptionError("--gamma gives Γ and --data chooses it on a log: give one of them.")
     spec = load_model(args.model)
@@ -358,6 +363,32 @@ def _codegen(args: argparse.Namespace) -> int:
     paths = code.write(args.output)
     print(code.summary())
     print(gains)
+    print("wrote " + ", ".join(str(p) for p in paths)
+          + f"; build the harness with: make -C {args.output}")
+    return EXIT_OK
+
+
+def _codegen_ekf(args: argparse.Namespace, inputs: list[str]) -> int:
+    from .modelfile import generate_ekf_c_from_model, load_model
+    from .safe_io import check_writable
+
+    given = [flag for flag, value in (("--eps", args.eps), ("--gamma", args.gamma))
+             if value is not None] + (["--real float"] if args.real == "float" else [])
+    if given:
+        raise OptionError(f"{', '.join(given)} belong to the paper's observer; --method ekf "
+                          "takes --noise-std (or --data), --hold zoh and --name.")
+    record: tuple[Any, ...] | None = None
+    if args.data is not None:
+        from .io.datafile import read_data
+        data = read_data(args.data, load_model(args.model).layout, nan_policy=args.nan_policy,
+                         delimiter=_delimiter(args.delimiter))
+        record = (data.t, data.u, data.y)
+    code = generate_ekf_c_from_model(args.model, dt=args.dt, noise_std=args.noise_std,
+                                     record=record, name=args.name, hold=args.hold)
+    for name in code.files():
+        check_writable(Path(args.output) / name, inputs=inputs)
+    paths = code.write(args.output)
+    print(code.summary())
     print("wrote " + ", ".join(str(p) for p in paths)
           + f"; build the harness with: make -C {args.output}")
     return EXIT_OK
@@ -572,7 +603,9 @@ def _add_codegen(sub: _Subparsers) -> None:
                     "no heap; the paper's estimator, [estimator] method = paper), a CSV "
                     "harness <name>_main.c and a Makefile (make -C DIR builds DIR/<name>, "
                     "which reads the CSV layout of `thetahat estimate` and writes its "
-                    "columns). Prints the sizes of the state struct and of the constants.")
+                    "columns). Prints the sizes of the state struct and of the constants. "
+                    "--method ekf: the joint EKF on col(x, θ) instead (its harness reads "
+                    "t,u…,y… rows and writes t,x̂…,θ̂…).")
     codegen.add_argument("model", help="model file (.toml or .json)")
     codegen.add_argument("--dt", type=float, required=True, help="fixed step length in s")
     codegen.add_argument("--eps", type=float, default=None,
@@ -583,7 +616,8 @@ def _add_codegen(sub: _Subparsers) -> None:
                               "\"auto\" give the Γ `thetahat estimate` printed, or --data")
     codegen.add_argument("--data", metavar="LOG", default=None,
                          help="choose Gamma = \"auto\" on this record, as `thetahat "
-                              "estimate` does (a CSV, Parquet, MATLAB or Excel file)")
+                              "estimate` does (a CSV, Parquet, MATLAB or Excel file); "
+                              "--method ekf: estimate σ and choose the RK4 sub-steps on it")
     codegen.add_argument("--delimiter", choices=[",", ";", "tab"], default=None,
                          help="--data's CSV column separator (default: detected)")
     codegen.add_argument("--real", choices=["double", "float"], default="double",
@@ -596,6 +630,13 @@ def _add_codegen(sub: _Subparsers) -> None:
                               "over (skip)")
     codegen.add_argument("--hold", choices=["zoh", "foh"], default="zoh",
                          help="sample hold; foh: <name>_step also takes the next samples")
+    codegen.add_argument("--method", choices=["paper", "ekf"], default="paper",
+                         help="the estimator: the paper's observer (default) or the joint "
+                              "EKF on col(x, θ) (stage 2; needs --noise-std or --data, "
+                              "--hold zoh)")
+    codegen.add_argument("--noise-std", metavar="SIGMA[,SIGMA...]", type=_noise_std,
+                         default=None, help="--method ekf: σ of the output noise (R = σ² I); "
+                                            "default: estimated from --data")
     codegen.add_argument("-o", "--output", required=True, help="output folder")
     codegen.set_defaults(run=_codegen)
 

@@ -90,3 +90,70 @@ def test_printed_solve_agrees_with_lapack(tmp_path):
         run(Mc.ctypes.data_as(ptr), bc.ctypes.data_as(ptr))
         x = np.linalg.solve(M, b)
         assert np.linalg.norm(bc - x) <= SOLVE_RTOL * np.linalg.norm(x)
+
+
+#: Kernel source in numba's subset for the local-array test: allocations, block and row
+#: copies, an array returned, a tuple with an array returned, a branch a constant ends.
+LOCAL_ARRAYS = """
+import numpy as np
+
+def scaled(v, c):
+    w = v.copy()
+    for i in range(w.shape[0]):
+        w[i] = c * w[i]
+    return w
+
+def parts(M, row):
+    r = M[row].copy()
+    B = M[1:, 1:].copy()
+    t = 0.0
+    for i in range(B.shape[0]):
+        t += B[i, i]
+    return r, t
+
+def kernel(M, v, out, mode):
+    if mode == 0:
+        for i in range(v.shape[0]):
+            out[i] = v[i]
+        return
+    I = np.eye(3)
+    Z = np.zeros((3, 3))
+    w = scaled(v, 2.0)
+    r, t = parts(M, 2)
+    for i in range(3):
+        Z[i, i] = I[i, i] * t
+        out[i] = w[i] + r[i] + Z[i, i] + max(i, 1)
+"""
+
+
+def test_local_arrays_and_returned_arrays_compile_and_agree(tmp_path):
+    """The numba-subset constructs of stage 2's kernels, printed as C, compiled with the
+    acceptance's flags (-Werror: no unused local) and run, give the Python kernel's result
+    exactly (the same operations in the same order on small integers and halves)."""
+    if find_compiler() is None:
+        pytest.skip("no C compiler (cc or $CC)")
+    namespace: dict = {}
+    exec(compile(LOCAL_ARRAYS, "<kernels>", "exec"), namespace)   # the Python reference
+    unit = unit_of(LOCAL_ARRAYS)
+    fn = unit.call("kernel", [Arr("M", (3, 3)), Arr("v", (3,)), Arr("out", (3,)), Const(1)])
+    assert "ret[]" in unit.source()                 # scaled writes its array through ret
+    folded = unit_of(LOCAL_ARRAYS).call("kernel", [Arr("M", (3, 3)), Arr("v", (3,)),
+                                                   Arr("out", (3,)), Const(0)])
+    assert folded.args == ["v", "out"]              # the taken branch returned: no more
+    src = tmp_path / "k.c"
+    src.write_text("#include <math.h>\ntypedef double real_t;\n" + unit.source()
+                   + "\nvoid run(real_t M[], real_t v[], real_t out[]);\n"
+                   f"void run(real_t M[], real_t v[], real_t out[])\n{{\n"
+                   f"    {fn.name}({', '.join(fn.args)});\n}}\n")
+    lib = tmp_path / "libk.so"
+    res = subprocess.run([find_compiler(), *C_FLAGS, "-fPIC", "-shared", "-o", str(lib),
+                          str(src)], capture_output=True, text=True)
+    assert res.returncode == 0 and not res.stderr, res.stderr
+    ptr = ctypes.POINTER(ctypes.c_double)
+    M = np.arange(9.0).reshape(3, 3) / 2.0
+    v = np.array([1.0, -2.0, 0.5])
+    out_c, out_py = np.zeros(3), np.zeros(3)
+    ctypes.CDLL(str(lib)).run(M.ctypes.data_as(ptr), v.ctypes.data_as(ptr),
+                              out_c.ctypes.data_as(ptr))
+    namespace["kernel"](M, v, out_py, 1)
+    assert out_c.tolist() == out_py.tolist()

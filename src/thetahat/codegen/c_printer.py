@@ -20,6 +20,11 @@ them):
 * runtime scalars are typed C locals (``real_t``, ``int`` for integers and booleans), declared
   at the top of their function and initialised.
 
+Stage 2's kernels (numba's subset: :mod:`~thetahat.estimation.statistical.ekf_kernels`) also
+allocate work arrays, copy blocks, read shapes and return arrays: each allocation is a local
+C array of the size the specialisation fixes (:mod:`.c_arrays`), a returned array is written
+through an output parameter, and a local that a specialisation left only written is dropped.
+
 A specialised function keeps only the parameters its body uses (so ``-Wextra`` finds no
 unused parameter), returns ``int``, ``real_t`` or nothing, or writes a returned tuple through
 pointers. No heap, no recursion (the formulas have none), no mutable file-scope state.
@@ -38,6 +43,8 @@ from typing import Any
 import numpy as np
 
 from ..errors import UnsupportedError
+from .c_arrays import ALLOCATIONS, allocation_lines, copy_lines, prune, region, shape_of
+from .c_syntax import BINOPS, CMP_FOLD, CMPS, FOLD, HELPERS, analysis, identifiers
 from .c_values import (INT, REAL, Arr, CFunction, Const, Fn, Scal, c_type, join,
                        real_literal, specialisation_key)
 
@@ -136,7 +143,7 @@ class CUnit:
 
     def source(self) -> str:
         """The helpers used and the specialised functions, callees first."""
-        helpers = [_HELPERS[h].replace("REAL", REAL).replace(
+        helpers = [HELPERS[h].replace("REAL", REAL).replace(
             "FABS", "fabs" if self.real == "double" else "fabsf") for h in sorted(self.helpers)]
         return "\n".join(helpers + self.texts)
 
@@ -160,12 +167,6 @@ class CUnit:
         return real_literal(value, self.real)
 
 
-#: Small C helpers, emitted when used: Python's max/min (the first argument on ties and NaN),
-#: and the square.
-_HELPERS = {
-    "max": "static REAL py_max(REAL a, REAL b)\n{\n    return b > a ? b : a;\n}\n",
-    "min": "static REAL py_min(REAL a, REAL b)\n{\n    return b < a ? b : a;\n}\n",
-}
 
 
 @dataclass
@@ -188,10 +189,15 @@ class _FunctionPrinter:
     returns_tuple: bool = False
     only_const_return: bool = True
     unrolled: int = 1
+    arrays: dict[str, int] = field(default_factory=dict)    # local C arrays: name → size
+    pending: list[str] = field(default_factory=list)        # C before the statement
+    stop: bool = False                                      # a folded branch returned
+    pad: str = "    "
+    target: str = "a"                                       # the name being assigned
 
     # ------------------------------------------------------------------ setup
     def run(self) -> CFunction:
-        self.assigned, self.returns_tuple = _analysis(self.fdef)
+        self.assigned, self.returns_tuple = analysis(self.fdef)
         names = [a.arg for a in self.fdef.args.args]
         if len(names) != len(self.args):
             raise UnsupportedError(f"{self.fdef.name} takes {len(names)} arguments, "
@@ -201,22 +207,65 @@ class _FunctionPrinter:
         body = self._block(self.fdef.body, 1)
         if isinstance(self.result, Const) and self.only_const_return:
             return CFunction(self.cname, [], self.result)
-        used = set(_identifiers("\n".join(body)))
+        body, dead = prune(body, [*self.locals, *self.arrays])
+        for name in dead:
+            self.locals.pop(name, None)
+            self.arrays.pop(name, None)
+        used = set(identifiers("\n".join(body)))
         kept = [(decl, path) for decl, cname, path in self.params if cname in used]
         decls = [decl for decl, _ in kept]
         result = self.result
         if isinstance(result, Const):
             result = c_type(result)
         if self.returns_tuple:
-            decls += [f"{t} *ret{i}" for i, t in enumerate(result)]
+            decls += [f"real_t ret{i}[]" if isinstance(t, Arr) else f"{t} *ret{i}"
+                      for i, t in enumerate(result)]
+            rtype = "void"
+        elif isinstance(result, Arr):
+            decls.append("real_t ret[]")
             rtype = "void"
         else:
             rtype = "void" if result is None else result
         head = f"static {rtype} {self.cname}({', '.join(decls) or 'void'})"
         local_lines = [f"    {loc.ctype} {name} = 0;" for name, loc in self.locals.items()]
+        local_lines += [f"    real_t {name}[{max(size, 1)}];"
+                        for name, size in self.arrays.items()]
         self.unit.texts.append("\n".join([head, "{", *local_lines, *body, "}", ""]))
         return CFunction(self.cname, [path for _, path in kept],
                          tuple(result) if self.returns_tuple else (result or "void"))
+
+    def _new_array(self, shape: tuple[int, ...]) -> Arr:
+        """A fresh local C array of ``shape`` (fixed size, declared at the function's top),
+        named after the name being assigned where it is free."""
+        taken = set(self.locals) | set(self.arrays) | {p[1] for p in self.params}
+        base = self._c_name(self.target)
+        name, count = base, 1
+        while name in taken or name == "ret" or name in self.unit.constants:
+            count += 1
+            name = f"{base}_{count}"
+        size = 1
+        for d in shape:
+            size *= d
+        self.arrays[name] = size
+        return Arr(name, shape)
+
+    def _region(self, node: ast.expr) -> Any:
+        """The block a ``.copy()`` copies (:func:`.c_arrays.region`)."""
+        if isinstance(node, ast.Subscript):
+            arr = self._array(node.value)
+            parts = node.slice.elts if isinstance(node.slice, ast.Tuple) else [node.slice]
+            index: list[tuple[Any, ...]] = []
+            for e in parts:
+                if isinstance(e, ast.Slice):
+                    if e.step is not None:
+                        raise UnsupportedError("a copied block needs a unit step")
+                    index.append(("slice", None if e.lower is None else self._expr(e.lower),
+                                  None if e.upper is None else self._expr(e.upper)))
+                else:
+                    index.append(("at", self._expr(e)))
+            return region(arr, index, self._text)
+        arr = self._array(node)
+        return region(arr, [("slice", None, None)] * len(arr.shape), self._text)
 
     def _bind(self, pname: str, value: Any, path: str) -> Any:
         """The callee's view of an argument: runtime parts become parameters (a named
@@ -246,11 +295,20 @@ class _FunctionPrinter:
 
     # ------------------------------------------------------------------ statements
     def _block(self, stmts: Sequence[ast.stmt], depth: int) -> list[str]:
+        """The statements' C; stops after a return, also one in a branch a constant chose
+        (:attr:`stop` says whether it did)."""
         out: list[str] = []
+        ended = False
         for st in stmts:
-            out += self._stmt(st, depth)
-            if isinstance(st, ast.Return):
+            saved, self.pending = self.pending, []
+            self.pad, self.stop = "    " * depth, False
+            lines = self._stmt(st, depth)
+            out += self.pending + lines
+            self.pending = saved
+            ended = isinstance(st, ast.Return) or (isinstance(st, ast.If) and self.stop)
+            if ended:
                 break
+        self.stop = ended
         return out
 
     def _stmt(self, st: ast.stmt, depth: int) -> list[str]:
@@ -269,7 +327,7 @@ class _FunctionPrinter:
             raise UnsupportedError("annotated assignments are outside the formulas' subset")
         if isinstance(st, ast.AugAssign):
             self.only_const_return = False
-            op = _BINOPS[type(st.op)]
+            op = BINOPS[type(st.op)]
             value = self._expr(st.value)
             if isinstance(st.target, ast.Name):
                 name = st.target.id
@@ -290,9 +348,11 @@ class _FunctionPrinter:
             if isinstance(test, Const):
                 return self._block(st.body if test.value else st.orelse, depth)
             self.only_const_return = False
+            pending, self.pending = self.pending, []
             lines = [f"{pad}if ({test.text}) {{", *self._block(st.body, depth + 1)]
             if st.orelse:
                 lines += [f"{pad}}} else {{", *self._block(st.orelse, depth + 1)]
+            self.pending, self.stop = pending, False
             return lines + [f"{pad}}}"]
         if isinstance(st, ast.Return):
             return self._return(st, pad)
@@ -305,6 +365,7 @@ class _FunctionPrinter:
         if len(st.targets) != 1:
             raise UnsupportedError("chained assignment is outside the formulas' subset")
         target = st.targets[0]
+        self.target = target.id if isinstance(target, ast.Name) else "a"
         if isinstance(target, ast.Tuple):
             if isinstance(st.value, ast.Call):               # a function returning a tuple
                 return self._tuple_call(target, st.value, pad)
@@ -406,14 +467,24 @@ class _FunctionPrinter:
             if not isinstance(st.value, ast.Tuple):
                 raise UnsupportedError(f"{self.fdef.name} returns tuples and non-tuples")
             values = [self._expr(e) for e in st.value.elts]
-            types = [c_type(v) for v in values]
+            types = [Arr("", v.shape) if isinstance(v, Arr) else c_type(v) for v in values]
             if self.result is None:
                 self.result = types
             else:
-                self.result = [join(a, b) for a, b in zip(self.result, types)]
-            return [f"{pad}*ret{i} = {self._text(v)};" for i, v in enumerate(values)] + [
-                f"{pad}return;"]
+                self.result = [a if isinstance(a, Arr) or isinstance(b, Arr) else join(a, b)
+                               for a, b in zip(self.result, types)]
+            lines = []
+            for i, v in enumerate(values):
+                lines += (copy_lines(f"ret{i}", region(v, [("slice", None, None)]
+                                                       * len(v.shape), self._text), pad)
+                          if isinstance(v, Arr) else [f"{pad}*ret{i} = {self._text(v)};"])
+            return lines + [f"{pad}return;"]
         value = self._expr(st.value)
+        if isinstance(value, Arr):
+            self.only_const_return = False
+            self.result = Arr("", value.shape)
+            whole = region(value, [("slice", None, None)] * len(value.shape), self._text)
+            return copy_lines("ret", whole, pad) + [f"{pad}return;"]
         if isinstance(value, Const):
             if self.result is None and self.only_const_return:
                 self.result = value
@@ -436,6 +507,15 @@ class _FunctionPrinter:
             raise UnsupportedError("a tuple is assigned from a call that does not return one")
         outs = []
         for name, ctype in zip(names, fn.result):
+            if isinstance(ctype, Arr):
+                if self.assigned.get(name, 0) != 1:
+                    raise UnsupportedError(f"{name} is rebound to an array in "
+                                           f"{self.fdef.name}")
+                self.target = name
+                arr = self._new_array(ctype.shape)
+                self.env[name] = arr
+                outs.append(arr.name)
+                continue
             if name not in self.locals:
                 self.locals[name] = _Local(ctype)
                 self.env[name] = Scal(self._c_name(name), ctype)
@@ -509,7 +589,7 @@ class _FunctionPrinter:
         a, b = self._expr(node.left), self._expr(node.right)
         op = type(node.op)
         if isinstance(a, Const) and isinstance(b, Const) and a.text is None and b.text is None:
-            return Const(_FOLD[op](a.value, b.value))
+            return Const(FOLD[op](a.value, b.value))
         if op is ast.Pow:
             if isinstance(b, Const) and b.value == 2:
                 t = self._text(a)
@@ -534,7 +614,7 @@ class _FunctionPrinter:
             if ctype != INT:
                 raise UnsupportedError("// on reals is outside the formulas' subset")
             return Scal(f"({left} / {right})", INT)
-        return Scal(f"({left} {_BINOPS[op]} {right})", ctype)
+        return Scal(f"({left} {BINOPS[op]} {right})", ctype)
 
     def _paren(self, value: Any) -> str:
         text = self._text(value)
@@ -548,8 +628,8 @@ class _FunctionPrinter:
         a, b = self._expr(node.left), self._expr(node.comparators[0])
         op = type(node.ops[0])
         if isinstance(a, Const) and isinstance(b, Const):
-            return Const(bool(_CMP_FOLD[op](a.value, b.value)))
-        return Scal(f"({self._paren(a)} {_CMPS[op]} {self._paren(b)})", INT)
+            return Const(bool(CMP_FOLD[op](a.value, b.value)))
+        return Scal(f"({self._paren(a)} {CMPS[op]} {self._paren(b)})", INT)
 
     def _boolop(self, node: ast.BoolOp) -> Any:
         is_and = isinstance(node.op, ast.And)
@@ -622,6 +702,8 @@ class _FunctionPrinter:
             return getattr(base, node.attr)
         if isinstance(base, Arr) and node.attr == "size":
             return Const(base.size)
+        if isinstance(base, Arr) and node.attr == "shape":
+            return tuple(Const(d) for d in base.shape)
         raise UnsupportedError(f"{ast.unparse(node)} is outside the formulas' subset")
 
     def _call(self, node: ast.Call) -> Any:
@@ -633,9 +715,22 @@ class _FunctionPrinter:
                     if isinstance(a, Const):
                         return Const(math.isfinite(a.value))
                     return Scal(f"isfinite({a.text})", INT)
-                if func.attr in ("exp", "sqrt"):
+                if func.attr in ("exp", "sqrt", "ceil"):
                     suffix = "" if self.unit.real == "double" else "f"
                     return Scal(f"{func.attr}{suffix}({self._text(a)})", REAL)
+            if (isinstance(func.value, ast.Name) and func.value.id == "np"
+                    and func.attr in ALLOCATIONS):
+                (arg,) = node.args
+                shape = shape_of(self._expr(arg))
+                shape = (shape[0], shape[0]) if func.attr == "eye" else shape
+                arr = self._new_array(shape)
+                self.pending += allocation_lines(func.attr, arr.name, shape, self.pad)
+                return arr
+            if func.attr == "copy" and not node.args:
+                src = self._region(func.value)
+                arr = self._new_array(src.shape)
+                self.pending += copy_lines(arr.name, src, self.pad)
+                return arr
             if func.attr == "reshape":
                 arr = self._array(func.value)
                 (n,) = (self._expr(e) for e in node.args)
@@ -647,12 +742,17 @@ class _FunctionPrinter:
             raise UnsupportedError(f"{ast.unparse(func)} is outside the formulas' subset")
         name = func.id
         if name in ("max", "min"):
-            a, b = (self._expr(e) for e in node.args)
-            if isinstance(a, Const) and isinstance(b, Const):
-                return Const(max(a.value, b.value) if name == "max" else
-                             min(a.value, b.value))
-            self.unit.helpers.add(name)
-            return Scal(f"py_{name}({self._text(a)}, {self._text(b)})", REAL)
+            values = [self._expr(e) for e in node.args]
+            acc = values[0]
+            for b in values[1:]:
+                acc = self._extremum(name, acc, b)
+            return acc
+        if name in ("int", "float"):
+            (a,) = (self._expr(e) for e in node.args)
+            if isinstance(a, Const) and a.text is None:
+                return Const(int(a.value) if name == "int" else float(a.value))
+            ctype = INT if name == "int" else REAL
+            return Scal(f"({ctype})({self._text(a)})", ctype)
         if name == "abs":
             (a,) = (self._expr(e) for e in node.args)
             if isinstance(a, Const):
@@ -662,11 +762,25 @@ class _FunctionPrinter:
         fn = self._callee(node)
         if isinstance(fn.result, Const):
             return fn.result
+        if isinstance(fn.result, Arr):                      # written through ``ret``
+            self.only_const_return = False
+            arr = self._new_array(fn.result.shape)
+            self.pending.append(f"{self.pad}{fn.name}({', '.join([*fn.args, arr.name])});")
+            return arr
         if isinstance(fn.result, tuple):
             raise UnsupportedError(f"{name} returns a tuple: assign it to names")
         self.only_const_return = False
         text = f"{fn.name}({', '.join(fn.args)})"
         return Scal(text, fn.result if fn.result != "void" else INT)
+
+    def _extremum(self, name: str, a: Any, b: Any) -> Any:
+        """Python's max/min of two scalars (the first on ties and NaN)."""
+        if isinstance(a, Const) and isinstance(b, Const):
+            return Const(max(a.value, b.value) if name == "max" else min(a.value, b.value))
+        helper = name if join(c_type(a), c_type(b)) == REAL else "i" + name
+        self.unit.helpers.add(helper)
+        return Scal(f"py_{helper}({self._text(a)}, {self._text(b)})",
+                    REAL if helper == name else INT)
 
     def _callee(self, node: ast.Call) -> CFunction:
         func = node.func
@@ -682,40 +796,3 @@ class _FunctionPrinter:
             return CFunction(cname, cargs, INT)
         fn = self.unit.call(target.name, args)
         return fn
-
-
-@functools.lru_cache(maxsize=512)
-def _analysis(fdef: ast.FunctionDef) -> tuple[dict[str, int], bool]:
-    """How often each name is assigned (a loop or an update counts twice), and whether the
-    function returns tuples."""
-    assigned: dict[str, int] = {}
-    for node in ast.walk(fdef):
-        targets: list[ast.expr] = []
-        weight = 1
-        if isinstance(node, ast.Assign):
-            targets = list(node.targets)
-        elif isinstance(node, (ast.AugAssign, ast.For)):
-            targets, weight = [node.target], 2
-        for t in targets:
-            for n in ast.walk(t):
-                if isinstance(n, ast.Name) and isinstance(n.ctx, ast.Store):
-                    assigned[n.id] = assigned.get(n.id, 0) + weight
-    returns_tuple = any(isinstance(n, ast.Return) and isinstance(n.value, ast.Tuple)
-                        for n in ast.walk(fdef))
-    return assigned, returns_tuple
-
-
-def _identifiers(text: str) -> list[str]:
-    return re.findall(r"[A-Za-z_]\w*", text)
-
-
-_BINOPS = {ast.Add: "+", ast.Sub: "-", ast.Mult: "*", ast.Div: "/", ast.Mod: "%"}
-_FOLD: dict[type, Callable[[Any, Any], Any]] = {
-    ast.Add: lambda a, b: a + b, ast.Sub: lambda a, b: a - b, ast.Mult: lambda a, b: a * b,
-    ast.Div: lambda a, b: a / b, ast.FloorDiv: lambda a, b: a // b,
-    ast.Mod: lambda a, b: a % b, ast.Pow: lambda a, b: a ** b}
-_CMPS = {ast.Lt: "<", ast.LtE: "<=", ast.Gt: ">", ast.GtE: ">=", ast.Eq: "==", ast.NotEq: "!="}
-_CMP_FOLD: dict[type, Callable[[Any, Any], Any]] = {
-    ast.Lt: lambda a, b: a < b, ast.LtE: lambda a, b: a <= b, ast.Gt: lambda a, b: a > b,
-    ast.GtE: lambda a, b: a >= b, ast.Eq: lambda a, b: a == b,
-    ast.NotEq: lambda a, b: a != b}

@@ -16,7 +16,7 @@ the shipped models and the command line import it.
 from .assembly import (ObserverGains, auto_gamma, build_estimator, build_observer,
                        design_gains, design_matrices, estimator_spec, resolve_gains,
                        run_estimator, split_hold, start_x_hat)
-from .codegen import generate_c_from_model
+from .codegen import generate_c_from_model, generate_ekf_c_from_model
 from .report import ModelAnalysis, analyze_model
 from ..methods import ESTIMATION_METHODS
 from .keys import LAWS
@@ -28,6 +28,6 @@ __all__ = ["auto_gamma", "ESTIMATION_METHODS", "EXAMPLE_MODEL", "LAWS", "Estimat
            "ModelAnalysis", "ObserverGains", "resolve_gains",
            "ModelSpec", "ScenarioOptions", "SecondObserverOptions", "analyze_model",
            "build_estimator", "build_observer", "design_gains", "design_matrices",
-           "estimator_spec", "generate_c_from_model", "load_model",
-           "loads_model", "run_estimator", "simulate_model", "split_hold", "start_x_hat",
-           "study_simulator"]
+           "estimator_spec", "generate_c_from_model", "generate_ekf_c_from_model",
+           "load_model", "loads_model", "run_estimator", "simulate_model", "split_hold",
+           "start_x_hat", "study_simulator"]

@@ -2,24 +2,45 @@
 
 :func:`generate_c_from_model` reads a model file, builds the paper's observer it describes and
 prints it as C with :func:`~thetahat.codegen.generate.generate_c` (the file's θ̂(0) and x̂(0)
-as the defaults, the SHA-256 of its bytes in the header). It lives here, above both the model
+as the defaults, the SHA-256 of its bytes in the header); :func:`generate_ekf_c_from_model`
+prints the joint EKF on the file's model (``--method ekf``,
+:func:`~thetahat.codegen.ekf_c.generate_ekf_c`). It lives here, above both the model
 files and the code generator, so that :mod:`thetahat.codegen` never reads a model file.
 """
 
 from __future__ import annotations
 
 import hashlib
+from dataclasses import replace
 from pathlib import Path
 
 from numpy.typing import ArrayLike
 
 from ..codegen.c_text import name_from_stem, name_problem, suggest_name
+from ..codegen.ekf_c import EKFCode, generate_ekf_c
 from ..codegen.generate import CCode, generate_c
 from ..errors import OptionError, UnsupportedError
+from ..estimation.statistical.common import resolve_noise_std
+from ..estimation.records import check_record
+from ..estimation.statistical.ekf import JointEKF
+from ..estimation.statistical.input_hold import stage2_samples
+from ..estimation.statistical.plant_kernel import choose_substeps
 from .assembly import build_observer
 from .schema import load_model
 
-__all__ = ["generate_c_from_model"]
+__all__ = ["generate_c_from_model", "generate_ekf_c_from_model"]
+
+
+def _c_name(path: str | Path, name: str | None) -> str:
+    if name is not None:
+        return name
+    name = name_from_stem(Path(path).stem)
+    problem = name_problem(name)
+    if problem is not None:
+        raise OptionError(f"{path}: no C name was given and the one made from the file's "
+                          f"name, {name!r}, cannot be used: {problem}; pass one with "
+                          f"--name (name= in Python), e.g. {suggest_name(name)!r}.")
+    return name
 
 
 def generate_c_from_model(path: str | Path, *, dt: float, eps: float | None = None,
@@ -88,13 +109,7 @@ def generate_c_from_model(path: str | Path, *, dt: float, eps: float | None = No
             f"{path}: [estimator] method = {spec.estimator.method!r} has no C form; codegen "
             "generates the paper's estimator only (method = \"paper\"). Set method = "
             "\"paper\" in a copy of the file to generate the observer alone.")
-    if name is None:
-        name = name_from_stem(Path(path).stem)
-        problem = name_problem(name)
-        if problem is not None:
-            raise OptionError(f"{path}: no C name was given and the one made from the file's "
-                              f"name, {name!r}, cannot be used: {problem}; pass one with "
-                              f"--name (name= in Python), e.g. {suggest_name(name)!r}.")
+    name = _c_name(path, name)
     digest = hashlib.sha256(Path(path).read_bytes()).hexdigest()
     observer = build_observer(spec, eps=eps, Gamma=Gamma, nan_policy=nan_policy)
     return generate_c(observer.with_run_options(hold=hold), dt=dt, name=name,
@@ -102,3 +117,72 @@ def generate_c_from_model(path: str | Path, *, dt: float, eps: float | None = No
                       theta_hat0=spec.estimator.theta_hat0, x_hat0=spec.estimator.x_hat0,
                       eps=spec.estimator.eps if eps is None else eps, model_sha256=digest,
                       title=spec.name, x_hat0_from_y=spec.estimator.x_hat0_from_y)
+
+
+def generate_ekf_c_from_model(path: str | Path, *, dt: float,
+                              noise_std: ArrayLike | None = None,
+                              record: tuple[ArrayLike, ArrayLike, ArrayLike] | None = None,
+                              name: str | None = None, hold: str = "zoh",
+                              q_x: float = 0.0) -> EKFCode:
+    """:func:`~thetahat.codegen.ekf_c.generate_ekf_c` for the model of a model file
+    (``thetahat codegen --method ekf``).
+
+    Parameters
+    ----------
+    path : str or Path
+        Model file (.toml or .json); its [estimator] θ̂(0) and x̂(0) are the prior means.
+    dt : float
+        The sampling interval (s).
+    noise_std : float or array_like (r,), optional
+        σ of the output noise (R = σ² I).
+    record : (t, u, y), optional
+        A record (as :meth:`JointEKF.run <thetahat.estimation.statistical.ekf.JointEKF.run>`
+        takes it) on which, as ``run`` does, σ is estimated when ``noise_std`` is not given
+        and the RK4 sub-steps' floor is chosen
+        (:func:`~thetahat.estimation.statistical.plant_kernel.choose_substeps`); without
+        one the floor is 1, as :meth:`JointEKF.step` has it.
+    name : str, optional
+        File stem and C prefix (default: the file's stem made a C identifier).
+    hold : str
+        ``"zoh"`` (the one the C EKF has).
+    q_x : float
+        Process-noise variance per sample on x.
+
+    Returns
+    -------
+    EKFCode
+
+    Raises
+    ------
+    ModelFileError
+        The file cannot be read or is invalid.
+    OptionError
+        Neither ``noise_std`` nor ``record``, or a name that cannot be used.
+    UnsupportedError
+        What the C EKF cannot do (:mod:`thetahat.codegen.ekf_c`).
+
+    Examples
+    --------
+    >>> import tempfile, pathlib
+    >>> from thetahat.modelfile import EXAMPLE_MODEL
+    >>> path = pathlib.Path(tempfile.mkdtemp()) / "prop3.toml"
+    >>> _ = path.write_text(EXAMPLE_MODEL)
+    >>> generate_ekf_c_from_model(path, dt=0.01, noise_std=0.01).name
+    'prop3'
+    """
+    spec = load_model(path)
+    name = _c_name(path, name)
+    ekf = JointEKF(system=spec.system, noise_std=noise_std, hold=hold, q_x=q_x, compiled=False)
+    if record is not None:
+        t, U, Y = check_record(*record, m=spec.system.m, r=spec.system.r)
+        sigma = resolve_noise_std(noise_std, Y)
+        Ut = stage2_samples(U, hold)[0]
+        est = spec.estimator
+        substeps = choose_substeps(ekf.kernels.model, t, Ut, Y, est.theta_hat0, est.x_hat0,
+                                   sigma, hold=hold, h_rho=ekf.h_rho)
+        ekf = replace(ekf, noise_std=sigma, substeps=substeps)
+    elif noise_std is None:
+        raise OptionError(f"{path}: the C EKF needs the output noise σ: give it "
+                          "(--noise-std), or a record to estimate it from (--data LOG).")
+    return generate_ekf_c(ekf, dt=dt, name=name, x_hat0=spec.estimator.x_hat0,
+                          theta_hat0=spec.estimator.theta_hat0, title=spec.name)

@@ -65,16 +65,14 @@ from types import ModuleType
 from typing import Any, Callable
 
 import numpy as np
-import sympy as sp
 from numpy.typing import NDArray
-from sympy.printing.pycode import PythonCodePrinter
 
 from ...errors import DimensionError, FileAccessError, MissingExtraError, OptionError
-from ...model.perturbation import SymbolicPerturbation
 from ...model.system import PerturbedLinearSystem
 from ..hold import KAISER_BETA, check_hold, half_width, hold_code, hold_weights
 from ..kernels.kernel_cache import load_module, register
 from ..kernels.modules import ModuleText
+from .plant_forms import rhs_jac_source
 
 __all__ = ["ACCURACY", "ACCURACY_SAMPLES", "H_RHO", "MAX_ACCURATE_SUBSTEPS", "MAX_SUBSTEPS",
            "ModelKernel", "Propagation", "TABLE_SUBSTEPS", "choose_substeps", "free_run",
@@ -168,55 +166,6 @@ class Propagation:
                        KAISER_BETA, 0.0])
         L = half_width(self.hold)
         return pc, np.zeros((2 * TABLE_SUBSTEPS + 1, 2 * L))
-
-
-def _plant_expressions(system: PerturbedLinearSystem) -> tuple[list[sp.Symbol], list[sp.Symbol],
-                                                               list[sp.Symbol], sp.Matrix]:
-    g = system.perturbation
-    if not isinstance(g, SymbolicPerturbation):
-        raise DimensionError("stage 2 and the CRLB need the perturbation as a "
-                             "SymbolicPerturbation (SymPy expression) to derive ∂f/∂x and "
-                             f"∂f/∂θ; got {type(g).__name__}. Build g with "
-                             "SymbolicPerturbation.from_sympy or parse_perturbation.")
-    n, m, p = system.n, system.m, system.p
-    xs = [sp.Symbol(f"x_{i}", real=True) for i in range(n)]
-    us = [sp.Symbol(f"u_{i}", real=True) for i in range(m)]
-    ts = [sp.Symbol(f"th_{i}", real=True) for i in range(p)]
-    C = sp.Matrix(system.C)
-    y_model = C * sp.Matrix(xs)
-    subs = dict(zip(g.x, xs))
-    subs.update(zip(g.u, us))
-    subs.update(zip(g.theta, ts))
-    subs.update(zip(g.y, list(y_model)))
-    phi = sp.Matrix(g.expr).xreplace(subs)
-    f = (sp.Matrix(system.A) * sp.Matrix(xs) + sp.Matrix(system.B) * sp.Matrix(us)
-         + sp.Matrix(system.E) * phi)
-    return xs, us, ts, f
-
-
-def _generate_source(system: PerturbedLinearSystem) -> str:
-    """Python source of ``rhs_jac(x, u, th, f, Fx, Ft)`` writing f, ∂f/∂x, ∂f/∂θ in place."""
-    xs, us, ts, f = _plant_expressions(system)
-    Fx = f.jacobian(xs)
-    Ft = f.jacobian(ts) if ts else sp.zeros(len(xs), 0)
-    # d|z|/dz = sign(z) and DiracDelta terms of sign'(z) are dropped (a.e. derivatives)
-    Fx = Fx.replace(sp.DiracDelta, lambda *a: sp.S.Zero)
-    Ft = Ft.replace(sp.DiracDelta, lambda *a: sp.S.Zero)
-    entries: list[tuple[str, tuple[int, ...], Any]] = [
-        ("f", (i,), f[i]) for i in range(f.rows)]
-    entries += [("Fx", (i, j), Fx[i, j]) for i in range(Fx.rows) for j in range(Fx.cols)]
-    entries += [("Ft", (i, j), Ft[i, j]) for i in range(Ft.rows) for j in range(Ft.cols)]
-    temps, reduced = sp.cse([e for _, _, e in entries], symbols=sp.numbered_symbols("c_"))
-    printer = PythonCodePrinter({"fully_qualified_modules": True, "standard": "python3"})
-    lines = ["def rhs_jac(x, u, th, f, Fx, Ft):"]
-    lines += [f"    {s.name} = x[{i}]" for i, s in enumerate(xs)]
-    lines += [f"    {s.name} = u[{i}]" for i, s in enumerate(us)]
-    lines += [f"    {s.name} = th[{i}]" for i, s in enumerate(ts)]
-    for sym, expr in temps:
-        lines.append(f"    {sym.name} = {printer.doprint(expr)}")
-    for (name, index, _), expr in zip(entries, reduced):
-        lines.append(f"    {name}[{', '.join(map(str, index))}] = {printer.doprint(expr)}")
-    return "\n".join(lines) + "\n"
 
 
 def spectral_radius_bound(F: FloatArray) -> float:
@@ -706,7 +655,7 @@ def model_kernel(system: PerturbedLinearSystem, *, compiled: bool | None = None)
     if known is not None and known[0] is system:
         source = known[1]
     else:
-        source = _generate_source(system)
+        source = rhs_jac_source(system)
         _SOURCES[id(system)] = (system, source)   # kept alive, so its id stays unique
     C = np.array(system.C, dtype=np.float64)
     key = (source, C.tobytes(), use)             # equal models share one compiled kernel
