@@ -58,7 +58,7 @@ from .map_fit import FitResult, FitSchedule, fit_as_prior, fit_record
 from .noise_level import MIN_SAMPLES
 from .plant_kernel import H_RHO, Propagation, choose_substeps, printed_kernels
 from .stage2_set import stage2_set
-from .window import WINDOW_MAX, check_window, fit_window, resolve_window, windowed
+from .window import WINDOW_MAX, Anchor, check_window, fit_window, resolve_window, windowed
 
 __all__ = ["GuardedDiagnostics", "GuardedEstimator", "GuardedState"]
 
@@ -305,8 +305,7 @@ class GuardedEstimator:
                                     "PerturbedLinearSystem as its system.")
         Propagation(hold=self.hold, substeps=self.substeps or 1, h_rho=self.h_rho)
         check_window("GuardedEstimator", self.window, self.window_max)
-        if self.window is not None and self.schedule is not None \
-                and self.schedule.times is not None:
+        if self.window is not None and getattr(self.schedule, "times", None) is not None:
             raise OptionError("GuardedEstimator: window bounds the information schedule's "
                               "fits; a schedule with times has its blocks: give one.")
 
@@ -348,8 +347,7 @@ class GuardedEstimator:
     def _fit_or_none(sched: FitSchedule, t: FloatArray, U: FloatArray, Y: FloatArray,
                      k1: int, prev: FitResult | None, prior0: tuple[FloatArray, FloatArray],
                      final: bool | None, failures: list[str],
-                     anchor: tuple[int, FloatArray, FloatArray, FloatArray] | None = None
-                     ) -> FitResult | None:
+                     anchor: Anchor | None = None) -> FitResult | None:
         """The fit due at k1 (``final`` None: a schedule with times; ``anchor`` (k0, s, P, σ):
         the window k0 … k1 − 1 with N(s, P) at k0 as arrival cost), or None with the reason
         appended to ``failures`` and a warning when it raised or came back non-finite."""
@@ -362,7 +360,8 @@ class GuardedEstimator:
             else:
                 fit = fit_record(sched, t, U, Y, k1, prev, prior0, final=final)
         except (ThetahatError, ArithmeticError, np.linalg.LinAlgError) as exc:
-            why = f"the fit of samples 0…{k1 - 1} raised {type(exc).__name__}: {exc}"
+            why = (f"the fit of samples {0 if anchor is None else anchor[0]}…{k1 - 1} "
+                   f"raised {type(exc).__name__}: {exc}")
         else:
             if fit.finite:
                 return fit
@@ -637,7 +636,7 @@ class _OfflineRun:
                                  self.prior0) if sched and self.by_samples and self.prior0
                   else None)
         self.ks = windowed(self.ks, self.W)
-        self.anchor: tuple[int, FloatArray, FloatArray, FloatArray] | None = None
+        self.anchor: Anchor | None = None
         self.sched = sched
 
     def _choose_substeps(self, st0: GuardedState) -> int:
@@ -742,8 +741,8 @@ class _OfflineRun:
                                                h_rho=est.h_rho).arrays()
             # the fit ends at this very sample: take (x, θ) and their joint covariance;
             # stage 2 carries the model error as the fit found it (none: q = 0)
-            s_fit, P_fit, self.R, self.Q_x = fit_as_prior(self.system, fit,
-                                                          sample_interval(self.t[:k1]), est.q_x)
+            s_fit, P_fit, self.R, self.Q_x = fit_as_prior(
+                self.system, fit, sample_interval(self.t[fit.k0:k1]), est.q_x)
             self.s[:], self.P[:, :] = s_fit, P_fit
             p = fit.theta.shape[0]
             self.cfg[4 + p:4 + 2 * p] = fit.theta

@@ -639,7 +639,7 @@ class MapEstimator:
             X[e], TH[e], SD[e] = fit.x_end, fit.theta, fit.theta_se
             if e + 1 >= end:
                 continue
-            s, P, R, Q_x = fit_as_prior(sys_, fit, sample_interval(t[:e + 1]))
+            s, P, R, Q_x = fit_as_prior(sys_, fit, sample_interval(t[fit.k0:e + 1]))
             pc, WT = Propagation(hold=sched.hold, substeps=fit.substeps,
                                  h_rho=sched.h_rho).arrays()
             bad = kern.loop(s, P, U, Y, t, e + 1, end, R, ts.lo, ts.hi, ts.ell, pc, WT, Q_x,

@@ -45,10 +45,13 @@ from .map_fit import FitResult, FitSchedule, first_fit_samples, fit_map, solve_s
 from .plant_kernel import Propagation, model_kernel
 from .sweep import sweep_kernel
 
-__all__ = ["ARRIVAL_FLOOR", "WINDOW_INFO_GAIN", "arrival_information", "WINDOW_MAX", "WINDOW_MIN", "check_window", "fit_window",
+__all__ = ["ARRIVAL_FLOOR", "Anchor", "WINDOW_INFO_GAIN", "arrival_information", "WINDOW_MAX", "WINDOW_MIN", "check_window", "fit_window",
            "resolve_window", "window_grid", "window_reached", "windowed", "windowed_counts"]
 
 FloatArray = NDArray[np.float64]
+#: A window's start: (k0, s, P, σ) — the sample, the posterior N(s, P) of col(x, θ) there and
+#: the noise level the window's fit takes when σ is not given.
+Anchor = tuple[int, FloatArray, FloatArray, FloatArray]
 
 #: ``window="auto"``: the window's information about θ is this many times the prior's (its
 #: standard deviation a tenth of the prior's |Θ|/4) on every component.
