@@ -56,10 +56,10 @@ Anchor = tuple[int, FloatArray, FloatArray, FloatArray]
 #: ``window="auto"``: the window's information about θ is this many times the prior's (its
 #: standard deviation a tenth of the prior's |Θ|/4) on every component.
 WINDOW_INFO_GAIN = 100.0
-#: The shortest automatic window: below it a fit's fixed cost (the Python around the compiled
-#: sweeps, ≈ 0.1 ms) exceeds that of its sweeps (≈ 1 µs per sample and pass on LuGre), so a
-#: shorter window costs more in total without being more accurate
-#: (benchmarks/bench_window.py prints both).
+#: The shortest automatic window: a fit's fixed cost (the Python around its compiled sweeps)
+#: is about one and a half sweeps of 256 samples (on LuGre, 10⁵ samples, the sweeps are 77 %
+#: of the window fits' time at 256), so shorter windows would spend mostly that, costing
+#: more in total without being more accurate.
 WINDOW_MIN = 256
 #: The arrival cost's information is the inverse of the posterior covariance with its scaled
 #: eigenvalues floored at this fraction of the largest. The posterior of a fit of a model
@@ -68,8 +68,8 @@ WINDOW_MIN = 256
 #: losing θ's information through them (on LuGre the window fits' standard error grew from
 #: 2e-4 to 0.99). Floored, x given θ is held to 1e-4 of its standard deviation.
 ARRIVAL_FLOOR = 1e-8
-#: The longest automatic window (default ``window_max``): a fit of 4096 samples takes a few
-#: ms on LuGre (benchmarks/bench_window.py), a control period's budget on a PC.
+#: The longest automatic window (default ``window_max``): a fit sweeps its window about six
+#: times (≈ 5 µs per sample and sweep on LuGre), so a fit of 4096 samples takes ≈ 0.1 s.
 WINDOW_MAX = 4096
 
 
