@@ -152,7 +152,7 @@ def test_arrival_information_holds_a_degenerate_posterior():
 
 def test_window_error_paths():
     sys_ = lugre.system()
-    for bad in (2, "big", 1.5, True):
+    for bad in (11, "big", 1.5, True):         # 11: below the first fit's 12 samples
         with pytest.raises(OptionError, match="window must be None"):
             MapEstimator(system=sys_, window=bad)
     with pytest.raises(OptionError, match="window_max must be"):

@@ -304,7 +304,7 @@ class GuardedEstimator:
             raise ArgumentTypeError("stage 2 needs a model: give system=, or a stage1 with a "
                                     "PerturbedLinearSystem as its system.")
         Propagation(hold=self.hold, substeps=self.substeps or 1, h_rho=self.h_rho)
-        check_window("GuardedEstimator", self.window, self.window_max)
+        check_window("GuardedEstimator", self.window, self.window_max, self.model)
         if self.window is not None and getattr(self.schedule, "times", None) is not None:
             raise OptionError("GuardedEstimator: window bounds the information schedule's "
                               "fits; a schedule with times has its blocks: give one.")

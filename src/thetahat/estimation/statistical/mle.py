@@ -6,7 +6,10 @@ counts of samples, never seconds), warm-started from the previous fit; its last 
 estimate of the whole record. Between fits its estimate is the joint EKF started from the
 latest fit's posterior (:func:`~.map_fit.fit_as_prior`: the fit is the arrival cost of the
 samples before it), so every row, not only the fits', follows the information of the data so
-far. A run stops where the EKF between fits diverges or a fit fails
+far. With ``window`` (:mod:`~thetahat.estimation.statistical.window`) the fits past W samples
+are of the W samples since the previous fit, that fit's posterior their arrival cost: each fit
+O(W) and a stream's memory W + 1 samples, whatever the record's length. A run stops where the
+EKF between fits diverges or a fit fails
 (:mod:`~thetahat.estimation.status`: raised with ``throw=True``, returned with ``throw=False``).
 
 The input between the samples is the ``hold``'s (:mod:`~thetahat.estimation.hold`; default
@@ -16,7 +19,8 @@ EKF between them alike (the final fit checks them at its estimate).
 
 What it may import: :mod:`thetahat.model`, the package's errors, the bottom of the estimation
 wing (``protocol``, ``records``, ``status``), and, in this room, ``common``, ``ekf_kernels``,
-``input_hold``, ``map_fit``, ``noise_level``, ``plant_kernel`` and ``stage2_set``.
+``input_hold``, ``map_fit``, ``noise_level``, ``plant_kernel``, ``stage2_set``, ``sweep`` and
+``window``.
 """
 
 from __future__ import annotations
@@ -246,7 +250,7 @@ class MapEstimator:
 
     def __post_init__(self) -> None:
         check_hold(self.hold)
-        check_window("MapEstimator", self.window, self.window_max)
+        check_window("MapEstimator", self.window, self.window_max, self.system)
         if self.window is not None and self._by_times:
             raise OptionError("MapEstimator: window bounds the fits of the information "
                               "schedule; a schedule with times has its own blocks "
@@ -333,7 +337,8 @@ class MapEstimator:
         """Append the samples of one instant and run the fits whose window ends here.
 
         The default schedule fits all the samples so far when their count reaches one of
-        :func:`~.map_fit.information_schedule`'s; a given ``schedule`` fits at the last sample with
+        :func:`~.map_fit.information_schedule`'s (with a window W, past W: every W samples,
+        the samples since the previous fit, and the log keeps only those); a given ``schedule`` fits at the last sample with
         elapsed time ≤ t_j (``dt`` says the next sample comes after t_j). These are the fits
         :meth:`run` makes, except its last: ``run`` also fits the whole record at its end,
         which a stream does not have. Between fits the estimates are the joint EKF's, started

@@ -73,8 +73,10 @@ ARRIVAL_FLOOR = 1e-8
 WINDOW_MAX = 4096
 
 
-def check_window(owner: str, window: int | str | None, window_max: int) -> None:
-    """Refuse a ``window`` other than None, ``"auto"`` or an integer ≥ 3, or a ``window_max``
+def check_window(owner: str, window: int | str | None, window_max: int,
+                 system: PerturbedLinearSystem) -> None:
+    """Refuse a ``window`` other than None, ``"auto"`` or an integer ≥ the first fit's samples
+    (:func:`~thetahat.estimation.statistical.map_fit.first_fit_samples`), or a ``window_max``
     that is not an integer ≥ 3.
 
     Parameters
@@ -83,6 +85,7 @@ def check_window(owner: str, window: int | str | None, window_max: int) -> None:
         The estimator's name, for the message.
     window : int, "auto" or None
     window_max : int
+    system : PerturbedLinearSystem
 
     Raises
     ------
@@ -91,18 +94,20 @@ def check_window(owner: str, window: int | str | None, window_max: int) -> None:
 
     Examples
     --------
-    >>> check_window("MapEstimator", "auto", 4096)
-    >>> check_window("MapEstimator", 2, 4096)
+    >>> from thetahat.models import lugre
+    >>> check_window("MapEstimator", "auto", 4096, lugre.system())
+    >>> check_window("MapEstimator", 2, 4096, lugre.system())
     Traceback (most recent call last):
     ...
-    thetahat.errors.OptionError: MapEstimator: window must be None (fits of all the data), "auto" or an integer >= 3 samples; got 2.
+    thetahat.errors.OptionError: MapEstimator: window must be None (fits of all the data), "auto" or an integer >= 12 samples (the first fit's); got 2.
     """
+    least = first_fit_samples(system)
     ok = (window is None or window == "auto"
           or (isinstance(window, (int, np.integer)) and not isinstance(window, bool)
-              and window >= 3))
+              and window >= least))
     if not ok:
         raise OptionError(f"{owner}: window must be None (fits of all the data), \"auto\" or "
-                          f"an integer >= 3 samples; got {window!r}.")
+                          f"an integer >= {least} samples (the first fit's); got {window!r}.")
     if not (isinstance(window_max, (int, np.integer)) and not isinstance(window_max, bool)
             and window_max >= 3):
         raise OptionError(f"{owner}: window_max must be an integer >= 3 samples; got "
