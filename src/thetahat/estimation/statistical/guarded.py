@@ -627,14 +627,15 @@ class _OfflineRun:
         # follows it); a schedule with times keeps its times (seconds) and windows
         self.by_samples = sched is not None and sched.times is None
         self.ks: list[int] = []
+        self.W: int | None = None
         if sched is not None and self.by_samples:
             sched = replace(sched, full_window=math.inf)
             least = 3 if est.noise_std is not None else MIN_SAMPLES
             self.ks = [k1 for k1 in sched.fit_samples(t[:N - 1], least=least)
                        if MIN_SAMPLES <= k1 < N]
-        self.W = (resolve_window(est.window, est.window_max, sched, t, self.Us, Y,
-                                 self.prior0) if sched and self.by_samples and self.prior0
-                  else None)
+            self.W = resolve_window(est.window, est.window_max, replace(
+                sched, substeps=est.substeps), t, self.Us, Y, sched.initial_prior(
+                    st0.x_hat0, st0.theta_hat0))
         self.ks = windowed(self.ks, self.W)
         self.anchor: Anchor | None = None
         self.sched = sched
@@ -713,10 +714,9 @@ class _OfflineRun:
         if sched is None or prior0 is None:
             return
         prev = self.fits[-1] if self.fits else None
-        anchor = self.anchor if self.W is not None and k1 > self.W else None
         fit = est._fit_or_none(sched, self.t, self.Us, self.Y, k1, prev, prior0,
                                k1 == self.ks[-1] if self.by_samples else None, self.failures,
-                               anchor)
+                               self.anchor if self.W is not None and k1 > self.W else None)
         self._take(fit, k1)
         if self.W is not None and k1 >= self.W:  # the next window starts at this sample
             self.anchor = (k1 - 1, self.s.copy(), self.P.copy(), self.sigma.copy())

@@ -539,8 +539,9 @@ class MapEstimator:
         sched = self._record_schedule(t_, U, Y, st0)
         # the fits' failure is raised (throw) only once the EKF between the fits before it
         # has run: the run stops at its first failure, whichever it is
-        W = resolve_window(self.window, self.window_max, sched, t_, U, Y,
-                           sched.initial_prior(st0.x_hat0, st0.theta_hat0))
+        # the stream's rule: the sub-steps as given (1 by default), not the record's choice
+        W = resolve_window(self.window, self.window_max, replace(sched, substeps=self.substeps),
+                           t_, U, Y, sched.initial_prior(st0.x_hat0, st0.theta_hat0))
         fits, ends, stop = self._fits(sched, t_, U, Y, st0, False, fit_progress, W)
         TH = np.empty((N, p))
         SD = np.empty((N, p))

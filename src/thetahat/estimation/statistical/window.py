@@ -148,7 +148,9 @@ def window_reached(schedule: FitSchedule, t: FloatArray, U: FloatArray, Y: Float
     ----------
     schedule : FitSchedule
         The model, σ (estimated from Y[:k1] when not given), the hold and the sub-steps
-        (1 when not set).
+        (1 when not set: the estimators pass their ``substeps`` option, not a record's
+        choice, so that a stream, which has no record, decides as a run does; a trajectory
+        that is not finite at one sub-step never reaches the gain, and W is ``window_max``).
     t, U, Y : ndarray, shapes (N,), (N, m), (N, r)
         N ≥ k1; U stage 2's input samples.
     k1 : int
