@@ -9,6 +9,7 @@ What lives here, module by module:
 * :mod:`.ekf` — the joint extended Kalman filter (:class:`~.ekf.JointEKF`, method "ekf");
 * :mod:`.map_fit` — the MAP fits of (x(t₀), θ) by Gauss–Newton, their schedule and their use
   as the EKF's prior; :mod:`.likelihood` — the fit of a model with process noise on φ;
+  :mod:`.window` — bounded fits: a moving window with the EKF's posterior as arrival cost;
 * :mod:`.mle` — the MAP estimator (:class:`~.mle.MapEstimator`, method "mle");
 * :mod:`.guard` and :mod:`.guarded` — the guard between the stages and the two-stage guarded
   estimator (:class:`~.guarded.GuardedEstimator`, method "guarded"); :mod:`.fit_worker` — its
@@ -27,7 +28,8 @@ bottom of the estimation wing (:mod:`~thetahat.estimation.protocol`,
 :mod:`~thetahat.estimation.records`, :mod:`~thetahat.estimation.status`),
 :mod:`thetahat.estimation.kernels` (model kernels) and :mod:`thetahat.estimation.observer`
 (stage 1 is the paper's observer). Inside the room the arrows point from the estimators
-(``guarded``, ``mle``, ``ekf``, ``trust``, ``crlb``) down to ``map_fit`` and ``likelihood``, then
+(``guarded``, ``mle``, ``ekf``, ``trust``, ``crlb``) down to ``window``, ``map_fit`` and
+``likelihood``, then
 ``ekf_kernels``, ``common``, ``plant_kernel``, ``stage2_set``, ``noise_level`` and
 ``input_hold``; no module imports an estimator's module for a helper.
 """

@@ -58,6 +58,7 @@ from .map_fit import FitResult, FitSchedule, fit_as_prior, fit_record
 from .noise_level import MIN_SAMPLES
 from .plant_kernel import H_RHO, Propagation, choose_substeps, printed_kernels
 from .stage2_set import stage2_set
+from .window import WINDOW_MAX, Anchor, check_window, fit_window, resolve_window, windowed
 
 __all__ = ["GuardedDiagnostics", "GuardedEstimator", "GuardedState"]
 
@@ -248,6 +249,12 @@ class GuardedEstimator:
         Where streaming fits run (anything with ``submit(fn, *args) -> Future``); default
         the shared worker process of :func:`~thetahat.estimation.statistical.fit_worker.default_executor`.
         :meth:`run` always fits in the caller.
+    window : {None, "auto"} or int
+        :meth:`run`'s fits: None (default) of all the data so far; W or ``"auto"``: bounded
+        fits (:mod:`~thetahat.estimation.statistical.window`), stage 2's posterior at the
+        window's start the arrival cost. Not with ``times``, nor (yet) with :meth:`step`.
+    window_max : int
+        The longest ``"auto"`` window (:data:`~.window.WINDOW_MAX` samples).
 
     Notes
     -----
@@ -281,6 +288,8 @@ class GuardedEstimator:
     h_rho: float = H_RHO
     compiled: bool | None = None
     fit_executor: concurrent.futures.Executor | None = None
+    window: int | str | None = None
+    window_max: int = WINDOW_MAX
 
     def __post_init__(self) -> None:
         from ..protocol import Estimator
@@ -295,6 +304,10 @@ class GuardedEstimator:
             raise ArgumentTypeError("stage 2 needs a model: give system=, or a stage1 with a "
                                     "PerturbedLinearSystem as its system.")
         Propagation(hold=self.hold, substeps=self.substeps or 1, h_rho=self.h_rho)
+        check_window("GuardedEstimator", self.window, self.window_max, self.model)
+        if self.window is not None and getattr(self.schedule, "times", None) is not None:
+            raise OptionError("GuardedEstimator: window bounds the information schedule's "
+                              "fits; a schedule with times has its blocks: give one.")
 
     # ------------------------------------------------------------------ parts
     @property
@@ -333,14 +346,22 @@ class GuardedEstimator:
     @staticmethod
     def _fit_or_none(sched: FitSchedule, t: FloatArray, U: FloatArray, Y: FloatArray,
                      k1: int, prev: FitResult | None, prior0: tuple[FloatArray, FloatArray],
-                     final: bool | None, failures: list[str]) -> FitResult | None:
-        """The fit due at k1 (``final`` None: a schedule with times), or None with the reason
+                     final: bool | None, failures: list[str],
+                     anchor: Anchor | None = None) -> FitResult | None:
+        """The fit due at k1 (``final`` None: a schedule with times; ``anchor`` (k0, s, P, σ):
+        the window k0 … k1 − 1 with N(s, P) at k0 as arrival cost), or None with the reason
         appended to ``failures`` and a warning when it raised or came back non-finite."""
         try:
-            fit = (sched.fit(t, U, Y, k1, prev, prior0) if final is None
-                   else fit_record(sched, t, U, Y, k1, prev, prior0, final=final))
+            if anchor is not None:
+                fit = fit_window(sched, t, U, Y, k0=anchor[0], k1=k1, s0=anchor[1],
+                                 P0=anchor[2], noise_std=anchor[3], final=bool(final))
+            elif final is None:
+                fit = sched.fit(t, U, Y, k1, prev, prior0)
+            else:
+                fit = fit_record(sched, t, U, Y, k1, prev, prior0, final=final)
         except (ThetahatError, ArithmeticError, np.linalg.LinAlgError) as exc:
-            why = f"the fit of samples 0…{k1 - 1} raised {type(exc).__name__}: {exc}"
+            why = (f"the fit of samples {0 if anchor is None else anchor[0]}…{k1 - 1} "
+                   f"raised {type(exc).__name__}: {exc}")
         else:
             if fit.finite:
                 return fit
@@ -526,6 +547,9 @@ class GuardedEstimator:
     def _start_stream(self, state: GuardedState) -> GuardedStream:
         """The stream of a state that has not been stepped yet (its data log, stage 2 at its
         prior, the fit worker started when fits run)."""
+        if self.window is not None and self.use_fits:
+            raise OptionError("GuardedEstimator.step: the streaming fits are of all the data "
+                              "(window is for run): stream with window=None.")
         sched = self.fit_schedule
         s0, P0 = self._prior(state.x_hat0, state.theta_hat0)
         stream = GuardedStream.start(self.model, s0, P0, q_x=self.q_x,
@@ -603,11 +627,17 @@ class _OfflineRun:
         # follows it); a schedule with times keeps its times (seconds) and windows
         self.by_samples = sched is not None and sched.times is None
         self.ks: list[int] = []
+        self.W: int | None = None
         if sched is not None and self.by_samples:
             sched = replace(sched, full_window=math.inf)
             least = 3 if est.noise_std is not None else MIN_SAMPLES
             self.ks = [k1 for k1 in sched.fit_samples(t[:N - 1], least=least)
                        if MIN_SAMPLES <= k1 < N]
+            self.W = resolve_window(est.window, est.window_max, replace(
+                sched, substeps=est.substeps), t, self.Us, Y, sched.initial_prior(
+                    st0.x_hat0, st0.theta_hat0))
+        self.ks = windowed(self.ks, self.W)
+        self.anchor: Anchor | None = None
         self.sched = sched
 
     def _choose_substeps(self, st0: GuardedState) -> int:
@@ -685,7 +715,15 @@ class _OfflineRun:
             return
         prev = self.fits[-1] if self.fits else None
         fit = est._fit_or_none(sched, self.t, self.Us, self.Y, k1, prev, prior0,
-                               k1 == self.ks[-1] if self.by_samples else None, self.failures)
+                               k1 == self.ks[-1] if self.by_samples else None, self.failures,
+                               self.anchor if self.W is not None and k1 > self.W else None)
+        self._take(fit, k1)
+        if self.W is not None and k1 >= self.W:  # the next window starts at this sample
+            self.anchor = (k1 - 1, self.s.copy(), self.P.copy(), self.sigma.copy())
+
+    def _take(self, fit: FitResult | None, k1: int) -> None:
+        """Apply the fit due after sample k1 − 1 if it may be (the reasons of :meth:`_fit`)."""
+        est = self.est
         if fit is None:
             return
         self.fits.append(fit)
@@ -703,8 +741,8 @@ class _OfflineRun:
                                                h_rho=est.h_rho).arrays()
             # the fit ends at this very sample: take (x, θ) and their joint covariance;
             # stage 2 carries the model error as the fit found it (none: q = 0)
-            s_fit, P_fit, self.R, self.Q_x = fit_as_prior(self.system, fit,
-                                                          sample_interval(self.t[:k1]), est.q_x)
+            s_fit, P_fit, self.R, self.Q_x = fit_as_prior(
+                self.system, fit, sample_interval(self.t[fit.k0:k1]), est.q_x)
             self.s[:], self.P[:, :] = s_fit, P_fit
             p = fit.theta.shape[0]
             self.cfg[4 + p:4 + 2 * p] = fit.theta

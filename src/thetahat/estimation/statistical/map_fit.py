@@ -64,7 +64,7 @@ if TYPE_CHECKING:
 
 __all__ = ["FitResult", "FitSchedule", "INFO_GROWTH", "MAX_BURST_FRACTION", "MAX_HALVINGS",
            "Q_SEARCH_GROWTH", "REJECT_SE_GROWTH", "STEP_TOL", "doubling_schedule", "first_fit_samples",
-           "fit_as_prior", "fit_map", "fit_record", "information_schedule"]
+           "fit_as_prior", "fit_map", "fit_record", "information_schedule", "solve_scaled"]
 
 FloatArray = NDArray[np.float64]
 
@@ -238,8 +238,30 @@ class FitResult:
                 f"se={self.theta_se}, cost={self.cost:.3g}, iterations={self.iterations})")
 
 
-def _solve_scaled(M: FloatArray, g: FloatArray) -> tuple[FloatArray, FloatArray]:
-    """(M⁺ g, M⁺) for a symmetric PSD M, by Jacobi scaling and a symmetric eigendecomposition."""
+def solve_scaled(M: FloatArray, g: FloatArray) -> tuple[FloatArray, FloatArray]:
+    """(M⁺ g, M⁺) for a symmetric PSD M, by Jacobi scaling and a symmetric eigendecomposition.
+
+    Directions whose scaled eigenvalue is below 1e-12 of the largest are left out (the
+    pseudo-inverse): the fits' Gauss–Newton solve, and an information from a covariance.
+
+    Parameters
+    ----------
+    M : ndarray (q, q)
+    g : ndarray (q,)
+
+    Returns
+    -------
+    tuple of ndarray
+        M⁺ g (q,) and M⁺ (q, q).
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from thetahat.estimation.statistical.map_fit import solve_scaled
+    >>> d, Minv = solve_scaled(np.diag([4.0, 1e-3]), np.array([2.0, 1.0]))
+    >>> d.round(6).tolist()
+    [0.5, 1000.0]
+    """
     d = np.sqrt(np.maximum(np.diag(M), 1e-300))
     Ms = M / np.outer(d, d)
     lam, V = np.linalg.eigh(Ms)
@@ -333,7 +355,7 @@ def fit_map(system: PerturbedLinearSystem, t: FloatArray, U: FloatArray, Y: Floa
         iterations = it + 1
         M = A + prior_info
         g = b - prior_info @ (q - q_prior)
-        delta, Minv = _solve_scaled(M, g)
+        delta, Minv = solve_scaled(M, g)
         se = np.sqrt(np.maximum(np.diag(Minv)[n:], 1e-300))
         step, accepted = 1.0, False
         for _ in range(MAX_HALVINGS):
@@ -356,7 +378,7 @@ def fit_map(system: PerturbedLinearSystem, t: FloatArray, U: FloatArray, Y: Floa
     if not at_q:
         J = total(q, True)
     M = A + prior_info
-    delta, Minv = _solve_scaled(M, b - prior_info @ (q - q_prior))
+    delta, Minv = solve_scaled(M, b - prior_info @ (q - q_prior))
     se = np.sqrt(np.maximum(np.diag(Minv)[n:], 1e-300))
     # the step still to go, projected onto Θ (a fit that ends on Θ's face has converged there)
     th_next = project_theta(theta_set, q[n:] + delta[n:], Minv[n:, n:])
@@ -549,7 +571,7 @@ class FitSchedule:
             # arrival cost: θ's marginal from the older data; x at the block start stays wide
             # (its covariance given θ is nearly singular for a model without process noise,
             # and the data of the block determine it)
-            _, info_th = _solve_scaled(previous.cov[n:, n:], np.zeros(self.system.p))
+            _, info_th = solve_scaled(previous.cov[n:, n:], np.zeros(self.system.p))
             info = np.zeros((n + self.system.p, n + self.system.p))
             info[:n, :n] = prior0[1][:n, :n]
             info[n:, n:] = info_th

@@ -6,7 +6,10 @@ counts of samples, never seconds), warm-started from the previous fit; its last 
 estimate of the whole record. Between fits its estimate is the joint EKF started from the
 latest fit's posterior (:func:`~.map_fit.fit_as_prior`: the fit is the arrival cost of the
 samples before it), so every row, not only the fits', follows the information of the data so
-far. A run stops where the EKF between fits diverges or a fit fails
+far. With ``window`` (:mod:`~thetahat.estimation.statistical.window`) the fits past W samples
+are of the W samples since the previous fit, that fit's posterior their arrival cost: each fit
+O(W) and a stream's memory W + 1 samples, whatever the record's length. A run stops where the
+EKF between fits diverges or a fit fails
 (:mod:`~thetahat.estimation.status`: raised with ``throw=True``, returned with ``throw=False``).
 
 The input between the samples is the ``hold``'s (:mod:`~thetahat.estimation.hold`; default
@@ -16,7 +19,8 @@ EKF between them alike (the final fit checks them at its estimate).
 
 What it may import: :mod:`thetahat.model`, the package's errors, the bottom of the estimation
 wing (``protocol``, ``records``, ``status``), and, in this room, ``common``, ``ekf_kernels``,
-``input_hold``, ``map_fit``, ``noise_level``, ``plant_kernel`` and ``stage2_set``.
+``input_hold``, ``map_fit``, ``noise_level``, ``plant_kernel``, ``stage2_set``, ``sweep`` and
+``window``.
 """
 
 from __future__ import annotations
@@ -46,6 +50,8 @@ from .noise_level import MIN_SAMPLES
 from .plant_kernel import Propagation, choose_substeps, model_kernel
 from .sweep import sweep_kernel
 from .stage2_set import stage2_set
+from .window import (WINDOW_MAX, WINDOW_MIN, check_window, fit_window, resolve_window,
+                     window_grid, window_reached, windowed, windowed_counts)
 
 __all__ = ["MapDiagnostics", "MapEstimator", "MapState", "fit_stop"]
 
@@ -84,7 +90,10 @@ class MapDiagnostics(Diagnostics):
 
 
 class _MapLog:
-    """The samples of one MAP stream (arrays that double when full; shared by its states)."""
+    """The samples of one MAP stream (arrays that double when full; shared by its states).
+
+    With a window the log is emptied to its last sample at each windowed fit (:meth:`trim`):
+    it then holds at most W + 1 samples, sample ``offset + i`` at row i."""
 
     def __init__(self, m: int, r: int, owner: Any) -> None:
         self.owner = owner                  # the estimator that started the stream
@@ -92,6 +101,15 @@ class _MapLog:
         self.U: FloatArray = np.empty((256, m))
         self.Y: FloatArray = np.empty((256, r))
         self.size = 0
+        self.offset = 0
+
+    def trim(self, k: int) -> None:
+        """Keep samples k … (dropping the older ones)."""
+        i = k - self.offset
+        for a in (self.T, self.U, self.Y):
+            a[:self.size - i] = a[i:self.size].copy()
+        self.size -= i
+        self.offset = k
 
     def append(self, t: float, u: FloatArray, y: FloatArray) -> None:
         i = self.size
@@ -135,6 +153,8 @@ class MapState:
         since the latest fit (None before the first fit).
     substeps : int
         The RK4 sub-steps' accuracy floor of the latest fit applied (1 before).
+    window : int or None
+        The stream's window W once decided (None: not yet, or fits of all the data).
     """
 
     x_hat0: FloatArray
@@ -154,6 +174,7 @@ class MapState:
     R: FloatArray | None = None
     Q_x: FloatArray | None = None
     substeps: int = 1
+    window: int | None = None
 
     def __repr__(self) -> str:
         return (f"MapState(k={self.k}, theta_hat={self.theta_hat}, fits={len(self.fits)})")
@@ -188,6 +209,17 @@ class MapEstimator:
     substeps : int, optional
         The RK4 sub-steps' accuracy floor; default: chosen per record (module docstring; in
         :meth:`step`, by each fit on its window).
+    window : {None, "auto"} or int
+        None (default): every fit is of all the data so far. An integer W, or ``"auto"``
+        (W from the information the data carry,
+        :mod:`~thetahat.estimation.statistical.window`): bounded fits — once the record
+        passes W samples, a fit every W samples of the samples since the previous fit, with
+        that fit's posterior (the EKF's at the window's start) as the arrival cost; each
+        fit's cost and a stream's memory are then O(W) whatever the record's length.
+        Not with a ``schedule`` that has ``times``.
+    window_max : int
+        The longest ``"auto"`` window (default
+        :data:`~thetahat.estimation.statistical.window.WINDOW_MAX` samples).
 
     Notes
     -----
@@ -213,9 +245,16 @@ class MapEstimator:
     growth: float = INFO_GROWTH
     hold: str = "foh"
     substeps: int | None = None
+    window: int | str | None = None
+    window_max: int = WINDOW_MAX
 
     def __post_init__(self) -> None:
         check_hold(self.hold)
+        check_window("MapEstimator", self.window, self.window_max, self.system)
+        if self.window is not None and self._by_times:
+            raise OptionError("MapEstimator: window bounds the fits of the information "
+                              "schedule; a schedule with times has its own blocks "
+                              "(full_window): give one or the other.")
 
     @property
     def _by_times(self) -> bool:
@@ -298,7 +337,8 @@ class MapEstimator:
         """Append the samples of one instant and run the fits whose window ends here.
 
         The default schedule fits all the samples so far when their count reaches one of
-        :func:`~.map_fit.information_schedule`'s; a given ``schedule`` fits at the last sample with
+        :func:`~.map_fit.information_schedule`'s (with a window W, past W: every W samples,
+        the samples since the previous fit, and the log keeps only those); a given ``schedule`` fits at the last sample with
         elapsed time ≤ t_j (``dt`` says the next sample comes after t_j). These are the fits
         :meth:`run` makes, except its last: ``run`` also fits the whole record at its end,
         which a stream does not have. Between fits the estimates are the joint EKF's, started
@@ -345,9 +385,9 @@ class MapEstimator:
             raise StateError("MapEstimator.step: this state's stream was started by another "
                              "MapEstimator (its log and fits are that estimator's); step it "
                              "with that one, or start a stream of this one from init().")
-        if log.size != state.k:
+        if log.offset + log.size != state.k:
             raise StateError(f"MapEstimator.step: this state is not the latest of its stream "
-                             f"(it has {state.k} samples, its stream {log.size}: it was "
+                             f"(it has {state.k} samples, its stream {log.offset + log.size}: it was "
                              f"stepped already); step each state once, in order, from "
                              f"init().")
         elapsed = 0.0 if state.k == 0 else state.elapsed + state.dt_prev
@@ -358,12 +398,15 @@ class MapEstimator:
         sched = self._schedule()
         k1 = state.k + 1
         j, fits, ends = state.j, list(state.fits), list(state.fit_samples)
+        prior0 = sched.initial_prior(state.x_hat0, state.theta_hat0)
+        W = self._stream_window(state, sched, log, k1, prior0)
         due = False
         if sched.times is not None:             # times (s): due when the next sample is later
             while sched.times(j) + 1e-12 < elapsed + h:
                 due, j = True, j + 1
         else:                                   # sample counts of the information schedule
             at = sched.sample_counts(self.growth)
+            at = at if W is None else windowed_counts(at, W)
             while at(j) <= k1:
                 due, j = due or at(j) == k1, j + 1
         x, th, sd = state.x_hat, state.theta_hat, state.theta_sd
@@ -371,17 +414,15 @@ class MapEstimator:
         nsub = state.substeps
         fitted = False
         if due and k1 >= self._min_samples():   # a fit: its estimates replace this sample's
-            prior0 = sched.initial_prior(state.x_hat0, state.theta_hat0)
-            prev = fits[-1] if fits else None
-            fit = (sched.fit(log.T[:k1], log.U[:k1], log.Y[:k1], k1, prev, prior0)
-                   if self._by_times
-                   else fit_record(sched, log.T[:k1], log.U[:k1], log.Y[:k1], k1, prev, prior0))
+            fit = self._stream_fit(sched, log, k1, fits, ends, prior0, W)
             fits.append(fit)
             ends.append(state.k)
             x, th, sd = fit.x_end, fit.theta, fit.theta_se
-            _, P, R, Q_x = fit_as_prior(sys_, fit, sample_interval(log.T[:k1]))
+            _, P, R, Q_x = fit_as_prior(sys_, fit, sample_interval(log.T[:log.size]))
             nsub = fit.substeps
             fitted = True
+            if W is not None and k1 >= W:       # the next window starts here
+                log.trim(state.k)
         prop = Propagation(hold=self.hold, substeps=nsub, h_rho=sched.h_rho)
         if fitted:
             pass                                # the fit's estimates
@@ -389,13 +430,15 @@ class MapEstimator:
             s_ = np.concatenate([x, th])
             P = np.array(P, dtype=np.float64, order="C")
             ekf_sample(ekf_kernels(sys_, compiled=self.compiled), sys_, s_, P,
-                       log.U[state.k - 1].copy(), u_, y_, state.dt_prev, prop, Q_x, R,
+                       log.U[state.k - 1 - log.offset].copy(), u_, y_, state.dt_prev, prop,
+                       Q_x, R,
                        state.k)
             x, th, sd = s_[:n], s_[n:], np.sqrt(np.maximum(np.diag(P)[n:], 0.0))
         elif state.k > 0:                       # no fit yet: the model from θ̂(0)
             model = model_kernel(sys_, compiled=self.compiled)
             pc, WT = prop.arrays()
-            U2 = np.ascontiguousarray(np.stack([log.U[state.k - 1], u_]), dtype=np.float64)
+            U2 = np.ascontiguousarray(np.stack([log.U[state.k - 1 - log.offset], u_]),
+                                      dtype=np.float64)
             x = np.asarray(model.propagate(np.array(x), np.array(th), U2, 0, state.dt_prev,
                                            pc, WT, n < 0, np.empty((n, n)),
                                            np.empty((n, p))))
@@ -403,7 +446,40 @@ class MapEstimator:
                         theta_hat=np.array(th), theta_sd=np.array(sd), k=state.k + 1,
                         elapsed=elapsed, j=j, fits=tuple(fits), fit_samples=tuple(ends),
                         dt_prev=h, log=log, u_history=u_hist, P=P, R=R, Q_x=Q_x,
-                        substeps=nsub)
+                        substeps=nsub, window=W)
+
+    def _stream_window(self, state: MapState, sched: FitSchedule, log: _MapLog, k1: int,
+                       prior0: tuple[FloatArray, FloatArray]) -> int | None:
+        """The stream's window at sample count k1: as given, or ``"auto"`` decided on the
+        samples so far at the counts of :func:`~.window.window_grid` (the rule of
+        :func:`~.window.resolve_window`, so that the stream's W is the record's)."""
+        if self.window is None or state.window is not None:
+            return state.window
+        if self.window != "auto":
+            return int(self.window)
+        if k1 >= self.window_max:
+            return self.window_max
+        if k1 in window_grid(self.system, self.window_max) and window_reached(
+                sched, log.T[:k1], log.U[:k1], log.Y[:k1], k1, prior0):
+            return min(max(k1, WINDOW_MIN), self.window_max)
+        return None
+
+    def _stream_fit(self, sched: FitSchedule, log: _MapLog, k1: int, fits: list[FitResult],
+                    ends: list[int], prior0: tuple[FloatArray, FloatArray], W: int | None
+                    ) -> FitResult:
+        """The fit due at sample count k1 of a stream: of all its data, or of its window (the
+        log's samples since the previous fit, with that fit's posterior as arrival cost)."""
+        prev = fits[-1] if fits else None
+        n = log.size
+        if W is not None and k1 > W and prev is not None:
+            k0 = ends[-1]
+            fit = fit_window(sched, log.T[:n], log.U[:n], log.Y[:n], k0=k0 - log.offset,
+                             k1=k1 - log.offset, s0=np.concatenate([prev.x_end, prev.theta]),
+                             P0=prev.cov_end, noise_std=prev.noise_std)
+            return replace(fit, k0=k0, k1=k1)
+        if self._by_times:
+            return sched.fit(log.T[:k1], log.U[:k1], log.Y[:k1], k1, prev, prior0)
+        return fit_record(sched, log.T[:k1], log.U[:k1], log.Y[:k1], k1, prev, prior0)
 
     def run(self, t: ArrayLike, u: ArrayLike | None, y: ArrayLike, *,
             state0: MapState | None = None, throw: bool = True,
@@ -463,7 +539,10 @@ class MapEstimator:
         sched = self._record_schedule(t_, U, Y, st0)
         # the fits' failure is raised (throw) only once the EKF between the fits before it
         # has run: the run stops at its first failure, whichever it is
-        fits, ends, stop = self._fits(sched, t_, U, Y, st0, False, fit_progress)
+        # the stream's rule: the sub-steps as given (1 by default), not the record's choice
+        W = resolve_window(self.window, self.window_max, replace(sched, substeps=self.substeps),
+                           t_, U, Y, sched.initial_prior(st0.x_hat0, st0.theta_hat0))
+        fits, ends, stop = self._fits(sched, t_, U, Y, st0, False, fit_progress, W)
         TH = np.empty((N, p))
         SD = np.empty((N, p))
         TH[:] = st0.theta_hat0
@@ -485,15 +564,16 @@ class MapEstimator:
         return res.raise_for_status() if throw else res
 
     def _fits(self, sched: FitSchedule, t: FloatArray, U: FloatArray, Y: FloatArray,
-              st0: MapState, throw: bool, fit_progress: FitProgress | None = None
-              ) -> tuple[list[FitResult], list[int], RunStop | None]:
+              st0: MapState, throw: bool, fit_progress: FitProgress | None = None,
+              W: int | None = None) -> tuple[list[FitResult], list[int], RunStop | None]:
         """The scheduled fits of a record, in order, until one fails: (fits, their last
         samples, the failure or None). With ``throw`` a fit's error is raised at once.
-        ``fit_progress(done, total)`` before the first fit and after each (see :meth:`run`)."""
+        ``fit_progress(done, total)`` before the first fit and after each (see :meth:`run`).
+        With a window W, the fits past W are of the samples since the previous fit."""
         prior0 = sched.initial_prior(st0.x_hat0, st0.theta_hat0)
         fits: list[FitResult] = []
         ends: list[int] = []
-        ks = self.fit_samples(t)
+        ks = windowed(self.fit_samples(t), W)
         if fit_progress is not None:
             fit_progress(0, len(ks))
         for i, k1 in enumerate(ks):
@@ -503,8 +583,14 @@ class MapEstimator:
                 # the record's own fit: iterate to convergence, not to the warm-start budget
                 sched = replace(sched, max_iter=sched.first_max_iter)
             try:
-                fit = (sched.fit(t, U, Y, k1, prev, prior0) if self._by_times
-                       else fit_record(sched, t, U, Y, k1, prev, prior0, final=last))
+                if W is not None and k1 > W and prev is not None:
+                    fit = fit_window(sched, t, U, Y, k0=ends[-1], k1=k1,
+                                     s0=np.concatenate([prev.x_end, prev.theta]),
+                                     P0=prev.cov_end, noise_std=prev.noise_std, final=last)
+                elif self._by_times:
+                    fit = sched.fit(t, U, Y, k1, prev, prior0)
+                else:
+                    fit = fit_record(sched, t, U, Y, k1, prev, prior0, final=last)
                 stop = fit_stop(fit)
             except NonFiniteError as exc:
                 if throw:
@@ -559,7 +645,7 @@ class MapEstimator:
             X[e], TH[e], SD[e] = fit.x_end, fit.theta, fit.theta_se
             if e + 1 >= end:
                 continue
-            s, P, R, Q_x = fit_as_prior(sys_, fit, sample_interval(t[:e + 1]))
+            s, P, R, Q_x = fit_as_prior(sys_, fit, sample_interval(t[fit.k0:e + 1]))
             pc, WT = Propagation(hold=sched.hold, substeps=fit.substeps,
                                  h_rho=sched.h_rho).arrays()
             bad = kern.loop(s, P, U, Y, t, e + 1, end, R, ts.lo, ts.hi, ts.ell, pc, WT, Q_x,
