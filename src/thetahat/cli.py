@@ -244,6 +244,15 @@ def _estimate(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
+def _window(text: str | None) -> int | str | None:
+    """``--window``: None, "auto" or a whole number of samples (parsed, never evaluated)."""
+    if text is None or text == "auto":
+        return text
+    if not text.isdigit():
+        raise OptionError(f"--window takes 'auto' or a whole number of samples; got {text!r}.")
+    return int(text)
+
+
 def _write_summary(args: argparse.Namespace, result: EstimateResult,
                    caught: list[warnings.WarningMessage], gains: ObserverGains | None) -> None:
     """--summary: the printed summary as JSON, with what the run resolved (ε, Γ)."""
@@ -295,7 +304,7 @@ def _estimate_one(args: argparse.Namespace, stages: Stages
                                nan_policy=args.nan_policy, progress=stages,    # trust report
                                method=args.method,
                                Gamma=None if gains is None else gains.Gamma,
-                               noise_std=args.noise_std)
+                               noise_std=args.noise_std, window=_window(args.window))
     stages.stage("write")
     stages.note(f"{data.t.size:,} rows to {args.output}")
     write_estimates(args.output, result, spec.layout)                         # atomic
@@ -325,7 +334,8 @@ def _estimate_fleet(args: argparse.Namespace) -> int:
                            chunk_size=args.chunk_size, hold=args.hold, method=args.method,
                            nan_policy=args.nan_policy,
                            progress=not (args.no_progress or args.quiet),
-                           delimiter=_delimiter(args.delimiter), noise_std=args.noise_std)
+                           delimiter=_delimiter(args.delimiter), noise_std=args.noise_std,
+                           window=_window(args.window))
     result.write(output)
     print(f"wrote {output} ({len(result.rows)} files: {result.n_ok} ok, "
           f"{len(result.rows) - result.n_ok} failed)")
@@ -543,6 +553,10 @@ def _add_estimate(sub: _Subparsers) -> None:
                                "(linear) or bandlimited (the band-limited signal through "
                                "the samples; not the paper's method). Default: the observer "
                                "holds, the statistical methods take u linear")
+    estimate.add_argument("--window", metavar="auto|W", default=None,
+                          help="guarded and mle: bounded fits, each past W samples over the "
+                               "samples since the previous one (auto: W from the record's "
+                               "information); default: fits of all the data so far")
     estimate.add_argument("--nan-policy", choices=["raise", "skip"], default="raise",
                           help="empty or NaN output cells (dropouts): refuse the file (raise, "
                                "default) or predict over them without output correction "

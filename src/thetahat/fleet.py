@@ -471,7 +471,8 @@ def _failure(exc: BaseException) -> str:
 
 def _estimate_chunk(paths: list[str], *, model: tuple[str, str, str], hold: str | None,
                     method: str, nan_policy: str, delimiter: str | None = None,
-                    noise_std: Any = None) -> list[tuple[Hashable, dict[str, Any]]]:
+                    noise_std: Any = None, window: int | str | None = None
+                    ) -> list[tuple[Hashable, dict[str, Any]]]:
     """One task: read the records; the paper's observer runs records with equal sampling
     instants as one batch, the two-stage methods run record by record."""
     spec = _spec(*model)
@@ -488,7 +489,8 @@ def _estimate_chunk(paths: list[str], *, model: tuple[str, str, str], hold: str 
                 out[p] = {"status": _failure(exc), "warnings": ""}
     if method != "paper":
         for p in records:
-            _estimate_one(spec, p, records[p], hold, method, nan_policy, out, noise_std)
+            _estimate_one(spec, p, records[p], hold, method, nan_policy, out, noise_std,
+                          window)
         return [(p, out[p]) for p in paths]
     groups: dict[bytes, list[str]] = {}
     for p, (rec, _) in records.items():
@@ -501,13 +503,14 @@ def _estimate_chunk(paths: list[str], *, model: tuple[str, str, str], hold: str 
 def _estimate_one(spec: ModelSpec, path: str, record: tuple[DataRecord, list[str]],
                   hold: str | None,
                   method: str, nan_policy: str, out: dict[str, dict[str, Any]],
-                  noise_std: Any = None) -> None:
+                  noise_std: Any = None, window: int | str | None = None) -> None:
     rec, read_warnings = record
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         try:
             res = run_estimator(spec, rec.t, rec.u, rec.y, hold=hold,
-                                nan_policy=nan_policy, method=method, noise_std=noise_std)
+                                nan_policy=nan_policy, method=method, noise_std=noise_std,
+                                window=window)
         except Exception as exc:           # a record that fails is reported, never stops others
             out[path] = {"status": _failure(_explain(exc, spec, rec)),
                          "warnings": "; ".join(read_warnings)}
@@ -587,7 +590,7 @@ def estimate_many(model: str | Path, data: str | Path | Iterable[str | Path], *,
                   hold: str | None = None,
                   method: str | None = None, nan_policy: str = "raise",
                   progress: bool = True, delimiter: str | None = None,
-                  noise_std: Any = None) -> FleetResult:
+                  noise_std: Any = None, window: int | str | None = None) -> FleetResult:
     """Run a model file's estimator on every record of a fleet; one row per record.
 
     Parameters
@@ -620,6 +623,9 @@ def estimate_many(model: str | Path, data: str | Path | Iterable[str | Path], *,
     noise_std : float or array_like (r,), optional
         σ of the output noise for the statistical methods (default: estimated from each
         record, which needs 12 samples; ``thetahat estimate --noise-std``).
+    window : {None, "auto"} or int, optional
+        Bounded fits for ``guarded`` and ``mle`` (``thetahat estimate --window``;
+        :func:`~thetahat.modelfile.run_estimator`).
 
     Returns
     -------
@@ -669,13 +675,16 @@ def estimate_many(model: str | Path, data: str | Path | Iterable[str | Path], *,
         raise OptionError(f"method must be one of {list(ESTIMATION_METHODS)}; got {how!r}.")
     check_nan_policy(nan_policy)
     split_hold(hold, how)                          # a hold the method cannot take: refused
+    if window is not None:                         # refused once, not once per record
+        from .estimation.statistical.window import WINDOW_MAX, check_window
+        check_window("estimate_many", window, WINDOW_MAX, spec.system)
     if delimiter is not None and delimiter not in CSV_DELIMITERS:
         raise OptionError(f"delimiter must be one of {list(CSV_DELIMITERS)}; got "
                           f"{delimiter!r}.")
     files = [str(f) for f in fleet_files(data)]
     task = functools.partial(_estimate_chunk, model=(text, syntax, str(source)), hold=hold,
                              method=how, nan_policy=nan_policy, delimiter=delimiter,
-                             noise_std=noise_std)
+                             noise_std=noise_std, window=window)
     results = run_keyed(task, files, files, scheduler=scheduler, chunk_size=chunk_size,
                         label="estimate", progress=progress)
     names = spec.parameter_names

@@ -52,6 +52,9 @@ class MethodInputs:
         u between the samples for the statistical methods (the guarded estimator's stage 2,
         the MAP fits, the joint EKF; :mod:`thetahat.estimation.hold`); default: each one's
         own (``"foh"``). The observer's hold is in ``observer``.
+    window : {None, "auto"} or int, optional
+        The fitting methods' bounded fits (:mod:`~thetahat.estimation.statistical.window`):
+        None fits all the data so far (the default), ``"auto"`` or W samples bound each fit.
 
     Examples
     --------
@@ -70,11 +73,17 @@ class MethodInputs:
     noise_std: Any = None
     compiled: bool | None = None
     hold: str | None = None
+    window: int | str | None = None
 
-    def stage2(self) -> dict[str, Any]:
-        """The keywords every statistical estimator takes from these inputs."""
-        given = {"noise_std": self.noise_std, "compiled": self.compiled}
-        return given if self.hold is None else {**given, "hold": self.hold}
+    def stage2(self, fits: bool = False) -> dict[str, Any]:
+        """The keywords a statistical estimator takes from these inputs (``fits``: one that
+        makes MAP fits, so also the window)."""
+        given: dict[str, Any] = {"noise_std": self.noise_std, "compiled": self.compiled}
+        if self.hold is not None:
+            given["hold"] = self.hold
+        if fits and self.window is not None:
+            given["window"] = self.window
+        return given
 
 
 @dataclass(frozen=True, slots=True)
@@ -120,12 +129,12 @@ def _paper(inputs: MethodInputs) -> Estimator:
 def _guarded(inputs: MethodInputs) -> Estimator:
     from .estimation.statistical.guarded import GuardedEstimator
     stage1 = (inputs.observer if inputs.stage1 is None else inputs.stage1)()
-    return GuardedEstimator(stage1=stage1, system=inputs.system, **inputs.stage2())
+    return GuardedEstimator(stage1=stage1, system=inputs.system, **inputs.stage2(fits=True))
 
 
 def _mle(inputs: MethodInputs) -> Estimator:
     from .estimation.statistical.mle import MapEstimator
-    return MapEstimator(system=inputs.system, **inputs.stage2())
+    return MapEstimator(system=inputs.system, **inputs.stage2(fits=True))
 
 
 def _ekf(inputs: MethodInputs) -> Estimator:

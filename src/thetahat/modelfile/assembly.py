@@ -438,8 +438,8 @@ def split_hold(hold: str | None, method: str) -> tuple[Hold, str | None]:
 def build_estimator(spec: ModelSpec, *, method: str | None = None, hold: str | None = None,
                     nan_policy: str = "raise", compiled: bool | None = None,
                     progress: Callable[[int, int], None] | None = None,
-                    Gamma: FloatArray | None = None, noise_std: ArrayLike | None = None
-                    ) -> Estimator:
+                    Gamma: FloatArray | None = None, noise_std: ArrayLike | None = None,
+                    window: int | str | None = None) -> Estimator:
     """The estimator a model file describes, by method, behind the one estimator protocol.
 
     Parameters
@@ -465,6 +465,9 @@ def build_estimator(spec: ModelSpec, *, method: str | None = None, hold: str | N
     noise_std : float or array_like (r,), optional
         σ of the output noise for the statistical methods (default: estimated from the data,
         which needs 12 samples).
+    window : {None, "auto"} or int, optional
+        Bounded fits for ``guarded`` and ``mle``
+        (:mod:`~thetahat.estimation.statistical.window`; default: fits of all the data).
 
     Returns
     -------
@@ -501,7 +504,7 @@ def build_estimator(spec: ModelSpec, *, method: str | None = None, hold: str | N
                       None, Gamma=Gamma).with_run_options(progress=progress, compiled=compiled)
 
     return how.build(MethodInputs(system=spec.system, observer=observer, compiled=compiled,
-                                  noise_std=noise_std, hold=stage2_hold))
+                                  noise_std=noise_std, hold=stage2_hold, window=window))
 
 
 def run_estimator(spec: ModelSpec, t: ArrayLike, u: ArrayLike | None, y: ArrayLike, *,
@@ -510,7 +513,8 @@ def run_estimator(spec: ModelSpec, t: ArrayLike, u: ArrayLike | None, y: ArrayLi
                   method: str | None = None, compiled: bool | None = None,
                   diagnose: bool = True, Gamma: ArrayLike | None = None,
                   noise_std: ArrayLike | None = None,
-                  fit_progress: FitProgress | None = None) -> EstimateResult:
+                  fit_progress: FitProgress | None = None,
+                  window: int | str | None = None) -> EstimateResult:
     """Run the file's estimator on sampled data, from the file's initial values.
 
     ``method`` (default: the file's ``[estimator] method``, else ``"guarded"``) chooses the
@@ -570,6 +574,11 @@ def run_estimator(spec: ModelSpec, t: ArrayLike, u: ArrayLike | None, y: ArrayLi
         that fit (``"guarded"``, ``"mle"``: their ``run``'s keyword, called before the first
         fit and after each, ``total`` known in advance, the last call ``(total, total)``);
         the other methods make no fits and never call it. Its exceptions propagate unchanged.
+    window : {None, "auto"} or int, optional
+        Bounded fits for ``guarded`` and ``mle``: each fit past W samples covers the samples
+        since the previous one, the EKF's posterior its arrival cost
+        (:mod:`~thetahat.estimation.statistical.window`); None (default) fits all the data so
+        far. The other methods ignore it.
 
     Returns
     -------
@@ -609,14 +618,15 @@ def run_estimator(spec: ModelSpec, t: ArrayLike, u: ArrayLike | None, y: ArrayLi
     with one_blas_thread():
         return _run(spec, t, u, y, hold=hold, nan_policy=nan_policy, progress=progress,
                     method=method, compiled=compiled, diagnose=diagnose, Gamma=Gamma,
-                    noise_std=noise_std, fit_progress=fit_progress)
+                    noise_std=noise_std, fit_progress=fit_progress, window=window)
 
 
 def _run(spec: ModelSpec, t: ArrayLike, u: ArrayLike | None, y: ArrayLike, *,
          hold: str | None,
          nan_policy: str, progress: Callable[[int, int], None] | None, method: str | None,
          compiled: bool | None, diagnose: bool, Gamma: ArrayLike | None,
-         noise_std: ArrayLike | None, fit_progress: FitProgress | None) -> EstimateResult:
+         noise_std: ArrayLike | None, fit_progress: FitProgress | None,
+         window: int | str | None) -> EstimateResult:
     """:func:`run_estimator`'s work."""
     how = get_method(spec.estimator.method if method is None else method)
     observer_hold, stage2_hold = split_hold(hold, how.name)
@@ -640,7 +650,7 @@ def _run(spec: ModelSpec, t: ArrayLike, u: ArrayLike | None, y: ArrayLike, *,
                                       nan_policy=nan_policy).Gamma
         est = build_estimator(spec, method=how.name, hold=hold, nan_policy=nan_policy,
                               compiled=compiled, progress=progress, Gamma=gamma,
-                              noise_std=noise_std)
+                              noise_std=noise_std, window=window)
         state0 = est.init(x_hat0=x0, theta_hat0=th0)
         if how.fits and fit_progress is not None:   # guarded's and mle's run take it
             fitting: Any = est
