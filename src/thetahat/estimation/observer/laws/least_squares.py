@@ -440,7 +440,7 @@ class FilteredLeastSquares(UpdateLaw):
         return LawArrays(H=np.array(filt.H), Lf=np.array(filt.L), Phi1=Phi1, g=z(k),
                          J=z(k, p), w=z(nq, p), wn=z(nq, p), wb=z(nq), Wm=z(k, p), WT=z(p, k),
                          Rn=z(p, p), Rf=z(p, p), b=z(p), e=z(k), Ad=z(nq, nq), Bd=z(nq, k),
-                         q=z(nq), pw=z(p + 2, p + 1), **box)
+                         q=z(nq), pw=z(p + 4, p + 1), **box)
 
     def __repr__(self) -> str:
         bound = "bound" if self.filter is not None else "unbound"
