@@ -397,7 +397,7 @@ class FilteredLeastSquares(UpdateLaw):
         thn = np.empty(batch + (p,))
         env = law_binding(self, None, ("least_squares_law",), batch == (),
                           lambda: _least_squares_names(self))
-        with np.errstate(over="ignore", invalid="ignore"):
+        with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
             status = env["least_squares_law"](LP, args[0], args[1], args[2], args[3], dt, thn,
                                               S)
         if status != 0:
