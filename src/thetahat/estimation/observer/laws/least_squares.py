@@ -208,8 +208,8 @@ class FilteredLeastSquares(UpdateLaw):
     observer's state.
 
     **Step.** With J, z = φ̂ − g and W = H w held over dt, θ̂⁺ minimises
-    ½(θ − θ̂)ᵀR(θ − θ̂) + ½dt‖z − W(θ − θ̂)‖²: R⁺ = R + dt WᵀW, θ̂⁺ = θ̂ + (R⁺)⁻¹dt Wᵀz (a
-    Cholesky solve), then the R⁺-weighted projection onto Θ (``parameter_set.nearest`` with
+    ½(θ − θ̂)ᵀR(θ − θ̂) + ½dt‖z − W(θ − θ̂)‖²: R⁺ = R + dt WᵀW, θ̂⁺ = θ̂ + (R⁺)⁻¹dt Wᵀz (the
+    formulas' ``solve``), then the R⁺-weighted projection onto Θ (``parameter_set.nearest`` with
     that metric), so θ̂ ∈ Θ at every step; w⁺ = e^{L dt} w + ∫e^{Ls}G ds J (exact for J held).
     R only gains positive semi-definite terms: it stays symmetric positive definite, and the
     step is stable for every dt. A sample whose J or z is not finite leaves θ̂ and R as they
@@ -220,8 +220,20 @@ class FilteredLeastSquares(UpdateLaw):
     law with J; for this one the standard argument holds on the filtered error model
     z = W θ̃ (g linear in θ, θ̂ slow): V = θ̃ᵀRθ̃ is non-increasing and θ̂ tends to the
     least-squares fit of z on W. With g nonlinear in θ, that fit is about the current θ̂: a
-    local result, stated as such. The law runs on the observer's Python path (the compiled
-    kernels do not carry a law state yet).
+    local result, stated as such.
+
+    **Back ends.** The step is written once,
+    :func:`~thetahat.estimation.observer.laws.formulas.least_squares_law`: :meth:`advance` runs
+    it printed for NumPy (the observer's ``step``, ``run`` and ``run_batch``; the projection
+    by ``parameter_set.nearest``), and the numba kernel
+    (:func:`~thetahat.estimation.observer.compiled.compile_observer`, chosen by the runner for
+    ``run_estimator`` and ``thetahat estimate``) prints it as scalar loops with the state in
+    the kernel's row, for a :class:`~thetahat.model.paramset.Box` Θ (its projection in R⁺'s
+    metric: :func:`~thetahat.estimation.kernels.set_projection.project_box_metric`). A Ball,
+    Ellipsoid or other Θ runs on the Python path (the kernel refuses it with
+    :class:`~thetahat.errors.UnsupportedError`). The generated C does not carry it:
+    ``generate_c`` refuses the law (a law with a state of its own), and the runner takes the
+    numba kernel.
 
     Examples
     --------
