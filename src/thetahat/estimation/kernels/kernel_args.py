@@ -69,7 +69,11 @@ class LawArrays(NamedTuple):
     p): the centre c, then Q) with the metric ``Gamma`` (Γ; I for the held law) and the
     scratch ``pw`` ((p + 2, p + 1)), and the inversion law's options ``opts`` = (ramp low,
     ramp high, l is the smooth ramp, on_invalid is "freeze"); the NumPy projection reads
-    ``Gamma_rows``, Γ per row (None: the law's own).
+    ``Gamma_rows``, Γ per row (None: the law's own); the filtered least-squares law reads
+    its error filter's ``H``, ``Lf`` (L) and ``Phi1`` (Φ₁ of the step) with scratch ``g``,
+    ``J``, ``w``, ``wn``, ``wb``, ``Wm``, ``WT``, ``Rn`` (R⁺, also the metric of its
+    projection), ``Rf``, ``b``, ``e``, ``Ad``, ``Bd``, ``q`` (and ``pw`` for the compiled
+    projection onto a box).
     """
 
     Gamma: Any = None
@@ -94,6 +98,21 @@ class LawArrays(NamedTuple):
     Gamma_rows: Any = None
     ell: Any = None
     pw: Any = None
+    H: Any = None
+    Lf: Any = None
+    Phi1: Any = None
+    w: Any = None
+    wn: Any = None
+    wb: Any = None
+    Wm: Any = None
+    WT: Any = None
+    Rn: Any = None
+    Rf: Any = None
+    b: Any = None
+    e: Any = None
+    Ad: Any = None
+    Bd: Any = None
+    q: Any = None
 
 
 class WorkArrays(NamedTuple):
@@ -147,7 +166,11 @@ SHAPES: Mapping[str, Mapping[str, tuple[str, ...]]] = {
                   "J": ("NK", "NP"), "Mt": ("NP", "NK"), "GM": ("NP", "NK"), "f": ("NP",),
                   "K": ("NP", "NP"), "Z": ("NP1", "NP1"), "Ex": ("NP1", "NP1"),
                   "T": ("NP1", "NP1"), "U": ("NP1", "NP1"), "lower": ("NP",),
-                  "upper": ("NP",)},
+                  "upper": ("NP",), "H": ("NK", "NQ"), "Lf": ("NQ", "NQ"),
+                  "Phi1": ("NQ", "NQ"), "w": ("NQ", "NP"), "wn": ("NQ", "NP"), "wb": ("NQ",),
+                  "Wm": ("NK", "NP"), "WT": ("NP", "NK"), "Rn": ("NP", "NP"),
+                  "Rf": ("NP", "NP"), "b": ("NP",), "e": ("NK",), "Ad": ("NQ", "NQ"),
+                  "Bd": ("NQ", "NK"), "q": ("NQ",)},
     "WorkArrays": {"v": ("NV",), "g": ("NK",), "Gx": ("NK", "NX"), "Gy": ("NK", "NY"),
                    "Gth": ("NK", "NP"), "F": ("NQ",), "Fd": ("NQ",), "Nm": ("NQ", "NQ"),
                    "M": ("NQ", "NQ"), "rhs": ("NQ",), "phi": ("NK",), "wr": ("NY",),

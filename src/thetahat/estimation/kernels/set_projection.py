@@ -28,9 +28,9 @@ from numpy.typing import NDArray
 
 from ...model.paramset import Ball, Ellipsoid, ParameterSet
 
-__all__ = ["ELLIPSOID_MARGIN", "LAMBDA_BISECTIONS", "LAMBDA_DOUBLINGS", "OBSERVER_MARGIN",
-           "clip_kernel", "ellipsoid_data",
-           "project_into", "project_kernel"]
+__all__ = ["BOX_QP_ITERATIONS", "DIAGONAL_ATOL", "ELLIPSOID_MARGIN", "LAMBDA_BISECTIONS",
+           "LAMBDA_DOUBLINGS", "OBSERVER_MARGIN", "clip_kernel", "ellipsoid_data",
+           "project_box_metric", "project_into", "project_kernel"]
 
 FloatArray = NDArray[np.float64]
 
@@ -46,6 +46,14 @@ LAMBDA_DOUBLINGS = 400
 OBSERVER_MARGIN = 16 * 2.0 ** -52
 #: Bisection steps on λ once bracketed within a factor 2 (2**-60: below double precision).
 LAMBDA_BISECTIONS = 60
+#: A metric whose off-diagonal entries are all within this of 0 projects onto a box by a clip:
+#: the rule of :meth:`~thetahat.model.paramset.Box.nearest` (``np.allclose(W, diag(W))`` with
+#: NumPy's default atol), kept so that the kernel and the NumPy path take the same branch.
+DIAGONAL_ATOL = 1e-8
+#: Working-set changes allowed in :func:`project_box_metric`: each frees or fixes one of p ≤ a
+#: few coordinates, and the active-set method ends after at most a few p of them; the cap
+#: only guards against cycling on a degenerate (rounding-level) multiplier.
+BOX_QP_ITERATIONS = 100
 
 
 def _solve_shifted(M: FloatArray, euclid: bool, ell: FloatArray, lam: float,
@@ -281,3 +289,136 @@ def ellipsoid_data(parameter_set: ParameterSet) -> FloatArray:
         ell[0] = parameter_set.center
         ell[1:] = parameter_set.shape
     return ell
+
+
+def _box_qp_solve(W: FloatArray, work: FloatArray) -> None:
+    """The minimiser y over the free coordinates, the held ones at x, into ``work[p + 3]``.
+
+    ``work`` rows 0…p−1: the augmented system (built here, then eliminated with partial
+    pivoting); row p the iterate x, row p + 1 the target c, row p + 2 the flags (0 free,
+    −1/+1 held at the lower/upper bound), row p + 3 y (:func:`project_box_metric`).
+    """
+    p = W.shape[0]
+    for i in range(p):
+        if work[p + 2, i] != 0.0:
+            for j in range(p):
+                work[i, j] = 1.0 if i == j else 0.0
+            work[i, p] = work[p, i]
+        else:
+            acc = 0.0
+            for j in range(p):
+                acc += W[i, j] * work[p + 1, j]
+            for j in range(p):
+                if work[p + 2, j] != 0.0:
+                    acc -= W[i, j] * work[p, j]
+                    work[i, j] = 0.0
+                else:
+                    work[i, j] = W[i, j]
+            work[i, p] = acc
+    for col in range(p):
+        piv = col
+        for i in range(col + 1, p):
+            if abs(work[i, col]) > abs(work[piv, col]):
+                piv = i
+        if piv != col:
+            for j in range(p + 1):
+                tmp = work[col, j]
+                work[col, j] = work[piv, j]
+                work[piv, j] = tmp
+        for i in range(col + 1, p):
+            f = work[i, col] / work[col, col]
+            for j in range(col, p + 1):
+                work[i, j] -= f * work[col, j]
+    for i in range(p - 1, -1, -1):
+        t = work[i, p]
+        for j in range(i + 1, p):
+            t -= work[i, j] * work[p + 3, j]
+        work[p + 3, i] = t / work[i, i]
+
+
+def project_box_metric(theta: FloatArray, W: FloatArray, lo: FloatArray, hi: FloatArray,
+                       work: FloatArray) -> None:
+    """θ ← argmin over lo ≤ θ' ≤ hi of (θ' − θ)ᵀW(θ' − θ), in place (W symmetric positive
+    definite); θ inside the box is left as it is.
+
+    The projection of :meth:`~thetahat.model.paramset.Box.nearest` with a metric, for the
+    compiled filtered least-squares law (W = R⁺, the information): a clip when W is diagonal
+    (:data:`DIAGONAL_ATOL`), else the primal active-set method of quadratic programming from
+    the clipped point: solve for the free coordinates with the others held at their bounds;
+    step to the first bound crossed and hold it, or, at the free minimiser, free the held
+    coordinate whose multiplier has the wrong sign (the most wrong), until none has. The
+    minimiser is unique and the method ends at it exactly (to rounding), as SciPy's bounded
+    least squares (``bvls``) of the NumPy path does. Allocates nothing.
+
+    Parameters
+    ----------
+    theta : ndarray, shape (p,)
+    W : ndarray, shape (p, p)
+    lo, hi : ndarray, shape (p,)
+    work : ndarray, shape (p + 4, p + 1)
+        Scratch.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> th = np.array([2.0, 0.0])        # W couples the coordinates: not the clip (1, 0)
+    >>> project_box_metric(th, np.array([[1.0, 0.9], [0.9, 1.0]]), -np.ones(2), np.ones(2),
+    ...                    np.zeros((6, 3)))
+    >>> np.round(th, 12).tolist()
+    [1.0, 0.9]
+    """
+    p = theta.shape[0]
+    inside = True
+    diagonal = True
+    for i in range(p):
+        if not (lo[i] <= theta[i] <= hi[i]):
+            inside = False
+        for j in range(p):
+            if i != j and abs(W[i, j]) > DIAGONAL_ATOL:
+                diagonal = False
+    if inside:
+        return
+    x, c, flag = p, p + 1, p + 2
+    for i in range(p):
+        work[c, i] = theta[i]
+        work[x, i] = min(max(theta[i], lo[i]), hi[i])
+        work[flag, i] = -1.0 if theta[i] < lo[i] else (1.0 if theta[i] > hi[i] else 0.0)
+        theta[i] = work[x, i]
+    if diagonal:
+        return
+    for _ in range(BOX_QP_ITERATIONS):
+        _box_qp_solve(W, work)
+        alpha = 1.0
+        block = -1
+        for i in range(p):
+            if work[flag, i] == 0.0:
+                yi, xi = work[p + 3, i], work[x, i]
+                if yi < lo[i] and (lo[i] - xi) / (yi - xi) < alpha:
+                    alpha, block = (lo[i] - xi) / (yi - xi), i
+                elif yi > hi[i] and (hi[i] - xi) / (yi - xi) < alpha:
+                    alpha, block = (hi[i] - xi) / (yi - xi), i
+        if block >= 0:                       # step to the first bound crossed, hold it
+            for i in range(p):
+                if work[flag, i] == 0.0:
+                    work[x, i] += alpha * (work[p + 3, i] - work[x, i])
+            below = work[p + 3, block] < lo[block]
+            work[x, block] = lo[block] if below else hi[block]
+            work[flag, block] = -1.0 if below else 1.0
+            continue
+        for i in range(p):
+            if work[flag, i] == 0.0:
+                work[x, i] = work[p + 3, i]
+        worst, free = 0.0, -1                # multipliers: W (x − c) at the held coordinates
+        for i in range(p):
+            if work[flag, i] != 0.0:
+                grad = 0.0
+                for j in range(p):
+                    grad += W[i, j] * (work[x, j] - work[c, j])
+                wrong = -grad if work[flag, i] < 0.0 else grad
+                if wrong > worst:
+                    worst, free = wrong, i
+        if free < 0:
+            break
+        work[flag, free] = 0.0
+    for i in range(p):
+        theta[i] = min(max(work[x, i], lo[i]), hi[i])

@@ -18,7 +18,10 @@ machine code. Supported:
   :func:`~thetahat.estimation.observer.laws.smooth_ramp`) whose θ* has a SymPy form (a
   :class:`~thetahat.estimation.observer.laws.theta_star.ThetaStar` from ``from_perturbation`` or
   ``ThetaStar.from_expr``, or a model file's ``theta_star``), and
-  :class:`~thetahat.estimation.observer.laws.GradientInversion` with the default M = (∂g/∂θ)ᵀ;
+  :class:`~thetahat.estimation.observer.laws.GradientInversion` with the default M = (∂g/∂θ)ᵀ,
+  and :class:`~thetahat.estimation.observer.laws.FilteredLeastSquares` on a Box Θ (its state
+  col(w, w_b, a, R) in the kernel's state row; its projection in R's metric by
+  :func:`~thetahat.estimation.kernels.set_projection.project_box_metric`);
   none of them with a ``saturation``;
 * an attached :class:`~thetahat.estimation.observer.redesign.SecondObserver`;
 * any sampling the Python ``run`` takes: irregular steps (the φ-matrices of each distinct step
@@ -84,13 +87,6 @@ from .record_run import PROGRESS_EVERY, Failure, failure, states_result, step_er
 __all__ = ["BACKEND", "CompiledObserver", "compile_observer"]
 
 FloatArray = NDArray[np.float64]
-
-_SUPPORTED = ("supported: a SymbolicPerturbation g, a Box Θ with diagonal Γ or a Ball or "
-              "Ellipsoid Θ, ConstantLaw, "
-              "IntermittentInversion (l ≡ 1, i.e. AlgebraicInversion, or a smooth_ramp weight) "
-              "with a symbolic θ*, GradientInversion with the default M, no saturation, no law "
-              "state, an optional SecondObserver")
-
 
 def _require_numba() -> Any:
     try:
@@ -172,7 +168,8 @@ class CompiledObserver:
         plan = observer.plan(h)
         source = kernel_source(parts.perturbation, None if ts is None else ts.expr,
                                None if ts is None else ts.arguments, LAWS[parts.code],
-                               M=parts.M, ellipsoid=parts.ellipsoid)
+                               M=parts.M, ellipsoid=parts.ellipsoid,
+                               law_size=parts.law_size)
         for name, value in (("observer", observer), ("dt", h), ("theta_star", ts),
                             ("plan", plan), ("_kernel", _load(source)),
                             ("_args", kernel_arrays(parts, plan))):
@@ -284,6 +281,8 @@ class CompiledObserver:
         W, rows, (Q1, Q2, R1, R2) = _scratch(self.observer.layout)
         # the φ-matrices are loaded into this thread's buffers: the shared arrays stay read
         P, P2 = P._replace(Phi1=Q1, Phi2=Q2), P2._replace(Phi1=R1, Phi2=R2)
+        if LP.Phi1 is not None:      # the least-squares law's filter: the step's Φ₁ of the same L
+            LP = LP._replace(Phi1=Q1)
         status, index = self._kernel.kernel_run(s0, U, Y, dts, ok, plan_of, PH, P, P2, LP,
                                                 *flags, foh, W, rows, S, PHI)
         return int(status), int(index)

@@ -29,6 +29,7 @@ from ..kernels.kernel_args import (LawArrays, PlanArrays, SecondArrays, WorkArra
 from ..kernels.set_projection import ellipsoid_data
 from .laws import ConstantLaw, GradientInversion, IntermittentInversion, SmoothRamp
 from .laws.inversion import gain_eigen
+from .laws.least_squares import FilteredLeastSquares
 from .laws.theta_star import ThetaStar, as_theta_star
 from .observer import ModifiedHighGainObserver
 from .plan import StateLayout, StepPlan
@@ -42,8 +43,8 @@ FloatArray = NDArray[np.float64]
 SUPPORTED = ("supported: a SymbolicPerturbation g, a Box Θ with diagonal Γ or a Ball or "
               "Ellipsoid Θ, ConstantLaw, "
               "IntermittentInversion (l ≡ 1, i.e. AlgebraicInversion, or a smooth_ramp weight) "
-              "with a symbolic θ*, GradientInversion with the default M, no saturation, no law "
-              "state, an optional SecondObserver")
+              "with a symbolic θ*, GradientInversion with the default M, FilteredLeastSquares on a "
+              "Box Θ, no saturation, an optional SecondObserver")
 
 
 
@@ -83,7 +84,8 @@ class KernelParts:
     Attributes
     ----------
     code : int
-        0 ConstantLaw, 1 IntermittentInversion with l ≡ 1, 2 with a smooth ramp, 3 gradient.
+        0 ConstantLaw, 1 IntermittentInversion with l ≡ 1, 2 with a smooth ramp, 3 gradient,
+        4 the filtered least squares.
     perturbation : SymbolicPerturbation
         g, printed into the kernel.
     theta_set : Box, Ball or Ellipsoid
@@ -96,6 +98,8 @@ class KernelParts:
         The inversion law's ``on_invalid == "freeze"``.
     M : sympy.Matrix or None
         A user's M of the gradient law (code 3), in g's symbols (its ``sympy_form``).
+    least_squares : FilteredLeastSquares or None
+        The least-squares law (code 4), bound to the observer: its filter and R₀.
     """
 
     code: int
@@ -105,6 +109,12 @@ class KernelParts:
     ramp: tuple[float, float] | None = None
     freeze: bool = False
     M: Any = None
+    least_squares: FilteredLeastSquares | None = None
+
+    @property
+    def law_size(self) -> int:
+        """Length of the law's state (the least-squares law's; 0 for the others)."""
+        return 0 if self.least_squares is None else self.least_squares.state_size
 
     @property
     def ellipsoid(self) -> bool:
@@ -139,9 +149,11 @@ def kernel_parts(observer: ModifiedHighGainObserver) -> KernelParts:
     if not isinstance(pert, SymbolicPerturbation):
         raise unsupported(f"a {type(pert).__name__} g (it must be a SymbolicPerturbation)")
     law = observer.update_law
+    theta_set = law.parameter_set
+    if isinstance(law, FilteredLeastSquares):
+        return _least_squares_parts(law, pert, theta_set)
     if law.state_size:
         raise unsupported("an update law with a state")
-    theta_set = law.parameter_set
     if not isinstance(theta_set, Box | Ball | Ellipsoid):
         raise unsupported(f"Θ = {type(theta_set).__name__} (it must be a Box, Ball or "
                            "Ellipsoid)")
@@ -180,6 +192,19 @@ def kernel_parts(observer: ModifiedHighGainObserver) -> KernelParts:
         "ThetaStar (thetahat.estimation.observer.laws.theta_star.ThetaStar.from_expr(expr, perturbation=g, "
         "phi=[...]) or from_perturbation), or give theta_star in the model file: both carry "
         "θ*'s SymPy form.")
+
+
+def _least_squares_parts(law: FilteredLeastSquares, pert: SymbolicPerturbation,
+                         theta_set: Any) -> KernelParts:
+    """:class:`KernelParts` of the filtered least-squares law (code 4), or why not."""
+    if not isinstance(theta_set, Box):
+        raise unsupported(f"FilteredLeastSquares on a {type(theta_set).__name__} Θ (its "
+                          "projection in the information's metric is compiled for a Box)")
+    if not (law.perturbation is pert or law.perturbation == pert):
+        raise unsupported("FilteredLeastSquares with a g other than the observer's")
+    if law.filter is None:
+        raise unsupported("FilteredLeastSquares not bound to the observer")
+    return KernelParts(code=4, perturbation=pert, theta_set=theta_set, least_squares=law)
 
 
 # --------------------------------------------------------------------------- public API
@@ -281,6 +306,8 @@ def kernel_arrays(parts: KernelParts, plan: StepPlan
                "pw": np.zeros((p + 2, p + 1)), "Gamma": np.eye(p) if parts.code == 0 else G}
     if parts.code == 0:
         LP = LawArrays(**box)
+    elif parts.code == 4 and parts.least_squares is not None:
+        LP = parts.least_squares.law_arrays(None)   # its Φ₁: the step's (compiled._call)
     elif parts.code == 3:
         LP = LawArrays(g=np.zeros(k), J=np.zeros((k, p)), Mt=np.zeros((p, k)),
                        GM=np.zeros((p, k)), f=np.zeros(p), K=np.zeros((p, p)),

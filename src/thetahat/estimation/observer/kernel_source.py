@@ -36,7 +36,7 @@ from .discretize import IMPLICITNESS
 from .formulas import DIVERGENCE_BOUND
 from .laws.base import FAR
 from ..kernels.modules import ModuleText
-from ..kernels.set_projection import OBSERVER_MARGIN, project_into
+from ..kernels.set_projection import OBSERVER_MARGIN, project_box_metric, project_into
 from ..kernels.printer import Program
 from ..kernels.subset import External, definition, definitions
 from ..status import status_constants
@@ -45,7 +45,8 @@ __all__ = ["INLINE_FROM", "LAWS", "formula_decorator", "kernel_program", "kernel
            "law_hooks", "model_source"]
 
 #: The law formulas the compiled path supports, by code (see ``compiled.KernelParts``).
-LAWS = {0: "held_law", 1: "inversion_law", 2: "inversion_law", 3: "gradient_law"}
+LAWS = {0: "held_law", 1: "inversion_law", 2: "inversion_law", 3: "gradient_law",
+        4: "least_squares_law"}
 
 #: numba options. ``_nrt=False``: no reference counting (the kernels allocate nothing; the
 #: counting of ~30 array variables per sample took 40 % of the time). The blocks are printed
@@ -225,7 +226,9 @@ def law_hooks(law: str, project_into: str | None = None) -> str:
         calls with the metric M = ``LP.Gamma`` (the Γ⁻¹-weighted projection), Θ from
         ``LP.ell``, the scratch ``LP.pw`` and
         :data:`~thetahat.estimation.kernels.set_projection.OBSERVER_MARGIN`. None: Θ is a
-        box with diagonal Γ, and ``project`` is a clip.
+        box with diagonal Γ, and ``project`` is a clip. For ``"least_squares_law"``: the name
+        of :func:`~thetahat.estimation.kernels.set_projection.project_box_metric`, called
+        with the metric R⁺ = ``LP.Rn`` (Θ a box).
 
     Returns
     -------
@@ -246,6 +249,8 @@ def law_hooks(law: str, project_into: str | None = None) -> str:
     project = ("    for i in range(NP):\n"
                "        thn[i] = clip(thn[i], LP.lower[i], LP.upper[i])\n"
                if project_into is None else
+               f"    {project_into}(thn, LP.Rn, LP.lower, LP.upper, LP.pw)\n"
+               if law == "least_squares_law" else
                f"    {project_into}(thn, LP.Gamma, LP.lower, LP.upper, LP.ell, LP.pw, "
                f"{OBSERVER_MARGIN!r})\n")
     return (_hook("weight", "LP, v, x, phi", "x : array\nphi : array, shape (NK,)", weight)
@@ -311,7 +316,7 @@ def kernel_program(law: str, user_m: bool = False, project_into: str | None = No
 def kernel_source(pert: SymbolicPerturbation, theta_star: tuple[sp.Expr, ...] | None,
                   ts_args: tuple[sp.Symbol, ...] | None, law: str, *,
                   numba: bool = True, M: sp.Matrix | None = None,
-                  ellipsoid: bool = False) -> str:
+                  ellipsoid: bool = False, law_size: int = 0) -> str:
     """The complete source of the kernel module of one model and configuration.
 
     Parameters
@@ -330,7 +335,11 @@ def kernel_source(pert: SymbolicPerturbation, theta_star: tuple[sp.Expr, ...] | 
     ellipsoid : bool
         Θ is a ball or an ellipsoid (data in ``LP.ell``): the module holds
         :func:`~thetahat.estimation.kernels.set_projection.project_into` and the projection
-        calls it; False: Θ is a box, projected by a clip.
+        calls it; False: Θ is a box, projected by a clip (by
+        :func:`~thetahat.estimation.kernels.set_projection.project_box_metric` in R⁺'s metric
+        for ``"least_squares_law"``).
+    law_size : int
+        Length of the law's state (``LS``; the least-squares law's col(w, w_b, a, R)).
 
     Returns
     -------
@@ -347,13 +356,16 @@ def kernel_source(pert: SymbolicPerturbation, theta_star: tuple[sp.Expr, ...] | 
     text.import_line("import math")
     text.import_line("from numba import njit")
     for name, value in (("NX", n), ("NU", m), ("NY", r), ("NK", k), ("NP", p), ("NV", m + r),
-                        ("NQ", n + k), ("NP1", p + 1), ("LS", 0), ("LS1", 1),
+                        ("NQ", n + k), ("NP1", p + 1), ("LS", law_size),
+                        ("LS1", max(law_size, 1)),
                         ("IMPLICITNESS", IMPLICITNESS), ("FAR", FAR),
                         ("EXP_TINY_ARG", scalar_primitives.EXP_TINY_ARG),
                         ("BOUND_SQ", DIVERGENCE_BOUND ** 2), *status_constants().items(),
                         ("USER_M", M is not None)):
         text.constant(name, repr(value))
-    entry = (text.bound(project_into, "@numba.njit(nogil=True, cache=True)") if ellipsoid
+    entry = (text.bound(project_box_metric, "@numba.njit(nogil=True, cache=True)")
+             if law == "least_squares_law" else
+             text.bound(project_into, "@numba.njit(nogil=True, cache=True)") if ellipsoid
              else None)                                            # its one definition
     text.text(model_source(pert, theta_star, ts_args))
     if M is not None:

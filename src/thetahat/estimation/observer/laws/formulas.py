@@ -32,7 +32,7 @@ if TYPE_CHECKING:                    # the argument tuples (named; every binding
     from ...kernels.kernel_args import LawArrays
 
 __all__ = ["HOOKS", "LAW_FORMULAS", "finite_candidate", "gradient_law", "held_law", "inversion_law",
-           "inversion_target", "smoothstep"]
+           "inversion_target", "least_squares_law", "smoothstep"]
 
 #: The functions the law formulas call that a binding provides, with their parameters
 #: (module docstring); ``x`` and ``th`` take views of the state
@@ -44,6 +44,9 @@ HOOKS = {"weight": ("LP", "v", "x", "phi"), "theta_star": ("v", "x", "phi", "ts"
 # Names bound by a back end (declared for the type checker; never assigned here).
 Prim = Callable[..., Any]
 expm: Prim
+eye: Prim
+solve: Prim
+any_: Prim
 where: Prim
 clip: Prim
 exp: Prim
@@ -62,9 +65,13 @@ project: Prim
 freeze: Prim
 NP: int
 NK: int
+NX: int
+NQ: int
 USER_M: bool
 FAR: float
 ST_THETA_STAR: int
+ST_OK: int
+ST_SINGULAR: int
 
 
 def smoothstep(s: Any, low: float, high: float) -> Any:
@@ -272,8 +279,114 @@ def gradient_law(LP: LawArrays, v: Any, x: Any, phi: Any, th: Any, dt: float, th
     return project(LP, thn)
 
 
+def least_squares_law(LP: LawArrays, v: Any, x: Any, phi: Any, th: Any, dt: float, thn: Any,
+                      lsn: Any) -> int:
+    """The filtered least-squares law: one step of θ̂ and of its state col(w, w_b, a, R).
+
+    :class:`~thetahat.estimation.observer.laws.least_squares.FilteredLeastSquares` (its notes
+    give the derivation). With J = ∂g/∂θ, z = φ̂ − g at θ̂, the filtered regressor W = H w and
+    ζ = z + a + H w_b (= W θ for g linear in θ), all held over dt:
+
+    R⁺ = R + dt WᵀW (symmetrised), θ̂⁺ = Proj_R⁺(θ̂ + (R⁺)⁻¹ dt Wᵀ(ζ − W θ̂)),
+    w⁺ = A_d w + B_d J, w_b⁺ = A_d w_b + B_d (J θ̂ − a), a⁺ = a + J (θ̂⁺ − θ̂),
+
+    with A_d = I + L Φ₁, B_d = Φ₁ G (the last NK columns of Φ₁): the exact step of the error
+    filter ẇ = L w + G J. A row whose J or z is not finite takes J = 0 and dt = 0 in R and θ̂:
+    θ̂ and R are left as they are and w decays.
+
+    Parameters
+    ----------
+    LP : LawArrays
+        The filter's ``H`` and ``Lf`` (its L), ``Phi1`` (Φ₁ of this step), the scratch ``g``,
+        ``J``, ``w``, ``wn``, ``wb``, ``Wm``, ``WT``, ``Rn`` (R⁺, the metric of ``project``),
+        ``Rf``, ``b``, ``e``, ``Ad``, ``Bd``, ``q`` and what ``project`` reads.
+    v : array, shape (NV,)
+    x : array, shape (NX,)
+    phi : array, shape (NK,)
+    th : array, shape (NP,)
+    dt : float
+    thn : array, shape (NP,)
+        Output: θ̂⁺.
+    lsn : array, shape (LS1,)
+        The law state col(w (NQ × NP, row-major), w_b (NQ), a (NK), R (NP × NP, row-major)):
+        in on entry, out on return.
+
+    Returns
+    -------
+    int
+        ``ST_OK``, or ``ST_SINGULAR`` where R⁺ is singular.
+    """
+    z, J, H, w, wb, W, WT, Rn, Rf = LP.g, LP.J, LP.H, LP.w, LP.wb, LP.Wm, LP.WT, LP.Rn, LP.Rf
+    b, e, Ad, Bd, wn, q = LP.b, LP.e, LP.Ad, LP.Bd, LP.wn, LP.q
+    g_val(v, x, th, z)
+    dg_dtheta(v, x, th, J)
+    ok = True
+    for a in range(NK):
+        z[a] = phi[a] - z[a]                         # z = φ̂ − g
+        ok = and_(ok, isfinite(z[a]))
+        for c in range(NP):
+            ok = and_(ok, isfinite(J[a, c]))
+    h = where(ok, dt, 0.0)                           # the information of this sample
+    for a in range(NK):
+        z[a] = where(ok, z[a], 0.0)
+        for c in range(NP):
+            J[a, c] = where(ok, J[a, c], 0.0)
+    for i in range(NQ):
+        wb[i] = lsn[NQ * NP + i]
+        for c in range(NP):
+            w[i, c] = lsn[i * NP + c]
+    W[:] = H @ w                                     # W = H w
+    e[:] = H @ wb
+    for a in range(NK):
+        e[a] = z[a] + lsn[NQ * NP + NQ + a] + e[a]   # ζ = z + a + H w_b
+    e[:] = e - W @ th                                # ζ − W θ̂
+    for c in range(NP):
+        for a in range(NK):
+            WT[c, a] = W[a, c]
+    Rf[:] = WT @ W
+    for c in range(NP):
+        for d in range(NP):
+            Rf[c, d] = lsn[NQ * NP + NQ + NK + c * NP + d] + h * Rf[c, d]
+    for c in range(NP):
+        for d in range(NP):
+            Rn[c, d] = 0.5 * (Rf[c, d] + Rf[d, c])     # R⁺ = R + dt WᵀW, symmetric
+    Rf[:] = Rn
+    b[:] = WT @ e
+    for c in range(NP):
+        b[c] = h * b[c]
+    solved = solve(Rf, b)                            # (R⁺)⁻¹ dt Wᵀ(ζ − W θ̂)
+    if any_(solved != ST_OK):
+        return ST_SINGULAR
+    for c in range(NP):
+        thn[c] = th[c] + b[c]
+    finite_candidate(thn, th)
+    project(LP, thn)                                 # in Θ, in R⁺'s metric
+    Ad[:] = eye(NQ) + LP.Lf @ LP.Phi1
+    for i in range(NQ):
+        for a in range(NK):
+            Bd[i, a] = LP.Phi1[i, NX + a]
+    e[:] = J @ th
+    for a in range(NK):
+        e[a] = e[a] - lsn[NQ * NP + NQ + a]          # J θ̂ − a
+    q[:] = Ad @ wb + Bd @ e                          # w_b⁺
+    wn[:] = Ad @ w + Bd @ J                          # w⁺
+    for c in range(NP):
+        b[c] = thn[c] - th[c]
+    e[:] = J @ b                                     # J (θ̂⁺ − θ̂)
+    for i in range(NQ):
+        lsn[NQ * NP + i] = q[i]
+        for c in range(NP):
+            lsn[i * NP + c] = wn[i, c]
+    for a in range(NK):
+        lsn[NQ * NP + NQ + a] = lsn[NQ * NP + NQ + a] + e[a]
+    for c in range(NP):
+        for d in range(NP):
+            lsn[NQ * NP + NQ + NK + c * NP + d] = Rn[c, d]
+    return ST_OK
+
+
 #: The law formulas a back end prints, by name.
 LAW_FORMULAS: dict[str, Callable[..., Any]] = {
     "smoothstep": smoothstep, "finite_candidate": finite_candidate, "held_law": held_law,
     "inversion_target": inversion_target, "inversion_law": inversion_law,
-    "gradient_law": gradient_law}
+    "gradient_law": gradient_law, "least_squares_law": least_squares_law}

@@ -27,18 +27,21 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import final
 
+from typing import Any
+
 import numpy as np
-import scipy.linalg
 from numpy.typing import ArrayLike, NDArray
 
 from ...._validate import positive_scalar
 from ....errors import DimensionError, UpdateLawError
 from ....model.jacobian_check import require_theta_dependence
-from ....model.paramset import ParameterSet
+from ....model.paramset import Box, ParameterSet
 from ....model.perturbation import Perturbation
 from ....model.system import PerturbedLinearSystem
 from ..discretize import PlanCache
-from .base import UpdateLaw, as_batch, finite_candidate
+from ...kernels.kernel_args import LawArrays
+from ...status import status_constants
+from .base import FAR, UpdateLaw, as_batch, broadcast_rows, law_binding
 from .projection import as_gain
 
 __all__ = ["ErrorFilter", "FilteredLeastSquares", "error_filter"]
@@ -83,6 +86,21 @@ class ErrorFilter:
         nk = self.L.shape[0]
         return self.H @ np.linalg.solve(s * np.eye(nk) - self.L, self.G.astype(complex))
 
+    def discrete_phi1(self, dt: float) -> FloatArray:
+        """Φ₁ = ∫₀^dt e^{Ls} ds = dt φ₁(dt L), shape (n + k, n + k) (the observer's cached
+        φ-function of the same L).
+
+        Parameters
+        ----------
+        dt : float
+            Step length > 0.
+
+        Returns
+        -------
+        ndarray, shape (n + k, n + k)
+        """
+        return self._plans.get(positive_scalar("dt", dt)).Phi1
+
     def discrete(self, dt: float) -> tuple[FloatArray, FloatArray]:
         """(e^{L dt}, ∫₀^dt e^{Ls} ds G): the exact step with the input held over dt.
 
@@ -99,7 +117,7 @@ class ErrorFilter:
         Ad : ndarray, shape (n + k, n + k)
         Bd : ndarray, shape (n + k, k)
         """
-        Phi1 = self._plans.get(positive_scalar("dt", dt)).Phi1
+        Phi1 = self.discrete_phi1(dt)
         return np.eye(self.L.shape[0]) + self.L @ Phi1, Phi1 @ self.G
 
 
@@ -190,8 +208,8 @@ class FilteredLeastSquares(UpdateLaw):
     observer's state.
 
     **Step.** With J, z = φ̂ − g and W = H w held over dt, θ̂⁺ minimises
-    ½(θ − θ̂)ᵀR(θ − θ̂) + ½dt‖z − W(θ − θ̂)‖²: R⁺ = R + dt WᵀW, θ̂⁺ = θ̂ + (R⁺)⁻¹dt Wᵀz (a
-    Cholesky solve), then the R⁺-weighted projection onto Θ (``parameter_set.nearest`` with
+    ½(θ − θ̂)ᵀR(θ − θ̂) + ½dt‖z − W(θ − θ̂)‖²: R⁺ = R + dt WᵀW, θ̂⁺ = θ̂ + (R⁺)⁻¹dt Wᵀz (the
+    formulas' ``solve``), then the R⁺-weighted projection onto Θ (``parameter_set.nearest`` with
     that metric), so θ̂ ∈ Θ at every step; w⁺ = e^{L dt} w + ∫e^{Ls}G ds J (exact for J held).
     R only gains positive semi-definite terms: it stays symmetric positive definite, and the
     step is stable for every dt. A sample whose J or z is not finite leaves θ̂ and R as they
@@ -202,8 +220,20 @@ class FilteredLeastSquares(UpdateLaw):
     law with J; for this one the standard argument holds on the filtered error model
     z = W θ̃ (g linear in θ, θ̂ slow): V = θ̃ᵀRθ̃ is non-increasing and θ̂ tends to the
     least-squares fit of z on W. With g nonlinear in θ, that fit is about the current θ̂: a
-    local result, stated as such. The law runs on the observer's Python path (the compiled
-    kernels do not carry a law state yet).
+    local result, stated as such.
+
+    **Back ends.** The step is written once,
+    :func:`~thetahat.estimation.observer.laws.formulas.least_squares_law`: :meth:`advance` runs
+    it printed for NumPy (the observer's ``step``, ``run`` and ``run_batch``; the projection
+    by ``parameter_set.nearest``), and the numba kernel
+    (:func:`~thetahat.estimation.observer.compiled.compile_observer`, chosen by the runner for
+    ``run_estimator`` and ``thetahat estimate``) prints it as scalar loops with the state in
+    the kernel's row, for a :class:`~thetahat.model.paramset.Box` Θ (its projection in R⁺'s
+    metric: :func:`~thetahat.estimation.kernels.set_projection.project_box_metric`). A Ball,
+    Ellipsoid or other Θ runs on the Python path (the kernel refuses it with
+    :class:`~thetahat.errors.UnsupportedError`). The generated C does not carry it:
+    ``generate_c`` refuses the law (a law with a state of its own), and the runner takes the
+    numba kernel.
 
     Examples
     --------
@@ -370,45 +400,87 @@ class FilteredLeastSquares(UpdateLaw):
             raise UpdateLawError("FilteredLeastSquares: Γ₀ is part of the law's state; build "
                                  "one law per Γ₀ instead of passing Gamma per row.")
         dt = positive_scalar("dt", dt)
-        pert = self.perturbation
-        n, _, _, p, k = pert.dims
+        n, _, _, p, k = self.perturbation.dims
         v_, x, phi, th, batch = as_batch(v, x_hat, phi_hat, theta_hat, p)
-        S = np.asarray(state, dtype=np.float64).reshape(batch + (self.state_size,))
-        Ad, Bd = self.filter.discrete(dt)
-        H = self.filter.H
-        nk, nw = n + k, (n + k) * p
-        th_out = np.array(np.broadcast_to(th, batch + (p,)), dtype=np.float64)
-        S_out = np.array(S, dtype=np.float64)
-        with np.errstate(over="ignore", invalid="ignore"):
-            J = np.broadcast_to(np.asarray(pert.dg_dtheta(v_, x, th), dtype=np.float64),
-                                batch + (k, p))
-            z = np.broadcast_to(phi - np.asarray(pert.g(v_, x, th), dtype=np.float64),
-                                batch + (k,))
+        S = np.array(np.broadcast_to(np.asarray(state, dtype=np.float64),
+                                     batch + (self.state_size,)), dtype=np.float64)
+        args = broadcast_rows(batch, v_, x, phi, th)
+        LP = self.law_arrays(dt, batch)
+        thn = np.empty(batch + (p,))
+        env = law_binding(self, None, ("least_squares_law",), batch == (),
+                          lambda: _least_squares_names(self))
+        with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
+            status = env["least_squares_law"](LP, args[0], args[1], args[2], args[3], dt, thn,
+                                              S)
+        if status != 0:
+            raise UpdateLawError("FilteredLeastSquares: the information R became singular; "
+                                 "give a positive-definite Γ₀ of a sensible scale.")
+        return thn, S
+
+    def law_arrays(self, dt: float | None, batch: tuple[int, ...] = ()) -> LawArrays:
+        """The arrays of :func:`~thetahat.estimation.observer.laws.formulas.least_squares_law`
+        for rows of shape ``batch``: the filter's H, L and Φ₁ of ``dt``, Θ and zeroed scratch.
+
+        Parameters
+        ----------
+        dt : float or None
+            The step length; None leaves Φ₁ zero (the compiled kernel points it at the
+            observer's Φ₁ of each step: the same φ-function of the same L).
+        batch : tuple of int
+            The batch shape.
+
+        Returns
+        -------
+        LawArrays
+        """
+        filt = self.filter
+        if filt is None:
+            raise UpdateLawError("FilteredLeastSquares is not bound to an observer: build the "
+                                 "observer with it (ModifiedHighGainObserver binds it to its "
+                                 "gains), or call for_observer(system, K_x, K_phi).")
+        n, _, _, p, k = self.perturbation.dims
+        nq = n + k
+        Phi1 = (np.zeros((nq, nq)) if dt is None
+                else np.array(filt.discrete_phi1(dt), dtype=np.float64))
+
+        def z(*shape: int) -> FloatArray:
+            return np.zeros(batch + shape)
+
         ps = self.parameter_set
-        for i in np.ndindex(*batch):
-            w, wb, a, R = self._split(S[i])
-            Ji, zi, th0 = J[i], z[i], th_out[i].copy()
-            if np.all(np.isfinite(Ji)) and np.all(np.isfinite(zi)):
-                W = H @ w
-                zeta = zi + a + H @ wb                  # = W θ (class notes)
-                Rn = R + dt * (W.T @ W)
-                Rn = 0.5 * (Rn + Rn.T)
-                cand = th0 + scipy.linalg.cho_solve(scipy.linalg.cho_factor(Rn),
-                                                     dt * (W.T @ (zeta - W @ th0)))
-                cand = finite_candidate(cand, th0)
-                th1 = cand if ps.contains(cand) else ps.nearest(cand, metric=Rn)
-                th_out[i] = th1
-                S_out[i][nw:nw + nk] = Ad @ wb + Bd @ (Ji @ th0 - a)
-                S_out[i][nw + nk:nw + nk + k] = a + Ji @ (th1 - th0)
-                S_out[i][nw + nk + k:] = Rn.ravel()
-                S_out[i][:nw] = (Ad @ w + Bd @ Ji).ravel()
-            else:
-                S_out[i][:nw] = (Ad @ w).ravel()
-                S_out[i][nw:nw + nk] = Ad @ wb + Bd @ (-a)
-        return th_out, S_out
+        box = ({"lower": np.array(ps.lower), "upper": np.array(ps.upper)}
+               if isinstance(ps, Box) else {})
+        return LawArrays(H=np.array(filt.H), Lf=np.array(filt.L), Phi1=Phi1, g=z(k),
+                         J=z(k, p), w=z(nq, p), wn=z(nq, p), wb=z(nq), Wm=z(k, p), WT=z(p, k),
+                         Rn=z(p, p), Rf=z(p, p), b=z(p), e=z(k), Ad=z(nq, nq), Bd=z(nq, k),
+                         q=z(nq), pw=z(p + 4, p + 1), **box)
 
     def __repr__(self) -> str:
         bound = "bound" if self.filter is not None else "unbound"
         return (f"FilteredLeastSquares(p={self.parameter_set.dim}, "
                 f"Gamma0={np.round(np.diag(self.Gamma), 6).tolist()}, {bound})")
 
+
+
+def _least_squares_names(law: FilteredLeastSquares) -> dict[str, Any]:
+    """The hooks of :func:`~thetahat.estimation.observer.laws.formulas.least_squares_law` for
+    one law on NumPy rows: g and ∂g/∂θ by the perturbation, the projection by Θ's own
+    ``nearest`` in R⁺'s metric (rows already in Θ untouched)."""
+    pert = law.perturbation
+    n, _, _, p, k = pert.dims
+    ps = law.parameter_set
+
+    def g_val(v: FloatArray, x: FloatArray, th: FloatArray, g: FloatArray) -> None:
+        g[...] = pert.g(v, x, th)
+
+    def dg_dtheta(v: FloatArray, x: FloatArray, th: FloatArray, J: FloatArray) -> None:
+        J[...] = pert.dg_dtheta(v, x, th)
+
+    def project(LP: LawArrays, thn: FloatArray) -> int:
+        flat, R = thn.reshape(-1, p), np.broadcast_to(LP.Rn, thn.shape + (p,)).reshape(-1, p, p)
+        for i in range(flat.shape[0]):
+            if not ps.contains(flat[i]):
+                flat[i] = ps.nearest(flat[i], metric=R[i])
+        return 0
+
+    return {"g_val": g_val, "dg_dtheta": dg_dtheta, "project": project, "NP": p, "NK": k,
+            "NX": n, "NQ": n + k, "FAR": FAR, **status_constants()}
