@@ -607,7 +607,7 @@ def estimate_many(model: str | Path, data: str | Path | Iterable[str | Path], *,
         rounding (records that share their sampling instants run as one batch).
     hold : {"zoh", "foh", "bandlimited"}, optional
         u between the samples, for every method
-        (:func:`~thetahat.modelfile.assembly.split_hold`; default: each method's own).
+        (:func:`~thetahat.modelfile.holds.split_hold`; default: each method's own).
     method : {"paper", "guarded", "mle", "ekf"}, optional
         The estimator (default: the file's ``[estimator] method``, else ``"guarded"``), as for
         :func:`~thetahat.modelfile.assembly.run_estimator`. The paper's observer runs the

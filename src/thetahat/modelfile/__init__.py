@@ -15,7 +15,8 @@ the shipped models and the command line import it.
 
 from .assembly import (ObserverGains, auto_gamma, build_estimator, build_observer,
                        design_gains, design_matrices, estimator_spec, resolve_gains,
-                       run_estimator, split_hold, start_x_hat)
+                       run_estimator, start_x_hat)
+from .holds import split_hold
 from .codegen import generate_c_from_model, generate_ekf_c_from_model
 from .report import ModelAnalysis, analyze_model
 from ..methods import ESTIMATION_METHODS

@@ -20,9 +20,8 @@ from numpy.typing import ArrayLike, NDArray
 
 from .._validate import as_samples, seconds_from_first
 from ..design.gains import GainDesign
-from ..errors import (ConvergenceWarning, ModelFileError, NotMinimumPhaseError, OptionError,
+from ..errors import (ConvergenceWarning, ModelFileError, NotMinimumPhaseError,
                       ThetahatError, ThetahatWarning, UnstableDesignError)
-from ..estimation.hold import check_hold
 from ..estimation.observer.checks import check_theta_star
 from ..estimation.observer.initial_state import x_hat_from_output
 from ..estimation.observer.laws.projection import as_gain
@@ -34,6 +33,7 @@ from ..progress import FitProgress, Stages
 from ..spec import SECOND_DESIGN_NOTE, EstimatorSpec, Hold, SecondObserverSpec
 from ..studies.information import explain_nonfinite, stuck_parameters
 from ..threads import one_blas_thread
+from .holds import split_hold
 from .schema import ModelSpec
 
 if TYPE_CHECKING:
@@ -41,7 +41,7 @@ if TYPE_CHECKING:
 
 __all__ = ["ObserverGains", "auto_gamma", "build_estimator", "build_observer", "design_gains",
            "design_matrices", "estimator_spec", "resolve_gains", "run_estimator",
-           "split_hold", "start_x_hat"]
+           "start_x_hat"]
 
 FloatArray = NDArray[np.float64]
 
@@ -329,7 +329,7 @@ def resolve_gains(spec: ModelSpec, t: ArrayLike | None = None, u: ArrayLike | No
         p × p matrix.
     hold : {"zoh", "foh", "bandlimited"}, optional
         The run's hold; the first pass of ``"auto"`` takes the observer's
-        (:func:`split_hold`).
+        (:func:`~thetahat.modelfile.holds.split_hold`).
     nan_policy : {"raise", "skip"}
         Missing outputs in the record of ``"auto"``: refused, or predicted over by the first
         pass (as the run that follows does) and left out of the information.
@@ -391,50 +391,6 @@ def _build(est: EstimatorSpec, spec: ModelSpec, eps: float | None,
             zeros=exc.zeros) from exc
 
 
-def split_hold(hold: str | None, method: str) -> tuple[Hold, str | None]:
-    """The observer's hold and the statistical methods' hold of a run's ``hold``.
-
-    ``None`` leaves each its default: the observer holds the samples (``"zoh"``), the
-    statistical methods take u linear between them (their ``"foh"``). ``"zoh"`` or ``"foh"``
-    is every method's. ``"bandlimited"`` (:mod:`thetahat.estimation.hold`) reaches the
-    statistical methods; the guarded estimator's stage 1 (the guard) then takes ``"foh"``,
-    and the paper's observer refuses it (its exponential integrator takes the zero- and
-    first-order holds only).
-
-    Parameters
-    ----------
-    hold : {"zoh", "foh", "bandlimited"} or None
-    method : str
-        The method the run uses (:data:`thetahat.methods.ESTIMATION_METHODS`).
-
-    Returns
-    -------
-    (str, str or None)
-        The observer's ``"zoh"`` or ``"foh"``; the statistical methods' hold (None: theirs).
-
-    Raises
-    ------
-    OptionError
-        An unknown hold, or ``"bandlimited"`` with the paper's method.
-
-    Examples
-    --------
-    >>> from thetahat.modelfile.assembly import split_hold
-    >>> split_hold(None, "guarded"), split_hold("bandlimited", "mle")
-    (('zoh', None), ('foh', 'bandlimited'))
-    """
-    if hold is None:
-        return "zoh", None
-    check_hold(hold)
-    if hold == "bandlimited":
-        if method == "paper":
-            raise OptionError("hold 'bandlimited' reaches the statistical methods (guarded, "
-                              "mle, ekf); the paper's observer takes 'zoh' or 'foh': choose "
-                              "one of those or another method.")
-        return "foh", "bandlimited"
-    return ("zoh" if hold == "zoh" else "foh"), hold
-
-
 def build_estimator(spec: ModelSpec, *, method: str | None = None, hold: str | None = None,
                     nan_policy: str = "raise", compiled: bool | None = None,
                     progress: Callable[[int, int], None] | None = None,
@@ -451,7 +407,7 @@ def build_estimator(spec: ModelSpec, *, method: str | None = None, hold: str | N
         ``[estimator] method``): the paper's observer, the two-stage guarded estimator (that
         observer as stage 1), the MAP fits or the joint EKF.
     hold : {"zoh", "foh", "bandlimited"}, optional
-        u between the samples (:func:`split_hold`): default, the observer holds the samples
+        u between the samples (:func:`~thetahat.modelfile.holds.split_hold`): default, the observer holds the samples
         (its ``step`` always does) and the statistical methods take u linear between them.
     nan_policy : {"raise", "skip"}
         What the observer does with a NaN sample (a dropout).
@@ -533,7 +489,7 @@ def run_estimator(spec: ModelSpec, t: ArrayLike, u: ArrayLike | None, y: ArrayLi
     y : array_like, shape (N, r)
         Output samples.
     hold : {"zoh", "foh", "bandlimited"}, optional
-        u between the samples, for every method (:func:`split_hold`; the trust report takes
+        u between the samples, for every method (:func:`~thetahat.modelfile.holds.split_hold`; the trust report takes
         the statistical methods' one). Default: the observer holds the samples, the
         statistical methods take u linear between them.
     nan_policy : {"raise", "skip"}
