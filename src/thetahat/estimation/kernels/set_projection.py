@@ -56,22 +56,10 @@ DIAGONAL_ATOL = 1e-8
 BOX_QP_ITERATIONS = 100
 
 
-def _solve_shifted(M: FloatArray, euclid: bool, ell: FloatArray, lam: float,
-                   work: FloatArray) -> float:
-    """d = (I + λ M Q)⁻¹ d0 by Gaussian elimination with partial pivoting; returns dᵀQd.
-
-    Q = ell[1:]; M is I when ``euclid``. ``work`` (p + 2, p + 1): rows 0…p−1 the augmented
-    matrix, row p d0 (read), row p + 1 d (written).
-    """
-    p = ell.shape[1]
-    for i in range(p):
-        for j in range(p):
-            acc = 0.0
-            for k in range(p):
-                m = (1.0 if i == k else 0.0) if euclid else M[i, k]
-                acc += m * ell[1 + k, j]
-            work[i, j] = lam * acc + (1.0 if i == j else 0.0)
-        work[i, p] = work[p, i]
+def _eliminate(work: FloatArray, p: int, out: int) -> None:
+    """Solve the augmented system in rows 0…p−1 of ``work`` (p × p matrix, right-hand side
+    in column p) by Gaussian elimination with partial pivoting; the solution into row
+    ``out``. The rows are overwritten."""
     for col in range(p):
         piv = col
         for i in range(col + 1, p):
@@ -89,8 +77,27 @@ def _solve_shifted(M: FloatArray, euclid: bool, ell: FloatArray, lam: float,
     for i in range(p - 1, -1, -1):
         acc = work[i, p]
         for j in range(i + 1, p):
-            acc -= work[i, j] * work[p + 1, j]
-        work[p + 1, i] = acc / work[i, i]
+            acc -= work[i, j] * work[out, j]
+        work[out, i] = acc / work[i, i]
+
+
+def _solve_shifted(M: FloatArray, euclid: bool, ell: FloatArray, lam: float,
+                   work: FloatArray) -> float:
+    """d = (I + λ M Q)⁻¹ d0 by Gaussian elimination with partial pivoting; returns dᵀQd.
+
+    Q = ell[1:]; M is I when ``euclid``. ``work`` (p + 2, p + 1): rows 0…p−1 the augmented
+    matrix, row p d0 (read), row p + 1 d (written).
+    """
+    p = ell.shape[1]
+    for i in range(p):
+        for j in range(p):
+            acc = 0.0
+            for k in range(p):
+                m = (1.0 if i == k else 0.0) if euclid else M[i, k]
+                acc += m * ell[1 + k, j]
+            work[i, j] = lam * acc + (1.0 if i == j else 0.0)
+        work[i, p] = work[p, i]
+    _eliminate(work, p, p + 1)
     q = 0.0
     for i in range(p):
         for j in range(p):
@@ -315,25 +322,7 @@ def _box_qp_solve(W: FloatArray, work: FloatArray) -> None:
                 else:
                     work[i, j] = W[i, j]
             work[i, p] = acc
-    for col in range(p):
-        piv = col
-        for i in range(col + 1, p):
-            if abs(work[i, col]) > abs(work[piv, col]):
-                piv = i
-        if piv != col:
-            for j in range(p + 1):
-                tmp = work[col, j]
-                work[col, j] = work[piv, j]
-                work[piv, j] = tmp
-        for i in range(col + 1, p):
-            f = work[i, col] / work[col, col]
-            for j in range(col, p + 1):
-                work[i, j] -= f * work[col, j]
-    for i in range(p - 1, -1, -1):
-        t = work[i, p]
-        for j in range(i + 1, p):
-            t -= work[i, j] * work[p + 3, j]
-        work[p + 3, i] = t / work[i, i]
+    _eliminate(work, p, p + 3)
 
 
 def project_box_metric(theta: FloatArray, W: FloatArray, lo: FloatArray, hi: FloatArray,
