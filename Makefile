@@ -23,8 +23,8 @@ $(STAMP): pyproject.toml $(LOCK) | $(BIN)/python
 demo: $(STAMP)
 	$(BIN)/python examples/lugre_demo.py --no-show
 
-# The suite runs on every core (pytest-xdist; -n auto): under 10 min on 2 cores with a warm
-# kernel cache (8 min 57 s for 3,164 tests in the last CI run).
+# The suite runs on every core (pytest-xdist; -n auto): 15 min 50 s for 3,298 tests on 2 cores
+# in the last CI run (the observer's kernels had changed, so many compiled first).
 test: $(STAMP)
 	$(BIN)/python -m pytest -q -n auto
 
