@@ -34,7 +34,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike
 
-from ..errors import FileAccessError, OptionError, UnsupportedError
+from ..errors import OptionError, UnsupportedError
 from ..estimation.kernels.subset import source_tree
 from ..estimation.statistical import ekf_kernels as ek
 from ..estimation.statistical import plant_kernel as pk
@@ -42,11 +42,11 @@ from ..estimation.statistical.ekf import JointEKF
 from ..estimation.statistical.plant_forms import plant_jacobians
 from ..estimation.statistical.stage2_set import clip_kernel, stage2_set
 from ..model.paramset import Box
-from ..safe_io import write_texts
 from .c_printer import CUnit
 from .c_text import check_c_name, comment_text
 from .c_values import Arr, Const
 from .ekf_c_text import ekf_header, ekf_main, ekf_source
+from .generate import write_c_files
 from .harness import makefile_source
 from .printing import c_function
 
@@ -101,12 +101,7 @@ class EKFCode:
         FileAccessError
             Nothing was replaced (or the message lists what was).
         """
-        out = Path(directory)
-        try:
-            return write_texts({out / fname: text for fname, text in self.files().items()})
-        except OSError as exc:
-            raise FileAccessError(f"cannot write the generated C into {out}: {exc} Choose a "
-                                  "writable folder with -o.") from exc
+        return write_c_files(directory, self.files())
 
     def summary(self) -> str:
         """What ``thetahat codegen --method ekf`` prints."""

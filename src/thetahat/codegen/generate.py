@@ -53,9 +53,45 @@ from .c_derive import derived_step, inwards
 from .harness import harness_source, makefile_source
 from .printing import REALS
 
-__all__ = ["CCode", "generate_c", "model_hash", "supports_c"]
+__all__ = ["CCode", "generate_c", "model_hash", "supports_c", "write_c_files"]
 
 FloatArray = NDArray[np.float64]
+
+
+def write_c_files(directory: str | Path, files: dict[str, str]) -> tuple[Path, ...]:
+    """Write generated files (name → text) into ``directory`` as one set
+    (:func:`~thetahat.safe_io.write_texts`: all written to temporary files first, then
+    renamed); returns their paths.
+
+    Parameters
+    ----------
+    directory : str or Path
+        Created if missing.
+    files : dict of str to str
+
+    Returns
+    -------
+    tuple of Path
+
+    Raises
+    ------
+    FileAccessError
+        The directory or a file cannot be written: nothing was replaced (or, should a rename
+        fail, the message lists what was).
+
+    Examples
+    --------
+    >>> import pathlib, tempfile
+    >>> d = pathlib.Path(tempfile.mkdtemp())
+    >>> [p.name for p in write_c_files(d / "c", {"a.h": "", "a.c": ""})]
+    ['a.h', 'a.c']
+    """
+    out = Path(directory)
+    try:
+        return write_texts({out / fname: text for fname, text in files.items()})
+    except OSError as exc:
+        raise FileAccessError(f"cannot write the generated C into {out}: {exc} Choose a "
+                              "writable folder with -o.") from exc
 
 _LAWS: dict[type, str] = {ConstantLaw: "constant", IntermittentInversion: "intermittent",
          GradientInversion: "gradient"}
@@ -114,12 +150,7 @@ class CCode:
             The directory or a file cannot be written: nothing was replaced (or, should a
             rename fail, the message lists what was).
         """
-        out = Path(directory)
-        try:
-            return write_texts({out / fname: text for fname, text in self.files().items()})
-        except OSError as exc:
-            raise FileAccessError(f"cannot write the generated C into {out}: {exc} Choose a "
-                                  "writable folder with -o.") from exc
+        return write_c_files(directory, self.files())
 
     def summary(self) -> str:
         """One line per size, as ``thetahat codegen`` prints them."""

@@ -2,13 +2,16 @@
 :func:`~thetahat.modelfile.run_estimator`, :func:`~thetahat.modelfile.build_estimator`,
 :func:`~thetahat.fleet.estimate_many` and ``thetahat estimate --hold`` share.
 
-What it may import: :mod:`thetahat.estimation.hold` and the package's errors.
+What it may import: the holds' checks (:mod:`thetahat.estimation.hold`, the observer's
+:func:`~thetahat.estimation.observer.record_run.check_hold`).
 """
 
 from __future__ import annotations
 
-from ..errors import OptionError
+from typing import cast
+
 from ..estimation.hold import check_hold
+from ..estimation.observer.record_run import check_hold as observer_hold
 from ..spec import Hold
 
 __all__ = ["split_hold"]
@@ -48,11 +51,6 @@ def split_hold(hold: str | None, method: str) -> tuple[Hold, str | None]:
     """
     if hold is None:
         return "zoh", None
-    check_hold(hold)
-    if hold == "bandlimited":
-        if method == "paper":
-            raise OptionError("hold 'bandlimited' reaches the statistical methods (guarded, "
-                              "mle, ekf); the paper's observer takes 'zoh' or 'foh': choose "
-                              "one of those or another method.")
+    if method != "paper" and check_hold(hold) == "bandlimited":
         return "foh", "bandlimited"
-    return ("zoh" if hold == "zoh" else "foh"), hold
+    return cast(Hold, observer_hold(hold)), hold

@@ -39,7 +39,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from .._validate import as_samples, as_vector
 from ..errors import ConvergenceWarning, DimensionError, NonFiniteError, OptionError
-from ..estimation.hold import HOLDS, check_hold, reconstruct
+from ..estimation.hold import check_hold, reconstruct
 from ..estimation.statistical.crlb import sensitivity_kernel
 from ..estimation.statistical.plant_kernel import H_RHO, ModelKernel, Propagation, model_kernel
 from ..model.system import PerturbedLinearSystem
@@ -60,13 +60,6 @@ MAX_SUBSTEPS = 64
 DEFAULT_RTOL = 1e-4
 #: Uniform sampling for the band-limited reconstruction: steps within this relative spread.
 UNIFORM_RTOL = 1e-6
-
-
-def _check_hold(hold: str) -> str:
-    try:
-        return check_hold(hold)
-    except OptionError:
-        raise OptionError(f"hold: expected one of {list(HOLDS)}; got {hold!r}.") from None
 
 
 def input_path(t: ArrayLike, u: ArrayLike, hold: str, substeps: int
@@ -112,7 +105,7 @@ def input_path(t: ArrayLike, u: ArrayLike, hold: str, substeps: int
     >>> input_path([0.0, 1.0, 2.0], np.array([[0.0], [2.0], [2.0]]), "zoh", 2)[2][:, 0].tolist()
     [0.0, 0.0, 2.0, 2.0]
     """
-    _check_hold(hold)
+    check_hold(hold)
     if not isinstance(substeps, (int, np.integer)) or substeps < 1:
         raise OptionError(f"substeps: expected an integer >= 1; got {substeps!r}.")
     S = int(substeps)
@@ -139,7 +132,7 @@ class FreeRun:
     t : ndarray, shape (N,)
     U : ndarray, shape (N, m)
     hold : str
-        One of :data:`HOLDS`.
+        One of :data:`thetahat.estimation.hold.HOLDS`.
 
     Examples
     --------
@@ -183,7 +176,7 @@ class FreeRun:
         DimensionError, NonFiniteError, OptionError
             Shapes; a non-finite input; an unknown hold.
         """
-        _check_hold(hold)
+        check_hold(hold)
         t = as_vector("t", t)
         if t.size < 2 or not np.all(np.diff(t) > 0):
             raise DimensionError("t: expected at least two strictly increasing sample times.")

@@ -57,6 +57,7 @@ from numpy.typing import NDArray
 
 from ...errors import OptionError, ThetahatError, UpdateLawError
 from ...model.perturbation import Perturbation
+from ..hold import check_hold as any_hold
 from ..protocol import EstimateResult, ObserverDiagnostics
 from ..status import Status, status_error
 from .formulas import DIVERGENCE_BOUND
@@ -82,8 +83,9 @@ PROGRESS_EVERY = 1_000
 COMPILED = (False, None, True)
 
 
-def check_hold(hold: str) -> str:
-    """``hold`` if it is one of :data:`HOLDS`.
+def check_hold(hold: object) -> str:
+    """``hold`` if the observer's ``run`` takes it (:data:`HOLDS`): a hold of
+    :func:`thetahat.estimation.hold.check_hold` its exponential integrator can follow.
 
     Parameters
     ----------
@@ -96,16 +98,18 @@ def check_hold(hold: str) -> str:
     Raises
     ------
     OptionError
-        Another value.
+        Not a hold at all, or ``"bandlimited"`` (the statistical methods take it).
 
     Examples
     --------
     >>> check_hold("foh")
     'foh'
     """
-    if hold not in HOLDS:
-        raise OptionError(f"hold must be one of {HOLDS}; got {hold!r}.")
-    return hold
+    if any_hold(hold) not in HOLDS:
+        raise OptionError(f"hold {hold!r} reaches the statistical methods (guarded's stage 2, "
+                          f"mle, ekf); the paper's observer takes {' or '.join(HOLDS)}: choose "
+                          "one of those or another method.")
+    return str(hold)
 
 
 def check_compiled(compiled: object) -> bool | None:
