@@ -407,8 +407,9 @@ def build_estimator(spec: ModelSpec, *, method: str | None = None, hold: str | N
         ``[estimator] method``): the paper's observer, the two-stage guarded estimator (that
         observer as stage 1), the MAP fits or the joint EKF.
     hold : {"zoh", "foh", "bandlimited"}, optional
-        u between the samples (:func:`~thetahat.modelfile.holds.split_hold`): default, the observer holds the samples
-        (its ``step`` always does) and the statistical methods take u linear between them.
+        u between the samples (:func:`~thetahat.modelfile.holds.split_hold`): default, the
+        observer holds the samples (its ``step`` always does) and the statistical methods
+        take u linear between them.
     nan_policy : {"raise", "skip"}
         What the observer does with a NaN sample (a dropout).
     compiled : bool, optional
@@ -489,9 +490,10 @@ def run_estimator(spec: ModelSpec, t: ArrayLike, u: ArrayLike | None, y: ArrayLi
     y : array_like, shape (N, r)
         Output samples.
     hold : {"zoh", "foh", "bandlimited"}, optional
-        u between the samples, for every method (:func:`~thetahat.modelfile.holds.split_hold`; the trust report takes
-        the statistical methods' one). Default: the observer holds the samples, the
-        statistical methods take u linear between them.
+        u between the samples, for every method
+        (:func:`~thetahat.modelfile.holds.split_hold`; the trust report takes the statistical
+        methods' one). Default: the observer holds the samples, the statistical methods take
+        u linear between them.
     nan_policy : {"raise", "skip"}
         What the observer does with a NaN sample (a dropout).
     progress : callable or Stages, optional

@@ -231,7 +231,8 @@ def _method_run(spec: ModelSpec, train: DataRecord, record: DataRecord, method: 
                         warnings=notes, seconds=seconds)
 
 
-def _reference_run(spec: ModelSpec, train: DataRecord, record: DataRecord, hold: str) -> SilverboxRun:
+def _reference_run(spec: ModelSpec, train: DataRecord, record: DataRecord,
+                   hold: str) -> SilverboxRun:
     from ..studies.validation import fit_output_error
     t0 = time.perf_counter()
     fit: OutputErrorFit = fit_output_error(spec.system, train.t, train.u, train.y,

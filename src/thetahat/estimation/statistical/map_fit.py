@@ -63,8 +63,9 @@ if TYPE_CHECKING:
     from .likelihood import ProcessNoiseFit
 
 __all__ = ["FitResult", "FitSchedule", "INFO_GROWTH", "MAX_BURST_FRACTION", "MAX_HALVINGS",
-           "Q_SEARCH_GROWTH", "REJECT_SE_GROWTH", "STEP_TOL", "doubling_schedule", "first_fit_samples",
-           "fit_as_prior", "fit_map", "fit_record", "information_schedule", "solve_scaled"]
+           "Q_SEARCH_GROWTH", "REJECT_SE_GROWTH", "STEP_TOL", "doubling_schedule",
+           "first_fit_samples", "fit_as_prior", "fit_map", "fit_record", "information_schedule",
+           "solve_scaled"]
 
 FloatArray = NDArray[np.float64]
 

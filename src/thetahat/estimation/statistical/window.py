@@ -45,8 +45,9 @@ from .map_fit import FitResult, FitSchedule, first_fit_samples, fit_map, solve_s
 from .plant_kernel import Propagation, model_kernel
 from .sweep import sweep_kernel
 
-__all__ = ["ARRIVAL_FLOOR", "Anchor", "WINDOW_INFO_GAIN", "arrival_information", "WINDOW_MAX", "WINDOW_MIN", "check_window", "fit_window",
-           "resolve_window", "window_grid", "window_reached", "windowed", "windowed_counts"]
+__all__ = ["ARRIVAL_FLOOR", "Anchor", "WINDOW_INFO_GAIN", "WINDOW_MAX", "WINDOW_MIN",
+           "arrival_information", "check_window", "fit_window", "resolve_window", "window_grid",
+           "window_reached", "windowed", "windowed_counts"]
 
 FloatArray = NDArray[np.float64]
 #: A window's start: (k0, s, P, σ) — the sample, the posterior N(s, P) of col(x, θ) there and
