@@ -796,7 +796,9 @@ def test_fleet_reports_special_entries_as_failed_rows(fleet, no_hang):
     model, d = fleet
     _fifo(d, "pipe.csv")
     _devlink(d, "zero.csv")
-    res = estimate_many(model, d, progress=False)
+    # the paper's observer: the regular records' work stays well inside the alarm on every back end
+    # (guarded's fits take ~30 s for these two records in plain Python, no numba)
+    res = estimate_many(model, d, progress=False, method="paper")
     assert res.n_ok == 2
     assert "FIFO" in res.failed[str(d / "pipe.csv")]
     assert "character device" in res.failed[str(d / "zero.csv")]

@@ -76,3 +76,21 @@ def test_compiled_kernels_agree_with_the_numpy_fallback():
     # stage 1 differs by rounding (compiled vs Python observer), stage 2 and the fits by
     # rounding; 1e-8 N m is 4e-8 of θ
     np.testing.assert_allclose(res[1].theta_hat, res[0].theta_hat, rtol=0, atol=1e-8)
+
+
+def test_plain_python_kernels_overflow_to_inf_as_the_compiled_ones_do():
+    """exp(θ x) beyond float range: Python's math raises, numba gives inf. The plain-Python
+    kernels must give inf too, so that a free run that leaves float range ends with a
+    non-finite status (which callers check) instead of an OverflowError mid-loop."""
+    from thetahat.modelfile import loads_model
+
+    spec = loads_model('[system]\nA = [[-1.0]]\nB = [[1.0]]\nC = [[1.0]]\nE = [[1.0]]\n'
+                       '[perturbation]\ng = "exp(theta*y) - 1"\nu = ["u"]\ny = ["y"]\n'
+                       'x = ["x"]\ntheta = ["theta"]\n'
+                       '[parameter_set]\nlower = [0.5]\nupper = [2.0]\n'
+                       '[estimator]\nlaw = "algebraic"\n')
+    kern = model_kernel(spec.system, compiled=False)
+    f = kern.f(np.array([800.0]), np.zeros(1), np.array([2.0]))   # exp(1600) > 1.8e308
+    assert np.isposinf(f[0])
+    f_in_range = kern.f(np.array([1.0]), np.zeros(1), np.array([2.0]))
+    np.testing.assert_allclose(f_in_range[0], -1.0 + np.exp(2.0) - 1.0, rtol=1e-14)

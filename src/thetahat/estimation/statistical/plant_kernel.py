@@ -61,7 +61,7 @@ import math
 import sys
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
-from types import ModuleType
+from types import ModuleType, SimpleNamespace
 from typing import Any, Callable
 
 import numpy as np
@@ -468,6 +468,34 @@ def free_run(x0: Any, th: Any, U: Any, tt: Any, k0: int, k1: int, pc: Any, WT: A
     return k1 - k0
 
 
+def _ieee_function(name: str, ufunc: Any) -> Callable[..., float]:
+    """``math.<name>`` whose overflow or domain error gives IEEE's inf or nan, as numba's does."""
+    exact = getattr(math, name)
+
+    def ieee(*args: float) -> float:
+        try:
+            return exact(*args)
+        except (OverflowError, ValueError):          # only here: NumPy's IEEE result
+            with np.errstate(all="ignore"):
+                return float(ufunc(*args))
+    ieee.__name__ = name
+    return ieee
+
+
+#: The ``math`` a plain-Python printed module sees (numba absent): Python's ``math`` raises
+#: ``OverflowError`` for ``exp(1000)`` and ``ValueError`` for ``log(0)`` where the compiled
+#: kernels return inf and -inf, which their loops check and report as a status; these
+#: functions give the compiled kernels' results (at the cost of a try only).
+IEEE_MATH = SimpleNamespace(**{
+    **{k: getattr(math, k) for k in dir(math) if not k.startswith("_")},
+    **{name: _ieee_function(name, ufunc) for name, ufunc in [
+        ("exp", np.exp), ("expm1", np.expm1), ("exp2", np.exp2), ("cosh", np.cosh),
+        ("sinh", np.sinh), ("pow", np.power), ("log", np.log), ("log2", np.log2),
+        ("log10", np.log10), ("log1p", np.log1p), ("sqrt", np.sqrt), ("acos", np.arccos),
+        ("asin", np.arcsin), ("acosh", np.arccosh), ("atanh", np.arctanh),
+        ("fmod", np.fmod)] if hasattr(math, name)}})
+
+
 def _ieee(fn: Callable[..., Any]) -> Callable[..., Any]:
     """``fn`` with NumPy's floating-point warnings off, as numba's arithmetic has them.
 
@@ -532,6 +560,8 @@ def printed_kernels(prefix: str, doc: str, functions: Sequence[Callable[..., Any
     mod = load_module(mt.source(), prefix)
     if fresh:
         mod = _fresh(mod)
+    if not compiled:
+        mod.math = IEEE_MATH         # type: ignore[attr-defined]   # inf/nan, not exceptions
     for name in names:
         if not compiled and not getattr(getattr(mod, name), "ieee", False):
             setattr(mod, name, _ieee(getattr(mod, name)))
