@@ -112,14 +112,71 @@ def test_q_searched_on_the_head_of_a_long_record_is_the_whole_records(monkeypatc
     U, Y = np.asarray(rec.u).reshape(-1, 1), np.asarray(rec.y).reshape(-1, 1)
     kw = dict(theta=emps.PUBLISHED.value, x_hat0=np.array([Y[0, 0], 0.0]),
               x_sd=np.full(2, 10.0), noise_std=estimate_noise_std(Y))
+    monkeypatch.setattr(lk, "Q_FIRST_HEAD", lk.Q_SEARCH_SAMPLES)      # one search, no short head
     q_all, cov_all = lk.record_bound(spec.system, rec.t, U, Y, **kw)
     monkeypatch.setattr(lk, "Q_SEARCH_SAMPLES", rec.t.size // 2)
+    monkeypatch.setattr(lk, "Q_FIRST_HEAD", lk.Q_SEARCH_SAMPLES)
     q_head, cov_head = lk.record_bound(spec.system, rec.t, U, Y, **kw)
     assert q_all > 0.0 and q_head > 0.0                         # the model error shows in both
     # two bounded searches, each to Q_XTOL decades: within 3 tolerances of each other
     assert abs(np.log10(q_head / q_all)) <= 3 * lk.Q_XTOL
     # the covariance is the whole record's at each q: a q within the tolerance moves it little
     np.testing.assert_allclose(np.sqrt(np.diag(cov_head)), np.sqrt(np.diag(cov_all)), rtol=0.1)
+
+
+def _q_case(name):
+    """(system, t, U, Y, θ, x̂₀, hold) for the short-head search's test: the measured records
+    at the published / an output-error θ, the simulated ones at θ 5 % off (a model error)."""
+    from thetahat.estimation.statistical.input_hold import stage2_samples
+    from thetahat.estimation.statistical.noise_level import estimate_noise_std
+    if name == "emps":
+        from thetahat.models import emps
+        spec, rec = load_model(EXAMPLES / "emps.toml"), emps.load()
+        t, u, y, theta, hold = rec.t, rec.u, rec.y, emps.PUBLISHED.value, "foh"
+    elif name == "silverbox":
+        from thetahat.io.datafile import read_data
+        from thetahat.models import silverbox
+        spec = load_model(silverbox.MODEL_FILE)
+        rec = read_data(silverbox.DATA_FILE, spec.layout).segment(0, 3 * 2 ** 13)
+        t, u, y, hold = rec.t, rec.u, rec.y, "bandlimited"
+        theta = np.array([5.369e-06, 2.252e-04, 0.9893, 3.915, 6.17e-03])   # an OE fit's
+    else:
+        spec = load_model(EXAMPLES / f"{name}.toml")
+        d = simulate_model(spec, 3, t_end=3 * 2 ** 12 / spec.scenario.fs)   # 3 short heads
+        t, u, y, hold = d.t, d.u, d.y, "foh"
+        theta = np.asarray(spec.scenario.theta) * 1.05
+    N = np.asarray(t).size
+    U = np.asarray(u, dtype=float).reshape(N, -1)
+    Y = np.asarray(y, dtype=float).reshape(N, -1)
+    return (spec.system, np.asarray(t, float), np.ascontiguousarray(stage2_samples(U, hold)[0]),
+            Y, theta, np.concatenate([Y[0, :1], np.zeros(spec.system.n - 1)]),
+            estimate_noise_std(Y), hold)
+
+
+@pytest.mark.parametrize("name", ["emps", "silverbox", "lugre", "two_inertia", "actuator",
+                                  "spring_friction"])
+def test_the_short_head_search_finds_the_long_ones_q(name):
+    """q̂ at a fixed θ searched on a short head first (going on to the long one only when the
+    short one does not pin it) against one search on the long head: the same q̂ to the search's
+    tolerance (each search to Q_XTOL decades: 3 of them), or both negligible (below a hundredth
+    of q₀, whose one-sample effect on y is the noise's variance); on EMPS, whose model error
+    shows early, the short head suffices."""
+    pytest.importorskip("numba", reason="long-record filter passes take minutes without the "
+                        "compiled kernels (extra speed)")
+    import thetahat.estimation.statistical.likelihood as lk
+    system, t, U, Y, theta, x0, sigma, hold = _q_case(name)
+    kw = dict(theta=theta, x_hat0=x0, x_sd=np.full(system.n, 10.0), noise_std=sigma, hold=hold)
+    short = lk.search_process_noise(system, t, U, Y, **kw)
+    long = lk.search_process_noise(system, t, U, Y, first_head=lk.Q_SEARCH_SAMPLES, **kw)
+    assert long.samples == min(t.size, lk.Q_SEARCH_SAMPLES) and short.samples <= long.samples
+    assert short.samples == long.samples or short.log_sd <= lk.Q_XTOL
+    q0 = lk.process_noise_scale(system, float(np.median(np.diff(t))), sigma)
+    if short.q > 0 and long.q > 0:
+        assert abs(np.log10(short.q / long.q)) <= 3 * lk.Q_XTOL
+    else:
+        assert max(short.q, long.q) <= 1e-2 * q0
+    if name == "emps":
+        assert short.samples == lk.Q_FIRST_HEAD < t.size and short.q > 1e-2 * q0
 
 
 # ------------------------------------------------------------------ the evidence of every method
