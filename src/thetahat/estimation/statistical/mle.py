@@ -339,10 +339,11 @@ class MapEstimator:
         The default schedule fits all the samples so far when their count reaches one of
         :func:`~.map_fit.information_schedule`'s (with a window W, past W: every W samples,
         the samples since the previous fit, and the log keeps only those); a given
-        ``schedule`` fits at the last sample with elapsed time ≤ t_j (``dt`` says the next sample comes after t_j). These are the fits
-        :meth:`run` makes, except its last: ``run`` also fits the whole record at its end,
-        which a stream does not have. Between fits the estimates are the joint EKF's, started
-        from the latest fit (:func:`fit_as_prior`). The fits run in the caller (a ``step``
+        ``schedule`` fits at the last sample with elapsed time ≤ t_j (``dt`` says the next
+        sample comes after t_j). These are the fits :meth:`run` makes, except its last:
+        ``run`` also fits the whole record at its end, which a stream does not have. Between
+        fits the estimates are the joint EKF's, started from the latest fit
+        (:func:`fit_as_prior`). The fits run in the caller (a ``step``
         that fits takes as long as the fit).
 
         Parameters
