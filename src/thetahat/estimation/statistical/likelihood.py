@@ -447,9 +447,10 @@ def _search_q(pb: _Problem, theta: FloatArray, q0: float) -> float:
 
 
 def _log_q_sd(pb: _Problem, theta: FloatArray, q0: float, s: float) -> float:
-    """The standard error of log₁₀ q̂ at ``s`` from −log L's curvature there (a second
-    difference over ±2 :data:`Q_XTOL`, one-sided at the search's bounds); inf where −log L
-    is flat or not convex (q not pinned by these samples)."""
+    """The standard error of log₁₀ q̂ at ``s`` from −log L's curvature there (a central
+    second difference over ±2 :data:`Q_XTOL`, its centre moved inside ±:data:`Q_DECADES`
+    when ``s`` is at a bound); inf where −log L is flat or not convex (q not pinned by these
+    samples)."""
     d = 2.0 * Q_XTOL
     c = min(max(s, -Q_DECADES + 2.0 * d), Q_DECADES - 2.0 * d)    # the three points in range
     f = [pb.nll(theta, q0 * 10.0 ** v) for v in (c - d, c, c + d)]
@@ -548,13 +549,22 @@ def record_bound(system: PerturbedLinearSystem, t: FloatArray, U: FloatArray, Y:
     th = np.asarray(theta, dtype=np.float64)
     prop = _propagation(system, t, U, Y, th, x_hat0, sigma, hold, substeps, h_rho, compiled)
     pb = _problem(system, t, U, Y, x_hat0, x_sd, sigma, prop, compiled)
-
-    def head(n: int) -> _Problem:
-        return pb if n >= t.shape[0] else _problem(system, t[:n], U[:n], Y[:n], x_hat0, x_sd,
-                                                   sigma, prop, compiled)
+    head = _heads(system, t, U, Y, x_hat0, x_sd, sigma, prop, compiled, whole=pb)
     q = _search_head(head, t.shape[0], th, process_noise_scale(system, sample_interval(t),
                                                                 sigma), Q_FIRST_HEAD).q
     return q, _covariance(pb, th, q, *theta_box(system))
+
+
+def _heads(system: PerturbedLinearSystem, t: FloatArray, U: FloatArray, Y: FloatArray,
+           x_hat0: FloatArray, x_sd: FloatArray, sigma: FloatArray, prop: Propagation,
+           compiled: bool | None, whole: _Problem | None = None) -> Callable[[int], _Problem]:
+    """``head(n)``: the problem of the record's first n samples (``whole`` when it covers
+    them all and is given)."""
+    def head(n: int) -> _Problem:
+        if whole is not None and n >= t.shape[0]:
+            return whole
+        return _problem(system, t[:n], U[:n], Y[:n], x_hat0, x_sd, sigma, prop, compiled)
+    return head
 
 
 def search_process_noise(system: PerturbedLinearSystem, t: FloatArray, U: FloatArray,
@@ -600,11 +610,9 @@ def search_process_noise(system: PerturbedLinearSystem, t: FloatArray, U: FloatA
     sigma = np.asarray(noise_std, dtype=np.float64)
     th = np.asarray(theta, dtype=np.float64)
     prop = _propagation(system, t, U, Y, th, x_hat0, sigma, hold, substeps, h_rho, compiled)
-
-    def head(n: int) -> _Problem:
-        return _problem(system, t[:n], U[:n], Y[:n], x_hat0, x_sd, sigma, prop, compiled)
-    return _search_head(head, t.shape[0], th,
-                        process_noise_scale(system, sample_interval(t), sigma), first_head)
+    return _search_head(_heads(system, t, U, Y, x_hat0, x_sd, sigma, prop, compiled),
+                        t.shape[0], th, process_noise_scale(system, sample_interval(t), sigma),
+                        first_head)
 
 
 def process_noise_at(system: PerturbedLinearSystem, t: FloatArray, U: FloatArray,
