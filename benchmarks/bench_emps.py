@@ -177,11 +177,13 @@ def laws_and_eps(cut: int = 9000) -> dict:
 def final_fits(cuts: tuple[int, ...] = (0, 3000, 9000)) -> dict:
     """mle on DATA_EMPS from each cut on: the final fit's consistency (the mean square and the
     Gaussian core of its innovations against their bounds, FitResult.consistent) and q, the
-    first q searched and the window it was searched on, and θ̂."""
+    first q searched and the window it was searched on, θ̂, the fit's RK4 sub-steps and the
+    Gauss–Newton step it still had to go (FitResult.step_se)."""
     import warnings
 
     from thetahat.io.datafile import read_data
     from thetahat.errors import ThetahatWarning
+    from thetahat.estimation.statistical.map_fit import STEP_TOL
     from thetahat.estimation.statistical.noise_level import MAD_VARIANCE_SD
     from thetahat.modelfile import load_model, run_estimator
     from thetahat.models import emps
@@ -206,9 +208,12 @@ def final_fits(cuts: tuple[int, ...] = (0, 3000, 9000)) -> dict:
               f"(≤ {1 + 6 * MAD_VARIANCE_SD / root_n:.3f}), beyond ±3 {100 * f.burst_fraction:.2f} %"
               f", consistent {f.consistent}; q {f.process_noise:.3g}, first q {first.process_noise:.3g}"
               f" on {first.q_window} samples ({first.process_noise / f.process_noise:.0f}×); "
-              f"M, Fv, Fc off by {dev} %, offset {th[3] - pub[3]:+.2f} N")
+              f"M, Fv, Fc off by {dev} %, offset {th[3] - pub[3]:+.2f} N; "
+              f"{f.substeps} RK4 sub-steps a sample, the step still to go "
+              f"{f.step_se:.2f} sd (converged: < {STEP_TOL})")
         out[k0] = {"cost": f.cost, "core": f.core_cost, "burst": f.burst_fraction,
-                   "q": f.process_noise, "first_q": first.process_noise, "theta": th.tolist()}
+                   "q": f.process_noise, "first_q": first.process_noise, "theta": th.tolist(),
+                   "substeps": f.substeps, "step_se": f.step_se}
     return out
 
 
