@@ -194,3 +194,32 @@ def test_failed_and_inconsistent_fits_are_counted_not_applied(data, monkeypatch)
     _guarantee_holds(res)
     assert np.all(np.isfinite(res.theta_hat))
     assert abs(res.theta_hat[-1, 0] - THETA) < 0.01 * THETA
+
+
+def test_a_last_fit_that_did_not_converge_is_not_applied_and_said(data, monkeypatch):
+    """The final fit comes back 5 standard errors short of its optimum (and with θ on Θ's
+    lower face): it is rejected as not converged, the run warns that its last fit was not
+    applied, stage 2 does not take its θ, and the output keeps its guarantee and stays near
+    the truth (the EKF carried on from the last fit applied)."""
+    from thetahat.errors import ThetahatWarning
+    from thetahat.estimation.statistical import guarded as guarded_module
+    real = guarded_module.fit_record
+
+    def short(*args, **kwargs):
+        fit = real(*args, **kwargs)
+        if kwargs.get("final"):
+            return dataclasses.replace(fit, theta=np.full_like(fit.theta, LO), step_se=5.0)
+        return fit
+
+    monkeypatch.setattr(guarded_module, "fit_record", short)
+    est = GuardedEstimator(stage1=ExponentialStage1(tau=0.1), system=lugre.system(),
+                           compiled=False)
+    with pytest.warns(ThetahatWarning, match="last stage-2 fit was not applied") as rec:
+        res = est.run(data.t, data.u, data.y, state0=est.init(theta_hat0=[0.5]))
+    msg = next(str(w.message) for w in rec if "last stage-2 fit" in str(w.message))
+    assert "5 standard errors short" in msg and "did not converge" in msg
+    d = res.diagnostics
+    assert d.fits[-1].step_se == 5.0 and d.fits_rejected >= 1
+    assert abs(d.theta_stage2[-1, 0] - LO) > 0.1 * (HI - LO)
+    _guarantee_holds(res)
+    assert abs(res.theta_hat[-1, 0] - THETA) < 0.02 * THETA

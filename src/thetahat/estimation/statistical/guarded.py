@@ -54,7 +54,7 @@ from .guard import (GUARD_C, GUARD_DWELL, GUARD_KAPPA, GUARD_RHO_MAX, guarded_lo
                     progress_init)
 from .guarded_stream import SIGMA_SAMPLES, GuardedStream, StreamDiagnostics
 from .input_hold import stage2_samples, streamable
-from .map_fit import FitResult, FitSchedule, fit_as_prior, fit_record
+from .map_fit import REJECT_STEP_SE, FitResult, FitSchedule, fit_as_prior, fit_record
 from .noise_level import MIN_SAMPLES
 from .plant_kernel import H_RHO, Propagation, choose_substeps, printed_kernels
 from .stage2_set import stage2_set
@@ -762,8 +762,17 @@ class _OfflineRun:
         return None
 
     def result(self, stop: RunStop | None) -> EstimateResult:
-        """The estimates and :class:`GuardedDiagnostics` (NaN rows from ``stop.at`` on)."""
+        """The estimates and :class:`GuardedDiagnostics` (NaN rows from ``stop.at`` on); a
+        warning when the last fit did not converge and was not applied (earlier ones are in
+        the diagnostics' ``rejected``: a later fit of more data took their place)."""
         o = self.out
+        last = self.fits[-1] if self.fits else None
+        if (last is not None and last is not self.applied and last.consistent
+                and not last.step_se <= REJECT_STEP_SE):
+            warnings.warn(f"GuardedEstimator.run: the last stage-2 fit was not applied: "
+                          f"{self.rejected[-1]}. θ̂ is the EKF's, carried on from the last fit "
+                          "applied; a longer record or a narrower Θ helps the fit converge.",
+                          ThetahatWarning, stacklevel=3)
         diag = GuardedDiagnostics(theta_stage1=self.thG, theta_stage2=o["TH2"],
                                   theta_sd=o["SD2"], band=o["BAND"], clipped=self.CLIP,
                                   reset=self.RESET, nis=self.NIS, fits=tuple(self.fits),

@@ -63,7 +63,7 @@ if TYPE_CHECKING:
     from .likelihood import ProcessNoiseFit
 
 __all__ = ["FitResult", "FitSchedule", "INFO_GROWTH", "MAX_BURST_FRACTION", "MAX_HALVINGS",
-           "Q_SEARCH_GROWTH", "REJECT_SE_GROWTH", "STEP_TOL", "doubling_schedule",
+           "Q_SEARCH_GROWTH", "REJECT_SE_GROWTH", "REJECT_STEP_SE", "STEP_TOL", "doubling_schedule",
            "first_fit_samples", "fit_as_prior", "fit_map", "fit_record", "information_schedule",
            "solve_scaled"]
 
@@ -77,6 +77,10 @@ MAX_HALVINGS = 10
 #: applied fit's is not applied: two orders of magnitude (more data never does that; the
 #: cylinder's fit at sample 125 749 that was applied had 1e4).
 REJECT_SE_GROWTH = 100.0
+#: A fit that stopped with more than this many of its standard errors still to go (its
+#: ``step_se``) did not converge and is not applied: its θ is further from the optimum of its
+#: own data than that optimum is from the truth.
+REJECT_STEP_SE = 1.0
 #: A fit with process noise is consistent with at most this fraction of its normalised
 #: innovations in bursts (beyond Huber's ±3; 0.27 % for Gaussian ones): a model error that
 #: comes and goes (an unmeasured force pulse, a slip) is what the Huber loss of that fit is
@@ -178,10 +182,12 @@ class FitResult:
     def rejection(self, previous: FitResult | None = None) -> str | None:
         """Why this fit must not be applied, or None: a fit that did not fit is never applied.
 
-        A fit is rejected when it is not finite, or when a
-        standard error of θ grew more than :data:`REJECT_SE_GROWTH` times against
-        ``previous``, the last fit applied (a fit of more data has smaller standard errors;
-        growth by orders of magnitude is a fit that lost the optimum, whatever its cost says).
+        A fit is rejected when it is not finite, when it stopped more than
+        :data:`REJECT_STEP_SE` of its standard errors short of its optimum (it did not
+        converge), or when a standard error of θ grew more than :data:`REJECT_SE_GROWTH` times
+        against ``previous``, the last fit applied (a fit of more data has smaller standard
+        errors; growth by orders of magnitude is a fit that lost the optimum, whatever its cost
+        says).
 
         Parameters
         ----------
@@ -196,6 +202,9 @@ class FitResult:
         where = f"the fit of samples {self.k0}…{self.k1 - 1}"
         if not self.finite:
             return f"{where} came back non-finite"
+        if not self.step_se <= REJECT_STEP_SE:
+            return (f"{where} stopped {self.step_se:.3g} standard errors short of its optimum "
+                    f"(more than {REJECT_STEP_SE:g}): it did not converge")
         if previous is not None and previous.finite:
             old, new = previous.theta_se, self.theta_se
             ok = (old > 0) & np.isfinite(old)
