@@ -20,8 +20,8 @@ model's sampled-data map with its exact Jacobian (:mod:`~thetahat.estimation.sta
 the outputs update one at a time in Joseph form. θ is fitted by Gauss–Newton on the normalised
 innovations ε/√S (SciPy's trust-region least squares inside Θ's bounding box, then projected
 onto Θ, the Jacobian by
-differences of whole filter passes over steps sized by the passes' measured rounding noise) and log q by a bounded one-dimensional search of −log L,
-alternately. The scale of q is the data's own: q₀ is the intensity whose one-sample effect on
+differences of whole filter passes over steps sized by the passes' measured rounding noise)
+and log q by a bounded one-dimensional search of −log L, alternately. The scale of q is the data's own: q₀ is the intensity whose one-sample effect on
 y equals the measurement noise, C q₀ Q₁(h) Cᵀ = σ², and q is searched over q₀·10^[−6, 6] and
 at 0 (the output-error model, which wins when the model is exact). At a fixed θ (the trust
 report, the bound) q is searched on the record's first samples only, a short head first and a
@@ -430,7 +430,8 @@ class _Differences:
 
     A filter pass is exact only to the rounding of its long recursion: an encoder record at
     σ = 1.7e-8 m on positions of 0.2 m leaves the innovations a relative noise η ≈ 1e-7, not
-    machine ε, and a difference over SciPy's default step (√ε of θ) is then wrong by 50–80 %;
+    machine ε, and a difference over SciPy's default step (√ε of θ) is then wrong by 50–80 %
+    in three of EMPS's four columns;
     the fit it steers stops where its trust region collapses, short of the optimum. The noise
     is measured once (the residuals at θ and at θ moved by 64 ulps), and each step is
     √η · max(|θᵢ|, 1 % of Θ's width) (the forward difference's balance of rounding against
@@ -451,14 +452,16 @@ class _Differences:
         self._last: tuple[FloatArray, FloatArray] = (theta.copy(), r0)
         self._last_jacobian: tuple[FloatArray, FloatArray] | None = None
 
+    # Copies go out: SciPy 1.13 (our lowest) scales the residuals and the Jacobian in place
+    # for the robust loss, which would corrupt the cache.
     def residuals(self, theta: FloatArray) -> FloatArray:
         if not np.array_equal(theta, self._last[0]):
             self._last = (np.array(theta, dtype=np.float64), self.pb.residuals(theta, self.q))
-        return self._last[1]
+        return self._last[1].copy()
 
     def jacobian(self, theta: FloatArray) -> FloatArray:
         if self._last_jacobian is not None and np.array_equal(theta, self._last_jacobian[0]):
-            return self._last_jacobian[1]
+            return self._last_jacobian[1].copy()
         r0 = self.residuals(theta)
         J = np.empty((r0.shape[0], theta.shape[0]))
         for i in range(theta.shape[0]):
@@ -469,7 +472,7 @@ class _Differences:
             tp[i] += step
             J[:, i] = (self.pb.residuals(tp, self.q) - r0) / step
         self._last_jacobian = (np.array(theta, dtype=np.float64), J)
-        return J
+        return J.copy()
 
 
 def _step_to_go(pb: _Problem, q: float, J: FloatArray, res: FloatArray, box_theta: FloatArray,
