@@ -117,3 +117,58 @@ def test_a_fit_cut_short_says_how_far_it_is_and_is_rejected(name):
             assert why is None, why
         else:
             assert why is not None and "did not converge" in why
+
+
+#: The innovations' sub-steps bound the discretisation's bias at ACCURACY = 0.1 standard
+#: errors (plant_kernel.doubling_floor); the two fits compared are each converged to within
+#: STEP_TOL, so their distance is at most 0.1 + 2 × 0.02 — 0.2 leaves a margin. Measured:
+#: 0.005 (EMPS), 0.004 (Silverbox), 0.008 (two_inertia), 0.01 (actuator), 0.005
+#: (spring_friction).
+SUBSTEPS_SE = 0.2
+
+
+@pytest.mark.parametrize("name", ["emps", "silverbox", "two_inertia", "actuator",
+                                  "spring_friction"])
+def test_the_innovations_sub_steps_put_theta_where_four_times_as_many_do(name):
+    """fit_process_noise's default sub-steps (likelihood._innovation_substeps, the floor at which
+    the normalised innovations are accurate to a tenth of a standard error) fit θ where four
+    times as many sub-steps a sample put it, to SUBSTEPS_SE standard errors. two_inertia is the
+    case that needs every sample's sub-steps doubled in the comparison: its stability bound
+    exceeds the low floors, and doubling the floor alone compared two identical runs, kept 1
+    sub-step and left θ̂ 1.6 standard errors from the converged fit (now: 8 sub-steps)."""
+    spec, t, U, Y, sigma, hold, start = _case(name)
+    first = _fit(spec, t, U, Y, sigma, hold, start)
+    fine = _fit(spec, t, U, Y, sigma, hold, first.theta, q=first.q,
+                substeps=4 * first.substeps)
+    assert np.max(np.abs(first.theta - fine.theta) / first.theta_se) < SUBSTEPS_SE
+
+
+def test_on_emps_the_innovations_need_fewer_sub_steps_than_the_free_run():
+    """EMPS's process noise (q̂ ≈ 2.3 q₀) corrects x at every sample, so the innovations are
+    accurate with fewer sub-steps than the free run, whose error accumulates over the record
+    (8192 samples: 2 against 8): the reason the fits with process noise choose their own."""
+    from thetahat.estimation.statistical.plant_kernel import choose_substeps, model_kernel
+    spec, t, U, Y, sigma, hold, start = _case("emps")
+    fit = _fit(spec, t, U, Y, sigma, hold, start)
+    n = spec.system.n
+    x0 = np.concatenate([Y[0, :1], np.zeros(n - 1)])
+    free = choose_substeps(model_kernel(spec.system), t, U, Y, fit.theta, x0, sigma, hold=hold)
+    assert fit.q > 0.0
+    assert fit.substeps < free
+
+
+def test_the_doubling_rule_returns_the_first_accurate_floor():
+    """doubling_floor against an error known in closed form: outputs off by c/s⁴ with s the
+    sub-steps (RK4's order), over K rows scaled to `total`: the floor is the first n = 2^j
+    with c (n⁻⁴ − (2n)⁻⁴) √(total / K) ≤ 0.1; a run that stops being finite ends the
+    comparison."""
+    from thetahat.estimation.statistical.plant_kernel import ACCURACY, doubling_floor
+    rows = np.linspace(0.0, 1.0, 200)[:, None]
+    for c in (0.01, 1.0, 30.0):
+        got = doubling_floor(lambda k, refine: np.cos(rows) + c / (k * refine) ** 4, 10_000)
+        n = 1
+        while c * (n ** -4.0 - (2 * n) ** -4.0) * 100.0 > ACCURACY:
+            n *= 2
+        assert got == n
+    broken = doubling_floor(lambda k, refine: np.where(rows < 0.005, 1.0 / k, np.nan), 200)
+    assert broken == 1                     # one comparable row: nothing to judge by

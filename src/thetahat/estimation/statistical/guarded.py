@@ -326,9 +326,12 @@ class GuardedEstimator:
         if self.schedule is not None:
             return replace(self.schedule, hold=self.hold,
                            substeps=self.substeps if self.substeps is not None
-                           else self.schedule.substeps)
+                           else self.schedule.substeps,
+                           noise_substeps=self.substeps if self.substeps is not None
+                           else self.schedule.noise_substeps)
         return FitSchedule(system=self.model, x_sd=self.x_sd, noise_std=self.noise_std,
-                           hold=self.hold, substeps=self.substeps, h_rho=self.h_rho,
+                           hold=self.hold, substeps=self.substeps,
+                           noise_substeps=self.substeps, h_rho=self.h_rho,
                            compiled=self.compiled)
 
     def _loop(self) -> Any:

@@ -35,7 +35,7 @@ from __future__ import annotations
 
 import functools
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any, Callable, NamedTuple
 
 import numpy as np
@@ -49,8 +49,8 @@ from ...model.paramset import Box, ParameterSet
 from .common import sample_interval, theta_box
 from .noise_level import mad_variance
 from .stage2_set import project_theta, theta_bounds
-from .plant_kernel import (H_RHO, ModelKernel, Propagation, choose_substeps, model_kernel,
-                           printed_kernels)
+from .plant_kernel import (ACCURACY_SAMPLES, H_RHO, ModelKernel, Propagation, choose_substeps,
+                           doubling_floor, model_kernel, printed_kernels)
 
 __all__ = ["ProcessNoiseFit", "RecordEvidence", "fit_process_noise", "process_noise_scale",
            "unit_process_noise", "record_bound", "record_evidence", "process_noise_at",
@@ -375,6 +375,33 @@ def _problem(system: PerturbedLinearSystem, t: FloatArray, U: FloatArray, Y: Flo
                     Rdiag=np.asarray(noise_std, dtype=np.float64) ** 2,
                     Qs=np.ascontiguousarray(Qs), qidx=qidx, prop=prop,
                     run=_filter_for(model), valid=valid)
+
+
+def _innovation_substeps(pb: _Problem, theta: FloatArray, q: float) -> int:
+    """The RK4 sub-steps the likelihood at (θ, q) needs: its normalised innovations accurate
+    to a tenth of θ̂'s standard error.
+
+    The rule of :func:`~thetahat.estimation.statistical.plant_kernel.choose_substeps` applied
+    to what this likelihood fits: the innovations ε/√S with n and 2n sub-steps a sample over
+    the record's first :data:`~thetahat.estimation.statistical.plant_kernel.ACCURACY_SAMPLES`
+    samples (:func:`~thetahat.estimation.statistical.plant_kernel.doubling_floor`). At q = 0
+    the filter is the output-error model and the rule is the free run's; with process noise
+    the filter corrects x at every sample, so a discretisation error no longer accumulates
+    over the record but over the filter's memory, and is measured against √S ≥ σ: a model
+    with a lightly damped resonance that needs 16 sub-steps run free may need 8 here (EMPS).
+    """
+    K = min(pb.t.shape[0], ACCURACY_SAMPLES)
+    if K < 2:
+        return 1
+    head = replace(pb, t=pb.t[:K], U=pb.U[:K], Y=pb.Y[:K], qidx=pb.qidx[:K],
+                   valid=pb.valid[:K])
+
+    def run(n: int, refine: int) -> FloatArray:
+        prop = replace(head.prop, substeps=n * refine, h_rho=head.prop.h_rho / refine)
+        NU = replace(head, prop=prop).filter(theta, q)[0]
+        return np.where(head.valid, NU, 0.0)     # a missing output: no innovation to compare
+
+    return doubling_floor(run, pb.t.shape[0])
 
 
 def _propagation(system: PerturbedLinearSystem, t: FloatArray, U: FloatArray, Y: FloatArray,
@@ -884,8 +911,10 @@ def fit_process_noise(system: PerturbedLinearSystem, t: FloatArray, U: FloatArra
         u between the samples (:mod:`~thetahat.estimation.hold`); U holds the samples it
         reconstructs from (:func:`~thetahat.estimation.statistical.input_hold.stage2_samples`).
     substeps : int, optional
-        The RK4 sub-steps' accuracy floor; default: chosen at θ₀ on the record
-        (:func:`~thetahat.estimation.statistical.plant_kernel.choose_substeps`).
+        The RK4 sub-steps' accuracy floor; default: the innovations' own
+        (the rule of :func:`~thetahat.estimation.statistical.plant_kernel.choose_substeps` applied
+        to the normalised innovations), at (θ₀, q) and again at (θ, q̂) after the search of q,
+        the larger kept.
     h_rho : float
     compiled : bool, optional
 
@@ -913,16 +942,24 @@ def fit_process_noise(system: PerturbedLinearSystem, t: FloatArray, U: FloatArra
     """
     theta_set = system.require_parameter_set("stage 2")
     sigma = np.asarray(noise_std, dtype=np.float64)
+    given = substeps
     theta = project_theta(theta_set, np.asarray(theta0, dtype=np.float64))
-    prop = _propagation(system, t, U, Y, theta, x_hat0, sigma, hold, substeps, h_rho, compiled)
-    pb = _problem(system, t, U, Y, x_hat0, x_sd, sigma, prop, compiled)
     h_med = sample_interval(t)
     q0 = process_noise_scale(system, h_med, sigma)
     q_now = q0 if q is None else float(q)
+    pb = _problem(system, t, U, Y, x_hat0, x_sd, sigma, Propagation(hold=hold, h_rho=h_rho),
+                  compiled)
+    if substeps is None:                # the innovations' own accuracy floor at (θ₀, q)
+        substeps = _innovation_substeps(pb, theta, q_now)
+    pb = replace(pb, prop=Propagation(hold=hold, substeps=substeps, h_rho=h_rho))
     if q is None:
         for _ in range(ALTERNATIONS):
             theta = _fit_theta(pb, theta, q_now, theta_set, max_nfev)[0]
             q_now = _search_q(pb, theta, q0)
+        if given is None:               # checked at the (θ, q̂) found: a q̂ far below q₀
+            more = _innovation_substeps(pb, theta, q_now)      # may need more
+            if more > pb.prop.substeps:
+                pb = replace(pb, prop=replace(pb.prop, substeps=more))
     theta, J, nfev, step_se = _fit_theta(pb, theta, q_now, theta_set, max_nfev)
     NU, LS, xP = pb.filter(theta, q_now)
     nu = NU[pb.valid]

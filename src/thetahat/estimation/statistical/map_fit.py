@@ -468,6 +468,10 @@ class FitSchedule:
         The RK4 sub-steps' accuracy floor of the record (the estimators choose it once per
         record, :func:`~thetahat.estimation.statistical.plant_kernel.choose_substeps`);
         default None: each fit chooses on its own window.
+    noise_substeps : int, optional
+        The floor of the fits with process noise; default None: each chooses its own
+        (:func:`~thetahat.estimation.statistical.likelihood.fit_process_noise`). The
+        estimators set it to the ``substeps`` their caller gave.
     h_rho : float
     compiled : bool, optional
     """
@@ -481,6 +485,7 @@ class FitSchedule:
     first_max_iter: int = 25
     hold: str = "foh"
     substeps: int | None = None
+    noise_substeps: int | None = None
     h_rho: float = H_RHO
     compiled: bool | None = None
 
@@ -739,15 +744,19 @@ def fit_record(schedule: FitSchedule, t: FloatArray, U: FloatArray, Y: FloatArra
 def _with_process_noise(schedule: FitSchedule, t: FloatArray, U: FloatArray, Y: FloatArray,
                         k1: int, previous: FitResult, x_hat0: FloatArray, x_sd: FloatArray, *,
                         q: float | None) -> FitResult:
-    """The fit of samples 0 … k1 − 1 by the likelihood with process noise on φ, as a FitResult
-    (the output-error fit ``previous``'s sub-steps). ``q``: the intensity (None: estimated
-    with θ)."""
+    """The fit of samples 0 … k1 − 1 by the likelihood with process noise on φ, as a FitResult,
+    from the output-error fit ``previous``. ``q``: the intensity (None: estimated with θ).
+    Its sub-steps are the schedule's ``noise_substeps`` (a caller's), else the innovations'
+    own (:func:`~thetahat.estimation.statistical.likelihood.fit_process_noise`): not the
+    free run's of the output-error fit, whose error accumulates over the record where the
+    filter corrects it at every sample, and which compares nothing where the free run leaves
+    the data at once (a drive's rigid-body mode)."""
     from .likelihood import fit_process_noise
     sigma = resolve_noise_std(schedule.noise_std, Y[:k1])
     pf = fit_process_noise(schedule.system, t[:k1], U[:k1], Y[:k1], theta0=previous.theta,
                            x_hat0=x_hat0, x_sd=x_sd, noise_std=sigma, q=q,
                            max_nfev=60 if q is None else 20, hold=schedule.hold,
-                           substeps=previous.substeps, h_rho=schedule.h_rho,
+                           substeps=schedule.noise_substeps, h_rho=schedule.h_rho,
                            compiled=schedule.compiled)
     return FitResult.of_process_noise(pf, k1, x_hat0, x_sd)
 

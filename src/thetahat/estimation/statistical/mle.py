@@ -265,9 +265,12 @@ class MapEstimator:
         if self.schedule is not None:
             return replace(self.schedule, hold=self.hold,
                            substeps=self.substeps if self.substeps is not None
-                           else self.schedule.substeps)
+                           else self.schedule.substeps,
+                           noise_substeps=self.substeps if self.substeps is not None
+                           else self.schedule.noise_substeps)
         return FitSchedule(system=self.system, full_window=math.inf, noise_std=self.noise_std,
-                           hold=self.hold, substeps=self.substeps, compiled=self.compiled)
+                           hold=self.hold, substeps=self.substeps,
+                           noise_substeps=self.substeps, compiled=self.compiled)
 
     def _record_schedule(self, t: FloatArray, U: FloatArray, Y: FloatArray, st0: MapState
                          ) -> FitSchedule:
