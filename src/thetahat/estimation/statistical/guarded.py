@@ -324,15 +324,10 @@ class GuardedEstimator:
         if not self.use_fits:
             return None
         if self.schedule is not None:
-            return replace(self.schedule, hold=self.hold,
-                           substeps=self.substeps if self.substeps is not None
-                           else self.schedule.substeps,
-                           noise_substeps=self.substeps if self.substeps is not None
-                           else self.schedule.noise_substeps)
+            return replace(self.schedule, hold=self.hold).given_substeps(self.substeps)
         return FitSchedule(system=self.model, x_sd=self.x_sd, noise_std=self.noise_std,
-                           hold=self.hold, substeps=self.substeps,
-                           noise_substeps=self.substeps, h_rho=self.h_rho,
-                           compiled=self.compiled)
+                           hold=self.hold, h_rho=self.h_rho,
+                           compiled=self.compiled).given_substeps(self.substeps)
 
     def _loop(self) -> Any:
         k = self.kernels

@@ -382,13 +382,14 @@ def _innovation_substeps(pb: _Problem, theta: FloatArray, q: float) -> int:
     to a tenth of θ̂'s standard error.
 
     The rule of :func:`~thetahat.estimation.statistical.plant_kernel.choose_substeps` applied
-    to what this likelihood fits: the innovations ε/√S with n and 2n sub-steps a sample over
-    the record's first :data:`~thetahat.estimation.statistical.plant_kernel.ACCURACY_SAMPLES`
-    samples (:func:`~thetahat.estimation.statistical.plant_kernel.doubling_floor`). At q = 0
-    the filter is the output-error model and the rule is the free run's; with process noise
-    the filter corrects x at every sample, so a discretisation error no longer accumulates
-    over the record but over the filter's memory, and is measured against √S ≥ σ: a model
-    with a lightly damped resonance that needs 16 sub-steps run free may need 8 here (EMPS).
+    to what this likelihood fits: the innovations ε/√S with the floor n and with every
+    sample's sub-steps doubled, over the record's first
+    :data:`~thetahat.estimation.statistical.plant_kernel.ACCURACY_SAMPLES` samples
+    (:func:`~thetahat.estimation.statistical.plant_kernel.doubling_floor`). At q = 0 the
+    filter is the output-error model and the rule is the free run's; with process noise the
+    filter corrects x at every sample, so a discretisation error no longer accumulates over
+    the record but over the filter's memory, and is measured against √S ≥ σ (EMPS: 2
+    sub-steps here against the free run's 16).
     """
     K = min(pb.t.shape[0], ACCURACY_SAMPLES)
     if K < 2:
@@ -942,21 +943,20 @@ def fit_process_noise(system: PerturbedLinearSystem, t: FloatArray, U: FloatArra
     """
     theta_set = system.require_parameter_set("stage 2")
     sigma = np.asarray(noise_std, dtype=np.float64)
-    given = substeps
+    chosen = substeps is None           # else the caller's, kept
     theta = project_theta(theta_set, np.asarray(theta0, dtype=np.float64))
     h_med = sample_interval(t)
     q0 = process_noise_scale(system, h_med, sigma)
     q_now = q0 if q is None else float(q)
     pb = _problem(system, t, U, Y, x_hat0, x_sd, sigma, Propagation(hold=hold, h_rho=h_rho),
                   compiled)
-    if substeps is None:                # the innovations' own accuracy floor at (θ₀, q)
-        substeps = _innovation_substeps(pb, theta, q_now)
-    pb = replace(pb, prop=Propagation(hold=hold, substeps=substeps, h_rho=h_rho))
+    floor = _innovation_substeps(pb, theta, q_now) if substeps is None else substeps
+    pb = replace(pb, prop=replace(pb.prop, substeps=floor))     # at (θ₀, q) when chosen
     if q is None:
         for _ in range(ALTERNATIONS):
             theta = _fit_theta(pb, theta, q_now, theta_set, max_nfev)[0]
             q_now = _search_q(pb, theta, q0)
-        if given is None:               # checked at the (θ, q̂) found: a q̂ far below q₀
+        if chosen:                      # again at the (θ, q̂) found: a q̂ far below q₀
             more = _innovation_substeps(pb, theta, q_now)      # may need more
             if more > pb.prop.substeps:
                 pb = replace(pb, prop=replace(pb.prop, substeps=more))

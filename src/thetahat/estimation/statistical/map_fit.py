@@ -492,6 +492,28 @@ class FitSchedule:
     def __post_init__(self) -> None:
         check_hold(self.hold)
 
+    def given_substeps(self, substeps: int | None) -> FitSchedule:
+        """This schedule with a caller's sub-steps as the floor of every fit (``substeps`` and
+        ``noise_substeps``); unchanged for None.
+
+        Parameters
+        ----------
+        substeps : int or None
+
+        Returns
+        -------
+        FitSchedule
+
+        Examples
+        --------
+        >>> from thetahat.models import lugre
+        >>> FitSchedule(system=lugre.system()).given_substeps(4).noise_substeps
+        4
+        """
+        if substeps is None:
+            return self
+        return replace(self, substeps=substeps, noise_substeps=substeps)
+
     def sample_counts(self, growth: float | None = None) -> Callable[[int], int]:
         """The fits' sample counts when ``times`` is None: j ↦ k_j.
 

@@ -263,14 +263,9 @@ class MapEstimator:
 
     def _schedule(self) -> FitSchedule:
         if self.schedule is not None:
-            return replace(self.schedule, hold=self.hold,
-                           substeps=self.substeps if self.substeps is not None
-                           else self.schedule.substeps,
-                           noise_substeps=self.substeps if self.substeps is not None
-                           else self.schedule.noise_substeps)
+            return replace(self.schedule, hold=self.hold).given_substeps(self.substeps)
         return FitSchedule(system=self.system, full_window=math.inf, noise_std=self.noise_std,
-                           hold=self.hold, substeps=self.substeps,
-                           noise_substeps=self.substeps, compiled=self.compiled)
+                           hold=self.hold, compiled=self.compiled).given_substeps(self.substeps)
 
     def _record_schedule(self, t: FloatArray, U: FloatArray, Y: FloatArray, st0: MapState
                          ) -> FitSchedule:

@@ -49,9 +49,9 @@ moves θ̂ by at most a tenth of a standard error. The likelihood with process n
 the same rule to its normalised innovations
 (:func:`~thetahat.estimation.statistical.likelihood.fit_process_noise`). A record at a high
 rate keeps n = 1 (the stability choice alone, as before); a lightly damped resonance at 9
-samples per period takes 8–16 (the error of one RK4 step is ∝ (ωh)⁵). The stretch compared ends where the
-free run leaves ten times the data's range around it (a run that diverges from wrong start
-values says nothing about the trajectories a fit visits).
+samples per period takes 8–16 (the error of one RK4 step is ∝ (ωh)⁵). The stretch compared
+ends where the free run leaves ten times the data's range around it (a run that diverges
+from wrong start values says nothing about the trajectories a fit visits).
 
 What it may import: the model, SymPy, the hold (:mod:`~thetahat.estimation.hold`) and the
 printed modules' machinery (:mod:`~thetahat.estimation.kernels`); nothing of this room.
@@ -794,7 +794,7 @@ def doubling_floor(run: Callable[[int, int], FloatArray], total: int, *,
     doubles the sub-steps of *every* sample: the stability bound halved with the floor
     doubled. Doubling the floor alone compares nothing where the stability bound exceeds
     both floors (the two runs then agree exactly): a two-inertia drive with friction kept 1
-    sub-step whose θ̂ was 1.6 standard errors off the converged one.
+    sub-step whose θ̂ was 1.6 standard errors off the converged one (a one-off measurement).
 
     Parameters
     ----------
