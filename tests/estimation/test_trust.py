@@ -245,3 +245,57 @@ def test_drift_over_the_last_quarter_is_reported():
     ok = trust_report(spec.system, d.t, U, Y, sc.theta, spec.parameter_names, x_hat0=sc.x0,
                       theta_path=frozen[:, None])
     assert ok.settled and not any("settled" in w for w in ok.warnings)
+
+
+def test_the_advice_follows_how_the_estimate_was_made():
+    """Issue 31: "use method guarded or mle" was given to guarded and mle runs too. A θ̂ made
+    without fits is told to fit; one from fits of the whole record is not (those fits are what
+    the advice would give), nor one from a bounded window (told to widen it). The findings
+    themselves do not depend on how θ̂ was made."""
+    from thetahat.errors import OptionError
+    from thetahat.estimation.statistical.trust import FIT_KINDS
+    spec = load_model(EXAMPLES / "prop3.toml")
+    sc = spec.scenario
+    d = simulate_model(spec, 1)
+    U, Y = np.asarray(d.u), np.asarray(d.y)
+    T = d.t[-1] - d.t[0]
+    approach = sc.theta[0] + 0.05 * np.exp(-(d.t - d.t[0]) / T)   # as in the test above
+    width = spec.system.parameter_set.upper - spec.system.parameter_set.lower
+    off = np.clip(sc.theta + OFF_FRACTION * width, spec.system.parameter_set.lower,
+                  spec.system.parameter_set.upper)
+    drift = {k: trust_report(spec.system, d.t, U, Y, np.array([approach[-1]]),
+                             spec.parameter_names, x_hat0=sc.x0, theta_path=approach[:, None],
+                             fits=k) for k in FIT_KINDS}
+    far = {k: trust_report(spec.system, d.t, U, Y, off, spec.parameter_names, x_hat0=sc.x0,
+                           fits=k) for k in FIT_KINDS}
+    for k in FIT_KINDS:
+        assert not drift[k].settled and not far[k].consistent
+        assert drift[k].tail_sds[0] == drift["none"].tail_sds[0]
+        assert far[k].score == far["none"].score
+    def advice(k):                      # (told to fit, of the unsettled/inconsistent ones)
+        ws = [w for w in drift[k].warnings + far[k].warnings
+              if "settled" in w or "not where the data put it" in w]
+        return sum("method guarded or mle" in w for w in ws), len(ws)
+    told, found = advice("none")
+    assert told == found >= 2
+    assert advice("record")[0] == advice("window")[0] == 0
+    settle = [w for w in drift["window"].warnings if "settled" in w]
+    inconsistent = [w for w in far["window"].warnings if "not where the data put it" in w]
+    assert len(settle) == len(inconsistent) == 1
+    assert "window" in settle[0] and "window" in inconsistent[0]
+    with pytest.raises(OptionError, match="fits"):
+        trust_report(spec.system, d.t, U, Y, off, spec.parameter_names, x_hat0=sc.x0,
+                     fits="batch")
+
+
+@pytest.mark.parametrize("method, window, kind", [("paper", None, "none"),
+                                                  ("ekf", None, "none"),
+                                                  ("mle", None, "record"),
+                                                  ("mle", 400, "window")])
+def test_run_estimator_tells_the_report_how_theta_was_made(method, window, kind):
+    spec = load_model(EXAMPLES / "prop3.toml")
+    d = simulate_model(spec, 0)
+    n = min(d.t.shape[0], 1500)
+    res = run_estimator(spec, d.t[:n], np.asarray(d.u)[:n], np.asarray(d.y)[:n],
+                        method=method, window=window)
+    assert res.trust is not None and res.trust.fits == kind

@@ -627,7 +627,8 @@ def _run(spec: ModelSpec, t: ArrayLike, u: ArrayLike | None, y: ArrayLike, *,
         return result
     if isinstance(progress, Stages):
         progress.stage("trust report")
-    report = _trust(spec, result, u, y, compiled, x0, noise_std, stage2_hold or "foh")
+    fits = "none" if not how.fits else "record" if window is None else "window"
+    report = _trust(spec, result, u, y, compiled, x0, noise_std, stage2_hold or "foh", fits)
     for text in report.warnings:
         warnings.warn(text, ThetahatWarning, stacklevel=3)
     stuck = stuck_parameters(spec.system, u, y, result.x_hat, result.theta_hat,
@@ -750,11 +751,12 @@ def _check_theta_star(spec: ModelSpec, t: ArrayLike, u: ArrayLike | None, y: Arr
 
 def _trust(spec: ModelSpec, result: EstimateResult, u: ArrayLike | None, y: ArrayLike,
            compiled: bool | None, x0: FloatArray, noise_std: ArrayLike | None,
-           hold: str) -> TrustReport:
+           hold: str, fits: str) -> TrustReport:
     """The trust report of a run of the file's estimator on its record: the guard's band of a
-    guarded run, the σ given by the user (else the one the estimator used), θ̂'s path, and for
+    guarded run, the σ given by the user (else the one the estimator used), θ̂'s path, for
     the paper's observer (NumPy, compiled or C: one result type) the law's conditions along
-    the run."""
+    the run, and how θ̂ was made (``fits``, :attr:`TrustReport.fits`: what the warnings
+    advise)."""
     from ..estimation.protocol import ObserverDiagnostics
     from ..estimation.statistical.guarded import GuardedDiagnostics
     from ..estimation.statistical.trust import trust_report
@@ -780,4 +782,4 @@ def _trust(spec: ModelSpec, result: EstimateResult, u: ArrayLike | None, y: Arra
     return trust_report(s, result.t, np.ascontiguousarray(U), np.ascontiguousarray(Y),
                         result.theta_hat[-1], spec.parameter_names, x_hat0=x0, band=band,
                         noise_std=sigma, compiled=compiled, theta_path=result.theta_hat,
-                        law_conditions=conditions, hold=hold)
+                        law_conditions=conditions, hold=hold, fits=fits)

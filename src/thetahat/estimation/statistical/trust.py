@@ -62,7 +62,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from scipy.special import gammaincinv
 
-from ...errors import ThetahatError
+from ...errors import OptionError, ThetahatError
 from ...model.system import PerturbedLinearSystem
 from .common import sample_interval, theta_box, x_prior_sd
 from .input_hold import stage2_samples
@@ -78,7 +78,7 @@ if TYPE_CHECKING:
 __all__ = ["TrustReport", "trust_report", "UNPINNED_FRACTION", "BOUNDARY_RTOL",
            "EMPTY_GUARD_FRACTION", "MODEL_ERROR_Q", "NOISE_FLOOR",
            "CONSISTENCY_ALPHA",
-           "SETTLE_TAIL", "SETTLE_SDS", "chi2_limit", "report_noise_std", "tail_movement"]
+           "SETTLE_TAIL", "SETTLE_SDS", "FIT_KINDS", "chi2_limit", "report_noise_std", "tail_movement"]
 
 FloatArray = NDArray[np.float64]
 
@@ -107,6 +107,9 @@ SETTLE_TAIL = 0.25
 #: θ̂ has not settled when a component drifts by more than SETTLE_SDS of its Cramér–Rao sd
 #: over that tail (:func:`tail_movement`; a fit on a growing record drifts by well under one).
 SETTLE_SDS = 2.0
+#: How an estimate was made (:attr:`TrustReport.fits`): by a recursion without fits, by MAP
+#: fits of the whole record, by fits of a bounded window.
+FIT_KINDS = ("none", "record", "window")
 #: At an inconsistent θ̂ the process noise q̂ found there absorbs θ̂'s own error (and inflates
 #: the bound): q is searched again at the one-step θ, up to this many times (each costs one q
 #: search on the head and p + 1 passes over the record: bounded at one), and the test and
@@ -178,6 +181,12 @@ class TrustReport:
         The paper's law's conditions along the run (observer methods only).
     noise_floored : bool
         σ̂ was below :data:`NOISE_FLOOR` of an output's spread and was raised to it.
+    fits : {"none", "record", "window"}
+        How the estimate was made, which decides what the warnings advise: ``"none"``, by a
+        recursion over the samples (the paper's observer, the joint EKF), for which MAP fits
+        (method guarded or mle) are the remedy; ``"record"``, by MAP fits of all the data
+        so far (guarded, mle), which that advice would not help; ``"window"``, by fits of a
+        bounded window, which forget the older data.
     """
 
     names: tuple[str, ...]
@@ -193,6 +202,12 @@ class TrustReport:
     tail_sds: FloatArray | None = None
     law_conditions: LawConditionReport | None = None
     noise_floored: bool = False
+    fits: str = "none"
+
+    def __post_init__(self) -> None:
+        if self.fits not in FIT_KINDS:
+            raise OptionError(f"TrustReport: fits must be one of {FIT_KINDS}; got "
+                              f"{self.fits!r}.")
 
     @property
     def model_error(self) -> bool:
@@ -257,16 +272,35 @@ class TrustReport:
                 "Gauss–Newton step)")
             out.append(f"θ̂ is not where the data put it: {math.sqrt(self.score):.3g} standard "
                        f"errors away (score test, χ²_{self.theta.shape[0]} = {self.score:.3g}"
-                       f"{', ' + ', '.join(far) if far else ''}){prefer}; use method guarded "
-                       "or mle, or a longer record")
+                       f"{', ' + ', '.join(far) if far else ''}){prefer}; {self._inconsistent_advice()}")
         if not self.settled and self.tail_sds is not None:
             moved = [f"{n} by {v:.3g} sd" for n, v in zip(self.names, self.tail_sds)
                      if v > SETTLE_SDS]
             out.append(f"θ̂ has not settled: over the last {100 * SETTLE_TAIL:.0f} % of the "
-                       f"record it still drifted ({', '.join(moved)} of its Cramér–Rao sd); the "
-                       "estimate is on its way when the record ends (a longer record, other "
-                       "excitation, or method guarded or mle, which use the whole record)")
+                       f"record it still drifted ({', '.join(moved)} of its Cramér–Rao sd); "
+                       f"{self._unsettled_advice()}")
         return out
+
+    def _inconsistent_advice(self) -> str:
+        """What to do about a θ̂ the score test rejects, by how θ̂ was made."""
+        if self.fits == "record":
+            return ("the fits of the whole record stopped short of the data's optimum, or "
+                    "the model errs: start θ̂(0) at the one-step θ, or check the model")
+        if self.fits == "window":
+            return ("the last window's fit is not the whole record's: a longer window "
+                    "(window=None fits all the data)")
+        return "use method guarded or mle, or a longer record"
+
+    def _unsettled_advice(self) -> str:
+        """What to do about a θ̂ still moving at the record's end, by how θ̂ was made."""
+        if self.fits == "record":
+            return ("the record's last part still moved the fit of the whole record: the data "
+                    "do not yet pin θ (a longer record, or other excitation)")
+        if self.fits == "window":
+            return ("the bounded window follows the recent data: a longer window, or a "
+                    "longer record")
+        return ("the estimate is on its way when the record ends (a longer record, other "
+                "excitation, or method guarded or mle, which use the whole record)")
 
     def lines(self) -> list[str]:
         """Summary lines: the relative Cramér–Rao standard deviation per parameter, and the
@@ -376,7 +410,8 @@ def trust_report(system: PerturbedLinearSystem, t: FloatArray, U: FloatArray, Y:
                  noise_std: FloatArray | None = None, hold: str = "foh",
                  substeps: int | None = None, h_rho: float = H_RHO,
                  compiled: bool | None = None, theta_path: FloatArray | None = None,
-                 law_conditions: LawConditionReport | None = None) -> TrustReport:
+                 law_conditions: LawConditionReport | None = None,
+                 fits: str = "none") -> TrustReport:
     """Check a final estimate θ̂ against its record (module docstring).
 
     Parameters
@@ -410,6 +445,8 @@ def trust_report(system: PerturbedLinearSystem, t: FloatArray, U: FloatArray, Y:
     law_conditions : LawConditionReport, optional
         The law's conditions along the run
         (:func:`~thetahat.estimation.observer.checks.law_conditions_on_record`).
+    fits : {"none", "record", "window"}
+        How θ̂ was made (:attr:`TrustReport.fits`): it decides what the warnings advise.
 
     Returns
     -------
@@ -468,7 +505,8 @@ def trust_report(system: PerturbedLinearSystem, t: FloatArray, U: FloatArray, Y:
     return TrustReport(names=names_, theta=th.copy(), crlb_sd=crlb_sd, unpinned=unpinned,
                        on_boundary=on_bnd, empty_guard=empty, process_noise=float(q),
                        process_noise_scale=float(q0), score=float(score), one_step=one_step,
-                       tail_sds=tail, law_conditions=law_conditions, noise_floored=floored)
+                       tail_sds=tail, law_conditions=law_conditions, noise_floored=floored,
+                       fits=fits)
 
 
 def _evidence(system: PerturbedLinearSystem, t: FloatArray, U: FloatArray, Y: FloatArray,
