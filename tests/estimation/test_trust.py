@@ -299,3 +299,62 @@ def test_run_estimator_tells_the_report_how_theta_was_made(method, window, kind)
     res = run_estimator(spec, d.t[:n], np.asarray(d.u)[:n], np.asarray(d.y)[:n],
                         method=method, window=window)
     assert res.trust is not None and res.trust.fits == kind
+
+
+def _accuracy_case(name: str):
+    """(spec, t, U, Y, θ, hold) for the sub-step check: measured heads at a θ the data support,
+    the simulated scenarios at their true θ."""
+    if name == "emps":
+        from thetahat.models import emps
+        spec, rec = load_model(EXAMPLES / "emps.toml"), emps.load()
+        return (spec, rec.t[:8192], np.asarray(rec.u)[:8192], np.asarray(rec.y)[:8192],
+                np.asarray(emps.PUBLISHED.value, dtype=float), "foh")
+    if name == "silverbox":
+        from thetahat.estimation.statistical.likelihood import fit_process_noise
+        from thetahat.estimation.statistical.noise_level import estimate_noise_std
+        from thetahat.io.datafile import read_data
+        from thetahat.models import silverbox
+        spec = load_model(silverbox.MODEL_FILE)
+        rec = read_data(silverbox.DATA_FILE, spec.layout).segment(0, 8192)
+        U, Y = np.asarray(rec.u, float).reshape(8192, -1), np.asarray(rec.y, float).reshape(8192, -1)
+        from thetahat.estimation.statistical.input_hold import stage2_samples
+        fit = fit_process_noise(spec.system, rec.t, np.ascontiguousarray(
+            stage2_samples(U, "bandlimited")[0]), Y,
+            theta0=np.asarray(spec.estimator.theta_hat0, float),
+            x_hat0=np.array([Y[0, 0], 0.0]), x_sd=np.full(2, 10.0),
+            noise_std=estimate_noise_std(Y), hold="bandlimited")
+        return spec, rec.t, U, Y, fit.theta, "bandlimited"
+    spec = load_model(EXAMPLES / f"{name}.toml")
+    d = simulate_model(spec, 4)
+    return spec, d.t, np.asarray(d.u), np.asarray(d.y), np.asarray(spec.scenario.theta), "foh"
+
+
+#: The report's sub-steps are accurate when four times as many move the score's √ (standard
+#: errors) by under 0.2 — twice the 0.1-sd accuracy the floor is chosen for — and the bound by
+#: under 2 % (a 0.1-sd change of the innovations changes their Jacobian by far less).
+SCORE_SD_AGREE, BOUND_AGREE = 0.2, 0.02
+
+
+@pytest.mark.parametrize("name", ["emps", "silverbox", "two_inertia", "actuator",
+                                  "spring_friction"])
+def test_the_reports_own_sub_steps_agree_with_four_times_as_many(name):
+    """The trust report takes the sub-steps of the likelihood it evaluates (the innovations',
+    at q₀ and at q̂), not the free run's: its score test and bound agree with those at four
+    times the larger of the two floors."""
+    from thetahat.estimation.statistical.likelihood import innovation_substeps
+    from thetahat.estimation.statistical.plant_kernel import choose_substeps, model_kernel
+    from thetahat.estimation.statistical.input_hold import stage2_samples
+    from thetahat.estimation.statistical.trust import report_noise_std
+    spec, t, U, Y, theta, hold = _accuracy_case(name)
+    x0 = np.concatenate([Y[0, :1], np.zeros(spec.system.n - 1)])
+    own = trust_report(spec.system, t, U, Y, theta, spec.parameter_names, x_hat0=x0, hold=hold)
+    sigma = report_noise_std(Y, None)[0]
+    Us = np.ascontiguousarray(stage2_samples(U, hold)[0])
+    free = choose_substeps(model_kernel(spec.system), t, Us, Y, theta, x0, sigma, hold=hold)
+    inn = innovation_substeps(spec.system, t, Us, Y, theta=theta, q=0.0, x_hat0=x0,
+                              x_sd=np.full(spec.system.n, 10.0), noise_std=sigma, hold=hold)
+    fine = trust_report(spec.system, t, U, Y, theta, spec.parameter_names, x_hat0=x0,
+                        hold=hold, substeps=4 * max(free, inn))
+    assert abs(np.sqrt(own.score) - np.sqrt(fine.score)) < SCORE_SD_AGREE, (own.score,
+                                                                           fine.score)
+    assert np.all(np.abs(own.crlb_sd / fine.crlb_sd - 1) < BOUND_AGREE)

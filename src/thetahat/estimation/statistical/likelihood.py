@@ -55,7 +55,7 @@ from .plant_kernel import (ACCURACY_SAMPLES, H_RHO, ModelKernel, Propagation, ch
 __all__ = ["ProcessNoiseFit", "RecordEvidence", "fit_process_noise", "process_noise_scale",
            "unit_process_noise", "record_bound", "record_evidence", "process_noise_at",
            "fisher_covariance", "Q_DECADES", "Q_SEARCH_SAMPLES", "Q_FIRST_HEAD", "ALTERNATIONS",
-           "QSearch", "search_process_noise"]
+           "QSearch", "search_process_noise", "innovation_substeps"]
 
 FloatArray = NDArray[np.float64]
 
@@ -403,6 +403,48 @@ def _innovation_substeps(pb: _Problem, theta: FloatArray, q: float) -> int:
         return np.where(head.valid, NU, 0.0)     # a missing output: no innovation to compare
 
     return doubling_floor(run, pb.t.shape[0])
+
+
+def innovation_substeps(system: PerturbedLinearSystem, t: FloatArray, U: FloatArray,
+                        Y: FloatArray, *, theta: FloatArray, q: float, x_hat0: FloatArray,
+                        x_sd: FloatArray, noise_std: FloatArray, hold: str = "foh",
+                        h_rho: float = H_RHO, compiled: bool | None = None) -> int:
+    """The RK4 sub-steps' floor at which the likelihood at (θ, q) is accurate: its normalised
+    innovations move θ̂ by at most a tenth of a standard error when every sample's sub-steps
+    are doubled (the rule :func:`fit_process_noise` applies to itself).
+
+    Parameters
+    ----------
+    system, t, U, Y, x_hat0, x_sd, noise_std, hold, h_rho, compiled
+        As for :func:`record_bound`.
+    theta : ndarray (p,)
+    q : float
+        The process-noise intensity (≥ 0; 0: the output-error model, whose rule is the free
+        run's).
+
+    Returns
+    -------
+    int
+        The floor (≥ 1).
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from thetahat.models import prop3_monotone
+    >>> from thetahat.estimation.statistical.likelihood import innovation_substeps
+    >>> d = prop3_monotone.simulate(seed=0, t_end=5.0)
+    >>> n = innovation_substeps(prop3_monotone.system(), d.t, np.asarray(d.u),
+    ...                         np.asarray(d.y), theta=np.array([1.2]), q=0.0,
+    ...                         x_hat0=np.zeros(2), x_sd=np.full(2, 10.0),
+    ...                         noise_std=np.array([0.01]), compiled=False)
+    >>> n >= 1
+    True
+    """
+    pb = _problem(system, np.asarray(t, dtype=np.float64), np.asarray(U, dtype=np.float64),
+                  np.asarray(Y, dtype=np.float64), np.asarray(x_hat0, dtype=np.float64),
+                  np.asarray(x_sd, dtype=np.float64), np.asarray(noise_std, dtype=np.float64),
+                  Propagation(hold=hold, h_rho=h_rho), compiled)
+    return _innovation_substeps(pb, np.asarray(theta, dtype=np.float64), float(q))
 
 
 def _propagation(system: PerturbedLinearSystem, t: FloatArray, U: FloatArray, Y: FloatArray,

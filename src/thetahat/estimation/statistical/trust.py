@@ -67,9 +67,9 @@ from ...model.system import PerturbedLinearSystem
 from .common import sample_interval, theta_box, x_prior_sd
 from .input_hold import stage2_samples
 from .stage2_set import BOUNDARY_RTOL, on_boundary, project_theta
-from .likelihood import (RecordEvidence, process_noise_at, process_noise_scale,
-                         record_evidence)
-from .plant_kernel import H_RHO, choose_substeps, model_kernel
+from .likelihood import (RecordEvidence, innovation_substeps, process_noise_at,
+                         process_noise_scale, record_evidence)
+from .plant_kernel import H_RHO
 from .noise_level import MIN_SAMPLES, estimate_noise_std
 
 if TYPE_CHECKING:
@@ -436,8 +436,9 @@ def trust_report(system: PerturbedLinearSystem, t: FloatArray, U: FloatArray, Y:
     hold : {"zoh", "foh", "bandlimited"}
         u between the samples, as the estimate used it (:mod:`~thetahat.estimation.hold`).
     substeps : int, optional
-        The RK4 sub-steps' accuracy floor of the estimate's run (its diagnostics'
-        ``substeps``); default: chosen at θ̂.
+        The RK4 sub-steps' floor of every filter pass; default: the innovations' own at θ̂
+        (:func:`~thetahat.estimation.statistical.likelihood.innovation_substeps`, at q₀ and
+        at q̂, the larger).
     h_rho : float
     compiled : bool, optional
     theta_path : ndarray (N, p), optional
@@ -515,23 +516,41 @@ def _evidence(system: PerturbedLinearSystem, t: FloatArray, U: FloatArray, Y: Fl
               compiled: bool | None) -> RecordEvidence:
     """The score and the bound at θ̂ with the q the data support (module docstring): q
     searched at θ̂, and again at the one-step θ while θ̂ fails the test (Q_REFINEMENTS).
-    The sub-steps (when not given) are chosen once, at θ̂, for every filter pass."""
+    The sub-steps (when not given) are those of the likelihood it evaluates
+    (:func:`~thetahat.estimation.statistical.likelihood.innovation_substeps`, as a fit with
+    process noise chooses its own): at (θ̂, q₀) for q's search, and at (θ̂, q̂) after it, the
+    larger kept (a q̂ > 0 searched again if it grew); one floor for every pass that follows. Not the
+    free run's: with process noise the filter corrects x at every sample (EMPS: 2 sub-steps
+    against the free run's 16)."""
     theta_set = system.require_parameter_set("trust_report")
-    if substeps is None:
-        substeps = choose_substeps(model_kernel(system, compiled=compiled), t, U, Y, theta,
-                                   x_hat0, noise_std, hold=hold, h_rho=h_rho)
+    chosen = substeps is None
+    n_sub = 1 if substeps is None else substeps
+
+    def floor_at(q: float) -> int:
+        return innovation_substeps(system, t, U, Y, theta=theta, q=q, x_hat0=x_hat0,
+                                   x_sd=x_sd, noise_std=noise_std, hold=hold, h_rho=h_rho,
+                                   compiled=compiled)
 
     def q_at(th: FloatArray) -> float:
         return process_noise_at(system, t, U, Y, theta=th, x_hat0=x_hat0, x_sd=x_sd,
-                                noise_std=noise_std, hold=hold, substeps=substeps,
+                                noise_std=noise_std, hold=hold, substeps=n_sub,
                                 h_rho=h_rho, compiled=compiled)
 
     def evidence(q: float) -> RecordEvidence:
         return record_evidence(system, t, U, Y, theta=theta, x_hat0=x_hat0, x_sd=x_sd,
-                               noise_std=noise_std, q=q, hold=hold, substeps=substeps,
+                               noise_std=noise_std, q=q, hold=hold, substeps=n_sub,
                                h_rho=h_rho, compiled=compiled)
 
+    if chosen:
+        n_sub = floor_at(process_noise_scale(system, sample_interval(t), noise_std))
     q = q_at(theta)
+    if chosen:
+        more = floor_at(q)
+        if more > n_sub:
+            n_sub = more
+            if q > 0.0:     # (q̂ = 0 despite the coarser steps' error: none with finer ones)
+                q = q_at(theta)
+
     ev = evidence(q)
     limit = chi2_limit(theta.shape[0])
     for _ in range(Q_REFINEMENTS):
