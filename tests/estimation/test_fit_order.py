@@ -1,7 +1,8 @@
 """Which model a scheduled fit tries first (issue 32): when the last fit needed process noise of
 at least the data's own scale q₀ (a model error the record shows, as on the measured EMPS
 machine), the fit with process noise is tried first and the output-error fit is paid for only
-when that one is not consistent; otherwise the output-error fit comes first, as before.
+when that one is not consistent (on the record's last fit: or when its q̂, searched anew, is
+below q₀); otherwise the output-error fit comes first, as before.
 
 The evidence: on EMPS's first 12 000 samples the output-error fit is skipped on some windows
 (5 of 19, measured) and θ̂ is where the same run with the output-error fit on every window
