@@ -437,8 +437,7 @@ def trust_report(system: PerturbedLinearSystem, t: FloatArray, U: FloatArray, Y:
         u between the samples, as the estimate used it (:mod:`~thetahat.estimation.hold`).
     substeps : int, optional
         The RK4 sub-steps' floor of every filter pass; default: the innovations' own at θ̂
-        (:func:`~thetahat.estimation.statistical.likelihood.innovation_substeps`, at q₀ and
-        at q̂, the larger).
+        (:func:`~thetahat.estimation.statistical.likelihood.innovation_substeps` at q̂).
     h_rho : float
     compiled : bool, optional
     theta_path : ndarray (N, p), optional
@@ -518,10 +517,13 @@ def _evidence(system: PerturbedLinearSystem, t: FloatArray, U: FloatArray, Y: Fl
     searched at θ̂, and again at the one-step θ while θ̂ fails the test (Q_REFINEMENTS).
     The sub-steps (when not given) are those of the likelihood it evaluates
     (:func:`~thetahat.estimation.statistical.likelihood.innovation_substeps`, as a fit with
-    process noise chooses its own): at (θ̂, q₀) for q's search, and at (θ̂, q̂) after it, the
-    larger kept (a q̂ > 0 searched again if it grew); one floor for every pass that follows. Not the
-    free run's: with process noise the filter corrects x at every sample (EMPS: 2 sub-steps
-    against the free run's 16)."""
+    process noise chooses its own): q is searched at the smaller of the floors of (θ̂, 0) and
+    (θ̂, q₀), then the floor of (θ̂, q̂), where the evidence is evaluated, is taken for every
+    pass that follows (q searched again at it when it changed, unless q̂ = 0 was found with
+    coarser steps), so that q̂ is always the search's at its own floor. Not the free run's:
+    with process noise the filter corrects x at every sample (EMPS: 2 sub-steps at q₀ against
+    16 at 0); nor the larger of the two, as a fit takes: LuGre's needs 8 at q₀ and 2 at 0 and
+    at its q̂ ≈ 10⁻⁴ q₀ (measured once)."""
     theta_set = system.require_parameter_set("trust_report")
     chosen = substeps is None
     n_sub = 1 if substeps is None else substeps
@@ -541,15 +543,16 @@ def _evidence(system: PerturbedLinearSystem, t: FloatArray, U: FloatArray, Y: Fl
                                noise_std=noise_std, q=q, hold=hold, substeps=n_sub,
                                h_rho=h_rho, compiled=compiled)
 
-    if chosen:
-        n_sub = floor_at(process_noise_scale(system, sample_interval(t), noise_std))
+    if chosen:      # search at the cheaper of the two ends' floors, then check at q̂'s own
+        n_sub = min(floor_at(0.0),
+                    floor_at(process_noise_scale(system, sample_interval(t), noise_std)))
     q = q_at(theta)
     if chosen:
-        more = floor_at(q)
-        if more > n_sub:
-            n_sub = more
-            if q > 0.0:     # (q̂ = 0 despite the coarser steps' error: none with finer ones)
-                q = q_at(theta)
+        own, searched_at = floor_at(q), n_sub
+        if own != searched_at:
+            n_sub = own
+            if q > 0.0 or own < searched_at:    # (q̂ = 0 despite coarser steps' error:
+                q = q_at(theta)                 # none with finer ones)
 
     ev = evidence(q)
     limit = chi2_limit(theta.shape[0])
