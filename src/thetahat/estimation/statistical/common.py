@@ -31,12 +31,16 @@ from ..status import Status, status_error
 from .noise_level import MIN_SAMPLES, estimate_noise_std
 from .stage2_set import theta_bounds
 
-__all__ = ["PRIOR_FRACTION", "X_PRIOR_SD", "RunStop", "joint_prior", "model_phi_hat",
+__all__ = ["PRIOR_FRACTION", "STEP_TOL", "X_PRIOR_SD", "RunStop", "joint_prior", "model_phi_hat",
            "resolve_noise_std",
            "sample_interval", "start_values", "stopped_result", "theta_box", "theta_prior_sd",
            "x_prior_sd"]
 
 FloatArray = NDArray[np.float64]
+
+#: A fit of θ has converged once the step still to go is below this many standard errors of θ
+#: (the MAP fits' Gauss–Newton iteration and the likelihood fits alike).
+STEP_TOL = 0.02
 
 #: Prior standard deviation of θ as a fraction of Θ's width per component: θ's prior
 #: N(centre of Θ, (|Θ|/4)²) puts Θ's ends at 2 standard deviations.

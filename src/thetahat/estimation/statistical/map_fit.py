@@ -52,7 +52,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from ...errors import DimensionError, NonFiniteError
 from ...model.system import PerturbedLinearSystem
-from .common import resolve_noise_std, sample_interval, theta_prior_sd, x_prior_sd
+from .common import STEP_TOL, resolve_noise_std, sample_interval, theta_prior_sd, x_prior_sd
 from .noise_level import MAD_VARIANCE_SD, MIN_SAMPLES
 from .plant_kernel import H_RHO, Propagation, choose_substeps, model_kernel
 from .sweep import sweep_kernel
@@ -69,8 +69,6 @@ __all__ = ["FitResult", "FitSchedule", "INFO_GROWTH", "MAX_BURST_FRACTION", "MAX
 
 FloatArray = NDArray[np.float64]
 
-#: The iteration stops once the θ step is below this many standard errors of θ.
-STEP_TOL = 0.02
 #: Halvings of the Gauss–Newton step before the fit gives up improving.
 MAX_HALVINGS = 10
 #: A fit whose standard error of a parameter is more than this many times the previous
