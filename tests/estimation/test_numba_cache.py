@@ -243,3 +243,30 @@ def test_damaged_cache_gives_the_clean_result(pristine, tmp_path, case, damage, 
     last = child(cache)                # then a process loads it all, silently
     assert last["mine"] == [] and last["other"] == [] and last["hits"] == [1, 1]
     assert last["theta"] == clean["theta"]
+
+
+def test_a_save_another_process_is_recording_is_not_deleted(tmp_path):
+    """Two processes compiling one kernel at once (a fleet's workers): numba writes the files,
+    then their process hashes them into the manifest. One whose guard ran in that window
+    deleted the other's fresh files and warned "damaged or foreign" (a fleet row then differed
+    from the in-process run's). The guard now waits up to RECORD_WAIT for a fresh file to be
+    recorded; one that never is, is still deleted and counted."""
+    import hashlib
+    import threading
+    import thetahat.estimation.kernels.numba_cache as nc
+    module = "thetahat_test_race"
+    saved = tmp_path / f"{module}.run-3.py311.nbi"
+    saved.write_bytes(b"index being recorded")
+    nc._write_manifest(tmp_path, module, {})
+    sha = hashlib.sha256(saved.read_bytes()).hexdigest()
+    late = threading.Timer(0.1, nc._write_manifest, (tmp_path, module, {saved.name: sha}))
+    late.start()
+    try:
+        assert nc._purge_unrecorded(tmp_path, module) == 0
+    finally:
+        late.join()
+    assert saved.exists()
+    stray = tmp_path / f"{module}.run-3.py311.1.nbc"
+    stray.write_bytes(b"never recorded")
+    assert nc._purge_unrecorded(tmp_path, module) == 1
+    assert saved.exists() and not stray.exists()

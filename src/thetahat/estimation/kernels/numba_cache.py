@@ -34,6 +34,7 @@ import os
 import re
 import stat
 import threading
+import time
 import types
 import warnings
 from pathlib import Path
@@ -50,6 +51,11 @@ FORMAT = "thetahat-numba-cache/1"
 MAX_FILE_BYTES = 256 * 2**20
 #: Largest manifest read (one line per file: a few kB).
 MAX_MANIFEST_BYTES = 2**20
+#: An unrecorded file younger than this (s) may be another process's save not yet recorded.
+FRESH_SECONDS = 10.0
+#: How long (s) the manifest is read again for such a file before it is judged (the save-to-
+#: record window is the hashing of a few MB: milliseconds).
+RECORD_WAIT = 0.5
 
 _HEX = re.compile(r"[0-9a-f]{64}")
 _lock = threading.Lock()
@@ -151,18 +157,42 @@ def _write_manifest(folder: Path, module: str, files: dict[str, str]) -> None:
     write_text(manifest_path(folder, module), text)
 
 
+def _unverified(folder: Path, module: str) -> tuple[dict[str, str], list[Path]]:
+    """The manifest's records and the module's files that it does not list with their hash."""
+    recorded = _recorded(folder, module)
+    return recorded, [p for p in _files(folder, module + ".")
+                      if recorded.get(p.name) is None or _sha(p) != recorded[p.name]]
+
+
+def _fresh(path: Path) -> bool:
+    try:
+        return time.time() - path.stat().st_mtime < FRESH_SECONDS
+    except OSError:
+        return False
+
+
 def _purge_unrecorded(folder: Path, module: str) -> int:
     """Delete the module's numba files that the manifest does not list with their hash; the
     number deleted when the module has a manifest (without one, the files are those of a
     thetahat before this check, or of a process that stopped before recording: deleted
-    without a word). Remembers the others as trusted."""
+    without a word). Remembers the others as trusted.
+
+    A file written in the last :data:`FRESH_SECONDS` may be another process's save that it is
+    about to record (numba writes the files, then that process hashes them into the
+    manifest): the manifest is read again for up to :data:`RECORD_WAIT` seconds before such a
+    file is judged (two processes compiling one kernel at once, as a fleet's workers do, made
+    one of them delete the other's fresh files as "damaged or foreign")."""
     had_manifest = os.path.lexists(manifest_path(folder, module))
-    recorded = _recorded(folder, module)
+    recorded, bad = _unverified(folder, module)
+    deadline = time.monotonic() + RECORD_WAIT
+    while any(_fresh(p) for p in bad) and time.monotonic() < deadline:
+        time.sleep(0.02)
+        recorded, bad = _unverified(folder, module)
     trusted: dict[str, str] = {}
     dropped = 0
     for path in _files(folder, module + "."):
         want = recorded.get(path.name)
-        if want is not None and _sha(path) == want:
+        if path not in bad and want is not None:
             trusted[path.name] = want
         else:
             _remove(path)
