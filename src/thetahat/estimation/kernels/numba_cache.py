@@ -157,11 +157,18 @@ def _write_manifest(folder: Path, module: str, files: dict[str, str]) -> None:
     write_text(manifest_path(folder, module), text)
 
 
-def _unverified(folder: Path, module: str) -> tuple[dict[str, str], list[Path]]:
-    """The manifest's records and the module's files that it does not list with their hash."""
+def _checked(folder: Path, module: str) -> tuple[dict[str, str], list[Path]]:
+    """The module's files the manifest lists with their hash (name → hash), and the others."""
     recorded = _recorded(folder, module)
-    return recorded, [p for p in _files(folder, module + ".")
-                      if recorded.get(p.name) is None or _sha(p) != recorded[p.name]]
+    good: dict[str, str] = {}
+    bad: list[Path] = []
+    for path in _files(folder, module + "."):
+        want = recorded.get(path.name)
+        if want is not None and _sha(path) == want:
+            good[path.name] = want
+        else:
+            bad.append(path)
+    return good, bad
 
 
 def _fresh(path: Path) -> bool:
@@ -183,22 +190,15 @@ def _purge_unrecorded(folder: Path, module: str) -> int:
     file is judged (two processes compiling one kernel at once, as a fleet's workers do, made
     one of them delete the other's fresh files as "damaged or foreign")."""
     had_manifest = os.path.lexists(manifest_path(folder, module))
-    recorded, bad = _unverified(folder, module)
+    good, bad = _checked(folder, module)
     deadline = time.monotonic() + RECORD_WAIT
     while any(_fresh(p) for p in bad) and time.monotonic() < deadline:
         time.sleep(0.02)
-        recorded, bad = _unverified(folder, module)
-    trusted: dict[str, str] = {}
-    dropped = 0
-    for path in _files(folder, module + "."):
-        want = recorded.get(path.name)
-        if path not in bad and want is not None:
-            trusted[path.name] = want
-        else:
-            _remove(path)
-            dropped += 1
-    _trusted[(str(folder), module)] = trusted
-    return dropped if had_manifest else 0
+        good, bad = _checked(folder, module)
+    for path in bad:
+        _remove(path)
+    _trusted[(str(folder), module)] = good
+    return len(bad) if had_manifest else 0
 
 
 def _warn_once(module: str, kind: str, message: str) -> None:

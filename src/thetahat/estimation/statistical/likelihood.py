@@ -382,7 +382,8 @@ def _problem(system: PerturbedLinearSystem, t: FloatArray, U: FloatArray, Y: Flo
                     run=_filter_for(model), valid=valid)
 
 
-def _innovation_substeps(pb: _Problem, theta: FloatArray, q: float) -> int:
+def _innovation_substeps(pb: _Problem, theta: FloatArray, q: float,
+                         total: int | None = None) -> int:
     """The RK4 sub-steps the likelihood at (θ, q) needs: its normalised innovations accurate
     to a tenth of θ̂'s standard error.
 
@@ -394,8 +395,10 @@ def _innovation_substeps(pb: _Problem, theta: FloatArray, q: float) -> int:
     filter is the output-error model and the rule is the free run's; with process noise the
     filter corrects x at every sample, so a discretisation error no longer accumulates over
     the record but over the filter's memory, and is measured against √S ≥ σ (EMPS: 2
-    sub-steps here against the free run's 16).
+    sub-steps here against the free run's 16). ``total``: the record's length when ``pb``
+    holds only its head (default: ``pb``'s).
     """
+    N = pb.t.shape[0] if total is None else total
     K = min(pb.t.shape[0], ACCURACY_SAMPLES)
     if K < 2:
         return 1
@@ -407,7 +410,7 @@ def _innovation_substeps(pb: _Problem, theta: FloatArray, q: float) -> int:
         NU = replace(head, prop=prop).filter(theta, q)[0]
         return np.where(head.valid, NU, 0.0)     # a missing output: no innovation to compare
 
-    return doubling_floor(run, pb.t.shape[0])
+    return doubling_floor(run, N)
 
 
 def innovation_substeps(system: PerturbedLinearSystem, t: FloatArray, U: FloatArray,
@@ -445,11 +448,14 @@ def innovation_substeps(system: PerturbedLinearSystem, t: FloatArray, U: FloatAr
     >>> n >= 1
     True
     """
-    pb = _problem(system, np.asarray(t, dtype=np.float64), np.asarray(U, dtype=np.float64),
-                  np.asarray(Y, dtype=np.float64), np.asarray(x_hat0, dtype=np.float64),
-                  np.asarray(x_sd, dtype=np.float64), np.asarray(noise_std, dtype=np.float64),
-                  Propagation(hold=hold, h_rho=h_rho), compiled)
-    return _innovation_substeps(pb, np.asarray(theta, dtype=np.float64), float(q))
+    K = min(len(t), ACCURACY_SAMPLES)        # the rule reads the head: set up only that
+    head = _problem(system, np.asarray(t[:K], dtype=np.float64),
+                    np.asarray(U[:K], dtype=np.float64), np.asarray(Y[:K], dtype=np.float64),
+                    np.asarray(x_hat0, dtype=np.float64), np.asarray(x_sd, dtype=np.float64),
+                    np.asarray(noise_std, dtype=np.float64),
+                    Propagation(hold=hold, h_rho=h_rho), compiled)
+    return _innovation_substeps(head, np.asarray(theta, dtype=np.float64), float(q),
+                                total=len(t))
 
 
 def _propagation(system: PerturbedLinearSystem, t: FloatArray, U: FloatArray, Y: FloatArray,
@@ -469,10 +475,15 @@ def _fit_theta(pb: _Problem, theta0: FloatArray, q: float, theta_set: ParameterS
                max_nfev: int) -> tuple[FloatArray, FloatArray, int, float]:
     """Least squares of θ within Θ's bounding box, then projected onto Θ (exact for a box; for
     another convex Θ the projection is in the norm of the fit's own information JᵀJ). The
-    Jacobian is :class:`_Differences`' (steps from the residuals' measured rounding noise)."""
+    Jacobian is :class:`_Differences`' (steps from the residuals' measured rounding noise).
+    Where SciPy stops with more than :data:`STEP_TOL` standard errors still to go, it starts
+    again from there (:data:`FIT_RESTARTS`, within ``max_nfev`` passes in all)."""
     lo, hi = theta_bounds(theta_set)
     width = hi - lo
-    inner = np.clip(theta0, lo + 1e-9 * width, hi - 1e-9 * width)
+
+    def interior(th: FloatArray) -> FloatArray:     # SciPy's trf starts strictly inside
+        return np.clip(th, lo + 1e-9 * width, hi - 1e-9 * width)
+    inner = interior(theta0)
     diff = _Differences(pb, q, lo, hi, inner)
     nfev, start = 0, inner
     for _ in range(1 + FIT_RESTARTS):
@@ -492,7 +503,7 @@ def _fit_theta(pb: _Problem, theta0: FloatArray, q: float, theta_set: ParameterS
                               box_theta, theta, cov, theta_set)
         if step_se <= STEP_TOL or nfev >= max_nfev:
             break
-        start = np.clip(box_theta, lo + 1e-9 * width, hi - 1e-9 * width)
+        start = interior(box_theta)
     return theta, J, nfev, step_se
 
 

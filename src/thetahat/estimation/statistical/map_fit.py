@@ -751,13 +751,17 @@ def fit_record(schedule: FitSchedule, t: FloatArray, U: FloatArray, Y: FloatArra
 
     def with_q(start: FitResult, q_fixed: float | None) -> FitResult:
         return _with_process_noise(schedule, t, U, Y, k1, start, x_hat0, x_sd, q=q_fixed)
-    if previous is not None and _model_error_shown(schedule, t, Y, k1, q):
+    # q₀ of this window (the scale a fit with process noise here is judged against), needed
+    # only when the last fit took process noise
+    q0 = _noise_scale(schedule, t, Y, k1) if q > 0.0 else math.inf
+    if previous is not None and q >= q0:     # the record shows a model error: that model first
+        first: FitResult | None
         try:
             first = with_q(previous, None if search else q)
         except NonFiniteError:
             first = None                 # the output-error fit below decides
-        if first is not None and first.consistent and (
-                not final or _model_error_shown(schedule, t, Y, k1, first.process_noise)):
+        if first is not None and first.consistent and (not final
+                                                       or first.process_noise >= q0):
             return replace(first, q_window=k1 if search else q_window)
     fit = schedule.fit(t, U, Y, k1, previous, prior0)
     if final and schedule.substeps is not None and fit.finite:
@@ -780,22 +784,20 @@ def fit_record(schedule: FitSchedule, t: FloatArray, U: FloatArray, Y: FloatArra
     return alt if alt.consistent or alt.cost < fit.cost else fit
 
 
-def _model_error_shown(schedule: FitSchedule, t: FloatArray, Y: FloatArray, k1: int,
-                       q: float) -> bool:
-    """The last fit's process noise q is at least the data's own scale q₀ on samples
-    0 … k1 − 1: a model error the record shows, not a short window's stall."""
-    if q <= 0.0:
-        return False
+def _noise_scale(schedule: FitSchedule, t: FloatArray, Y: FloatArray, k1: int) -> float:
+    """q₀ of samples 0 … k1 − 1 (:func:`~.likelihood.process_noise_scale` at the window's σ),
+    the scale above which a fit's process noise is a model error the record shows."""
     from .likelihood import process_noise_scale
     sigma = resolve_noise_std(schedule.noise_std, Y[:k1])
-    return q >= process_noise_scale(schedule.system, sample_interval(t[:k1]), sigma)
+    return process_noise_scale(schedule.system, sample_interval(t[:k1]), sigma)
 
 
 def _with_process_noise(schedule: FitSchedule, t: FloatArray, U: FloatArray, Y: FloatArray,
                         k1: int, previous: FitResult, x_hat0: FloatArray, x_sd: FloatArray, *,
                         q: float | None) -> FitResult:
     """The fit of samples 0 … k1 − 1 by the likelihood with process noise on φ, as a FitResult,
-    from the θ of the fit ``previous`` (this window's output-error fit, or the last window's). ``q``: the intensity (None: estimated with θ).
+    from the θ of the fit ``previous`` (this window's output-error fit, or the last
+    window's). ``q``: the intensity (None: estimated with θ).
     Its sub-steps are the schedule's ``noise_substeps`` (a caller's), else the innovations'
     own (:func:`~thetahat.estimation.statistical.likelihood.fit_process_noise`): not the
     free run's of the output-error fit, whose error accumulates over the record where the

@@ -78,7 +78,8 @@ if TYPE_CHECKING:
 __all__ = ["TrustReport", "trust_report", "UNPINNED_FRACTION", "BOUNDARY_RTOL",
            "EMPTY_GUARD_FRACTION", "MODEL_ERROR_Q", "NOISE_FLOOR",
            "CONSISTENCY_ALPHA",
-           "SETTLE_TAIL", "SETTLE_SDS", "FIT_KINDS", "chi2_limit", "report_noise_std", "tail_movement"]
+           "SETTLE_TAIL", "SETTLE_SDS", "ADVICE", "FIT_KINDS", "chi2_limit", "report_noise_std",
+           "tail_movement"]
 
 FloatArray = NDArray[np.float64]
 
@@ -107,9 +108,25 @@ SETTLE_TAIL = 0.25
 #: θ̂ has not settled when a component drifts by more than SETTLE_SDS of its Cramér–Rao sd
 #: over that tail (:func:`tail_movement`; a fit on a growing record drifts by well under one).
 SETTLE_SDS = 2.0
-#: How an estimate was made (:attr:`TrustReport.fits`): by a recursion without fits, by MAP
-#: fits of the whole record, by fits of a bounded window.
-FIT_KINDS = ("none", "record", "window")
+#: What the warnings advise for a θ̂ the score test rejects and for one still moving at the
+#: record's end, by how it was made (:attr:`TrustReport.fits`): by a recursion without fits
+#: (the paper's observer, the joint EKF), by MAP fits of the whole record (guarded, mle), by
+#: fits of a bounded window.
+ADVICE = {
+    "none": ("use method guarded or mle, or a longer record",
+             "the estimate is on its way when the record ends (a longer record, other "
+             "excitation, or method guarded or mle, which use the whole record)"),
+    "record": ("the fits of the whole record stopped short of the data's optimum, or the "
+               "model errs: start θ̂(0) at the one-step θ, or check the model",
+               "the record's last part still moved the fit of the whole record: the data do "
+               "not yet pin θ (a longer record, or other excitation)"),
+    "window": ("the last window's fit is not the whole record's: a longer window "
+               "(window=None fits all the data)",
+               "the bounded window follows the recent data: a longer window, or a longer "
+               "record"),
+}
+#: The ways an estimate can be made (the keys of :data:`ADVICE`).
+FIT_KINDS = tuple(ADVICE)
 #: At an inconsistent θ̂ the process noise q̂ found there absorbs θ̂'s own error (and inflates
 #: the bound): q is searched again at the one-step θ, up to this many times (each costs one q
 #: search on the head and p + 1 passes over the record: bounded at one), and the test and
@@ -272,35 +289,15 @@ class TrustReport:
                 "Gauss–Newton step)")
             out.append(f"θ̂ is not where the data put it: {math.sqrt(self.score):.3g} standard "
                        f"errors away (score test, χ²_{self.theta.shape[0]} = {self.score:.3g}"
-                       f"{', ' + ', '.join(far) if far else ''}){prefer}; {self._inconsistent_advice()}")
+                       f"{', ' + ', '.join(far) if far else ''}){prefer}; "
+                       f"{ADVICE[self.fits][0]}")
         if not self.settled and self.tail_sds is not None:
             moved = [f"{n} by {v:.3g} sd" for n, v in zip(self.names, self.tail_sds)
                      if v > SETTLE_SDS]
             out.append(f"θ̂ has not settled: over the last {100 * SETTLE_TAIL:.0f} % of the "
                        f"record it still drifted ({', '.join(moved)} of its Cramér–Rao sd); "
-                       f"{self._unsettled_advice()}")
+                       f"{ADVICE[self.fits][1]}")
         return out
-
-    def _inconsistent_advice(self) -> str:
-        """What to do about a θ̂ the score test rejects, by how θ̂ was made."""
-        if self.fits == "record":
-            return ("the fits of the whole record stopped short of the data's optimum, or "
-                    "the model errs: start θ̂(0) at the one-step θ, or check the model")
-        if self.fits == "window":
-            return ("the last window's fit is not the whole record's: a longer window "
-                    "(window=None fits all the data)")
-        return "use method guarded or mle, or a longer record"
-
-    def _unsettled_advice(self) -> str:
-        """What to do about a θ̂ still moving at the record's end, by how θ̂ was made."""
-        if self.fits == "record":
-            return ("the record's last part still moved the fit of the whole record: the data "
-                    "do not yet pin θ (a longer record, or other excitation)")
-        if self.fits == "window":
-            return ("the bounded window follows the recent data: a longer window, or a "
-                    "longer record")
-        return ("the estimate is on its way when the record ends (a longer record, other "
-                "excitation, or method guarded or mle, which use the whole record)")
 
     def lines(self) -> list[str]:
         """Summary lines: the relative Cramér–Rao standard deviation per parameter, and the
@@ -480,7 +477,8 @@ def trust_report(system: PerturbedLinearSystem, t: FloatArray, U: FloatArray, Y:
         try:
             ev = _evidence(system, t, np.ascontiguousarray(stage2_samples(U, hold)[0]), Y,
                            th, x_hat0=x_hat0, x_sd=x_prior_sd(x_hat0, x_sd), noise_std=sigma,
-                           hold=hold, substeps=substeps, h_rho=h_rho, compiled=compiled)
+                           q0=q0, hold=hold, substeps=substeps, h_rho=h_rho,
+                           compiled=compiled)
             q = ev.q
             crlb_sd = np.sqrt(np.maximum(np.diag(ev.cov), 0.0))
             if np.all(np.isfinite(ev.step)):
@@ -511,9 +509,10 @@ def trust_report(system: PerturbedLinearSystem, t: FloatArray, U: FloatArray, Y:
 
 def _evidence(system: PerturbedLinearSystem, t: FloatArray, U: FloatArray, Y: FloatArray,
               theta: FloatArray, *, x_hat0: FloatArray, x_sd: FloatArray,
-              noise_std: FloatArray, hold: str, substeps: int | None, h_rho: float,
-              compiled: bool | None) -> RecordEvidence:
-    """The score and the bound at θ̂ with the q the data support (module docstring): q
+              noise_std: FloatArray, q0: float, hold: str, substeps: int | None,
+              h_rho: float, compiled: bool | None) -> RecordEvidence:
+    """The score and the bound at θ̂ with the q the data support (module docstring; q₀ the
+    data's scale of q): q
     searched at θ̂, and again at the one-step θ while θ̂ fails the test (Q_REFINEMENTS).
     The sub-steps (when not given) are those of the likelihood it evaluates
     (:func:`~thetahat.estimation.statistical.likelihood.innovation_substeps`, as a fit with
@@ -525,8 +524,6 @@ def _evidence(system: PerturbedLinearSystem, t: FloatArray, U: FloatArray, Y: Fl
     16 at 0); nor the larger of the two, as a fit takes: LuGre's needs 8 at q₀ and 2 at 0 and
     at its q̂ ≈ 10⁻⁴ q₀ (measured once)."""
     theta_set = system.require_parameter_set("trust_report")
-    chosen = substeps is None
-    n_sub = 1 if substeps is None else substeps
 
     def floor_at(q: float) -> int:
         return innovation_substeps(system, t, U, Y, theta=theta, q=q, x_hat0=x_hat0,
@@ -543,11 +540,10 @@ def _evidence(system: PerturbedLinearSystem, t: FloatArray, U: FloatArray, Y: Fl
                                noise_std=noise_std, q=q, hold=hold, substeps=n_sub,
                                h_rho=h_rho, compiled=compiled)
 
-    if chosen:      # search at the cheaper of the two ends' floors, then check at q̂'s own
-        n_sub = min(floor_at(0.0),
-                    floor_at(process_noise_scale(system, sample_interval(t), noise_std)))
+    # search at the cheaper of the two ends' floors, then check at q̂'s own
+    n_sub = substeps if substeps is not None else min(floor_at(0.0), floor_at(q0))
     q = q_at(theta)
-    if chosen:
+    if substeps is None:
         own, searched_at = floor_at(q), n_sub
         if own != searched_at:
             n_sub = own
