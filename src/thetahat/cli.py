@@ -19,6 +19,7 @@ Subcommands::
                      [--real double|float] [--name NAME] [--nan-policy raise|skip]
                      [--hold zoh|foh] -o DIR
     thetahat codegen MODEL --method ekf --dt 1e-3 (--noise-std S | --data LOG) -o DIR
+    thetahat codegen MODEL --method guarded --dt 1e-3 (--noise-std S | --data LOG) -o DIR
 
 Exit codes (see ``EXIT_CODES``): 0 success; 1 the model fails the theory's checks (Assumption 1
 fails, or the design is unstable on the true system); 2 usage or input error (the message is
@@ -352,6 +353,8 @@ def _codegen(args: argparse.Namespace) -> int:
     check_writable(Path(args.output) / "Makefile", inputs=inputs)         # before any work
     if args.method == "ekf":
         return _codegen_ekf(args, inputs)
+    if args.method == "guarded":
+        return _codegen_guarded(args, inputs)
     if args.noise_std is not None:
         raise OptionError("--noise-std is the EKF's σ: give it with --method ekf.")
     if args.data is not None and args.gamma is not None:
@@ -395,6 +398,33 @@ def _codegen_ekf(args: argparse.Namespace, inputs: list[str]) -> int:
         record = (data.t, data.u, data.y)
     code = generate_ekf_c_from_model(args.model, dt=args.dt, noise_std=args.noise_std,
                                      record=record, name=args.name, hold=args.hold)
+    for name in code.files():
+        check_writable(Path(args.output) / name, inputs=inputs)
+    paths = code.write(args.output)
+    print(code.summary())
+    print("wrote " + ", ".join(str(p) for p in paths)
+          + f"; build the harness with: make -C {args.output}")
+    return EXIT_OK
+
+
+def _codegen_guarded(args: argparse.Namespace, inputs: list[str]) -> int:
+    from .modelfile import generate_guarded_c_from_model, load_model
+    from .safe_io import check_writable
+
+    if args.real == "float":
+        raise OptionError("--method guarded is generated in double only (stage 2's "
+                          "covariance): drop --real float.")
+    if args.data is not None and args.gamma is not None:
+        raise OptionError("--gamma gives Γ and --data chooses it on a log: give one of them.")
+    record: tuple[Any, ...] | None = None
+    if args.data is not None:
+        from .io.datafile import read_data
+        data = read_data(args.data, load_model(args.model).layout, nan_policy=args.nan_policy,
+                         delimiter=_delimiter(args.delimiter))
+        record = (data.t, data.u, data.y)
+    code = generate_guarded_c_from_model(args.model, dt=args.dt, eps=args.eps,
+                                         Gamma=args.gamma, noise_std=args.noise_std,
+                                         record=record, name=args.name, hold=args.hold)
     for name in code.files():
         check_writable(Path(args.output) / name, inputs=inputs)
     paths = code.write(args.output)
@@ -619,7 +649,9 @@ def _add_codegen(sub: _Subparsers) -> None:
                     "which reads the CSV layout of `thetahat estimate` and writes its "
                     "columns). Prints the sizes of the state struct and of the constants. "
                     "--method ekf: the joint EKF on col(x, θ) instead (its harness reads "
-                    "t,u…,y… rows and writes t,x̂…,θ̂…).")
+                    "t,u…,y… rows and writes t,x̂…,θ̂…); --method guarded: the guarded "
+                    "estimator without fits (stage 1, stage 2 and the guard; its harness "
+                    "writes t,x̂…,θ̂…,θ̂_G…,θ̂₂…,δ…).")
     codegen.add_argument("model", help="model file (.toml or .json)")
     codegen.add_argument("--dt", type=float, required=True, help="fixed step length in s")
     codegen.add_argument("--eps", type=float, default=None,
@@ -644,13 +676,14 @@ def _add_codegen(sub: _Subparsers) -> None:
                               "over (skip)")
     codegen.add_argument("--hold", choices=["zoh", "foh"], default="zoh",
                          help="sample hold; foh: <name>_step also takes the next samples")
-    codegen.add_argument("--method", choices=["paper", "ekf"], default="paper",
-                         help="the estimator: the paper's observer (default) or the joint "
+    codegen.add_argument("--method", choices=["paper", "ekf", "guarded"], default="paper",
+                         help="the estimator: the paper's observer (default), the joint "
                               "EKF on col(x, θ) (stage 2; needs --noise-std or --data, "
-                              "--hold zoh)")
+                              "--hold zoh), or guarded: both with the guard between them, "
+                              "no re-anchoring fits (the paper's and the EKF's options)")
     codegen.add_argument("--noise-std", metavar="SIGMA[,SIGMA...]", type=_noise_std,
-                         default=None, help="--method ekf: σ of the output noise (R = σ² I); "
-                                            "default: estimated from --data")
+                         default=None, help="--method ekf or guarded: σ of the output noise "
+                                            "(R = σ² I); default: estimated from --data")
     codegen.add_argument("-o", "--output", required=True, help="output folder")
     codegen.set_defaults(run=_codegen)
 

@@ -5,7 +5,9 @@ into ``<name>.h``/``<name>.c`` (the step at a fixed dt, no heap, caller-owned st
 harness ``<name>_main.c`` and a ``Makefile``; :func:`thetahat.modelfile.generate_c_from_model`
 (``thetahat codegen MODEL --dt … -o DIR``) does the same from a model file.
 :func:`~thetahat.codegen.ekf_c.generate_ekf_c` prints the joint EKF on col(x, θ) (stage 2's
-kernels) the same way (``thetahat codegen MODEL --method ekf``).
+kernels) the same way (``thetahat codegen MODEL --method ekf``), and
+:func:`~thetahat.codegen.guarded_c.generate_guarded_c` the guarded estimator: both, with the
+guard between them and no fits (``--method guarded``).
 :mod:`thetahat.codegen.loader` compiles the result with the system C compiler and loads it with
 ctypes, and :mod:`thetahat.codegen.native` registers that C as the fastest back end of the
 observer's run (:mod:`thetahat.estimation.drive`).
@@ -16,5 +18,7 @@ model and the package's helpers. Never the model files, the studies or the comma
 
 from .ekf_c import EKFCode, generate_ekf_c
 from .generate import CCode, generate_c, model_hash
+from .guarded_c import GuardedCode, generate_guarded_c
 
-__all__ = ["CCode", "EKFCode", "generate_c", "generate_ekf_c", "model_hash"]
+__all__ = ["CCode", "EKFCode", "GuardedCode", "generate_c", "generate_ekf_c",
+           "generate_guarded_c", "model_hash"]

@@ -65,6 +65,10 @@ _RESERVED = frozenset({
     "exp", "expf", "sqrt", "fabs", "y0", "y1", "j0", "j1", "jn", "yn", "real_t"})
 
 
+#: NumPy's and math's special values, by the names <math.h> gives them.
+_SPECIAL = {"inf": Const(math.inf, "INFINITY"), "nan": Const(math.nan, "NAN")}
+
+
 class CUnit:
     """One C translation unit of specialised formula functions.
 
@@ -614,6 +618,8 @@ class _FunctionPrinter:
             if ctype != INT:
                 raise UnsupportedError("// on reals is outside the formulas' subset")
             return Scal(f"({left} / {right})", INT)
+        elif op is ast.BitAnd and ctype != INT:
+            raise UnsupportedError("& on reals is outside the formulas' subset")
         return Scal(f"({left} {BINOPS[op]} {right})", ctype)
 
     def _paren(self, value: Any) -> str:
@@ -697,6 +703,9 @@ class _FunctionPrinter:
         raise UnsupportedError(f"{ast.unparse(node)} is outside the formulas' subset")
 
     def _attribute(self, node: ast.Attribute) -> Any:
+        if (isinstance(node.value, ast.Name) and node.value.id in ("np", "math")
+                and node.attr in _SPECIAL):
+            return _SPECIAL[node.attr]
         base = self._expr(node.value)
         if isinstance(base, tuple) and hasattr(base, "_fields"):
             return getattr(base, node.attr)

@@ -80,11 +80,13 @@ def identifiers(text: str) -> list[str]:
     return re.findall(r"[A-Za-z_]\w*", text)
 
 
-BINOPS = {ast.Add: "+", ast.Sub: "-", ast.Mult: "*", ast.Div: "/", ast.Mod: "%"}
+BINOPS = {ast.Add: "+", ast.Sub: "-", ast.Mult: "*", ast.Div: "/", ast.Mod: "%",
+          ast.BitAnd: "&"}
 FOLD: dict[type, Callable[[Any, Any], Any]] = {
     ast.Add: lambda a, b: a + b, ast.Sub: lambda a, b: a - b, ast.Mult: lambda a, b: a * b,
     ast.Div: lambda a, b: a / b, ast.FloorDiv: lambda a, b: a // b,
-    ast.Mod: lambda a, b: a % b, ast.Pow: lambda a, b: a ** b}
+    ast.Mod: lambda a, b: a % b, ast.Pow: lambda a, b: a ** b,
+    ast.BitAnd: lambda a, b: a & b}
 CMPS = {ast.Lt: "<", ast.LtE: "<=", ast.Gt: ">", ast.GtE: ">=", ast.Eq: "==", ast.NotEq: "!="}
 CMP_FOLD: dict[type, Callable[[Any, Any], Any]] = {
     ast.Lt: lambda a, b: a < b, ast.LtE: lambda a, b: a <= b, ast.Gt: lambda a, b: a > b,

@@ -50,10 +50,10 @@ from .generate import write_c_files
 from .harness import makefile_source
 from .printing import c_function
 
-__all__ = ["EKFCode", "generate_ekf_c"]
+__all__ = ["EKFCode", "KERNELS", "c_array", "check_stage2", "generate_ekf_c"]
 
-#: The kernels printed, by the names the others call them.
-_KERNELS = {"ekf_predict": ek.ekf_predict, "ekf_update": ek.ekf_update,
+#: The kernels printed, by the names the others call them (the guarded C prints them too).
+KERNELS = {"ekf_predict": ek.ekf_predict, "ekf_update": ek.ekf_update,
             "ekf_gain": ek.ekf_gain, "ekf_joseph": ek.ekf_joseph,
             "propagate": pk.propagate, "stage_jac": pk.stage_jac,
             "held_input": pk.held_input, "spectral_radius_bound": pk.spectral_radius_bound,
@@ -116,32 +116,69 @@ class EKFCode:
         return f"EKFCode(name={self.name!r}, dt={self.dt!r}, sizes={self.sizes})"
 
 
-def _check(ekf: Any, dt: float) -> None:
+def check_stage2(ekf: Any, dt: float, what: str = "the C EKF") -> None:
+    """Refuse what the printed stage 2 cannot do (``what`` names the C in the messages).
+
+    Parameters
+    ----------
+    ekf : JointEKF
+        Stage 2 as the C would run it.
+    dt : float
+    what : str
+
+    Raises
+    ------
+    UnsupportedError
+        Not a JointEKF, a hold other than ``"zoh"``, a Θ other than a box, p = 0 or r = 0.
+    OptionError
+        No ``noise_std``; a ``dt`` that is not a finite number > 0.
+    """
     if not isinstance(ekf, JointEKF):
         raise UnsupportedError(f"generate_ekf_c needs a JointEKF; got {type(ekf).__name__}.")
     if ekf.hold != "zoh":
         raise UnsupportedError(
-            f"the C EKF has hold 'zoh' only; got {ekf.hold!r} (stage 2's 'foh' corrects its "
+            f"{what} has hold 'zoh' only; got {ekf.hold!r} (stage 2's 'foh' corrects its "
             "input samples with a causal estimate of ü that is not generated yet, and "
-            "'bandlimited' reads later samples). Use JointEKF(hold='zoh') (--hold zoh).")
-    theta_set = ekf.system.require_parameter_set("the C EKF")
+            "'bandlimited' reads later samples). Use hold='zoh' (--hold zoh).")
+    theta_set = ekf.system.require_parameter_set(what)
     if not isinstance(theta_set, Box):
-        raise UnsupportedError(f"the C EKF keeps θ̂ in a box Θ only; got {theta_set!r}. "
+        raise UnsupportedError(f"{what} keeps θ̂ in a box Θ only; got {theta_set!r}. "
                                "Give Θ as bounds (a Box).")
     if ekf.noise_std is None:
-        raise OptionError("the C EKF needs the output noise σ (R = σ² I) when it is "
+        raise OptionError(f"{what} needs the output noise σ (R = σ² I) when it is "
                           "generated: give noise_std (--noise-std, or --data LOG to estimate "
                           "it from a record).")
     if ekf.system.p == 0 or ekf.system.r == 0:
-        raise UnsupportedError("the C EKF needs p ≥ 1 parameters and r ≥ 1 outputs.")
+        raise UnsupportedError(f"{what} needs p ≥ 1 parameters and r ≥ 1 outputs.")
     if not (isinstance(dt, (int, float)) and math.isfinite(dt) and dt > 0.0):
         raise OptionError(f"dt must be a finite number > 0; got {dt!r}.")
 
 
-def _array(name: str, values: Any) -> str:
+def c_array(name: str, values: Any) -> str:
+    """``static const real_t NAME[size] = {…};`` of finite ``values``, flattened row-major.
+
+    Parameters
+    ----------
+    name : str
+    values : array_like
+
+    Returns
+    -------
+    str
+
+    Raises
+    ------
+    UnsupportedError
+        A value is not finite.
+
+    Examples
+    --------
+    >>> c_array("S0", [1.0, 0.5])
+    'static const real_t S0[2] = {1.0, 0.5};'
+    """
     flat = np.asarray(values, dtype=np.float64).ravel()
     if not np.all(np.isfinite(flat)):
-        raise UnsupportedError(f"{name} has non-finite entries; the C EKF needs finite data.")
+        raise UnsupportedError(f"{name} has non-finite entries; the generated C needs finite data.")
     body = ", ".join(repr(float(v)) for v in flat) if flat.size else "0.0"
     return f"static const real_t {name}[{max(flat.size, 1)}] = {{{body}}};"
 
@@ -189,7 +226,7 @@ def generate_ekf_c(ekf: JointEKF, *, dt: float, name: str = "ekf",
     >>> "int lugre_ekf_step(lugre_ekf_state *st" in code.source
     True
     """
-    _check(ekf, dt)
+    check_stage2(ekf, dt)
     name = check_c_name(name)
     sys_ = ekf.system
     n, m, r, p = sys_.n, sys_.m, sys_.r, sys_.p
@@ -203,7 +240,7 @@ def generate_ekf_c(ekf: JointEKF, *, dt: float, name: str = "ekf",
             "THETA_LO": theta_set.lo, "THETA_HI": theta_set.hi,
             "THETA_ELL": np.zeros((p + 1, p)), "S0": s0, "P0": P0}
     shapes = {k: np.shape(v) for k, v in data.items()}
-    unit = CUnit({k: source_tree(fn) for k, fn in _KERNELS.items()},
+    unit = CUnit({k: source_tree(fn) for k, fn in KERNELS.items()},
                  {"C_OUT": Arr("C_OUT", shapes["C_OUT"], True),
                   "MAX_SUBSTEPS": Const(pk.MAX_SUBSTEPS),
                   "TABLE_SUBSTEPS": Const(pk.TABLE_SUBSTEPS)},
@@ -225,7 +262,7 @@ def generate_ekf_c(ekf: JointEKF, *, dt: float, name: str = "ekf",
     rhs = c_function("rhs_jac", [("x", xs), ("u", us), ("th", ts)],
                      [("f", f), ("Fx", Fx), ("Ft", Ft)], "double")
     kernels = unit.source()
-    consts = [_array(k, v) for k, v in data.items()
+    consts = [c_array(k, v) for k, v in data.items()
               if k in ("S0", "P0") or k in kernels or k in rhs]
     sizes = {"n": n, "m": m, "r": r, "p": p, "hold": "zoh", "substeps": substeps}
     banner = _banner(name, title, dt, substeps, ekf)

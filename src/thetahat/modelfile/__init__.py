@@ -17,7 +17,8 @@ from .assembly import (ObserverGains, auto_gamma, build_estimator, build_observe
                        design_gains, design_matrices, estimator_spec, resolve_gains,
                        run_estimator, start_x_hat)
 from .holds import split_hold
-from .codegen import generate_c_from_model, generate_ekf_c_from_model
+from .codegen import (generate_c_from_model, generate_ekf_c_from_model,
+                      generate_guarded_c_from_model)
 from .report import ModelAnalysis, analyze_model
 from ..methods import ESTIMATION_METHODS
 from .keys import LAWS
@@ -30,5 +31,6 @@ __all__ = ["auto_gamma", "ESTIMATION_METHODS", "EXAMPLE_MODEL", "LAWS", "Estimat
            "ModelSpec", "ScenarioOptions", "SecondObserverOptions", "analyze_model",
            "build_estimator", "build_observer", "design_gains", "design_matrices",
            "estimator_spec", "generate_c_from_model", "generate_ekf_c_from_model",
+           "generate_guarded_c_from_model",
            "load_model", "loads_model", "run_estimator", "simulate_model", "split_hold",
            "start_x_hat", "study_simulator"]

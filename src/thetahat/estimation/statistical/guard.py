@@ -38,7 +38,8 @@ uncertainty.
 The windowed normalised innovation squared (NIS ≈ 1 for a consistent filter) is reported as
 a consistency diagnostic.
 
-What lives here: the progress measure of stage 1 (:func:`progress_init`, :func:`progress_step`),
+What lives here: the progress measure of stage 1 (:func:`progress_init`,
+:func:`progress_reset`, :func:`progress_step`),
 the guard at one sample (:func:`band`), the reset (:func:`reset_stage2`) and the per-sample
 loop over the EKF kernels (:func:`guarded_loop`), all module-level functions in numba's
 subset of Python. What it may import: NumPy and :mod:`math` only; the EKF kernels the loop
@@ -53,7 +54,8 @@ from typing import Any, Callable
 
 import numpy as np
 
-__all__ = ["progress_init", "progress_step", "band", "reset_stage2", "guarded_loop",
+__all__ = ["progress_init", "progress_reset", "progress_step", "band", "reset_stage2",
+           "guarded_loop",
            "GUARD_C", "GUARD_RHO_MAX", "GUARD_KAPPA", "GUARD_DWELL", "NIS_WINDOW"]
 
 #: Safety factor of δ_G on the extrapolated remaining movement of stage 1.
@@ -85,16 +87,27 @@ def progress_init(theta0: np.ndarray) -> np.ndarray:
         (initialised to ``theta0``), of the previous block and of the current block (both
         empty: +inf, −inf).
     """
-    p = theta0.shape[0]
-    st = np.empty((p, 6))
-    for i in range(p):
+    st = np.empty((theta0.shape[0], 6))
+    progress_reset(st, theta0)
+    return st
+
+
+def progress_reset(st: np.ndarray, theta0: np.ndarray) -> None:
+    """Write :func:`progress_init`'s state for ``theta0`` into ``st`` (p, 6), in place (the
+    generated C's form: its state has no allocation).
+
+    Parameters
+    ----------
+    st : ndarray, shape (p, 6)
+    theta0 : ndarray, shape (p,)
+    """
+    for i in range(theta0.shape[0]):
         st[i, 0] = theta0[i]
         st[i, 1] = theta0[i]
         st[i, 2] = np.inf
         st[i, 3] = -np.inf
         st[i, 4] = np.inf
         st[i, 5] = -np.inf
-    return st
 
 
 def progress_step(st: np.ndarray, k: int, theta: np.ndarray, width: np.ndarray, c: float,
@@ -270,17 +283,25 @@ def guarded_loop(s: Any, P: Any, P0: Any, U: Any, Y: Any, tt: Any, k0: int, k1: 
     """
     n = X2.shape[1]
     p = TH.shape[1]
-    width = hi - lo
+    width = np.empty(p)                          # |Θ| per component
+    for i in range(p):
+        width[i] = hi[i] - lo[i]
     Phi = np.empty((n, n))
     Gam = np.empty((n, p))
     dG = np.empty(p)
     eye = np.eye(p)
     z = np.empty(p)
+    thk = np.empty(p)                            # rows k of thG and Y, copied (the C
+    yk = np.empty(Y.shape[1])                    # printer passes whole arrays)
     resets = 0
     for k in range(k0, k1):
+        for i in range(p):
+            thk[i] = thG[k, i]
+        for j in range(Y.shape[1]):
+            yk[j] = Y[k, j]
         if k + off > 0:
             predict(s, P, U, k - 1, tt[k] - tt[k - 1], pc, WT, Q_x, Phi, Gam)
-            progress_step(pst, k + off, thG[k], width, cfg[1], cfg[2], dG)
+            progress_step(pst, k + off, thk, width, cfg[1], cfg[2], dG)
         else:
             for i in range(p):
                 dG[i] = width[i]
@@ -290,7 +311,7 @@ def guarded_loop(s: Any, P: Any, P0: Any, U: Any, Y: Any, tt: Any, k0: int, k1: 
             if not math.isfinite(Y[k, j]):
                 finite_y = False
         if finite_y and k + off >= gst[2]:
-            nis = update(s, P, Y[k], R, lo, hi, ell)
+            nis = update(s, P, yk, R, lo, hi, ell)
         bad = False
         for i in range(s.shape[0]):
             if not math.isfinite(s[i]) or not math.isfinite(P[i, i]):

@@ -557,7 +557,7 @@ class GuardedEstimator:
                                              if sched else None),
                                      executor=self.fit_executor,
                                      hold=streamable(self.hold, "GuardedEstimator"),
-                                     h_rho=self.h_rho)
+                                     h_rho=self.h_rho, substeps=self.substeps)
         stream.owner = self
         return stream
 

@@ -108,12 +108,15 @@ class GuardedStream:
         Stage 2's hold (not ``"bandlimited"``: a stream has no later samples).
     h_rho : float
         The RK4 sub-steps' stability bound.
+    substeps : int, optional
+        The RK4 sub-steps' accuracy floor without fits (default 1; with fits each fit sets
+        it, starting from the schedule's).
     """
 
     def __init__(self, system: PerturbedLinearSystem, s0: FloatArray, P0: FloatArray, *,
                  q_x: float, noise_std: ArrayLike | None, schedule: FitSchedule | None,
                  prior0: tuple[FloatArray, FloatArray] | None, hold: str = "foh",
-                 h_rho: float = H_RHO) -> None:
+                 h_rho: float = H_RHO, substeps: int | None = None) -> None:
         sys_ = system
         n = sys_.n
         self.owner: Any = None              # the estimator that started the stream
@@ -130,9 +133,8 @@ class GuardedStream:
         self.cfg = np.array([])
         self.pst = np.zeros((sys_.p, 6))
         self.hold = hold
-        self.pc, self.WT = Propagation(hold=hold, substeps=1 if schedule is None or
-                                       schedule.substeps is None else schedule.substeps,
-                                       h_rho=h_rho).arrays()
+        floor = substeps if schedule is None else schedule.substeps
+        self.pc, self.WT = Propagation(hold=hold, substeps=floor or 1, h_rho=h_rho).arrays()
         self.u_prev = np.zeros(sys_.m)
         self.u_history: InputHistory | None = None
         self.dt_prev = 0.0
@@ -162,13 +164,13 @@ class GuardedStream:
               q_x: float, noise_std: ArrayLike | None, schedule: FitSchedule | None,
               prior0: tuple[FloatArray, FloatArray] | None,
               executor: concurrent.futures.Executor | None, hold: str = "foh",
-              h_rho: float = H_RHO) -> GuardedStream:
+              h_rho: float = H_RHO, substeps: int | None = None) -> GuardedStream:
         """A new stream; with fits, the worker starts compiling the fit kernels at once (the
         first fit queues behind that warm-up; its errors, if any, come back with the fit).
 
         Parameters
         ----------
-        system, s0, P0, q_x, noise_std, schedule, prior0, hold, h_rho
+        system, s0, P0, q_x, noise_std, schedule, prior0, hold, h_rho, substeps
             As the class's.
         executor : concurrent.futures.Executor, optional
             Where the fits run (default
@@ -179,7 +181,7 @@ class GuardedStream:
         GuardedStream
         """
         sh = cls(system, s0, P0, q_x=q_x, noise_std=noise_std, schedule=schedule,
-                 prior0=prior0, hold=hold, h_rho=h_rho)
+                 prior0=prior0, hold=hold, h_rho=h_rho, substeps=substeps)
         if sh.sched is not None:
             sh.executor = executor if executor is not None else default_executor()
             sh.spec = fit_spec(sh.sched)

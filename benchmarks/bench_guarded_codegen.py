@@ -1,0 +1,141 @@
+"""Per-sample cost of the generated guarded C against the generated C of its two stages.
+
+Run:  .venv/bin/python benchmarks/bench_guarded_codegen.py [--t-end 5]
+
+One process, one record: the paper's DC motor (``lugre.simulate(seed=0)``, 1 kHz), zoh, σ = 0.02,
+one RK4 sub-step a sample. Three generated C estimators, each compiled with the harness's flags
+(``cc -O2``) into a shared library with a loop over the record (``<name>_init``, then
+``<name>_step`` per sample, storing θ̂), called once through ctypes:
+
+* ``guarded``: :func:`~thetahat.codegen.guarded_c.generate_guarded_c` (stage 1, stage 2, the
+  guard; no fits);
+* ``ekf``: :func:`~thetahat.codegen.ekf_c.generate_ekf_c`, stage 2 alone;
+* ``paper``: :func:`~thetahat.codegen.generate.generate_c`, stage 1 alone.
+
+Each time is the least CPU time (``time.process_time``; the machine is shared) of REPEATS runs
+taken round-robin, in ns per sample. Printed, not asserted: the table and the ratios guarded ÷
+(ekf + paper) — the guard's own overhead — and guarded ÷ ekf (issue 33 compares the guarded
+step with an EKF step of the same model).
+"""
+
+from __future__ import annotations
+
+import argparse
+import ctypes
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+from thetahat.codegen.ekf_c import generate_ekf_c
+from thetahat.codegen.generate import generate_c
+from thetahat.codegen.guarded_c import generate_guarded_c
+from thetahat.codegen.harness import C_FLAGS
+from thetahat.codegen.loader import find_compiler
+from thetahat.estimation.statistical.ekf import JointEKF
+from thetahat.estimation.statistical.guarded import GuardedEstimator
+from thetahat.models import lugre
+
+REPEATS = 7
+LOOP = """#include "{name}.h"
+int {name}_loop(const double *U, const double *Y, long N, double *TH)
+{{
+    {name}_state st;
+    long k;
+    int status;
+    {init}
+    for (k = 0; k < N; ++k) {{
+        status = {name}_step(&st, U + k, Y + k);
+        if (status != 0) return status;
+        TH[k] = {theta};
+    }}
+    return 0;
+}}
+"""
+
+
+def best(fn) -> float:
+    times = []
+    for _ in range(REPEATS):
+        t0 = time.process_time()
+        fn()
+        times.append(time.process_time() - t0)
+    return min(times)
+
+
+def library(code, sources: list[str], init: str, theta: str):
+    out = Path(tempfile.mkdtemp())
+    code.write(out)
+    (out / "loop.c").write_text(LOOP.format(name=code.name, init=init, theta=theta))
+    subprocess.run([find_compiler(), *C_FLAGS, "-fPIC", "-shared", "-o", "lib.so", *sources,
+                    "loop.c", "-lm"], cwd=out, check=True)
+    lib = ctypes.CDLL(str(out / "lib.so"))
+    fn = getattr(lib, f"{code.name}_loop")
+    dp = ctypes.POINTER(ctypes.c_double)
+    fn.argtypes = [dp, dp, ctypes.c_long, dp]
+    return fn
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--t-end", type=float, default=5.0, help="record length in s")
+    args = parser.parse_args()
+    if find_compiler() is None:
+        print("needs a C compiler; skipped")
+        return 0
+    data = lugre.simulate(seed=0, t_end=args.t_end)
+    t = np.asarray(data.t, dtype=np.float64)
+    U = np.ascontiguousarray(np.reshape(data.u, (t.size, -1)), dtype=np.float64)
+    Y = np.ascontiguousarray(np.reshape(data.y, (t.size, -1)), dtype=np.float64)
+    N, dt = t.size, float(t[1] - t[0])
+    system = lugre.system()
+    obs = lugre.observer().with_run_options(hold="zoh")
+    est = GuardedEstimator(stage1=obs, noise_std=0.02, hold="zoh", use_fits=False,
+                           substeps=1, compiled=False)
+    ekf = JointEKF(system=system, noise_std=0.02, hold="zoh", substeps=1, compiled=False)
+    g = generate_guarded_c(est, dt=dt, name="bg")
+    e = generate_ekf_c(ekf, dt=dt, name="be")
+    o = generate_c(obs, dt=dt, name="bo")
+    n = system.n
+    runs = {
+        "guarded": library(g, ["bg.c", "bg_stage1.c"], "if (bg_init(&st) != 0) return -1;",
+                           "st.theta_hat[0]"),
+        "ekf": library(e, ["be.c"], "be_init(&st);", f"st.s[{n}]"),
+        "paper": library(o, ["bo.c"], "if (bo_init(&st, 0, 0) != 0) return -1;",
+                         "bo_theta_hat(&st)[0]"),
+    }
+    dp = ctypes.POINTER(ctypes.c_double)
+    TH = {k: np.empty(N) for k in runs}
+
+    def call(key: str) -> None:
+        rc = runs[key](U.ctypes.data_as(dp), Y.ctypes.data_as(dp), N,
+                       TH[key].ctypes.data_as(dp))
+        if rc != 0:
+            raise RuntimeError(f"the {key} C stopped with status {rc}")
+
+    for key in runs:
+        call(key)
+    times: dict[str, list[float]] = {k: [] for k in runs}
+    for _ in range(REPEATS):
+        for key in runs:
+            times[key].append(best(lambda: call(key)) / N * 1e9)
+    ns = {k: min(v) for k, v in times.items()}
+    print(f"LuGre (n={n}, p={system.p}), {N} samples at 1 kHz, zoh, least CPU time of "
+          f"{REPEATS}x{REPEATS} runs")
+    for key in runs:
+        print(f"  {key:8s} C step {ns[key]:9.1f} ns/sample")
+    print(f"  guarded / (ekf + paper) {ns['guarded'] / (ns['ekf'] + ns['paper']):7.3f}"
+          "   (the guard's own cost)")
+    print(f"  guarded / ekf           {ns['guarded'] / ns['ekf']:7.3f}")
+    lo, hi = system.parameter_set.lower, system.parameter_set.upper
+    inside = bool(np.all((TH["guarded"] >= lo[0]) & (TH["guarded"] <= hi[0])))
+    print(f"  guarded θ̂ in Θ at every sample: {inside}; final θ̂ guarded "
+          f"{TH['guarded'][-1]:.4f}, ekf {TH['ekf'][-1]:.4f}, paper {TH['paper'][-1]:.4f}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
