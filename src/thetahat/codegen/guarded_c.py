@@ -57,6 +57,7 @@ __all__ = ["GuardedCode", "generate_guarded_c"]
 
 #: The functions printed besides the EKF's kernels, by the names the loop calls them.
 _GUARD = {"guarded_loop": gd.guarded_loop, "progress_reset": gd.progress_reset,
+          "apply_fit": gd.apply_fit,
           "progress_step": gd.progress_step, "band": gd.band,
           "reset_stage2": gd.reset_stage2}
 
@@ -233,13 +234,17 @@ def generate_guarded_c(est: GuardedEstimator, *, dt: float, name: str = "guarded
     loop = unit.call("guarded_loop", [
         Arr("w->s", (N,)), Arr("w->P", (N, N)), glob["P0"], Arr("U", (rows, m)),
         Arr("Y", (rows, r)), Arr("tt", (rows,)), Scal("k0", INT), Scal("k0 + 1", INT),
-        Scal("koff", INT), glob["R_NOISE"], glob["THETA_LO"], glob["THETA_HI"],
+        Scal("koff", INT), Arr("w->R", (r, r)), glob["THETA_LO"], glob["THETA_HI"],
         glob["THETA_ELL"], tuple(Const(float(v)) for v in pc), glob["WT"], glob["Q_X"],
         Arr("THG", (rows, p)), Arr("XG", (rows, n)), Arr("w->pst", (p, 6)),
-        Arr("w->gst", (3,)), glob["CFG"], Arr("TH", (rows, p)), Arr("TH2", (rows, p)),
+        Arr("w->gst", (3,)), Arr("w->cfg", cfg.shape), Arr("TH", (rows, p)),
+        Arr("TH2", (rows, p)),
         Arr("X2", (rows, n)), Arr("SD2", (rows, p)), Arr("BAND", (rows, p)),
         Arr("CLIP", (rows,)), Arr("RESET", (rows,)), Arr("NIS", (rows,))])
     init = unit.call("progress_reset", [Arr("w->pst", (p, 6)), Arr("THG", (p,))])
+    fit = unit.call("apply_fit", [Arr("w->s", (N,)), Arr("w->P", (N, N)),
+                                  Arr("w->R", (r, r)), Arr("w->cfg", cfg.shape),
+                                  Arr("TF", (p,)), Arr("CF", (p, p)), Arr("SF", (r,))])
     if unit.written_globals:
         raise UnsupportedError(f"the guard's kernels write {sorted(unit.written_globals)}")
     xs, us, ts, f, Fx, Ft = plant_jacobians(sys_)
@@ -247,8 +252,10 @@ def generate_guarded_c(est: GuardedEstimator, *, dt: float, name: str = "guarded
                      [("f", f), ("Fx", Fx), ("Ft", Ft)], "double")
     kernels = unit.source()
     consts = [f"static const real_t DT = {float(dt)!r};"] + [
-        c_array(k, v) for k, v in data.items() if k == "S0" or k in kernels or k in rhs]
-    doubles = stage1.sizes["state"] + N + N * N + 6 * p + 3 + max(m, 1) + 4 * p + n
+        c_array(k, v) for k, v in data.items()
+        if k in ("S0", "R_NOISE", "CFG") or k in kernels or k in rhs]
+    doubles = (stage1.sizes["state"] + N + N * N + r * r + cfg.size + 6 * p + 3 + max(m, 1)
+               + 4 * p + n)
     refined = f"{stage1.name}_x_hat_refined(" in stage1.header     # Sec. VI's x̂₂
     sizes = {"n": n, "m": m, "r": r, "p": p, "hold": "zoh", "substeps": substeps,
              "x_stage1": "x_hat_refined" if refined else "x_hat",
@@ -256,7 +263,8 @@ def generate_guarded_c(est: GuardedEstimator, *, dt: float, name: str = "guarded
     banner = _banner(name, title, dt, substeps, est)
     source = guarded_source(name, banner, consts, rhs, kernels,
                             loop=f"{loop.name}({', '.join(loop.args)})",
-                            init=f"{init.name}({', '.join(init.args)})", sizes=sizes)
+                            init=f"{init.name}({', '.join(init.args)})",
+                            fit=f"{fit.name}({', '.join(fit.args)})", sizes=sizes)
     return GuardedCode(name=name, dt=float(dt), stage1=stage1,
                        header=guarded_header(name, banner, sizes), source=source,
                        main=guarded_main(name, banner, sizes),

@@ -60,19 +60,24 @@ enum {{ {PU}_NX = {n}, {PU}_NU = {m}, {PU}_NY = {r}, {PU}_NTHETA = {p}, {PU}_NS 
 enum {P}_status {{
     {PU}_OK = 0,                /* the sample was processed */
     {PU}_NONFINITE_INPUT = 1,   /* NaN or inf in u, or inf in y: refused, state unchanged */
-    {PU}_STAGE1 = 2             /* stage 1 refused the sample or diverged: state unchanged
+    {PU}_STAGE1 = 2,            /* stage 1 refused the sample or diverged: state unchanged
                                    ({P}_state.stage1_status has its code) */
+    {PU}_BAD_FIT = 3            /* {P}_apply_fit: theta outside Theta or not finite, a
+                                   covariance or sigma not finite, sigma <= 0: not applied */
 }};
 
 /* The estimator's state. stage1: the paper's observer; s = col(x_hat_2, theta_hat_2) and P:
-   stage 2 (the joint EKF, row-major P); pst, gst: stage 1's progress and the guard's own
-   state; u_prev: the last input. After each step: theta_hat the guarded estimate (in Theta),
+   stage 2 (the joint EKF, row-major P), R its measurement noise covariance; cfg the guard's
+   constants and its latest fit; pst, gst: stage 1's progress and the guard's own state;
+   u_prev: the last input. After each step: theta_hat the guarded estimate (in Theta),
    x_hat stage 2's x_hat, theta_stage1 and theta_stage2 the two stages' estimates, band the
    guard's delta, clipped / reset whether the guard clipped stage 2 / reset it from stage 1. */
 typedef struct {P}_state {{
     {P}_stage1_state stage1;
     {P}_real_t s[{N}];
     {P}_real_t P[{N * N}];
+    {P}_real_t R[{r * r}];
+    {P}_real_t cfg[{4 + 3 * p}];
     {P}_real_t pst[{6 * p}];
     {P}_real_t gst[3];
     {P}_real_t u_prev[{max(m, 1)}];
@@ -92,6 +97,13 @@ int {P}_init({P}_state *st);
 /* One sample: the guard on stage 1's estimate at this sample and stage 2 (predicted from the
    previous sample, updated with y unless y has a NaN), then stage 1 advances by dt. */
 int {P}_step({P}_state *st, const {P}_real_t u[], const {P}_real_t y[]);
+/* Re-anchor stage 2 on a fit supplied by a host or a lower-priority task (thetahat's MAP fit of
+   the data so far, or of a window): theta_hat_2 <- theta (in Theta), the theta block of P <-
+   cov_theta (p x p, row-major; cross terms zeroed), R <- diag(sigma^2), and the guard's band
+   keeps |theta_G - theta| + kappa * sqrt(diag cov_theta) open, as the Python stream applies a
+   consistent fit at its next step. Call it between two steps. */
+int {P}_apply_fit({P}_state *st, const {P}_real_t theta[], const {P}_real_t cov_theta[],
+                 const {P}_real_t sigma[]);
 
 #ifdef __cplusplus
 }}
@@ -102,7 +114,7 @@ int {P}_step({P}_state *st, const {P}_real_t u[], const {P}_real_t y[]);
 
 
 def guarded_source(name: str, banner: str, consts: Sequence[str], rhs: str, kernels: str, *,
-                   loop: str, init: str, sizes: dict[str, Any]) -> str:
+                   loop: str, init: str, fit: str, sizes: dict[str, Any]) -> str:
     """``<name>.c``: the data, f and its Jacobians, the printed loop, init and step.
 
     Parameters
@@ -114,9 +126,9 @@ def guarded_source(name: str, banner: str, consts: Sequence[str], rhs: str, kern
         ``rhs_jac`` printed by SymPy.
     kernels : str
         The printed kernels (callees first).
-    loop, init : str
-        The calls of the printed ``guarded_loop`` (over rows ``k0`` … ``k0`` of its two-row
-        arrays) and ``progress_init``.
+    loop, init, fit : str
+        The calls of the printed ``guarded_loop`` (over row ``k0`` of its two-row arrays),
+        ``progress_reset`` and ``apply_fit`` (of ``TF``, ``CF``, ``SF``).
     sizes : dict
         n, m, r, p and ``x_stage1``, the accessor of stage 1's x̂ (``x_hat_refined`` with the
         second observer of Sec. VI, else ``x_hat``).
@@ -146,6 +158,8 @@ int {P}_init({P}_state *st)
     if (status != 0) return status;
     for (i = 0; i < {N}; ++i) st->s[i] = S0[i];
     for (i = 0; i < {N * N}; ++i) st->P[i] = P0[i];
+    for (i = 0; i < {r * r}; ++i) st->R[i] = R_NOISE[i];
+    for (i = 0; i < {4 + 3 * p}; ++i) st->cfg[i] = CFG[i];
     for (i = 0; i < {6 * p}; ++i) st->pst[i] = 0.0;
     st->gst[0] = 0.0;
     st->gst[1] = 1.0;
@@ -213,6 +227,30 @@ int {P}_step({P}_state *st, const real_t u[], const real_t y[])
     w->k += 1;
     *st = work;
     (void)SD2; (void)NIS; (void)U; (void)Y;
+    return {PU}_OK;
+}}
+
+int {P}_apply_fit({P}_state *st, const real_t theta[], const real_t cov_theta[],
+                 const real_t sigma[])
+{{
+    real_t TF[{p}], CF[{p * p}], SF[{r}];
+    {P}_state *w = st;
+    int i;
+    for (i = 0; i < {p}; ++i) {{
+        if (!isfinite(theta[i]) || theta[i] < THETA_LO[i] || theta[i] > THETA_HI[i]
+                || !isfinite(cov_theta[i * {p} + i]) || cov_theta[i * {p} + i] < 0.0)
+            return {PU}_BAD_FIT;
+        TF[i] = theta[i];
+    }}
+    for (i = 0; i < {p * p}; ++i) {{
+        if (!isfinite(cov_theta[i])) return {PU}_BAD_FIT;
+        CF[i] = cov_theta[i];
+    }}
+    for (i = 0; i < {r}; ++i) {{
+        if (!isfinite(sigma[i]) || !(sigma[i] > 0.0)) return {PU}_BAD_FIT;
+        SF[i] = sigma[i];
+    }}
+    {fit};
     return {PU}_OK;
 }}
 """

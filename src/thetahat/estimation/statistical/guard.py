@@ -40,7 +40,8 @@ a consistency diagnostic.
 
 What lives here: the progress measure of stage 1 (:func:`progress_init`,
 :func:`progress_reset`, :func:`progress_step`),
-the guard at one sample (:func:`band`), the reset (:func:`reset_stage2`) and the per-sample
+the guard at one sample (:func:`band`), the reset (:func:`reset_stage2`), a fit applied
+(:func:`apply_fit`) and the per-sample
 loop over the EKF kernels (:func:`guarded_loop`), all module-level functions in numba's
 subset of Python. What it may import: NumPy and :mod:`math` only; the EKF kernels the loop
 calls (``predict``, ``update``, ``project``) are bound when
@@ -55,7 +56,7 @@ from typing import Any, Callable
 import numpy as np
 
 __all__ = ["progress_init", "progress_reset", "progress_step", "band", "reset_stage2",
-           "guarded_loop",
+           "apply_fit", "guarded_loop",
            "GUARD_C", "GUARD_RHO_MAX", "GUARD_KAPPA", "GUARD_DWELL", "NIS_WINDOW"]
 
 #: Safety factor of δ_G on the extrapolated remaining movement of stage 1.
@@ -243,6 +244,47 @@ def reset_stage2(s: np.ndarray, P: np.ndarray, P0: np.ndarray, k: int, xG: np.nd
     for i in range(n + p):      # element by element: numba's slice assignment
         for j in range(n + p):  # compiles its string-formatting error path
             P[i, j] = P0[i, j]
+
+
+def apply_fit(s: Any, P: Any, R: Any, cfg: Any, theta: Any, cov: Any, sigma: Any) -> None:
+    """A re-anchoring fit applied to a running stage 2 (the stream's form: θ only, since x
+    has moved on since the fit's window), in place.
+
+    θ̂₂ ← θ_F; the θ rows and columns of P zeroed, P_θθ ← the fit's covariance of θ; R ←
+    diag(σ_F²); the guard's configuration ``cfg`` (:func:`guarded_loop`) takes θ_F and κ s_F,
+    s_F = √diag of that covariance, as the latest consistent fit. The Python stream
+    (:meth:`~thetahat.estimation.statistical.guarded_stream.GuardedStream.poll_fit`) and the
+    generated C's ``<name>_apply_fit`` both call it.
+
+    Parameters
+    ----------
+    s, P : ndarray, shapes (n + p,), (n + p, n + p)
+        Stage 2's state and covariance.
+    R : ndarray, shape (r, r)
+        The measurement noise covariance.
+    cfg : ndarray, shape (4 + 3p,)
+        The guard's configuration.
+    theta, cov, sigma : ndarray, shapes (p,), (p, p), (r,)
+        The fit's θ, covariance of θ and noise σ.
+    """
+    p = theta.shape[0]
+    n = s.shape[0] - p
+    for i in range(p):
+        s[n + i] = theta[i]
+    for i in range(n + p):
+        for j in range(n, n + p):
+            P[i, j] = 0.0
+            P[j, i] = 0.0
+    for i in range(p):
+        for j in range(p):
+            P[n + i, n + j] = cov[i, j]
+    for i in range(sigma.shape[0]):
+        for j in range(sigma.shape[0]):
+            R[i, j] = 0.0
+        R[i, i] = sigma[i] * sigma[i]
+    for i in range(p):
+        cfg[4 + p + i] = theta[i]
+        cfg[4 + 2 * p + i] = cfg[0] * math.sqrt(max(cov[i, i], 0.0))
 
 
 def guarded_loop(s: Any, P: Any, P0: Any, U: Any, Y: Any, tt: Any, k0: int, k1: int,

@@ -31,6 +31,7 @@ from ...errors import ThetahatWarning
 from ...model.system import PerturbedLinearSystem
 from .common import resolve_noise_std
 from .fit_worker import default_executor, discard_default_executor, fit_spec, run_fit, warm_up
+from .guard import apply_fit
 from .input_hold import InputHistory
 from .map_fit import FitResult, FitSchedule
 from .noise_level import MIN_SAMPLES
@@ -274,14 +275,8 @@ class GuardedStream:
             self.applied = fit
             self.pc, self.WT = Propagation(hold=self.hold, substeps=fit.substeps,
                                            h_rho=float(self.pc[0])).arrays()
-            self.s[n:] = fit.theta
-            self.P[n:, :] = 0.0
-            self.P[:, n:] = 0.0
-            self.P[n:, n:] = fit.cov[n:, n:]
-            self.R = np.diag(fit.noise_std ** 2)
-            p = fit.theta.shape[0]
-            self.cfg[4 + p:4 + 2 * p] = fit.theta
-            self.cfg[4 + 2 * p:] = self.cfg[0] * fit.theta_se
+            apply_fit(self.s, self.P, self.R, self.cfg, fit.theta, fit.cov[n:, n:],
+                      np.asarray(fit.noise_std, dtype=np.float64))
         if fit.k0 > 0 or (self.sched is not None and self.T[fit.k1 - 1 - self.base]
                           > self.sched.full_window):
             self._trim(fit.k1 - 1)
