@@ -73,6 +73,40 @@ def test_c_run_equals_the_python_run(name, hold):
     assert calls[-1] == (t.size - 1, t.size - 1)
 
 
+@pytest.mark.parametrize("name", MODEL_FILES)
+def test_a_stream_steps_in_c_as_the_observer_steps(name):
+    """NativeObserver.step (a stream, zero-order hold) runs the C of the stream's step length
+    and agrees with the observer's own steps, NaN gap included, to the run's tolerance."""
+    from thetahat.codegen.native import NativeObserver
+    spec, obs, t, u, y, s0 = case(name)
+    fast = NativeObserver(obs, never)
+    h = float(t[1] - t[0])
+    assert fast.steps_in_c(h)
+    a, b, A, B = s0.copy(), s0.copy(), [], []
+    for k in range(t.size):
+        a, b = fast.step(a, u[k], y[k], h), obs.step(b, u[k], y[k], h)
+        A.append(a)
+        B.append(b)
+    assert rel_err(np.array(A), np.array(B)) <= AGREE_RTOL
+
+
+def test_a_stream_step_the_c_cannot_take_is_the_observers():
+    """Another step length than the stream's first runs the observer's step (bit for bit), and
+    a NaN under nan_policy="raise" raises the observer's error."""
+    from thetahat.codegen.native import NativeObserver
+    from thetahat.errors import NonFiniteError
+    spec, obs, t, u, y, s0 = case("prop1")
+    fast = NativeObserver(obs, never)
+    h = float(t[1] - t[0])
+    s1 = fast.step(s0, u[0], y[0], h)
+    assert fast.steps_in_c(h) and not fast.steps_in_c(1.5 * h)
+    assert np.array_equal(fast.step(s1, u[1], y[1], 1.5 * h), obs.step(s1, u[1], y[1], 1.5 * h))
+    from thetahat.modelfile import build_observer
+    strict = NativeObserver(build_observer(spec, nan_policy="raise"), never)
+    with pytest.raises(NonFiniteError, match="nan_policy"):
+        strict.step(s0, u[0], np.full_like(y[0], np.nan), h)
+
+
 def test_progress_chunks_carry_the_state(monkeypatch):
     """Runs cut into pieces for progress reports continue each from the last row: the same
     numbers as one piece, bit for bit."""
