@@ -8,8 +8,10 @@ The paper's DC motor (``thetahat.models.lugre``, 1 kHz, its default estimators).
 * ``python``: ``compiled=False`` (NumPy/Python loops), on a ``--t-end-python`` record;
 * ``numba``: ``compiled=True`` with ``THETAHAT_C=0`` (every kernel numba's);
 * ``C``: the default with a C compiler: the paper's observer, and the guarded estimator's
-  stage 1, on the C printed from the formulas (``thetahat.codegen.native``); the guarded
-  stage 2, the MAP fits and the EKF have no C form, so their row is empty.
+  stage 1, on the C printed from the formulas (``thetahat.codegen.native``); a run's guarded
+  stage 2, MAP fits and EKF do not run in C (their generated C, ``codegen --method ekf`` /
+  ``guarded``, is for controllers: ``bench_ekf_codegen.py``, ``bench_guarded_codegen.py``), so
+  their row is empty.
 
 Each figure is the CPU time of this process (``time.process_time``, best of ``--rounds``
 after one warm-up run that compiles) divided by the record's samples: µs per sample of a
