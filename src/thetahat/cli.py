@@ -382,49 +382,48 @@ def _codegen(args: argparse.Namespace) -> int:
 
 
 def _codegen_ekf(args: argparse.Namespace, inputs: list[str]) -> int:
-    from .modelfile import generate_ekf_c_from_model, load_model
-    from .safe_io import check_writable
+    from .modelfile import generate_ekf_c_from_model
 
     given = [flag for flag, value in (("--eps", args.eps), ("--gamma", args.gamma))
              if value is not None] + (["--real float"] if args.real == "float" else [])
     if given:
         raise OptionError(f"{', '.join(given)} belong to the paper's observer; --method ekf "
                           "takes --noise-std (or --data), --hold zoh and --name.")
-    record: tuple[Any, ...] | None = None
-    if args.data is not None:
-        from .io.datafile import read_data
-        data = read_data(args.data, load_model(args.model).layout, nan_policy=args.nan_policy,
-                         delimiter=_delimiter(args.delimiter))
-        record = (data.t, data.u, data.y)
     code = generate_ekf_c_from_model(args.model, dt=args.dt, noise_std=args.noise_std,
-                                     record=record, name=args.name, hold=args.hold)
-    for name in code.files():
-        check_writable(Path(args.output) / name, inputs=inputs)
-    paths = code.write(args.output)
-    print(code.summary())
-    print("wrote " + ", ".join(str(p) for p in paths)
-          + f"; build the harness with: make -C {args.output}")
-    return EXIT_OK
+                                     record=_codegen_record(args), name=args.name,
+                                     hold=args.hold)
+    return _write_codegen(args, code, inputs)
 
 
 def _codegen_guarded(args: argparse.Namespace, inputs: list[str]) -> int:
-    from .modelfile import generate_guarded_c_from_model, load_model
-    from .safe_io import check_writable
+    from .modelfile import generate_guarded_c_from_model
 
     if args.real == "float":
         raise OptionError("--method guarded is generated in double only (stage 2's "
                           "covariance): drop --real float.")
     if args.data is not None and args.gamma is not None:
         raise OptionError("--gamma gives Γ and --data chooses it on a log: give one of them.")
-    record: tuple[Any, ...] | None = None
-    if args.data is not None:
-        from .io.datafile import read_data
-        data = read_data(args.data, load_model(args.model).layout, nan_policy=args.nan_policy,
-                         delimiter=_delimiter(args.delimiter))
-        record = (data.t, data.u, data.y)
     code = generate_guarded_c_from_model(args.model, dt=args.dt, eps=args.eps,
                                          Gamma=args.gamma, noise_std=args.noise_std,
-                                         record=record, name=args.name, hold=args.hold)
+                                         record=_codegen_record(args), name=args.name,
+                                         hold=args.hold)
+    return _write_codegen(args, code, inputs)
+
+
+def _codegen_record(args: argparse.Namespace) -> tuple[Any, ...] | None:
+    """--data's (t, u, y) in the model file's layout, or None."""
+    if args.data is None:
+        return None
+    from .io.datafile import read_data
+    from .modelfile import load_model
+    data = read_data(args.data, load_model(args.model).layout, nan_policy=args.nan_policy,
+                     delimiter=_delimiter(args.delimiter))
+    return (data.t, data.u, data.y)
+
+
+def _write_codegen(args: argparse.Namespace, code: Any, inputs: list[str]) -> int:
+    """Write a generated set of files (none over an input) and say what was written."""
+    from .safe_io import check_writable
     for name in code.files():
         check_writable(Path(args.output) / name, inputs=inputs)
     paths = code.write(args.output)

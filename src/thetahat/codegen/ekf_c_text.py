@@ -13,7 +13,7 @@ from __future__ import annotations
 from collections.abc import Sequence
 from typing import Any
 
-__all__ = ["ekf_header", "ekf_main", "ekf_source"]
+__all__ = ["csv_main", "ekf_header", "ekf_main", "ekf_source"]
 
 
 def ekf_header(name: str, banner: str, sizes: dict[str, Any]) -> str:
@@ -185,12 +185,53 @@ def ekf_main(name: str, banner: str, sizes: dict[str, Any]) -> str:
     n, m, r, p = sizes["n"], sizes["m"], sizes["r"], sizes["p"]
     head = ",".join(["t", *(f"x_hat_{i + 1}" for i in range(n)),
                      *(f"theta_hat_{i + 1}" for i in range(p))])
+    return csv_main(name, banner, sizes, head=head, init=f"{P}_init(&st);",
+                    failure=(f'status == {PU}_DIVERGED ? "the EKF diverged" : '
+                             '"u has a NaN or inf, or y an inf"'),
+                    row=f'for (i = 0; i < {n + p}; ++i) printf(",%.17g", st.s[i]);')
+
+
+def csv_main(name: str, banner: str, sizes: dict[str, Any], *, head: str, init: str,
+             failure: str, row: str, prelude: str = "") -> str:
+    """A CSV harness around ``<name>_step(&st, u, y)``: rows ``t,u…,y…`` after a header line
+    in, ``t`` and the estimates out (17 significant digits); exit 1 on a bad row or file, 2 on
+    a sample ``<name>_step`` refuses (the row and why on stderr).
+
+    Parameters
+    ----------
+    name, banner : str
+    sizes : dict
+        m and r.
+    head : str
+        The output's header line.
+    init : str
+        C statements that start ``st`` (they may ``return 1``).
+    failure : str
+        A C expression of the message for a nonzero ``status``.
+    row : str
+        C statements that print the estimates after ``t`` (``i`` is free).
+    prelude : str
+        C text before ``main`` (helpers).
+
+    Returns
+    -------
+    str
+
+    Examples
+    --------
+    >>> text = csv_main("e", "", {"m": 1, "r": 1}, head="t,x", init="e_init(&st);",
+    ...                 failure='"refused"', row='printf(",%.17g", st.s[0]);')
+    >>> "status = e_step(&st, u, y);" in text
+    True
+    """
+    P = name
+    m, r = sizes["m"], sizes["r"]
     return banner + f"""#include <stdio.h>
 #include <stdlib.h>
 #include "{P}.h"
 
 #define NCOL {1 + m + r}
-
+{prelude}
 int main(int argc, char **argv)
 {{
     char line[65536];
@@ -209,7 +250,7 @@ int main(int argc, char **argv)
         fprintf(stderr, "%s: cannot read %s\\n", argv[0], argv[1]);
         return 1;
     }}
-    {P}_init(&st);
+    {init}
     printf("{head}\\n");
     while (fgets(line, sizeof line, in) != NULL) {{
         char *p = line, *end;
@@ -226,14 +267,13 @@ int main(int argc, char **argv)
         for (i = 0; i < {m}; ++i) u[i] = row[1 + i];
         for (i = 0; i < {r}; ++i) y[i] = row[{1 + m} + i];
         status = {P}_step(&st, u, y);
-        if (status != {PU}_OK) {{
-            fprintf(stderr, "%s: data row %ld: %s\\n", argv[0], k + 1, status ==
-                    {PU}_DIVERGED ? "the EKF diverged" : "u has a NaN or inf, or y an inf");
+        if (status != 0) {{
+            fprintf(stderr, "%s: data row %ld: %s\\n", argv[0], k + 1, {failure});
             fclose(in);
             return 2;
         }}
         printf("%.17g", row[0]);
-        for (i = 0; i < {n + p}; ++i) printf(",%.17g", st.s[i]);
+        {row}
         printf("\\n");
         ++k;
     }}

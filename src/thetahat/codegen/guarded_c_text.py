@@ -14,6 +14,7 @@ from __future__ import annotations
 from collections.abc import Sequence
 from typing import Any
 
+from .ekf_c_text import csv_main
 from .harness import C_FLAGS
 
 __all__ = ["guarded_header", "guarded_main", "guarded_makefile", "guarded_source"]
@@ -284,77 +285,23 @@ def guarded_main(name: str, banner: str, sizes: dict[str, Any]) -> str:
     head = ",".join(["t", *(f"x_hat_{i + 1}" for i in range(n)),
                      *(f"{w}_{i + 1}" for w in ("theta_hat", "theta_stage1", "theta_stage2",
                                                 "band") for i in range(p))])
-    return banner + f"""#include <stdio.h>
-#include <stdlib.h>
-#include "{P}.h"
-
-#define NCOL {1 + m + r}
-
+    prelude = f"""
 static void put(const {P}_real_t *v, int n)
 {{
     int i;
     for (i = 0; i < n; ++i) printf(",%.17g", v[i]);
 }}
-
-int main(int argc, char **argv)
-{{
-    char line[65536];
-    {P}_real_t row[NCOL], u[{max(m, 1)}], y[{r}];
-    {P}_state st;
-    long k = 0;
-    int i, status;
-    FILE *in;
-    if (argc != 2) {{
-        fprintf(stderr, "usage: %s DATA.csv (columns t,u_1..u_{m},y_1..y_{r}, a header)\\n",
-                argv[0]);
-        return 1;
-    }}
-    in = fopen(argv[1], "r");
-    if (in == NULL || fgets(line, sizeof line, in) == NULL) {{
-        fprintf(stderr, "%s: cannot read %s\\n", argv[0], argv[1]);
-        return 1;
-    }}
-    if ({P}_init(&st) != {PU}_OK) {{
-        fprintf(stderr, "%s: stage 1 refused its start values\\n", argv[0]);
-        fclose(in);
-        return 1;
-    }}
-    printf("{head}\\n");
-    while (fgets(line, sizeof line, in) != NULL) {{
-        char *p = line, *end;
-        for (i = 0; i < NCOL; ++i) {{
-            row[i] = strtod(p, &end);
-            if (end == p || (i < NCOL - 1 && *end != ',')) {{
-                fprintf(stderr, "%s: data row %ld: expected %d numbers\\n", argv[0], k + 1,
-                        NCOL);
-                fclose(in);
-                return 1;
-            }}
-            p = end + 1;
-        }}
-        for (i = 0; i < {m}; ++i) u[i] = row[1 + i];
-        for (i = 0; i < {r}; ++i) y[i] = row[{1 + m} + i];
-        status = {P}_step(&st, u, y);
-        if (status != {PU}_OK) {{
-            fprintf(stderr, "%s: data row %ld: %s\\n", argv[0], k + 1, status == {PU}_STAGE1
-                    ? {P}_stage1_error_message(st.stage1_status)
-                    : "u has a NaN or inf, or y an inf");
-            fclose(in);
-            return 2;
-        }}
-        printf("%.17g", row[0]);
-        put(st.x_hat, {n});
-        put(st.theta_hat, {p});
-        put(st.theta_stage1, {p});
-        put(st.theta_stage2, {p});
-        put(st.band, {p});
-        printf("\\n");
-        ++k;
-    }}
-    fclose(in);
-    return 0;
-}}
 """
+    init = (f"if ({P}_init(&st) != {PU}_OK) {{\n"
+            '        fprintf(stderr, "%s: stage 1 refused its start values\\n", argv[0]);\n'
+            "        fclose(in);\n        return 1;\n    }")
+    row = (f"put(st.x_hat, {n});\n        put(st.theta_hat, {p});\n"
+           f"        put(st.theta_stage1, {p});\n        put(st.theta_stage2, {p});\n"
+           f"        put(st.band, {p});")
+    failure = (f"status == {PU}_STAGE1 ? {P}_stage1_error_message(st.stage1_status) : "
+               '"u has a NaN or inf, or y an inf"')
+    return csv_main(name, banner, sizes, head=head, init=init, failure=failure, row=row,
+                    prelude=prelude)
 
 
 def guarded_makefile(name: str) -> str:
