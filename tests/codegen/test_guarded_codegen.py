@@ -147,6 +147,26 @@ def test_c_guarded_is_the_stream_of_step(tmp_path):
     assert rel_err(table[:, 1:], np.array(rows)) <= GUARDED_RTOL
 
 
+def test_c_guarded_steps_stage1_as_the_stream_does_whatever_its_run_hold(tmp_path):
+    """A stage 1 whose run holds u linearly (foh) still steps with the current samples held in
+    a stream: the C prints that step (its stage 1 takes no next samples) and equals the
+    stream."""
+    spec, est, t, u, y = case("lugre")
+    est = replace(est, stage1=est.stage1.with_run_options(hold="foh"))
+    t, u, y = t[:300], u[:300], y[:300]
+    st = est.init(x_hat0=spec.estimator.x_hat0, theta_hat0=spec.estimator.theta_hat0)
+    rows = []
+    for k in range(t.size):
+        st = est.step(st, u[k], y[k], float(t[1] - t[0]))
+        rows.append(np.r_[st.x_hat, st.theta_hat, st.theta_stage1, st.theta_stage2, st.band])
+    code = generate_guarded_c(est, dt=float(t[1] - t[0]), name="lf",
+                              x_hat0=spec.estimator.x_hat0,
+                              theta_hat0=spec.estimator.theta_hat0)
+    rc, table, err = run_harness(build(code, tmp_path), tmp_path / "d.csv", t, u, y)
+    assert rc == 0, err
+    assert rel_err(table[:, 1:], np.array(rows)) <= GUARDED_RTOL
+
+
 def test_c_guarded_is_clean_under_sanitizers(tmp_path):
     spec, est, t, u, y = case("two_inertia")
     code = generate_guarded_c(est, dt=float(t[1] - t[0]), name="ti")

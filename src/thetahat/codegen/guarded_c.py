@@ -125,12 +125,14 @@ class GuardedCode:
 
 
 def _observer(stage1: Any) -> ModifiedHighGainObserver:
-    """Stage 1 as the observer the C generator prints (a compiled one's source observer)."""
+    """Stage 1 as the observer the C generator prints (a compiled one's source observer),
+    with the zero-order hold of a stream's step (:meth:`GuardedEstimator.step` advances stage
+    1 by its ``step``, which holds the current samples whatever the observer's ``run`` hold)."""
     obs = getattr(stage1, "observer", stage1)
     if not isinstance(obs, ModifiedHighGainObserver):
         raise UnsupportedError(f"the guarded C prints the paper's observer as stage 1; got "
                                f"{type(stage1).__name__}.")
-    return obs
+    return obs.with_run_options(hold="zoh")
 
 
 def _check(est: Any, dt: float) -> None:
