@@ -12,6 +12,11 @@ one RK4 sub-step a sample. Three generated C estimators, each compiled with the 
 * ``ekf``: :func:`~thetahat.codegen.ekf_c.generate_ekf_c`, stage 2 alone;
 * ``paper``: :func:`~thetahat.codegen.generate.generate_c`, stage 1 alone.
 
+With ``arm-none-eabi-gcc`` installed it also prints, for a Cortex-M4F (``-mcpu=cortex-m4
+-mfloat-abi=hard -mfpu=fpv4-sp-d16 -mthumb -Os``, double precision), each estimator linked
+into a minimal program (init, then step in a loop; newlib, ``--gc-sections``): flash (text +
+data) and the state struct's bytes.
+
 Each time is the least CPU time (``time.process_time``; the machine is shared) of REPEATS runs
 taken round-robin, in ns per sample. Printed, not asserted: the table and the ratios guarded ÷
 (ekf + paper) — the guard's own overhead — and guarded ÷ ekf (issue 33 compares the guarded
@@ -22,6 +27,7 @@ from __future__ import annotations
 
 import argparse
 import ctypes
+import shutil
 import subprocess
 import sys
 import tempfile
@@ -79,6 +85,45 @@ def library(code, sources: list[str], init: str, theta: str):
     return fn
 
 
+ARM_FLAGS = ("-mcpu=cortex-m4", "-mfloat-abi=hard", "-mfpu=fpv4-sp-d16", "-mthumb", "-Os",
+             "-std=c99", "-ffunction-sections", "-fdata-sections")
+ARM_MAIN = """#include "{name}.h"
+static {name}_state st;
+volatile double u_in[1], y_in[1], out;
+int main(void)
+{{
+    double u[1], y[1];
+    {init}
+    for (;;) {{
+        u[0] = u_in[0];
+        y[0] = y_in[0];
+        (void){name}_step(&st, u, y);
+        out = {theta};
+    }}
+}}
+"""
+
+
+def arm_size(code, sources: list[str], init: str, theta: str) -> dict[str, int] | None:
+    """Flash and state bytes of ``code`` linked for a Cortex-M4F, or None without the tools."""
+    cc, nm, size = (shutil.which(f"arm-none-eabi-{t}") for t in ("gcc", "nm", "size"))
+    if cc is None or nm is None or size is None:
+        return None
+    out = Path(tempfile.mkdtemp())
+    code.write(out)
+    (out / "m4.c").write_text(ARM_MAIN.format(name=code.name, init=init, theta=theta))
+    subprocess.run([cc, *ARM_FLAGS, "-Wl,--gc-sections", "--specs=nosys.specs", "-o", "m4.elf",
+                    "m4.c", *sources, "-lm"], cwd=out, check=True, capture_output=True)
+    text, data, _bss = (int(v) for v in subprocess.run(
+        [size, "m4.elf"], cwd=out, check=True, capture_output=True,
+        text=True).stdout.splitlines()[1].split()[:3])
+    sym = subprocess.run([nm, "-S", "m4.elf"], cwd=out, check=True, capture_output=True,
+                         text=True).stdout
+    state = next(int(line.split()[1], 16) for line in sym.splitlines()
+                 if line.endswith(" st"))
+    return {"flash": text + data, "state": state}
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--t-end", type=float, default=5.0, help="record length in s")
@@ -130,6 +175,18 @@ def main() -> int:
     print(f"  guarded / (ekf + paper) {ns['guarded'] / (ns['ekf'] + ns['paper']):7.3f}"
           "   (the guard's own cost)")
     print(f"  guarded / ekf           {ns['guarded'] / ns['ekf']:7.3f}")
+    sizes = {"guarded": arm_size(g, ["bg.c", "bg_stage1.c"], "(void)bg_init(&st);",
+                                 "st.theta_hat[0]"),
+             "ekf": arm_size(e, ["be.c"], "be_init(&st);", f"st.s[{n}]"),
+             "paper": arm_size(o, ["bo.c"], "(void)bo_init(&st, 0, 0);",
+                               "bo_theta_hat(&st)[0]")}
+    if sizes["guarded"] is None:
+        print("  Cortex-M4F: skipped (arm-none-eabi-gcc not installed)")
+    else:
+        for key, sz in sizes.items():
+            assert sz is not None
+            print(f"  Cortex-M4F {key:8s} (double, -Os, linked with newlib): flash "
+                  f"{sz['flash']} B, state {sz['state']} B")
     lo, hi = system.parameter_set.lower, system.parameter_set.upper
     inside = bool(np.all((TH["guarded"] >= lo[0]) & (TH["guarded"] <= hi[0])))
     print(f"  guarded θ̂ in Θ at every sample: {inside}; final θ̂ guarded "

@@ -41,6 +41,7 @@ from ..estimation.kernels.subset import source_tree
 from ..estimation.observer.observer import ModifiedHighGainObserver
 from ..estimation.statistical import guard as gd
 from ..estimation.statistical import plant_kernel as pk
+from ..estimation.statistical.common import joint_prior
 from ..estimation.statistical.ekf import JointEKF
 from ..estimation.statistical.guarded import GuardedEstimator
 from ..estimation.statistical.plant_forms import plant_jacobians
@@ -209,7 +210,7 @@ def generate_guarded_c(est: GuardedEstimator, *, dt: float, name: str = "guarded
     x0, th0 = start.x_hat0, start.theta_hat0
     stage1 = generate_c(_observer(est.stage1), dt=dt, name=f"{name}_stage1",
                         theta_hat0=th0, x_hat0=x0, eps=eps, title=title or None)
-    s0, P0 = est._prior(x0, th0)
+    s0, P0 = joint_prior(sys_, x0, th0, x_sd=est.x_sd)      # stage 2's prior, as the stream's
     sigma = np.broadcast_to(np.asarray(est.noise_std, dtype=np.float64), (r,))
     theta_set = stage2_set(sys_.require_parameter_set("the guarded C"))
     substeps = est.substeps or 1
