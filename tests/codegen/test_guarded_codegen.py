@@ -130,41 +130,32 @@ def test_the_guard_acts_in_the_conformance_records():
     assert min(clipped) > 0.0 and max(resets) >= 1
 
 
-def test_c_guarded_is_the_stream_of_step(tmp_path):
-    """The C's step is GuardedEstimator.step: 300 LuGre samples, one step call each."""
-    spec, est, t, u, y = case("lugre")
-    t, u, y = t[:300], u[:300], y[:300]
+def stream_rows(est, spec, t, u, y):
+    """The stream of ``est.step`` over the record: rows x̂, θ̂, θ̂_G, θ̂₂, δ, and the last
+    state."""
     st = est.init(x_hat0=spec.estimator.x_hat0, theta_hat0=spec.estimator.theta_hat0)
     rows = []
     for k in range(t.size):
         st = est.step(st, u[k], y[k], float(t[1] - t[0]))
         rows.append(np.r_[st.x_hat, st.theta_hat, st.theta_stage1, st.theta_stage2, st.band])
+    return np.array(rows), st
+
+
+@pytest.mark.parametrize("run_hold", ("zoh", "foh"))
+def test_c_guarded_is_the_stream_of_step(tmp_path, run_hold):
+    """The C's step is GuardedEstimator.step: 300 LuGre samples, one step call each. A stage 1
+    whose run holds u linearly (foh) still steps with the current samples held in a stream:
+    the C prints that step (its stage 1 takes no next samples)."""
+    spec, est, t, u, y = case("lugre")
+    est = replace(est, stage1=est.stage1.with_run_options(hold=run_hold))
+    t, u, y = t[:300], u[:300], y[:300]
+    rows, _ = stream_rows(est, spec, t, u, y)
     code = generate_guarded_c(est, dt=float(t[1] - t[0]), name="lg",
                               x_hat0=spec.estimator.x_hat0,
                               theta_hat0=spec.estimator.theta_hat0)
     rc, table, err = run_harness(build(code, tmp_path), tmp_path / "d.csv", t, u, y)
     assert rc == 0, err
-    assert rel_err(table[:, 1:], np.array(rows)) <= GUARDED_RTOL
-
-
-def test_c_guarded_steps_stage1_as_the_stream_does_whatever_its_run_hold(tmp_path):
-    """A stage 1 whose run holds u linearly (foh) still steps with the current samples held in
-    a stream: the C prints that step (its stage 1 takes no next samples) and equals the
-    stream."""
-    spec, est, t, u, y = case("lugre")
-    est = replace(est, stage1=est.stage1.with_run_options(hold="foh"))
-    t, u, y = t[:300], u[:300], y[:300]
-    st = est.init(x_hat0=spec.estimator.x_hat0, theta_hat0=spec.estimator.theta_hat0)
-    rows = []
-    for k in range(t.size):
-        st = est.step(st, u[k], y[k], float(t[1] - t[0]))
-        rows.append(np.r_[st.x_hat, st.theta_hat, st.theta_stage1, st.theta_stage2, st.band])
-    code = generate_guarded_c(est, dt=float(t[1] - t[0]), name="lf",
-                              x_hat0=spec.estimator.x_hat0,
-                              theta_hat0=spec.estimator.theta_hat0)
-    rc, table, err = run_harness(build(code, tmp_path), tmp_path / "d.csv", t, u, y)
-    assert rc == 0, err
-    assert rel_err(table[:, 1:], np.array(rows)) <= GUARDED_RTOL
+    assert rel_err(table[:, 1:], rows) <= GUARDED_RTOL
 
 
 def test_c_guarded_is_clean_under_sanitizers(tmp_path):
@@ -264,11 +255,8 @@ def test_c_guarded_takes_the_fits_the_python_stream_applies(tmp_path, name):
     two_inertia, 2.9e-13 on the heater."""
     spec, est, t, u, y = case(name)
     fitted = replace(est, use_fits=True, fit_executor=Now())
-    st = fitted.init(x_hat0=spec.estimator.x_hat0, theta_hat0=spec.estimator.theta_hat0)
-    h, rows = float(t[1] - t[0]), []
-    for k in range(t.size):
-        st = fitted.step(st, u[k], y[k], h)
-        rows.append(np.r_[st.x_hat, st.theta_hat, st.theta_stage1, st.theta_stage2, st.band])
+    rows, st = stream_rows(fitted, spec, t, u, y)
+    h = float(t[1] - t[0])
     diag = fitted.stream_diagnostics(st)
     n = spec.system.n
     applied, last = {}, None                  # the fits the stream applied, by step
@@ -290,7 +278,7 @@ def test_c_guarded_takes_the_fits_the_python_stream_applies(tmp_path, name):
         assert lib.gf_step(buf, ptr(u[k]), ptr(y[k])) == 0
         lib.shim_read(buf, out.ctypes.data_as(ctypes.POINTER(ctypes.c_double)))
         got.append(out.copy())
-    assert rel_err(np.array(got), np.array(rows)) <= GUARDED_RTOL
+    assert rel_err(np.array(got), rows) <= GUARDED_RTOL
 
 
 def test_c_apply_fit_refuses_a_bad_fit_and_keeps_the_state(tmp_path):

@@ -211,14 +211,13 @@ class NativeObserver:
             try:
                 code = generate_c(self.observer.with_run_options(hold="zoh"), dt=h,
                                   name="thetahat_observer")
-                c = load_cached(code)
+                if code.sizes["state"] == self.observer.layout.size:
+                    c = load_cached(code)
             except (UnsupportedError, CCompilerError, FileAccessError, OSError):
                 c = None
             self._stream = (h, c)
         d, c = self._stream
-        if c is None or c.code.sizes["state"] != self.observer.layout.size:
-            return None
-        return c if abs(h - d) <= DT_RTOL * d else None
+        return c if c is not None and abs(h - d) <= DT_RTOL * d else None
 
     def estimate(self, state: ArrayLike, u: ArrayLike | None, y: ArrayLike) -> ObserverEstimate:
         """x̂, φ̂, θ̂ (and x̂₂) of a state: the observer's ``estimate``.

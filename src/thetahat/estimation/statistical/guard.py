@@ -339,8 +339,11 @@ def guarded_loop(s: Any, P: Any, P0: Any, U: Any, Y: Any, tt: Any, k0: int, k1: 
     for k in range(k0, k1):
         for i in range(p):
             thk[i] = thG[k, i]
+        finite_y = True
         for j in range(Y.shape[1]):
             yk[j] = Y[k, j]
+            if not math.isfinite(yk[j]):
+                finite_y = False
         if k + off > 0:
             predict(s, P, U, k - 1, tt[k] - tt[k - 1], pc, WT, Q_x, Phi, Gam)
             progress_step(pst, k + off, thk, width, cfg[1], cfg[2], dG)
@@ -348,10 +351,6 @@ def guarded_loop(s: Any, P: Any, P0: Any, U: Any, Y: Any, tt: Any, k0: int, k1: 
             for i in range(p):
                 dG[i] = width[i]
         nis = np.nan
-        finite_y = True
-        for j in range(Y.shape[1]):
-            if not math.isfinite(Y[k, j]):
-                finite_y = False
         if finite_y and k + off >= gst[2]:
             nis = update(s, P, yk, R, lo, hi, ell)
         bad = False
