@@ -55,8 +55,9 @@ __all__ = ["EKFCode", "KERNELS", "c_array", "check_stage2", "generate_ekf_c"]
 #: The kernels printed, by the names the others call them (the guarded C prints them too).
 KERNELS = {"ekf_predict": ek.ekf_predict, "ekf_update": ek.ekf_update,
             "ekf_gain": ek.ekf_gain, "ekf_joseph": ek.ekf_joseph,
-            "propagate": pk.propagate, "stage_jac": pk.stage_jac,
-            "held_input": pk.held_input, "spectral_radius_bound": pk.spectral_radius_bound,
+            "propagate": pk.propagate, "propagate_into": pk.propagate_into,
+            "stage_jac": pk.stage_jac, "held_input": pk.held_input,
+            "balanced_radius": pk.balanced_radius,
             "project": clip_kernel}
 
 

@@ -99,13 +99,14 @@ class CRLBResult:
 
 
 # Names of the printed module (declared for the type checker; bound when printed).
-propagate: Callable[..., Any]
+propagate_into: Callable[..., Any]
+plant_work: Callable[..., Any]
 
 
 def sensitivities(x0: Any, th: Any, U: Any, tt: Any, pc: Any, WT: Any, S0: Any, X: Any,
                   SENS: Any) -> int:
     """The trajectory X (N, n) and S_k = ∂x_k/∂q into SENS (N, n, nq) from x(t_0) = x0 and
-    S_0 = S0 (n, nq; columns 0 … p − 1 for θ), by the model's ``propagate``; returns −1, or
+    S_0 = S0 (n, nq; columns 0 … p − 1 for θ), by the model's ``propagate_into``; returns −1, or
     the first sample that is not finite.
 
     Parameters
@@ -134,9 +135,11 @@ def sensitivities(x0: Any, th: Any, U: Any, tt: Any, pc: Any, WT: Any, S0: Any, 
     Sn = np.empty((n, nq))
     Phi = np.empty((n, n))
     Gam = np.empty((n, p))
+    work = plant_work(n, p, p, U.shape[1], WT.shape[1])
     for k in range(N):
         if k > 0:
-            x = propagate(x, th, U, k - 1, tt[k] - tt[k - 1], pc, WT, n > 0, Phi, Gam)
+            propagate_into(x, x, th, U, k - 1, tt[k] - tt[k - 1], pc, WT, n > 0, Phi, Gam,
+                           *work)
             for i in range(n):
                 for j in range(nq):
                     acc = Gam[i, j] if j < p else 0.0
@@ -184,7 +187,8 @@ def sensitivity_kernel(model: ModelKernel) -> Callable[..., int]:
     mod, (name,) = printed_kernels(
         "thetahat_crlb", "Printed by thetahat.estimation.statistical.crlb: the sensitivities "
         "of one model; do not edit (content-addressed).", [sensitivities],
-        {"propagate": model.propagate}, model.compiled)
+        {"propagate_into": model.propagate_into, "plant_work": model.plant_work},
+        model.compiled)
     fn: Callable[..., int] = getattr(mod, name)
     return fn
 

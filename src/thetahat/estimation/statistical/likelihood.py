@@ -228,7 +228,8 @@ def process_noise_scale(system: PerturbedLinearSystem, h: float, noise_std: Floa
 
 
 # Names of the printed filter module (declared for the type checker; bound when printed).
-propagate: Callable[..., Any]
+propagate_into: Callable[..., Any]
+plant_work: Callable[..., Any]
 C_OUT: FloatArray
 
 
@@ -236,7 +237,7 @@ def innovations(x0: Any, P0: Any, th: Any, U: Any, Y: Any, tt: Any, Rdiag: Any, 
                 qidx: Any, q: float, pc: Any, WT: Any, NU: Any, LS: Any, xP: Any) -> int:
     """The EKF on x with θ fixed: normalised innovations and log S per sample and output.
 
-    x propagated by the model's ``propagate`` (u held as ``pc, WT`` say) with P ← Φ P Φᵀ +
+    x propagated by the model's ``propagate_into`` (u held as ``pc, WT`` say) with P ← Φ P Φᵀ +
     q Qs[qidx[k]], the outputs updated one at a time in Joseph form; NU (N, r) receives
     ε/√S and LS (N, r) log S (0 where y is missing); the last x and P go into xP[0], xP[1:].
     Returns −1, or the first sample at which the filter is not finite.
@@ -251,10 +252,12 @@ def innovations(x0: Any, P0: Any, th: Any, U: Any, Y: Any, tt: Any, Rdiag: Any, 
     T = np.empty((n, n))
     PC = np.empty(n)
     K = np.empty(n)
+    work = plant_work(n, th.shape[0], 0, U.shape[1], WT.shape[1])
     for k in range(N):
         if k > 0:
             # a runtime True (n ≥ 1): the EKF's and the sweep's specialisation of propagate
-            x = propagate(x, th, U, k - 1, tt[k] - tt[k - 1], pc, WT, n > 0, Phi, Gam)
+            propagate_into(x, x, th, U, k - 1, tt[k] - tt[k - 1], pc, WT, n > 0, Phi, Gam,
+                           *work)
             for i in range(n):
                 for j in range(n):
                     acc = 0.0
@@ -316,7 +319,8 @@ def _filter_for(model: ModelKernel) -> Callable[..., int]:
     mod, (name,) = printed_kernels(
         "thetahat_innovations", "Printed by thetahat.estimation.statistical.likelihood: the "
         "innovations filter of one model; do not edit (content-addressed).", [innovations],
-        {"propagate": model.propagate, "C_OUT": model.C}, model.compiled)
+        {"propagate_into": model.propagate_into, "plant_work": model.plant_work,
+         "C_OUT": model.C}, model.compiled)
     fn: Callable[..., int] = getattr(mod, name)
     return fn
 

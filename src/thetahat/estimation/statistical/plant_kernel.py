@@ -80,8 +80,8 @@ from .plant_forms import rhs_jac_source
 
 __all__ = ["ACCURACY", "ACCURACY_SAMPLES", "H_RHO", "MAX_ACCURATE_SUBSTEPS", "MAX_SUBSTEPS",
            "ModelKernel", "Propagation", "TABLE_SUBSTEPS", "choose_substeps", "doubling_floor",
-           "free_run",
-           "have_numba", "held_input", "model_kernel", "printed_kernels", "propagate",
+           "balanced_radius", "free_run", "have_numba", "held_input", "model_kernel",
+           "plant_work", "printed_kernels", "propagate", "propagate_into",
            "spectral_radius_bound", "stage_jac"]
 
 FloatArray = NDArray[np.float64]
@@ -198,8 +198,22 @@ def spectral_radius_bound(F: FloatArray) -> float:
     >>> bool(spectral_radius_bound(np.array([[0.0, 1.0], [-4.0, 0.0]])) >= 2.0)
     True
     """
-    n = F.shape[0]
-    B = F.copy()
+    return balanced_radius(F.copy())
+
+
+def balanced_radius(B: Any) -> float:
+    """:func:`spectral_radius_bound` of B, balancing B in place (its work array).
+
+    Parameters
+    ----------
+    B : ndarray, shape (n, n)
+        Overwritten by D B D⁻¹.
+
+    Returns
+    -------
+    float
+    """
+    n = B.shape[0]
     for _ in range(4):
         for i in range(n):
             c = 0.0
@@ -324,7 +338,8 @@ def propagate(x: Any, th: Any, U: Any, k: int, h: float, pc: Any, WT: Any, want_
     says; Φ, Γ in place if ``want_jac``.
 
     Runs in the printed plant module, where ``rhs_jac`` is the model's
-    (:attr:`ModelKernel.propagate`).
+    (:attr:`ModelKernel.propagate`). :func:`propagate_into` with work arrays of its own (a
+    loop over samples allocates them once: :func:`plant_work`).
 
     Parameters
     ----------
@@ -352,21 +367,65 @@ def propagate(x: Any, th: Any, U: Any, k: int, h: float, pc: Any, WT: Any, want_
     n = x.shape[0]
     p = th.shape[0]
     pg = Gam.shape[1]
+    xa = np.empty(n)
+    propagate_into(x, xa, th, U, k, h, pc, WT, want_jac, Phi, Gam,
+                   np.empty((n, n)), np.empty((n, p)), np.empty(n), np.empty(n), np.empty(n),
+                   np.empty(n), np.empty(n), np.empty(U.shape[1]), np.empty(WT.shape[1]),
+                   np.empty((n, n)), np.empty((n, n)), np.empty((n, n)), np.empty((n, n)),
+                   np.empty((n, pg)), np.empty((n, pg)), np.empty((n, pg)), np.empty((n, pg)))
+    return xa
+
+
+def plant_work(n: int, p: int, pg: int, m: int, wl: int) -> Any:
+    """The work arrays of :func:`propagate_into` (the arguments after ``Gam``), allocated once
+    for a loop over samples.
+
+    Parameters
+    ----------
+    n, p, m : int
+        States, parameters, inputs.
+    pg : int
+        Γ's columns wanted (0: Φ alone).
+    wl : int
+        The band-limited taps' length (``WT.shape[1]``).
+
+    Returns
+    -------
+    tuple of ndarray
+        Fx (n, n), Ft (n, p), the four stages' slopes and x at a stage (five (n,)), u (m,),
+        taps (wl,), the stages' ∂/∂x (four (n, n)) and ∂/∂θ (four (n, pg)).
+    """
+    return (np.empty((n, n)), np.empty((n, p)), np.empty(n), np.empty(n), np.empty(n),
+            np.empty(n), np.empty(n), np.empty(m), np.empty(wl), np.empty((n, n)), np.empty((n, n)), np.empty((n, n)),
+            np.empty((n, n)), np.empty((n, pg)), np.empty((n, pg)), np.empty((n, pg)),
+            np.empty((n, pg)))
+
+
+def propagate_into(x: Any, xa: Any, th: Any, U: Any, k: int, h: float, pc: Any, WT: Any,
+                   want_jac: bool, Phi: Any, Gam: Any, Fx: Any, Ft: Any, k1: Any, k2: Any,
+                   k3: Any, k4: Any, xs: Any, ua: Any, w: Any, D1x: Any, D2x: Any, D3x: Any, D4x: Any, D1t: Any,
+                   D2t: Any, D3t: Any, D4t: Any) -> None:
+    """:func:`propagate` writing x_next into ``xa`` (which may be ``x``), over the work arrays
+    of :func:`plant_work` (their contents on entry are not read).
+
+    Parameters
+    ----------
+    x : ndarray, shape (n,)
+    xa : ndarray, shape (n,)
+        Output: x_next.
+    th, U, k, h, pc, WT, want_jac, Phi, Gam
+        As for :func:`propagate`.
+    Fx, Ft, k1, k2, k3, k4, xs, ua, w, D1x, D2x, D3x, D4x, D1t, D2t, D3t, D4t : ndarray
+        Work (:func:`plant_work`).
+    """
+    n = x.shape[0]
+    pg = Gam.shape[1]
     m = U.shape[1]
     code = int(pc[2])
-    Fx = np.empty((n, n))
-    Ft = np.empty((n, p))
-    k1 = np.empty(n)
-    k2 = np.empty(n)
-    k3 = np.empty(n)
-    k4 = np.empty(n)
-    xs = np.empty(n)
-    ua = np.empty(m)
-    w = np.empty(WT.shape[1])
     for j in range(m):
         ua[j] = U[k, j]
-    rhs_jac(x, ua, th, k1, Fx, Ft)
-    ratio = h * spectral_radius_bound(Fx) / pc[0]
+    rhs_jac(x, ua, th, xs, Fx, Ft)
+    ratio = h * balanced_radius(Fx) / pc[0]       # (Fx is written again by the first stage)
     ns = int(math.ceil(ratio)) if ratio < MAX_SUBSTEPS else MAX_SUBSTEPS
     ns = max(ns, int(pc[1]), 1)
     ns = min(ns, MAX_SUBSTEPS)
@@ -376,15 +435,18 @@ def propagate(x: Any, th: Any, U: Any, k: int, h: float, pc: Any, WT: Any, want_
             hold_weights(code, i / (2.0 * ns), pc[3], WT[i])
         pc[4] = ns
     dt = h / ns
-    xa = x.copy()
-    D1x = np.zeros((n, n))
-    D2x = np.zeros((n, n))
-    D3x = np.zeros((n, n))
-    D4x = np.zeros((n, n))
-    D1t = np.zeros((n, pg))
-    D2t = np.zeros((n, pg))
-    D3t = np.zeros((n, pg))
-    D4t = np.zeros((n, pg))
+    for i in range(n):
+        xa[i] = x[i]
+        for j in range(n):
+            D1x[i, j] = 0.0
+            D2x[i, j] = 0.0
+            D3x[i, j] = 0.0
+            D4x[i, j] = 0.0
+        for j in range(pg):
+            D1t[i, j] = 0.0
+            D2t[i, j] = 0.0
+            D3t[i, j] = 0.0
+            D4t[i, j] = 0.0
     if want_jac:
         for i in range(n):
             for j in range(n):
@@ -423,7 +485,6 @@ def propagate(x: Any, th: Any, U: Any, k: int, h: float, pc: Any, WT: Any, want_
                                              + D4t[i, j])
         for i in range(n):
             xa[i] += dt / 6.0 * (k1[i] + 2.0 * k2[i] + 2.0 * k3[i] + k4[i])
-    return xa
 
 
 def free_run(x0: Any, th: Any, U: Any, tt: Any, k0: int, k1: int, pc: Any, WT: Any,
@@ -454,9 +515,11 @@ def free_run(x0: Any, th: Any, U: Any, tt: Any, k0: int, k1: int, pc: Any, WT: A
     x = x0.copy()
     Phi = np.empty((n, n))
     Gam = np.empty((n, 0))
+    work = plant_work(n, th.shape[0], 0, U.shape[1], WT.shape[1])
     for k in range(k0, k1):
         if k > k0:
-            x = propagate(x, th, U, k - 1, tt[k] - tt[k - 1], pc, WT, n < 0, Phi, Gam)
+            propagate_into(x, x, th, U, k - 1, tt[k] - tt[k - 1], pc, WT, n < 0, Phi, Gam,
+                           *work)
         ok = True
         for i in range(n):
             if not math.isfinite(x[i]):
@@ -606,6 +669,9 @@ class ModelKernel:
         :class:`Propagation` says) and, when ``want_jac``, its exact Jacobians Φ, Γ written
         into ``Phi``, ``Gam`` (a ``Gam`` of shape (n, 0): Φ alone, a third of the work when
         p = 2n).
+    propagate_into, plant_work : callable
+        :func:`propagate_into` and :func:`plant_work`: the same map over work arrays
+        allocated once (what a kernel's loop over samples calls).
     free_run : callable
         ``free_run(x0, th, U, t, k0, k1, pc, WT, Y, X) -> rows``: :func:`free_run`.
     module : module
@@ -622,6 +688,8 @@ class ModelKernel:
     compiled: bool
     rhs_jac: Callable[..., None]
     propagate: Callable[..., FloatArray]
+    propagate_into: Callable[..., None]
+    plant_work: Callable[..., Any]
     free_run: Callable[..., int]
     module: ModuleType
     source: str
@@ -697,12 +765,14 @@ def model_kernel(system: PerturbedLinearSystem, *, compiled: bool | None = None)
     hit = _CACHE.get(key)
     if hit is not None:
         return hit
-    mod, (prop, run) = printed_kernels(
+    mod, (prop, into, work, run) = printed_kernels(
         "thetahat_plant", "Printed by thetahat.estimation.statistical.plant_kernel: the plant "
-        "model of one system; do not edit (content-addressed).", [propagate, free_run],
+        "model of one system; do not edit (content-addressed).",
+        [propagate, propagate_into, plant_work, free_run],
         {"rhs_jac": "rhs_jac", "C_OUT": C}, use, text=source)
     kern = ModelKernel(n=system.n, m=system.m, r=system.r, p=system.p, C=C, compiled=use,
                        rhs_jac=mod.rhs_jac, propagate=getattr(mod, prop),
+                       propagate_into=getattr(mod, into), plant_work=getattr(mod, work),
                        free_run=getattr(mod, run), module=mod, source=source)
     _CACHE[key] = kern
     return kern

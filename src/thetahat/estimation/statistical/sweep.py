@@ -4,8 +4,8 @@
 of :mod:`~thetahat.estimation.statistical.plant_kernel` (RK4 sub-steps, u between the samples
 as the hold reconstructs it), chains the output sensitivities ψ_k = C ∂x_k/∂q (q = col(x(t_{k0}),
 θ)) through the map's exact Jacobians and sums the data cost and its Gauss–Newton terms;
-:func:`sweep_kernel` prints it over one model's plant kernels (its free names ``propagate``
-and ``C_OUT`` bound; :func:`~thetahat.estimation.statistical.plant_kernel.printed_kernels`).
+:func:`sweep_kernel` prints it over one model's plant kernels (its free names ``propagate_into``,
+``plant_work`` and ``C_OUT`` bound; :func:`~thetahat.estimation.statistical.plant_kernel.printed_kernels`).
 The MAP fits (:mod:`~thetahat.estimation.statistical.map_fit`) and the MAP estimator's
 predictions before its first fit (:mod:`~thetahat.estimation.statistical.mle`) run it.
 
@@ -29,7 +29,8 @@ FloatArray = NDArray[np.float64]
 
 
 # Names of the printed sweep module (declared for the type checker; bound when printed).
-propagate: Callable[..., Any]
+propagate_into: Callable[..., Any]
+plant_work: Callable[..., Any]
 C_OUT: FloatArray
 
 
@@ -38,7 +39,7 @@ def sweep(x0: Any, th: Any, U: Any, Y: Any, tt: Any, k0: int, k1: int, skip0: bo
     """The fit's pass over a window: the data cost, its Gauss–Newton terms and the trajectory.
 
     Data cost Σ ‖y_k − C x_k‖²_{R⁻¹} over samples k0 … k1−1 (k0 left out when ``skip0``)
-    from x(t_{k0}) = x0 at θ = th, x propagated by the model's ``propagate`` (u held as
+    from x(t_{k0}) = x0 at θ = th, x propagated by the model's ``propagate_into`` (u held as
     ``pc, WT`` say); with ``want`` also A = Σ ψᵀ R⁻¹ ψ, b = Σ ψᵀ R⁻¹ r and T = ∂x_{k1−1}/∂q
     (ψ_k = C ∂x_k/∂q, q = col(x0, θ), chained through the map's exact Jacobians); X
     (k1 − k0, n) receives the trajectory.
@@ -76,13 +77,15 @@ def sweep(x0: Any, th: Any, U: Any, Y: Any, tt: Any, k0: int, k1: int, skip0: bo
     Sn = np.empty((n, nq))
     psi = np.empty((r, nq))
     res = np.empty(r)
+    work = plant_work(n, p, p, U.shape[1], WT.shape[1])
     if want:
         A[:, :] = 0.0
         b[:] = 0.0
     J = 0.0
     for k in range(k0, k1):
         if k > k0:
-            x = propagate(x, th, U, k - 1, tt[k] - tt[k - 1], pc, WT, want, Phi, Gam)
+            propagate_into(x, x, th, U, k - 1, tt[k] - tt[k - 1], pc, WT, want, Phi, Gam,
+                           *work)
             if want:
                 for i in range(n):
                     for j in range(nq):
@@ -149,6 +152,7 @@ def sweep_kernel(model: ModelKernel) -> Callable[..., float]:
     mod, (name,) = printed_kernels(
         "thetahat_sweep", "Printed by thetahat.estimation.statistical.map_fit: the MAP fit's "
         "sweep of one model; do not edit (content-addressed).", [sweep],
-        {"propagate": model.propagate, "C_OUT": model.C}, model.compiled)
+        {"propagate_into": model.propagate_into, "plant_work": model.plant_work,
+         "C_OUT": model.C}, model.compiled)
     fn: Callable[..., float] = getattr(mod, name)
     return fn
