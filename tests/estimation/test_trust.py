@@ -179,6 +179,35 @@ def test_the_short_head_search_finds_the_long_ones_q(name):
         assert short.samples == lk.Q_FIRST_HEAD < t.size and short.q > 1e-2 * q0
 
 
+@pytest.mark.parametrize("name", ["silverbox", "lugre", "two_inertia", "spring_friction"])
+def test_a_search_near_a_known_q_finds_the_same_q_in_fewer_passes(name, monkeypatch):
+    """The search around a q̂ already found (``near``; the trust report's re-search at other
+    sub-steps): started 0.3 decade off the full search's q̂ it ends within the searches'
+    tolerance of it with fewer filter passes; started 4 decades off (its bracket's edge), it
+    falls back to the full search and still finds it."""
+    pytest.importorskip("numba", reason="long-record filter passes take minutes without the "
+                        "compiled kernels (extra speed)")
+    import thetahat.estimation.statistical.likelihood as lk
+    system, t, U, Y, theta, x0, sigma, hold = _q_case(name)
+    kw = dict(theta=theta, x_hat0=x0, x_sd=np.full(system.n, 10.0), noise_std=sigma, hold=hold)
+    passes = []
+    nll = lk._Problem.nll
+    monkeypatch.setattr(lk._Problem, "nll", lambda pb, th, q: passes.append(1) or nll(pb, th, q))
+    full = lk.search_process_noise(system, t, U, Y, **kw)
+    n_full = len(passes)
+    q0 = lk.process_noise_scale(system, float(np.median(np.diff(t))), sigma)
+    start = full.q if full.q > 0 else q0
+    for off in (0.3, 4.0):
+        passes.clear()
+        near = lk.search_process_noise(system, t, U, Y, near=start * 10.0 ** off, **kw)
+        if full.q > 0 and near.q > 0:
+            assert abs(np.log10(near.q / full.q)) <= 3 * lk.Q_XTOL
+        else:
+            assert max(full.q, near.q) <= 1e-2 * q0
+        if off < lk.Q_NEAR_DECADES and full.q > 0 and full.samples == near.samples:
+            assert len(passes) < n_full
+
+
 # ------------------------------------------------------------------ the evidence of every method
 #: The score test's statistic at the true θ is χ²_p: its 1 − CONSISTENCY_ALPHA quantile (16.3
 #: for p = 3) is passed by the truth on 999 records in 1000; these seeds are fixed.

@@ -78,6 +78,12 @@ Q_SEARCH_SAMPLES = 2 ** 16
 #: :data:`Q_XTOL`. Sixteen times shorter, the first search costs a sixteenth of the long one's
 #: filter passes, and a long record whose model error shows early needs no other.
 Q_FIRST_HEAD = 2 ** 12
+#: A search near a known q̂ (:func:`search_process_noise`'s ``near``: the same record's q̂ at
+#: other sub-steps, or at a nearby θ) brackets log₁₀ q within ±Q_NEAR_DECADES of it, on each
+#: head (Silverbox's training split: 6 filter passes on the long head instead of 11, and 9
+#: on the short one instead of 14); a minimum found at the bracket's edge is searched again
+#: over the whole range.
+Q_NEAR_DECADES = 0.5
 #: Relative tolerance of the Gauss–Newton fit of θ (steps and cost).
 FIT_RTOL = 1e-6
 #: SciPy's trust region can stop on its relative tolerances with more than STEP_TOL standard
@@ -613,22 +619,27 @@ def _step_to_go(pb: _Problem, q: float, J: FloatArray, res: FloatArray, box_thet
 
 
 def _search_log_q(pb: _Problem, theta: FloatArray, q0: float,
-                  bounds: tuple[float, float] = (-Q_DECADES, Q_DECADES)) -> float:
-    """log₁₀(q / q₀) minimising −log L at θ within ``bounds``, to :data:`Q_XTOL`."""
+                  bounds: tuple[float, float] = (-Q_DECADES, Q_DECADES)
+                  ) -> tuple[float, float]:
+    """log₁₀(q / q₀) minimising −log L at θ within ``bounds``, to :data:`Q_XTOL`, and −log L
+    there."""
     def f(s: float) -> float:
         return pb.nll(theta, q0 * 10.0 ** s)
 
     res = minimize_scalar(f, bounds=bounds, method="bounded", options={"xatol": Q_XTOL})
-    return float(res.x)
+    return float(res.x), float(res.fun)
 
 
-def _q_or_zero(pb: _Problem, theta: FloatArray, q: float) -> float:
-    """q, or 0 when the output-error model (q = 0) has the larger likelihood."""
-    return q if pb.nll(theta, q) <= pb.nll(theta, 0.0) else 0.0
+def _q_or_zero(pb: _Problem, theta: FloatArray, q: float, nll_q: float | None = None) -> float:
+    """q, or 0 when the output-error model (q = 0) has the larger likelihood (``nll_q``:
+    −log L at q when known)."""
+    at_q = pb.nll(theta, q) if nll_q is None else nll_q
+    return q if at_q <= pb.nll(theta, 0.0) else 0.0
 
 
 def _search_q(pb: _Problem, theta: FloatArray, q0: float) -> float:
-    return _q_or_zero(pb, theta, q0 * 10.0 ** _search_log_q(pb, theta, q0))
+    s, f = _search_log_q(pb, theta, q0)
+    return _q_or_zero(pb, theta, q0 * 10.0 ** s, f)
 
 
 def _log_q_sd(pb: _Problem, theta: FloatArray, q0: float, s: float) -> float:
@@ -664,16 +675,42 @@ class QSearch(NamedTuple):
     log_sd: float
 
 
+def _search_near(pb: _Problem, theta: FloatArray, q0: float, near: float
+                 ) -> tuple[float, float] | None:
+    """The search of log₁₀(q / q₀) within ±:data:`Q_NEAR_DECADES` of ``near`` (> 0), and −log L
+    there; None when its minimum is at an edge of the bracket that is not the range's."""
+    c = min(max(math.log10(near / q0), -Q_DECADES), Q_DECADES)
+    lo, hi = max(-Q_DECADES, c - Q_NEAR_DECADES), min(Q_DECADES, c + Q_NEAR_DECADES)
+    s, f = _search_log_q(pb, theta, q0, (lo, hi))
+    if (s - lo <= Q_XTOL and lo > -Q_DECADES) or (hi - s <= Q_XTOL and hi < Q_DECADES):
+        return None
+    return s, f
+
+
 def _search_head(head: Callable[[int], _Problem], N: int, theta: FloatArray, q0: float,
-                 first: int) -> QSearch:
+                 first: int, near: float | None = None) -> QSearch:
     """The search of :func:`search_process_noise` on heads of the record (``head(n)``: the
     problem of its first n samples): on ``first`` samples, then on :data:`Q_SEARCH_SAMPLES`
     (or N) when q̂ is not pinned to :data:`Q_XTOL` — around the first head's q̂ (± 4 of its
-    standard errors, at least one decade) when it has one, over the whole range when not."""
+    standard errors, at least one decade) when it has one, over the whole range when not.
+    With ``near`` > 0: both searches around it (:func:`_search_near`), each as above when
+    its minimum is at the bracket's edge."""
     last = min(N, Q_SEARCH_SAMPLES)
     n = min(max(int(first), 2), last)
+    if near is not None and near > 0.0 and math.isfinite(near):
+        pb = head(n)
+        found = _search_near(pb, theta, q0, near)
+        sd = math.nan
+        if found is not None and n < last:
+            sd = _log_q_sd(pb, theta, q0, found[0])
+            if not sd <= Q_XTOL:
+                pb, sd = head(last), math.nan
+                found = _search_near(pb, theta, q0, near)
+        if found is not None:
+            return QSearch(q=_q_or_zero(pb, theta, q0 * 10.0 ** found[0], found[1]),
+                           samples=pb.t.shape[0], log_sd=sd)
     pb = head(n)
-    s = _search_log_q(pb, theta, q0)
+    s, f = _search_log_q(pb, theta, q0)
     sd = math.nan
     if n < last:
         sd = _log_q_sd(pb, theta, q0, s)
@@ -681,8 +718,8 @@ def _search_head(head: Callable[[int], _Problem], N: int, theta: FloatArray, q0:
             width = max(1.0, 4.0 * sd) if math.isfinite(sd) else 2.0 * Q_DECADES
             bounds = (max(-Q_DECADES, s - width), min(Q_DECADES, s + width))
             n, pb, sd = last, head(last), math.nan
-            s = _search_log_q(pb, theta, q0, bounds)
-    return QSearch(q=_q_or_zero(pb, theta, q0 * 10.0 ** s), samples=n, log_sd=sd)
+            s, f = _search_log_q(pb, theta, q0, bounds)
+    return QSearch(q=_q_or_zero(pb, theta, q0 * 10.0 ** s, f), samples=n, log_sd=sd)
 
 
 def _inverse_information(J: FloatArray) -> FloatArray:
@@ -756,8 +793,8 @@ def search_process_noise(system: PerturbedLinearSystem, t: FloatArray, U: FloatA
                          Y: FloatArray, *, theta: FloatArray, x_hat0: FloatArray,
                          x_sd: FloatArray, noise_std: FloatArray, hold: str = "foh",
                          substeps: int | None = None, h_rho: float = H_RHO,
-                         compiled: bool | None = None, first_head: int = Q_FIRST_HEAD
-                         ) -> QSearch:
+                         compiled: bool | None = None, first_head: int = Q_FIRST_HEAD,
+                         near: float | None = None) -> QSearch:
     """q̂ at a fixed θ by a bounded search of −log L on the record's first samples.
 
     The search runs on the first ``first_head`` samples; when −log L's curvature there leaves
@@ -767,12 +804,18 @@ def search_process_noise(system: PerturbedLinearSystem, t: FloatArray, U: FloatA
     ±:data:`Q_DECADES` (q₀ = :func:`process_noise_scale`), to :data:`Q_XTOL`; q̂ is 0 when
     the output-error model has the larger likelihood on the samples searched.
 
+    Given ``near`` (a q̂ already found on this record: at other sub-steps, or at a nearby θ),
+    each search is within ±:data:`Q_NEAR_DECADES` of it; when its minimum is at the
+    bracket's edge, the search starts again as above.
+
     Parameters
     ----------
     system, t, U, Y, theta, x_hat0, x_sd, noise_std, hold, substeps, h_rho, compiled
         As for :func:`record_bound`.
     first_head : int
         The first search's samples (``Q_SEARCH_SAMPLES``: one search on the long head).
+    near : float, optional
+        A q̂ to search around (ignored unless finite and > 0).
 
     Returns
     -------
@@ -797,21 +840,21 @@ def search_process_noise(system: PerturbedLinearSystem, t: FloatArray, U: FloatA
     prop = _propagation(system, t, U, Y, th, x_hat0, sigma, hold, substeps, h_rho, compiled)
     return _search_head(_heads(system, t, U, Y, x_hat0, x_sd, sigma, prop, compiled),
                         t.shape[0], th, process_noise_scale(system, sample_interval(t), sigma),
-                        first_head)
+                        first_head, near)
 
 
 def process_noise_at(system: PerturbedLinearSystem, t: FloatArray, U: FloatArray,
                      Y: FloatArray, *, theta: FloatArray, x_hat0: FloatArray,
                      x_sd: FloatArray, noise_std: FloatArray, hold: str = "foh",
                      substeps: int | None = None, h_rho: float = H_RHO,
-                     compiled: bool | None = None) -> float:
+                     compiled: bool | None = None, near: float | None = None) -> float:
     """q̂ at a fixed θ: :func:`search_process_noise`'s q (0 when the output-error model has
     the larger likelihood).
 
     Parameters
     ----------
-    system, t, U, Y, theta, x_hat0, x_sd, noise_std, hold, substeps, h_rho, compiled
-        As for :func:`record_bound`.
+    system, t, U, Y, theta, x_hat0, x_sd, noise_std, hold, substeps, h_rho, compiled, near
+        As for :func:`search_process_noise`.
 
     Returns
     -------
@@ -819,7 +862,7 @@ def process_noise_at(system: PerturbedLinearSystem, t: FloatArray, U: FloatArray
     """
     return search_process_noise(system, t, U, Y, theta=theta, x_hat0=x_hat0, x_sd=x_sd,
                                 noise_std=noise_std, hold=hold, substeps=substeps,
-                                h_rho=h_rho, compiled=compiled).q
+                                h_rho=h_rho, compiled=compiled, near=near).q
 
 
 class RecordEvidence(NamedTuple):

@@ -518,8 +518,10 @@ def _evidence(system: PerturbedLinearSystem, t: FloatArray, U: FloatArray, Y: Fl
     (:func:`~thetahat.estimation.statistical.likelihood.innovation_substeps`, as a fit with
     process noise chooses its own): q is searched at the smaller of the floors of (θ̂, 0) and
     (θ̂, q₀), then the floor of (θ̂, q̂), where the evidence is evaluated, is taken for every
-    pass that follows (q searched again at it when it changed, unless q̂ = 0 was found with
-    coarser steps), so that q̂ is always the search's at its own floor. Not the free run's:
+    pass that follows (q searched again at it when it changed, around the first q̂ — see
+    ``near`` of :func:`~thetahat.estimation.statistical.likelihood.search_process_noise` —
+    unless q̂ = 0 was found with coarser steps), so that q̂ is always the search's at its own
+    floor. Not the free run's:
     with process noise the filter corrects x at every sample (EMPS: 2 sub-steps at q₀ against
     16 at 0); nor the larger of the two, as a fit takes: LuGre's needs 8 at q₀ and 2 at 0 and
     at its q̂ ≈ 10⁻⁴ q₀ (measured once)."""
@@ -530,10 +532,10 @@ def _evidence(system: PerturbedLinearSystem, t: FloatArray, U: FloatArray, Y: Fl
                                    x_sd=x_sd, noise_std=noise_std, hold=hold, h_rho=h_rho,
                                    compiled=compiled)
 
-    def q_at(th: FloatArray) -> float:
+    def q_at(th: FloatArray, near: float | None = None) -> float:
         return process_noise_at(system, t, U, Y, theta=th, x_hat0=x_hat0, x_sd=x_sd,
                                 noise_std=noise_std, hold=hold, substeps=n_sub,
-                                h_rho=h_rho, compiled=compiled)
+                                h_rho=h_rho, compiled=compiled, near=near)
 
     def evidence(q: float) -> RecordEvidence:
         return record_evidence(system, t, U, Y, theta=theta, x_hat0=x_hat0, x_sd=x_sd,
@@ -548,14 +550,14 @@ def _evidence(system: PerturbedLinearSystem, t: FloatArray, U: FloatArray, Y: Fl
         if own != searched_at:
             n_sub = own
             if q > 0.0 or own < searched_at:    # (q̂ = 0 despite coarser steps' error:
-                q = q_at(theta)                 # none with finer ones)
+                q = q_at(theta, near=q)         # none with finer ones); near the first q̂
 
     ev = evidence(q)
     limit = chi2_limit(theta.shape[0])
     for _ in range(Q_REFINEMENTS):
         if not (q > 0 and ev.score > limit and np.all(np.isfinite(ev.step))):
             break
-        q_new = q_at(project_theta(theta_set, theta + ev.step))
+        q_new = q_at(project_theta(theta_set, theta + ev.step), near=q)
         if not q_new < Q_REFINE_FACTOR * q:
             break
         q = q_new
