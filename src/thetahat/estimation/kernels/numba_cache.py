@@ -54,8 +54,9 @@ MAX_MANIFEST_BYTES = 2**20
 #: An unrecorded file younger than this (s) may be another process's save not yet recorded.
 FRESH_SECONDS = 10.0
 #: How long (s) the manifest is read again for such a file before it is judged (the save-to-
-#: record window is the hashing of a few MB: milliseconds).
-RECORD_WAIT = 0.5
+#: record window is writing and hashing a few MB: milliseconds on an idle machine, more with
+#: a fleet's workers compiling on every core; 0.5 s was once too short there).
+RECORD_WAIT = 2.0
 
 _HEX = re.compile(r"[0-9a-f]{64}")
 _lock = threading.Lock()
@@ -188,16 +189,18 @@ def _purge_unrecorded(folder: Path, module: str) -> int:
     about to record (numba writes the files, then that process hashes them into the
     manifest): the manifest is read again for up to :data:`RECORD_WAIT` seconds before such a
     file is judged (two processes compiling one kernel at once, as a fleet's workers do, made
-    one of them delete the other's fresh files as "damaged or foreign")."""
+    one of them delete the other's fresh files as "damaged or foreign"). It waits without
+    holding this process's lock, so that this process's own saves are recorded meanwhile."""
     had_manifest = os.path.lexists(manifest_path(folder, module))
     good, bad = _checked(folder, module)
     deadline = time.monotonic() + RECORD_WAIT
     while any(_fresh(p) for p in bad) and time.monotonic() < deadline:
         time.sleep(0.02)
         good, bad = _checked(folder, module)
-    for path in bad:
-        _remove(path)
-    _trusted[(str(folder), module)] = good
+    with _lock:
+        for path in bad:
+            _remove(path)
+        _trusted[(str(folder), module)] = good
     return len(bad) if had_manifest else 0
 
 
@@ -311,9 +314,8 @@ def guard(mod: types.ModuleType) -> str | None:
         folder = folders.setdefault(path, Path(path))
         _wrap(cache, folder, module)
     dropped = 0
-    with _lock:
-        for folder in folders.values():
-            dropped += _purge_unrecorded(folder, module)
+    for folder in folders.values():         # (each takes the lock only to delete and trust)
+        dropped += _purge_unrecorded(folder, module)
     if not dropped:
         return None
     where = ", ".join(str(f) for f in folders.values())
