@@ -181,10 +181,10 @@ def test_the_short_head_search_finds_the_long_ones_q(name):
 
 @pytest.mark.parametrize("name", ["silverbox", "lugre", "two_inertia", "spring_friction"])
 def test_a_search_near_a_known_q_finds_the_same_q_in_fewer_passes(name, monkeypatch):
-    """The search around a q̂ already found (``near``; the trust report's re-search at other
+    """The search around a q̂ already found (``near``; the trust report's search at q̂'s own
     sub-steps): started 0.3 decade off the full search's q̂ it ends within the searches'
-    tolerance of it with fewer filter passes; started 4 decades off (its bracket's edge), it
-    falls back to the full search and still finds it."""
+    tolerance of it with fewer filter passes (on the same head); started 4 decades off (its
+    bracket's edge), it falls back to the full search and still finds it."""
     pytest.importorskip("numba", reason="long-record filter passes take minutes without the "
                         "compiled kernels (extra speed)")
     import thetahat.estimation.statistical.likelihood as lk

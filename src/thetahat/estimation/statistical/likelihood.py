@@ -79,10 +79,9 @@ Q_SEARCH_SAMPLES = 2 ** 16
 #: filter passes, and a long record whose model error shows early needs no other.
 Q_FIRST_HEAD = 2 ** 12
 #: A search near a known q̂ (:func:`search_process_noise`'s ``near``: the same record's q̂ at
-#: other sub-steps, or at a nearby θ) brackets log₁₀ q within ±Q_NEAR_DECADES of it, on each
-#: head (Silverbox's training split: 6 filter passes on the long head instead of 11, and 9
-#: on the short one instead of 14); a minimum found at the bracket's edge is searched again
-#: over the whole range.
+#: other sub-steps, or at a nearby θ) brackets the first head's log₁₀ q within
+#: ±Q_NEAR_DECADES of it (Silverbox: 6 filter passes instead of 14); a minimum found at the
+#: bracket's edge is searched again over the whole range.
 Q_NEAR_DECADES = 0.5
 #: Relative tolerance of the Gauss–Newton fit of θ (steps and cost).
 FIT_RTOL = 1e-6
@@ -690,27 +689,18 @@ def _search_near(pb: _Problem, theta: FloatArray, q0: float, near: float
 def _search_head(head: Callable[[int], _Problem], N: int, theta: FloatArray, q0: float,
                  first: int, near: float | None = None) -> QSearch:
     """The search of :func:`search_process_noise` on heads of the record (``head(n)``: the
-    problem of its first n samples): on ``first`` samples, then on :data:`Q_SEARCH_SAMPLES`
-    (or N) when q̂ is not pinned to :data:`Q_XTOL` — around the first head's q̂ (± 4 of its
-    standard errors, at least one decade) when it has one, over the whole range when not.
-    With ``near`` > 0: both searches around it (:func:`_search_near`), each as above when
-    its minimum is at the bracket's edge."""
+    problem of its first n samples): on ``first`` samples (around ``near`` when it is > 0,
+    :func:`_search_near`; over the whole range when not, or when that search ends at its
+    bracket's edge), then on :data:`Q_SEARCH_SAMPLES` (or N) when q̂ is not pinned to
+    :data:`Q_XTOL` — around the first head's q̂ (± 4 of its standard errors, at least one
+    decade) when it has one, over the whole range when not."""
     last = min(N, Q_SEARCH_SAMPLES)
     n = min(max(int(first), 2), last)
-    if near is not None and near > 0.0 and math.isfinite(near):
-        pb = head(n)
-        found = _search_near(pb, theta, q0, near)
-        sd = math.nan
-        if found is not None and n < last:
-            sd = _log_q_sd(pb, theta, q0, found[0])
-            if not sd <= Q_XTOL:
-                pb, sd = head(last), math.nan
-                found = _search_near(pb, theta, q0, near)
-        if found is not None:
-            return QSearch(q=_q_or_zero(pb, theta, q0 * 10.0 ** found[0], found[1]),
-                           samples=pb.t.shape[0], log_sd=sd)
     pb = head(n)
-    s, f = _search_log_q(pb, theta, q0)
+    found = None
+    if near is not None and near > 0.0 and math.isfinite(near):
+        found = _search_near(pb, theta, q0, near)
+    s, f = found if found is not None else _search_log_q(pb, theta, q0)
     sd = math.nan
     if n < last:
         sd = _log_q_sd(pb, theta, q0, s)
@@ -805,8 +795,8 @@ def search_process_noise(system: PerturbedLinearSystem, t: FloatArray, U: FloatA
     the output-error model has the larger likelihood on the samples searched.
 
     Given ``near`` (a q̂ already found on this record: at other sub-steps, or at a nearby θ),
-    each search is within ±:data:`Q_NEAR_DECADES` of it; when its minimum is at the
-    bracket's edge, the search starts again as above.
+    the first search is within ±:data:`Q_NEAR_DECADES` of it (over the whole range when its
+    minimum is at the bracket's edge); the long head's is as above.
 
     Parameters
     ----------

@@ -67,7 +67,7 @@ from ...model.system import PerturbedLinearSystem
 from .common import sample_interval, theta_box, x_prior_sd
 from .input_hold import stage2_samples
 from .stage2_set import BOUNDARY_RTOL, on_boundary, project_theta
-from .likelihood import (RecordEvidence, innovation_substeps, process_noise_at,
+from .likelihood import (Q_FIRST_HEAD, RecordEvidence, innovation_substeps, process_noise_at,
                          process_noise_scale, record_evidence)
 from .plant_kernel import H_RHO
 from .noise_level import MIN_SAMPLES, estimate_noise_std
@@ -516,12 +516,15 @@ def _evidence(system: PerturbedLinearSystem, t: FloatArray, U: FloatArray, Y: Fl
     searched at θ̂, and again at the one-step θ while θ̂ fails the test (Q_REFINEMENTS).
     The sub-steps (when not given) are those of the likelihood it evaluates
     (:func:`~thetahat.estimation.statistical.likelihood.innovation_substeps`, as a fit with
-    process noise chooses its own): q is searched at the smaller of the floors of (θ̂, 0) and
-    (θ̂, q₀), then the floor of (θ̂, q̂), where the evidence is evaluated, is taken for every
-    pass that follows (q searched again at it when it changed, around the first q̂ — see
-    ``near`` of :func:`~thetahat.estimation.statistical.likelihood.search_process_noise` —
-    unless q̂ = 0 was found with coarser steps), so that q̂ is always the search's at its own
-    floor. Not the free run's:
+    process noise chooses its own): a first q̂ is searched on the record's first
+    :data:`~thetahat.estimation.statistical.likelihood.Q_FIRST_HEAD` samples at the smaller
+    of the floors of (θ̂, 0) and (θ̂, q₀), then the floor of (θ̂, q̂), where the evidence is
+    evaluated, is taken for every pass that follows, and q is searched at it around the
+    first q̂ (``near`` of
+    :func:`~thetahat.estimation.statistical.likelihood.search_process_noise`; the whole
+    range when the first q̂ is 0), so that q̂ is the search's at its own floor and the long
+    head is searched once (Silverbox's training split: 9 passes on it instead of 18). Not the
+    free run's:
     with process noise the filter corrects x at every sample (EMPS: 2 sub-steps at q₀ against
     16 at 0); nor the larger of the two, as a fit takes: LuGre's needs 8 at q₀ and 2 at 0 and
     at its q̂ ≈ 10⁻⁴ q₀ (measured once)."""
@@ -532,9 +535,10 @@ def _evidence(system: PerturbedLinearSystem, t: FloatArray, U: FloatArray, Y: Fl
                                    x_sd=x_sd, noise_std=noise_std, hold=hold, h_rho=h_rho,
                                    compiled=compiled)
 
-    def q_at(th: FloatArray, near: float | None = None) -> float:
-        return process_noise_at(system, t, U, Y, theta=th, x_hat0=x_hat0, x_sd=x_sd,
-                                noise_std=noise_std, hold=hold, substeps=n_sub,
+    def q_at(th: FloatArray, near: float | None = None, samples: int | None = None) -> float:
+        k = t.shape[0] if samples is None else samples
+        return process_noise_at(system, t[:k], U[:k], Y[:k], theta=th, x_hat0=x_hat0,
+                                x_sd=x_sd, noise_std=noise_std, hold=hold, substeps=n_sub,
                                 h_rho=h_rho, compiled=compiled, near=near)
 
     def evidence(q: float) -> RecordEvidence:
@@ -542,15 +546,16 @@ def _evidence(system: PerturbedLinearSystem, t: FloatArray, U: FloatArray, Y: Fl
                                noise_std=noise_std, q=q, hold=hold, substeps=n_sub,
                                h_rho=h_rho, compiled=compiled)
 
-    # search at the cheaper of the two ends' floors, then check at q̂'s own
-    n_sub = substeps if substeps is not None else min(floor_at(0.0), floor_at(q0))
-    q = q_at(theta)
-    if substeps is None:
-        own, searched_at = floor_at(q), n_sub
-        if own != searched_at:
-            n_sub = own
-            if q > 0.0 or own < searched_at:    # (q̂ = 0 despite coarser steps' error:
-                q = q_at(theta, near=q)         # none with finer ones); near the first q̂
+    if substeps is not None:
+        n_sub = substeps
+        q = q_at(theta)
+    else:
+        # a first q̂ on the short head at the cheaper of the two ends' floors, then the search
+        # at that q̂'s own floor, around it
+        n_sub = min(floor_at(0.0), floor_at(q0))
+        first = q_at(theta, samples=Q_FIRST_HEAD)
+        n_sub = floor_at(first)
+        q = q_at(theta, near=first)
 
     ev = evidence(q)
     limit = chi2_limit(theta.shape[0])
