@@ -68,3 +68,30 @@ def test_blocks_give_the_samples_of_one_call():
     assert np.array_equal(np.vstack(parts), whole)
     assert not np.array_equal(whole[:, 0], U[:, 0])      # the smooth channel was corrected
     assert np.array_equal(whole[:, 1], U[:, 1])          # the PRBS was not
+
+
+@pytest.mark.parametrize("m", [1, 3])
+def test_a_stream_of_single_samples_gives_the_samples_of_one_call(m):
+    """One sample at a time (a stream's step, which takes the scalar path after three
+    samples): the same ũ and the same history as one call on the record, to the last bit, on
+    a smooth channel, a PRBS, a staircase (a DAC's zero-order hold) and a channel that turns
+    from smooth to noisy half-way (ρ crosses 1, so correction stops)."""
+    rng = np.random.default_rng(4)
+    N = 400
+    t = np.arange(N) * 1e-3
+    kinds = [np.sin(2 * np.pi * 9.0 * t),
+             rng.choice([-1.0, 1.0], size=N),
+             np.repeat(rng.normal(size=N // 8), 8),
+             np.where(t < 0.2, np.sin(2 * np.pi * 3.0 * t), rng.normal(size=N))]
+    for first in range(len(kinds) - m + 1):
+        U = np.column_stack(kinds[first:first + m])
+        whole, end = smooth_input(U)
+        hist, rows = None, []
+        for k in range(N):
+            Ut, hist = smooth_input(U[k:k + 1], hist)
+            rows.append(Ut)
+        assert np.array_equal(np.vstack(rows), whole)
+        assert np.array_equal(hist.u_last, end.u_last)
+        assert np.array_equal(hist.d1, end.d1) and np.array_equal(hist.d2, end.d2)
+    switched = smooth_input(kinds[3][:, None])[0][:, 0] != kinds[3]
+    assert switched[3:N // 2].all() and switched[N // 2 + 2:].sum() == 0

@@ -111,6 +111,9 @@ def smooth_input(U: FloatArray, history: InputHistory | None = None
     """
     U = np.asarray(U, dtype=np.float64)
     N, m = U.shape
+    if N == 1 and history is not None and history.u_last.shape[0] == HISTORY \
+            and history.d1.shape[0] == m and history.d2.shape[0] == m:
+        return _smooth_sample(U, history)
     past = np.zeros((0, m)) if history is None else history.u_last
     d1_0 = np.zeros(m) if history is None or history.d1.shape[0] == 0 else history.d1
     d2_0 = np.zeros(m) if history is None or history.d2.shape[0] == 0 else history.d2
@@ -133,6 +136,29 @@ def smooth_input(U: FloatArray, history: InputHistory | None = None
     keep = V[-HISTORY:].copy()
     return Ut, InputHistory(u_last=keep, d1=s1[-1].copy() if N else d1_0.copy(),
                             d2=s2[-1].copy() if N else d2_0.copy())
+
+
+def _smooth_sample(U: FloatArray, history: InputHistory) -> tuple[FloatArray, InputHistory]:
+    """:func:`smooth_input` of one sample after three or more (a stream's step), the same
+    floating-point operations in the same order on scalars (NumPy's per-call cost is most of a
+    stream step's otherwise: 65 µs against 5)."""
+    m = U.shape[1]
+    P = history.u_last
+    Ut = U.copy()
+    d1 = np.empty(m)
+    d2 = np.empty(m)
+    for c in range(m):
+        u, a, b, e = float(U[0, c]), float(P[2, c]), float(P[1, c]), float(P[0, c])
+        f = u - a                                   # Δu at the new sample
+        sec = f - (a - b)                           # Δ²u there (np.diff twice)
+        sec_prev = (a - b) - (b - e)                # and at the sample before
+        s1 = float(history.d1[c]) + f * f
+        s2 = float(history.d2[c]) + sec * sec
+        d1[c], d2[c] = s1, s2
+        if s2 < s1:
+            Ut[0, c] = u - (2.0 * sec - sec_prev) / 12.0
+    keep = np.concatenate([P[1:], U])
+    return Ut, InputHistory(u_last=keep, d1=d1, d2=d2)
 
 
 def stage2_samples(U: FloatArray, hold: str, history: InputHistory | None = None
