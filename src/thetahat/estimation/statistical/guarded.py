@@ -510,7 +510,7 @@ class GuardedEstimator:
         clip, rst, nis = np.zeros(rows, bool), np.zeros(rows, bool), np.zeros(rows)
         if k == 0:
             sh.pst = progress_init(thG[0])
-        self._loop()(sh.s, sh.P, sh.P0, U2, Y2, tt, k0, k0 + 1, k - k0, sh.R, sh.lo, sh.hi,
+        sh.loop(sh.s, sh.P, sh.P0, U2, Y2, tt, k0, k0 + 1, k - k0, sh.R, sh.lo, sh.hi,
                      sh.ell, sh.pc, sh.WT, sh.Q_x, TH2, XG2, sh.pst, sh.gst, sh.cfg, o["TH"],
                      o["TH2"], o["X2"], o["SD2"], o["BAND"], clip, rst, nis)
         s1 = self.stage1.step(state.stage1, u_, y_, h)
@@ -559,6 +559,7 @@ class GuardedEstimator:
                                      hold=streamable(self.hold, "GuardedEstimator"),
                                      h_rho=self.h_rho, substeps=self.substeps)
         stream.owner = self
+        stream.loop = self._loop()
         return stream
 
     def _check_state(self, state: Any) -> GuardedState:

@@ -121,6 +121,7 @@ class GuardedStream:
         sys_ = system
         n = sys_.n
         self.owner: Any = None              # the estimator that started the stream
+        self.loop: Any = None               # its guarded loop (looked up once, not per step)
         self.k = 0
         self.s, self.P0 = s0, P0
         self.P = self.P0.copy()
