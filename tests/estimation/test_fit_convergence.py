@@ -172,3 +172,25 @@ def test_the_doubling_rule_returns_the_first_accurate_floor():
         assert got == n
     broken = doubling_floor(lambda k, refine: np.where(rows < 0.005, 1.0 / k, np.nan), 200)
     assert broken == 1                     # one comparable row: nothing to judge by
+
+
+@pytest.mark.parametrize("name", ["emps", "silverbox", "two_inertia", "spring_friction"])
+def test_the_jacobian_on_threads_is_the_jacobian_in_one(name, monkeypatch):
+    """The forward differences' filter passes on several threads (one per core, at most p:
+    the compiled filter releases the GIL) give the very Jacobian of one thread, bit for bit,
+    and so the same fit."""
+    import thetahat.estimation.statistical.likelihood as lk
+    spec, t, U, Y, sigma, hold, start = _case(name)
+    t, U, Y = t[:2048], U[:2048], Y[:2048]
+    n = spec.system.n
+    x0 = np.concatenate([Y[0, :1], np.zeros(n - 1)])
+    prop = lk.Propagation(hold=hold, substeps=2)
+    pb = lk._problem(spec.system, t, U, Y, x0, np.full(n, 10.0), sigma, prop, None)
+    assert pb.compiled                  # (the plain-Python filter keeps one thread)
+    lo, hi = (np.asarray(b, dtype=float) for b in lk.theta_box(spec.system))
+    jac = {}
+    for threads in (1, 3):
+        monkeypatch.setattr(lk, "difference_threads", lambda p, k=threads: min(p, k))
+        jac[threads] = lk._Differences(pb, 0.0, lo, hi, start).jacobian(start)
+    assert jac[1].shape[1] == spec.system.p >= 2
+    assert np.array_equal(jac[1], jac[3])

@@ -35,6 +35,8 @@ from __future__ import annotations
 
 import functools
 import math
+import os
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, replace
 from typing import Any, Callable, NamedTuple
 
@@ -55,7 +57,7 @@ from .plant_kernel import (ACCURACY_SAMPLES, H_RHO, ModelKernel, Propagation, ch
 __all__ = ["ProcessNoiseFit", "RecordEvidence", "fit_process_noise", "process_noise_scale",
            "unit_process_noise", "record_bound", "record_evidence", "process_noise_at",
            "fisher_covariance", "Q_DECADES", "Q_SEARCH_SAMPLES", "Q_FIRST_HEAD", "ALTERNATIONS",
-           "QSearch", "search_process_noise", "innovation_substeps"]
+           "QSearch", "search_process_noise", "innovation_substeps", "difference_threads"]
 
 FloatArray = NDArray[np.float64]
 
@@ -346,6 +348,7 @@ class _Problem:
     prop: Propagation
     run: Callable[..., int]
     valid: NDArray[np.bool_]
+    compiled: bool = False
 
     def filter(self, theta: FloatArray, q: float) -> tuple[FloatArray, FloatArray, FloatArray]:
         N, r, n = self.t.shape[0], self.Y.shape[1], self.x0.shape[0]
@@ -388,7 +391,7 @@ def _problem(system: PerturbedLinearSystem, t: FloatArray, U: FloatArray, Y: Flo
                     x0=np.array(x0, dtype=np.float64), P0=np.diag(np.asarray(x_sd) ** 2),
                     Rdiag=np.asarray(noise_std, dtype=np.float64) ** 2,
                     Qs=np.ascontiguousarray(Qs), qidx=qidx, prop=prop,
-                    run=_filter_for(model), valid=valid)
+                    run=_filter_for(model), valid=valid, compiled=model.compiled)
 
 
 def _innovation_substeps(pb: _Problem, theta: FloatArray, q: float,
@@ -565,16 +568,54 @@ class _Differences:
         if self._last_jacobian is not None and np.array_equal(theta, self._last_jacobian[0]):
             return self._last_jacobian[1].copy()
         r0 = self.residuals(theta)
-        J = np.empty((r0.shape[0], theta.shape[0]))
-        for i in range(theta.shape[0]):
+        p = theta.shape[0]
+        J = np.empty((r0.shape[0], p))
+
+        def column(i: int) -> FloatArray:
             step = float(self.steps[i])
             if theta[i] + step > self.hi[i]:
                 step = -step
             tp = np.array(theta, dtype=np.float64)
             tp[i] += step
-            J[:, i] = (self.pb.residuals(tp, self.q) - r0) / step
+            return (self.pb.residuals(tp, self.q) - r0) / step
+
+        workers = difference_threads(p) if self.pb.compiled else 1
+        if workers > 1:                 # (each column its own pass: the same numbers)
+            with ThreadPoolExecutor(max_workers=workers) as pool:
+                columns = list(pool.map(column, range(p)))
+        else:
+            columns = [column(i) for i in range(p)]
+        for i, col in enumerate(columns):
+            J[:, i] = col
         self._last_jacobian = (np.array(theta, dtype=np.float64), J)
         return J.copy()
+
+
+def difference_threads(p: int) -> int:
+    """Threads for the p filter passes of a forward-difference Jacobian: one per core this
+    process may use, at most p (the compiled filter releases the GIL, so they run at once;
+    the columns are the same numbers in any order).
+
+    Parameters
+    ----------
+    p : int
+        The parameters (columns).
+
+    Returns
+    -------
+    int
+        ≥ 1.
+
+    Examples
+    --------
+    >>> 1 <= difference_threads(4) <= 4
+    True
+    """
+    try:
+        cores = len(os.sched_getaffinity(0))
+    except (AttributeError, OSError):          # not on Linux
+        cores = os.cpu_count() or 1
+    return max(1, min(int(p), cores))
 
 
 def _step_to_go(pb: _Problem, q: float, J: FloatArray, res: FloatArray, box_theta: FloatArray,
