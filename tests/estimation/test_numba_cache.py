@@ -270,3 +270,30 @@ def test_a_save_another_process_is_recording_is_not_deleted(tmp_path):
     stray.write_bytes(b"never recorded")
     assert nc._purge_unrecorded(tmp_path, module) == 1
     assert saved.exists() and not stray.exists()
+
+
+def test_two_processes_recording_at_once_keep_each_others_records(tmp_path):
+    """Two processes saving different functions of one printed module at once (a fleet's
+    workers compiling): each writes its files and records them, 150 times. Every record is a
+    read-modify-write of the module's manifest; without the folder's lock the last write
+    dropped the other process's files, which the next process then deleted as "damaged or
+    foreign" (the fleet test failed so on a fresh cache). At the end both processes' files
+    are in the manifest with their hashes."""
+    import thetahat.estimation.kernels.numba_cache as nc
+    module = "thetahat_test_writers"
+    code = (
+        "import sys\n"
+        "from pathlib import Path\n"
+        "import thetahat.estimation.kernels.numba_cache as nc\n"
+        "folder, module, tag = Path(sys.argv[1]), sys.argv[2], sys.argv[3]\n"
+        "base = f'{module}.f{tag}-3.py311.'\n"
+        "for i in range(150):\n"
+        "    (folder / (base + 'nbi')).write_bytes(f'index {tag} {i}'.encode())\n"
+        "    (folder / (base + '0.nbc')).write_bytes(f'data {tag} {i}'.encode())\n"
+        "    nc._record(folder, module, base)\n")
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join(sys.path)}
+    procs = [subprocess.Popen([sys.executable, "-c", code, str(tmp_path), module, tag],
+                              env=env) for tag in "ab"]
+    assert [p.wait(timeout=120) for p in procs] == [0, 0]
+    good, bad = nc._checked(tmp_path, module)
+    assert bad == [] and len(good) == 4, (sorted(good), bad)

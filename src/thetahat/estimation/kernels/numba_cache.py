@@ -28,6 +28,7 @@ What lives here: :func:`guard`, :data:`FORMAT`, the limits. What it may import: 
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import json
 import os
@@ -38,7 +39,7 @@ import time
 import types
 import warnings
 from pathlib import Path
-from typing import Any
+from typing import Any, Iterator
 
 from ...errors import ThetahatWarning
 from ...safe_io import write_text
@@ -142,6 +143,31 @@ def _files(folder: Path, prefix: str) -> list[Path]:
             if n.startswith(prefix) and (n.endswith(".nbi") or n.endswith(".nbc"))]
 
 
+@contextlib.contextmanager
+def _folder_lock(folder: Path, module: str) -> Iterator[None]:
+    """Hold the module's lock file in ``folder`` (``flock``, shared by every process that
+    records there) for a read-modify-write of its manifest: two processes recording at once
+    otherwise each write the manifest they read plus their own files, and the last write
+    drops the other's (whose files the next process then deletes as unrecorded). Without
+    ``fcntl`` (not POSIX) or a lock file that cannot be opened, the block runs unlocked."""
+    try:
+        import fcntl
+    except ImportError:                     # pragma: no cover - not POSIX
+        yield
+        return
+    flags = os.O_RDWR | os.O_CREAT | getattr(os, "O_NOFOLLOW", 0)
+    try:
+        fd = os.open(folder / f"{module}.thetahat-numba.lock", flags, 0o600)
+    except OSError:
+        yield
+        return
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX)
+        yield
+    finally:
+        os.close(fd)                        # (releases the lock)
+
+
 def _remove(path: Path) -> None:
     try:
         if path.is_dir() and not path.is_symlink():
@@ -197,7 +223,8 @@ def _purge_unrecorded(folder: Path, module: str) -> int:
     while any(_fresh(p) for p in bad) and time.monotonic() < deadline:
         time.sleep(0.02)
         good, bad = _checked(folder, module)
-    with _lock:
+    with _lock, _folder_lock(folder, module):
+        good, bad = _checked(folder, module)    # (a record may have landed meanwhile)
         for path in bad:
             _remove(path)
         _trusted[(str(folder), module)] = good
@@ -216,18 +243,21 @@ def _warn_once(module: str, kind: str, message: str) -> None:
 
 def _record(folder: Path, module: str, base: str) -> None:
     """After numba saved a function's files: trust them (their hashes now) and write the
-    manifest (keeping the entries another process recorded meanwhile that still match)."""
+    manifest, under the folder's lock: every file of the module whose content is what the
+    manifest (another process's records) or this process trusted says, and this function's
+    files as they are now. A file another process rewrote since this one trusted it keeps
+    the manifest's hash of it, not this process's stale one."""
     key = (str(folder), module)
-    with _lock:
+    with _lock, _folder_lock(folder, module):
         trusted = _trusted.setdefault(key, {})
-        for name, sha in _recorded(folder, module).items():     # another process's records
-            if name not in trusted and _sha(folder / name) == sha:
-                trusted[name] = sha
-        for path in _files(folder, base):
+        recorded = _recorded(folder, module)
+        own = {p.name for p in _files(folder, base)}
+        alive: dict[str, str] = {}
+        for path in _files(folder, module + "."):
             now = _sha(path)
-            if now is not None:
-                trusted[path.name] = now
-        alive = {n: s for n, s in trusted.items() if (folder / n).exists()}
+            if now is not None and (path.name in own or recorded.get(path.name) == now
+                                    or trusted.get(path.name) == now):
+                alive[path.name] = now
         _trusted[key] = alive
         try:
             _write_manifest(folder, module, alive)
@@ -238,7 +268,7 @@ def _record(folder: Path, module: str, base: str) -> None:
 
 def _forget(folder: Path, module: str) -> None:
     """Delete every numba file of the module and its manifest's entries."""
-    with _lock:
+    with _lock, _folder_lock(folder, module):
         for path in _files(folder, module + "."):
             _remove(path)
         _trusted[(str(folder), module)] = {}
