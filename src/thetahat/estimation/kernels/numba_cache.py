@@ -56,7 +56,8 @@ MAX_MANIFEST_BYTES = 2**20
 FRESH_SECONDS = 10.0
 #: How long (s) the manifest is read again for such a file before it is judged (the save-to-
 #: record window is writing and hashing a few MB: milliseconds on an idle machine, more with
-#: a fleet's workers compiling on every core; 0.5 s was once too short there).
+#: a fleet's workers compiling on every core. The fleet failures once blamed on a short wait
+#: here were lost manifest updates, which :func:`_folder_lock` prevents).
 RECORD_WAIT = 2.0
 
 _HEX = re.compile(r"[0-9a-f]{64}")

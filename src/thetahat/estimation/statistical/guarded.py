@@ -511,8 +511,8 @@ class GuardedEstimator:
         if k == 0:
             sh.pst = progress_init(thG[0])
         sh.loop(sh.s, sh.P, sh.P0, U2, Y2, tt, k0, k0 + 1, k - k0, sh.R, sh.lo, sh.hi,
-                     sh.ell, sh.pc, sh.WT, sh.Q_x, TH2, XG2, sh.pst, sh.gst, sh.cfg, o["TH"],
-                     o["TH2"], o["X2"], o["SD2"], o["BAND"], clip, rst, nis)
+                sh.ell, sh.pc, sh.WT, sh.Q_x, TH2, XG2, sh.pst, sh.gst, sh.cfg, o["TH"],
+                o["TH2"], o["X2"], o["SD2"], o["BAND"], clip, rst, nis)
         s1 = self.stage1.step(state.stage1, u_, y_, h)
         sh.refresh_sigma(k)
         sh.u_prev, sh.dt_prev, sh.k = ut[0], h, k + 1

@@ -82,8 +82,8 @@ Q_SEARCH_SAMPLES = 2 ** 16
 Q_FIRST_HEAD = 2 ** 12
 #: A search near a known q̂ (:func:`search_process_noise`'s ``near``: the same record's q̂ at
 #: other sub-steps, or at a nearby θ) brackets the first head's log₁₀ q within
-#: ±Q_NEAR_DECADES of it (Silverbox: 6 filter passes instead of 14); a minimum found at the
-#: bracket's edge is searched again over the whole range.
+#: ±Q_NEAR_DECADES of it; a minimum found at the bracket's edge is searched again over the
+#: whole range.
 Q_NEAR_DECADES = 0.5
 #: Relative tolerance of the Gauss–Newton fit of θ (steps and cost).
 FIT_RTOL = 1e-6
@@ -569,7 +569,6 @@ class _Differences:
             return self._last_jacobian[1].copy()
         r0 = self.residuals(theta)
         p = theta.shape[0]
-        J = np.empty((r0.shape[0], p))
 
         def column(i: int) -> FloatArray:
             step = float(self.steps[i])
@@ -585,8 +584,7 @@ class _Differences:
                 columns = list(pool.map(column, range(p)))
         else:
             columns = [column(i) for i in range(p)]
-        for i, col in enumerate(columns):
-            J[:, i] = col
+        J = np.column_stack(columns) if columns else np.empty((r0.shape[0], 0))
         self._last_jacobian = (np.array(theta, dtype=np.float64), J)
         return J.copy()
 

@@ -368,6 +368,8 @@ def propagate(x: Any, th: Any, U: Any, k: int, h: float, pc: Any, WT: Any, want_
     p = th.shape[0]
     pg = Gam.shape[1]
     xa = np.empty(n)
+    # the allocations of plant_work, written out: the C printer takes neither a star-argument
+    # nor a returned tuple without copying it every step
     propagate_into(x, xa, th, U, k, h, pc, WT, want_jac, Phi, Gam,
                    np.empty((n, n)), np.empty((n, p)), np.empty(n), np.empty(n), np.empty(n),
                    np.empty(n), np.empty(n), np.empty(U.shape[1]), np.empty(WT.shape[1]),
@@ -396,15 +398,15 @@ def plant_work(n: int, p: int, pg: int, m: int, wl: int) -> Any:
         taps (wl,), the stages' ∂/∂x (four (n, n)) and ∂/∂θ (four (n, pg)).
     """
     return (np.empty((n, n)), np.empty((n, p)), np.empty(n), np.empty(n), np.empty(n),
-            np.empty(n), np.empty(n), np.empty(m), np.empty(wl), np.empty((n, n)), np.empty((n, n)), np.empty((n, n)),
-            np.empty((n, n)), np.empty((n, pg)), np.empty((n, pg)), np.empty((n, pg)),
-            np.empty((n, pg)))
+            np.empty(n), np.empty(n), np.empty(m), np.empty(wl),
+            np.empty((n, n)), np.empty((n, n)), np.empty((n, n)), np.empty((n, n)),
+            np.empty((n, pg)), np.empty((n, pg)), np.empty((n, pg)), np.empty((n, pg)))
 
 
 def propagate_into(x: Any, xa: Any, th: Any, U: Any, k: int, h: float, pc: Any, WT: Any,
                    want_jac: bool, Phi: Any, Gam: Any, Fx: Any, Ft: Any, k1: Any, k2: Any,
-                   k3: Any, k4: Any, xs: Any, ua: Any, w: Any, D1x: Any, D2x: Any, D3x: Any, D4x: Any, D1t: Any,
-                   D2t: Any, D3t: Any, D4t: Any) -> None:
+                   k3: Any, k4: Any, xs: Any, ua: Any, w: Any, D1x: Any, D2x: Any,
+                   D3x: Any, D4x: Any, D1t: Any, D2t: Any, D3t: Any, D4t: Any) -> None:
     """:func:`propagate` writing x_next into ``xa`` (which may be ``x``), over the work arrays
     of :func:`plant_work` (their contents on entry are not read).
 

@@ -5,7 +5,8 @@ of :mod:`~thetahat.estimation.statistical.plant_kernel` (RK4 sub-steps, u betwee
 as the hold reconstructs it), chains the output sensitivities ψ_k = C ∂x_k/∂q (q = col(x(t_{k0}),
 θ)) through the map's exact Jacobians and sums the data cost and its Gauss–Newton terms;
 :func:`sweep_kernel` prints it over one model's plant kernels (its free names ``propagate_into``,
-``plant_work`` and ``C_OUT`` bound; :func:`~thetahat.estimation.statistical.plant_kernel.printed_kernels`).
+``plant_work`` and ``C_OUT`` bound;
+:func:`~thetahat.estimation.statistical.plant_kernel.printed_kernels`).
 The MAP fits (:mod:`~thetahat.estimation.statistical.map_fit`) and the MAP estimator's
 predictions before its first fit (:mod:`~thetahat.estimation.statistical.mle`) run it.
 

@@ -523,7 +523,7 @@ def _evidence(system: PerturbedLinearSystem, t: FloatArray, U: FloatArray, Y: Fl
     first q̂ (``near`` of
     :func:`~thetahat.estimation.statistical.likelihood.search_process_noise`; the whole
     range when the first q̂ is 0), so that q̂ is the search's at its own floor and the long
-    head is searched once (Silverbox's training split: 11 passes on it instead of 18). Not the
+    head is searched once (Silverbox's training split: 11 passes on it instead of 22). Not the
     free run's:
     with process noise the filter corrects x at every sample (EMPS: 2 sub-steps at q₀ against
     16 at 0); nor the larger of the two, as a fit takes: LuGre's needs 8 at q₀ and 2 at 0 and
