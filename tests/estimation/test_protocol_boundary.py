@@ -234,3 +234,46 @@ def test_state_error_is_a_dimension_error():
     """Callers that caught the earlier DimensionError keep working."""
     assert issubclass(E.StateError, E.DimensionError) and issubclass(E.StateError, ValueError)
     assert dataclasses.is_dataclass(MapEstimator)
+
+
+# ---- the fast path of a stream's checks accepts exactly what the full checks accept -------
+# (a float64 vector of the model's size takes the fast path; the same values as a list take
+# the full checks: equal copies out, or the same error, for every kind of value)
+_VALUES = [0.0, -0.0, 1.0, -2.5e3, 1e-150, 1e150, -1e150 * (1 + 1e-15), 9.9e-151, 5e-324,
+           2e150, np.inf, -np.inf, np.nan, 1e-300, 3.0]
+
+
+def _outcome(fn):
+    try:
+        return "ok", [np.asarray(a).tobytes() for a in fn()]
+    except E.ThetahatError as exc:
+        return type(exc).__name__, str(exc)
+
+
+@pytest.mark.parametrize("name", ["lugre.toml", "two_inertia.toml", "heater.toml",
+                                  "spring_friction.toml"])
+def test_a_stream_sample_s_fast_check_accepts_what_the_full_check_accepts(name):
+    from thetahat.estimation.protocol import check_sample, check_state, check_step_length
+    sys_ = build_observer(load_model(EXAMPLES / name)).system
+    rng = np.random.default_rng(7)
+    kinds = {"ok": 0, "refused": 0}
+    for _ in range(300):
+        u = rng.choice(_VALUES, sys_.m).astype(np.float64)
+        y = rng.choice(_VALUES, sys_.r).astype(np.float64)
+        if rng.random() < 0.5:                      # plain values most of the time too
+            u, y = rng.normal(size=sys_.m), rng.normal(size=sys_.r)
+        fast = _outcome(lambda: check_sample(sys_, u, y))
+        full = _outcome(lambda: check_sample(sys_, u.tolist(), y.tolist()))
+        assert fast == full, (u, y)
+        kinds["ok" if fast[0] == "ok" else "refused"] += 1
+    assert min(kinds.values()) > 20                 # both branches were compared
+    for dt in _VALUES + [1e-3, -1e-3]:
+        assert (_outcome(lambda: [check_step_length(float(dt))])
+                == _outcome(lambda: [check_step_length(np.array(dt))])), dt
+    s = rng.normal(size=7)
+    assert check_state("obs.step", s, None, {"state": (7,)}) is s   # the array itself
+    assert (check_state("obs.step", s.tolist(), None, {"state": (7,)}).tobytes()
+            == s.tobytes())
+    with pytest.raises(E.StateError):
+        check_state("obs.step", s[:6], None, {"state": (7,)})
+

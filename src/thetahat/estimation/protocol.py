@@ -32,7 +32,8 @@ from numpy.typing import NDArray
 from .._validate import as_vector, positive_scalar
 from ..errors import DimensionError, NonFiniteError, StateError
 from ..model.system import PerturbedLinearSystem
-from .records import Dimensions, check_magnitude
+from ..limits import MAX_SIGNAL_MAGNITUDE, MIN_SIGNAL_MAGNITUDE
+from .records import Dimensions, check_magnitude, plain_sample_ok
 from .status import Status, status_error
 
 __all__ = ["Diagnostics", "EstimateResult", "Estimator", "ObserverDiagnostics", "Evidence",
@@ -315,6 +316,14 @@ def check_sample(dims: Dimensions, u: Any, y: Any) -> tuple[FloatArray, FloatArr
     ((1,), (1,))
     """
     m, r = dims.m, dims.r
+    # fast path (a stream's samples): float64 vectors of the model's sizes whose values pass
+    # at once; anything else, or a value that does not, takes the checks below
+    if (type(y) is np.ndarray and y.dtype == np.float64 and y.shape == (r,)
+            and (u is None and m == 0 or type(u) is np.ndarray and u.dtype == np.float64
+                 and u.shape == (m,))):
+        if (plain_sample_ok(y.tolist(), missing=True)
+                and (u is None or plain_sample_ok(u.tolist(), missing=False))):
+            return (np.zeros(0) if u is None else u.copy()), y.copy()
     if y is None or (u is None and m > 0):
         which = "y" if y is None else "u"
         raise DimensionError(f"{which} must be a sample ({r if which == 'y' else m} values); "
@@ -357,6 +366,8 @@ def check_step_length(dt: Any) -> float:
     >>> check_step_length(1e-3)
     0.001
     """
+    if isinstance(dt, float) and MIN_SIGNAL_MAGNITUDE <= dt <= MAX_SIGNAL_MAGNITUDE:
+        return float(dt)                    # fast path: what the checks below accept
     h = positive_scalar("dt", dt)
     check_magnitude("dt", [h])
     return h
@@ -456,6 +467,8 @@ def check_state(who: str, state: Any, kind: type | None,
     fix = f"pass a state from {who.split('.')[0]}.init() or .step() of this model"
     if kind is None:
         (size,) = shapes["state"]
+        if type(state) is np.ndarray and state.dtype == np.float64 and state.shape == (size,):
+            return state                    # fast path: what as_vector returns for it
         try:
             if state is None or isinstance(state, (str, bytes)):
                 raise DimensionError("not numbers")

@@ -53,7 +53,8 @@ def check_nan_policy(nan_policy: str) -> str:
     return nan_policy
 
 __all__ = ["NAN_POLICIES", "Dimensions", "RecordShape", "as_signal", "as_signals",
-           "check_magnitude", "check_nan_policy", "check_real", "check_record", "check_records"]
+           "check_magnitude", "check_nan_policy", "check_real", "check_record", "check_records",
+           "plain_sample_ok"]
 
 FloatArray = NDArray[np.float64]
 
@@ -97,6 +98,39 @@ def check_real(name: str, a: ArrayLike) -> None:
     if np.iscomplexobj(a):
         raise DimensionError(f"{name} must be real; got complex samples. Pass the real part "
                              "explicitly if that is what was measured.")
+
+
+def plain_sample_ok(values: list[float], *, missing: bool) -> bool:
+    """Whether plain floats pass the sample checks at once: each finite and within
+    :func:`check_magnitude`'s bounds (0, or 1e-150 ≤ |v| ≤ 1e150), or NaN when ``missing``.
+
+    The fast path of :func:`~thetahat.estimation.protocol.check_sample` and of the step
+    length's check: a True accepts what the full checks accept; a False decides nothing (the
+    full checks then run and say what is wrong).
+
+    Parameters
+    ----------
+    values : list of float
+    missing : bool
+        NaN is a missing sample (y), not an error.
+
+    Returns
+    -------
+    bool
+
+    Examples
+    --------
+    >>> plain_sample_ok([0.0, -2.5, float("nan")], missing=True)
+    True
+    >>> plain_sample_ok([float("inf")], missing=True), plain_sample_ok([1e-200], missing=False)
+    (False, False)
+    """
+    for v in values:
+        a = abs(v)
+        if not (a <= MAX_SIGNAL_MAGNITUDE and (a >= MIN_SIGNAL_MAGNITUDE or a == 0.0)):
+            if not (missing and v != v):
+                return False
+    return True
 
 
 def check_magnitude(name: str, a: ArrayLike, *, small: bool = True) -> None:

@@ -498,29 +498,27 @@ class GuardedEstimator:
                                           sh.u_history)
         sh.record(k, ut[0], y_, h)
         sh.poll_fit()
+        # the loop over one sample: row 0 the previous sample (u held, no y) after the first
         k0 = 0 if k == 0 else 1
-        U2 = np.vstack([sh.u_prev, ut]) if k else ut.copy()
-        Y2 = np.vstack([np.full(r, np.nan), y_]) if k else y_.reshape(1, r)
-        tt = np.array([0.0, sh.dt_prev]) if k else np.zeros(1)
-        TH2 = np.broadcast_to(thG, (2, p)).copy() if k else thG.copy()
-        XG2 = np.broadcast_to(xG, (2, n)).copy() if k else xG.copy()
-        rows = k0 + 1
-        o = {name: np.zeros((rows, w)) for name, w in
-             (("TH", p), ("TH2", p), ("X2", n), ("SD2", p), ("BAND", p))}
-        clip, rst, nis = np.zeros(rows, bool), np.zeros(rows, bool), np.zeros(rows)
+        U2, Y2, tt, TH2, XG2 = sh.step_in
+        if k:
+            U2[0], Y2[0], tt[1] = sh.u_prev, np.nan, sh.dt_prev
+        U2[k0], Y2[k0], TH2[:], XG2[:] = ut[0], y_, thG[0], xG[0]
+        ins, out = ((sh.step_in, sh.step_out) if k else
+                    (tuple(a[:1] for a in sh.step_in), tuple(a[:1] for a in sh.step_out)))
         if k == 0:
             sh.pst = progress_init(thG[0])
-        sh.loop(sh.s, sh.P, sh.P0, U2, Y2, tt, k0, k0 + 1, k - k0, sh.R, sh.lo, sh.hi,
-                sh.ell, sh.pc, sh.WT, sh.Q_x, TH2, XG2, sh.pst, sh.gst, sh.cfg, o["TH"],
-                o["TH2"], o["X2"], o["SD2"], o["BAND"], clip, rst, nis)
+        TH, TH2o, X2, SD2, BAND, clip, rst, nis = out
+        sh.loop(sh.s, sh.P, sh.P0, *ins[:3], k0, k0 + 1, k - k0, sh.R, sh.lo, sh.hi,
+                sh.ell, sh.pc, sh.WT, sh.Q_x, *ins[3:], sh.pst, sh.gst, sh.cfg, *out)
         s1 = self.stage1.step(state.stage1, u_, y_, h)
         sh.refresh_sigma(k)
         sh.u_prev, sh.dt_prev, sh.k = ut[0], h, k + 1
         sh.maybe_submit()
         return GuardedState(stage1=s1, x_hat0=state.x_hat0, theta_hat0=state.theta_hat0,
-                            stream=sh, theta_hat=o["TH"][k0].copy(), x_hat=o["X2"][k0].copy(),
-                            theta_stage1=thG[0].copy(), theta_stage2=o["TH2"][k0].copy(),
-                            band=o["BAND"][k0].copy(), clipped=bool(clip[k0]),
+                            stream=sh, theta_hat=TH[k0].copy(), x_hat=X2[k0].copy(),
+                            theta_stage1=thG[0].copy(), theta_stage2=TH2o[k0].copy(),
+                            band=BAND[k0].copy(), clipped=bool(clip[k0]),
                             reset=bool(rst[k0]), fits=len(sh.fits),
                             fits_failed=len(sh.failures), k=k + 1)
 

@@ -160,6 +160,15 @@ class GuardedStream:
         self.executor: concurrent.futures.Executor | None = None
         self.spec = b""
         self._n = n
+        # the guarded loop's arrays for one step, allocated once: in, two rows (the previous
+        # sample, held, and this one; the first step uses row 0 only) of u, y, t, θ̂_G, x̂_G;
+        # out, the loop's rows of θ̂, θ̂₂, x̂₂, sd₂, band, clipped, reset, NIS
+        m, r, p = sys_.m, sys_.r, sys_.p
+        self.step_in = (np.zeros((2, m)), np.full((2, r), np.nan), np.zeros(2),
+                        np.zeros((2, p)), np.zeros((2, n)))
+        self.step_out = (np.zeros((2, p)), np.zeros((2, p)), np.zeros((2, n)),
+                         np.zeros((2, p)), np.zeros((2, p)), np.zeros(2, bool),
+                         np.zeros(2, bool), np.zeros(2))
 
     @classmethod
     def start(cls, system: PerturbedLinearSystem, s0: FloatArray, P0: FloatArray, *,
