@@ -404,7 +404,7 @@ class ModifiedHighGainObserver:
         """
         s = check_state("ModifiedHighGainObserver", state, None,
                         {"state": (self.state_size,)})
-        if not np.all(np.isfinite(s)):
+        if not np.isfinite(s).all():
             raise NonFiniteError("the observer state holds NaN or inf: it has diverged or was "
                                  "initialised badly; restart from init().")
         return s
