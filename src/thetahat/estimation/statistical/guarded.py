@@ -469,7 +469,7 @@ class GuardedEstimator:
             :meth:`stream_diagnostics`).
         """
         sys_ = self.model
-        n, m, r, p = sys_.n, sys_.m, sys_.r, sys_.p
+        n, m, p = sys_.n, sys_.m, sys_.p
         state = self._check_state(state)
         # own, writable copies (a read-only view would need its own compiled specialisation)
         u_, y_, h = stream_sample(sys_, u, y, dt)
@@ -488,9 +488,9 @@ class GuardedEstimator:
                              f"init().")
         k = sh.k
         est1 = self.stage1.estimate(state.stage1, u_, y_)
-        thG = np.asarray(est1.theta_hat, dtype=np.float64).reshape(1, p)
+        thG = np.asarray(est1.theta_hat, dtype=np.float64).reshape(p)
         xs = est1.x_hat_refined if est1.x_hat_refined is not None else est1.x_hat
-        xG = np.asarray(xs, dtype=np.float64).reshape(1, n)
+        xG = np.asarray(xs, dtype=np.float64).reshape(n)
         if k == 0:
             sh.configure(self.kappa, self.c, self.rho_max, self.dwell)
         ut, sh.u_history = stage2_samples(u_.reshape(1, m),               # stage 2's samples
@@ -503,11 +503,11 @@ class GuardedEstimator:
         U2, Y2, tt, TH2, XG2 = sh.step_in
         if k:
             U2[0], Y2[0], tt[1] = sh.u_prev, np.nan, sh.dt_prev
-        U2[k0], Y2[k0], TH2[:], XG2[:] = ut[0], y_, thG[0], xG[0]
+        U2[k0], Y2[k0], TH2[:], XG2[:] = ut[0], y_, thG, xG
         ins, out = ((sh.step_in, sh.step_out) if k else
                     (tuple(a[:1] for a in sh.step_in), tuple(a[:1] for a in sh.step_out)))
         if k == 0:
-            sh.pst = progress_init(thG[0])
+            sh.pst = progress_init(thG)
         TH, TH2o, X2, SD2, BAND, clip, rst, nis = out
         sh.loop(sh.s, sh.P, sh.P0, *ins[:3], k0, k0 + 1, k - k0, sh.R, sh.lo, sh.hi,
                 sh.ell, sh.pc, sh.WT, sh.Q_x, *ins[3:], sh.pst, sh.gst, sh.cfg, *out)
@@ -517,7 +517,7 @@ class GuardedEstimator:
         sh.maybe_submit()
         return GuardedState(stage1=s1, x_hat0=state.x_hat0, theta_hat0=state.theta_hat0,
                             stream=sh, theta_hat=TH[k0].copy(), x_hat=X2[k0].copy(),
-                            theta_stage1=thG[0].copy(), theta_stage2=TH2o[k0].copy(),
+                            theta_stage1=thG.copy(), theta_stage2=TH2o[k0].copy(),
                             band=BAND[k0].copy(), clipped=bool(clip[k0]),
                             reset=bool(rst[k0]), fits=len(sh.fits),
                             fits_failed=len(sh.failures), k=k + 1)
