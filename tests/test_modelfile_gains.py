@@ -18,7 +18,7 @@ import pytest
 
 from thetahat.cli import main
 from thetahat.codegen.loader import find_compiler
-from thetahat.errors import ModelFileError, ThetahatError, UpdateLawError
+from thetahat.errors import ModelFileError, ThetahatError, ThetahatWarning, UpdateLawError
 from thetahat.io.datafile import read_data
 from thetahat.modelfile import (auto_gamma, build_observer, generate_c_from_model, load_model,
                                 resolve_gains, run_estimator, start_x_hat)
@@ -233,3 +233,36 @@ def test_auto_gamma_with_missing_samples(tmp_path, name):
     res = run_estimator(spec, t, u, y, nan_policy="skip", method="paper", diagnose=False)
     assert int(res.skipped.sum()) == int(np.isnan(y).any(axis=1).sum())
     assert np.all(np.isfinite(res.theta_hat))
+
+
+#: The output scale that overflows the first pass's observer from the sample it starts at.
+OVERFLOWING_SCALE = 1e100
+
+
+@pytest.mark.parametrize("name", sorted(AUTO_COPIES))
+def test_auto_gamma_from_a_first_pass_that_stops(auto_models, name):
+    """The first pass (θ̂ held at θ̂₀) stops where the outputs jump to 1e100 × their size: Γ is
+    the information of the samples it gave — the same arithmetic as on the record cut there,
+    so the same Γ to rounding — with a warning that names the sample; a pass that stops within
+    its first two samples has no information to give, and its error is raised."""
+    path, (t, u, y) = auto_models[name]
+    spec = load_model(path)
+    y = np.array(y, dtype=float).reshape(t.size, -1)
+    half = t.size // 2
+    y[half:] *= OVERFLOWING_SCALE
+    with np.errstate(all="ignore"):
+        with pytest.warns(ThetahatWarning, match=r"the first pass .* stopped at t\[") as rec:
+            G = auto_gamma(spec, t, u, y)
+        F = int(re.search(r"stopped at t\[(\d+)\]", str(rec[0].message)).group(1))
+        assert half < F <= t.size - 1
+        cut = auto_gamma(spec, t[:F], np.asarray(u).reshape(t.size, -1)[:F], y[:F])
+        np.testing.assert_allclose(G, cut, rtol=1e-12, atol=0.0)
+        assert np.all(np.isfinite(G)) and np.all(np.diag(G) > 0)
+
+
+def test_auto_gamma_from_a_first_pass_that_stops_at_once(auto_models):
+    """The heater's first pass at outputs × 1e100 from the first sample stops in its first
+    step: no information to give, so its error is raised (with the data's scale)."""
+    path, (t, u, y) = auto_models["heater"]
+    with np.errstate(all="ignore"), pytest.raises(ThetahatError, match="diverged"):
+        auto_gamma(load_model(path), t, u, np.asarray(y, dtype=float) * OVERFLOWING_SCALE)

@@ -705,6 +705,9 @@ def auto_gamma(spec: ModelSpec, t: ArrayLike, u: ArrayLike | None, y: ArrayLike,
         The model has no perturbation or parameter set.
     UpdateLawError
         ∂g/∂θ vanishes on the whole record for a parameter.
+    NonFiniteError
+        The first pass stopped within two samples (a first pass that stops later gives Γ
+        from the samples before, with a ThetahatWarning).
 
     Examples
     --------
@@ -727,14 +730,25 @@ def auto_gamma(spec: ModelSpec, t: ArrayLike, u: ArrayLike | None, y: ArrayLike,
     held = dataclasses.replace(est, law=ConstantLaw(th0, s.parameter_set))
     obs = _build(held, spec, eps)
     from ..estimation.drive import runner
-    first = runner(obs, t).run(t, u, y,
+    first = runner(obs, t).run(t, u, y, throw=False,
                                state0=obs.init(x_hat0=start_x_hat(spec, y), theta_hat0=th0))
     N = first.t.shape[0]
-    U = np.zeros((N, 0)) if u is None else np.asarray(u, dtype=np.float64).reshape(N, -1)
-    Y = np.asarray(y, dtype=np.float64).reshape(N, -1)     # NaN rows: left out (skip)
-    return information_gain(s.perturbation, np.concatenate([U, Y], axis=1), first.x_hat,
+    if first.failed_at is not None:
+        # the information of the samples the first pass gave; none: its error
+        N = first.failed_at
+        if N < 2:
+            first.raise_for_status()
+        warnings.warn(f"Gamma = 'auto': the first pass (θ̂ held at θ̂₀) stopped at t[{N}] = "
+                      f"{first.t[N]:.6g} ({first.message.rstrip('.')}); Γ is taken from the "
+                      f"{N} samples before. The observer is likely to stop there too: a "
+                      "larger ε or a shorter sample interval helps.", ThetahatWarning,
+                      stacklevel=3)
+    U = (np.zeros((N, 0)) if u is None
+         else np.asarray(u, dtype=np.float64).reshape(first.t.shape[0], -1)[:N])
+    Y = np.asarray(y, dtype=np.float64).reshape(first.t.shape[0], -1)[:N]  # NaN rows: skip
+    return information_gain(s.perturbation, np.concatenate([U, Y], axis=1), first.x_hat[:N],
                             np.asarray(th0, dtype=np.float64),
-                            float(first.t[-1] - first.t[0]),
+                            float(first.t[N - 1] - first.t[0]),
                             kappa=auto_kappa(spec.estimator.update_law))
 
 

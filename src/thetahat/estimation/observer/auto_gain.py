@@ -122,8 +122,9 @@ def information_gain(perturbation: Perturbation, v: FloatArray, x_hat: FloatArra
     th = np.broadcast_to(np.asarray(theta_hat0, dtype=np.float64), (N, theta_hat0.shape[0]))
     with np.errstate(over="ignore", invalid="ignore"):
         J = np.asarray(perturbation.dg_dtheta(v, x_hat, th), dtype=np.float64)   # (N, k, p)
-    ok = np.all(np.isfinite(J.reshape(N, -1)), axis=1)
-    h = np.einsum("nkp,nkp->p", J[ok], J[ok]) / max(int(ok.sum()), 1)
+        sq = np.einsum("nkp,nkp->np", J, J)          # rows whose squares overflow: left out
+    ok = np.all(np.isfinite(sq), axis=1)
+    h = sq[ok].sum(axis=0) / max(int(ok.sum()), 1)
     dead = np.flatnonzero(~(h > 0))
     if dead.size:
         raise UpdateLawError(f"Gamma = 'auto': ∂g/∂θ vanishes on the whole record for "

@@ -18,10 +18,13 @@ applied at the first ``step`` after they finish: a ``step`` never waits for a fi
 no lock with it; a fit that crashes or returns non-finite values is ignored with a
 :class:`~thetahat.errors.ThetahatWarning` (:meth:`GuardedEstimator.stream_diagnostics`).
 
-A run fails only where stage 1 fails (stage 2 is reset from stage 1 when it is not finite):
-with ``throw=True`` stage 1's error is raised as stage 1 raises it; with ``throw=False`` the
-result carries stage 1's status and message and NaN rows from ``failed_at`` on
-(:mod:`~thetahat.estimation.status`).
+A run fails only where its own estimates are not finite (stage 2 is reset from stage 1 when it
+is not finite): with ``throw=True`` its error is raised; with ``throw=False`` the result
+carries the status and message and NaN rows from ``failed_at`` on
+(:mod:`~thetahat.estimation.status`). A stage 1 that stops does not end the run: from that
+sample the guard's band is Θ's full width, stage 2 and the fits go on (reset, when not
+finite, from the start values), and a ThetahatWarning and the diagnostics'
+``stage1_failed_at`` say that the paper's guarantee is gone from there.
 
 What it may import: :mod:`thetahat.model`, the package's errors, the bottom of the
 estimation wing (``protocol``, ``records``, ``status``), and every module of this room but the
@@ -99,6 +102,12 @@ class GuardedDiagnostics(Diagnostics):
         The fits that came back but were not applied, one sentence each.
     substeps : int
         The RK4 sub-steps' accuracy floor stage 2 ran with at the end.
+    stage1_failed_at : int or None
+        The sample at which stage 1 stopped (its ``failed_at``), None when it ran to the end.
+        From there ``theta_stage1`` is NaN, the guard's band is Θ's full width (the paper's
+        guarantee is gone) and the guarded θ̂ is stage 2's and the fits', within Θ.
+    stage1_message : str
+        Stage 1's own message when it stopped ("" otherwise).
     """
 
     theta_stage1: FloatArray
@@ -114,6 +123,8 @@ class GuardedDiagnostics(Diagnostics):
     failures: tuple[str, ...] = ()
     rejected: tuple[str, ...] = ()
     substeps: int = 1
+    stage1_failed_at: int | None = None
+    stage1_message: str = ""
 
     @property
     def fits_rejected(self) -> int:
@@ -154,7 +165,9 @@ class GuardedDiagnostics(Diagnostics):
         return (f"GuardedDiagnostics(resets={self.resets}, "
                 f"clipped={self.clipped_fraction:.3f}, fits={len(self.fits)}, "
                 f"fits_rejected={self.fits_rejected}, fits_failed={self.fits_failed}, "
-                f"noise_std={self.noise_std})")
+                + ("" if self.stage1_failed_at is None
+                   else f"stage1_failed_at={self.stage1_failed_at}, ")
+                + f"noise_std={self.noise_std})")
 
 
 @dataclass(frozen=True, slots=True, eq=False)
@@ -404,11 +417,16 @@ class GuardedEstimator:
             From :meth:`init` (default ``init()``); a record starts a new experiment, so a
             state that has been stepped is refused.
         throw : bool
-            What a failure of stage 1 does (:mod:`~thetahat.estimation.status`; stage 2 is
-            reset from stage 1 when it is not finite, and a failed fit is ignored): True
-            (default) raises stage 1's error; False returns the result with stage 1's
-            ``status`` and ``message`` and NaN rows from ``failed_at`` on (the guarded
-            output non-finite is :attr:`~thetahat.estimation.status.Status.DIVERGED`).
+            What a failure of the run does (:mod:`~thetahat.estimation.status`): True
+            (default) raises its error; False returns the result with its ``status`` and
+            ``message`` and NaN rows from ``failed_at`` on. The run fails only when its own
+            output (θ̂, x̂ or φ̂) is not finite
+            (:attr:`~thetahat.estimation.status.Status.DIVERGED`). A failure of stage 1 does
+            not end it: from stage 1's ``failed_at`` on, stage 2 and the fits go on with the
+            guard's band at Θ's full width (the paper's guarantee is gone, and a
+            ThetahatWarning says so; ``diagnostics.stage1_failed_at`` and ``stage1_message``
+            keep stage 1's report). Stage 2 is reset from stage 1 when it is not finite (from
+            the start values once stage 1 has stopped); a failed fit is ignored.
         fit_progress : callable, optional
             ``fit_progress(done, total)`` (:data:`thetahat.progress.FitProgress`), called in
             the caller's thread once stage 1 has run: ``(0, total)`` before stage 2, then
@@ -430,7 +448,7 @@ class GuardedEstimator:
         OptionError
             ``state0`` has been stepped (continue that stream with :meth:`step`).
         NonFiniteError
-            ``throw=True`` and stage 1 diverged (its own error, unchanged).
+            ``throw=True`` and the guarded output is not finite.
         """
         sys_ = self.model
         t_, U, Y = check_record(t, u, y, m=sys_.m, r=sys_.r)
@@ -440,8 +458,8 @@ class GuardedEstimator:
                               "state0 has been stepped: continue its stream with step.")
         res1 = self.stage1.run(t_, U, Y, state0=st0.stage1, throw=False)
         run = _OfflineRun(self, t_, U, Y, res1, st0)
-        run.filter(t_.shape[0] if res1.failed_at is None else res1.failed_at, fit_progress)
-        res = run.result(run.stop(res1))
+        run.filter(t_.shape[0], fit_progress)
+        res = run.result(run.stop())
         return res.raise_for_status() if throw else res
 
     # ------------------------------------------------------------------ streaming
@@ -576,8 +594,11 @@ class _OfflineRun:
     """Stage 2, the guard and the fits of :meth:`GuardedEstimator.run` over one record.
 
     The record is run in segments: between σ's refreshes (at :data:`MIN_SAMPLES` and
-    :data:`SIGMA_SAMPLES` samples, when σ is estimated) and the scheduled fits, each applied
-    at the sample after its window; the arrays are written in place.
+    :data:`SIGMA_SAMPLES` samples, when σ is estimated), the scheduled fits, each applied
+    at the sample after its window, and the sample where stage 1 stopped, if it did; the
+    arrays are written in place. From that sample on the loop reads the start values in place
+    of stage 1's θ̂_G and x̂ (what a non-finite stage 2 is reset to) and the guard's ρ_max is
+    0, so that its band δ_G is Θ's full width (no evidence of contraction: stage 1 gives none).
     """
 
     def __init__(self, est: GuardedEstimator, t: FloatArray, U: FloatArray, Y: FloatArray,
@@ -587,9 +608,16 @@ class _OfflineRun:
         self.est, self.system, self.t, self.U, self.Y = est, sys_, t, U, Y
         self.Us = stage2_samples(U, est.hold)[0]              # stage 2's input samples
         xs = res1.x_hat if res1.x_hat_refined is None else res1.x_hat_refined
-        # writable C copies (the compiled loop's array type)
+        # writable C copies (the compiled loop's array type); stage 1's report keeps its NaN
+        # rows from where it stopped, the loop's copy holds the start values there
         self.thG = np.array(res1.theta_hat, dtype=np.float64, order="C")
         self.xG = np.array(xs, dtype=np.float64, order="C")
+        self.theta_stage1 = self.thG
+        self.lost, self.lost_message = res1.failed_at, res1.message
+        if self.lost is not None:
+            self.theta_stage1 = self.thG.copy()
+            self.thG[self.lost:] = st0.theta_hat0
+            self.xG[self.lost:] = st0.x_hat0
         self.estimate_sigma = est.noise_std is None
         k_first = MIN_SAMPLES if self.estimate_sigma else 0
         self.sigma = resolve_noise_std(est.noise_std, Y[:max(k_first, MIN_SAMPLES)])
@@ -657,6 +685,8 @@ class _OfflineRun:
             if self.estimate_sigma and k in (MIN_SAMPLES, SIGMA_SAMPLES):   # σ̂ from
                 self.sigma = resolve_noise_std(None, self.Y[:k])   # MIN_SAMPLES, refined
                 self.R = np.diag(self.sigma ** 2)                  # at SIGMA_SAMPLES
+            if k == self.lost:
+                self._stage1_lost()
             self._samples(k, k_next)
             if fit:
                 self._fit(k_next)
@@ -664,15 +694,30 @@ class _OfflineRun:
                 if fit_progress is not None:     # outside _fit: the callback's errors pass
                     fit_progress(done, total)
 
+    def _stage1_lost(self) -> None:
+        """Stage 1 stopped at this sample: the band from here is Θ's width (ρ_max = 0), and
+        the user is told."""
+        k = self.lost
+        assert k is not None
+        self.cfg[2] = 0.0
+        warnings.warn(f"GuardedEstimator.run: stage 1 stopped at t[{k}] = {self.t[k]:.6g} "
+                      f"({self.lost_message.rstrip('.')}). From there the guarded θ̂ is stage "
+                      "2's and the fits', kept in Θ, without the paper's guarantee (the "
+                      "guard's band is Θ's full width); fix stage 1 (its gains, Γ, the data "
+                      "scaling) to have the guarantee back.", ThetahatWarning, stacklevel=4)
+
     def _segments(self, rows: int) -> Iterator[tuple[int, int, bool]]:
         """(k, k_next, fit): stage 2 runs samples k … k_next − 1, then (fit) the fit due
-        there; the segments end at σ's refreshes and at the scheduled fits. A pure walk of
-        the schedule: :meth:`filter` follows it, and counts its fits in advance."""
+        there; the segments end at σ's refreshes, at the scheduled fits and where stage 1
+        stopped. A pure walk of the schedule: :meth:`filter` follows it, and counts its fits
+        in advance."""
         k = j = 0
         while k < rows:
             k_next = rows
             if self.estimate_sigma and k < SIGMA_SAMPLES:
                 k_next = MIN_SAMPLES if k < MIN_SAMPLES else SIGMA_SAMPLES
+            if self.lost is not None and k < self.lost:
+                k_next = min(k_next, self.lost)
             j, k_fit = self._next_fit(k, j)
             k_next = min(k_fit, rows, k_next)
             due = self.sched is not None and k_next == k_fit < rows
@@ -746,17 +791,22 @@ class _OfflineRun:
             self.cfg[4 + 2 * p:] = est.kappa * fit.theta_se
             self.sigma = fit.noise_std
 
-    def stop(self, res1: EstimateResult) -> RunStop | None:
-        """Where the run stopped: the guarded output non-finite, or stage 1's own failure."""
-        rows = self.t.shape[0] if res1.failed_at is None else res1.failed_at
-        bad = ~np.isfinite(self.out["TH"][:rows]).all(axis=1)
-        if bad.any():
-            return RunStop(Status.DIVERGED, "the guarded output became non-finite: stage 1 "
-                           "diverged (check its gains and the data scaling).",
-                           int(np.argmax(bad)))
-        if res1.failed_at is not None:
-            return RunStop(res1.status, res1.message, res1.failed_at)
-        return None
+    def stop(self) -> RunStop | None:
+        """Where the run stopped: the first sample whose guarded θ̂ or stage 2's x̂ is not
+        finite (None: it ran to the end)."""
+        o = self.out
+        bad = ~(np.isfinite(o["TH"]).all(axis=1) & np.isfinite(o["X2"]).all(axis=1))
+        if not bad.any():
+            return None
+        k = int(np.argmax(bad))
+        if self.lost is not None and self.lost <= k:
+            why = (f"stage 1 stopped at t[{self.lost}] ({self.lost_message.rstrip('.')}) and "
+                   "stage 2 could not go on without it")
+        else:
+            why = "stage 2 and its resets from stage 1 overflowed"
+        return RunStop(Status.DIVERGED, f"the guarded output became non-finite at t[{k}] = "
+                       f"{self.t[k]:.6g}: {why}; check the data scaling, the noise level and "
+                       "stage 1's gains.", k)
 
     def result(self, stop: RunStop | None) -> EstimateResult:
         """The estimates and :class:`GuardedDiagnostics` (NaN rows from ``stop.at`` on); a
@@ -770,17 +820,21 @@ class _OfflineRun:
                           f"{self.rejected[-1]}. θ̂ is the EKF's, carried on from the last fit "
                           "applied; a longer record or a narrower Θ helps the fit converge.",
                           ThetahatWarning, stacklevel=3)
-        diag = GuardedDiagnostics(theta_stage1=self.thG, theta_stage2=o["TH2"],
+        diag = GuardedDiagnostics(theta_stage1=self.theta_stage1, theta_stage2=o["TH2"],
                                   theta_sd=o["SD2"], band=o["BAND"], clipped=self.CLIP,
                                   reset=self.RESET, nis=self.NIS, fits=tuple(self.fits),
                                   fit_samples=np.array(self.fit_at, dtype=np.int64),
                                   noise_std=self.sigma, failures=tuple(self.failures),
-                                  rejected=tuple(self.rejected), substeps=self.substeps)
+                                  rejected=tuple(self.rejected), substeps=self.substeps,
+                                  stage1_failed_at=self.lost,
+                                  stage1_message=self.lost_message if self.lost is not None
+                                  else "")
         return stopped_result(t=self.t, x_hat=o["X2"], theta_hat=o["TH"],
                               phi_hat=model_phi_hat(self.system, self.U, self.Y, o["X2"],
                                                     o["TH"], stop),
                               skipped=missing_samples(self.Y), diagnostics=diag, stop=stop,
-                              blank=(self.thG, o["TH2"], o["SD2"], o["BAND"], self.NIS))
+                              blank=(self.theta_stage1, o["TH2"], o["SD2"], o["BAND"],
+                                     self.NIS))
 
 
 _LOOPS: dict[Any, Any] = {}
