@@ -18,6 +18,7 @@ absurd input:
 
 from __future__ import annotations
 
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -221,3 +222,45 @@ def test_a_run_that_ends_well_says_so(method):
                       throw=throw)
         assert (res.status, res.message, res.failed_at, res.ok) == (Status.OK, "", None, True)
         assert np.all(np.isfinite(res.theta_hat)) and res.raise_for_status() is res
+
+
+#: A guarded stream against its run: the same compiled loop on the same samples, stage 1
+#: stepped instead of run (the observer's step and run evaluate the same formulas in another
+#: order: 1e-12 relative measured on LuGre in tests/estimation/test_guarded.py's 1e-9); the
+#: guarded θ̂ to 1e-9 of Θ's width.
+STREAM_RTOL = 1e-9
+
+
+@pytest.mark.parametrize("name", ["prop3", "actuator", "heater"])
+def test_a_guarded_stream_goes_on_past_stage1s_failure_as_its_run_does(name):
+    """Step by step, the observer at outputs × 1e100 is lost at the sample the run loses it:
+    a warning, then θ̂_G NaN, the band Θ's width, and the guarded θ̂ that of the run (over
+    the rows the run gave: the heater's own φ̂ overflows and stops the run, not the stream)."""
+    spec, t, U, Y = _record(name)
+    stage1, Y = build_observer(spec), Y * HUGE_SCALE
+    est = GuardedEstimator(stage1=stage1, system=spec.system, use_fits=False,
+                           noise_std=0.01 * np.std(Y, axis=0), substeps=COARSE)
+    ts = stage2_set(spec.system.parameter_set)
+    kw = dict(x_hat0=spec.estimator.x_hat0, theta_hat0=spec.estimator.theta_hat0)
+    with _np_quiet(), warnings.catch_warnings():
+        warnings.simplefilter("ignore", ThetahatWarning)
+        res = est.run(t, U, Y, state0=est.init(**kw), throw=False)
+    F = res.diagnostics.stage1_failed_at
+    assert F is not None
+    rows = res.t.shape[0] if res.ok else res.failed_at
+    st, th, band, th1 = est.init(**kw), [], [], []
+    dt = np.append(np.diff(t), t[1] - t[0])
+    with _np_quiet(), pytest.warns(ThetahatWarning, match=rf"stage 1 stopped at sample {F} "):
+        for k in range(t.shape[0]):
+            st = est.step(st, U[k], Y[k], dt[k])
+            th.append(st.theta_hat), band.append(st.band), th1.append(st.theta_stage1)
+    assert est.stream_diagnostics(st).stage1_failed_at == F
+    assert f"stage1_failed_at={F}" in repr(est.stream_diagnostics(st))
+    width = ts.hi - ts.lo
+    np.testing.assert_allclose(np.array(th)[:rows] / width, res.theta_hat[:rows] / width,
+                               rtol=0.0, atol=STREAM_RTOL)
+    np.testing.assert_allclose(np.array(band)[:rows], res.diagnostics.band[:rows],
+                               rtol=STREAM_RTOL)
+    assert np.all(np.isnan(np.array(th1)[F:])) and np.all(np.isfinite(np.array(th1)[:F]))
+    np.testing.assert_array_equal(np.array(band)[F:], np.broadcast_to(width, (len(band) - F,
+                                                                               width.size)))

@@ -44,7 +44,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from ...errors import (ArgumentTypeError, DimensionError, NonFiniteError, OptionError,
-                      StateError, ThetahatError, ThetahatWarning)
+                      StateError, ThetahatError, ThetahatWarning, UpdateLawError)
 from ...model.system import PerturbedLinearSystem
 from ...progress import FitProgress
 from ..protocol import Diagnostics, EstimateResult, check_state, missing_samples, stream_sample
@@ -484,7 +484,10 @@ class GuardedEstimator:
             after k + 1 steps when no fit is made): ``theta_hat`` (p,), ``x_hat`` (n,),
             ``theta_stage1``, ``theta_stage2``, ``band``, ``clipped``, ``reset``, ``fits``
             (the number of fits back so far), ``fits_failed`` (ignored fits; see
-            :meth:`stream_diagnostics`).
+            :meth:`stream_diagnostics`). A stage 1 whose step or estimate fails is lost from
+            that sample on, as in :meth:`run`: a ThetahatWarning, ``theta_stage1`` NaN, the
+            band Θ's full width, ``stream_diagnostics(state).stage1_failed_at``; its state is
+            kept as it was.
         """
         sys_ = self.model
         n, m, p = sys_.n, sys_.m, sys_.p
@@ -505,12 +508,20 @@ class GuardedEstimator:
                              f"stepped already); step each state once, in order, from "
                              f"init().")
         k = sh.k
-        est1 = self.stage1.estimate(state.stage1, u_, y_)
-        thG = np.asarray(est1.theta_hat, dtype=np.float64).reshape(p)
-        xs = est1.x_hat_refined if est1.x_hat_refined is not None else est1.x_hat
-        xG = np.asarray(xs, dtype=np.float64).reshape(n)
         if k == 0:
             sh.configure(self.kappa, self.c, self.rho_max, self.dwell)
+        thG, xG = state.theta_hat0, state.x_hat0      # stage 1 lost: the start values (run's)
+        if sh.stage1_failed_at is None:
+            try:
+                est1 = self.stage1.estimate(state.stage1, u_, y_)
+                xs = est1.x_hat_refined if est1.x_hat_refined is not None else est1.x_hat
+                th1 = np.asarray(est1.theta_hat, dtype=np.float64).reshape(p)
+                x1 = np.asarray(xs, dtype=np.float64).reshape(n)
+                if not (np.isfinite(th1).all() and np.isfinite(x1).all()):
+                    raise NonFiniteError(f"stage 1's estimate at sample {k} is not finite")
+                thG, xG = th1, x1
+            except (NonFiniteError, UpdateLawError) as exc:
+                _lose_stage1(sh, k, exc)
         ut, sh.u_history = stage2_samples(u_.reshape(1, m),               # stage 2's samples
                                           streamable(self.hold, "GuardedEstimator"),
                                           sh.u_history)
@@ -529,13 +540,20 @@ class GuardedEstimator:
         TH, TH2o, X2, SD2, BAND, clip, rst, nis = out
         sh.loop(sh.s, sh.P, sh.P0, *ins[:3], k0, k0 + 1, k - k0, sh.R, sh.lo, sh.hi,
                 sh.ell, sh.pc, sh.WT, sh.Q_x, *ins[3:], sh.pst, sh.gst, sh.cfg, *out)
-        s1 = self.stage1.step(state.stage1, u_, y_, h)
+        s1 = state.stage1                           # (kept as it was when stage 1 is lost)
+        if sh.stage1_failed_at is None:
+            try:
+                s1 = self.stage1.step(state.stage1, u_, y_, h)
+            except (NonFiniteError, UpdateLawError) as exc:
+                _lose_stage1(sh, k + 1, exc)
         sh.refresh_sigma(k)
         sh.u_prev, sh.dt_prev, sh.k = ut[0], h, k + 1
         sh.maybe_submit()
         return GuardedState(stage1=s1, x_hat0=state.x_hat0, theta_hat0=state.theta_hat0,
                             stream=sh, theta_hat=TH[k0].copy(), x_hat=X2[k0].copy(),
-                            theta_stage1=thG.copy(), theta_stage2=TH2o[k0].copy(),
+                            theta_stage1=(thG.copy() if sh.stage1_failed_at is None
+                                          or k < sh.stage1_failed_at else np.full(p, np.nan)),
+                            theta_stage2=TH2o[k0].copy(),
                             band=BAND[k0].copy(), clipped=bool(clip[k0]),
                             reset=bool(rst[k0]), fits=len(sh.fits),
                             fits_failed=len(sh.failures), k=k + 1)
@@ -835,6 +853,18 @@ class _OfflineRun:
                               skipped=missing_samples(self.Y), diagnostics=diag, stop=stop,
                               blank=(self.theta_stage1, o["TH2"], o["SD2"], o["BAND"],
                                      self.NIS))
+
+
+def _lose_stage1(sh: GuardedStream, k: int, exc: Exception) -> None:
+    """A stream's stage 1 failed: lost from sample k on, as :meth:`GuardedEstimator.run`
+    goes on past it (the guard's ρ_max 0 from there, a warning)."""
+    sh.stage1_failed_at, sh.stage1_message = k, str(exc)
+    sh.cfg[2] = 0.0
+    warnings.warn(f"GuardedEstimator.step: stage 1 stopped at sample {k} "
+                  f"({str(exc).rstrip('.')}). From there the guarded θ̂ is stage 2's and the "
+                  "fits', kept in Θ, without the paper's guarantee (the guard's band is Θ's "
+                  "full width); fix stage 1 (its gains, Γ, the data scaling) to have the "
+                  "guarantee back.", ThetahatWarning, stacklevel=3)
 
 
 _LOOPS: dict[Any, Any] = {}

@@ -69,6 +69,11 @@ class StreamDiagnostics:
     rejected : tuple of str
         The fits that came back but were not applied (not consistent with the noise, or
         :meth:`~.map_fit.FitResult.rejection`), one sentence each.
+    stage1_failed_at : int or None
+        The sample from which stage 1 is lost (its step or estimate raised there), None while
+        it runs; as ``GuardedDiagnostics.stage1_failed_at`` of a run.
+    stage1_message : str
+        Stage 1's error then ("" otherwise).
     """
 
     fits: tuple[FitResult, ...]
@@ -77,6 +82,8 @@ class StreamDiagnostics:
     failures: tuple[str, ...]
     pending: bool
     rejected: tuple[str, ...] = ()
+    stage1_failed_at: int | None = None
+    stage1_message: str = ""
 
     @property
     def fits_rejected(self) -> int:
@@ -85,7 +92,9 @@ class StreamDiagnostics:
 
     def __repr__(self) -> str:
         return (f"StreamDiagnostics(fits={len(self.fits)}, failures={len(self.failures)}, "
-                f"pending={self.pending})")
+                + ("" if self.stage1_failed_at is None
+                   else f"stage1_failed_at={self.stage1_failed_at}, ")
+                + f"pending={self.pending})")
 
 
 class GuardedStream:
@@ -158,6 +167,8 @@ class GuardedStream:
         self.sched = schedule
         self.prior0 = prior0 if schedule else None
         self.executor: concurrent.futures.Executor | None = None
+        self.stage1_failed_at: int | None = None     # stage 1 lost from this sample on
+        self.stage1_message = ""
         self.spec = b""
         self._n = n
         # the guarded loop's arrays for one step, allocated once: in, two rows (the previous
@@ -334,4 +345,6 @@ class GuardedStream:
                                  fit_seconds=np.array(self.fit_seconds),
                                  failures=tuple(self.failures),
                                  pending=self.future is not None and not self.future.done(),
-                                 rejected=tuple(self.rejected))
+                                 rejected=tuple(self.rejected),
+                                 stage1_failed_at=self.stage1_failed_at,
+                                 stage1_message=self.stage1_message)
