@@ -264,3 +264,36 @@ def test_a_guarded_stream_goes_on_past_stage1s_failure_as_its_run_does(name):
     assert np.all(np.isnan(np.array(th1)[F:])) and np.all(np.isfinite(np.array(th1)[:F]))
     np.testing.assert_array_equal(np.array(band)[F:], np.broadcast_to(width, (len(band) - F,
                                                                                width.size)))
+
+
+@pytest.mark.parametrize("name", ["prop3", "actuator", "heater", "two_inertia"])
+def test_stage1_reads_its_estimates_without_phi_as_estimate_does(name):
+    """``read_estimates`` (what the guarded stream reads from stage 1) is ``estimate``'s x̂,
+    θ̂ and x̂₂ bit for bit, at states along a run (the C and numba back ends hand it to this
+    observer's); a sample
+    stage 1 refuses (NaN in y under nan_policy="raise") is refused the same way, so the
+    guarded stream raises it (the caller's error), and does not count it as stage 1 lost."""
+    spec, t, U, Y = _record(name)
+    obs = build_observer(spec)
+    states = [obs.init(x_hat0=spec.estimator.x_hat0, theta_hat0=spec.estimator.theta_hat0)]
+    for k in range(20):
+        states.append(obs.step(states[-1], U[k], Y[k], t[k + 1] - t[k]))
+    for s, u, y in zip(states, U, Y):
+        e = obs.estimate(s, u, y)
+        x, th, x2 = obs.read_estimates(s, u, y)
+        np.testing.assert_array_equal(x, e.x_hat)
+        np.testing.assert_array_equal(th, e.theta_hat)
+        assert (x2 is None) == (e.x_hat_refined is None)
+        if x2 is not None:
+            np.testing.assert_array_equal(x2, e.x_hat_refined)
+    y_nan = np.full(spec.system.r, np.nan)
+    with pytest.raises(NonFiniteError) as by_estimate:
+        obs.estimate(states[0], U[0], y_nan)
+    with pytest.raises(NonFiniteError) as by_read:
+        obs.read_estimates(states[0], U[0], y_nan)
+    assert str(by_read.value) == str(by_estimate.value)
+    est = GuardedEstimator(stage1=obs, system=spec.system, use_fits=False)
+    st = est.step(est.init(), U[0], Y[0], t[1] - t[0])
+    with pytest.raises(NonFiniteError, match="nan_policy"):
+        est.step(st, U[1], y_nan, t[2] - t[1])
+    assert est.stream_diagnostics(st).stage1_failed_at is None

@@ -233,6 +233,22 @@ class NativeObserver:
         """
         return self.observer.estimate(state, u, y)
 
+    def read_estimates(self, state: ArrayLike, u: ArrayLike | None, y: ArrayLike
+                       ) -> tuple[NDArray[np.float64], NDArray[np.float64],
+                                  NDArray[np.float64] | None]:
+        """x̂, θ̂ and x̂₂ of a state, without φ̂: the observer's ``read_estimates``.
+
+        Parameters
+        ----------
+        state, u, y
+            As :meth:`~thetahat.estimation.observer.observer.ModifiedHighGainObserver.read_estimates`.
+
+        Returns
+        -------
+        tuple
+        """
+        return self.observer.read_estimates(state, u, y)
+
     def fallback(self) -> Any:
         """What runs the records the C cannot take (built on first use).
 

@@ -272,6 +272,23 @@ class CompiledObserver:
         """
         return self.observer.estimate(state, u, y)
 
+    def read_estimates(self, state: ArrayLike, u: ArrayLike | None, y: ArrayLike
+                       ) -> tuple[FloatArray, FloatArray, FloatArray | None]:
+        """x̂, θ̂ and x̂₂ of a state, without φ̂; see
+        :meth:`ModifiedHighGainObserver.read_estimates`.
+
+        Parameters
+        ----------
+        state : array_like, shape (state_size,)
+        u : array_like, shape (m,)
+        y : array_like, shape (r,)
+
+        Returns
+        -------
+        tuple
+        """
+        return self.observer.read_estimates(state, u, y)
+
     def _call(self, s0: FloatArray, U: FloatArray, Y: FloatArray, dts: FloatArray,
               ok: NDArray[np.bool_], foh: bool, S: FloatArray, PHI: FloatArray
               ) -> tuple[int, int]:

@@ -604,6 +604,38 @@ class ModifiedHighGainObserver:
                                 theta_hat=th.copy(),
                                 x_hat_refined=None if x2 is None else x2.copy())
 
+    def read_estimates(self, state: ArrayLike, u: ArrayLike | None, y: ArrayLike
+                       ) -> tuple[FloatArray, FloatArray, FloatArray | None]:
+        """x̂, θ̂ and x̂₂ of a state, without φ̂: :meth:`estimate` with the same checks of
+        the state and the samples, for a caller that does not use φ̂ (the guarded
+        estimator's stage 1).
+
+        Parameters
+        ----------
+        state : array_like, shape (state_size,)
+        u : array_like, shape (m,)
+        y : array_like, shape (r,)
+            Checked as by :meth:`estimate` (NaN only under ``nan_policy="skip"``).
+
+        Returns
+        -------
+        x_hat : ndarray (n,)
+        theta_hat : ndarray (p,)
+        x_hat_refined : ndarray (n,) or None
+            x̂₂ of the second observer (None without one). Copies, not views of ``state``.
+
+        Examples
+        --------
+        >>> from thetahat.models import lugre
+        >>> obs = lugre.observer()
+        >>> x, th, x2 = obs.read_estimates(obs.init(theta_hat0=[0.3]), [0.0], [0.0])
+        >>> th.tolist(), x2 is None
+        ([0.3], True)
+        """
+        self.check_samples(u, y)
+        x, _, th, x2 = self._split(self.check_state(state))
+        return x.copy(), th.copy(), None if x2 is None else x2.copy()
+
     def with_run_options(self, *, hold: str | None = None,
                          progress: Progress | None | bool = False,
                          compiled: bool | None | str = "keep") -> ModifiedHighGainObserver:

@@ -484,10 +484,11 @@ class GuardedEstimator:
             after k + 1 steps when no fit is made): ``theta_hat`` (p,), ``x_hat`` (n,),
             ``theta_stage1``, ``theta_stage2``, ``band``, ``clipped``, ``reset``, ``fits``
             (the number of fits back so far), ``fits_failed`` (ignored fits; see
-            :meth:`stream_diagnostics`). A stage 1 whose step or estimate fails is lost from
-            that sample on, as in :meth:`run`: a ThetahatWarning, ``theta_stage1`` NaN, the
-            band Θ's full width, ``stream_diagnostics(state).stage1_failed_at``; its state is
-            kept as it was.
+            :meth:`stream_diagnostics`). A stage 1 whose step fails (or whose estimate is not
+            finite) is lost from that sample on, as in :meth:`run`: a ThetahatWarning,
+            ``theta_stage1`` NaN, the band Θ's full width,
+            ``stream_diagnostics(state).stage1_failed_at``; its state is kept as it was. A
+            sample stage 1 refuses (its NaN policy) raises, as before.
         """
         sys_ = self.model
         n, m, p = sys_.n, sys_.m, sys_.p
@@ -512,16 +513,21 @@ class GuardedEstimator:
             sh.configure(self.kappa, self.c, self.rho_max, self.dwell)
         thG, xG = state.theta_hat0, state.x_hat0      # stage 1 lost: the start values (run's)
         if sh.stage1_failed_at is None:
-            try:
+            # the samples are checked against stage 1's NaN policy here (an error is the
+            # caller's); x̂, θ̂, x̂₂ without φ̂ where stage 1 can read them so (φ̂ is unused)
+            read = getattr(self.stage1, "read_estimates", None)
+            if read is not None:
+                x1, th1, x2 = read(state.stage1, u_, y_)
+            else:
                 est1 = self.stage1.estimate(state.stage1, u_, y_)
-                xs = est1.x_hat_refined if est1.x_hat_refined is not None else est1.x_hat
-                th1 = np.asarray(est1.theta_hat, dtype=np.float64).reshape(p)
-                x1 = np.asarray(xs, dtype=np.float64).reshape(n)
-                if not (np.isfinite(th1).all() and np.isfinite(x1).all()):
-                    raise NonFiniteError(f"stage 1's estimate at sample {k} is not finite")
+                x1, th1, x2 = est1.x_hat, est1.theta_hat, est1.x_hat_refined
+            th1 = np.asarray(th1, dtype=np.float64).reshape(p)
+            x1 = np.asarray(x1 if x2 is None else x2, dtype=np.float64).reshape(n)
+            if np.isfinite(th1).all() and np.isfinite(x1).all():
                 thG, xG = th1, x1
-            except (NonFiniteError, UpdateLawError) as exc:
-                _lose_stage1(sh, k, exc)
+            else:
+                _lose_stage1(sh, k, NonFiniteError(f"stage 1's estimate at sample {k} is not "
+                                                   "finite"))
         ut, sh.u_history = stage2_samples(u_.reshape(1, m),               # stage 2's samples
                                           streamable(self.hold, "GuardedEstimator"),
                                           sh.u_history)
