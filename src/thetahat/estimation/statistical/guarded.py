@@ -723,12 +723,8 @@ class _OfflineRun:
         the user is told."""
         k = self.lost
         assert k is not None
-        self.cfg[2] = 0.0
-        warnings.warn(f"GuardedEstimator.run: stage 1 stopped at t[{k}] = {self.t[k]:.6g} "
-                      f"({self.lost_message.rstrip('.')}). From there the guarded θ̂ is stage "
-                      "2's and the fits', kept in Θ, without the paper's guarantee (the "
-                      "guard's band is Θ's full width); fix stage 1 (its gains, Γ, the data "
-                      "scaling) to have the guarantee back.", ThetahatWarning, stacklevel=4)
+        _without_stage1(self.cfg, f"run: stage 1 stopped at t[{k}] = {self.t[k]:.6g}",
+                    self.lost_message, stacklevel=4)
 
     def _segments(self, rows: int) -> Iterator[tuple[int, int, bool]]:
         """(k, k_next, fit): stage 2 runs samples k … k_next − 1, then (fit) the fit due
@@ -861,16 +857,23 @@ class _OfflineRun:
                                      self.NIS))
 
 
+def _without_stage1(cfg: FloatArray, where: str, message: str, *, stacklevel: int) -> None:
+    """Stage 1 stopped: the guard's ρ_max (``cfg[2]``) is 0 from here, so that its band δ_G
+    is Θ's full width, and a ThetahatWarning says so (``where``: "run: stage 1 stopped at
+    t[k] = …" or "step: … at sample k"; ``message``: stage 1's own; ``stacklevel`` as for
+    :func:`warnings.warn`, counted from the caller)."""
+    cfg[2] = 0.0
+    warnings.warn(f"GuardedEstimator.{where} ({message.rstrip('.')}). From there the guarded "
+                  "θ̂ is stage 2's and the fits', kept in Θ, without the paper's guarantee (the "
+                  "guard's band is Θ's full width); fix stage 1 (its gains, Γ, the data "
+                  "scaling) to have the guarantee back.", ThetahatWarning,
+                  stacklevel=stacklevel + 1)
+
+
 def _lose_stage1(sh: GuardedStream, k: int, exc: Exception) -> None:
-    """A stream's stage 1 failed: lost from sample k on, as :meth:`GuardedEstimator.run`
-    goes on past it (the guard's ρ_max 0 from there, a warning)."""
+    """A stream's stage 1 failed: lost from sample k on, as in a run."""
     sh.stage1_failed_at, sh.stage1_message = k, str(exc)
-    sh.cfg[2] = 0.0
-    warnings.warn(f"GuardedEstimator.step: stage 1 stopped at sample {k} "
-                  f"({str(exc).rstrip('.')}). From there the guarded θ̂ is stage 2's and the "
-                  "fits', kept in Θ, without the paper's guarantee (the guard's band is Θ's "
-                  "full width); fix stage 1 (its gains, Γ, the data scaling) to have the "
-                  "guarantee back.", ThetahatWarning, stacklevel=3)
+    _without_stage1(sh.cfg, f"step: stage 1 stopped at sample {k}", str(exc), stacklevel=3)
 
 
 _LOOPS: dict[Any, Any] = {}
