@@ -22,7 +22,7 @@ from thetahat.cli import main
 from thetahat.codegen.guarded_c import generate_guarded_c
 from thetahat.codegen.harness import C_FLAGS
 from thetahat.codegen.loader import find_compiler
-from thetahat.errors import OptionError, UnsupportedError
+from thetahat.errors import OptionError, ThetahatWarning, UnsupportedError
 from thetahat.estimation.statistical.guarded import GuardedEstimator
 from thetahat.modelfile import build_observer, load_model, resolve_gains, simulate_model
 
@@ -156,6 +156,45 @@ def test_c_guarded_is_the_stream_of_step(tmp_path, run_hold):
     rc, table, err = run_harness(build(code, tmp_path), tmp_path / "d.csv", t, u, y)
     assert rc == 0, err
     assert rel_err(table[:, 1:], rows) <= GUARDED_RTOL
+
+
+#: A sensor glitch: one output sample at this value overflows stage 1 (the paper's observer).
+GLITCH = 1e100
+
+
+@pytest.mark.parametrize("name", ("actuator", "two_inertia", "heater"))
+def test_c_guarded_goes_on_past_stage1_as_the_stream_does(tmp_path, name):
+    """One output sample at 1e100 (sample 150 of 400) makes stage 1 diverge; stage 2 takes the
+    glitch, is reset and goes on. The C, as GuardedEstimator.step: stage 1 lost at the same
+    sample (said once on stderr, the rows go on), θ̂_G NaN from there, the band Θ's full
+    width, stage 2's estimates equal to the stream's to GUARDED_RTOL — and moving (not held
+    at the start values)."""
+    spec, est, t, u, y = case(name)
+    t, u, y = t[:400], u[:400], y[:400].copy()
+    y[150] = GLITCH
+    with pytest.warns(ThetahatWarning, match="stage 1 stopped at sample"), \
+            np.errstate(all="ignore"):
+        rows, st = stream_rows(est, spec, t, u, y)
+    F = est.stream_diagnostics(st).stage1_failed_at
+    assert F is not None and 150 < F < 200
+    code = generate_guarded_c(est, dt=float(t[1] - t[0]), name=f"{name}_g",
+                              x_hat0=spec.estimator.x_hat0,
+                              theta_hat0=spec.estimator.theta_hat0)
+    rc, table, err = run_harness(build(code, tmp_path), tmp_path / "d.csv", t, u, y)
+    assert rc == 0 and err.count("stage 1 stopped at sample") == 1
+    assert f"stage 1 stopped at sample {F} " in err
+    C = table[:, 1:]
+    assert np.array_equal(np.isnan(C), np.isnan(rows))
+    n, p = spec.system.n, spec.system.p
+    thG = C[:, n + p:n + 2 * p]
+    assert np.all(np.isnan(thG[F:])) and not np.any(np.isnan(thG[:F]))
+    finite = ~np.isnan(rows)
+    assert rel_err(np.where(finite, C, 0.0), np.where(finite, rows, 0.0)) <= GUARDED_RTOL
+    lo, hi = spec.system.parameter_set.lower, spec.system.parameter_set.upper
+    th, band = C[:, n:n + p], C[:, n + 3 * p:]
+    assert np.all((th >= lo) & (th <= hi))
+    np.testing.assert_array_equal(band[F:], np.broadcast_to(hi - lo, band[F:].shape))
+    assert np.ptp(th[F:], axis=0).max() > 0.0
 
 
 def test_c_guarded_is_clean_under_sanitizers(tmp_path):

@@ -61,8 +61,8 @@ enum {{ {PU}_NX = {n}, {PU}_NU = {m}, {PU}_NY = {r}, {PU}_NTHETA = {p}, {PU}_NS 
 enum {P}_status {{
     {PU}_OK = 0,                /* the sample was processed */
     {PU}_NONFINITE_INPUT = 1,   /* NaN or inf in u, or inf in y: refused, state unchanged */
-    {PU}_STAGE1 = 2,            /* stage 1 refused the sample or diverged: state unchanged
-                                   ({P}_state.stage1_status has its code) */
+    {PU}_STAGE1 = 2,            /* stage 1 refused the sample (a NaN it may not skip):
+                                   state unchanged ({P}_state.stage1_status has its code) */
     {PU}_BAD_FIT = 3            /* {P}_apply_fit: theta outside Theta or not finite, a
                                    covariance or sigma not finite, sigma <= 0: not applied */
 }};
@@ -72,7 +72,11 @@ enum {P}_status {{
    constants and its latest fit; pst, gst: stage 1's progress and the guard's own state;
    u_prev: the last input. After each step: theta_hat the guarded estimate (in Theta),
    x_hat stage 2's x_hat, theta_stage1 and theta_stage2 the two stages' estimates, band the
-   guard's delta, clipped / reset whether the guard clipped stage 2 / reset it from stage 1. */
+   guard's delta, clipped / reset whether the guard clipped stage 2 / reset it from stage 1.
+   stage1_lost_at: 0 while stage 1 runs; when its step fails (it diverged: stage1_status has
+   the code) the sample from which it is lost. From there, as the Python stream: the guard's
+   band is Theta's full width, stage 2 goes on alone (reset, when not finite, to the start
+   values), theta_stage1 is NaN; the paper's guarantee is gone. */
 typedef struct {P}_state {{
     {P}_stage1_state stage1;
     {P}_real_t s[{N}];
@@ -90,6 +94,7 @@ typedef struct {P}_state {{
     int clipped;
     int reset;
     int stage1_status;
+    long stage1_lost_at;
     long k;
 }} {P}_state;
 
@@ -176,6 +181,7 @@ int {P}_init({P}_state *st)
     st->clipped = 0;
     st->reset = 0;
     st->stage1_status = 0;
+    st->stage1_lost_at = 0;
     st->k = 0;
     return {PU}_OK;
 }}
@@ -188,8 +194,9 @@ int {P}_step({P}_state *st, const real_t u[], const real_t y[])
     real_t THG[{2 * p}], XG[{2 * n}];
     real_t TH[{2 * p}], TH2[{2 * p}], X2[{2 * n}], SD2[{2 * p}], BAND[{2 * p}], NIS[2];
     real_t CLIP[2], RESET[2];
-    const real_t *thg = {P}_stage1_theta_hat(&st->stage1);
-    const real_t *xg = {P}_stage1_{sizes['x_stage1']}(&st->stage1);
+    const int lost = st->stage1_lost_at > 0;      /* stage 1 lost: the start values */
+    const real_t *thg = lost ? S0 + {n} : {P}_stage1_theta_hat(&st->stage1);
+    const real_t *xg = lost ? S0 : {P}_stage1_{sizes['x_stage1']}(&st->stage1);
     int i, j, k0 = st->k > 0 ? 1 : 0, status;
     /* the absolute index the guard sees, held at 2^30 + 1 (not a power of two: the dyadic
        blocks stop shifting there) so that an int never overflows on a long run */
@@ -209,21 +216,29 @@ int {P}_step({P}_state *st, const real_t u[], const real_t y[])
     tt[1] = DT;
     if (st->k == 0) {init};
     (void){loop};
-    status = {P}_stage1_step(&w->stage1, u, y);
-    if (status != 0) {{
-        st->stage1_status = status;
-        return {PU}_STAGE1;
+    if (!lost) {{
+        status = {P}_stage1_step(&w->stage1, u, y);
+        if (status == {PU}_STAGE1_ERR_INPUT || status == {PU}_STAGE1_ERR_MISSING) {{
+            st->stage1_status = status;
+            return {PU}_STAGE1;
+        }}
+        if (status != 0) {{                          /* diverged: lost from the next sample */
+            w->stage1 = st->stage1;
+            w->stage1_status = status;
+            w->stage1_lost_at = st->k + 1;
+            w->cfg[2] = 0.0;                         /* rho_max 0: delta_G = |Theta| */
+        }}
     }}
     for (i = 0; i < {p}; ++i) {{
         w->theta_hat[i] = TH[k0 * {p} + i];
-        w->theta_stage1[i] = thg[i];
+        w->theta_stage1[i] = lost ? NAN : thg[i];
         w->theta_stage2[i] = TH2[k0 * {p} + i];
         w->band[i] = BAND[k0 * {p} + i];
     }}
     for (i = 0; i < {n}; ++i) w->x_hat[i] = X2[k0 * {n} + i];
     w->clipped = CLIP[k0] != 0.0;
     w->reset = RESET[k0] != 0.0;
-    w->stage1_status = 0;
+    if (!w->stage1_lost_at) w->stage1_status = 0;
     for (i = 0; i < {m}; ++i) w->u_prev[i] = u[i];
     w->k += 1;
     *st = work;
@@ -260,7 +275,8 @@ int {P}_apply_fit({P}_state *st, const real_t theta[], const real_t cov_theta[],
 def guarded_main(name: str, banner: str, sizes: dict[str, Any]) -> str:
     """``<name>_main.c``: ``<name> DATA.csv`` reads rows ``t,u_1…u_m,y_1…y_r`` after a header
     line and writes ``t,x_hat_…,theta_hat_…,theta_stage1_…,theta_stage2_…,band_…`` rows to
-    stdout; exit 1 on a bad row or file, 2 on a refused sample (the row named on stderr).
+    stdout; exit 1 on a bad row or file, 2 on a refused sample (the row named on stderr); a
+    stage 1 that stops is said once on stderr, and the rows go on.
 
     Parameters
     ----------
@@ -297,7 +313,11 @@ static void put(const {P}_real_t *v, int n)
             "        fclose(in);\n        return 1;\n    }")
     row = (f"put(st.x_hat, {n});\n        put(st.theta_hat, {p});\n"
            f"        put(st.theta_stage1, {p});\n        put(st.theta_stage2, {p});\n"
-           f"        put(st.band, {p});")
+           f"        put(st.band, {p});\n"
+           "        if (st.stage1_lost_at == st.k)\n"
+           '            fprintf(stderr, "%s: stage 1 stopped at sample %ld (%s): from there '
+           "the guarded estimate is stage 2's, without the paper's guarantee\\n\", argv[0], "
+           f"st.stage1_lost_at, {P}_stage1_error_message(st.stage1_status));")
     failure = (f"status == {PU}_STAGE1 ? {P}_stage1_error_message(st.stage1_status) : "
                '"u has a NaN or inf, or y an inf"')
     return csv_main(name, banner, sizes, head=head, init=init, failure=failure, row=row,
