@@ -10,12 +10,31 @@ import os
 for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
     os.environ.setdefault(_var, "1")
 
+import importlib.util  # noqa: E402
 from dataclasses import dataclass  # noqa: E402
 
 import numpy as np  # noqa: E402
 import pytest  # noqa: E402
 
 from thetahat.testing import STRUCTURES, random_scb_system  # noqa: E402
+
+
+#: Without the speed extra the printed kernels of the EKF, the MAP fits, the likelihood and the
+#: trust report run as plain Python, about a thousand times slower: a test marked
+#: ``needs_speed`` (a real record's trust report, fits of thousands of samples, …) would take
+#: minutes there. ``make test-core`` (no extra at all) skips those and runs the rest, which
+#: cover the same Python paths on shorter records.
+HAVE_NUMBA = importlib.util.find_spec("numba") is not None
+
+
+def pytest_collection_modifyitems(config, items):
+    if HAVE_NUMBA:
+        return
+    skip = pytest.mark.skip(reason="needs the speed extra (numba): its records take minutes "
+                                   "in plain Python (tests/conftest.py, needs_speed)")
+    for item in items:
+        if item.get_closest_marker("needs_speed") is not None:
+            item.add_marker(skip)
 
 
 @pytest.fixture

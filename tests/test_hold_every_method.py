@@ -79,6 +79,7 @@ def _held_record(name: str, N: int, seed: int):
 
 
 @pytest.mark.parametrize("name", ["spring_friction", "actuator", "two_inertia"])
+@pytest.mark.needs_speed
 def test_the_fits_under_the_records_own_hold_are_efficient(name):
     """(The EMPS file's scenario pins none of its four parameters in 2 000 samples: sd ≥ 2 Θ
     widths, so it would show nothing here; its hold is exercised above.)"""

@@ -407,6 +407,7 @@ def test_long_input_csv_of_a_million_rows(tmp_path):
     assert peak < 6 * 3 * 8 * N, peak            # a few copies of the 24 MB of columns
 
 
+@pytest.mark.needs_speed
 def test_cli_estimate_prints_a_summary(tmp_path, capsys):
     model = tmp_path / "m.toml"
     model.write_text(EXAMPLE_MODEL, encoding="utf-8")

@@ -199,6 +199,7 @@ def _in_a_terminal(argv: list[str], cwd: Path) -> tuple[int, float | None, str, 
 
 
 @pytest.mark.parametrize("model", MODELS)
+@pytest.mark.needs_speed
 def test_estimate_in_a_terminal_names_its_stages_from_the_start(tmp_path, records, model):
     code, first, raw, stdout = _in_a_terminal(
         ["estimate", str(EXAMPLES / f"{model}.toml"), str(records[model]), "-o", "est.csv"],
@@ -220,6 +221,7 @@ def test_estimate_in_a_terminal_names_its_stages_from_the_start(tmp_path, record
 
 
 @pytest.mark.parametrize("model", MODELS)
+@pytest.mark.needs_speed
 def test_estimate_piped_writes_one_final_line(tmp_path, records, model):
     proc = subprocess.run([sys.executable, "-m", "thetahat", "estimate",
                            str(EXAMPLES / f"{model}.toml"), str(records[model]), "-o",

@@ -42,6 +42,7 @@ def _record(tmp_path: Path, name: str) -> tuple[Path, Path]:
 
 @pytest.mark.parametrize("method", ["paper", None])
 @pytest.mark.parametrize("name", sorted(T_END))
+@pytest.mark.needs_speed
 def test_the_summary_says_what_the_run_wrote(tmp_path, name, method, capsys):
     model, data = _record(tmp_path, name)
     out, summary = tmp_path / "est.csv", tmp_path / "run.json"

@@ -287,6 +287,7 @@ def ptr(a):
 
 
 @pytest.mark.parametrize("name", ("lugre", "two_inertia", "spring_friction", "heater"))
+@pytest.mark.needs_speed
 def test_c_guarded_takes_the_fits_the_python_stream_applies(tmp_path, name):
     """A host supplies fits (bounded memory on the controller): the Python stream with its fits
     (run at once, applied at the next step) against the C with the same fits handed to

@@ -167,6 +167,7 @@ def test_model_files_declare_a_ball_or_an_ellipsoid():
 
 @pytest.mark.parametrize("name", list(CASES))
 @pytest.mark.parametrize("method", ["mle", "ekf"])
+@pytest.mark.needs_speed
 def test_truth_inside_theta_is_found(records, name, method):
     _, inside, _, truth = CASES[name]
     spec = _spec(name, inside)
@@ -180,6 +181,7 @@ def test_truth_inside_theta_is_found(records, name, method):
 
 @pytest.mark.parametrize("name", list(CASES))
 @pytest.mark.parametrize("method", ["mle", "ekf"])
+@pytest.mark.needs_speed
 def test_truth_outside_theta_ends_on_the_boundary_and_is_reported(records, name, method):
     _, _, outside, truth = CASES[name]
     spec = _spec(name, outside)

@@ -42,6 +42,7 @@ def _fit(name: str, seed: int) -> tuple[FitResult, np.ndarray]:
 
 @pytest.mark.parametrize("seed", [3, 4])
 @pytest.mark.parametrize("name", sorted(MODELS))
+@pytest.mark.needs_speed
 def test_a_clean_record_is_consistent(name, seed):
     """Exact model, Gaussian noise: the core is within 6 of its standard deviations of 1 (a
     Gaussian draw beyond that: probability 2e-9), few innovations are beyond ±3, the fit is

@@ -58,6 +58,7 @@ def _check_calls(calls: list[tuple[int, int]]) -> int:
 
 @pytest.mark.parametrize("method", METHODS_THAT_FIT)
 @pytest.mark.parametrize("name", sorted(T_END))
+@pytest.mark.needs_speed
 def test_fit_progress_counts_the_fits_and_leaves_the_estimates_alone(records, name, method):
     spec, d = records[name]
     calls: list[tuple[int, int]] = []

@@ -114,6 +114,7 @@ def _last_half_ratio(spec, run):
 
 
 @pytest.mark.parametrize("method", ["mle", "guarded"])
+@pytest.mark.needs_speed
 def test_prior_of_x0_scales_with_the_start(method):
     """The prior of x(0) is wide against the start's magnitude (common.x_prior_sd): a process
     that starts far from its reference in an unmeasured state is estimated at the bound."""
@@ -123,6 +124,7 @@ def test_prior_of_x0_scales_with_the_start(method):
     assert np.all(ratio < HOT_BOUND), ratio
 
 
+@pytest.mark.needs_speed
 def test_an_absolute_prior_of_x0_misses_the_hot_start():
     """The same record with the fits' prior of x(0) fixed at ± 10 (X_PRIOR_SD in the state's
     units, the default before x_prior_sd): the bound above is missed — what the derived

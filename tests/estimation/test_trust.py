@@ -36,6 +36,7 @@ def test_crlb_sd_agrees_with_the_sensitivity_bound(name):
 
 
 @pytest.mark.parametrize("name", ["prop3", "prop4", "two_inertia"])
+@pytest.mark.needs_speed
 def test_a_good_estimate_is_trusted_and_a_corner_is_not(name):
     spec = load_model(EXAMPLES / f"{name}.toml")
     sc = spec.scenario
@@ -215,6 +216,7 @@ OFF_FRACTION = 0.2
 
 
 @pytest.mark.parametrize("name", ["prop3", "prop4", "two_inertia"])
+@pytest.mark.needs_speed
 def test_the_truth_is_consistent_and_a_displaced_theta_is_not(name):
     """The score test at θ: passed at the true θ (χ²_p), failed 20 % of Θ's width away, and
     the one-step θ lands nearer the truth than the displaced θ̂ (by at least half the way)."""
@@ -237,6 +239,7 @@ def test_the_truth_is_consistent_and_a_displaced_theta_is_not(name):
 
 
 @pytest.mark.parametrize("name", ["prop3", "prop4", "two_inertia"])
+@pytest.mark.needs_speed
 def test_the_model_error_scale_is_the_datas_own(name):
     """An exact model on its own noisy record: no model error. On the noise-free record
     (σ̂ ≈ 0) the scale q₀ is that of σ = NOISE_FLOOR × the output's spread, not of a σ of
@@ -366,6 +369,7 @@ SCORE_SD_AGREE, BOUND_AGREE = 0.2, 0.02
 
 @pytest.mark.parametrize("name", ["emps", "silverbox", "two_inertia", "actuator",
                                   "spring_friction"])
+@pytest.mark.needs_speed
 def test_the_reports_own_sub_steps_agree_with_four_times_as_many(name):
     """The trust report takes the sub-steps of the likelihood it evaluates (the innovations',
     at q₀ and at q̂), not the free run's: its score test and bound agree with those at four

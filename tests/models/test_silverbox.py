@@ -114,6 +114,7 @@ def test_the_linear_model_and_a_wrong_mass_score_worse(record):
     assert heavy["test_multisine"].rms[0] > 2 * good
 
 
+@pytest.mark.needs_speed
 def test_one_method_on_a_short_training_cut_is_finite_and_in_theta():
     spec = load_model(silverbox.MODEL_FILE)
     train = read_data(silverbox.DATA_FILE, spec.layout).segment(0, 3000)
@@ -129,6 +130,7 @@ def test_one_method_on_a_short_training_cut_is_finite_and_in_theta():
     assert w == pytest.approx(np.sqrt(THETA_OE[2] / THETA_OE[0]), rel=0.02)
 
 
+@pytest.mark.needs_speed
 def test_the_report_runs_a_method_and_a_reference(tmp_path):
     done = silverbox_report(tmp_path)
     run, ref = done.runs[0], done.reference()

@@ -181,6 +181,7 @@ def test_a_diverging_simulation_names_its_sample():
 
 
 @pytest.mark.parametrize("hold", ["foh", "bandlimited"])
+@pytest.mark.needs_speed
 def test_output_error_fit_recovers_the_theta_of_its_data(hold):
     """Data simulated with θ and the same hold, plus noise: the fit returns θ within four of
     its own Cramér–Rao standard deviations, and its RMS is the noise's."""
