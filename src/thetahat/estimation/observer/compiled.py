@@ -274,14 +274,12 @@ class CompiledObserver:
 
     def read_estimates(self, state: ArrayLike, u: ArrayLike | None, y: ArrayLike
                        ) -> tuple[FloatArray, FloatArray, FloatArray | None]:
-        """x̂, θ̂ and x̂₂ of a state, without φ̂; see
-        :meth:`ModifiedHighGainObserver.read_estimates`.
+        """x̂, θ̂ and x̂₂ of a state, without φ̂.
 
         Parameters
         ----------
-        state : array_like, shape (state_size,)
-        u : array_like, shape (m,)
-        y : array_like, shape (r,)
+        state, u, y
+            As :meth:`ModifiedHighGainObserver.read_estimates`.
 
         Returns
         -------

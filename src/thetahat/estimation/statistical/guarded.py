@@ -515,12 +515,7 @@ class GuardedEstimator:
         if sh.stage1_failed_at is None:
             # the samples are checked against stage 1's NaN policy here (an error is the
             # caller's); x̂, θ̂, x̂₂ without φ̂ where stage 1 can read them so (φ̂ is unused)
-            read = getattr(self.stage1, "read_estimates", None)
-            if read is not None:
-                x1, th1, x2 = read(state.stage1, u_, y_)
-            else:
-                est1 = self.stage1.estimate(state.stage1, u_, y_)
-                x1, th1, x2 = est1.x_hat, est1.theta_hat, est1.x_hat_refined
+            x1, th1, x2 = sh.read_stage1(state.stage1, u_, y_)
             th1 = np.asarray(th1, dtype=np.float64).reshape(p)
             x1 = np.asarray(x1 if x2 is None else x2, dtype=np.float64).reshape(n)
             if np.isfinite(th1).all() and np.isfinite(x1).all():
@@ -600,6 +595,7 @@ class GuardedEstimator:
                                      h_rho=self.h_rho, substeps=self.substeps)
         stream.owner = self
         stream.loop = self._loop()
+        stream.read_stage1 = _stage1_reader(self.stage1)
         return stream
 
     def _check_state(self, state: Any) -> GuardedState:
@@ -855,6 +851,19 @@ class _OfflineRun:
                               skipped=missing_samples(self.Y), diagnostics=diag, stop=stop,
                               blank=(self.theta_stage1, o["TH2"], o["SD2"], o["BAND"],
                                      self.NIS))
+
+
+def _stage1_reader(stage1: Any) -> Any:
+    """``(state, u, y) -> (x̂, θ̂, x̂₂)`` of stage 1, looked up once per stream: its
+    ``read_estimates`` (no φ̂) when it has one, else read from its ``estimate``."""
+    read = getattr(stage1, "read_estimates", None)
+    if read is not None:
+        return read
+
+    def from_estimate(state: Any, u: FloatArray, y: FloatArray) -> tuple[Any, Any, Any]:
+        est1 = stage1.estimate(state, u, y)
+        return est1.x_hat, est1.theta_hat, est1.x_hat_refined
+    return from_estimate
 
 
 def _without_stage1(cfg: FloatArray, where: str, message: str, *, stacklevel: int) -> None:
