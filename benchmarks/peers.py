@@ -31,6 +31,7 @@ from __future__ import annotations
 
 import math
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -281,11 +282,16 @@ def _finish(S, params, wall, ok) -> PeerResult:
 
 def run_ekf(t, u, y, *, tuning: PeerTuning = DEFAULT_TUNING["ekf"], noise_std: float = 0.02,
             x_hat0=(0.0, 0.0), theta_hat0: float = 0.5,
-            params: LuGreParameters = NOMINAL_PARAMS) -> PeerResult:
+            params: LuGreParameters = NOMINAL_PARAMS,
+            step_seconds: np.ndarray | None = None,
+            before_step: Callable[[int], None] | None = None) -> PeerResult:
     """Joint-state EKF (filterpy ``ExtendedKalmanFilter``) over a record.
 
     Sample 0 is an update at the initial state; each later sample k is a prediction over
     [t_{k-1}, t_k] followed by the update with y_k. θ̂ is clipped to Θ after each update.
+    ``step_seconds`` (N,): filled with each sample's wall time (prediction, update, clip), as
+    a stream's ``step`` is timed; ``before_step(k)`` is called before sample k's (a paced
+    stream sleeps there until the sample's time).
     """
     t, u, y = np.asarray(t, float), np.asarray(u, float).reshape(-1), np.asarray(y, float)
     y = y.reshape(-1)
@@ -303,6 +309,9 @@ def run_ekf(t, u, y, *, tuning: PeerTuning = DEFAULT_TUNING["ekf"], noise_std: f
     t0 = time.perf_counter()
     try:
         for k in range(N):
+            if before_step is not None:
+                before_step(k)
+            a = time.perf_counter()
             if k:
                 ekf._u = (u[k - 1], u[k], t[k] - t[k - 1])
                 ekf.predict()
@@ -310,6 +319,8 @@ def run_ekf(t, u, y, *, tuning: PeerTuning = DEFAULT_TUNING["ekf"], noise_std: f
             ekf.update(z, _hjac, _hx)
             x = ekf.x
             x[2] = min(max(x[2], lo), hi)
+            if step_seconds is not None:
+                step_seconds[k] = time.perf_counter() - a
             S[k] = x
             if not math.isfinite(x[0] + x[1]):
                 ok = False

@@ -90,6 +90,53 @@ def test_a_stream_steps_in_c_as_the_observer_steps(name):
     assert rel_err(np.array(A), np.array(B)) <= AGREE_RTOL
 
 
+@pytest.mark.parametrize("name", MODEL_FILES)
+def test_read_and_step_in_c_is_read_estimates_then_step(name):
+    """NativeObserver.read_and_step (the guarded stream's stage 1): the estimates of the state
+    it is given, bit for bit ``read_estimates``', and the state ``step`` returns, bit for bit
+    (the same C step), the given state untouched, NaN gap included."""
+    from thetahat.codegen.native import NativeObserver
+    spec, obs, t, u, y, s0 = case(name)
+    fast = NativeObserver(obs, never)
+    h = float(t[1] - t[0])
+    s = s0.copy()
+    for k in range(t.size):
+        kept = s.copy()
+        x, th, x2, nxt = fast.read_and_step(s, u[k], y[k], h)
+        rx, rth, rx2 = fast.read_estimates(s, u[k], y[k])
+        np.testing.assert_array_equal(x, rx)
+        np.testing.assert_array_equal(th, rth)
+        assert (x2 is None) == (rx2 is None) and (x2 is None or np.array_equal(x2, rx2))
+        np.testing.assert_array_equal(nxt, fast.step(s, u[k], y[k], h))
+        np.testing.assert_array_equal(s, kept)
+        s = nxt
+
+
+@pytest.mark.parametrize("name", MODEL_FILES)
+def test_stepped_is_step_on_a_copy(name):
+    """CObserver.stepped (the stream's C call through buffers allocated once): the status and
+    state of ``step`` on a copy, bit for bit, the state passed in untouched; other shapes are
+    a DimensionError that says what the step takes."""
+    from thetahat.codegen.generate import generate_c
+    from thetahat.codegen.native import load_cached
+    from thetahat.errors import DimensionError
+    spec, obs, t, u, y, s0 = case(name)
+    h = float(t[1] - t[0])
+    c = load_cached(generate_c(obs, dt=h, name="thetahat_observer"))
+    s = s0.copy()
+    for k in range(t.size):
+        kept, ref = s.copy(), s.copy()
+        status, nxt = c.stepped(s, u[k], y[k])
+        assert status == c.step(ref, u[k], y[k]) == 0
+        np.testing.assert_array_equal(nxt, ref)
+        np.testing.assert_array_equal(s, kept)
+        s = nxt
+    for bad in ((s[:-1], u[0], y[0]), (s, u[0], np.append(y[0], 0.0)),
+                (s, np.append(u[0], 0.0), y[0])):
+        with pytest.raises(DimensionError, match="takes a state of"):
+            c.stepped(*bad)
+
+
 def test_a_stream_step_the_c_cannot_take_is_the_observers():
     """Another step length than the stream's first runs the observer's step (bit for bit), and
     a NaN under nan_policy="raise" raises the observer's error."""

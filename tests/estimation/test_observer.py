@@ -579,3 +579,23 @@ def test_a_diverging_run_reports_one_status_in_every_back_end(name):
     with pytest.raises(NonFiniteError) as again:
         ref.raise_for_status()
     assert str(again.value) == ref.message
+
+
+@pytest.mark.parametrize("second", (False, True))
+def test_state_layout_reads_the_parts_its_slices_name(second):
+    """StateLayout.size (counted) is where its last slice ends, and read() returns copies of
+    the x̂, θ̂ and x̂₂ slices, for every size up to 3 of each part and a law state."""
+    from itertools import product
+    from thetahat.estimation.observer.plan import StateLayout
+    for n, k, p, law in product((1, 2, 3), (1, 2), (1, 3), (0, 2)):
+        lay = StateLayout(n=n, m=1, r=1, k=k, p=p, second=second, law_size=law)
+        assert lay.size == lay.law.stop
+        s = np.arange(float(lay.size))
+        x, th, x2 = lay.read(s)
+        np.testing.assert_array_equal(x, s[lay.x])
+        np.testing.assert_array_equal(th, s[lay.theta])
+        assert (x2 is None) == (not second)
+        if second:
+            np.testing.assert_array_equal(x2, s[lay.x2])
+        x[:] = -1.0
+        assert s[0] == 0.0                                  # a copy, not a view

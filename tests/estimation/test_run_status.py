@@ -298,3 +298,37 @@ def test_stage1_reads_its_estimates_without_phi_as_estimate_does(name):
     with pytest.raises(NonFiniteError, match="nan_policy"):
         est.step(st, U[1], y_nan, t[2] - t[1])
     assert est.stream_diagnostics(st).stage1_failed_at is None
+
+
+@pytest.mark.parametrize("name", ["prop3", "actuator", "heater", "two_inertia"])
+def test_read_and_step_is_read_estimates_then_step_on_every_back_end(name):
+    """``read_and_step`` (the guarded stream's one call to stage 1 per sample): bit for bit
+    ``read_estimates`` and ``step`` of the same state and samples, on the observer itself and
+    on its compiled back end (the C one: tests/codegen/test_native.py), and a sample the two
+    refuse refused with the same message."""
+    from thetahat.estimation.observer.compiled import compile_observer
+    spec, t, U, Y = _record(name)
+    built = build_observer(spec)
+    plain = getattr(built, "observer", built)           # the NumPy observer
+    h = float(t[1] - t[0])
+    backs = [plain, built]
+    try:
+        backs.append(compile_observer(plain, dt=h))
+    except ImportError:                                 # numba absent (the core suite)
+        pass
+    y_nan = np.full(spec.system.r, np.nan)
+    for obs in backs:
+        s = obs.init(x_hat0=spec.estimator.x_hat0, theta_hat0=spec.estimator.theta_hat0)
+        for k in range(20):
+            x, th, x2, nxt = obs.read_and_step(s, U[k], Y[k], h)
+            rx, rth, rx2 = obs.read_estimates(s, U[k], Y[k])
+            np.testing.assert_array_equal(x, rx)
+            np.testing.assert_array_equal(th, rth)
+            assert (x2 is None) == (rx2 is None) and (x2 is None or np.array_equal(x2, rx2))
+            np.testing.assert_array_equal(nxt, obs.step(s, U[k], Y[k], h))
+            s = nxt
+        with pytest.raises(NonFiniteError) as by_step:
+            obs.step(s, U[0], y_nan, h)
+        with pytest.raises(NonFiniteError) as by_both:
+            obs.read_and_step(s, U[0], y_nan, h)
+        assert str(by_both.value) == str(by_step.value)

@@ -17,6 +17,7 @@ import ctypes
 import os
 import shutil
 import subprocess
+import threading
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -295,6 +296,17 @@ class CObserver:
         self._steps = getattr(self._lib, f"{P}_run_steps")
         for fn in (self._init, self._step, self._run, self._steps):
             fn.restype = ctypes.c_int
+        # stepped's: a second handle on the step taking addresses, and arrays of the state and
+        # the samples allocated once, whose addresses it passes (ctypes' per-array pointer
+        # objects cost more than the step), one caller at a time
+        self._step_at = self._lib[f"{P}_step"]
+        self._step_at.argtypes = [ctypes.c_void_p] * (5 if code.hold == "foh" else 3)
+        self._step_at.restype = ctypes.c_int
+        sz = code.sizes
+        self._stage = (np.zeros(sz["state"], self.dtype), np.zeros(max(sz["m"], 1), self.dtype),
+                       np.zeros(sz["r"], self.dtype))
+        self._stage_at = tuple(a.ctypes.data for a in self._stage)
+        self._stage_lock = threading.Lock()
 
     def _p(self, a: NDArray[Any] | None) -> Any:
         return None if a is None else a.ctypes.data_as(self._ptr)
@@ -361,6 +373,50 @@ class CObserver:
         if foh:
             args += [self._p(inputs(u_next)), self._p(self._vec(y_next, r))]
         return int(self._step(self._p(state), *args))
+
+    def stepped(self, state: ArrayLike, u: ArrayLike | None, y: ArrayLike
+                ) -> tuple[int, NDArray[Any]]:
+        """``<name>_step`` of a copy of ``state``: the status code and the stepped copy (a
+        stream's step, zero-order hold; ``state`` is left as it was).
+
+        The arrays are copied into buffers allocated once, whose addresses the C takes: a
+        call costs about what :meth:`step`'s pointer conversions alone cost.
+
+        Parameters
+        ----------
+        state : ndarray, shape (state,)
+        u : ndarray, shape (m,), or None when m = 0
+        y : ndarray, shape (r,)
+
+        Returns
+        -------
+        status : int
+        state : ndarray, shape (state,)
+            A new array in the generated precision (the step's result; as :meth:`step`
+            leaves it when the status is not 0).
+
+        Raises
+        ------
+        DimensionError
+            Other shapes, or a library generated with ``hold='foh'`` (use :meth:`step`).
+        """
+        S, U, Y = self._stage
+        m = self.code.sizes["m"]
+        shape_u = () if u is None else np.shape(u)
+        u_ok = shape_u == (m,) if m else shape_u in ((), (0,))
+        if self.code.hold == "foh" or np.shape(state) != S.shape or np.shape(y) != Y.shape \
+                or not u_ok:
+            raise DimensionError(f"{self.code.name}_step (stepped): a zero-order-hold step "
+                                 f"takes a state of {S.shape[0]}, u of {m} and y of "
+                                 f"{Y.shape[0]} values; got shapes {np.shape(state)}, "
+                                 f"{shape_u}, {np.shape(y)}.")
+        with self._stage_lock:
+            S[:] = state
+            if m:
+                U[:] = u  # type: ignore[assignment]    # (a vector of m: checked above)
+            Y[:] = y
+            status = int(self._step_at(*self._stage_at))
+            return status, S.copy()
 
     def _records(self, u: ArrayLike | None, y: ArrayLike, N: int
                  ) -> tuple[NDArray[Any], NDArray[Any]]:

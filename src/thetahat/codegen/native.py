@@ -181,14 +181,42 @@ class NativeObserver:
         """
         obs = self.observer
         u_, y_, _ = obs.check_samples(u, y)
+        nxt = self._c_step(obs.check_state(state), u_, y_, check_step_length(dt))
+        return obs.step(state, u, y, dt) if nxt is None else nxt
+
+    def read_and_step(self, state: ArrayLike, u: ArrayLike | None, y: ArrayLike, dt: float
+                      ) -> tuple[NDArray[np.float64], NDArray[np.float64],
+                                 NDArray[np.float64] | None, NDArray[np.float64]]:
+        """:meth:`read_estimates` and :meth:`step` of one state and sample, checked once (the
+        observer's ``read_and_step``, its step in C as :meth:`step`'s).
+
+        Parameters
+        ----------
+        state, u, y, dt
+            As :meth:`step`.
+
+        Returns
+        -------
+        tuple
+            x̂, θ̂, x̂₂ (or None) at the samples' time, and the next state.
+        """
+        obs = self.observer
+        u_, y_, _ = obs.check_samples(u, y)
         s = obs.check_state(state)
-        h = check_step_length(dt)
+        nxt = self._c_step(s, u_, y_, check_step_length(dt))
+        if nxt is None:
+            return obs.read_and_step(state, u, y, dt)
+        return (*obs.layout.read(s), nxt)
+
+    def _c_step(self, s: NDArray[np.float64], u: NDArray[np.float64], y: NDArray[np.float64],
+                h: float) -> NDArray[np.float64] | None:
+        """The next state of checked arrays in the stream's C, or None (no C for this h, or
+        the C refused the sample: the observer's step decides)."""
         c = self._stream_c(h)
-        if c is not None:
-            nxt = np.array(s, dtype=np.float64)
-            if c.step(nxt, u_ if obs.layout.m else None, y_) == 0:
-                return nxt
-        return obs.step(state, u, y, dt)
+        if c is None:
+            return None
+        status, nxt = c.stepped(s, u if self.observer.layout.m else None, y)
+        return nxt if status == 0 else None
 
     def steps_in_c(self, dt: float) -> bool:
         """Whether a :meth:`step` of length ``dt`` runs in C (the first call builds the C of

@@ -287,6 +287,23 @@ class CompiledObserver:
         """
         return self.observer.read_estimates(state, u, y)
 
+    def read_and_step(self, state: ArrayLike, u: ArrayLike | None, y: ArrayLike, dt: float
+                      ) -> tuple[FloatArray, FloatArray, FloatArray | None, FloatArray]:
+        """:meth:`read_estimates` and :meth:`step` of one state and sample (the observer's
+        ``read_and_step``, the step compiled).
+
+        Parameters
+        ----------
+        state, u, y, dt
+            As :meth:`step`.
+
+        Returns
+        -------
+        tuple
+            x̂, θ̂, x̂₂ (or None) at the samples' time, and the next state.
+        """
+        return (*self.observer.read_estimates(state, u, y), self.step(state, u, y, dt))
+
     def _call(self, s0: FloatArray, U: FloatArray, Y: FloatArray, dts: FloatArray,
               ok: NDArray[np.bool_], foh: bool, S: FloatArray, PHI: FloatArray
               ) -> tuple[int, int]:

@@ -402,8 +402,11 @@ class ModifiedHighGainObserver:
         DimensionError, NonFiniteError
             Wrong shape, or NaN or inf (a diverged or badly initialised state).
         """
-        s = check_state("ModifiedHighGainObserver", state, None,
-                        {"state": (self.state_size,)})
+        size = self.layout.size
+        if (type(state) is np.ndarray and state.dtype == np.float64 and state.shape == (size,)
+                and all(map(math.isfinite, state.tolist()))):
+            return state                    # fast path: what the checks below accept
+        s = check_state("ModifiedHighGainObserver", state, None, {"state": (size,)})
         if not np.isfinite(s).all():
             raise NonFiniteError("the observer state holds NaN or inf: it has diverged or was "
                                  "initialised badly; restart from init().")
@@ -574,13 +577,7 @@ class ModifiedHighGainObserver:
         """
         u_, y_, correct = self.check_samples(u, y)
         s = self.check_state(state)
-        h = check_step_length(dt)
-        with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
-            nxt = advance(self.plan(h), self.system.require_perturbation("step"),
-                          self.update_law, s, u_, y_, h, correct)
-        if diverged(nxt):
-            raise step_error(Status.DIVERGED, type(self.update_law).__name__)
-        return nxt
+        return self._advance(s, u_, y_, check_step_length(dt), correct)
 
     def estimate(self, state: ArrayLike, u: ArrayLike | None, y: ArrayLike) -> ObserverEstimate:
         """Read x̂, φ̂ = g(v, x̂, θ̂) + z (3c), θ̂ (and x̂₂) from a state and the current samples.
@@ -633,8 +630,54 @@ class ModifiedHighGainObserver:
         ([0.3], (2,), (2,))
         """
         self.check_samples(u, y)
-        x, _, th, x2 = self._split(self.check_state(state))
-        return x.copy(), th.copy(), None if x2 is None else x2.copy()
+        return self.layout.read(self.check_state(state))
+
+    def read_and_step(self, state: ArrayLike, u: ArrayLike | None, y: ArrayLike, dt: float
+                      ) -> tuple[FloatArray, FloatArray, FloatArray | None, FloatArray]:
+        """:meth:`read_estimates` and :meth:`step` of one state and sample, checked once.
+
+        What a stream that reads the estimates at each sample before advancing calls (the
+        guarded estimator's stage 1): the same checks, errors and results as the two calls.
+
+        Parameters
+        ----------
+        state, u, y, dt
+            As :meth:`step`.
+
+        Returns
+        -------
+        x_hat, theta_hat, x_hat_refined
+            As :meth:`read_estimates`, at the time of the samples.
+        state : ndarray, shape (state_size,)
+            The state dt later, as :meth:`step`.
+
+        Raises
+        ------
+        DimensionError, NonFiniteError, UpdateLawError
+            As :meth:`step` (a refused sample or state before anything is read).
+
+        Examples
+        --------
+        >>> from thetahat.models import lugre
+        >>> obs = lugre.observer()
+        >>> s0 = obs.init(theta_hat0=[0.3])
+        >>> x, th, x2, s1 = obs.read_and_step(s0, [0.5], [0.0], 1e-3)
+        >>> th.tolist(), bool((s1 == obs.step(s0, [0.5], [0.0], 1e-3)).all())
+        ([0.3], True)
+        """
+        u_, y_, correct = self.check_samples(u, y)
+        s = self.check_state(state)
+        return (*self.layout.read(s), self._advance(s, u_, y_, check_step_length(dt), correct))
+
+    def _advance(self, s: FloatArray, u: FloatArray, y: FloatArray, h: float,
+                 correct: bool) -> FloatArray:
+        """One step of checked arrays (the body of :meth:`step`)."""
+        with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
+            nxt = advance(self.plan(h), self.system.require_perturbation("step"),
+                          self.update_law, s, u, y, h, correct)
+        if diverged(nxt):
+            raise step_error(Status.DIVERGED, type(self.update_law).__name__)
+        return nxt
 
     def with_run_options(self, *, hold: str | None = None,
                          progress: Progress | None | bool = False,

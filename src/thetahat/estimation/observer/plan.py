@@ -130,8 +130,33 @@ class StateLayout:
 
     @property
     def size(self) -> int:
-        """Length of the state vector."""
-        return self.law.stop
+        """Length of the state vector (:attr:`law`'s stop)."""
+        return self.n + self.k + self.p + (self.n if self.second else 0) + self.law_size
+
+    def read(self, s: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray | None]:
+        """Copies of x̂, θ̂ and x̂₂ (None without a second observer) of a state vector.
+
+        Parameters
+        ----------
+        s : ndarray, shape (size,)
+
+        Returns
+        -------
+        x_hat : ndarray (n,)
+        theta_hat : ndarray (p,)
+        x_hat_refined : ndarray (n,) or None
+
+        Examples
+        --------
+        >>> import numpy as np
+        >>> lay = StateLayout(n=2, m=1, r=1, k=1, p=1, second=False, law_size=0)
+        >>> x, th, x2 = lay.read(np.arange(4.0))
+        >>> x.tolist(), th.tolist(), x2
+        ([0.0, 1.0], [3.0], None)
+        """
+        a, b = self.n + self.k, self.n + self.k + self.p
+        return (s[:self.n].copy(), s[a:b].copy(),
+                s[b:b + self.n].copy() if self.second else None)
 
 
 def linear_part(A: FloatArray, C: FloatArray, E: FloatArray, K_x: FloatArray,

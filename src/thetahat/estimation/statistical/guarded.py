@@ -492,7 +492,9 @@ class GuardedEstimator:
         """
         sys_ = self.model
         n, m, p = sys_.n, sys_.m, sys_.p
-        state = self._check_state(state)
+        sh = getattr(state, "stream", None)
+        if sh is None or state is not sh.last:      # (the state the stream returned: checked)
+            state = self._check_state(state)
         # own, writable copies (a read-only view would need its own compiled specialisation)
         u_, y_, h = stream_sample(sys_, u, y, dt)
         sh = state.stream
@@ -512,19 +514,26 @@ class GuardedEstimator:
         if k == 0:
             sh.configure(self.kappa, self.c, self.rho_max, self.dwell)
         thG, xG = state.theta_hat0, state.x_hat0      # stage 1 lost: the start values (run's)
+        s1, lost = state.stage1, None               # (kept as it was when stage 1 is lost)
         if sh.stage1_failed_at is None:
-            # the samples are checked against stage 1's NaN policy here (an error is the
-            # caller's); x̂, θ̂, x̂₂ without φ̂ where stage 1 can read them so (φ̂ is unused)
-            x1, th1, x2 = sh.read_stage1(state.stage1, u_, y_)
+            # x̂, θ̂, x̂₂ at this sample (without φ̂, unused) and stage 1's next state, the
+            # samples checked against its NaN policy (an error is the caller's). A step that
+            # fails loses stage 1 after this sample: read the estimates alone (which raise
+            # what was the caller's)
+            try:
+                x1, th1, x2, s1 = sh.step_stage1(state.stage1, u_, y_, h)
+            except (NonFiniteError, UpdateLawError) as exc:
+                x1, th1, x2 = sh.read_stage1(state.stage1, u_, y_)
+                lost = exc
             th1 = np.asarray(th1, dtype=np.float64).reshape(p)
             x1 = np.asarray(x1 if x2 is None else x2, dtype=np.float64).reshape(n)
-            if np.isfinite(th1).all() and np.isfinite(x1).all():
+            if all(map(math.isfinite, th1.tolist())) and all(map(math.isfinite, x1.tolist())):
                 thG, xG = th1, x1
             else:
+                s1, lost = state.stage1, None
                 _lose_stage1(sh, k, NonFiniteError(f"stage 1's estimate at sample {k} is not "
                                                    "finite"))
-        ut, sh.u_history = stage2_samples(u_.reshape(1, m),               # stage 2's samples
-                                          streamable(self.hold, "GuardedEstimator"),
+        ut, sh.u_history = stage2_samples(u_.reshape(1, m), sh.hold,      # stage 2's samples
                                           sh.u_history)
         sh.record(k, ut[0], y_, h)
         sh.poll_fit()
@@ -541,16 +550,12 @@ class GuardedEstimator:
         TH, TH2o, X2, SD2, BAND, clip, rst, nis = out
         sh.loop(sh.s, sh.P, sh.P0, *ins[:3], k0, k0 + 1, k - k0, sh.R, sh.lo, sh.hi,
                 sh.ell, sh.pc, sh.WT, sh.Q_x, *ins[3:], sh.pst, sh.gst, sh.cfg, *out)
-        s1 = state.stage1                           # (kept as it was when stage 1 is lost)
-        if sh.stage1_failed_at is None:
-            try:
-                s1 = self.stage1.step(state.stage1, u_, y_, h)
-            except (NonFiniteError, UpdateLawError) as exc:
-                _lose_stage1(sh, k + 1, exc)
+        if lost is not None:
+            _lose_stage1(sh, k + 1, lost)
         sh.refresh_sigma(k)
         sh.u_prev, sh.dt_prev, sh.k = ut[0], h, k + 1
         sh.maybe_submit()
-        return GuardedState(stage1=s1, x_hat0=state.x_hat0, theta_hat0=state.theta_hat0,
+        sh.last = GuardedState(stage1=s1, x_hat0=state.x_hat0, theta_hat0=state.theta_hat0,
                             stream=sh, theta_hat=TH[k0].copy(), x_hat=X2[k0].copy(),
                             theta_stage1=(thG.copy() if sh.stage1_failed_at is None
                                           or k < sh.stage1_failed_at else np.full(p, np.nan)),
@@ -558,6 +563,7 @@ class GuardedEstimator:
                             band=BAND[k0].copy(), clipped=bool(clip[k0]),
                             reset=bool(rst[k0]), fits=len(sh.fits),
                             fits_failed=len(sh.failures), k=k + 1)
+        return sh.last
 
     def stream_diagnostics(self, state: GuardedState) -> StreamDiagnostics:
         """The fits of the stream that ``state`` belongs to (from :meth:`step`).
@@ -595,7 +601,7 @@ class GuardedEstimator:
                                      h_rho=self.h_rho, substeps=self.substeps)
         stream.owner = self
         stream.loop = self._loop()
-        stream.read_stage1 = _stage1_reader(self.stage1)
+        stream.read_stage1, stream.step_stage1 = _stage1_reader(self.stage1)
         return stream
 
     def _check_state(self, state: Any) -> GuardedState:
@@ -853,17 +859,22 @@ class _OfflineRun:
                                      self.NIS))
 
 
-def _stage1_reader(stage1: Any) -> Any:
-    """``(state, u, y) -> (x̂, θ̂, x̂₂)`` of stage 1, looked up once per stream: its
-    ``read_estimates`` (no φ̂) when it has one, else read from its ``estimate``."""
+def _stage1_reader(stage1: Any) -> tuple[Any, Any]:
+    """Stage 1's ``(state, u, y) -> (x̂, θ̂, x̂₂)`` and ``(state, u, y, dt) -> (x̂, θ̂, x̂₂,
+    next state)``, looked up once per stream: its ``read_estimates`` (no φ̂) and
+    ``read_and_step`` (one check of the samples and the state) when it has them, else made
+    of its ``estimate`` and ``step``."""
     read = getattr(stage1, "read_estimates", None)
-    if read is not None:
-        return read
-
-    def from_estimate(state: Any, u: FloatArray, y: FloatArray) -> tuple[Any, Any, Any]:
-        est1 = stage1.estimate(state, u, y)
-        return est1.x_hat, est1.theta_hat, est1.x_hat_refined
-    return from_estimate
+    if read is None:
+        def read(state: Any, u: FloatArray, y: FloatArray) -> tuple[Any, Any, Any]:
+            est1 = stage1.estimate(state, u, y)
+            return est1.x_hat, est1.theta_hat, est1.x_hat_refined
+    read_and_step = getattr(stage1, "read_and_step", None)
+    if read_and_step is None:
+        def read_and_step(state: Any, u: FloatArray, y: FloatArray,
+                          dt: float) -> tuple[Any, Any, Any, Any]:
+            return (*read(state, u, y), stage1.step(state, u, y, dt))
+    return read, read_and_step
 
 
 def _without_stage1(cfg: FloatArray, where: str, message: str, *, stacklevel: int) -> None:

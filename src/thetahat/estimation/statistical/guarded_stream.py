@@ -132,6 +132,8 @@ class GuardedStream:
         self.owner: Any = None              # the estimator that started the stream
         self.loop: Any = None               # its guarded loop (looked up once, not per step)
         self.read_stage1: Any = None        # its stage 1's (x̂, θ̂, x̂₂) reader (likewise)
+        self.step_stage1: Any = None        # its stage 1's read and step in one call
+        self.last: Any = None               # the state the last step returned
         self.k = 0
         self.s, self.P0 = s0, P0
         self.P = self.P0.copy()

@@ -142,23 +142,19 @@ def _smooth_sample(U: FloatArray, history: InputHistory) -> tuple[FloatArray, In
     """:func:`smooth_input` of one sample after three or more (a stream's step), the same
     floating-point operations in the same order on scalars (NumPy's per-call cost is most of a
     stream step's otherwise: 65 µs against 5)."""
-    m = U.shape[1]
-    P = history.u_last
-    Ut = U.copy()
-    d1 = np.empty(m)
-    d2 = np.empty(m)
-    for c in range(m):
-        u, a, b, e = float(U[0, c]), float(P[2, c]), float(P[1, c]), float(P[0, c])
+    (P0, P1, P2), row = history.u_last.tolist(), U[0].tolist()
+    out, d1, d2 = [], [], []
+    for u, a, b, e, s1, s2 in zip(row, P2, P1, P0, history.d1.tolist(), history.d2.tolist()):
         f = u - a                                   # Δu at the new sample
         sec = f - (a - b)                           # Δ²u there (np.diff twice)
         sec_prev = (a - b) - (b - e)                # and at the sample before
-        s1 = float(history.d1[c]) + f * f
-        s2 = float(history.d2[c]) + sec * sec
-        d1[c], d2[c] = s1, s2
-        if s2 < s1:
-            Ut[0, c] = u - (2.0 * sec - sec_prev) / 12.0
-    keep = np.concatenate([P[1:], U])
-    return Ut, InputHistory(u_last=keep, d1=d1, d2=d2)
+        s1 += f * f
+        s2 += sec * sec
+        d1.append(s1)
+        d2.append(s2)
+        out.append(u - (2.0 * sec - sec_prev) / 12.0 if s2 < s1 else u)
+    return (np.array([out]), InputHistory(u_last=np.array([P1, P2, row]), d1=np.array(d1),
+                                          d2=np.array(d2)))
 
 
 def stage2_samples(U: FloatArray, hold: str, history: InputHistory | None = None
