@@ -243,8 +243,7 @@ def generate_ekf_c(ekf: JointEKF, *, dt: float, name: str = "ekf",
     shapes = {k: np.shape(v) for k, v in data.items()}
     unit = CUnit({k: source_tree(fn) for k, fn in KERNELS.items()},
                  {"C_OUT": Arr("C_OUT", shapes["C_OUT"], True),
-                  "MAX_SUBSTEPS": Const(pk.MAX_SUBSTEPS),
-                  "TABLE_SUBSTEPS": Const(pk.TABLE_SUBSTEPS)},
+                  **{k: Const(v) for k, v in pk.KERNEL_CONSTANTS.items()}},
                  lambda fname, args: (("rhs_jac", [a.name for a in args or ()])
                                       if fname == "rhs_jac" else None), "double")
     N = n + p

@@ -227,8 +227,7 @@ def generate_guarded_c(est: GuardedEstimator, *, dt: float, name: str = "guarded
     funcs.update({k: source_tree(fn) for k, fn in _GUARD.items()})
     unit = CUnit(funcs,
                  {"C_OUT": Arr("C_OUT", shapes["C_OUT"], True),
-                  "MAX_SUBSTEPS": Const(pk.MAX_SUBSTEPS),
-                  "TABLE_SUBSTEPS": Const(pk.TABLE_SUBSTEPS),
+                  **{k: Const(v) for k, v in pk.KERNEL_CONSTANTS.items()},
                   "NIS_WINDOW": Const(gd.NIS_WINDOW)},
                  lambda fname, args: (("rhs_jac", [a.name for a in args or ()])
                                       if fname == "rhs_jac" else None), "double")

@@ -78,7 +78,8 @@ from ..kernels.kernel_cache import load_module, register
 from ..kernels.modules import ModuleText
 from .plant_forms import rhs_jac_source
 
-__all__ = ["ACCURACY", "ACCURACY_SAMPLES", "H_RHO", "MAX_ACCURATE_SUBSTEPS", "MAX_SUBSTEPS",
+__all__ = ["ACCURACY", "ACCURACY_SAMPLES", "BALANCED", "BALANCE_SWEEPS", "H_RHO",
+           "KERNEL_CONSTANTS", "MAX_ACCURATE_SUBSTEPS", "MAX_SUBSTEPS",
            "ModelKernel", "Propagation", "TABLE_SUBSTEPS", "choose_substeps", "doubling_floor",
            "balanced_radius", "free_run", "have_numba", "held_input", "model_kernel",
            "plant_work", "printed_kernels", "propagate", "propagate_into",
@@ -92,6 +93,16 @@ H_RHO = 2.0
 MAX_SUBSTEPS = 500
 #: The band-limited hold's taps are tabulated per sample for sub-step counts up to this.
 TABLE_SUBSTEPS = 64
+#: Osborne's balancing scales row and column i by f = √(c_i / r_i) only where f is outside
+#: [BALANCED, 1/BALANCED] (a pair balanced to 5 % changes the bound by less), and stops after a
+#: sweep that scaled nothing (LAPACK's gebal stops at the same 0.95) or after BALANCE_SWEEPS
+#: sweeps: a 2 × 2 F is balanced by the first sweep, so the second ends it without a square
+#: root (the bound was a quarter of the C EKF step with four full sweeps).
+BALANCED = 0.95
+BALANCE_SWEEPS = 4
+#: The module's constants the kernels read, by name (the C printers bind them so).
+KERNEL_CONSTANTS = {"MAX_SUBSTEPS": MAX_SUBSTEPS, "TABLE_SUBSTEPS": TABLE_SUBSTEPS,
+                    "BALANCED": BALANCED, "BALANCE_SWEEPS": BALANCE_SWEEPS}
 #: The discretisation error allowed, in standard errors of θ̂ (module docstring).
 ACCURACY = 0.1
 #: :func:`choose_substeps` doubles the sub-steps up to this floor.
@@ -176,8 +187,8 @@ class Propagation:
 def spectral_radius_bound(F: FloatArray) -> float:
     """An upper bound on the spectral radius of F: Gershgorin's after Osborne balancing.
 
-    Four sweeps of diagonal balancing (D F D⁻¹ with equal off-diagonal row and column sums)
-    make the bound tight for badly scaled models (a zero off-diagonal row or column is scaled
+    Up to four sweeps of diagonal balancing (D F D⁻¹ with off-diagonal row and column sums
+    equal to :data:`BALANCED`) make the bound tight for badly scaled models (a zero off-diagonal row or column is scaled
     down by 1e-8) (LuGre's ∂f/∂x has entries from 1 to 1e5,
     its eigenvalues ~3e2): ρ(F) ≤ max_i (|B_ii| + Σ_{j≠i} |B_ij|), B = D F D⁻¹.
 
@@ -214,7 +225,10 @@ def balanced_radius(B: Any) -> float:
     float
     """
     n = B.shape[0]
-    for _ in range(4):
+    sweeps = 0
+    moved = True
+    while moved and sweeps < BALANCE_SWEEPS:
+        moved = False
         for i in range(n):
             c = 0.0
             r = 0.0
@@ -224,10 +238,15 @@ def balanced_radius(B: Any) -> float:
                     r += abs(B[i, j])
             if c > 0.0 or r > 0.0:
                 # a zero row or column sum (a reducible F) can be scaled as small as wanted
-                f = math.sqrt(max(c, 1e-16 * r) / max(r, 1e-16 * c))
-                for j in range(n):
-                    B[i, j] *= f
-                    B[j, i] /= f
+                g = max(c, 1e-16 * r) / max(r, 1e-16 * c)
+                if g < BALANCED * BALANCED or g * BALANCED * BALANCED > 1.0:
+                    f = math.sqrt(g)
+                    moved = True
+                    for j in range(n):
+                        if j != i:                  # (the diagonal keeps its value)
+                            B[i, j] *= f
+                            B[j, i] /= f
+        sweeps += 1
     rho = 0.0
     for i in range(n):
         s = 0.0
