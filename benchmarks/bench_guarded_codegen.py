@@ -161,12 +161,21 @@ def main() -> int:
         if rc != 0:
             raise RuntimeError(f"the {key} C stopped with status {rc}")
 
+    # the peer: the joint EKF of the same model written by hand (bench_ekf_codegen.py), with
+    # its RK4 map and with one Euler step a sample, timed in the same rounds
+    from bench_ekf_codegen import hand_written
+    hand_rk4, _, hand_euler, _ = hand_written(Path(tempfile.mkdtemp()), t, U, Y)
+    peers_c = {"hand-written RK4": hand_rk4, "hand-written Euler": hand_euler}
     for key in runs:
         call(key)
-    times: dict[str, list[float]] = {k: [] for k in runs}
+    for run in peers_c.values():
+        run()
+    times: dict[str, list[float]] = {k: [] for k in [*runs, *peers_c]}
     for _ in range(REPEATS):
         for key in runs:
             times[key].append(best(lambda: call(key)) / N * 1e9)
+        for key, run in peers_c.items():
+            times[key].append(best(run) / N * 1e9)
     ns = {k: min(v) for k, v in times.items()}
     print(f"LuGre (n={n}, p={system.p}), {N} samples at 1 kHz, zoh, least CPU time of "
           f"{REPEATS}x{REPEATS} runs")
@@ -175,6 +184,10 @@ def main() -> int:
     print(f"  guarded / (ekf + paper) {ns['guarded'] / (ns['ekf'] + ns['paper']):7.3f}"
           "   (the guard's own cost)")
     print(f"  guarded / ekf           {ns['guarded'] / ns['ekf']:7.3f}")
+    for key in peers_c:
+        print(f"  {key} EKF C step {ns[key]:9.1f} ns/sample: guarded / it "
+              f"{ns['guarded'] / ns[key]:6.3f} (issue 33: ≤ 3), ekf / it "
+              f"{ns['ekf'] / ns[key]:6.3f} (≤ 1.5)")
     sizes = {"guarded": arm_size(g, ["bg.c", "bg_stage1.c"], "(void)bg_init(&st);",
                                  "st.theta_hat[0]"),
              "ekf": arm_size(e, ["be.c"], "be_init(&st);", f"st.s[{n}]"),
