@@ -483,7 +483,9 @@ def check_state(who: str, state: Any, kind: type | None,
                          f"{fix[0].upper()}{fix[1:]}.")
     for name, shape in shapes.items():
         value = getattr(state, name, None)
-        if value is not None and np.shape(value) != shape:
+        if value is None:
+            continue
+        if (value.shape if type(value) is np.ndarray else np.shape(value)) != shape:
             raise StateError(f"{who}: the state's {name} has shape {np.shape(value)}, this "
                              f"model's {shape}: the state was made for another model. "
                              f"{fix[0].upper()}{fix[1:]}.")

@@ -525,10 +525,12 @@ def ekf_sample(kernels: EKFKernels, system: PerturbedLinearSystem, s: FloatArray
         kernels.predict(s, P, np.ascontiguousarray(np.stack([u0, u1]), dtype=np.float64), 0,
                         dt, pc, WT, Q_x, np.empty((n, n)), np.empty((n, p)))
     nis = math.nan
-    if R is not None and np.all(np.isfinite(y)):
+    if R is not None and all(map(math.isfinite, y.tolist())):
         ts = stage2_set(system.require_parameter_set("stage 2"))
         nis = float(kernels.update(s, P, y, R, ts.lo, ts.hi, ts.ell))
-    if not (np.all(np.isfinite(s)) and np.all(np.isfinite(np.diagonal(P)))):
+    # (finiteness of a few values on Python floats: NumPy's per-call cost is most of a step's)
+    if not (all(map(math.isfinite, s.tolist()))
+            and all(map(math.isfinite, np.diagonal(P).tolist()))):
         raise status_error(Status.DIVERGED, f"the EKF diverged at sample {k}; check the model "
                            "and noise_std.")
     return nis

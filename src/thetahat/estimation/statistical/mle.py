@@ -97,6 +97,13 @@ class _MapLog:
 
     def __init__(self, m: int, r: int, owner: Any) -> None:
         self.owner = owner                  # the estimator that started the stream
+        self.last: Any = None               # the state the stream's last step returned
+        # what every step of the stream reads, looked up once: the owner's schedule, its
+        # sample counts (by window), the prior of the start values, the stream's hold
+        self.sched: Any = None
+        self.counts: dict[int | None, Any] = {}
+        self.prior0: Any = None
+        self.hold = ""
         self.T: FloatArray = np.empty(256)
         self.U: FloatArray = np.empty((256, m))
         self.Y: FloatArray = np.empty((256, r))
@@ -377,9 +384,16 @@ class MapEstimator:
         """
         sys_ = self.system
         n, m, r, p = sys_.n, sys_.m, sys_.r, sys_.p
-        state = self._check_state(state)
+        log = getattr(state, "log", None)
+        if log is None or state is not log.last:    # (the state the stream returned: checked)
+            state = self._check_state(state)
         u_, y_, h = stream_sample(sys_, u, y, dt)
-        log = _MapLog(m, r, self) if state.log is None else state.log
+        if state.log is None:
+            log = _MapLog(m, r, self)
+            log.sched, log.hold = self._schedule(), streamable(self.hold, "MapEstimator")
+            log.prior0 = log.sched.initial_prior(state.x_hat0, state.theta_hat0)
+        else:
+            log = state.log
         if log.owner is not self:
             raise StateError("MapEstimator.step: this state's stream was started by another "
                              "MapEstimator (its log and fits are that estimator's); step it "
@@ -390,22 +404,22 @@ class MapEstimator:
                              f"stepped already); step each state once, in order, from "
                              f"init().")
         elapsed = 0.0 if state.k == 0 else state.elapsed + state.dt_prev
-        ut, u_hist = stage2_samples(u_[None], streamable(self.hold, "MapEstimator"),
-                                    state.u_history)
+        ut, u_hist = stage2_samples(u_[None], log.hold, state.u_history)
         u_ = ut[0]
         log.append(elapsed, u_, y_)
-        sched = self._schedule()
+        sched, prior0 = log.sched, log.prior0
         k1 = state.k + 1
         j, fits, ends = state.j, list(state.fits), list(state.fit_samples)
-        prior0 = sched.initial_prior(state.x_hat0, state.theta_hat0)
         W = self._stream_window(state, sched, log, k1, prior0)
         due = False
         if sched.times is not None:             # times (s): due when the next sample is later
             while sched.times(j) + 1e-12 < elapsed + h:
                 due, j = True, j + 1
         else:                                   # sample counts of the information schedule
-            at = sched.sample_counts(self.growth)
-            at = at if W is None else windowed_counts(at, W)
+            at = log.counts.get(W)
+            if at is None:
+                at = sched.sample_counts(self.growth)
+                at = log.counts[W] = at if W is None else windowed_counts(at, W)
             while at(j) <= k1:
                 due, j = due or at(j) == k1, j + 1
         x, th, sd = state.x_hat, state.theta_hat, state.theta_sd
@@ -441,11 +455,12 @@ class MapEstimator:
             x = np.asarray(model.propagate(np.array(x), np.array(th), U2, 0, state.dt_prev,
                                            pc, WT, n < 0, np.empty((n, n)),
                                            np.empty((n, p))))
-        return MapState(x_hat0=state.x_hat0, theta_hat0=state.theta_hat0, x_hat=np.array(x),
-                        theta_hat=np.array(th), theta_sd=np.array(sd), k=state.k + 1,
-                        elapsed=elapsed, j=j, fits=tuple(fits), fit_samples=tuple(ends),
-                        dt_prev=h, log=log, u_history=u_hist, P=P, R=R, Q_x=Q_x,
-                        substeps=nsub, window=W)
+        log.last = MapState(x_hat0=state.x_hat0, theta_hat0=state.theta_hat0,
+                            x_hat=np.array(x), theta_hat=np.array(th), theta_sd=np.array(sd),
+                            k=state.k + 1, elapsed=elapsed, j=j, fits=tuple(fits),
+                            fit_samples=tuple(ends), dt_prev=h, log=log, u_history=u_hist,
+                            P=P, R=R, Q_x=Q_x, substeps=nsub, window=W)
+        return log.last
 
     def _stream_window(self, state: MapState, sched: FitSchedule, log: _MapLog, k1: int,
                        prior0: tuple[FloatArray, FloatArray]) -> int | None:
