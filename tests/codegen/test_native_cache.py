@@ -303,3 +303,20 @@ def test_elf_check_refuses_another_kind_of_file(library_bytes, offset, value, wo
     data[offset] = value
     problem = elf_problem(bytes(data))
     assert problem is not None and words in problem, problem
+
+
+def test_without_memory_files_the_checked_bytes_load_from_a_private_copy(library_bytes,
+                                                                          monkeypatch):
+    """On a system without memfd_create the checked bytes are written (atomically, like every
+    file thetahat writes) to a private copy and loaded from there: the copy holds exactly
+    those bytes, and the library's step symbol is there."""
+    import types
+    import thetahat.codegen.native_cache as nc
+    monkeypatch.delattr(os, "memfd_create", raising=False)
+    key = types.SimpleNamespace(name="prop3",
+                                library_name=lambda sha: f"thetahat_c_prop3_test_{sha[:16]}.so")
+    lib = nc._load(library_bytes, key)
+    assert hasattr(lib, "prop3_step")
+    copy = Path(lib._name)
+    assert copy.read_bytes() == library_bytes
+    assert not [p for p in copy.parent.iterdir() if p.name.startswith(".thetahat-")]

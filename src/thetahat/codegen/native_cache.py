@@ -459,7 +459,9 @@ def _load(data: bytes, key: LibraryKey) -> ctypes.CDLL:
         return lib
     private = Path(tempfile.mkdtemp(prefix="thetahat-c-")) / key.library_name(
         hashlib.sha256(data).hexdigest())
-    private.write_bytes(data)
+    with atomic_path(private) as tmp:             # the one way a file is written
+        with open(tmp, "wb") as fh:
+            _write_all(fh, data)
     return ctypes.CDLL(str(private))
 
 
