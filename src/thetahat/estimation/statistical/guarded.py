@@ -497,7 +497,6 @@ class GuardedEstimator:
             state = self._check_state(state)
         # own, writable copies (a read-only view would need its own compiled specialisation)
         u_, y_, h = stream_sample(sys_, u, y, dt)
-        sh = state.stream
         if sh is None:
             sh = self._start_stream(state)
         elif sh.owner is not self:
@@ -601,7 +600,7 @@ class GuardedEstimator:
                                      h_rho=self.h_rho, substeps=self.substeps)
         stream.owner = self
         stream.loop = self._loop()
-        stream.read_stage1, stream.step_stage1 = _stage1_reader(self.stage1)
+        stream.read_stage1, stream.step_stage1 = _stage1_calls(self.stage1)
         return stream
 
     def _check_state(self, state: Any) -> GuardedState:
@@ -859,7 +858,7 @@ class _OfflineRun:
                                      self.NIS))
 
 
-def _stage1_reader(stage1: Any) -> tuple[Any, Any]:
+def _stage1_calls(stage1: Any) -> tuple[Any, Any]:
     """Stage 1's ``(state, u, y) -> (x̂, θ̂, x̂₂)`` and ``(state, u, y, dt) -> (x̂, θ̂, x̂₂,
     next state)``, looked up once per stream: its ``read_estimates`` (no φ̂) and
     ``read_and_step`` (one check of the samples and the state) when it has them, else made
