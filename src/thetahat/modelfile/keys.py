@@ -28,9 +28,9 @@ from ..errors import OptionError
 from ..methods import ESTIMATION_METHODS
 
 __all__ = ["AUTO_GAMMA_LAWS", "COLUMNS", "DATA", "DATA_RATE", "DATA_SIGNAL", "Derived",
-           "ESTIMATOR", "Key", "LAWS", "PARAMETER_SET_BALL", "PARAMETER_SET_BOX", "PARAMETER_SET_ELLIPSOID",
-           "PERTURBATION", "REQUIRED", "SCENARIO", "SCENARIO_METHODS", "SECOND", "SYSTEM",
-           "TABLES", "TOP", "TYPES", "Table"]
+           "ESTIMATOR", "Key", "LAWS", "PARAMETER_SET_BALL", "PARAMETER_SET_BOX",
+           "PARAMETER_SET_ELLIPSOID", "PERTURBATION", "REQUIRED", "SCENARIO", "SCENARIO_METHODS",
+           "SECOND", "STATE_SET", "SYSTEM", "TABLES", "TOP", "TYPES", "Table"]
 
 #: The update laws of ``[estimator] law`` (Sec. IV).
 LAWS = ("gradient", "least_squares", "algebraic", "intermittent")
@@ -218,6 +218,8 @@ TOP = Table("top level", (
     Key("system", "table", REQUIRED, "[system]", "The matrices of (1)."),
     Key("perturbation", "table", REQUIRED, "[perturbation]", "φ = g(v, x, θ) and the names."),
     Key("parameter_set", "table", REQUIRED, "[parameter_set]", "Θ, a convex set."),
+    Key("state_set", "table", Derived("none: g as written for every x"), "[state_set]",
+        "X, the box the states stay in: g is saturated outside it (Remark 1)."),
     Key("estimator", "table", REQUIRED, "[estimator]", "The gain design, the update law, the "
                                                        "initial values and the method."),
     Key("scenario", "table", Derived("every key's default"), "[scenario]",
@@ -263,6 +265,15 @@ PARAMETER_SET_ELLIPSOID = Table("parameter_set", (
 ), form="an ellipsoid",
    note="Θ = {θ : (θ − center)ᵀ Q (θ − center) ≤ 1}. A general convex set {P(θ) ≤ 0} needs a "
         "Python callable P and exists in the API only (thetahat.model.paramset.ConvexSet).")
+
+_X_WHAT = "one number per state in [perturbation] x"
+STATE_SET = Table("state_set", (
+    Key("lower", "numbers", REQUIRED, "[0.0, -40.0]", f"The lower faces of X ({_X_WHAT})."),
+    Key("upper", "numbers", REQUIRED, "[2.0, 80.0]", f"The upper faces of X ({_X_WHAT})."),
+), note="X = {x : lower ≤ x ≤ upper}, finite. Every method then uses g(v, σ(x), θ), σ the "
+        "identity on X and a smooth saturation outside it (thetahat.model.state_set): g is "
+        "unchanged where the states are, and Lipschitz in x everywhere, as Assumption 2 needs "
+        "of a g such as an Arrhenius rate or a cubic spring.")
 
 _POLES_DEFAULT = Derived("−1, −2, … (thetahat.design.gains.high_gain)")
 ESTIMATOR = Table("estimator", (
@@ -373,5 +384,5 @@ DATA_RATE = Table("data", (
 
 #: Every table, in the order of a file.
 TABLES: tuple[Table, ...] = (TOP, SYSTEM, PERTURBATION, PARAMETER_SET_BOX, PARAMETER_SET_BALL,
-                             PARAMETER_SET_ELLIPSOID, ESTIMATOR, SECOND, SCENARIO, DATA,
+                             PARAMETER_SET_ELLIPSOID, STATE_SET, ESTIMATOR, SECOND, SCENARIO, DATA,
                              DATA_SIGNAL, DATA_RATE)

@@ -1,8 +1,9 @@
-"""Model-file report: Assumption 1, the SCB, K(ε) and the spectra (``thetahat analyze``)."""
+"""Model-file report: Assumptions 1 and 2, the SCB, K(ε) and the spectra (``thetahat analyze``)."""
 
 from __future__ import annotations
 
 import dataclasses
+import math
 import warnings
 from dataclasses import dataclass
 from typing import Any
@@ -13,6 +14,7 @@ from numpy.typing import NDArray
 from ..design.design_system import DesignSystemReport, apply_design
 from ..design.gains import GainDesign, extended_system
 from ..errors import ThetahatError
+from ..model.state_set import GROWTH_DECADES, GROWTH_LIMIT, lipschitz_growth, state_scale
 from ..structure.assumptions import AssumptionReport, check_assumption_1
 from ..structure.scb import SCBResult, scb
 from .assembly import design_gains, design_matrices
@@ -48,6 +50,10 @@ class ModelAnalysis:
         Why the gains (or the SCB) could not be computed.
     warnings : tuple of str
         Warnings raised during the analysis (e.g. an ill-conditioned SCB).
+    x_growth : float
+        Assumption 2's global condition probed at the scenario's x(0) and θ (u = 0): how much
+        ‖∂g/∂x‖ grows from x(0)'s scale to 100 times it
+        (:func:`~thetahat.model.state_set.lipschitz_growth`; NaN when g could not be probed).
     """
 
     spec: ModelSpec
@@ -60,6 +66,7 @@ class ModelAnalysis:
     spectra2: DesignSystemReport | None
     design_error: str | None
     warnings: tuple[str, ...]
+    x_growth: float = float("nan")
 
     @property
     def ok(self) -> bool:
@@ -118,8 +125,41 @@ class ModelAnalysis:
                       f"  eig on the design system: {eig(self.spectra2.eig_design)}",
                       f"  eig on the true system:   {eig(self.spectra2.eig_true)}",
                       f"  stable on the true system: {self.spectra2.stable}"]
+        lines.append(self._assumption_2())
         lines += [f"warning: {w}" for w in self.warnings]
         return "\n".join(lines)
+
+
+    def _assumption_2(self) -> str:
+        head = "Assumption 2 (g Lipschitz in x for every x̂, probed at the scenario's x0): "
+        X = self.spec.state_set
+        if X is not None:
+            return (head + "holds by construction: g is saturated outside X = [state_set] "
+                    "(Remark 1)")
+        if not self.x_growth > GROWTH_LIMIT:
+            return head + ("not probed" if math.isnan(self.x_growth)
+                           else f"looks global (‖∂g/∂x‖ at {10 ** GROWTH_DECADES} times x0's "
+                                f"scale is {self.x_growth:.3g} × its largest value nearer)")
+        growth = ("without bound" if math.isinf(self.x_growth)
+                  else f"{self.x_growth:.3g}-fold")
+        return (head + f"FAILS: ‖∂g/∂x‖ grows {growth} at {10 ** GROWTH_DECADES} times x0's "
+                "scale, so the paper's guarantee is not global and its observer can be driven "
+                "off; declare X, the box the states stay in, in [state_set] (g is then "
+                "saturated outside it, Remark 1)")
+
+
+def _x_growth(spec: ModelSpec) -> float:
+    """:func:`~thetahat.model.state_set.lipschitz_growth` at the scenario's x(0) and θ."""
+    s, sc = spec.system, spec.scenario
+    if s.perturbation is None:
+        return math.nan
+    x0 = np.asarray(sc.x0, dtype=np.float64)
+    v = np.concatenate([np.zeros(s.m), s.C @ x0])
+    try:
+        return lipschitz_growth(s.perturbation, v, x0, np.asarray(sc.theta, dtype=np.float64),
+                                state_scale(x0))
+    except ThetahatError:
+        return math.nan
 
 
 def _complex(v: complex) -> str:
@@ -175,4 +215,5 @@ def analyze_model(spec: ModelSpec) -> ModelAnalysis:
     caught = [f"{w.category.__name__}: {w.message}" for w in record]
     return ModelAnalysis(spec=spec, assumption=assumption, scb=sc, scb_design=sc_d,
                          design=design, spectra=spectra, design2=design2, spectra2=spectra2,
-                         design_error=error, warnings=tuple(dict.fromkeys(caught)))
+                         design_error=error, warnings=tuple(dict.fromkeys(caught)),
+                         x_growth=_x_growth(spec))

@@ -2,7 +2,8 @@
 
 A model file (TOML, read with :mod:`tomllib`, or JSON with the same structure) has the
 sections ``[system]`` (A, B, C, E of (1)), ``[perturbation]`` (g and the names),
-``[parameter_set]`` (Θ: a box, a ball or an ellipsoid), ``[estimator]`` (the gain design, the
+``[parameter_set]`` (Θ: a box, a ball or an ellipsoid), the optional ``[state_set]`` (X, the
+box the states stay in, outside which g is saturated: Remark 1), ``[estimator]`` (the gain design, the
 update law (8), the initial values, the method) with an optional ``[estimator.second]`` (the
 second observer of Sec. VI), and the optional ``[scenario]`` (the simulated experiment of
 ``thetahat sweep`` and ``thetahat tune``) and ``[data]`` (which columns of a log are t, u and
@@ -51,6 +52,7 @@ from ..estimation.statistical.stage2_set import theta_bounds
 from ..model.paramset import Ball, Box, Ellipsoid, ParameterSet
 from ..model.parse import parse_perturbation
 from ..model.perturbation import SymbolicPerturbation
+from ..model.state_set import StateSet, StateSetError, saturate_states
 from ..methods import DEFAULT_METHOD
 from ..model.system import PerturbedLinearSystem
 from ..safe_io import read_text
@@ -216,6 +218,9 @@ class ModelSpec:
     data : DataMapping or None
         The ``[data]`` table: which variables of a data file are t, u and y, with scale and
         offset (None: the default column names).
+    state_set : StateSet or None
+        X of ``[state_set]``; when given, ``system``'s g is already saturated outside it
+        (:func:`~thetahat.model.state_set.saturate_states`).
     """
 
     source: str
@@ -228,6 +233,7 @@ class ModelSpec:
     estimator: EstimatorOptions
     scenario: ScenarioOptions
     data: DataMapping | None = None
+    state_set: StateSet | None = None
 
     @property
     def layout(self) -> RecordLayout:
@@ -355,6 +361,16 @@ def _read_parameter_set(sec: Section, p: int) -> ParameterSet:
     except ModelFileError:
         raise
     except ThetahatError as exc:
+        raise sec.fail(None, str(exc)) from exc
+
+
+def _read_state_set(sec: Section, n: int) -> StateSet:
+    """X from [state_set]: a box with finite faces (Remark 1)."""
+    what = f"one per state in [perturbation] x, n = {n}"
+    sec.check_keys()
+    try:
+        return StateSet(sec.vector("lower", n, what), sec.vector("upper", n, what))
+    except StateSetError as exc:
         raise sec.fail(None, str(exc)) from exc
 
 
@@ -635,6 +651,11 @@ def loads_model(text: str, *, syntax: str = "toml", source: str = "<string>") ->
                 raise ModelFileError(f"model file {source}: missing table [{row.key}].")
             sections[row.key] = Section(source, tables[row.key], doc[row.key])
     pert, parsed = _read_perturbation(sections["perturbation"])
+    state_set = None
+    if "state_set" in doc:                       # g redefined outside X (Remark 1)
+        state_set = _read_state_set(Section(source, K.STATE_SET, doc["state_set"]),
+                                    pert.dims[0])
+        pert = saturate_states(pert, state_set)
     system = _read_system(sections["system"], pert, sections["parameter_set"])
     estimator = _read_estimator(sections["estimator"], system, pert, parsed)
     scenario = _read_scenario(Section(source, K.SCENARIO, doc.get("scenario", {})), system,
@@ -649,4 +670,4 @@ def loads_model(text: str, *, syntax: str = "toml", source: str = "<string>") ->
     return ModelSpec(source=source, name=name, system=system, input_names=names["u"],
                      output_names=names["y"], state_names=names["x"],
                      parameter_names=names["theta"], estimator=estimator, scenario=scenario,
-                     data=data)
+                     data=data, state_set=state_set)

@@ -18,6 +18,8 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from ..model.state_set import GROWTH_DECADES, GROWTH_LIMIT, lipschitz_growth, state_scale
+
 __all__ = ["stuck_parameters", "undefined_perturbation", "VANISH_RTOL"]
 
 FloatArray = NDArray[np.float64]
@@ -175,6 +177,21 @@ def undefined_perturbation(system: Any, t: ArrayLike, u: ArrayLike | None, y: Ar
 
 #: The end of an explained numerical failure: what to check.
 _SCALE_ADVICE = "check that they are in the model's units and scale"
+_GROWTH_CAUSE = "g is Lipschitz in x only on bounded sets (Assumption 2 fails)"
+
+
+def _x_growth(system: Any, t: ArrayLike, u: ArrayLike | None, y: ArrayLike,
+              x_hat0: ArrayLike, theta_hat0: ArrayLike | None) -> float:
+    """:func:`~thetahat.model.state_set.lipschitz_growth` at the first sample, x̂(0) and θ̂(0)
+    (the centre of Θ when not given), on x̂(0)'s scale."""
+    N = np.asarray(t, dtype=np.float64).size
+    v = _v(u, y, N)
+    rows = np.flatnonzero(np.isfinite(v).all(axis=1))
+    if rows.size == 0:
+        return math.nan
+    x0 = np.asarray(x_hat0, dtype=np.float64).ravel()
+    theta = _candidates(system, theta_hat0)[0][1]
+    return lipschitz_growth(system.perturbation, v[rows[0]], x0, theta, state_scale(x0))
 
 
 def explain_nonfinite(exc: BaseException, system: Any, t: ArrayLike, u: ArrayLike | None,
@@ -233,8 +250,20 @@ def explain_nonfinite(exc: BaseException, system: Any, t: ArrayLike, u: ArrayLik
                 (("u", np.asarray(u, dtype=np.float64) if u is not None else np.zeros(0)),
                  ("y", np.asarray(y, dtype=np.float64)))}
     if numeric:
-        if _SCALE_ADVICE in str(exc):          # explained already
+        if _SCALE_ADVICE in str(exc) or _GROWTH_CAUSE in str(exc):     # explained already
             return exc
+        try:
+            growth = _x_growth(system, t, u, y, x_hat0, theta_hat0)
+        except Exception:  # noqa: BLE001 - a diagnosis must never hide the original failure
+            growth = math.nan
+        if growth > GROWTH_LIMIT:
+            shown = "without bound" if math.isinf(growth) else f"{growth:.3g}-fold"
+            return NonFiniteError(
+                f"{str(exc).rstrip('.')}; {_GROWTH_CAUSE} (‖∂g/∂x‖ grows {shown} from "
+                f"x̂(0)'s scale to {10 ** GROWTH_DECADES} times it): a wrong x̂ or θ̂ meets a "
+                "g that grows faster than any gain this dt allows can dominate; declare X, "
+                "the box the states stay in, in [state_set] (g is then saturated outside it, "
+                "Remark 1), or use method guarded or mle.")
         return NonFiniteError(f"{str(exc).rstrip('.')}; the data reach |u| = {size['u']:.3g} "
                               f"and |y| = {size['y']:.3g}: {_SCALE_ADVICE}.")
     return SimulationError(f"the run failed numerically ({type(exc).__name__}: {exc}); the "

@@ -20,17 +20,19 @@ helpers; never an observer.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any, final
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from ..._validate import as_matrix, as_vector, check_finite, positive_scalar
-from ...errors import DimensionError, UpdateLawError
+from ...errors import DimensionError, ThetahatError, UpdateLawError
 from ...model.paramset import Box, ParameterSet
 from ...model.perturbation import Perturbation
+from ...model.state_set import GROWTH_DECADES, GROWTH_LIMIT, lipschitz_growth, state_scale
 from .laws.theta_star import ThetaStar
 
 FloatArray = NDArray[np.float64]
@@ -508,6 +510,10 @@ class LawConditionReport:
         Persistency of excitation along the run: of the Jacobi-scaled (∂g/∂θ)ᵀ∂g/∂θ at θ̂
         (Props. 3–4) or of l (Prop. 2), over windows of :data:`EXCITATION_WINDOW` of the record.
     n_samples : int
+    x_growth : float
+        Assumption 2's global Lipschitz condition in x, probed at the run's middle sample:
+        the growth of ‖∂g/∂x‖ from the run's states to 100 times their scale
+        (:func:`~thetahat.model.state_set.lipschitz_growth`; NaN when not probed).
     """
 
     names: tuple[str, ...]
@@ -518,6 +524,13 @@ class LawConditionReport:
     witness: FloatArray
     excitation: ExcitationReport | None
     n_samples: int
+    x_growth: float = math.nan
+
+    @property
+    def lipschitz(self) -> bool:
+        """Whether g looked Lipschitz in x beyond the run's states (Assumption 2; True when
+        not probed)."""
+        return not self.x_growth > GROWTH_LIMIT
 
     @property
     def failing(self) -> tuple[str, ...]:
@@ -557,6 +570,15 @@ class LawConditionReport:
                        f"{100 * f:.0f} % of the samples of this run: {why}; the "
                        "paper's convergence guarantee does not hold here (restrict Θ to where "
                        f"∂g/∂{name} keeps its sign, or use method guarded or mle)")
+        if not self.lipschitz:
+            growth = ("is not finite" if math.isinf(self.x_growth)
+                      else f"grows {self.x_growth:.3g}-fold")
+            out.append(f"Assumption 2 fails: g is Lipschitz in x only on bounded sets (‖∂g/∂x‖ "
+                       f"{growth} from this run's states to {10 ** GROWTH_DECADES} times their "
+                       "scale), so the paper's global guarantee does not hold: an x̂ driven "
+                       "off by a wrong θ̂ or start meets a g its gains cannot dominate "
+                       "(declare X in [state_set], where g is saturated outside it, Remark 1; "
+                       "or use method guarded or mle)")
         ex = self.excitation
         if ex is not None and not self.exciting:
             where = float((ex.t_S if ex.sigma_S is not None else ex.t_l) or 0.0)
@@ -665,6 +687,12 @@ def law_conditions_on_record(perturbation: Perturbation, t: ArrayLike, v: ArrayL
                                np.full((p, p), np.nan), None, 0)
     if idx_all.size < 2:
         return empty
+    mid = int(idx_all[idx_all.size // 2])
+    try:
+        growth = lipschitz_growth(perturbation, V[mid], X[mid], TH[mid], state_scale(X[ok]))
+    except ThetahatError:           # a g that cannot be probed: the check is skipped
+        growth = math.nan
+    empty = replace(empty, x_growth=growth)
     weight = getattr(law, "l", None)
     is_inversion = hasattr(law, "theta_star")
     if is_inversion:
@@ -676,7 +704,7 @@ def law_conditions_on_record(perturbation: Perturbation, t: ArrayLike, v: ArrayL
                                  (idx_all.size,))
         ex = _excitation(t_[ok], np.nan_to_num(lw), None)
         return LawConditionReport(names_, "l", np.zeros(p), np.zeros(p), ("",) * p,
-                                  np.full((p, p), np.nan), ex, int(idx_all.size))
+                                  np.full((p, p), np.nan), ex, int(idx_all.size), growth)
     idx = idx_all[np.unique(np.linspace(0, idx_all.size - 1, min(RECORD_SAMPLES, idx_all.size))
                             .astype(np.int64))]
     Vs, Xs, T1 = V[idx], X[idx], TH[idx]
@@ -708,7 +736,7 @@ def law_conditions_on_record(perturbation: Perturbation, t: ArrayLike, v: ArrayL
     d = np.sqrt(np.maximum(np.mean(np.diagonal(info, axis1=1, axis2=2), axis=0), 1e-300))
     ex = _excitation(t_[idx], None, info / np.outer(d, d))
     return LawConditionReport(names_, "(14)", fails.mean(axis=0), at_est.mean(axis=0),
-                              sign_with, witness, ex, int(S))
+                              sign_with, witness, ex, int(S), growth)
 
 
 def _excitation(t: FloatArray, l: FloatArray | None,  # noqa: E741
