@@ -185,3 +185,38 @@ def test_the_law_report_of_a_run_says_when_assumption_2_fails():
         said = [w for w in rep.warnings if "Assumption 2" in w]
         assert bool(said) == fails and rep.lipschitz == (not fails)
         assert all("[state_set]" in w for w in said)
+
+
+def _with_x(name: str, lower, upper) -> str:
+    table = (f"[state_set]\nlower = {[float(v) for v in lower]}\n"
+             f"upper = {[float(v) for v in upper]}\n\n[parameter_set]")
+    return _without_x(name).replace("[parameter_set]", table, 1)
+
+
+@pytest.mark.parametrize("name", ["cstr", "stribeck", "wheel"])
+def test_a_record_that_leaves_x_says_so(name):
+    """A file whose X cuts through the record (the first output's state capped at its
+    median) warns that the plant leaves X for that state, naming it; an X a quarter of the
+    record's range wider on every side does not (the observer's x̂ may leave it in its
+    transient: that is what the saturation is for, and not reported)."""
+    import warnings as w
+
+    from thetahat.errors import ThetahatWarning
+    spec0 = loads_model(_without_x(name))
+    d = simulate_model(spec0, 0, t_end=SECONDS[name])
+    x = np.asarray(d.x)
+    i = int(np.argmax(np.abs(spec0.system.C[0])))
+    span = np.maximum(x.max(axis=0) - x.min(axis=0), 1e-6 * (np.abs(x).max(axis=0) + 1.0))
+    lo, hi = x.min(axis=0) - 0.25 * span, x.max(axis=0) + 0.25 * span
+    narrow = hi.copy()
+    narrow[i] = float(np.median(x[:, i]))
+    for upper, told in ((narrow, True), (hi, False)):
+        spec = loads_model(_with_x(name, lo, upper))
+        with w.catch_warnings(record=True) as caught:
+            w.simplefilter("always")
+            run_estimator(spec, d.t, d.u, d.y, method="paper")
+        said = [str(c.message) for c in caught if issubclass(c.category, ThetahatWarning)
+                and "leaves X" in str(c.message)]
+        assert bool(said) == told, said
+        if told:
+            assert spec.state_names[i] in said[0]

@@ -33,8 +33,10 @@ from numpy.typing import ArrayLike, NDArray
 from ..errors import DimensionError, ThetahatError
 from .perturbation import Perturbation, SymbolicPerturbation
 
-__all__ = ["GROWTH_DECADES", "GROWTH_LIMIT", "SATURATION_WIDTH", "StateSet", "StateSetError",
-           "lipschitz_growth", "saturate_states", "saturation", "state_scale"]
+__all__ = ["GROWTH_DECADES", "GROWTH_LIMIT", "OUTSIDE_FRACTION", "SATURATION_WIDTH", "StateSet",
+           "StateSetError",
+           "lipschitz_growth", "measured_states", "saturate_states", "saturation",
+           "state_scale"]
 
 FloatArray = NDArray[np.float64]
 
@@ -50,6 +52,12 @@ GROWTH_DECADES = 2
 #: ∂g/∂x (tanh friction, a g saturated outside X) does not grow at all, while a quadratic term
 #: grows 10-fold per decade, a cube 100-fold and an exponential without bound.
 GROWTH_LIMIT = 3.0
+
+
+#: An estimate whose state leaves X on more than this fraction of the samples is reported
+#: (:meth:`StateSet.leaving`): a few samples just past a face are noise on a state that runs
+#: along it.
+OUTSIDE_FRACTION = 0.01
 
 
 class StateSetError(ThetahatError, ValueError):
@@ -126,6 +134,55 @@ class StateSet:
         a = np.atleast_2d(np.asarray(x, dtype=np.float64))
         a = a[np.all(np.isfinite(a), axis=1)]
         return bool(np.all((a >= self.lower) & (a <= self.upper)))
+
+    def leaving(self, x: ArrayLike, names: tuple[str, ...] | None = None) -> str | None:
+        """A sentence when states of ``x`` (shape (N, n): where the plant was, e.g. measured
+        states; NaN where not known) leave X on more than :data:`OUTSIDE_FRACTION` of their
+        known samples, else None: there g is saturated, and the model is not the g the file
+        writes.
+
+        Parameters
+        ----------
+        x : array_like (N, n)
+            NaN entries are not known (a state not measured) and are left out.
+        names : tuple of str, optional
+            The states' names.
+
+        Returns
+        -------
+        str or None
+
+        Examples
+        --------
+        >>> import numpy as np
+        >>> from thetahat.model.state_set import StateSet
+        >>> X = StateSet([0.0], [1.0])
+        >>> X.leaving(np.linspace(0.0, 1.0, 50)[:, None]) is None
+        True
+        >>> X.leaving(np.linspace(0.0, 2.0, 50)[:, None], ("q",))[:45]
+        'the plant leaves X ([state_set]): q on 50 % o'
+        """
+        a = np.atleast_2d(np.asarray(x, dtype=np.float64))
+        label = names if names is not None else tuple(f"x{i + 1}" for i in range(self.n))
+        found = []
+        for i in range(self.n):
+            col = a[:, i][np.isfinite(a[:, i])]
+            if col.size == 0:
+                continue
+            below, above = col < self.lower[i], col > self.upper[i]
+            share = float(np.mean(below | above))
+            if not share > OUTSIDE_FRACTION:
+                continue
+            reach = [f"down to {col.min():.4g} (face {self.lower[i]:.4g})"] if below.any() else []
+            if above.any():
+                reach.append(f"up to {col.max():.4g} (face {self.upper[i]:.4g})")
+            found.append(f"{label[i]} on {100 * share:.0f} % of its samples, "
+                         f"{' and '.join(reach)}")
+        if not found:
+            return None
+        return (f"the plant leaves X ([state_set]): {'; '.join(found)}; g is saturated outside "
+                "X (Remark 1), so there the model is not the g written in the file: widen X to "
+                "where the states can be")
 
     def __repr__(self) -> str:
         return (f"StateSet(lower={[float(v) for v in self.lower]}, "
@@ -298,3 +355,33 @@ def state_scale(x: ArrayLike) -> FloatArray:
     if not top > 0.0:
         return np.ones(a.shape[1])
     return np.where(reach > 1e-3 * top, reach, top)
+
+
+def measured_states(C: ArrayLike, y: ArrayLike) -> FloatArray:
+    """The states the outputs measure one by one: x_i = y_j / c for each row of C that is c·e_iᵀ
+    (c ≠ 0), NaN for the other states (where the plant went is known only for those).
+
+    Parameters
+    ----------
+    C : array_like (r, n)
+    y : array_like (N, r)
+
+    Returns
+    -------
+    ndarray (N, n)
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from thetahat.model.state_set import measured_states
+    >>> measured_states([[2.0, 0.0]], [[4.0], [6.0]]).tolist()
+    [[2.0, nan], [3.0, nan]]
+    """
+    C_ = np.atleast_2d(np.asarray(C, dtype=np.float64))
+    Y = np.asarray(y, dtype=np.float64).reshape(-1, C_.shape[0])
+    out = np.full((Y.shape[0], C_.shape[1]), np.nan)
+    for j, row in enumerate(C_):
+        nz = np.flatnonzero(row != 0.0)
+        if nz.size == 1 and np.all(np.isnan(out[:, nz[0]])):
+            out[:, nz[0]] = Y[:, j] / row[nz[0]]
+    return out

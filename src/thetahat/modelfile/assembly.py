@@ -28,6 +28,7 @@ from ..estimation.observer.laws.projection import as_gain
 from ..estimation.observer.observer import ModifiedHighGainObserver
 from ..estimation.protocol import EstimateResult, Estimator
 from ..methods import MethodInputs, get_method
+from ..model.state_set import measured_states
 from ..model.system import PerturbedLinearSystem
 from ..progress import FitProgress, Stages
 from ..spec import SECOND_DESIGN_NOTE, EstimatorSpec, Hold, SecondObserverSpec
@@ -631,6 +632,10 @@ def _run(spec: ModelSpec, t: ArrayLike, u: ArrayLike | None, y: ArrayLike, *,
     report = _trust(spec, result, u, y, compiled, x0, noise_std, stage2_hold or "foh", fits)
     for text in report.warnings:
         warnings.warn(text, ThetahatWarning, stacklevel=3)
+    if spec.state_set is not None:
+        outside = spec.state_set.leaving(measured_states(spec.system.C, y), spec.state_names)
+        if outside:
+            warnings.warn(outside, ThetahatWarning, stacklevel=3)
     stuck = stuck_parameters(spec.system, u, y, result.x_hat, result.theta_hat,
                              spec.parameter_names)
     if stuck:
