@@ -329,7 +329,7 @@ def lipschitz_growth(perturbation: Perturbation, v: ArrayLike, x: ArrayLike,
 
 
 def state_scale(x: ArrayLike) -> FloatArray:
-    """Each state's scale in ``x`` (shape (n,) or (N, n); NaN rows ignored), for
+    """Each state's scale in ``x`` (shape (n,) or (N, n); NaN entries ignored), for
     :func:`lipschitz_growth`: its largest magnitude, or the largest of every state's where it
     is below a thousandth of that (an unmeasured state started at 0), or 1 where all are 0.
 
@@ -348,9 +348,8 @@ def state_scale(x: ArrayLike) -> FloatArray:
     >>> state_scale([[1.0, 0.0], [-3.0, 0.0]]).tolist()
     [3.0, 3.0]
     """
-    a = np.atleast_2d(np.asarray(x, dtype=np.float64))
-    a = a[np.all(np.isfinite(a), axis=1)]
-    reach = np.max(np.abs(a), axis=0) if a.shape[0] else np.zeros(a.shape[1])
+    a = np.abs(np.atleast_2d(np.asarray(x, dtype=np.float64)))
+    reach = np.max(np.where(np.isfinite(a), a, 0.0), axis=0, initial=0.0)
     top = float(reach.max(initial=0.0))
     if not top > 0.0:
         return np.ones(a.shape[1])

@@ -18,7 +18,8 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from ..model.state_set import GROWTH_DECADES, GROWTH_LIMIT, lipschitz_growth, state_scale
+from ..model.state_set import (GROWTH_DECADES, GROWTH_LIMIT, lipschitz_growth,
+                               measured_states, state_scale)
 
 __all__ = ["stuck_parameters", "undefined_perturbation", "VANISH_RTOL"]
 
@@ -182,16 +183,22 @@ _GROWTH_CAUSE = "g is Lipschitz in x only on bounded sets (Assumption 2 fails)"
 
 def _x_growth(system: Any, t: ArrayLike, u: ArrayLike | None, y: ArrayLike,
               x_hat0: ArrayLike, theta_hat0: ArrayLike | None) -> float:
-    """:func:`~thetahat.model.state_set.lipschitz_growth` at the first sample, x̂(0) and θ̂(0)
-    (the centre of Θ when not given), on x̂(0)'s scale."""
+    """The largest :func:`~thetahat.model.state_set.lipschitz_growth` at the first sample and
+    x̂(0), on the scale of x̂(0) and of the states the outputs measure over the record, over
+    θ̂(0), Θ's centre and corners (θ̂ moves within Θ: a cubic term whose coefficient starts at
+    0 grows all the same)."""
     N = np.asarray(t, dtype=np.float64).size
     v = _v(u, y, N)
     rows = np.flatnonzero(np.isfinite(v).all(axis=1))
     if rows.size == 0:
         return math.nan
     x0 = np.asarray(x_hat0, dtype=np.float64).ravel()
-    theta = _candidates(system, theta_hat0)[0][1]
-    return lipschitz_growth(system.perturbation, v[rows[0]], x0, theta, state_scale(x0))
+    C = getattr(system, "C", None)
+    seen = (x0[None, :] if C is None
+            else np.vstack([x0[None, :], measured_states(C, np.asarray(y, dtype=np.float64))]))
+    scale = state_scale(seen)
+    return max(lipschitz_growth(system.perturbation, v[rows[0]], x0, theta, scale)
+               for _, theta in _candidates(system, theta_hat0))
 
 
 def explain_nonfinite(exc: BaseException, system: Any, t: ArrayLike, u: ArrayLike | None,
