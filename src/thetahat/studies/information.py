@@ -267,8 +267,9 @@ def explain_nonfinite(exc: BaseException, system: Any, t: ArrayLike, u: ArrayLik
             shown = "without bound" if math.isinf(growth) else f"{growth:.3g}-fold"
             return NonFiniteError(
                 f"{str(exc).rstrip('.')}; {_GROWTH_CAUSE} (‖∂g/∂x‖ grows {shown} from "
-                f"x̂(0)'s scale to {10 ** GROWTH_DECADES} times it): a wrong x̂ or θ̂ meets a "
-                "g that grows faster than any gain this dt allows can dominate; declare X, "
+                f"the states' scale in the data to {10 ** GROWTH_DECADES} times it): a wrong "
+                "x̂ or θ̂ meets a g that grows faster than any gain this dt allows can "
+                "dominate; declare X, "
                 "the box the states stay in, in [state_set] (g is then saturated outside it, "
                 "Remark 1), or use method guarded or mle.")
         return NonFiniteError(f"{str(exc).rstrip('.')}; the data reach |u| = {size['u']:.3g} "
