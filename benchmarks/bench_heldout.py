@@ -11,8 +11,8 @@ cylinder vented through an orifice of unknown exponent, the unmeasured pressure 
 1 Hz), examples/stribeck.toml (the newcomer's mass-spring with Stribeck friction), and
 examples/spring_friction.toml. Each file's estimator is the newcomer's: the gradient law,
 Γ = "auto", θ̂(0) at Θ's centre. The CSTR's file declares X ([state_set], Remark 1), part of
-its physics like Θ: without it the paper's observer leaves every bound on every seed (g's
-Arrhenius rate is Lipschitz only on bounded sets) and raises an error that says so.
+its physics like Θ: without it the paper's observer left every bound on seed 1 (g's
+Arrhenius rate is Lipschitz only on bounded sets) and raised an error that says so.
 
 For ``--seeds`` records of each file's ``[scenario]`` (``thetahat.modelfile.simulate_model``;
 the CSTR's record is :func:`dac_record`: timestamps jittered, about 1 % of the output samples
