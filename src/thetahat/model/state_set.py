@@ -33,7 +33,7 @@ from numpy.typing import ArrayLike, NDArray
 from ..errors import DimensionError, ThetahatError
 from .perturbation import Perturbation, SymbolicPerturbation
 
-__all__ = ["GROWTH_DECADES", "GROWTH_LIMIT", "OUTSIDE_FRACTION", "SATURATION_WIDTH", "StateSet",
+__all__ = ["ASSUMPTION_2_REMEDY", "GROWTH_DECADES", "GROWTH_LIMIT", "OUTSIDE_FRACTION", "SATURATION_WIDTH", "StateSet",
            "StateSetError",
            "lipschitz_growth", "measured_states", "saturate_states", "saturation",
            "state_scale"]
@@ -53,6 +53,11 @@ GROWTH_DECADES = 2
 #: grows 10-fold per decade, a cube 100-fold and an exponential without bound.
 GROWTH_LIMIT = 3.0
 
+
+#: What to do when Assumption 2 fails (the one wording of the analyze report, the paper's
+#: method's warning and the divergence diagnosis).
+ASSUMPTION_2_REMEDY = ("declare X, the box the states stay in, in [state_set] (g is then "
+                       "saturated outside it, Remark 1)")
 
 #: An estimate whose state leaves X on more than this fraction of the samples is reported
 #: (:meth:`StateSet.leaving`): a few samples just past a face are noise on a state that runs

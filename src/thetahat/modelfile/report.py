@@ -14,7 +14,8 @@ from numpy.typing import NDArray
 from ..design.design_system import DesignSystemReport, apply_design
 from ..design.gains import GainDesign, extended_system
 from ..errors import ThetahatError
-from ..model.state_set import GROWTH_DECADES, GROWTH_LIMIT, lipschitz_growth, state_scale
+from ..model.state_set import (ASSUMPTION_2_REMEDY, GROWTH_DECADES, GROWTH_LIMIT,
+                               lipschitz_growth, state_scale)
 from ..structure.assumptions import AssumptionReport, check_assumption_1
 from ..structure.scb import SCBResult, scb
 from .assembly import design_gains, design_matrices
@@ -129,7 +130,6 @@ class ModelAnalysis:
         lines += [f"warning: {w}" for w in self.warnings]
         return "\n".join(lines)
 
-
     def _assumption_2(self) -> str:
         head = "Assumption 2 (g Lipschitz in x for every x̂, probed at the scenario's x0): "
         X = self.spec.state_set
@@ -144,8 +144,7 @@ class ModelAnalysis:
                   else f"{self.x_growth:.3g}-fold")
         return (head + f"FAILS: ‖∂g/∂x‖ grows {growth} at {10 ** GROWTH_DECADES} times x0's "
                 "scale, so the paper's guarantee is not global and its observer can be driven "
-                "off; declare X, the box the states stay in, in [state_set] (g is then "
-                "saturated outside it, Remark 1)")
+                f"off; {ASSUMPTION_2_REMEDY}")
 
 
 def _x_growth(spec: ModelSpec) -> float:

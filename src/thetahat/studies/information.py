@@ -18,8 +18,8 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from ..model.state_set import (GROWTH_DECADES, GROWTH_LIMIT, lipschitz_growth,
-                               measured_states, state_scale)
+from ..model.state_set import (ASSUMPTION_2_REMEDY, GROWTH_DECADES, GROWTH_LIMIT,
+                               lipschitz_growth, measured_states, state_scale)
 
 __all__ = ["stuck_parameters", "undefined_perturbation", "VANISH_RTOL"]
 
@@ -269,9 +269,7 @@ def explain_nonfinite(exc: BaseException, system: Any, t: ArrayLike, u: ArrayLik
                 f"{str(exc).rstrip('.')}; {_GROWTH_CAUSE} (‖∂g/∂x‖ grows {shown} from "
                 f"the states' scale in the data to {10 ** GROWTH_DECADES} times it): a wrong "
                 "x̂ or θ̂ meets a g that grows faster than any gain this dt allows can "
-                "dominate; declare X, "
-                "the box the states stay in, in [state_set] (g is then saturated outside it, "
-                "Remark 1), or use method guarded or mle.")
+                f"dominate; {ASSUMPTION_2_REMEDY}, or use method guarded or mle.")
         return NonFiniteError(f"{str(exc).rstrip('.')}; the data reach |u| = {size['u']:.3g} "
                               f"and |y| = {size['y']:.3g}: {_SCALE_ADVICE}.")
     return SimulationError(f"the run failed numerically ({type(exc).__name__}: {exc}); the "

@@ -32,7 +32,8 @@ from ..._validate import as_matrix, as_vector, check_finite, positive_scalar
 from ...errors import DimensionError, ThetahatError, UpdateLawError
 from ...model.paramset import Box, ParameterSet
 from ...model.perturbation import Perturbation
-from ...model.state_set import GROWTH_DECADES, GROWTH_LIMIT, lipschitz_growth, state_scale
+from ...model.state_set import (ASSUMPTION_2_REMEDY, GROWTH_DECADES, GROWTH_LIMIT,
+                                 lipschitz_growth, state_scale)
 from .laws.theta_star import ThetaStar
 
 FloatArray = NDArray[np.float64]
@@ -576,9 +577,8 @@ class LawConditionReport:
             out.append(f"Assumption 2 fails: g is Lipschitz in x only on bounded sets (‖∂g/∂x‖ "
                        f"{growth} from this run's states to {10 ** GROWTH_DECADES} times their "
                        "scale), so the paper's global guarantee does not hold: an x̂ driven "
-                       "off by a wrong θ̂ or start meets a g its gains cannot dominate "
-                       "(declare X in [state_set], where g is saturated outside it, Remark 1; "
-                       "or use method guarded or mle)")
+                       f"off by a wrong θ̂ or start meets a g its gains cannot dominate "
+                       f"({ASSUMPTION_2_REMEDY}; or use method guarded or mle)")
         ex = self.excitation
         if ex is not None and not self.exciting:
             where = float((ex.t_S if ex.sigma_S is not None else ex.t_l) or 0.0)
