@@ -78,7 +78,8 @@ def test_the_literal_defaults_are_what_the_loader_uses():
     np.testing.assert_array_equal(sc.u_amplitudes[0], table_sc["u_amplitudes"].default)
     np.testing.assert_array_equal(sc.u_frequencies[0], table_sc["u_frequencies"].default)
     assert set(sc.defaults) == set(table_sc.names())
-    assert (est.eps, est.method, est.x_hat0_from_y, est.allow_nonminimum_phase) == tuple(
+    assert ("auto" if est.eps_auto else est.eps, est.method, est.x_hat0_from_y,
+            est.allow_nonminimum_phase) == tuple(
         K.ESTIMATOR[k].default for k in ("eps", "method", "x_hat0_from_y",
                                          "allow_nonminimum_phase"))
     assert (second.g_on_estimates, second.chain_poles) == (K.SECOND["g_on_estimates"].default,

@@ -268,7 +268,7 @@ def _write_summary(args: argparse.Namespace, result: EstimateResult,
         "samples_option": args.samples}
     if gains is not None:                      # what `thetahat codegen --eps/--gamma` takes
         context.update(eps=float(gains.eps), Gamma=np.asarray(gains.Gamma).tolist(),
-                       gains_source=gains.source)
+                       gains_source=gains.source, eps_source=gains.eps_source)
     record = estimate_record(result, warnings=caught, context=context)
     write_text(args.summary, json.dumps(record, indent=2, ensure_ascii=False) + "\n")
 
@@ -305,6 +305,7 @@ def _estimate_one(args: argparse.Namespace, stages: Stages
                                nan_policy=args.nan_policy, progress=stages,    # trust report
                                method=args.method,
                                Gamma=None if gains is None else gains.Gamma,
+                               eps=None if gains is None else gains.eps,
                                noise_std=args.noise_std, window=_window(args.window))
     stages.stage("write")
     stages.note(f"{data.t.size:,} rows to {args.output}")

@@ -13,8 +13,8 @@ summary), :mod:`thetahat.methods`, :mod:`thetahat.spec` and everything below the
 the shipped models and the command line import it.
 """
 
-from .assembly import (ObserverGains, auto_gamma, build_estimator, build_observer,
-                       design_gains, design_matrices, estimator_spec, resolve_gains,
+from .assembly import (ObserverGains, auto_eps, auto_gamma, build_estimator, build_observer,
+                       design_gains, design_matrices, estimator_spec, held_run, resolve_gains,
                        run_estimator, start_x_hat)
 from .holds import split_hold
 from .codegen import (generate_c_from_model, generate_ekf_c_from_model,
@@ -26,7 +26,8 @@ from .schema import (EXAMPLE_MODEL, EstimatorOptions, ModelSpec, ScenarioOptions
                      SecondObserverOptions, load_model, loads_model)
 from .study import simulate_model, study_simulator
 
-__all__ = ["auto_gamma", "ESTIMATION_METHODS", "EXAMPLE_MODEL", "LAWS", "EstimatorOptions",
+__all__ = ["auto_eps", "auto_gamma", "held_run", "ESTIMATION_METHODS", "EXAMPLE_MODEL", "LAWS",
+           "EstimatorOptions",
            "ModelAnalysis", "ObserverGains", "resolve_gains",
            "ModelSpec", "ScenarioOptions", "SecondObserverOptions", "analyze_model",
            "build_estimator", "build_observer", "design_gains", "design_matrices",

@@ -20,8 +20,9 @@ from numpy.typing import ArrayLike, NDArray
 
 from .._validate import as_samples, seconds_from_first
 from ..design.gains import GainDesign
-from ..errors import (ConvergenceWarning, ModelFileError, NotMinimumPhaseError,
-                      ThetahatError, ThetahatWarning, UnstableDesignError)
+from ..errors import (ConvergenceWarning, DesignError, ModelFileError, NonFiniteError,
+                      NotMinimumPhaseError, ThetahatError, ThetahatWarning, UnstableDesignError)
+from ..estimation.observer.auto_eps import EpsChoice
 from ..estimation.observer.checks import check_theta_star
 from ..estimation.observer.initial_state import x_hat_from_output
 from ..estimation.observer.laws.projection import as_gain
@@ -40,8 +41,8 @@ from .schema import ModelSpec
 if TYPE_CHECKING:
     from ..estimation.statistical.trust import TrustReport
 
-__all__ = ["ObserverGains", "auto_gamma", "build_estimator", "build_observer", "design_gains",
-           "design_matrices", "estimator_spec", "resolve_gains", "run_estimator",
+__all__ = ["ObserverGains", "auto_eps", "auto_gamma", "build_estimator", "build_observer", "design_gains",
+           "design_matrices", "estimator_spec", "held_run", "resolve_gains", "run_estimator",
            "start_x_hat"]
 
 FloatArray = NDArray[np.float64]
@@ -191,7 +192,8 @@ def build_observer(spec: ModelSpec, *, eps: float | None = None,
     spec : ModelSpec
         From :func:`load_model`.
     eps : float, optional
-        Overrides ``spec.estimator.eps``.
+        Overrides ``spec.estimator.eps``; needed when the file says ``eps = "auto"``
+        (:func:`resolve_gains` chooses it on a record).
     Gamma : float or array_like, shape (p, p), optional
         Γ of the update law in place of the file's; needed when the file says ``"auto"``
         (:func:`resolve_gains` chooses it on a record, as :func:`run_estimator` does).
@@ -221,7 +223,9 @@ def build_observer(spec: ModelSpec, *, eps: float | None = None,
     if Gamma is None:
         _refuse_auto_gamma(spec)
     else:
-        Gamma = resolve_gains(spec, Gamma=Gamma).Gamma
+        Gamma = resolve_gains(spec, eps=eps, Gamma=Gamma).Gamma
+    if eps is None:
+        _refuse_auto_eps(spec)
     return _build(estimator_spec(spec, nan_policy=nan_policy), spec, eps, Gamma=Gamma)
 
 
@@ -231,7 +235,20 @@ def _refuse_auto_gamma(spec: ModelSpec) -> None:
         raise _no_record(spec)
 
 
-def _no_record(spec: ModelSpec) -> ModelFileError:
+def _refuse_auto_eps(spec: ModelSpec) -> None:
+    """``eps = "auto"`` is chosen on a record: refused where there is none."""
+    if spec.estimator.eps_auto:
+        raise _no_record(spec, "eps")
+
+
+def _no_record(spec: ModelSpec, key: str = "Gamma") -> ModelFileError:
+    if key == "eps":
+        return ModelFileError(
+            f"model file {spec.source}: [estimator] eps = 'auto' is chosen on a record, and "
+            "there is none here. Choose it on your log as the estimate does (thetahat codegen "
+            "--data LOG; resolve_gains(spec, t, u, y)), give the ε that thetahat estimate "
+            "printed for it (thetahat codegen --eps E; eps=), or set eps in [estimator] (a "
+            "number > 0).")
     return ModelFileError(
             f"model file {spec.source}: [estimator] Gamma = 'auto' (the default of the "
             "gradient and least-squares laws) is chosen on a record, and there is none here. "
@@ -248,12 +265,15 @@ class ObserverGains:
     Attributes
     ----------
     eps : float
-        ε of K(ε): the file's ``[estimator] eps`` or the caller's.
+        ε of K(ε): the file's ``[estimator] eps``, chosen on a record (``eps = "auto"``,
+        :func:`auto_eps`) or the caller's.
     Gamma : ndarray, shape (p, p)
         Γ of the update law, symmetric positive definite (read-only).
     source : {"file", "auto", "given"}
         Where Γ came from: the file's number or matrix, ``Gamma = "auto"`` chosen on a record
         (:func:`auto_gamma`), or the caller's (``thetahat codegen --gamma``).
+    eps_source : {"file", "auto", "given"}
+        Where ε came from, likewise.
 
     Examples
     --------
@@ -269,6 +289,7 @@ class ObserverGains:
     eps: float
     Gamma: FloatArray
     source: str
+    eps_source: str = "file"
 
     def __post_init__(self) -> None:
         if self.Gamma.flags.writeable:
@@ -297,22 +318,25 @@ class ObserverGains:
         else:
             shown = "diag(" + ", ".join(f"{v:.6g}" for v in d) + ")"
         why = {"file": "the model file's", "given": "given",
-               "auto": f'"auto", chosen on this record; for C: thetahat codegen MODEL '
-                       f'{self.options}'}[self.source]
-        return f"observer gains: eps = {self.eps:.6g}, Gamma = {shown} ({why})"
+               "auto": '"auto", chosen on this record'}[self.source]
+        if "auto" in (self.source, self.eps_source):
+            why += f"; for C: thetahat codegen MODEL {self.options}"
+        eps_why = ' ("auto", chosen on this record)' if self.eps_source == "auto" else ""
+        return f"observer gains: eps = {self.eps:.6g}{eps_why}, Gamma = {shown} ({why})"
 
     def __repr__(self) -> str:
         return (f"ObserverGains(eps={self.eps:.6g}, Gamma={np.round(self.Gamma, 6).tolist()}, "
-                f"source={self.source!r})")
+                f"source={self.source!r}, eps_source={self.eps_source!r})")
 
 
 def resolve_gains(spec: ModelSpec, t: ArrayLike | None = None, u: ArrayLike | None = None,
                   y: ArrayLike | None = None, *, eps: float | None = None,
                   Gamma: ArrayLike | None = None, hold: str | None = None,
                   nan_policy: str = "raise") -> ObserverGains:
-    """The ε and Γ the file's observer runs with: ``Gamma = "auto"`` chosen on a record.
+    """The ε and Γ the file's observer runs with: ``"auto"`` ones chosen on a record.
 
-    The one place where ``"auto"`` becomes a number: :func:`run_estimator` (``thetahat
+    The one place where ``"auto"`` becomes a number (ε first, by :func:`auto_eps`, then Γ by
+    :func:`auto_gamma` with that ε): :func:`run_estimator` (``thetahat
     estimate``, which prints the result) and ``thetahat codegen --data LOG`` call it, so a C
     observer generated from the same log runs with the Γ the estimate used.
 
@@ -322,9 +346,9 @@ def resolve_gains(spec: ModelSpec, t: ArrayLike | None = None, u: ArrayLike | No
         From :func:`~thetahat.modelfile.schema.load_model`.
     t, u, y : array_like, optional
         A record, as for :func:`run_estimator`; needed only when the file says
-        ``Gamma = "auto"`` and no ``Gamma`` is given.
+        ``Gamma = "auto"`` or ``eps = "auto"`` and no ``Gamma`` or ``eps`` is given.
     eps : float, optional
-        Overrides ``[estimator] eps`` (also for the first pass of ``"auto"``).
+        Overrides ``[estimator] eps`` (also for the first pass of ``Gamma = "auto"``).
     Gamma : float or array_like, optional
         Γ itself, in place of the file's: a number (γI), p numbers (the diagonal) or a
         p × p matrix.
@@ -342,8 +366,8 @@ def resolve_gains(spec: ModelSpec, t: ArrayLike | None = None, u: ArrayLike | No
     Raises
     ------
     ModelFileError
-        ``Gamma = "auto"`` with neither a record nor ``Gamma`` (the message says how to give
-        one).
+        ``Gamma = "auto"`` with neither a record nor ``Gamma``, or ``eps = "auto"`` with
+        neither a record nor ``eps`` (the message says how to give one).
     UpdateLawError
         ``Gamma`` is not positive definite or has the wrong size.
 
@@ -360,25 +384,38 @@ def resolve_gains(spec: ModelSpec, t: ArrayLike | None = None, u: ArrayLike | No
     'auto'
     """
     p = len(spec.parameter_names)
-    eps = spec.estimator.eps if eps is None else float(eps)
+    record = t is not None and y is not None
+    if record:
+        t = as_samples("t", seconds_from_first("t", t))
+        u = None if u is None else as_samples("u", u)
+        y = as_samples("y", y)
+    observer_hold = split_hold(hold, "guarded")[0]
+    if eps is not None:
+        eps, eps_source = float(eps), "given"
+    elif spec.estimator.eps_auto:
+        if not record:
+            raise _no_record(spec, "eps")
+        eps, eps_source = auto_eps(spec, t, u, y, hold=observer_hold,    # type: ignore[arg-type]
+                                   nan_policy=nan_policy).eps, "auto"
+    else:
+        eps, eps_source = spec.estimator.eps, "file"
     if Gamma is not None:
         G = np.asarray(Gamma, dtype=np.float64)
         if G.ndim == 1 and G.size == p and p > 1:
             G = np.diag(G)
         elif G.ndim == 1 and G.size == 1:
             G = G.reshape(())
-        return ObserverGains(eps=eps, Gamma=as_gain("Gamma", G, p), source="given")
+        return ObserverGains(eps=eps, Gamma=as_gain("Gamma", G, p), source="given",
+                             eps_source=eps_source)
     if not spec.estimator.gamma_auto:
         law_gamma = getattr(spec.estimator.update_law, "Gamma", None)
         G = np.eye(p) if law_gamma is None else np.array(law_gamma, dtype=np.float64)
-        return ObserverGains(eps=eps, Gamma=G, source="file")
-    if t is None or y is None:
+        return ObserverGains(eps=eps, Gamma=G, source="file", eps_source=eps_source)
+    if not record:
         raise _no_record(spec)
-    t = as_samples("t", seconds_from_first("t", t))
-    u = None if u is None else as_samples("u", u)
-    G = auto_gamma(spec, t, u, as_samples("y", y), hold=split_hold(hold, "guarded")[0], eps=eps,
+    G = auto_gamma(spec, t, u, y, hold=observer_hold, eps=eps,     # type: ignore[arg-type]
                    nan_policy=nan_policy)
-    return ObserverGains(eps=eps, Gamma=G, source="auto")
+    return ObserverGains(eps=eps, Gamma=G, source="auto", eps_source=eps_source)
 
 
 def _build(est: EstimatorSpec, spec: ModelSpec, eps: float | None,
@@ -396,7 +433,7 @@ def build_estimator(spec: ModelSpec, *, method: str | None = None, hold: str | N
                     nan_policy: str = "raise", compiled: bool | None = None,
                     progress: Callable[[int, int], None] | None = None,
                     Gamma: FloatArray | None = None, noise_std: ArrayLike | None = None,
-                    window: int | str | None = None) -> Estimator:
+                    window: int | str | None = None, eps: float | None = None) -> Estimator:
     """The estimator a model file describes, by method, behind the one estimator protocol.
 
     Parameters
@@ -426,6 +463,9 @@ def build_estimator(spec: ModelSpec, *, method: str | None = None, hold: str | N
     window : {None, "auto"} or int, optional
         Bounded fits for ``guarded`` and ``mle``
         (:mod:`~thetahat.estimation.statistical.window`; default: fits of all the data).
+    eps : float, optional
+        The observer's ε in place of the file's (:func:`run_estimator` passes the ε of
+        ``eps = "auto"``, chosen on the record).
 
     Returns
     -------
@@ -458,8 +498,10 @@ def build_estimator(spec: ModelSpec, *, method: str | None = None, hold: str | N
     def observer() -> Estimator:
         if Gamma is None:
             _refuse_auto_gamma(spec)
+        if eps is None:
+            _refuse_auto_eps(spec)
         return _build(estimator_spec(spec, hold=observer_hold, nan_policy=nan_policy), spec,
-                      None, Gamma=Gamma).with_run_options(progress=progress, compiled=compiled)
+                      eps, Gamma=Gamma).with_run_options(progress=progress, compiled=compiled)
 
     return how.build(MethodInputs(system=spec.system, observer=observer, compiled=compiled,
                                   noise_std=noise_std, hold=stage2_hold, window=window))
@@ -472,7 +514,8 @@ def run_estimator(spec: ModelSpec, t: ArrayLike, u: ArrayLike | None, y: ArrayLi
                   diagnose: bool = True, Gamma: ArrayLike | None = None,
                   noise_std: ArrayLike | None = None,
                   fit_progress: FitProgress | None = None,
-                  window: int | str | None = None) -> EstimateResult:
+                  window: int | str | None = None,
+                  eps: float | None = None) -> EstimateResult:
     """Run the file's estimator on sampled data, from the file's initial values.
 
     ``method`` (default: the file's ``[estimator] method``, else ``"guarded"``) chooses the
@@ -538,6 +581,9 @@ def run_estimator(spec: ModelSpec, t: ArrayLike, u: ArrayLike | None, y: ArrayLi
         since the previous one, the EKF's posterior its arrival cost
         (:mod:`~thetahat.estimation.statistical.window`); None (default) fits all the data so
         far. The other methods ignore it.
+    eps : float, optional
+        ε of the observer in place of the file's (``eps = "auto"``: chosen on the record by
+        :func:`auto_eps` unless given; :func:`resolve_gains` tells which).
 
     Returns
     -------
@@ -577,7 +623,7 @@ def run_estimator(spec: ModelSpec, t: ArrayLike, u: ArrayLike | None, y: ArrayLi
     with one_blas_thread():
         return _run(spec, t, u, y, hold=hold, nan_policy=nan_policy, progress=progress,
                     method=method, compiled=compiled, diagnose=diagnose, Gamma=Gamma,
-                    noise_std=noise_std, fit_progress=fit_progress, window=window)
+                    noise_std=noise_std, fit_progress=fit_progress, window=window, eps=eps)
 
 
 def _run(spec: ModelSpec, t: ArrayLike, u: ArrayLike | None, y: ArrayLike, *,
@@ -585,7 +631,7 @@ def _run(spec: ModelSpec, t: ArrayLike, u: ArrayLike | None, y: ArrayLike, *,
          nan_policy: str, progress: Callable[[int, int], None] | None, method: str | None,
          compiled: bool | None, diagnose: bool, Gamma: ArrayLike | None,
          noise_std: ArrayLike | None, fit_progress: FitProgress | None,
-         window: int | str | None) -> EstimateResult:
+         window: int | str | None, eps: float | None = None) -> EstimateResult:
     """:func:`run_estimator`'s work."""
     how = get_method(spec.estimator.method if method is None else method)
     observer_hold, stage2_hold = split_hold(hold, how.name)
@@ -604,12 +650,14 @@ def _run(spec: ModelSpec, t: ArrayLike, u: ArrayLike | None, y: ArrayLike, *,
         gamma = None
         if how.runs_observer:
             _check_theta_star(spec, t, u, y)
-            if Gamma is not None or spec.estimator.gamma_auto:
-                gamma = resolve_gains(spec, t, u, y, Gamma=Gamma, hold=observer_hold,
-                                      nan_policy=nan_policy).Gamma
+            if (Gamma is not None or spec.estimator.gamma_auto
+                    or (eps is None and spec.estimator.eps_auto)):
+                gains = resolve_gains(spec, t, u, y, eps=eps, Gamma=Gamma, hold=observer_hold,
+                                      nan_policy=nan_policy)
+                gamma, eps = gains.Gamma, gains.eps
         est = build_estimator(spec, method=how.name, hold=hold, nan_policy=nan_policy,
                               compiled=compiled, progress=progress, Gamma=gamma,
-                              noise_std=noise_std, window=window)
+                              noise_std=noise_std, window=window, eps=eps)
         state0 = est.init(x_hat0=x0, theta_hat0=th0)
         if how.fits and fit_progress is not None:   # guarded's and mle's run take it
             fitting: Any = est
@@ -725,18 +773,10 @@ def auto_gamma(spec: ModelSpec, t: ArrayLike, u: ArrayLike | None, y: ArrayLike,
     ((1, 1), True)
     """
     from ..estimation.observer.auto_gain import auto_kappa, information_gain
-    from ..estimation.observer.laws.base import ConstantLaw
     s = spec.system
-    if s.perturbation is None or s.parameter_set is None:
-        raise ModelFileError(f"model file {spec.source}: Gamma = 'auto' needs the system's "
-                             "perturbation and parameter set; the model has none.")
     th0 = spec.estimator.theta_hat0
-    est = estimator_spec(spec, hold=hold, nan_policy=nan_policy)
-    held = dataclasses.replace(est, law=ConstantLaw(th0, s.parameter_set))
-    obs = _build(held, spec, eps)
-    from ..estimation.drive import runner
-    first = runner(obs, t).run(t, u, y, throw=False,
-                               state0=obs.init(x_hat0=start_x_hat(spec, y), theta_hat0=th0))
+    eps = spec.estimator.eps if eps is None and not spec.estimator.eps_auto else eps
+    first = held_run(spec, t, u, y, eps=eps, hold=hold, nan_policy=nan_policy)
     N = first.t.shape[0]
     if first.failed_at is not None:
         # the information of the samples the first pass gave; none: its error
@@ -751,10 +791,135 @@ def auto_gamma(spec: ModelSpec, t: ArrayLike, u: ArrayLike | None, y: ArrayLike,
     U = (np.zeros((N, 0)) if u is None
          else np.asarray(u, dtype=np.float64).reshape(first.t.shape[0], -1)[:N])
     Y = np.asarray(y, dtype=np.float64).reshape(first.t.shape[0], -1)[:N]  # NaN rows: skip
-    return information_gain(s.perturbation, np.concatenate([U, Y], axis=1), first.x_hat[:N],
+    return information_gain(s.require_perturbation("Gamma = 'auto'"),
+                            np.concatenate([U, Y], axis=1), first.x_hat[:N],
                             np.asarray(th0, dtype=np.float64),
                             float(first.t[N - 1] - first.t[0]),
                             kappa=auto_kappa(spec.estimator.update_law))
+
+
+def held_run(spec: ModelSpec, t: ArrayLike, u: ArrayLike | None, y: ArrayLike, *,
+             eps: float | None = None, hold: Hold = "zoh", nan_policy: str = "raise") -> Any:
+    """The file's observer run with θ̂ held at θ̂₀: the first pass of the ``"auto"`` gains.
+
+    The observer's (x̂, φ̂) do not need θ̂ to be right (φ̂ is an extended state), which is
+    why :func:`auto_eps` and :func:`auto_gamma` choose on this run.
+
+    Parameters
+    ----------
+    spec : ModelSpec
+        From :func:`~thetahat.modelfile.schema.load_model`.
+    t, u, y : array_like
+        The record, as for :func:`run_estimator`.
+    eps : float, optional
+        ε of K(ε) (default the file's; required when the file says ``eps = "auto"``).
+    hold : {"zoh", "foh"}
+    nan_policy : {"raise", "skip"}
+
+    Returns
+    -------
+    EstimateResult
+        It does not raise when the observer stops: ``failed_at`` says where.
+
+    Raises
+    ------
+    ModelFileError
+        The model has no perturbation or parameter set, or ``eps = "auto"`` and no ``eps``.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from thetahat.modelfile import EXAMPLE_MODEL, held_run, loads_model
+    >>> spec = loads_model(EXAMPLE_MODEL)
+    >>> t = np.arange(0.0, 2.0, 0.01)
+    >>> run = held_run(spec, t, np.sin(t)[:, None], np.sin(t)[:, None])
+    >>> bool(np.all(run.theta_hat == spec.estimator.theta_hat0)), run.failed_at
+    (True, None)
+    """
+    from ..estimation.drive import runner
+    from ..estimation.observer.laws.base import ConstantLaw
+    s = spec.system
+    if s.perturbation is None or s.parameter_set is None:
+        raise ModelFileError(f"model file {spec.source}: the 'auto' gains need the system's "
+                             "perturbation and parameter set; the model has none.")
+    if eps is None:
+        _refuse_auto_eps(spec)
+    th0 = spec.estimator.theta_hat0
+    est = estimator_spec(spec, hold=hold, nan_policy=nan_policy)
+    held = dataclasses.replace(est, law=ConstantLaw(th0, s.parameter_set))
+    obs = _build(held, spec, eps)
+    return runner(obs, t).run(t, u, y, throw=False,
+                              state0=obs.init(x_hat0=start_x_hat(spec, y), theta_hat0=th0))
+
+
+def auto_eps(spec: ModelSpec, t: ArrayLike, u: ArrayLike | None, y: ArrayLike, *,
+             hold: Hold = "zoh", nan_policy: str = "raise") -> EpsChoice:
+    """``eps = "auto"`` on a record: the ε whose observer best predicts the next sample.
+
+    Runs the file's observer with θ̂ held at θ̂₀ for ε on a log grid over
+    :func:`~thetahat.estimation.observer.auto_eps.eps_bounds` (the chain poles between the
+    record's Nyquist rate and fifty time constants in its duration) and scores each run by
+    :func:`~thetahat.estimation.observer.auto_eps.prediction_cost`; the least wins
+    (:func:`~thetahat.estimation.observer.auto_eps.choose_eps`).
+
+    Parameters
+    ----------
+    spec : ModelSpec
+        From :func:`~thetahat.modelfile.schema.load_model`.
+    t, u, y : array_like
+        The record, as for :func:`run_estimator`.
+    hold : {"zoh", "foh"}
+        u between the samples, for the observer and the prediction.
+    nan_policy : {"raise", "skip"}
+        As for :func:`run_estimator`; missing samples are left out of the criterion.
+
+    Returns
+    -------
+    EpsChoice
+        ``.eps`` and the scan behind it.
+
+    Raises
+    ------
+    ModelFileError
+        The model has no perturbation or parameter set.
+    DesignError
+        The observer stopped at every ε of the range.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from thetahat.modelfile import EXAMPLE_MODEL, auto_eps, loads_model
+    >>> spec = loads_model(EXAMPLE_MODEL)
+    >>> t = np.arange(0.0, 20.0, 0.01)
+    >>> choice = auto_eps(spec, t, np.sin(t)[:, None], np.sin(t)[:, None])
+    >>> bool(choice.bounds[0] <= choice.eps <= choice.bounds[1])
+    True
+    """
+    from ..estimation.observer.auto_eps import (TRANSIENT_FRACTION, choose_eps, eps_bounds,
+                                                prediction_cost)
+    s = spec.system
+    t = as_samples("t", seconds_from_first("t", t))
+    u = None if u is None else as_samples("u", u)
+    y = as_samples("y", y)
+    design, _ = design_gains(spec, 1.0)
+    poles = np.abs(np.concatenate([np.asarray(c, dtype=complex).ravel()
+                                   for c in design.chain_poles]))
+    bounds = eps_bounds(poles, float(np.median(np.diff(t))), float(t[-1] - t[0]))
+    skip = int(TRANSIENT_FRACTION * t.shape[0])
+
+    def cost(eps: float) -> float:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            try:
+                run = held_run(spec, t, u, y, eps=eps, hold=hold, nan_policy=nan_policy)
+            except (DesignError, NonFiniteError, ArithmeticError):
+                return np.inf
+        if run.failed_at is not None:
+            return np.inf
+        return prediction_cost(s.A, s.B, s.E, s.C, t, u, y, run.x_hat, run.phi_hat,
+                               hold=hold, skip=skip)
+
+    return choose_eps(cost, bounds)
 
 
 def _check_theta_star(spec: ModelSpec, t: ArrayLike, u: ArrayLike | None, y: ArrayLike) -> None:

@@ -58,6 +58,7 @@ TYPES: dict[str, str] = {
     "choice": "one of the listed strings",
     "poles": "a list of real poles < 0",
     "pole lists": "one list of real poles < 0 per chain",
+    "positive number or auto": "a finite number > 0, or \"auto\"",
     "gain": "a positive number, a p × p symmetric positive-definite matrix, or \"auto\"",
     "constants": "a table of named numbers",
     "thresholds": "[low, high]",
@@ -126,7 +127,7 @@ class Key:
     --------
     >>> from thetahat.modelfile.keys import ESTIMATOR
     >>> ESTIMATOR["eps"].default, ESTIMATOR["law"].choices[0]
-    (1.0, 'gradient')
+    ('auto', 'gradient')
     """
 
     key: str
@@ -283,7 +284,11 @@ ESTIMATOR = Table("estimator", (
         "The update law (8): gradient inversion (Props. 3–4), filtered least squares, "
         "algebraic inversion (Prop. 1) or intermittent inversion (Prop. 2, with the "
         "excitation weight smooth_ramp(*excitation) of ‖φ̂‖).", choices=LAWS),
-    Key("eps", "positive number", 1.0, "0.5", "ε of the modified high-gain design (Sec. VII)."),
+    Key("eps", "positive number or auto", "auto", "0.5",
+        "ε of the modified high-gain design (Sec. VII); \"auto\": chosen on the record as the "
+        "ε whose observer best predicts the next sample "
+        "(thetahat.estimation.observer.auto_eps): `thetahat estimate` prints the ε it "
+        "chose, and `thetahat codegen` takes it (--eps) or chooses it on a log (--data)."),
     Key("chain_poles", "pole lists", _POLES_DEFAULT, "[[-1.0, -2.0, -3.0]]",
         "The poles of each chain of the design."),
     Key("b_poles", "poles", _POLES_DEFAULT, "[-1.0, -2.0]", "The poles of A_b − K_bb C_b."),

@@ -116,7 +116,8 @@ class ModelAnalysis:
             lines.append(f"gain design FAILED: {self.design_error}")
         if self.design is not None and self.spectra is not None:
             n = self.spec.system.n
-            lines += [f"K(eps = {self.design.eps:g}) = [K_x; K_phi] = {vec(self.design.K)}",
+            auto = " (eps = 'auto' is chosen on a record: shown at 1)" if est.eps_auto else ""
+            lines += [f"K(eps = {self.design.eps:g}) = [K_x; K_phi] = {vec(self.design.K)}{auto}",
                       f"  K_x = {vec(self.design.K[:n])}, K_phi = {vec(self.design.K[n:])}",
                       f"  eig on the design system: {eig(self.spectra.eig_design)}",
                       f"  eig on the true system:   {eig(self.spectra.eig_true)}",

@@ -129,6 +129,10 @@ class EstimatorOptions:
         record by :func:`~thetahat.estimation.observer.auto_gain.information_gain` when the
         estimator runs;
         ``update_law`` holds Γ = I until then.
+    eps_auto : bool
+        ``eps = "auto"``: ε is chosen on the record by
+        :func:`~thetahat.modelfile.assembly.auto_eps` when the estimator runs; ``eps`` holds
+        1 until then.
     """
 
     law: str
@@ -144,12 +148,14 @@ class EstimatorOptions:
     allow_nonminimum_phase: bool = False
     method: str = DEFAULT_METHOD
     gamma_auto: bool = False
+    eps_auto: bool = False
     x_hat0_from_y: bool = True
     method_given: bool = False
 
     def __repr__(self) -> str:
         method = "" if self.method == DEFAULT_METHOD else f"method={self.method!r}, "
-        return (f"EstimatorOptions(law={self.law!r}, {method}eps={self.eps:g}, "
+        eps = "'auto'" if self.eps_auto else f"{self.eps:g}"
+        return (f"EstimatorOptions(law={self.law!r}, {method}eps={eps}, "
                 f"theta_hat0={self.theta_hat0.tolist()}, "
                 f"design_system={self.A_design is not None or self.E_design is not None}, "
                 f"second={self.second is not None})")
@@ -456,7 +462,8 @@ def _read_estimator(sec: Section, system: PerturbedLinearSystem, pert: SymbolicP
     law, update_law, gamma_auto = _read_law(sec, pert, system.require_parameter_set(
         "[estimator]"), parsed)
     method = sec.choice("method")
-    eps = sec.number("eps")
+    eps_auto = sec.get("eps") == "auto"
+    eps = 1.0 if eps_auto else sec.number("eps")
     theta_hat0 = (sec.vector("theta_hat0", p, f"θ̂(0), p = {p}") if sec.has("theta_hat0")
                   else None)
     try:
@@ -476,7 +483,8 @@ def _read_estimator(sec: Section, system: PerturbedLinearSystem, pert: SymbolicP
                             chain_poles=sec.poles("chain_poles"), b_poles=sec.poles("b_poles"),
                             theta_hat0=theta_hat0, x_hat0=x_hat0, A_design=A_d, E_design=E_d,
                             second=second, allow_nonminimum_phase=allow_nmp,
-                            method=method, gamma_auto=gamma_auto, x_hat0_from_y=from_y,
+                            method=method, gamma_auto=gamma_auto, eps_auto=eps_auto,
+                            x_hat0_from_y=from_y,
                             method_given=sec.has("method"))
 
 

@@ -219,11 +219,13 @@ class Section:
         if key not in self.value and row.literal:
             return float(row.default)
         v = self.require(key, "a number")
-        positive, non_negative = row.type == "positive number", row.type == "non-negative number"
+        positive = row.type in ("positive number", "positive number or auto")
+        non_negative = row.type == "non-negative number"
         if not (is_number(v) and math.isfinite(v) and (not positive or v > 0)
                 and (not non_negative or v >= 0)):
+            auto = " or 'auto'" if row.type.endswith(" or auto") else ""
             raise self.fail(key, f"expected a finite {'positive ' if positive else ''}number"
-                                 f"{' >= 0' if non_negative else ''}; got {show(v)}.")
+                                 f"{' >= 0' if non_negative else ''}{auto}; got {show(v)}.")
         return float(v)
 
     def boolean(self, key: str) -> bool:

@@ -5,8 +5,8 @@
 on records simulated by :func:`simulate_model` from the file's ``[scenario]``: the system (1)
 with the file's own g as the true perturbation, evaluated on the noise-free output C x, and
 white noise on y. :func:`study_setup` gathers what such a study runs: the spec (with
-``Gamma = "auto"`` chosen on the scenario's first record), the simulator, θ̂(0), the state
-names, and a sentence on the experiment assumed when ``[scenario]`` does not define it.
+``Gamma = "auto"`` and ``eps = "auto"`` chosen on the scenario's first record), the
+simulator, θ̂(0), the state names, and a sentence on the experiment assumed when ``[scenario]`` does not define it.
 """
 
 from __future__ import annotations
@@ -25,7 +25,7 @@ from ..simulation.noise import Seed, WhiteNoise
 from ..simulation.signals import Multisine
 from ..simulation.simulate import PlantTrajectory, simulate_plant
 from ..spec import EstimatorSpec
-from .assembly import auto_gamma, estimator_spec
+from .assembly import estimator_spec, resolve_gains
 from .schema import ModelSpec
 
 __all__ = ["EXPERIMENT_KEYS", "ModelPhi", "StudySetup", "simulate_model", "study_setup",
@@ -206,8 +206,9 @@ def study_setup(spec: ModelSpec, *, t_end: float | None = None) -> StudySetup:
     Returns
     -------
     StudySetup
-        The file's :class:`~thetahat.spec.EstimatorSpec` (``Gamma = "auto"``: Γ chosen on
-        the scenario's first record, seed 0, by :func:`~thetahat.modelfile.auto_gamma`), the
+        The file's :class:`~thetahat.spec.EstimatorSpec` (``Gamma = "auto"`` and
+        ``eps = "auto"``: chosen on the scenario's first record, seed 0, by
+        :func:`~thetahat.modelfile.resolve_gains`), the
         simulator of :func:`study_simulator`, the file's θ̂(0) and state names, and which of
         :data:`EXPERIMENT_KEYS` the file left to their defaults.
 
@@ -228,9 +229,11 @@ def study_setup(spec: ModelSpec, *, t_end: float | None = None) -> StudySetup:
     assumed = (f"{spec.source} [scenario] gives no {', '.join(chosen)}; using "
                f"{spec.scenario!r}" if chosen else None)
     est, simulate = estimator_spec(spec), study_simulator(spec, t_end=t_end)
-    if spec.estimator.gamma_auto:       # Γ = "auto": chosen on the scenario's first record
+    if spec.estimator.gamma_auto or spec.estimator.eps_auto:    # chosen on the first record
         first = simulate(0)
-        est = dataclasses.replace(est, law=est.law_with_gamma(
-            auto_gamma(spec, first.t, first.u, first.y)))
+        gains = resolve_gains(spec, first.t, first.u, first.y)
+        est = dataclasses.replace(est, eps=gains.eps)
+        if spec.estimator.gamma_auto:
+            est = dataclasses.replace(est, law=est.law_with_gamma(gains.Gamma))
     return StudySetup(estimator=est, simulate=simulate, theta_hat0=spec.estimator.theta_hat0,
                       state_names=spec.state_names, assumed=assumed)
