@@ -10,7 +10,7 @@ Evidence:
 - "auto" is chosen once, in resolve_gains: the estimate with it equals the estimate with the
   chosen number given, the CLI prints it, codegen takes it (--eps) or chooses the same on the
   log (--data), and without a record it is refused with the ways to give it;
-- it is the default of a file that gives no eps, and a wrong value names 'auto'.
+- a file asks for it (the default stays ε = 1), and a wrong value names 'auto'.
 """
 
 from __future__ import annotations
@@ -41,7 +41,7 @@ REFERENCE_PER_DECADE = 4
 
 
 def auto_text(name: str) -> str:
-    """examples/NAME.toml with its eps made "auto" (or left out: "auto" is the default)."""
+    """examples/NAME.toml with its eps made "auto"."""
     text = (EXAMPLES / f"{name}.toml").read_text(encoding="utf-8")
     return re.sub(r"(?m)^eps = .*$", 'eps = "auto"', text)
 
@@ -131,11 +131,12 @@ def test_without_a_record_auto_is_refused_with_the_ways_to_give_it(tmp_path):
     assert "eps = 'auto' is chosen on a record: shown at 1" in str(analyze_model(spec))
 
 
-def test_auto_is_the_default_and_a_wrong_value_names_it():
+def test_auto_is_asked_for_and_a_wrong_value_names_it():
     text = (EXAMPLES / "prop4.toml").read_text(encoding="utf-8")
     no_eps = re.sub(r"(?m)^eps = .*\n", "", text)
-    assert loads_model(no_eps).estimator.eps_auto
-    assert not loads_model(text).estimator.eps_auto
+    assert not loads_model(no_eps).estimator.eps_auto           # the default is ε = 1
+    assert loads_model(no_eps).estimator.eps == 1.0
+    assert loads_model(auto_text("prop4")).estimator.eps_auto
     for bad in ('"fast"', "-1.0", "0.0"):
         with pytest.raises(ModelFileError, match=r"eps.*'auto'"):
             loads_model(re.sub(r"(?m)^eps = .*$", f"eps = {bad}", text))

@@ -127,7 +127,7 @@ class Key:
     --------
     >>> from thetahat.modelfile.keys import ESTIMATOR
     >>> ESTIMATOR["eps"].default, ESTIMATOR["law"].choices[0]
-    ('auto', 'gradient')
+    (1.0, 'gradient')
     """
 
     key: str
@@ -284,7 +284,7 @@ ESTIMATOR = Table("estimator", (
         "The update law (8): gradient inversion (Props. 3–4), filtered least squares, "
         "algebraic inversion (Prop. 1) or intermittent inversion (Prop. 2, with the "
         "excitation weight smooth_ramp(*excitation) of ‖φ̂‖).", choices=LAWS),
-    Key("eps", "positive number or auto", "auto", "0.5",
+    Key("eps", "positive number or auto", 1.0, "0.5",
         "ε of the modified high-gain design (Sec. VII); \"auto\": chosen on the record as the "
         "ε whose observer best predicts the next sample "
         "(thetahat.estimation.observer.auto_eps): `thetahat estimate` prints the ε it "
