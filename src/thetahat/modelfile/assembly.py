@@ -775,7 +775,6 @@ def auto_gamma(spec: ModelSpec, t: ArrayLike, u: ArrayLike | None, y: ArrayLike,
     from ..estimation.observer.auto_gain import auto_kappa, information_gain
     s = spec.system
     th0 = spec.estimator.theta_hat0
-    eps = spec.estimator.eps if eps is None and not spec.estimator.eps_auto else eps
     first = held_run(spec, t, u, y, eps=eps, hold=hold, nan_policy=nan_policy)
     N = first.t.shape[0]
     if first.failed_at is not None:
