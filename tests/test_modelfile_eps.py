@@ -22,7 +22,7 @@ import numpy as np
 import pytest
 
 from thetahat.cli import main
-from thetahat.errors import ModelFileError
+from thetahat.errors import DesignError, ModelFileError
 from thetahat.io.datafile import read_data
 from thetahat.modelfile import (analyze_model, auto_eps, build_observer, generate_c_from_model, held_run,
                                 load_model, loads_model, resolve_gains, run_estimator)
@@ -162,3 +162,19 @@ def test_estimate_prints_the_chosen_eps_and_codegen_chooses_the_same(tmp_path, c
     capsys.readouterr()
     exact = generate_c_from_model(path, dt=0.01, eps=gains.eps, Gamma=gains.Gamma)
     assert (tmp_path / "c1" / "prop4.c").read_text() == exact.source
+
+
+def test_a_record_it_cannot_choose_on_gets_the_cause_and_the_fix():
+    """NaN samples under nan_policy="raise": the error is the observer's own (what is wrong,
+    nan_policy="skip"), not a bare "every ε failed"; "skip" chooses. Too short a record to
+    score: refused with the count and the way out (give eps)."""
+    spec = loads_model(auto_text("prop4"), source="prop4.toml")
+    d = simulate_model(spec, seed=0, t_end=5.0)
+    y = d.y.copy()
+    y[100] = np.nan
+    with pytest.raises(DesignError, match=r"every ε.*y contains NaN.*nan_policy='skip'"):
+        resolve_gains(spec, d.t, d.u, y)
+    assert resolve_gains(spec, d.t, d.u, y, nan_policy="skip").eps_source == "auto"
+    with pytest.raises(DesignError, match=r"needs at least 4 of them; the record has 3\. "
+                                          r"Give eps"):
+        resolve_gains(spec, d.t[:3], d.u[:3], d.y[:3])

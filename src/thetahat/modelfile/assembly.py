@@ -882,7 +882,9 @@ def auto_eps(spec: ModelSpec, t: ArrayLike, u: ArrayLike | None, y: ArrayLike, *
     ModelFileError
         The model has no perturbation or parameter set.
     DesignError
-        The observer stopped at every ε of the range.
+        The observer stopped at every ε of the range (the message says why the first run
+        did: NaN samples under ``nan_policy="raise"``, a divergence), or the record has too
+        few samples to score (fewer than r + 3).
 
     Examples
     --------
@@ -903,22 +905,35 @@ def auto_eps(spec: ModelSpec, t: ArrayLike, u: ArrayLike | None, y: ArrayLike, *
     design, _ = design_gains(spec, 1.0)
     poles = np.abs(np.concatenate([np.asarray(c, dtype=complex).ravel()
                                    for c in design.chain_poles]))
+    N = t.shape[0]
+    skip = int(TRANSIENT_FRACTION * N)
+    if N - 1 - skip < s.r + 2:
+        raise DesignError(f"eps = 'auto' scores the observer's predictions of the record's "
+                          f"samples and needs at least {s.r + 3} of them; the record has {N}. "
+                          "Give eps in [estimator] (or eps=).")
     bounds = eps_bounds(poles, float(np.median(np.diff(t))), float(t[-1] - t[0]))
-    skip = int(TRANSIENT_FRACTION * t.shape[0])
+    why: list[str] = []                 # why the runs that failed failed, the first kept
 
     def cost(eps: float) -> float:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
             try:
                 run = held_run(spec, t, u, y, eps=eps, hold=hold, nan_policy=nan_policy)
-            except (DesignError, NonFiniteError, ArithmeticError):
+            except (DesignError, NonFiniteError, ArithmeticError) as exc:
+                why.append(f"at ε = {eps:.3g}: {exc}")
                 return np.inf
         if run.failed_at is not None:
+            why.append(f"at ε = {eps:.3g}: {run.message}")
             return np.inf
         return prediction_cost(s.A, s.B, s.E, s.C, t, u, y, run.x_hat, run.phi_hat,
                                hold=hold, skip=skip)
 
-    return choose_eps(cost, bounds)
+    try:
+        return choose_eps(cost, bounds)
+    except DesignError as exc:          # every run failed: say why the first one did
+        if not why:
+            raise
+        raise DesignError(f"{str(exc).rstrip('.')}; {why[0]}") from exc
 
 
 def _check_theta_star(spec: ModelSpec, t: ArrayLike, u: ArrayLike | None, y: ArrayLike) -> None:
