@@ -1,4 +1,4 @@
-"""eps = "auto" in model files (thetahat.modelfile.auto_eps, resolve_gains): ε chosen on the record.
+"""eps = "auto" in model files (modelfile.auto_eps, resolve_gains): ε chosen on the record.
 
 Evidence:
 - on four shipped models besides LuGre, and LuGre, the chosen ε gives the observer (θ̂ held at
@@ -24,8 +24,9 @@ import pytest
 from thetahat.cli import main
 from thetahat.errors import DesignError, ModelFileError
 from thetahat.io.datafile import read_data
-from thetahat.modelfile import (analyze_model, auto_eps, build_observer, generate_c_from_model, held_run,
-                                load_model, loads_model, resolve_gains, run_estimator)
+from thetahat.modelfile import (analyze_model, auto_eps, build_observer,
+                                generate_c_from_model, held_run, load_model, loads_model,
+                                resolve_gains, run_estimator)
 from thetahat.modelfile.study import simulate_model, study_setup
 from thetahat.models import silverbox
 

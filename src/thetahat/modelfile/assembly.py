@@ -41,9 +41,9 @@ from .schema import ModelSpec
 if TYPE_CHECKING:
     from ..estimation.statistical.trust import TrustReport
 
-__all__ = ["ObserverGains", "auto_eps", "auto_gamma", "build_estimator", "build_observer", "design_gains",
-           "design_matrices", "estimator_spec", "held_run", "resolve_gains", "run_estimator",
-           "start_x_hat"]
+__all__ = ["ObserverGains", "auto_eps", "auto_gamma", "build_estimator", "build_observer",
+           "design_gains", "design_matrices", "estimator_spec", "held_run", "resolve_gains",
+           "run_estimator", "start_x_hat"]
 
 FloatArray = NDArray[np.float64]
 

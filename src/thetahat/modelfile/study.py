@@ -6,7 +6,8 @@ on records simulated by :func:`simulate_model` from the file's ``[scenario]``: t
 with the file's own g as the true perturbation, evaluated on the noise-free output C x, and
 white noise on y. :func:`study_setup` gathers what such a study runs: the spec (with
 ``Gamma = "auto"`` and ``eps = "auto"`` chosen on the scenario's first record), the
-simulator, θ̂(0), the state names, and a sentence on the experiment assumed when ``[scenario]`` does not define it.
+simulator, θ̂(0), the state names, and a sentence on the experiment assumed when
+``[scenario]`` does not define it.
 """
 
 from __future__ import annotations

@@ -22,11 +22,12 @@ not depend on θ̂ (φ̂ is an extended state), so holding θ̂ at θ̂₀ does 
 scales: the fastest chain pole |λ|max/ε no faster than the Nyquist rate π/Δt (the samples
 cannot show a faster observer), and the slowest |λ|min/ε no slower than
 :data:`SETTLING_TIME_CONSTANTS` time constants in the record's duration T (else the observer
-has not settled when the record ends), within the paper's 0 < ε ≤ 1. :func:`choose_eps` scans the range on a log grid, refines
-around the best point, and returns the ε of the least J (the largest of equal ones: a smaller ε
-amplifies the noise in x̂ and φ̂ for nothing). Measured on fifteen shipped models against the
-true φ of their simulated records: the chosen ε estimates φ with an RMS error 1.00–1.44× that
-of the best ε in hindsight (tests/test_modelfile_eps.py asserts ≤ 2× on five).
+has not settled when the record ends), within the paper's 0 < ε ≤ 1. :func:`choose_eps`
+scans the range on a log grid, refines around the best point, and returns the ε of the least
+J (the largest of equal ones: a smaller ε amplifies the noise in x̂ and φ̂ for nothing).
+Measured on fifteen shipped models against the true φ of their simulated records: the chosen
+ε estimates φ with an RMS error 1.00–1.44× that of the best ε in hindsight
+(tests/test_modelfile_eps.py asserts ≤ 2× on five).
 
 The criterion is the observer's, not the update law's: the law integrates φ̂ − g(v, x̂, θ̂),
 and a faster observer feeds it more noise. The paper's final θ̂ was further from θ (in
