@@ -25,7 +25,7 @@ for every use of :mod:`multiprocessing`: a script that streams with fits must ke
 top-level work under ``if __name__ == "__main__":``.
 
 What it may import: the standard library's process machinery, and, in this room,
-``common`` and ``map_fit`` (the fits it runs).
+``common``, ``map_fit`` and ``window`` (the fits it runs).
 """
 
 from __future__ import annotations
@@ -46,6 +46,7 @@ from numpy.typing import NDArray
 
 from .common import theta_box
 from .map_fit import FitResult, FitSchedule, fit_map, fit_record
+from .window import fit_window
 
 __all__ = ["TimedFit", "fit_spec", "run_fit", "warm_up", "default_executor",
            "discard_default_executor", "WORKER_NICE"]
@@ -123,12 +124,15 @@ def _schedule(spec: bytes) -> FitSchedule:
 
 def run_fit(spec: bytes, t: FloatArray, U: FloatArray, Y: FloatArray, k1: int,
             previous: FitResult | None, prior0: tuple[FloatArray, FloatArray], elapsed: float,
-            base: int, by_samples: bool = False) -> TimedFit:
+            base: int, by_samples: bool = False,
+            anchor: tuple[FloatArray, FloatArray, FloatArray] | None = None) -> TimedFit:
     """The fit of a stream's retained window (runs in the worker).
 
     :func:`~thetahat.estimation.statistical.map_fit.fit_record` (all the data so far; output error, else with
     process noise when that is consistent) for a schedule by sample counts, as the offline
-    run fits; :meth:`FitSchedule.fit` (blocks with arrival cost) for one with times.
+    run fits; with an ``anchor``, :func:`~thetahat.estimation.statistical.window.fit_window`
+    (the samples retained, their first summarised by the anchor's posterior: a stream with a
+    ``window``); :meth:`FitSchedule.fit` (blocks with arrival cost) for one with times.
 
     Parameters
     ----------
@@ -149,6 +153,9 @@ def run_fit(spec: bytes, t: FloatArray, U: FloatArray, Y: FloatArray, k1: int,
     by_samples : bool
         The stream fits on sample counts (its schedule has no ``times``; the worker's
         rebuilt schedule does not carry them).
+    anchor : tuple of ndarray, optional
+        (s, P, σ): the posterior N(s, P) of col(x, θ) at the retained first sample and the
+        noise level, the arrival cost of a window fit.
 
     Returns
     -------
@@ -160,8 +167,13 @@ def run_fit(spec: bytes, t: FloatArray, U: FloatArray, Y: FloatArray, k1: int,
         _WORKER[1] = True
         _lower_priority()
     w0, c0 = time.perf_counter(), time.thread_time()
-    fit = (fit_record(sched, t, U, Y, k1, previous, prior0) if by_samples
-           else sched.fit(t, U, Y, k1, previous, prior0, elapsed=elapsed))
+    if anchor is not None:
+        fit = fit_window(sched, t, U, Y, k0=0, k1=k1, s0=anchor[0], P0=anchor[1],
+                         noise_std=anchor[2])
+    elif by_samples:
+        fit = fit_record(sched, t, U, Y, k1, previous, prior0)
+    else:
+        fit = sched.fit(t, U, Y, k1, previous, prior0, elapsed=elapsed)
     w1, c1 = time.perf_counter(), time.thread_time()
     fit = dataclasses.replace(fit, k0=fit.k0 + base, k1=fit.k1 + base)
     return TimedFit(fit=fit, seconds=w1 - w0, cpu_seconds=c1 - c0)

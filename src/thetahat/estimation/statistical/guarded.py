@@ -263,9 +263,11 @@ class GuardedEstimator:
         the shared worker process of :func:`~thetahat.estimation.statistical.fit_worker.default_executor`.
         :meth:`run` always fits in the caller.
     window : {None, "auto"} or int
-        :meth:`run`'s fits: None (default) of all the data so far; W or ``"auto"``: bounded
-        fits (:mod:`~thetahat.estimation.statistical.window`), stage 2's posterior at the
-        window's start the arrival cost. Not with ``times``, nor (yet) with :meth:`step`.
+        The fits: None (default) of all the data so far; W or ``"auto"``: bounded fits
+        (:mod:`~thetahat.estimation.statistical.window`), stage 2's posterior at the window's
+        start the arrival cost, in :meth:`run` and in :meth:`step` (whose data log then holds
+        at most W + 1 samples plus those stepped while a fit runs:
+        :mod:`~thetahat.estimation.statistical.guarded_stream`). Not with ``times``.
     window_max : int
         The longest ``"auto"`` window (:data:`~.window.WINDOW_MAX` samples).
 
@@ -585,9 +587,6 @@ class GuardedEstimator:
     def _start_stream(self, state: GuardedState) -> GuardedStream:
         """The stream of a state that has not been stepped yet (its data log, stage 2 at its
         prior, the fit worker started when fits run)."""
-        if self.window is not None and self.use_fits:
-            raise OptionError("GuardedEstimator.step: the streaming fits are of all the data "
-                              "(window is for run): stream with window=None.")
         sched = self.fit_schedule
         s0, P0 = self._prior(state.x_hat0, state.theta_hat0)
         stream = GuardedStream.start(self.model, s0, P0, q_x=self.q_x,
@@ -597,7 +596,8 @@ class GuardedEstimator:
                                              if sched else None),
                                      executor=self.fit_executor,
                                      hold=streamable(self.hold, "GuardedEstimator"),
-                                     h_rho=self.h_rho, substeps=self.substeps)
+                                     h_rho=self.h_rho, substeps=self.substeps,
+                                     window=self.window, window_max=self.window_max)
         stream.owner = self
         stream.loop = self._loop()
         stream.read_stage1, stream.step_stage1 = _stage1_calls(self.stage1)

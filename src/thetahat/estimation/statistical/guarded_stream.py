@@ -10,8 +10,18 @@ finished: a ``step`` never waits for a fit). A fit that crashes or comes back no
 ignored with a :class:`~thetahat.errors.ThetahatWarning`; :class:`StreamDiagnostics` counts
 the fits.
 
+With a ``window`` W (:mod:`~thetahat.estimation.statistical.window`; ``"auto"`` decided on the
+samples so far at the counts where :meth:`GuardedEstimator.run` would decide it on the record)
+the fits past W samples are those of the log's samples since the previous fit, every W
+samples, with the posterior at the window's first sample as arrival cost: that of the
+previous fit, which ended there, when it was applied (as ``run`` re-anchors on it), else
+stage 2's when that fit was handed over; the log is emptied to that sample at each hand-over. It then holds at most W + 1 samples, plus those
+stepped while a fit is still running: memory and each fit's work no longer grow with the
+stream.
+
 What it may import: the package's errors, and, in this room, ``common``, ``fit_worker``,
-``input_hold``, ``map_fit``, ``noise_level``, ``plant_kernel`` and ``stage2_set``; never the
+``input_hold``, ``map_fit``, ``noise_level``, ``plant_kernel``, ``stage2_set`` and ``window``;
+never the
 guarded estimator
 (which builds the stream from plain values).
 """
@@ -29,14 +39,15 @@ from numpy.typing import ArrayLike, NDArray
 
 from ...errors import ThetahatWarning
 from ...model.system import PerturbedLinearSystem
-from .common import resolve_noise_std
+from .common import resolve_noise_std, sample_interval
 from .fit_worker import default_executor, discard_default_executor, fit_spec, run_fit, warm_up
 from .guard import apply_fit
 from .input_hold import InputHistory
-from .map_fit import FitResult, FitSchedule
+from .map_fit import FitResult, FitSchedule, fit_as_prior
 from .noise_level import MIN_SAMPLES
 from .plant_kernel import H_RHO, Propagation
 from .stage2_set import stage2_set
+from .window import WINDOW_MAX, WINDOW_MIN, window_grid, window_reached, windowed_counts
 
 __all__ = ["GuardedStream", "LOG_CAPACITY", "SIGMA_SAMPLES", "StreamDiagnostics"]
 
@@ -74,6 +85,8 @@ class StreamDiagnostics:
         it runs; as ``GuardedDiagnostics.stage1_failed_at`` of a run.
     stage1_message : str
         Stage 1's error then ("" otherwise).
+    window : int or None
+        The stream's window W once decided (None: not yet, or fits of all the data).
     """
 
     fits: tuple[FitResult, ...]
@@ -84,6 +97,7 @@ class StreamDiagnostics:
     rejected: tuple[str, ...] = ()
     stage1_failed_at: int | None = None
     stage1_message: str = ""
+    window: int | None = None
 
     @property
     def fits_rejected(self) -> int:
@@ -94,6 +108,7 @@ class StreamDiagnostics:
         return (f"StreamDiagnostics(fits={len(self.fits)}, failures={len(self.failures)}, "
                 + ("" if self.stage1_failed_at is None
                    else f"stage1_failed_at={self.stage1_failed_at}, ")
+                + ("" if self.window is None else f"window={self.window}, ")
                 + f"pending={self.pending})")
 
 
@@ -121,12 +136,18 @@ class GuardedStream:
     substeps : int, optional
         The RK4 sub-steps' accuracy floor without fits (default 1; with fits each fit sets
         it, starting from the schedule's).
+    window : {None, "auto"} or int
+        The fits' window (module docstring; checked by the estimator); not with a schedule
+        with ``times``.
+    window_max : int
+        The longest ``"auto"`` window.
     """
 
     def __init__(self, system: PerturbedLinearSystem, s0: FloatArray, P0: FloatArray, *,
                  q_x: float, noise_std: ArrayLike | None, schedule: FitSchedule | None,
                  prior0: tuple[FloatArray, FloatArray] | None, hold: str = "foh",
-                 h_rho: float = H_RHO, substeps: int | None = None) -> None:
+                 h_rho: float = H_RHO, substeps: int | None = None,
+                 window: int | str | None = None, window_max: int = WINDOW_MAX) -> None:
         sys_ = system
         n = sys_.n
         self.owner: Any = None              # the estimator that started the stream
@@ -137,6 +158,7 @@ class GuardedStream:
         self.k = 0
         self.s, self.P0 = s0, P0
         self.P = self.P0.copy()
+        self.system, self.q_x = sys_, q_x
         self.Q_x = q_x * np.eye(n)
         ts = stage2_set(sys_.require_parameter_set("stage 2"))
         self.lo, self.hi, self.ell = ts.lo, ts.hi, ts.ell
@@ -169,6 +191,16 @@ class GuardedStream:
         self.j = 0
         self.sched = schedule
         self.prior0 = prior0 if schedule else None
+        # the window: W once decided (an integer at once; "auto" at the grid's counts), the
+        # fit counts (j ↦ k_j, windowed once W is known), and the arrival cost (s, P, σ) of
+        # the next window fit at the log's first sample
+        self.window, self.window_max = window, window_max
+        self.W: int | None = (int(window) if window is not None and window != "auto"
+                              else None)
+        self.grid = (frozenset(window_grid(system, window_max))
+                     if window == "auto" else frozenset())
+        self.at: Any = None
+        self.anchor: tuple[FloatArray, FloatArray, FloatArray] | None = None
         self.executor: concurrent.futures.Executor | None = None
         self.stage1_failed_at: int | None = None     # stage 1 lost from this sample on
         self.stage1_message = ""
@@ -189,13 +221,15 @@ class GuardedStream:
               q_x: float, noise_std: ArrayLike | None, schedule: FitSchedule | None,
               prior0: tuple[FloatArray, FloatArray] | None,
               executor: concurrent.futures.Executor | None, hold: str = "foh",
-              h_rho: float = H_RHO, substeps: int | None = None) -> GuardedStream:
+              h_rho: float = H_RHO, substeps: int | None = None,
+              window: int | str | None = None, window_max: int = WINDOW_MAX
+              ) -> GuardedStream:
         """A new stream; with fits, the worker starts compiling the fit kernels at once (the
         first fit queues behind that warm-up; its errors, if any, come back with the fit).
 
         Parameters
         ----------
-        system, s0, P0, q_x, noise_std, schedule, prior0, hold, h_rho, substeps
+        system, s0, P0, q_x, noise_std, schedule, prior0, hold, h_rho, substeps, window, window_max
             As the class's.
         executor : concurrent.futures.Executor, optional
             Where the fits run (default
@@ -206,7 +240,8 @@ class GuardedStream:
         GuardedStream
         """
         sh = cls(system, s0, P0, q_x=q_x, noise_std=noise_std, schedule=schedule,
-                 prior0=prior0, hold=hold, h_rho=h_rho, substeps=substeps)
+                 prior0=prior0, hold=hold, h_rho=h_rho, substeps=substeps, window=window,
+                 window_max=window_max)
         if sh.sched is not None:
             sh.executor = executor if executor is not None else default_executor()
             sh.spec = fit_spec(sh.sched)
@@ -301,6 +336,9 @@ class GuardedStream:
                                            h_rho=float(self.pc[0])).arrays()
             apply_fit(self.s, self.P, self.R, self.cfg, fit.theta, fit.cov[n:, n:],
                       np.asarray(fit.noise_std, dtype=np.float64))
+            # stage 2 carries the model error as the fit found it (none: q = 0), as in run
+            self.Q_x = fit_as_prior(self.system, fit, sample_interval(self.T[:self.size]),
+                                    self.q_x)[3]
         if fit.k0 > 0 or (self.sched is not None and self.T[fit.k1 - 1 - self.base]
                           > self.sched.full_window):
             self._trim(fit.k1 - 1)
@@ -311,15 +349,37 @@ class GuardedStream:
             self._resize(self.T.shape[0], cut)
             self.base = new_base
 
+    def _decide_window(self, sched: FitSchedule, prior0: tuple[FloatArray, FloatArray]
+                       ) -> None:
+        """``"auto"``: W at this sample count if the samples so far decide it (the rule of
+        :func:`~thetahat.estimation.statistical.window.resolve_window`, so that a stream's
+        W is the run's on the same samples)."""
+        k = self.k
+        if k >= self.window_max:
+            self.W = self.window_max
+        elif k in self.grid and window_reached(sched, self.T[:k], self.U[:k], self.Y[:k], k,
+                                               prior0):
+            self.W = min(max(k, WINDOW_MIN), self.window_max)
+        if self.W is not None:
+            self.at = None                      # the counts become the windowed ones
+
     def maybe_submit(self) -> None:
         sched, prior0 = self.sched, self.prior0       # prior0 is None exactly when sched is
-        if sched is None or prior0 is None or self.future is not None:
+        if sched is None or prior0 is None:
+            return
+        if self.window == "auto" and self.W is None and sched.times is None:
+            self._decide_window(sched, prior0)  # (at every count, a fit pending or not)
+        if self.future is not None:
             return
         t_last = float(self.T[self.size - 1])
         if self.k < MIN_SAMPLES:
             return
+        W = self.W
         if sched.times is None:                 # sample counts: the data so far, k_j of them
-            at = sched.sample_counts()
+            if self.at is None:
+                at = sched.sample_counts()
+                self.at = at if W is None else windowed_counts(at, W)
+            at = self.at
             if self.k < at(self.j):
                 return
             while at(self.j) <= self.k:
@@ -330,11 +390,29 @@ class GuardedStream:
             while sched.times(self.j) <= t_last + 1e-12:
                 self.j += 1
         b, k1 = self.base, self.size
-        prev = self.fits[-1] if self.fits else None
+        window = self._arrival() if W is not None and self.k > W else None
+        prev = self.fits[-1] if self.fits and window is None else None
         if prev is not None:
             prev = dataclasses.replace(prev, k0=max(prev.k0 - b, 0), k1=prev.k1 - b)
         self.submit(run_fit, self.spec, self.T[:k1].copy(), self.U[:k1].copy(),
-                    self.Y[:k1].copy(), k1, prev, prior0, t_last, b, sched.times is None)
+                    self.Y[:k1].copy(), k1, prev, prior0, t_last, b, sched.times is None,
+                    window)
+        if W is not None and self.k >= W and self.future is not None:
+            # the next window starts at this sample: stage 2's posterior here its arrival
+            # cost, the log emptied to it (the fit just handed over has its own copy)
+            self.anchor = (self.s.copy(), self.P.copy(), np.sqrt(np.diag(self.R)))
+            self._trim(self.k - 1)
+
+    def _arrival(self) -> tuple[FloatArray, FloatArray, FloatArray] | None:
+        """The arrival cost (s, P, σ) at the log's first sample: the posterior of the fit
+        that ended there when it was applied (as :meth:`GuardedEstimator.run`, which
+        re-anchors stage 2 on it), else stage 2's at the hand-over (None: no window yet)."""
+        fit = self.applied
+        if self.anchor is not None and fit is not None and fit.k1 - 1 == self.base:
+            return (np.concatenate([fit.x_end, fit.theta]),
+                    np.asarray(fit.cov_end, dtype=np.float64),
+                    np.asarray(fit.noise_std, dtype=np.float64))
+        return self.anchor
 
     def diagnostics(self) -> StreamDiagnostics:
         """The fits of this stream so far.
@@ -350,4 +428,4 @@ class GuardedStream:
                                  pending=self.future is not None and not self.future.done(),
                                  rejected=tuple(self.rejected),
                                  stage1_failed_at=self.stage1_failed_at,
-                                 stage1_message=self.stage1_message)
+                                 stage1_message=self.stage1_message, window=self.W)
