@@ -17,7 +17,9 @@ possible), four times in one run:
 The peer, measured in the same run: filterpy's EKF of the same augmented model over the same
 record (``peers.run_ekf``), each sample's predict + update timed, against ``no_fits`` (the
 work of every step; the fits run in the worker), and against the ``mle`` and joint-EKF streams
-(``lugre.estimator``), all in tight loops (a paced step's time is
+(``lugre.estimator``) and the guarded stream a user builds from ``examples/lugre.toml``
+(``model_file``: ``build_estimator``, whose stage 1 is the observer in NumPy, stepped on the
+fastest back end installed; no fits), all in tight loops (a paced step's time is
 swamped by the scheduler's wake-up), three rounds interleaved: the median ratio of their
 median steps (issue 33: ≤ 1.5). For ``no_fits`` and ``fits`` as streamed: the worst step over
 the median (≤ 50) and the median step of the last quarter over the first (flat: ≈ 1).
@@ -47,6 +49,8 @@ import os
 import time
 from pathlib import Path
 
+from dataclasses import replace
+
 import numpy as np
 import peers
 
@@ -54,6 +58,8 @@ from thetahat.estimation.statistical.guarded import GuardedEstimator
 from thetahat.estimation.statistical.map_fit import FitSchedule
 from thetahat.models import lugre
 
+#: The example model files.
+EXAMPLES = Path(__file__).resolve().parents[1] / "examples"
 #: The busy schedule: a fit due every BUSY_EVERY seconds.
 BUSY_EVERY = 0.05
 
@@ -182,6 +188,16 @@ def _cold(worker: str) -> dict:
     return json.loads(out.strip().splitlines()[-1])
 
 
+def file_stream(warm) -> GuardedEstimator:
+    """The guarded estimator of ``examples/lugre.toml`` as a user builds it (its gains chosen
+    on ``warm``), without fits."""
+    from thetahat.modelfile import build_estimator, load_model, resolve_gains
+    spec = load_model(EXAMPLES / "lugre.toml")
+    g = resolve_gains(spec, warm.t, warm.u, warm.y)
+    return replace(build_estimator(spec, method="guarded", Gamma=g.Gamma, eps=g.eps),
+                   use_fits=False)
+
+
 def main(argv=None) -> dict:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--t-end", type=float, default=20.0)
@@ -250,9 +266,10 @@ def main(argv=None) -> dict:
     # the other streams of the protocol, in the same rounds: mle (its fits in the caller:
     # the median step is between them) and the joint EKF
     others = {"no_fits": variants["no_fits"], "mle": lugre.estimator("mle"),
-              "ekf": lugre.estimator("ekf")}
+              "ekf": lugre.estimator("ekf"), "model_file": file_stream(warm)}
     tight(others["mle"], warm)
     tight(others["ekf"], warm)
+    tight(others["model_file"], warm)
     ours: dict[str, list[float]] = {name: [] for name in others}
     theirs = []
     for _ in range(3):
@@ -269,7 +286,8 @@ def main(argv=None) -> dict:
         print(f"  {name} vs filterpy's EKF, tight loops, three rounds: median step "
               f"{', '.join(f'{a:.1f}' for a in medians)} µs against "
               f"{', '.join(f'{b:.1f}' for b in theirs)} µs: ratio {ratio:.2f}"
-              + (" (issue 33: ≤ 1.5)" if name == "no_fits" else ""), flush=True)
+              + (" (issue 33: ≤ 1.5)" if name in ("no_fits", "model_file") else ""),
+              flush=True)
     quarter = traj.t.size // 4
     for name in ("no_fits", "fits"):
         r = out[name]

@@ -87,6 +87,10 @@ class StreamDiagnostics:
         Stage 1's error then ("" otherwise).
     window : int or None
         The stream's window W once decided (None: not yet, or fits of all the data).
+    stage1_backend : str
+        What steps stage 1 at the stream's first ``dt``: the class of the back end
+        (``"NativeObserver"``, the C printed from the formulas; ``"CompiledObserver"``,
+        numba's kernel) or of stage 1 itself (``"ModifiedHighGainObserver"``: its NumPy step).
     """
 
     fits: tuple[FitResult, ...]
@@ -98,6 +102,7 @@ class StreamDiagnostics:
     stage1_failed_at: int | None = None
     stage1_message: str = ""
     window: int | None = None
+    stage1_backend: str = ""
 
     @property
     def fits_rejected(self) -> int:
@@ -154,6 +159,7 @@ class GuardedStream:
         self.loop: Any = None               # its guarded loop (looked up once, not per step)
         self.read_stage1: Any = None        # its stage 1's (x̂, θ̂, x̂₂) reader (likewise)
         self.step_stage1: Any = None        # its stage 1's read and step in one call
+        self.stage1_backend = ""            # and the name of what steps it
         self.last: Any = None               # the state the last step returned
         self.k = 0
         self.s, self.P0 = s0, P0
@@ -428,4 +434,5 @@ class GuardedStream:
                                  pending=self.future is not None and not self.future.done(),
                                  rejected=tuple(self.rejected),
                                  stage1_failed_at=self.stage1_failed_at,
-                                 stage1_message=self.stage1_message, window=self.W)
+                                 stage1_message=self.stage1_message, window=self.W,
+                                 stage1_backend=self.stage1_backend)
