@@ -156,6 +156,7 @@ class CompiledObserver:
     plan: StepPlan
     _kernel: ModuleType
     _args: tuple[PlanArrays, SecondArrays, LawArrays, tuple[bool, bool]]
+    _step_tables: dict[bool, tuple[NDArray[np.int64], tuple[FloatArray, ...]]]
 
     def __init__(self, observer: ModifiedHighGainObserver, *, dt: float) -> None:
         _require_numba()
@@ -172,7 +173,8 @@ class CompiledObserver:
                                law_size=parts.law_size)
         for name, value in (("observer", observer), ("dt", h), ("theta_star", ts),
                             ("plan", plan), ("_kernel", _load(source)),
-                            ("_args", kernel_arrays(parts, plan))):
+                            ("_args", kernel_arrays(parts, plan)),
+                            ("_step_tables", {})):
             object.__setattr__(self, name, value)
 
     @property
@@ -247,8 +249,13 @@ class CompiledObserver:
         # kernel has one entry point to compile
         ok = np.array([present, True])
         S, PHI = np.empty((2, lay.size)), np.empty((2, lay.k))
+        # the φ-matrices of a step of dt, with the sample present or not: two tables, made
+        # once (read only: each call loads them into its own buffers)
+        table = self._step_tables.get(present)
+        if table is None:
+            table = self._step_tables[present] = phi_table(obs, np.array([self.dt]), ok[:1])
         status, _ = self._call(s, np.stack((u_, u_)), np.stack((y_, y_)),
-                               np.array([self.dt]), ok, False, S, PHI)
+                               np.array([self.dt]), ok, False, S, PHI, table)
         out = S[1]
         if status == 0 and float(out @ out) <= DIVERGENCE_BOUND ** 2:
             return out
@@ -305,10 +312,12 @@ class CompiledObserver:
         return (*self.observer.read_estimates(state, u, y), self.step(state, u, y, dt))
 
     def _call(self, s0: FloatArray, U: FloatArray, Y: FloatArray, dts: FloatArray,
-              ok: NDArray[np.bool_], foh: bool, S: FloatArray, PHI: FloatArray
+              ok: NDArray[np.bool_], foh: bool, S: FloatArray, PHI: FloatArray,
+              table: tuple[NDArray[np.int64], tuple[FloatArray, ...]] | None = None
               ) -> tuple[int, int]:
-        """The kernel over one piece of a record (the φ-matrices of its step lengths)."""
-        plan_of, PH = phi_table(self.observer, dts, ok[:-1])
+        """The kernel over one piece of a record (the φ-matrices of its step lengths:
+        ``table``, else :func:`phi_table` of ``dts``)."""
+        plan_of, PH = phi_table(self.observer, dts, ok[:-1]) if table is None else table
         P, P2, LP, flags = self._args
         W, rows, (Q1, Q2, R1, R2) = _scratch(self.observer.layout)
         # the φ-matrices are loaded into this thread's buffers: the shared arrays stay read
