@@ -15,9 +15,9 @@ samples so far at the counts where :meth:`GuardedEstimator.run` would decide it 
 the fits past W samples are those of the log's samples since the previous fit, every W
 samples, with the posterior at the window's first sample as arrival cost: that of the
 previous fit, which ended there, when it was applied (as ``run`` re-anchors on it), else
-stage 2's when that fit was handed over; the log is emptied to that sample at each hand-over. It then holds at most W + 1 samples, plus those
-stepped while a fit is still running: memory and each fit's work no longer grow with the
-stream.
+stage 2's when that fit was handed over; the log is emptied to that sample at each
+hand-over. It then holds at most W + 1 samples, plus those stepped while a fit is still
+running: memory and each fit's work no longer grow with the stream.
 
 What it may import: the package's errors, and, in this room, ``common``, ``fit_worker``,
 ``input_hold``, ``map_fit``, ``noise_level``, ``plant_kernel``, ``stage2_set`` and ``window``;
@@ -47,7 +47,7 @@ from .map_fit import FitResult, FitSchedule, fit_as_prior
 from .noise_level import MIN_SAMPLES
 from .plant_kernel import H_RHO, Propagation
 from .stage2_set import stage2_set
-from .window import WINDOW_MAX, WINDOW_MIN, window_grid, window_reached, windowed_counts
+from .window import WINDOW_MAX, stream_window, window_grid, windowed_counts
 
 __all__ = ["GuardedStream", "LOG_CAPACITY", "SIGMA_SAMPLES", "StreamDiagnostics"]
 
@@ -360,12 +360,8 @@ class GuardedStream:
         """``"auto"``: W at this sample count if the samples so far decide it (the rule of
         :func:`~thetahat.estimation.statistical.window.resolve_window`, so that a stream's
         W is the run's on the same samples)."""
-        k = self.k
-        if k >= self.window_max:
-            self.W = self.window_max
-        elif k in self.grid and window_reached(sched, self.T[:k], self.U[:k], self.Y[:k], k,
-                                               prior0):
-            self.W = min(max(k, WINDOW_MIN), self.window_max)
+        self.W = stream_window(sched, self.T, self.U, self.Y, self.k, prior0, self.window_max,
+                               self.grid)
         if self.W is not None:
             self.at = None                      # the counts become the windowed ones
 

@@ -50,8 +50,8 @@ from .noise_level import MIN_SAMPLES
 from .plant_kernel import Propagation, choose_substeps, model_kernel
 from .sweep import sweep_kernel
 from .stage2_set import stage2_set
-from .window import (WINDOW_MAX, WINDOW_MIN, check_window, fit_window, resolve_window,
-                     window_grid, window_reached, windowed, windowed_counts)
+from .window import (WINDOW_MAX, check_window, fit_window, resolve_window,
+                     stream_window, window_grid, windowed, windowed_counts)
 
 __all__ = ["MapDiagnostics", "MapEstimator", "MapState", "fit_stop"]
 
@@ -471,12 +471,8 @@ class MapEstimator:
             return state.window
         if self.window != "auto":
             return int(self.window)
-        if k1 >= self.window_max:
-            return self.window_max
-        if k1 in window_grid(self.system, self.window_max) and window_reached(
-                sched, log.T[:k1], log.U[:k1], log.Y[:k1], k1, prior0):
-            return min(max(k1, WINDOW_MIN), self.window_max)
-        return None
+        return stream_window(sched, log.T, log.U, log.Y, k1, prior0, self.window_max,
+                             window_grid(self.system, self.window_max))
 
     def _stream_fit(self, sched: FitSchedule, log: _MapLog, k1: int, fits: list[FitResult],
                     ends: list[int], prior0: tuple[FloatArray, FloatArray], W: int | None

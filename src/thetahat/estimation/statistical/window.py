@@ -33,7 +33,7 @@ What it may import: :mod:`thetahat.model`, the package's errors and, in this roo
 from __future__ import annotations
 
 import math
-from typing import Callable
+from typing import Callable, Collection
 
 import numpy as np
 from numpy.typing import NDArray
@@ -46,7 +46,8 @@ from .plant_kernel import Propagation, model_kernel
 from .sweep import sweep_kernel
 
 __all__ = ["ARRIVAL_FLOOR", "Anchor", "WINDOW_INFO_GAIN", "WINDOW_MAX", "WINDOW_MIN",
-           "arrival_information", "check_window", "fit_window", "resolve_window", "window_grid",
+           "arrival_information", "check_window", "fit_window", "resolve_window", "stream_window",
+           "window_grid",
            "window_reached", "windowed", "windowed_counts"]
 
 FloatArray = NDArray[np.float64]
@@ -212,6 +213,35 @@ def resolve_window(window: int | str | None, window_max: int, schedule: FitSched
         if window_reached(schedule, t, U, Y, g, prior0):
             return min(max(g, WINDOW_MIN), window_max)
     return window_max if N >= window_max else None
+
+
+def stream_window(schedule: FitSchedule, t: FloatArray, U: FloatArray, Y: FloatArray, k: int,
+                  prior0: tuple[FloatArray, FloatArray], window_max: int,
+                  grid: Collection[int]) -> int | None:
+    """The ``"auto"`` window W a stream decides at sample count k, or None (not yet): the rule
+    of :func:`resolve_window` applied to the samples so far, so that a stream's W is the
+    run's on the same samples.
+
+    Parameters
+    ----------
+    schedule, prior0
+        As for :func:`window_reached`.
+    t, U, Y : ndarray, shapes (N,), (N, m), (N, r)
+        N ≥ k: the stream's samples so far.
+    k : int
+    window_max : int
+    grid : collection of int
+        :func:`window_grid` of the model and ``window_max``.
+
+    Returns
+    -------
+    int or None
+    """
+    if k >= window_max:
+        return window_max
+    if k in grid and window_reached(schedule, t[:k], U[:k], Y[:k], k, prior0):
+        return min(max(k, WINDOW_MIN), window_max)
+    return None
 
 
 def windowed(ks: list[int], W: int | None) -> list[int]:
