@@ -6,10 +6,10 @@ back end :func:`thetahat.estimation.drive.runner` picks for the stream's first d
 printed from the formulas, else numba's kernel) and on the observer's own step at any other
 dt. Asserted on LuGre, three other shipped models and the two measured records: the back end
 is the one :func:`~thetahat.estimation.drive.runner` picks (never NumPy with numba installed,
-which takes every law; without it the C declines some, e.g. the measured records'), and every
-row of the stream (stage 1's θ̂ and the guarded
-θ̂ and x̂) is the one of the same stream with stage 1 in NumPy, through a step of another
-length in the middle.
+whose kernel takes the laws of these six files, though not every configuration; without numba
+the C declines some, e.g. the measured records'), and every row of the stream (stage 1's θ̂
+and the guarded θ̂ and x̂) is the one of the same stream with stage 1 in NumPy, through a step
+of another length in the middle.
 """
 
 from __future__ import annotations
