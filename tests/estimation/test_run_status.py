@@ -121,6 +121,25 @@ def test_a_failing_map_estimator_reports_where_and_why(name, where):
     assert all(e < k for e in res.diagnostics.fit_samples)
 
 
+@pytest.mark.parametrize("compiled", [True, False])
+def test_g_undefined_at_the_start_is_said_alike_on_every_back_end(compiled):
+    """The wheel's g divides by the speed V; x̂(0) = 0 puts it at a pole. The compiled
+    kernels follow NumPy's arithmetic there (inf, then the run's own finiteness check), so both
+    back ends stop at t[0] with the same NonFiniteError naming x_hat0 — the compiled one used
+    to raise a bare ZeroDivisionError from inside the kernel."""
+    if compiled:
+        pytest.importorskip("numba")
+    spec, t, U, Y = _record("wheel")
+    est = MapEstimator(system=spec.system, compiled=compiled)
+    st0 = est.init(x_hat0=np.zeros(spec.system.n), theta_hat0=spec.estimator.theta_hat0)
+    with _np_quiet():
+        res = est.run(t, U, Y, state0=st0, throw=False)
+        assert _stopped_as_said(res, Status.DIVERGED) == 0
+        _raises_the_same(lambda: est.run(t, U, Y, state0=st0), res)
+    assert res.message.startswith("φ̂ = g(v, x̂, θ̂) is not finite at t[0]")
+    assert "x_hat0" in res.message
+
+
 @pytest.mark.parametrize("name", ["prop3", "heater", "actuator"])
 def test_a_map_fit_whose_information_is_not_a_number_is_singular(name):
     """1/σ² overflows: the first fit's information cannot be decomposed. SINGULAR at the fit's

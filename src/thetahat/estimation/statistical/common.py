@@ -411,10 +411,20 @@ def stopped_result(*, t: FloatArray, x_hat: FloatArray, theta_hat: FloatArray,
                 & np.isfinite(phi_hat[:rows]).all(axis=1))
     if bad.any():
         k = int(np.argmax(bad))
-        stop = RunStop(Status.DIVERGED, f"the estimates are not finite from t[{k}] = "
-                       f"{float(t[k]):.6g} on (x̂, θ̂ or φ̂ = g(v, x̂, θ̂) overflows there): the "
-                       "data lie beyond what the model's arithmetic takes (rescale the units of "
-                       "u and y) or the run diverged.", k)
+        if np.isfinite(x_hat[k]).all() and np.isfinite(theta_hat[k]).all():
+            # g itself is undefined there (a division by zero, a log of a negative number)
+            where = (f"φ̂ = g(v, x̂, θ̂) is not finite at t[{k}] = {float(t[k]):.6g}, at finite "
+                     f"x̂ = {np.array2string(x_hat[k], precision=4)} and θ̂ = "
+                     f"{np.array2string(theta_hat[k], precision=4)}: g is undefined or "
+                     "overflows there")
+            advice = ("start x̂ where g is defined (x_hat0)" if k == 0 else
+                      "check g's domain against the data, or rescale the units of u and y")
+            stop = RunStop(Status.DIVERGED, f"{where}; {advice}.", k)
+        else:
+            stop = RunStop(Status.DIVERGED, f"the estimates are not finite from t[{k}] = "
+                           f"{float(t[k]):.6g} on (x̂ or θ̂ overflows there): the data lie "
+                           "beyond what the model's arithmetic takes (rescale the units of u "
+                           "and y) or the run diverged.", k)
     if stop is None:
         return EstimateResult(t=t, x_hat=x_hat, theta_hat=theta_hat, phi_hat=phi_hat,
                               skipped=skipped, diagnostics=diagnostics)

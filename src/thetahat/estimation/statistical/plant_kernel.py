@@ -113,8 +113,10 @@ ACCURACY_SAMPLES = 4096
 #: The free run is compared while it stays within this many times the data's range of it.
 RANGE_FACTOR = 10.0
 #: The decorator of the printed kernels when compiled (nogil: a fit on a worker thread runs
-#: alongside the caller).
-NJIT = "@numba.njit(nogil=True, cache=True)"
+#: alongside the caller; error_model='numpy': a division by zero gives inf or NaN, as the
+#: NumPy back end does, for the runs' own finiteness checks to report — numba's default raises
+#: a bare ZeroDivisionError from inside the kernel).
+NJIT = "@numba.njit(nogil=True, cache=True, error_model='numpy')"
 
 
 def have_numba() -> bool:
