@@ -15,7 +15,8 @@ log-log slope of total seconds against N (1: linear) and of the longest fit agai
 bounded).
 
 ``--efficiency``: per model file, ``--seeds`` runs of its ``[scenario]``
-(``thetahat.modelfile.simulate_model``) by the MAP estimator with and without the window:
+(``thetahat.modelfile.simulate_model``) by the MAP estimator with and without the window,
+x̂(0) as the model-file path starts it (``start_x_hat``: from the first outputs):
 the RMSE of θ̂ over the last half ÷ √(mean Cramér–Rao bound there, x(0) unknown), per
 component, and the ratio window ÷ all the data (the same records: the window's own loss).
 
@@ -93,7 +94,7 @@ def efficiency(models: list[str], seeds: int) -> None:
     """The efficiency table (module docstring)."""
     import thetahat
     from thetahat.estimation.statistical.mle import MapEstimator
-    from thetahat.modelfile import load_model, simulate_model
+    from thetahat.modelfile import load_model, simulate_model, start_x_hat
     for name in models:
         spec = load_model(EXAMPLES / f"{name}.toml")
         sc = spec.scenario
@@ -109,7 +110,7 @@ def efficiency(models: list[str], seeds: int) -> None:
             for seed in range(seeds):
                 d = simulate_model(spec, seed)
                 res = est.run(d.t, np.asarray(d.u), np.asarray(d.y),
-                              state0=est.init(x_hat0=spec.estimator.x_hat0,
+                              state0=est.init(x_hat0=start_x_hat(spec, np.asarray(d.y)),
                                               theta_hat0=spec.estimator.theta_hat0))
                 errs.append(res.theta_hat[N // 2:] - sc.theta)
                 W = max(f.k1 for f in res.diagnostics.fits if f.k0 == 0)
