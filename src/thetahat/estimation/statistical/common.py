@@ -415,8 +415,8 @@ def stopped_result(*, t: FloatArray, x_hat: FloatArray, theta_hat: FloatArray,
             # g itself is undefined there (a division by zero, a log of a negative number)
             where = (f"φ̂ = g(v, x̂, θ̂) is not finite at t[{k}] = {float(t[k]):.6g}, at finite "
                      f"x̂ = {np.array2string(x_hat[k], precision=4)} and θ̂ = "
-                     f"{np.array2string(theta_hat[k], precision=4)}: g is undefined or "
-                     "overflows there")
+                     f"{np.array2string(theta_hat[k], precision=4)}: g has no finite value "
+                     "there")
             advice = ("start x̂ where g is defined (x_hat0)" if k == 0 else
                       "check g's domain against the data, or rescale the units of u and y")
             stop = RunStop(Status.DIVERGED, f"{where}; {advice}.", k)
