@@ -58,7 +58,8 @@ from .guard import (GUARD_C, GUARD_DWELL, GUARD_KAPPA, GUARD_RHO_MAX, guarded_lo
                     progress_init)
 from .guarded_stream import SIGMA_SAMPLES, GuardedStream, StreamDiagnostics
 from .input_hold import stage2_samples, streamable
-from .map_fit import REJECT_STEP_SE, FitResult, FitSchedule, fit_as_prior, fit_record
+from .map_fit import (REJECT_STEP_SE, FitResult, FitSchedule, fit_as_prior, fit_record,
+                      why_not_applied)
 from .noise_level import MIN_SAMPLES
 from .plant_kernel import H_RHO, Propagation, choose_substeps, printed_kernels
 from .stage2_set import stage2_set
@@ -793,9 +794,7 @@ class _OfflineRun:
             return
         self.fits.append(fit)
         self.fit_at.append(k1 - 1)
-        why = (fit.rejection(self.applied) if fit.consistent
-               else f"the fit of samples {fit.k0}…{fit.k1 - 1} is not consistent with the "
-                    f"noise (cost {fit.cost:.3g} per measurement)")
+        why = why_not_applied(fit, self.applied)
         if why is not None:
             self.rejected.append(why)
         else:

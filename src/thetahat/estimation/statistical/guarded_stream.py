@@ -43,7 +43,7 @@ from .common import resolve_noise_std, sample_interval
 from .fit_worker import default_executor, discard_default_executor, fit_spec, run_fit, warm_up
 from .guard import apply_fit
 from .input_hold import InputHistory
-from .map_fit import FitResult, FitSchedule, fit_as_prior
+from .map_fit import FitResult, FitSchedule, fit_as_prior, why_not_applied
 from .noise_level import MIN_SAMPLES
 from .plant_kernel import H_RHO, Propagation
 from .stage2_set import stage2_set
@@ -331,9 +331,7 @@ class GuardedStream:
         self.fits.append(fit)
         self.fit_samples.append((fit.k1 - 1, self.k))
         self.fit_seconds.append(done.seconds)
-        why = (fit.rejection(self.applied) if fit.consistent
-               else f"the fit of samples {fit.k0}…{fit.k1 - 1} is not consistent with the "
-                    f"noise (cost {fit.cost:.3g} per measurement)")
+        why = why_not_applied(fit, self.applied)
         if why is not None:
             self.rejected.append(why)
         else:                                   # θ only: x has moved on since the fit

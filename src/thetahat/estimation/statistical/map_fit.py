@@ -65,7 +65,7 @@ if TYPE_CHECKING:
 __all__ = ["FitResult", "FitSchedule", "INFO_GROWTH", "MAX_BURST_FRACTION", "MAX_HALVINGS",
            "Q_SEARCH_GROWTH", "REJECT_SE_GROWTH", "REJECT_STEP_SE", "STEP_TOL", "doubling_schedule",
            "first_fit_samples", "fit_as_prior", "fit_map", "fit_record", "information_schedule",
-           "solve_scaled"]
+           "solve_scaled", "why_not_applied"]
 
 FloatArray = NDArray[np.float64]
 
@@ -812,6 +812,42 @@ def _with_process_noise(schedule: FitSchedule, t: FloatArray, U: FloatArray, Y: 
                            substeps=schedule.noise_substeps, h_rho=schedule.h_rho,
                            compiled=schedule.compiled)
     return FitResult.of_process_noise(pf, k1, x_hat0, x_sd)
+
+
+def why_not_applied(fit: FitResult, applied: FitResult | None) -> str | None:
+    """Why stage 2 must not take a fit, or None: the one rule of the guarded estimator's fits
+    and of the MAP estimator's window fits.
+
+    Not applied: a fit whose residuals are not those of the noise model
+    (:attr:`FitResult.consistent`; an output-error fit of a record with model error), or one
+    :meth:`FitResult.rejection` refuses against ``applied`` (non-finite, not converged,
+    standard errors grown by orders of magnitude).
+
+    Parameters
+    ----------
+    fit : FitResult
+    applied : FitResult or None
+        The last fit applied.
+
+    Returns
+    -------
+    str or None
+        One sentence naming the samples and the numbers.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from thetahat.estimation.statistical.map_fit import FitResult, why_not_applied
+    >>> fit = FitResult(k0=0, k1=100, x_start=np.zeros(1), x_end=np.zeros(1),
+    ...                 theta=np.ones(1), cov=np.eye(2), cov_end=np.eye(2), cost=9.0,
+    ...                 iterations=3, noise_std=np.ones(1), n_meas=100)
+    >>> why_not_applied(fit, None)
+    'the fit of samples 0…99 is not consistent with the noise (cost 9 per measurement)'
+    """
+    if not fit.consistent:
+        return (f"the fit of samples {fit.k0}…{fit.k1 - 1} is not consistent with the noise "
+                f"(cost {fit.cost:.3g} per measurement)")
+    return fit.rejection(applied)
 
 
 def fit_as_prior(system: PerturbedLinearSystem, fit: FitResult, h: float, q_x: float = 0.0

@@ -27,13 +27,14 @@ from __future__ import annotations
 
 import bisect
 import math
+import warnings
 from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from ...errors import NonFiniteError, OptionError, StateError
+from ...errors import NonFiniteError, OptionError, StateError, ThetahatWarning
 from ...model.system import PerturbedLinearSystem
 from ...progress import FitProgress
 from ..protocol import (Diagnostics, EstimateResult, check_state, missing_samples,
@@ -45,7 +46,8 @@ from .common import (RunStop, model_phi_hat, resolve_noise_std, sample_interval,
 from .ekf_kernels import divergence_message, ekf_kernels, ekf_sample
 from ..hold import check_hold
 from .input_hold import InputHistory, stage2_samples, streamable
-from .map_fit import INFO_GROWTH, FitResult, FitSchedule, fit_as_prior, fit_record
+from .map_fit import (INFO_GROWTH, FitResult, FitSchedule, fit_as_prior, fit_record,
+                      why_not_applied)
 from .noise_level import MIN_SAMPLES
 from .plant_kernel import Propagation, choose_substeps, model_kernel
 from .sweep import sweep_kernel
@@ -71,12 +73,17 @@ class MapDiagnostics(Diagnostics):
         The sample at which each fit's window ends.
     substeps : int
         The RK4 sub-steps' accuracy floor of the run.
+    rejected : tuple of str
+        The window fits that came back but were not applied, one sentence each
+        (:func:`~.map_fit.why_not_applied`; the rows after them are the EKF's, carried on from
+        the last fit applied). Fits of all the data are always applied.
     """
 
     theta_sd: FloatArray
     fits: tuple[FitResult, ...]
     fit_samples: NDArray[np.int64]
     substeps: int = 1
+    rejected: tuple[str, ...] = ()
 
     @property
     def fit_cost(self) -> FloatArray:
@@ -162,6 +169,11 @@ class MapState:
         The RK4 sub-steps' accuracy floor of the latest fit applied (1 before).
     window : int or None
         The stream's window W once decided (None: not yet, or fits of all the data).
+    anchor : tuple or None
+        With a window: (k0, col(x̂, θ̂), P, σ) at the sample where the next window starts (the
+        last fit applied's posterior, or the EKF's where a window fit was not applied).
+    rejected : tuple of str
+        The window fits not applied (:attr:`MapDiagnostics.rejected`).
     """
 
     x_hat0: FloatArray
@@ -182,9 +194,33 @@ class MapState:
     Q_x: FloatArray | None = None
     substeps: int = 1
     window: int | None = None
+    anchor: tuple[int, FloatArray, FloatArray, FloatArray] | None = None
+    rejected: tuple[str, ...] = ()
 
     def __repr__(self) -> str:
         return (f"MapState(k={self.k}, theta_hat={self.theta_hat}, fits={len(self.fits)})")
+
+
+@dataclass(frozen=True, slots=True)
+class _Carry:
+    """The EKF carried on from the last fit applied past window fits that were not: the next
+    sample k, col(x̂, θ̂) and P at k − 1 (advanced in place), and the fit's R and Q_x."""
+
+    k: int
+    s: FloatArray
+    P: FloatArray
+    R: FloatArray
+    Q_x: FloatArray
+
+
+def warn_rejected(where: str, rejected: list[str], total: int) -> None:
+    """One warning for the window fits not applied (:attr:`MapDiagnostics.rejected`)."""
+    warnings.warn(f"{where}: {len(rejected)} of {total} fits were not applied (the first: "
+                  f"{rejected[0]}). The window's fits are output-error fits of W samples; on "
+                  "a record the model does not explain without process noise they are "
+                  "inconsistent, and θ̂ after them is the EKF's, carried on from the last fit "
+                  "applied. window=None fits all the data, with process noise where the "
+                  "output-error fit is inconsistent.", ThetahatWarning, stacklevel=3)
 
 
 @dataclass(frozen=True, slots=True, eq=False)
@@ -425,15 +461,27 @@ class MapEstimator:
         x, th, sd = state.x_hat, state.theta_hat, state.theta_sd
         P, R, Q_x = state.P, state.R, state.Q_x
         nsub = state.substeps
-        fitted = False
+        fitted = refused = False
+        anchor, rejected = state.anchor, state.rejected
         if due and k1 >= self._min_samples():   # a fit: its estimates replace this sample's
-            fit = self._stream_fit(sched, log, k1, fits, ends, prior0, W)
-            fits.append(fit)
-            ends.append(state.k)
-            x, th, sd = fit.x_end, fit.theta, fit.theta_se
-            _, P, R, Q_x = fit_as_prior(sys_, fit, sample_interval(log.T[:log.size]))
-            nsub = fit.substeps
-            fitted = True
+            windowed_fit = W is not None and k1 > W and anchor is not None
+            fit = self._stream_fit(sched, log, k1, fits, prior0,
+                                   anchor if windowed_fit else None)
+            why = why_not_applied(fit, fits[-1] if fits else None) if windowed_fit else None
+            if why is None:
+                fits.append(fit)
+                ends.append(state.k)
+                x, th, sd = fit.x_end, fit.theta, fit.theta_se
+                _, P, R, Q_x = fit_as_prior(sys_, fit, sample_interval(log.T[:log.size]))
+                nsub = fit.substeps
+                fitted = True
+                if W is not None:
+                    anchor = (state.k, np.concatenate([fit.x_end, fit.theta]), fit.cov_end,
+                              fit.noise_std)
+            else:                               # the EKF steps this sample (below)
+                if not rejected:                # once a stream: the first, as it happens
+                    warn_rejected("MapEstimator.step", [why], len(fits) + 1)
+                rejected, refused = rejected + (why,), True
             if W is not None and k1 >= W:       # the next window starts here
                 log.trim(state.k)
         prop = Propagation(hold=self.hold, substeps=nsub, h_rho=sched.h_rho)
@@ -447,6 +495,8 @@ class MapEstimator:
                        Q_x, R,
                        state.k)
             x, th, sd = s_[:n], s_[n:], np.sqrt(np.maximum(np.diag(P)[n:], 0.0))
+            if refused:                         # the next window's arrival cost
+                anchor = (state.k, s_.copy(), P.copy(), fits[-1].noise_std)
         elif state.k > 0:                       # no fit yet: the model from θ̂(0)
             model = model_kernel(sys_, compiled=self.compiled)
             pc, WT = prop.arrays()
@@ -459,7 +509,8 @@ class MapEstimator:
                             x_hat=np.array(x), theta_hat=np.array(th), theta_sd=np.array(sd),
                             k=state.k + 1, elapsed=elapsed, j=j, fits=tuple(fits),
                             fit_samples=tuple(ends), dt_prev=h, log=log, u_history=u_hist,
-                            P=P, R=R, Q_x=Q_x, substeps=nsub, window=W)
+                            P=P, R=R, Q_x=Q_x, substeps=nsub, window=W, anchor=anchor,
+                            rejected=rejected)
         return log.last
 
     def _stream_window(self, state: MapState, sched: FitSchedule, log: _MapLog, k1: int,
@@ -475,17 +526,18 @@ class MapEstimator:
                              window_grid(self.system, self.window_max))
 
     def _stream_fit(self, sched: FitSchedule, log: _MapLog, k1: int, fits: list[FitResult],
-                    ends: list[int], prior0: tuple[FloatArray, FloatArray], W: int | None
+                    prior0: tuple[FloatArray, FloatArray],
+                    anchor: tuple[int, FloatArray, FloatArray, FloatArray] | None
                     ) -> FitResult:
         """The fit due at sample count k1 of a stream: of all its data, or of its window (the
-        log's samples since the previous fit, with that fit's posterior as arrival cost)."""
+        log's samples since ``anchor``'s, with its (s, P, σ) as arrival cost)."""
         prev = fits[-1] if fits else None
         n = log.size
-        if W is not None and k1 > W and prev is not None:
-            k0 = ends[-1]
+        if anchor is not None:
+            k0 = anchor[0]
             fit = fit_window(sched, log.T[:n], log.U[:n], log.Y[:n], k0=k0 - log.offset,
-                             k1=k1 - log.offset, s0=np.concatenate([prev.x_end, prev.theta]),
-                             P0=prev.cov_end, noise_std=prev.noise_std)
+                             k1=k1 - log.offset, s0=anchor[1], P0=anchor[2],
+                             noise_std=anchor[3])
             return replace(fit, k0=k0, k1=k1)
         if self._by_times:
             return sched.fit(log.T[:k1], log.U[:k1], log.Y[:k1], k1, prev, prior0)
@@ -552,7 +604,7 @@ class MapEstimator:
         # the stream's rule: the sub-steps as given (1 by default), not the record's choice
         W = resolve_window(self.window, self.window_max, replace(sched, substeps=self.substeps),
                            t_, U, Y, sched.initial_prior(st0.x_hat0, st0.theta_hat0))
-        fits, ends, stop = self._fits(sched, t_, U, Y, st0, False, fit_progress, W)
+        fits, ends, stop, rejected = self._fits(sched, t_, U, Y, st0, False, fit_progress, W)
         TH = np.empty((N, p))
         SD = np.empty((N, p))
         TH[:] = st0.theta_hat0
@@ -566,7 +618,10 @@ class MapEstimator:
         diag = MapDiagnostics(theta_sd=SD, fits=tuple(fits),
                               fit_samples=np.array(ends, dtype=np.int64),
                               substeps=max([sched.substeps or 1]
-                                           + [f.substeps for f in fits]))
+                                           + [f.substeps for f in fits]),
+                              rejected=tuple(rejected))
+        if rejected:
+            warn_rejected("MapEstimator.run", rejected, len(rejected) + len(fits))
         res = stopped_result(t=t_, x_hat=X, theta_hat=TH,
                              phi_hat=model_phi_hat(sys_, U_raw, Y, X, TH, stop),
                              skipped=missing_samples(Y), diagnostics=diag, stop=stop,
@@ -575,14 +630,22 @@ class MapEstimator:
 
     def _fits(self, sched: FitSchedule, t: FloatArray, U: FloatArray, Y: FloatArray,
               st0: MapState, throw: bool, fit_progress: FitProgress | None = None,
-              W: int | None = None) -> tuple[list[FitResult], list[int], RunStop | None]:
-        """The scheduled fits of a record, in order, until one fails: (fits, their last
-        samples, the failure or None). With ``throw`` a fit's error is raised at once.
-        ``fit_progress(done, total)`` before the first fit and after each (see :meth:`run`).
-        With a window W, the fits past W are of the samples since the previous fit."""
+              W: int | None = None
+              ) -> tuple[list[FitResult], list[int], RunStop | None, list[str]]:
+        """The scheduled fits of a record, in order, until one fails: (fits applied, their
+        last samples, the failure or None, why the others were not applied). With ``throw`` a
+        fit's error is raised at once. ``fit_progress(done, total)`` before the first fit and
+        after each (see :meth:`run`). With a window W, the fits past W are of the samples
+        since the previous fit, with its posterior as arrival cost; a window fit that
+        :func:`~.map_fit.why_not_applied` refuses is not applied, and the next window's
+        arrival cost is then the EKF's posterior at its end (the EKF carried on from the last
+        fit applied, as the rows are)."""
         prior0 = sched.initial_prior(st0.x_hat0, st0.theta_hat0)
         fits: list[FitResult] = []
         ends: list[int] = []
+        rejected: list[str] = []
+        anchor: tuple[int, FloatArray, FloatArray, FloatArray] | None = None
+        carry: _Carry | None = None
         ks = windowed(self.fit_samples(t), W)
         if fit_progress is not None:
             fit_progress(0, len(ks))
@@ -592,11 +655,11 @@ class MapEstimator:
             if not self._by_times and last and prev is not None:
                 # the record's own fit: iterate to convergence, not to the warm-start budget
                 sched = replace(sched, max_iter=sched.first_max_iter)
+            windowed_fit = W is not None and k1 > W and anchor is not None
             try:
-                if W is not None and k1 > W and prev is not None:
-                    fit = fit_window(sched, t, U, Y, k0=ends[-1], k1=k1,
-                                     s0=np.concatenate([prev.x_end, prev.theta]),
-                                     P0=prev.cov_end, noise_std=prev.noise_std, final=last)
+                if windowed_fit and anchor is not None:
+                    fit = fit_window(sched, t, U, Y, k0=anchor[0], k1=k1, s0=anchor[1],
+                                     P0=anchor[2], noise_std=anchor[3], final=last)
                 elif self._by_times:
                     fit = sched.fit(t, U, Y, k1, prev, prior0)
                 else:
@@ -612,17 +675,54 @@ class MapEstimator:
                                "model's trajectory is not finite from these start values, or "
                                "the record does not determine (x(0), θ): check the model, "
                                "theta_hat0 and noise_std.", k1 - 1)
+            why = why_not_applied(fit, prev) if stop is None and windowed_fit else None
+            if why is not None and prev is not None:
+                # not applied: the next window starts here from the EKF's posterior
+                carry, stop = self._carry(sched, t, U, Y, prev, ends[-1], carry, k1)
+                if stop is None:
+                    rejected.append(why)
+                    anchor = (k1 - 1, carry.s.copy(), carry.P.copy(), prev.noise_std)
             if stop is not None:
                 if throw:
                     raise stop.error()
                 if fit_progress is not None:    # the run stops here: no fit is left
                     fit_progress(len(ks), len(ks))
-                return fits, ends, stop
-            fits.append(fit)
-            ends.append(k1 - 1)
+                return fits, ends, stop, rejected
+            if why is None:
+                fits.append(fit)
+                ends.append(k1 - 1)
+                carry = None
+                if W is not None:
+                    anchor = (k1 - 1, np.concatenate([fit.x_end, fit.theta]), fit.cov_end,
+                              fit.noise_std)
             if fit_progress is not None:
                 fit_progress(i + 1, len(ks))
-        return fits, ends, None
+        return fits, ends, None, rejected
+
+    def _carry(self, sched: FitSchedule, t: FloatArray, U: FloatArray, Y: FloatArray,
+               fit: FitResult, e: int, carry: _Carry | None, k1: int
+               ) -> tuple[_Carry, RunStop | None]:
+        """The EKF from ``fit`` (applied at sample e), or on from ``carry``, through sample
+        k1 − 1: what :meth:`_between_fits` computes for those rows (the same kernel and
+        arguments), kept for the arrival cost of the window that starts there."""
+        sys_ = self.system
+        if carry is None:
+            s, P, R, Q_x = fit_as_prior(sys_, fit, sample_interval(t[fit.k0:e + 1]))
+            carry = _Carry(k=e + 1, s=s, P=np.array(P, dtype=np.float64, order="C"), R=R,
+                           Q_x=Q_x)
+        N, n, p = t.shape[0], sys_.n, sys_.p
+        if carry.k >= k1:
+            return carry, None
+        kern = ekf_kernels(sys_, compiled=self.compiled)
+        ts = stage2_set(sys_.require_parameter_set("the MAP estimator"))
+        pc, WT = Propagation(hold=sched.hold, substeps=fit.substeps, h_rho=sched.h_rho).arrays()
+        X, TH, SD, nis = np.empty((N, n)), np.empty((N, p)), np.empty((N, p)), np.full(N, np.nan)
+        bad = kern.loop(carry.s, carry.P, U, Y, t, carry.k, k1, carry.R, ts.lo, ts.hi, ts.ell,
+                        pc, WT, carry.Q_x, X, TH, SD, nis)
+        carry = replace(carry, k=k1)
+        if bad >= 0:
+            return carry, RunStop(Status.DIVERGED, divergence_message(t, bad, nis, sys_.r), bad)
+        return carry, None
 
     def _first_predictions(self, sched: FitSchedule, t: FloatArray, U: FloatArray,
                            Y: FloatArray, st0: MapState, k1: int) -> FloatArray:
