@@ -422,7 +422,7 @@ def _innovation_substeps(pb: _Problem, theta: FloatArray, q: float,
         NU = replace(head, prop=prop).filter(theta, q)[0]
         return np.where(head.valid, NU, 0.0)     # a missing output: no innovation to compare
 
-    return doubling_floor(run, N, threads=difference_threads(2) if pb.compiled else 1)
+    return doubling_floor(run, N)
 
 
 def innovation_substeps(system: PerturbedLinearSystem, t: FloatArray, U: FloatArray,
@@ -548,13 +548,8 @@ class _Differences:
         self.pb, self.q, self.lo, self.hi = pb, q, lo, hi
         eps = float(np.finfo(np.float64).eps)
         scale = np.maximum(np.abs(theta), 1e-2 * (hi - lo))
-        moved = np.minimum(theta + 64.0 * eps * scale, hi)
-        if pb.compiled and difference_threads(2) > 1:     # two passes at once: same numbers
-            with ThreadPoolExecutor(max_workers=2) as pool:
-                later = pool.submit(pb.residuals, moved, q)
-                r0, r1 = pb.residuals(theta, q), later.result()
-        else:
-            r0, r1 = pb.residuals(theta, q), pb.residuals(moved, q)
+        r0 = pb.residuals(theta, q)
+        r1 = pb.residuals(np.minimum(theta + 64.0 * eps * scale, hi), q)
         norm = float(np.linalg.norm(r0))
         eta = float(np.linalg.norm(r1 - r0)) / norm if norm > 0.0 else eps
         self.noise = min(max(eta, eps), NOISE_MAX) if math.isfinite(eta) else NOISE_MAX

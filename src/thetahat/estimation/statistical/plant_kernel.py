@@ -64,7 +64,6 @@ import importlib.util
 import math
 import sys
 from collections.abc import Mapping, Sequence
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from types import ModuleType, SimpleNamespace
 from typing import Any, Callable
@@ -874,7 +873,7 @@ def choose_substeps(kern: ModelKernel, t: FloatArray, U: FloatArray, Y: FloatArr
 
 
 def doubling_floor(run: Callable[[int, int], FloatArray], total: int, *,
-                   target: float = ACCURACY, threads: int = 1) -> int:
+                   target: float = ACCURACY) -> int:
     """The first floor n = 1, 2, 4, … (up to :data:`MAX_ACCURATE_SUBSTEPS`) whose whitened
     outputs ``run(n, 1)`` differ from those with every sample's sub-steps doubled,
     ``run(n, 2)``, by at most ``target`` over ``total`` samples.
@@ -901,9 +900,6 @@ def doubling_floor(run: Callable[[int, int], FloatArray], total: int, *,
         compared).
     target : float
         The error allowed in standard errors of θ̂ (:data:`ACCURACY`).
-    threads : int
-        2: the two runs of each floor on two threads at once (for a ``run`` whose kernel
-        releases the GIL; the same numbers as one after the other).
 
     Returns
     -------
@@ -917,23 +913,9 @@ def doubling_floor(run: Callable[[int, int], FloatArray], total: int, *,
     >>> doubling_floor(lambda n, refine: np.sin(3.0 * grid) + 1.0 / (n * refine) ** 4, 50)
     4
     """
-    pool = ThreadPoolExecutor(max_workers=2) if threads > 1 else None
-    try:
-        return _doubling_floor(run, total, target, pool)
-    finally:
-        if pool is not None:
-            pool.shutdown()
-
-
-def _doubling_floor(run: Callable[[int, int], FloatArray], total: int, target: float,
-                    pool: ThreadPoolExecutor | None) -> int:
     n = 1
     while n < MAX_ACCURATE_SUBSTEPS:
-        if pool is None:
-            coarse, fine = run(n, 1), run(n, 2)
-        else:
-            later = pool.submit(run, n, 2)
-            coarse, fine = run(n, 1), later.result()
+        coarse, fine = run(n, 1), run(n, 2)
         good = np.all(np.isfinite(coarse) & np.isfinite(fine), axis=1)
         stop = int(np.argmin(good)) if not good.all() else good.shape[0]
         if stop < 2:
