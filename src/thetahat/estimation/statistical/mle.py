@@ -8,7 +8,10 @@ latest fit's posterior (:func:`~.map_fit.fit_as_prior`: the fit is the arrival c
 samples before it), so every row, not only the fits', follows the information of the data so
 far. With ``window`` (:mod:`~thetahat.estimation.statistical.window`) the fits past W samples
 are of the W samples since the previous fit, that fit's posterior their arrival cost: each fit
-O(W) and a stream's memory W + 1 samples, whatever the record's length. A run stops where the
+O(W) and a stream's memory W + 1 samples, whatever the record's length. A window fit that
+does not fit (:func:`~.map_fit.why_not_applied`: output-error fits of a record with model
+error are inconsistent) is not applied; the EKF carries on, and its posterior is the next
+window's arrival cost. A run stops where the
 EKF between fits diverges or a fit fails
 (:mod:`~thetahat.estimation.status`: raised with ``throw=True``, returned with ``throw=False``).
 
@@ -258,8 +261,10 @@ class MapEstimator:
         :mod:`~thetahat.estimation.statistical.window`): bounded fits — once the record
         passes W samples, a fit every W samples of the samples since the previous fit, with
         that fit's posterior (the EKF's at the window's start) as the arrival cost; each
-        fit's cost and a stream's memory are then O(W) whatever the record's length.
-        Not with a ``schedule`` that has ``times``.
+        fit's cost and a stream's memory are then O(W) whatever the record's length. A
+        window fit that does not fit is not applied (:attr:`MapDiagnostics.rejected`, one
+        warning): the EKF carries on from the last fit applied. Not with a ``schedule``
+        that has ``times``.
     window_max : int
         The longest ``"auto"`` window (default
         :data:`~thetahat.estimation.statistical.window.WINDOW_MAX` samples).
