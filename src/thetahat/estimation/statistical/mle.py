@@ -216,10 +216,13 @@ class _Carry:
     Q_x: FloatArray
 
 
-def warn_rejected(where: str, rejected: list[str], total: int) -> None:
-    """One warning for the window fits not applied (:attr:`MapDiagnostics.rejected`)."""
-    warnings.warn(f"{where}: {len(rejected)} of {total} fits were not applied (the first: "
-                  f"{rejected[0]}). The window's fits are output-error fits of W samples; on "
+def warn_rejected(where: str, rejected: list[str], total: int | None) -> None:
+    """One warning for the window fits not applied (:attr:`MapDiagnostics.rejected`; a
+    stream's, ``total`` None: at its first, the others in ``MapState.rejected``)."""
+    count = (f"{len(rejected)} of {total} fits were not applied (the first: {rejected[0]})"
+             if total is not None else f"a window fit was not applied ({rejected[0]}; this "
+             "stream's later ones are listed in its state's rejected, not warned again)")
+    warnings.warn(f"{where}: {count}. The window's fits are output-error fits of W samples; on "
                   "a record the model does not explain without process noise they are "
                   "inconsistent, and θ̂ after them is the EKF's, carried on from the last fit "
                   "applied. window=None fits all the data, with process noise where the "
@@ -485,7 +488,7 @@ class MapEstimator:
                               fit.noise_std)
             else:                               # the EKF steps this sample (below)
                 if not rejected:                # once a stream: the first, as it happens
-                    warn_rejected("MapEstimator.step", [why], len(fits) + 1)
+                    warn_rejected("MapEstimator.step", [why], None)
                 rejected, refused = rejected + (why,), True
             if W is not None and k1 >= W:       # the next window starts here
                 log.trim(state.k)
