@@ -85,3 +85,46 @@ def test_bound_equals_the_covariance_of_an_exact_ekf(record, bound):
 def test_bad_noise_level_is_refused(record):
     with pytest.raises(DimensionError, match="noise_std"):
         crlb(lugre.system(), record.t, record.u, theta=[P.alpha0], noise_std=0.0)
+
+
+def test_bound_does_not_depend_on_the_units_of_theta():
+    """The same model with θ in units 10⁶ times larger (g reads θ·10⁶): the bound is the
+    first's × 10⁻¹² to rounding, at every sample where the first is finite, x(0) unknown.
+    The singularity test used to read the raw information matrix, whose eigenvalues then
+    span 10¹² more: every row of the rescaled model was declared singular (inf), as were the
+    shipped Silverbox and CSTR scenarios (a mass of 5e-6 beside a stiffness of 4)."""
+    from thetahat.modelfile import EXAMPLE_MODEL, loads_model
+    scaled_text = (EXAMPLE_MODEL.replace('"(2 + sin(y))*(theta + theta**3/3)"',
+                                         '"(2 + sin(y))*(1e6*theta + (1e6*theta)**3/3)"')
+                   .replace("lower = [-2.0]", "lower = [-2e-6]")
+                   .replace("upper = [2.0]", "upper = [2e-6]"))
+    plain, scaled = loads_model(EXAMPLE_MODEL).system, loads_model(scaled_text).system
+    t = np.arange(0.0, 20.0, 0.01)
+    u = (np.sin(t) + 0.5 * np.sin(3.1 * t))[:, None]
+    a = crlb(plain, t, u, theta=[0.7], noise_std=0.01, x0=[0.1, 0.0], x0_known=False,
+             compiled=False)
+    b = crlb(scaled, t, u, theta=[0.7e-6], noise_std=0.01, x0=[0.1, 0.0], x0_known=False,
+             compiled=False)
+    finite = np.isfinite(a.cov[:, 0, 0])
+    assert finite[t.size // 10:].all()              # identified within the first 2 s
+    assert np.array_equal(np.isfinite(b.cov[:, 0, 0]), finite)
+    # the same arithmetic up to the scaling's rounding: 1e-6 relative is loose
+    np.testing.assert_allclose(b.cov[finite, 0, 0], 1e-12 * a.cov[finite, 0, 0], rtol=1e-6)
+
+
+@pytest.mark.parametrize("name", ["silverbox", "cstr"])
+def test_badly_scaled_shipped_scenarios_have_a_finite_bound(name):
+    """θ's components span 6 (Silverbox: 5e-6 … 4) and 5 (CSTR: 2e-3 … 600) decades: the
+    bound is finite over the scenario's last half, and each standard deviation is below its
+    parameter's magnitude (the scenario identifies them: the guarded and MAP estimators reach
+    ≈ 1 × √CRLB on the CSTR, benchmarks/bench_window.py)."""
+    from pathlib import Path
+    from thetahat.modelfile import load_model, simulate_model
+    spec = load_model(Path(__file__).resolve().parents[2] / "examples" / f"{name}.toml")
+    sc = spec.scenario
+    d = simulate_model(spec, 0, t_end=min(sc.t_end, 2000.0 / sc.fs))
+    b = crlb(spec.system, d.t, np.asarray(d.u), theta=sc.theta, noise_std=sc.noise_std,
+             x0=sc.x0, x0_known=False)
+    sd = np.sqrt(np.diagonal(b.cov, axis1=1, axis2=2))[d.t.size // 2:]
+    assert np.all(np.isfinite(sd))
+    assert np.all(sd < np.abs(sc.theta)), sd[-1] / np.abs(sc.theta)

@@ -44,8 +44,9 @@ __all__ = ["CRLBResult", "crlb", "SINGULAR_RTOL", "sensitivities", "sensitivity_
 
 FloatArray = NDArray[np.float64]
 
-#: An information matrix whose smallest eigenvalue is below this fraction of its largest is
-#: treated as singular (the bound is infinite there: the data do not yet identify q).
+#: An information matrix whose smallest eigenvalue is below this fraction of its largest,
+#: once scaled to unit diagonal (so that the units of θ and x(0) do not count), is treated as
+#: singular (the bound is infinite there: the data do not yet identify q).
 SINGULAR_RTOL = 1e-12
 
 
@@ -275,10 +276,17 @@ def crlb(system: PerturbedLinearSystem, t: Any, u: Any, *, theta: Any, noise_std
     psi = np.einsum("rn,knq->krq", C, S)
     w = psi / sigma[None, :, None]
     fim = np.cumsum(np.einsum("krq,krs->kqs", w, w), axis=0)
-    lam, V = np.linalg.eigh(fim)
-    ok = lam[:, 0] > SINGULAR_RTOL * np.maximum(lam[:, -1], 1e-300)
+    # scaled to unit diagonal (Jacobi) before the test and the inverse: the units of θ and
+    # x(0) (a mass of 5e-6 beside a stiffness of 4) must not make an informative record look
+    # singular; F⁻¹ = D⁻¹ (D⁻¹ F D⁻¹)⁻¹ D⁻¹ with D = √diag F
+    d = np.sqrt(np.maximum(np.diagonal(fim, axis1=1, axis2=2), 0.0))
+    informed = np.all(d > 0.0, axis=1)
+    d_safe = np.where(d > 0.0, d, 1.0)
+    lam, V = np.linalg.eigh(fim / (d_safe[:, :, None] * d_safe[:, None, :]))
+    ok = informed & (lam[:, 0] > SINGULAR_RTOL * np.maximum(lam[:, -1], 1e-300))
     lam_safe = np.where(ok[:, None], lam, 1.0)
-    full = np.einsum("kqi,ki,ksi->kqs", V, 1.0 / lam_safe, V)
+    full = (np.einsum("kqi,ki,ksi->kqs", V, 1.0 / lam_safe, V)
+            / (d_safe[:, :, None] * d_safe[:, None, :]))
     cov = full[:, :p, :p].copy()
     cov[~ok] = np.inf
     return CRLBResult(t=t_, cov=cov, sensitivity=psi, x=X, noise_std=sigma,
