@@ -216,7 +216,7 @@ class _Carry:
     Q_x: FloatArray
 
 
-def warn_rejected(where: str, rejected: list[str], total: int | None) -> None:
+def _warn_rejected(where: str, rejected: list[str], total: int | None) -> None:
     """One warning for the window fits not applied (:attr:`MapDiagnostics.rejected`; a
     stream's, ``total`` None: at its first, the others in ``MapState.rejected``)."""
     count = (f"{len(rejected)} of {total} fits were not applied (the first: {rejected[0]})"
@@ -488,7 +488,7 @@ class MapEstimator:
                               fit.noise_std)
             else:                               # the EKF steps this sample (below)
                 if not rejected:                # once a stream: the first, as it happens
-                    warn_rejected("MapEstimator.step", [why], None)
+                    _warn_rejected("MapEstimator.step", [why], None)
                 rejected, refused = rejected + (why,), True
             if W is not None and k1 >= W:       # the next window starts here
                 log.trim(state.k)
@@ -629,7 +629,7 @@ class MapEstimator:
                                            + [f.substeps for f in fits]),
                               rejected=tuple(rejected))
         if rejected:
-            warn_rejected("MapEstimator.run", rejected, len(rejected) + len(fits))
+            _warn_rejected("MapEstimator.run", rejected, len(rejected) + len(fits))
         res = stopped_result(t=t_, x_hat=X, theta_hat=TH,
                              phi_hat=model_phi_hat(sys_, U_raw, Y, X, TH, stop),
                              skipped=missing_samples(Y), diagnostics=diag, stop=stop,
@@ -711,26 +711,45 @@ class MapEstimator:
                fit: FitResult, e: int, carry: _Carry | None, k1: int
                ) -> tuple[_Carry, RunStop | None]:
         """The EKF from ``fit`` (applied at sample e), or on from ``carry``, through sample
-        k1 − 1: what :meth:`_between_fits` computes for those rows (the same kernel and
-        arguments), kept for the arrival cost of the window that starts there."""
-        sys_ = self.system
+        k1 − 1: the rows :meth:`_between_fits` computes there (:meth:`_ekf_span`), kept for
+        the arrival cost of the window that starts at k1 − 1."""
         if carry is None:
-            s, P, R, Q_x = fit_as_prior(sys_, fit, sample_interval(t[fit.k0:e + 1]))
+            s, P, R, Q_x = self._ekf_start(t, fit, e)
             carry = _Carry(k=e + 1, s=s, P=np.array(P, dtype=np.float64, order="C"), R=R,
                            Q_x=Q_x)
-        N, n, p = t.shape[0], sys_.n, sys_.p
         if carry.k >= k1:
             return carry, None
+        N, n, p = t.shape[0], self.system.n, self.system.p
+        stop = self._ekf_span(sched, t, U, Y, fit, (carry.s, carry.P, carry.R, carry.Q_x),
+                              carry.k, k1, (np.empty((N, n)), np.empty((N, p)),
+                                            np.empty((N, p)), np.full(N, np.nan)))
+        return replace(carry, k=k1), stop
+
+    def _ekf_start(self, t: FloatArray, fit: FitResult, e: int
+                   ) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
+        """(s, P, R, Q_x): the EKF started from ``fit``, applied at sample e
+        (:func:`fit_as_prior`)."""
+        return fit_as_prior(self.system, fit, sample_interval(t[fit.k0:e + 1]))
+
+    def _ekf_span(self, sched: FitSchedule, t: FloatArray, U: FloatArray, Y: FloatArray,
+                  fit: FitResult, state: tuple[FloatArray, FloatArray, FloatArray, FloatArray],
+                  k0: int, k1: int,
+                  rows: tuple[FloatArray, FloatArray, FloatArray, FloatArray]
+                  ) -> RunStop | None:
+        """The EKF over samples k0 … k1 − 1 from ``state`` = (s, P, R, Q_x) at k0 − 1 (s and P
+        advanced in place), with ``fit``'s sub-steps, into ``rows`` = (X, TH, SD, NIS); the
+        run's stop where it diverges, else None."""
+        sys_ = self.system
         kern = ekf_kernels(sys_, compiled=self.compiled)
         ts = stage2_set(sys_.require_parameter_set("the MAP estimator"))
         pc, WT = Propagation(hold=sched.hold, substeps=fit.substeps, h_rho=sched.h_rho).arrays()
-        X, TH, SD, nis = np.empty((N, n)), np.empty((N, p)), np.empty((N, p)), np.full(N, np.nan)
-        bad = kern.loop(carry.s, carry.P, U, Y, t, carry.k, k1, carry.R, ts.lo, ts.hi, ts.ell,
-                        pc, WT, carry.Q_x, X, TH, SD, nis)
-        carry = replace(carry, k=k1)
+        s, P, R, Q_x = state
+        X, TH, SD, nis = rows
+        bad = kern.loop(s, P, U, Y, t, k0, k1, R, ts.lo, ts.hi, ts.ell, pc, WT, Q_x, X, TH, SD,
+                        nis)
         if bad >= 0:
-            return carry, RunStop(Status.DIVERGED, divergence_message(t, bad, nis, sys_.r), bad)
-        return carry, None
+            return RunStop(Status.DIVERGED, divergence_message(t, bad, nis, sys_.r), bad)
+        return None
 
     def _first_predictions(self, sched: FitSchedule, t: FloatArray, U: FloatArray,
                            Y: FloatArray, st0: MapState, k1: int) -> FloatArray:
@@ -753,23 +772,17 @@ class MapEstimator:
                       SD: FloatArray, stop: RunStop | None) -> RunStop | None:
         """Rows from each fit's last sample to the next fit's: the fit, then the EKF from it
         (up to ``stop``, where a fit failed). Returns the run's first failure, or None."""
-        sys_ = self.system
         last = t.shape[0] if stop is None else stop.at
-        kern = ekf_kernels(sys_, compiled=self.compiled)
-        ts = stage2_set(sys_.require_parameter_set("the MAP estimator"))
         nis = np.full(t.shape[0], np.nan)
         for i, (fit, e) in enumerate(zip(fits, ends)):
             end = ends[i + 1] if i + 1 < len(ends) else last
             X[e], TH[e], SD[e] = fit.x_end, fit.theta, fit.theta_se
             if e + 1 >= end:
                 continue
-            s, P, R, Q_x = fit_as_prior(sys_, fit, sample_interval(t[fit.k0:e + 1]))
-            pc, WT = Propagation(hold=sched.hold, substeps=fit.substeps,
-                                 h_rho=sched.h_rho).arrays()
-            bad = kern.loop(s, P, U, Y, t, e + 1, end, R, ts.lo, ts.hi, ts.ell, pc, WT, Q_x,
-                            X, TH, SD, nis)
-            if bad >= 0:
-                return RunStop(Status.DIVERGED, divergence_message(t, bad, nis, sys_.r), bad)
+            failed = self._ekf_span(sched, t, U, Y, fit, self._ekf_start(t, fit, e), e + 1, end,
+                                    (X, TH, SD, nis))
+            if failed is not None:
+                return failed
         return stop
 
 
