@@ -22,6 +22,8 @@ from thetahat.modelfile import (build_estimator, build_observer, load_model, res
                                 simulate_model)
 from thetahat.models import lugre
 
+from records import shipped_record
+
 pytest.importorskip("numba", reason="16 MAP runs of up to 10⁴ samples take minutes without "
                     "the compiled kernels (extra speed)")
 EXAMPLES = Path(__file__).resolve().parents[2] / "examples"
@@ -181,28 +183,6 @@ class _Now(concurrent.futures.Executor):
         return done
 
 
-def _record(name: str):
-    """(spec, t, U, Y, θ or None): a shipped model's scenario (seed 1), or 12 000 samples of a
-    measured record (EMPS's; Silverbox's training split)."""
-    if name == "emps":
-        from thetahat.models import emps
-        rec = emps.load()
-        spec, t, u, y, theta = load_model(EXAMPLES / "emps.toml"), rec.t, rec.u, rec.y, None
-    elif name == "silverbox":
-        from thetahat.io.datafile import read_data
-        from thetahat.models import silverbox
-        spec = load_model(silverbox.MODEL_FILE)
-        rec = read_data(silverbox.DATA_FILE, spec.layout)
-        t, u, y, theta = rec.t - rec.t[0], rec.u, rec.y, None
-    else:
-        spec = load_model(EXAMPLES / f"{name}.toml")
-        d = simulate_model(spec, 1, t_end=12_000 / spec.scenario.fs)
-        t, u, y, theta = d.t, d.u, d.y, spec.scenario.theta
-    N = min(t.size, 12_000)
-    U, Y = np.asarray(u)[:N].reshape(N, -1), np.asarray(y)[:N].reshape(N, -1)
-    return spec, t[:N], U, Y, theta
-
-
 @pytest.mark.needs_speed
 @pytest.mark.parametrize("name, window", [("heater", "auto"), ("actuator", "auto"),
                                           ("spring_friction", "auto"), ("emps", "auto"),
@@ -213,7 +193,7 @@ def test_guarded_stream_is_the_run_with_bounded_memory(name, window):
     and in Θ at every step (and within the guard's band of stage 1's on the simulated
     models), and its final θ̂ is the run's to GUARDED_STREAM_SE standard errors; without a
     window on EMPS, whose fits take process noise, the same agreement."""
-    spec, t, U, Y, theta = _record(name)
+    spec, t, U, Y, theta = shipped_record(name)
     lo, hi = spec.system.parameter_set.lower, spec.system.parameter_set.upper
     g = resolve_gains(spec, t, U, Y)
     est = replace(build_estimator(spec, method="guarded", Gamma=g.Gamma, eps=g.eps),
@@ -260,7 +240,7 @@ def test_map_window_fits_that_do_not_fit_are_not_applied():
     stays finite, in Θ and within MODEL_ERROR_SE of the fits of all the data, in the run and
     in the stream (whose next window's arrival cost is also the EKF's posterior), and the
     stream's log holds at most W + 1 samples."""
-    spec, t, U, Y, _ = _record("emps")
+    spec, t, U, Y, _ = shipped_record("emps")
     lo, hi = spec.system.parameter_set.lower, spec.system.parameter_set.upper
     start = dict(x_hat0=spec.estimator.x_hat0, theta_hat0=spec.estimator.theta_hat0)
     full = MapEstimator(system=spec.system)

@@ -35,7 +35,13 @@ estimate θ̂ of a record against four questions and :class:`TrustReport` answer
   pass): the statistic δᵀIδ, δ the Gauss–Newton step from θ̂, is χ²_p when θ̂ is the true
   θ, and a fit's θ̂ makes it ≈ 0. Above the χ²_p quantile at 1 − :data:`CONSISTENCY_ALPHA`
   the estimate is not consistent with the record; the report gives θ̂ + δ (projected onto Θ),
-  where one step puts the data's preference. The score test rather than the likelihood ratio
+  where one step puts the data's preference. The joint statistic spreads one parameter's
+  miss over p degrees of freedom (p = 4: one parameter 4.2 sd off passes it), so each
+  component is tested too: δᵢ / sdᵢ is N(0, 1) at the true θ (δ ~ N(0, (JᵀJ)⁺), sdᵢ the
+  bound's), and above :func:`component_limit`, the two-sided normal quantile at level
+  :data:`CONSISTENCY_ALPHA` / p (Bonferroni: a true θ fails some component on at most α of
+  the records), that parameter is not where the data put it. The two tests together fail a
+  true θ on at most 2α of the records. The score test rather than the likelihood ratio
   against a fit: it needs no fit (the paper's method would otherwise pay for the MAP fits it
   avoids), and its ingredients are those of the bound.
 * **Has θ̂ settled?** The drift of each component of θ̂ over the last :data:`SETTLE_TAIL` of
@@ -60,7 +66,7 @@ from typing import TYPE_CHECKING, Sequence
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
-from scipy.special import gammaincinv
+from scipy.special import gammaincinv, ndtri
 
 from ...errors import OptionError, ThetahatError
 from ...model.system import PerturbedLinearSystem
@@ -77,7 +83,7 @@ if TYPE_CHECKING:
 
 __all__ = ["TrustReport", "trust_report", "UNPINNED_FRACTION", "BOUNDARY_RTOL",
            "EMPTY_GUARD_FRACTION", "MODEL_ERROR_Q", "NOISE_FLOOR",
-           "CONSISTENCY_ALPHA",
+           "CONSISTENCY_ALPHA", "component_limit",
            "SETTLE_TAIL", "SETTLE_SDS", "ADVICE", "FIT_KINDS", "chi2_limit", "report_noise_std",
            "tail_movement"]
 
@@ -160,6 +166,33 @@ def chi2_limit(p: int) -> float:
     return float(2.0 * gammaincinv(0.5 * p, 1.0 - CONSISTENCY_ALPHA))
 
 
+def component_limit(p: int) -> float:
+    """The limit of one parameter's step in standard deviations, |δᵢ| / sdᵢ, among p tested:
+    the two-sided standard normal quantile at level :data:`CONSISTENCY_ALPHA` / p
+    (Bonferroni over the p components, so that a true θ fails some component on at most α of
+    the records). For p = 1 it is √:func:`chi2_limit` (1): the joint test itself.
+
+    Parameters
+    ----------
+    p : int
+        The number of parameters tested.
+
+    Returns
+    -------
+    float
+        The limit: a component whose step exceeds it is evidence against θ̂ at level α.
+
+    Examples
+    --------
+    >>> from thetahat.estimation.statistical.trust import chi2_limit, component_limit
+    >>> round(component_limit(1) ** 2, 2) == round(chi2_limit(1), 2)
+    True
+    >>> round(component_limit(3), 2), round(component_limit(4), 2)
+    (3.59, 3.66)
+    """
+    return float(ndtri(1.0 - 0.5 * CONSISTENCY_ALPHA / p))
+
+
 @dataclass(frozen=True, slots=True, eq=False)
 class TrustReport:
     """What an estimate says about itself (see the module docstring).
@@ -191,6 +224,10 @@ class TrustReport:
     one_step : ndarray (p,) or None
         θ̂ + δ, the Gauss–Newton step of the innovations likelihood from θ̂, projected onto Θ:
         where the data put θ after one linearisation.
+    step_sds : ndarray (p,) or None
+        |δᵢ| / sdᵢ, each component of that step (before the projection) in its Cramér–Rao
+        standard deviations: tested against :func:`component_limit` (NaN where the sd is not
+        finite and > 0).
     tail_sds : ndarray (p,) or None
         Drift of each θ̂ component over the last :data:`SETTLE_TAIL` of the record, in its
         Cramér–Rao sd (:func:`tail_movement`; None without the run's path).
@@ -216,6 +253,7 @@ class TrustReport:
     process_noise_scale: float
     score: float = math.nan
     one_step: FloatArray | None = None
+    step_sds: FloatArray | None = None
     tail_sds: FloatArray | None = None
     law_conditions: LawConditionReport | None = None
     noise_floored: bool = False
@@ -233,9 +271,16 @@ class TrustReport:
 
     @property
     def consistent(self) -> bool:
-        """θ̂ passes the score test (True when it was not computed)."""
+        """θ̂ passes the score test, jointly and per component (True when not computed)."""
         p = self.theta.shape[0]
-        return not (self.score > chi2_limit(p))
+        return not (self.score > chi2_limit(p)) and not self._components_off()
+
+    def _components_off(self) -> list[tuple[str, float]]:
+        """The parameters whose step exceeds :func:`component_limit`, with it in sd."""
+        if self.step_sds is None:
+            return []
+        limit = component_limit(self.theta.shape[0])
+        return [(n, float(v)) for n, v in zip(self.names, self.step_sds) if v > limit]
 
     @property
     def settled(self) -> bool:
@@ -280,16 +325,20 @@ class TrustReport:
     def _consistency_warnings(self) -> list[str]:
         out = []
         if not self.consistent:
-            with np.errstate(divide="ignore", invalid="ignore"):
-                z = np.abs(self.one_step - self.theta) / self.crlb_sd \
-                    if self.one_step is not None else np.full_like(self.theta, np.nan)
+            p = self.theta.shape[0]
+            z = self.step_sds if self.step_sds is not None else np.full(p, np.nan)
             far = [f"{n} by {v:.3g} sd" for n, v in zip(self.names, z) if v > 1.0]
             prefer = ("" if self.one_step is None else "; the data prefer θ ≈ (" + ", ".join(
                 f"{n} = {v:.4g}" for n, v in zip(self.names, self.one_step)) + ") (one "
                 "Gauss–Newton step)")
-            out.append(f"θ̂ is not where the data put it: {math.sqrt(self.score):.3g} standard "
-                       f"errors away (score test, χ²_{self.theta.shape[0]} = {self.score:.3g}"
-                       f"{', ' + ', '.join(far) if far else ''}){prefer}; "
+            if self.score > chi2_limit(p):
+                what = (f"{math.sqrt(self.score):.3g} standard errors away (score test, "
+                        f"χ²_{p} = {self.score:.3g}{', ' + ', '.join(far) if far else ''})")
+            else:
+                off = ", ".join(f"{n} by {v:.3g} sd" for n, v in self._components_off())
+                what = (f"{off} (score test per parameter, limit {component_limit(p):.3g} sd "
+                        f"among {p}; jointly χ²_{p} = {self.score:.3g} passes)")
+            out.append(f"θ̂ is not where the data put it: {what}{prefer}; "
                        f"{ADVICE[self.fits][0]}")
         if not self.settled and self.tail_sds is not None:
             moved = [f"{n} by {v:.3g} sd" for n, v in zip(self.names, self.tail_sds)
@@ -312,8 +361,11 @@ class TrustReport:
             p = self.theta.shape[0]
             verdict = ("consistent with the record" if self.consistent
                        else "NOT consistent with the record")
+            worst = ("" if self.step_sds is None or not np.any(np.isfinite(self.step_sds))
+                     else f"; largest parameter step {np.nanmax(self.step_sds):.3g} sd (limit "
+                          f"{component_limit(p):.3g})")
             out.append(f"score test at θ̂: χ²_{p} = {self.score:.3g} (limit "
-                       f"{chi2_limit(p):.3g}): {verdict}")
+                       f"{chi2_limit(p):.3g}){worst}: {verdict}")
         if self.law_conditions is not None and self.law_conditions.proposition:
             lc = self.law_conditions
             cond = ("held on the samples" if not lc.failing and lc.exciting
@@ -471,7 +523,7 @@ def trust_report(system: PerturbedLinearSystem, t: FloatArray, U: FloatArray, Y:
     sigma, floored = report_noise_std(Y, noise_std)
     names_ = tuple(str(n) for n in names)
     crlb_sd = np.full(th.shape[0], np.nan)
-    q, q0, score, one_step = 0.0, 1.0, math.nan, None
+    q, q0, score, one_step, step_sds = 0.0, 1.0, math.nan, None, None
     if t.shape[0] >= MIN_SAMPLES:
         q0 = process_noise_scale(system, sample_interval(t), sigma)
         try:
@@ -484,6 +536,7 @@ def trust_report(system: PerturbedLinearSystem, t: FloatArray, U: FloatArray, Y:
             if np.all(np.isfinite(ev.step)):
                 score = ev.score
                 one_step = project_theta(theta_set, th + ev.step)
+                step_sds = _step_sds(ev.step, crlb_sd)
         except (ThetahatError, ArithmeticError, np.linalg.LinAlgError):
             # the model cannot be evaluated along the record at θ̂ (e.g. g not differentiable
             # there): the bound is unknown (n/a in the summary) and the estimate stands
@@ -503,6 +556,7 @@ def trust_report(system: PerturbedLinearSystem, t: FloatArray, U: FloatArray, Y:
     return TrustReport(names=names_, theta=th.copy(), crlb_sd=crlb_sd, unpinned=unpinned,
                        on_boundary=on_bnd, empty_guard=empty, process_noise=float(q),
                        process_noise_scale=float(q0), score=float(score), one_step=one_step,
+                       step_sds=step_sds,
                        tail_sds=tail, law_conditions=law_conditions, noise_floored=floored,
                        fits=fits)
 
@@ -558,9 +612,8 @@ def _evidence(system: PerturbedLinearSystem, t: FloatArray, U: FloatArray, Y: Fl
         q = q_at(theta, near=first)
 
     ev = evidence(q)
-    limit = chi2_limit(theta.shape[0])
     for _ in range(Q_REFINEMENTS):
-        if not (q > 0 and ev.score > limit and np.all(np.isfinite(ev.step))):
+        if not (q > 0 and _fails(ev) and np.all(np.isfinite(ev.step))):
             break
         q_new = q_at(project_theta(theta_set, theta + ev.step), near=q)
         if not q_new < Q_REFINE_FACTOR * q:
@@ -568,3 +621,17 @@ def _evidence(system: PerturbedLinearSystem, t: FloatArray, U: FloatArray, Y: Fl
         q = q_new
         ev = evidence(q)
     return ev
+
+
+def _fails(ev: RecordEvidence) -> bool:
+    """θ̂ fails the score test of this evidence, jointly or in some component."""
+    p = ev.step.shape[0]
+    z = _step_sds(ev.step, np.sqrt(np.maximum(np.diag(ev.cov), 0.0)))
+    return bool(ev.score > chi2_limit(p) or np.any(z > component_limit(p)))
+
+
+def _step_sds(step: FloatArray, sd: FloatArray) -> FloatArray:
+    """|δᵢ| / sdᵢ (NaN where sdᵢ is not finite and > 0: a direction the record does not pin,
+    or a bound that could not be computed)."""
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return np.where(np.isfinite(sd) & (sd > 0), np.abs(step) / sd, np.nan)
