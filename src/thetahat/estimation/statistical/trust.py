@@ -272,8 +272,7 @@ class TrustReport:
     @property
     def consistent(self) -> bool:
         """θ̂ passes the score test, jointly and per component (True when not computed)."""
-        p = self.theta.shape[0]
-        return not (self.score > chi2_limit(p)) and not self._components_off()
+        return _passes(self.score, self.step_sds, self.theta.shape[0])
 
     def _components_off(self) -> list[tuple[str, float]]:
         """The parameters whose step exceeds :func:`component_limit`, with it in sd."""
@@ -625,9 +624,16 @@ def _evidence(system: PerturbedLinearSystem, t: FloatArray, U: FloatArray, Y: Fl
 
 def _fails(ev: RecordEvidence) -> bool:
     """θ̂ fails the score test of this evidence, jointly or in some component."""
-    p = ev.step.shape[0]
-    z = _step_sds(ev.step, np.sqrt(np.maximum(np.diag(ev.cov), 0.0)))
-    return bool(ev.score > chi2_limit(p) or np.any(z > component_limit(p)))
+    sd = np.sqrt(np.maximum(np.diag(ev.cov), 0.0))
+    return not _passes(ev.score, _step_sds(ev.step, sd), ev.step.shape[0])
+
+
+def _passes(score: float, step_sds: FloatArray | None, p: int) -> bool:
+    """The score test's verdict, the one rule: the joint statistic within :func:`chi2_limit`
+    and every parameter's step within :func:`component_limit` (NaN passes: not computed, or
+    a direction the record does not pin)."""
+    within = step_sds is None or not np.any(step_sds > component_limit(p))
+    return not (score > chi2_limit(p)) and within
 
 
 def _step_sds(step: FloatArray, sd: FloatArray) -> FloatArray:
