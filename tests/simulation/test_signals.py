@@ -73,7 +73,7 @@ def test_from_array_zoh_and_foh():
     np.testing.assert_array_equal(zoh(tq)[:, 0], [1.0, 1.0, 1.0, 3.0, 3.0, -1.0, -1.0])
     np.testing.assert_allclose(foh(tq)[:, 0], np.interp(tq, t, vals), rtol=SAME_FORMULA_RTOL)
     np.testing.assert_allclose(foh.derivative(tq)[:, 0], [0.0, 2.0, 2.0, -2.0, -2.0, 0.0, 0.0])
-    assert zoh.breakpoints == (1.0, 3.0) and foh.breakpoints == ()
+    assert zoh.breakpoints == foh.breakpoints == (1.0, 3.0)   # jumps, kinks
 
 
 def test_from_array_foh_derivative_matches_finite_difference(rng):

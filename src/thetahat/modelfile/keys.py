@@ -29,8 +29,8 @@ from ..methods import ESTIMATION_METHODS
 
 __all__ = ["AUTO_GAMMA_LAWS", "COLUMNS", "DATA", "DATA_RATE", "DATA_SIGNAL", "Derived",
            "ESTIMATOR", "Key", "LAWS", "PARAMETER_SET_BALL", "PARAMETER_SET_BOX",
-           "PARAMETER_SET_ELLIPSOID", "PERTURBATION", "REQUIRED", "SCENARIO", "SCENARIO_METHODS",
-           "SECOND", "STATE_SET", "SYSTEM", "TABLES", "TOP", "TYPES", "Table"]
+           "PARAMETER_SET_ELLIPSOID", "PERTURBATION", "REQUIRED", "SCENARIO", "SCENARIO_HOLDS",
+           "SCENARIO_METHODS", "SECOND", "STATE_SET", "SYSTEM", "TABLES", "TOP", "TYPES", "Table"]
 
 #: The update laws of ``[estimator] law`` (Sec. IV).
 LAWS = ("gradient", "least_squares", "algebraic", "intermittent")
@@ -38,6 +38,8 @@ LAWS = ("gradient", "least_squares", "algebraic", "intermittent")
 AUTO_GAMMA_LAWS = ("gradient", "least_squares")
 #: Integrators a ``[scenario]`` may name (``scipy.integrate.solve_ivp`` methods).
 SCENARIO_METHODS = ("Radau", "BDF", "LSODA", "RK45", "RK23", "DOP853")
+#: How a ``[scenario]``'s input reaches its plant between samples (``u_hold``).
+SCENARIO_HOLDS = ("continuous", "zoh")
 
 #: The columns of every table, in order.
 COLUMNS = ("section", "key", "type", "default", "example", "description")
@@ -342,6 +344,10 @@ SCENARIO = Table("scenario", (
         "The input u_i(t) = Σ_j a_ij sin(2π f_ij t): the amplitudes a_ij."),
     Key("u_frequencies", "sines", [0.1, 0.3], "[0.5, 1.3]",
         "The frequencies f_ij (Hz) of the input's sines."),
+    Key("u_hold", "choice", "continuous", '"zoh"',
+        "What drives the plant between samples: the sines themselves (continuous), or their "
+        "samples at fs held by a DAC (zoh); sweep and tune then run the estimator with that "
+        "hold.", choices=SCENARIO_HOLDS),
     Key("method", "choice", "Radau", '"LSODA"', "The integrator (scipy's solve_ivp).",
         choices=SCENARIO_METHODS),
     Key("rtol", "positive number", 1e-8, "1e-9", "Its relative tolerance."),

@@ -177,6 +177,8 @@ class ScenarioOptions:
         Standard deviation of the white noise on y (0: none).
     u_amplitudes, u_frequencies : ndarray, shape (m, q)
         The input u_i(t) = Σ_j a_ij sin(2π f_ij t).
+    u_hold : {"continuous", "zoh"}
+        The input the plant sees: the sines, or their samples at ``fs`` held by a DAC.
     method : str
         ``solve_ivp`` method.
     rtol : float
@@ -193,6 +195,7 @@ class ScenarioOptions:
     noise_std: float
     u_amplitudes: FloatArray
     u_frequencies: FloatArray
+    u_hold: str
     method: str
     rtol: float
     atol: FloatArray
@@ -200,7 +203,8 @@ class ScenarioOptions:
 
     def __repr__(self) -> str:
         return (f"ScenarioOptions(theta={self.theta.tolist()}, t_end={self.t_end:g}, "
-                f"fs={self.fs:g}, noise_std={self.noise_std:g}, method={self.method!r}, "
+                f"fs={self.fs:g}, noise_std={self.noise_std:g}, u_hold={self.u_hold!r}, "
+                f"method={self.method!r}, "
                 f"defaults={list(self.defaults)})")
 
 
@@ -538,7 +542,7 @@ def _read_scenario(sec: Section, system: PerturbedLinearSystem, theta_set: Param
         arr.setflags(write=False)
     return ScenarioOptions(theta=theta, x0=x0, t_end=sec.number("t_end"), fs=sec.number("fs"),
                            noise_std=noise, u_amplitudes=amp, u_frequencies=freq,
-                           method=method, rtol=sec.number("rtol"), atol=atol,
+                           u_hold=sec.choice("u_hold"), method=method, rtol=sec.number("rtol"), atol=atol,
                            defaults=tuple(k for k in sec.keys.names() if not sec.has(k)))
 
 

@@ -23,7 +23,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from ..model.perturbation import Perturbation
 from ..simulation.noise import Seed, WhiteNoise
-from ..simulation.signals import Multisine
+from ..simulation.signals import FromArray, Multisine, time_grid
 from ..simulation.simulate import PlantTrajectory, simulate_plant
 from ..spec import EstimatorSpec
 from .assembly import estimator_spec, resolve_gains
@@ -128,11 +128,15 @@ def simulate_model(spec: ModelSpec, seed: Seed = 0, *, t_end: float | None = Non
     ((101, 2), [1.0])
     """
     sc, s = spec.scenario, spec.system
+    t_end = sc.t_end if t_end is None else t_end
     phi = ModelPhi(perturbation=cast(Perturbation, s.perturbation), C=s.C)
-    u = Multisine(sc.u_amplitudes, sc.u_frequencies) if s.m else None
+    u: Multisine | FromArray | None = (Multisine(sc.u_amplitudes, sc.u_frequencies) if s.m
+                                       else None)
+    if u is not None and sc.u_hold == "zoh":            # the sines' samples, held by a DAC
+        t_k = time_grid(t_end, sc.fs)
+        u = FromArray(t_k, u(t_k), hold="zoh")
     noise = WhiteNoise(sc.noise_std) if sc.noise_std > 0 else None
-    return simulate_plant(s, phi=phi, dphi_dx=phi.dphi_dx, u=u,
-                          t_end=sc.t_end if t_end is None else t_end, fs=sc.fs, x0=sc.x0,
+    return simulate_plant(s, phi=phi, dphi_dx=phi.dphi_dx, u=u, t_end=t_end, fs=sc.fs, x0=sc.x0,
                           theta=sc.theta, noise=noise, seed=seed, method=sc.method,
                           rtol=sc.rtol, atol=sc.atol)
 
@@ -229,10 +233,12 @@ def study_setup(spec: ModelSpec, *, t_end: float | None = None) -> StudySetup:
     chosen = [k for k in EXPERIMENT_KEYS if k in spec.scenario.defaults]
     assumed = (f"{spec.source} [scenario] gives no {', '.join(chosen)}; using "
                f"{spec.scenario!r}" if chosen else None)
+    # a DAC in the experiment: every stage of the estimator holds the samples as it does
+    held = spec.scenario.u_hold == "zoh"
     est, simulate = estimator_spec(spec), study_simulator(spec, t_end=t_end)
     if spec.estimator.gamma_auto or spec.estimator.eps_auto:    # chosen on the first record
         first = simulate(0)
-        gains = resolve_gains(spec, first.t, first.u, first.y)
+        gains = resolve_gains(spec, first.t, first.u, first.y, hold="zoh" if held else None)
         est = dataclasses.replace(est, eps=gains.eps)
         if spec.estimator.gamma_auto:
             est = dataclasses.replace(est, law=est.law_with_gamma(gains.Gamma))

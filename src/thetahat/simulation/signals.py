@@ -122,7 +122,7 @@ class Signal(ABC):
 
     @property
     def breakpoints(self) -> tuple[float, ...]:
-        """Times at which u jumps, sorted; integrators restart there. Default: none."""
+        """Times at which u jumps or kinks, sorted; integrators restart there. Default: none."""
         return ()
 
     def sampled(self, t: ArrayLike) -> FloatArray:
@@ -385,9 +385,7 @@ class FromArray(Signal):
 
     @property
     def breakpoints(self) -> tuple[float, ...]:
-        """The sample times after the first for ``"zoh"`` (jumps); none for ``"foh"``."""
-        if self.hold == "foh":
-            return ()
+        """The sample times after the first: jumps of ``"zoh"``, kinks of ``"foh"``."""
         return tuple(float(s) for s in self.t[1:])
 
     def _segment(self, t: ArrayLike) -> tuple[FloatArray, NDArray[np.intp]]:
