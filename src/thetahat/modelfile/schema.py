@@ -204,8 +204,7 @@ class ScenarioOptions:
     def __repr__(self) -> str:
         return (f"ScenarioOptions(theta={self.theta.tolist()}, t_end={self.t_end:g}, "
                 f"fs={self.fs:g}, noise_std={self.noise_std:g}, u_hold={self.u_hold!r}, "
-                f"method={self.method!r}, "
-                f"defaults={list(self.defaults)})")
+                f"method={self.method!r}, defaults={list(self.defaults)})")
 
 
 @dataclass(frozen=True, slots=True, repr=False)
@@ -542,7 +541,8 @@ def _read_scenario(sec: Section, system: PerturbedLinearSystem, theta_set: Param
         arr.setflags(write=False)
     return ScenarioOptions(theta=theta, x0=x0, t_end=sec.number("t_end"), fs=sec.number("fs"),
                            noise_std=noise, u_amplitudes=amp, u_frequencies=freq,
-                           u_hold=sec.choice("u_hold"), method=method, rtol=sec.number("rtol"), atol=atol,
+                           u_hold=sec.choice("u_hold"), method=method,
+                           rtol=sec.number("rtol"), atol=atol,
                            defaults=tuple(k for k in sec.keys.names() if not sec.has(k)))
 
 

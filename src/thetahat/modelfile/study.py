@@ -233,12 +233,12 @@ def study_setup(spec: ModelSpec, *, t_end: float | None = None) -> StudySetup:
     chosen = [k for k in EXPERIMENT_KEYS if k in spec.scenario.defaults]
     assumed = (f"{spec.source} [scenario] gives no {', '.join(chosen)}; using "
                f"{spec.scenario!r}" if chosen else None)
-    # a DAC in the experiment: every stage of the estimator holds the samples as it does
-    held = spec.scenario.u_hold == "zoh"
     est, simulate = estimator_spec(spec), study_simulator(spec, t_end=t_end)
     if spec.estimator.gamma_auto or spec.estimator.eps_auto:    # chosen on the first record
         first = simulate(0)
-        gains = resolve_gains(spec, first.t, first.u, first.y, hold="zoh" if held else None)
+        # a DAC in the experiment: the gains' statistical pass holds the samples as it does
+        gains = resolve_gains(spec, first.t, first.u, first.y,
+                              hold="zoh" if spec.scenario.u_hold == "zoh" else None)
         est = dataclasses.replace(est, eps=gains.eps)
         if spec.estimator.gamma_auto:
             est = dataclasses.replace(est, law=est.law_with_gamma(gains.Gamma))
