@@ -578,11 +578,14 @@ def _add_estimate(sub: _Subparsers) -> None:
     estimate.add_argument("-o", "--output", default=None,
                           help="output, .csv or .parquet (default: estimates.csv; for a fleet "
                                "results.csv: one row per file); never one of the inputs")
-    estimate.add_argument("--hold", choices=["zoh", "foh", "bandlimited"], default=None,
-                          help="u between the samples, for every method: zoh (held), foh "
-                               "(linear) or bandlimited (the band-limited signal through "
+    estimate.add_argument("--hold", choices=["zoh", "foh", "smooth", "bandlimited"],
+                          default=None,
+                          help="u between the samples, for every method: zoh (held by a "
+                               "DAC), foh (linear between the samples), smooth (a smooth "
+                               "signal sampled: linear through samples corrected for its "
+                               "curvature) or bandlimited (the band-limited signal through "
                                "the samples; not the paper's method). Default: the observer "
-                               "holds, the statistical methods take u linear")
+                               "holds, the statistical methods take smooth")
     estimate.add_argument("--window", metavar="auto|W", default=None,
                           help="guarded and mle: bounded fits, each past W samples over the "
                                "samples since the previous one (auto: W from the record's "

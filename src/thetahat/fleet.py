@@ -605,7 +605,7 @@ def estimate_many(model: str | Path, data: str | Path | Iterable[str | Path], *,
     chunk_size : int, optional
         Records per task (default: about 16 tasks). Results do not depend on it beyond
         rounding (records that share their sampling instants run as one batch).
-    hold : {"zoh", "foh", "bandlimited"}, optional
+    hold : {"zoh", "foh", "bandlimited", "smooth"}, optional
         u between the samples, for every method
         (:func:`~thetahat.modelfile.holds.split_hold`; default: each method's own).
     method : {"paper", "guarded", "mle", "ekf"}, optional

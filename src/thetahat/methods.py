@@ -48,10 +48,10 @@ class MethodInputs:
         σ of the output noise for the statistical methods (default: estimated from the data).
     compiled : bool, optional
         numba kernels for the statistical methods (default: when installed).
-    hold : {"zoh", "foh", "bandlimited"}, optional
+    hold : {"zoh", "foh", "bandlimited", "smooth"}, optional
         u between the samples for the statistical methods (the guarded estimator's stage 2,
         the MAP fits, the joint EKF; :mod:`thetahat.estimation.hold`); default: each one's
-        own (``"foh"``). The observer's hold is in ``observer``.
+        own (``"smooth"``). The observer's hold is in ``observer``.
     window : {None, "auto"} or int, optional
         The fitting methods' bounded fits (:mod:`~thetahat.estimation.statistical.window`):
         None fits all the data so far (the default), ``"auto"`` or W samples bound each fit.

@@ -39,7 +39,7 @@ def _case(name: str):
     if name == "emps":
         from thetahat.models import emps
         spec, rec = load_model(EXAMPLES / "emps.toml"), emps.load()
-        t, u, y, hold = rec.t[:8192], rec.u[:8192], rec.y[:8192], "foh"
+        t, u, y, hold = rec.t[:8192], rec.u[:8192], rec.y[:8192], "smooth"
         start = np.asarray(spec.estimator.theta_hat0, dtype=float)
     elif name == "silverbox":
         from thetahat.io.datafile import read_data
@@ -51,7 +51,7 @@ def _case(name: str):
     else:
         spec = load_model(EXAMPLES / f"{name}.toml")
         d = simulate_model(spec, 5, t_end=4096 / spec.scenario.fs)
-        t, u, y, hold = d.t, d.u, d.y, "foh"
+        t, u, y, hold = d.t, d.u, d.y, "smooth"
         ps = spec.system.parameter_set
         start = 0.5 * (np.asarray(ps.lower) + np.asarray(ps.upper))
     N = np.asarray(t).size

@@ -49,7 +49,8 @@ def test_the_taps_reproduce_a_constant_and_every_sample_at_its_instant(hold):
     np.testing.assert_allclose(W[0], e0, atol=TAP_ROUND)
     # at a = 1 the zero-order hold is still sample k (its left limit); the others reach k + 1
     np.testing.assert_allclose(W[-1], e0 if hold == "zoh" else e1, atol=TAP_ROUND)
-    assert hold_code(hold) == HOLDS.index(hold)
+    # "smooth" is the first-order hold's line (through corrected samples: input_hold)
+    assert hold_code(hold) == HOLDS.index("foh" if hold == "smooth" else hold)
 
 
 def test_the_band_limited_error_bound_is_what_the_docstring_states():

@@ -137,7 +137,7 @@ def _q_case(name):
     if name == "emps":
         from thetahat.models import emps
         spec, rec = load_model(EXAMPLES / "emps.toml"), emps.load()
-        t, u, y, theta, hold = rec.t, rec.u, rec.y, emps.PUBLISHED.value, "foh"
+        t, u, y, theta, hold = rec.t, rec.u, rec.y, emps.PUBLISHED.value, "smooth"
     elif name == "silverbox":
         from thetahat.io.datafile import read_data
         from thetahat.models import silverbox
@@ -148,7 +148,7 @@ def _q_case(name):
     else:
         spec = load_model(EXAMPLES / f"{name}.toml")
         d = simulate_model(spec, 3, t_end=3 * 2 ** 12 / spec.scenario.fs)   # 3 short heads
-        t, u, y, hold = d.t, d.u, d.y, "foh"
+        t, u, y, hold = d.t, d.u, d.y, "smooth"
         theta = np.asarray(spec.scenario.theta) * 1.05
     N = np.asarray(t).size
     U = np.asarray(u, dtype=float).reshape(N, -1)
@@ -344,7 +344,7 @@ def _accuracy_case(name: str):
         from thetahat.models import emps
         spec, rec = load_model(EXAMPLES / "emps.toml"), emps.load()
         return (spec, rec.t[:8192], np.asarray(rec.u)[:8192], np.asarray(rec.y)[:8192],
-                np.asarray(emps.PUBLISHED.value, dtype=float), "foh")
+                np.asarray(emps.PUBLISHED.value, dtype=float), "smooth")
     if name == "silverbox":
         from thetahat.estimation.statistical.likelihood import fit_process_noise
         from thetahat.estimation.statistical.noise_level import estimate_noise_std
@@ -362,7 +362,7 @@ def _accuracy_case(name: str):
         return spec, rec.t, U, Y, fit.theta, "bandlimited"
     spec = load_model(EXAMPLES / f"{name}.toml")
     d = simulate_model(spec, 4)
-    return spec, d.t, np.asarray(d.u), np.asarray(d.y), np.asarray(spec.scenario.theta), "foh"
+    return spec, d.t, np.asarray(d.u), np.asarray(d.y), np.asarray(spec.scenario.theta), "smooth"
 
 
 #: The report's sub-steps are accurate when four times as many move the score's √ (standard

@@ -17,10 +17,11 @@ does per sample: no prediction at the first sample; NaN in y is predicted over (
 NaN or inf in u and inf in y are refused (``<NAME>_NONFINITE_INPUT``, the state untouched);
 a state or covariance diagonal that is no longer finite is ``<NAME>_DIVERGED``.
 
-What it cannot do yet (refused, :class:`~thetahat.errors.UnsupportedError`): stage 2's
-``"foh"`` (its samples ũ are corrected by a causal estimate of ü,
-:mod:`~thetahat.estimation.statistical.input_hold`, not in the kernels' subset) and the
-band-limited hold (it reads later samples); a Θ other than a box; ``float``; an unknown σ
+What it cannot do yet (refused, :class:`~thetahat.errors.UnsupportedError`): the linear
+holds ``"foh"`` and ``"smooth"`` (the line between two samples is not generated; ``"smooth"``
+also corrects its samples by a causal estimate of ü,
+:mod:`~thetahat.estimation.statistical.input_hold`) and the band-limited hold (it reads
+later samples); a Θ other than a box; ``float``; an unknown σ
 (give ``noise_std``: the stream's estimate from its first samples is not generated).
 """
 
@@ -138,9 +139,9 @@ def check_stage2(ekf: Any, dt: float, what: str = "the C EKF") -> None:
         raise UnsupportedError(f"generate_ekf_c needs a JointEKF; got {type(ekf).__name__}.")
     if ekf.hold != "zoh":
         raise UnsupportedError(
-            f"{what} has hold 'zoh' only; got {ekf.hold!r} (stage 2's 'foh' corrects its "
-            "input samples with a causal estimate of ü that is not generated yet, and "
-            "'bandlimited' reads later samples). Use hold='zoh' (--hold zoh).")
+            f"{what} has hold 'zoh' only; got {ekf.hold!r} (the line between two samples "
+            "of 'foh' and 'smooth' is not generated yet, nor 'smooth''s correction of its "
+            "samples; 'bandlimited' reads later samples). Use hold='zoh' (--hold zoh).")
     theta_set = ekf.system.require_parameter_set(what)
     if not isinstance(theta_set, Box):
         raise UnsupportedError(f"{what} keeps θ̂ in a box Θ only; got {theta_set!r}. "

@@ -24,7 +24,8 @@ What it does not do (refused, :class:`~thetahat.errors.UnsupportedError` /
 :class:`~thetahat.errors.OptionError`): the MAP fits that re-anchor stage 2 (each fits all the
 data so far: memory and time grow with the record; build the estimator with
 ``use_fits=False``, whose Python ``step`` and ``run`` are the C's reference); stage 2's
-``"foh"`` and ``"bandlimited"`` holds and a Θ other than a box (as the C EKF); an unknown σ.
+``"foh"``, ``"smooth"`` and ``"bandlimited"`` holds and a Θ other than a box (as the C EKF);
+an unknown σ.
 """
 
 from __future__ import annotations

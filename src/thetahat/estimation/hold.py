@@ -8,6 +8,8 @@ report and the free-run simulation
 
 * ``"zoh"`` — zero-order hold: u(t_k + a h) = u_k for a ∈ [0, 1) (a DAC holding its output);
 * ``"foh"`` — first-order hold: u linear between u_k and u_{k+1};
+* ``"smooth"`` — the first-order hold through the samples corrected for a smooth signal's
+  interval mean (below);
 * ``"bandlimited"`` — the band-limited signal through the samples: the Whittaker–Shannon
   interpolation Σ_j u_{k+j} sinc(a − j) with the sinc windowed by a Kaiser window over
   ±:data:`BANDLIMITED_HALF_WIDTH` samples (β = :data:`KAISER_BETA`) and the weights scaled to
@@ -19,42 +21,43 @@ report and the free-run simulation
   comparison the linear hold's error there is 1 − cos(ωh/2) ≈ (ωh)²/8 at mid-interval: 6 % at
   ω h = 0.7 (the Silverbox's resonance, 9 samples per period), 69 % at 0.8π.
 
-The three are one formula: at the fraction a of the interval from sample k to k + 1,
+The holds are one formula: at the fraction a of the interval from sample k to k + 1,
 
     u(t_k + a h) = Σ_{j = −L+1}^{L} w_j(a) u_{k+j},
 
 with the taps table w(a) of :func:`hold_weights` (L = 1 for the zero- and first-order holds:
-w = (1, 0) and (1 − a, a); L = :data:`BANDLIMITED_HALF_WIDTH` for the band-limited one).
+w = (1, 0) and (1 − a, a), ``"smooth"`` the latter; L = :data:`BANDLIMITED_HALF_WIDTH` for the
+band-limited one).
 Samples beyond the record's ends are taken equal to its first and last sample. The fraction is
 of the sample index: with irregular instants the band-limited reconstruction interpolates in
 the index (exact for uniform sampling, an approximation for jittered instants), the zero- and
 first-order holds are exact on any grid. The band-limited hold reads L samples *after* the
 interval: it is for records (``run``), not streams (``step`` refuses it).
 
-Which samples are reconstructed differs by path, and for ``"foh"`` it matters. The free run and
-the output-error fit (:mod:`thetahat.studies.free_run`, :mod:`thetahat.studies.validation`),
-the plant simulator and the paper's observer reconstruct the samples as given. Stage 2 (the
-joint EKF, the MAP fits, the likelihood, the Cramér–Rao bound and the trust report)
-reconstructs its samples ũ
-(:func:`~thetahat.estimation.statistical.input_hold.stage2_samples`): the raw samples under
-``"zoh"`` and ``"bandlimited"``, and under ``"foh"``, on every channel that its samples show to
-be smooth, ũ_k = u_k − h² ü(t_k)/12, so that the line through ũ carries the interval mean of a
-*smooth signal sampled at points*. For such a signal that is the better reconstruction of the
-two; for an input that truly is linear between its samples (a first-order-hold DAC, a
-simulation driven by the interpolant) it is wrong by h² ü/12. Measured on a 3 s record of the
-Silverbox model driven by an input linear between samples at 610 Hz (σ = 0.3 mV): the MAP fit
-from the raw samples lands within 1.1 of its Cramér–Rao sd of the true θ, from ũ 60–370 sd away
-(a one-off measurement, not a benchmark); driven by the continuous sines instead, neither
-linear reconstruction fits (ωh up to 1) and the band-limited hold does. Near the Nyquist
-frequency, give ``"bandlimited"``: it reconstructs the same samples on every path.
+``"smooth"`` is the first-order hold through corrected samples, for a *smooth signal sampled at
+points* (a measured input, not a DAC's): the line through the raw samples has, over each
+interval, the mean ū − h² ü/12 instead of ū, so every channel that its samples show to be
+smooth is reconstructed through ũ_k = u_k − h² ü(t_k)/12 with ü from past samples only
+(:func:`~thetahat.estimation.statistical.input_hold.stage2_samples`); a channel that is not
+smooth keeps its samples. It is causal (a stream's ``step`` takes it) and stage 2's default. It
+is not ``"foh"``: for an input that truly is linear between its samples (a first-order-hold
+DAC, a simulation driven by the interpolant) it is wrong by h² ü/12 — on a 3 s record of the
+Silverbox model driven by such an input at 610 Hz (σ = 0.3 mV) the MAP fit under ``"foh"``
+landed within 1.1 of its Cramér–Rao sd of the true θ, under ``"smooth"`` 60–370 sd away (a
+one-off measurement). Every path takes the hold it is given the same way: the free run and the
+output-error fit (:mod:`thetahat.studies.free_run`) reconstruct ``"smooth"`` through ũ too.
+Near the Nyquist frequency neither line is close to a smooth input; ``"bandlimited"`` is
+(records only).
 
 An integrator exact for a forcing linear in time over each step (the paper's observer's
 exponential integrator is one) needs one straight line per step: :func:`step_lines` gives the
 line closest to the hold's reconstruction over the step in the mean-square sense — for the
 zero- and first-order holds the reconstruction itself; for the band-limited one the line with
 the band-limited signal's mean and first moment over the step. (The paper's observer takes
-``"zoh"`` and ``"foh"`` through its own ``run(hold=…)``; the band-limited lines are not yet
-wired into it.)
+``"zoh"`` and ``"foh"`` through its own ``run(hold=…)``, and a run's ``"smooth"`` or
+``"bandlimited"`` as ``"foh"`` through the raw samples
+(:func:`thetahat.modelfile.holds.split_hold`): the band-limited lines and the corrected samples
+are not yet wired into it.)
 
 What it may import: NumPy and :mod:`math`; nothing of the estimation wing (every room uses it).
 """
@@ -69,15 +72,19 @@ from numpy.typing import ArrayLike, NDArray
 
 from ..errors import DimensionError, OptionError
 
-__all__ = ["BANDLIMITED_BAND", "BANDLIMITED_ERROR", "BANDLIMITED_HALF_WIDTH", "HOLDS", "Hold",
-           "KAISER_BETA", "bessel_i0", "check_hold", "half_width", "hold_code", "hold_weights",
-           "reconstruct", "step_lines", "weight_table"]
+__all__ = ["BANDLIMITED_BAND", "BANDLIMITED_ERROR", "BANDLIMITED_HALF_WIDTH", "CODES", "HOLDS",
+           "Hold", "KAISER_BETA", "bessel_i0", "check_hold", "half_width", "hold_code",
+           "hold_weights", "reconstruct", "step_lines", "weight_table"]
 
 FloatArray = NDArray[np.float64]
 
-#: The holds, in the order of their codes (0, 1, 2 in the compiled kernels).
-HOLDS = ("zoh", "foh", "bandlimited")
-Hold = Literal["zoh", "foh", "bandlimited"]
+#: The holds.
+HOLDS = ("zoh", "foh", "bandlimited", "smooth")
+Hold = Literal["zoh", "foh", "bandlimited", "smooth"]
+#: Each hold's code in the compiled kernels (its taps table): ``"smooth"`` is the first-order
+#: hold's line, through the samples :func:`~thetahat.estimation.statistical.input_hold.
+#: stage2_samples` corrects.
+CODES = {"zoh": 0, "foh": 1, "bandlimited": 2, "smooth": 1}
 #: L: the band-limited reconstruction reads the samples k − L + 1 … k + L (2L taps).
 BANDLIMITED_HALF_WIDTH = 16
 #: β of the Kaiser window (with L = 16 the β of the smallest in-band error, searched over
@@ -116,7 +123,7 @@ def check_hold(hold: object) -> str:
 
 
 def hold_code(hold: str) -> int:
-    """The hold's code in the compiled kernels: 0 zoh, 1 foh, 2 bandlimited.
+    """The hold's code in the compiled kernels: 0 zoh, 1 foh and smooth, 2 bandlimited.
 
     Parameters
     ----------
@@ -131,7 +138,7 @@ def hold_code(hold: str) -> int:
     >>> hold_code("foh")
     1
     """
-    return HOLDS.index(check_hold(hold))
+    return CODES[check_hold(hold)]
 
 
 def half_width(hold: str) -> int:

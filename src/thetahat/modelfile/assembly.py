@@ -352,7 +352,7 @@ def resolve_gains(spec: ModelSpec, t: ArrayLike | None = None, u: ArrayLike | No
     Gamma : float or array_like, optional
         Γ itself, in place of the file's: a number (γI), p numbers (the diagonal) or a
         p × p matrix.
-    hold : {"zoh", "foh", "bandlimited"}, optional
+    hold : {"zoh", "foh", "bandlimited", "smooth"}, optional
         The run's hold; the first pass of ``"auto"`` takes the observer's
         (:func:`~thetahat.modelfile.holds.split_hold`).
     nan_policy : {"raise", "skip"}
@@ -444,10 +444,10 @@ def build_estimator(spec: ModelSpec, *, method: str | None = None, hold: str | N
         One of :data:`thetahat.methods.ESTIMATION_METHODS` (default: the file's
         ``[estimator] method``): the paper's observer, the two-stage guarded estimator (that
         observer as stage 1), the MAP fits or the joint EKF.
-    hold : {"zoh", "foh", "bandlimited"}, optional
+    hold : {"zoh", "foh", "bandlimited", "smooth"}, optional
         u between the samples (:func:`~thetahat.modelfile.holds.split_hold`): default, the
         observer holds the samples (its ``step`` always does) and the statistical methods
-        take u linear between them.
+        take ``"smooth"`` (u linear between samples corrected for a smooth input).
     nan_policy : {"raise", "skip"}
         What the observer does with a NaN sample (a dropout).
     compiled : bool, optional
@@ -533,11 +533,11 @@ def run_estimator(spec: ModelSpec, t: ArrayLike, u: ArrayLike | None, y: ArrayLi
         Input samples.
     y : array_like, shape (N, r)
         Output samples.
-    hold : {"zoh", "foh", "bandlimited"}, optional
+    hold : {"zoh", "foh", "bandlimited", "smooth"}, optional
         u between the samples, for every method
         (:func:`~thetahat.modelfile.holds.split_hold`; the trust report takes the statistical
         methods' one). Default: the observer holds the samples, the statistical methods take
-        u linear between them.
+        ``"smooth"`` (u linear between samples corrected for a smooth input).
     nan_policy : {"raise", "skip"}
         What the observer does with a NaN sample (a dropout).
     progress : callable or Stages, optional
@@ -677,7 +677,7 @@ def _run(spec: ModelSpec, t: ArrayLike, u: ArrayLike | None, y: ArrayLike, *,
     if isinstance(progress, Stages):
         progress.stage("trust report")
     fits = "none" if not how.fits else "record" if window is None else "window"
-    report = _trust(spec, result, u, y, compiled, x0, noise_std, stage2_hold or "foh", fits)
+    report = _trust(spec, result, u, y, compiled, x0, noise_std, stage2_hold or "smooth", fits)
     for text in report.warnings:
         warnings.warn(text, ThetahatWarning, stacklevel=3)
     if spec.state_set is not None:

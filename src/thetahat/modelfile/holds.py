@@ -21,15 +21,17 @@ def split_hold(hold: str | None, method: str) -> tuple[Hold, str | None]:
     """The observer's hold and the statistical methods' hold of a run's ``hold``.
 
     ``None`` leaves each its default: the observer holds the samples (``"zoh"``), the
-    statistical methods take u linear between them (their ``"foh"``). ``"zoh"`` or ``"foh"``
-    is every method's. ``"bandlimited"`` (:mod:`thetahat.estimation.hold`) reaches the
-    statistical methods; the guarded estimator's stage 1 (the guard) then takes ``"foh"``,
-    and the paper's observer refuses it (its exponential integrator takes the zero- and
-    first-order holds only).
+    statistical methods take u linear between samples corrected for a smooth input (their
+    ``"smooth"``). ``"zoh"`` or ``"foh"`` is every method's. ``"smooth"`` and
+    ``"bandlimited"`` (:mod:`thetahat.estimation.hold`) reach the statistical methods (the
+    trust report of every method included); the observer (the paper's, or the guarded
+    estimator's stage 1) then takes ``"foh"`` through the raw samples, except that the
+    paper's method refuses ``"bandlimited"`` (its exponential integrator takes the zero- and
+    first-order holds only, and its θ̂ would come from another input than the one named).
 
     Parameters
     ----------
-    hold : {"zoh", "foh", "bandlimited"} or None
+    hold : {"zoh", "foh", "bandlimited", "smooth"} or None
     method : str
         The method the run uses (:data:`thetahat.methods.ESTIMATION_METHODS`).
 
@@ -48,9 +50,12 @@ def split_hold(hold: str | None, method: str) -> tuple[Hold, str | None]:
     >>> from thetahat.modelfile.holds import split_hold
     >>> split_hold(None, "guarded"), split_hold("bandlimited", "mle")
     (('zoh', None), ('foh', 'bandlimited'))
+    >>> split_hold("smooth", "paper")
+    ('foh', 'smooth')
     """
     if hold is None:
         return "zoh", None
-    if method != "paper" and check_hold(hold) == "bandlimited":
-        return "foh", "bandlimited"
-    return cast(Hold, observer_hold(hold)), hold
+    h = check_hold(hold)
+    if h == "smooth" or (method != "paper" and h == "bandlimited"):
+        return "foh", h
+    return cast(Hold, observer_hold(h)), h

@@ -175,7 +175,7 @@ def validate(theta: ArrayLike, record: DataRecord | None = None, *, hold: str = 
         (m, d, k1, k3, u0).
     record : DataRecord, optional
         Default: :func:`load`.
-    hold : {"zoh", "foh", "bandlimited"}
+    hold : {"zoh", "foh", "bandlimited", "smooth"}
         The input between samples, as the estimate assumed.
     names : tuple of str
         The splits (default :data:`TEST_SPLITS`).

@@ -259,7 +259,7 @@ def report(*, out: Path | str = "out", methods: Sequence[str] = METHODS,
         The estimators (names of :data:`thetahat.methods.METHODS`), in the table's order.
     references : sequence of str
         The holds of the output-error references (none: skip them).
-    hold : {"zoh", "foh", "bandlimited"}
+    hold : {"zoh", "foh", "bandlimited", "smooth"}
         The hold the methods run with and their θ̂ are validated with (the output-error
         reference of this hold is the one the ratios are taken to); the paper's observer
         takes ``"foh"`` in place of ``"bandlimited"``.

@@ -3,11 +3,12 @@
 :func:`simulate_output` integrates ẋ = A x + B u + E g(col(u, C x), x, θ) over a record and
 returns ŷ = C x at the samples. Between the samples the input is what the ``hold``
 reconstructs (:mod:`thetahat.estimation.hold`, the one definition every estimator uses):
-``"zoh"`` holds each sample until the next; ``"foh"`` interpolates linearly; ``"bandlimited"``
-is the band-limited (windowed-sinc) interpolation of the samples — what a signal sampled
-without aliasing is — a modelling choice that a lightly damped resonance near the Nyquist
-frequency makes visible. The samples are reconstructed as given (stage 2's estimators hand
-theirs ũ through :func:`~thetahat.estimation.statistical.input_hold.stage2_samples` first).
+``"zoh"`` holds each sample until the next; ``"foh"`` interpolates linearly; ``"smooth"``
+interpolates linearly through the samples corrected for a smooth signal's curvature
+(:func:`~thetahat.estimation.statistical.input_hold.stage2_samples`, as stage 2 does);
+``"bandlimited"`` is the band-limited (windowed-sinc) interpolation of the samples — what a
+signal sampled without aliasing is — a modelling choice that a lightly damped resonance near
+the Nyquist frequency makes visible.
 
 The map between two samples is stage 2's own
 (:func:`~thetahat.estimation.statistical.plant_kernel.propagate`: classical RK4 sub-steps
@@ -22,8 +23,8 @@ each sample chained by the Cramér–Rao bound's own kernel,
 :func:`~thetahat.estimation.statistical.crlb.sensitivities`) for the fits of
 :mod:`thetahat.studies.validation`.
 
-What it may import: the model, the estimation wing's hold, plant kernel and CRLB kernel, the
-package's validation and errors.
+What it may import: the model, the estimation wing's hold, input samples, plant kernel and
+CRLB kernel, the package's validation and errors.
 """
 
 from __future__ import annotations
@@ -41,6 +42,7 @@ from .._validate import as_samples, as_vector
 from ..errors import ConvergenceWarning, DimensionError, NonFiniteError, OptionError
 from ..estimation.hold import check_hold, reconstruct
 from ..estimation.statistical.crlb import sensitivity_kernel
+from ..estimation.statistical.input_hold import stage2_samples
 from ..estimation.statistical.plant_kernel import H_RHO, ModelKernel, Propagation, model_kernel
 from ..model.system import PerturbedLinearSystem
 
@@ -66,9 +68,10 @@ def input_path(t: ArrayLike, u: ArrayLike, hold: str, substeps: int
                ) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
     """The input at the three points where each RK4 sub-step reads it, and the sub-steps' lengths.
 
-    The hold's reconstruction (:func:`~thetahat.estimation.hold.reconstruct`) at the fractions
-    s/S, (s + ½)/S and (s + 1)/S of each interval: what
-    :func:`~thetahat.estimation.statistical.plant_kernel.propagate` reads with S sub-steps
+    The hold's reconstruction (:func:`~thetahat.estimation.hold.reconstruct`, of the
+    corrected samples under ``"smooth"``) at the fractions s/S, (s + ½)/S and (s + 1)/S of
+    each interval: what :func:`~thetahat.estimation.statistical.plant_kernel.propagate` reads
+    with S sub-steps
     (for an independent integrator to be driven by the same input).
 
     Parameters
@@ -77,7 +80,7 @@ def input_path(t: ArrayLike, u: ArrayLike, hold: str, substeps: int
         Strictly increasing sample times.
     u : array_like, shape (N, m)
         Input samples.
-    hold : {"zoh", "foh", "bandlimited"}
+    hold : {"zoh", "foh", "bandlimited", "smooth"}
         The reconstruction between samples (module docstring).
     substeps : int
         Sub-steps per sample interval, ≥ 1.
@@ -110,7 +113,7 @@ def input_path(t: ArrayLike, u: ArrayLike, hold: str, substeps: int
         raise OptionError(f"substeps: expected an integer >= 1; got {substeps!r}.")
     S = int(substeps)
     t = as_vector("t", t)
-    U = np.asarray(u, dtype=np.float64).reshape(t.size, -1)
+    U = stage2_samples(np.asarray(u, dtype=np.float64).reshape(t.size, -1), hold)[0]
     N = U.shape[0]
     DT = np.repeat(np.diff(t) / S, S)
     k = np.repeat(np.arange(N - 1), S)
@@ -131,6 +134,7 @@ class FreeRun:
         Stage 2's plant kernel of ``system``.
     t : ndarray, shape (N,)
     U : ndarray, shape (N, m)
+        The samples the hold reconstructs from (the corrected ones under ``"smooth"``).
     hold : str
         One of :data:`thetahat.estimation.hold.HOLDS`.
 
@@ -192,13 +196,13 @@ class FreeRun:
             raise DimensionError("hold='bandlimited' needs a uniformly sampled record (the "
                                  "band-limited interpolation is defined on a uniform grid); "
                                  "t's steps range over "
-                                 f"[{steps.min():.6g}, {steps.max():.6g}]. Use 'foh' or "
-                                 "'zoh', or resample the record first.")
+                                 f"[{steps.min():.6g}, {steps.max():.6g}]. Use 'smooth', "
+                                 "'foh' or 'zoh', or resample the record first.")
         if not np.all(np.isfinite(U)):
             raise NonFiniteError("u holds NaN or inf; a free-run simulation needs every input "
                                  "sample.")
         return cls(system, model_kernel(system, compiled=compiled), t,
-                   np.ascontiguousarray(U), hold)
+                   stage2_samples(U, hold)[0], hold)
 
     def segment(self, start: int, stop: int) -> FreeRun:
         """Samples [start, stop) of the record (the same model and hold)."""
@@ -306,7 +310,7 @@ def _check_x0(system: PerturbedLinearSystem, x0: ArrayLike) -> FloatArray:
 
 
 def converged_substeps(system: PerturbedLinearSystem, theta: ArrayLike, t: ArrayLike,
-                       u: ArrayLike | None, *, x0: ArrayLike, hold: str = "foh",
+                       u: ArrayLike | None, *, x0: ArrayLike, hold: str = "smooth",
                        rtol: float = DEFAULT_RTOL, compiled: bool | None = None) -> int:
     """The fewest sub-steps per sample (a power of two) at which the simulation has converged.
 
@@ -347,7 +351,7 @@ def converged_substeps(system: PerturbedLinearSystem, theta: ArrayLike, t: Array
 
 
 def simulate_output(system: PerturbedLinearSystem, theta: ArrayLike, t: ArrayLike,
-                    u: ArrayLike | None, *, x0: ArrayLike, hold: str = "foh",
+                    u: ArrayLike | None, *, x0: ArrayLike, hold: str = "smooth",
                     substeps: int | None = None, rtol: float = DEFAULT_RTOL,
                     compiled: bool | None = None) -> FloatArray:
     """The free-run output ŷ = C x of the model (1) with θ, driven by the input alone.
@@ -362,7 +366,7 @@ def simulate_output(system: PerturbedLinearSystem, theta: ArrayLike, t: ArrayLik
     u : array_like, shape (N, m), or None when m = 0
     x0 : array_like, shape (n,)
         x at t[0].
-    hold : {"zoh", "foh", "bandlimited"}
+    hold : {"zoh", "foh", "bandlimited", "smooth"}
         The input between the samples (module docstring).
     substeps : int, optional
         RK4 steps per sample interval; default: :func:`converged_substeps` with ``rtol``.

@@ -5,8 +5,8 @@ simulation** of records it was not fitted on: the model (1) with y = C x, integr
 initial state with the record's inputs only, compared with the measured outputs.
 
 * the free run itself is :func:`thetahat.studies.free_run.simulate_output`: the model (1) with θ,
-  the input reconstructed between samples by a ``hold`` ("zoh", "foh" or "bandlimited"),
-  integrated by RK4 sub-steps until converged.
+  the input reconstructed between samples by a ``hold`` ("zoh", "foh", "smooth" or
+  "bandlimited"), integrated by RK4 sub-steps until converged.
 * :func:`validate_free_run` scores θ on segments of a record: on each, x(0) is fitted to the
   first ``init_window`` samples (the benchmarks' state-initialisation window; 0: x̂(0) from
   y(0) alone), the segment is simulated from it, and the RMS error and the fit
@@ -192,7 +192,7 @@ def _segments(segments: Mapping[str, tuple[int, int]] | None, N: int
 def validate_free_run(system: PerturbedLinearSystem, theta: ArrayLike, t: ArrayLike,
                       u: ArrayLike | None, y: ArrayLike,
                       segments: Mapping[str, tuple[int, int]] | None = None, *,
-                      hold: str = "foh", init_window: int = 0, substeps: int | None = None,
+                      hold: str = "smooth", init_window: int = 0, substeps: int | None = None,
                       rtol: float = DEFAULT_RTOL,
                       compiled: bool | None = None) -> FreeRunValidation:
     """Score θ by free-run simulations of segments of a record (the benchmarks' protocol).
@@ -214,7 +214,7 @@ def validate_free_run(system: PerturbedLinearSystem, theta: ArrayLike, t: ArrayL
     segments : mapping of str to (start, stop), optional
         Named segments [start, stop) of the record (0-based, half-open), e.g. a model file's
         ``[data.segments]``; default: the whole record as one segment, "record".
-    hold : {"zoh", "foh", "bandlimited"}
+    hold : {"zoh", "foh", "bandlimited", "smooth"}
     init_window : int
         Samples at each segment's start used to fit x(0) and not scored (the Silverbox
         benchmark's protocol: 50).
@@ -353,7 +353,7 @@ def _oe_solve(rec: FreeRun, Y: FloatArray, q0: FloatArray, lower: FloatArray,
 
 def fit_output_error(system: PerturbedLinearSystem, t: ArrayLike, u: ArrayLike | None,
                      y: ArrayLike, *, theta0: ArrayLike, x0: ArrayLike | None = None,
-                     hold: str = "foh", substeps: int | None = None,
+                     hold: str = "smooth", substeps: int | None = None,
                      rtol: float = DEFAULT_RTOL, max_nfev: int = 100,
                      compiled: bool | None = None) -> OutputErrorFit:
     """The output-error fit: (x(0), θ) minimising ‖y − ŷ‖ over a record, θ in Θ's box.
@@ -374,7 +374,7 @@ def fit_output_error(system: PerturbedLinearSystem, t: ArrayLike, u: ArrayLike |
         The starting θ (in Θ's box).
     x0 : array_like, shape (n,), optional
         The starting x(0) (default C⁺ y(0)).
-    hold : {"zoh", "foh", "bandlimited"}
+    hold : {"zoh", "foh", "bandlimited", "smooth"}
     substeps : int, optional
         Fixed sub-steps (default: converged).
     rtol : float

@@ -195,7 +195,7 @@ def sensitivity_kernel(model: ModelKernel) -> Callable[..., int]:
 
 
 def crlb(system: PerturbedLinearSystem, t: Any, u: Any, *, theta: Any, noise_std: Any,
-         x0: Any = None, x0_known: bool = True, hold: str = "foh",
+         x0: Any = None, x0_known: bool = True, hold: str = "smooth",
          substeps: int | None = None, compiled: bool | None = None) -> CRLBResult:
     """The Cramér–Rao lower bound of θ on an experiment, as a function of time.
 
@@ -215,8 +215,8 @@ def crlb(system: PerturbedLinearSystem, t: Any, u: Any, *, theta: Any, noise_std
         Initial state (default zeros).
     x0_known : bool
         If False, x(0) is estimated as well and the bound is the θ block of the joint one.
-    hold : {"zoh", "foh", "bandlimited"}
-        u between the samples (:mod:`~thetahat.estimation.hold`; stage 2's ``"foh"``:
+    hold : {"zoh", "foh", "bandlimited", "smooth"}
+        u between the samples (:mod:`~thetahat.estimation.hold`; ``"smooth"``:
         :func:`~thetahat.estimation.statistical.input_hold.stage2_samples`).
     substeps : int, optional
         The RK4 sub-steps' accuracy floor; default: chosen at θ from x0 so that the

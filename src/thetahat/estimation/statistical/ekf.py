@@ -6,19 +6,19 @@ u between the samples as the ``hold`` reconstructs it) with θ constant:
 
     x_{k+1} = F_k(x_k, θ, u),   θ_{k+1} = θ_k,   y_k = C x_k + e_k,  e_k ~ N(0, R).
 
-The hold is ``"foh"`` unless told (:mod:`~thetahat.estimation.hold`): u linear between the
+The hold is ``"smooth"`` unless told (:mod:`~thetahat.estimation.hold`): u linear between the
 samples ũ of :func:`~thetahat.estimation.statistical.input_hold.smooth_input` (u_k where the
 input is not resolved by its sampling; where it is, corrected so that the linear hold carries
-u's exact mean over each interval to O(h⁴); causal, so ``step`` and ``run`` agree);
-``"zoh"`` for an input held by a DAC; ``"bandlimited"`` for a band-limited input (``run``
-only). The RK4 sub-steps of a record are chosen by
-:func:`~thetahat.estimation.statistical.plant_kernel.choose_substeps` at the start values
-unless given.
-Prediction P ← T P Tᵀ + Q (Q = diag(Q_x, 0), Q_x the process noise on x over one sample),
-update in Joseph form, then θ projected onto Θ in the P_θθ⁻¹-weighted norm (a box: a clip;
-any convex Θ, see :mod:`~thetahat.estimation.statistical.stage2_set`). R = σ² I with σ given
-or estimated from the data (:func:`~thetahat.estimation.statistical.noise_level.estimate_noise_std`);
-the prior on θ comes from Θ (centre ± |Θ|/4 per component unless told), on x(0) it is wide
+u's exact mean over each interval to O(h⁴); causal, so ``step`` and ``run`` agree); ``"zoh"``
+for an input held by a DAC; ``"foh"`` for one linear between its samples (the raw samples);
+``"bandlimited"`` for a band-limited input (``run`` only). The RK4 sub-steps of a record are
+chosen by :func:`~thetahat.estimation.statistical.plant_kernel.choose_substeps` at the start
+values unless given. Prediction P ← T P Tᵀ + Q (Q = diag(Q_x, 0), Q_x the process noise on x
+over one sample), update in Joseph form, then θ projected onto Θ in the P_θθ⁻¹-weighted norm (a
+box: a clip; any convex Θ, see :mod:`~thetahat.estimation.statistical.stage2_set`). R = σ² I
+with σ given or estimated from the data
+(:func:`~thetahat.estimation.statistical.noise_level.estimate_noise_std`); the prior on θ comes
+from Θ (centre ± |Θ|/4 per component unless told), on x(0) it is wide
 (:func:`~thetahat.estimation.statistical.common.joint_prior`).
 
 A run whose state becomes non-finite stops there with
@@ -151,8 +151,8 @@ class JointEKF:
         determine x quickly).
     q_x : float
         Process-noise variance per sample on x (default 0: the model is taken as exact).
-    hold : {"zoh", "foh", "bandlimited"}
-        u between the samples (:mod:`~thetahat.estimation.hold`; default ``"foh"``,
+    hold : {"zoh", "foh", "bandlimited", "smooth"}
+        u between the samples (:mod:`~thetahat.estimation.hold`; default ``"smooth"``,
         ``"bandlimited"`` for :meth:`run` only).
     substeps : int, optional
         The RK4 sub-steps' accuracy floor; default: chosen per record at the start values
@@ -186,7 +186,7 @@ class JointEKF:
     theta_sd: ArrayLike | None = None
     x_sd: ArrayLike | None = None
     q_x: float = 0.0
-    hold: str = "foh"
+    hold: str = "smooth"
     substeps: int | None = None
     h_rho: float = H_RHO
     compiled: bool | None = None

@@ -248,8 +248,8 @@ class GuardedEstimator:
         of the samples so far (default :data:`~thetahat.estimation.statistical.guard.GUARD_DWELL`).
     q_x : float
         Stage 2's process-noise variance per sample on x (default 0: the model is exact).
-    hold : {"zoh", "foh", "bandlimited"}
-        Stage 2's u between the samples (:mod:`~thetahat.estimation.hold`; default ``"foh"``;
+    hold : {"zoh", "foh", "bandlimited", "smooth"}
+        Stage 2's u between the samples (:mod:`~thetahat.estimation.hold`; default ``"smooth"``;
         ``"bandlimited"`` for :meth:`run` only); stage 1's is its own (a model file gives
         both the file's).
     substeps : int, optional
@@ -300,7 +300,7 @@ class GuardedEstimator:
     rho_max: float = GUARD_RHO_MAX
     dwell: float = GUARD_DWELL
     q_x: float = 0.0
-    hold: str = "foh"
+    hold: str = "smooth"
     substeps: int | None = None
     h_rho: float = H_RHO
     compiled: bool | None = None

@@ -150,7 +150,7 @@ class GuardedStream:
 
     def __init__(self, system: PerturbedLinearSystem, s0: FloatArray, P0: FloatArray, *,
                  q_x: float, noise_std: ArrayLike | None, schedule: FitSchedule | None,
-                 prior0: tuple[FloatArray, FloatArray] | None, hold: str = "foh",
+                 prior0: tuple[FloatArray, FloatArray] | None, hold: str = "smooth",
                  h_rho: float = H_RHO, substeps: int | None = None,
                  window: int | str | None = None, window_max: int = WINDOW_MAX) -> None:
         sys_ = system
@@ -226,7 +226,7 @@ class GuardedStream:
     def start(cls, system: PerturbedLinearSystem, s0: FloatArray, P0: FloatArray, *,
               q_x: float, noise_std: ArrayLike | None, schedule: FitSchedule | None,
               prior0: tuple[FloatArray, FloatArray] | None,
-              executor: concurrent.futures.Executor | None, hold: str = "foh",
+              executor: concurrent.futures.Executor | None, hold: str = "smooth",
               h_rho: float = H_RHO, substeps: int | None = None,
               window: int | str | None = None, window_max: int = WINDOW_MAX
               ) -> GuardedStream:

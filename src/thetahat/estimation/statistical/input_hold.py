@@ -2,11 +2,12 @@
 
 Stage 2 propagates the model between samples with u as the hold reconstructs it
 (:mod:`~thetahat.estimation.hold`, :mod:`~thetahat.estimation.statistical.plant_kernel`):
-held (``"zoh"``), linear (``"foh"``) or band-limited (``"bandlimited"``). The samples it
-reconstructs from are :func:`stage2_samples`: the raw samples for the zero-order and the
-band-limited holds, and for the first-order hold the samples ũ below, so that stage 2's
-``"foh"`` is the linear interpolant of a smooth input's samples corrected to carry u's mean
-over every interval. When u is a smooth signal sampled at
+held (``"zoh"``), linear (``"foh"`` and ``"smooth"``) or band-limited (``"bandlimited"``). The
+samples it reconstructs from are :func:`stage2_samples`: the raw samples for every hold but
+``"smooth"``, and for ``"smooth"`` the samples ũ below, so that its line through them carries a
+smooth input's mean over every interval. (``"foh"`` is the line through the raw samples: an
+input that truly is linear between them.) The free run (:mod:`thetahat.studies.free_run`)
+reconstructs from the same samples. When u is a smooth signal sampled at
 spacing h, the linear interpolant of its samples has, over each interval, the mean
 (u_{k−1} + u_k)/2 = ū − h² ü/12 + O(h⁴) instead of the true mean ū: for a 131 Hz input at
 10 kHz a relative error of 6·10⁻⁴ per sample, a bias that long records resolve (the actuator
@@ -165,27 +166,27 @@ def stage2_samples(U: FloatArray, hold: str, history: InputHistory | None = None
     ----------
     U : ndarray, shape (N, m)
         Raw input samples of a block of a record or stream.
-    hold : {"zoh", "foh", "bandlimited"}
+    hold : {"zoh", "foh", "bandlimited", "smooth"}
     history : InputHistory, optional
-        The previous block's (``"foh"`` only; None: the first block).
+        The previous block's (``"smooth"`` only; None: the first block).
 
     Returns
     -------
     samples : ndarray, shape (N, m)
-        ũ of :func:`smooth_input` for ``"foh"``; the raw samples otherwise.
+        ũ of :func:`smooth_input` for ``"smooth"``; the raw samples otherwise.
     history : InputHistory or None
-        For the next block (``"foh"``), else None.
+        For the next block (``"smooth"``), else None.
 
     Examples
     --------
     >>> import numpy as np
     >>> U = np.sin(np.arange(50) * 0.1)[:, None]
-    >>> bool(np.array_equal(stage2_samples(U, "zoh")[0], U))
+    >>> bool(np.array_equal(stage2_samples(U, "foh")[0], U))
     True
-    >>> bool(np.array_equal(stage2_samples(U, "foh")[0], smooth_input(U)[0]))
+    >>> bool(np.array_equal(stage2_samples(U, "smooth")[0], smooth_input(U)[0]))
     True
     """
-    if check_hold(hold) == "foh":
+    if check_hold(hold) == "smooth":
         Ut, hist = smooth_input(U, history)
         return np.ascontiguousarray(Ut), hist
     return np.array(U, dtype=np.float64, order="C"), None
@@ -218,6 +219,6 @@ def streamable(hold: str, who: str) -> str:
     if check_hold(hold) == "bandlimited":
         raise OptionError(f"{who}.step cannot use hold='bandlimited': the band-limited "
                           "reconstruction between two samples reads samples after them, which "
-                          "a stream has not yet; use run on the record, or hold='foh' (or "
-                          "'zoh' for a DAC's input) for a stream.")
+                          "a stream has not yet; use run on the record, or hold='smooth' "
+                          "(or 'zoh' for a DAC's input) for a stream.")
     return hold

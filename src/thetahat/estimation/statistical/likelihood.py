@@ -427,7 +427,7 @@ def _innovation_substeps(pb: _Problem, theta: FloatArray, q: float,
 
 def innovation_substeps(system: PerturbedLinearSystem, t: FloatArray, U: FloatArray,
                         Y: FloatArray, *, theta: FloatArray, q: float, x_hat0: FloatArray,
-                        x_sd: FloatArray, noise_std: FloatArray, hold: str = "foh",
+                        x_sd: FloatArray, noise_std: FloatArray, hold: str = "smooth",
                         h_rho: float = H_RHO, compiled: bool | None = None) -> int:
     """The RK4 sub-steps' floor at which the likelihood at (θ, q) is accurate: its normalised
     innovations move θ̂ by at most a tenth of a standard error when every sample's sub-steps
@@ -768,7 +768,7 @@ def _inverse_information(J: FloatArray) -> FloatArray:
 
 def record_bound(system: PerturbedLinearSystem, t: FloatArray, U: FloatArray, Y: FloatArray,
                  *, theta: FloatArray, x_hat0: FloatArray, x_sd: FloatArray,
-                 noise_std: FloatArray, hold: str = "foh", substeps: int | None = None,
+                 noise_std: FloatArray, hold: str = "smooth", substeps: int | None = None,
                  h_rho: float = H_RHO, compiled: bool | None = None
                  ) -> tuple[float, FloatArray]:
     """At a fixed θ: the process-noise intensity q the record supports, and θ's Cramér–Rao
@@ -782,7 +782,7 @@ def record_bound(system: PerturbedLinearSystem, t: FloatArray, U: FloatArray, Y:
     x_hat0, x_sd : ndarray (n,)
         Prior mean and standard deviation of x(t₀).
     noise_std : ndarray (r,)
-    hold : {"zoh", "foh", "bandlimited"}
+    hold : {"zoh", "foh", "bandlimited", "smooth"}
     substeps : int, optional
         Default: chosen at θ (:func:`~thetahat.estimation.statistical.plant_kernel.choose_substeps`).
     h_rho : float
@@ -820,7 +820,7 @@ def _heads(system: PerturbedLinearSystem, t: FloatArray, U: FloatArray, Y: Float
 
 def search_process_noise(system: PerturbedLinearSystem, t: FloatArray, U: FloatArray,
                          Y: FloatArray, *, theta: FloatArray, x_hat0: FloatArray,
-                         x_sd: FloatArray, noise_std: FloatArray, hold: str = "foh",
+                         x_sd: FloatArray, noise_std: FloatArray, hold: str = "smooth",
                          substeps: int | None = None, h_rho: float = H_RHO,
                          compiled: bool | None = None, first_head: int = Q_FIRST_HEAD,
                          near: float | None = None) -> QSearch:
@@ -874,7 +874,7 @@ def search_process_noise(system: PerturbedLinearSystem, t: FloatArray, U: FloatA
 
 def process_noise_at(system: PerturbedLinearSystem, t: FloatArray, U: FloatArray,
                      Y: FloatArray, *, theta: FloatArray, x_hat0: FloatArray,
-                     x_sd: FloatArray, noise_std: FloatArray, hold: str = "foh",
+                     x_sd: FloatArray, noise_std: FloatArray, hold: str = "smooth",
                      substeps: int | None = None, h_rho: float = H_RHO,
                      compiled: bool | None = None, near: float | None = None) -> float:
     """q̂ at a fixed θ: :func:`search_process_noise`'s q (0 when the output-error model has
@@ -922,7 +922,7 @@ class RecordEvidence(NamedTuple):
 
 def record_evidence(system: PerturbedLinearSystem, t: FloatArray, U: FloatArray, Y: FloatArray,
                     *, theta: FloatArray, x_hat0: FloatArray, x_sd: FloatArray,
-                    noise_std: FloatArray, q: float | None = None, hold: str = "foh",
+                    noise_std: FloatArray, q: float | None = None, hold: str = "smooth",
                     substeps: int | None = None, h_rho: float = H_RHO,
                     compiled: bool | None = None) -> RecordEvidence:
     """:func:`record_bound` with the score of the innovations at θ: is θ where the data put it?
@@ -977,7 +977,7 @@ def record_evidence(system: PerturbedLinearSystem, t: FloatArray, U: FloatArray,
 
 def fisher_covariance(system: PerturbedLinearSystem, t: FloatArray, U: FloatArray,
                       Y: FloatArray, *, theta: FloatArray, q: float, x_hat0: FloatArray,
-                      x_sd: FloatArray, noise_std: FloatArray, hold: str = "foh",
+                      x_sd: FloatArray, noise_std: FloatArray, hold: str = "smooth",
                       substeps: int | None = None, h_rho: float = H_RHO,
                       compiled: bool | None = None) -> FloatArray:
     """The Cramér–Rao covariance of θ on a record: the inverse Fisher information at θ.
@@ -996,7 +996,7 @@ def fisher_covariance(system: PerturbedLinearSystem, t: FloatArray, U: FloatArra
         Process-noise intensity (0: the output-error model).
     x_hat0, x_sd : ndarray (n,)
     noise_std : ndarray (r,)
-    hold : {"zoh", "foh", "bandlimited"}
+    hold : {"zoh", "foh", "bandlimited", "smooth"}
     substeps : int, optional
         Default: chosen at θ (:func:`~thetahat.estimation.statistical.plant_kernel.choose_substeps`).
     h_rho : float
@@ -1029,7 +1029,7 @@ def _jacobian(pb: _Problem, th: FloatArray, q: float, lo: FloatArray, hi: FloatA
 def fit_process_noise(system: PerturbedLinearSystem, t: FloatArray, U: FloatArray,
                       Y: FloatArray, *, theta0: FloatArray, x_hat0: FloatArray,
                       x_sd: FloatArray, noise_std: FloatArray, q: float | None = None,
-                      max_nfev: int = 60, hold: str = "foh", substeps: int | None = None,
+                      max_nfev: int = 60, hold: str = "smooth", substeps: int | None = None,
                       h_rho: float = H_RHO, compiled: bool | None = None) -> ProcessNoiseFit:
     """Maximum-likelihood θ and q of the model with process noise on φ (module docstring).
 
@@ -1049,7 +1049,7 @@ def fit_process_noise(system: PerturbedLinearSystem, t: FloatArray, U: FloatArra
         The intensity; default: estimated with θ.
     max_nfev : int
         Filter passes per Gauss–Newton fit of θ (each costs p + 1 with the differences).
-    hold : {"zoh", "foh", "bandlimited"}
+    hold : {"zoh", "foh", "bandlimited", "smooth"}
         u between the samples (:mod:`~thetahat.estimation.hold`); U holds the samples it
         reconstructs from (:func:`~thetahat.estimation.statistical.input_hold.stage2_samples`).
     substeps : int, optional

@@ -282,7 +282,7 @@ def solve_scaled(M: FloatArray, g: FloatArray) -> tuple[FloatArray, FloatArray]:
 def fit_map(system: PerturbedLinearSystem, t: FloatArray, U: FloatArray, Y: FloatArray, *,
             k0: int, k1: int, q_start: FloatArray, q_prior: FloatArray,
             prior_info: FloatArray, noise_std: FloatArray, max_iter: int = 6,
-            skip_first: bool = False, hold: str = "foh", substeps: int | None = None,
+            skip_first: bool = False, hold: str = "smooth", substeps: int | None = None,
             h_rho: float = H_RHO, compiled: bool | None = None) -> FitResult:
     """One Gauss–Newton MAP fit of q = col(x(t_{k0}), θ) on samples k0 … k1 − 1.
 
@@ -303,7 +303,7 @@ def fit_map(system: PerturbedLinearSystem, t: FloatArray, U: FloatArray, Y: Floa
     max_iter : int
     skip_first : bool
         Leave y_{k0} out (it is already summarised by the arrival cost).
-    hold : {"zoh", "foh", "bandlimited"}
+    hold : {"zoh", "foh", "bandlimited", "smooth"}
         u between the samples (:mod:`~thetahat.estimation.hold`).
     substeps : int, optional
         The RK4 sub-steps' accuracy floor; default: chosen on the window at ``q_start``
@@ -461,8 +461,8 @@ class FitSchedule:
         σ; default estimated from the window's data.
     max_iter, first_max_iter : int
         Gauss–Newton iterations (the first fit starts cold and may need more).
-    hold : {"zoh", "foh", "bandlimited"}
-        u between the samples (:mod:`~thetahat.estimation.hold`; default ``"foh"``).
+    hold : {"zoh", "foh", "bandlimited", "smooth"}
+        u between the samples (:mod:`~thetahat.estimation.hold`; default ``"smooth"``).
     substeps : int, optional
         The RK4 sub-steps' accuracy floor of the record (the estimators choose it once per
         record, :func:`~thetahat.estimation.statistical.plant_kernel.choose_substeps`);
@@ -482,7 +482,7 @@ class FitSchedule:
     noise_std: ArrayLike | None = None
     max_iter: int = 6
     first_max_iter: int = 25
-    hold: str = "foh"
+    hold: str = "smooth"
     substeps: int | None = None
     noise_substeps: int | None = None
     h_rho: float = H_RHO

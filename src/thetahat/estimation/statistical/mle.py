@@ -16,7 +16,7 @@ EKF between fits diverges or a fit fails
 (:mod:`~thetahat.estimation.status`: raised with ``throw=True``, returned with ``throw=False``).
 
 The input between the samples is the ``hold``'s (:mod:`~thetahat.estimation.hold`; default
-``"foh"``), and the RK4 sub-steps of a record are chosen once, at the start values
+``"smooth"``), and the RK4 sub-steps of a record are chosen once, at the start values
 (:func:`~thetahat.estimation.statistical.plant_kernel.choose_substeps`), for the fits and the
 EKF between them alike (the final fit checks them at its estimate).
 
@@ -252,7 +252,7 @@ class MapEstimator:
     compiled : bool, optional
     growth : float
         Information growth between fits of the default schedule (default √2).
-    hold : {"zoh", "foh", "bandlimited"}
+    hold : {"zoh", "foh", "bandlimited", "smooth"}
         u between the samples (:mod:`~thetahat.estimation.hold`; ``"bandlimited"`` for
         :meth:`run` only).
     substeps : int, optional
@@ -294,7 +294,7 @@ class MapEstimator:
     noise_std: ArrayLike | None = None
     compiled: bool | None = None
     growth: float = INFO_GROWTH
-    hold: str = "foh"
+    hold: str = "smooth"
     substeps: int | None = None
     window: int | str | None = None
     window_max: int = WINDOW_MAX

@@ -139,8 +139,8 @@ class Propagation:
 
     Parameters
     ----------
-    hold : {"zoh", "foh", "bandlimited"}
-        u between the samples (:mod:`~thetahat.estimation.hold`). Stage 2's ``"foh"`` is
+    hold : {"zoh", "foh", "bandlimited", "smooth"}
+        u between the samples (:mod:`~thetahat.estimation.hold`). ``"smooth"`` is
         linear between the samples ũ of
         :func:`~thetahat.estimation.statistical.input_hold.stage2_samples` (u corrected where
         it is a sampled smooth signal).
@@ -157,7 +157,7 @@ class Propagation:
     ([2.0, 4.0, 2.0], (129, 32))
     """
 
-    hold: str = "foh"
+    hold: str = "smooth"
     substeps: int = 1
     h_rho: float = H_RHO
 
@@ -803,7 +803,7 @@ def model_kernel(system: PerturbedLinearSystem, *, compiled: bool | None = None)
 
 def choose_substeps(kern: ModelKernel, t: FloatArray, U: FloatArray, Y: FloatArray,
                     theta: FloatArray, x0: FloatArray, noise_std: FloatArray, *,
-                    hold: str = "foh", h_rho: float = H_RHO, target: float = ACCURACY,
+                    hold: str = "smooth", h_rho: float = H_RHO, target: float = ACCURACY,
                     samples: int | None = None) -> int:
     """The accuracy floor of RK4 sub-steps of a record: output error ≤ ``target`` standard errors.
 

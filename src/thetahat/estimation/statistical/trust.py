@@ -455,7 +455,7 @@ def tail_movement(t: FloatArray, theta_path: FloatArray, sd: FloatArray) -> Floa
 def trust_report(system: PerturbedLinearSystem, t: FloatArray, U: FloatArray, Y: FloatArray,
                  theta: FloatArray, names: Sequence[str], *, x_hat0: FloatArray,
                  x_sd: ArrayLike | None = None, band: FloatArray | None = None,
-                 noise_std: FloatArray | None = None, hold: str = "foh",
+                 noise_std: FloatArray | None = None, hold: str = "smooth",
                  substeps: int | None = None, h_rho: float = H_RHO,
                  compiled: bool | None = None, theta_path: FloatArray | None = None,
                  law_conditions: LawConditionReport | None = None,
@@ -481,7 +481,7 @@ def trust_report(system: PerturbedLinearSystem, t: FloatArray, U: FloatArray, Y:
         The guard's band δ over the run (guarded estimator).
     noise_std : ndarray (r,), optional
         The estimator's σ (default: estimated from y); floored by :func:`report_noise_std`.
-    hold : {"zoh", "foh", "bandlimited"}
+    hold : {"zoh", "foh", "bandlimited", "smooth"}
         u between the samples, as the estimate used it (:mod:`~thetahat.estimation.hold`).
     substeps : int, optional
         The RK4 sub-steps' floor of every filter pass; default: the innovations' own at θ̂
