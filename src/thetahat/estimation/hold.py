@@ -72,9 +72,9 @@ from numpy.typing import ArrayLike, NDArray
 
 from ..errors import DimensionError, OptionError
 
-__all__ = ["BANDLIMITED_BAND", "BANDLIMITED_ERROR", "BANDLIMITED_HALF_WIDTH", "CODES", "HOLDS",
-           "Hold", "KAISER_BETA", "bessel_i0", "check_hold", "half_width", "hold_code",
-           "hold_weights", "reconstruct", "step_lines", "weight_table"]
+__all__ = ["BANDLIMITED_BAND", "BANDLIMITED_ERROR", "BANDLIMITED_HALF_WIDTH", "CODES",
+           "DEFAULT_HOLD", "HOLDS", "Hold", "KAISER_BETA", "bessel_i0", "check_hold", "half_width",
+           "hold_code", "hold_weights", "reconstruct", "step_lines", "weight_table"]
 
 FloatArray = NDArray[np.float64]
 
@@ -85,6 +85,9 @@ Hold = Literal["zoh", "foh", "bandlimited", "smooth"]
 #: hold's line, through the samples :func:`~thetahat.estimation.statistical.input_hold.
 #: stage2_samples` corrects.
 CODES = {"zoh": 0, "foh": 1, "bandlimited": 2, "smooth": 1}
+#: The hold of stage 2, its trust report and the free run unless told: a measured input is a
+#: smooth signal sampled at points.
+DEFAULT_HOLD = "smooth"
 #: L: the band-limited reconstruction reads the samples k − L + 1 … k + L (2L taps).
 BANDLIMITED_HALF_WIDTH = 16
 #: β of the Kaiser window (with L = 16 the β of the smallest in-band error, searched over

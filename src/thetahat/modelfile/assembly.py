@@ -22,6 +22,7 @@ from .._validate import as_samples, seconds_from_first
 from ..design.gains import GainDesign
 from ..errors import (ConvergenceWarning, DesignError, ModelFileError, NonFiniteError,
                       NotMinimumPhaseError, ThetahatError, ThetahatWarning, UnstableDesignError)
+from ..estimation.hold import DEFAULT_HOLD
 from ..estimation.observer.auto_eps import EpsChoice
 from ..estimation.observer.checks import check_theta_star
 from ..estimation.observer.initial_state import x_hat_from_output
@@ -677,7 +678,8 @@ def _run(spec: ModelSpec, t: ArrayLike, u: ArrayLike | None, y: ArrayLike, *,
     if isinstance(progress, Stages):
         progress.stage("trust report")
     fits = "none" if not how.fits else "record" if window is None else "window"
-    report = _trust(spec, result, u, y, compiled, x0, noise_std, stage2_hold or "smooth", fits)
+    report = _trust(spec, result, u, y, compiled, x0, noise_std, stage2_hold or DEFAULT_HOLD,
+                    fits)
     for text in report.warnings:
         warnings.warn(text, ThetahatWarning, stacklevel=3)
     if spec.state_set is not None:

@@ -40,7 +40,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from .._validate import as_samples, as_vector
 from ..errors import ConvergenceWarning, DimensionError, NonFiniteError, OptionError
-from ..estimation.hold import check_hold, reconstruct
+from ..estimation.hold import DEFAULT_HOLD, check_hold, reconstruct
 from ..estimation.statistical.crlb import sensitivity_kernel
 from ..estimation.statistical.input_hold import stage2_samples
 from ..estimation.statistical.plant_kernel import H_RHO, ModelKernel, Propagation, model_kernel
@@ -310,7 +310,7 @@ def _check_x0(system: PerturbedLinearSystem, x0: ArrayLike) -> FloatArray:
 
 
 def converged_substeps(system: PerturbedLinearSystem, theta: ArrayLike, t: ArrayLike,
-                       u: ArrayLike | None, *, x0: ArrayLike, hold: str = "smooth",
+                       u: ArrayLike | None, *, x0: ArrayLike, hold: str = DEFAULT_HOLD,
                        rtol: float = DEFAULT_RTOL, compiled: bool | None = None) -> int:
     """The fewest sub-steps per sample (a power of two) at which the simulation has converged.
 
@@ -351,7 +351,7 @@ def converged_substeps(system: PerturbedLinearSystem, theta: ArrayLike, t: Array
 
 
 def simulate_output(system: PerturbedLinearSystem, theta: ArrayLike, t: ArrayLike,
-                    u: ArrayLike | None, *, x0: ArrayLike, hold: str = "smooth",
+                    u: ArrayLike | None, *, x0: ArrayLike, hold: str = DEFAULT_HOLD,
                     substeps: int | None = None, rtol: float = DEFAULT_RTOL,
                     compiled: bool | None = None) -> FloatArray:
     """The free-run output ŷ = C x of the model (1) with θ, driven by the input alone.

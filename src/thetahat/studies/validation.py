@@ -30,6 +30,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from .._validate import as_samples, as_vector
 from ..errors import DimensionError, OptionError, ParameterSetError
+from ..estimation.hold import DEFAULT_HOLD
 from ..estimation.statistical.common import theta_box
 from ..model.system import PerturbedLinearSystem
 from .free_run import DEFAULT_RTOL, FIRST_SUBSTEPS, FreeRun
@@ -192,7 +193,7 @@ def _segments(segments: Mapping[str, tuple[int, int]] | None, N: int
 def validate_free_run(system: PerturbedLinearSystem, theta: ArrayLike, t: ArrayLike,
                       u: ArrayLike | None, y: ArrayLike,
                       segments: Mapping[str, tuple[int, int]] | None = None, *,
-                      hold: str = "smooth", init_window: int = 0, substeps: int | None = None,
+                      hold: str = DEFAULT_HOLD, init_window: int = 0, substeps: int | None = None,
                       rtol: float = DEFAULT_RTOL,
                       compiled: bool | None = None) -> FreeRunValidation:
     """Score θ by free-run simulations of segments of a record (the benchmarks' protocol).
@@ -353,7 +354,7 @@ def _oe_solve(rec: FreeRun, Y: FloatArray, q0: FloatArray, lower: FloatArray,
 
 def fit_output_error(system: PerturbedLinearSystem, t: ArrayLike, u: ArrayLike | None,
                      y: ArrayLike, *, theta0: ArrayLike, x0: ArrayLike | None = None,
-                     hold: str = "smooth", substeps: int | None = None,
+                     hold: str = DEFAULT_HOLD, substeps: int | None = None,
                      rtol: float = DEFAULT_RTOL, max_nfev: int = 100,
                      compiled: bool | None = None) -> OutputErrorFit:
     """The output-error fit: (x(0), θ) minimising ‖y − ŷ‖ over a record, θ in Θ's box.

@@ -36,6 +36,7 @@ from numpy.typing import NDArray
 from ..._validate import as_vector
 from ...errors import DimensionError, SimulationError
 from ...model.system import PerturbedLinearSystem
+from ..hold import DEFAULT_HOLD
 from ..records import check_record
 from .input_hold import stage2_samples
 from .plant_kernel import ModelKernel, Propagation, choose_substeps, model_kernel, printed_kernels
@@ -195,7 +196,7 @@ def sensitivity_kernel(model: ModelKernel) -> Callable[..., int]:
 
 
 def crlb(system: PerturbedLinearSystem, t: Any, u: Any, *, theta: Any, noise_std: Any,
-         x0: Any = None, x0_known: bool = True, hold: str = "smooth",
+         x0: Any = None, x0_known: bool = True, hold: str = DEFAULT_HOLD,
          substeps: int | None = None, compiled: bool | None = None) -> CRLBResult:
     """The Cramér–Rao lower bound of θ on an experiment, as a function of time.
 

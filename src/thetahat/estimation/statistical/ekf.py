@@ -41,6 +41,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from ...model.system import PerturbedLinearSystem
+from ..hold import DEFAULT_HOLD
 from ..protocol import (Diagnostics, EstimateResult, check_state, missing_samples,
                         stream_sample)
 from ..records import check_record
@@ -186,7 +187,7 @@ class JointEKF:
     theta_sd: ArrayLike | None = None
     x_sd: ArrayLike | None = None
     q_x: float = 0.0
-    hold: str = "smooth"
+    hold: str = DEFAULT_HOLD
     substeps: int | None = None
     h_rho: float = H_RHO
     compiled: bool | None = None

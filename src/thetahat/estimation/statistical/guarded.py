@@ -47,6 +47,7 @@ from ...errors import (ArgumentTypeError, DimensionError, NonFiniteError, Option
                       StateError, ThetahatError, ThetahatWarning, UpdateLawError)
 from ...model.system import PerturbedLinearSystem
 from ...progress import FitProgress
+from ..hold import DEFAULT_HOLD
 from ..observer.plan import DT_RTOL
 from ..protocol import Diagnostics, EstimateResult, check_state, missing_samples, stream_sample
 from ..records import check_record
@@ -300,7 +301,7 @@ class GuardedEstimator:
     rho_max: float = GUARD_RHO_MAX
     dwell: float = GUARD_DWELL
     q_x: float = 0.0
-    hold: str = "smooth"
+    hold: str = DEFAULT_HOLD
     substeps: int | None = None
     h_rho: float = H_RHO
     compiled: bool | None = None

@@ -39,6 +39,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from ...errors import ThetahatWarning
 from ...model.system import PerturbedLinearSystem
+from ..hold import DEFAULT_HOLD
 from .common import resolve_noise_std, sample_interval
 from .fit_worker import default_executor, discard_default_executor, fit_spec, run_fit, warm_up
 from .guard import apply_fit
@@ -150,7 +151,7 @@ class GuardedStream:
 
     def __init__(self, system: PerturbedLinearSystem, s0: FloatArray, P0: FloatArray, *,
                  q_x: float, noise_std: ArrayLike | None, schedule: FitSchedule | None,
-                 prior0: tuple[FloatArray, FloatArray] | None, hold: str = "smooth",
+                 prior0: tuple[FloatArray, FloatArray] | None, hold: str = DEFAULT_HOLD,
                  h_rho: float = H_RHO, substeps: int | None = None,
                  window: int | str | None = None, window_max: int = WINDOW_MAX) -> None:
         sys_ = system
@@ -226,7 +227,7 @@ class GuardedStream:
     def start(cls, system: PerturbedLinearSystem, s0: FloatArray, P0: FloatArray, *,
               q_x: float, noise_std: ArrayLike | None, schedule: FitSchedule | None,
               prior0: tuple[FloatArray, FloatArray] | None,
-              executor: concurrent.futures.Executor | None, hold: str = "smooth",
+              executor: concurrent.futures.Executor | None, hold: str = DEFAULT_HOLD,
               h_rho: float = H_RHO, substeps: int | None = None,
               window: int | str | None = None, window_max: int = WINDOW_MAX
               ) -> GuardedStream:

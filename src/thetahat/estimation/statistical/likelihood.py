@@ -48,6 +48,7 @@ from scipy.optimize import least_squares, minimize_scalar
 from ...errors import NonFiniteError
 from ...model.system import PerturbedLinearSystem
 from ...model.paramset import Box, ParameterSet
+from ..hold import DEFAULT_HOLD
 from .common import STEP_TOL, sample_interval, theta_box
 from .noise_level import mad_variance
 from .stage2_set import project_theta, theta_bounds
@@ -427,7 +428,7 @@ def _innovation_substeps(pb: _Problem, theta: FloatArray, q: float,
 
 def innovation_substeps(system: PerturbedLinearSystem, t: FloatArray, U: FloatArray,
                         Y: FloatArray, *, theta: FloatArray, q: float, x_hat0: FloatArray,
-                        x_sd: FloatArray, noise_std: FloatArray, hold: str = "smooth",
+                        x_sd: FloatArray, noise_std: FloatArray, hold: str = DEFAULT_HOLD,
                         h_rho: float = H_RHO, compiled: bool | None = None) -> int:
     """The RK4 sub-steps' floor at which the likelihood at (θ, q) is accurate: its normalised
     innovations move θ̂ by at most a tenth of a standard error when every sample's sub-steps
@@ -768,7 +769,7 @@ def _inverse_information(J: FloatArray) -> FloatArray:
 
 def record_bound(system: PerturbedLinearSystem, t: FloatArray, U: FloatArray, Y: FloatArray,
                  *, theta: FloatArray, x_hat0: FloatArray, x_sd: FloatArray,
-                 noise_std: FloatArray, hold: str = "smooth", substeps: int | None = None,
+                 noise_std: FloatArray, hold: str = DEFAULT_HOLD, substeps: int | None = None,
                  h_rho: float = H_RHO, compiled: bool | None = None
                  ) -> tuple[float, FloatArray]:
     """At a fixed θ: the process-noise intensity q the record supports, and θ's Cramér–Rao
@@ -820,7 +821,7 @@ def _heads(system: PerturbedLinearSystem, t: FloatArray, U: FloatArray, Y: Float
 
 def search_process_noise(system: PerturbedLinearSystem, t: FloatArray, U: FloatArray,
                          Y: FloatArray, *, theta: FloatArray, x_hat0: FloatArray,
-                         x_sd: FloatArray, noise_std: FloatArray, hold: str = "smooth",
+                         x_sd: FloatArray, noise_std: FloatArray, hold: str = DEFAULT_HOLD,
                          substeps: int | None = None, h_rho: float = H_RHO,
                          compiled: bool | None = None, first_head: int = Q_FIRST_HEAD,
                          near: float | None = None) -> QSearch:
@@ -874,7 +875,7 @@ def search_process_noise(system: PerturbedLinearSystem, t: FloatArray, U: FloatA
 
 def process_noise_at(system: PerturbedLinearSystem, t: FloatArray, U: FloatArray,
                      Y: FloatArray, *, theta: FloatArray, x_hat0: FloatArray,
-                     x_sd: FloatArray, noise_std: FloatArray, hold: str = "smooth",
+                     x_sd: FloatArray, noise_std: FloatArray, hold: str = DEFAULT_HOLD,
                      substeps: int | None = None, h_rho: float = H_RHO,
                      compiled: bool | None = None, near: float | None = None) -> float:
     """q̂ at a fixed θ: :func:`search_process_noise`'s q (0 when the output-error model has
@@ -922,7 +923,7 @@ class RecordEvidence(NamedTuple):
 
 def record_evidence(system: PerturbedLinearSystem, t: FloatArray, U: FloatArray, Y: FloatArray,
                     *, theta: FloatArray, x_hat0: FloatArray, x_sd: FloatArray,
-                    noise_std: FloatArray, q: float | None = None, hold: str = "smooth",
+                    noise_std: FloatArray, q: float | None = None, hold: str = DEFAULT_HOLD,
                     substeps: int | None = None, h_rho: float = H_RHO,
                     compiled: bool | None = None) -> RecordEvidence:
     """:func:`record_bound` with the score of the innovations at θ: is θ where the data put it?
@@ -977,7 +978,7 @@ def record_evidence(system: PerturbedLinearSystem, t: FloatArray, U: FloatArray,
 
 def fisher_covariance(system: PerturbedLinearSystem, t: FloatArray, U: FloatArray,
                       Y: FloatArray, *, theta: FloatArray, q: float, x_hat0: FloatArray,
-                      x_sd: FloatArray, noise_std: FloatArray, hold: str = "smooth",
+                      x_sd: FloatArray, noise_std: FloatArray, hold: str = DEFAULT_HOLD,
                       substeps: int | None = None, h_rho: float = H_RHO,
                       compiled: bool | None = None) -> FloatArray:
     """The Cramér–Rao covariance of θ on a record: the inverse Fisher information at θ.
@@ -1029,7 +1030,7 @@ def _jacobian(pb: _Problem, th: FloatArray, q: float, lo: FloatArray, hi: FloatA
 def fit_process_noise(system: PerturbedLinearSystem, t: FloatArray, U: FloatArray,
                       Y: FloatArray, *, theta0: FloatArray, x_hat0: FloatArray,
                       x_sd: FloatArray, noise_std: FloatArray, q: float | None = None,
-                      max_nfev: int = 60, hold: str = "smooth", substeps: int | None = None,
+                      max_nfev: int = 60, hold: str = DEFAULT_HOLD, substeps: int | None = None,
                       h_rho: float = H_RHO, compiled: bool | None = None) -> ProcessNoiseFit:
     """Maximum-likelihood θ and q of the model with process noise on φ (module docstring).
 

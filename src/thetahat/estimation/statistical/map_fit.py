@@ -56,7 +56,7 @@ from .common import STEP_TOL, resolve_noise_std, sample_interval, theta_prior_sd
 from .noise_level import MAD_VARIANCE_SD, MIN_SAMPLES
 from .plant_kernel import H_RHO, Propagation, choose_substeps, model_kernel
 from .sweep import sweep_kernel
-from ..hold import check_hold
+from ..hold import DEFAULT_HOLD, check_hold
 from .stage2_set import project_theta
 
 if TYPE_CHECKING:
@@ -282,7 +282,7 @@ def solve_scaled(M: FloatArray, g: FloatArray) -> tuple[FloatArray, FloatArray]:
 def fit_map(system: PerturbedLinearSystem, t: FloatArray, U: FloatArray, Y: FloatArray, *,
             k0: int, k1: int, q_start: FloatArray, q_prior: FloatArray,
             prior_info: FloatArray, noise_std: FloatArray, max_iter: int = 6,
-            skip_first: bool = False, hold: str = "smooth", substeps: int | None = None,
+            skip_first: bool = False, hold: str = DEFAULT_HOLD, substeps: int | None = None,
             h_rho: float = H_RHO, compiled: bool | None = None) -> FitResult:
     """One Gauss–Newton MAP fit of q = col(x(t_{k0}), θ) on samples k0 … k1 − 1.
 
@@ -482,7 +482,7 @@ class FitSchedule:
     noise_std: ArrayLike | None = None
     max_iter: int = 6
     first_max_iter: int = 25
-    hold: str = "smooth"
+    hold: str = DEFAULT_HOLD
     substeps: int | None = None
     noise_substeps: int | None = None
     h_rho: float = H_RHO

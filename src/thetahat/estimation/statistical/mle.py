@@ -47,7 +47,7 @@ from ..status import Status
 from .common import (RunStop, model_phi_hat, resolve_noise_std, sample_interval, start_values,
                      stopped_result, theta_prior_sd)
 from .ekf_kernels import divergence_message, ekf_kernels, ekf_sample
-from ..hold import check_hold
+from ..hold import DEFAULT_HOLD, check_hold
 from .input_hold import InputHistory, stage2_samples, streamable
 from .map_fit import (INFO_GROWTH, FitResult, FitSchedule, fit_as_prior, fit_record,
                       why_not_applied)
@@ -294,7 +294,7 @@ class MapEstimator:
     noise_std: ArrayLike | None = None
     compiled: bool | None = None
     growth: float = INFO_GROWTH
-    hold: str = "smooth"
+    hold: str = DEFAULT_HOLD
     substeps: int | None = None
     window: int | str | None = None
     window_max: int = WINDOW_MAX

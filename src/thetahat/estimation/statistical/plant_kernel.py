@@ -73,7 +73,7 @@ from numpy.typing import NDArray
 
 from ...errors import DimensionError, FileAccessError, MissingExtraError, OptionError
 from ...model.system import PerturbedLinearSystem
-from ..hold import KAISER_BETA, check_hold, half_width, hold_code, hold_weights
+from ..hold import DEFAULT_HOLD, KAISER_BETA, check_hold, half_width, hold_code, hold_weights
 from ..kernels.kernel_cache import load_module, register
 from ..kernels.modules import ModuleText
 from .plant_forms import rhs_jac_source
@@ -157,7 +157,7 @@ class Propagation:
     ([2.0, 4.0, 2.0], (129, 32))
     """
 
-    hold: str = "smooth"
+    hold: str = DEFAULT_HOLD
     substeps: int = 1
     h_rho: float = H_RHO
 
@@ -803,7 +803,7 @@ def model_kernel(system: PerturbedLinearSystem, *, compiled: bool | None = None)
 
 def choose_substeps(kern: ModelKernel, t: FloatArray, U: FloatArray, Y: FloatArray,
                     theta: FloatArray, x0: FloatArray, noise_std: FloatArray, *,
-                    hold: str = "smooth", h_rho: float = H_RHO, target: float = ACCURACY,
+                    hold: str = DEFAULT_HOLD, h_rho: float = H_RHO, target: float = ACCURACY,
                     samples: int | None = None) -> int:
     """The accuracy floor of RK4 sub-steps of a record: output error ≤ ``target`` standard errors.
 

@@ -70,6 +70,7 @@ from scipy.special import gammaincinv, ndtri
 
 from ...errors import OptionError, ThetahatError
 from ...model.system import PerturbedLinearSystem
+from ..hold import DEFAULT_HOLD
 from .common import sample_interval, theta_box, x_prior_sd
 from .input_hold import stage2_samples
 from .stage2_set import BOUNDARY_RTOL, on_boundary, project_theta
@@ -455,7 +456,7 @@ def tail_movement(t: FloatArray, theta_path: FloatArray, sd: FloatArray) -> Floa
 def trust_report(system: PerturbedLinearSystem, t: FloatArray, U: FloatArray, Y: FloatArray,
                  theta: FloatArray, names: Sequence[str], *, x_hat0: FloatArray,
                  x_sd: ArrayLike | None = None, band: FloatArray | None = None,
-                 noise_std: FloatArray | None = None, hold: str = "smooth",
+                 noise_std: FloatArray | None = None, hold: str = DEFAULT_HOLD,
                  substeps: int | None = None, h_rho: float = H_RHO,
                  compiled: bool | None = None, theta_path: FloatArray | None = None,
                  law_conditions: LawConditionReport | None = None,
