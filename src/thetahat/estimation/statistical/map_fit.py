@@ -803,14 +803,20 @@ def _with_process_noise(schedule: FitSchedule, t: FloatArray, U: FloatArray, Y: 
     own (:func:`~thetahat.estimation.statistical.likelihood.fit_process_noise`): not the
     free run's of the output-error fit, whose error accumulates over the record where the
     filter corrects it at every sample, and which compares nothing where the free run leaves
-    the data at once (a drive's rigid-body mode)."""
+    the data at once (a drive's rigid-body mode). Their search starts at the floor of
+    ``previous`` when that is a fit with process noise of a shorter window (the error is
+    allowed over more samples here, so that floor is rarely too many; it is never lowered)."""
     from .likelihood import fit_process_noise
     sigma = resolve_noise_std(schedule.noise_std, Y[:k1])
+    # the floor of a shorter window's fit with process noise is where this one's search
+    # starts: a record's floors are kept or raised from fit to fit, the smaller not run again
+    known = (previous.substeps if previous.process_noise > 0.0 and previous.k0 == 0
+             and previous.k1 <= k1 else 1)
     pf = fit_process_noise(schedule.system, t[:k1], U[:k1], Y[:k1], theta0=previous.theta,
                            x_hat0=x_hat0, x_sd=x_sd, noise_std=sigma, q=q,
                            max_nfev=60 if q is None else 20, hold=schedule.hold,
                            substeps=schedule.noise_substeps, h_rho=schedule.h_rho,
-                           compiled=schedule.compiled)
+                           compiled=schedule.compiled, min_substeps=known)
     return FitResult.of_process_noise(pf, k1, x_hat0, x_sd)
 
 

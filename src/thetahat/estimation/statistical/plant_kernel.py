@@ -873,8 +873,8 @@ def choose_substeps(kern: ModelKernel, t: FloatArray, U: FloatArray, Y: FloatArr
 
 
 def doubling_floor(run: Callable[[int, int], FloatArray], total: int, *,
-                   target: float = ACCURACY) -> int:
-    """The first floor n = 1, 2, 4, … (up to :data:`MAX_ACCURATE_SUBSTEPS`) whose whitened
+                   target: float = ACCURACY, start: int = 1) -> int:
+    """The first floor n = start, 2 start, 4 start, … (up to :data:`MAX_ACCURATE_SUBSTEPS`) whose whitened
     outputs ``run(n, 1)`` differ from those with every sample's sub-steps doubled,
     ``run(n, 2)``, by at most ``target`` over ``total`` samples.
 
@@ -900,11 +900,16 @@ def doubling_floor(run: Callable[[int, int], FloatArray], total: int, *,
         compared).
     target : float
         The error allowed in standard errors of θ̂ (:data:`ACCURACY`).
+    start : int
+        The first floor tried (≥ 1; default 1): a floor known to be needed, such as a shorter
+        window's of the same record (the error allowed over ``total`` samples shrinks as
+        ``total`` grows), whose smaller floors need not be run again.
 
     Returns
     -------
     int
-        1 … :data:`MAX_ACCURATE_SUBSTEPS` (1 also when fewer than 2 rows can be compared).
+        ``start`` … :data:`MAX_ACCURATE_SUBSTEPS` (``start`` also when fewer than 2 rows can
+        be compared).
 
     Examples
     --------
@@ -913,7 +918,7 @@ def doubling_floor(run: Callable[[int, int], FloatArray], total: int, *,
     >>> doubling_floor(lambda n, refine: np.sin(3.0 * grid) + 1.0 / (n * refine) ** 4, 50)
     4
     """
-    n = 1
+    n = min(max(int(start), 1), MAX_ACCURATE_SUBSTEPS)
     while n < MAX_ACCURATE_SUBSTEPS:
         coarse, fine = run(n, 1), run(n, 2)
         good = np.all(np.isfinite(coarse) & np.isfinite(fine), axis=1)
