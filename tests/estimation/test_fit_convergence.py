@@ -173,6 +173,41 @@ def test_the_doubling_rule_returns_the_first_accurate_floor():
         assert got == n
     broken = doubling_floor(lambda k, refine: np.where(rows < 0.005, 1.0 / k, np.nan), 200)
     assert broken == 1                     # one comparable row: nothing to judge by
+    # started at a floor (a shorter window's): the first accurate floor at or above it, and
+    # the floors below it are never run
+    for c in (0.01, 1.0, 30.0):
+        first = doubling_floor(lambda k, refine: np.cos(rows) + c / (k * refine) ** 4, 10_000)
+        for start in (1, 2, 4, 8):
+            seen = []
+
+            def run(k, refine, c=c, seen=seen):
+                seen.append(k)
+                return np.cos(rows) + c / (k * refine) ** 4
+            assert doubling_floor(run, 10_000, start=start) == max(first, start)
+            assert min(seen) == start
+
+
+def test_the_fits_information_is_huber_weighted_as_scipy_weighs_it():
+    """likelihood._huber_weighted scales J's rows as SciPy's least_squares does for Huber's loss
+    at HUBER_C (its returned jac after one evaluation of a linear residual, the independent
+    computation): 1 within ±c; beyond, SciPy's √(ρ′ + 2ρ″ε²) cancels to rounding and is held
+    at √(machine ε) or a few ulps above it: both below 1e-7 (rows carrying no information)."""
+    from scipy.optimize import least_squares
+
+    import thetahat.estimation.statistical.likelihood as lk
+    rng = np.random.default_rng(0)
+    J = rng.normal(size=(200, 3))
+    r0 = 2.0 * lk.HUBER_C * rng.standard_normal(200)     # a third of the rows beyond ±c
+    x0 = np.zeros(3)
+    sol = least_squares(lambda x: r0 + J @ x, x0, jac=lambda x: J, loss="huber",
+                        f_scale=lk.HUBER_C, max_nfev=1)
+    beyond = np.abs(r0) > lk.HUBER_C
+    assert 0.3 < beyond.mean() < 0.9
+    ours = lk._huber_weighted(J, r0)
+    assert np.array_equal(ours[~beyond], sol.jac[~beyond])
+    assert np.array_equal(ours[~beyond], J[~beyond])
+    for w in (ours[beyond] / J[beyond], sol.jac[beyond] / J[beyond]):
+        assert np.all((w > 0.0) & (w < 1e-7))
 
 
 @pytest.mark.parametrize("name", ["emps", "silverbox", "two_inertia", "spring_friction"])

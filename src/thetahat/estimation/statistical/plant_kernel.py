@@ -874,8 +874,8 @@ def choose_substeps(kern: ModelKernel, t: FloatArray, U: FloatArray, Y: FloatArr
 
 def doubling_floor(run: Callable[[int, int], FloatArray], total: int, *,
                    target: float = ACCURACY, start: int = 1) -> int:
-    """The first floor n = start, 2 start, 4 start, … (up to :data:`MAX_ACCURATE_SUBSTEPS`) whose whitened
-    outputs ``run(n, 1)`` differ from those with every sample's sub-steps doubled,
+    """The first floor n = start, 2 start, 4 start, … (up to :data:`MAX_ACCURATE_SUBSTEPS`)
+    whose whitened outputs ``run(n, 1)`` differ from those with every sample's sub-steps doubled,
     ``run(n, 2)``, by at most ``target`` over ``total`` samples.
 
     The rule of :func:`choose_substeps` (the free run) and of the likelihood with process
