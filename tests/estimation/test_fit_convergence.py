@@ -247,8 +247,8 @@ SECANT_PASSES = 0.8
 @pytest.mark.parametrize("name", ["emps", "silverbox", "two_inertia", "actuator",
                                   "spring_friction"])
 def test_the_secant_fit_ends_at_the_optimum_of_the_differences(name, monkeypatch):
-    """Broyden's update of the Jacobian between near iterates (likelihood._Differences.secant)
-    ends at an optimum: from the far start, a fit that takes forward differences at every
+    """Broyden's update of the Jacobian between iterates (likelihood._Differences.secant) ends
+    at an optimum: from the far start, a fit that takes forward differences at every
     iterate, started at the secant fit's end (same q and sub-steps), moves it by less than
     SECANT_SE standard errors, and the fit from the far start that takes differences at every
     iterate ends at no lower Huber cost (on EMPS it stops 0.6 standard errors short, at a cost
@@ -257,6 +257,7 @@ def test_the_secant_fit_ends_at_the_optimum_of_the_differences(name, monkeypatch
     spec, t, U, Y, sigma, hold, start = _case(name)
     ref = _fit(spec, t, U, Y, sigma, hold, start)
     kw = dict(q=ref.q, substeps=ref.substeps)
+
     def fit(how, theta0):
         with monkeypatch.context() as m:
             if how != "secant":

@@ -496,7 +496,7 @@ def _fit_theta(pb: _Problem, theta0: FloatArray, q: float, theta_set: ParameterS
     (:meth:`_Differences.jacobian`, steps from the residuals' measured rounding noise), and
     give both the step still to go and the returned J. Where that step is more than
     :data:`STEP_TOL` standard errors, the fit starts again from there with them
-    (:data:`FIT_RESTARTS`, within ``max_nfev`` passes in all). Returns (θ, J weighted as
+    (:data:`FIT_RESTARTS`, within ``max_nfev`` residual evaluations in all). Returns (θ, J weighted as
     Huber's loss weighs it, the residual evaluations, the step still to go in standard
     errors)."""
     lo, hi = theta_bounds(theta_set)
@@ -627,7 +627,8 @@ class _Differences:
         evaluated the residuals more than once since the last Jacobian: the model was not
         good enough there) and where the update is not finite. Without that refresh the
         update alone stalled on the Silverbox from Θ's centre (83 standard errors short after
-        60 passes); with it, it ends where the differences do (0.001 standard errors)."""
+        60 evaluations); with it, it ends where the differences do (0.001 standard errors;
+        both one-off runs)."""
         if self._anchor is None:
             return self.jacobian(theta)
         th0, r_a, J0 = self._anchor
