@@ -104,7 +104,7 @@ def test_a_diverging_ekf_reports_where_and_why(name):
 
 
 @pytest.mark.parametrize("name, where", [("actuator", "the EKF diverged"),
-                                         ("spring_friction", "the EKF diverged"),
+                                         ("heater", "the EKF diverged"),
                                          ("two_inertia", "process-noise likelihood")])
 @pytest.mark.needs_speed
 def test_a_failing_map_estimator_reports_where_and_why(name, where):

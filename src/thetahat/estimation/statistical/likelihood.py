@@ -397,7 +397,8 @@ def _problem(system: PerturbedLinearSystem, t: FloatArray, U: FloatArray, Y: Flo
 
 
 def _innovation_substeps(pb: _Problem, theta: FloatArray, q: float,
-                         total: int | None = None, start: int = 1) -> int:
+                         total: int | None = None, start: int = 1,
+                         limit: int | None = None) -> int:
     """The RK4 sub-steps the likelihood at (θ, q) needs: its normalised innovations accurate
     to a tenth of θ̂'s standard error.
 
@@ -410,8 +411,8 @@ def _innovation_substeps(pb: _Problem, theta: FloatArray, q: float,
     filter corrects x at every sample, so a discretisation error no longer accumulates over
     the record but over the filter's memory, and is measured against √S ≥ σ (EMPS: 2
     sub-steps here against the free run's 16). ``total``: the record's length when ``pb``
-    holds only its head (default: ``pb``'s). ``start``: the first floor tried
-    (:func:`~thetahat.estimation.statistical.plant_kernel.doubling_floor`).
+    holds only its head (default: ``pb``'s). ``start``: the first floor tried; ``limit``:
+    the first not tried (:func:`~thetahat.estimation.statistical.plant_kernel.doubling_floor`).
     """
     N = pb.t.shape[0] if total is None else total
     K = min(pb.t.shape[0], ACCURACY_SAMPLES)
@@ -425,13 +426,14 @@ def _innovation_substeps(pb: _Problem, theta: FloatArray, q: float,
         NU = replace(head, prop=prop).filter(theta, q)[0]
         return np.where(head.valid, NU, 0.0)     # a missing output: no innovation to compare
 
-    return doubling_floor(run, N, start=start)
+    return doubling_floor(run, N, start=start, limit=limit)
 
 
 def innovation_substeps(system: PerturbedLinearSystem, t: FloatArray, U: FloatArray,
                         Y: FloatArray, *, theta: FloatArray, q: float, x_hat0: FloatArray,
                         x_sd: FloatArray, noise_std: FloatArray, hold: str = DEFAULT_HOLD,
-                        h_rho: float = H_RHO, compiled: bool | None = None) -> int:
+                        h_rho: float = H_RHO, compiled: bool | None = None, start: int = 1,
+                        limit: int | None = None) -> int:
     """The RK4 sub-steps' floor at which the likelihood at (θ, q) is accurate: its normalised
     innovations move θ̂ by at most a tenth of a standard error when every sample's sub-steps
     are doubled (the rule :func:`fit_process_noise` applies to itself).
@@ -444,6 +446,9 @@ def innovation_substeps(system: PerturbedLinearSystem, t: FloatArray, U: FloatAr
     q : float
         The process-noise intensity (≥ 0; 0: the output-error model, whose rule is the free
         run's).
+    start, limit : int
+        The first floor tried, and the first not tried (the result is then at most
+        ``limit``): :func:`~thetahat.estimation.statistical.plant_kernel.doubling_floor`.
 
     Returns
     -------
@@ -470,7 +475,7 @@ def innovation_substeps(system: PerturbedLinearSystem, t: FloatArray, U: FloatAr
                     np.asarray(noise_std, dtype=np.float64),
                     Propagation(hold=hold, h_rho=h_rho), compiled)
     return _innovation_substeps(head, np.asarray(theta, dtype=np.float64), float(q),
-                                total=len(t))
+                                total=len(t), start=start, limit=limit)
 
 
 def _propagation(system: PerturbedLinearSystem, t: FloatArray, U: FloatArray, Y: FloatArray,
@@ -734,8 +739,13 @@ def _q_or_zero(pb: _Problem, theta: FloatArray, q: float, nll_q: float | None = 
     return q if at_q <= pb.nll(theta, 0.0) else 0.0
 
 
-def _search_q(pb: _Problem, theta: FloatArray, q0: float) -> float:
-    s, f = _search_log_q(pb, theta, q0)
+def _search_q(pb: _Problem, theta: FloatArray, q0: float, near: float | None = None) -> float:
+    """q̂ at θ: searched within ±:data:`Q_NEAR_DECADES` of ``near`` when it is given (> 0) and
+    the minimum is inside that bracket, over the whole range otherwise; 0 when the
+    output-error model has the larger likelihood."""
+    found = (_search_near(pb, theta, q0, near)
+             if near is not None and near > 0.0 and math.isfinite(near) else None)
+    s, f = found if found is not None else _search_log_q(pb, theta, q0)
     return _q_or_zero(pb, theta, q0 * 10.0 ** s, f)
 
 
@@ -1090,7 +1100,8 @@ def fit_process_noise(system: PerturbedLinearSystem, t: FloatArray, U: FloatArra
                       x_sd: FloatArray, noise_std: FloatArray, q: float | None = None,
                       max_nfev: int = 60, hold: str = DEFAULT_HOLD, substeps: int | None = None,
                       h_rho: float = H_RHO, compiled: bool | None = None,
-                      min_substeps: int = 1) -> ProcessNoiseFit:
+                      min_substeps: int = 1, q_near: float | None = None,
+                      at_q_near: bool = False) -> ProcessNoiseFit:
     """Maximum-likelihood θ and q of the model with process noise on φ (module docstring).
 
     Parameters
@@ -1126,6 +1137,18 @@ def fit_process_noise(system: PerturbedLinearSystem, t: FloatArray, U: FloatArra
         of a fit of this record's first samples, which a longer window rarely needs less of
         (its error is allowed over more samples), so that the fits of a growing record do not
         run the smaller floors again.
+    q_near : float, optional
+        Where the estimate of q starts (``q`` None only): e.g. the q of a fit of this
+        record's first samples. θ is fitted first at it (not at the data's scale q₀), and q
+        is searched within ±:data:`Q_NEAR_DECADES` of it, over the whole range when the
+        minimum is at that bracket's edge. Ignored unless finite and at least the data's
+        scale q₀ (:func:`process_noise_scale`): a model error the record shows, which pins
+        q; below it −log L is nearly flat in q, its minimum depends on where θ was fitted
+        first, and the fit starts at q₀ and searches the whole range as without it.
+    at_q_near : bool
+        ``theta0`` is already the fit of θ at ``q_near`` on these samples (a fit with that q
+        fixed, which a consistency test then refused): q is searched from it at once, the fit
+        of θ at ``q_near`` not run again.
 
     Returns
     -------
@@ -1155,16 +1178,21 @@ def fit_process_noise(system: PerturbedLinearSystem, t: FloatArray, U: FloatArra
     theta = project_theta(theta_set, np.asarray(theta0, dtype=np.float64))
     h_med = sample_interval(t)
     q0 = process_noise_scale(system, h_med, sigma)
-    q_now = q0 if q is None else float(q)
+    near = q_near if (q_near is not None and math.isfinite(q_near) and q_near >= q0) else None
+    q_now = (near or q0) if q is None else float(q)
     pb = _problem(system, t, U, Y, x_hat0, x_sd, sigma, Propagation(hold=hold, h_rho=h_rho),
                   compiled)
-    floor = (_innovation_substeps(pb, theta, q_now, start=min_substeps) if substeps is None
-             else substeps)
-    pb = replace(pb, prop=replace(pb.prop, substeps=floor))     # at (θ₀, q) when chosen
+    # the floor at (θ₀, q), or at (θ₀, q₀) when q is estimated: also when it starts at a
+    # larger q_near, whose floor can be smaller than the one q̂ needs (the check after the
+    # search keeps the larger of the two floors, never lowers it)
+    floor = (_innovation_substeps(pb, theta, q0 if q is None else q_now, start=min_substeps)
+             if substeps is None else substeps)
+    pb = replace(pb, prop=replace(pb.prop, substeps=floor))
     if q is None:
-        for _ in range(ALTERNATIONS):
-            theta = _fit_theta(pb, theta, q_now, theta_set, max_nfev)[0]
-            q_now = _search_q(pb, theta, q0)
+        for i in range(ALTERNATIONS):
+            if not (i == 0 and at_q_near and near is not None):
+                theta = _fit_theta(pb, theta, q_now, theta_set, max_nfev)[0]
+            q_now = _search_q(pb, theta, q0, near)
         if chosen:                      # again at the (θ, q̂) found: a q̂ far below q₀
             # may need more (the floors below the one taken are not run again)
             more = _innovation_substeps(pb, theta, q_now, start=pb.prop.substeps)

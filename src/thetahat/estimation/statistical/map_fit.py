@@ -709,16 +709,20 @@ def fit_record(schedule: FitSchedule, t: FloatArray, U: FloatArray, Y: FloatArra
     is tried from its θ and taken if it is consistent, or if neither is but it explains the data
     better (a smaller cost per measurement: real innovations have heavier tails than the χ²
     test allows on a long record, while a wrong output-error model misses by orders of
-    magnitude); q is estimated anew on the ``final`` fit, whenever ``previous`` has none, and
-    once the window has grown :data:`Q_SEARCH_GROWTH` times since q's last search (kept from
-    ``previous`` otherwise, and when a search on this window fails).
+    magnitude); q is estimated anew on the ``final`` fit, whenever ``previous`` has none,
+    once the window has grown :data:`Q_SEARCH_GROWTH` times since q's last search, and when
+    the fit at the kept q is refused as below (kept from ``previous`` otherwise, and when a
+    search on this window fails); a search after a fit whose q is at least q₀ starts at that q
+    (``q_near`` of :func:`~thetahat.estimation.statistical.likelihood.fit_process_noise`).
 
     Which model is tried first: the output-error one, unless ``previous`` took process noise
     of at least the data's own scale q₀
     (:func:`~thetahat.estimation.statistical.likelihood.process_noise_scale`: an effect the
     model leaves out, visible in y), when the fit with process noise is tried first, from
     ``previous``'s θ, and taken if it is consistent (the output-error fit, which that model
-    error makes inconsistent on every longer window, is then not paid for). A q below q₀ (a fit
+    error makes inconsistent on every longer window, is then not paid for); when it is not
+    and q was kept, q is searched on this window from that fit's θ (near the kept q, whose
+    fit of θ is not run again) and the result taken if it is consistent. A q below q₀ (a fit
     with process noise taken on a short window, where an output-error fit can stall far from
     its optimum) does not decide the later fits; the ``final`` fit, whose q is searched anew on
     the whole record, skips the output-error fit only when that q̂ is still at least q₀ (the
@@ -750,8 +754,9 @@ def fit_record(schedule: FitSchedule, t: FloatArray, U: FloatArray, Y: FloatArra
     q_window = previous.q_window if previous is not None else 0
     search = final or q == 0.0 or k1 >= Q_SEARCH_GROWTH * q_window
 
-    def with_q(start: FitResult, q_fixed: float | None) -> FitResult:
-        return _with_process_noise(schedule, t, U, Y, k1, start, x_hat0, x_sd, q=q_fixed)
+    def with_q(start: FitResult, q_fixed: float | None, refit: bool = False) -> FitResult:
+        return _with_process_noise(schedule, t, U, Y, k1, start, x_hat0, x_sd, q=q_fixed,
+                                   at_q_near=refit)
     # q₀ of this window (the scale a fit with process noise here is judged against), needed
     # only when the last fit took process noise
     q0 = _noise_scale(schedule, t, Y, k1) if q > 0.0 else math.inf
@@ -761,6 +766,13 @@ def fit_record(schedule: FitSchedule, t: FloatArray, U: FloatArray, Y: FloatArra
             first = with_q(previous, None if search else q)
         except NonFiniteError:
             first = None                 # the output-error fit below decides
+        if first is not None and not (first.consistent or search):
+            # the kept q was an economy this window refuses: q is searched on it, from the
+            # θ just fitted, before the output-error fit is tried
+            try:
+                first, search = with_q(first, None, refit=True), True
+            except NonFiniteError:
+                pass                     # keep the first; the output-error fit decides
         if first is not None and first.consistent and (not final
                                                        or first.process_noise >= q0):
             return replace(first, q_window=k1 if search else q_window)
@@ -795,10 +807,12 @@ def _noise_scale(schedule: FitSchedule, t: FloatArray, Y: FloatArray, k1: int) -
 
 def _with_process_noise(schedule: FitSchedule, t: FloatArray, U: FloatArray, Y: FloatArray,
                         k1: int, previous: FitResult, x_hat0: FloatArray, x_sd: FloatArray, *,
-                        q: float | None) -> FitResult:
+                        q: float | None, at_q_near: bool = False) -> FitResult:
     """The fit of samples 0 … k1 − 1 by the likelihood with process noise on φ, as a FitResult,
     from the θ of the fit ``previous`` (this window's output-error fit, or the last
-    window's). ``q``: the intensity (None: estimated with θ).
+    window's). ``q``: the intensity (None: estimated with θ, from ``previous``'s q when that is
+    at least the data's scale, a model error the record shows; ``at_q_near``: ``previous`` is the fit of these samples at that q, whose θ is not
+    fitted again before q is searched).
     Its sub-steps are the schedule's ``noise_substeps`` (a caller's), else the innovations'
     own (:func:`~thetahat.estimation.statistical.likelihood.fit_process_noise`): not the
     free run's of the output-error fit, whose error accumulates over the record where the
@@ -816,7 +830,9 @@ def _with_process_noise(schedule: FitSchedule, t: FloatArray, U: FloatArray, Y: 
                            x_hat0=x_hat0, x_sd=x_sd, noise_std=sigma, q=q,
                            max_nfev=60 if q is None else 20, hold=schedule.hold,
                            substeps=schedule.noise_substeps, h_rho=schedule.h_rho,
-                           compiled=schedule.compiled, min_substeps=known)
+                           compiled=schedule.compiled, min_substeps=known,
+                           q_near=previous.process_noise if q is None else None,
+                           at_q_near=at_q_near and previous.k1 == k1 and previous.k0 == 0)
     return FitResult.of_process_noise(pf, k1, x_hat0, x_sd)
 
 

@@ -873,7 +873,7 @@ def choose_substeps(kern: ModelKernel, t: FloatArray, U: FloatArray, Y: FloatArr
 
 
 def doubling_floor(run: Callable[[int, int], FloatArray], total: int, *,
-                   target: float = ACCURACY, start: int = 1) -> int:
+                   target: float = ACCURACY, start: int = 1, limit: int | None = None) -> int:
     """The first floor n = start, 2 start, 4 start, … (up to :data:`MAX_ACCURATE_SUBSTEPS`)
     whose whitened outputs ``run(n, 1)`` differ from those with every sample's sub-steps doubled,
     ``run(n, 2)``, by at most ``target`` over ``total`` samples.
@@ -904,12 +904,15 @@ def doubling_floor(run: Callable[[int, int], FloatArray], total: int, *,
         The first floor tried (≥ 1; default 1): a floor known to be needed, such as a shorter
         window's of the same record (the error allowed over ``total`` samples shrinks as
         ``total`` grows), whose smaller floors need not be run again.
+    limit : int, optional
+        Floors from ``limit`` on are not tried: the result is min(floor, ``limit``) (the
+        smaller of two floors, the other known, without running this one's larger ones).
 
     Returns
     -------
     int
         ``start`` … :data:`MAX_ACCURATE_SUBSTEPS` (``start`` also when fewer than 2 rows can
-        be compared).
+        be compared), at most ``limit``.
 
     Examples
     --------
@@ -918,8 +921,10 @@ def doubling_floor(run: Callable[[int, int], FloatArray], total: int, *,
     >>> doubling_floor(lambda n, refine: np.sin(3.0 * grid) + 1.0 / (n * refine) ** 4, 50)
     4
     """
-    n = min(max(int(start), 1), MAX_ACCURATE_SUBSTEPS)
-    while n < MAX_ACCURATE_SUBSTEPS:
+    top = MAX_ACCURATE_SUBSTEPS if limit is None else max(min(int(limit),
+                                                              MAX_ACCURATE_SUBSTEPS), 1)
+    n = min(max(int(start), 1), top)
+    while n < top:
         coarse, fine = run(n, 1), run(n, 2)
         good = np.all(np.isfinite(coarse) & np.isfinite(fine), axis=1)
         stop = int(np.argmin(good)) if not good.all() else good.shape[0]
@@ -930,4 +935,4 @@ def doubling_floor(run: Callable[[int, int], FloatArray], total: int, *,
         if err <= target:
             return n
         n *= 2
-    return n
+    return min(n, top)

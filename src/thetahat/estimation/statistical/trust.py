@@ -76,7 +76,7 @@ from .input_hold import stage2_samples
 from .stage2_set import BOUNDARY_RTOL, on_boundary, project_theta
 from .likelihood import (Q_FIRST_HEAD, RecordEvidence, innovation_substeps, process_noise_at,
                          process_noise_scale, record_evidence)
-from .plant_kernel import H_RHO
+from .plant_kernel import H_RHO, MAX_ACCURATE_SUBSTEPS
 from .noise_level import MIN_SAMPLES, estimate_noise_std
 
 if TYPE_CHECKING:
@@ -584,10 +584,20 @@ def _evidence(system: PerturbedLinearSystem, t: FloatArray, U: FloatArray, Y: Fl
     at its q̂ ≈ 10⁻⁴ q₀ (measured once)."""
     theta_set = system.require_parameter_set("trust_report")
 
-    def floor_at(q: float) -> int:
+    def floor_at(q: float, start: int = 1, limit: int | None = None) -> int:
         return innovation_substeps(system, t, U, Y, theta=theta, q=q, x_hat0=x_hat0,
                                    x_sd=x_sd, noise_std=noise_std, hold=hold, h_rho=h_rho,
-                                   compiled=compiled)
+                                   compiled=compiled, start=start, limit=limit)
+
+    def smaller_floor(qa: float, qb: float) -> int:
+        # min(floor_at(qa), floor_at(qb)) with both doubled together: the larger floor's
+        # finer runs (EMPS: 16 sub-steps at q = 0) are never made
+        n = 1
+        while n < MAX_ACCURATE_SUBSTEPS:
+            if any(floor_at(q, start=n, limit=2 * n) == n for q in (qa, qb)):
+                return n
+            n *= 2
+        return n
 
     def q_at(th: FloatArray, near: float | None = None, samples: int | None = None) -> float:
         k = t.shape[0] if samples is None else samples
@@ -606,7 +616,7 @@ def _evidence(system: PerturbedLinearSystem, t: FloatArray, U: FloatArray, Y: Fl
     else:
         # a first q̂ on the short head at the cheaper of the two ends' floors, then the search
         # at that q̂'s own floor, around it
-        n_sub = min(floor_at(0.0), floor_at(q0))
+        n_sub = smaller_floor(q0, 0.0)
         first = q_at(theta, samples=Q_FIRST_HEAD)
         n_sub = floor_at(first)
         q = q_at(theta, near=first)
