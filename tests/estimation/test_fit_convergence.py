@@ -175,24 +175,24 @@ def test_the_doubling_rule_returns_the_first_accurate_floor():
     assert broken == 1                     # one comparable row: nothing to judge by
     # started at a floor (a shorter window's): the first accurate floor at or above it, and
     # the floors below it are never run
+    def recorded(c):
+        seen = []
+
+        def run(k, refine):
+            seen.append(k)
+            return np.cos(rows) + c / (k * refine) ** 4
+        return run, seen
+
     for c in (0.01, 1.0, 30.0):
         first = doubling_floor(lambda k, refine: np.cos(rows) + c / (k * refine) ** 4, 10_000)
         for start in (1, 2, 4, 8):
-            seen = []
-
-            def run(k, refine, c=c, seen=seen):
-                seen.append(k)
-                return np.cos(rows) + c / (k * refine) ** 4
+            run, seen = recorded(c)
             assert doubling_floor(run, 10_000, start=start) == max(first, start)
             assert min(seen) == start
         # limited (the smaller of two floors, the other known): min(floor, limit), and no
         # floor at or above the limit is run
         for limit in (1, 2, 4, 8):
-            seen = []
-
-            def run(k, refine, c=c, seen=seen):
-                seen.append(k)
-                return np.cos(rows) + c / (k * refine) ** 4
+            run, seen = recorded(c)
             assert doubling_floor(run, 10_000, limit=limit) == min(first, limit)
             assert all(k < limit for k in seen), (limit, seen)
 
