@@ -823,8 +823,8 @@ def _with_process_noise(schedule: FitSchedule, t: FloatArray, U: FloatArray, Y: 
     """The fit of samples 0 … k1 − 1 by the likelihood with process noise on φ, as a FitResult,
     from the θ of the fit ``previous`` (this window's output-error fit, or the last
     window's). ``q``: the intensity (None: estimated with θ, from ``previous``'s q when that is
-    at least the data's scale, a model error the record shows; ``at_q_near``: ``previous`` is the fit of these samples at that q, whose θ is not
-    fitted again before q is searched).
+    at least the data's scale, a model error the record shows; ``at_q_near``: ``previous`` is
+    the fit of these samples at that q, whose θ is not fitted again before q is searched).
     Its sub-steps are the schedule's ``noise_substeps`` (a caller's), else the innovations'
     own (:func:`~thetahat.estimation.statistical.likelihood.fit_process_noise`): not the
     free run's of the output-error fit, whose error accumulates over the record where the
