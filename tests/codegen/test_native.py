@@ -137,6 +137,32 @@ def test_stepped_is_step_on_a_copy(name):
             c.stepped(*bad)
 
 
+@pytest.mark.parametrize("name", MODEL_FILES)
+def test_run_rows_writes_into_the_rows_it_is_given(name):
+    """CObserver.run_rows(out=…) (the record run's row blocks: no second copy of the record)
+    writes the same rows as into arrays of its own, bit for bit, into the arrays given; arrays
+    of another precision or layout are not written (new ones are returned)."""
+    from thetahat.codegen.generate import generate_c
+    from thetahat.codegen.native import load_cached
+    spec, obs, t, u, y, s0 = case(name)
+    c = load_cached(generate_c(obs, dt=float(t[1] - t[0]), name="thetahat_observer"))
+    N = t.size
+    U = np.ascontiguousarray(u if u.shape[1] else np.zeros((N, 1)), dtype=np.float64)
+    Y = np.ascontiguousarray(np.nan_to_num(y), dtype=np.float64)
+    S_ref, PHI_ref, status, _ = c.run_rows(s0.copy(), U, Y)
+    assert status == 0
+    S, PHI = np.full((N + 3, S_ref.shape[1]), -1.0), np.full((N + 3, PHI_ref.shape[1]), -1.0)
+    rows, phi, status, _ = c.run_rows(s0.copy(), U, Y, out=(S[2:N + 2], PHI[2:N + 2]))
+    assert status == 0 and np.shares_memory(rows, S) and np.shares_memory(phi, PHI)
+    np.testing.assert_array_equal(S[2:N + 2], S_ref)
+    np.testing.assert_array_equal(PHI[2:N + 2], PHI_ref)
+    assert np.all(S[:2] == -1.0) and np.all(S[N + 2:] == -1.0)     # nothing outside the rows
+    strided = np.full((N, 2 * S_ref.shape[1]), -1.0)[:, ::2]       # not C-contiguous
+    rows, _, _, _ = c.run_rows(s0.copy(), U, Y, out=(strided, PHI[2:N + 2]))
+    assert not np.shares_memory(rows, strided) and np.all(strided == -1.0)
+    np.testing.assert_array_equal(rows, S_ref)
+
+
 def test_a_stream_step_the_c_cannot_take_is_the_observers():
     """Another step length than the stream's first runs the observer's step (bit for bit), and
     a NaN under nan_policy="raise" raises the observer's error."""

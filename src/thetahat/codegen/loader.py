@@ -441,7 +441,8 @@ class CObserver:
                     x_hat_refined=S[:, n + k + p:] if sz["state"] > n + k + p else None,
                     status=Status(status), index=index)
 
-    def run_rows(self, state: NDArray[Any], U: NDArray[Any], Y: NDArray[Any]
+    def run_rows(self, state: NDArray[Any], U: NDArray[Any], Y: NDArray[Any],
+                 out: tuple[NDArray[Any], NDArray[Any]] | None = None
                  ) -> tuple[NDArray[Any], NDArray[Any], int, int]:
         """The shim's record loop on prepared arrays: every state row, φ̂, status and index.
 
@@ -454,11 +455,15 @@ class CObserver:
             C-contiguous, in the C precision (zeros when m = 0).
         Y : ndarray, shape (N, r)
             C-contiguous, in the C precision.
+        out : tuple of ndarray, optional
+            (S, PHI) to write into, when both are C-contiguous, in the C precision and of the
+            shapes returned (e.g. row blocks of the caller's record arrays: no second copy of
+            the record); otherwise new arrays. Rows after a nonzero status are not written.
 
         Returns
         -------
         S : ndarray, shape (N, state)
-            Row i: the state at sample i (before its step).
+            Row i: the state at sample i (before its step): ``out[0]`` when it was used.
         PHI : ndarray, shape (N, k)
             φ̂ at sample i.
         status : int
@@ -466,8 +471,13 @@ class CObserver:
         index : int
         """
         N = Y.shape[0]
-        S = np.zeros((N, self.code.sizes["state"]), dtype=self.dtype)
-        PHI = np.zeros((N, self.code.sizes["k"]), dtype=self.dtype)
+        shapes = ((N, self.code.sizes["state"]), (N, self.code.sizes["k"]))
+        if out is not None and all(a.shape == shape and a.dtype == self.dtype
+                                   and a.flags.c_contiguous and a.flags.writeable
+                                   for a, shape in zip(out, shapes)):
+            S, PHI = out
+        else:
+            S, PHI = (np.zeros(shape, dtype=self.dtype) for shape in shapes)
         index = ctypes.c_long(0)
         status = self._run(self._p(state), ctypes.c_long(N), self._p(U), self._p(Y),
                            self._p(S), self._p(PHI), ctypes.byref(index))

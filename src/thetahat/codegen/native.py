@@ -336,8 +336,10 @@ class NativeObserver:
             if progress is not None:
                 progress(a, N - 1)
             b = min(a + step, N - 1)
-            rows, phi, status, index = c.run_rows(s, U[a:b + 1], Y[a:b + 1])
-            S[a:b + 1], PHI[a:b + 1] = rows, phi
+            rows, phi, status, index = c.run_rows(s, U[a:b + 1], Y[a:b + 1],
+                                                  out=(S[a:b + 1], PHI[a:b + 1]))
+            if rows.base is not S:          # the C's precision is not the record's
+                S[a:b + 1], PHI[a:b + 1] = rows, phi
             if status:
                 fail = failure(status, a + index, t_, type(obs.update_law).__name__)
                 if throw:

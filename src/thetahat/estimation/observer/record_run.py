@@ -458,7 +458,11 @@ def states_result(lay: StateLayout, t: FloatArray, S: FloatArray, PHI: FloatArra
     >>> res.theta_hat.shape, res.skipped.tolist(), res.theta_hat.flags.writeable, res.ok
     ((3, 1), [False, True, False], False, True)
     """
-    S_, PHI_ = np.array(S, dtype=np.float64), np.array(PHI, dtype=np.float64)
+    # copied only to write the NaN rows of a failed run: each output below is its own copy
+    copy = fail is not None
+    S_ = np.array(S, dtype=np.float64, copy=True) if copy else np.asarray(S, dtype=np.float64)
+    PHI_ = (np.array(PHI, dtype=np.float64, copy=True) if copy
+            else np.asarray(PHI, dtype=np.float64))
     if fail is not None:
         S_[fail.failed_at:] = np.nan
         PHI_[fail.failed_at:] = np.nan
