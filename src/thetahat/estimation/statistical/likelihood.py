@@ -740,12 +740,9 @@ def _q_or_zero(pb: _Problem, theta: FloatArray, q: float, nll_q: float | None = 
 
 
 def _search_q(pb: _Problem, theta: FloatArray, q0: float, near: float | None = None) -> float:
-    """q̂ at θ: searched within ±:data:`Q_NEAR_DECADES` of ``near`` when it is given (> 0) and
-    the minimum is inside that bracket, over the whole range otherwise; 0 when the
-    output-error model has the larger likelihood."""
-    found = (_search_near(pb, theta, q0, near)
-             if near is not None and near > 0.0 and math.isfinite(near) else None)
-    s, f = found if found is not None else _search_log_q(pb, theta, q0)
+    """q̂ at θ (:func:`_search_around`); 0 when the output-error model has the larger
+    likelihood."""
+    s, f = _search_around(pb, theta, q0, near)
     return _q_or_zero(pb, theta, q0 * 10.0 ** s, f)
 
 
@@ -794,6 +791,16 @@ def _search_near(pb: _Problem, theta: FloatArray, q0: float, near: float
     return s, f
 
 
+def _search_around(pb: _Problem, theta: FloatArray, q0: float, near: float | None
+                   ) -> tuple[float, float]:
+    """log₁₀(q̂ / q₀) and −log L there: within ±:data:`Q_NEAR_DECADES` of ``near`` when it is
+    finite and > 0 and the minimum is inside that bracket, over the whole range otherwise."""
+    found = None
+    if near is not None and near > 0.0 and math.isfinite(near):
+        found = _search_near(pb, theta, q0, near)
+    return found if found is not None else _search_log_q(pb, theta, q0)
+
+
 def _search_head(head: Callable[[int], _Problem], N: int, theta: FloatArray, q0: float,
                  first: int, near: float | None = None) -> QSearch:
     """The search of :func:`search_process_noise` on heads of the record (``head(n)``: the
@@ -805,10 +812,7 @@ def _search_head(head: Callable[[int], _Problem], N: int, theta: FloatArray, q0:
     last = min(N, Q_SEARCH_SAMPLES)
     n = min(max(int(first), 2), last)
     pb = head(n)
-    found = None
-    if near is not None and near > 0.0 and math.isfinite(near):
-        found = _search_near(pb, theta, q0, near)
-    s, f = found if found is not None else _search_log_q(pb, theta, q0)
+    s, f = _search_around(pb, theta, q0, near)
     sd = math.nan
     if n < last:
         sd = _log_q_sd(pb, theta, q0, s)

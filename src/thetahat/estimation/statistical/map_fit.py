@@ -367,8 +367,8 @@ def fit_map(system: PerturbedLinearSystem, t: FloatArray, U: FloatArray, Y: Floa
         se = np.sqrt(np.maximum(np.diag(Minv)[n:], 1e-300))
         if _step_se(theta_set, q[n:], delta[n:], Minv[n:, n:], se) < STEP_TOL:
             # converged where it stands: a trial step this small only meets the rounding of
-            # J, a sum over the window (LuGre, 865 242 samples: refused ten times, 12
-            # sweeps for a fit of 3)
+            # J, a sum over the window (LuGre's mle at 10⁶ samples: its fit of 865 242 was
+            # refused ten times, 12 sweeps where 2 suffice; a one-off count)
             break
         iterations = it + 1
         step, accepted = 1.0, False
@@ -766,9 +766,10 @@ def fit_record(schedule: FitSchedule, t: FloatArray, U: FloatArray, Y: FloatArra
     q_window = previous.q_window if previous is not None else 0
     search = final or q == 0.0 or k1 >= Q_SEARCH_GROWTH * q_window
 
-    def with_q(start: FitResult, q_fixed: float | None, refit: bool = False) -> FitResult:
+    def with_q(start: FitResult, q_fixed: float | None, at_q_near: bool = False
+               ) -> FitResult:
         return _with_process_noise(schedule, t, U, Y, k1, start, x_hat0, x_sd, q=q_fixed,
-                                   at_q_near=refit)
+                                   at_q_near=at_q_near)
     # q₀ of this window (the scale a fit with process noise here is judged against), needed
     # only when the last fit took process noise
     q0 = _noise_scale(schedule, t, Y, k1) if q > 0.0 else math.inf
@@ -782,7 +783,7 @@ def fit_record(schedule: FitSchedule, t: FloatArray, U: FloatArray, Y: FloatArra
             # the kept q was an economy this window refuses: q is searched on it, from the
             # θ just fitted, before the output-error fit is tried
             try:
-                first, search = with_q(first, None, refit=True), True
+                first, search = with_q(first, None, at_q_near=True), True
             except NonFiniteError:
                 pass                     # keep the first; the output-error fit decides
         if first is not None and first.consistent and (not final
