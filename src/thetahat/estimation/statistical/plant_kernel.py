@@ -748,11 +748,12 @@ class ModelKernel:
 #: well saved another 25 % for 2 s more, not taken (the cold start counts).
 INLINED = (stage_jac,)
 
-_CACHE: dict[tuple[str, bytes, bool], ModelKernel] = {}
+_CACHE: dict[tuple[str, bytes, bool, bool], ModelKernel] = {}
 _SOURCES: dict[int, tuple[PerturbedLinearSystem, str]] = {}
 
 
-def model_kernel(system: PerturbedLinearSystem, *, compiled: bool | None = None) -> ModelKernel:
+def model_kernel(system: PerturbedLinearSystem, *, compiled: bool | None = None,
+                 inline: bool = True) -> ModelKernel:
     """Derive the stage-2 plant kernels of a model (cached per model content and back end).
 
     Parameters
@@ -761,6 +762,9 @@ def model_kernel(system: PerturbedLinearSystem, *, compiled: bool | None = None)
         With a :class:`~thetahat.model.perturbation.SymbolicPerturbation`.
     compiled : bool, optional
         Compile with numba; default: when numba is installed.
+    inline : bool
+        Compile :data:`INLINED` into their callers (default); False calls them (what
+        ``benchmarks/bench_plant_kernel.py`` compares against).
 
     Returns
     -------
@@ -796,7 +800,7 @@ def model_kernel(system: PerturbedLinearSystem, *, compiled: bool | None = None)
         source = rhs_jac_source(system)
         _SOURCES[id(system)] = (system, source)   # kept alive, so its id stays unique
     C = np.array(system.C, dtype=np.float64)
-    key = (source, C.tobytes(), use)             # equal models share one compiled kernel
+    key = (source, C.tobytes(), use, inline)     # equal models share one compiled kernel
     hit = _CACHE.get(key)
     if hit is not None:
         return hit
@@ -804,7 +808,8 @@ def model_kernel(system: PerturbedLinearSystem, *, compiled: bool | None = None)
         "thetahat_plant", "Printed by thetahat.estimation.statistical.plant_kernel: the plant "
         "model of one system; do not edit (content-addressed).",
         [propagate, propagate_into, plant_work, free_run],
-        {"rhs_jac": "rhs_jac", "C_OUT": C}, use, text=source, inline=INLINED)
+        {"rhs_jac": "rhs_jac", "C_OUT": C}, use, text=source,
+        inline=INLINED if inline else ())
     kern = ModelKernel(n=system.n, m=system.m, r=system.r, p=system.p, C=C, compiled=use,
                        rhs_jac=mod.rhs_jac, propagate=getattr(mod, prop),
                        propagate_into=getattr(mod, into), plant_work=getattr(mod, work),
