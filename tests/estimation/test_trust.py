@@ -437,3 +437,44 @@ def test_one_parameter_off_is_caught_where_the_joint_test_passes(name):
         warning = next(w for w in bad.warnings if "not where the data put it" in w)
         assert f"{names[i]} by " in warning and "per parameter" in warning
         assert any("NOT consistent" in line for line in bad.lines())
+
+
+# ------------------------------------------------------------------ the estimator's own fit
+#: q̂ below this fraction of the data's scale q₀ counts as 0 when two searches are compared:
+#: ten times the bottom of the search's own range (10^−Q_DECADES q₀), where −log L is flat.
+Q_INVISIBLE = 1e-5
+#: Two searches of q̂ agree within this many decades: three times the search's tolerance.
+Q_DECADES_AGREE = 0.3
+#: The bounds with the two q̂ agree to this fraction.
+SD_AGREE = 0.02
+
+
+@pytest.mark.parametrize("name, method, hold", [("emps", "mle", "smooth"),
+                                                ("silverbox", "guarded", "bandlimited"),
+                                                ("two_inertia", "mle", "foh"),
+                                                ("actuator", "guarded", "foh"),
+                                                ("spring_friction", "mle", "foh")])
+@pytest.mark.needs_speed
+def test_the_estimators_own_fit_leads_the_report_where_its_own_search_goes(name, method,
+                                                                           hold):
+    """The report given the q of the estimator's consistent fit of the record (``fit_q``;
+    0 for an output-error fit, when the long head's search is skipped if the first head
+    agrees) says what the report that searches q from scratch says at the same θ: the same
+    verdicts (model error, consistency, parameters not pinned), q̂ within the search's
+    tolerance, the same Cramér–Rao sd. Records: EMPS (its fits take process noise), the
+    Silverbox (output error) and three simulated models."""
+    spec, t, U, Y, _ = shipped_record(name, samples=6_000)
+    result = run_estimator(spec, t, U, Y, method=method, hold=hold)
+    fit = result.diagnostics.fits[-1]
+    assert fit.k0 == 0 and fit.k1 >= t.size - 1 and fit.consistent, fit
+    kw = dict(x_hat0=spec.estimator.x_hat0, noise_std=fit.noise_std, hold=hold)
+    own = trust_report(spec.system, t, U, Y, fit.theta, spec.parameter_names,
+                       fit_q=fit.process_noise, **kw)
+    fresh = trust_report(spec.system, t, U, Y, fit.theta, spec.parameter_names, **kw)
+    assert (own.model_error, own.consistent, own.unpinned) == \
+        (fresh.model_error, fresh.consistent, fresh.unpinned), (own, fresh)
+    floor = Q_INVISIBLE * fresh.process_noise_scale
+    gap = np.log10((own.process_noise + floor) / (fresh.process_noise + floor))
+    assert abs(gap) <= Q_DECADES_AGREE, (own.process_noise, fresh.process_noise)
+    assert np.all(np.abs(own.crlb_sd / fresh.crlb_sd - 1) < SD_AGREE), (own.crlb_sd,
+                                                                        fresh.crlb_sd)

@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import dataclasses
 import warnings
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
@@ -40,6 +40,7 @@ from .holds import split_hold
 from .schema import ModelSpec
 
 if TYPE_CHECKING:
+    from ..estimation.statistical.map_fit import FitResult
     from ..estimation.statistical.trust import TrustReport
 
 __all__ = ["ObserverGains", "auto_eps", "auto_gamma", "build_estimator", "build_observer",
@@ -982,4 +983,26 @@ def _trust(spec: ModelSpec, result: EstimateResult, u: ArrayLike | None, y: Arra
     return trust_report(s, result.t, np.ascontiguousarray(U), np.ascontiguousarray(Y),
                         result.theta_hat[-1], spec.parameter_names, x_hat0=x0, band=band,
                         noise_std=sigma, compiled=compiled, theta_path=result.theta_hat,
-                        law_conditions=conditions, hold=hold, fits=fits)
+                        law_conditions=conditions, hold=hold, fits=fits,
+                        fit_q=_record_fit_q(getattr(d, "fits", ()), result.theta_hat[-1], N))
+
+
+#: The estimator's last fit is "at θ̂" when θ̂ is within this many of its standard errors of
+#: the fit's θ in every component (the guarded estimator's stage 2 takes the record's fit one
+#: sample before the end, and moves about 0.02 of them after it).
+SAME_THETA_SE = 0.1
+
+
+def _record_fit_q(fits: Sequence[FitResult], theta: FloatArray, N: int) -> float | None:
+    """The process noise q of the estimator's own MAP fit of the record at θ̂ (0: an
+    output-error fit), when its last fit covers the record (all samples, or all but the last
+    one that stage 2 took after it), is at θ̂ (:data:`SAME_THETA_SE`) and passed its
+    consistency test; None otherwise (the trust report then searches q from scratch)."""
+    if not fits:
+        return None
+    last = fits[-1]
+    gap = np.abs(np.asarray(theta, dtype=np.float64) - last.theta)
+    close = gap <= SAME_THETA_SE * last.theta_se
+    if last.k0 != 0 or last.k1 < N - 1 or not last.consistent or not np.all(close):
+        return None
+    return float(last.process_noise)
