@@ -50,6 +50,52 @@ def test_a_bound_kernel_with_numbers_and_arrays_equals_its_python():
     assert s_nb == s_py
 
 
+def test_an_inlined_kernel_is_marked_alone_and_computes_the_same():
+    """``inline=[f]`` prints f alone with numba's inline='always' (its caller keeps the plain
+    decorator), and the caller computes what the called version does, to the bit."""
+    table = np.array([0.1, -2.5e-300, np.pi])
+    given = {"SCALE": 1.0 / 3.0, "TABLE": table}
+    called, (name_c,) = printed_kernels("thetahat_doc_test", "Test.", [_outer], given, True)
+    inlined, (name_i,) = printed_kernels("thetahat_doc_test", "Test.", [_outer], given, True,
+                                         inline=[_inner])
+    src = open(inlined.__file__).read()
+    marked = [block.split("\n")[1] for block in src.split("\n\n\n")
+              if "inline='always'" in block]
+    assert [line.split("(")[0] for line in marked] == ["def _inner_f1"], marked
+    assert "inline=" not in open(called.__file__).read()
+    a, b = np.empty(3), np.empty(3)
+    assert getattr(called, name_c)(0.7, a) == getattr(inlined, name_i)(0.7, b)
+    np.testing.assert_array_equal(a, b)
+
+
+@pytest.mark.parametrize("name", ["silverbox", "two_inertia", "actuator"])
+def test_the_plant_step_with_its_stage_inlined_is_the_called_one(name):
+    """The plant module with ``stage_jac`` compiled into ``propagate_into`` (the default) and
+    with it called: x⁺, Φ and Γ equal to the bit over the record's first samples at 1, 4 and
+    16 sub-steps and every hold (the same operations in the same order; only the calls
+    differ)."""
+    from records import shipped_record
+    spec, t, U, Y, theta = shipped_record(name, samples=64)
+    th = np.asarray(spec.estimator.theta_hat0 if theta is None else theta, dtype=float)
+    n, p = spec.system.n, spec.system.p
+    kernels = [model_kernel(spec.system, compiled=True, inline=flag) for flag in (True, False)]
+    U = np.ascontiguousarray(U, dtype=float)
+    x = np.concatenate([Y[0, :1], np.zeros(n - 1)])
+    for hold in ("zoh", "foh", "bandlimited"):
+        for sub in (1, 4, 16):
+            outs = []
+            for k in kernels:
+                pc, WT = Propagation(hold=hold, substeps=sub).arrays()
+                Phi, Gam = np.empty((n, n)), np.empty((n, p))
+                xs = [x]
+                for j in range(8):
+                    xs.append(k.propagate(xs[-1], th, U, j, t[j + 1] - t[j], pc, WT, True,
+                                          Phi, Gam))
+                outs.append((np.array(xs), Phi.copy(), Gam.copy()))
+            for a, b in zip(*outs):
+                np.testing.assert_array_equal(a, b)
+
+
 def _closure(k):
     def times(x):
         return k * x
