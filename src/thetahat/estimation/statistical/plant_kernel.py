@@ -743,9 +743,10 @@ class ModelKernel:
 #: Compiled into their callers (numba's ``inline='always'``): with the state's dimension a
 #: constant of the printed module (``C_OUT.shape[1]``), the variational equations of each RK4
 #: stage unroll there. On the Silverbox model (n = 2, p = 5, 16 sub-steps a sample) the MAP
-#: fit's sweep went from 6.7 to 2.9 µs a sample, for about 0.8 s more of the plant module's
-#: first compilation (measured once, 2026-12-07); inlining ``rhs_jac`` and ``held_input`` as
-#: well saved another 25 % for 2 s more, not taken (the cold start counts).
+#: fit's sweep went from 6.7 to 2.8 µs a sample under the linear hold and from 8.1 to 4.1 under
+#: the band-limited one, for about 0.8 s more of the plant module's first compilation
+#: (measured once, 2026-12-07); inlining ``rhs_jac`` and ``held_input`` as well saved another
+#: 25 % for 2 s more, not taken (the cold start counts).
 INLINED = (stage_jac,)
 
 _CACHE: dict[tuple[str, bytes, bool, bool], ModelKernel] = {}
