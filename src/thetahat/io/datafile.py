@@ -29,7 +29,7 @@ from ..estimation.records import check_nan_policy
 from ..safe_io import atomic_path, check_writable, open_input
 from .mapping import RecordLayout, Signal, select_columns, select_samples
 from .record import DataRecord
-from .tables import EXCEL_SUFFIXES, Table, open_table
+from .tables import EXCEL_SUFFIXES, Table, arrow_csv, open_table
 
 __all__ = ["CSV_CHUNK_ROWS", "DATA_SUFFIXES", "ESTIMATE_SUFFIXES", "read_data", "check_writable",
            "estimate_columns", "write_csv_table", "write_estimates", "write_parquet_table"]
@@ -381,11 +381,7 @@ def _arrow_csv(values: int) -> Any:
     """``pyarrow.csv`` when installed and worth importing for ``values`` numbers, else None."""
     if values < CSV_ARROW_MIN_VALUES and "pyarrow.csv" not in sys.modules:
         return None
-    try:
-        import pyarrow.csv as pa_csv
-    except ImportError:
-        return None
-    return pa_csv
+    return arrow_csv()
 
 
 def _write_csv_rows(tmp: Path, header: bytes, arrays: list[FloatArray]) -> None:
