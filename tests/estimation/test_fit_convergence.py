@@ -225,7 +225,8 @@ def test_the_fits_information_is_huber_weighted_as_scipy_weighs_it():
 def test_the_jacobian_on_threads_is_the_jacobian_in_one(name, monkeypatch):
     """The forward differences' filter passes on several threads (one per core, at most p:
     the compiled filter releases the GIL) give the very Jacobian of one thread, bit for bit,
-    and so the same fit."""
+    and so the same fit; so do the two passes that measure the filter's rounding noise (at θ
+    and 64 ulps away), which set the steps."""
     import thetahat.estimation.statistical.likelihood as lk
     spec, t, U, Y, sigma, hold, start = _case(name)
     t, U, Y = t[:2048], U[:2048], Y[:2048]
@@ -235,11 +236,13 @@ def test_the_jacobian_on_threads_is_the_jacobian_in_one(name, monkeypatch):
     pb = lk._problem(spec.system, t, U, Y, x0, np.full(n, 10.0), sigma, prop, None)
     assert pb.compiled                  # (the plain-Python filter keeps one thread)
     lo, hi = (np.asarray(b, dtype=float) for b in lk.theta_box(spec.system))
-    jac = {}
+    jac, noise = {}, {}
     for threads in (1, 3):
         monkeypatch.setattr(lk, "difference_threads", lambda p, k=threads: min(p, k))
-        jac[threads] = lk._Differences(pb, 0.0, lo, hi, start).jacobian(start)
+        diff = lk._Differences(pb, 0.0, lo, hi, start)
+        jac[threads], noise[threads] = diff.jacobian(start), diff.noise
     assert jac[1].shape[1] == spec.system.p >= 2
+    assert noise[1] == noise[3] > 0.0
     assert np.array_equal(jac[1], jac[3])
 
 
