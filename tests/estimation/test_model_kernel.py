@@ -151,3 +151,48 @@ def test_plain_python_kernels_overflow_to_inf_as_the_compiled_ones_do():
     assert np.isposinf(f[0])
     f_in_range = kern.f(np.array([1.0]), np.zeros(1), np.array([2.0]))
     np.testing.assert_allclose(f_in_range[0], -1.0 + np.exp(2.0) - 1.0, rtol=1e-14)
+
+
+def _rhs_jac(source: str):
+    import math
+
+    import numba
+    namespace: dict = {"math": math}
+    exec(source, namespace)                   # the source printed from the model's formulas
+    return numba.njit(namespace["rhs_jac"])
+
+
+@pytest.mark.parametrize("name", ["lugre", "silverbox", "emps", "cstr", "two_inertia"])
+def test_a_square_printed_as_a_product_is_numbas_power_to_the_bit(name, monkeypatch):
+    """The printed f, ∂f/∂x, ∂f/∂θ write a symbol's square as (x*x) (a call numba's RK4 stage
+    did not fold away): compiled, they give the bits of the same source printed with x**2
+    (SymPy's own printing) at 200 random points around the example's scenario, so no
+    estimate changes by it."""
+    pytest.importorskip("numba")
+    from pathlib import Path
+
+    from thetahat.estimation.statistical import plant_forms
+    from thetahat.estimation.statistical.common import theta_box
+    from thetahat.modelfile import load_model
+
+    spec = load_model(Path(__file__).resolve().parents[2] / "examples" / f"{name}.toml")
+    system = spec.system
+    product = plant_forms.rhs_jac_source(system)
+    with monkeypatch.context() as m:
+        m.delattr(plant_forms._ExactPrinter, "_print_Pow")
+        power = plant_forms.rhs_jac_source(system)
+    assert product != power and "**2" in power       # the model has squares to print
+    fn_prod, fn_pow = _rhs_jac(product), _rhs_jac(power)
+    n, p, m_ = system.n, system.p, system.B.shape[1]
+    lo, hi = theta_box(system)
+    rng = np.random.default_rng(11)
+    for _ in range(200):
+        x = rng.standard_normal(n) * 10.0 ** rng.uniform(-3, 1, n)
+        u = rng.standard_normal(m_)
+        th = lo + (hi - lo) * rng.uniform(size=p)
+        out = []
+        for fn in (fn_prod, fn_pow):
+            f, Fx, Ft = np.empty(n), np.empty((n, n)), np.empty((n, p))
+            fn(x, u, th, f, Fx, Ft)
+            out.append(np.concatenate([f, Fx.ravel(), Ft.ravel()]))
+        assert out[0].tobytes() == out[1].tobytes()
