@@ -353,7 +353,8 @@ def guarded_loop(s: Any, P: Any, P0: Any, U: Any, Y: Any, tt: Any, k0: int, k1: 
         nis = np.nan
         if finite_y and k + off >= gst[2]:
             nis = update(s, P, yk, R, lo, hi, ell)
-        bad = False
+        # False, as a run-time bool: a literal False compiled band a second time (0.4 s)
+        bad = k < k0
         for i in range(s.shape[0]):
             if not math.isfinite(s[i]) or not math.isfinite(P[i, i]):
                 bad = True

@@ -261,7 +261,8 @@ def innovations(x0: Any, P0: Any, th: Any, U: Any, Y: Any, tt: Any, Rdiag: Any, 
     T = np.empty((n, n))
     PC = np.empty(n)
     K = np.empty(n)
-    work = plant_work(n, th.shape[0], 0, U.shape[1], WT.shape[1])
+    # Γ's width (0) as a run-time int: a literal 0 would compile plant_work a second time
+    work = plant_work(n, th.shape[0], Gam.shape[1], U.shape[1], WT.shape[1])
     for k in range(N):
         if k > 0:
             # a runtime True (n ≥ 1): the EKF's and the sweep's specialisation of propagate

@@ -538,7 +538,8 @@ def free_run(x0: Any, th: Any, U: Any, tt: Any, k0: int, k1: int, pc: Any, WT: A
     x = x0.copy()
     Phi = np.empty((n, n))
     Gam = np.empty((n, 0))
-    work = plant_work(n, th.shape[0], 0, U.shape[1], WT.shape[1])
+    # Γ's width (0) as a run-time int: a literal 0 would compile plant_work a second time
+    work = plant_work(n, th.shape[0], Gam.shape[1], U.shape[1], WT.shape[1])
     for k in range(k0, k1):
         if k > k0:
             propagate_into(x, x, th, U, k - 1, tt[k] - tt[k - 1], pc, WT, n < 0, Phi, Gam,
