@@ -84,10 +84,12 @@ class _ExactPrinter(PythonCodePrinter):
 
     def _print_Pow(self, expr: sp.Pow, rational: bool = False) -> str:
         # a symbol's square as a product in parentheses: numba computes x**2 as that product
-        # (the same bits: five models' free runs and three estimates on LuGre, Silverbox and
-        # EMPS byte for byte), but through a call its compiled RK4 stage does not fold away;
-        # the paper run's trust report on 10⁶ LuGre samples took 5.2 s instead of 6.1 (one
-        # run each, 2026-12-07). A denominator's square (1/c**2) prints through here too.
+        # (the same bits: a test on five models; estimates on LuGre, Silverbox and EMPS byte
+        # for byte), but through a call its compiled RK4 stage does not fold away. LuGre's
+        # MAP sweep (benchmarks/bench_plant_kernel.py, two runs alternated with the commit
+        # before, 2026-12-07): 717 and 685 → 638 and 644 ns a sample; on models with fewer
+        # squares per step the difference is within a run's noise. A denominator's square
+        # (1/c**2) prints through here too.
         if expr.exp == 2 and expr.base.is_Atom:
             base = self.parenthesize(expr.base, PRECEDENCE["Mul"])
             return f"({base}*{base})"
