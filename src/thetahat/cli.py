@@ -389,7 +389,7 @@ def _codegen_ekf(args: argparse.Namespace, inputs: list[str]) -> int:
              if value is not None] + (["--real float"] if args.real == "float" else [])
     if given:
         raise OptionError(f"{', '.join(given)} belong to the paper's observer; --method ekf "
-                          "takes --noise-std (or --data), --hold zoh and --name.")
+                          "takes --noise-std (or --data), --hold and --name.")
     code = generate_ekf_c_from_model(args.model, dt=args.dt, noise_std=args.noise_std,
                                      record=_codegen_record(args), name=args.name,
                                      hold=args.hold)
@@ -678,11 +678,13 @@ def _add_codegen(sub: _Subparsers) -> None:
                          help="a NaN output sample: refused (raise, default), or predicted "
                               "over (skip)")
     codegen.add_argument("--hold", choices=["zoh", "foh"], default="zoh",
-                         help="sample hold; foh: <name>_step also takes the next samples")
+                         help="sample hold; foh: the paper's <name>_step also takes the next "
+                              "samples, the EKF's (and guarded's stage 2) the line from the "
+                              "previous sample to the current one")
     codegen.add_argument("--method", choices=["paper", "ekf", "guarded"], default="paper",
                          help="the estimator: the paper's observer (default), the joint "
-                              "EKF on col(x, θ) (stage 2; needs --noise-std or --data, "
-                              "--hold zoh), or guarded: both with the guard between them, "
+                              "EKF on col(x, θ) (stage 2; needs --noise-std or --data), "
+                              "or guarded: both with the guard between them, "
                               "no re-anchoring fits (the paper's and the EKF's options)")
     codegen.add_argument("--noise-std", metavar="SIGMA[,SIGMA...]", type=_noise_std,
                          default=None, help="--method ekf or guarded: σ of the output noise "

@@ -83,12 +83,12 @@ def run_harness(exe: Path, path: Path, t, u, y) -> tuple[int, np.ndarray, str]:
     return out.returncode, table, out.stderr
 
 
-def reference(spec, t, u, y):
+def reference(spec, t, u, y, hold="zoh"):
     """The Python EKF's run (sub-steps chosen on the record) and the EKF it ran."""
-    ekf = JointEKF(system=spec.system, noise_std=spec.scenario.noise_std, hold="zoh")
+    ekf = JointEKF(system=spec.system, noise_std=spec.scenario.noise_std, hold=hold)
     st = ekf.init(x_hat0=spec.estimator.x_hat0, theta_hat0=spec.estimator.theta_hat0)
     res = ekf.run(t, u, y, state0=st)
-    ekf = JointEKF(system=spec.system, noise_std=spec.scenario.noise_std, hold="zoh",
+    ekf = JointEKF(system=spec.system, noise_std=spec.scenario.noise_std, hold=hold,
                    substeps=res.diagnostics.substeps)
     return res, ekf
 
@@ -113,11 +113,35 @@ def test_c_ekf_agrees_with_python_and_keeps_theta_in_set(tmp_path, name):
     assert np.ptp(res.theta_hat, axis=0).max() > 0.0          # the filter did estimate
 
 
-def test_c_ekf_is_the_stream_of_step(tmp_path):
+#: LuGre and three more models under the linear hold (the zero-order one: all of MODELS).
+FOH_MODELS = ("lugre", "two_inertia", "actuator", "emps")
+
+
+@pytest.mark.parametrize("name", FOH_MODELS)
+def test_c_ekf_with_the_linear_hold_agrees_with_python(tmp_path, name):
+    """hold="foh": u on the line from the previous sample to the current one, which the
+    C's step has (its state keeps the previous u), as the Python EKF's run reads them; and
+    the hold is used: the zero-order hold's estimates differ by far more than the
+    tolerance."""
+    spec, t, u, y = record(name)
+    res, ekf = reference(spec, t, u, y, hold="foh")
+    code = generate_ekf_c(ekf, dt=float(t[1] - t[0]), name=f"{name}_foh",
+                          x_hat0=spec.estimator.x_hat0, theta_hat0=spec.estimator.theta_hat0)
+    assert code.sizes["hold"] == "foh" and "hold foh" in code.source
+    rc, table, err = run_harness(build(code, tmp_path), tmp_path / "d.csv", t, u, y)
+    assert rc == 0, err
+    estimates = np.c_[res.x_hat, res.theta_hat]
+    assert rel_err(table[:, 1:], estimates) <= EKF_RTOL
+    zoh, _ = reference(spec, t, u, y, hold="zoh")
+    assert rel_err(np.c_[zoh.x_hat, zoh.theta_hat], estimates) > 1e3 * EKF_RTOL
+
+
+@pytest.mark.parametrize("hold", ("zoh", "foh"))
+def test_c_ekf_is_the_stream_of_step(tmp_path, hold):
     """The C's step is JointEKF.step: 300 LuGre samples, one step call each."""
     spec, t, u, y = record("lugre")
     t, u, y = t[:300], u[:300], y[:300]
-    ekf = JointEKF(system=spec.system, noise_std=spec.scenario.noise_std, hold="zoh")
+    ekf = JointEKF(system=spec.system, noise_std=spec.scenario.noise_std, hold=hold)
     st = ekf.init(x_hat0=spec.estimator.x_hat0, theta_hat0=spec.estimator.theta_hat0)
     dt = float(t[1] - t[0])
     rows = []
@@ -183,10 +207,17 @@ def test_cli_codegen_method_ekf_builds_with_make(tmp_path, capsys):
     assert code.sizes["substeps"] == ref.diagnostics.substeps
 
 
+def test_cli_codegen_method_ekf_takes_the_linear_hold(tmp_path, capsys):
+    out = tmp_path / "c"
+    assert main(["codegen", str(EXAMPLES / "lugre.toml"), "--method", "ekf", "--dt", "1e-3",
+                 "--noise-std", "0.02", "--hold", "foh", "-o", str(out), "--name", "lf"]) == 0
+    capsys.readouterr()
+    assert "hold foh," in (out / "lf.c").read_text()
+
+
 @pytest.mark.parametrize("args, match", [
     (["--eps", "0.1"], "--eps"),
     (["--real", "float"], "--real float"),
-    (["--noise-std", "0.1", "--hold", "foh"], "zoh"),
     ([], "noise"),
 ])
 def test_cli_codegen_method_ekf_refuses(tmp_path, capsys, args, match):
@@ -199,8 +230,9 @@ def test_cli_codegen_method_ekf_refuses(tmp_path, capsys, args, match):
 
 def test_generate_ekf_c_refusals():
     spec = load_model(EXAMPLES / "lugre.toml")
-    with pytest.raises(UnsupportedError, match="zoh"):
-        generate_ekf_c(JointEKF(system=spec.system, noise_std=0.01), dt=1e-3)
+    for hold in ("smooth", "bandlimited"):
+        with pytest.raises(UnsupportedError, match="'zoh' and 'foh'"):
+            generate_ekf_c(JointEKF(system=spec.system, noise_std=0.01, hold=hold), dt=1e-3)
     with pytest.raises(OptionError, match="noise"):
         generate_ekf_c(JointEKF(system=spec.system, hold="zoh"), dt=1e-3)
     ekf = JointEKF(system=spec.system, noise_std=0.01, hold="zoh")

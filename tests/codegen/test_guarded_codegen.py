@@ -55,9 +55,10 @@ def rel_err(a, b) -> float:
     return float(np.max(np.abs(np.asarray(a) - np.asarray(b)) / scale))
 
 
-def case(name: str, substeps: int = 2):
+def case(name: str, substeps: int = 2, hold: str = "zoh"):
     """The model file's scenario (seed 0, first N_SAMPLES) and its guarded estimator without
-    fits (stage 1 the file's observer with its Γ chosen on the record, zoh for both stages)."""
+    fits (stage 1 the file's observer with its Γ chosen on the record, zoh; stage 2's
+    ``hold``)."""
     spec = load_model(EXAMPLES / f"{name}.toml")
     d = simulate_model(spec, 0)
     N = min(N_SAMPLES, len(d.t))
@@ -67,7 +68,7 @@ def case(name: str, substeps: int = 2):
     gains = resolve_gains(spec, t, u, y, hold="zoh")
     obs = build_observer(spec, eps=gains.eps, Gamma=gains.Gamma).with_run_options(hold="zoh")
     est = GuardedEstimator(stage1=obs, system=spec.system, noise_std=spec.scenario.noise_std,
-                           hold="zoh", use_fits=False, substeps=substeps)
+                           hold=hold, use_fits=False, substeps=substeps)
     return spec, est, t, u, y
 
 
@@ -89,14 +90,22 @@ def run_harness(exe: Path, path: Path, t, u, y) -> tuple[int, np.ndarray, str]:
     return out.returncode, table, out.stderr
 
 
-@pytest.mark.parametrize("name", MODELS)
-def test_c_guarded_agrees_with_python_and_keeps_theta_in_set(tmp_path, name):
-    spec, est, t, u, y = case(name)
+#: Stage 2 under the linear hold: LuGre and three more models (zoh: all of MODELS). Not the
+#: heater: its weakly identified parameter amplifies rounding to 2.1e-9 under foh (measured
+#: once; 1.9e-10 under zoh, above), beyond GUARDED_RTOL without being a different estimate.
+FOH_MODELS = ("lugre", "two_inertia", "actuator", "spring_friction")
+
+
+@pytest.mark.parametrize("name, hold", [(m, "zoh") for m in MODELS]
+                         + [(m, "foh") for m in FOH_MODELS])
+def test_c_guarded_agrees_with_python_and_keeps_theta_in_set(tmp_path, name, hold):
+    spec, est, t, u, y = case(name, hold=hold)
     st0 = est.init(x_hat0=spec.estimator.x_hat0, theta_hat0=spec.estimator.theta_hat0)
     res = est.run(t, u, y, state0=st0)
     code = generate_guarded_c(est, dt=float(t[1] - t[0]), name=f"{name}_g",
                               x_hat0=spec.estimator.x_hat0,
                               theta_hat0=spec.estimator.theta_hat0)
+    assert code.sizes["hold"] == hold and f"stage 2 hold {hold}," in code.source
     for text in (code.source, code.stage1.source):
         assert not HEAP.search(text)
         assert re.findall(r"#include <(\w+)\.h>", text) == ["math"]
@@ -141,12 +150,13 @@ def stream_rows(est, spec, t, u, y):
     return np.array(rows), st
 
 
-@pytest.mark.parametrize("run_hold", ("zoh", "foh"))
-def test_c_guarded_is_the_stream_of_step(tmp_path, run_hold):
+@pytest.mark.parametrize("run_hold, hold", [("zoh", "zoh"), ("foh", "zoh"), ("zoh", "foh")])
+def test_c_guarded_is_the_stream_of_step(tmp_path, run_hold, hold):
     """The C's step is GuardedEstimator.step: 300 LuGre samples, one step call each. A stage 1
     whose run holds u linearly (foh) still steps with the current samples held in a stream:
-    the C prints that step (its stage 1 takes no next samples)."""
-    spec, est, t, u, y = case("lugre")
+    the C prints that step (its stage 1 takes no next samples); stage 2's linear hold reads
+    the previous and the current sample, in the C as in the stream."""
+    spec, est, t, u, y = case("lugre", hold=hold)
     est = replace(est, stage1=est.stage1.with_run_options(hold=run_hold))
     t, u, y = t[:300], u[:300], y[:300]
     rows, _ = stream_rows(est, spec, t, u, y)
@@ -227,8 +237,9 @@ def test_generate_guarded_c_refuses_what_it_cannot_print():
     spec, est, t, u, y = case("lugre")
     with pytest.raises(OptionError, match="use_fits=False"):
         generate_guarded_c(replace(est, use_fits=True), dt=1e-3)
-    with pytest.raises(UnsupportedError, match="zoh"):
-        generate_guarded_c(replace(est, hold="foh"), dt=1e-3)
+    for hold in ("smooth", "bandlimited"):
+        with pytest.raises(UnsupportedError, match="'zoh' and 'foh'"):
+            generate_guarded_c(replace(est, hold=hold), dt=1e-3)
     with pytest.raises(OptionError, match="noise"):
         generate_guarded_c(replace(est, noise_std=None), dt=1e-3)
     with pytest.raises(OptionError, match="dt"):

@@ -17,12 +17,14 @@ does per sample: no prediction at the first sample; NaN in y is predicted over (
 NaN or inf in u and inf in y are refused (``<NAME>_NONFINITE_INPUT``, the state untouched);
 a state or covariance diagonal that is no longer finite is ``<NAME>_DIVERGED``.
 
-What it cannot do yet (refused, :class:`~thetahat.errors.UnsupportedError`): the linear
-holds ``"foh"`` and ``"smooth"`` (the line between two samples is not generated; ``"smooth"``
-also corrects its samples by a causal estimate of ü,
-:mod:`~thetahat.estimation.statistical.input_hold`) and the band-limited hold (it reads
-later samples); a Θ other than a box; ``float``; an unknown σ
-(give ``noise_std``: the stream's estimate from its first samples is not generated).
+The holds it prints are a stream's causal ones: ``"zoh"`` (u held from each sample) and
+``"foh"`` (u on the line from the previous sample to the current one, which the step has: the
+state keeps the previous u, as :meth:`JointEKF.step` does). What it cannot do yet (refused,
+:class:`~thetahat.errors.UnsupportedError`): ``"smooth"`` (it corrects its samples by a causal
+estimate of ü, :mod:`~thetahat.estimation.statistical.input_hold`, whose history is not
+generated) and the band-limited hold (it reads later samples); a Θ other than a box;
+``float``; an unknown σ (give ``noise_std``: the stream's estimate from its first samples is
+not generated).
 """
 
 from __future__ import annotations
@@ -51,7 +53,12 @@ from .generate import write_c_files
 from .harness import makefile_source
 from .printing import c_function
 
-__all__ = ["EKFCode", "KERNELS", "c_array", "check_stage2", "generate_ekf_c"]
+__all__ = ["C_HOLDS", "EKFCode", "KERNELS", "c_array", "check_stage2", "generate_ekf_c"]
+
+#: The holds of stage 2 the C prints: a stream's causal ones, whose u over the interval from
+#: the previous sample reads that sample and the current one (the step's state keeps the
+#: previous u).
+C_HOLDS = ("zoh", "foh")
 
 #: The kernels printed, by the names the others call them (the guarded C prints them too).
 KERNELS = {"ekf_predict": ek.ekf_predict, "ekf_update": ek.ekf_update,
@@ -131,17 +138,18 @@ def check_stage2(ekf: Any, dt: float, what: str = "the C EKF") -> None:
     Raises
     ------
     UnsupportedError
-        Not a JointEKF, a hold other than ``"zoh"``, a Θ other than a box, p = 0 or r = 0.
+        Not a JointEKF, a hold other than ``"zoh"`` or ``"foh"``, a Θ other than a box,
+        p = 0 or r = 0.
     OptionError
         No ``noise_std``; a ``dt`` that is not a finite number > 0.
     """
     if not isinstance(ekf, JointEKF):
         raise UnsupportedError(f"generate_ekf_c needs a JointEKF; got {type(ekf).__name__}.")
-    if ekf.hold != "zoh":
+    if ekf.hold not in C_HOLDS:
         raise UnsupportedError(
-            f"{what} has hold 'zoh' only; got {ekf.hold!r} (the line between two samples "
-            "of 'foh' and 'smooth' is not generated yet, nor 'smooth''s correction of its "
-            "samples; 'bandlimited' reads later samples). Use hold='zoh' (--hold zoh).")
+            f"{what} has the holds 'zoh' and 'foh' only; got {ekf.hold!r} ('smooth''s "
+            "causal correction of its samples is not generated yet; 'bandlimited' reads "
+            "later samples). Use hold='zoh' for a DAC's input, else 'foh' (--hold).")
     theta_set = ekf.system.require_parameter_set(what)
     if not isinstance(theta_set, Box):
         raise UnsupportedError(f"{what} keeps θ̂ in a box Θ only; got {theta_set!r}. "
@@ -193,7 +201,8 @@ def generate_ekf_c(ekf: JointEKF, *, dt: float, name: str = "ekf",
     Parameters
     ----------
     ekf : JointEKF
-        With ``noise_std`` given, ``hold="zoh"`` and a box Θ; its ``q_x``, ``theta_sd``,
+        With ``noise_std`` given, ``hold`` ``"zoh"`` or ``"foh"`` and a box Θ; its ``q_x``,
+        ``theta_sd``,
         ``x_sd``, ``h_rho`` and ``substeps`` (default 1, as :meth:`JointEKF.step`) are
         printed into the C.
     dt : float
@@ -215,7 +224,8 @@ def generate_ekf_c(ekf: JointEKF, *, dt: float, name: str = "ekf",
     Raises
     ------
     UnsupportedError
-        A hold other than ``"zoh"``, a Θ other than a box, or a part with no C form.
+        A hold other than ``"zoh"`` or ``"foh"``, a Θ other than a box, or a part with no
+        C form.
     OptionError
         No ``noise_std``, a bad ``dt`` or ``name``.
 
@@ -236,7 +246,7 @@ def generate_ekf_c(ekf: JointEKF, *, dt: float, name: str = "ekf",
     sigma = np.asarray(ekf.init().noise_std, dtype=np.float64)
     theta_set = stage2_set(sys_.require_parameter_set("the C EKF"))
     substeps = ekf.substeps or 1
-    pc, WT = pk.Propagation(hold="zoh", substeps=substeps, h_rho=ekf.h_rho).arrays()
+    pc, WT = pk.Propagation(hold=ekf.hold, substeps=substeps, h_rho=ekf.h_rho).arrays()
     data = {"C_OUT": np.asarray(sys_.C, dtype=np.float64),
             "Q_X": ekf.q_x * np.eye(n), "R_NOISE": np.diag(sigma ** 2),
             "THETA_LO": theta_set.lo, "THETA_HI": theta_set.hi,
@@ -265,7 +275,7 @@ def generate_ekf_c(ekf: JointEKF, *, dt: float, name: str = "ekf",
     kernels = unit.source()
     consts = [c_array(k, v) for k, v in data.items()
               if k in ("S0", "P0") or k in kernels or k in rhs]
-    sizes = {"n": n, "m": m, "r": r, "p": p, "hold": "zoh", "substeps": substeps}
+    sizes = {"n": n, "m": m, "r": r, "p": p, "hold": ekf.hold, "substeps": substeps}
     banner = _banner(name, title, dt, substeps, ekf)
     source = ekf_source(name, banner, consts, rhs, kernels,
                         predict=f"{predict.name}({', '.join(predict.args)})",
@@ -278,7 +288,8 @@ def generate_ekf_c(ekf: JointEKF, *, dt: float, name: str = "ekf",
 def _banner(name: str, title: str, dt: float, substeps: int, ekf: JointEKF) -> str:
     lines = [f"{name}: the joint EKF on col(x, theta) of thetahat (stage 2), one sample per "
              "call.", comment_text(title) if title else "",
-             f"dt = {dt!r} s, hold zoh, RK4 sub-steps >= {substeps} (h*rho <= {ekf.h_rho!r}),"
+             f"dt = {dt!r} s, hold {ekf.hold}, RK4 sub-steps >= {substeps} (h*rho <= "
+             f"{ekf.h_rho!r}),"
              f" q_x = {ekf.q_x!r}.",
              "Generated by thetahat codegen --method ekf; do not edit."]
     return "/*\n" + "".join(f" * {line}\n" for line in lines if line) + " */\n"

@@ -149,7 +149,8 @@ def generate_ekf_c_from_model(path: str | Path, *, dt: float,
     name : str, optional
         File stem and C prefix (default: the file's stem made a C identifier).
     hold : str
-        ``"zoh"`` (the one the C EKF has).
+        ``"zoh"`` or ``"foh"`` (the holds the C EKF has,
+        :data:`~thetahat.codegen.ekf_c.C_HOLDS`).
     q_x : float
         Process-noise variance per sample on x.
 
@@ -232,7 +233,9 @@ def generate_guarded_c_from_model(path: str | Path, *, dt: float, eps: float | N
     name : str, optional
         File stem and C prefix (default: the file's stem made a C identifier).
     hold : str
-        ``"zoh"``, both stages' (the one the C stage 2 has).
+        ``"zoh"`` or ``"foh"``: stage 2's, and the hold Γ ``"auto"`` is chosen under (stage 1
+        steps with the samples held, as :meth:`GuardedEstimator.step
+        <thetahat.estimation.statistical.guarded.GuardedEstimator.step>` has it).
     q_x : float
         Stage 2's process-noise variance per sample on x.
 
