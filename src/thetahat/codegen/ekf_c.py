@@ -202,9 +202,8 @@ def generate_ekf_c(ekf: JointEKF, *, dt: float, name: str = "ekf",
     ----------
     ekf : JointEKF
         With ``noise_std`` given, ``hold`` ``"zoh"`` or ``"foh"`` and a box Θ; its ``q_x``,
-        ``theta_sd``,
-        ``x_sd``, ``h_rho`` and ``substeps`` (default 1, as :meth:`JointEKF.step`) are
-        printed into the C.
+        ``theta_sd``, ``x_sd``, ``h_rho`` and ``substeps`` (default 1, as
+        :meth:`JointEKF.step`) are printed into the C.
     dt : float
         The sampling interval (s): the prediction's length.
     name : str

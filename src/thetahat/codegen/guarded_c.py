@@ -164,8 +164,8 @@ def generate_guarded_c(est: GuardedEstimator, *, dt: float, name: str = "guarded
     ----------
     est : GuardedEstimator
         With ``use_fits=False``, ``noise_std`` given, ``hold`` ``"zoh"`` or ``"foh"`` (stage
-        2's) and a box Θ; stage 1
-        (its ``stage1``) an observer :func:`~thetahat.codegen.generate.generate_c` prints;
+        2's) and a box Θ; stage 1 (its ``stage1``) an observer
+        :func:`~thetahat.codegen.generate.generate_c` prints;
         its ``q_x``, ``x_sd``, ``h_rho``, ``substeps`` (default 1, as :meth:`GuardedEstimator.step`)
         and the guard's constants are printed into the C.
     dt : float

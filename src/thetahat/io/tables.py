@@ -42,9 +42,10 @@ _DELIMITER_NAMES = {",": "a comma", ";": "a semicolon", "\t": "a tab"}
 #: with points); larger ones are read row by row.
 _DECIMAL_COMMA_FAST_BYTES = 256 << 20
 #: Smallest CSV (bytes) read by pyarrow's multi-threaded reader when it is installed: a
-#: 58 MB file of 10⁶ rows took 0.14–0.32 s there against numpy's 0.93–1.0 s, and importing
-#: it takes 0.05 s warm, 0.2–0.9 s from a cold disk (one run each, 2026-12-07), so below a
-#: few MB numpy's reader is as fast.
+#: 58 MB file of 10⁶ rows took 0.14–0.32 s there against numpy's 0.93–1.0 s (two runs,
+#: 2026-12-07), about 60 MB a second for numpy; importing pyarrow.csv took 0.05 s with a warm
+#: disk (one run; the writer's CSV_ARROW_MIN_VALUES notes 0.2–0.9 s from a cold one), so
+#: below a few MB numpy's reader is as fast.
 CSV_ARROW_MIN_BYTES = 8 << 20
 #: Copies of the read columns a reader may hold at once (the file's table, the float64
 #: columns, the record): the memory checked before a large record is read.
