@@ -384,3 +384,18 @@ def test_an_observer_built_compiled_runs_on_the_kernel(motor, monkeypatch):
     assert calls == ["foh"]
     with pytest.raises(OptionError, match="compiled"):
         obs.with_run_options(compiled="yes")
+
+
+def test_row_blocks_give_the_whole_runs_numbers(motor, monkeypatch):
+    """The kernel run a block of state rows at a time (ROW_BLOCK, their columns copied out
+    by RecordRows) computes the one-block run's numbers bit for bit: each block starts from
+    the state its predecessor ended with."""
+    import thetahat.estimation.observer.compiled as compiled
+    data, obs, fast = motor
+    whole = fast.run(data.t, data.u, data.y)
+    monkeypatch.setattr(compiled, "ROW_BLOCK", 97)
+    cut = fast.run(data.t, data.u, data.y)
+    for name in ("x_hat", "theta_hat", "phi_hat"):
+        assert np.array_equal(getattr(cut, name), getattr(whole, name)), name
+    assert np.array_equal(cut.diagnostics.x_hat_refined, whole.diagnostics.x_hat_refined)
+    assert whole.diagnostics.x_hat_refined is not None and data.t.size > 10 * 97

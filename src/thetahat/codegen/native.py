@@ -44,7 +44,8 @@ from ..estimation.drive import Backend
 from ..estimation.kernels.kernel_cache import cache_dir
 from ..estimation.observer.observer import ModifiedHighGainObserver, ObserverEstimate
 from ..estimation.observer.plan import DT_RTOL
-from ..estimation.observer.record_run import PROGRESS_EVERY, Failure, failure, states_result
+from ..estimation.observer.record_run import (PROGRESS_EVERY, ROW_BLOCK, Failure, RecordRows,
+                                              failure, row_blocks)
 from ..estimation.protocol import EstimateResult, check_step_length
 from .generate import CCode, generate_c, supports_c
 from .loader import CObserver, find_compiler
@@ -325,21 +326,21 @@ class NativeObserver:
             return self.fallback().run(t, u, y, state0=state0, throw=throw)
         U = np.ascontiguousarray(U3[0] if lay.m else np.zeros((N, 1)), dtype=np.float64)
         Y = np.ascontiguousarray(Y3[0], dtype=np.float64)
-        S = np.empty((N, lay.size))
-        PHI = np.empty((N, lay.k))
         s = np.array(obs.init() if state0 is None else obs.check_state(state0),
                      dtype=np.float64)
         progress = obs.progress
-        step = PROGRESS_EVERY if progress is not None else N
+        step = PROGRESS_EVERY if progress is not None else ROW_BLOCK
+        out = RecordRows(lay, N)
+        S = np.empty((min(step, N - 1) + 1, lay.size))      # a block's rows (scratch)
+        PHI = np.empty((S.shape[0], lay.k))
         fail: Failure | None = None
-        for a in range(0, max(N - 1, 1), step):
+        for a, b in row_blocks(N, step):
             if progress is not None:
                 progress(a, N - 1)
-            b = min(a + step, N - 1)
+            n = b - a + 1           # a C of another precision writes into arrays of its own
             rows, phi, status, index = c.run_rows(s, U[a:b + 1], Y[a:b + 1],
-                                                  out=(S[a:b + 1], PHI[a:b + 1]))
-            if rows.base is not S:          # the C's precision is not the record's
-                S[a:b + 1], PHI[a:b + 1] = rows, phi
+                                                  out=(S[:n], PHI[:n]))
+            out.put(a, rows, phi)
             if status:
                 fail = failure(status, a + index, t_, type(obs.update_law).__name__)
                 if throw:
@@ -348,7 +349,7 @@ class NativeObserver:
             s = np.array(rows[-1], dtype=np.float64)
         if progress is not None and fail is None:
             progress(N - 1, N - 1)
-        return states_result(lay, t_, S, PHI, ok3[0], fail)
+        return out.result(t_, ok3[0], fail)
 
     def _uniform_c(self, t: NDArray[np.float64], dts: NDArray[np.float64]) -> CObserver | None:
         """The C of the record's one step length, or None (non-uniform steps, no C)."""

@@ -82,7 +82,8 @@ from .kernel_source import LAWS, kernel_source
 from .laws.theta_star import ThetaStar
 from .observer import ModifiedHighGainObserver, ObserverEstimate
 from .plan import DT_RTOL, StateLayout, StepPlan
-from .record_run import PROGRESS_EVERY, Failure, failure, states_result, step_error
+from .record_run import (PROGRESS_EVERY, ROW_BLOCK, Failure, RecordRows, failure, row_blocks,
+                         step_error)
 
 __all__ = ["BACKEND", "CompiledObserver", "compile_observer"]
 
@@ -373,27 +374,29 @@ class CompiledObserver:
         N = t_.shape[0]
         U, Y, dts = (_kernel_array(a) for a in (U3[0], Y3[0], dts))
         ok = np.ascontiguousarray(ok3[0], dtype=np.bool_)
-        S = np.empty((N, lay.size))
-        PHI = np.empty((N, lay.k))
-        S[0] = _kernel_array(obs.init() if state0 is None else obs.check_state(state0))
+        s = _kernel_array(obs.init() if state0 is None else obs.check_state(state0))
         progress = obs.progress
-        step = PROGRESS_EVERY if progress is not None else max(N - 1, 1)
+        step = PROGRESS_EVERY if progress is not None else ROW_BLOCK
+        out = RecordRows(lay, N)
+        S = np.empty((min(step, N - 1) + 1, lay.size))      # a block's rows (scratch)
+        PHI = np.empty((S.shape[0], lay.k))
         fail: Failure | None = None
-        for a in range(0, max(N - 1, 1), step):
+        for a, b in row_blocks(N, step):
             if progress is not None:
                 progress(a, N - 1)
-            b = min(a + step, N - 1)
-            status, index = self._call(S[a].copy(), U[a:b + 1], Y[a:b + 1], dts[a:b],
-                                       ok[a:b + 1], obs.hold == "foh", S[a:b + 1],
-                                       PHI[a:b + 1])
+            rows = b - a + 1
+            status, index = self._call(s.copy(), U[a:b + 1], Y[a:b + 1], dts[a:b],
+                                       ok[a:b + 1], obs.hold == "foh", S[:rows], PHI[:rows])
+            out.put(a, S[:rows], PHI[:rows])
             if status:
                 fail = failure(status, a + index, t_, type(obs.update_law).__name__)
                 if throw:
                     raise fail.error()
                 break
+            s = S[rows - 1]
         if progress is not None and fail is None:
             progress(N - 1, N - 1)
-        return states_result(lay, t_, S, PHI, ok, fail)
+        return out.result(t_, ok, fail)
 
     def __repr__(self) -> str:
         return (f"CompiledObserver(dt={self.dt!r}, observer={self.observer!r}, "

@@ -13,6 +13,9 @@ What lives here:
 * :class:`Failure` and :func:`failure`: the one description of a failed step in every back end
   (NumPy, numba's kernel, the generated C): its :class:`~thetahat.estimation.status.Status`,
   the step, and the sentence that names the sample and the fix;
+* :class:`RecordRows`, the outputs of a run filled a block of state rows at a time (a compiled
+  run writes :data:`ROW_BLOCK` rows into scratch and copies their columns out, so a record is
+  never held as state rows and as outputs at once);
 * :func:`states_result` and :func:`observer_result`, the
   :class:`~thetahat.estimation.protocol.EstimateResult` of a run from its state rows — OK, or
   stopped at ``failed_at`` with the rows from there NaN (``throw=False``); with ``throw=True``
@@ -66,9 +69,9 @@ from .laws.inversion import invalid_theta_star_error
 from .plan import StateLayout, StepPlan
 from .step import advance, diverged, readout
 
-__all__ = ["COMPILED", "Failure", "HOLDS", "PROGRESS_EVERY", "check_compiled", "check_hold", "failure", "failure_message",
-           "integrate_record", "integrate_records", "observer_result", "states_result",
-           "step_error"]
+__all__ = ["COMPILED", "Failure", "HOLDS", "PROGRESS_EVERY", "ROW_BLOCK", "RecordRows",
+           "check_compiled", "check_hold", "failure", "failure_message", "integrate_record",
+           "integrate_records", "observer_result", "row_blocks", "states_result", "step_error"]
 
 FloatArray = NDArray[np.float64]
 Progress = Callable[[int, int], None]
@@ -78,6 +81,10 @@ Progress = Callable[[int, int], None]
 HOLDS = ("zoh", "foh")
 #: Samples between two calls of ``run``'s progress callback.
 PROGRESS_EVERY = 1_000
+#: State rows a compiled run writes into scratch before their columns are copied to the
+#: outputs (:class:`RecordRows`): 2¹⁶ rows of LuGre's 6-entry state are 3 MB, against 48 MB for
+#: 10⁶ samples held whole; a kernel call on that many rows costs its arithmetic, not its call.
+ROW_BLOCK = 1 << 16
 #: Where ``run`` runs (the observer's ``compiled``): False, the NumPy step; None, the fastest
 #: back end where it pays; True, the fastest back end that takes the observer.
 COMPILED = (False, None, True)
@@ -458,28 +465,116 @@ def states_result(lay: StateLayout, t: FloatArray, S: FloatArray, PHI: FloatArra
     >>> res.theta_hat.shape, res.skipped.tolist(), res.theta_hat.flags.writeable, res.ok
     ((3, 1), [False, True, False], False, True)
     """
-    # copied only to write the NaN rows of a failed run: each output below is its own copy
-    copy = fail is not None
-    S_ = np.array(S, dtype=np.float64, copy=True) if copy else np.asarray(S, dtype=np.float64)
-    PHI_ = (np.array(PHI, dtype=np.float64, copy=True) if copy
-            else np.asarray(PHI, dtype=np.float64))
-    if fail is not None:
-        S_[fail.failed_at:] = np.nan
-        PHI_[fail.failed_at:] = np.nan
+    rows = RecordRows(lay, S.shape[0])
+    rows.put(0, S, PHI)
+    return rows.result(t, present, fail)
 
-    def frozen(a: NDArray[Any]) -> NDArray[Any]:
-        out = np.array(a, copy=True)
-        out.setflags(write=False)
-        return out
 
-    return EstimateResult(
-        t=frozen(t), x_hat=frozen(S_[:, lay.x]), phi_hat=frozen(PHI_),
-        theta_hat=frozen(S_[:, lay.theta]), skipped=frozen(~present),
-        diagnostics=ObserverDiagnostics(
-            x_hat_refined=frozen(S_[:, lay.x2]) if lay.second else None),
-        status=Status.OK if fail is None else fail.status,
-        message="" if fail is None else fail.message,
-        failed_at=None if fail is None else fail.failed_at)
+def row_blocks(N: int, every: int) -> list[tuple[int, int]]:
+    """The blocks ``(a, b)`` of a run over N samples, ``every`` steps each: rows a … b.
+
+    Consecutive blocks share a row (b of one is a of the next): a block starts from the state
+    its predecessor ended with.
+
+    Parameters
+    ----------
+    N : int
+        Samples (≥ 1).
+    every : int
+        Steps a block (≥ 1).
+
+    Returns
+    -------
+    list of (int, int)
+
+    Examples
+    --------
+    >>> row_blocks(6, 2)
+    [(0, 2), (2, 4), (4, 5)]
+    >>> row_blocks(1, 4)
+    [(0, 0)]
+    """
+    return [(a, min(a + every, N - 1)) for a in range(0, max(N - 1, 1), every)] if N > 1 \
+        else [(0, 0)]
+
+
+class RecordRows:
+    """The outputs of a run over N samples (x̂, θ̂, x̂₂ and φ̂), filled from state rows.
+
+    A compiled run writes a block of full state rows (:data:`ROW_BLOCK` at most) into scratch
+    and :meth:`put` copies the layout's columns out: the record is never held twice, as state
+    rows and as outputs. :meth:`result` hands the arrays themselves to the result, read-only.
+
+    Parameters
+    ----------
+    lay : StateLayout
+    N : int
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from thetahat.models import lugre
+    >>> lay = lugre.observer().layout
+    >>> rows = RecordRows(lay, 3)
+    >>> S = np.arange(3.0 * lay.size).reshape(3, lay.size)
+    >>> rows.put(0, S[:2], np.zeros((2, lay.k))); rows.put(2, S[2:], np.ones((1, lay.k)))
+    >>> res = rows.result(np.arange(3.0), np.ones(3, dtype=bool))
+    >>> bool((res.theta_hat == S[:, lay.theta]).all()), res.phi_hat[:, 0].tolist()
+    (True, [0.0, 0.0, 1.0])
+    """
+
+    def __init__(self, lay: StateLayout, N: int) -> None:
+        self.layout = lay
+        self.x_hat = np.empty((N, lay.n))
+        self.theta_hat = np.empty((N, lay.p))
+        self.x_hat_refined = np.empty((N, lay.n)) if lay.second else None
+        self.phi_hat = np.empty((N, lay.k))
+
+    def put(self, a: int, S: FloatArray, PHI: FloatArray) -> None:
+        """Copy state rows ``S`` and φ̂ rows ``PHI`` to rows a, a + 1, … of the outputs."""
+        lay, b = self.layout, a + S.shape[0]
+        self.x_hat[a:b] = S[:, lay.x]
+        self.theta_hat[a:b] = S[:, lay.theta]
+        if self.x_hat_refined is not None:
+            self.x_hat_refined[a:b] = S[:, lay.x2]
+        self.phi_hat[a:b] = PHI
+
+    def result(self, t: FloatArray, present: NDArray[np.bool_],
+               fail: Failure | None = None) -> EstimateResult:
+        """The run's EstimateResult: the outputs, read-only, NaN from ``fail.failed_at`` on.
+
+        Parameters
+        ----------
+        t : ndarray, shape (N,)
+            Copied.
+        present : ndarray of bool, shape (N,)
+            Whether each output sample was present (False: skipped).
+        fail : Failure, optional
+            The step that stopped the run (rows from its ``failed_at`` on are not read).
+
+        Returns
+        -------
+        EstimateResult
+        """
+        outs = [a for a in (self.x_hat, self.theta_hat, self.x_hat_refined, self.phi_hat)
+                if a is not None]
+        for a in outs:
+            if fail is not None:
+                a[fail.failed_at:] = np.nan
+            a.setflags(write=False)
+
+        def frozen(a: NDArray[Any]) -> NDArray[Any]:
+            out = np.array(a, copy=True)
+            out.setflags(write=False)
+            return out
+
+        return EstimateResult(
+            t=frozen(t), x_hat=self.x_hat, phi_hat=self.phi_hat, theta_hat=self.theta_hat,
+            skipped=frozen(~present),
+            diagnostics=ObserverDiagnostics(x_hat_refined=self.x_hat_refined),
+            status=Status.OK if fail is None else fail.status,
+            message="" if fail is None else fail.message,
+            failed_at=None if fail is None else fail.failed_at)
 
 
 def observer_result(pert: Perturbation, C: FloatArray, lay: StateLayout, t: FloatArray,
