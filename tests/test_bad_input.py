@@ -1203,3 +1203,33 @@ def test_generate_c_refuses_a_name_that_is_not_a_string():
     from thetahat.models import lugre
     with pytest.raises(E.ArgumentTypeError, match="name must be a string"):
         generate_c(lugre.observer(), dt=0.01, name=None)
+
+
+@pytest.mark.parametrize("kind", ["pole", "nan", "branch"])
+def test_theta_star_check_in_blocks_names_the_same_instants(kind, monkeypatch):
+    """check_theta_star evaluates a long record a block of EVAL_BLOCK samples at a time; a
+    failure spread over several blocks gives the message of one block: the same first
+    instants and the same count of the rest (a pole between two blocks included)."""
+    import thetahat.estimation.observer.checks as checks
+    t = np.linspace(0.0, 1.0, 1_001)
+    if kind == "pole":              # θ* = log(φ + 1)/y: y = cos crosses 0 ten times
+        g, Theta, y = _pert("exp(theta*y) - 1"), Box([0.5], [2.0]), np.cos(30 * t)
+        law = algebraic_from_perturbation(g, Gamma=1.0, parameter_set=Theta)
+        theta_star = law.theta_star
+    else:
+        g, y = _pert("theta*y"), 1.0 + t
+        Theta = Box([1.0], [2.0]) if kind == "nan" else Box([-2.0], [-1.0])
+
+        def theta_star(v, x, phi):
+            if kind == "nan":       # NaN where y < 1.5: half the record
+                return np.log(v[..., :1] - 1.5) * 0 + phi / v[..., :1]
+            return np.abs(phi / v[..., :1])                    # a branch that misses Θ < 0
+
+    def message() -> str:
+        with pytest.raises(E.UpdateLawError) as err:
+            check_theta_star(theta_star, g, Theta, [[1.0]], t, None, y)
+        return str(err.value)
+
+    whole = message()
+    monkeypatch.setattr(checks, "EVAL_BLOCK", 7)
+    assert message() == whole and " more" in whole

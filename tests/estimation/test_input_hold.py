@@ -95,3 +95,22 @@ def test_a_stream_of_single_samples_gives_the_samples_of_one_call(m):
         assert np.array_equal(hist.d1, end.d1) and np.array_equal(hist.d2, end.d2)
     switched = smooth_input(kinds[3][:, None])[0][:, 0] != kinds[3]
     assert switched[3:N // 2].all() and switched[N // 2 + 2:].sum() == 0
+
+
+def test_stage2_samples_of_a_long_record_come_in_blocks_with_the_same_numbers(monkeypatch):
+    """``stage2_samples`` under "smooth" takes a record longer than EVAL_BLOCK a block at a
+    time (its differences and sums a block long), each block carrying the history: the ũ and
+    the history of one call, to the bit — with the default block on 2¹⁷ + 1 samples (the last
+    block one sample, the stream's scalar path) and with blocks of 50."""
+    import thetahat.estimation.statistical.input_hold as input_hold
+    rng = np.random.default_rng(2)
+    for N, block in ((2 ** 17 + 1, input_hold.EVAL_BLOCK), (1_001, 50)):
+        monkeypatch.setattr(input_hold, "EVAL_BLOCK", block)
+        t = np.arange(N) * 1e-3
+        U = np.column_stack([np.sin(2 * np.pi * 7.0 * t), rng.choice([-1.0, 1.0], size=N)])
+        want, hist = smooth_input(U)
+        got, ghist = input_hold.stage2_samples(U, "smooth")
+        assert np.array_equal(got, want) and got.flags.c_contiguous
+        for name in ("u_last", "d1", "d2"):
+            assert np.array_equal(getattr(ghist, name), getattr(hist, name)), name
+        assert not np.array_equal(want[:, 0], U[:, 0])

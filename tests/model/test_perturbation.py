@@ -462,3 +462,19 @@ def test_parser_error_paths(text, kwargs, match):
     names = {"u": [], "y": ["y"], "x": ["x"], "theta": ["t"], **kwargs}
     with pytest.raises(ModelFileError, match=match):
         parse_perturbation(text, **names)
+
+
+@pytest.mark.parametrize("method", ["g", "dg_dv", "dg_dx", "dg_dtheta"])
+def test_a_long_batch_is_evaluated_in_blocks_with_the_same_numbers(mimo, method, monkeypatch):
+    """Beyond EVAL_BLOCK samples the printed expression runs a block at a time (its
+    intermediates a block long): element-wise arithmetic, so the same numbers to the bit,
+    with θ given per sample, as one row, or broadcast from (p,)."""
+    import thetahat.model.perturbation as perturbation
+    v, x, th = mimo_points(np.random.default_rng(5), 1_000)
+    f = getattr(mimo, method)
+    wants = [f(v, x, th), f(v, x, th[:1]), f(v, x, th[0])]
+    monkeypatch.setattr(perturbation, "EVAL_BLOCK", 64)          # 16 blocks, the last short
+    for want, theta in zip(wants, (th, th[:1], th[0])):
+        got = f(v, x, theta)
+        assert got.shape == want.shape and np.array_equal(got, want)
+    assert not np.array_equal(wants[0], wants[2])                 # θ per sample mattered

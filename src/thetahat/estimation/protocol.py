@@ -31,6 +31,7 @@ from numpy.typing import NDArray
 
 from .._validate import as_vector, positive_scalar
 from ..errors import DimensionError, NonFiniteError, StateError
+from ..model.perturbation import EVAL_BLOCK
 from ..model.system import PerturbedLinearSystem
 from ..limits import MAX_SIGNAL_MAGNITUDE, MIN_SIGNAL_MAGNITUDE
 from .records import Dimensions, check_magnitude, plain_sample_ok
@@ -545,7 +546,14 @@ def phi_hat_from_model(system: PerturbedLinearSystem, U: FloatArray, Y: FloatArr
     ((2, 1), True)
     """
     pert = system.require_perturbation("phi_hat_from_model")
-    gone = missing_samples(Y)
-    Yc = np.where(gone[:, None], X @ system.C.T, Y) if gone.any() else Y
-    V = np.concatenate([U, Yc], axis=1)
-    return np.asarray(pert.g(V, X, TH), dtype=np.float64).reshape(X.shape[0], system.k)
+    N = X.shape[0]
+    out = np.empty((N, system.k))
+    for a in range(0, N, EVAL_BLOCK):       # v a block at a time: not a copy of the record
+        rows = slice(a, a + EVAL_BLOCK)
+        Yb = Y[rows]
+        gone = missing_samples(Yb)
+        Yc = np.where(gone[:, None], X[rows] @ system.C.T, Yb) if gone.any() else Yb
+        V = np.concatenate([U[rows], Yc], axis=1)
+        out[rows] = np.asarray(pert.g(V, X[rows], TH[rows]),
+                               dtype=np.float64).reshape(-1, system.k)
+    return out

@@ -28,11 +28,16 @@ from sympy.core.function import AppliedUndef
 from ..errors import DimensionError, NonFiniteError
 from .lambdify import lambdify_numpy, numpy_ready
 
-__all__ = ["ARG_NAMES", "FD_REL_STEP", "Perturbation", "SymbolicPerturbation",
+__all__ = ["ARG_NAMES", "EVAL_BLOCK", "FD_REL_STEP", "Perturbation", "SymbolicPerturbation",
            "CallablePerturbation", "batch_args", "central_difference", "lambdify_numpy",
            "numpy_ready"]
 
 FloatArray = NDArray[np.float64]
+
+#: Samples a :class:`SymbolicPerturbation` evaluates at once: a longer record is evaluated a
+#: block at a time, so that the printed expression's intermediates (one array per
+#: subexpression, 10–20 for a friction law) take megabytes, not the record's size again.
+EVAL_BLOCK = 1 << 16
 
 
 class Perturbation(ABC):
@@ -442,9 +447,22 @@ class SymbolicPerturbation(Perturbation):
     def _evaluate(self, key: str, width: int | None, v: Any, x: Any, theta: Any) -> FloatArray:
         v_, x_, t_, batch = batch_args(self._dims, v, x, theta)
         k = self._dims[4]
-        shape = (k,) if width is None else (k, width)
-        cols = [a[..., i] for a in (v_, x_, t_) for i in range(a.shape[-1])]
-        out = np.empty(batch + shape)
+        out = np.empty(batch + ((k,) if width is None else (k, width)))
+        if len(batch) != 1 or batch[0] <= EVAL_BLOCK:
+            self._fill(key, width, out, v_, x_, t_)
+            return out
+        # a long record a block of rows at a time: the printed expression's intermediates
+        # (one array per subexpression) stay a block long
+        for a in range(0, batch[0], EVAL_BLOCK):
+            rows = slice(a, a + EVAL_BLOCK)
+            self._fill(key, width, out[rows],
+                       *(arg[rows] if arg.ndim == 2 and arg.shape[0] == batch[0] else arg
+                         for arg in (v_, x_, t_)))
+        return out
+
+    def _fill(self, key: str, width: int | None, out: FloatArray, *args: FloatArray) -> None:
+        """Write the entries of ``key`` at ``args`` (v, x, θ) into ``out``."""
+        cols = [a[..., i] for a in args for i in range(a.shape[-1])]
         values = self._functions[key](*cols)          # the entries in row-major order
         if width is None:
             for i, value in enumerate(values):
@@ -452,7 +470,6 @@ class SymbolicPerturbation(Perturbation):
         else:
             for i, value in enumerate(values):
                 out[..., i // width, i % width] = value
-        return out
 
     def g(self, v: FloatArray, x: FloatArray, theta: FloatArray) -> FloatArray:
         """φ = g(v, x, θ).

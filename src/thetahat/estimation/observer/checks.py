@@ -21,7 +21,7 @@ helpers; never an observer.
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, replace
 from typing import Any, final
 
@@ -31,7 +31,7 @@ from numpy.typing import ArrayLike, NDArray
 from ..._validate import as_matrix, as_vector, check_finite, positive_scalar
 from ...errors import DimensionError, ThetahatError, UpdateLawError
 from ...model.paramset import Box, ParameterSet
-from ...model.perturbation import Perturbation
+from ...model.perturbation import EVAL_BLOCK, Perturbation
 from ...model.state_set import (ASSUMPTION_2_REMEDY, GROWTH_DECADES, GROWTH_LIMIT,
                                  lipschitz_growth, state_scale)
 from .laws.theta_star import ThetaStar
@@ -390,71 +390,89 @@ def check_theta_star(theta_star: Callable[..., Any], perturbation: Perturbation,
     Y = _record("y", y, t_.size, r)
     U = np.zeros((t_.size, 0)) if u is None else _record("u", u, t_.size, m)
     keep = np.isfinite(Y).all(axis=1) & np.isfinite(U).all(axis=1)
-    t_, U, Y = t_[keep], U[keep], Y[keep]
+    if not keep.all():
+        t_, U, Y = t_[keep], U[keep], Y[keep]
     if t_.size == 0:
         return
-    V = np.concatenate((U, Y), axis=1)
     rng = np.random.default_rng(seed)
     # x consistent with y: the least-norm part C⁺y plus one fixed offset in ker C (the part
     # of x the data do not show; fixed, so that θ*'s denominators vary with the data only)
     _, sv, Vh = np.linalg.svd(C_)
     null = Vh[int(np.sum(sv > 1e-12 * max(1.0, float(sv[0]) if sv.size else 1.0))):]
-    X = Y @ np.linalg.pinv(C_).T + rng.standard_normal(null.shape[0]) @ null
+    Cp, offset = np.linalg.pinv(C_).T, rng.standard_normal(null.shape[0]) @ null
     thetas = np.vstack([np.asarray(parameter_set.interior_point, dtype=np.float64)[None, :],
                         parameter_set.sample(rng, THETA_STAR_POINTS - 1)])
+
+    def blocks() -> Iterator[tuple[slice, FloatArray, FloatArray]]:
+        """(rows, v, x) a block of EVAL_BLOCK samples at a time: a long record's arrays stay
+        a block long."""
+        for a in range(0, t_.size, EVAL_BLOCK):
+            rows = slice(a, a + EVAL_BLOCK)
+            yield rows, np.concatenate((U[rows], Y[rows]), axis=1), Y[rows] @ Cp + offset
+
     fix = ("Give theta_star explicitly with a form valid on the data, restrict Θ, or use the "
            "gradient law (Propositions 3–4).")
     for th in thetas:
-        _check_inverse(theta_star, perturbation, V, X, th, t_, fix)
-    _check_poles(theta_star, V, X, perturbation, thetas[0], t_, fix)
+        _check_inverse(theta_star, perturbation, blocks, th, t_, fix)
+    _check_poles(theta_star, blocks, perturbation, thetas[0], t_, fix)
 
 
-def _check_inverse(theta_star: Callable[..., Any], perturbation: Perturbation, V: FloatArray,
-                   X: FloatArray, th: FloatArray, t: FloatArray, fix: str) -> None:
+def _check_inverse(theta_star: Callable[..., Any], perturbation: Perturbation,
+                   blocks: Callable[[], Iterator[tuple[slice, FloatArray, FloatArray]]],
+                   th: FloatArray, t: FloatArray, fix: str) -> None:
     """θ*(v, x, g(v, x, θ)) = θ at every sample where ∂g/∂θ ≠ 0, for one θ ∈ Θ."""
-    N, p = t.size, th.size
-    with np.errstate(all="ignore"):
-        phi = np.asarray(perturbation.g(V, X, np.broadcast_to(th, (N, p))), dtype=np.float64)
-        est = np.asarray(theta_star(V, X, phi), dtype=np.float64).reshape(N, p)
-        J = np.asarray(perturbation.dg_dtheta(V, X, np.broadcast_to(th, (N, p))),
-                       dtype=np.float64).reshape(N, -1)
-    # only where φ determines θ (∂g/∂θ ≠ 0): elsewhere no θ* can recover θ
-    usable = np.isfinite(phi).all(axis=1) & (np.abs(J) > 0).any(axis=1)
-    bad = usable & ~np.isfinite(est).all(axis=1)
+    p = th.size
+    bad, wrong = np.zeros(t.size, dtype=bool), np.zeros(t.size, dtype=bool)
+    first: FloatArray | None = None           # θ* at the first sample where it misses θ
+    for rows, V, X in blocks():
+        N = V.shape[0]
+        with np.errstate(all="ignore"):
+            phi = np.asarray(perturbation.g(V, X, np.broadcast_to(th, (N, p))),
+                             dtype=np.float64)
+            est = np.asarray(theta_star(V, X, phi), dtype=np.float64).reshape(N, p)
+            J = np.asarray(perturbation.dg_dtheta(V, X, np.broadcast_to(th, (N, p))),
+                           dtype=np.float64).reshape(N, -1)
+        # only where φ determines θ (∂g/∂θ ≠ 0): elsewhere no θ* can recover θ
+        usable = np.isfinite(phi).all(axis=1) & (np.abs(J) > 0).any(axis=1)
+        bad[rows] = usable & ~np.isfinite(est).all(axis=1)
+        wrong[rows] = usable & (np.max(np.abs(est - th), axis=1) > THETA_STAR_RTOL * (
+            1.0 + np.max(np.abs(th))))
+        if first is None and wrong[rows].any():
+            first = est[int(np.argmax(wrong[rows]))]
     if bad.any():
         raise UpdateLawError(
             f"theta_star is NaN or inf on the data at {_times(t, np.flatnonzero(bad))} "
             f"(θ = {np.round(th, 6).tolist()}): a singularity or branch cut of θ* lies on "
             f"the range of the data. {fix}")
-    wrong = usable & (np.max(np.abs(est - th), axis=1) > THETA_STAR_RTOL * (
-        1.0 + np.max(np.abs(th))))
-    if wrong.any():
+    if first is not None:
         i = int(np.argmax(wrong))
         raise UpdateLawError(
             f"theta_star does not invert g on the data at {_times(t, np.flatnonzero(wrong))}"
-            f": at t = {float(t[i]):.6g} it returns {np.round(est[i], 6).tolist()} for θ = "
+            f": at t = {float(t[i]):.6g} it returns {np.round(first, 6).tolist()} for θ = "
             f"{np.round(th, 6).tolist()} ∈ Θ (a branch that misses Θ). {fix}")
 
 
-def _check_poles(theta_star: Any, V: FloatArray, X: FloatArray, perturbation: Perturbation,
-                 th: FloatArray, t: FloatArray, fix: str) -> None:
+def _check_poles(theta_star: Any,
+                 blocks: Callable[[], Iterator[tuple[slice, FloatArray, FloatArray]]],
+                 perturbation: Perturbation, th: FloatArray, t: FloatArray, fix: str) -> None:
     """Sign changes of the denominators of a symbolic θ* between consecutive samples."""
     if not isinstance(theta_star, ThetaStar) or t.size < 2:
         return
     solution, arguments = theta_star.expr, theta_star.arguments
     import sympy as sp
 
-    with np.errstate(all="ignore"):
-        phi = np.asarray(perturbation.g(V, X, np.broadcast_to(th, (t.size, th.size))),
-                         dtype=np.float64)
-    cols = [*V.T, *X.T, *phi.T]
     for expr in solution:
         den = sp.denom(sp.together(expr))
         if den.is_number:
             continue
         fn = sp.lambdify(list(arguments), den, "numpy")
-        with np.errstate(all="ignore"):
-            d = np.broadcast_to(np.asarray(fn(*cols), dtype=np.float64), t.shape)
+        d = np.empty(t.size)
+        for rows, V, X in blocks():
+            with np.errstate(all="ignore"):
+                phi = np.asarray(perturbation.g(V, X, np.broadcast_to(th, (V.shape[0],
+                                                                          th.size))),
+                                 dtype=np.float64)
+                d[rows] = np.asarray(fn(*V.T, *X.T, *phi.T), dtype=np.float64)
         nz = np.flatnonzero(np.isfinite(d) & (d != 0))     # a sign change between these
         cross = nz[:-1][np.sign(d[nz[:-1]]) != np.sign(d[nz[1:]])]
         if cross.size:

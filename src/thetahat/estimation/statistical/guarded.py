@@ -461,8 +461,10 @@ class GuardedEstimator:
         if st0.stream is not None:
             raise OptionError("GuardedEstimator.run starts an experiment from init(); this "
                               "state0 has been stepped: continue its stream with step.")
-        res1 = self.stage1.run(t_, U, Y, state0=st0.stage1, throw=False)
-        run = _OfflineRun(self, t_, U, Y, res1, st0)
+        # stage 1's result is not kept past this line: the run copies its θ̂ and x̂ (a
+        # record's x̂, x̂₂ and φ̂ less to hold during the fits)
+        run = _OfflineRun(self, t_, U, Y,
+                          self.stage1.run(t_, U, Y, state0=st0.stage1, throw=False), st0)
         run.filter(t_.shape[0], fit_progress)
         res = run.result(run.stop())
         return res.raise_for_status() if throw else res

@@ -45,6 +45,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ...errors import OptionError
+from ...model.perturbation import EVAL_BLOCK
 from ..hold import check_hold
 
 __all__ = ["InputHistory", "smooth_input", "stage2_samples", "streamable"]
@@ -186,10 +187,18 @@ def stage2_samples(U: FloatArray, hold: str, history: InputHistory | None = None
     >>> bool(np.array_equal(stage2_samples(U, "smooth")[0], smooth_input(U)[0]))
     True
     """
-    if check_hold(hold) == "smooth":
+    if check_hold(hold) != "smooth":
+        return np.array(U, dtype=np.float64, order="C"), None
+    if U.shape[0] <= EVAL_BLOCK:
         Ut, hist = smooth_input(U, history)
         return np.ascontiguousarray(Ut), hist
-    return np.array(U, dtype=np.float64, order="C"), None
+    # a long record a block at a time, each carrying the history of the one before: the same
+    # sums in the same order (the cumulative sums run one sample at a time), so the same ũ to
+    # the bit, with the differences and sums a block long
+    out = np.empty(U.shape)
+    for a in range(0, U.shape[0], EVAL_BLOCK):
+        out[a:a + EVAL_BLOCK], history = smooth_input(U[a:a + EVAL_BLOCK], history)
+    return out, history
 
 
 def streamable(hold: str, who: str) -> str:
