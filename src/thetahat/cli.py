@@ -18,8 +18,10 @@ Subcommands::
     thetahat codegen MODEL --dt 1e-3 [--eps 1] [--gamma G... | --data LOG]
                      [--real double|float] [--name NAME] [--nan-policy raise|skip]
                      [--hold zoh|foh] -o DIR
-    thetahat codegen MODEL --method ekf --dt 1e-3 (--noise-std S | --data LOG) -o DIR
-    thetahat codegen MODEL --method guarded --dt 1e-3 (--noise-std S | --data LOG) -o DIR
+    thetahat codegen MODEL --method ekf --dt 1e-3 (--noise-std S | --data LOG)
+                     [--hold zoh|foh|smooth] -o DIR
+    thetahat codegen MODEL --method guarded --dt 1e-3 (--noise-std S | --data LOG)
+                     [--hold zoh|foh|smooth] -o DIR
 
 Exit codes (see ``EXIT_CODES``): 0 success; 1 the model fails the theory's checks (Assumption 1
 fails, or the design is unstable on the true system); 2 usage or input error (the message is
@@ -358,6 +360,9 @@ def _codegen(args: argparse.Namespace) -> int:
         return _codegen_guarded(args, inputs)
     if args.noise_std is not None:
         raise OptionError("--noise-std is the EKF's σ: give it with --method ekf.")
+    if args.hold == "smooth":
+        raise OptionError("--hold smooth is stage 2's (--method ekf or guarded); the paper's "
+                          "observer takes zoh or foh.")
     if args.data is not None and args.gamma is not None:
         raise OptionError("--gamma gives Γ and --data chooses it on a log: give one of them.")
     spec = load_model(args.model)
@@ -677,10 +682,12 @@ def _add_codegen(sub: _Subparsers) -> None:
     codegen.add_argument("--nan-policy", choices=["raise", "skip"], default="raise",
                          help="a NaN output sample: refused (raise, default), or predicted "
                               "over (skip)")
-    codegen.add_argument("--hold", choices=["zoh", "foh"], default="zoh",
+    codegen.add_argument("--hold", choices=["zoh", "foh", "smooth"], default="zoh",
                          help="sample hold; foh: the paper's <name>_step also takes the next "
                               "samples, the EKF's (and guarded's stage 2) the line from the "
-                              "previous sample to the current one")
+                              "previous sample to the current one; smooth (ekf, guarded): "
+                              "that line through samples corrected for a smooth input, the "
+                              "statistical methods' default in estimate")
     codegen.add_argument("--method", choices=["paper", "ekf", "guarded"], default="paper",
                          help="the estimator: the paper's observer (default), the joint "
                               "EKF on col(x, θ) (stage 2; needs --noise-std or --data), "

@@ -113,30 +113,35 @@ def test_c_ekf_agrees_with_python_and_keeps_theta_in_set(tmp_path, name):
     assert np.ptp(res.theta_hat, axis=0).max() > 0.0          # the filter did estimate
 
 
-#: LuGre and three more models under the linear hold (the zero-order one: all of MODELS).
+#: LuGre and three more models under the linear holds (the zero-order one: all of MODELS).
 FOH_MODELS = ("lugre", "two_inertia", "actuator", "emps")
 
 
+@pytest.mark.parametrize("hold", ("foh", "smooth"))
 @pytest.mark.parametrize("name", FOH_MODELS)
-def test_c_ekf_with_the_linear_hold_agrees_with_python(tmp_path, name):
+def test_c_ekf_with_the_linear_hold_agrees_with_python(tmp_path, name, hold):
     """hold="foh": u on the line from the previous sample to the current one, which the
-    C's step has (its state keeps the previous u), as the Python EKF's run reads them; and
-    the hold is used: the zero-order hold's estimates differ by far more than the
-    tolerance."""
+    C's step has (its state keeps the previous u), as the Python EKF's run reads them;
+    hold="smooth": the line through the corrected samples ũ, which the C computes with the
+    printed smooth_step from the history in its state, as the run computes them a block at
+    a time. Each hold is used: the estimates under the hold before it (zoh, foh) differ by
+    more than 100× the tolerance (the least: EMPS's slow input, whose correction moves its
+    estimates by 2.4e-7)."""
     spec, t, u, y = record(name)
-    res, ekf = reference(spec, t, u, y, hold="foh")
-    code = generate_ekf_c(ekf, dt=float(t[1] - t[0]), name=f"{name}_foh",
+    res, ekf = reference(spec, t, u, y, hold=hold)
+    code = generate_ekf_c(ekf, dt=float(t[1] - t[0]), name=f"{name}_{hold}",
                           x_hat0=spec.estimator.x_hat0, theta_hat0=spec.estimator.theta_hat0)
-    assert code.sizes["hold"] == "foh" and "hold foh" in code.source
+    assert code.sizes["hold"] == hold and f"hold {hold}" in code.source
+    assert ("f_smooth_step" in code.source) == (hold == "smooth")
     rc, table, err = run_harness(build(code, tmp_path), tmp_path / "d.csv", t, u, y)
     assert rc == 0, err
     estimates = np.c_[res.x_hat, res.theta_hat]
     assert rel_err(table[:, 1:], estimates) <= EKF_RTOL
-    zoh, _ = reference(spec, t, u, y, hold="zoh")
-    assert rel_err(np.c_[zoh.x_hat, zoh.theta_hat], estimates) > 1e3 * EKF_RTOL
+    other, _ = reference(spec, t, u, y, hold="zoh" if hold == "foh" else "foh")
+    assert rel_err(np.c_[other.x_hat, other.theta_hat], estimates) > 100 * EKF_RTOL
 
 
-@pytest.mark.parametrize("hold", ("zoh", "foh"))
+@pytest.mark.parametrize("hold", ("zoh", "foh", "smooth"))
 def test_c_ekf_is_the_stream_of_step(tmp_path, hold):
     """The C's step is JointEKF.step: 300 LuGre samples, one step call each."""
     spec, t, u, y = record("lugre")
@@ -207,12 +212,22 @@ def test_cli_codegen_method_ekf_builds_with_make(tmp_path, capsys):
     assert code.sizes["substeps"] == ref.diagnostics.substeps
 
 
-def test_cli_codegen_method_ekf_takes_the_linear_hold(tmp_path, capsys):
+@pytest.mark.parametrize("hold", ("foh", "smooth"))
+def test_cli_codegen_method_ekf_takes_the_linear_holds(tmp_path, capsys, hold):
     out = tmp_path / "c"
     assert main(["codegen", str(EXAMPLES / "lugre.toml"), "--method", "ekf", "--dt", "1e-3",
-                 "--noise-std", "0.02", "--hold", "foh", "-o", str(out), "--name", "lf"]) == 0
+                 "--noise-std", "0.02", "--hold", hold, "-o", str(out), "--name", "lf"]) == 0
     capsys.readouterr()
-    assert "hold foh," in (out / "lf.c").read_text()
+    assert f"hold {hold}," in (out / "lf.c").read_text()
+
+
+def test_cli_codegen_paper_refuses_the_smooth_hold_in_one_line(tmp_path, capsys):
+    """"smooth" corrects stage 2's samples; the paper's observer has no such hold."""
+    assert main(["codegen", str(EXAMPLES / "lugre.toml"), "--dt", "1e-3", "--hold", "smooth",
+                 "-o", str(tmp_path / "c")]) == 2
+    err = capsys.readouterr().err
+    assert "--method ekf or guarded" in err and len(err.strip().splitlines()) == 1
+    assert not (tmp_path / "c").exists()
 
 
 @pytest.mark.parametrize("args, match", [
@@ -230,9 +245,9 @@ def test_cli_codegen_method_ekf_refuses(tmp_path, capsys, args, match):
 
 def test_generate_ekf_c_refusals():
     spec = load_model(EXAMPLES / "lugre.toml")
-    for hold in ("smooth", "bandlimited"):
-        with pytest.raises(UnsupportedError, match="'zoh' and 'foh'"):
-            generate_ekf_c(JointEKF(system=spec.system, noise_std=0.01, hold=hold), dt=1e-3)
+    with pytest.raises(UnsupportedError, match="'bandlimited' reads later samples"):
+        generate_ekf_c(JointEKF(system=spec.system, noise_std=0.01, hold="bandlimited"),
+                       dt=1e-3)
     with pytest.raises(OptionError, match="noise"):
         generate_ekf_c(JointEKF(system=spec.system, hold="zoh"), dt=1e-3)
     ekf = JointEKF(system=spec.system, noise_std=0.01, hold="zoh")

@@ -90,14 +90,15 @@ def run_harness(exe: Path, path: Path, t, u, y) -> tuple[int, np.ndarray, str]:
     return out.returncode, table, out.stderr
 
 
-#: Stage 2 under the linear hold: LuGre and three more models (zoh: all of MODELS). Not the
-#: heater: its weakly identified parameter amplifies rounding to 2.1e-9 under foh (measured
-#: once; 1.9e-10 under zoh, above), beyond GUARDED_RTOL without being a different estimate.
+#: Stage 2 under the linear holds ("foh", and "smooth": the line through the corrected
+#: samples): LuGre and three more models (zoh: all of MODELS). Not the heater: its weakly
+#: identified parameter amplifies rounding to 2.1e-9 under foh (measured once; 1.9e-10 under
+#: zoh, above), beyond GUARDED_RTOL without being a different estimate.
 FOH_MODELS = ("lugre", "two_inertia", "actuator", "spring_friction")
 
 
 @pytest.mark.parametrize("name, hold", [(m, "zoh") for m in MODELS]
-                         + [(m, "foh") for m in FOH_MODELS])
+                         + [(m, h) for m in FOH_MODELS for h in ("foh", "smooth")])
 def test_c_guarded_agrees_with_python_and_keeps_theta_in_set(tmp_path, name, hold):
     spec, est, t, u, y = case(name, hold=hold)
     st0 = est.init(x_hat0=spec.estimator.x_hat0, theta_hat0=spec.estimator.theta_hat0)
@@ -106,6 +107,7 @@ def test_c_guarded_agrees_with_python_and_keeps_theta_in_set(tmp_path, name, hol
                               x_hat0=spec.estimator.x_hat0,
                               theta_hat0=spec.estimator.theta_hat0)
     assert code.sizes["hold"] == hold and f"stage 2 hold {hold}," in code.source
+    assert ("f_smooth_step" in code.source) == (hold == "smooth")
     for text in (code.source, code.stage1.source):
         assert not HEAP.search(text)
         assert re.findall(r"#include <(\w+)\.h>", text) == ["math"]
@@ -150,12 +152,14 @@ def stream_rows(est, spec, t, u, y):
     return np.array(rows), st
 
 
-@pytest.mark.parametrize("run_hold, hold", [("zoh", "zoh"), ("foh", "zoh"), ("zoh", "foh")])
+@pytest.mark.parametrize("run_hold, hold", [("zoh", "zoh"), ("foh", "zoh"), ("zoh", "foh"),
+                                            ("zoh", "smooth")])
 def test_c_guarded_is_the_stream_of_step(tmp_path, run_hold, hold):
     """The C's step is GuardedEstimator.step: 300 LuGre samples, one step call each. A stage 1
     whose run holds u linearly (foh) still steps with the current samples held in a stream:
     the C prints that step (its stage 1 takes no next samples); stage 2's linear hold reads
-    the previous and the current sample, in the C as in the stream."""
+    the previous and the current sample, in the C as in the stream, and "smooth" the
+    corrected ones, from the history the C's state keeps as the stream's does."""
     spec, est, t, u, y = case("lugre", hold=hold)
     est = replace(est, stage1=est.stage1.with_run_options(hold=run_hold))
     t, u, y = t[:300], u[:300], y[:300]
@@ -237,9 +241,8 @@ def test_generate_guarded_c_refuses_what_it_cannot_print():
     spec, est, t, u, y = case("lugre")
     with pytest.raises(OptionError, match="use_fits=False"):
         generate_guarded_c(replace(est, use_fits=True), dt=1e-3)
-    for hold in ("smooth", "bandlimited"):
-        with pytest.raises(UnsupportedError, match="'zoh' and 'foh'"):
-            generate_guarded_c(replace(est, hold=hold), dt=1e-3)
+    with pytest.raises(UnsupportedError, match="'bandlimited' reads later samples"):
+        generate_guarded_c(replace(est, hold="bandlimited"), dt=1e-3)
     with pytest.raises(OptionError, match="noise"):
         generate_guarded_c(replace(est, noise_std=None), dt=1e-3)
     with pytest.raises(OptionError, match="dt"):
@@ -348,17 +351,20 @@ def test_c_apply_fit_refuses_a_bad_fit_and_keeps_the_state(tmp_path):
         assert buf.raw == before
 
 
-def test_cli_codegen_method_guarded_builds_and_runs(tmp_path, capsys):
+@pytest.mark.parametrize("hold", ("zoh", "smooth"))
+def test_cli_codegen_method_guarded_builds_and_runs(tmp_path, capsys, hold):
+    """The command's C, built by its Makefile, runs the estimator it names: with the
+    statistical methods' own hold ("smooth") too, whose stage 1 holds the raw samples."""
     out = tmp_path / "c"
     rc = main(["codegen", str(EXAMPLES / "lugre.toml"), "--method", "guarded", "--dt",
-               "1e-3", "--noise-std", "0.02", "-o", str(out)])
+               "1e-3", "--noise-std", "0.02", "--hold", hold, "-o", str(out)])
     assert rc == 0
     said = capsys.readouterr().out
     assert "guarded estimator" in said and "do not grow with the record" in said
     make = subprocess.run(["make", "-s", "-C", str(out)], capture_output=True, text=True,
                           timeout=300)
     assert make.returncode == 0, make.stderr
-    spec, est, t, u, y = case("lugre", substeps=1)
+    spec, est, t, u, y = case("lugre", substeps=1, hold=hold)
     rc2, table, err = run_harness(out / "lugre", tmp_path / "d.csv", t[:200], u[:200],
                                   y[:200])
     assert rc2 == 0, err

@@ -17,14 +17,14 @@ does per sample: no prediction at the first sample; NaN in y is predicted over (
 NaN or inf in u and inf in y are refused (``<NAME>_NONFINITE_INPUT``, the state untouched);
 a state or covariance diagonal that is no longer finite is ``<NAME>_DIVERGED``.
 
-The holds it prints are a stream's causal ones: ``"zoh"`` (u held from each sample) and
+The holds it prints are a stream's causal ones: ``"zoh"`` (u held from each sample),
 ``"foh"`` (u on the line from the previous sample to the current one, which the step has: the
-state keeps the previous u, as :meth:`JointEKF.step` does). What it cannot do yet (refused,
-:class:`~thetahat.errors.UnsupportedError`): ``"smooth"`` (it corrects its samples by a causal
-estimate of ü, :mod:`~thetahat.estimation.statistical.input_hold`, whose history is not
-generated) and the band-limited hold (it reads later samples); a Θ other than a box;
-``float``; an unknown σ (give ``noise_std``: the stream's estimate from its first samples is
-not generated).
+state keeps the previous u, as :meth:`JointEKF.step` does) and ``"smooth"`` (the line through
+the corrected samples ũ: :func:`~thetahat.estimation.statistical.input_hold.smooth_step`
+printed, its history of three samples and two sums in the state; :func:`input_samples`).
+What it cannot do (refused, :class:`~thetahat.errors.UnsupportedError`): the band-limited
+hold (it reads later samples); a Θ other than a box; ``float``; an unknown σ (give
+``noise_std``: the stream's estimate from its first samples is not generated).
 """
 
 from __future__ import annotations
@@ -42,23 +42,25 @@ from ..estimation.kernels.subset import source_tree
 from ..estimation.statistical import ekf_kernels as ek
 from ..estimation.statistical import plant_kernel as pk
 from ..estimation.statistical.ekf import JointEKF
+from ..estimation.statistical.input_hold import HISTORY, smooth_step
 from ..estimation.statistical.plant_forms import plant_jacobians
 from ..estimation.statistical.stage2_set import clip_kernel, stage2_set
 from ..model.paramset import Box
 from .c_printer import CUnit
 from .c_text import check_c_name, comment_text
-from .c_values import Arr, Const
+from .c_values import Arr, Const, Scal
 from .ekf_c_text import ekf_header, ekf_main, ekf_source
 from .generate import write_c_files
 from .harness import makefile_source
 from .printing import c_function
 
-__all__ = ["C_HOLDS", "EKFCode", "KERNELS", "c_array", "check_stage2", "generate_ekf_c"]
+__all__ = ["C_HOLDS", "EKFCode", "KERNELS", "KERNEL_GLOBALS", "c_array", "check_stage2",
+           "generate_ekf_c", "input_samples"]
 
 #: The holds of stage 2 the C prints: a stream's causal ones, whose u over the interval from
 #: the previous sample reads that sample and the current one (the step's state keeps the
-#: previous u).
-C_HOLDS = ("zoh", "foh")
+#: previous u, and for "smooth" the history its correction needs).
+C_HOLDS = ("zoh", "foh", "smooth")
 
 #: The kernels printed, by the names the others call them (the guarded C prints them too).
 KERNELS = {"ekf_predict": ek.ekf_predict, "ekf_update": ek.ekf_update,
@@ -66,7 +68,46 @@ KERNELS = {"ekf_predict": ek.ekf_predict, "ekf_update": ek.ekf_update,
             "propagate": pk.propagate, "propagate_into": pk.propagate_into,
             "stage_jac": pk.stage_jac, "held_input": pk.held_input,
             "balanced_radius": pk.balanced_radius,
-            "project": clip_kernel}
+            "project": clip_kernel, "smooth_step": smooth_step}
+#: The module constants the printed kernels read, as the printer's constants.
+KERNEL_GLOBALS = {**{k: Const(v) for k, v in pk.KERNEL_CONSTANTS.items()},
+                  "HISTORY": Const(HISTORY)}
+
+
+def input_samples(unit: CUnit, m: int, hold: str, state: str) -> str:
+    """C statements that set ``Ut[]``, the samples stage 2 reads, from the raw ``u[]``.
+
+    Under ``"smooth"`` the corrected samples ũ of the printed
+    :func:`~thetahat.estimation.statistical.input_hold.smooth_step`, its history in
+    ``state->u_hist`` (the last three samples) and ``state->u_sums`` (the two sums), advanced;
+    the raw samples otherwise. The caller declares ``Ut`` and ``Raw`` (``max(m, 1)`` reals)
+    and ``i``.
+
+    Parameters
+    ----------
+    unit : CUnit
+        The printer holding the kernels (:data:`KERNELS`).
+    m : int
+        Inputs.
+    hold : str
+        Stage 2's hold.
+    state : str
+        The C expression of the state pointer whose history is read and advanced.
+
+    Returns
+    -------
+    str
+    """
+    copy = f"for (i = 0; i < {m}; ++i) Ut[i] = u[i];"
+    if hold != "smooth" or m == 0:
+        return copy
+    call = unit.call("smooth_step", [
+        Arr("Raw", (m,)), Arr(f"{state}->u_hist", (HISTORY * m,)),
+        Arr(f"{state}->u_sums", (2 * m,)),
+        Scal(f"({state}->k < {HISTORY} ? (int){state}->k : {HISTORY})", "int"), Const(m),
+        Arr("Ut", (m,))])
+    return (f"for (i = 0; i < {m}; ++i) Raw[i] = u[i];\n    "
+            f"{call.name}({', '.join(call.args)});")
 
 
 @dataclass(frozen=True, slots=True, repr=False)
@@ -138,7 +179,7 @@ def check_stage2(ekf: Any, dt: float, what: str = "the C EKF") -> None:
     Raises
     ------
     UnsupportedError
-        Not a JointEKF, a hold other than ``"zoh"`` or ``"foh"``, a Θ other than a box,
+        Not a JointEKF, a hold not in :data:`C_HOLDS` (``"bandlimited"``), a Θ other than a box,
         p = 0 or r = 0.
     OptionError
         No ``noise_std``; a ``dt`` that is not a finite number > 0.
@@ -147,9 +188,9 @@ def check_stage2(ekf: Any, dt: float, what: str = "the C EKF") -> None:
         raise UnsupportedError(f"generate_ekf_c needs a JointEKF; got {type(ekf).__name__}.")
     if ekf.hold not in C_HOLDS:
         raise UnsupportedError(
-            f"{what} has the holds 'zoh' and 'foh' only; got {ekf.hold!r} ('smooth''s "
-            "causal correction of its samples is not generated yet; 'bandlimited' reads "
-            "later samples). Use hold='zoh' for a DAC's input, else 'foh' (--hold).")
+            f"{what} has the causal holds {', '.join(map(repr, C_HOLDS))}; got {ekf.hold!r} "
+            "('bandlimited' reads later samples). Use hold='zoh' for a DAC's input, else "
+            "'smooth' or 'foh' (--hold).")
     theta_set = ekf.system.require_parameter_set(what)
     if not isinstance(theta_set, Box):
         raise UnsupportedError(f"{what} keeps θ̂ in a box Θ only; got {theta_set!r}. "
@@ -252,8 +293,7 @@ def generate_ekf_c(ekf: JointEKF, *, dt: float, name: str = "ekf",
             "THETA_ELL": np.zeros((p + 1, p)), "S0": s0, "P0": P0}
     shapes = {k: np.shape(v) for k, v in data.items()}
     unit = CUnit({k: source_tree(fn) for k, fn in KERNELS.items()},
-                 {"C_OUT": Arr("C_OUT", shapes["C_OUT"], True),
-                  **{k: Const(v) for k, v in pk.KERNEL_CONSTANTS.items()}},
+                 {"C_OUT": Arr("C_OUT", shapes["C_OUT"], True), **KERNEL_GLOBALS},
                  lambda fname, args: (("rhs_jac", [a.name for a in args or ()])
                                       if fname == "rhs_jac" else None), "double")
     N = n + p
@@ -266,6 +306,7 @@ def generate_ekf_c(ekf: JointEKF, *, dt: float, name: str = "ekf",
     update = unit.call("ekf_update", [
         Arr("st->s", (N,)), Arr("st->P", (N, N)), Arr("Y", (r,)), glob["R_NOISE"],
         glob["THETA_LO"], glob["THETA_HI"], glob["THETA_ELL"]])
+    samples = input_samples(unit, m, ekf.hold, "st")
     if unit.written_globals:
         raise UnsupportedError(f"the EKF kernels write {sorted(unit.written_globals)}")
     xs, us, ts, f, Fx, Ft = plant_jacobians(sys_)
@@ -278,7 +319,8 @@ def generate_ekf_c(ekf: JointEKF, *, dt: float, name: str = "ekf",
     banner = _banner(name, title, dt, substeps, ekf)
     source = ekf_source(name, banner, consts, rhs, kernels,
                         predict=f"{predict.name}({', '.join(predict.args)})",
-                        update=f"{update.name}({', '.join(update.args)})", sizes=sizes)
+                        update=f"{update.name}({', '.join(update.args)})", samples=samples,
+                        sizes=sizes)
     return EKFCode(name=name, dt=float(dt), header=ekf_header(name, banner, sizes),
                    source=source, main=ekf_main(name, banner, sizes),
                    makefile=makefile_source(name), sizes=sizes)

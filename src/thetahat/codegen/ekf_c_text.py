@@ -13,7 +13,7 @@ from __future__ import annotations
 from collections.abc import Sequence
 from typing import Any
 
-__all__ = ["csv_main", "ekf_header", "ekf_main", "ekf_source"]
+__all__ = ["csv_main", "ekf_header", "ekf_main", "ekf_source", "smooth_fields", "smooth_init"]
 
 
 def ekf_header(name: str, banner: str, sizes: dict[str, Any]) -> str:
@@ -59,12 +59,13 @@ enum {P}_status {{
 }};
 
 /* The filter's state: s = col(x_hat, theta_hat) (theta_hat in Theta), its covariance P
-   (row-major), the last input and the samples processed. */
+   (row-major), the last input stage 2 read (and under the hold "smooth" the history of
+   its correction) and the samples processed. */
 typedef struct {P}_state {{
     {P}_real_t s[{N}];
     {P}_real_t P[{N * N}];
     {P}_real_t u_prev[{max(m, 1)}];
-    long k;
+{smooth_fields(P, sizes)}    long k;
 }} {P}_state;
 
 /* The prior: s and P before the first sample. */
@@ -81,8 +82,63 @@ int {P}_step({P}_state *st, const {P}_real_t u[], const {P}_real_t y[]);
 """
 
 
+def smooth_fields(P: str, sizes: dict[str, Any]) -> str:
+    """The state's fields of the hold "smooth" (the last three raw samples, Σ (Δu)² and
+    Σ (Δ²u)² per input), indented as struct members; nothing under another hold.
+
+    Parameters
+    ----------
+    P : str
+        The C prefix.
+    sizes : dict
+        m and the hold.
+
+    Returns
+    -------
+    str
+
+    Examples
+    --------
+    >>> smooth_fields("e", {"m": 2, "hold": "smooth"}).split()[:2]
+    ['e_real_t', 'u_hist[6];']
+    >>> smooth_fields("e", {"m": 2, "hold": "foh"})
+    ''
+    """
+    m = sizes["m"]
+    if sizes.get("hold") != "smooth" or m == 0:
+        return ""
+    return (f"    {P}_real_t u_hist[{3 * m}];    /* hold smooth: the last three raw u */\n"
+            f"    {P}_real_t u_sums[{2 * m}];    /* and sum (du)^2, sum (d2u)^2 per input */\n")
+
+
+def smooth_init(state: str, sizes: dict[str, Any]) -> str:
+    """C statements zeroing :func:`smooth_fields` of ``state`` (nothing when it has none).
+
+    Parameters
+    ----------
+    state : str
+        The C expression of the state pointer.
+    sizes : dict
+        m and the hold.
+
+    Returns
+    -------
+    str
+
+    Examples
+    --------
+    >>> smooth_init("st", {"m": 1, "hold": "smooth"}).splitlines()[0]
+    'for (i = 0; i < 3; ++i) st->u_hist[i] = 0.0;'
+    """
+    m = sizes["m"]
+    if sizes.get("hold") != "smooth" or m == 0:
+        return ""
+    return (f"for (i = 0; i < {3 * m}; ++i) {state}->u_hist[i] = 0.0;\n    "
+            f"for (i = 0; i < {2 * m}; ++i) {state}->u_sums[i] = 0.0;")
+
+
 def ekf_source(name: str, banner: str, consts: Sequence[str], rhs: str, kernels: str, *,
-               predict: str, update: str, sizes: dict[str, Any]) -> str:
+               predict: str, update: str, sizes: dict[str, Any], samples: str = "") -> str:
     """``<name>.c``: the data, f and its Jacobians, the printed kernels, init and step.
 
     Parameters
@@ -97,7 +153,10 @@ def ekf_source(name: str, banner: str, consts: Sequence[str], rhs: str, kernels:
     predict, update : str
         The calls of the printed ``ekf_predict`` and ``ekf_update``.
     sizes : dict
-        n, m, r, p.
+        n, m, r, p and the hold.
+    samples : str
+        The statements that set ``Ut`` from ``u``
+        (:func:`~thetahat.codegen.ekf_c.input_samples`; default: a copy).
 
     Returns
     -------
@@ -122,12 +181,14 @@ void {P}_init({P}_state *st)
     for (i = 0; i < {N}; ++i) st->s[i] = S0[i];
     for (i = 0; i < {N * N}; ++i) st->P[i] = P0[i];
     for (i = 0; i < {max(m, 1)}; ++i) st->u_prev[i] = 0.0;
+    {smooth_init("st", sizes)}
     st->k = 0;
 }}
 
 int {P}_step({P}_state *st, const real_t u[], const real_t y[])
 {{
     real_t U[{max(2 * m, 1)}];
+    real_t Ut[{max(m, 1)}], Raw[{max(m, 1)}];
     real_t Phi[{n * n}];
     real_t Gam[{n * p}];
     real_t Y[{r}];
@@ -136,10 +197,11 @@ int {P}_step({P}_state *st, const real_t u[], const real_t y[])
         if (!isfinite(u[i])) return {PU}_NONFINITE_INPUT;
     for (i = 0; i < {r}; ++i)
         if (isinf(y[i])) return {PU}_NONFINITE_INPUT;
+    {samples or f"for (i = 0; i < {m}; ++i) Ut[i] = u[i];"}
     if (st->k > 0) {{
         for (i = 0; i < {m}; ++i) {{
             U[i] = st->u_prev[i];
-            U[{m} + i] = u[i];
+            U[{m} + i] = Ut[i];
         }}
         {predict};
     }}
@@ -150,9 +212,9 @@ int {P}_step({P}_state *st, const real_t u[], const real_t y[])
     if (finite_y) (void){update};
     for (i = 0; i < {N}; ++i)
         if (!isfinite(st->s[i]) || !isfinite(st->P[i * {N} + i])) return {PU}_DIVERGED;
-    for (i = 0; i < {m}; ++i) st->u_prev[i] = u[i];
+    for (i = 0; i < {m}; ++i) st->u_prev[i] = Ut[i];
     st->k += 1;
-    (void)U; (void)Phi; (void)Gam;
+    (void)U; (void)Ut; (void)Raw; (void)Phi; (void)Gam;
     return {PU}_OK;
 }}
 """

@@ -24,9 +24,9 @@ What it does not do (refused, :class:`~thetahat.errors.UnsupportedError` /
 :class:`~thetahat.errors.OptionError`): the MAP fits that re-anchor stage 2 (each fits all the
 data so far: memory and time grow with the record; build the estimator with
 ``use_fits=False``, whose Python ``step`` and ``run`` are the C's reference); stage 2's
-``"smooth"`` and ``"bandlimited"`` holds and a Θ other than a box (as the C EKF, which prints
-``"zoh"`` and ``"foh"``); an unknown σ. Stage 1 steps with the samples held, whatever the
-observer's ``run`` hold, as :meth:`GuardedEstimator.step` has it.
+``"bandlimited"`` hold and a Θ other than a box (as the C EKF, which prints the causal holds
+``"zoh"``, ``"foh"`` and ``"smooth"``); an unknown σ. Stage 1 steps with the raw samples
+held, whatever the observer's ``run`` hold, as :meth:`GuardedEstimator.step` has it.
 """
 
 from __future__ import annotations
@@ -51,7 +51,7 @@ from ..estimation.statistical.stage2_set import stage2_set
 from .c_printer import CUnit
 from .c_text import check_c_name, comment_text
 from .c_values import INT, Arr, Const, Scal
-from .ekf_c import KERNELS, c_array, check_stage2
+from .ekf_c import KERNEL_GLOBALS, KERNELS, c_array, check_stage2, input_samples
 from .generate import CCode, generate_c, write_c_files
 from .guarded_c_text import guarded_header, guarded_main, guarded_makefile, guarded_source
 from .printing import c_function
@@ -230,8 +230,7 @@ def generate_guarded_c(est: GuardedEstimator, *, dt: float, name: str = "guarded
     funcs.update({"predict": funcs["ekf_predict"], "update": funcs["ekf_update"]})
     funcs.update({k: source_tree(fn) for k, fn in _GUARD.items()})
     unit = CUnit(funcs,
-                 {"C_OUT": Arr("C_OUT", shapes["C_OUT"], True),
-                  **{k: Const(v) for k, v in pk.KERNEL_CONSTANTS.items()},
+                 {"C_OUT": Arr("C_OUT", shapes["C_OUT"], True), **KERNEL_GLOBALS,
                   "NIS_WINDOW": Const(gd.NIS_WINDOW)},
                  lambda fname, args: (("rhs_jac", [a.name for a in args or ()])
                                       if fname == "rhs_jac" else None), "double")
@@ -251,6 +250,7 @@ def generate_guarded_c(est: GuardedEstimator, *, dt: float, name: str = "guarded
     fit = unit.call("apply_fit", [Arr("w->s", (N,)), Arr("w->P", (N, N)),
                                   Arr("w->R", (r, r)), Arr("w->cfg", cfg.shape),
                                   Arr("TF", (p,)), Arr("CF", (p, p)), Arr("SF", (r,))])
+    samples = input_samples(unit, m, est.hold, "w")
     if unit.written_globals:
         raise UnsupportedError(f"the guard's kernels write {sorted(unit.written_globals)}")
     xs, us, ts, f, Fx, Ft = plant_jacobians(sys_)
@@ -261,7 +261,7 @@ def generate_guarded_c(est: GuardedEstimator, *, dt: float, name: str = "guarded
         c_array(k, v) for k, v in data.items()
         if k in ("S0", "R_NOISE", "CFG") or k in kernels or k in rhs]
     doubles = (stage1.sizes["state"] + N + N * N + r * r + cfg.size + 6 * p + 3 + max(m, 1)
-               + 4 * p + n)
+               + 4 * p + n + (5 * m if est.hold == "smooth" else 0))
     refined = f"{stage1.name}_x_hat_refined(" in stage1.header     # Sec. VI's x̂₂
     sizes = {"n": n, "m": m, "r": r, "p": p, "hold": est.hold, "substeps": substeps,
              "x_stage1": "x_hat_refined" if refined else "x_hat",
@@ -270,7 +270,8 @@ def generate_guarded_c(est: GuardedEstimator, *, dt: float, name: str = "guarded
     source = guarded_source(name, banner, consts, rhs, kernels,
                             loop=f"{loop.name}({', '.join(loop.args)})",
                             init=f"{init.name}({', '.join(init.args)})",
-                            fit=f"{fit.name}({', '.join(fit.args)})", sizes=sizes)
+                            fit=f"{fit.name}({', '.join(fit.args)})", samples=samples,
+                            sizes=sizes)
     return GuardedCode(name=name, dt=float(dt), stage1=stage1,
                        header=guarded_header(name, banner, sizes), source=source,
                        main=guarded_main(name, banner, sizes),

@@ -14,7 +14,7 @@ from __future__ import annotations
 from collections.abc import Sequence
 from typing import Any
 
-from .ekf_c_text import csv_main
+from .ekf_c_text import csv_main, smooth_fields, smooth_init
 from .harness import C_FLAGS
 
 __all__ = ["guarded_header", "guarded_main", "guarded_makefile", "guarded_source"]
@@ -70,7 +70,8 @@ enum {P}_status {{
 /* The estimator's state. stage1: the paper's observer; s = col(x_hat_2, theta_hat_2) and P:
    stage 2 (the joint EKF, row-major P), R its measurement noise covariance; cfg the guard's
    constants and its latest fit; pst, gst: stage 1's progress and the guard's own state;
-   u_prev: the last input. After each step: theta_hat the guarded estimate (in Theta),
+   u_prev: the last input stage 2 read (u_hist, u_sums: the history of the hold "smooth"'s
+   correction). After each step: theta_hat the guarded estimate (in Theta),
    x_hat stage 2's x_hat, theta_stage1 and theta_stage2 the two stages' estimates, band the
    guard's delta, clipped / reset whether the guard clipped stage 2 / reset it from stage 1.
    stage1_lost_at: 0 while stage 1 runs; when its step fails (it diverged: stage1_status has
@@ -86,7 +87,7 @@ typedef struct {P}_state {{
     {P}_real_t pst[{6 * p}];
     {P}_real_t gst[3];
     {P}_real_t u_prev[{max(m, 1)}];
-    {P}_real_t theta_hat[{p}];
+{smooth_fields(P, sizes)}    {P}_real_t theta_hat[{p}];
     {P}_real_t x_hat[{n}];
     {P}_real_t theta_stage1[{p}];
     {P}_real_t theta_stage2[{p}];
@@ -120,7 +121,8 @@ int {P}_apply_fit({P}_state *st, const {P}_real_t theta[], const {P}_real_t cov_
 
 
 def guarded_source(name: str, banner: str, consts: Sequence[str], rhs: str, kernels: str, *,
-                   loop: str, init: str, fit: str, sizes: dict[str, Any]) -> str:
+                   loop: str, init: str, fit: str, sizes: dict[str, Any],
+                   samples: str = "") -> str:
     """``<name>.c``: the data, f and its Jacobians, the printed loop, init and step.
 
     Parameters
@@ -136,8 +138,11 @@ def guarded_source(name: str, banner: str, consts: Sequence[str], rhs: str, kern
         The calls of the printed ``guarded_loop`` (over row ``k0`` of its two-row arrays),
         ``progress_reset`` and ``apply_fit`` (of ``TF``, ``CF``, ``SF``).
     sizes : dict
-        n, m, r, p and ``x_stage1``, the accessor of stage 1's x̂ (``x_hat_refined`` with the
-        second observer of Sec. VI, else ``x_hat``).
+        n, m, r, p, the hold and ``x_stage1``, the accessor of stage 1's x̂
+        (``x_hat_refined`` with the second observer of Sec. VI, else ``x_hat``).
+    samples : str
+        The statements that set ``Ut`` (stage 2's samples) from ``u`` and advance ``w``'s
+        history (:func:`~thetahat.codegen.ekf_c.input_samples`; default: a copy).
 
     Returns
     -------
@@ -171,6 +176,7 @@ int {P}_init({P}_state *st)
     st->gst[1] = 1.0;
     st->gst[2] = 0.0;
     for (i = 0; i < {max(m, 1)}; ++i) st->u_prev[i] = 0.0;
+    {smooth_init("st", sizes)}
     for (i = 0; i < {p}; ++i) {{
         st->theta_hat[i] = S0[{n} + i];
         st->theta_stage1[i] = S0[{n} + i];
@@ -190,7 +196,7 @@ int {P}_step({P}_state *st, const real_t u[], const real_t y[])
 {{
     {P}_state work = *st;            /* committed only when the sample is processed */
     {P}_state *w = &work;
-    real_t U[{2 * max(m, 1)}], Y[{2 * r}], tt[2];
+    real_t U[{2 * max(m, 1)}], Y[{2 * r}], tt[2], Ut[{max(m, 1)}], Raw[{max(m, 1)}];
     real_t THG[{2 * p}], XG[{2 * n}];
     real_t TH[{2 * p}], TH2[{2 * p}], X2[{2 * n}], SD2[{2 * p}], BAND[{2 * p}], NIS[2];
     real_t CLIP[2], RESET[2];
@@ -205,9 +211,10 @@ int {P}_step({P}_state *st, const real_t u[], const real_t y[])
         if (!isfinite(u[i])) return {PU}_NONFINITE_INPUT;
     for (i = 0; i < {r}; ++i)
         if (isinf(y[i])) return {PU}_NONFINITE_INPUT;
+    {samples or f"for (i = 0; i < {m}; ++i) Ut[i] = u[i];"}
     /* rows 0 (the previous sample, for the prediction) and k0 (this one) of the loop */
     for (j = 0; j < 2; ++j) {{
-        for (i = 0; i < {m}; ++i) U[j * {max(m, 1)} + i] = (j < k0) ? st->u_prev[i] : u[i];
+        for (i = 0; i < {m}; ++i) U[j * {max(m, 1)} + i] = (j < k0) ? st->u_prev[i] : Ut[i];
         for (i = 0; i < {r}; ++i) Y[j * {r} + i] = (j < k0) ? NAN : y[i];
         for (i = 0; i < {p}; ++i) THG[j * {p} + i] = thg[i];
         for (i = 0; i < {n}; ++i) XG[j * {n} + i] = xg[i];
@@ -239,10 +246,10 @@ int {P}_step({P}_state *st, const real_t u[], const real_t y[])
     w->clipped = CLIP[k0] != 0.0;
     w->reset = RESET[k0] != 0.0;
     if (!w->stage1_lost_at) w->stage1_status = 0;
-    for (i = 0; i < {m}; ++i) w->u_prev[i] = u[i];
+    for (i = 0; i < {m}; ++i) w->u_prev[i] = Ut[i];
     w->k += 1;
     *st = work;
-    (void)SD2; (void)NIS; (void)U; (void)Y;
+    (void)SD2; (void)NIS; (void)U; (void)Y; (void)Ut; (void)Raw;
     return {PU}_OK;
 }}
 

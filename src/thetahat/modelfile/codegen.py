@@ -31,6 +31,7 @@ from ..estimation.statistical.guarded import GuardedEstimator
 from ..estimation.statistical.input_hold import stage2_samples
 from ..estimation.statistical.plant_kernel import choose_substeps
 from .assembly import build_observer, resolve_gains
+from .holds import split_hold
 from .schema import ModelSpec, load_model
 
 __all__ = ["generate_c_from_model", "generate_ekf_c_from_model", "generate_guarded_c_from_model"]
@@ -149,7 +150,7 @@ def generate_ekf_c_from_model(path: str | Path, *, dt: float,
     name : str, optional
         File stem and C prefix (default: the file's stem made a C identifier).
     hold : str
-        ``"zoh"`` or ``"foh"`` (the holds the C EKF has,
+        ``"zoh"``, ``"foh"`` or ``"smooth"`` (the holds the C EKF has,
         :data:`~thetahat.codegen.ekf_c.C_HOLDS`).
     q_x : float
         Process-noise variance per sample on x.
@@ -233,8 +234,9 @@ def generate_guarded_c_from_model(path: str | Path, *, dt: float, eps: float | N
     name : str, optional
         File stem and C prefix (default: the file's stem made a C identifier).
     hold : str
-        ``"zoh"`` or ``"foh"``: stage 2's, and the hold Γ ``"auto"`` is chosen under (stage 1
-        steps with the samples held, as :meth:`GuardedEstimator.step
+        ``"zoh"``, ``"foh"`` or ``"smooth"``: stage 2's, and the hold Γ ``"auto"`` is chosen
+        under (``"foh"`` for ``"smooth"``; stage 1 steps with the samples held, as
+        :meth:`GuardedEstimator.step
         <thetahat.estimation.statistical.guarded.GuardedEstimator.step>` has it).
     q_x : float
         Stage 2's process-noise variance per sample on x.
@@ -267,7 +269,7 @@ def generate_guarded_c_from_model(path: str | Path, *, dt: float, eps: float | N
     rec = () if record is None else tuple(record)
     gains = resolve_gains(spec, *rec, eps=eps, Gamma=Gamma, hold=hold)
     observer = build_observer(spec, eps=gains.eps, Gamma=gains.Gamma).with_run_options(
-        hold=hold)
+        hold=split_hold(hold, "guarded")[0])          # "smooth" is stage 2's: stage 1 "foh"
     ekf = JointEKF(system=spec.system, noise_std=noise_std, hold=hold, q_x=q_x, compiled=False)
     options = _stage2_options(spec, path, ekf, noise_std, record, "the guarded C")
     est = GuardedEstimator(stage1=observer, system=spec.system,

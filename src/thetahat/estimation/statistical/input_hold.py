@@ -40,6 +40,7 @@ estimators import it.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -48,7 +49,8 @@ from ...errors import OptionError
 from ...model.perturbation import EVAL_BLOCK
 from ..hold import check_hold
 
-__all__ = ["InputHistory", "smooth_input", "stage2_samples", "streamable"]
+__all__ = ["HISTORY", "InputHistory", "smooth_input", "smooth_step", "stage2_samples",
+           "streamable"]
 
 FloatArray = NDArray[np.float64]
 
@@ -113,8 +115,10 @@ def smooth_input(U: FloatArray, history: InputHistory | None = None
     """
     U = np.asarray(U, dtype=np.float64)
     N, m = U.shape
-    if N == 1 and history is not None and history.u_last.shape[0] == HISTORY \
-            and history.d1.shape[0] == m and history.d2.shape[0] == m:
+    if N == 1 and (history is None or (history.u_last.shape[0] <= HISTORY
+                                       and history.u_last.shape[1:] == (m,)
+                                       and history.d1.shape[0] in (0, m)
+                                       and history.d2.shape[0] == history.d1.shape[0])):
         return _smooth_sample(U, history)
     past = np.zeros((0, m)) if history is None else history.u_last
     d1_0 = np.zeros(m) if history is None or history.d1.shape[0] == 0 else history.d1
@@ -140,23 +144,73 @@ def smooth_input(U: FloatArray, history: InputHistory | None = None
                             d2=s2[-1].copy() if N else d2_0.copy())
 
 
-def _smooth_sample(U: FloatArray, history: InputHistory) -> tuple[FloatArray, InputHistory]:
-    """:func:`smooth_input` of one sample after three or more (a stream's step), the same
-    floating-point operations in the same order on scalars (NumPy's per-call cost is most of a
-    stream step's otherwise: 65 µs against 5)."""
-    (P0, P1, P2), row = history.u_last.tolist(), U[0].tolist()
-    out, d1, d2 = [], [], []
-    for u, a, b, e, s1, s2 in zip(row, P2, P1, P0, history.d1.tolist(), history.d2.tolist()):
-        f = u - a                                   # Δu at the new sample
-        sec = f - (a - b)                           # Δ²u there (np.diff twice)
-        sec_prev = (a - b) - (b - e)                # and at the sample before
-        s1 += f * f
-        s2 += sec * sec
-        d1.append(s1)
-        d2.append(s2)
-        out.append(u - (2.0 * sec - sec_prev) / 12.0 if s2 < s1 else u)
-    return (np.array([out]), InputHistory(u_last=np.array([P1, P2, row]), d1=np.array(d1),
-                                          d2=np.array(d2)))
+def smooth_step(u: Any, hist: Any, sums: Any, count: int, m: int, ut: Any) -> None:
+    """ũ of one sample of a stream, its history advanced in place: :func:`smooth_input` one
+    sample at a time, the same floating-point operations in the same order. The one
+    definition of a stream's correction: a stream's step calls it on Python floats (NumPy's
+    per-call cost is most of a stream step's otherwise: 65 µs against 5), and the generated C
+    (``thetahat codegen --hold smooth``) prints it.
+
+    Parameters
+    ----------
+    u : sequence of float, length m
+        The new sample.
+    hist : mutable sequence of float, length 3 m
+        The last three samples, oldest first (row-major, m a row); rows before the stream's
+        first sample are not read.
+    sums : mutable sequence of float, length 2 m
+        Σ (Δu)² of each channel, then Σ (Δ²u)², over the samples so far.
+    count : int
+        Samples before this one (what matters: whether it reaches 1, 2, 3).
+    m : int
+        Channels.
+    ut : mutable sequence of float, length m
+        Written: ũ.
+
+    Examples
+    --------
+    >>> hist, sums, ut = [0.0] * 3, [0.0] * 2, [0.0]
+    >>> for k, u in enumerate([0.0, 0.01, 0.04, 0.09]):     # u = t², ü = 2: corrected at k = 3
+    ...     smooth_step([u], hist, sums, k, 1, ut)
+    >>> round(ut[0], 9), hist                 # u_3 − h² ü / 12 with h = 0.1
+    (0.088333333, [0.01, 0.04, 0.09])
+    """
+    for i in range(m):
+        a = hist[2 * m + i]                 # u_{k-1}
+        b = hist[m + i]                     # u_{k-2}
+        e = hist[i]                         # u_{k-3}
+        f = 0.0                             # Δu_k (0 at a stream's first sample)
+        sec = 0.0                           # Δ²u_k (0 before its third)
+        if count >= 1:
+            f = u[i] - a
+        if count >= 2:
+            sec = f - (a - b)
+        s1 = sums[i] + f * f
+        s2 = sums[m + i] + sec * sec
+        sums[i] = s1
+        sums[m + i] = s2
+        ut[i] = u[i]
+        if count >= HISTORY and s2 < s1:
+            ut[i] = u[i] - (2.0 * sec - ((a - b) - (b - e))) / 12.0
+        hist[i] = b
+        hist[m + i] = a
+        hist[2 * m + i] = u[i]
+
+
+def _smooth_sample(U: FloatArray, history: InputHistory | None
+                   ) -> tuple[FloatArray, InputHistory]:
+    """:func:`smooth_input` of one sample (a stream's step), by :func:`smooth_step`."""
+    m = U.shape[1]
+    j = 0 if history is None else history.u_last.shape[0]
+    hist = [0.0] * ((HISTORY - j) * m) + ([] if history is None
+                                          else history.u_last.ravel().tolist())
+    sums = ([0.0] * (2 * m) if history is None or history.d1.shape[0] == 0
+            else [*history.d1.tolist(), *history.d2.tolist()])
+    ut = [0.0] * m
+    smooth_step(U[0].tolist(), hist, sums, j, m, ut)
+    keep = min(j + 1, HISTORY)
+    return (np.array([ut]), InputHistory(u_last=np.array(hist[(HISTORY - keep) * m:]).reshape(
+        keep, m), d1=np.array(sums[:m]), d2=np.array(sums[m:])))
 
 
 def stage2_samples(U: FloatArray, hold: str, history: InputHistory | None = None
