@@ -1,7 +1,8 @@
 """How each method's cost grows with the record: seconds per sample, log-log slope, memory.
 
 Run:  .venv/bin/python benchmarks/bench_scaling.py [--quick] [--models lugre prop3]
-      [--methods paper guarded mle ekf trust] [--max-seconds 300] [--json out.json]
+      [--methods paper guarded mle ekf trust] [--max-seconds 300] [--traced]
+      [--json out.json]
 
 For each model (default: examples/lugre.toml and examples/prop3.toml) a record of 10⁴, 10⁵
 and 10⁶ samples (``--quick``: 10⁴ and 10⁵) is made from the model's ``[scenario]``, simulated
@@ -19,7 +20,12 @@ throughout), and written as CSV. Measured in this run:
 Printed per model and N: seconds, µs per sample, the ratios to the parse and to the EKF's pass
 at the same N, and the peak memory the run added (the process's ``ru_maxrss`` after the run
 less its resident size before it) against the input arrays' size (t, u, y as float64); then
-each method's log-log slope of seconds against N (1: linear). A run that takes longer than
+each method's log-log slope of seconds against N (1: linear). ``--traced`` measures the
+memory instead as the peak of the run's traced allocations (``tracemalloc``: NumPy's arrays
+and Python's objects, the result's included; not the interpreter, the libraries or numba's
+compiled code, which ``ru_maxrss`` counts once per process and which make its figure at 10⁴
+samples about that at 10⁶); tracing slows the Python parts, so its times are not the
+method's. A run that takes longer than
 ``--max-seconds`` is stopped, and a larger N whose predicted time (the last time scaled by N
 to the power max(slope, 1)) exceeds it is not started: both print "skipped: > S s".
 
@@ -55,7 +61,7 @@ import numpy as np
 from thetahat.modelfile import load_model, run_estimator
 
 warnings.simplefilter("ignore")          # the figures, not the estimates, are wanted here
-model, npz, method, sizes, compiled = json.loads(sys.argv[1])
+model, npz, method, sizes, compiled, traced = json.loads(sys.argv[1])
 spec = load_model(model)
 data = np.load(npz)
 t, u, y = data["t"], data["u"], data["y"]
@@ -87,10 +93,17 @@ once(min(sizes[0], WARMUP))
 for n in sizes:
     print(json.dumps({"event": "start", "n": n}), flush=True)
     before = rss()
-    seconds = once(n)
-    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024     # Linux: KiB
-    print(json.dumps({"event": "done", "n": n, "s": seconds, "added": max(peak - before, 0)}),
-          flush=True)
+    if traced:
+        import tracemalloc
+        tracemalloc.start()
+        seconds = once(n)
+        added = tracemalloc.get_traced_memory()[1]
+        tracemalloc.stop()
+    else:
+        seconds = once(n)
+        peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024     # Linux: KiB
+        added = max(peak - before, 0)
+    print(json.dumps({"event": "done", "n": n, "s": seconds, "added": added}), flush=True)
 """.replace("WARMUP", str(WARMUP))
 
 
@@ -138,14 +151,14 @@ def _slope(times: dict[int, float]) -> float | None:
 
 
 def run_method(model: Path, npz: Path, method: str, sizes: tuple[int, ...], compiled: bool,
-               max_seconds: float) -> dict[int, dict]:
+               max_seconds: float, traced: bool = False) -> dict[int, dict]:
     """One process for a method on one model: ``{n: {"s", "added"} or {"skipped": why}}``."""
     out: dict[int, dict] = {}
     env = {**os.environ, "OPENBLAS_NUM_THREADS": os.environ.get("OPENBLAS_NUM_THREADS", "1")}
     with tempfile.TemporaryFile("w+") as err:
         proc = subprocess.Popen([sys.executable, "-c", CHILD,
                                  json.dumps([str(model), str(npz), method, list(sizes),
-                                             compiled])],
+                                             compiled, traced])],
                                 stdout=subprocess.PIPE, stderr=err, bufsize=0, env=env)
         try:
             _follow(proc, out, max_seconds)
@@ -201,11 +214,14 @@ def _follow(proc: subprocess.Popen, out: dict[int, dict], max_seconds: float) ->
 
 
 def report(model: str, sizes: tuple[int, ...], parse: dict[int, float],
-           results: dict[str, dict[int, dict]], input_bytes: dict[int, int]) -> None:
+           results: dict[str, dict[int, dict]], input_bytes: dict[int, int],
+           traced: bool = False) -> None:
     ekf = {n: v["s"] for n, v in results.get("ekf", {}).items() if "s" in v}
-    print(f"\n{model}: parse = numpy.loadtxt of the CSV; ×ekf = the joint EKF at the same N")
+    print(f"\n{model}: parse = numpy.loadtxt of the CSV; ×ekf = the joint EKF at the same N"
+          + ("; MB = the run's traced peak (tracemalloc; times slowed by tracing)" if traced
+             else "; +MB = ru_maxrss added by the run"))
     print(f"{'method':<8} {'N':>9} {'s':>9} {'µs/sample':>10} {'×parse':>8} {'×ekf':>7} "
-          f"{'+MB':>8} {'×input':>7}")
+          f"{'MB' if traced else '+MB':>8} {'×input':>7}")
     for n in sizes:
         print(f"{'parse':<8} {n:>9,} {parse[n]:>9.3f} {1e6 * parse[n] / n:>10.2f}")
     for method, rows in results.items():
@@ -237,6 +253,8 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument("--max-seconds", type=float, default=300.0,
                     help="longest run of a method at one N (default: 300)")
     ap.add_argument("--python", action="store_true", help="the NumPy path (compiled=False)")
+    ap.add_argument("--traced", action="store_true",
+                    help="memory as the run's traced peak (tracemalloc), not ru_maxrss")
     ap.add_argument("--json", type=Path, default=None, help="also write the figures here")
     args = ap.parse_args(argv)
     sizes = tuple(sorted(args.sizes or (QUICK_SIZES if args.quick else SIZES)))
@@ -257,9 +275,9 @@ def main(argv: list[str] | None = None) -> dict:
             for method in args.methods:
                 start = time.perf_counter()
                 results[method] = run_method(model, npz, method, sizes, not args.python,
-                                             args.max_seconds)
+                                             args.max_seconds, args.traced)
                 print(f"  {name} {method}: {time.perf_counter() - start:.0f} s", flush=True)
-            report(name, sizes, parse, results, input_bytes)
+            report(name, sizes, parse, results, input_bytes, args.traced)
             payload[name] = {"parse_s": parse, "input_bytes": input_bytes,
                              "methods": results}
     if args.json is not None:

@@ -461,10 +461,7 @@ class GuardedEstimator:
         if st0.stream is not None:
             raise OptionError("GuardedEstimator.run starts an experiment from init(); this "
                               "state0 has been stepped: continue its stream with step.")
-        # stage 1's result is not kept past this line: the run copies its θ̂ and x̂ (a
-        # record's x̂, x̂₂ and φ̂ less to hold during the fits)
-        run = _OfflineRun(self, t_, U, Y,
-                          self.stage1.run(t_, U, Y, state0=st0.stage1, throw=False), st0)
+        run = _OfflineRun(self, t_, U, Y, st0)
         run.filter(t_.shape[0], fit_progress)
         res = run.result(run.stop())
         return res.raise_for_status() if throw else res
@@ -633,10 +630,13 @@ class _OfflineRun:
     """
 
     def __init__(self, est: GuardedEstimator, t: FloatArray, U: FloatArray, Y: FloatArray,
-                 res1: EstimateResult, st0: GuardedState) -> None:
+                 st0: GuardedState) -> None:
         sys_ = est.model
         n, p, N = sys_.n, sys_.p, t.shape[0]
         self.est, self.system, self.t, self.U, self.Y = est, sys_, t, U, Y
+        # stage 1 over the record; its result is dropped once its θ̂ and x̂ are copied below
+        # (a record's x̂, x̂₂ and φ̂ less to hold during the fits: nothing else refers to it)
+        res1 = est.stage1.run(t, U, Y, state0=st0.stage1, throw=False)
         self.Us = stage2_samples(U, est.hold)[0]              # stage 2's input samples
         xs = res1.x_hat if res1.x_hat_refined is None else res1.x_hat_refined
         # writable C copies (the compiled loop's array type); stage 1's report keeps its NaN
@@ -645,6 +645,7 @@ class _OfflineRun:
         self.xG = np.array(xs, dtype=np.float64, order="C")
         self.theta_stage1 = self.thG
         self.lost, self.lost_message = res1.failed_at, res1.message
+        del res1, xs
         if self.lost is not None:
             self.theta_stage1 = self.thG.copy()
             self.thG[self.lost:] = st0.theta_hat0
