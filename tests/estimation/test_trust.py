@@ -478,3 +478,40 @@ def test_the_estimators_own_fit_leads_the_report_where_its_own_search_goes(name,
     assert abs(gap) <= Q_DECADES_AGREE, (own.process_noise, fresh.process_noise)
     assert np.all(np.abs(own.crlb_sd / fresh.crlb_sd - 1) < SD_AGREE), (own.crlb_sd,
                                                                         fresh.crlb_sd)
+
+
+def _report_with_steps(step_sds, score):
+    """A report whose score test measured ``step_sds`` (sd per parameter) and ``score``."""
+    from thetahat.estimation.statistical.trust import TrustReport
+    p = len(step_sds)
+    return TrustReport(names=tuple(f"theta{i + 1}" for i in range(p)), theta=np.ones(p),
+                       crlb_sd=np.full(p, 0.01), unpinned=(), on_boundary=(),
+                       empty_guard=None, process_noise=0.0, process_noise_scale=1.0,
+                       score=score, one_step=np.ones(p), step_sds=np.asarray(step_sds),
+                       tail_sds=np.zeros(p))
+
+
+@pytest.mark.parametrize("p", [1, 3, 4])
+def test_a_step_beyond_three_sd_that_passes_is_said_to_be_borderline(p):
+    """Between BORDERLINE_SDS (3) and the per-parameter limit (3.29, 3.59, 3.66 for p = 1,
+    3, 4) θ̂ passes the test, and the report says it is borderline, naming the parameter —
+    for every method (the advice follows how θ̂ was made); at 2.9 sd nothing is said; beyond
+    the limit the test fails and says so, not "borderline"."""
+    from thetahat.estimation.statistical.trust import BORDERLINE_SDS
+    limit = component_limit(p)
+    inside = 0.5 * (BORDERLINE_SDS + limit)
+    steps = np.full(p, 0.5)
+    steps[-1] = inside
+    rep = _report_with_steps(steps, score=inside ** 2)            # joint: below χ²_p's limit
+    assert inside ** 2 < chi2_limit(p) and rep.consistent
+    (warning,) = [w for w in rep.warnings if "borderline" in w]
+    assert f"theta{p} by {inside:.3g} sd" in warning and f"{limit:.3g} sd" in warning
+    assert "use method guarded or mle" in warning                       # fits="none"
+    assert any("consistent with the record, borderline" in line for line in rep.lines())
+    steps[-1] = 2.9
+    quiet = _report_with_steps(steps, score=2.9 ** 2)
+    assert quiet.warnings == () and not any("borderline" in x for x in quiet.lines())
+    steps[-1] = limit + 0.1
+    far = _report_with_steps(steps, score=(limit + 0.1) ** 2)
+    assert not far.consistent and not any("borderline" in w for w in far.warnings)
+    assert any("not where the data put it" in w for w in far.warnings)
