@@ -550,6 +550,12 @@ def _huber_cost(res: FloatArray) -> float:
 #: The relative rounding noise of the residuals is taken within [machine ε, NOISE_MAX]: a
 #: difference step of at most √NOISE_MAX = 0.1 % of θ's scale.
 NOISE_MAX = 1e-6
+#: The rounding noise is measured on the record's first NOISE_SAMPLES samples (all of a
+#: shorter record): a ratio of two norms, as well measured on 2¹⁶ samples as on 10⁶, and the
+#: step it gives enters as √η, so that the passes at θ and along the p columns, which need
+#: the step, then run at once over the whole record. On 10⁶ LuGre samples the paper's trust
+#: report: three whole-record passes, two of them at once, become two at once.
+NOISE_SAMPLES = 1 << 16
 
 
 class _Differences:
@@ -560,9 +566,10 @@ class _Differences:
     machine ε, and a difference over SciPy's default step (√ε of θ) is then wrong by 50–80 %
     in three of EMPS's four columns;
     the fit it steers stops where its trust region collapses, short of the optimum. The noise
-    is measured once (the residuals at θ and at θ moved by 64 ulps), and each step is
-    √η · max(|θᵢ|, 1 % of Θ's width) (the forward difference's balance of rounding against
-    truncation), towards Θ's inside at its upper face.
+    is measured once (the residuals at θ and at θ moved by 64 ulps, over the record's first
+    :data:`NOISE_SAMPLES` samples), and each step is √η · max(|θᵢ|, 1 % of Θ's width) (the
+    forward difference's balance of rounding against truncation), towards Θ's inside at its
+    upper face.
 
     Within one Gauss–Newton fit, :meth:`secant` updates the last difference Jacobian along
     each step taken (Broyden's rank-one update, in θ scaled as the steps are) instead of
@@ -579,14 +586,17 @@ class _Differences:
         scale = np.maximum(np.abs(theta), 1e-2 * (hi - lo))
         # the passes at θ and 64 ulps away do not depend on each other: run at once (10⁶
         # LuGre samples, the paper's estimate: 1.97 → 1.28 s, one cProfile run each)
-        r0, r1 = _at_once(pb, lambda th: pb.residuals(th, q),
+        head = pb if pb.t.shape[0] <= NOISE_SAMPLES else _head(pb, NOISE_SAMPLES)
+        r0, r1 = _at_once(head, lambda th: head.residuals(th, q),
                           [theta, np.minimum(theta + 64.0 * eps * scale, hi)])
         norm = float(np.linalg.norm(r0))
         eta = float(np.linalg.norm(r1 - r0)) / norm if norm > 0.0 else eps
         self.noise = min(max(eta, eps), NOISE_MAX) if math.isfinite(eta) else NOISE_MAX
         self.steps = math.sqrt(self.noise) * scale
         self.scale = scale
-        self._last: tuple[FloatArray, FloatArray] = (theta.copy(), r0)
+        # the residuals at θ: these when the head is the record, else the first call's
+        self._last: tuple[FloatArray, FloatArray] = (
+            (theta.copy(), r0) if head is pb else (np.full_like(theta, np.nan), r0))
         self._last_jacobian: tuple[FloatArray, FloatArray] | None = None
         # (θ, residuals, J) the secant updates from, and the residual evaluations then
         self._anchor: tuple[FloatArray, FloatArray, FloatArray] | None = None
@@ -603,18 +613,21 @@ class _Differences:
     def jacobian(self, theta: FloatArray) -> FloatArray:
         if self._last_jacobian is not None and np.array_equal(theta, self._last_jacobian[0]):
             return self._last_jacobian[1].copy()
-        r0 = self.residuals(theta)
         p = theta.shape[0]
-
-        def column(i: int) -> FloatArray:
-            step = float(self.steps[i])
-            if theta[i] + step > self.hi[i]:
-                step = -step
-            tp = np.array(theta, dtype=np.float64)
-            tp[i] += step
-            return (self.pb.residuals(tp, self.q) - r0) / step
-
-        columns = _at_once(self.pb, column, range(p))
+        steps = [-float(self.steps[i]) if theta[i] + self.steps[i] > self.hi[i]
+                 else float(self.steps[i]) for i in range(p)]
+        points = [np.array(theta, dtype=np.float64) for _ in range(p)]
+        for i in range(p):
+            points[i][i] += steps[i]
+        known = np.array_equal(theta, self._last[0])
+        # the residuals at θ (unless known) and along the p columns, all at once
+        passes = _at_once(self.pb, lambda th: self.pb.residuals(th, self.q),
+                          points if known else [np.array(theta, dtype=np.float64), *points])
+        if not known:
+            self._last = (np.array(theta, dtype=np.float64), passes.pop(0))
+            self._evaluations += 1
+        r0 = self._last[1]
+        columns = [(r - r0) / step for r, step in zip(passes, steps)]
         J = np.column_stack(columns) if columns else np.empty((r0.shape[0], 0))
         self._last_jacobian = (np.array(theta, dtype=np.float64), J)
         self._anchor = (np.array(theta, dtype=np.float64), r0, J)
@@ -649,6 +662,12 @@ class _Differences:
         self._anchor = (np.array(theta, dtype=np.float64), r, J)
         self._anchor_evaluations = self._evaluations
         return J.copy()
+
+
+def _head(pb: _Problem, n: int) -> _Problem:
+    """The problem of ``pb``'s first n samples (views of its arrays)."""
+    return replace(pb, t=pb.t[:n], U=pb.U[:n], Y=pb.Y[:n], qidx=pb.qidx[:n],
+                   valid=pb.valid[:n])
 
 
 def _at_once(pb: _Problem, fn: Callable[[Any], FloatArray], items: Any) -> list[FloatArray]:
@@ -1104,9 +1123,10 @@ def _covariance(pb: _Problem, th: FloatArray, q: float, lo: FloatArray, hi: Floa
 def _jacobian(pb: _Problem, th: FloatArray, q: float, lo: FloatArray, hi: FloatArray
               ) -> tuple[FloatArray, FloatArray]:
     """The normalised innovations at θ and their Jacobian, by :class:`_Differences`' forward
-    differences (p + 2 filter passes)."""
+    differences (p + 1 filter passes at once, and two over the noise's head)."""
     diff = _Differences(pb, q, lo, hi, np.asarray(th, dtype=np.float64))
-    return diff.residuals(th), diff.jacobian(th)
+    J = diff.jacobian(th)           # first: the residuals at θ are then among its passes
+    return diff.residuals(th), J
 
 
 def fit_process_noise(system: PerturbedLinearSystem, t: FloatArray, U: FloatArray,
