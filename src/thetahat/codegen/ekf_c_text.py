@@ -138,7 +138,7 @@ def smooth_init(state: str, sizes: dict[str, Any]) -> str:
 
 
 def ekf_source(name: str, banner: str, consts: Sequence[str], rhs: str, kernels: str, *,
-               predict: str, update: str, sizes: dict[str, Any], samples: str = "") -> str:
+               predict: str, update: str, samples: str, sizes: dict[str, Any]) -> str:
     """``<name>.c``: the data, f and its Jacobians, the printed kernels, init and step.
 
     Parameters
@@ -152,11 +152,11 @@ def ekf_source(name: str, banner: str, consts: Sequence[str], rhs: str, kernels:
         The printed kernels (callees first).
     predict, update : str
         The calls of the printed ``ekf_predict`` and ``ekf_update``.
-    sizes : dict
-        n, m, r, p and the hold.
     samples : str
         The statements that set ``Ut`` from ``u``
-        (:func:`~thetahat.codegen.ekf_c.input_samples`; default: a copy).
+        (:func:`~thetahat.codegen.ekf_c.input_samples`).
+    sizes : dict
+        n, m, r, p and the hold.
 
     Returns
     -------
@@ -197,7 +197,7 @@ int {P}_step({P}_state *st, const real_t u[], const real_t y[])
         if (!isfinite(u[i])) return {PU}_NONFINITE_INPUT;
     for (i = 0; i < {r}; ++i)
         if (isinf(y[i])) return {PU}_NONFINITE_INPUT;
-    {samples or f"for (i = 0; i < {m}; ++i) Ut[i] = u[i];"}
+    {samples}
     if (st->k > 0) {{
         for (i = 0; i < {m}; ++i) {{
             U[i] = st->u_prev[i];

@@ -121,8 +121,8 @@ int {P}_apply_fit({P}_state *st, const {P}_real_t theta[], const {P}_real_t cov_
 
 
 def guarded_source(name: str, banner: str, consts: Sequence[str], rhs: str, kernels: str, *,
-                   loop: str, init: str, fit: str, sizes: dict[str, Any],
-                   samples: str = "") -> str:
+                   loop: str, init: str, fit: str, samples: str,
+                   sizes: dict[str, Any]) -> str:
     """``<name>.c``: the data, f and its Jacobians, the printed loop, init and step.
 
     Parameters
@@ -137,12 +137,12 @@ def guarded_source(name: str, banner: str, consts: Sequence[str], rhs: str, kern
     loop, init, fit : str
         The calls of the printed ``guarded_loop`` (over row ``k0`` of its two-row arrays),
         ``progress_reset`` and ``apply_fit`` (of ``TF``, ``CF``, ``SF``).
+    samples : str
+        The statements that set ``Ut`` (stage 2's samples) from ``u`` and advance ``w``'s
+        history (:func:`~thetahat.codegen.ekf_c.input_samples`).
     sizes : dict
         n, m, r, p, the hold and ``x_stage1``, the accessor of stage 1's x̂
         (``x_hat_refined`` with the second observer of Sec. VI, else ``x_hat``).
-    samples : str
-        The statements that set ``Ut`` (stage 2's samples) from ``u`` and advance ``w``'s
-        history (:func:`~thetahat.codegen.ekf_c.input_samples`; default: a copy).
 
     Returns
     -------
@@ -211,7 +211,7 @@ int {P}_step({P}_state *st, const real_t u[], const real_t y[])
         if (!isfinite(u[i])) return {PU}_NONFINITE_INPUT;
     for (i = 0; i < {r}; ++i)
         if (isinf(y[i])) return {PU}_NONFINITE_INPUT;
-    {samples or f"for (i = 0; i < {m}; ++i) Ut[i] = u[i];"}
+    {samples}
     /* rows 0 (the previous sample, for the prediction) and k0 (this one) of the loop */
     for (j = 0; j < 2; ++j) {{
         for (i = 0; i < {m}; ++i) U[j * {max(m, 1)} + i] = (j < k0) ? st->u_prev[i] : Ut[i];

@@ -584,8 +584,8 @@ class _Differences:
         self.pb, self.q, self.lo, self.hi = pb, q, lo, hi
         eps = float(np.finfo(np.float64).eps)
         scale = np.maximum(np.abs(theta), 1e-2 * (hi - lo))
-        # the passes at θ and 64 ulps away do not depend on each other: run at once (10⁶
-        # LuGre samples, the paper's estimate: 1.97 → 1.28 s, one cProfile run each)
+        # η over the head (the whole of a record of at most NOISE_SAMPLES samples): its passes
+        # at θ and 64 ulps away do not depend on each other, and run at once
         head = pb if pb.t.shape[0] <= NOISE_SAMPLES else _head(pb, NOISE_SAMPLES)
         r0, r1 = _at_once(head, lambda th: head.residuals(th, q),
                           [theta, np.minimum(theta + 64.0 * eps * scale, hi)])
