@@ -13,7 +13,7 @@ from __future__ import annotations
 from collections.abc import Sequence
 from typing import Any
 
-__all__ = ["csv_main", "ekf_header", "ekf_main", "ekf_source", "smooth_fields", "smooth_init"]
+__all__ = ["csv_main", "ekf_header", "ekf_main", "ekf_source", "smooth_state"]
 
 
 def ekf_header(name: str, banner: str, sizes: dict[str, Any]) -> str:
@@ -65,7 +65,7 @@ typedef struct {P}_state {{
     {P}_real_t s[{N}];
     {P}_real_t P[{N * N}];
     {P}_real_t u_prev[{max(m, 1)}];
-{smooth_fields(P, sizes)}    long k;
+{smooth_state(P, sizes)[0]}    long k;
 }} {P}_state;
 
 /* The prior: s and P before the first sample. */
@@ -82,9 +82,10 @@ int {P}_step({P}_state *st, const {P}_real_t u[], const {P}_real_t y[]);
 """
 
 
-def smooth_fields(P: str, sizes: dict[str, Any]) -> str:
-    """The state's fields of the hold "smooth" (the last three raw samples, Σ (Δu)² and
-    Σ (Δ²u)² per input), indented as struct members; nothing under another hold.
+def smooth_state(P: str, sizes: dict[str, Any]) -> tuple[str, str]:
+    """The hold "smooth"'s history in a state struct: its members (the last three raw samples,
+    Σ (Δu)² and Σ (Δ²u)² per input) and the C statements that zero them in ``st``; two empty
+    strings under another hold.
 
     Parameters
     ----------
@@ -95,46 +96,24 @@ def smooth_fields(P: str, sizes: dict[str, Any]) -> str:
 
     Returns
     -------
-    str
+    (str, str)
+        The members, indented, one a line; the statements.
 
     Examples
     --------
-    >>> smooth_fields("e", {"m": 2, "hold": "smooth"}).split()[:2]
-    ['e_real_t', 'u_hist[6];']
-    >>> smooth_fields("e", {"m": 2, "hold": "foh"})
-    ''
+    >>> members, zero = smooth_state("e", {"m": 2, "hold": "smooth"})
+    >>> members.split()[:2], zero.splitlines()[0]
+    (['e_real_t', 'u_hist[6];'], 'for (i = 0; i < 6; ++i) st->u_hist[i] = 0.0;')
+    >>> smooth_state("e", {"m": 2, "hold": "foh"})
+    ('', '')
     """
     m = sizes["m"]
     if sizes.get("hold") != "smooth" or m == 0:
-        return ""
+        return "", ""
     return (f"    {P}_real_t u_hist[{3 * m}];    /* hold smooth: the last three raw u */\n"
-            f"    {P}_real_t u_sums[{2 * m}];    /* and sum (du)^2, sum (d2u)^2 per input */\n")
-
-
-def smooth_init(state: str, sizes: dict[str, Any]) -> str:
-    """C statements zeroing :func:`smooth_fields` of ``state`` (nothing when it has none).
-
-    Parameters
-    ----------
-    state : str
-        The C expression of the state pointer.
-    sizes : dict
-        m and the hold.
-
-    Returns
-    -------
-    str
-
-    Examples
-    --------
-    >>> smooth_init("st", {"m": 1, "hold": "smooth"}).splitlines()[0]
-    'for (i = 0; i < 3; ++i) st->u_hist[i] = 0.0;'
-    """
-    m = sizes["m"]
-    if sizes.get("hold") != "smooth" or m == 0:
-        return ""
-    return (f"for (i = 0; i < {3 * m}; ++i) {state}->u_hist[i] = 0.0;\n    "
-            f"for (i = 0; i < {2 * m}; ++i) {state}->u_sums[i] = 0.0;")
+            f"    {P}_real_t u_sums[{2 * m}];    /* and sum (du)^2, sum (d2u)^2 per input */\n",
+            f"for (i = 0; i < {3 * m}; ++i) st->u_hist[i] = 0.0;\n    "
+            f"for (i = 0; i < {2 * m}; ++i) st->u_sums[i] = 0.0;")
 
 
 def ekf_source(name: str, banner: str, consts: Sequence[str], rhs: str, kernels: str, *,
@@ -181,7 +160,7 @@ void {P}_init({P}_state *st)
     for (i = 0; i < {N}; ++i) st->s[i] = S0[i];
     for (i = 0; i < {N * N}; ++i) st->P[i] = P0[i];
     for (i = 0; i < {max(m, 1)}; ++i) st->u_prev[i] = 0.0;
-    {smooth_init("st", sizes)}
+    {smooth_state(P, sizes)[1]}
     st->k = 0;
 }}
 

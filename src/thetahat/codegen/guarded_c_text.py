@@ -14,7 +14,7 @@ from __future__ import annotations
 from collections.abc import Sequence
 from typing import Any
 
-from .ekf_c_text import csv_main, smooth_fields, smooth_init
+from .ekf_c_text import csv_main, smooth_state
 from .harness import C_FLAGS
 
 __all__ = ["guarded_header", "guarded_main", "guarded_makefile", "guarded_source"]
@@ -87,7 +87,7 @@ typedef struct {P}_state {{
     {P}_real_t pst[{6 * p}];
     {P}_real_t gst[3];
     {P}_real_t u_prev[{max(m, 1)}];
-{smooth_fields(P, sizes)}    {P}_real_t theta_hat[{p}];
+{smooth_state(P, sizes)[0]}    {P}_real_t theta_hat[{p}];
     {P}_real_t x_hat[{n}];
     {P}_real_t theta_stage1[{p}];
     {P}_real_t theta_stage2[{p}];
@@ -176,7 +176,7 @@ int {P}_init({P}_state *st)
     st->gst[1] = 1.0;
     st->gst[2] = 0.0;
     for (i = 0; i < {max(m, 1)}; ++i) st->u_prev[i] = 0.0;
-    {smooth_init("st", sizes)}
+    {smooth_state(P, sizes)[1]}
     for (i = 0; i < {p}; ++i) {{
         st->theta_hat[i] = S0[{n} + i];
         st->theta_stage1[i] = S0[{n} + i];
