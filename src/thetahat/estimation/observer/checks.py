@@ -461,18 +461,19 @@ def _check_poles(theta_star: Any,
     solution, arguments = theta_star.expr, theta_star.arguments
     import sympy as sp
 
-    for expr in solution:
-        den = sp.denom(sp.together(expr))
-        if den.is_number:
-            continue
-        fn = sp.lambdify(list(arguments), den, "numpy")
-        d = np.empty(t.size)
-        for rows, V, X in blocks():
-            with np.errstate(all="ignore"):
-                phi = np.asarray(perturbation.g(V, X, np.broadcast_to(th, (V.shape[0],
-                                                                          th.size))),
-                                 dtype=np.float64)
+    dens = [(expr, den) for expr in solution
+            if not (den := sp.denom(sp.together(expr))).is_number]
+    if not dens:
+        return
+    fns = [sp.lambdify(list(arguments), den, "numpy") for _, den in dens]
+    D = np.empty((len(dens), t.size))          # each denominator along the data
+    for rows, V, X in blocks():                 # g once a block for every denominator
+        with np.errstate(all="ignore"):
+            phi = np.asarray(perturbation.g(V, X, np.broadcast_to(th, (V.shape[0], th.size))),
+                             dtype=np.float64)
+            for d, fn in zip(D, fns):
                 d[rows] = np.asarray(fn(*V.T, *X.T, *phi.T), dtype=np.float64)
+    for (expr, den), d in zip(dens, D):
         nz = np.flatnonzero(np.isfinite(d) & (d != 0))     # a sign change between these
         cross = nz[:-1][np.sign(d[nz[:-1]]) != np.sign(d[nz[1:]])]
         if cross.size:
